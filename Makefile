@@ -1,0 +1,63 @@
+# tofdenoise — set-up, training, tests and benchmarks.
+# `make train` and `make test` bootstrap .venv themselves (re-built when pyproject.toml is newer).
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV ?= .venv
+# CPU build by default (no multi-GB CUDA download). GPU users: make TORCH="torch==2.11.0" ... or
+# TORCH="torch --index-url <your CUDA wheel index>".
+TORCH ?= torch==2.13.0
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.tofdenoise-installed
+
+# Training selections (Hydra config groups); ARGS takes any extra Hydra overrides.
+BACKBONE ?=
+NOISE ?=
+LOSS ?=
+DATA ?=
+RUN_DIR ?=
+ARGS ?=
+PYTEST_ARGS ?=
+
+export WANDB_SILENT ?= true
+export WANDB_ERROR_REPORTING ?= false
+export PYTHONUNBUFFERED := 1
+
+.PHONY: help venv train test test-slow bench clean
+
+help:
+	@echo "make train   - small default training on built-in procedural scenes (CPU)"
+	@echo "               BACKBONE=dvss NOISE=hetero LOSS=full DATA=procedural RUN_DIR=path ARGS='hydra overrides'"
+	@echo "make test    - run the test suite (slow experiments excluded)"
+	@echo "make test-slow - run the slow experiments too"
+	@echo "make bench   - side-by-side performance measurements (see docs/benchmarks.md)"
+	@echo "make venv    - only create/refresh .venv (TORCH='torch==X' to choose the torch build)"
+
+venv: $(STAMP)
+
+$(STAMP): pyproject.toml
+	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet "$(TORCH)"
+	$(PY) -m pip install --quiet -e ".[dev]"
+	@touch $(STAMP)
+
+train: $(STAMP)
+	$(VENV)/bin/tofdenoise-train \
+		$(if $(BACKBONE),backbone=$(BACKBONE)) \
+		$(if $(NOISE),noise=$(NOISE)) \
+		$(if $(LOSS),loss=$(LOSS)) \
+		$(if $(DATA),data=$(DATA)) \
+		$(if $(RUN_DIR),paths.run_dir=$(RUN_DIR)) \
+		$(ARGS)
+
+test: $(STAMP)
+	$(PY) -m pytest $(PYTEST_ARGS)
+
+test-slow: $(STAMP)
+	$(PY) -m pytest -m "slow" $(PYTEST_ARGS)
+
+bench: $(STAMP)
+	$(PY) benchmarks/run_all.py
+
+clean:
+	rm -rf $(VENV) .pytest_cache build *.egg-info src/*.egg-info

@@ -1,0 +1,44 @@
+"""Run every benchmark script (benchmarks/bench_*.py) in one process each, in a fixed order.
+
+Each script prints its own side-by-side table with ratios measured in the same run.
+Usage: python benchmarks/run_all.py [name ...]   (e.g. `physics models`)
+"""
+
+from __future__ import annotations
+
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ORDER = ["physics", "models", "data", "training"]
+
+
+def main(argv: list[str]) -> int:
+    here = Path(__file__).resolve().parent
+    wanted = argv or ORDER
+    scripts = [here / f"bench_{name}.py" for name in wanted]
+    import torch
+
+    print(f"# tofdenoise benchmarks  {time.strftime('%Y-%m-%d %H:%M:%S')}")
+    print(f"# python {platform.python_version()}  torch {torch.__version__}  "
+          f"threads {torch.get_num_threads()}  cpu {platform.processor() or platform.machine()}")
+    failed = []
+    for script in scripts:
+        if not script.exists():
+            print(f"\n## {script.stem}: missing ({script})")
+            failed.append(script.stem)
+            continue
+        print(f"\n## {script.stem}", flush=True)
+        rc = subprocess.call([sys.executable, str(script)])
+        if rc != 0:
+            failed.append(script.stem)
+    if failed:
+        print(f"\nfailed: {', '.join(failed)}")
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
