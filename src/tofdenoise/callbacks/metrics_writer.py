@@ -1,0 +1,254 @@
+"""Writers for the final metrics of a run: per-image CSVs and ``metrics.json`` (all atomic).
+
+Functions for the LightningModule / training entry points (no Lightning import here):
+
+- ``set_entry(restored, raw=None, counts=None) -> dict``: one test-set entry of ``metrics.json`` from
+  ``DepthMetrics.compute()`` dicts (tensors or floats): ``{"psnr_db", "mae_mm", "mse_mm2", "ssim",
+  ["mae_mm_pooled", "images", "skipped_images", "valid_px"], "raw": {same keys for the noisy input}}``.
+- ``write_metrics_json(path, results)``: writes ``{"synthetic": entry, "real": entry}`` (whatever sets are
+  given) atomically after validating the schema; ``update_metrics_json(path, set_name, entry)`` merges one set
+  into an existing file (read-modify-write, atomic); ``read_metrics_json(path)`` reads and validates.
+- ``write_per_image_csv(path, rows, raw_rows=None, names=None)``: rows from
+  ``DepthMetrics.per_image_rows()``; columns ``index, name, valid_px, psnr_db, mae_mm, mse_mm2, ssim`` and,
+  with ``raw_rows`` (matched by index), ``raw_psnr_db, raw_mae_mm, raw_mse_mm2, raw_ssim``. ``names`` maps an
+  index to the image name (a dict or a sequence indexed by ``index``). ``read_per_image_csv(path)`` reads it.
+- ``atomic_write_text(path, text)`` / ``atomic_write_bytes(path, data)``: temp file in the same folder +
+  ``os.replace`` (readers see the old or the complete new file, never a partial one).
+
+JSON numbers: NaN is written as ``null`` (e.g. a set where every image was skipped); an infinite PSNR (a
+perfect image, MSE = 0) as the string ``"inf"``, so the file is strict JSON that any tool can parse.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import os
+import tempfile
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from tofdenoise.metrics import METRIC_KEYS
+
+__all__ = [
+    "METRIC_KEYS",
+    "EXTRA_KEYS",
+    "atomic_write_text",
+    "atomic_write_bytes",
+    "set_entry",
+    "write_metrics_json",
+    "update_metrics_json",
+    "read_metrics_json",
+    "validate_metrics_results",
+    "write_per_image_csv",
+    "read_per_image_csv",
+    "json_number",
+]
+
+EXTRA_KEYS = ("mae_mm_pooled", "images", "skipped_images", "valid_px")
+CSV_COLUMNS = ("index", "name", "valid_px") + METRIC_KEYS
+
+
+def _current_umask() -> int:
+    try:
+        with open("/proc/self/status", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def atomic_write_bytes(path: str | Path, data: bytes) -> Path:
+    """Write ``data`` to ``path`` atomically (temporary file next to it, then ``os.replace``).
+
+    The file gets the usual permissions of a new file (0666 minus the umask), not mkstemp's private 0600.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.chmod(tmp, 0o666 & ~_current_umask())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+def atomic_write_text(path: str | Path, text: str) -> Path:
+    """Write UTF-8 ``text`` to ``path`` atomically."""
+    return atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def json_number(value: Any) -> float | int | str | None:
+    """A metric value as a strict-JSON scalar: tensors/numpy -> float, NaN -> None, +-inf -> "inf"/"-inf"."""
+    if value is None:
+        return None
+    if hasattr(value, "item"):
+        value = value.item()
+    if isinstance(value, bool):
+        raise TypeError(f"expected a number, got bool {value!r}")
+    if isinstance(value, int):
+        return value
+    v = float(value)
+    if math.isnan(v):
+        return None
+    if math.isinf(v):
+        return "inf" if v > 0 else "-inf"
+    return v
+
+
+def _metric_block(values: Mapping[str, Any], what: str) -> dict[str, Any]:
+    missing = [k for k in METRIC_KEYS if k not in values]
+    if missing:
+        raise KeyError(f"{what}: missing metric key(s) {missing}; expected {list(METRIC_KEYS)}")
+    out: dict[str, Any] = {k: json_number(values[k]) for k in METRIC_KEYS}
+    for k in EXTRA_KEYS:
+        if k in values:
+            out[k] = json_number(values[k])
+    return out
+
+
+def set_entry(restored: Mapping[str, Any], raw: Mapping[str, Any] | None = None,
+              counts: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """One set of ``metrics.json``: the restored metrics, optional counts, and ``raw`` (the noisy input)."""
+    entry = _metric_block({**restored, **(counts or {})}, "restored metrics")
+    if raw is not None:
+        entry["raw"] = _metric_block(raw, "raw metrics")
+    return entry
+
+
+def validate_metrics_results(results: Mapping[str, Any], source: str = "metrics") -> None:
+    """Raise ValueError naming ``source`` and the set/key when ``results`` does not follow the schema."""
+    if not isinstance(results, Mapping) or not results:
+        raise ValueError(f"{source}: expected a non-empty object {{set name: metrics}}, got {type(results).__name__}")
+    for set_name, entry in results.items():
+        if not isinstance(entry, Mapping):
+            raise ValueError(f"{source}: set '{set_name}' must be an object, got {type(entry).__name__}")
+        blocks = [(str(set_name), entry)]
+        if "raw" in entry:
+            if not isinstance(entry["raw"], Mapping):
+                raise ValueError(f"{source}: '{set_name}.raw' must be an object")
+            blocks.append((f"{set_name}.raw", entry["raw"]))
+        for where, block in blocks:
+            for key in METRIC_KEYS:
+                if key not in block:
+                    raise ValueError(f"{source}: '{where}' lacks '{key}' (expected keys {list(METRIC_KEYS)})")
+                v = block[key]
+                if v is not None and not isinstance(v, (int, float)) and v not in ("inf", "-inf"):
+                    raise ValueError(f"{source}: '{where}.{key}' must be a number, null or \"inf\", got {v!r}")
+
+
+def _normalise(results: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for set_name, entry in results.items():
+        block = _metric_block(entry, f"set '{set_name}'")
+        for k, v in entry.items():
+            if k not in block and k != "raw":
+                block[k] = v
+        if entry.get("raw") is not None:
+            block["raw"] = _metric_block(entry["raw"], f"set '{set_name}' raw")
+        out[str(set_name)] = block
+    return out
+
+
+def write_metrics_json(path: str | Path, results: Mapping[str, Mapping[str, Any]]) -> Path:
+    """Write ``{"synthetic": {...}, "real": {...}}`` to ``path`` atomically (strict JSON, sorted sets)."""
+    data = _normalise(results)
+    validate_metrics_results(data, str(path))
+    return atomic_write_text(path, json.dumps(data, indent=2, allow_nan=False) + "\n")
+
+
+def read_metrics_json(path: str | Path) -> dict[str, Any]:
+    """Read and validate a ``metrics.json``; errors name the file."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise FileNotFoundError(f"metrics file not found: {path}") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{path}: not valid JSON ({exc})") from None
+    validate_metrics_results(data, str(path))
+    return data
+
+
+def update_metrics_json(path: str | Path, set_name: str, entry: Mapping[str, Any]) -> Path:
+    """Add or replace one set in ``path`` (created when missing), keeping the other sets."""
+    path = Path(path)
+    current: dict[str, Any] = read_metrics_json(path) if path.exists() else {}
+    current[str(set_name)] = entry
+    return write_metrics_json(path, current)
+
+
+def _name_for(names: Mapping[int, str] | Sequence[str] | None, index: int | None) -> str:
+    if names is None or index is None:
+        return ""
+    if isinstance(names, Mapping):
+        return str(names.get(index, ""))
+    return str(names[index]) if 0 <= index < len(names) else ""
+
+
+def _csv_value(v: Any) -> str:
+    if v is None:
+        return ""
+    if isinstance(v, float):
+        return "nan" if math.isnan(v) else repr(v)
+    return str(v)
+
+
+def write_per_image_csv(path: str | Path, rows: Sequence[Mapping[str, Any]],
+                        raw_rows: Sequence[Mapping[str, Any]] | None = None,
+                        names: Mapping[int, str] | Sequence[str] | None = None) -> Path:
+    """Write one CSV row per image (atomic). ``raw_rows`` are matched to ``rows`` by ``index``."""
+    raw_by_index: dict[Any, Mapping[str, Any]] = {}
+    if raw_rows is not None:
+        raw_by_index = {r.get("index"): r for r in raw_rows}
+        if len(raw_by_index) != len(raw_rows) or None in raw_by_index:
+            raise ValueError(f"{path}: raw rows need distinct, non-empty 'index' values to be matched")
+    columns = list(CSV_COLUMNS) + ([f"raw_{k}" for k in METRIC_KEYS] if raw_rows is not None else [])
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(columns)
+    for row in rows:
+        idx = row.get("index")
+        name = row.get("name") or _name_for(names, idx)
+        values = [_csv_value(idx), name, _csv_value(row.get("valid_px"))]
+        values += [_csv_value(row.get(k)) for k in METRIC_KEYS]
+        if raw_rows is not None:
+            raw = raw_by_index.get(idx)
+            if raw is None:
+                raise ValueError(f"{path}: no raw row for image index {idx}")
+            values += [_csv_value(raw.get(k)) for k in METRIC_KEYS]
+        writer.writerow(values)
+    return atomic_write_text(path, buf.getvalue())
+
+
+def read_per_image_csv(path: str | Path) -> list[dict[str, Any]]:
+    """Read a per-image CSV back: numbers as float (``index``/``valid_px`` as int), empty cells as None."""
+    out: list[dict[str, Any]] = []
+    with open(path, newline="", encoding="utf-8") as fh:
+        for rec in csv.DictReader(fh):
+            row: dict[str, Any] = {}
+            for k, v in rec.items():
+                if k == "name":
+                    row[k] = v
+                elif v == "" or v is None:
+                    row[k] = None
+                elif k in ("index", "valid_px"):
+                    row[k] = int(v)
+                else:
+                    row[k] = float(v)
+            out.append(row)
+    return out

@@ -1,0 +1,120 @@
+"""metrics.json / per-image CSV writers: schema, strict JSON, atomicity, round trips."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+
+import pytest
+import torch
+
+from tofdenoise.callbacks.metrics_writer import (
+    atomic_write_text,
+    read_metrics_json,
+    read_per_image_csv,
+    set_entry,
+    update_metrics_json,
+    write_metrics_json,
+    write_per_image_csv,
+)
+from tofdenoise.metrics import DepthMetrics
+
+
+def _metric(offset_mm: float) -> DepthMetrics:
+    ref = torch.full((2, 1, 8, 8), 1000.0)
+    pred = ref + torch.tensor([offset_mm, 2 * offset_mm]).view(2, 1, 1, 1)
+    m = DepthMetrics()
+    m.update(pred, ref, torch.ones_like(ref), index=torch.tensor([3, 1]))
+    return m
+
+
+def test_metrics_json_schema_from_depth_metrics(tmp_path):
+    restored, raw = _metric(1.0), _metric(10.0)
+    entry = set_entry(restored.compute(), raw.compute(), counts=restored.counts())
+    path = write_metrics_json(tmp_path / "run" / "metrics.json", {"synthetic": entry})
+    data = json.loads(path.read_text())
+    syn = data["synthetic"]
+    assert set(syn) >= {"psnr_db", "mae_mm", "mse_mm2", "ssim", "raw", "mae_mm_pooled", "images"}
+    assert syn["mae_mm"] == pytest.approx(1.5)
+    assert syn["raw"]["mae_mm"] == pytest.approx(15.0)
+    assert syn["raw"]["mse_mm2"] == pytest.approx((100 + 400) / 2)
+    assert syn["images"] == 2
+    assert read_metrics_json(path) == data
+    assert not [p for p in path.parent.iterdir() if p.name != "metrics.json"]  # no temp files left
+
+
+def test_update_metrics_json_merges_sets(tmp_path):
+    path = tmp_path / "metrics.json"
+    update_metrics_json(path, "synthetic", set_entry(_metric(1.0).compute(), _metric(4.0).compute()))
+    update_metrics_json(path, "real", set_entry(_metric(2.0).compute(), _metric(8.0).compute()))
+    data = read_metrics_json(path)
+    assert list(data) == ["synthetic", "real"]
+    assert data["real"]["mae_mm"] == pytest.approx(3.0)
+    update_metrics_json(path, "real", set_entry(_metric(3.0).compute()))
+    assert read_metrics_json(path)["real"]["mae_mm"] == pytest.approx(4.5)
+    assert "raw" not in read_metrics_json(path)["real"]
+
+
+def test_nan_and_inf_are_strict_json(tmp_path):
+    entry = set_entry({"psnr_db": math.inf, "mae_mm": 0.0, "mse_mm2": 0.0, "ssim": 1.0},
+                      {"psnr_db": float("nan"), "mae_mm": float("nan"), "mse_mm2": float("nan"), "ssim": None})
+    path = write_metrics_json(tmp_path / "m.json", {"synthetic": entry})
+    text = path.read_text()
+    assert "NaN" not in text and "Infinity" not in text
+    data = json.loads(text)
+    assert data["synthetic"]["psnr_db"] == "inf"
+    assert data["synthetic"]["raw"]["mae_mm"] is None
+
+
+def test_bad_schema_is_rejected_with_the_key_named(tmp_path):
+    with pytest.raises(KeyError, match="ssim"):
+        set_entry({"psnr_db": 1.0, "mae_mm": 1.0, "mse_mm2": 1.0})
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"synthetic": {"psnr_db": 1, "mae_mm": 1, "mse_mm2": "x", "ssim": 1}}))
+    with pytest.raises(ValueError, match=r"synthetic\.mse_mm2"):
+        read_metrics_json(bad)
+    bad.write_text("{not json")
+    with pytest.raises(ValueError, match="bad.json"):
+        read_metrics_json(bad)
+
+
+def test_per_image_csv_with_raw_and_names_round_trip(tmp_path):
+    restored, raw = _metric(1.0), _metric(10.0)
+    path = write_per_image_csv(tmp_path / "csv" / "test_synthetic.csv", restored.per_image_rows(),
+                               raw_rows=raw.per_image_rows(), names={1: "scene_b", 3: "scene_d"})
+    rows = read_per_image_csv(path)
+    assert [r["index"] for r in rows] == [1, 3]
+    assert [r["name"] for r in rows] == ["scene_b", "scene_d"]
+    assert rows[0]["mae_mm"] == pytest.approx(2.0) and rows[1]["mae_mm"] == pytest.approx(1.0)
+    assert rows[0]["raw_mae_mm"] == pytest.approx(20.0)
+    assert rows[1]["psnr_db"] == pytest.approx(60.0)
+    assert rows[0]["valid_px"] == 64
+
+
+def test_per_image_csv_requires_matching_raw_rows(tmp_path):
+    rows = _metric(1.0).per_image_rows()
+    with pytest.raises(ValueError, match="no raw row for image index"):
+        write_per_image_csv(tmp_path / "x.csv", rows, raw_rows=rows[:1])
+
+
+def test_atomic_write_gives_normal_file_permissions(tmp_path):
+    old = os.umask(0o022)
+    try:
+        path = atomic_write_text(tmp_path / "p.txt", "x")
+    finally:
+        os.umask(old)
+    assert path.stat().st_mode & 0o777 == 0o644
+
+
+def test_atomic_write_keeps_old_file_when_writing_fails(tmp_path, monkeypatch):
+    path = atomic_write_text(tmp_path / "a.txt", "old")
+
+    def boom(src, dst):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(os, "replace", boom)
+    with pytest.raises(OSError, match="disk full"):
+        atomic_write_text(path, "new")
+    assert path.read_text() == "old"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.txt"]

@@ -1,0 +1,127 @@
+"""tofdenoise-report on run folders fabricated in the documented layout."""
+
+from __future__ import annotations
+
+import base64
+import json
+import re
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from tofdenoise.callbacks.metrics_writer import set_entry, write_metrics_json
+from tofdenoise.cli.report import find_runs, load_run, main, results_table, table_markdown
+
+RAW = {"psnr_db": 31.68, "ssim": 0.95, "mse_mm2": 680.0, "mae_mm": 7.21}
+
+
+def _m(psnr, ssim, mse, mae):
+    return {"psnr_db": psnr, "ssim": ssim, "mse_mm2": mse, "mae_mm": mae}
+
+
+def _csv(path: Path, epochs: int, mae0: float) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    lines = ["epoch,step,train/loss,val/mae_mm,val/raw/mae_mm,val/psnr_db"]
+    for e in range(epochs):
+        lines.append(f"{e},{e * 10 + 4},{1.0 / (e + 1):.4f},,,")
+        lines.append(f"{e},{e * 10 + 9},,{mae0 / (e + 1):.3f},7.2,{30 + e:.2f}")
+    path.write_text("\n".join(lines) + "\n")
+
+
+def _panel(path: Path, value: int) -> bytes:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    assert cv2.imwrite(str(path), np.full((10, 12, 3), value, np.uint8))
+    return path.read_bytes()
+
+
+@pytest.fixture
+def runs(tmp_path):
+    root = tmp_path / "runs"
+    a = root / "dvss-hetero-full"
+    write_metrics_json(a / "metrics.json", {
+        "synthetic": set_entry(_m(40.85, 0.9987, 82.30, 2.54), RAW),
+        "real": set_entry(_m(35.42, 0.99, 120.0, 4.87), _m(31.0, 0.97, 300.0, 7.0)),
+    })
+    (a / "run_info.json").write_text(json.dumps({"backbone": "dvss", "noise": "hetero", "loss": "full",
+                                                 "run_name": "dvss-hetero-full"}))
+    _csv(a / "csv" / "version_0" / "metrics.csv", 3, 9.0)
+    _panel(a / "panels" / "epoch_999.png", 10)
+    latest = _panel(a / "panels" / "epoch_1000.png", 200)  # numeric, not name order
+
+    b = root / "sweep" / "0_unet"
+    write_metrics_json(b / "metrics.json", {"synthetic": set_entry(_m(39.19, 0.9969, 120.52, 4.88), RAW)})
+    (b / ".hydra").mkdir(parents=True)
+    (b / ".hydra" / "config.yaml").write_text(
+        "backbone:\n  name: unet\n  kwargs: {}\nnoise:\n  name: range\nloss:\n  name: l1\n"
+        "run_name: ${backbone.name}-${noise.name}-${loss.name}\n")  # Hydra saves interpolations unresolved
+    _csv(b / "csv" / "metrics.csv", 2, 12.0)
+
+    bad = root / "broken"
+    bad.mkdir()
+    (bad / "metrics.json").write_text('{"synthetic": {"psnr_db": 1}}')
+    return root, latest
+
+
+def test_find_and_load_runs(runs):
+    root, _ = runs
+    found = find_runs([root])
+    assert [p.name for p in found] == ["broken", "dvss-hetero-full", "0_unet"]
+    a = load_run(found[1])
+    assert (a.method, a.noise, a.loss, a.name) == ("dvss", "hetero", "full", "dvss-hetero-full")
+    assert a.panel is not None and a.panel.name == "epoch_1000.png"
+    b = load_run(found[2])
+    assert (b.method, b.noise, b.loss, b.name) == ("unet", "range", "l1", "unet-range-l1")
+    assert b.panel is None and len(b.curves) == 4
+    with pytest.raises(ValueError, match="broken"):
+        load_run(found[0])
+
+
+def test_table_has_one_raw_row_per_distinct_raw_result_and_bold_best(runs):
+    root, _ = runs
+    loaded = [load_run(p) for p in find_runs([root])[1:]]
+    sets, rows = results_table(loaded)
+    assert sets == ["synthetic", "real"]
+    assert [r["kind"] for r in rows] == ["raw", "run", "run"]  # same synthetic raw result -> one raw row
+    md = table_markdown(sets, rows).splitlines()
+    assert md[0].startswith("| Method | Noise | Loss | Synthetic PSNR (dB)↑")
+    dvss = next(line for line in md if line.startswith("| dvss"))
+    unet = next(line for line in md if line.startswith("| unet"))
+    assert "**40.85**" in dvss and "**2.54**" in dvss and "**0.9987**" in dvss
+    assert "39.19" in unet and "**" not in unet
+    assert unet.rstrip(" |").endswith("–")  # no real set for this run
+    assert "| Raw input | hetero, range | – | 31.68 | 0.9500 | 680.00 | 7.21 | 31.00 |" in "\n".join(md)
+    # a different raw result (other test data) gets its own raw row
+    loaded[1].metrics["synthetic"]["raw"]["mae_mm"] = 9.0
+    assert [r["kind"] for r in results_table(loaded)[1]] == ["raw", "raw", "run", "run"]
+
+
+def test_report_html_is_self_contained(runs, tmp_path, capsys):
+    root, latest_panel = runs
+    out = tmp_path / "report" / "report.html"
+    assert main([str(root), "--out", str(out), "--title", "My runs"]) == 0
+    captured = capsys.readouterr()
+    assert "| dvss | hetero | full | **40.85** |" in captured.out
+    assert "broken" in captured.err and "left out" in captured.err
+    page = out.read_text()
+    assert page.startswith("<!DOCTYPE html>") and "<title>My runs</title>" in page
+    assert not re.search(r"(src|href)=\"(?!data:)", page)
+    assert "<script" not in page and "<link" not in page and "http" not in page
+    uris = re.findall(r'src="data:image/png;base64,([^"]+)"', page)
+    # comparison plot + learning curves of 2 runs + 1 sample panel
+    assert len(uris) == 4
+    decoded = [base64.b64decode(u) for u in uris]
+    assert latest_panel in decoded
+    for blob in decoded:
+        img = cv2.imdecode(np.frombuffer(blob, np.uint8), cv2.IMREAD_COLOR)
+        assert img is not None and img.size > 0
+    assert "Runs left out" in page and "broken" in page
+
+
+def test_no_runs_is_an_error(tmp_path, capsys):
+    (tmp_path / "empty").mkdir()
+    assert main([str(tmp_path / "empty"), "--out", str(tmp_path / "r.html")]) == 2
+    assert "no run with a valid metrics.json" in capsys.readouterr().err
+    assert main([str(tmp_path / "missing"), "--out", str(tmp_path / "r.html")]) == 2
+    assert not (tmp_path / "r.html").exists()
