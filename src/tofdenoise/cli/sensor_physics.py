@@ -1,0 +1,187 @@
+"""`tofdenoise-sensor` physics sub-commands: show-calib, sigma, calibrate, validate (docs/physics.md)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from typing import Any
+
+
+def _calib(args: argparse.Namespace) -> Any:
+    from tofdenoise.physics.calibration import resolve_calibration
+
+    return resolve_calibration(getattr(args, "calib", None))
+
+
+def cmd_show_calib(args: argparse.Namespace) -> int:
+    calib = _calib(args)
+    if args.json:
+        print(json.dumps(calib.to_dict(), indent=2))
+        return 0
+    tr = calib.tap_response
+    print(f"calibration: {args.calib or 'default (configs/sensor/default.yaml)'}")
+    print(f"  fingerprint            {calib.fingerprint()[:16]}")
+    print(f"  taps N                 {calib.num_taps}")
+    print(f"  modulation frequency   {calib.modulation_frequency_hz / 1e6:g} MHz "
+          f"(unambiguous range {calib.unambiguous_range_mm:.1f} mm)")
+    print(f"  tap response           c0={tr.c0:g} cos={list(tr.cos)} sin={list(tr.sin)} (contrast {tr.contrast:.3f})")
+    print(f"  dark offset / std      {calib.dark_mean_e:g} e- / {calib.dark_std_e:g} e-")
+    print(f"  signal interval        [{calib.signal_min_e:g}, {calib.signal_max_e:g}] e-")
+    print(f"  full well              {calib.full_well_e:g} e-")
+    print(f"  ADC gain               {calib.adc_gain_e_per_dn if calib.adc_gain_e_per_dn is not None else 'none'} e-/DN")
+    rs = calib.range_sigma_mm
+    print(f"  range-aware sigma(D)   {'none' if rs is None else f'{rs[0]:.4g} + {rs[1]:.4g} D + {rs[2]:.4g} D^2 mm (D in mm)'}")
+    return 0
+
+
+def pair_lists(depth_mm: list[float], signal_e: list[float]) -> list[tuple[float, float]]:
+    """Element-wise pairs; a list of length 1 is repeated to the other's length; other mismatches fail."""
+    nd, ns = len(depth_mm), len(signal_e)
+    if nd == ns:
+        return list(zip(depth_mm, signal_e))
+    if nd == 1:
+        return [(depth_mm[0], s) for s in signal_e]
+    if ns == 1:
+        return [(d, signal_e[0]) for d in depth_mm]
+    raise ValueError(
+        f"--depth-mm has {nd} values and --signal-e has {ns}; give the same number (paired element by element) "
+        f"or a single value for one of them"
+    )
+
+
+def cmd_sigma(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from tofdenoise.physics.uncertainty import sigma_depth_mm
+
+    calib = _calib(args)
+    pairs = pair_lists(args.depth_mm, args.signal_e)
+    d = np.array([p[0] for p in pairs], dtype=np.float64)
+    a = np.array([p[1] for p in pairs], dtype=np.float64)
+    s = sigma_depth_mm(d, a, calib)
+    rows = [
+        {"depth_mm": float(di), "signal_e": float(ai), "sigma_mm": float(si) if math.isfinite(si) else None}
+        for di, ai, si in zip(d, a, s)
+    ]
+    print(json.dumps(rows, indent=None if len(rows) > 20 else 2))
+    return 0
+
+
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    from tofdenoise.physics.calibrate import calibrate_from_folders
+    from tofdenoise.physics.calibration import save_calibration
+
+    lo, hi = args.signal_percentiles
+    report = calibrate_from_folders(
+        args.sweep, args.dark, args.distances, num_harmonics=args.harmonics, full_well_e=args.full_well_e,
+        lower_percentile=lo, upper_percentile=hi,
+    )
+    header = (
+        f"Calibrated by tofdenoise-sensor calibrate\nsweep: {args.sweep} ({report.sweep_points} steps)\n"
+        f"dark: {args.dark} ({report.dark_frames} frames)\ndistances: {args.distances or '-'}"
+    )
+    path = save_calibration(report.calibration, args.out, header=header)
+    print(f"wrote {path}")
+    print(json.dumps(report.calibration.to_dict(), indent=2))
+    return 0
+
+
+def cmd_validate(args: argparse.Namespace) -> int:
+    from tofdenoise.physics.validation import ValidationSettings, run_validation, write_validation
+
+    calib = _calib(args)
+    settings = ValidationSettings.quick() if args.quick else ValidationSettings()
+    if args.frames is not None:
+        settings.num_frames = args.frames
+    if args.roi_px is not None:
+        settings.roi_px = args.roi_px
+    if args.seed is not None:
+        settings.seed = args.seed
+    result = run_validation(calib, settings, captures_dir=args.captures)
+    json_path, png = write_validation(result, calib, args.out)
+    print(f"source: {result.source}")
+    print(f"range-aware baseline: sigma(D) = {result.range_sigma_mm[0]:.4g} + {result.range_sigma_mm[1]:.4g} D "
+          f"+ {result.range_sigma_mm[2]:.4g} D^2 mm ({result.range_sigma_source})")
+    print(f"{'panel':<10}{'model':<16}{'MAPE %':>9}{'R^2':>9}{'n':>5}")
+    for panel, metrics in [("pooled", result.pooled), *result.panels.items()]:
+        for model, m in metrics.items():
+            print(f"{panel:<10}{model:<16}{m['mape_percent']:>9.2f}{m['r2']:>9.3f}{m['n']:>5d}")
+    print(f"wrote {json_path} and {png}")
+    return 0
+
+
+def _float_list(name: str):
+    def parse(text: str) -> float:
+        try:
+            return float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{name}: expected a number, got {text!r}") from None
+
+    return parse
+
+
+def add_commands(subparsers: Any) -> None:
+    calib_help = "calibration file (.yaml/.json) or preset name in configs/sensor (default: configs/sensor/default.yaml)"
+
+    p = subparsers.add_parser("show-calib", help="print the sensor calibration",
+                              description="Print the sensor calibration (as JSON with --json).")
+    p.add_argument("--calib", default=None, help=calib_help)
+    p.add_argument("--json", action="store_true", help="print JSON with the calibration's field names")
+    p.set_defaults(func=cmd_show_calib)
+
+    p = subparsers.add_parser(
+        "sigma", help="per-pixel depth uncertainty sigma_D for (depth, signal) pairs",
+        description="Print a JSON list of {depth_mm, signal_e, sigma_mm}. The two lists are paired element by "
+                    "element; if one has a single value it is used with every value of the other. Invalid "
+                    "inputs (<= 0, nan) give sigma_mm null.",
+    )
+    p.add_argument("--depth-mm", nargs="+", type=_float_list("--depth-mm"), required=True, metavar="D")
+    p.add_argument("--signal-e", nargs="+", type=_float_list("--signal-e"), required=True, metavar="A")
+    p.add_argument("--calib", default=None, help=calib_help)
+    p.set_defaults(func=cmd_sigma)
+
+    p = subparsers.add_parser(
+        "calibrate", help="calibrate a sensor from capture folders",
+        description="Fit the tap response (phase sweep), dark offset/noise (emitter-off frames), signal interval "
+                    "and, with --distances, the range-aware baseline. Folder format: docs/physics.md.",
+    )
+    p.add_argument("--sweep", required=True, help="phase-sweep capture folder (index.json kind 'sweep')")
+    p.add_argument("--dark", required=True, help="emitter-off capture folder (index.json kind 'dark')")
+    p.add_argument("--distances", default=None, help="planar distance sequence (index.json kind 'distances')")
+    p.add_argument("--out", required=True, help="output calibration file (.yaml or .json)")
+    p.add_argument("--harmonics", type=int, default=3, help="Fourier harmonics K of c(x) (default 3)")
+    p.add_argument("--full-well-e", type=float, default=None, help="full-well capacity [e-] (else from the sweep index)")
+    p.add_argument("--signal-percentiles", type=float, nargs=2, default=(1.0, 99.0), metavar=("LO", "HI"),
+                   help="percentiles of the returned signal giving [signal_min_e, signal_max_e] (default 1 99)")
+    p.set_defaults(func=cmd_calibrate)
+
+    p = subparsers.add_parser(
+        "validate", help="noise-model validation (paper Sec. IV / Fig. 6)",
+        description="Planar target 500..1500 mm and black/gray/white surfaces at 1500 mm under 4 exposures; "
+                    "proposed WLS model vs range-aware Gaussian; writes validation.json and validation.png.",
+    )
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--calib", default=None, help=calib_help)
+    p.add_argument("--captures", default=None, help="real capture folder (index.json kind 'validation'); default: simulate")
+    p.add_argument("--quick", action="store_true", help="50 frames, 16x16 ROI (instead of 200 frames, 32x32)")
+    p.add_argument("--frames", type=int, default=None, help="repeated frames per condition (override)")
+    p.add_argument("--roi-px", type=int, default=None, help="ROI side in pixels (override)")
+    p.add_argument("--seed", type=int, default=None, help="random seed of the measured sequences")
+    p.set_defaults(func=cmd_validate)
+
+
+def main(argv: list[str] | None = None) -> int:  # pragma: no cover - convenience for running this module alone
+    parser = argparse.ArgumentParser(prog="tofdenoise-sensor")
+    add_commands(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except (FileNotFoundError, ValueError, KeyError) as exc:
+        print(f"tofdenoise-sensor {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

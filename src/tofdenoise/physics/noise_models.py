@@ -1,0 +1,245 @@
+"""Depth noise models for synthesis, chosen by name: `hetero`, `range`, `fixed`, `none`.
+
+All models add zero-mean Gaussian depth noise D_noisy = D + s(p) eps(p), eps ~ N(0, 1), with a
+per-pixel standard deviation s(p) [mm]:
+
+- `hetero` (the paper's model, Eq. 18): s = scale * sigma_D(p), the WLS depth uncertainty map.
+- `range` (range-aware Gaussian baseline, Sec. IV): s = scale * (alpha0 + alpha1 D + alpha2 D^2), D in mm,
+  clamped at 0; coefficients from `calib.range_sigma_mm` or the `alpha_mm` keyword.
+- `fixed` (scene-independent Gaussian): s = scale * sigma_mm everywhere (default sigma_mm = 5.0 mm, the
+  default calibration's sigma_D at 1 m for a = 17.9 ke-, a mid-interval signal).
+- `none`: s = 0 (clean input; useful for sanity checks).
+
+`scale` multiplies the STANDARD DEVIATION (the variance scales by scale^2). `variance_matching_scale`
+returns the scale that makes a model's mean perturbation variance equal to the hetero model's mean
+variance sigma_D^2 over the same valid pixels (the paper's controlled comparison).
+
+Sampling takes an explicit `torch.Generator`, so validation/test noise is reproducible. Invalid pixels
+(mask False, non-finite depth or std, depth <= 0) are returned unchanged.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass, replace
+from typing import Any
+
+import torch
+
+from tofdenoise.physics.calibration import SensorCalibration
+
+DEFAULT_FIXED_SIGMA_MM: float = 5.0
+
+
+def _tensor(x: Any, like: torch.Tensor | None = None) -> torch.Tensor:
+    if isinstance(x, torch.Tensor):
+        t = x
+    else:
+        t = torch.as_tensor(x)
+    if like is not None:
+        t = t.to(device=like.device)
+    if not torch.is_floating_point(t):
+        t = t.float()
+    return t
+
+
+def _randn_like(x: torch.Tensor, generator: torch.Generator | None) -> torch.Tensor:
+    """Standard normal noise shaped like x; the generator's device is honoured (moved to x's device)."""
+    if generator is None:
+        return torch.randn(x.shape, dtype=x.dtype, device=x.device)
+    gen_device = generator.device
+    if gen_device.type == x.device.type:
+        return torch.randn(x.shape, dtype=x.dtype, device=x.device, generator=generator)
+    return torch.randn(x.shape, dtype=x.dtype, device=gen_device, generator=generator).to(x.device)
+
+
+@dataclass(frozen=True)
+class NoiseModel:
+    """Base class: zero-mean Gaussian depth noise with a per-pixel std `std_mm(depth_mm, sigma_d_mm)`."""
+
+    name: str = "base"
+    scale: float = 1.0
+
+    def base_std_mm(self, depth_mm: torch.Tensor, sigma_d_mm: torch.Tensor | None) -> torch.Tensor:
+        raise NotImplementedError
+
+    def std_mm(self, depth_mm: Any, sigma_d_mm: Any = None) -> torch.Tensor:
+        """Per-pixel standard deviation [mm] (scale included), same shape as depth_mm."""
+        d = _tensor(depth_mm)
+        s = None if sigma_d_mm is None else _tensor(sigma_d_mm, like=d)
+        return self.scale * self.base_std_mm(d, s)
+
+    def valid_mask(self, depth_mm: torch.Tensor, std: torch.Tensor, valid: Any = None) -> torch.Tensor:
+        ok = torch.isfinite(depth_mm) & (depth_mm > 0) & torch.isfinite(std)
+        if valid is not None:
+            v = _tensor(valid, like=depth_mm) if not isinstance(valid, torch.Tensor) else valid.to(depth_mm.device)
+            ok = ok & (v.bool() if v.dtype != torch.bool else v)
+        return ok
+
+    def sample(
+        self,
+        depth_mm: Any,
+        sigma_d_mm: Any = None,
+        valid: Any = None,
+        generator: torch.Generator | None = None,
+    ) -> torch.Tensor:
+        """Noisy depth D + s eps on valid pixels; invalid pixels are returned as they are."""
+        d = _tensor(depth_mm)
+        std = self.std_mm(d, sigma_d_mm)
+        std = torch.broadcast_to(std, d.shape)
+        ok = self.valid_mask(d, std, valid)
+        eps = _randn_like(d, generator)
+        noisy = d + torch.where(ok, std, torch.zeros_like(std)) * eps
+        return torch.where(ok, noisy, d)
+
+    def with_scale(self, scale: float) -> NoiseModel:
+        """A copy with the std multiplier set to `scale` (replaces, does not compound)."""
+        scale = float(scale)
+        if not math.isfinite(scale) or scale < 0:
+            raise ValueError(f"noise scale must be a finite number >= 0, got {scale}")
+        return replace(self, scale=scale)
+
+
+@dataclass(frozen=True)
+class HeteroNoise(NoiseModel):
+    """D + sigma_D(p) eps(p) (paper Eq. 18): the WLS depth uncertainty map, passed in as sigma_d_mm."""
+
+    name: str = "hetero"
+
+    def base_std_mm(self, depth_mm: torch.Tensor, sigma_d_mm: torch.Tensor | None) -> torch.Tensor:
+        if sigma_d_mm is None:
+            raise ValueError("hetero noise needs the sigma_D map (sigma_d_mm), got None")
+        return sigma_d_mm
+
+
+@dataclass(frozen=True)
+class RangeNoise(NoiseModel):
+    """Range-aware Gaussian: sigma(D) = alpha0 + alpha1 D + alpha2 D^2 (D in mm), clamped at 0."""
+
+    name: str = "range"
+    alpha_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def base_std_mm(self, depth_mm: torch.Tensor, sigma_d_mm: torch.Tensor | None) -> torch.Tensor:
+        a0, a1, a2 = self.alpha_mm
+        return (a0 + depth_mm * (a1 + a2 * depth_mm)).clamp_min(0.0)
+
+
+@dataclass(frozen=True)
+class FixedNoise(NoiseModel):
+    """Scene-independent Gaussian: one sigma_mm for every pixel."""
+
+    name: str = "fixed"
+    sigma_mm: float = DEFAULT_FIXED_SIGMA_MM
+
+    def base_std_mm(self, depth_mm: torch.Tensor, sigma_d_mm: torch.Tensor | None) -> torch.Tensor:
+        return torch.full_like(depth_mm, float(self.sigma_mm))
+
+
+@dataclass(frozen=True)
+class NoNoise(NoiseModel):
+    """No perturbation (std 0)."""
+
+    name: str = "none"
+
+    def base_std_mm(self, depth_mm: torch.Tensor, sigma_d_mm: torch.Tensor | None) -> torch.Tensor:
+        return torch.zeros_like(depth_mm)
+
+
+_REGISTRY = {"hetero": HeteroNoise, "range": RangeNoise, "fixed": FixedNoise, "none": NoNoise}
+
+
+def available_noise_models() -> list[str]:
+    return list(_REGISTRY)
+
+
+def _check_scale(scale: Any) -> float:
+    try:
+        s = float(scale)
+    except (TypeError, ValueError):
+        raise ValueError(f"noise kwarg 'scale' must be a number, got {scale!r}") from None
+    if not math.isfinite(s) or s < 0:
+        raise ValueError(f"noise kwarg 'scale' must be a finite number >= 0, got {scale!r}")
+    return s
+
+
+def build_noise_model(name: str, calib: SensorCalibration | None = None, **kwargs: Any) -> NoiseModel:
+    """Build a noise model by name.
+
+    kwargs: all models take `scale` (std multiplier, default 1). `range` takes `alpha_mm`
+    ([alpha0, alpha1, alpha2]; default: calib.range_sigma_mm). `fixed` takes `sigma_mm` (default 5.0).
+    Unknown names or keyword arguments raise ValueError listing what is accepted.
+    """
+    key = str(name).lower()
+    if key not in _REGISTRY:
+        raise ValueError(f"unknown noise model '{name}'; valid names: {available_noise_models()}")
+    kwargs = dict(kwargs)
+    scale = _check_scale(kwargs.pop("scale", 1.0))
+    if key == "range":
+        alpha = kwargs.pop("alpha_mm", None)
+        if alpha is None:
+            if calib is None or calib.range_sigma_mm is None:
+                raise ValueError(
+                    "noise model 'range' needs coefficients: pass alpha_mm=[alpha0, alpha1, alpha2] or a "
+                    "calibration with range_sigma_mm set"
+                )
+            alpha = calib.range_sigma_mm
+        alpha_t = tuple(float(v) for v in alpha)
+        if len(alpha_t) != 3 or not all(math.isfinite(v) for v in alpha_t):
+            raise ValueError(f"noise kwarg 'alpha_mm' must be 3 finite numbers, got {alpha!r}")
+        model: NoiseModel = RangeNoise(alpha_mm=alpha_t)  # type: ignore[arg-type]
+    elif key == "fixed":
+        sigma = float(kwargs.pop("sigma_mm", DEFAULT_FIXED_SIGMA_MM))
+        if not math.isfinite(sigma) or sigma < 0:
+            raise ValueError(f"noise kwarg 'sigma_mm' must be a finite number >= 0, got {sigma}")
+        model = FixedNoise(sigma_mm=sigma)
+    else:
+        model = _REGISTRY[key]()
+    if kwargs:
+        allowed = {"hetero": ["scale"], "range": ["scale", "alpha_mm"], "fixed": ["scale", "sigma_mm"], "none": ["scale"]}
+        raise ValueError(f"noise model '{key}' got unknown kwargs {sorted(kwargs)}; accepted: {allowed[key]}")
+    return model.with_scale(scale)
+
+
+def variance_matching_scale(model: NoiseModel, samples: Iterable[tuple[Any, Any, Any]]) -> float:
+    """Scale k such that model.with_scale(k) has the hetero model's mean perturbation variance.
+
+    samples: iterable of (depth_mm, sigma_d_mm, valid) (valid may be None). Over the pixels that are valid
+    for both models, k^2 mean(s_model^2) = mean(sigma_D^2), with s_model at scale 1 (the model's own
+    scale is ignored). Raises ValueError when the model's variance is zero (e.g. `none`) or no pixel is valid.
+    """
+    base = model.with_scale(1.0)
+    hetero = HeteroNoise()
+    sum_model = 0.0
+    sum_hetero = 0.0
+    count = 0
+    for i, item in enumerate(samples):
+        try:
+            depth_mm, sigma_d_mm, valid = item
+        except (TypeError, ValueError):
+            raise ValueError(f"samples[{i}] must be a (depth_mm, sigma_d_mm, valid) tuple") from None
+        d = _tensor(depth_mm)
+        s_het = torch.broadcast_to(hetero.std_mm(d, sigma_d_mm), d.shape)
+        s_mod = torch.broadcast_to(base.std_mm(d, sigma_d_mm), d.shape)
+        ok = hetero.valid_mask(d, s_het, valid) & torch.isfinite(s_mod)
+        sum_model += float(s_mod[ok].double().pow(2).sum())
+        sum_hetero += float(s_het[ok].double().pow(2).sum())
+        count += int(ok.sum())
+    if count == 0:
+        raise ValueError("variance matching: no valid pixel in the samples")
+    if sum_model <= 0:
+        raise ValueError(f"variance matching: noise model '{model.name}' has zero variance; nothing to scale")
+    return math.sqrt(sum_hetero / sum_model)
+
+
+__all__ = [
+    "DEFAULT_FIXED_SIGMA_MM",
+    "FixedNoise",
+    "HeteroNoise",
+    "NoNoise",
+    "NoiseModel",
+    "RangeNoise",
+    "available_noise_models",
+    "build_noise_model",
+    "variance_matching_scale",
+]

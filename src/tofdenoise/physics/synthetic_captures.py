@@ -1,0 +1,126 @@
+"""Simulated calibration/validation captures of planar targets, written in the capture-folder format.
+
+Returned signal of a fronto-parallel Lambertian planar target at normal incidence (inverse-square law):
+    a(D) = SIGNAL_AT_1M_E * reflectance * exposure * (1000 mm / D)^2
+with SIGNAL_AT_1M_E = 15000 e- per tap for a reflectance-1 target at 1 m and exposure 1 (default
+calibration: a white 0.9 board gives 54 ke- at 0.5 m, still below full well, and 6 ke- at 1.5 m).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from tofdenoise.physics.calibration import SensorCalibration
+from tofdenoise.physics.capture_io import write_capture_folder
+from tofdenoise.physics.simulator import simulate_dark_taps, simulate_frames
+
+SIGNAL_AT_1M_E: float = 15000.0
+REFERENCE_DISTANCE_MM: float = 1000.0
+
+
+def planar_signal_e(
+    distance_mm: float | np.ndarray,
+    reflectance: float = 1.0,
+    exposure: float = 1.0,
+    signal_at_1m_e: float = SIGNAL_AT_1M_E,
+) -> float | np.ndarray:
+    """a(D) = signal_at_1m_e * reflectance * exposure * (1000 / D)^2 [e-] (D in mm)."""
+    return signal_at_1m_e * reflectance * exposure * (REFERENCE_DISTANCE_MM / np.asarray(distance_mm, dtype=np.float64)) ** 2
+
+
+def planar_tap_stack(
+    calib: SensorCalibration,
+    distance_mm: float,
+    signal_e: float | np.ndarray,
+    num_frames: int,
+    shape: tuple[int, int],
+    generator: torch.Generator,
+    exposure: float = 1.0,
+) -> np.ndarray:
+    """Tap stack (F, N, H, W) [e-] of a planar target at one distance."""
+    depth = torch.full(shape, float(distance_mm), dtype=torch.float32)
+    signal = torch.as_tensor(np.broadcast_to(np.asarray(signal_e, dtype=np.float32), shape).copy())
+    frames = simulate_frames(depth, signal, calib, num_frames, exposure=exposure, generator=generator, return_taps=True)
+    assert frames.taps is not None
+    return frames.taps.numpy()
+
+
+def write_sweep_folder(
+    calib: SensorCalibration,
+    folder: str | os.PathLike[str],
+    num_steps: int = 24,
+    num_frames: int = 20,
+    shape: tuple[int, int] = (8, 8),
+    signal_e: float = 20000.0,
+    seed: int = 11,
+) -> Path:
+    """Phase sweep: target phase psi_s = 2 pi s / S emulated by moving the plane (distance psi / (4 pi f / c))."""
+    g = torch.Generator().manual_seed(seed)
+    stacks = []
+    for s in range(num_steps):
+        psi = 2.0 * np.pi * (s + 0.5) / num_steps
+        d = psi / calib.phase_per_mm
+        stacks.append((f"step_{s:03d}", planar_tap_stack(calib, d, signal_e, num_frames, shape, g).astype(np.float32),
+                       {"phase_rad": psi}))
+    return write_capture_folder(
+        folder, "sweep", calib.num_taps, stacks,
+        modulation_frequency_hz=calib.modulation_frequency_hz, units="e", full_well_e=calib.full_well_e,
+        adc_gain_e_per_dn=calib.adc_gain_e_per_dn,
+    )
+
+
+def write_dark_folder(
+    calib: SensorCalibration,
+    folder: str | os.PathLike[str],
+    num_frames: int = 100,
+    shape: tuple[int, int] = (8, 8),
+    seed: int = 12,
+) -> Path:
+    """Emitter-off stack (F, N, H, W), stored in DN when the calibration has an ADC gain."""
+    g = torch.Generator().manual_seed(seed)
+    taps = simulate_dark_taps(shape, calib, num_frames, generator=g).numpy()
+    if calib.adc_gain_e_per_dn is not None:
+        dn = np.round(taps / calib.adc_gain_e_per_dn).astype(np.uint16)
+        return write_capture_folder(folder, "dark", calib.num_taps, [("dark_000", dn, {})],
+                                    units="dn", adc_gain_e_per_dn=calib.adc_gain_e_per_dn)
+    return write_capture_folder(folder, "dark", calib.num_taps, [("dark_000", taps.astype(np.float32), {})], units="e")
+
+
+def write_distances_folder(
+    calib: SensorCalibration,
+    folder: str | os.PathLike[str],
+    distances_mm: Sequence[float],
+    num_frames: int = 100,
+    shape: tuple[int, int] = (8, 8),
+    reflectance: float = 0.9,
+    signal_spread: tuple[float, float] | None = None,
+    seed: int = 13,
+) -> Path:
+    """Planar distance sequence (tap stacks). `signal_spread=(lo, hi)` multiplies the target's signal by a
+    left-to-right ramp lo..hi (illumination fall-off), giving a spread of returned signals."""
+    g = torch.Generator().manual_seed(seed)
+    stacks = []
+    for i, dist in enumerate(distances_mm):
+        a = float(planar_signal_e(dist, reflectance))
+        if signal_spread is not None:
+            ramp = np.linspace(signal_spread[0], signal_spread[1], shape[1])[None, :] * np.ones(shape)
+            a = a * ramp
+        stacks.append((f"dist_{i:03d}", planar_tap_stack(calib, dist, a, num_frames, shape, g).astype(np.float32),
+                       {"distance_mm": float(dist)}))
+    return write_capture_folder(folder, "distances", calib.num_taps, stacks, units="e")
+
+
+__all__ = [
+    "REFERENCE_DISTANCE_MM",
+    "SIGNAL_AT_1M_E",
+    "planar_signal_e",
+    "planar_tap_stack",
+    "write_dark_folder",
+    "write_distances_folder",
+    "write_sweep_folder",
+]

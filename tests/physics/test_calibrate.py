@@ -1,0 +1,145 @@
+"""Calibration from captures: round trip on simulated stacks, fits, and capture-format errors."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from tofdenoise.physics.calibrate import (
+    calibrate_from_folders,
+    estimate_dark,
+    fit_range_sigma,
+    fit_tap_response,
+    signal_interval,
+)
+from tofdenoise.physics.calibration import TapResponse, default_calibration
+from tofdenoise.physics.capture_io import CaptureFormatError, read_index, write_capture_folder
+from tofdenoise.physics.synthetic_captures import write_dark_folder, write_distances_folder, write_sweep_folder
+from tofdenoise.physics.uncertainty import sigma_depth_mm
+
+
+def test_fit_tap_response_exact_on_noise_free_samples():
+    true = TapResponse(1.0, (0.4, 0.03, 0.02), (0.25, -0.01, 0.005))
+    psi = np.linspace(0, 2 * np.pi, 17, endpoint=False)
+    theta = 2 * np.pi * np.arange(4) / 4
+    signal = np.linspace(1000, 9000, 17)[:, None]  # per-step signal changes (e.g. target distance)
+    taps = signal * true.value(psi[:, None] - theta[None, :]) + 300.0
+    got = fit_tap_response(psi, taps, dark_mean_e=300.0, num_harmonics=3)
+    assert got.c0 == pytest.approx(1.0, abs=1e-12)
+    np.testing.assert_allclose(got.cos, true.cos, atol=1e-12)
+    np.testing.assert_allclose(got.sin, true.sin, atol=1e-12)
+    with pytest.raises(ValueError, match="distinct sample phases"):
+        fit_tap_response(psi[:1], taps[:1], 300.0, num_harmonics=3)
+
+
+def test_fit_range_sigma_recovers_polynomial():
+    d = np.arange(500.0, 1501.0, 100.0)
+    s = 2.0 - 0.001 * d + 4e-6 * d**2
+    np.testing.assert_allclose(fit_range_sigma(d, s), (2.0, -0.001, 4e-6), rtol=1e-8, atol=1e-12)
+    with pytest.raises(ValueError, match="3 distinct"):
+        fit_range_sigma([1.0, 2.0], [1.0, 2.0])
+
+
+def test_dark_and_signal_interval_estimators():
+    rng = np.random.default_rng(0)
+    stack = 500.0 + 30.0 * rng.standard_normal((100, 4, 10, 10))
+    m, s = estimate_dark([stack])
+    assert m == pytest.approx(500.0, abs=0.5) and s == pytest.approx(30.0, rel=0.02)
+    lo, hi = signal_interval(np.concatenate([np.linspace(0, 1000, 1001), [np.nan, -5.0]]), 1.0, 99.0)
+    assert lo == pytest.approx(10.99, rel=1e-3) and hi == pytest.approx(990.01, rel=1e-3)
+
+
+def test_round_trip_calibration(tmp_path):
+    """Captures simulated with a known calibration are calibrated back within tolerance."""
+    true = default_calibration().replace(
+        tap_response=TapResponse(1.0, (0.45, 0.02, 0.015), (0.2, 0.0, -0.01)), dark_mean_e=1500.0, dark_std_e=40.0
+    )
+    sweep = write_sweep_folder(true, tmp_path / "sweep", num_steps=24, num_frames=20)
+    dark = write_dark_folder(true, tmp_path / "dark", num_frames=100)
+    distances = np.arange(550.0, 1500.0, 100.0)
+    dist = write_distances_folder(true, tmp_path / "dist", distances, num_frames=100, signal_spread=(0.3, 1.0))
+    rep = calibrate_from_folders(sweep, dark, dist)
+    got = rep.calibration
+    assert got.num_taps == 4 and got.modulation_frequency_hz == true.modulation_frequency_hz
+    assert got.tap_response.c0 == pytest.approx(1.0, abs=1e-9)
+    np.testing.assert_allclose(got.tap_response.cos, true.tap_response.cos, atol=2e-3)
+    np.testing.assert_allclose(got.tap_response.sin, true.tap_response.sin, atol=2e-3)
+    assert got.dark_mean_e == pytest.approx(1500.0, abs=2.0)
+    assert got.dark_std_e == pytest.approx(40.0, rel=0.02)
+    assert got.full_well_e == true.full_well_e and got.adc_gain_e_per_dn == true.adc_gain_e_per_dn
+    # signal interval: percentiles of the per-pixel returned signal of the captured tap stacks
+    from tofdenoise.physics.synthetic_captures import planar_signal_e
+
+    ramp = np.linspace(0.3, 1.0, 8)[None, :] * np.ones((8, 8))
+    true_signals = np.concatenate(
+        [np.full(24 * 64, 20000.0)] + [(planar_signal_e(d, 0.9) * ramp).ravel() for d in distances]
+    )
+    lo, hi = np.percentile(true_signals, [1.0, 99.0])
+    assert got.signal_min_e == pytest.approx(lo, rel=0.03)
+    assert got.signal_max_e == pytest.approx(hi, rel=0.03)
+    assert rep.dark_frames == 100 and rep.sweep_points == 24 and len(rep.range_points) == len(distances)
+    # the range-aware fit reproduces the measured std of the sequence
+    pred = np.polyval(got.range_sigma_mm[::-1], distances)
+    meas = np.array([s for _, s in rep.range_points])
+    assert np.mean(np.abs(pred - meas) / meas) < 0.08
+    # the recovered calibration predicts the same sigma_D as the true one
+    d, a = np.array([600.0, 1000.0, 1400.0]), np.array([30000.0, 10000.0, 3000.0])
+    np.testing.assert_allclose(sigma_depth_mm(d, a, got), sigma_depth_mm(d, a, true), rtol=0.02)
+
+
+def _good_index(tmp_path, **over):
+    arr = np.zeros((3, 4, 2, 2), np.float32)
+    fields = dict(modulation_frequency_hz=5e7)
+    fields.update(over)
+    return write_capture_folder(tmp_path / "sw", "sweep", 4, [("s0", arr, {"phase_rad": 0.0})], **fields)
+
+
+def test_capture_format_errors_name_file_and_shape(tmp_path):
+    folder = _good_index(tmp_path)
+    idx = read_index(folder, "sweep")
+    assert idx.num_taps == 4 and idx.units == "e"
+    with pytest.raises(CaptureFormatError, match="expected a 'dark'"):
+        read_index(folder, "dark")
+    # wrong tap count in a stack
+    np.save(folder / "s0.npy", np.zeros((3, 3, 2, 2), np.float32))
+    dark = write_dark_folder(default_calibration(), tmp_path / "dark", num_frames=5, shape=(2, 2))
+    with pytest.raises(CaptureFormatError, match=r"s0\.npy.*\(frames, 4, H, W\)"):
+        calibrate_from_folders(folder, dark)
+    np.save(folder / "s0.npy", np.zeros((3, 4, 2), np.float32))
+    with pytest.raises(CaptureFormatError, match=r"s0\.npy: shape \(3, 4, 2\)"):
+        calibrate_from_folders(folder, dark)
+    np.save(folder / "s0.npy", np.zeros((3, 4, 2, 2), np.complex64))
+    with pytest.raises(CaptureFormatError, match="dtype complex64"):
+        calibrate_from_folders(folder, dark)
+    (folder / "s0.npy").unlink()
+    with pytest.raises(FileNotFoundError, match="s0.npy"):
+        calibrate_from_folders(folder, dark)
+    with pytest.raises(FileNotFoundError, match="index.json"):
+        read_index(tmp_path)
+
+
+@pytest.mark.parametrize(
+    "patch,needle",
+    [
+        ({"units": "dn"}, "adc_gain_e_per_dn"),
+        ({"modulation_frequency_hz": None}, "modulation_frequency_hz"),
+        ({"num_taps": 2}, "num_taps"),
+        ({"kind": "foo"}, "kind"),
+        ({"roi": [0, 1, 2]}, "roi"),
+        ({"stacks": []}, "stacks"),
+        ({"stacks": [{"file": "s0.npy"}]}, "phase_rad"),
+    ],
+)
+def test_index_errors(tmp_path, patch, needle):
+    folder = _good_index(tmp_path)
+    index = json.loads((folder / "index.json").read_text())
+    for k, v in patch.items():
+        if v is None:
+            index.pop(k)
+        else:
+            index[k] = v
+    (folder / "index.json").write_text(json.dumps(index))
+    with pytest.raises(CaptureFormatError, match=needle):
+        read_index(folder)

@@ -1,0 +1,147 @@
+"""SensorCalibration / TapResponse: field names, validation errors, round trips, resolve."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from tofdenoise.paths import CONFIG_DIR, REPO_ROOT
+from tofdenoise.physics.calibration import (
+    FIELDS,
+    CalibrationError,
+    SensorCalibration,
+    TapResponse,
+    default_calibration,
+    load_calibration,
+    resolve_calibration,
+    save_calibration,
+)
+
+
+def test_paths_point_at_repo():
+    assert (REPO_ROOT / "pyproject.toml").is_file()
+    assert CONFIG_DIR == REPO_ROOT / "configs"
+    assert (CONFIG_DIR / "sensor" / "default.yaml").is_file()
+
+
+def test_default_calibration_is_physically_sensible():
+    c = default_calibration()
+    assert c.num_taps >= 3
+    assert c.tap_response.contrast < 1.0  # modulation contrast below 1
+    assert c.dark_std_e > 0 and c.dark_mean_e > 0  # dark/ambient floor
+    assert c.unambiguous_range_mm > 2500.0
+    assert c.signal_max_e * (c.tap_response.c0 + sum(abs(v) for v in c.tap_response.cos)) + c.dark_mean_e < c.full_well_e
+    assert c.range_sigma_mm is not None and len(c.range_sigma_mm) == 3
+
+
+def test_unambiguous_range_closed_form():
+    c = default_calibration().replace(modulation_frequency_hz=60e6)
+    assert c.unambiguous_range_mm == pytest.approx(299792458.0 / (2 * 60e6) * 1000.0, rel=1e-12)
+    assert c.phase_per_mm * c.unambiguous_range_mm == pytest.approx(2 * math.pi)
+
+
+def test_tap_response_value_and_derivative_numpy_torch():
+    tr = TapResponse(c0=1.0, cos=(0.5, 0.02, 0.01), sin=(0.1, 0.0, -0.02))
+    x = np.linspace(-3, 9, 101)
+    expected = 1.0 + 0.5 * np.cos(x) + 0.1 * np.sin(x) + 0.02 * np.cos(2 * x) + 0.01 * np.cos(3 * x) - 0.02 * np.sin(3 * x)
+    np.testing.assert_allclose(tr.value(x), expected, rtol=1e-12)
+    h = 1e-6
+    np.testing.assert_allclose(tr.derivative(x), (tr.value(x + h) - tr.value(x - h)) / (2 * h), atol=1e-7)
+    xt = torch.tensor(x, dtype=torch.float64)
+    assert isinstance(tr.value(xt), torch.Tensor)
+    np.testing.assert_allclose(tr.derivative(xt).numpy(), tr.derivative(x), rtol=1e-12)
+    # tap_matrices reproduce c(psi - theta_n)
+    R, G, theta, _ = tr.tap_matrices(5)
+    psi = np.array([0.3, 2.0, 5.5])
+    h_feat = np.concatenate([np.cos(np.outer(psi, [1, 2, 3])), np.sin(np.outer(psi, [1, 2, 3]))], axis=1)
+    np.testing.assert_allclose(h_feat @ R + 1.0, tr.value(psi[:, None] - theta[None, :]), rtol=1e-12)
+    np.testing.assert_allclose(h_feat @ G, tr.derivative(psi[:, None] - theta[None, :]), atol=1e-12)
+
+
+def test_to_dict_field_names_and_roundtrip(tmp_path):
+    c = default_calibration()
+    d = c.to_dict()
+    assert tuple(d) == FIELDS
+    assert set(d["tap_response"]) == {"c0", "cos", "sin"}
+    for suffix in (".yaml", ".json", ".yml"):
+        p = save_calibration(c, tmp_path / f"calib{suffix}")
+        back = load_calibration(p)
+        assert back == c
+        assert back.fingerprint() == c.fingerprint()
+    assert json.loads((tmp_path / "calib.json").read_text())["num_taps"] == c.num_taps
+    assert c.replace(dark_std_e=10.0).fingerprint() != c.fingerprint()
+    assert len(c.fingerprint()) == 64
+
+
+@pytest.mark.parametrize(
+    "field,value,needle",
+    [
+        ("num_taps", 2, "num_taps"),
+        ("num_taps", 3.5, "num_taps"),
+        ("modulation_frequency_hz", -1.0, "modulation_frequency_hz"),
+        ("dark_std_e", 0.0, "dark_std_e"),
+        ("dark_mean_e", -5.0, "dark_mean_e"),
+        ("signal_max_e", 10.0, "signal_max_e"),
+        ("full_well_e", "lots", "full_well_e"),
+        ("adc_gain_e_per_dn", 0.0, "adc_gain_e_per_dn"),
+        ("range_sigma_mm", [1.0, 2.0], "range_sigma_mm"),
+        ("tap_response", {"c0": 1.0, "cos": [2.0], "sin": [0.0]}, "tap_response"),
+        ("tap_response", {"c0": 1.0, "cos": [0.5], "sin": [0.0, 0.1]}, "tap_response"),
+        ("tap_response", {"c0": 1.0, "cos": [0.5]}, "tap_response.sin"),
+    ],
+)
+def test_out_of_range_fields_name_the_field(tmp_path, field, value, needle):
+    d = default_calibration().to_dict()
+    d[field] = value
+    p = tmp_path / "bad.yaml"
+    p.write_text(yaml.safe_dump(d))
+    with pytest.raises(CalibrationError, match=needle) as info:
+        load_calibration(p)
+    assert str(p) in str(info.value)
+
+
+def test_missing_and_unknown_fields():
+    d = default_calibration().to_dict()
+    del d["dark_mean_e"]
+    with pytest.raises(CalibrationError, match="dark_mean_e"):
+        SensorCalibration.from_dict(d, source="x")
+    d = default_calibration().to_dict()
+    d["dark_meen_e"] = 1.0
+    with pytest.raises(CalibrationError, match="dark_meen_e"):
+        SensorCalibration.from_dict(d)
+    d = default_calibration().to_dict()
+    d["_target_"] = "ignored"  # Hydra-style private keys are ignored
+    del d["range_sigma_mm"], d["adc_gain_e_per_dn"]  # optional fields
+    c = SensorCalibration.from_dict(d)
+    assert c.range_sigma_mm is None and c.adc_gain_e_per_dn is None
+
+
+def test_load_errors(tmp_path):
+    with pytest.raises(FileNotFoundError):
+        load_calibration(tmp_path / "nope.yaml")
+    with pytest.raises(CalibrationError, match="suffix|end in"):
+        load_calibration(tmp_path / "calib.txt")
+    p = tmp_path / "broken.json"
+    p.write_text("{not json")
+    with pytest.raises(CalibrationError, match="broken.json"):
+        load_calibration(p)
+
+
+def test_resolve_calibration_specs(tmp_path):
+    from omegaconf import OmegaConf
+
+    c = default_calibration()
+    assert resolve_calibration(None) == c
+    assert resolve_calibration(c) is c
+    assert resolve_calibration(c.to_dict()) == c
+    assert resolve_calibration(OmegaConf.create(c.to_dict())) == c
+    assert resolve_calibration("default") == c
+    p = save_calibration(c.replace(num_taps=5), tmp_path / "five.json")
+    assert resolve_calibration(str(p)).num_taps == 5
+    with pytest.raises(CalibrationError):
+        resolve_calibration(3.0)

@@ -1,0 +1,110 @@
+"""Noise models: std formulas, reproducible sampling, invalid pixels, variance matching."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from tofdenoise.physics.calibration import default_calibration
+from tofdenoise.physics.noise_models import (
+    DEFAULT_FIXED_SIGMA_MM,
+    available_noise_models,
+    build_noise_model,
+    variance_matching_scale,
+)
+from tofdenoise.physics.uncertainty import sigma_depth_mm
+
+
+def _scene(seed: int = 0):
+    g = torch.Generator().manual_seed(seed)
+    depth = 400.0 + 2000.0 * torch.rand(2, 1, 32, 48, generator=g)
+    signal = 3000.0 + 47000.0 * torch.rand(2, 1, 32, 48, generator=g)
+    valid = torch.rand(2, 1, 32, 48, generator=g) > 0.1
+    depth = torch.where(valid, depth, torch.zeros_like(depth))
+    sigma = sigma_depth_mm(depth, signal, default_calibration())
+    return depth, sigma, valid
+
+
+def test_registry_and_errors():
+    assert available_noise_models() == ["hetero", "range", "fixed", "none"]
+    with pytest.raises(ValueError, match="hetero"):
+        build_noise_model("gauss")
+    with pytest.raises(ValueError, match="range_sigma_mm|alpha_mm"):
+        build_noise_model("range", calib=default_calibration().replace(range_sigma_mm=None))
+    with pytest.raises(ValueError, match="sigma"):
+        build_noise_model("hetero", sigma_mm=3.0)
+    with pytest.raises(ValueError, match="scale"):
+        build_noise_model("fixed", scale=-1.0)
+
+
+def test_std_formulas():
+    depth, sigma, valid = _scene()
+    calib = default_calibration()
+    torch.testing.assert_close(build_noise_model("hetero", scale=2.0).std_mm(depth, sigma), 2.0 * sigma, equal_nan=True)
+    a0, a1, a2 = calib.range_sigma_mm
+    rng = build_noise_model("range", calib=calib)
+    torch.testing.assert_close(rng.std_mm(depth), (a0 + a1 * depth + a2 * depth**2).clamp_min(0))
+    rng2 = build_noise_model("range", alpha_mm=[1.0, 0.002, 1e-6], scale=0.5)
+    torch.testing.assert_close(rng2.std_mm(torch.tensor([1000.0])), torch.tensor([0.5 * (1.0 + 2.0 + 1.0)]))
+    fixed = build_noise_model("fixed")
+    assert torch.all(fixed.std_mm(depth) == DEFAULT_FIXED_SIGMA_MM)
+    assert torch.all(build_noise_model("fixed", sigma_mm=2.5, scale=2.0).std_mm(depth) == 5.0)
+    assert torch.all(build_noise_model("none").std_mm(depth) == 0)
+
+
+@pytest.mark.parametrize("name", ["hetero", "range", "fixed", "none"])
+def test_sampling_reproducible_and_invalid_untouched(name):
+    depth, sigma, valid = _scene()
+    model = build_noise_model(name, calib=default_calibration())
+    n1 = model.sample(depth, sigma, valid, generator=torch.Generator().manual_seed(5))
+    n2 = model.sample(depth, sigma, valid, generator=torch.Generator().manual_seed(5))
+    n3 = model.sample(depth, sigma, valid, generator=torch.Generator().manual_seed(6))
+    assert torch.equal(n1, n2)
+    assert torch.equal(n1[~valid], depth[~valid])
+    if name == "none":
+        assert torch.equal(n1, depth)
+    else:
+        assert not torch.equal(n1, n3)
+        assert (n1[valid] != depth[valid]).float().mean() > 0.99
+
+
+def test_hetero_sample_statistics():
+    """Normalised residuals (noisy - D) / sigma_D are standard normal."""
+    calib = default_calibration()
+    depth = torch.full((200, 200), 1200.0, dtype=torch.float64)
+    signal = torch.linspace(3000, 50000, 200, dtype=torch.float64).expand(200, 200)
+    sigma = sigma_depth_mm(depth, signal, calib)
+    noisy = build_noise_model("hetero").sample(depth, sigma, generator=torch.Generator().manual_seed(0))
+    z = (noisy - depth) / sigma
+    assert abs(float(z.mean())) < 0.02
+    assert float(z.std()) == pytest.approx(1.0, abs=0.02)
+    # the per-column std follows sigma_D (signal varies along columns)
+    col_std = (noisy - depth).std(dim=0)
+    torch.testing.assert_close(col_std / sigma[0], torch.ones(200, dtype=torch.float64), atol=0.25, rtol=0)
+
+
+def test_variance_matching_equalises_mean_variance():
+    samples = [_scene(0), _scene(1), _scene(2)]
+    hetero_mean_var = torch.cat([s[1][s[2]] ** 2 for s in samples]).mean()
+    for name in ("range", "fixed"):
+        model = build_noise_model(name, calib=default_calibration(), scale=3.0)  # own scale is ignored
+        k = variance_matching_scale(model, samples)
+        matched = model.with_scale(k)
+        var = torch.cat([matched.std_mm(d, s)[v] ** 2 for d, s, v in samples]).mean()
+        assert float(var) == pytest.approx(float(hetero_mean_var), rel=1e-6)
+        # and the empirical perturbation variance agrees (Monte Carlo)
+        g = torch.Generator().manual_seed(3)
+        emp = torch.cat([(matched.sample(d, s, v, generator=g) - d)[v] ** 2 for d, s, v in samples]).mean()
+        assert float(emp) == pytest.approx(float(hetero_mean_var), rel=0.05)
+    assert variance_matching_scale(build_noise_model("hetero"), samples) == pytest.approx(1.0)
+    with pytest.raises(ValueError, match="zero variance"):
+        variance_matching_scale(build_noise_model("none"), samples)
+
+
+def test_with_scale_replaces():
+    m = build_noise_model("fixed", sigma_mm=2.0, scale=3.0)
+    assert m.with_scale(0.5).scale == 0.5
+    assert float(m.with_scale(0.5).std_mm(torch.tensor([1.0]))) == pytest.approx(1.0)
+    assert math.isclose(m.scale, 3.0)

@@ -1,0 +1,103 @@
+"""Noise-model validation (Sec. IV / Fig. 6): targets, outputs, metrics, real-capture input."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from tofdenoise.physics.calibration import default_calibration
+from tofdenoise.physics.capture_io import CaptureFormatError, write_capture_folder
+from tofdenoise.physics.simulator import simulate_frames
+from tofdenoise.physics.synthetic_captures import planar_signal_e, planar_tap_stack
+from tofdenoise.physics.validation import (
+    RANGE_DISTANCES_MM,
+    ValidationSettings,
+    fit_default_range_sigma,
+    mape_percent,
+    r2_score,
+    run_validation,
+    write_validation,
+)
+
+
+def test_metrics_hand_computed():
+    meas = np.array([1.0, 2.0, 4.0])
+    pred = np.array([1.1, 1.8, 4.0])
+    assert mape_percent(pred, meas) == pytest.approx(100 * (0.1 + 0.1 + 0.0) / 3)
+    ss_res = 0.01 + 0.04
+    ss_tot = np.sum((meas - meas.mean()) ** 2)
+    assert r2_score(pred, meas) == pytest.approx(1 - ss_res / ss_tot)
+    assert r2_score(meas, meas) == 1.0
+
+
+def test_signal_falls_with_distance():
+    assert planar_signal_e(500.0, 0.9) == pytest.approx(4 * planar_signal_e(1000.0, 0.9))
+    assert planar_signal_e(1500.0, 0.2, 2.0) == pytest.approx(15000.0 * 0.2 * 2.0 / 2.25)
+
+
+def test_quick_validation_meets_paper_figures(tmp_path):
+    calib = default_calibration()
+    result = run_validation(calib, ValidationSettings.quick())
+    prop, rng = result.pooled["proposed"], result.pooled["range_gaussian"]
+    assert prop["mape_percent"] <= 7.7 and prop["r2"] >= 0.93
+    sig = result.panels["signal"]
+    assert sig["range_gaussian"]["mape_percent"] > 3 * sig["proposed"]["mape_percent"]
+    assert sig["range_gaussian"]["r2"] < 0.5 < sig["proposed"]["r2"]
+    assert rng["mape_percent"] > prop["mape_percent"]
+    # measured std rises with distance (signal falls as 1/D^2)
+    r = sorted((c for c in result.conditions if c.group == "range"), key=lambda c: c.distance_mm)
+    assert [c.distance_mm for c in r] == list(RANGE_DISTANCES_MM)
+    assert r[-1].measured_std_mm > 3 * r[0].measured_std_mm
+    json_path, png = write_validation(result, calib, tmp_path)
+    data = json.loads(json_path.read_text())
+    for key in ("proposed", "range_gaussian"):
+        assert set(data["pooled"][key]) >= {"mape_percent", "r2"}
+    groups = [c["group"] for c in data["conditions"]]
+    assert groups.count("range") == 11 and groups.count("signal") == 12 and groups.count("range_fit") == 10
+    for c in data["conditions"]:
+        assert {"distance_mm", "surface", "exposure", "measured_std_mm", "proposed_std_mm", "range_gaussian_std_mm"} <= set(c)
+        assert c["num_frames"] == 50 and c["num_pixels"] == 256
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_default_range_sigma_matches_its_fit():
+    """configs/sensor/default.yaml range_sigma_mm reproduces a fresh independent fit (within noise)."""
+    calib = default_calibration()
+    alpha = fit_default_range_sigma(calib, num_frames=60, roi_px=16, seed=99)
+    d = np.array([600.0, 1000.0, 1400.0])
+    ref = np.polyval(calib.range_sigma_mm[::-1], d)
+    np.testing.assert_allclose(np.polyval(alpha[::-1], d), ref, rtol=0.06)
+
+
+def test_validation_from_capture_folder(tmp_path):
+    calib = default_calibration()
+    g = torch.Generator().manual_seed(0)
+    stacks = []
+    for i, d in enumerate((600.0, 1000.0, 1400.0)):
+        a = float(planar_signal_e(d, 0.9))
+        stacks.append((f"r{i}", planar_tap_stack(calib, d, a, 40, (8, 8), g), {"group": "range", "distance_mm": d}))
+        stacks.append((f"f{i}", planar_tap_stack(calib, d + 50, a, 40, (8, 8), g), {"group": "range_fit", "distance_mm": d + 50}))
+    # a depth + amplitude stack (cameras that only export depth/amplitude)
+    fr = simulate_frames(torch.full((8, 8), 1500.0), torch.full((8, 8), 3000.0), calib, 40, generator=g)
+    stacks.append(("sd", fr.depth_mm.numpy(), {"group": "signal", "distance_mm": 1500.0, "surface": "gray",
+                                               "exposure": 1.0, "amplitude_file": "sa.npy"}))
+    folder = write_capture_folder(tmp_path / "val", "validation", 4, stacks)
+    np.save(folder / "sa.npy", fr.amplitude.numpy())
+    result = run_validation(calib, captures_dir=folder)
+    assert result.source.startswith("captures")
+    assert result.range_sigma_source.startswith("least squares")
+    assert result.pooled["proposed"]["n"] == 4
+    assert result.pooled["proposed"]["mape_percent"] < 15.0
+    # a depth stack without amplitude is rejected with the file named
+    index = json.loads((folder / "index.json").read_text())
+    del index["stacks"][-1]["amplitude_file"]
+    (folder / "index.json").write_text(json.dumps(index))
+    with pytest.raises(ValueError, match="sd.npy.*amplitude_file"):
+        run_validation(calib, captures_dir=folder)
+    index["stacks"][0]["group"] = "other"
+    (folder / "index.json").write_text(json.dumps(index))
+    with pytest.raises(CaptureFormatError, match="group"):
+        run_validation(calib, captures_dir=folder)
