@@ -15,7 +15,6 @@ import hashlib
 import json
 import math
 import os
-import tempfile
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -24,6 +23,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from tofdenoise.atomic import atomic_write_text
 from tofdenoise.physics import _backend as B
 
 C_LIGHT_M_PER_S: float = 299_792_458.0
@@ -422,21 +422,6 @@ def load_calibration(path: str | os.PathLike[str]) -> SensorCalibration:
     return SensorCalibration.from_dict(data, source=str(path))
 
 
-def atomic_write_text(path: str | os.PathLike[str], text: str) -> None:
-    """Write text to a temp file in the same folder, then os.replace it over `path`."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
 def save_calibration(calib: SensorCalibration, path: str | os.PathLike[str], header: str | None = None) -> Path:
     """Write a calibration as YAML or JSON (by suffix), atomically. Returns the path."""
     path = Path(path)
@@ -493,7 +478,6 @@ __all__ = [
     "FIELDS",
     "SensorCalibration",
     "TapResponse",
-    "atomic_write_text",
     "default_calibration",
     "load_calibration",
     "resolve_calibration",

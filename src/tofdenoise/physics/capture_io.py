@@ -27,14 +27,13 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from tofdenoise.physics.calibration import atomic_write_text
+from tofdenoise.atomic import atomic_write, atomic_write_text
 
 FORMAT = "tofdenoise-captures-v1"
 KINDS = ("sweep", "dark", "distances", "validation")
@@ -180,18 +179,8 @@ def load_stack(index: CaptureIndex, file: str, ndim: tuple[int, ...] = (4,), sca
 
 
 def save_npy_atomic(path: str | os.PathLike[str], array: np.ndarray) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".npy", dir=path.parent)
-    os.close(fd)
-    try:
-        np.save(tmp, np.ascontiguousarray(array), allow_pickle=False)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    return path
+    """Save ``array`` as ``.npy`` (no pickle) atomically."""
+    return atomic_write(path, lambda tmp: np.save(tmp, np.ascontiguousarray(array), allow_pickle=False))
 
 
 def write_capture_folder(

@@ -31,7 +31,8 @@ import numpy as np
 import torch
 
 from tofdenoise.physics.calibrate import fit_range_sigma, temporal_std_roi_mm
-from tofdenoise.physics.calibration import SensorCalibration, atomic_write_text
+from tofdenoise.atomic import atomic_write, atomic_write_text
+from tofdenoise.physics.calibration import SensorCalibration
 from tofdenoise.physics.capture_io import load_stack, read_index
 from tofdenoise.physics.simulator import demodulate, signal_from_taps_e, simulate_frames
 from tofdenoise.physics.synthetic_captures import planar_signal_e
@@ -328,11 +329,10 @@ def plot_validation(result: ValidationResult, path: str | os.PathLike[str]) -> P
     ax.set_title("(c) predicted vs measured")
     ax.legend(fontsize=8)
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.tmp.png")
-    fig.savefig(tmp, dpi=110)
-    plt.close(fig)
-    os.replace(tmp, path)
+    try:
+        atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=110))
+    finally:
+        plt.close(fig)
     return path
 
 

@@ -1,0 +1,67 @@
+"""Atomic file writes: the one implementation every cache, output and config writer uses.
+
+A writer fills a temporary file in the destination folder (unique per process and thread), flushes it, gives it
+the permissions of a normal new file (0666 minus the umask, not ``mkstemp``'s private 0600) and renames it over the
+destination with ``os.replace``. Readers therefore see either the old file or the complete new one, never a
+partial write; concurrent writers of the same path are safe (the last rename wins); a failed write leaves the old
+file untouched and no temporary file behind.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+from typing import Callable
+
+__all__ = ["atomic_write", "atomic_write_bytes", "atomic_write_text", "current_umask"]
+
+
+def current_umask() -> int:
+    """The process umask, read without changing it where /proc allows (thread-safe), else set-and-restore."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def atomic_write(path: str | os.PathLike[str], write: Callable[[Path], object], suffix: str | None = None) -> Path:
+    """Call ``write(tmp_path)`` to fill a temporary file next to ``path``, then rename it into place.
+
+    ``suffix`` is the temporary file's extension (default: the destination's), for writers that choose the format
+    by extension (``np.save``, ``cv2.imwrite``, ``Figure.savefig``). Returns ``Path(path)``.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=f".tmp{suffix if suffix is not None else path.suffix}",
+                                    dir=path.parent)
+    os.close(fd)
+    tmp = Path(tmp_name)
+    try:
+        write(tmp)
+        if not tmp.exists():
+            raise OSError(f"{path}: the writer produced no file")
+        with open(tmp, "rb+") as fh:
+            os.fsync(fh.fileno())
+        os.chmod(tmp, 0o666 & ~current_umask())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path
+
+
+def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> Path:
+    """Write ``data`` to ``path`` atomically."""
+    return atomic_write(path, lambda tmp: tmp.write_bytes(data))
+
+
+def atomic_write_text(path: str | os.PathLike[str], text: str) -> Path:
+    """Write UTF-8 ``text`` to ``path`` atomically."""
+    return atomic_write_bytes(path, text.encode("utf-8"))

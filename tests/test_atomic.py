@@ -1,0 +1,58 @@
+"""The shared atomic writer: complete files only, old file kept on failure, normal permissions, no temp left."""
+
+from __future__ import annotations
+
+import os
+import stat
+
+import numpy as np
+import pytest
+
+from tofdenoise.atomic import atomic_write, atomic_write_bytes, atomic_write_text
+
+
+def test_text_and_bytes_round_trip(tmp_path):
+    p = atomic_write_text(tmp_path / "sub" / "a.json", '{"x": 1}')
+    assert p.read_text() == '{"x": 1}'
+    atomic_write_bytes(p, b"xyz")
+    assert p.read_bytes() == b"xyz"
+    assert [f.name for f in p.parent.iterdir()] == ["a.json"]
+
+
+def test_failure_keeps_old_file_and_leaves_no_temp(tmp_path):
+    p = tmp_path / "keep.txt"
+    atomic_write_text(p, "old")
+
+    def broken(tmp):
+        tmp.write_text("half")
+        raise RuntimeError("disk full")
+
+    with pytest.raises(RuntimeError, match="disk full"):
+        atomic_write(p, broken)
+    assert p.read_text() == "old"
+    assert [f.name for f in tmp_path.iterdir()] == ["keep.txt"]
+
+
+def test_permissions_follow_umask_not_mkstemp(tmp_path):
+    old = os.umask(0o022)
+    try:
+        p = atomic_write_text(tmp_path / "perm.txt", "x")
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE(p.stat().st_mode) == 0o644
+
+
+def test_extension_preserved_for_format_choosing_writers(tmp_path):
+    arr = np.arange(6, dtype=np.float32).reshape(2, 3)
+    p = atomic_write(tmp_path / "a.npy", lambda tmp: np.save(tmp, arr))
+    np.testing.assert_array_equal(np.load(p), arr)
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["a.npy"]
+
+
+def test_writer_that_writes_nothing_is_an_error(tmp_path):
+    def nothing(tmp):
+        tmp.unlink()
+
+    with pytest.raises(OSError, match="no file"):
+        atomic_write(tmp_path / "x.bin", nothing)
+    assert not (tmp_path / "x.bin").exists()
