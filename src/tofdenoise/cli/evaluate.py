@@ -1,0 +1,174 @@
+"""``tofdenoise-eval``: the unified depth metrics for depth maps produced by any method.
+
+    tofdenoise-eval --pred DIR --ref DIR [--mask DIR] --out FILE.json [--d-max-mm 1000]
+
+Files are matched by stem (``scene_001.png`` <-> ``scene_001.npy`` is fine). Depth files: single-channel
+16-bit PNG/TIFF holding millimetres (0 = invalid), or ``.npy``/``.npz`` (single array)/``.exr`` float maps in
+millimetres. An 8-bit PNG cannot hold depth in mm and is an error. Mask files: any single-channel image or
+array, nonzero = evaluate. A pixel counts where the reference is valid (finite and > 0), the mask (if
+given) is nonzero and the prediction is finite; metrics are per image, then averaged over images
+(``tofdenoise.metrics``; PSNR with D_max = 1000 mm, no clamping). An image without a valid pixel is listed
+with null values and left out of the mean.
+
+Output (atomic write, strict JSON)::
+
+    {"mean": {"psnr_db", "mae_mm", "mse_mm2", "ssim"},
+     "images": {"<stem>": {"psnr_db", "mae_mm", "mse_mm2", "ssim", "valid_px"}},
+     "mae_mm_pooled": float, "num_images": int, "skipped": [stems without a valid pixel], "d_max_mm": float}
+
+Errors (exit status 2) name the file: missing counterpart, shape mismatch, wrong dtype, unreadable file,
+empty or missing folder, two files with the same stem.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from tofdenoise.callbacks.metrics_writer import atomic_write_text, json_number
+from tofdenoise.metrics import D_MAX_MM, METRIC_KEYS, DepthMetrics
+
+__all__ = ["DEPTH_SUFFIXES", "EvalInputError", "list_maps", "evaluate_dirs", "main"]
+
+DEPTH_SUFFIXES = (".png", ".tif", ".tiff", ".npy", ".npz", ".exr")
+
+
+class EvalInputError(ValueError):
+    """Bad evaluation input; the message names the file or folder."""
+
+
+def list_maps(folder: str | Path, what: str) -> dict[str, Path]:
+    """stem -> file for the depth/mask files in ``folder`` (non-recursive); errors for empty or ambiguous."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise EvalInputError(f"{what} folder not found: {folder}")
+    found: dict[str, Path] = {}
+    for path in sorted(folder.iterdir()):
+        if not path.is_file() or path.name.startswith(".") or path.suffix.lower() not in DEPTH_SUFFIXES:
+            continue
+        if path.stem in found:
+            raise EvalInputError(f"{what} folder {folder} has two files for '{path.stem}': "
+                                 f"{found[path.stem].name} and {path.name}")
+        found[path.stem] = path
+    if not found:
+        raise EvalInputError(f"{what} folder {folder} holds no depth file ({', '.join(DEPTH_SUFFIXES)})")
+    return found
+
+
+def _read_depth(path: Path, what: str) -> np.ndarray:
+    from tofdenoise.data_modules.io import read_depth_mm
+
+    try:
+        return read_depth_mm(path, what=what).astype(np.float64)
+    except (OSError, ValueError) as exc:
+        raise EvalInputError(str(exc)) from exc
+
+
+def _read_mask(path: Path) -> np.ndarray:
+    from tofdenoise.data_modules.io import read_array
+
+    try:
+        return read_array(path, what="mask", image_dtypes=(np.uint8, np.uint16)) != 0
+    except (OSError, ValueError) as exc:
+        raise EvalInputError(str(exc)) from exc
+
+
+def _match(ref: dict[str, Path], other: dict[str, Path], what: str, folder: Path) -> None:
+    for stem, path in ref.items():
+        if stem not in other:
+            raise EvalInputError(f"no {what} for reference file {path.name}: expected {folder}/{stem}.<"
+                                 f"{'|'.join(s.lstrip('.') for s in DEPTH_SUFFIXES)}>")
+    extra = sorted(set(other) - set(ref))
+    if extra:
+        raise EvalInputError(f"{what} file {other[extra[0]]} has no reference counterpart "
+                             f"({len(extra)} unmatched file(s) in {folder})")
+
+
+def evaluate_dirs(pred_dir: str | Path, ref_dir: str | Path, mask_dir: str | Path | None = None,
+                  d_max_mm: float = D_MAX_MM) -> dict:
+    """Compute the result object written by ``tofdenoise-eval`` (see the module docstring)."""
+    pred_dir, ref_dir = Path(pred_dir), Path(ref_dir)
+    refs = list_maps(ref_dir, "reference")
+    preds = list_maps(pred_dir, "prediction")
+    _match(refs, preds, "prediction", pred_dir)
+    masks: dict[str, Path] = {}
+    if mask_dir is not None:
+        masks = list_maps(mask_dir, "mask")
+        _match(refs, masks, "mask", Path(mask_dir))
+    metric = DepthMetrics(d_max_mm=d_max_mm)
+    stems = sorted(refs)
+    for i, stem in enumerate(stems):
+        ref = _read_depth(refs[stem], "reference depth")
+        pred = _read_depth(preds[stem], "predicted depth")
+        if pred.shape != ref.shape:
+            raise EvalInputError(f"predicted depth file {preds[stem]} has shape {pred.shape}; expected "
+                                 f"{ref.shape} like {refs[stem]}")
+        mask = None
+        if masks:
+            m = _read_mask(masks[stem])
+            if m.shape != ref.shape:
+                raise EvalInputError(f"mask file {masks[stem]} has shape {m.shape}; expected {ref.shape} "
+                                     f"like {refs[stem]}")
+            mask = torch.from_numpy(m)
+        metric.update(torch.from_numpy(pred), torch.from_numpy(ref), mask, index=torch.tensor([i]))
+    mean = metric.compute()
+    images: dict[str, dict] = {}
+    skipped: list[str] = []
+    for row in metric.per_image_rows():
+        stem = stems[int(row["index"])]
+        images[stem] = {k: json_number(row[k]) for k in METRIC_KEYS}
+        images[stem]["valid_px"] = row["valid_px"]
+        if row["valid_px"] == 0:
+            skipped.append(stem)
+    return {
+        "mean": {k: json_number(mean[k]) for k in METRIC_KEYS},
+        "images": images,
+        "mae_mm_pooled": json_number(mean["mae_mm_pooled"]),
+        "num_images": metric.counts()["images"],
+        "skipped": skipped,
+        "d_max_mm": float(d_max_mm),
+    }
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="tofdenoise-eval",
+        description="Unified depth metrics (PSNR with D_max, SSIM, MSE, MAE over valid pixels, per image then "
+                    "averaged) of predicted depth maps against references; files matched by name.")
+    p.add_argument("--pred", required=True, type=Path, help="folder of predicted depth maps (16-bit PNG mm or .npy)")
+    p.add_argument("--ref", required=True, type=Path, help="folder of reference depth maps (same stems)")
+    p.add_argument("--mask", type=Path, default=None, help="optional folder of masks (nonzero = evaluate)")
+    p.add_argument("--out", required=True, type=Path, help="output JSON file")
+    p.add_argument("--d-max-mm", type=float, default=D_MAX_MM, help="PSNR peak depth in mm (default 1000)")
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        if not args.d_max_mm > 0:
+            raise EvalInputError(f"--d-max-mm must be > 0, got {args.d_max_mm}")
+        result = evaluate_dirs(args.pred, args.ref, args.mask, args.d_max_mm)
+    except EvalInputError as exc:
+        print(f"tofdenoise-eval: error: {exc}", file=sys.stderr)
+        return 2
+    atomic_write_text(args.out, json.dumps(result, indent=2, allow_nan=False) + "\n")
+    m = result["mean"]
+
+    def f(v, d):
+        return "n/a" if v is None else (v if isinstance(v, str) else f"{v:.{d}f}")
+
+    print(f"{result['num_images']} images ({len(result['skipped'])} without valid pixels): "
+          f"PSNR {f(m['psnr_db'], 2)} dB, SSIM {f(m['ssim'], 4)}, MSE {f(m['mse_mm2'], 2)} mm^2, "
+          f"MAE {f(m['mae_mm'], 3)} mm -> {args.out}")
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,356 @@
+"""ToFDataModule: one LightningDataModule for every data source, configured by plain values (Hydra / CLI)."""
+
+from __future__ import annotations
+
+import json
+import logging
+import warnings
+from pathlib import Path
+from typing import Any, Sequence
+
+import lightning as L
+import numpy as np
+from torch.utils.data import DataLoader, Dataset
+
+from tofdenoise.data_modules.cache import MapCache, canonical_digest
+from tofdenoise.data_modules.datasets import MapProvider, RealCaptures, SyntheticPairs
+from tofdenoise.data_modules.io import write_text_atomic
+from tofdenoise.data_modules.real_captures import build_reference, list_scenes, load_real_scene
+from tofdenoise.data_modules.sources import SOURCES, FlyingThings3DSource, FolderSource, ProceduralSource
+from tofdenoise.data_modules.splits import SPLIT_NAMES, ids_digest, load_or_make_split
+
+log = logging.getLogger(__name__)
+
+GAUSSIAN_BASELINES = ("range", "fixed")
+
+
+def _crop_pair(crop_size: int | Sequence[int] | None) -> tuple[int, int] | None:
+    if crop_size is None or crop_size == 0:
+        return None
+    if isinstance(crop_size, int):
+        pair = (crop_size, crop_size)
+    else:
+        values = [int(v) for v in crop_size]
+        if len(values) != 2:
+            raise ValueError(f"data.crop_size must be an int, [height, width] or null, got {crop_size!r}")
+        pair = (values[0], values[1])
+    if min(pair) < 1:
+        raise ValueError(f"data.crop_size must be positive, got {crop_size!r}")
+    return pair
+
+
+class ToFDataModule(L.LightningDataModule):
+    """Clean depth + signal + sigma_D maps from a source, noisy depth synthesised by a physics noise model.
+
+    Args (all plain values; the Hydra configs in ``configs/data`` and ``configs/noise`` set them):
+        source: "procedural" (built-in scenes, default), "flyingthings3d" or "folder".
+        noise: training / evaluation noise model ("hetero", "range", "fixed", "none"); noise_kwargs its kwargs.
+        sensor: calibration (None = default, a path, a preset name, or a mapping in ``to_dict()`` layout).
+        root: dataset folder (flyingthings3d / folder). list_file: folder list (default ``root/list.txt``).
+        list_files: flyingthings3d list files (default: train_list.txt and test_list.txt, merged then re-split).
+        real_dir: a capture set (see ``real_captures``); adds the "real" test loader.
+        cache_dir: where splits, per-sample maps and records live. use_cache: store/read the maps there.
+        num_samples, height, width, min_depth_mm, max_depth_mm (None: max_depth_fraction x unambiguous range),
+        hfov_deg: procedural scenes.
+        crop_size: training crop (int, [h, w] or None for full images). flips: random h/v flips in training.
+        seed: split permutation, procedural scenes and evaluation noise. split_ratios: train:val:test.
+        match_variance: rescale the Gaussian baselines (range/fixed) to the hetero mean variance over the
+            training split (paper Sec. V-A), computed once and stored next to the cache.
+        signal_lower_percentile / signal_upper_percentile: amplitude normalisation (None: physics defaults).
+        real_min_count: valid high-exposure frames a reference pixel needs (None: half of the frames).
+        depth_unit_mm, min_valid_mm, max_valid_mm: folder / flyingthings3d reading options.
+    """
+
+    def __init__(
+        self,
+        source: str = "procedural",
+        noise: str = "hetero",
+        noise_kwargs: dict[str, Any] | None = None,
+        sensor: dict[str, Any] | str | None = None,
+        root: str | None = None,
+        list_file: str | None = None,
+        list_files: list[str] | None = None,
+        real_dir: str | None = None,
+        cache_dir: str = ".cache/tofdenoise/data",
+        use_cache: bool = True,
+        num_samples: int = 48,
+        height: int = 480,
+        width: int = 640,
+        min_depth_mm: float = 300.0,
+        max_depth_mm: float | None = None,
+        max_depth_fraction: float = 0.8,
+        hfov_deg: float = 63.5,
+        crop_size: int | list[int] | None = 320,
+        flips: bool = True,
+        batch_size: int = 4,
+        eval_batch_size: int = 1,
+        num_workers: int = 0,
+        pin_memory: bool = False,
+        persistent_workers: bool = False,
+        seed: int = 0,
+        split_ratios: list[float] | tuple[float, float, float] = (6.0, 2.0, 2.0),
+        match_variance: bool = True,
+        signal_lower_percentile: float | None = None,
+        signal_upper_percentile: float | None = None,
+        real_min_count: int | None = None,
+        depth_unit_mm: float = 1.0,
+        min_valid_mm: float | None = None,
+        max_valid_mm: float | None = None,
+    ):
+        super().__init__()
+        from tofdenoise.physics.calibration import SensorCalibration, resolve_calibration
+
+        if isinstance(sensor, SensorCalibration):
+            sensor = sensor.to_dict()
+        noise_kwargs = dict(noise_kwargs or {})
+        split_ratios = [float(r) for r in split_ratios]
+        self.save_hyperparameters()
+        if source not in SOURCES:
+            raise ValueError(f"unknown data.source {source!r}; valid: {', '.join(SOURCES)}")
+        self.source_name = source
+        self.calib = resolve_calibration(sensor)
+        self.noise_name = str(noise).lower()
+        self.noise_kwargs = noise_kwargs
+        self.crop = _crop_pair(crop_size)
+        if batch_size < 1 or eval_batch_size < 1:
+            raise ValueError("data.batch_size and data.eval_batch_size must be >= 1")
+        if not 0 < max_depth_fraction <= 1:
+            raise ValueError(f"data.max_depth_fraction must be in (0, 1], got {max_depth_fraction}")
+        self.max_depth_mm = (float(max_depth_mm) if max_depth_mm is not None
+                             else max_depth_fraction * float(self.calib.unambiguous_range_mm))
+        self.cache_root = Path(cache_dir).expanduser()
+        self.real_dir = real_dir
+        self.test_set_names: list[str] = ["synthetic", "real"] if real_dir else ["synthetic"]
+        self.skipped_samples: dict[str, list[str]] = {}
+        self._state: dict[str, Any] | None = None
+        self.datasets: dict[str, Any] = {}
+        self.make_source()  # fail fast: unknown source, missing data.root, bad sizes / depth range
+
+    # ------------------------------------------------------------------ pieces
+    def make_source(self):
+        hp = self.hparams
+        if self.source_name == "procedural":
+            return ProceduralSource(num_samples=hp.num_samples, height=hp.height, width=hp.width, seed=hp.seed,
+                                    min_depth_mm=hp.min_depth_mm, max_depth_mm=self.max_depth_mm,
+                                    hfov_deg=hp.hfov_deg)
+        valid_kwargs = {k: v for k, v in (("min_valid_mm", hp.min_valid_mm), ("max_valid_mm", hp.max_valid_mm))
+                        if v is not None}
+        if self.source_name == "flyingthings3d":
+            return FlyingThings3DSource(hp.root, list_files=hp.list_files, **valid_kwargs)
+        return FolderSource(hp.root, list_file=hp.list_file, depth_unit_mm=hp.depth_unit_mm, **valid_kwargs)
+
+    def build_noise_model(self):
+        from tofdenoise.physics.noise_models import build_noise_model
+
+        return build_noise_model(self.noise_name, self.calib, **self.noise_kwargs)
+
+    @property
+    def split_path(self) -> Path:
+        return self._require_state()["split_path"]
+
+    @property
+    def cache(self) -> MapCache:
+        return self._require_state()["cache"]
+
+    @property
+    def noise_model(self):
+        return self._require_state()["noise_model"]
+
+    @property
+    def splits(self) -> dict[str, list[str]]:
+        return self._require_state()["splits"]
+
+    def _require_state(self) -> dict[str, Any]:
+        if self._state is None:
+            self._prepare()
+        assert self._state is not None
+        return self._state
+
+    # ------------------------------------------------------------------ preparation
+    def prepare_data(self) -> None:
+        """Check the source, write the split, compute missing cached maps, the variance scale and references."""
+        self._prepare()
+
+    def _prepare(self) -> None:
+        if self._state is not None:
+            return
+        hp = self.hparams
+        source = self.make_source()
+        source.check()  # a listed but missing sample fails here, before training
+        ids = source.sample_ids()
+        described = source.describe()
+        base = self.cache_root / f"{source.name}-{canonical_digest(described)[:12]}"
+        base.mkdir(parents=True, exist_ok=True)
+        write_text_atomic(base / "source.json", json.dumps(described, indent=1, default=str) + "\n")
+        ratio_tag = "-".join(f"{r:g}" for r in hp.split_ratios)
+        split_path = base / f"split_seed{hp.seed}_{ratio_tag}.json"
+        splits = load_or_make_split(split_path, ids, hp.seed, hp.split_ratios, described)
+        key = {"source": described, "calibration": self.calib.fingerprint(),
+               "signal_percentiles": [hp.signal_lower_percentile, hp.signal_upper_percentile]}
+        cache = MapCache(base, key, enabled=hp.use_cache)
+        provider = MapProvider(source, self.calib, cache, hp.signal_lower_percentile, hp.signal_upper_percentile)
+        index = self._sample_index(provider, cache, [i for name in SPLIT_NAMES for i in splits[name]])
+        self.skipped_samples = {}
+        for name in SPLIT_NAMES:
+            empty = [i for i in splits[name] if index[i]["num_valid"] == 0]
+            if empty:
+                warnings.warn(f"{name} split: {len(empty)} sample(s) with no valid pixel skipped: "
+                              f"{', '.join(empty[:5])}{' ...' if len(empty) > 5 else ''}", stacklevel=2)
+                self.skipped_samples[name] = empty
+                splits[name] = [i for i in splits[name] if index[i]["num_valid"] > 0]
+        if not splits["train"]:
+            raise ValueError(f"the {source.name} source has no usable training sample")
+        if self.crop is not None:
+            too_small = [i for i in splits["train"]
+                         if index[i]["shape"][0] < self.crop[0] or index[i]["shape"][1] < self.crop[1]]
+            if too_small:
+                shape = index[too_small[0]]["shape"]
+                raise ValueError(f"data.crop_size={list(self.crop)} does not fit sample {too_small[0]} of size "
+                                 f"{shape[0]}x{shape[1]}; lower data.crop_size (or set it to null)")
+        noise_model = self.build_noise_model()
+        scale_record = None
+        if self.noise_name in GAUSSIAN_BASELINES and hp.match_variance:
+            noise_model, scale_record = self._match_variance(noise_model, provider, cache, splits["train"])
+        real_scenes: list[Path] = []
+        if self.real_dir:
+            real_scenes = self._prepare_real()
+        self._state = {"source": source, "split_path": split_path, "splits": splits, "cache": cache,
+                       "provider": provider, "index": index, "noise_model": noise_model,
+                       "variance_scale": scale_record, "real_scenes": real_scenes}
+
+    def _sample_index(self, provider: MapProvider, cache: MapCache, ids: list[str]) -> dict[str, dict]:
+        """Valid-pixel count and shape per sample (computing, and caching, any maps not seen yet)."""
+        record = cache.load_record("index.json") or {}
+        index: dict[str, dict] = dict(record.get("samples", {}))
+        todo = [i for i in ids if i not in index]
+        workers = int(self.hparams.num_workers) if len(todo) > 1 else 0
+        # computed in DataLoader workers when data.num_workers > 0 (each writes its own cache entries atomically)
+        for sample_id, entry in DataLoader(_IndexEntries(provider, todo), batch_size=None, num_workers=workers):
+            index[sample_id] = entry
+        if todo:
+            cache.save_record("index.json", {"samples": index})
+        return index
+
+    def _match_variance(self, noise_model, provider: MapProvider, cache: MapCache, train_ids: list[str]):
+        from tofdenoise.physics.noise_models import variance_matching_scale
+
+        key = {"noise": self.noise_name, "noise_kwargs": self.noise_kwargs, "maps": cache.digest,
+               "train_ids": ids_digest(train_ids)}
+        name = f"variance_scale_{self.noise_name}_{canonical_digest(key)[:12]}.json"
+        record = cache.load_record(name, expected_key=key)
+        if record is None:
+            def samples():
+                for sample_id in train_ids:
+                    maps = provider.maps(sample_id)
+                    yield maps.depth_mm, maps.sigma_mm, maps.mask
+
+            scale = float(variance_matching_scale(noise_model, samples()))
+            record = {"scale": scale, "noise": self.noise_name, "num_train_samples": len(train_ids),
+                      "note": "std multiplier giving the hetero mean perturbation variance over the training split"}
+            cache.save_record(name, record, key=key)
+            record = cache.load_record(name, expected_key=key) or record
+        log.info("variance-matched %s noise: scale %.6g", self.noise_name, record["scale"])
+        return noise_model.with_scale(float(record["scale"])), record
+
+    def _prepare_real(self) -> list[Path]:
+        hp = self.hparams
+        scenes = list_scenes(self.real_dir)
+        usable = []
+        empty = []
+        for scene in scenes:
+            build_reference(scene, min_count=hp.real_min_count)
+            if load_real_scene(scene, self.calib, hp.real_min_count)["mask"].any():
+                usable.append(scene)
+            else:
+                empty.append(scene.name)
+        if empty:
+            warnings.warn(f"real capture set {self.real_dir}: {len(empty)} scene(s) with no common valid pixel "
+                          f"skipped: {', '.join(empty[:5])}", stacklevel=2)
+            self.skipped_samples["real"] = empty
+        if not usable:
+            raise ValueError(f"real capture set {self.real_dir} has no scene with a valid common region")
+        return usable
+
+    # ------------------------------------------------------------------ datasets
+    def setup(self, stage: str | None = None) -> None:
+        state = self._require_state()
+        hp = self.hparams
+        provider, splits, model = state["provider"], state["splits"], state["noise_model"]
+        self.datasets = {
+            "train": SyntheticPairs(provider, splits["train"], "train", model, hp.seed, train=True, crop=self.crop,
+                                    flips=hp.flips),
+            "val": SyntheticPairs(provider, splits["val"], "val", model, hp.seed, train=False),
+            "test": SyntheticPairs(provider, splits["test"], "test", model, hp.seed, train=False),
+        }
+        if state["real_scenes"]:
+            calib, min_count = self.calib, hp.real_min_count
+            self.datasets["real"] = RealCaptures(state["real_scenes"], _RealLoader(calib, min_count))
+
+    def _loader(self, dataset, train: bool) -> DataLoader:
+        hp = self.hparams
+        workers = int(hp.num_workers)
+        return DataLoader(
+            dataset,
+            batch_size=hp.batch_size if train else hp.eval_batch_size,
+            shuffle=train,
+            drop_last=train and len(dataset) >= hp.batch_size,
+            num_workers=workers,
+            pin_memory=hp.pin_memory,
+            persistent_workers=bool(hp.persistent_workers) and workers > 0,
+        )
+
+    def _dataset(self, name: str):
+        if not self.datasets:
+            self.setup()
+        return self.datasets[name]
+
+    def train_dataloader(self) -> DataLoader:
+        return self._loader(self._dataset("train"), train=True)
+
+    def val_dataloader(self) -> DataLoader:
+        return self._loader(self._dataset("val"), train=False)
+
+    def test_dataloader(self) -> list[DataLoader]:
+        loaders = [self._loader(self._dataset("test"), train=False)]
+        if "real" in self.test_set_names:
+            loaders.append(self._loader(self._dataset("real"), train=False))
+        return loaders
+
+    def predict_dataloader(self) -> DataLoader:
+        return self._loader(self._dataset("test"), train=False)
+
+    def summary(self) -> dict[str, Any]:
+        """Plain description of what was prepared (sizes, paths, skipped samples, variance scale)."""
+        state = self._require_state()
+        return {"source": self.source_name, "noise": self.noise_name, "split_file": str(state["split_path"]),
+                "cache_folder": str(state["cache"].folder), "cache_enabled": state["cache"].enabled,
+                "sizes": {k: len(v) for k, v in state["splits"].items()},
+                "skipped": {k: len(v) for k, v in self.skipped_samples.items()},
+                "variance_scale": None if state["variance_scale"] is None else state["variance_scale"]["scale"],
+                "real_scenes": len(state["real_scenes"]), "max_depth_mm": self.max_depth_mm,
+                "calibration": self.calib.fingerprint()[:16]}
+
+
+class _IndexEntries(Dataset):
+    """Computes (and caches) one sample's maps; yields (id, {"num_valid", "shape"})."""
+
+    def __init__(self, provider: MapProvider, sample_ids: list[str]):
+        self.provider, self.sample_ids = provider, sample_ids
+
+    def __len__(self) -> int:
+        return len(self.sample_ids)
+
+    def __getitem__(self, i: int) -> tuple[str, dict]:
+        maps, _ = self.provider.get(self.sample_ids[i])
+        return self.sample_ids[i], {"num_valid": maps.num_valid, "shape": list(maps.depth_mm.shape)}
+
+
+class _RealLoader:
+    """Picklable loader of one real scene (DataLoader workers)."""
+
+    def __init__(self, calib: Any, min_count: int | None):
+        self.calib = calib
+        self.min_count = min_count
+
+    def __call__(self, scene: Path) -> dict[str, np.ndarray]:
+        return load_real_scene(scene, self.calib, self.min_count)

@@ -1,0 +1,249 @@
+"""Readers for depth / amplitude / mask files with errors that name the file and the expectation.
+
+Supported formats (chosen by suffix):
+- ``.png`` / ``.tif`` / ``.tiff``: read with OpenCV, unchanged bit depth (8- or 16-bit, one channel;
+  a 3-channel image is accepted for amplitude and converted to grey).
+- ``.npy``: a 2-D numeric array.
+- ``.npz``: the array named by ``key`` (or the only array).
+- ``.mat``: MATLAB v5 files through ``scipy.io.loadmat`` (``key`` required).
+- ``.exr``: scanline OpenEXR (NONE/RLE/ZIPS/ZIP) by the built-in reader (``exr.py``); other variants through
+  OpenCV, which only reads EXR when ``OPENCV_IO_ENABLE_OPENEXR=1`` is set before ``cv2`` is imported *and* the
+  build includes OpenEXR (this module sets the variable before it imports ``cv2``).
+
+Writers are atomic (temporary file in the same folder + ``os.replace``).
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")  # must precede the first cv2 import
+
+import tempfile
+from pathlib import Path
+from typing import Callable
+
+import cv2
+import numpy as np
+
+IMAGE_SUFFIXES = (".png", ".tif", ".tiff")
+ARRAY_SUFFIXES = (".npy", ".npz")
+SUPPORTED_SUFFIXES = IMAGE_SUFFIXES + ARRAY_SUFFIXES + (".mat", ".exr")
+
+
+class DataFileError(ValueError):
+    """A data file exists but its content is not what the reader expects."""
+
+
+def _require_file(path: Path, what: str) -> None:
+    if not path.is_file():
+        raise FileNotFoundError(f"{what} file not found: {path}")
+
+
+def read_image(path: str | Path, *, what: str = "image", allowed_dtypes: tuple[type, ...] = (np.uint8, np.uint16),
+               channels: str = "one") -> np.ndarray:
+    """Read an image file unchanged. ``channels``: "one" (error on colour) or "grey" (convert colour)."""
+    path = Path(path)
+    _require_file(path, what)
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise DataFileError(f"{what} file {path} could not be decoded as an image (corrupt or unsupported format)")
+    if image.ndim == 3:
+        if image.shape[2] == 1:
+            image = image[:, :, 0]
+        elif channels == "grey" and image.shape[2] in (3, 4):
+            image = cv2.cvtColor(image[:, :, :3], cv2.COLOR_BGR2GRAY)
+        else:
+            raise DataFileError(f"{what} file {path} has {image.shape[2]} channels; expected a single-channel image")
+    if allowed_dtypes and image.dtype.type not in allowed_dtypes:
+        names = ", ".join(np.dtype(d).name for d in allowed_dtypes)
+        raise DataFileError(f"{what} file {path} has dtype {image.dtype}; expected one of: {names}")
+    return image
+
+
+def read_png_uint16(path: str | Path, *, what: str = "16-bit PNG") -> np.ndarray:
+    """Read a single-channel 16-bit PNG; any other bit depth is an error."""
+    return read_image(path, what=what, allowed_dtypes=(np.uint16,))
+
+
+def read_npy(path: str | Path, *, what: str = "array", key: str | None = None) -> np.ndarray:
+    path = Path(path)
+    _require_file(path, what)
+    try:
+        loaded = np.load(path, allow_pickle=False)
+    except Exception as exc:  # truncated file, bad header, pickled object ...
+        raise DataFileError(f"{what} file {path} could not be read as a NumPy array: {exc}") from exc
+    if isinstance(loaded, np.lib.npyio.NpzFile):
+        with loaded:
+            names = list(loaded.files)
+            if key is None and len(names) == 1:
+                key = names[0]
+            if key not in names:
+                raise DataFileError(f"{what} file {path} has arrays {names}; expected key {key!r}")
+            loaded = loaded[key]
+    array = np.asarray(loaded)
+    if not (np.issubdtype(array.dtype, np.floating) or np.issubdtype(array.dtype, np.integer)
+            or array.dtype == np.bool_):
+        raise DataFileError(f"{what} file {path} has dtype {array.dtype}; expected a numeric array")
+    return array
+
+
+def read_mat(path: str | Path, key: str, *, what: str = "MATLAB") -> np.ndarray:
+    """Read variable ``key`` from a MATLAB v5 ``.mat`` file (v7.3/HDF5 files are reported as such)."""
+    import scipy.io
+
+    path = Path(path)
+    _require_file(path, what)
+    try:
+        content = scipy.io.loadmat(str(path), variable_names=[key])
+    except NotImplementedError as exc:  # scipy raises this for v7.3 (HDF5) files
+        raise DataFileError(f"{what} file {path} is a MATLAB v7.3 (HDF5) file; expected MATLAB v5 format") from exc
+    except Exception as exc:
+        raise DataFileError(f"{what} file {path} could not be read as a MATLAB v5 file: {exc}") from exc
+    if key not in content:
+        raise DataFileError(f"{what} file {path} has no variable {key!r}")
+    array = np.asarray(content[key])
+    if not (np.issubdtype(array.dtype, np.floating) or np.issubdtype(array.dtype, np.integer)):
+        raise DataFileError(f"{what} file {path} variable {key!r} has dtype {array.dtype}; expected numeric")
+    return array
+
+
+def read_exr(path: str | Path, *, what: str = "EXR") -> np.ndarray:
+    """Read the depth-like channel of an OpenEXR image as float32 (H, W).
+
+    Single-part scanline files with NONE/RLE/ZIPS/ZIP compression are decoded by ``tofdenoise.data_modules.exr``
+    (numpy + zlib, no codec needed); other EXR variants (PIZ, tiled, ...) go to OpenCV, which needs
+    ``OPENCV_IO_ENABLE_OPENEXR=1`` before cv2 is imported and a build with OpenEXR.
+    """
+    from tofdenoise.data_modules.exr import ExrError, read_exr_depth
+
+    path = Path(path)
+    _require_file(path, what)
+    try:
+        return read_exr_depth(path)
+    except ExrError as exc:
+        own_error = exc
+    try:
+        image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED | cv2.IMREAD_ANYDEPTH)
+    except cv2.error:
+        image = None
+    if image is None:
+        raise DataFileError(
+            f"{what} file {path} could not be read: {own_error}; OpenCV could not decode it either (it needs "
+            "OPENCV_IO_ENABLE_OPENEXR=1 set before cv2 is imported and a build with OpenEXR). "
+            "Convert the file to .npy (float, mm)."
+        )
+    if image.ndim == 3:
+        image = image[:, :, 0]
+    return image.astype(np.float32, copy=False)
+
+
+def read_array(path: str | Path, *, what: str, key: str | None = None,
+               image_dtypes: tuple[type, ...] = (np.uint8, np.uint16), channels: str = "one") -> np.ndarray:
+    """Read a 2-D map from any supported format (by suffix); returns the stored dtype."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix in IMAGE_SUFFIXES:
+        array = read_image(path, what=what, allowed_dtypes=image_dtypes, channels=channels)
+    elif suffix in ARRAY_SUFFIXES:
+        array = read_npy(path, what=what, key=key)
+    elif suffix == ".mat":
+        if key is None:
+            raise ValueError(f"reading {what} file {path}: a .mat file needs a variable name (key)")
+        array = read_mat(path, key, what=what)
+    elif suffix == ".exr":
+        array = read_exr(path, what=what)
+    else:
+        raise DataFileError(f"{what} file {path} has unsupported suffix {suffix!r}; expected one of "
+                            f"{', '.join(SUPPORTED_SUFFIXES)}")
+    array = np.squeeze(array) if array.ndim > 2 else array
+    if array.ndim != 2:
+        raise DataFileError(f"{what} file {path} has shape {array.shape}; expected a 2-D map (H, W)")
+    return array
+
+
+def read_depth_mm(path: str | Path, *, what: str = "depth", scale_mm: float = 1.0, key: str | None = None) -> np.ndarray:
+    """Read a depth map in millimetres as float32; NaN/inf/<=0 are left for the caller's validity mask.
+
+    16-bit PNGs hold mm (0 = invalid); float arrays / EXR hold mm (multiplied by ``scale_mm``).
+    An 8-bit PNG is rejected: it cannot hold depth in mm.
+    """
+    array = read_array(path, what=what, key=key, image_dtypes=(np.uint16,))
+    if array.dtype == np.bool_:
+        raise DataFileError(f"{what} file {path} is boolean; expected depth values in mm")
+    return array.astype(np.float32) * np.float32(scale_mm)
+
+
+def read_amplitude(path: str | Path, *, what: str = "amplitude", key: str | None = None) -> np.ndarray:
+    """Read an amplitude map (8/16-bit image, float array or EXR) as float32 in its own units."""
+    array = read_array(path, what=what, key=key, image_dtypes=(np.uint8, np.uint16), channels="grey")
+    if array.dtype == np.bool_:
+        raise DataFileError(f"{what} file {path} is boolean; expected amplitude values")
+    return array.astype(np.float32)
+
+
+def check_same_shape(reference: np.ndarray, other: np.ndarray, *, reference_path: str | Path, other_path: str | Path,
+                     what: str) -> None:
+    if reference.shape != other.shape:
+        raise DataFileError(f"{what} file {other_path} has shape {other.shape}; expected {reference.shape} to match "
+                            f"{reference_path}")
+
+
+def atomic_write(path: str | Path, write: Callable[[Path], None], suffix: str | None = None) -> Path:
+    """Call ``write(tmp_path)`` on a temporary file next to ``path`` and rename it into place atomically.
+
+    The temporary name is unique per process/thread, so concurrent writers never see each other's partial files;
+    the last rename wins and every reader sees either the old or a complete new file.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=f".tmp{suffix or path.suffix}", dir=path.parent)
+    os.close(fd)
+    tmp = Path(tmp_name)
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path
+
+
+def write_png_uint16(path: str | Path, image: np.ndarray) -> Path:
+    """Write a single-channel uint16 PNG atomically (values must already be integers in range)."""
+    image = np.asarray(image)
+    if image.dtype != np.uint16 or image.ndim != 2:
+        raise ValueError(f"write_png_uint16({path}): expected a 2-D uint16 array, got {image.dtype} {image.shape}")
+
+    def _write(tmp: Path) -> None:
+        if not cv2.imwrite(str(tmp), image):
+            raise OSError(f"OpenCV could not write {path}")
+
+    return atomic_write(path, _write, suffix=".png")
+
+
+def write_png_uint8(path: str | Path, image: np.ndarray) -> Path:
+    image = np.asarray(image)
+    if image.dtype != np.uint8 or image.ndim != 2:
+        raise ValueError(f"write_png_uint8({path}): expected a 2-D uint8 array, got {image.dtype} {image.shape}")
+
+    def _write(tmp: Path) -> None:
+        if not cv2.imwrite(str(tmp), image):
+            raise OSError(f"OpenCV could not write {path}")
+
+    return atomic_write(path, _write, suffix=".png")
+
+
+def save_npy_atomic(path: str | Path, array: np.ndarray) -> Path:
+    def _write(tmp: Path) -> None:
+        with open(tmp, "wb") as handle:
+            np.save(handle, np.asarray(array), allow_pickle=False)
+
+    return atomic_write(path, _write, suffix=".npy")
+
+
+def write_text_atomic(path: str | Path, text: str) -> Path:
+    def _write(tmp: Path) -> None:
+        tmp.write_text(text, encoding="utf-8")
+
+    return atomic_write(path, _write)

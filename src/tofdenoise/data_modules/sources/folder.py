@@ -1,0 +1,89 @@
+"""A user's own clean depth + amplitude, listed in a text file.
+
+``root/list.txt`` (or ``data.list_file``) holds one sample per line: ``<depth path> <amplitude path>
+[<mask path>]``, paths relative to ``root`` (blank lines and ``#`` comments are skipped).
+
+- depth: 16-bit PNG in mm (0 = invalid), ``.npy``/``.npz`` float in mm, or ``.exr`` float in mm
+  (times ``depth_unit_mm`` if the files use other units, e.g. 1000 for metres);
+- amplitude: 8/16-bit PNG, ``.npy``/``.npz`` or ``.exr``, any units (normalised per image later);
+- optional mask: nonzero = valid.
+
+NaN, inf, zero and negative depths are invalid pixels. Depths beyond ``max_valid_mm`` are invalid too.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from tofdenoise.data_modules.io import DataFileError, check_same_shape, read_amplitude, read_array, read_depth_mm
+from tofdenoise.data_modules.sources.base import RawSample, depth_validity, read_list_file
+
+
+class FolderSource:
+    name = "folder"
+
+    def __init__(self, root: str | Path | None, list_file: str | Path | None = None, depth_unit_mm: float = 1.0,
+                 min_valid_mm: float = 0.0, max_valid_mm: float = float("inf")):
+        if root is None or str(root) == "":
+            raise ValueError("the folder source needs its dataset folder: set data.root=/path/to/folder")
+        self.root = Path(root).expanduser()
+        if not self.root.is_dir():
+            raise FileNotFoundError(f"folder dataset root not found: {self.root} (set data.root)")
+        list_path = Path(list_file) if list_file else Path("list.txt")
+        self.list_path = list_path if list_path.is_absolute() else self.root / list_path
+        self.depth_unit_mm = float(depth_unit_mm)
+        self.min_valid_mm, self.max_valid_mm = float(min_valid_mm), float(max_valid_mm)
+        self._entries: dict[str, tuple[Path, Path, Path | None]] | None = None
+
+    def entries(self) -> dict[str, tuple[Path, Path, Path | None]]:
+        if self._entries is None:
+            entries: dict[str, tuple[Path, Path, Path | None]] = {}
+            for number, line in enumerate(read_list_file(self.list_path, what="folder list file"), start=1):
+                parts = line.split()
+                if len(parts) not in (2, 3):
+                    raise ValueError(f"folder list file {self.list_path}, entry {number}: expected "
+                                     f"'<depth> <amplitude> [<mask>]', got {line!r}")
+                depth, amplitude = self.root / parts[0], self.root / parts[1]
+                mask = self.root / parts[2] if len(parts) == 3 else None
+                sample_id = str(Path(parts[0]).with_suffix("")).replace("\\", "/")
+                if sample_id in entries:
+                    raise ValueError(f"folder list file {self.list_path}: depth file {parts[0]} listed twice")
+                entries[sample_id] = (depth, amplitude, mask)
+            self._entries = entries
+        return self._entries
+
+    def sample_ids(self) -> list[str]:
+        return list(self.entries())
+
+    def check(self) -> None:
+        missing = [str(p) for trio in self.entries().values() for p in trio if p is not None and not p.is_file()]
+        if missing:
+            shown = "\n  ".join(missing[:10])
+            more = f"\n  ... and {len(missing) - 10} more" if len(missing) > 10 else ""
+            raise FileNotFoundError(f"folder list file {self.list_path} names {len(missing)} missing file(s):\n  "
+                                    f"{shown}{more}")
+
+    def load(self, sample_id: str) -> RawSample:
+        depth_path, amplitude_path, mask_path = self.entries()[sample_id]
+        depth = read_depth_mm(depth_path, what="folder depth", scale_mm=self.depth_unit_mm)
+        amplitude = read_amplitude(amplitude_path, what="folder amplitude")
+        check_same_shape(depth, amplitude, reference_path=depth_path, other_path=amplitude_path,
+                         what="folder amplitude")
+        valid = depth_validity(depth, self.min_valid_mm, self.max_valid_mm)
+        if mask_path is not None:
+            mask = read_array(mask_path, what="folder mask")
+            check_same_shape(depth, mask, reference_path=depth_path, other_path=mask_path, what="folder mask")
+            valid &= mask != 0
+        valid &= np.isfinite(amplitude)
+        if np.any(amplitude[valid] < 0):
+            raise DataFileError(f"folder amplitude file {amplitude_path} has negative values; expected amplitude >= 0")
+        return RawSample(sample_id, np.where(valid, depth, 0.0).astype(np.float32),
+                         np.where(valid, amplitude, 0.0).astype(np.float32), valid)
+
+    def describe(self) -> dict[str, Any]:
+        return {"source": self.name, "root": str(self.root.resolve()), "list_file": str(self.list_path.resolve()),
+                "depth_unit_mm": self.depth_unit_mm, "min_valid_mm": self.min_valid_mm,
+                "max_valid_mm": self.max_valid_mm}

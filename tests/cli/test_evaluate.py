@@ -1,0 +1,123 @@
+"""tofdenoise-eval: hand-computed metrics from files, validity rules, and errors that name the file."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from tofdenoise.cli.evaluate import evaluate_dirs, main
+
+
+def _png16(path: Path, depth_mm: np.ndarray) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    assert cv2.imwrite(str(path), depth_mm.astype(np.uint16))
+
+
+def _npy(path: Path, arr: np.ndarray) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.save(path, arr)
+
+
+@pytest.fixture
+def dirs(tmp_path):
+    ref = np.full((20, 30), 1000.0)
+    ref[0, :] = 0  # invalid reference row (30 px)
+    _png16(tmp_path / "ref" / "a.png", ref)
+    ref_b = np.where(ref > 0, ref + 500, 0)
+    _png16(tmp_path / "ref" / "b.png", ref_b)
+    pa = ref + 2.0
+    pa[5, 5] = np.nan  # a non-finite prediction pixel does not count
+    _npy(tmp_path / "pred" / "a.npy", pa)
+    _png16(tmp_path / "pred" / "b.png", ref_b + 10)  # 10 mm off, also where the reference is invalid
+    return tmp_path
+
+
+def test_metrics_from_png_and_npy_files(dirs):
+    out = dirs / "res" / "eval.json"
+    assert main(["--pred", str(dirs / "pred"), "--ref", str(dirs / "ref"), "--out", str(out)]) == 0
+    res = json.loads(out.read_text())
+    assert set(res["mean"]) == {"psnr_db", "mae_mm", "mse_mm2", "ssim"}
+    a, b = res["images"]["a"], res["images"]["b"]
+    assert a["valid_px"] == 20 * 30 - 30 - 1 and b["valid_px"] == 20 * 30 - 30
+    assert a["mae_mm"] == pytest.approx(2.0) and a["mse_mm2"] == pytest.approx(4.0)
+    assert b["mae_mm"] == pytest.approx(10.0) and b["psnr_db"] == pytest.approx(40.0)
+    assert res["mean"]["mae_mm"] == pytest.approx(6.0)
+    assert res["mean"]["psnr_db"] == pytest.approx((10 * math.log10(1e6 / 4) + 40.0) / 2)
+    assert res["mae_mm_pooled"] == pytest.approx((2.0 * 569 + 10.0 * 570) / (569 + 570))
+    assert res["mean"]["mae_mm"] != pytest.approx(res["mae_mm_pooled"])
+    assert res["num_images"] == 2 and res["skipped"] == []
+    assert 0.9 < res["mean"]["ssim"] <= 1.0
+
+
+def test_mask_folder_restricts_pixels_and_empty_images_are_skipped(dirs):
+    mask_a = np.zeros((20, 30), np.uint8)
+    mask_a[10:, :] = 255
+    _png16(dirs / "mask" / "b.png", np.zeros((20, 30)))  # nothing to evaluate in b
+    assert cv2.imwrite(str(dirs / "mask" / "a.png"), mask_a)
+    res = evaluate_dirs(dirs / "pred", dirs / "ref", dirs / "mask")
+    assert res["images"]["a"]["valid_px"] == 10 * 30
+    assert res["images"]["b"]["valid_px"] == 0 and res["images"]["b"]["mae_mm"] is None
+    assert res["skipped"] == ["b"] and res["num_images"] == 1
+    assert res["mean"]["mae_mm"] == pytest.approx(2.0)
+
+
+def _err(dirs, capsys, *extra) -> str:
+    rc = main(["--pred", str(dirs / "pred"), "--ref", str(dirs / "ref"), "--out", str(dirs / "o.json"), *extra])
+    assert rc == 2
+    assert not (dirs / "o.json").exists()
+    return capsys.readouterr().err
+
+
+def test_missing_and_extra_counterparts_are_named(dirs, capsys):
+    (dirs / "pred" / "b.png").unlink()
+    assert "no prediction for reference file b.png" in _err(dirs, capsys)
+    _png16(dirs / "pred" / "b.png", np.full((20, 30), 1000.0))
+    _png16(dirs / "pred" / "c.png", np.full((20, 30), 1000.0))
+    assert "c.png has no reference counterpart" in _err(dirs, capsys)
+
+
+def test_shape_mismatch_names_both_files(dirs, capsys):
+    _png16(dirs / "pred" / "b.png", np.full((20, 31), 1000.0))
+    err = _err(dirs, capsys)
+    assert "b.png has shape (20, 31)" in err and "ref/b.png" in err
+
+
+def test_8bit_png_depth_is_rejected(dirs, capsys):
+    assert cv2.imwrite(str(dirs / "pred" / "b.png"), np.full((20, 30), 200, np.uint8))
+    err = _err(dirs, capsys)
+    assert "b.png" in err and "uint8" in err and "uint16" in err
+
+
+def test_unreadable_file_and_empty_dir_and_duplicate_stems(dirs, capsys):
+    (dirs / "pred" / "b.png").write_bytes(b"not a png at all")
+    assert "b.png could not be decoded" in _err(dirs, capsys)
+    _png16(dirs / "pred" / "b.png", np.full((20, 30), 1000.0))
+    _npy(dirs / "pred" / "b.npy", np.full((20, 30), 1000.0))
+    assert "two files for 'b'" in _err(dirs, capsys)
+    shutil.rmtree(dirs / "pred")
+    (dirs / "pred").mkdir()
+    assert "holds no depth file" in _err(dirs, capsys)
+    shutil.rmtree(dirs / "pred")
+    assert "prediction folder not found" in _err(dirs, capsys)
+
+
+def test_boolean_npy_is_a_dtype_error(dirs, capsys):
+    (dirs / "pred" / "a.npy").unlink()
+    _npy(dirs / "pred" / "a.npy", np.ones((20, 30), bool))
+    assert "a.npy is boolean" in _err(dirs, capsys)
+
+
+def test_console_scripts_point_at_main():
+    tomllib = pytest.importorskip("tomllib")  # Python >= 3.11
+    from tofdenoise.cli import evaluate, report
+
+    pyproject = Path(__file__).resolve().parents[2] / "pyproject.toml"
+    scripts = tomllib.loads(pyproject.read_text())["project"]["scripts"]
+    assert scripts["tofdenoise-eval"] == "tofdenoise.cli.evaluate:main" and callable(evaluate.main)
+    assert scripts["tofdenoise-report"] == "tofdenoise.cli.report:main" and callable(report.main)

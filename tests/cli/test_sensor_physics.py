@@ -1,0 +1,99 @@
+"""`tofdenoise-sensor` physics sub-commands: show-calib, sigma, calibrate, validate."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import numpy as np
+import pytest
+
+from tofdenoise.cli import sensor_physics
+from tofdenoise.physics.calibration import default_calibration, load_calibration, save_calibration
+from tofdenoise.physics.uncertainty import sigma_depth_mm
+
+
+def run(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser(prog="tofdenoise-sensor")
+    sensor_physics.add_commands(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args(argv)
+    return args.func(args)
+
+
+def test_show_calib_json_field_names(capsys):
+    assert run(["show-calib", "--json"]) == 0
+    data = json.loads(capsys.readouterr().out)
+    assert list(data) == [
+        "num_taps", "modulation_frequency_hz", "tap_response", "dark_mean_e", "dark_std_e",
+        "signal_min_e", "signal_max_e", "full_well_e", "adc_gain_e_per_dn", "range_sigma_mm",
+    ]
+    assert list(data["tap_response"]) == ["c0", "cos", "sin"]
+    assert data == default_calibration().to_dict()
+    assert isinstance(data["range_sigma_mm"], list) and len(data["range_sigma_mm"]) == 3
+
+
+def test_show_calib_file_and_text(tmp_path, capsys):
+    p = save_calibration(default_calibration().replace(num_taps=6, range_sigma_mm=None), tmp_path / "c.json")
+    assert run(["show-calib", "--calib", str(p), "--json"]) == 0
+    data = json.loads(capsys.readouterr().out)
+    assert data["num_taps"] == 6 and data["range_sigma_mm"] is None
+    assert run(["show-calib", "--calib", str(p)]) == 0
+    assert "unambiguous range" in capsys.readouterr().out
+
+
+def test_sigma_pairs_elementwise(capsys):
+    assert run(["sigma", "--depth-mm", "500", "1000", "0", "--signal-e", "20000", "5000", "100"]) == 0
+    rows = json.loads(capsys.readouterr().out)
+    assert [r["depth_mm"] for r in rows] == [500.0, 1000.0, 0.0]
+    assert [r["signal_e"] for r in rows] == [20000.0, 5000.0, 100.0]
+    calib = default_calibration()
+    assert rows[0]["sigma_mm"] == pytest.approx(float(sigma_depth_mm(500.0, 20000.0, calib)), rel=1e-12)
+    assert rows[1]["sigma_mm"] == pytest.approx(float(sigma_depth_mm(1000.0, 5000.0, calib)), rel=1e-12)
+    assert rows[2]["sigma_mm"] is None  # invalid depth
+
+
+def test_sigma_broadcasts_single_value_and_rejects_mismatch(capsys):
+    assert run(["sigma", "--depth-mm", "800", "--signal-e", "1000", "10000", "40000"]) == 0
+    rows = json.loads(capsys.readouterr().out)
+    assert [r["depth_mm"] for r in rows] == [800.0] * 3
+    s = [r["sigma_mm"] for r in rows]
+    assert s[0] > s[1] > s[2]
+    with pytest.raises(ValueError, match="--depth-mm has 2 values and --signal-e has 3"):
+        run(["sigma", "--depth-mm", "1", "2", "--signal-e", "1", "2", "3"])
+
+
+def test_sensor_dispatcher_reports_errors(capsys):
+    from tofdenoise.cli.sensor import main
+
+    assert main(["sigma", "--depth-mm", "1", "2", "--signal-e", "1", "2", "3"]) == 2
+    assert "give the same number" in capsys.readouterr().err
+    assert main(["show-calib", "--calib", "/nonexistent/calib.yaml"]) == 2
+    assert "not found" in capsys.readouterr().err
+
+
+def test_calibrate_command_round_trip(tmp_path, capsys):
+    from tofdenoise.physics.synthetic_captures import write_dark_folder, write_distances_folder, write_sweep_folder
+
+    true = default_calibration()
+    write_sweep_folder(true, tmp_path / "sweep", num_steps=16, num_frames=10)
+    write_dark_folder(true, tmp_path / "dark", num_frames=50)
+    write_distances_folder(true, tmp_path / "dist", [600.0, 900.0, 1200.0, 1500.0], num_frames=40)
+    out = tmp_path / "calib.yaml"
+    assert run(["calibrate", "--sweep", str(tmp_path / "sweep"), "--dark", str(tmp_path / "dark"),
+                "--distances", str(tmp_path / "dist"), "--out", str(out)]) == 0
+    assert "wrote" in capsys.readouterr().out
+    got = load_calibration(out)
+    assert out.read_text().startswith("# Calibrated by tofdenoise-sensor calibrate")
+    np.testing.assert_allclose(got.tap_response.cos, true.tap_response.cos, atol=3e-3)
+    assert got.dark_std_e == pytest.approx(true.dark_std_e, rel=0.03)
+    assert got.range_sigma_mm is not None
+
+
+def test_validate_command_writes_outputs(tmp_path, capsys):
+    assert run(["validate", "--out", str(tmp_path), "--quick", "--frames", "20", "--roi-px", "8"]) == 0
+    out = capsys.readouterr().out
+    assert "pooled" in out and "range_gaussian" in out
+    data = json.loads((tmp_path / "validation.json").read_text())
+    assert data["settings"]["num_frames"] == 20 and data["settings"]["roi_px"] == 8
+    assert data["pooled"]["proposed"]["mape_percent"] < data["pooled"]["range_gaussian"]["mape_percent"]
+    assert (tmp_path / "validation.png").stat().st_size > 10_000

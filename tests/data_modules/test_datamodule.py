@@ -1,0 +1,161 @@
+"""ToFDataModule: batch contract, fixed evaluation noise, fresh training noise, aligned crops, variance matching."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from tofdenoise.data_modules import ToFDataModule
+
+SMALL = dict(num_samples=10, height=48, width=64, crop_size=16, batch_size=2)
+
+
+def make_dm(tmp_path, **kw):
+    args = {**SMALL, "cache_dir": str(tmp_path / "cache"), **kw}
+    dm = ToFDataModule(**args)
+    dm.prepare_data()
+    dm.setup("fit")
+    return dm
+
+
+def test_batch_contract(tmp_path):
+    dm = make_dm(tmp_path)
+    batch = next(iter(dm.train_dataloader()))
+    for key in ("noisy", "clean", "sigma", "mask", "amplitude"):
+        assert batch[key].dtype == torch.float32 and batch[key].shape == (2, 1, 16, 16), key
+    assert batch["index"].dtype == torch.int64 and batch["index"].shape == (2,)
+    assert isinstance(batch["name"], list) and len(batch["name"]) == 2
+    val = next(iter(dm.val_dataloader()))
+    assert val["noisy"].shape == (1, 1, 48, 64)
+    invalid = val["mask"] == 0
+    assert torch.all(val["noisy"][invalid] == 0) and torch.all(val["clean"][invalid] == 0)
+    assert set(torch.unique(val["mask"]).tolist()) <= {0.0, 1.0}
+    assert dm.test_set_names == ["synthetic"] and len(dm.test_dataloader()) == 1
+    assert len(dm.predict_dataloader().dataset) == len(dm.splits["test"])
+    # split sizes 6:2:2 and the split file written next to the cache
+    assert {k: len(v) for k, v in dm.splits.items()} == {"train": 6, "val": 2, "test": 2}
+    assert json.loads(dm.split_path.read_text())["val"] == dm.splits["val"]
+    assert dm.split_path.parent == dm.cache.folder.parent
+
+
+def test_validation_noise_identical_across_epochs_runs_and_workers(tmp_path):
+    dm = make_dm(tmp_path / "a")
+    epoch1 = [b["noisy"].clone() for b in dm.val_dataloader()]
+    epoch2 = [b["noisy"].clone() for b in dm.val_dataloader()]
+    other_run = make_dm(tmp_path / "b", num_workers=2)  # fresh cache, another process layout
+    epoch3 = [b["noisy"].clone() for b in other_run.val_dataloader()]
+    for a, b, c in zip(epoch1, epoch2, epoch3):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+        torch.testing.assert_close(a, c, rtol=0, atol=0)
+    test_noisy = [b["noisy"] for b in dm.test_dataloader()[0]]
+    assert not torch.equal(test_noisy[0], epoch1[0])  # different samples / streams per split
+
+
+def test_training_noise_is_fresh_and_workers_do_not_repeat(tmp_path):
+    dm = make_dm(tmp_path, crop_size=None, flips=False, num_workers=2, batch_size=1)
+    ds = dm.datasets["train"]
+    a, b = ds[0], ds[0]
+    torch.testing.assert_close(a["clean"], b["clean"])
+    assert not torch.equal(a["noisy"], b["noisy"])
+    eps = []
+    for batch in dm.train_dataloader():
+        m = batch["mask"] > 0
+        eps.append(((batch["noisy"] - batch["clean"])[m] / batch["sigma"][m])[:1000])
+    eps = torch.stack(eps)
+    corr = torch.corrcoef(eps)
+    off_diag = corr[~torch.eye(len(eps), dtype=torch.bool)]
+    assert off_diag.abs().max() < 0.2  # no two reads share a noise stream
+
+
+def test_crops_keep_maps_aligned(tmp_path):
+    dm = make_dm(tmp_path)
+    full = dm.cache.read
+    ds = dm.datasets["train"]
+    for index in range(len(ds)):
+        item = ds[index]
+        maps = full(item["name"])
+        ref = {"clean": maps.depth_mm, "sigma": maps.sigma_mm, "amplitude": maps.amplitude, "mask": maps.mask}
+        crop = item["clean"][0].numpy()
+        found = False
+        for flips in ((), (1,), (0,), (0, 1)):
+            view = np.flip(crop, flips) if flips else crop
+            for top in range(48 - 16 + 1):
+                for left in range(64 - 16 + 1):
+                    if np.array_equal(ref["clean"][top:top + 16, left:left + 16], view):
+                        window = (slice(top, top + 16), slice(left, left + 16))
+                        for key in ("sigma", "amplitude", "mask"):
+                            got = np.flip(item[key][0].numpy(), flips) if flips else item[key][0].numpy()
+                            np.testing.assert_array_equal(got, ref[key][window].astype(np.float32))
+                        found = True
+                        break
+                if found:
+                    break
+            if found:
+                break
+        assert found, f"crop of {item['name']} not found in its full map"
+        residual = (item["noisy"] - item["clean"])[item["mask"] > 0]
+        assert torch.all(residual.abs() <= 6 * item["sigma"][item["mask"] > 0])
+
+
+def test_hetero_noise_std_matches_sigma_map(tmp_path):
+    dm = make_dm(tmp_path, num_samples=20, height=64, width=96)
+    z = torch.cat([((b["noisy"] - b["clean"]) / b["sigma"])[b["mask"] > 0] for b in dm.val_dataloader()])
+    assert z.numel() > 20000
+    assert float(z.mean()) == pytest.approx(0.0, abs=0.03)
+    assert float(z.std()) == pytest.approx(1.0, abs=0.03)
+
+
+def _train_sigma2(dm):
+    maps = [dm.cache.read(i) for i in dm.splits["train"]]
+    depth = np.concatenate([m.depth_mm[m.mask] for m in maps]).astype(np.float64)
+    sigma2 = np.concatenate([m.sigma_mm[m.mask] for m in maps]).astype(np.float64) ** 2
+    return depth, sigma2
+
+
+def test_variance_matching_equals_hetero_mean_variance(tmp_path, monkeypatch):
+    dm = make_dm(tmp_path, noise="fixed", noise_kwargs={"sigma_mm": 2.0})
+    depth, sigma2 = _train_sigma2(dm)
+    k = dm.summary()["variance_scale"]
+    assert k == pytest.approx(np.sqrt(sigma2.mean()) / 2.0, rel=1e-6)
+    assert dm.noise_model.scale == pytest.approx(k)
+    alpha = [1.0, 0.002, 1e-6]
+    rng = make_dm(tmp_path, noise="range", noise_kwargs={"alpha_mm": alpha})
+    base2 = (alpha[0] + alpha[1] * depth + alpha[2] * depth ** 2) ** 2
+    k_range = rng.summary()["variance_scale"]
+    assert k_range ** 2 * base2.mean() == pytest.approx(sigma2.mean(), rel=1e-6)
+    # stored next to the cache and reused when the keys match: no recomputation in a new instance
+    records = list(rng.cache.folder.glob("variance_scale_range_*.json"))
+    assert len(records) == 1 and json.loads(records[0].read_text())["scale"] == pytest.approx(k_range)
+    import tofdenoise.physics.noise_models as nm
+
+    monkeypatch.setattr(nm, "variance_matching_scale", lambda *a, **k: pytest.fail("recomputed"))
+    again = make_dm(tmp_path, noise="range", noise_kwargs={"alpha_mm": alpha})
+    assert again.summary()["variance_scale"] == pytest.approx(k_range)
+    # the matched fixed model's perturbation variance over the training pixels equals the hetero one
+    model = dm.noise_model
+    std = model.std_mm(torch.from_numpy(depth))
+    assert float((std.double() ** 2).mean()) == pytest.approx(sigma2.mean(), rel=1e-5)
+
+
+def test_unmatched_baseline_and_none(tmp_path):
+    dm = make_dm(tmp_path, noise="fixed", match_variance=False, noise_kwargs={"sigma_mm": 3.0})
+    assert dm.summary()["variance_scale"] is None and dm.noise_model.scale == 1.0
+    none = make_dm(tmp_path, noise="none")
+    batch = next(iter(none.val_dataloader()))
+    torch.testing.assert_close(batch["noisy"], batch["clean"])
+    assert float(batch["sigma"].max()) > 0  # the hetero sigma_D map is carried whatever the noise model
+
+
+def test_crop_larger_than_samples_is_a_config_error(tmp_path):
+    with pytest.raises(ValueError, match="data.crop_size"):
+        make_dm(tmp_path, crop_size=320)
+
+
+def test_unknown_source_and_noise(tmp_path):
+    with pytest.raises(ValueError, match="unknown data.source 'kinect'"):
+        ToFDataModule(source="kinect")
+    with pytest.raises(ValueError, match="unknown noise model"):
+        make_dm(tmp_path, noise="pink")

@@ -1,0 +1,84 @@
+"""Readers: clear errors naming the file and the expectation."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from tofdenoise.data_modules.io import (DataFileError, atomic_write, read_amplitude, read_depth_mm, read_mat,
+                                        read_npy, read_png_uint16)
+
+
+def test_missing_file_names_the_path(tmp_path):
+    with pytest.raises(FileNotFoundError, match="nope.png"):
+        read_depth_mm(tmp_path / "nope.png")
+
+
+def test_unreadable_image_names_the_file(tmp_path):
+    bad = tmp_path / "broken.png"
+    bad.write_bytes(b"this is not a png")
+    with pytest.raises(DataFileError, match="broken.png.*could not be decoded"):
+        read_amplitude(bad)
+
+
+def test_wrong_dtype_is_rejected_with_expectation(tmp_path):
+    path = tmp_path / "depth8.png"
+    cv2.imwrite(str(path), np.full((4, 5), 7, np.uint8))
+    with pytest.raises(DataFileError, match=r"depth8.png has dtype uint8; expected one of: uint16"):
+        read_depth_mm(path)
+    with pytest.raises(DataFileError, match="uint16"):
+        read_png_uint16(path)
+    colour = tmp_path / "colour16.png"
+    cv2.imwrite(str(colour), np.zeros((4, 5, 3), np.uint16))
+    with pytest.raises(DataFileError, match="3 channels; expected a single-channel"):
+        read_depth_mm(colour)
+    assert read_amplitude(colour).shape == (4, 5)  # amplitude accepts colour (converted to grey)
+
+
+def test_png16_npy_and_mat_values(tmp_path):
+    import scipy.io
+
+    depth = (np.arange(20, dtype=np.uint16) * 100).reshape(4, 5)
+    cv2.imwrite(str(tmp_path / "d.png"), depth)
+    np.testing.assert_array_equal(read_depth_mm(tmp_path / "d.png"), depth.astype(np.float32))
+    np.save(tmp_path / "d.npy", depth.astype(np.float64) / 1000.0)
+    np.testing.assert_allclose(read_depth_mm(tmp_path / "d.npy", scale_mm=1000.0), depth, rtol=1e-6)
+    scipy.io.savemat(tmp_path / "d.mat", {"gt_depth": depth.astype(np.float32)})
+    np.testing.assert_array_equal(read_mat(tmp_path / "d.mat", "gt_depth"), depth)
+    with pytest.raises(DataFileError, match="no variable 'conf'"):
+        read_mat(tmp_path / "d.mat", "conf")
+    np.save(tmp_path / "cube.npy", np.zeros((2, 3, 4)))
+    with pytest.raises(DataFileError, match=r"shape \(2, 3, 4\); expected a 2-D map"):
+        read_depth_mm(tmp_path / "cube.npy")
+    (tmp_path / "trunc.npy").write_bytes((tmp_path / "d.npy").read_bytes()[:60])
+    with pytest.raises(DataFileError, match="trunc.npy could not be read"):
+        read_npy(tmp_path / "trunc.npy")
+
+
+def test_exr_error_explains_opencv_requirement(tmp_path):
+    path = tmp_path / "depth.exr"
+    path.write_bytes(b"\x76\x2f\x31\x01" + b"\x00" * 64)  # EXR magic, no valid content
+    with pytest.raises(DataFileError, match="OPENCV_IO_ENABLE_OPENEXR"):
+        read_depth_mm(path)
+
+
+def test_unsupported_suffix(tmp_path):
+    path = tmp_path / "depth.bmpx"
+    path.write_bytes(b"x")
+    with pytest.raises(DataFileError, match="unsupported suffix"):
+        read_depth_mm(path)
+
+
+def test_atomic_write_leaves_no_partial_file(tmp_path):
+    target = tmp_path / "out.txt"
+    target.write_text("old")
+
+    def failing(tmp):
+        tmp.write_text("partial")
+        raise RuntimeError("disk full")
+
+    with pytest.raises(RuntimeError):
+        atomic_write(target, failing)
+    assert target.read_text() == "old"
+    assert [p.name for p in tmp_path.iterdir()] == ["out.txt"]

@@ -1,0 +1,148 @@
+"""Capture sets: reference building (saturated / invalid frames excluded), caching, the `real` test loader."""
+
+from __future__ import annotations
+
+import os
+import time
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from tofdenoise.data_modules.real_captures import (REFERENCE_COUNT, REFERENCE_DEPTH, accumulate_reference,
+                                                   build_reference, load_real_scene)
+
+H, W = 6, 8
+
+
+def write_scene(scene, frames, saturated, input_depth=None, amplitude=None):
+    (scene / "hiexp").mkdir(parents=True, exist_ok=True)
+    for k, (depth, sat) in enumerate(zip(frames, saturated)):
+        cv2.imwrite(str(scene / "hiexp" / f"depth_mm_{k:03d}.png"), depth.astype(np.uint16))
+        cv2.imwrite(str(scene / "hiexp" / f"saturated_{k:03d}.png"), (sat * 255).astype(np.uint8))
+    if input_depth is not None:
+        cv2.imwrite(str(scene / "input_depth_mm.png"), input_depth.astype(np.uint16))
+        cv2.imwrite(str(scene / "input_amplitude.png"), amplitude.astype(np.uint16))
+
+
+def hand_frames():
+    frames = [np.full((H, W), v, np.float64) for v in (1000, 1002, 1004, 1006)]
+    sat = [np.zeros((H, W), bool) for _ in frames]
+    frames[0][0, 0] = 3000  # saturated and biased: must be excluded
+    sat[0][0, 0] = True
+    frames[1][0, 0] = 0  # invalid frame at this pixel
+    frames[2][1, 1] = frames[3][1, 1] = 0  # pixel (1,1): only 2 valid frames
+    frames[1][2, 2] = 0
+    frames[2][2, 2] = 0
+    frames[3][2, 2] = 0  # pixel (2,2): 1 valid frame
+    return frames, sat
+
+
+def test_reference_excludes_saturated_and_invalid_frames(tmp_path):
+    frames, sat = hand_frames()
+    write_scene(tmp_path, frames, sat)
+    ref = build_reference(tmp_path, min_count=2)
+    assert ref.rebuilt
+    assert ref.depth_mm.dtype == np.float32 and ref.count.dtype == np.uint16
+    assert ref.depth_mm[0, 0] == pytest.approx((1004 + 1006) / 2)  # frames 2, 3 only
+    assert ref.count[0, 0] == 2
+    assert ref.depth_mm[1, 1] == pytest.approx(1001.0) and ref.count[1, 1] == 2
+    assert np.isnan(ref.depth_mm[2, 2]) and ref.count[2, 2] == 1  # too few frames -> invalid
+    assert ref.depth_mm[5, 7] == pytest.approx(1003.0) and ref.count[5, 7] == 4
+    np.testing.assert_array_equal(np.load(tmp_path / REFERENCE_DEPTH), ref.depth_mm)
+    np.testing.assert_array_equal(np.load(tmp_path / REFERENCE_COUNT), ref.count)
+    mean, count = accumulate_reference(list(zip(frames, sat)), 3)
+    assert np.isnan(mean[0, 0]) and np.isnan(mean[1, 1]) and mean[5, 7] == pytest.approx(1003.0)
+    # default min_count = half the frames (2 of 4): pixel (1,1) with 2 frames stays valid
+    assert build_reference(tmp_path).depth_mm[1, 1] == pytest.approx(1001.0)
+
+
+def test_reference_cache_and_rebuild_when_inputs_newer(tmp_path):
+    frames, sat = hand_frames()
+    write_scene(tmp_path, frames, sat)
+    build_reference(tmp_path)
+    assert not build_reference(tmp_path).rebuilt  # up to date: reused
+    assert build_reference(tmp_path, min_count=3).rebuilt  # another threshold: rebuilt
+    frames[3][:] = 2000
+    later = time.time() + 5
+    cv2.imwrite(str(tmp_path / "hiexp" / "depth_mm_003.png"), frames[3].astype(np.uint16))
+    os.utime(tmp_path / "hiexp" / "depth_mm_003.png", (later, later))
+    rebuilt = build_reference(tmp_path, min_count=3)
+    assert rebuilt.rebuilt and rebuilt.depth_mm[5, 7] == pytest.approx((1000 + 1002 + 1004 + 2000) / 4)
+    assert not [p for p in tmp_path.iterdir() if ".tmp" in p.name]
+
+
+def test_missing_saturation_mask_and_shape_mismatch(tmp_path):
+    frames, sat = hand_frames()
+    write_scene(tmp_path, frames, sat)
+    (tmp_path / "hiexp" / "saturated_002.png").unlink()
+    with pytest.raises(FileNotFoundError, match="saturated_002.png"):
+        build_reference(tmp_path)
+    cv2.imwrite(str(tmp_path / "hiexp" / "saturated_002.png"), np.zeros((H, W + 1), np.uint8))
+    with pytest.raises(ValueError, match=r"saturated_002.png has shape \(6, 9\); expected \(6, 8\)"):
+        build_reference(tmp_path)
+
+
+def test_load_real_scene_common_valid_region(tmp_path):
+    from tofdenoise.physics.calibration import default_calibration
+
+    frames, sat = hand_frames()
+    input_depth = np.full((H, W), 1010, np.uint16)
+    input_depth[4, 4] = 0  # invalid input pixel
+    amplitude = np.arange(H * W, dtype=np.uint16).reshape(H, W) * 100 + 500
+    write_scene(tmp_path, frames, sat, input_depth, amplitude)
+    item = load_real_scene(tmp_path, default_calibration(), min_count=2)
+    mask = item["mask"] > 0
+    assert not mask[4, 4] and not mask[2, 2] and mask[0, 0] and mask.sum() == H * W - 2
+    np.testing.assert_array_equal(item["noisy"][mask], 1010)
+    assert item["clean"][0, 0] == pytest.approx(1005.0)
+    assert np.all(item["sigma"][mask] > 0) and np.all(item["sigma"][~mask] == 0)
+    np.testing.assert_array_equal(item["amplitude"][mask], amplitude[mask])
+    # brighter pixels get a smaller sigma_D at equal depth
+    assert item["sigma"][5, 7] < item["sigma"][0, 1]
+
+
+def test_real_test_dataloader_on_simulated_set(tmp_path):
+    from tofdenoise.data_modules import ToFDataModule
+    from tofdenoise.data_modules.capture_simulation import simulate_capture_set
+
+    simulate_capture_set(tmp_path / "set", scenes=3, frames=4, height=32, width=48, seed=1)
+    dm = ToFDataModule(num_samples=6, height=32, width=48, crop_size=16, cache_dir=str(tmp_path / "c"),
+                       real_dir=str(tmp_path / "set"))
+    dm.prepare_data()
+    dm.setup("test")
+    assert dm.test_set_names == ["synthetic", "real"]
+    loaders = dm.test_dataloader()
+    assert len(loaders) == 2
+    batches = list(loaders[1])
+    assert [b["name"][0] for b in batches] == ["scene_0000", "scene_0001", "scene_0002"]
+    b = batches[0]
+    m = b["mask"] > 0
+    inp = cv2.imread(str(tmp_path / "set" / "scene_0000" / "input_depth_mm.png"), cv2.IMREAD_UNCHANGED)
+    ref = np.load(tmp_path / "set" / "scene_0000" / "reference_depth_mm.npy")
+    np.testing.assert_array_equal(b["noisy"][0, 0].numpy()[m[0, 0].numpy()], inp[m[0, 0].numpy()])
+    np.testing.assert_allclose(b["clean"][0, 0].numpy()[m[0, 0].numpy()], ref[m[0, 0].numpy()])
+    assert torch.all(b["clean"][~m] == 0) and m.float().mean() > 0.9
+
+
+def test_missing_real_dir_names_the_key(tmp_path):
+    from tofdenoise.data_modules import ToFDataModule
+
+    dm = ToFDataModule(num_samples=6, height=32, width=48, crop_size=16, cache_dir=str(tmp_path / "c"),
+                       real_dir=str(tmp_path / "nowhere"))
+    with pytest.raises(FileNotFoundError, match="data.real_dir"):
+        dm.prepare_data()
+
+
+def test_scene_without_common_valid_region_is_skipped(tmp_path):
+    from tofdenoise.data_modules import ToFDataModule
+    from tofdenoise.data_modules.capture_simulation import simulate_capture_set
+
+    simulate_capture_set(tmp_path / "set", scenes=2, frames=2, height=16, width=24, seed=2)
+    cv2.imwrite(str(tmp_path / "set" / "scene_0001" / "input_depth_mm.png"), np.zeros((16, 24), np.uint16))
+    dm = ToFDataModule(num_samples=6, height=16, width=24, crop_size=8, cache_dir=str(tmp_path / "c"),
+                       real_dir=str(tmp_path / "set"))
+    with pytest.warns(UserWarning, match="1 scene\\(s\\) with no common valid pixel skipped: scene_0001"):
+        dm.prepare_data()
+    assert dm.skipped_samples["real"] == ["scene_0001"] and dm.summary()["real_scenes"] == 1
