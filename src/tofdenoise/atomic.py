@@ -14,7 +14,9 @@ import tempfile
 from pathlib import Path
 from typing import Callable
 
-__all__ = ["atomic_write", "atomic_write_bytes", "atomic_write_text", "current_umask"]
+import numpy as np
+
+__all__ = ["atomic_write", "atomic_write_bytes", "atomic_write_text", "current_umask", "save_npy_atomic"]
 
 
 def current_umask() -> int:
@@ -65,3 +67,8 @@ def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> Path:
 def atomic_write_text(path: str | os.PathLike[str], text: str) -> Path:
     """Write UTF-8 ``text`` to ``path`` atomically."""
     return atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def save_npy_atomic(path: str | os.PathLike[str], array: np.ndarray) -> Path:
+    """Save ``array`` as a ``.npy`` file (no pickle) atomically."""
+    return atomic_write(path, lambda tmp: np.save(tmp, np.ascontiguousarray(array), allow_pickle=False), suffix=".npy")

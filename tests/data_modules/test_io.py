@@ -6,7 +6,8 @@ import cv2
 import numpy as np
 import pytest
 
-from tofdenoise.data_modules.io import (DataFileError, atomic_write, read_amplitude, read_depth_mm, read_mat,
+from tofdenoise.atomic import atomic_write
+from tofdenoise.data_modules.io import (DataFileError, read_amplitude, read_depth_mm, read_mat,
                                         read_npy, read_png_uint16)
 
 

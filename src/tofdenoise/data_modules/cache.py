@@ -31,7 +31,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from tofdenoise.data_modules.io import atomic_write, write_text_atomic
+from tofdenoise.atomic import atomic_write, atomic_write_text
 
 FORMAT_VERSION = 1
 MAP_NAMES = ("depth_mm", "signal_e", "sigma_mm", "mask", "amplitude")
@@ -92,7 +92,7 @@ class MapCache:
         self.folder.mkdir(parents=True, exist_ok=True)
         key_file = self.folder / "key.json"
         if not key_file.is_file():
-            write_text_atomic(key_file, json.dumps(self.key, indent=1, sort_keys=True, default=str) + "\n")
+            atomic_write_text(key_file, json.dumps(self.key, indent=1, sort_keys=True, default=str) + "\n")
 
     def path(self, sample_id: str) -> Path:
         return self.folder / f"{safe_name(sample_id)}.npz"
@@ -175,4 +175,4 @@ class MapCache:
         if key is not None:
             body["key"] = canonical_digest(key)
             body["key_fields"] = key
-        return write_text_atomic(self.record_path(name), json.dumps(body, indent=1, default=str) + "\n")
+        return atomic_write_text(self.record_path(name), json.dumps(body, indent=1, default=str) + "\n")

@@ -26,7 +26,8 @@ import numpy as np
 import torch
 
 from tofdenoise.data_modules.datasets import stable_seed
-from tofdenoise.data_modules.io import save_npy_atomic, write_png_uint8, write_png_uint16, write_text_atomic
+from tofdenoise.atomic import atomic_write_text, save_npy_atomic
+from tofdenoise.data_modules.io import write_png_uint8, write_png_uint16
 from tofdenoise.data_modules.real_captures import (HIEXP_DIR, INPUT_AMPLITUDE, INPUT_DEPTH, build_reference)
 from tofdenoise.data_modules.sources.procedural import ProceduralSource
 
@@ -92,7 +93,7 @@ Layout per scene (`<scene>/`):
 - `ground_truth_depth_mm.npy`: the clean rendered depth (only simulated sets have it)
 - `scene.json`: per-scene settings; its presence marks the scene as complete
 """
-    write_text_atomic(out_dir / "README.md", text)
+    atomic_write_text(out_dir / "README.md", text)
 
 
 def simulate_scene(scene_dir: Path, source: ProceduralSource, index: int, calib: Any, frames: int,
@@ -138,7 +139,7 @@ def simulate_scene(scene_dir: Path, source: ProceduralSource, index: int, calib:
             "input_valid_fraction": float(standard.valid[0].float().mean()),
             "reference_valid_fraction": float(np.isfinite(reference.depth_mm).mean()),
             "calibration_fingerprint": calib.fingerprint()}
-    write_text_atomic(scene_dir / SCENE_DONE, json.dumps(info, indent=1) + "\n")
+    atomic_write_text(scene_dir / SCENE_DONE, json.dumps(info, indent=1) + "\n")
     return info
 
 

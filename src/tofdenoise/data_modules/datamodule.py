@@ -14,7 +14,7 @@ from torch.utils.data import DataLoader, Dataset
 
 from tofdenoise.data_modules.cache import MapCache, canonical_digest
 from tofdenoise.data_modules.datasets import MapProvider, RealCaptures, SyntheticPairs
-from tofdenoise.data_modules.io import write_text_atomic
+from tofdenoise.atomic import atomic_write_text
 from tofdenoise.data_modules.real_captures import build_reference, list_scenes, load_real_scene
 from tofdenoise.data_modules.sources import SOURCES, FlyingThings3DSource, FolderSource, ProceduralSource
 from tofdenoise.data_modules.splits import SPLIT_NAMES, ids_digest, load_or_make_split
@@ -181,7 +181,7 @@ class ToFDataModule(L.LightningDataModule):
         described = source.describe()
         base = self.cache_root / f"{source.name}-{canonical_digest(described)[:12]}"
         base.mkdir(parents=True, exist_ok=True)
-        write_text_atomic(base / "source.json", json.dumps(described, indent=1, default=str) + "\n")
+        atomic_write_text(base / "source.json", json.dumps(described, indent=1, default=str) + "\n")
         ratio_tag = "-".join(f"{r:g}" for r in hp.split_ratios)
         split_path = base / f"split_seed{hp.seed}_{ratio_tag}.json"
         splits = load_or_make_split(split_path, ids, hp.seed, hp.split_ratios, described)

@@ -10,7 +10,7 @@ Supported formats (chosen by suffix):
   OpenCV, which only reads EXR when ``OPENCV_IO_ENABLE_OPENEXR=1`` is set before ``cv2`` is imported *and* the
   build includes OpenEXR (this module sets the variable before it imports ``cv2``).
 
-Writers are atomic (temporary file in the same folder + ``os.replace``).
+Writers are atomic (`tofdenoise.atomic`: temporary file in the same folder + ``os.replace``).
 """
 
 from __future__ import annotations
@@ -19,12 +19,12 @@ import os
 
 os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")  # must precede the first cv2 import
 
-import tempfile
 from pathlib import Path
-from typing import Callable
 
 import cv2
 import numpy as np
+
+from tofdenoise.atomic import atomic_write
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff")
 ARRAY_SUFFIXES = (".npy", ".npz")
@@ -189,26 +189,6 @@ def check_same_shape(reference: np.ndarray, other: np.ndarray, *, reference_path
                             f"{reference_path}")
 
 
-def atomic_write(path: str | Path, write: Callable[[Path], None], suffix: str | None = None) -> Path:
-    """Call ``write(tmp_path)`` on a temporary file next to ``path`` and rename it into place atomically.
-
-    The temporary name is unique per process/thread, so concurrent writers never see each other's partial files;
-    the last rename wins and every reader sees either the old or a complete new file.
-    """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=f".tmp{suffix or path.suffix}", dir=path.parent)
-    os.close(fd)
-    tmp = Path(tmp_name)
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
-
-
 def write_png_uint16(path: str | Path, image: np.ndarray) -> Path:
     """Write a single-channel uint16 PNG atomically (values must already be integers in range)."""
     image = np.asarray(image)
@@ -234,16 +214,3 @@ def write_png_uint8(path: str | Path, image: np.ndarray) -> Path:
     return atomic_write(path, _write, suffix=".png")
 
 
-def save_npy_atomic(path: str | Path, array: np.ndarray) -> Path:
-    def _write(tmp: Path) -> None:
-        with open(tmp, "wb") as handle:
-            np.save(handle, np.asarray(array), allow_pickle=False)
-
-    return atomic_write(path, _write, suffix=".npy")
-
-
-def write_text_atomic(path: str | Path, text: str) -> Path:
-    def _write(tmp: Path) -> None:
-        tmp.write_text(text, encoding="utf-8")
-
-    return atomic_write(path, _write)

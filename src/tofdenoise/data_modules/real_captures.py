@@ -27,8 +27,8 @@ from typing import Any
 
 import numpy as np
 
-from tofdenoise.data_modules.io import (DataFileError, check_same_shape, read_image, read_png_uint16,
-                                        save_npy_atomic, write_text_atomic)
+from tofdenoise.atomic import atomic_write_text, save_npy_atomic
+from tofdenoise.data_modules.io import (DataFileError, check_same_shape, read_image, read_png_uint16)
 
 INPUT_DEPTH = "input_depth_mm.png"
 INPUT_AMPLITUDE = "input_amplitude.png"
@@ -153,7 +153,7 @@ def build_reference(scene_dir: str | Path, min_count: int | None = None, force: 
     save_npy_atomic(scene / REFERENCE_COUNT, count)
     meta = {"min_count": needed, "num_frames": len(frames), "frames": [p.name for p, _ in frames],
             "valid_pixels": int(np.isfinite(mean).sum()), "note": "mean over valid, unsaturated high-exposure frames"}
-    write_text_atomic(scene / REFERENCE_META, json.dumps(meta, indent=1) + "\n")
+    atomic_write_text(scene / REFERENCE_META, json.dumps(meta, indent=1) + "\n")
     return Reference(mean, count, rebuilt=True)
 
 

@@ -9,7 +9,7 @@ from typing import Sequence
 
 import numpy as np
 
-from tofdenoise.data_modules.io import write_text_atomic
+from tofdenoise.atomic import atomic_write_text
 
 SPLIT_NAMES = ("train", "val", "test")
 
@@ -53,7 +53,7 @@ def save_split(path: str | Path, split: dict[str, list[str]], *, seed: int, rati
                source: dict) -> Path:
     payload = {"seed": int(seed), "ratios": [float(r) for r in ratios], "source": source,
                "sizes": {k: len(split[k]) for k in SPLIT_NAMES}, **{k: split[k] for k in SPLIT_NAMES}}
-    return write_text_atomic(path, json.dumps(payload, indent=1) + "\n")
+    return atomic_write_text(path, json.dumps(payload, indent=1) + "\n")
 
 
 def load_split(path: str | Path) -> dict:

@@ -33,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from tofdenoise.atomic import atomic_write, atomic_write_text
+from tofdenoise.atomic import atomic_write_text, save_npy_atomic
 
 FORMAT = "tofdenoise-captures-v1"
 KINDS = ("sweep", "dark", "distances", "validation")
@@ -178,11 +178,6 @@ def load_stack(index: CaptureIndex, file: str, ndim: tuple[int, ...] = (4,), sca
     return out
 
 
-def save_npy_atomic(path: str | os.PathLike[str], array: np.ndarray) -> Path:
-    """Save ``array`` as ``.npy`` (no pickle) atomically."""
-    return atomic_write(path, lambda tmp: np.save(tmp, np.ascontiguousarray(array), allow_pickle=False))
-
-
 def write_capture_folder(
     folder: str | os.PathLike[str],
     kind: str,
@@ -213,6 +208,5 @@ __all__ = [
     "CaptureIndex",
     "load_stack",
     "read_index",
-    "save_npy_atomic",
     "write_capture_folder",
 ]
