@@ -1,1 +1,21 @@
+"""Restoration backbones (registered by name), the selective scan, and tiled inference."""
 
+from . import dvss as _dvss  # noqa: F401  (registers dvss, dvss_no_local, dvss_no_dwconv, dvss_se)
+from . import deeptof as _deeptof  # noqa: F401
+from . import restormer as _restormer  # noqa: F401
+from . import tofkpn as _tofkpn  # noqa: F401
+from . import unet as _unet  # noqa: F401
+from .common import count_parameters
+from .registry import available_backbones, build_backbone, register_backbone
+from .scan import available_scan_backends, selective_scan
+from .tiling import tiled_forward
+
+__all__ = [
+    "available_backbones",
+    "build_backbone",
+    "count_parameters",
+    "register_backbone",
+    "available_scan_backends",
+    "selective_scan",
+    "tiled_forward",
+]

@@ -1,0 +1,75 @@
+"""Shared building blocks for the backbones: size padding, channels-first LayerNorm, parameter count."""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+__all__ = [
+    "LayerNorm2d",
+    "count_parameters",
+    "pad_to_multiple",
+    "crop_to",
+    "check_input",
+]
+
+
+def count_parameters(module: nn.Module, trainable_only: bool = True) -> int:
+    """Number of (trainable) scalar parameters of ``module``."""
+    return sum(p.numel() for p in module.parameters() if p.requires_grad or not trainable_only)
+
+
+def pad_to_multiple(x: torch.Tensor, multiple: int, mode: str = "reflect") -> tuple[torch.Tensor, tuple[int, int]]:
+    """Pad the bottom/right of a (B, C, H, W) tensor so that H and W are multiples of ``multiple``.
+
+    ``mode`` is ``"reflect"`` (falls back to ``"replicate"`` when the image is too small to reflect)
+    or ``"replicate"``. Returns the padded tensor and the original (H, W) for :func:`crop_to`.
+    """
+    if x.dim() != 4:
+        raise ValueError(f"pad_to_multiple: expected a (B, C, H, W) tensor, got shape {tuple(x.shape)}")
+    if multiple < 1:
+        raise ValueError(f"pad_to_multiple: multiple must be >= 1, got {multiple}")
+    if mode not in ("reflect", "replicate"):
+        raise ValueError(f"pad_to_multiple: mode must be 'reflect' or 'replicate', got {mode!r}")
+    h, w = x.shape[-2:]
+    pad_h = (-h) % multiple
+    pad_w = (-w) % multiple
+    if pad_h == 0 and pad_w == 0:
+        return x, (h, w)
+    use = mode
+    if mode == "reflect" and (pad_h >= h or pad_w >= w):
+        use = "replicate"
+    return F.pad(x, (0, pad_w, 0, pad_h), mode=use), (h, w)
+
+
+def crop_to(x: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+    """Crop a (B, C, H', W') tensor back to the top-left (H, W) given by ``size``."""
+    h, w = size
+    return x[..., :h, :w]
+
+
+def check_input(x: torch.Tensor, in_channels: int, name: str) -> None:
+    """Raise a clear error when ``x`` is not a (B, in_channels, H, W) floating tensor."""
+    if x.dim() != 4 or x.shape[1] != in_channels:
+        raise ValueError(
+            f"{name}: expected input of shape (B, {in_channels}, H, W), got {tuple(x.shape)} "
+            f"(in_channels={in_channels}: channel 0 = normalised noisy depth, channel 1 = normalised signal)"
+        )
+    if not x.is_floating_point():
+        raise ValueError(f"{name}: expected a floating-point input, got dtype {x.dtype}")
+
+
+class LayerNorm2d(nn.Module):
+    """LayerNorm over the channel dimension of a (B, C, H, W) tensor (per pixel), with affine parameters."""
+
+    def __init__(self, channels: int, eps: float = 1e-6) -> None:
+        super().__init__()
+        self.weight = nn.Parameter(torch.ones(channels))
+        self.bias = nn.Parameter(torch.zeros(channels))
+        self.eps = eps
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        x = x.permute(0, 2, 3, 1)
+        x = F.layer_norm(x, x.shape[-1:], self.weight, self.bias, self.eps)
+        return x.permute(0, 3, 1, 2)

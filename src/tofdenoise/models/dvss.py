@@ -1,0 +1,187 @@
+"""DVSS: the paper's U-shaped Depth Visual State Space network and its block ablations (Sec. III-D, Table 2).
+
+DVSS block:  Y = X + Conv1x1([VSSB(LN(X)), SCR(DWConv(LN(X)))])
+Variants:    dvss_no_local  Y = X + Conv1x1(VSSB(LN(X)))                  (no DWConv, no SCR)
+             dvss_no_dwconv Y = X + Conv1x1([VSSB(LN(X)), SCR(LN(X))])
+             dvss_se        Y = X + Conv1x1([VSSB(LN(X)), SE(DWConv(LN(X)))])
+Network: Patch Embedding (3x3 conv) -> encoder levels (DVSS blocks, then downsampling) -> bottleneck ->
+decoder (upsampling, skip concatenation + 1x1 fusion, DVSS blocks) -> Depth Head (3x3 conv, zero-initialised)
+whose output is a residual added to the noisy depth (channel 0): the network is the identity at init.
+"""
+
+from __future__ import annotations
+
+import inspect
+from collections.abc import Sequence
+
+import torch
+import torch.utils.checkpoint
+from torch import nn
+
+from .common import LayerNorm2d, check_input, crop_to, pad_to_multiple
+from .registry import register_backbone
+from .scr import SCR, SqueezeExcitation
+from .ss2d import SS2D
+
+__all__ = ["DVSSBlock", "DVSSNet"]
+
+LOCAL_CHOICES = ("scr", "se", "none")
+
+
+class DVSSBlock(nn.Module):
+    """One DVSS block on (B, C, H, W); ``local`` in {"scr", "se", "none"}, ``dwconv`` toggles the DWConv."""
+
+    def __init__(
+        self,
+        dim: int,
+        d_state: int = 16,
+        expand: float = 2.0,
+        local: str = "scr",
+        dwconv: bool = True,
+        scan_backend: str = "auto",
+    ) -> None:
+        super().__init__()
+        if local not in LOCAL_CHOICES:
+            raise ValueError(f"DVSSBlock: local must be one of {LOCAL_CHOICES}, got {local!r}")
+        self.norm = LayerNorm2d(dim)
+        self.vssb = SS2D(dim, d_state=d_state, expand=expand, scan_backend=scan_backend)
+        self.local = local
+        branches = 1
+        if local != "none":
+            self.dwconv = nn.Conv2d(dim, dim, 3, padding=1, groups=dim) if dwconv else nn.Identity()
+            self.refine = SCR(dim) if local == "scr" else SqueezeExcitation(dim)
+            branches = 2
+        self.fuse = nn.Conv2d(branches * dim, dim, 1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        xn = self.norm(x)
+        xg = self.vssb(xn.permute(0, 2, 3, 1)).permute(0, 3, 1, 2)
+        if self.local == "none":
+            return x + self.fuse(xg)
+        xl = self.refine(self.dwconv(xn))
+        return x + self.fuse(torch.cat([xg, xl], dim=1))
+
+
+class Downsample(nn.Sequential):
+    """3x3 conv C -> C/2 then pixel-unshuffle: (C, H, W) -> (2C, H/2, W/2)."""
+
+    def __init__(self, dim: int) -> None:
+        super().__init__(nn.Conv2d(dim, dim // 2, 3, padding=1, bias=False), nn.PixelUnshuffle(2))
+
+
+class Upsample(nn.Sequential):
+    """3x3 conv C -> 2C then pixel-shuffle: (C, H, W) -> (C/2, 2H, 2W)."""
+
+    def __init__(self, dim: int) -> None:
+        super().__init__(nn.Conv2d(dim, dim * 2, 3, padding=1, bias=False), nn.PixelShuffle(2))
+
+
+class _Stage(nn.Sequential):
+    """A sequence of DVSS blocks, optionally with activation checkpointing while training."""
+
+    def __init__(self, n: int, dim: int, checkpoint: bool, **kw) -> None:
+        super().__init__(*[DVSSBlock(dim, **kw) for _ in range(n)])
+        self.checkpoint = checkpoint
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        for block in self:
+            if self.checkpoint and self.training and torch.is_grad_enabled():
+                x = torch.utils.checkpoint.checkpoint(block, x, use_reentrant=False)
+            else:
+                x = block(x)
+        return x
+
+
+def _blocks(n: int, dim: int, checkpoint: bool = False, **kw) -> _Stage:
+    return _Stage(n, dim, checkpoint, **kw)
+
+
+class DVSSNet(nn.Module):
+    """U-shaped DVSS network. Level i has width ``width * 2**i``; ``len(enc_blocks)`` downsamplings, so
+    inputs are padded (reflect) to a multiple of ``2**len(enc_blocks)`` and cropped back.
+    ``checkpoint=True`` recomputes each block's activations in the backward pass (less memory, one extra
+    forward pass per block)."""
+
+    def __init__(
+        self,
+        in_channels: int = 1,
+        width: int = 32,
+        enc_blocks: Sequence[int] = (1, 1, 2),
+        bottleneck_blocks: int = 2,
+        dec_blocks: Sequence[int] | None = None,
+        d_state: int = 16,
+        expand: float = 2.0,
+        local: str = "scr",
+        dwconv: bool = True,
+        residual: bool = True,
+        scan_backend: str = "auto",
+        checkpoint: bool = False,
+    ) -> None:
+        super().__init__()
+        enc_blocks = [int(v) for v in enc_blocks]
+        dec_blocks = [int(v) for v in dec_blocks] if dec_blocks is not None else list(enc_blocks)
+        if in_channels < 1:
+            raise ValueError(f"DVSSNet: in_channels must be >= 1, got {in_channels}")
+        if width < 2 or width % 2:
+            raise ValueError(f"DVSSNet: width must be an even number >= 2, got {width}")
+        if not enc_blocks or len(dec_blocks) != len(enc_blocks) or min(enc_blocks + dec_blocks + [bottleneck_blocks]) < 0:
+            raise ValueError(
+                f"DVSSNet: enc_blocks and dec_blocks must be equally long lists of counts >= 0, "
+                f"got enc_blocks={enc_blocks}, dec_blocks={dec_blocks}"
+            )
+        self.in_channels = in_channels
+        self.residual = residual
+        levels = len(enc_blocks)
+        self.multiple = 2**levels
+        kw = dict(
+            d_state=d_state, expand=expand, local=local, dwconv=dwconv, scan_backend=scan_backend, checkpoint=checkpoint
+        )
+        widths = [width * 2**i for i in range(levels + 1)]
+        self.patch_embed = nn.Conv2d(in_channels, width, 3, padding=1)
+        self.encoder = nn.ModuleList([_blocks(n, widths[i], **kw) for i, n in enumerate(enc_blocks)])
+        self.down = nn.ModuleList([Downsample(widths[i]) for i in range(levels)])
+        self.bottleneck = _blocks(bottleneck_blocks, widths[-1], **kw)
+        self.up = nn.ModuleList([Upsample(widths[i + 1]) for i in reversed(range(levels))])
+        self.skip_fuse = nn.ModuleList([nn.Conv2d(2 * widths[i], widths[i], 1) for i in reversed(range(levels))])
+        self.decoder = nn.ModuleList([_blocks(dec_blocks[i], widths[i], **kw) for i in reversed(range(levels))])
+        self.head = nn.Conv2d(width, 1, 3, padding=1)
+        if residual:
+            nn.init.zeros_(self.head.weight)
+            nn.init.zeros_(self.head.bias)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        check_input(x, self.in_channels, type(self).__name__)
+        xp, size = pad_to_multiple(x, self.multiple)
+        h = self.patch_embed(xp)
+        skips = []
+        for blocks, down in zip(self.encoder, self.down):
+            h = blocks(h)
+            skips.append(h)
+            h = down(h)
+        h = self.bottleneck(h)
+        for up, fuse, blocks, skip in zip(self.up, self.skip_fuse, self.decoder, reversed(skips)):
+            h = blocks(fuse(torch.cat([up(h), skip], dim=1)))
+        out = self.head(h)
+        if self.residual:
+            out = out + xp[:, :1]
+        return crop_to(out, size)
+
+
+def _variant(name: str, local: str, dwconv: bool):
+    """Register a DVSSNet factory with fixed ``local``/``dwconv`` (signature without those two)."""
+
+    def factory(**kwargs) -> DVSSNet:
+        return DVSSNet(local=local, dwconv=dwconv, **kwargs)
+
+    params = [p for p in inspect.signature(DVSSNet.__init__).parameters.values() if p.name not in ("self", "local", "dwconv")]
+    factory.__signature__ = inspect.Signature(params)  # type: ignore[attr-defined]
+    factory.__name__ = factory.__qualname__ = f"build_{name}"
+    factory.__doc__ = f"DVSS variant {name!r}: DVSSNet(local={local!r}, dwconv={dwconv})."
+    register_backbone(name)(factory)
+    return factory
+
+
+build_dvss = _variant("dvss", "scr", True)
+build_dvss_no_local = _variant("dvss_no_local", "none", False)
+build_dvss_no_dwconv = _variant("dvss_no_dwconv", "scr", False)
+build_dvss_se = _variant("dvss_se", "se", True)

@@ -1,0 +1,57 @@
+"""Spatial-Channel Refinement (SCR) and the squeeze-and-excitation (SE) module used in its ablation.
+
+The paper describes SCR only in words (Sec. III-D, Fig. "SCR module"): "a global branch and a local branch
+interact in a coarse-to-fine manner to jointly refine channel and spatial responses; the global branch
+provides channel-level context, while the local branch preserves spatially detailed responses".
+Our reading, in formulas (X is the DWConv output, (B, C, H, W)):
+
+    g   = sigmoid(W2 GELU(W1 [avgpool(X), maxpool(X)]))            global branch: channel context (B, C, 1, 1)
+    Xc  = X * g                                                      coarse: channel-recalibrated features
+    s   = sigmoid(PW(GELU(DW3x3(Xc))))                               local branch: per-pixel, per-channel gate
+    SCR(X) = Xc * s                                                  fine: spatial refinement of the coarse result
+
+The local branch sees the globally recalibrated features (coarse to fine), and its gate is spatial *and*
+per channel, which is what distinguishes it from SE (channel-only recalibration: SE(X) = X * g with the
+avg-pool MLP only).
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+__all__ = ["SCR", "SqueezeExcitation"]
+
+
+class SqueezeExcitation(nn.Module):
+    """SE: X * sigmoid(W2 ReLU(W1 avgpool(X))) (Hu et al.)."""
+
+    def __init__(self, channels: int, reduction: int = 4) -> None:
+        super().__init__()
+        hidden = max(4, channels // reduction)
+        self.fc1 = nn.Conv2d(channels, hidden, 1)
+        self.fc2 = nn.Conv2d(hidden, channels, 1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        g = torch.sigmoid(self.fc2(F.relu(self.fc1(x.mean(dim=(2, 3), keepdim=True)))))
+        return x * g
+
+
+class SCR(nn.Module):
+    """Spatial-Channel Refinement: global channel context, then a local spatial-channel gate (see module doc)."""
+
+    def __init__(self, channels: int, reduction: int = 4, kernel_size: int = 3) -> None:
+        super().__init__()
+        hidden = max(4, channels // reduction)
+        self.fc1 = nn.Conv2d(2 * channels, hidden, 1)
+        self.fc2 = nn.Conv2d(hidden, channels, 1)
+        self.local_dw = nn.Conv2d(channels, channels, kernel_size, padding=kernel_size // 2, groups=channels)
+        self.local_pw = nn.Conv2d(channels, channels, 1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        pooled = torch.cat([x.mean(dim=(2, 3), keepdim=True), x.amax(dim=(2, 3), keepdim=True)], dim=1)
+        g = torch.sigmoid(self.fc2(F.gelu(self.fc1(pooled))))
+        xc = x * g
+        s = torch.sigmoid(self.local_pw(F.gelu(self.local_dw(xc))))
+        return xc * s

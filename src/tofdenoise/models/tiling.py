@@ -1,0 +1,105 @@
+"""Overlapping tiled inference with smooth blending windows, for frames too large to process at once.
+
+Tiles of ``tile`` x ``tile`` pixels are placed with stride ``tile - overlap`` (the last tile of a row or
+column is aligned to the image border). Each tile's output is weighted by a separable window that is 1 in
+the tile's interior and along image borders, and that falls from 1 to 0 with a raised-cosine ramp towards
+edges shared with a neighbouring tile. The ramp leaves a margin of ``margin`` pixels (default overlap // 4)
+next to the tile edge at weight exactly 0, where a network's output is affected by the tile boundary.
+Outputs are accumulated as sum(w * y) / sum(w).
+
+Exactness: for a network whose receptive-field radius r satisfies r <= margin (and 2 * margin < overlap),
+every pixel with non-zero weight in a tile is computed exactly as in the whole image, so the blend equals
+the whole-image output up to float rounding. For larger receptive fields (U-Nets, state-space and
+attention backbones) the blend is seam-free (the weights are smooth and sum to one) but only approximately
+equal to whole-image inference.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+
+__all__ = ["tiled_forward", "tile_starts", "blend_window_1d"]
+
+
+def tile_starts(size: int, tile: int, overlap: int) -> list[int]:
+    """Start offsets of tiles of length ``tile`` covering ``[0, size)`` with at least ``overlap`` overlap."""
+    if size <= tile:
+        return [0]
+    stride = tile - overlap
+    n = math.ceil((size - overlap) / stride)
+    starts = [min(i * stride, size - tile) for i in range(n)]
+    return sorted(set(starts))
+
+
+def blend_window_1d(
+    length: int, overlap: int, margin: int, ramp_start: bool, ramp_end: bool, dtype=torch.float32, device=None
+) -> torch.Tensor:
+    """1-D weight: 1 inside, 0 for ``margin`` pixels at a ramped end, then a raised-cosine ramp to 1 over
+    ``overlap - 2 * margin`` pixels. Ends not shared with another tile (image borders) stay at 1."""
+    w = torch.ones(length, dtype=torch.float64, device=device)
+    ramp_len = overlap - 2 * margin
+    pos = torch.arange(ramp_len, dtype=torch.float64, device=device)
+    ramp = torch.sin(0.5 * math.pi * (pos + 0.5) / ramp_len) ** 2  # complementary: ramp + flip(ramp) = 1
+    if ramp_start:
+        w[:margin] = 0.0
+        w[margin : margin + ramp_len] = ramp
+    if ramp_end:
+        if margin:
+            w[length - margin :] = 0.0
+        w[length - margin - ramp_len : length - margin] = torch.minimum(
+            w[length - margin - ramp_len : length - margin], ramp.flip(0)
+        )
+    return w.to(dtype)
+
+
+@torch.no_grad()
+def tiled_forward(
+    model: nn.Module,
+    x: torch.Tensor,
+    tile: int = 256,
+    overlap: int = 32,
+    margin: int | None = None,
+    tile_batch: int = 1,
+) -> torch.Tensor:
+    """Run ``model`` on overlapping tiles of ``x`` (B, C, H, W) and blend them into (B, C_out, H, W).
+
+    ``tile``: tile side (pixels); ``overlap``: overlap between neighbouring tiles; ``margin``: pixels at a
+    shared tile edge given weight 0 (default ``overlap // 4``); ``tile_batch``: tiles per model call.
+    Images no larger than one tile are processed whole. Runs under ``torch.no_grad()``.
+    """
+    if x.dim() != 4:
+        raise ValueError(f"tiled_forward: expected x of shape (B, C, H, W), got {tuple(x.shape)}")
+    if margin is None:
+        margin = overlap // 4
+    bad_margin = margin < 0 or (overlap > 0 and 2 * margin >= overlap)
+    if tile < 1 or overlap < 0 or overlap >= tile or bad_margin:
+        raise ValueError(
+            f"tiled_forward: need tile >= 1, 0 <= overlap < tile and 0 <= 2 * margin < overlap; "
+            f"got tile={tile}, overlap={overlap}, margin={margin}"
+        )
+    if tile_batch < 1:
+        raise ValueError(f"tiled_forward: tile_batch must be >= 1, got {tile_batch}")
+    b, _, h, w = x.shape
+    if h <= tile and w <= tile:
+        return model(x)
+    th, tw = min(tile, h), min(tile, w)
+    ys, xs = tile_starts(h, th, overlap), tile_starts(w, tw, overlap)
+    boxes = [(y0, x0) for y0 in ys for x0 in xs]
+    out = None
+    weight = x.new_zeros(1, 1, h, w)
+    for i in range(0, len(boxes), tile_batch):
+        chunk = boxes[i : i + tile_batch]
+        inp = torch.cat([x[:, :, y0 : y0 + th, x0 : x0 + tw] for y0, x0 in chunk], dim=0)
+        pred = model(inp)
+        if out is None:
+            out = x.new_zeros(b, pred.shape[1], h, w)
+        for j, (y0, x0) in enumerate(chunk):
+            wy = blend_window_1d(th, overlap, margin, y0 > 0, y0 + th < h, x.dtype, x.device)
+            wx = blend_window_1d(tw, overlap, margin, x0 > 0, x0 + tw < w, x.dtype, x.device)
+            win = (wy[:, None] * wx[None, :])[None, None]
+            out[:, :, y0 : y0 + th, x0 : x0 + tw] += pred[j * b : (j + 1) * b] * win
+            weight[:, :, y0 : y0 + th, x0 : x0 + tw] += win
+    return out / weight

@@ -1,0 +1,154 @@
+"""Backbones: registry, shapes on odd sizes, gradient flow, identity at initialisation."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+import yaml
+
+from tofdenoise.models import available_backbones, build_backbone, count_parameters
+from tofdenoise.models.common import crop_to, pad_to_multiple
+from tofdenoise.models.scr import SCR, SqueezeExcitation
+from tofdenoise.models.ss2d import cross_merge, cross_scan
+from tofdenoise.models.tofkpn import apply_kernels
+
+NAMES = ["dvss", "dvss_no_local", "dvss_no_dwconv", "dvss_se", "unet", "restormer", "deeptof", "tofkpn"]
+CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs" / "backbone"
+
+TINY = {
+    "dvss": dict(width=8, enc_blocks=[1, 1], bottleneck_blocks=1, d_state=4),
+    "unet": dict(width=4, stages=3),
+    "restormer": dict(width=8, blocks=[1, 1, 1, 1], heads=[1, 2, 2, 4], refinement_blocks=1),
+    "deeptof": dict(channels=[4, 4, 8, 8, 8, 8]),
+    "tofkpn": dict(channels=[4, 4, 8, 8, 8, 8]),
+}
+RESIDUAL = {"dvss", "dvss_no_local", "dvss_no_dwconv", "dvss_se", "unet", "restormer"}
+
+
+def tiny(name: str, **kw):
+    base = TINY["dvss"] if name.startswith("dvss") else TINY[name]
+    return build_backbone(name, **{**base, **kw})
+
+
+def _randomise_heads(model: torch.nn.Module) -> None:
+    """Zero-initialised heads block gradients to the trunk: give them random weights for flow tests."""
+    g = torch.Generator().manual_seed(1)
+    with torch.no_grad():
+        for mod in model.modules():
+            if isinstance(mod, torch.nn.Conv2d) and mod.weight.abs().sum() == 0:
+                mod.weight.copy_(0.1 * torch.randn(mod.weight.shape, generator=g))
+
+
+def test_registry_lists_all_names():
+    assert available_backbones() == sorted(NAMES)
+
+
+def test_unknown_name_and_bad_kwargs_raise():
+    with pytest.raises(ValueError, match="valid names: .*dvss.*unet"):
+        build_backbone("resnet")
+    with pytest.raises(ValueError, match="unexpected keyword.*'widht'.*accepted: in_channels"):
+        build_backbone("unet", widht=8)
+    with pytest.raises(ValueError, match="local"):
+        build_backbone("dvss", local="scr")  # fixed by the variant name
+    with pytest.raises(ValueError, match="plain value"):
+        build_backbone("unet", width=torch.nn.Identity())
+
+
+@pytest.mark.parametrize("name", NAMES)
+@pytest.mark.parametrize("in_channels", [1, 2])
+def test_shape_and_gradient_flow_on_odd_size(name, in_channels):
+    model = tiny(name, in_channels=in_channels)
+    _randomise_heads(model)
+    x = torch.randn(1, in_channels, 37, 53, requires_grad=True)
+    y = model(x)
+    assert y.shape == (1, 1, 37, 53)
+    y.square().mean().backward()
+    assert torch.isfinite(x.grad).all() and x.grad.abs().sum() > 0
+    missing = [n for n, p in model.named_parameters() if p.grad is None or not torch.isfinite(p.grad).all()]
+    assert not missing, f"{name}: parameters without finite gradient: {missing[:5]}"
+    zero = [n for n, p in model.named_parameters() if p.grad.abs().sum() == 0]
+    assert len(zero) <= 0.05 * len(list(model.parameters())), f"{name}: zero gradients for {zero[:5]}"
+
+
+@pytest.mark.parametrize("name", sorted(RESIDUAL))
+def test_residual_networks_are_identity_at_init(name):
+    model = tiny(name, in_channels=2)
+    x = torch.randn(2, 2, 21, 30)
+    with torch.no_grad():
+        y = model(x)
+    torch.testing.assert_close(y, x[:, :1], rtol=0, atol=0)
+
+
+def test_tofkpn_starts_as_identity_and_deeptof_predicts_directly():
+    x = torch.randn(1, 1, 20, 24)
+    with torch.no_grad():
+        torch.testing.assert_close(tiny("tofkpn")(x), x / (1 + 1e-6), rtol=1e-6, atol=1e-6)
+        assert (tiny("deeptof")(x) - x).abs().mean() > 0.1
+
+
+def test_apply_kernels_hand_computed():
+    depth = torch.arange(16, dtype=torch.float32).view(1, 1, 4, 4)
+    # Uniform positive weights -> 3x3 mean of the replicate-padded depth (+ bias).
+    w = torch.full((1, 9, 4, 4), 2.0)
+    out = apply_kernels(depth, w, torch.full((1, 1, 4, 4), 0.5))
+    assert out[0, 0, 1, 1].item() == pytest.approx((0 + 1 + 2 + 4 + 5 + 6 + 8 + 9 + 10) / 9 * 18 / (18 + 1e-6) + 0.5, rel=1e-6)
+    # Corner (0, 0) with replicate padding: window rows [0,0,1], cols [0,0,1].
+    corner = (0 + 0 + 1 + 0 + 0 + 1 + 4 + 4 + 5) / 9
+    assert out[0, 0, 0, 0].item() == pytest.approx(corner + 0.5, rel=1e-5)
+    # Signed weights are L1-normalised: one +1 on the right neighbour and -1 on the centre.
+    w = torch.zeros(1, 9, 4, 4)
+    w[:, 5] = 1.0
+    w[:, 4] = -1.0
+    out = apply_kernels(depth, w, torch.zeros(1, 1, 4, 4))
+    assert out[0, 0, 2, 1].item() == pytest.approx((10 - 9) / 2, rel=1e-5)
+
+
+def test_large_frame_480x640_and_padding_helpers():
+    model = tiny("unet", width=2, stages=4)
+    with torch.no_grad():
+        y = model(torch.randn(1, 1, 480, 640))
+    assert y.shape == (1, 1, 480, 640)
+    x = torch.randn(1, 1, 5, 3)
+    xp, size = pad_to_multiple(x, 8)  # too small to reflect -> replicate
+    assert xp.shape == (1, 1, 8, 8) and torch.equal(crop_to(xp, size), x)
+    assert torch.equal(xp[..., 7, :3], x[..., 4, :])
+    xp, _ = pad_to_multiple(torch.arange(6.0).view(1, 1, 1, 6).expand(1, 1, 6, 6), 4)
+    assert xp[0, 0, 0, 6:].tolist() == [4.0, 3.0]  # reflect
+
+
+def test_cross_scan_merge_and_refinement_modules():
+    x = torch.randn(2, 3, 5, 7)
+    xs = cross_scan(x)
+    assert xs.shape == (2, 4, 3, 35)
+    torch.testing.assert_close(xs[:, 1, :, 1], x[:, :, 1, 0])  # column-major second element
+    torch.testing.assert_close(cross_merge(xs, 5, 7), 4 * x)
+    feats = torch.randn(2, 8, 6, 9)
+    assert SCR(8)(feats).shape == feats.shape
+    se = SqueezeExcitation(8)
+    out = se(feats)
+    ratio = out / feats
+    # SE is channel-only: one scale per (image, channel), in (0, 1).
+    assert torch.allclose(ratio, ratio[..., :1, :1].expand_as(ratio), atol=1e-5)
+    assert SCR(8)(torch.zeros(1, 8, 4, 4)).abs().max() == 0
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_config_files_build(name):
+    path = CONFIG_DIR / f"{name}.yaml"
+    cfg = yaml.safe_load(path.read_text())
+    assert cfg["name"] == name
+    model = build_backbone(cfg["name"], **cfg["kwargs"])
+    assert count_parameters(model) > 100_000
+
+
+def test_dvss_activation_checkpointing_gives_same_gradients():
+    grads = []
+    for checkpoint in (False, True):
+        torch.manual_seed(0)
+        model = tiny("dvss", checkpoint=checkpoint)
+        _randomise_heads(model)
+        model(torch.randn(1, 1, 19, 23, generator=torch.Generator().manual_seed(2))).square().mean().backward()
+        grads.append(torch.cat([p.grad.flatten() for p in model.parameters()]))
+    torch.testing.assert_close(grads[0], grads[1], rtol=1e-5, atol=1e-7)
