@@ -17,6 +17,7 @@ DATA ?=
 RUN_DIR ?=
 ARGS ?=
 PYTEST_ARGS ?=
+BENCH_ARGS ?=
 
 export WANDB_SILENT ?= true
 export WANDB_ERROR_REPORTING ?= false
@@ -29,7 +30,7 @@ help:
 	@echo "               BACKBONE=dvss NOISE=hetero LOSS=full DATA=procedural RUN_DIR=path ARGS='hydra overrides'"
 	@echo "make test    - run the test suite (slow experiments excluded)"
 	@echo "make test-slow - run the slow experiments too"
-	@echo "make bench   - side-by-side performance measurements (see docs/benchmarks.md)"
+	@echo "make bench   - side-by-side performance measurements (see docs/benchmarks.md); BENCH_ARGS=--quick"
 	@echo "make venv    - only create/refresh .venv (TORCH='torch==X' to choose the torch build)"
 
 venv: $(STAMP)
@@ -57,7 +58,7 @@ test-slow: $(STAMP)
 	$(PY) -m pytest -m "slow" $(PYTEST_ARGS)
 
 bench: $(STAMP)
-	$(PY) benchmarks/run_all.py
+	$(PY) benchmarks/run_all.py $(BENCH_ARGS)
 
 clean:
 	rm -rf $(VENV) .pytest_cache build *.egg-info src/*.egg-info

@@ -1,7 +1,8 @@
 """Run every benchmark script (benchmarks/bench_*.py) in one process each, in a fixed order.
 
 Each script prints its own side-by-side table with ratios measured in the same run.
-Usage: python benchmarks/run_all.py [name ...]   (e.g. `physics models`)
+Usage: python benchmarks/run_all.py [--quick] [name ...]   (e.g. `--quick physics models`);
+options starting with `--` are passed on to every script. `make bench BENCH_ARGS=--quick` does the same.
 """
 
 from __future__ import annotations
@@ -12,12 +13,13 @@ import sys
 import time
 from pathlib import Path
 
-ORDER = ["physics", "models", "data", "training"]
+ORDER = ["physics", "metrics", "models", "data", "training"]
 
 
 def main(argv: list[str]) -> int:
     here = Path(__file__).resolve().parent
-    wanted = argv or ORDER
+    options = [a for a in argv if a.startswith("--")]
+    wanted = [a for a in argv if not a.startswith("--")] or ORDER
     scripts = [here / f"bench_{name}.py" for name in wanted]
     import torch
 
@@ -31,7 +33,7 @@ def main(argv: list[str]) -> int:
             failed.append(script.stem)
             continue
         print(f"\n## {script.stem}", flush=True)
-        rc = subprocess.call([sys.executable, str(script)])
+        rc = subprocess.call([sys.executable, str(script), *options])
         if rc != 0:
             failed.append(script.stem)
     if failed:
