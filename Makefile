@@ -23,7 +23,7 @@ export WANDB_SILENT ?= true
 export WANDB_ERROR_REPORTING ?= false
 export PYTHONUNBUFFERED := 1
 
-.PHONY: help venv train test test-slow bench clean
+.PHONY: help venv train test test-slow bench cli-configs clean
 
 help:
 	@echo "make train   - small default training on built-in procedural scenes (CPU)"
@@ -31,6 +31,7 @@ help:
 	@echo "make test    - run the test suite (slow experiments excluded)"
 	@echo "make test-slow - run the slow experiments too"
 	@echo "make bench   - side-by-side performance measurements (see docs/benchmarks.md); BENCH_ARGS=--quick"
+	@echo "make cli-configs - regenerate the LightningCLI YAMLs (configs/cli/) after editing configs/"
 	@echo "make venv    - only create/refresh .venv (TORCH='torch==X' to choose the torch build)"
 
 venv: $(STAMP)
@@ -59,6 +60,10 @@ test-slow: $(STAMP)
 
 bench: $(STAMP)
 	$(PY) benchmarks/run_all.py $(BENCH_ARGS)
+
+# configs/cli/*.yaml are generated from the Hydra configs (one source of truth); a test fails when they are stale
+cli-configs: $(STAMP)
+	$(PY) -m tofdenoise.cli.export_cli_config
 
 clean:
 	rm -rf $(VENV) .pytest_cache build *.egg-info src/*.egg-info

@@ -1,0 +1,111 @@
+"""The one checkpoint callback of a run: ``best.ckpt`` (lowest validation MAE) and ``last.ckpt``.
+
+Lightning allows a single stateful ``ModelCheckpoint`` per trainer (two raise "Found more than one stateful
+callback"), so both files come from this one instance. The metric name contains ``/`` (``val/mae_mm``), which
+would create sub-folders inside a filename template: the filename is fixed to ``best`` and
+``auto_insert_metric_name`` is off.
+
+Lightning 2.6 refreshes ``last.ckpt`` only when a top-k checkpoint was written at the same step, and it
+defers step-triggered saves until the monitored metric exists (after the first validation). A run must be
+resumable from its newest state, so this class also writes ``last.ckpt`` after every validation/epoch end
+and, with ``every_n_train_steps``, every N optimiser steps from the first epoch on.
+"""
+
+from __future__ import annotations
+
+from datetime import timedelta
+from pathlib import Path
+
+from typing import Any
+
+import lightning.pytorch as pl
+from lightning.pytorch.callbacks import ModelCheckpoint
+from lightning.pytorch.trainer.states import TrainerFn
+
+__all__ = ["BestAndLastCheckpoint", "BEST_NAME", "LAST_NAME", "MONITOR"]
+
+BEST_NAME = "best"
+LAST_NAME = "last"
+MONITOR = "val/mae_mm"
+
+
+class BestAndLastCheckpoint(ModelCheckpoint):
+    """``ModelCheckpoint`` writing ``<dirpath>/best.ckpt`` (best ``monitor``) and ``<dirpath>/last.ckpt``.
+
+    Args:
+        dirpath: folder of the two files (the Hydra config uses ``<run_dir>/checkpoints``).
+        monitor: logged metric that selects the best checkpoint (default ``val/mae_mm``, lower is better).
+        mode: ``"min"`` or ``"max"``.
+        every_n_train_steps: also refresh ``last.ckpt`` (and re-check ``best``) every N optimiser steps, so a
+            run killed mid-epoch loses at most N steps; ``None``/0 = only at validation/epoch end.
+        train_time_interval: the same by wall-clock time.
+        every_n_epochs: check every N epochs (default 1).
+    """
+
+    def __init__(
+        self,
+        dirpath: str | Path | None = None,
+        monitor: str = MONITOR,
+        mode: str = "min",
+        every_n_train_steps: int | None = None,
+        train_time_interval: timedelta | None = None,
+        every_n_epochs: int | None = None,
+        verbose: bool = False,
+    ) -> None:
+        if mode not in ("min", "max"):
+            raise ValueError(f"BestAndLastCheckpoint.mode must be 'min' or 'max', got {mode!r}")
+        super().__init__(
+            dirpath=dirpath,
+            filename=BEST_NAME,
+            monitor=monitor,
+            mode=mode,
+            save_top_k=1,
+            save_last=True,
+            auto_insert_metric_name=False,
+            every_n_train_steps=every_n_train_steps or None,
+            train_time_interval=train_time_interval,
+            every_n_epochs=every_n_epochs,
+            verbose=verbose,
+            enable_version_counter=False,
+        )
+        self.CHECKPOINT_NAME_LAST = LAST_NAME
+
+    # ------------------------------------------------------------------ last.ckpt always up to date
+    _phase: str = "train"
+    _last_saved_marker: tuple[str, int] | None = None
+
+    def _save_last_checkpoint(self, trainer: pl.Trainer, monitor_candidates: dict[str, Any]) -> None:
+        super()._save_last_checkpoint(trainer, monitor_candidates)
+        self._last_saved_marker = (self._phase, trainer.global_step)
+
+    @staticmethod
+    def _may_save(trainer: pl.Trainer) -> bool:
+        return not (bool(trainer.fast_dev_run) or trainer.state.fn != TrainerFn.FITTING
+                    or trainer.sanity_checking)
+
+    def _ensure_last(self, trainer: pl.Trainer) -> None:
+        if self.save_last and self._may_save(trainer) and \
+                self._last_saved_marker != (self._phase, trainer.global_step):
+            self._save_last_checkpoint(trainer, self._monitor_candidates(trainer))
+
+    def on_train_batch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule, outputs: Any, batch: Any,
+                           batch_idx: int) -> None:
+        self._phase = "train"
+        super().on_train_batch_end(trainer, pl_module, outputs, batch, batch_idx)
+        n = self._every_n_train_steps
+        if n >= 1 and trainer.global_step % n == 0:
+            self._ensure_last(trainer)
+
+    def on_train_epoch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        self._phase = "epoch"
+        super().on_train_epoch_end(trainer, pl_module)
+        if self._should_save_on_train_epoch_end(trainer):
+            self._ensure_last(trainer)
+        self._phase = "train"
+
+    def on_validation_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        self._phase = "val"
+        super().on_validation_end(trainer, pl_module)
+        if not self._should_save_on_train_epoch_end(trainer):
+            self._ensure_last(trainer)
+        self._phase = "train"

@@ -1,0 +1,168 @@
+"""Writes restored depth maps of ``trainer.predict``: 16-bit PNG in millimetres and float32 ``.npy``.
+
+Layout under ``output_dir`` (one folder per prediction set, named after ``datamodule.test_set_names``)::
+
+    <set>/png/<name>.png            restored depth, uint16 millimetres (0 = invalid / out of range)
+    <set>/npy/<name>.npy            restored depth, float32 millimetres (NaN = invalid)
+    <set>/sigma_npy/<name>.npy      sigma_D map in mm of the input (write_sigma)
+    <set>/preview/<name>.png        colourised noisy | restored | sigma_D | |error| panel (write_previews)
+    <set>/reference_png/<name>.png  clean reference, uint16 mm (write_reference; ready for tofdenoise-eval)
+    <set>/noisy_png/<name>.png      the network input, uint16 mm (write_reference)
+
+All files are written atomically (temporary file + ``os.replace``). ``tofdenoise-eval --pred <set>/png
+--ref <set>/reference_png`` then computes the unified metrics of the written maps.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+from typing import Any, Sequence
+
+import cv2
+import lightning.pytorch as pl
+import numpy as np
+import torch
+from lightning.pytorch.callbacks import BasePredictionWriter
+
+__all__ = ["DepthPredictionWriter", "depth_mm_to_png16", "write_png16_atomic", "write_npy_atomic"]
+
+PNG16_MAX_MM = 65535
+
+
+def depth_mm_to_png16(depth_mm: np.ndarray) -> np.ndarray:
+    """Round millimetres to uint16 (half to even); NaN, inf, <= 0 or >= 65535.5 mm become 0 (invalid)."""
+    d = np.asarray(depth_mm, dtype=np.float64)
+    ok = np.isfinite(d) & (d > 0) & (d < PNG16_MAX_MM + 0.5)
+    out = np.zeros(d.shape, dtype=np.uint16)
+    out[ok] = np.rint(d[ok]).astype(np.uint16)
+    return out
+
+
+def _atomic(path: Path, write) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=path.suffix + ".tmp")
+    os.close(fd)
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def write_png16_atomic(path: Path, depth_mm: np.ndarray) -> None:
+    """Write depth (H, W) in mm as a 16-bit single-channel PNG."""
+    img = depth_mm_to_png16(depth_mm)
+
+    def _w(tmp: str) -> None:
+        ok, buf = cv2.imencode(".png", img)
+        if not ok:
+            raise OSError(f"OpenCV could not encode {path}")
+        with open(tmp, "wb") as fh:
+            fh.write(buf.tobytes())
+
+    _atomic(Path(path), _w)
+
+
+def write_npy_atomic(path: Path, array: np.ndarray) -> None:
+    def _w(tmp: str) -> None:
+        with open(tmp, "wb") as fh:
+            np.save(fh, array)
+
+    _atomic(Path(path), _w)
+
+
+def write_bgr_atomic(path: Path, image_bgr: np.ndarray) -> None:
+    def _w(tmp: str) -> None:
+        ok, buf = cv2.imencode(".png", image_bgr)
+        if not ok:
+            raise OSError(f"OpenCV could not encode {path}")
+        with open(tmp, "wb") as fh:
+            fh.write(buf.tobytes())
+
+    _atomic(Path(path), _w)
+
+
+def _image(t: torch.Tensor, i: int) -> np.ndarray:
+    """(B, 1, H, W) or (B, H, W) tensor -> float32 (H, W) numpy of image i."""
+    x = t[i]
+    if x.ndim == 3:
+        x = x[0]
+    return x.detach().to(torch.float32).cpu().numpy()
+
+
+class DepthPredictionWriter(BasePredictionWriter):
+    """Saves every predicted depth map as it is produced (``write_interval="batch"``: no memory growth).
+
+    Args:
+        output_dir: root folder; ``None`` = ``<trainer.default_root_dir>/predictions``.
+        write_sigma: also save the input's sigma_D map (``batch["sigma"]``) as ``.npy``.
+        write_previews: also save a colourised panel PNG (noisy, restored, sigma_D, |error| when the batch has
+            a reference) with a shared depth colour scale (``tofdenoise.visualize``).
+        write_reference: also save the clean reference and the noisy input as 16-bit PNG.
+    """
+
+    def __init__(self, output_dir: str | Path | None = None, write_sigma: bool = False,
+                 write_previews: bool = False, write_reference: bool = False) -> None:
+        super().__init__(write_interval="batch")
+        self.output_dir = None if output_dir is None else Path(output_dir)
+        self.write_sigma = write_sigma
+        self.write_previews = write_previews
+        self.write_reference = write_reference
+        self.written: list[Path] = []
+
+    def _root(self, trainer: pl.Trainer) -> Path:
+        return self.output_dir if self.output_dir is not None else Path(trainer.default_root_dir) / "predictions"
+
+    @staticmethod
+    def _set_name(trainer: pl.Trainer, dataloader_idx: int) -> str:
+        names = getattr(trainer.datamodule, "test_set_names", None) if trainer.datamodule is not None else None
+        if names and dataloader_idx < len(names):
+            return str(names[dataloader_idx])
+        return "predict" if dataloader_idx == 0 else f"predict_{dataloader_idx}"
+
+    def write_on_batch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule, prediction: Any,
+                           batch_indices: Sequence[int] | None, batch: Any, batch_idx: int,
+                           dataloader_idx: int = 0) -> None:
+        pred = prediction["pred_mm"] if isinstance(prediction, dict) else prediction
+        root = self._root(trainer) / self._set_name(trainer, dataloader_idx)
+        names = batch.get("name") if isinstance(batch, dict) else None
+        index = batch.get("index") if isinstance(batch, dict) else None
+        for i in range(pred.shape[0]):
+            if names is not None:
+                stem = Path(str(names[i])).stem
+            elif index is not None:
+                stem = f"{int(index[i]):06d}"
+            elif batch_indices is not None:
+                stem = f"{int(batch_indices[i]):06d}"
+            else:
+                stem = f"{batch_idx:06d}_{i:02d}"
+            depth = _image(pred, i)
+            write_png16_atomic(root / "png" / f"{stem}.png", depth)
+            write_npy_atomic(root / "npy" / f"{stem}.npy", depth.astype(np.float32))
+            self.written.append(root / "png" / f"{stem}.png")
+            if self.write_sigma and isinstance(batch, dict) and "sigma" in batch:
+                write_npy_atomic(root / "sigma_npy" / f"{stem}.npy", _image(batch["sigma"], i))
+            if self.write_reference and isinstance(batch, dict):
+                if "clean" in batch:
+                    write_png16_atomic(root / "reference_png" / f"{stem}.png", _image(batch["clean"], i))
+                if "noisy" in batch:
+                    write_png16_atomic(root / "noisy_png" / f"{stem}.png", _image(batch["noisy"], i))
+            if self.write_previews and isinstance(batch, dict):
+                write_bgr_atomic(root / "preview" / f"{stem}.png", self._preview(batch, depth, i))
+
+    @staticmethod
+    def _preview(batch: dict, depth_mm: np.ndarray, i: int) -> np.ndarray:
+        from tofdenoise import visualize
+
+        maps: dict[str, np.ndarray] = {}
+        if "noisy" in batch:
+            maps["noisy"] = _image(batch["noisy"], i)
+        maps["restored"] = depth_mm
+        if "clean" in batch:
+            maps["clean"] = _image(batch["clean"], i)
+        mask = _image(batch["mask"], i) > 0 if "mask" in batch else None
+        sigma = _image(batch["sigma"], i) if "sigma" in batch else None
+        return visualize.prediction_preview(maps, sigma_mm=sigma, mask=mask)

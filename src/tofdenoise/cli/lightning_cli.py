@@ -1,0 +1,84 @@
+"""``tofdenoise fit|validate|test|predict --config FILE``: the LightningCLI front end.
+
+It drives the same classes as the Hydra entry point (``DepthRestorer``, ``ToFDataModule``) from YAML files
+generated from the Hydra configs (``configs/cli/{default,smoke,paper}.yaml``, see
+``tofdenoise.cli.export_cli_config``). Examples::
+
+    tofdenoise fit --config configs/cli/smoke.yaml
+    tofdenoise fit --config configs/cli/default.yaml --model.init_args.backbone unet --ckpt_path last
+    tofdenoise test --config configs/cli/default.yaml --ckpt_path outputs/cli/default/checkpoints/best.ckpt
+    tofdenoise predict --config configs/cli/default.yaml --ckpt_path outputs/cli/default/checkpoints/best.ckpt
+
+``test`` writes ``metrics.json`` and ``per_image/<set>.csv`` into ``trainer.default_root_dir`` (as the Hydra
+run does); ``predict`` writes PNG/``.npy`` depth maps through ``DepthPredictionWriter``.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+from typing import Any
+
+from lightning.pytorch.cli import LightningCLI
+
+__all__ = ["ToFLightningCLI", "main", "build_cli"]
+
+
+class ToFLightningCLI(LightningCLI):
+    """LightningCLI over ``DepthRestorer`` / ``ToFDataModule`` that also writes ``metrics.json`` after test."""
+
+    def before_instantiate_classes(self) -> None:
+        sub = self.config.get("subcommand") if hasattr(self.config, "get") else None
+        cfg = self.config[sub] if sub else self.config
+        root = cfg.get("trainer", {}).get("default_root_dir") if hasattr(cfg, "get") else None
+        if root:
+            from tofdenoise.cli.train import _setup_wandb_env
+
+            root_path = Path(str(root)).expanduser().resolve()
+            root_path.mkdir(parents=True, exist_ok=True)
+            _setup_wandb_env(root_path)
+
+    def after_test(self) -> None:
+        if self.trainer.is_global_zero:
+            from tofdenoise.cli.train import write_test_outputs
+
+            write_test_outputs(self.model, Path(self.trainer.default_root_dir).resolve())
+
+
+def build_cli(args: list[str] | None = None, run: bool = True) -> ToFLightningCLI:
+    """The CLI object (``run=False``: parse the config and instantiate model/data/trainer without running)."""
+    from tofdenoise.data_modules import ToFDataModule
+    from tofdenoise.lightning_module import DepthRestorer
+
+    return ToFLightningCLI(
+        DepthRestorer,
+        ToFDataModule,
+        subclass_mode_model=True,
+        subclass_mode_data=True,
+        save_config_kwargs={"overwrite": True},
+        args=args,
+        run=run,
+        auto_configure_optimizers=False,
+    )
+
+
+def _finish_wandb() -> None:
+    wandb = sys.modules.get("wandb")
+    if wandb is not None and getattr(wandb, "run", None) is not None:
+        wandb.finish()
+
+
+def main(args: list[str] | None = None) -> Any:
+    """Console script ``tofdenoise``."""
+    os.environ.setdefault("WANDB_SILENT", "true")
+    os.environ.setdefault("WANDB_ERROR_REPORTING", "false")
+    try:
+        build_cli(args)
+    finally:
+        _finish_wandb()
+    return 0
+
+
+if __name__ == "__main__":
+    main()

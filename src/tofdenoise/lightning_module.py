@@ -1,0 +1,342 @@
+"""``DepthRestorer``: one LightningModule for every registered restoration backbone.
+
+Training recipe of the paper (Sec. V-A): AdamW (lr 2e-4), cosine annealing of the learning rate to 1e-6 over
+the run, batch 4 of 320 x 320 crops, checkpoint with the lowest validation MAE. The network works in
+normalised units: its input channel 0 is ``noisy_mm / depth_scale_mm`` (optional channel 1: the amplitude
+divided by its per-image maximum over valid pixels) and it predicts ``depth_mm / depth_scale_mm``; losses are
+computed in those units, metrics in millimetres.
+
+Every hyper-parameter is a plain value (backbone and loss chosen by registered name), so a checkpoint loads
+with ``torch.load(weights_only=True)`` and ``DepthRestorer.load_from_checkpoint(path)`` needs no argument.
+
+Design decisions:
+- Schedule: ``CosineAnnealingLR(T_max=trainer.estimated_stepping_batches, eta_min=lr_min)`` stepped every
+  optimiser step (``interval="step"``): the learning rate reaches ``lr_min`` exactly at the last step of the
+  run whatever the number of epochs, steps per epoch or gradient accumulation (per-step cosine equals the
+  per-epoch cosine of the paper up to the staircase).
+- Weight decay applies to weights with >= 2 dimensions only (not to biases and normalisation scales).
+- EMA (``ema_decay``): an exponential moving average of the backbone weights and buffers, updated after
+  every optimiser step; validation, test and predict use it; it is part of the state dict (saved in
+  checkpoints, restored on resume).
+- ``compile``: ``torch.compile`` of the backbone for the training forward/backward (validation and test
+  run the eager module: full-resolution frames vary in size).
+- Validation/test also measure the raw noisy input against the reference (the "Raw" row of the paper).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from typing import Any
+
+import lightning.pytorch as pl
+import torch
+from torch import Tensor, nn
+
+from tofdenoise.metrics import METRIC_KEYS, DepthMetrics
+
+__all__ = ["DepthRestorer", "ARCHITECTURE_HPARAMS", "CheckpointMismatchError"]
+
+log = logging.getLogger(__name__)
+
+#: hyper-parameters that define the network's parameters: a checkpoint must agree on all of them.
+ARCHITECTURE_HPARAMS = ("backbone", "backbone_kwargs", "use_signal_channel", "ema")
+
+
+class CheckpointMismatchError(ValueError):
+    """A checkpoint was written by a DepthRestorer with another backbone / architecture."""
+
+
+def _architecture(hparams: dict[str, Any]) -> dict[str, Any]:
+    return {
+        "backbone": hparams.get("backbone"),
+        "backbone_kwargs": dict(hparams.get("backbone_kwargs") or {}),
+        "use_signal_channel": bool(hparams.get("use_signal_channel", False)),
+        "ema": hparams.get("ema_decay") is not None,
+    }
+
+
+class DepthRestorer(pl.LightningModule):
+    """Depth restoration with any backbone of :func:`tofdenoise.models.build_backbone`.
+
+    Args:
+        backbone: registered backbone name (``tofdenoise.models.available_backbones()``).
+        backbone_kwargs: constructor keyword arguments of the backbone (plain values; ``in_channels`` is set
+            from ``use_signal_channel``).
+        loss: registered loss name (``tofdenoise.losses.available_losses()``: ``l1``, ``nar``, ``full``).
+        loss_kwargs: keyword arguments of the loss (e.g. ``beta``, ``lambda_g``).
+        depth_scale_mm: fixed divisor turning millimetres into network units.
+        use_signal_channel: feed the normalised amplitude as a second input channel.
+        lr: AdamW initial learning rate (paper: 2e-4).
+        weight_decay: AdamW weight decay on >= 2-D weights not flagged `_no_weight_decay` (AdamW's default 1e-2;
+            the paper does not state it).
+        betas: AdamW betas.
+        lr_min: learning rate at the end of the cosine schedule (paper: 1e-6).
+        warmup_steps: linear warm-up from lr / warmup_steps to lr over this many optimiser steps before the
+            cosine (0 = none, the paper's schedule). Protects a zero-initialised residual head from Adam's
+            large first steps at high learning rates.
+        ema_decay: decay of the EMA of the weights (e.g. 0.999); ``None`` = no EMA.
+        compile: ``torch.compile`` the backbone for training.
+        d_max_mm: fixed PSNR/SSIM peak (paper: 1000 mm).
+        predict_tile_size: ``predict`` runs frames larger than this (either side) tile by tile
+            (``tofdenoise.models.tiled_forward``); ``None`` = never tile.
+        eval_tile_size: the same for validation and test (``None`` = whole frames, the paper's protocol).
+        tile_overlap: overlap of neighbouring tiles in pixels.
+    """
+
+    def __init__(
+        self,
+        backbone: str = "dvss",
+        backbone_kwargs: dict[str, Any] | None = None,
+        loss: str = "full",
+        loss_kwargs: dict[str, Any] | None = None,
+        depth_scale_mm: float = 1000.0,
+        use_signal_channel: bool = False,
+        lr: float = 2e-4,
+        weight_decay: float = 1e-2,
+        betas: tuple[float, float] = (0.9, 0.999),
+        lr_min: float = 1e-6,
+        warmup_steps: int = 0,
+        ema_decay: float | None = None,
+        compile: bool = False,
+        d_max_mm: float = 1000.0,
+        predict_tile_size: int | None = 512,
+        eval_tile_size: int | None = None,
+        tile_overlap: int = 32,
+    ) -> None:
+        super().__init__()
+        from tofdenoise.losses import available_losses, build_loss
+        from tofdenoise.models import available_backbones, build_backbone
+
+        backbone_kwargs = dict(backbone_kwargs or {})
+        loss_kwargs = dict(loss_kwargs or {})
+        if backbone not in available_backbones():
+            raise ValueError(f"DepthRestorer.backbone: unknown backbone {backbone!r}; "
+                             f"valid names: {', '.join(available_backbones())}")
+        if loss not in available_losses():
+            raise ValueError(f"DepthRestorer.loss: unknown loss {loss!r}; "
+                             f"valid names: {', '.join(available_losses())}")
+        if not depth_scale_mm > 0:
+            raise ValueError(f"DepthRestorer.depth_scale_mm must be > 0, got {depth_scale_mm}")
+        if not (lr > 0 and 0 <= lr_min <= lr):
+            raise ValueError(f"DepthRestorer: need lr > 0 and 0 <= lr_min <= lr, got lr={lr}, lr_min={lr_min}")
+        if warmup_steps < 0:
+            raise ValueError(f"DepthRestorer.warmup_steps must be >= 0, got {warmup_steps}")
+        if ema_decay is not None and not 0.0 < ema_decay < 1.0:
+            raise ValueError(f"DepthRestorer.ema_decay must be in (0, 1) or null, got {ema_decay}")
+        if len(betas) != 2:
+            raise ValueError(f"DepthRestorer.betas needs two values, got {betas}")
+        betas = (float(betas[0]), float(betas[1]))  # a tuple whichever front end passed a list
+        in_channels = 2 if use_signal_channel else 1
+        if backbone_kwargs.get("in_channels", in_channels) != in_channels:
+            raise ValueError(
+                f"DepthRestorer: backbone_kwargs.in_channels={backbone_kwargs['in_channels']} contradicts "
+                f"use_signal_channel={use_signal_channel} (needs {in_channels}); leave in_channels out")
+        # plain values only: checkpoints load with weights_only=True
+        self.save_hyperparameters()
+
+        net_kwargs = {k: v for k, v in backbone_kwargs.items() if k != "in_channels"}
+        self.backbone: nn.Module = build_backbone(backbone, in_channels=in_channels, **net_kwargs)
+        self.criterion: nn.Module = build_loss(loss, **loss_kwargs)
+        self.ema: torch.optim.swa_utils.AveragedModel | None = None
+        if ema_decay is not None:
+            self.ema = torch.optim.swa_utils.AveragedModel(
+                self.backbone, multi_avg_fn=torch.optim.swa_utils.get_ema_multi_avg_fn(ema_decay),
+                use_buffers=True)
+            self.ema.requires_grad_(False)
+        self._compiled: Any = None
+
+        self.val_metrics = DepthMetrics(d_max_mm=d_max_mm, keep_per_image=False)
+        self.val_raw_metrics = DepthMetrics(d_max_mm=d_max_mm, keep_per_image=False)
+        self.test_metrics = nn.ModuleDict()
+        self.test_raw_metrics = nn.ModuleDict()
+        self._test_names: dict[str, dict[int, str]] = {}
+        #: final test results per set (filled at the end of ``trainer.test``), the ``metrics.json`` entries:
+        #: {set: {"psnr_db", "mae_mm", "mse_mm2", "ssim", "mae_mm_pooled", "images", ..., "raw": {...}}}
+        self.test_results: dict[str, dict[str, Any]] = {}
+        #: per-image rows per set: {set: {"rows", "raw_rows", "names"}} (``DepthMetrics.per_image_rows``)
+        self.test_per_image: dict[str, dict[str, Any]] = {}
+
+    # ------------------------------------------------------------------ networks
+    @property
+    def eval_net(self) -> nn.Module:
+        """The network used for validation/test/predict: the EMA copy when EMA is on."""
+        return self.ema.module if self.ema is not None else self.backbone
+
+    def configure_model(self) -> None:
+        if self.hparams.compile and self._compiled is None:
+            # kept out of the module tree so the state dict keys stay the same
+            object.__setattr__(self, "_compiled", torch.compile(self.backbone))
+
+    def forward(self, x: Tensor) -> Tensor:
+        """Backbone forward in network units, (B, C, H, W) -> (B, 1, H, W)."""
+        return self.backbone(x)
+
+    def network_input(self, batch: dict[str, Any]) -> Tensor:
+        """Channel 0: noisy depth / depth_scale_mm; channel 1 (optional): amplitude / per-image max."""
+        x = batch["noisy"] / self.hparams.depth_scale_mm
+        if not self.hparams.use_signal_channel:
+            return x
+        if "amplitude" not in batch:
+            raise KeyError("DepthRestorer(use_signal_channel=True) needs batch['amplitude']")
+        amp = batch["amplitude"] * batch["mask"]
+        peak = amp.amax(dim=(1, 2, 3), keepdim=True).clamp_min(1e-12)
+        return torch.cat([x, amp / peak], dim=1)
+
+    def restore_mm(self, batch: dict[str, Any], tile: int | None = None, net: nn.Module | None = None) -> Tensor:
+        """Restored depth in millimetres (B, 1, H, W), tiled when a side exceeds ``tile``."""
+        net = self.eval_net if net is None else net
+        x = self.network_input(batch)
+        if tile is not None and max(x.shape[-2:]) > tile:
+            from tofdenoise.models import tiled_forward
+
+            y = tiled_forward(net, x, tile=tile, overlap=self.hparams.tile_overlap)
+        else:
+            y = net(x)
+        return y.float() * self.hparams.depth_scale_mm
+
+    # ------------------------------------------------------------------ optimisation
+    def parameter_groups(self) -> list[dict[str, Any]]:
+        """AdamW groups: decay on >= 2-D weights; biases, norms and parameters flagged ``_no_weight_decay``
+        (SS2D's A_log and D, as in VMamba/MambaIR) are not decayed."""
+        decay, no_decay = [], []
+        for p in self.backbone.parameters():
+            if p.requires_grad:
+                wants_decay = p.ndim >= 2 and not getattr(p, "_no_weight_decay", False)
+                (decay if wants_decay else no_decay).append(p)
+        groups = [{"params": decay, "weight_decay": self.hparams.weight_decay},
+                  {"params": no_decay, "weight_decay": 0.0}]
+        return [g for g in groups if g["params"]]
+
+    def configure_optimizers(self) -> dict[str, Any]:
+        opt = torch.optim.AdamW(self.parameter_groups(), lr=self.hparams.lr,
+                                betas=tuple(self.hparams.betas))
+        total = self.trainer.estimated_stepping_batches
+        if not math.isfinite(total) or total < 1:
+            raise ValueError("DepthRestorer: the cosine schedule runs over the whole run; set trainer.max_epochs "
+                             f"or trainer.max_steps (estimated optimiser steps: {total})")
+        total = int(total)
+        warm = min(int(self.hparams.warmup_steps), total - 1)
+        sched: torch.optim.lr_scheduler.LRScheduler = torch.optim.lr_scheduler.CosineAnnealingLR(
+            opt, T_max=total - warm, eta_min=self.hparams.lr_min)
+        if warm > 0:
+            ramp = torch.optim.lr_scheduler.LinearLR(opt, start_factor=1.0 / warm, end_factor=1.0, total_iters=warm)
+            sched = torch.optim.lr_scheduler.SequentialLR(opt, [ramp, sched], milestones=[warm])
+        return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step", "frequency": 1}}
+
+    def training_step(self, batch: dict[str, Any], batch_idx: int) -> Tensor:
+        net = self._compiled if self._compiled is not None else self.backbone
+        pred = net(self.network_input(batch))
+        target = batch["clean"] / self.hparams.depth_scale_mm
+        loss = self.criterion(pred.float(), target, batch["sigma"], batch["mask"])
+        if not torch.isfinite(loss):
+            raise FloatingPointError(f"DepthRestorer: non-finite training loss {loss.item()} at step "
+                                     f"{self.global_step} (lower lr, enable gradient clipping, check the data)")
+        self.log("train/loss", loss, on_step=True, on_epoch=True, prog_bar=True,
+                 batch_size=batch["noisy"].shape[0])
+        self.log("train/lr", self.trainer.optimizers[0].param_groups[0]["lr"], on_step=True, on_epoch=False)
+        return loss
+
+    def on_train_batch_end(self, outputs: Any, batch: Any, batch_idx: int) -> None:
+        if self.ema is not None:
+            self.ema.update_parameters(self.backbone)
+
+    # ------------------------------------------------------------------ validation
+    def validation_step(self, batch: dict[str, Any], batch_idx: int) -> dict[str, Tensor]:
+        pred_mm = self.restore_mm(batch, tile=self.hparams.eval_tile_size)
+        loss = self.criterion(pred_mm / self.hparams.depth_scale_mm, batch["clean"] / self.hparams.depth_scale_mm,
+                              batch["sigma"], batch["mask"])
+        self.log("val/loss", loss, on_step=False, on_epoch=True, batch_size=pred_mm.shape[0], sync_dist=True)
+        self.val_metrics.update(pred_mm, batch["clean"], batch["mask"])
+        self.val_raw_metrics.update(batch["noisy"], batch["clean"], batch["mask"])
+        return {"pred_mm": pred_mm}
+
+    def on_validation_epoch_end(self) -> None:
+        restored = self.val_metrics.compute()
+        raw = self.val_raw_metrics.compute()
+        values = {f"val/{k}": float(v) for k, v in restored.items()}
+        values.update({f"val/raw/{k}": float(v) for k, v in raw.items()})
+        self.log("val/mae_mm", values.pop("val/mae_mm"), prog_bar=True)
+        self.log("val/psnr_db", values.pop("val/psnr_db"), prog_bar=True)
+        self.log_dict(values)
+        self.val_metrics.reset()
+        self.val_raw_metrics.reset()
+
+    # ------------------------------------------------------------------ test
+    def test_set_names(self) -> list[str]:
+        """Names of the test loaders in order (``datamodule.test_set_names``; ``["synthetic"]`` without one)."""
+        dm = getattr(self.trainer, "datamodule", None) if self._trainer is not None else None
+        names = getattr(dm, "test_set_names", None)
+        if names:
+            return [str(n) for n in names]
+        loaders = self.trainer.test_dataloaders if self._trainer is not None else None
+        n = len(loaders) if isinstance(loaders, (list, tuple)) else 1
+        return ["synthetic"] if n == 1 else [f"set{i}" for i in range(n)]
+
+    def on_test_start(self) -> None:
+        self.test_results = {}
+        self.test_per_image = {}
+        self._test_names = {}
+        for name in self.test_set_names():
+            self.test_metrics[name] = DepthMetrics(d_max_mm=self.hparams.d_max_mm).to(self.device)
+            self.test_raw_metrics[name] = DepthMetrics(d_max_mm=self.hparams.d_max_mm).to(self.device)
+            self._test_names[name] = {}
+
+    def test_step(self, batch: dict[str, Any], batch_idx: int, dataloader_idx: int = 0) -> dict[str, Tensor]:
+        names = self.test_set_names()
+        if dataloader_idx >= len(names):
+            raise IndexError(f"test loader {dataloader_idx} has no name in datamodule.test_set_names={names}")
+        set_name = names[dataloader_idx]
+        pred_mm = self.restore_mm(batch, tile=self.hparams.eval_tile_size)
+        index = batch.get("index")
+        if index is None:
+            start = batch_idx * pred_mm.shape[0]
+            index = torch.arange(start, start + pred_mm.shape[0], device=pred_mm.device)
+        self.test_metrics[set_name].update(pred_mm, batch["clean"], batch["mask"], index=index)
+        self.test_raw_metrics[set_name].update(batch["noisy"], batch["clean"], batch["mask"], index=index)
+        if "name" in batch:
+            for i, n in zip(index.tolist(), batch["name"]):
+                self._test_names[set_name][int(i)] = str(n)
+        return {"pred_mm": pred_mm}
+
+    def on_test_epoch_end(self) -> None:
+        from tofdenoise.callbacks.metrics_writer import set_entry
+
+        for set_name in self.test_set_names():
+            metric, raw_metric = self.test_metrics[set_name], self.test_raw_metrics[set_name]
+            restored = {k: float(v) for k, v in metric.compute().items()}
+            raw = {k: float(v) for k, v in raw_metric.compute().items()}
+            with metric.sync_context(), raw_metric.sync_context():
+                rows, raw_rows = metric.per_image_rows(), raw_metric.per_image_rows()
+                counts = metric.counts()
+            self.test_results[set_name] = set_entry(restored, raw, counts)
+            self.test_per_image[set_name] = {"rows": rows, "raw_rows": raw_rows,
+                                             "names": dict(self._test_names[set_name])}
+            logged = {f"test/{set_name}/{k}": v for k, v in restored.items()}
+            logged.update({f"test/{set_name}/raw/{k}": v for k, v in raw.items()})
+            self.log_dict(logged)
+            metric.reset()
+            raw_metric.reset()
+
+    # ------------------------------------------------------------------ predict
+    def predict_step(self, batch: dict[str, Any], batch_idx: int, dataloader_idx: int = 0) -> Tensor:
+        """Restored depth in mm (B, 1, H, W); pixels invalid in the input (``mask == 0``) are set to 0."""
+        pred_mm = self.restore_mm(batch, tile=self.hparams.predict_tile_size)
+        if "mask" in batch:
+            pred_mm = torch.where(batch["mask"] > 0, pred_mm, torch.zeros_like(pred_mm))
+        return pred_mm
+
+    # ------------------------------------------------------------------ checkpoints
+    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        """Refuse a checkpoint written for another backbone/architecture with a readable message."""
+        saved = checkpoint.get("hyper_parameters")
+        if not saved:
+            return
+        mine, theirs = _architecture(dict(self.hparams)), _architecture(dict(saved))
+        diff = {k: (theirs[k], mine[k]) for k in mine if mine[k] != theirs[k]}
+        if diff:
+            lines = "; ".join(f"{k}: checkpoint {a!r} vs this model {b!r}" for k, (a, b) in diff.items())
+            raise CheckpointMismatchError(
+                f"checkpoint was written by a DepthRestorer with another architecture ({lines}). "
+                f"Load it with DepthRestorer.load_from_checkpoint(path) (it rebuilds the saved backbone), "
+                f"or select backbone={theirs['backbone']!r} with the same backbone_kwargs")

@@ -1,0 +1,161 @@
+"""tofdenoise-train (Hydra): fit + test end to end, outputs of a run, bad input, resume after SIGKILL."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+from tofdenoise.callbacks.metrics_writer import read_metrics_json, read_per_image_csv
+from tofdenoise.cli.train import compose_config, run
+from tofdenoise.metrics import METRIC_KEYS
+from tofdenoise.models import available_backbones
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _check_metrics_json(path: Path, sets=("synthetic",)) -> dict:
+    data = read_metrics_json(path)  # validates the schema
+    assert sorted(data) == sorted(sets)
+    for s in sets:
+        for k in METRIC_KEYS:
+            assert isinstance(data[s][k], float), (s, k)
+            assert isinstance(data[s]["raw"][k], float), (s, "raw", k)
+        assert data[s]["images"] >= 1
+    return data
+
+
+@pytest.mark.parametrize("backbone", sorted(available_backbones()))
+def test_fast_dev_run_fit_and_test_every_backbone(backbone, tmp_path, data_cache, tiny):
+    cfg = compose_config(tiny(tmp_path, data_cache, backbone) + ["+trainer.fast_dev_run=true", "logger=csv"])
+    result = run(cfg)
+    assert result["best_ckpt"] is None  # fast_dev_run writes no checkpoint: the weights in memory are tested
+    data = _check_metrics_json(tmp_path / "metrics.json")
+    assert data["synthetic"]["images"] == 1  # fast_dev_run: one test batch of eval_batch_size 1
+    info = json.loads((tmp_path / "run_info.json").read_text())
+    assert {"backbone": backbone, "noise": "hetero", "loss": "full"}.items() <= info.items()
+    assert info["run_name"] == f"{backbone}-hetero-full" and info["global_step"] == 1
+    assert not (tmp_path / "checkpoints" / "best.ckpt").exists()
+
+
+def test_smoke_run_writes_every_output(tmp_path, data_cache, tiny):
+    cfg = compose_config(tiny(tmp_path, data_cache) + ["trainer.max_epochs=3"])
+    result = run(cfg)
+    ck = tmp_path / "checkpoints"
+    assert sorted(p.name for p in ck.iterdir()) == ["best.ckpt", "last.ckpt"]
+    assert result["best_ckpt"] == str(ck / "best.ckpt")
+    data = _check_metrics_json(tmp_path / "metrics.json")
+    rows = read_per_image_csv(tmp_path / "per_image" / "synthetic.csv")
+    assert len(rows) == data["synthetic"]["images"] == 2  # 10 scenes split 6:2:2
+    assert all(r["name"] for r in rows)
+    mean_mae = sum(r["mae_mm"] for r in rows) / len(rows)
+    assert mean_mae == pytest.approx(data["synthetic"]["mae_mm"], rel=1e-9)
+    assert sum(r["raw_mae_mm"] for r in rows) / len(rows) == pytest.approx(data["synthetic"]["raw"]["mae_mm"])
+    info = json.loads((tmp_path / "run_info.json").read_text())
+    assert info["global_step"] == 3 * 3 and info["best_ckpt"] == str(ck / "best.ckpt")
+    # learning curves in CSV; best.ckpt = the epoch with the lowest val/mae_mm
+    with open(tmp_path / "csv" / "metrics.csv") as fh:
+        logged = list(csv.DictReader(fh))
+    val = [(int(r["epoch"]), float(r["val/mae_mm"])) for r in logged if r.get("val/mae_mm")]
+    assert [e for e, _ in val] == [0, 1, 2]
+    assert any(r.get("train/lr") for r in logged) and any(r.get("val/raw/mae_mm") for r in logged)
+    best_epoch = min(val, key=lambda t: t[1])[0]
+    assert torch.load(ck / "best.ckpt", weights_only=True)["epoch"] == best_epoch
+    assert torch.load(ck / "last.ckpt", weights_only=True)["epoch"] == 2
+    # the offline wandb run lives in the run folder, with its id kept for resumes
+    runs = list((tmp_path / "wandb").glob("offline-run-*"))
+    run_id = (tmp_path / "wandb_run_id.txt").read_text().strip()
+    assert len(runs) == 1 and runs[0].name.endswith(run_id)
+    assert (tmp_path / "config.yaml").is_file()
+    assert len(list((tmp_path / "panels").glob("epoch_*.png"))) == 3  # one sample panel per validation
+
+
+def _cli(args: list[str], **kw) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", "WANDB_MODE": "offline"}
+    return subprocess.run([sys.executable, "-m", "tofdenoise.cli.train", *args], capture_output=True, text=True,
+                          cwd=REPO, env=env, timeout=300, **kw)
+
+
+def test_command_line_rejects_unknown_names_with_the_valid_ones(tmp_path):
+    proc = _cli(["backbone=nope", f"paths.run_dir={tmp_path}"])
+    assert proc.returncode != 0
+    assert "backbone/nope" in proc.stderr and "dvss" in proc.stderr and "unet" in proc.stderr
+    assert not (tmp_path / "checkpoints").exists()
+
+
+def test_resume_after_sigkill_reaches_the_same_number_of_steps(tmp_path, data_cache, tiny):
+    """Kill a run mid-epoch once last.ckpt exists, resume with ckpt_path=last: same optimiser steps as an
+    uninterrupted run of the same config."""
+    steps_per_epoch, epochs = 12, 2  # 40 scenes -> 24 training samples, batch 2
+    common = tiny("RUN", data_cache, num_samples=40) + [
+        f"trainer.max_epochs={epochs}", "callbacks.model_checkpoint.every_n_train_steps=2", "logger=csv"]
+
+    def args(run_dir: Path, extra=()) -> list[str]:
+        return [a.replace("RUN", str(run_dir)) for a in common] + list(extra)
+
+    killed = tmp_path / "killed"
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen([sys.executable, "-m", "tofdenoise.cli.train", *args(killed)], cwd=REPO, env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    last = killed / "checkpoints" / "last.ckpt"
+    deadline = time.time() + 240
+    try:
+        while time.time() < deadline and proc.poll() is None:
+            if last.exists():
+                try:
+                    step = torch.load(last, weights_only=True)["global_step"]
+                except Exception:  # being written: try again
+                    step = -1
+                if 4 <= step < steps_per_epoch * epochs - 4:
+                    os.kill(proc.pid, signal.SIGKILL)
+                    break
+            time.sleep(0.02)
+    finally:
+        if proc.poll() is None and time.time() >= deadline:
+            proc.kill()
+        proc.wait()
+    assert proc.returncode == -signal.SIGKILL, proc.stderr.read().decode()[-2000:]
+    proc.stderr.close()
+    at_kill = torch.load(last, weights_only=True)
+    assert 0 < at_kill["global_step"] < steps_per_epoch * epochs
+    assert not (killed / "metrics.json").exists()
+
+    resumed = _cli(args(killed, ["ckpt_path=last"]))
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert "Restoring states from the checkpoint path" in resumed.stderr + resumed.stdout
+
+    fresh = tmp_path / "fresh"
+    cfg = compose_config(args(fresh))
+    run(cfg)
+    info_resumed = json.loads((killed / "run_info.json").read_text())
+    info_fresh = json.loads((fresh / "run_info.json").read_text())
+    assert info_resumed["global_step"] == info_fresh["global_step"] == steps_per_epoch * epochs
+    end_resumed = torch.load(killed / "checkpoints" / "last.ckpt", weights_only=True)
+    end_fresh = torch.load(fresh / "checkpoints" / "last.ckpt", weights_only=True)
+    assert end_resumed["epoch"] == end_fresh["epoch"] == epochs - 1
+    # the cosine schedule continued where it stopped: same final learning rate and scheduler step count
+    assert end_resumed["lr_schedulers"][0]["last_epoch"] == end_fresh["lr_schedulers"][0]["last_epoch"]
+    assert end_resumed["optimizer_states"][0]["param_groups"][0]["lr"] == pytest.approx(
+        end_fresh["optimizer_states"][0]["param_groups"][0]["lr"])
+    _check_metrics_json(killed / "metrics.json")
+
+
+def test_ddp_two_cpu_processes(tmp_path, data_cache, tiny):
+    """trainer=ddp with two CPU processes (Lightning re-launches the Hydra command for rank 1)."""
+    args = tiny(tmp_path, data_cache, num_samples=20) + [
+        "trainer=ddp", "trainer.accelerator=cpu", "trainer.devices=2", "trainer.precision=32-true",
+        "trainer.sync_batchnorm=false", "trainer.max_epochs=2", "logger=csv"]
+    proc = _cli(args)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    _check_metrics_json(tmp_path / "metrics.json")
+    info = json.loads((tmp_path / "run_info.json").read_text())
+    # 12 training samples, batch 2 per process, 2 processes -> 3 steps per epoch
+    assert info["global_step"] == 2 * 3

@@ -1,0 +1,52 @@
+"""best.ckpt is the epoch with the lowest val/mae_mm (scripted metric sequence); last.ckpt is the last one."""
+
+from __future__ import annotations
+
+import lightning.pytorch as pl
+import pytest
+import torch
+
+from tofdenoise.callbacks.checkpointing import BestAndLastCheckpoint
+from tofdenoise.lightning_module import DepthRestorer
+
+SCORES = [5.0, 3.0, 4.0, 2.0, 6.0, 2.0, 2.5]  # best at epoch 3 (the tie at epoch 5 does not replace it)
+
+
+class ScriptedRestorer(DepthRestorer):
+    """Logs a scripted val/mae_mm per epoch instead of the measured one."""
+
+    scores: list[float] = SCORES
+
+    def on_validation_epoch_end(self) -> None:
+        self.val_metrics.reset()
+        self.val_raw_metrics.reset()
+        if self.trainer.sanity_checking:
+            return
+        self.log("val/mae_mm", self.scores[self.current_epoch])
+
+
+def test_best_is_lowest_val_mae_and_last_is_last(tmp_path, tiny_data):
+    model = ScriptedRestorer(backbone="unet", backbone_kwargs={"width": 4, "stages": 2}, loss="l1")
+    ckpt = BestAndLastCheckpoint(dirpath=tmp_path / "checkpoints")
+    trainer = pl.Trainer(default_root_dir=tmp_path, max_epochs=len(SCORES), accelerator="cpu", logger=False,
+                         enable_progress_bar=False, enable_model_summary=False, callbacks=[ckpt],
+                         limit_train_batches=1, limit_val_batches=1, num_sanity_val_steps=0)
+    trainer.fit(model, datamodule=tiny_data)
+    files = sorted(p.name for p in (tmp_path / "checkpoints").iterdir())
+    assert files == ["best.ckpt", "last.ckpt"]
+    assert ckpt.best_model_path == str(tmp_path / "checkpoints" / "best.ckpt")
+    assert float(ckpt.best_model_score) == pytest.approx(2.0)
+    best = torch.load(tmp_path / "checkpoints" / "best.ckpt", weights_only=True)
+    last = torch.load(tmp_path / "checkpoints" / "last.ckpt", weights_only=True)
+    assert best["epoch"] == SCORES.index(min(SCORES)) == 3
+    assert best["global_step"] == 4
+    assert last["epoch"] == len(SCORES) - 1 and last["global_step"] == len(SCORES)
+    # the weights in best.ckpt are those of the end of epoch 3, not the final ones
+    final = model.state_dict()
+    assert any(not torch.equal(best["state_dict"][k], final[k]) for k in final if k.startswith("backbone."))
+    assert all(torch.equal(last["state_dict"][k], final[k]) for k in final)
+
+
+def test_mode_is_validated():
+    with pytest.raises(ValueError, match="mode must be 'min' or 'max'"):
+        BestAndLastCheckpoint(mode="lowest")

@@ -1,0 +1,167 @@
+"""The Hydra configs compose for every backbone x noise x loss, resolve to plain values, instantiate, and
+reject bad input early with the valid names / the key to set."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from hydra.errors import ConfigCompositionException
+from hydra.utils import instantiate
+from omegaconf import OmegaConf
+
+from tofdenoise.cli.train import compose_config, config_dir, resolve_ckpt_path, validate_config
+from tofdenoise.losses import available_losses
+from tofdenoise.models import available_backbones
+from tofdenoise.physics.noise_models import available_noise_models
+
+CONFIGS = config_dir()
+
+
+def options(group: str) -> list[str]:
+    return sorted(p.stem for p in (CONFIGS / group).glob("*.yaml"))
+
+
+BACKBONES, NOISES, LOSSES = options("backbone"), options("noise"), options("loss")
+
+
+def test_group_options_match_the_registries():
+    assert BACKBONES == sorted(available_backbones())
+    assert NOISES == sorted(available_noise_models())
+    assert LOSSES == sorted(available_losses())
+    for group in ("trainer", "logger", "experiment"):
+        assert options(group), group
+    assert {"cpu", "gpu", "ddp"} <= set(options("trainer"))
+    assert {"wandb_offline", "csv", "tensorboard"} <= set(options("logger"))
+    assert {"default", "smoke", "paper"} <= set(options("experiment"))
+
+
+def _plain(v) -> bool:
+    if isinstance(v, dict):
+        return all(isinstance(k, str) and _plain(x) for k, x in v.items())
+    if isinstance(v, (list, tuple)):
+        return all(_plain(x) for x in v)
+    return isinstance(v, (str, int, float, bool, type(None)))
+
+
+def _check_composed(tmp_path, backbone: str, noise: str, loss: str):
+    cfg = compose_config([f"backbone={backbone}", f"noise={noise}", f"loss={loss}", f"paths.run_dir={tmp_path}"])
+    validate_config(cfg)
+    c = OmegaConf.to_container(cfg, resolve=True)
+    assert c["model"]["backbone"] == backbone and c["model"]["loss"] == loss
+    assert c["data"]["noise"] == noise and c["data"]["noise_kwargs"] == c["noise"]["kwargs"]
+    assert c["model"]["backbone_kwargs"] == c["backbone"]["kwargs"]
+    assert c["model"]["loss_kwargs"] == c["loss"]["kwargs"]
+    assert c["data"]["sensor"] == c["sensor"]
+    assert c["run_name"] == f"{backbone}-{noise}-{loss}"
+    assert c["callbacks"]["model_checkpoint"]["dirpath"] == f"{tmp_path}/checkpoints"
+    assert _plain({k: c[k] for k in ("model", "data", "trainer")})
+    return cfg
+
+
+@pytest.mark.parametrize("backbone", BACKBONES)
+def test_every_backbone_composes_and_instantiates(backbone, tmp_path):
+    i = BACKBONES.index(backbone)
+    cfg = _check_composed(tmp_path, backbone, NOISES[i % len(NOISES)], LOSSES[i % len(LOSSES)])
+    model = instantiate(cfg.model, _convert_="all")
+    assert model.hparams.backbone == backbone
+    assert _plain(dict(model.hparams))
+    assert sum(p.numel() for p in model.backbone.parameters()) > 0
+    assert type(model.backbone).__module__.startswith("tofdenoise.models.")
+
+
+@pytest.mark.parametrize("noise", NOISES)
+def test_every_noise_loss_pair_composes(noise, tmp_path):
+    for loss in LOSSES:
+        cfg = _check_composed(tmp_path, "unet", noise, loss)
+        crit = instantiate(cfg.model, _convert_="all").criterion
+        assert type(crit).__name__.lower().startswith({"l1": "l1", "nar": "noiseaware", "full": "full"}[loss])
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("backbone", BACKBONES)
+def test_full_cross_product_composes(backbone, tmp_path):
+    # the groups are independent interpolations; the fast tests above cover every option and pair with unet
+    for noise in NOISES:
+        for loss in LOSSES:
+            _check_composed(tmp_path, backbone, noise, loss)
+
+
+@pytest.mark.parametrize("noise", NOISES)
+def test_datamodule_instantiates_for_every_noise(noise, tmp_path):
+    cfg = compose_config([f"noise={noise}", f"paths.run_dir={tmp_path}", f"++data.cache_dir={tmp_path}/cache"])
+    dm = instantiate(cfg.data, _convert_="all")
+    assert dm.hparams.noise == noise
+    assert dm.test_set_names == ["synthetic"]
+    assert isinstance(dm.hparams.sensor, dict)
+
+
+def test_unknown_group_option_lists_the_valid_ones():
+    with pytest.raises(ConfigCompositionException) as err:
+        compose_config(["backbone=nope"])
+    msg = str(err.value)
+    assert "backbone/nope" in msg and "dvss" in msg and "unet" in msg
+    for group, bad in (("noise", "gaussian"), ("loss", "huber")):
+        with pytest.raises(ConfigCompositionException, match=f"{group}/{bad}"):
+            compose_config([f"{group}={bad}"])
+
+
+def test_unknown_names_inside_a_node_fail_at_config_time(tmp_path):
+    for key, value, listed in (("backbone.name", "nope", "dvss"), ("noise.name", "white", "hetero"),
+                               ("loss.name", "huber", "nar")):
+        cfg = compose_config([f"paths.run_dir={tmp_path}", f"{key}={value}"])
+        with pytest.raises(ValueError, match=rf"{key}: unknown .*'{value}'; valid names: .*{listed}"):
+            validate_config(cfg)
+
+
+def test_missing_dataset_path_names_the_key(tmp_path, monkeypatch):
+    monkeypatch.delenv("TOF_FLYINGTHINGS3D_ROOT", raising=False)
+    cfg = compose_config(["data=flyingthings3d", f"paths.run_dir={tmp_path}"])
+    with pytest.raises(ValueError, match=r"data\.root.*set data\.root="):
+        validate_config(cfg)
+    cfg = compose_config(["data=flyingthings3d", f"paths.run_dir={tmp_path}", f"data.root={tmp_path}/absent"])
+    with pytest.raises(FileNotFoundError, match=r"data\.root.*absent.*does not exist"):
+        validate_config(cfg)
+    cfg = compose_config([f"paths.run_dir={tmp_path}", f"++data.real_dir={tmp_path}/none"])
+    with pytest.raises(FileNotFoundError, match=r"data\.real_dir"):
+        validate_config(cfg)
+
+
+def test_paper_experiment_is_the_paper_configuration(tmp_path):
+    cfg = compose_config(["experiment=paper", f"paths.run_dir={tmp_path}", f"data.root={tmp_path}"])
+    validate_config(cfg)
+    c = OmegaConf.to_container(cfg, resolve=True)
+    assert c["model"]["backbone"] == "dvss" and c["model"]["loss"] == "full" and c["data"]["noise"] == "hetero"
+    assert c["model"]["lr"] == 2e-4 and c["model"]["lr_min"] == 1e-6
+    assert c["data"]["source"] == "flyingthings3d"
+    assert c["data"]["batch_size"] == 4 and c["data"]["crop_size"] == 320
+    assert c["trainer"]["max_epochs"] == 300 and c["trainer"]["accelerator"] == "gpu"
+    assert c["loss"]["kwargs"]["lambda_g"] == 0.1 and c["loss"]["kwargs"]["beta"] == 0.5
+    model = instantiate(cfg.model, _convert_="all")  # AdamW + cosine come from the signature defaults
+    assert model.hparams.lr == 2e-4 and model.hparams.lr_min == 1e-6 and model.hparams.d_max_mm == 1000.0
+
+
+def test_command_line_choices_beat_the_experiment(tmp_path):
+    cfg = compose_config(["backbone=dvss", f"paths.run_dir={tmp_path}"])
+    assert cfg.model.backbone == "dvss"  # the default experiment picks unet, the command line wins
+    assert compose_config([f"paths.run_dir={tmp_path}"]).model.backbone == "unet"
+
+
+def test_run_dir_from_environment(monkeypatch, tmp_path):
+    monkeypatch.setenv("RUN_DIR", str(tmp_path / "envrun"))
+    cfg = compose_config([])
+    assert cfg.paths.run_dir == str(tmp_path / "envrun")
+    assert cfg.callbacks.model_checkpoint.dirpath == str(tmp_path / "envrun" / "checkpoints")
+    monkeypatch.delenv("RUN_DIR")
+    assert compose_config([]).paths.run_dir.startswith("outputs/")
+
+
+def test_ckpt_path_resolution(tmp_path):
+    assert resolve_ckpt_path(None, tmp_path) is None
+    assert resolve_ckpt_path("last", tmp_path) is None  # nothing to resume yet: fresh run
+    last = tmp_path / "checkpoints" / "last.ckpt"
+    last.parent.mkdir()
+    last.write_bytes(b"x")
+    assert resolve_ckpt_path("last", tmp_path) == str(last)
+    with pytest.raises(FileNotFoundError, match="ckpt_path"):
+        resolve_ckpt_path(str(tmp_path / "missing.ckpt"), tmp_path)

@@ -1,0 +1,227 @@
+"""DepthRestorer: plain hyper-parameters, schedule, EMA, metrics of restored and raw input, test sets,
+prediction, checkpoint compatibility."""
+
+from __future__ import annotations
+
+import math
+
+import lightning.pytorch as pl
+import pytest
+import torch
+from lightning.pytorch.callbacks import Callback
+
+from tofdenoise.callbacks.checkpointing import BestAndLastCheckpoint
+from tofdenoise.lightning_module import CheckpointMismatchError, DepthRestorer
+from tofdenoise.metrics import depth_metrics_per_image
+
+TINY = {"width": 4, "stages": 2}
+
+
+def tiny_model(**kw) -> DepthRestorer:
+    args = {"backbone": "unet", "backbone_kwargs": dict(TINY), "loss": "full",
+            "loss_kwargs": {"beta": 0.5, "lambda_g": 0.1}}
+    args.update(kw)
+    return DepthRestorer(**args)
+
+
+def trainer(tmp_path, **kw) -> pl.Trainer:
+    args = dict(default_root_dir=tmp_path, accelerator="cpu", devices=1, logger=False, enable_progress_bar=False,
+                enable_model_summary=False, enable_checkpointing=False, num_sanity_val_steps=0)
+    args.update(kw)
+    return pl.Trainer(**args)
+
+
+def test_bad_names_list_valid_ones():
+    with pytest.raises(ValueError, match=r"unknown backbone 'nope'.*valid names:.*unet"):
+        tiny_model(backbone="nope")
+    with pytest.raises(ValueError, match=r"unknown loss 'huber'.*valid names:.*full.*l1.*nar"):
+        tiny_model(loss="huber")
+    with pytest.raises(ValueError, match="in_channels"):
+        tiny_model(backbone_kwargs={**TINY, "in_channels": 3})
+
+
+def test_hparams_are_plain_values():
+    model = tiny_model(ema_decay=0.9)
+    allowed = (str, int, float, bool, type(None))
+
+    def plain(v):
+        if isinstance(v, dict):
+            return all(isinstance(k, str) and plain(x) for k, x in v.items())
+        if isinstance(v, (list, tuple)):
+            return all(plain(x) for x in v)
+        return isinstance(v, allowed)
+
+    assert plain(dict(model.hparams)), dict(model.hparams)
+    assert model.hparams.backbone == "unet" and model.hparams.lr == 2e-4 and model.hparams.lr_min == 1e-6
+
+
+def test_signal_channel_input(tiny_data):
+    model = tiny_model(use_signal_channel=True)
+    batch = next(iter(tiny_data.val_dataloader()))
+    x = model.network_input(batch)
+    assert x.shape[1] == 2
+    torch.testing.assert_close(x[:, :1], batch["noisy"] / 1000.0)
+    amp = batch["amplitude"] * batch["mask"]
+    assert torch.allclose(x[:, 1:].amax(dim=(1, 2, 3)), torch.ones(x.shape[0]))
+    torch.testing.assert_close(x[0, 1], amp[0, 0] / amp[0].max())
+    assert model.restore_mm(batch).shape == batch["noisy"].shape
+
+
+def test_cosine_schedule_per_step_reaches_lr_min(tmp_path, tiny_data):
+    lrs: list[float] = []
+
+    class Rec(Callback):
+        def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+            lrs.append(trainer.optimizers[0].param_groups[0]["lr"])
+
+    model = tiny_model(lr=1e-3, lr_min=1e-5)
+    t = trainer(tmp_path, max_epochs=3, limit_val_batches=0, callbacks=[Rec()])
+    t.fit(model, datamodule=tiny_data)
+    total = 3 * 2  # 8 samples / batch 4 = 2 steps per epoch
+    assert t.global_step == total and len(lrs) == total
+    expected = [1e-5 + (1e-3 - 1e-5) * (1 + math.cos(math.pi * s / total)) / 2 for s in range(total)]
+    assert lrs == pytest.approx(expected, rel=1e-6)
+    assert t.optimizers[0].param_groups[0]["lr"] == pytest.approx(1e-5, rel=1e-6)
+    # weight decay only on >= 2-D weights
+    groups = t.optimizers[0].param_groups
+    assert {g["weight_decay"] for g in groups} == {1e-2, 0.0}
+    assert all(p.ndim >= 2 for p in groups[0]["params"]) and all(p.ndim < 2 for p in groups[1]["params"])
+
+
+def test_linear_warmup_then_cosine(tmp_path, tiny_data):
+    lrs: list[float] = []
+
+    class Rec(Callback):
+        def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+            lrs.append(trainer.optimizers[0].param_groups[0]["lr"])
+
+    model = tiny_model(lr=1e-3, lr_min=1e-5, warmup_steps=2)
+    trainer(tmp_path, max_epochs=4, limit_val_batches=0, callbacks=[Rec()]).fit(model, datamodule=tiny_data)
+    total, warm = 8, 2
+    expected = [1e-3 * (1 / warm + (1 - 1 / warm) * s / warm) for s in range(warm)]  # 5e-4, 7.5e-4
+    expected += [1e-5 + (1e-3 - 1e-5) * (1 + math.cos(math.pi * (s - warm) / (total - warm))) / 2
+                 for s in range(warm, total)]
+    assert lrs == pytest.approx(expected, rel=1e-6)
+
+
+def test_ema_update_rule_and_use_in_eval():
+    model = tiny_model(ema_decay=0.75)
+    p0 = [p.detach().clone() for p in model.backbone.parameters()]
+    model.on_train_batch_end(None, None, 0)  # first update copies the weights
+    for e, p in zip(model.ema.module.parameters(), p0):
+        torch.testing.assert_close(e, p)
+    with torch.no_grad():
+        for p in model.backbone.parameters():
+            p.add_(1.0)
+    model.on_train_batch_end(None, None, 1)
+    for e, p in zip(model.ema.module.parameters(), p0):
+        torch.testing.assert_close(e, p + 0.25)  # 0.75 * p + 0.25 * (p + 1)
+    assert model.eval_net is model.ema.module
+    assert any(k.startswith("ema.") for k in model.state_dict())
+    assert not any(p.requires_grad for p in model.ema.parameters())
+
+
+def test_validation_logs_restored_and_raw_metrics(tmp_path, tiny_data):
+    model = tiny_model()
+    t = trainer(tmp_path)
+    t.validate(model, datamodule=tiny_data, verbose=False)
+    m = t.callback_metrics
+    for key in ("val/mae_mm", "val/psnr_db", "val/ssim", "val/mse_mm2", "val/mae_mm_pooled", "val/raw/mae_mm",
+                "val/raw/psnr_db", "val/loss"):
+        assert key in m, key
+    # raw = the noisy input against the reference, per-image means over the validation set
+    batch = next(iter(tiny_data.val_dataloader()))
+    per = depth_metrics_per_image(batch["noisy"], batch["clean"], batch["mask"])
+    assert float(m["val/raw/mae_mm"]) == pytest.approx(per["mae_mm"].mean().item(), rel=1e-5)
+    assert float(m["val/raw/psnr_db"]) == pytest.approx(per["psnr_db"].mean().item(), rel=1e-5)
+
+
+def test_test_sets_are_namespaced_with_per_image_rows(tmp_path, tiny_data_cls):
+    data = tiny_data_cls(n_test=3, test_set_names=("synthetic", "real"))
+    model = tiny_model()
+    t = trainer(tmp_path)
+    t.test(model, datamodule=data, verbose=False)
+    m = t.callback_metrics
+    for s in ("synthetic", "real"):
+        for k in ("psnr_db", "mae_mm", "mse_mm2", "ssim"):
+            assert f"test/{s}/{k}" in m and f"test/{s}/raw/{k}" in m
+    assert set(model.test_results) == {"synthetic", "real"}
+    for s, loader in zip(("synthetic", "real"), data.test_dataloader()):
+        res = model.test_results[s]
+        batch = next(iter(loader))
+        raw = depth_metrics_per_image(batch["noisy"], batch["clean"], batch["mask"])
+        assert res["raw"]["mae_mm"] == pytest.approx(raw["mae_mm"].mean().item(), rel=1e-6)
+        assert res["images"] == 3 and res["skipped_images"] == 0
+        assert float(m[f"test/{s}/mae_mm"]) == pytest.approx(res["mae_mm"], rel=1e-5)
+        per = model.test_per_image[s]
+        assert [r["index"] for r in per["rows"]] == batch["index"].tolist()
+        assert per["names"] == dict(zip(batch["index"].tolist(), batch["name"]))
+        assert [r["mae_mm"] for r in per["raw_rows"]] == pytest.approx(raw["mae_mm"].tolist())
+
+
+def test_predict_zeroes_invalid_and_tiles_large_frames(tmp_path, tiny_data, monkeypatch):
+    import tofdenoise.models as models
+
+    calls = []
+    real = models.tiled_forward
+
+    def spy(net, x, tile, overlap):
+        calls.append((tuple(x.shape), tile, overlap))
+        return real(net, x, tile=tile, overlap=overlap)
+
+    monkeypatch.setattr(models, "tiled_forward", spy)
+    model = tiny_model(predict_tile_size=16, tile_overlap=4)
+    preds = trainer(tmp_path).predict(model, datamodule=tiny_data)
+    assert calls and calls[0][1:] == (16, 4)
+    pred = preds[0]  # one loader: a list of batch outputs
+    batch = next(iter(tiny_data.test_dataloader()[0]))
+    assert pred.shape == batch["noisy"].shape
+    assert torch.all(pred[batch["mask"] == 0] == 0)
+    assert torch.all(torch.isfinite(pred))
+    calls.clear()
+    model.hparams.predict_tile_size = None
+    trainer(tmp_path).predict(model, datamodule=tiny_data)
+    assert not calls
+
+
+def test_checkpoint_of_another_backbone_fails_clearly(tmp_path, tiny_data):
+    model = tiny_model()
+    t = trainer(tmp_path, max_steps=1, limit_val_batches=0)
+    t.fit(model, datamodule=tiny_data)
+    path = tmp_path / "unet.ckpt"
+    t.save_checkpoint(path)
+    ckpt = torch.load(path, weights_only=True)  # plain hyper-parameters: safe loading works
+    assert ckpt["hyper_parameters"]["backbone"] == "unet"
+    reloaded = DepthRestorer.load_from_checkpoint(path)
+    for (k, a), (k2, b) in zip(model.state_dict().items(), reloaded.state_dict().items()):
+        assert k == k2 and torch.equal(a, b)
+    other = tiny_model(backbone_kwargs={"width": 8, "stages": 2})
+    with pytest.raises(CheckpointMismatchError, match=r"backbone_kwargs: checkpoint .*'width': 4.*'width': 8"):
+        trainer(tmp_path).test(other, datamodule=tiny_data, ckpt_path=path, weights_only=True)
+    with pytest.raises(CheckpointMismatchError, match="ema"):
+        tiny_model(ema_decay=0.9).on_load_checkpoint(ckpt)
+
+
+def test_compile_switch_keeps_the_state_dict_keys():
+    plain, compiled = tiny_model(), tiny_model(compile=True)
+    compiled.configure_model()  # torch.compile is lazy: nothing is compiled until the first training forward
+    assert compiled._compiled is not None and plain._compiled is None
+    assert list(compiled.state_dict()) == list(plain.state_dict())
+    assert compiled.eval_net is compiled.backbone  # evaluation runs the eager module
+
+
+def test_ss2d_state_parameters_are_not_weight_decayed():
+    """A_log and D of the selective scan are excluded from weight decay (VMamba/MambaIR practice)."""
+    from tofdenoise.lightning_module import DepthRestorer
+
+    module = DepthRestorer(backbone="dvss", backbone_kwargs={"width": 8, "enc_blocks": [1], "bottleneck_blocks": 1,
+                                                             "d_state": 4})
+    flagged = {id(p) for p in module.backbone.parameters() if getattr(p, "_no_weight_decay", False)}
+    assert flagged, "the DVSS backbone should flag its A_log / D parameters"
+    groups = module.parameter_groups()
+    for group in groups:
+        ids = {id(p) for p in group["params"]}
+        if group["weight_decay"] > 0:
+            assert not ids & flagged
+    no_decay = {id(p) for g in groups if g["weight_decay"] == 0 for p in g["params"]}
+    assert flagged <= no_decay
