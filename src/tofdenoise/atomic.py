@@ -16,7 +16,7 @@ from typing import Callable
 
 import numpy as np
 
-__all__ = ["atomic_write", "atomic_write_bytes", "atomic_write_text", "current_umask", "save_npy_atomic"]
+__all__ = ["atomic_write", "atomic_write_bytes", "atomic_write_text", "atomic_write_png", "current_umask", "save_npy_atomic"]
 
 
 def current_umask() -> int:
@@ -72,3 +72,14 @@ def atomic_write_text(path: str | os.PathLike[str], text: str) -> Path:
 def save_npy_atomic(path: str | os.PathLike[str], array: np.ndarray) -> Path:
     """Save ``array`` as a ``.npy`` file (no pickle) atomically."""
     return atomic_write(path, lambda tmp: np.save(tmp, np.ascontiguousarray(array), allow_pickle=False), suffix=".npy")
+
+
+def atomic_write_png(path: str | os.PathLike[str], image: np.ndarray) -> Path:
+    """Encode ``image`` as PNG with OpenCV (uint8 or uint16; 2-D, or 3-D in OpenCV's BGR order) and write it
+    atomically."""
+    import cv2  # imported here: light users of this module need no OpenCV
+
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(image))
+    if not ok:
+        raise OSError(f"{path}: OpenCV could not encode a {image.dtype} {image.shape} image as PNG")
+    return atomic_write_bytes(path, buf.tobytes())

@@ -33,7 +33,7 @@ import lightning.pytorch as pl
 import torch
 from torch import Tensor, nn
 
-from tofdenoise.metrics import METRIC_KEYS, DepthMetrics
+from tofdenoise.metrics import DepthMetrics
 
 __all__ = ["DepthRestorer", "ARCHITECTURE_HPARAMS", "CheckpointMismatchError"]
 

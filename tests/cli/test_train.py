@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pytest
 import torch
+import torch
 
 from tofdenoise.callbacks.metrics_writer import read_metrics_json, read_per_image_csv
 from tofdenoise.cli.train import compose_config, run
@@ -159,3 +160,19 @@ def test_ddp_two_cpu_processes(tmp_path, data_cache, tiny):
     info = json.loads((tmp_path / "run_info.json").read_text())
     # 12 training samples, batch 2 per process, 2 processes -> 3 steps per epoch
     assert info["global_step"] == 2 * 3
+
+
+@pytest.mark.parametrize("backbone", ["unet", "tofkpn"])
+def test_signal_channel_from_the_config_alone(backbone, tmp_path, data_cache, tiny):
+    """`model.use_signal_channel=true` is the only switch: the backbone configs leave in_channels to the module."""
+    from tofdenoise.lightning_module import DepthRestorer
+
+    cfg = compose_config(tiny(tmp_path, data_cache, backbone)
+                         + ["+trainer.fast_dev_run=true", "logger=csv", "++model.use_signal_channel=true"])
+    assert "in_channels" not in cfg.backbone.kwargs
+    run(cfg)
+    data = _check_metrics_json(tmp_path / "metrics.json")
+    assert data["synthetic"]["images"] == 1
+    module = DepthRestorer(backbone=backbone, backbone_kwargs=dict(cfg.backbone.kwargs), use_signal_channel=True)
+    first_conv = next(m for m in module.backbone.modules() if isinstance(m, torch.nn.Conv2d))
+    assert first_conv.in_channels == 2

@@ -6,11 +6,27 @@
 - :class:`~tofdenoise.callbacks.predict_writer.DepthPredictionWriter`: 16-bit PNG (mm) + ``.npy`` predictions.
 - :class:`~tofdenoise.callbacks.image_panels.ImagePanelLogger`: a fixed panel of validation samples per epoch.
 - ``metrics_writer``: ``metrics.json`` and per-image CSV writers (functions).
+
+The classes are imported lazily, so that light users of ``metrics_writer`` (``tofdenoise-eval``,
+``tofdenoise-report``) do not pay for importing Lightning.
 """
 
-from tofdenoise.callbacks.checkpointing import BestAndLastCheckpoint
-from tofdenoise.callbacks.image_panels import ImagePanelLogger
-from tofdenoise.callbacks.predict_writer import DepthPredictionWriter
-from tofdenoise.callbacks.summary import RunSummary
+from __future__ import annotations
 
-__all__ = ["BestAndLastCheckpoint", "DepthPredictionWriter", "ImagePanelLogger", "RunSummary"]
+import importlib
+from typing import Any
+
+_LAZY = {
+    "BestAndLastCheckpoint": "tofdenoise.callbacks.checkpointing",
+    "DepthPredictionWriter": "tofdenoise.callbacks.predict_writer",
+    "ImagePanelLogger": "tofdenoise.callbacks.image_panels",
+    "RunSummary": "tofdenoise.callbacks.summary",
+}
+
+__all__ = sorted(_LAZY)
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

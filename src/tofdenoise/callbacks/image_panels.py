@@ -39,7 +39,7 @@ from lightning.pytorch.callbacks import Callback
 from lightning.pytorch.loggers import TensorBoardLogger, WandbLogger
 
 from tofdenoise import visualize
-from tofdenoise.callbacks.metrics_writer import atomic_write_bytes
+from tofdenoise.atomic import atomic_write_png
 
 __all__ = ["ImagePanelLogger", "write_png_rgb_atomic"]
 
@@ -48,10 +48,7 @@ _REQUIRED_KEYS = ("noisy", "clean", "index")
 
 def write_png_rgb_atomic(path: str | Path, image_rgb: np.ndarray) -> Path:
     """Encode a uint8 RGB image as PNG and write it atomically."""
-    ok, buf = cv2.imencode(".png", cv2.cvtColor(np.ascontiguousarray(image_rgb), cv2.COLOR_RGB2BGR))
-    if not ok:
-        raise OSError(f"OpenCV could not encode the panel for {path}")
-    return atomic_write_bytes(path, buf.tobytes())
+    return atomic_write_png(path, cv2.cvtColor(np.ascontiguousarray(image_rgb), cv2.COLOR_RGB2BGR))
 
 
 def _plane(t: Any, i: int) -> np.ndarray:

@@ -9,24 +9,23 @@ Layout under ``output_dir`` (one folder per prediction set, named after ``datamo
     <set>/reference_png/<name>.png  clean reference, uint16 mm (write_reference; ready for tofdenoise-eval)
     <set>/noisy_png/<name>.png      the network input, uint16 mm (write_reference)
 
-All files are written atomically (temporary file + ``os.replace``). ``tofdenoise-eval --pred <set>/png
+All files are written atomically (``tofdenoise.atomic``). ``tofdenoise-eval --pred <set>/png
 --ref <set>/reference_png`` then computes the unified metrics of the written maps.
 """
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 from typing import Any, Sequence
 
-import cv2
 import lightning.pytorch as pl
 import numpy as np
 import torch
 from lightning.pytorch.callbacks import BasePredictionWriter
 
-__all__ = ["DepthPredictionWriter", "depth_mm_to_png16", "write_png16_atomic", "write_npy_atomic"]
+from tofdenoise.atomic import atomic_write_png, save_npy_atomic
+
+__all__ = ["DepthPredictionWriter", "depth_mm_to_png16", "write_png16_atomic"]
 
 PNG16_MAX_MM = 65535
 
@@ -40,49 +39,9 @@ def depth_mm_to_png16(depth_mm: np.ndarray) -> np.ndarray:
     return out
 
 
-def _atomic(path: Path, write) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=path.suffix + ".tmp")
-    os.close(fd)
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-
-
 def write_png16_atomic(path: Path, depth_mm: np.ndarray) -> None:
     """Write depth (H, W) in mm as a 16-bit single-channel PNG."""
-    img = depth_mm_to_png16(depth_mm)
-
-    def _w(tmp: str) -> None:
-        ok, buf = cv2.imencode(".png", img)
-        if not ok:
-            raise OSError(f"OpenCV could not encode {path}")
-        with open(tmp, "wb") as fh:
-            fh.write(buf.tobytes())
-
-    _atomic(Path(path), _w)
-
-
-def write_npy_atomic(path: Path, array: np.ndarray) -> None:
-    def _w(tmp: str) -> None:
-        with open(tmp, "wb") as fh:
-            np.save(fh, array)
-
-    _atomic(Path(path), _w)
-
-
-def write_bgr_atomic(path: Path, image_bgr: np.ndarray) -> None:
-    def _w(tmp: str) -> None:
-        ok, buf = cv2.imencode(".png", image_bgr)
-        if not ok:
-            raise OSError(f"OpenCV could not encode {path}")
-        with open(tmp, "wb") as fh:
-            fh.write(buf.tobytes())
-
-    _atomic(Path(path), _w)
+    atomic_write_png(path, depth_mm_to_png16(depth_mm))
 
 
 def _image(t: torch.Tensor, i: int) -> np.ndarray:
@@ -141,17 +100,17 @@ class DepthPredictionWriter(BasePredictionWriter):
                 stem = f"{batch_idx:06d}_{i:02d}"
             depth = _image(pred, i)
             write_png16_atomic(root / "png" / f"{stem}.png", depth)
-            write_npy_atomic(root / "npy" / f"{stem}.npy", depth.astype(np.float32))
+            save_npy_atomic(root / "npy" / f"{stem}.npy", depth.astype(np.float32))
             self.written.append(root / "png" / f"{stem}.png")
             if self.write_sigma and isinstance(batch, dict) and "sigma" in batch:
-                write_npy_atomic(root / "sigma_npy" / f"{stem}.npy", _image(batch["sigma"], i))
+                save_npy_atomic(root / "sigma_npy" / f"{stem}.npy", _image(batch["sigma"], i))
             if self.write_reference and isinstance(batch, dict):
                 if "clean" in batch:
                     write_png16_atomic(root / "reference_png" / f"{stem}.png", _image(batch["clean"], i))
                 if "noisy" in batch:
                     write_png16_atomic(root / "noisy_png" / f"{stem}.png", _image(batch["noisy"], i))
             if self.write_previews and isinstance(batch, dict):
-                write_bgr_atomic(root / "preview" / f"{stem}.png", self._preview(batch, depth, i))
+                atomic_write_png(root / "preview" / f"{stem}.png", self._preview(batch, depth, i))
 
     @staticmethod
     def _preview(batch: dict, depth_mm: np.ndarray, i: int) -> np.ndarray:

@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import sys
 from typing import Any
 
 
@@ -170,18 +169,3 @@ def add_commands(subparsers: Any) -> None:
     p.add_argument("--roi-px", type=int, default=None, help="ROI side in pixels (override)")
     p.add_argument("--seed", type=int, default=None, help="random seed of the measured sequences")
     p.set_defaults(func=cmd_validate)
-
-
-def main(argv: list[str] | None = None) -> int:  # pragma: no cover - convenience for running this module alone
-    parser = argparse.ArgumentParser(prog="tofdenoise-sensor")
-    add_commands(parser.add_subparsers(dest="command", required=True))
-    args = parser.parse_args(argv)
-    try:
-        return int(args.func(args) or 0)
-    except (FileNotFoundError, ValueError, KeyError) as exc:
-        print(f"tofdenoise-sensor {args.command}: error: {exc}", file=sys.stderr)
-        return 2
-
-
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())

@@ -21,13 +21,14 @@ import json
 import logging
 import os
 import sys
-import tempfile
 import time
 from pathlib import Path
 from typing import Any
 
 import hydra
 from omegaconf import DictConfig, OmegaConf, open_dict
+
+from tofdenoise.atomic import atomic_write_text
 
 __all__ = ["main", "run", "validate_config", "resolve_ckpt_path", "config_dir", "compose_config",
            "write_json_atomic", "write_test_outputs", "RUN_INFO_NAME", "METRICS_NAME"]
@@ -60,18 +61,8 @@ def compose_config(overrides: list[str] | None = None, config_name: str = "train
 
 
 def write_json_atomic(path: Path, payload: Any) -> None:
-    """JSON with sorted keys, written to a temporary file then moved into place."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as fh:
-            json.dump(payload, fh, indent=2, sort_keys=True, allow_nan=True)
-            fh.write("\n")
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    """JSON with sorted keys, written atomically."""
+    atomic_write_text(path, json.dumps(payload, indent=2, sort_keys=True, allow_nan=True) + "\n")
 
 
 def _names_or_error(kind: str, key: str, value: str, valid: list[str]) -> None:

@@ -24,7 +24,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from tofdenoise.atomic import atomic_write
+from tofdenoise.atomic import atomic_write_png
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff")
 ARRAY_SUFFIXES = (".npy", ".npz")
@@ -189,28 +189,18 @@ def check_same_shape(reference: np.ndarray, other: np.ndarray, *, reference_path
                             f"{reference_path}")
 
 
-def write_png_uint16(path: str | Path, image: np.ndarray) -> Path:
-    """Write a single-channel uint16 PNG atomically (values must already be integers in range)."""
+def write_png(path: str | Path, image: np.ndarray, dtype: type = np.uint16) -> Path:
+    """Write a single-channel PNG of ``dtype`` (uint16 or uint8) atomically; values must already be in range."""
     image = np.asarray(image)
-    if image.dtype != np.uint16 or image.ndim != 2:
-        raise ValueError(f"write_png_uint16({path}): expected a 2-D uint16 array, got {image.dtype} {image.shape}")
+    if image.dtype != dtype or image.ndim != 2:
+        raise ValueError(f"write_png({path}): expected a 2-D {np.dtype(dtype).name} array, got {image.dtype} "
+                         f"{image.shape}")
+    return atomic_write_png(path, image)
 
-    def _write(tmp: Path) -> None:
-        if not cv2.imwrite(str(tmp), image):
-            raise OSError(f"OpenCV could not write {path}")
 
-    return atomic_write(path, _write, suffix=".png")
+def write_png_uint16(path: str | Path, image: np.ndarray) -> Path:
+    return write_png(path, image, np.uint16)
 
 
 def write_png_uint8(path: str | Path, image: np.ndarray) -> Path:
-    image = np.asarray(image)
-    if image.dtype != np.uint8 or image.ndim != 2:
-        raise ValueError(f"write_png_uint8({path}): expected a 2-D uint8 array, got {image.dtype} {image.shape}")
-
-    def _write(tmp: Path) -> None:
-        if not cv2.imwrite(str(tmp), image):
-            raise OSError(f"OpenCV could not write {path}")
-
-    return atomic_write(path, _write, suffix=".png")
-
-
+    return write_png(path, image, np.uint8)
