@@ -9,7 +9,9 @@ Usage: python benchmarks/bench_physics.py [--quick] [--threads N ...]
             vectorised sums (information_matrix), stacked to (H, W, 2, 2), inverted, entry [0, 0]
    JtWJ+inv the textbook route: J (H, W, N, 2), J^T Sigma^-1 J by batched matmul, torch.linalg.inv
    inv only torch.linalg.inv on the (H, W, 2, 2) stack alone (lower bound of any generic-inverse route)
-   Timings are medians of interleaved repeats; the ratio is generic / closed.
+   fused    tofdenoise.physics.uncertainty_compiled.sigma_depth_mm_compiled (the closed form as one
+            torch.compile kernel; compiled once before timing)
+   Timings are medians of interleaved repeats; the ratios are generic / closed and generic / fused.
 2. simulate_frames: 100 frames of 640x480, 4 taps (default calibration), frames/s and total seconds.
 """
 
@@ -26,6 +28,7 @@ import torch
 from tofdenoise.physics.calibration import default_calibration
 from tofdenoise.physics.simulator import simulate_frames
 from tofdenoise.physics.uncertainty import information_matrix, sigma_depth_mm, tap_jacobian, tap_variance_e2
+from tofdenoise.physics.uncertainty_compiled import sigma_depth_mm_compiled
 
 
 def jtwj_sigma(depth: torch.Tensor, signal: torch.Tensor, calib) -> torch.Tensor:
@@ -56,7 +59,9 @@ def bench_sigma(threads: int, repeats: int, h: int = 480, w: int = 640) -> dict[
     i_dd, i_da, i_aa = information_matrix(depth, signal, calib)
     stack = torch.stack([torch.stack([i_dd, i_da], -1), torch.stack([i_da, i_aa], -1)], -2).contiguous()
     max_rel = max(max_rel, float(((closed - jtwj_sigma(depth.double(), signal.double(), calib).float()).abs() / ref).max()))
-    t_closed, t_generic, t_jtwj, t_inv = [], [], [], []
+    fused = sigma_depth_mm_compiled(depth, signal, calib)  # compiles once (not timed)
+    max_rel = max(max_rel, float(((fused - ref).abs() / ref).max()))
+    t_closed, t_generic, t_jtwj, t_inv, t_fused = [], [], [], [], []
     for _ in range(repeats):
         t0 = time.perf_counter()
         sigma_depth_mm(depth, signal, calib)
@@ -67,15 +72,18 @@ def bench_sigma(threads: int, repeats: int, h: int = 480, w: int = 640) -> dict[
         t3 = time.perf_counter()
         torch.linalg.inv(stack)
         t4 = time.perf_counter()
+        sigma_depth_mm_compiled(depth, signal, calib)
+        t_fused.append(time.perf_counter() - t4)
         t_closed.append(t1 - t0)
         t_generic.append(t2 - t1)
         t_jtwj.append(t3 - t2)
         t_inv.append(t4 - t3)
-    c, gen, jt, inv = (statistics.median(t) for t in (t_closed, t_generic, t_jtwj, t_inv))
+    c, gen, jt, inv, fu = (statistics.median(t) for t in (t_closed, t_generic, t_jtwj, t_inv, t_fused))
     mpx = h * w / 1e6
     return {"threads": threads, "closed_ms": 1e3 * c, "generic_ms": 1e3 * gen, "jtwj_ms": 1e3 * jt,
             "inv_only_ms": 1e3 * inv, "closed_mpx_s": mpx / c, "generic_mpx_s": mpx / gen, "ratio": gen / c,
-            "ratio_jtwj": jt / c, "ratio_vs_inv_only": inv / c, "max_rel_diff": max_rel}
+            "ratio_jtwj": jt / c, "ratio_vs_inv_only": inv / c, "max_rel_diff": max_rel,
+            "fused_ms": 1e3 * fu, "fused_mpx_s": mpx / fu, "ratio_fused": gen / fu, "ratio_fused_jtwj": jt / fu}
 
 
 def bench_simulator(frames: int, threads: int, h: int = 480, w: int = 640) -> dict[str, float]:
@@ -107,16 +115,18 @@ def main(argv: list[str] | None = None) -> int:
     print("\n### sigma_D on a 640x480 float32 map (CPU), median of interleaved repeats")
     print(f"{'threads':>7} {'closed ms':>10} {'sums+inv ms':>12} {'JtWJ+inv ms':>12} {'inv-only ms':>12} "
           f"{'closed Mpx/s':>13} {'sums+inv Mpx/s':>15} {'ratio':>7} {'ratio JtWJ':>11} {'vs inv-only':>12} "
-          f"{'max rel diff':>13}")
+          f"{'max rel diff':>13} {'fused ms':>9} {'fused Mpx/s':>12} {'ratio fused':>12} {'fused JtWJ':>11}")
     rows = []
     for t in threads:
         r = bench_sigma(t, repeats)
         rows.append(r)
         print(f"{r['threads']:>7d} {r['closed_ms']:>10.2f} {r['generic_ms']:>12.2f} {r['jtwj_ms']:>12.2f} "
               f"{r['inv_only_ms']:>12.2f} {r['closed_mpx_s']:>13.1f} {r['generic_mpx_s']:>15.2f} {r['ratio']:>6.1f}x "
-              f"{r['ratio_jtwj']:>10.1f}x {r['ratio_vs_inv_only']:>11.1f}x {r['max_rel_diff']:>13.1e}")
+              f"{r['ratio_jtwj']:>10.1f}x {r['ratio_vs_inv_only']:>11.1f}x {r['max_rel_diff']:>13.1e} "
+              f"{r['fused_ms']:>9.2f} {r['fused_mpx_s']:>12.1f} {r['ratio_fused']:>11.1f}x {r['ratio_fused_jtwj']:>10.1f}x")
     print("ratio = (vectorised sums + batched torch.linalg.inv) / closed; ratio JtWJ = (J^T Sigma^-1 J by batched\n"
-          "matmul + torch.linalg.inv) / closed; vs inv-only = torch.linalg.inv alone / closed. Target >= 20x.")
+          "matmul + torch.linalg.inv) / closed; vs inv-only = torch.linalg.inv alone / closed; ratio fused /\n"
+          "fused JtWJ = the same two generic routes / the fused kernel. Target >= 20x.")
 
     print(f"\n### simulate_frames: {frames} frames of 640x480, 4 taps (target: 100 frames < 30 s on 2 cores)")
     print(f"{'threads':>7} {'frames':>7} {'seconds':>8} {'frames/s':>9} {'s per 100 frames':>17}")
