@@ -56,3 +56,16 @@ def test_writer_that_writes_nothing_is_an_error(tmp_path):
     with pytest.raises(OSError, match="no file"):
         atomic_write(tmp_path / "x.bin", nothing)
     assert not (tmp_path / "x.bin").exists()
+
+
+def test_failed_rename_keeps_old_file(tmp_path, monkeypatch):
+    p = atomic_write_text(tmp_path / "a.txt", "old")
+
+    def boom(src, dst):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(os, "replace", boom)
+    with pytest.raises(OSError, match="disk full"):
+        atomic_write_text(p, "new")
+    assert p.read_text() == "old"
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["a.txt"]

@@ -4,13 +4,11 @@ from __future__ import annotations
 
 import json
 import math
-import os
 
 import pytest
 import torch
 
 from tofdenoise.callbacks.metrics_writer import (
-    atomic_write_text,
     read_metrics_json,
     read_per_image_csv,
     set_entry,
@@ -96,25 +94,3 @@ def test_per_image_csv_requires_matching_raw_rows(tmp_path):
     rows = _metric(1.0).per_image_rows()
     with pytest.raises(ValueError, match="no raw row for image index"):
         write_per_image_csv(tmp_path / "x.csv", rows, raw_rows=rows[:1])
-
-
-def test_atomic_write_gives_normal_file_permissions(tmp_path):
-    old = os.umask(0o022)
-    try:
-        path = atomic_write_text(tmp_path / "p.txt", "x")
-    finally:
-        os.umask(old)
-    assert path.stat().st_mode & 0o777 == 0o644
-
-
-def test_atomic_write_keeps_old_file_when_writing_fails(tmp_path, monkeypatch):
-    path = atomic_write_text(tmp_path / "a.txt", "old")
-
-    def boom(src, dst):
-        raise OSError("disk full")
-
-    monkeypatch.setattr(os, "replace", boom)
-    with pytest.raises(OSError, match="disk full"):
-        atomic_write_text(path, "new")
-    assert path.read_text() == "old"
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.txt"]

@@ -60,7 +60,7 @@ def test_missing_sample_is_an_error_at_prepare_time(tmp_path):
     with open(tmp_path / "list.txt", "a") as handle:
         handle.write("depth/ghost.png amp/ghost.npy\n")
     dm = ToFDataModule(source="folder", root=str(tmp_path), cache_dir=str(tmp_path / "c"), crop_size=8)
-    with pytest.raises(FileNotFoundError, match=r"names 2 missing file\(s\)(.|\n)*ghost.png"):
+    with pytest.raises(FileNotFoundError, match=r"2 listed file\(s\) missing(.|\n)*ghost.png"):
         dm.prepare_data()
 
 

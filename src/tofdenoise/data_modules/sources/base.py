@@ -61,3 +61,12 @@ def read_list_file(path, *, what: str = "list file") -> list[str]:
     if not lines:
         raise ValueError(f"{what} {path} lists no samples")
     return lines
+
+
+def raise_if_missing(missing: list[str], where: str) -> None:
+    """Fail before training when listed files are missing: ``where`` names the dataset/list file; shows the first 10."""
+    if not missing:
+        return
+    shown = "\n  ".join(missing[:10])
+    more = f"\n  ... and {len(missing) - 10} more" if len(missing) > 10 else ""
+    raise FileNotFoundError(f"{where}: {len(missing)} listed file(s) missing:\n  {shown}{more}")

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from tofdenoise.data_modules.io import DataFileError, check_same_shape, read_amplitude, read_mat
-from tofdenoise.data_modules.sources.base import RawSample, read_list_file
+from tofdenoise.data_modules.sources.base import RawSample, raise_if_missing, read_list_file
 
 GT_DIRS = ("gt_depth_rgb", "gt_depth_rgb_small_pt")
 DEFAULT_LISTS = ("train_list.txt", "test_list.txt")
@@ -103,11 +103,7 @@ class FlyingThings3DSource:
     def check(self) -> None:
         """Every listed token must have its three files (reported before training, with the first misses)."""
         missing = [str(p) for token in self.sample_ids() for p in self.paths(token).values() if not p.is_file()]
-        if missing:
-            shown = "\n  ".join(missing[:10])
-            more = f"\n  ... and {len(missing) - 10} more" if len(missing) > 10 else ""
-            raise FileNotFoundError(f"ToF-FlyingThings3D at {self.root}: {len(missing)} listed file(s) missing:\n  "
-                                    f"{shown}{more}")
+        raise_if_missing(missing, f"ToF-FlyingThings3D at {self.root}")
 
     # ------------------------------------------------------------------ reading
     def load(self, sample_id: str) -> RawSample:

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from tofdenoise.data_modules.io import DataFileError, check_same_shape, read_amplitude, read_array, read_depth_mm
-from tofdenoise.data_modules.sources.base import RawSample, depth_validity, read_list_file
+from tofdenoise.data_modules.sources.base import RawSample, depth_validity, raise_if_missing, read_list_file
 
 
 class FolderSource:
@@ -60,11 +60,7 @@ class FolderSource:
 
     def check(self) -> None:
         missing = [str(p) for trio in self.entries().values() for p in trio if p is not None and not p.is_file()]
-        if missing:
-            shown = "\n  ".join(missing[:10])
-            more = f"\n  ... and {len(missing) - 10} more" if len(missing) > 10 else ""
-            raise FileNotFoundError(f"folder list file {self.list_path} names {len(missing)} missing file(s):\n  "
-                                    f"{shown}{more}")
+        raise_if_missing(missing, f"folder list file {self.list_path}")
 
     def load(self, sample_id: str) -> RawSample:
         depth_path, amplitude_path, mask_path = self.entries()[sample_id]
