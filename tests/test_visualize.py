@@ -143,3 +143,17 @@ def test_stack_panels_pads_widths():
     assert out.shape == (14, 10, 3)
     with pytest.raises(ValueError):
         stack_panels([])
+
+
+def test_batch_plane_takes_one_image_of_a_batch():
+    import torch
+
+    from tofdenoise.visualize import batch_plane
+
+    maps = torch.arange(2 * 1 * 2 * 3, dtype=torch.float64).reshape(2, 1, 2, 3)
+    out = batch_plane(maps, 1)
+    assert out.dtype == np.float32 and out.shape == (2, 3)
+    np.testing.assert_array_equal(out, np.arange(6, 12, dtype=np.float32).reshape(2, 3))
+    np.testing.assert_array_equal(batch_plane(maps[:, 0].numpy(), 0), out - 6)
+    with pytest.raises(ValueError, match="sigma"):
+        batch_plane(torch.zeros(2, 3, 4, 4), 0, name="sigma")

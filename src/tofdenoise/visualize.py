@@ -73,6 +73,11 @@ def to_numpy_2d(x: Any, name: str = "map") -> np.ndarray:
     return a
 
 
+
+def batch_plane(batch_maps: Any, i: int, name: str = "map") -> np.ndarray:
+    """float32 (H, W) numpy map of image ``i`` of a (B, 1, H, W) or (B, H, W) tensor/array."""
+    return to_numpy_2d(batch_maps[i], name).astype(np.float32)
+
 def _valid(values: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
     ok = np.isfinite(values)
     if mask is not None:

@@ -51,13 +51,6 @@ def write_png_rgb_atomic(path: str | Path, image_rgb: np.ndarray) -> Path:
     return atomic_write_png(path, cv2.cvtColor(np.ascontiguousarray(image_rgb), cv2.COLOR_RGB2BGR))
 
 
-def _plane(t: Any, i: int) -> np.ndarray:
-    x = t[i]
-    if isinstance(x, torch.Tensor):
-        x = x.detach().to("cpu", torch.float32).numpy()
-    return visualize.to_numpy_2d(np.asarray(x, dtype=np.float32)).astype(np.float32)
-
-
 class ImagePanelLogger(Callback):
     """Every validation epoch: noisy | restored | clean, sigma_D and |error| maps of fixed samples."""
 
@@ -133,11 +126,11 @@ class ImagePanelLogger(Callback):
                 continue
             names = batch.get("name")
             self._samples[idx] = {
-                "noisy": _plane(batch["noisy"], i),
-                "restored": _plane(outputs["pred_mm"], i),
-                "clean": _plane(batch["clean"], i),
-                "sigma": _plane(batch["sigma"], i) if "sigma" in batch else None,
-                "mask": _plane(batch["mask"], i) if "mask" in batch else None,
+                "noisy": visualize.batch_plane(batch["noisy"], i),
+                "restored": visualize.batch_plane(outputs["pred_mm"], i),
+                "clean": visualize.batch_plane(batch["clean"], i),
+                "sigma": visualize.batch_plane(batch["sigma"], i) if "sigma" in batch else None,
+                "mask": visualize.batch_plane(batch["mask"], i) if "mask" in batch else None,
                 "name": str(names[i]) if names is not None and i < len(names) else "",
             }
 

@@ -20,10 +20,10 @@ from typing import Any, Sequence
 
 import lightning.pytorch as pl
 import numpy as np
-import torch
 from lightning.pytorch.callbacks import BasePredictionWriter
 
 from tofdenoise.atomic import atomic_write_png, save_npy_atomic
+from tofdenoise.visualize import batch_plane
 
 __all__ = ["DepthPredictionWriter", "depth_mm_to_png16", "write_png16_atomic"]
 
@@ -42,14 +42,6 @@ def depth_mm_to_png16(depth_mm: np.ndarray) -> np.ndarray:
 def write_png16_atomic(path: Path, depth_mm: np.ndarray) -> None:
     """Write depth (H, W) in mm as a 16-bit single-channel PNG."""
     atomic_write_png(path, depth_mm_to_png16(depth_mm))
-
-
-def _image(t: torch.Tensor, i: int) -> np.ndarray:
-    """(B, 1, H, W) or (B, H, W) tensor -> float32 (H, W) numpy of image i."""
-    x = t[i]
-    if x.ndim == 3:
-        x = x[0]
-    return x.detach().to(torch.float32).cpu().numpy()
 
 
 class DepthPredictionWriter(BasePredictionWriter):
@@ -98,17 +90,17 @@ class DepthPredictionWriter(BasePredictionWriter):
                 stem = f"{int(batch_indices[i]):06d}"
             else:
                 stem = f"{batch_idx:06d}_{i:02d}"
-            depth = _image(pred, i)
+            depth = batch_plane(pred, i)
             write_png16_atomic(root / "png" / f"{stem}.png", depth)
             save_npy_atomic(root / "npy" / f"{stem}.npy", depth.astype(np.float32))
             self.written.append(root / "png" / f"{stem}.png")
             if self.write_sigma and isinstance(batch, dict) and "sigma" in batch:
-                save_npy_atomic(root / "sigma_npy" / f"{stem}.npy", _image(batch["sigma"], i))
+                save_npy_atomic(root / "sigma_npy" / f"{stem}.npy", batch_plane(batch["sigma"], i))
             if self.write_reference and isinstance(batch, dict):
                 if "clean" in batch:
-                    write_png16_atomic(root / "reference_png" / f"{stem}.png", _image(batch["clean"], i))
+                    write_png16_atomic(root / "reference_png" / f"{stem}.png", batch_plane(batch["clean"], i))
                 if "noisy" in batch:
-                    write_png16_atomic(root / "noisy_png" / f"{stem}.png", _image(batch["noisy"], i))
+                    write_png16_atomic(root / "noisy_png" / f"{stem}.png", batch_plane(batch["noisy"], i))
             if self.write_previews and isinstance(batch, dict):
                 atomic_write_png(root / "preview" / f"{stem}.png", self._preview(batch, depth, i))
 
@@ -118,10 +110,10 @@ class DepthPredictionWriter(BasePredictionWriter):
 
         maps: dict[str, np.ndarray] = {}
         if "noisy" in batch:
-            maps["noisy"] = _image(batch["noisy"], i)
+            maps["noisy"] = batch_plane(batch["noisy"], i)
         maps["restored"] = depth_mm
         if "clean" in batch:
-            maps["clean"] = _image(batch["clean"], i)
-        mask = _image(batch["mask"], i) > 0 if "mask" in batch else None
-        sigma = _image(batch["sigma"], i) if "sigma" in batch else None
+            maps["clean"] = batch_plane(batch["clean"], i)
+        mask = batch_plane(batch["mask"], i) > 0 if "mask" in batch else None
+        sigma = batch_plane(batch["sigma"], i) if "sigma" in batch else None
         return visualize.prediction_preview(maps, sigma_mm=sigma, mask=mask)
