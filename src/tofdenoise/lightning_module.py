@@ -33,7 +33,7 @@ import lightning.pytorch as pl
 import torch
 from torch import Tensor, nn
 
-from tofdenoise.metrics import DepthMetrics
+from tofdenoise.metrics import DepthMetrics, depth_metrics_per_image
 
 __all__ = ["DepthRestorer", "ARCHITECTURE_HPARAMS", "CheckpointMismatchError"]
 
@@ -148,6 +148,9 @@ class DepthRestorer(pl.LightningModule):
 
         self.val_metrics = DepthMetrics(d_max_mm=d_max_mm, keep_per_image=False)
         self.val_raw_metrics = DepthMetrics(d_max_mm=d_max_mm, keep_per_image=False)
+        #: per-image Raw-row values of each validation batch with the batch's fingerprint: the validation noise
+        #: is fixed, so they are computed once and reused every epoch (recomputed if the batch ever differs)
+        self._raw_val_cache: dict[tuple[int, int], tuple[Tensor, dict[str, Tensor]]] = {}
         self.test_metrics = nn.ModuleDict()
         self.test_raw_metrics = nn.ModuleDict()
         self._test_names: dict[str, dict[int, str]] = {}
@@ -242,14 +245,26 @@ class DepthRestorer(pl.LightningModule):
             self.ema.update_parameters(self.backbone)
 
     # ------------------------------------------------------------------ validation
-    def validation_step(self, batch: dict[str, Any], batch_idx: int) -> dict[str, Tensor]:
+    def validation_step(self, batch: dict[str, Any], batch_idx: int, dataloader_idx: int = 0) -> dict[str, Tensor]:
         pred_mm = self.restore_mm(batch, tile=self.hparams.eval_tile_size)
         loss = self.criterion(pred_mm / self.hparams.depth_scale_mm, batch["clean"] / self.hparams.depth_scale_mm,
                               batch["sigma"], batch["mask"])
         self.log("val/loss", loss, on_step=False, on_epoch=True, batch_size=pred_mm.shape[0], sync_dist=True)
         self.val_metrics.update(pred_mm, batch["clean"], batch["mask"])
-        self.val_raw_metrics.update(batch["noisy"], batch["clean"], batch["mask"])
+        self.val_raw_metrics.update_per_image(self._raw_val_per_image(batch, batch_idx, dataloader_idx))
         return {"pred_mm": pred_mm}
+
+    def _raw_val_per_image(self, batch: dict[str, Any], batch_idx: int, dataloader_idx: int) -> dict[str, Tensor]:
+        """Raw-row per-image metrics of a validation batch (noisy input vs reference), from the cache when the
+        batch is the one seen before at this position."""
+        key = (dataloader_idx, batch_idx)
+        fingerprint = _batch_fingerprint(batch)
+        hit = self._raw_val_cache.get(key)
+        if hit is not None and torch.equal(hit[0], fingerprint):
+            return hit[1]
+        per = depth_metrics_per_image(batch["noisy"], batch["clean"], batch["mask"], self.hparams.d_max_mm)
+        self._raw_val_cache[key] = (fingerprint, per)
+        return per
 
     def on_validation_epoch_end(self) -> None:
         restored = self.val_metrics.compute()
@@ -340,3 +355,13 @@ class DepthRestorer(pl.LightningModule):
                 f"checkpoint was written by a DepthRestorer with another architecture ({lines}). "
                 f"Load it with DepthRestorer.load_from_checkpoint(path) (it rebuilds the saved backbone), "
                 f"or select backbone={theirs['backbone']!r} with the same backbone_kwargs")
+
+
+def _batch_fingerprint(batch: dict[str, Any]) -> Tensor:
+    """Shape, sums and sums of squares (float64, NaN as 0) of a batch's noisy input, reference and mask: any
+    change of the validation data or its noise changes it."""
+    parts = []
+    for name in ("noisy", "clean", "mask"):
+        x = batch[name].detach().to(torch.float64).nan_to_num(0.0, 0.0, 0.0)
+        parts += [torch.tensor(float(x.numel()), dtype=torch.float64, device=x.device), x.sum(), x.square().sum()]
+    return torch.stack(parts).cpu()

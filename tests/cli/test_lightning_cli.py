@@ -8,7 +8,6 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import pytest
 import torch
 from hydra.utils import instantiate
 from lightning.pytorch import seed_everything

@@ -13,7 +13,6 @@ from pathlib import Path
 
 import pytest
 import torch
-import torch
 
 from tofdenoise.callbacks.metrics_writer import read_metrics_json, read_per_image_csv
 from tofdenoise.cli.train import compose_config, run

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from tofdenoise.atomic import atomic_write
-from tofdenoise.data_modules.io import (DataFileError, read_amplitude, read_depth_mm, read_mat,
-                                        read_npy, read_png_uint16)
+from tofdenoise.data_modules.io import (DataFileError, depth_mm_to_png16, read_amplitude, read_depth_mm,
+                                        read_mat, read_npy, read_png_uint16, write_depth_png16)
 
 
 def test_missing_file_names_the_path(tmp_path):
@@ -83,3 +83,25 @@ def test_atomic_write_leaves_no_partial_file(tmp_path):
         atomic_write(target, failing)
     assert target.read_text() == "old"
     assert [p.name for p in tmp_path.iterdir()] == ["out.txt"]
+
+
+def test_depth_png16_rounds_keeps_validity_and_marks_unstorable_invalid():
+    d = np.array([[0.4, 0.6, 1234.5, 1235.5, 65535.4], [np.nan, -3.0, np.inf, 65535.5, 70000.0]])
+    png = depth_mm_to_png16(d)
+    assert png.dtype == np.uint16
+    # half to even; a positive depth never rounds to the invalid 0; beyond 65535.5 mm cannot be stored
+    assert png.tolist() == [[1, 1, 1234, 1236, 65535], [0, 0, 0, 0, 0]]
+
+
+def test_write_depth_png16_is_atomic_and_warns_about_lost_pixels(tmp_path):
+    d = np.array([[1000.2, 70000.0], [np.nan, 2.0]])
+    with pytest.warns(RuntimeWarning, match=r"a\.png: 1 pixel\(s\) deeper than 65535 mm"):
+        write_depth_png16(tmp_path / "a.png", d)
+    back = read_depth_mm(tmp_path / "a.png")
+    assert back.dtype == np.float32 and back.tolist() == [[1000.0, 0.0], [0.0, 2.0]]
+    assert [p.name for p in tmp_path.iterdir()] == ["a.png"]  # no temporary file left
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        write_depth_png16(tmp_path / "b.png", np.full((2, 2), 500.0))  # nothing lost: no warning

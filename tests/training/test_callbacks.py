@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import torch
 
-from tofdenoise.callbacks.predict_writer import DepthPredictionWriter, depth_mm_to_png16, write_png16_atomic
+from tofdenoise.callbacks.predict_writer import DepthPredictionWriter
 from tofdenoise.callbacks.summary import format_fit_summary, format_test_summary
 
 
@@ -22,17 +22,6 @@ def test_summary_lines():
     line = format_test_summary("r", res, 3725.0)
     assert line.startswith("[r] test in 1h02m05s | synthetic: MAE 3.10 mm (raw 6.00), PSNR 44.12 dB (raw 39.90)")
     assert "| real: MAE n/a mm (raw n/a)" in line and "\n" not in line
-
-
-def test_png16_rounds_millimetres_and_zeroes_invalid(tmp_path):
-    d = np.array([[0.4, 0.6, 1234.5, 65535.4], [np.nan, -3.0, np.inf, 70000.0]])
-    png = depth_mm_to_png16(d)
-    assert png.dtype == np.uint16
-    assert png.tolist() == [[0, 1, 1234, 65535], [0, 0, 0, 0]]  # rint: 1234.5 -> 1234 (half to even)
-    write_png16_atomic(tmp_path / "a.png", d)
-    back = cv2.imread(str(tmp_path / "a.png"), cv2.IMREAD_UNCHANGED)
-    assert back.dtype == np.uint16 and np.array_equal(back, png)
-    assert [p.name for p in tmp_path.iterdir()] == ["a.png"]  # no temporary file left
 
 
 def test_prediction_writer_layout(tmp_path):

@@ -3,8 +3,6 @@ reject bad input early with the valid names / the key to set."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import pytest
 from hydra.errors import ConfigCompositionException
 from hydra.utils import instantiate

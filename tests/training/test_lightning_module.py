@@ -10,7 +10,6 @@ import pytest
 import torch
 from lightning.pytorch.callbacks import Callback
 
-from tofdenoise.callbacks.checkpointing import BestAndLastCheckpoint
 from tofdenoise.lightning_module import CheckpointMismatchError, DepthRestorer
 from tofdenoise.metrics import depth_metrics_per_image
 
@@ -134,6 +133,30 @@ def test_validation_logs_restored_and_raw_metrics(tmp_path, tiny_data):
     per = depth_metrics_per_image(batch["noisy"], batch["clean"], batch["mask"])
     assert float(m["val/raw/mae_mm"]) == pytest.approx(per["mae_mm"].mean().item(), rel=1e-5)
     assert float(m["val/raw/psnr_db"]) == pytest.approx(per["psnr_db"].mean().item(), rel=1e-5)
+
+
+def test_raw_val_metrics_are_computed_once_and_recomputed_when_the_batch_changes(tmp_path, tiny_data, monkeypatch):
+    import tofdenoise.lightning_module as lm
+
+    calls = []
+
+    def spy(*args, **kw):
+        calls.append(args[0].shape[0])
+        return depth_metrics_per_image(*args, **kw)
+
+    monkeypatch.setattr(lm, "depth_metrics_per_image", spy)
+    model = tiny_model()
+    t = trainer(tmp_path)
+    first = float(t.validate(model, datamodule=tiny_data, verbose=False)[0]["val/raw/mae_mm"])
+    n_batches = len(calls)
+    assert n_batches >= 1
+    second = float(t.validate(model, datamodule=tiny_data, verbose=False)[0]["val/raw/mae_mm"])
+    assert len(calls) == n_batches and second == first  # the fixed validation noise: served from the cache
+    batch = next(iter(tiny_data.val_dataloader()))
+    changed = dict(batch, noisy=batch["noisy"] + 1.0)
+    per = model._raw_val_per_image(changed, 0, 0)
+    assert len(calls) == n_batches + 1  # a different batch at the same position is measured again
+    assert torch.equal(per["mae_mm"], depth_metrics_per_image(changed["noisy"], batch["clean"], batch["mask"])["mae_mm"])
 
 
 def test_test_sets_are_namespaced_with_per_image_rows(tmp_path, tiny_data_cls):

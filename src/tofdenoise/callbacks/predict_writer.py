@@ -23,26 +23,10 @@ import numpy as np
 from lightning.pytorch.callbacks import BasePredictionWriter
 
 from tofdenoise.atomic import atomic_write_png, save_npy_atomic
+from tofdenoise.data_modules.io import write_depth_png16
 from tofdenoise.visualize import batch_plane
 
-__all__ = ["DepthPredictionWriter", "depth_mm_to_png16", "write_png16_atomic"]
-
-PNG16_MAX_MM = 65535
-
-
-def depth_mm_to_png16(depth_mm: np.ndarray) -> np.ndarray:
-    """Round millimetres to uint16 (half to even); NaN, inf, <= 0 or >= 65535.5 mm become 0 (invalid)."""
-    d = np.asarray(depth_mm, dtype=np.float64)
-    ok = np.isfinite(d) & (d > 0) & (d < PNG16_MAX_MM + 0.5)
-    out = np.zeros(d.shape, dtype=np.uint16)
-    out[ok] = np.rint(d[ok]).astype(np.uint16)
-    return out
-
-
-def write_png16_atomic(path: Path, depth_mm: np.ndarray) -> None:
-    """Write depth (H, W) in mm as a 16-bit single-channel PNG."""
-    atomic_write_png(path, depth_mm_to_png16(depth_mm))
-
+__all__ = ["DepthPredictionWriter"]
 
 class DepthPredictionWriter(BasePredictionWriter):
     """Saves every predicted depth map as it is produced (``write_interval="batch"``: no memory growth).
@@ -91,16 +75,16 @@ class DepthPredictionWriter(BasePredictionWriter):
             else:
                 stem = f"{batch_idx:06d}_{i:02d}"
             depth = batch_plane(pred, i)
-            write_png16_atomic(root / "png" / f"{stem}.png", depth)
+            write_depth_png16(root / "png" / f"{stem}.png", depth)
             save_npy_atomic(root / "npy" / f"{stem}.npy", depth.astype(np.float32))
             self.written.append(root / "png" / f"{stem}.png")
             if self.write_sigma and isinstance(batch, dict) and "sigma" in batch:
                 save_npy_atomic(root / "sigma_npy" / f"{stem}.npy", batch_plane(batch["sigma"], i))
             if self.write_reference and isinstance(batch, dict):
                 if "clean" in batch:
-                    write_png16_atomic(root / "reference_png" / f"{stem}.png", batch_plane(batch["clean"], i))
+                    write_depth_png16(root / "reference_png" / f"{stem}.png", batch_plane(batch["clean"], i))
                 if "noisy" in batch:
-                    write_png16_atomic(root / "noisy_png" / f"{stem}.png", batch_plane(batch["noisy"], i))
+                    write_depth_png16(root / "noisy_png" / f"{stem}.png", batch_plane(batch["noisy"], i))
             if self.write_previews and isinstance(batch, dict):
                 atomic_write_png(root / "preview" / f"{stem}.png", self._preview(batch, depth, i))
 

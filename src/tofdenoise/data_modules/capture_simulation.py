@@ -27,7 +27,7 @@ import torch
 
 from tofdenoise.data_modules.datasets import stable_seed
 from tofdenoise.atomic import atomic_write_text, save_npy_atomic
-from tofdenoise.data_modules.io import write_png_uint8, write_png_uint16
+from tofdenoise.data_modules.io import write_depth_png16, write_png_uint8, write_png_uint16
 from tofdenoise.data_modules.real_captures import (HIEXP_DIR, INPUT_AMPLITUDE, INPUT_DEPTH, build_reference)
 from tofdenoise.data_modules.sources.procedural import ProceduralSource
 
@@ -42,14 +42,6 @@ class SimulationSummary:
     scenes_written: int
     scenes_skipped: int
     seconds: float
-
-
-def depth_to_png_mm(depth_mm: np.ndarray) -> np.ndarray:
-    """Round depth to integer mm for a 16-bit PNG (0 stays invalid; values are clipped to 1..65535)."""
-    depth = np.nan_to_num(np.asarray(depth_mm, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
-    out = np.clip(np.rint(depth), 0, 65535)
-    out[(depth > 0) & (out == 0)] = 1
-    return out.astype(np.uint16)
 
 
 def amplitude_to_png(amplitude_e: np.ndarray) -> np.ndarray:
@@ -111,7 +103,7 @@ def simulate_scene(scene_dir: Path, source: ProceduralSource, index: int, calib:
     hiexp.mkdir(parents=True, exist_ok=True)
 
     standard = simulate_frames(depth, signal, calib, 1, exposure=1.0, generator=generator, return_taps=write_taps)
-    write_png_uint16(scene_dir / INPUT_DEPTH, depth_to_png_mm(standard.depth_mm[0].numpy()))
+    write_depth_png16(scene_dir / INPUT_DEPTH, standard.depth_mm[0].numpy())
     write_png_uint16(scene_dir / INPUT_AMPLITUDE, amplitude_to_png(standard.amplitude[0].numpy()))
     if write_taps:
         save_npy_atomic(scene_dir / "input_taps.npy", standard.taps[0].numpy())
@@ -126,7 +118,7 @@ def simulate_scene(scene_dir: Path, source: ProceduralSource, index: int, calib:
                                    return_taps=write_taps)
         for k in range(count):
             tag = f"{start + k:0{width}d}"
-            write_png_uint16(hiexp / f"depth_mm_{tag}.png", depth_to_png_mm(captured.depth_mm[k].numpy()))
+            write_depth_png16(hiexp / f"depth_mm_{tag}.png", captured.depth_mm[k].numpy())
             saturated = captured.saturated[k].numpy()
             saturated_pixels += int(saturated.sum())
             write_png_uint8(hiexp / f"saturated_{tag}.png", (saturated * 255).astype(np.uint8))

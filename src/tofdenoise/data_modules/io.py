@@ -19,6 +19,7 @@ import os
 
 os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")  # must precede the first cv2 import
 
+import warnings
 from pathlib import Path
 
 import cv2
@@ -200,6 +201,33 @@ def write_png(path: str | Path, image: np.ndarray, dtype: type = np.uint16) -> P
 
 def write_png_uint16(path: str | Path, image: np.ndarray) -> Path:
     return write_png(path, image, np.uint16)
+
+
+#: the largest depth a 16-bit millimetre PNG holds
+PNG16_MAX_MM = 65535
+
+
+def depth_mm_to_png16(depth_mm: np.ndarray) -> np.ndarray:
+    """Depth [mm] -> uint16 millimetres for a 16-bit depth PNG, where 0 means invalid (the convention every
+    reader here uses). Rounds half to even. Validity is kept wherever it can be: a positive depth below 0.5 mm
+    becomes 1, not 0. NaN, inf, depth <= 0 and depths that do not fit (>= 65535.5 mm) become 0: a value that
+    cannot be stored is marked invalid rather than clipped to a wrong depth."""
+    d = np.asarray(depth_mm, dtype=np.float64)
+    ok = np.isfinite(d) & (d > 0) & (d < PNG16_MAX_MM + 0.5)
+    out = np.zeros(d.shape, dtype=np.uint16)
+    out[ok] = np.maximum(np.rint(d[ok]), 1).astype(np.uint16)
+    return out
+
+
+def write_depth_png16(path: str | Path, depth_mm: np.ndarray) -> Path:
+    """Write a (H, W) depth map [mm] as a 16-bit millimetre PNG atomically (``depth_mm_to_png16``); warns,
+    naming the file, when finite depths beyond 65535 mm had to be stored as invalid."""
+    d = np.asarray(depth_mm, dtype=np.float64)
+    beyond = int(np.count_nonzero(np.isfinite(d) & (d >= PNG16_MAX_MM + 0.5)))
+    if beyond:
+        warnings.warn(f"{path}: {beyond} pixel(s) deeper than {PNG16_MAX_MM} mm do not fit a 16-bit millimetre PNG "
+                      "and were written as invalid (0)", RuntimeWarning, stacklevel=2)
+    return write_png_uint16(path, depth_mm_to_png16(d))
 
 
 def write_png_uint8(path: str | Path, image: np.ndarray) -> Path:
