@@ -251,7 +251,8 @@ class DepthRestorer(pl.LightningModule):
                               batch["sigma"], batch["mask"])
         self.log("val/loss", loss, on_step=False, on_epoch=True, batch_size=pred_mm.shape[0], sync_dist=True)
         self.val_metrics.update(pred_mm, batch["clean"], batch["mask"])
-        self.val_raw_metrics.update_per_image(self._raw_val_per_image(batch, batch_idx, dataloader_idx))
+        self.val_raw_metrics.update(batch["noisy"], batch["clean"], batch["mask"],
+                                    per_image=self._raw_val_per_image(batch, batch_idx, dataloader_idx))
         return {"pred_mm": pred_mm}
 
     def _raw_val_per_image(self, batch: dict[str, Any], batch_idx: int, dataloader_idx: int) -> dict[str, Tensor]:

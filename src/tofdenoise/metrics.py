@@ -220,12 +220,11 @@ class DepthMetrics(Metric):
         self.add_state("rows", default=[], dist_reduce_fx="cat")
 
     def update(self, pred_mm: Tensor, ref_mm: Tensor, mask: Tensor | None,  # type: ignore[override]
-               index: Tensor | None = None) -> None:
-        self.update_per_image(depth_metrics_per_image(pred_mm, ref_mm, mask, self.d_max_mm), index=index)
-
-    def update_per_image(self, per: dict[str, Tensor], index: Tensor | None = None) -> None:
-        """Accumulate per-image values already computed by ``depth_metrics_per_image`` (with this metric's
-        ``d_max_mm``), e.g. cached ones that do not change between epochs."""
+               index: Tensor | None = None, per_image: dict[str, Tensor] | None = None) -> None:
+        """Accumulate one batch. ``per_image``: the batch's values already computed by
+        ``depth_metrics_per_image`` with this metric's ``d_max_mm`` (e.g. cached ones that do not change between
+        epochs); the maps are then not measured again."""
+        per = per_image if per_image is not None else depth_metrics_per_image(pred_mm, ref_mm, mask, self.d_max_mm)
         n_px = per["valid_px"]
         ok = n_px > 0
         for key in METRIC_KEYS:

@@ -49,7 +49,8 @@ def test_hydra_and_lightning_cli_build_the_same_model(tmp_path, monkeypatch):
         assert a[k].shape == b[k].shape and torch.equal(a[k], b[k]), k
     assert cli.trainer.max_epochs == cfg.trainer.max_epochs
     assert Path(cli.trainer.checkpoint_callback.dirpath).resolve() == (tmp_path / "outputs/cli/default/checkpoints").resolve()
-    assert sorted(type(lg).__name__ for lg in cli.trainer.loggers) == ["CSVLogger", "WandbLogger"]
+    assert sorted(type(lg).__name__ for lg in cli.trainer.loggers) == ["ResumableCSVLogger", "WandbLogger"]
+    assert any(type(cb).__name__ == "CSVLogResume" for cb in cli.trainer.callbacks)
 
 
 def test_fit_test_predict_from_the_smoke_config(tmp_path, data_cache, monkeypatch):

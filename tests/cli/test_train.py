@@ -146,6 +146,18 @@ def test_resume_after_sigkill_reaches_the_same_number_of_steps(tmp_path, data_ca
     assert end_resumed["optimizer_states"][0]["param_groups"][0]["lr"] == pytest.approx(
         end_fresh["optimizer_states"][0]["param_groups"][0]["lr"])
     _check_metrics_json(killed / "metrics.json")
+    # the CSV log went on across the kill: every optimiser step and every epoch's validation exactly once,
+    # the same rows as the uninterrupted run
+    def log_rows(run_dir: Path) -> list[tuple[str, str, tuple[str, ...]]]:
+        with open(run_dir / "csv" / "metrics.csv", newline="") as fh:
+            return [(r["epoch"], r["step"], tuple(sorted(k for k, v in r.items() if v and k not in ("epoch", "step"))))
+                    for r in csv.DictReader(fh)]
+
+    rows_killed = log_rows(killed)
+    train_steps = [int(s) for _, s, keys in rows_killed if "train/loss_step" in keys]
+    assert train_steps == list(range(steps_per_epoch * epochs))
+    assert sum("val/mae_mm" in keys for _, _, keys in rows_killed) == epochs
+    assert rows_killed == log_rows(fresh)
 
 
 def test_ddp_two_cpu_processes(tmp_path, data_cache, tiny):

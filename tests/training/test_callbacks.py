@@ -43,3 +43,35 @@ def test_prediction_writer_layout(tmp_path):
     assert cv2.imread(str(root / "reference_png" / "a_1.png"), cv2.IMREAD_UNCHANGED)[0, 0] == 999
     assert cv2.imread(str(root / "noisy_png" / "b_2.png"), cv2.IMREAD_UNCHANGED)[0, 0] == 1003
     assert cv2.imread(str(root / "preview" / "a_1.png")).ndim == 3
+
+
+def test_csv_log_survives_a_resume_without_duplicates(tmp_path, tiny_data):
+    """A run that went on past its checkpoint (as if killed later) and is resumed from it: the CSV log ends
+    with exactly the rows of an uninterrupted run (epoch-0 rows kept, later rows replaced, none twice)."""
+    import csv
+
+    import lightning.pytorch as pl
+    from lightning.pytorch.callbacks import ModelCheckpoint
+
+    from tofdenoise.callbacks.csv_log import CSVLogResume, ResumableCSVLogger
+    from tofdenoise.lightning_module import DepthRestorer
+
+    def fit(ckpt_path=None):
+        model = DepthRestorer(backbone="unet", backbone_kwargs={"width": 4, "stages": 2}, loss="l1")
+        ckpt = ModelCheckpoint(dirpath=tmp_path / "ckpt", filename="{epoch}", save_top_k=-1, every_n_epochs=1)
+        resume = CSVLogResume()
+        trainer = pl.Trainer(default_root_dir=tmp_path, accelerator="cpu", max_epochs=3, log_every_n_steps=1,
+                             logger=ResumableCSVLogger(tmp_path, name="csv", version=""), callbacks=[ckpt, resume],
+                             enable_progress_bar=False, enable_model_summary=False, num_sanity_val_steps=0)
+        trainer.fit(model, datamodule=tiny_data, ckpt_path=ckpt_path)
+        with open(tmp_path / "csv" / "metrics.csv", newline="") as fh:
+            rows = list(csv.DictReader(fh))
+        return [(r["epoch"], r["step"], tuple(sorted(k for k, v in r.items() if v and k not in ("epoch", "step"))))
+                for r in rows], resume.dropped_rows
+
+    uninterrupted, dropped = fit()
+    assert dropped == 0 and len(uninterrupted) > 6
+    resumed, dropped = fit(ckpt_path=str(tmp_path / "ckpt" / "epoch=0.ckpt"))
+    steps_epoch0 = sum(1 for e, _, keys in uninterrupted if e == "0" and "train/loss_step" in keys)
+    assert dropped == sum(1 for _, s, _ in uninterrupted if int(s) >= steps_epoch0)
+    assert resumed == uninterrupted

@@ -2,6 +2,8 @@
 
 - :class:`~tofdenoise.callbacks.checkpointing.BestAndLastCheckpoint`: the one ``ModelCheckpoint``
   (``checkpoints/best.ckpt`` = lowest ``val/mae_mm``, and ``checkpoints/last.ckpt``).
+- :class:`~tofdenoise.callbacks.csv_log.ResumableCSVLogger` + :class:`~tofdenoise.callbacks.csv_log.CSVLogResume`:
+  a ``metrics.csv`` that keeps the rows of an interrupted run when it is resumed.
 - :class:`~tofdenoise.callbacks.summary.RunSummary`: a readable one-line summary after fit and test.
 - :class:`~tofdenoise.callbacks.predict_writer.DepthPredictionWriter`: 16-bit PNG (mm) + ``.npy`` predictions.
 - :class:`~tofdenoise.callbacks.image_panels.ImagePanelLogger`: a fixed panel of validation samples per epoch.
@@ -18,8 +20,10 @@ from typing import Any
 
 _LAZY = {
     "BestAndLastCheckpoint": "tofdenoise.callbacks.checkpointing",
+    "CSVLogResume": "tofdenoise.callbacks.csv_log",
     "DepthPredictionWriter": "tofdenoise.callbacks.predict_writer",
     "ImagePanelLogger": "tofdenoise.callbacks.image_panels",
+    "ResumableCSVLogger": "tofdenoise.callbacks.csv_log",
     "RunSummary": "tofdenoise.callbacks.summary",
 }
 
