@@ -13,7 +13,7 @@ import sys
 import time
 from pathlib import Path
 
-ORDER = ["physics", "metrics", "models", "data", "training"]
+ORDER = ["physics", "metrics", "models", "data", "training", "gpu"]
 
 
 def main(argv: list[str]) -> int:

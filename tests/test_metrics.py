@@ -286,4 +286,10 @@ def test_metrics_on_cuda_match_cpu():
     for k in a:
         assert b[k].device.type == "cuda"
         assert a[k].item() == pytest.approx(b[k].item(), rel=1e-9)
-    assert gpu.per_image_rows() == cpu.per_image_rows()
+    # per-image values agree to float64 round-off (CUDA reduces in another order: SSIM differed by 1.5e-15
+    # on an H100)
+    rows_gpu, rows_cpu = gpu.per_image_rows(), cpu.per_image_rows()
+    assert len(rows_gpu) == len(rows_cpu)
+    for rg, rc in zip(rows_gpu, rows_cpu):
+        assert rg.keys() == rc.keys() and rg["index"] == rc["index"] and rg["valid_px"] == rc["valid_px"]
+        assert all(rg[k] == pytest.approx(rc[k], rel=1e-12) for k in rg)

@@ -123,3 +123,16 @@ def test_kernel_arithmetic_for_a_general_calibration(dtype):
 def test_numpy_input_is_refused():
     with pytest.raises(TypeError, match="torch tensors"):
         uc.sigma_depth_mm_compiled(np.ones(3), np.ones(3), default_calibration())
+
+
+@pytest.mark.gpu
+def test_fused_kernel_on_cuda_matches_the_cpu_reference(maps):
+    depth, signal = maps
+    calib = default_calibration()
+    got = uc.sigma_depth_mm_compiled(depth.cuda(), signal.cuda(), calib)
+    assert got.device.type == "cuda"
+    ref = sigma_depth_mm(depth, signal, calib)
+    got = got.cpu()
+    assert torch.equal(torch.isnan(got), torch.isnan(ref))
+    ok = ~torch.isnan(ref)
+    assert float(((got[ok] - ref[ok]).abs() / ref[ok]).max()) < 1e-5

@@ -1,0 +1,189 @@
+"""GPU benchmarks (CUDA only; prints a skip line without a GPU), every comparison side by side in one run.
+
+Usage: python benchmarks/bench_gpu.py [--quick] [--json FILE]
+
+1. Selective scan, forward+backward, at the size of the first DVSS stage on a 320x320 training crop
+   (batch 4, 4 directions x d_inner 64, d_state 16, L = 102400): the chunked PyTorch scan vs the Triton kernels
+   (and mamba-ssm when importable); time, peak memory and the largest relative difference to the PyTorch scan.
+2. sigma_D on a 640x480 float32 map: the batched 2x2 torch.linalg.inv route, the eager closed form
+   (sigma_depth_mm) and the fused compiled kernel (sigma_depth_mm_compiled), with ratios.
+3. Training steps (forward+backward+AdamW) of every paper backbone at batch 4, 320x320: float32 vs bf16 autocast,
+   ms per step and peak memory; full-resolution 480x640 inference (batch 1, bf16 autocast) ms per frame.
+Timings: CUDA events around warm, synchronised repeats; medians.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import time
+import traceback
+from typing import Any, Callable
+
+import torch
+
+
+def _time_cuda(fn: Callable[[], Any], repeats: int, warmup: int = 2) -> float:
+    """Median milliseconds of ``fn`` on the current CUDA stream."""
+    for _ in range(warmup):
+        fn()
+    torch.cuda.synchronize()
+    times = []
+    for _ in range(repeats):
+        start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+        start.record()
+        fn()
+        end.record()
+        torch.cuda.synchronize()
+        times.append(start.elapsed_time(end))
+    return statistics.median(times)
+
+
+def _peak_mib(fn: Callable[[], Any]) -> float:
+    torch.cuda.synchronize()
+    torch.cuda.reset_peak_memory_stats()
+    base = torch.cuda.memory_allocated()
+    fn()
+    torch.cuda.synchronize()
+    return (torch.cuda.max_memory_allocated() - base) / 2**20
+
+
+def bench_scan(quick: bool) -> list[dict[str, Any]]:
+    from tofdenoise.models.scan import available_scan_backends, selective_scan
+
+    batch, dim, length, groups, n = (2, 64, 4096, 4, 16) if quick else (4, 256, 320 * 320, 4, 16)
+    g = torch.Generator(device="cuda").manual_seed(0)
+    u = torch.randn(batch, dim, length, device="cuda", generator=g)
+    delta = 0.5 * torch.randn(batch, dim, length, device="cuda", generator=g)
+    A = -torch.exp(0.5 * torch.randn(dim, n, device="cuda", generator=g))
+    B = torch.randn(batch, groups, n, length, device="cuda", generator=g)
+    C = torch.randn(batch, groups, n, length, device="cuda", generator=g)
+    D = torch.randn(dim, device="cuda", generator=g)
+    bias = torch.randn(dim, device="cuda", generator=g)
+    inputs = [t.requires_grad_() for t in (u, delta, A, B, C, D, bias)]
+    grad_out = torch.randn(batch, dim, length, device="cuda", generator=g)
+
+    def run(backend: str):
+        y = selective_scan(*inputs, True, backend=backend)
+        grads = torch.autograd.grad(y, inputs, grad_out)
+        return y, grads
+
+    ref_y, ref_g = run("torch")
+    rows = []
+    backends = ["torch"] + [b for b in available_scan_backends("cuda", verify=True) if b != "torch"]
+    for backend in backends:
+        y, grads = run(backend)
+        err_y = float(((y - ref_y).abs().max() / ref_y.abs().max()).item())
+        err_g = max(float(((a - b).abs().max() / b.abs().max().clamp_min(1e-30)).item()) for a, b in zip(grads, ref_g))
+        ms = _time_cuda(lambda: run(backend), repeats=3 if quick else 10)
+        mib = _peak_mib(lambda: run(backend))
+        rows.append({"backend": backend, "ms_fwd_bwd": ms, "peak_mib": mib, "max_rel_err_y": err_y,
+                     "max_rel_err_grads": err_g, "shape": [batch, dim, length, groups, n]})
+    return rows
+
+
+def bench_sigma(quick: bool) -> dict[str, Any]:
+    from tofdenoise.physics.calibration import default_calibration
+    from tofdenoise.physics.uncertainty import information_matrix, sigma_depth_mm
+    from tofdenoise.physics.uncertainty_compiled import sigma_depth_mm_compiled
+
+    calib = default_calibration()
+    g = torch.Generator(device="cuda").manual_seed(0)
+    h, w = 480, 640
+    depth = 300.0 + 2400.0 * torch.rand(h, w, device="cuda", generator=g)
+    signal = calib.signal_min_e + (calib.signal_max_e - calib.signal_min_e) * torch.rand(h, w, device="cuda", generator=g)
+
+    def generic():
+        i_dd, i_da, i_aa = information_matrix(depth, signal, calib)
+        m = torch.stack([torch.stack([i_dd, i_da], -1), torch.stack([i_da, i_aa], -1)], -2)
+        return torch.linalg.inv(m)[..., 0, 0].sqrt()
+
+    ref = sigma_depth_mm(depth.double(), signal.double(), calib)
+    eager = sigma_depth_mm(depth, signal, calib)
+    t0 = time.perf_counter()
+    fused = sigma_depth_mm_compiled(depth, signal, calib)
+    torch.cuda.synchronize()
+    compile_s = time.perf_counter() - t0
+    reps = 20 if quick else 100
+    out = {"compile_s": compile_s,
+           "generic_ms": _time_cuda(generic, reps),
+           "eager_ms": _time_cuda(lambda: sigma_depth_mm(depth, signal, calib), reps),
+           "fused_ms": _time_cuda(lambda: sigma_depth_mm_compiled(depth, signal, calib), reps),
+           "max_rel_err_eager": float(((eager.double() - ref) / ref).abs().max()),
+           "max_rel_err_fused": float(((fused.double() - ref) / ref).abs().max()),
+           "max_rel_err_generic": float(((generic().double() - ref) / ref).abs().max())}
+    out["ratio_generic_over_eager"] = out["generic_ms"] / out["eager_ms"]
+    out["ratio_generic_over_fused"] = out["generic_ms"] / out["fused_ms"]
+    out["fused_mpx_s"] = h * w / 1e3 / out["fused_ms"]
+    return out
+
+
+def _bench_backbone(name: str, kwargs: dict[str, Any], size: int, quick: bool) -> dict[str, Any]:
+    from tofdenoise.models.registry import build_backbone
+
+    row: dict[str, Any] = {"backbone": name, "crop": size}
+    net = build_backbone(name, in_channels=1, **kwargs).cuda()
+    row["params_m"] = sum(p.numel() for p in net.parameters()) / 1e6
+    opt = torch.optim.AdamW(net.parameters(), lr=2e-4)
+    x = torch.randn(4, 1, size, size, device="cuda")
+    target = torch.randn(4, 1, size, size, device="cuda")
+    for precision in ("fp32", "bf16"):
+        def step():
+            opt.zero_grad(set_to_none=True)
+            with torch.autocast("cuda", dtype=torch.bfloat16, enabled=precision == "bf16"):
+                y = net(x)
+            loss = (y.float() - target).abs().mean()
+            loss.backward()
+            opt.step()
+        row[f"{precision}_ms_step"] = _time_cuda(step, repeats=3 if quick else 10)
+        row[f"{precision}_peak_mib"] = _peak_mib(step)
+    net.eval()
+    frame = torch.randn(1, 1, 480, 640, device="cuda")
+    with torch.no_grad(), torch.autocast("cuda", dtype=torch.bfloat16):
+        row["infer_480x640_bf16_ms"] = _time_cuda(lambda: net(frame), repeats=3 if quick else 10)
+    return row
+
+
+def bench_backbones(quick: bool) -> list[dict[str, Any]]:
+    size = 128 if quick else 320
+    rows = []
+    for name, kwargs in (("unet", {}), ("restormer", {}),
+                         ("dvss", {"width": 32, "enc_blocks": [1, 1, 2], "bottleneck_blocks": 2})):
+        try:
+            rows.append(_bench_backbone(name, kwargs, size, quick))
+        except Exception as exc:  # report and go on with the next backbone
+            rows.append({"backbone": name, "crop": size, "error": f"{type(exc).__name__}: {exc}"})
+            traceback.print_exc()
+        torch.cuda.empty_cache()
+    return rows
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--quick", action="store_true", help="small sizes, few repeats")
+    p.add_argument("--json", default=None, help="also write the results to this JSON file")
+    args = p.parse_args(argv)
+    if not torch.cuda.is_available():
+        print("bench_gpu: skipped (no CUDA device)")
+        return 0
+    torch.backends.cuda.matmul.allow_tf32 = False
+    torch.backends.cudnn.allow_tf32 = False
+    print(f"torch {torch.__version__}, device {torch.cuda.get_device_name()}")
+    results: dict[str, Any] = {"device": torch.cuda.get_device_name(), "torch": torch.__version__}
+    for name, fn in (("sigma", bench_sigma), ("scan", bench_scan), ("backbones", bench_backbones)):
+        try:
+            results[name] = fn(args.quick)
+        except Exception as exc:
+            results[name] = {"error": f"{type(exc).__name__}: {exc}"}
+            traceback.print_exc()
+        print(f"\n### {name}\n{json.dumps(results[name], indent=1)}", flush=True)
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump(results, fh, indent=1)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
