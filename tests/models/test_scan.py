@@ -138,6 +138,28 @@ def test_cuda_backends_match_cpu(backend):
         assert _rel(a.cpu(), b) < 1e-3
 
 
+@pytest.mark.gpu
+def test_triton_reads_bf16_inputs_and_fuses_bias_softplus_and_d():
+    """bf16 u, delta, B, C (what SS2D passes under autocast) are read as they are; the result equals the
+    float32 PyTorch scan of the same (bf16-rounded) values up to the bf16 rounding of y / du / ddelta."""
+    if "triton" not in available_scan_backends("cuda"):
+        pytest.skip("triton not importable")
+    tensors = [t.detach() for t in _inputs(2, 64, 333, 4, 16)]
+    bf = [t.cuda().to(torch.bfloat16) if i in (0, 1, 3, 4) else t.cuda() for i, t in enumerate(tensors)]
+    ins = [t.requires_grad_() for t in bf]
+    y = selective_scan(*ins, True, backend="triton")
+    assert y.dtype == torch.bfloat16
+    ref_in = [t.detach().float().requires_grad_() for t in bf]
+    y_ref = selective_scan_chunked(*ref_in, True)
+    assert _rel(y.float(), y_ref) < 1e-2
+    dy = torch.randn(y.shape, device="cuda", generator=torch.Generator(device="cuda").manual_seed(0))
+    grads = torch.autograd.grad(y, ins, dy.to(torch.bfloat16))
+    grads_ref = torch.autograd.grad(y_ref, ref_in, dy.to(torch.bfloat16).float())
+    for i, (a, b) in enumerate(zip(grads, grads_ref)):
+        assert a.dtype == ins[i].dtype
+        assert _rel(a.float(), b) < (2e-2 if a.dtype == torch.bfloat16 else 1e-3), i
+
+
 def test_scan_runs_in_float32_under_autocast():
     u, delta, A, B, C, D, bias = (t.detach() for t in _inputs(1, 8, 40, 2, 4))
     ref = selective_scan_ref(u, delta, A, B, C, D, bias, True)

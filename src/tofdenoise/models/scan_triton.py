@@ -14,9 +14,11 @@ y_t = C_t . h_t; softplus / delta_bias / D are applied around them in PyTorch):
   and uses a_t h_{t-1} = h_t - b_t, so no shifted state is needed. dB and dC (shared by the channels of a
   group) are accumulated with atomic adds; dA is summed over the batch with atomic adds.
 
-Measured on an H100 (docs/benchmarks.md, ``benchmarks/bench_gpu.py``): forward+backward of the first DVSS
-stage on a 320x320 batch of 4 (4 x 256 channels, L = 102400, N = 16) in 26-35 ms against 2.7-4.2 s for the
-chunked PyTorch scan, agreeing to 1.2e-6 relative. The ``auto`` dispatch still uses the Triton kernels only
+delta_bias, softplus and the D skip term are applied inside the kernels (their gradients too), and bf16/fp16
+u, delta, B, C are read as they are, so SS2D under autocast pays for no conversion copies; everything is
+computed in float32. Measured on an H100 (docs/benchmarks.md, ``benchmarks/bench_gpu.py``): forward+backward
+of the first DVSS stage on a 320x320 batch of 4 (4 x 256 channels, L = 102400, N = 16) in 27-29 ms against
+2.7-4.2 s for the chunked PyTorch scan, agreeing to 1.5e-6 relative. The ``auto`` dispatch still uses the Triton kernels only
 after :func:`triton_verified` has checked them against the PyTorch scan on the device (once per process), so
 a toolchain problem falls back to the PyTorch scan with a warning instead of wrong results.
 """
@@ -38,9 +40,10 @@ __all__ = [
 
 #: positions per chunk (one associative scan over a (BLOCK_D, N, CHUNK) tile; a state checkpoint per chunk)
 CHUNK = 32
-#: channels per program. Tuned on an H100 at the DVSS training size (chunk 32/64 x block 1/2/4 x 2/4 warps):
-#: one channel per program with 4 warps was fastest (26.5 ms forward+backward; 4 channels: 31.8 ms)
-BLOCK_D_MAX = 1
+#: channels per program. Tuned on an H100 at the DVSS training size (chunk 32/64 x block 1/2/4 x 2/4/8 warps,
+#: float32 and bf16 inputs): 2 channels per program with 4 warps was the fastest in both dtypes (26.8 / 29.0 ms
+#: forward+backward); 1 channel: 28.4 / 37.5 ms, 4 channels with chunk 64: 33.7 / 37.0 ms
+BLOCK_D_MAX = 2
 NUM_WARPS = 4
 
 
@@ -71,10 +74,28 @@ if triton is not None:
         return a1 * a2, a2 * b1 + b2
 
     @triton.jit
+    def _softplus(x):
+        # log(1 + e^x) without overflow, and e^x where 1 + e^x rounds to 1 (float32)
+        return tl.where(x > 20.0, x, tl.where(x < -15.0, tl.exp(x), tl.log(1.0 + tl.exp(x))))
+
+    @triton.jit
+    def _delta_eff(raw_ptr, bias_ptr, offs, d, mask, HAS_BIAS: tl.constexpr, SOFTPLUS: tl.constexpr):
+        """(delta after bias and softplus, the pre-softplus value) of a (BLOCK_D, T) tile, in float32."""
+        x = tl.load(raw_ptr + offs, mask=mask, other=0.0).to(tl.float32)
+        if HAS_BIAS:
+            x = x + tl.load(bias_ptr + d).to(tl.float32)[:, None]
+        if SOFTPLUS:
+            dt = _softplus(x)
+        else:
+            dt = x
+        return dt, x
+
+    @triton.jit
     def fwd_kernel(
-        u_ptr, delta_ptr, A_ptr, B_ptr, C_ptr, y_ptr, ckpt_ptr,
+        u_ptr, delta_ptr, A_ptr, B_ptr, C_ptr, D_ptr, bias_ptr, y_ptr, ckpt_ptr,
         L, DIM, N, DIM_PER_GROUP, G, NCHUNK,
         CHUNK_T: tl.constexpr, BLOCK_D: tl.constexpr, BLOCK_N: tl.constexpr,
+        HAS_D: tl.constexpr, HAS_BIAS: tl.constexpr, SOFTPLUS: tl.constexpr,
     ):
         pid_b = tl.program_id(0).to(tl.int64)  # 64-bit offsets: batch * dim * L can exceed 2**31
         pid_d = tl.program_id(1)
@@ -84,6 +105,8 @@ if triton is not None:
         nmask = n < N
         grp = ((pid_d * BLOCK_D) // DIM_PER_GROUP).to(tl.int64)
         A = tl.load(A_ptr + d[:, None] * N + n[None, :], mask=nmask[None, :], other=0.0)  # (D, N)
+        if HAS_D:
+            Dv = tl.load(D_ptr + d).to(tl.float32)
         h = tl.zeros((BLOCK_D, BLOCK_N), dtype=tl.float32)
         row = pid_b * DIM * L + d * L  # (D,)
         bc = pid_b * G * N * L + grp * N * L + n * L  # (N,)
@@ -92,23 +115,29 @@ if triton is not None:
             tl.store(ckpt_ptr + ck + c * BLOCK_N, h)  # the state entering chunk c
             t = c * CHUNK_T + tt
             tmask = t < L
-            dt = tl.load(delta_ptr + row[:, None] + t[None, :], mask=tmask[None, :], other=0.0)  # (D, T)
-            ut = tl.load(u_ptr + row[:, None] + t[None, :], mask=tmask[None, :], other=0.0)
-            Bt = tl.load(B_ptr + bc[:, None] + t[None, :], mask=nmask[:, None] & tmask[None, :], other=0.0)  # (N, T)
-            Ct = tl.load(C_ptr + bc[:, None] + t[None, :], mask=nmask[:, None] & tmask[None, :], other=0.0)
+            offs = row[:, None] + t[None, :]
+            dt, _ = _delta_eff(delta_ptr, bias_ptr, offs, d, tmask[None, :], HAS_BIAS, SOFTPLUS)  # (D, T)
+            ut = tl.load(u_ptr + offs, mask=tmask[None, :], other=0.0).to(tl.float32)
+            bmask = nmask[:, None] & tmask[None, :]
+            Bt = tl.load(B_ptr + bc[:, None] + t[None, :], mask=bmask, other=0.0).to(tl.float32)  # (N, T)
+            Ct = tl.load(C_ptr + bc[:, None] + t[None, :], mask=bmask, other=0.0).to(tl.float32)
             a = tl.exp(dt[:, None, :] * A[:, :, None])  # (D, N, T)
             b = (dt * ut)[:, None, :] * Bt[None, :, :]
             a_acc, b_acc = tl.associative_scan((a, b), axis=2, combine_fn=_combine)
             hs = a_acc * h[:, :, None] + b_acc  # states at every t of the chunk
-            tl.store(y_ptr + row[:, None] + t[None, :], tl.sum(hs * Ct[None, :, :], axis=1), mask=tmask[None, :])
+            yt = tl.sum(hs * Ct[None, :, :], axis=1)
+            if HAS_D:
+                yt += Dv[:, None] * ut
+            tl.store(y_ptr + offs, yt, mask=tmask[None, :])
             h = tl.sum(tl.where((tt == CHUNK_T - 1)[None, None, :], hs, 0.0), axis=2)  # state after the chunk
 
     @triton.jit
     def bwd_kernel(
-        u_ptr, delta_ptr, A_ptr, B_ptr, C_ptr, dy_ptr, ckpt_ptr,
-        du_ptr, ddelta_ptr, dA_ptr, dB_ptr, dC_ptr,
+        u_ptr, delta_ptr, A_ptr, B_ptr, C_ptr, D_ptr, bias_ptr, dy_ptr, ckpt_ptr,
+        du_ptr, ddelta_ptr, dA_ptr, dB_ptr, dC_ptr, dD_ptr, dbias_ptr,
         L, DIM, N, DIM_PER_GROUP, G, NCHUNK,
         CHUNK_T: tl.constexpr, BLOCK_D: tl.constexpr, BLOCK_N: tl.constexpr,
+        HAS_D: tl.constexpr, HAS_BIAS: tl.constexpr, SOFTPLUS: tl.constexpr,
     ):
         pid_b = tl.program_id(0).to(tl.int64)  # 64-bit offsets: batch * dim * L can exceed 2**31
         pid_d = tl.program_id(1)
@@ -118,11 +147,15 @@ if triton is not None:
         nmask = n < N
         grp = ((pid_d * BLOCK_D) // DIM_PER_GROUP).to(tl.int64)
         A = tl.load(A_ptr + d[:, None] * N + n[None, :], mask=nmask[None, :], other=0.0)
+        if HAS_D:
+            Dv = tl.load(D_ptr + d).to(tl.float32)
         row = pid_b * DIM * L + d * L
         bc = pid_b * G * N * L + grp * N * L + n * L
         ck = (pid_b * DIM + d)[:, None] * (NCHUNK * BLOCK_N) + n[None, :]
         g_next = tl.zeros((BLOCK_D, BLOCK_N), dtype=tl.float32)  # adjoint of the state after the chunk
         dA_acc = tl.zeros((BLOCK_D, BLOCK_N), dtype=tl.float32)
+        dD_acc = tl.zeros((BLOCK_D,), dtype=tl.float32)
+        dbias_acc = tl.zeros((BLOCK_D,), dtype=tl.float32)
         for ci in range(0, NCHUNK):
             c = NCHUNK - 1 - ci
             h0 = tl.load(ckpt_ptr + ck + c * BLOCK_N)
@@ -130,12 +163,13 @@ if triton is not None:
             tmask = t < L
             t1mask = (t + 1) < L
             bmask = nmask[:, None] & tmask[None, :]
-            dt = tl.load(delta_ptr + row[:, None] + t[None, :], mask=tmask[None, :], other=0.0)
-            dt1 = tl.load(delta_ptr + row[:, None] + (t + 1)[None, :], mask=t1mask[None, :], other=0.0)
-            ut = tl.load(u_ptr + row[:, None] + t[None, :], mask=tmask[None, :], other=0.0)
-            dyt = tl.load(dy_ptr + row[:, None] + t[None, :], mask=tmask[None, :], other=0.0)
-            Bt = tl.load(B_ptr + bc[:, None] + t[None, :], mask=bmask, other=0.0)
-            Ct = tl.load(C_ptr + bc[:, None] + t[None, :], mask=bmask, other=0.0)
+            offs = row[:, None] + t[None, :]
+            dt, x = _delta_eff(delta_ptr, bias_ptr, offs, d, tmask[None, :], HAS_BIAS, SOFTPLUS)
+            dt1, _ = _delta_eff(delta_ptr, bias_ptr, offs + 1, d, t1mask[None, :], HAS_BIAS, SOFTPLUS)
+            ut = tl.load(u_ptr + offs, mask=tmask[None, :], other=0.0).to(tl.float32)
+            dyt = tl.load(dy_ptr + offs, mask=tmask[None, :], other=0.0).to(tl.float32)
+            Bt = tl.load(B_ptr + bc[:, None] + t[None, :], mask=bmask, other=0.0).to(tl.float32)
+            Ct = tl.load(C_ptr + bc[:, None] + t[None, :], mask=bmask, other=0.0).to(tl.float32)
             # recompute the chunk's states from its checkpoint
             a = tl.exp(dt[:, None, :] * A[:, :, None])
             b = (dt * ut)[:, None, :] * Bt[None, :, :]
@@ -151,12 +185,24 @@ if triton is not None:
             sr = tl.sum(gs * Bt[None, :, :], axis=1)  # (D, T)
             tl.atomic_add(dC_ptr + bc[:, None] + t[None, :], tl.sum(dyt[:, None, :] * hs, axis=0), mask=bmask)
             tl.atomic_add(dB_ptr + bc[:, None] + t[None, :], tl.sum(gs * (dt * ut)[:, None, :], axis=0), mask=bmask)
-            tl.store(ddelta_ptr + row[:, None] + t[None, :], tl.sum(q * A[:, :, None], axis=1) + ut * sr,
-                     mask=tmask[None, :])
-            tl.store(du_ptr + row[:, None] + t[None, :], dt * sr, mask=tmask[None, :])
+            g_dt = tl.sum(q * A[:, :, None], axis=1) + ut * sr  # d loss / d delta (after softplus)
+            if SOFTPLUS:
+                g_dt = g_dt / (1.0 + tl.exp(-x))  # softplus' = sigmoid
+            g_dt = tl.where(tmask[None, :], g_dt, 0.0)
+            tl.store(ddelta_ptr + offs, g_dt, mask=tmask[None, :])
+            du = dt * sr
+            if HAS_D:
+                du += Dv[:, None] * dyt
+                dD_acc += tl.sum(dyt * ut, axis=1)
+            tl.store(du_ptr + offs, du, mask=tmask[None, :])
+            dbias_acc += tl.sum(g_dt, axis=1)
             dA_acc += tl.sum(q * dt[:, None, :], axis=2)
             g_next = tl.sum(tl.where((tt == 0)[None, None, :], gs, 0.0), axis=2)
         tl.atomic_add(dA_ptr + d[:, None] * N + n[None, :], dA_acc, mask=nmask[None, :])
+        if HAS_D:
+            tl.atomic_add(dD_ptr + d, dD_acc)
+        if HAS_BIAS:
+            tl.atomic_add(dbias_ptr + d, dbias_acc)
 
 
 def _triton_kernels():
@@ -214,8 +260,11 @@ def _block_d(dim_per_group: int) -> int:
 
 
 class _TritonScanFn(torch.autograd.Function):
+    """u, delta, B, C in their own float dtype (bf16 under autocast: no conversion copies), A / D / delta_bias
+    float32; bias, softplus and the D skip term are applied inside the kernels. Computation in float32."""
+
     @staticmethod
-    def forward(ctx, u, delta, A, B, C):
+    def forward(ctx, u, delta, A, B, C, D, delta_bias, delta_softplus):
         triton, fwd_kernel, _ = _triton_kernels()
         batch, dim, length = u.shape
         groups, n = B.shape[1], A.shape[1]
@@ -223,54 +272,63 @@ class _TritonScanFn(torch.autograd.Function):
         block_d = _block_d(dpg)
         block_n = triton.next_power_of_2(n)
         nchunk = triton.cdiv(length, CHUNK)
-        y = torch.empty_like(u)
+        y = torch.empty(u.shape, device=u.device, dtype=u.dtype)
         ckpt = torch.empty(batch, dim, nchunk, block_n, device=u.device, dtype=torch.float32)
+        dummy = A  # any float32 tensor: never read when HAS_D / HAS_BIAS is off
         grid = (batch, dim // block_d)
         fwd_kernel[grid](
-            u, delta, A, B, C, y, ckpt, length, dim, n, dpg, groups, nchunk,
-            CHUNK_T=CHUNK, BLOCK_D=block_d, BLOCK_N=block_n, num_warps=NUM_WARPS,
+            u, delta, A, B, C, dummy if D is None else D, dummy if delta_bias is None else delta_bias, y, ckpt,
+            length, dim, n, dpg, groups, nchunk,
+            CHUNK_T=CHUNK, BLOCK_D=block_d, BLOCK_N=block_n,
+            HAS_D=D is not None, HAS_BIAS=delta_bias is not None, SOFTPLUS=bool(delta_softplus),
+            num_warps=NUM_WARPS,
         )
-        ctx.save_for_backward(u, delta, A, B, C, ckpt)
-        ctx.meta = (block_d, block_n, nchunk, CHUNK, NUM_WARPS)
+        ctx.save_for_backward(u, delta, A, B, C, D, delta_bias, ckpt)
+        ctx.meta = (block_d, block_n, nchunk, CHUNK, NUM_WARPS, bool(delta_softplus))
         return y
 
     @staticmethod
     def backward(ctx, dy):
         _, _, bwd_kernel = _triton_kernels()
-        u, delta, A, B, C, ckpt = ctx.saved_tensors
-        block_d, block_n, nchunk, chunk, num_warps = ctx.meta
+        u, delta, A, B, C, D, delta_bias, ckpt = ctx.saved_tensors
+        block_d, block_n, nchunk, chunk, num_warps, softplus = ctx.meta
         batch, dim, length = u.shape
         groups, n = B.shape[1], A.shape[1]
-        dy = dy.contiguous().float()
+        dy = dy.contiguous()
         du = torch.empty_like(u)
         ddelta = torch.empty_like(delta)
         dA = torch.zeros_like(A)
-        dB = torch.zeros_like(B)
-        dC = torch.zeros_like(C)
+        dB = torch.zeros(B.shape, device=B.device, dtype=torch.float32)  # atomics accumulate in float32
+        dC = torch.zeros(C.shape, device=C.device, dtype=torch.float32)
+        dD = torch.zeros(dim, device=u.device, dtype=torch.float32)
+        dbias = torch.zeros(dim, device=u.device, dtype=torch.float32)
+        dummy = A
         grid = (batch, dim // block_d)
         bwd_kernel[grid](
-            u, delta, A, B, C, dy, ckpt, du, ddelta, dA, dB, dC,
+            u, delta, A, B, C, dummy if D is None else D, dummy if delta_bias is None else delta_bias, dy, ckpt,
+            du, ddelta, dA, dB, dC, dD, dbias,
             length, dim, n, dim // groups, groups, nchunk,
-            CHUNK_T=chunk, BLOCK_D=block_d, BLOCK_N=block_n, num_warps=num_warps,
+            CHUNK_T=chunk, BLOCK_D=block_d, BLOCK_N=block_n,
+            HAS_D=D is not None, HAS_BIAS=delta_bias is not None, SOFTPLUS=softplus, num_warps=num_warps,
         )
-        return du, ddelta, dA, dB, dC
+        return (du, ddelta, dA, dB.to(B.dtype), dC.to(C.dtype), None if D is None else dD.to(D.dtype),
+                None if delta_bias is None else dbias.to(delta_bias.dtype), None)
 
 
 def selective_scan_triton(u, delta, A, B, C, D=None, delta_bias=None, delta_softplus=False) -> torch.Tensor:
-    """Triton selective scan (CUDA, float32 compute); same signature and result as ``selective_scan``."""
-    from .scan import _check_shapes, _effective_delta, _finish
+    """Triton selective scan (CUDA, float32 compute); same signature and result as ``selective_scan``. The
+    result has u's dtype; bf16/fp16 u, delta, B, C are read as they are (no conversion copies)."""
+    from .scan import _check_shapes
 
     if not triton_available():
         raise RuntimeError("selective_scan_triton: Triton with a CUDA device is not available")
     B, C, _ = _check_shapes(u, delta, A, B, C, D, delta_bias)
-    dtype = u.dtype
     f32 = torch.float32
-    delta = _effective_delta(delta.to(f32), None if delta_bias is None else delta_bias.to(f32), delta_softplus)
-    y = _TritonScanFn.apply(
-        u.to(f32).contiguous(), delta.contiguous(), A.to(f32).contiguous(),
-        B.to(f32).contiguous(), C.to(f32).contiguous(),
+    return _TritonScanFn.apply(
+        u.contiguous(), delta.contiguous(), A.to(f32).contiguous(), B.contiguous(), C.contiguous(),
+        None if D is None else D.to(f32).contiguous(),
+        None if delta_bias is None else delta_bias.to(f32).contiguous(), bool(delta_softplus),
     )
-    return _finish(y, u.to(f32), None if D is None else D.to(f32)).to(dtype)
 
 
 def selective_scan_mamba(u, delta, A, B, C, D=None, delta_bias=None, delta_softplus=False) -> torch.Tensor:
