@@ -25,7 +25,7 @@ from typing import Any, Callable
 import torch
 
 
-def _time_cuda(fn: Callable[[], Any], repeats: int, warmup: int = 2) -> float:
+def time_cuda(fn: Callable[[], Any], repeats: int, warmup: int = 2) -> float:
     """Median milliseconds of ``fn`` on the current CUDA stream."""
     for _ in range(warmup):
         fn()
@@ -77,7 +77,7 @@ def bench_scan(quick: bool) -> list[dict[str, Any]]:
         y, grads = run(backend)
         err_y = float(((y - ref_y).abs().max() / ref_y.abs().max()).item())
         err_g = max(float(((a - b).abs().max() / b.abs().max().clamp_min(1e-30)).item()) for a, b in zip(grads, ref_g))
-        ms = _time_cuda(lambda: run(backend), repeats=3 if quick else 10)
+        ms = time_cuda(lambda: run(backend), repeats=3 if quick else 10)
         mib = _peak_mib(lambda: run(backend))
         rows.append({"backend": backend, "ms_fwd_bwd": ms, "peak_mib": mib, "max_rel_err_y": err_y,
                      "max_rel_err_grads": err_g, "shape": [batch, dim, length, groups, n]})
@@ -108,9 +108,9 @@ def bench_sigma(quick: bool) -> dict[str, Any]:
     compile_s = time.perf_counter() - t0
     reps = 20 if quick else 100
     out = {"compile_s": compile_s,
-           "generic_ms": _time_cuda(generic, reps),
-           "eager_ms": _time_cuda(lambda: sigma_depth_mm(depth, signal, calib), reps),
-           "fused_ms": _time_cuda(lambda: sigma_depth_mm_compiled(depth, signal, calib), reps),
+           "generic_ms": time_cuda(generic, reps),
+           "eager_ms": time_cuda(lambda: sigma_depth_mm(depth, signal, calib), reps),
+           "fused_ms": time_cuda(lambda: sigma_depth_mm_compiled(depth, signal, calib), reps),
            "max_rel_err_eager": float(((eager.double() - ref) / ref).abs().max()),
            "max_rel_err_fused": float(((fused.double() - ref) / ref).abs().max()),
            "max_rel_err_generic": float(((generic().double() - ref) / ref).abs().max())}
@@ -137,12 +137,12 @@ def _bench_backbone(name: str, kwargs: dict[str, Any], size: int, quick: bool) -
             loss = (y.float() - target).abs().mean()
             loss.backward()
             opt.step()
-        row[f"{precision}_ms_step"] = _time_cuda(step, repeats=3 if quick else 10)
+        row[f"{precision}_ms_step"] = time_cuda(step, repeats=3 if quick else 10)
         row[f"{precision}_peak_mib"] = _peak_mib(step)
     net.eval()
     frame = torch.randn(1, 1, 480, 640, device="cuda")
     with torch.no_grad(), torch.autocast("cuda", dtype=torch.bfloat16):
-        row["infer_480x640_bf16_ms"] = _time_cuda(lambda: net(frame), repeats=3 if quick else 10)
+        row["infer_480x640_bf16_ms"] = time_cuda(lambda: net(frame), repeats=3 if quick else 10)
     return row
 
 

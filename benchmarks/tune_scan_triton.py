@@ -13,24 +13,9 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
-import statistics
 import sys
 
 import torch
-
-
-def _time(fn, reps: int = 5) -> float:
-    fn()
-    torch.cuda.synchronize()
-    times = []
-    for _ in range(reps):
-        start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-        start.record()
-        fn()
-        end.record()
-        torch.cuda.synchronize()
-        times.append(start.elapsed_time(end))
-    return statistics.median(times)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -44,6 +29,8 @@ def main(argv: list[str] | None = None) -> int:
     if not torch.cuda.is_available():
         print("tune_scan_triton: skipped (no CUDA device)")
         return 0
+    from bench_gpu import time_cuda  # benchmarks/ is on sys.path when run as a script
+
     from tofdenoise.models import scan_triton as st
     from tofdenoise.models.scan import selective_scan_chunked
 
@@ -72,8 +59,8 @@ def main(argv: list[str] | None = None) -> int:
             got = [y, *torch.autograd.grad(y, ins, dy.to(dtype))]
             err = max(float(((a.float() - r).abs().max() / r.abs().max()).item()) for a, r in zip(got, ref))
             row = {"dtype": str(dtype).replace("torch.", ""), "chunk": chunk, "block_d": block_d, "warps": warps,
-                   "fwd_ms": round(_time(fwd), 3),
-                   "fwd_bwd_ms": round(_time(lambda: torch.autograd.grad(fwd(), ins, dy.to(dtype))), 3),
+                   "fwd_ms": round(time_cuda(fwd, 5), 3),
+                   "fwd_bwd_ms": round(time_cuda(lambda: torch.autograd.grad(fwd(), ins, dy.to(dtype)), 5), 3),
                    "max_rel_err": err}
             print(json.dumps(row), flush=True)
     st.CHUNK, st.BLOCK_D_MAX, st.NUM_WARPS = defaults
