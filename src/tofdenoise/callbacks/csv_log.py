@@ -22,6 +22,7 @@ import csv
 import io
 import math
 import os
+
 import lightning.pytorch as pl
 from lightning.fabric.loggers.logger import rank_zero_experiment
 from lightning.pytorch.loggers import CSVLogger
