@@ -91,12 +91,10 @@ if triton is not None:
         return dt, x
 
     @triton.jit
-    def fwd_kernel(
-        u_ptr, delta_ptr, A_ptr, B_ptr, C_ptr, D_ptr, bias_ptr, y_ptr, ckpt_ptr,
-        L, DIM, N, DIM_PER_GROUP, G, NCHUNK,
-        CHUNK_T: tl.constexpr, BLOCK_D: tl.constexpr, BLOCK_N: tl.constexpr,
-        HAS_D: tl.constexpr, HAS_BIAS: tl.constexpr, SOFTPLUS: tl.constexpr,
-    ):
+    def _program_tiles(A_ptr, L, DIM, N, DIM_PER_GROUP, G, NCHUNK,
+                       CHUNK_T: tl.constexpr, BLOCK_D: tl.constexpr, BLOCK_N: tl.constexpr):
+        """This program's channels d, states n (and mask), chunk positions tt, its A block and the base offsets
+        of its u/delta/y rows, its group's B/C rows and its state checkpoints."""
         pid_b = tl.program_id(0).to(tl.int64)  # 64-bit offsets: batch * dim * L can exceed 2**31
         pid_d = tl.program_id(1)
         d = (pid_d * BLOCK_D + tl.arange(0, BLOCK_D)).to(tl.int64)
@@ -105,30 +103,49 @@ if triton is not None:
         nmask = n < N
         grp = ((pid_d * BLOCK_D) // DIM_PER_GROUP).to(tl.int64)
         A = tl.load(A_ptr + d[:, None] * N + n[None, :], mask=nmask[None, :], other=0.0)  # (D, N)
-        if HAS_D:
-            Dv = tl.load(D_ptr + d).to(tl.float32)
-        h = tl.zeros((BLOCK_D, BLOCK_N), dtype=tl.float32)
         row = pid_b * DIM * L + d * L  # (D,)
         bc = pid_b * G * N * L + grp * N * L + n * L  # (N,)
         ck = (pid_b * DIM + d)[:, None] * (NCHUNK * BLOCK_N) + n[None, :]
+        return d, n, tt, nmask, A, row, bc, ck
+
+    @triton.jit
+    def _chunk_states(u_ptr, delta_ptr, bias_ptr, B_ptr, C_ptr, A, h0, d, row, bc, t, tmask, nmask,
+                      HAS_BIAS: tl.constexpr, SOFTPLUS: tl.constexpr):
+        """Load one chunk's tiles and scan it from the entering state h0: (delta, pre-softplus delta, u, B, C,
+        b = delta u B, states h_t), all float32; the states are (BLOCK_D, BLOCK_N, CHUNK_T)."""
+        offs = row[:, None] + t[None, :]
+        bmask = nmask[:, None] & tmask[None, :]
+        dt, x = _delta_eff(delta_ptr, bias_ptr, offs, d, tmask[None, :], HAS_BIAS, SOFTPLUS)  # (D, T)
+        ut = tl.load(u_ptr + offs, mask=tmask[None, :], other=0.0).to(tl.float32)
+        Bt = tl.load(B_ptr + bc[:, None] + t[None, :], mask=bmask, other=0.0).to(tl.float32)  # (N, T)
+        Ct = tl.load(C_ptr + bc[:, None] + t[None, :], mask=bmask, other=0.0).to(tl.float32)
+        a = tl.exp(dt[:, None, :] * A[:, :, None])  # (D, N, T)
+        b = (dt * ut)[:, None, :] * Bt[None, :, :]
+        a_acc, b_acc = tl.associative_scan((a, b), axis=2, combine_fn=_combine)
+        return dt, x, ut, Bt, Ct, b, a_acc * h0[:, :, None] + b_acc
+
+    @triton.jit
+    def fwd_kernel(
+        u_ptr, delta_ptr, A_ptr, B_ptr, C_ptr, D_ptr, bias_ptr, y_ptr, ckpt_ptr,
+        L, DIM, N, DIM_PER_GROUP, G, NCHUNK,
+        CHUNK_T: tl.constexpr, BLOCK_D: tl.constexpr, BLOCK_N: tl.constexpr,
+        HAS_D: tl.constexpr, HAS_BIAS: tl.constexpr, SOFTPLUS: tl.constexpr,
+    ):
+        d, n, tt, nmask, A, row, bc, ck = _program_tiles(A_ptr, L, DIM, N, DIM_PER_GROUP, G, NCHUNK,
+                                                         CHUNK_T, BLOCK_D, BLOCK_N)
+        if HAS_D:
+            Dv = tl.load(D_ptr + d).to(tl.float32)
+        h = tl.zeros((BLOCK_D, BLOCK_N), dtype=tl.float32)
         for c in range(0, NCHUNK):
             tl.store(ckpt_ptr + ck + c * BLOCK_N, h)  # the state entering chunk c
             t = c * CHUNK_T + tt
             tmask = t < L
-            offs = row[:, None] + t[None, :]
-            dt, _ = _delta_eff(delta_ptr, bias_ptr, offs, d, tmask[None, :], HAS_BIAS, SOFTPLUS)  # (D, T)
-            ut = tl.load(u_ptr + offs, mask=tmask[None, :], other=0.0).to(tl.float32)
-            bmask = nmask[:, None] & tmask[None, :]
-            Bt = tl.load(B_ptr + bc[:, None] + t[None, :], mask=bmask, other=0.0).to(tl.float32)  # (N, T)
-            Ct = tl.load(C_ptr + bc[:, None] + t[None, :], mask=bmask, other=0.0).to(tl.float32)
-            a = tl.exp(dt[:, None, :] * A[:, :, None])  # (D, N, T)
-            b = (dt * ut)[:, None, :] * Bt[None, :, :]
-            a_acc, b_acc = tl.associative_scan((a, b), axis=2, combine_fn=_combine)
-            hs = a_acc * h[:, :, None] + b_acc  # states at every t of the chunk
+            _, _, ut, _, Ct, _, hs = _chunk_states(u_ptr, delta_ptr, bias_ptr, B_ptr, C_ptr, A, h, d, row, bc,
+                                                     t, tmask, nmask, HAS_BIAS, SOFTPLUS)
             yt = tl.sum(hs * Ct[None, :, :], axis=1)
             if HAS_D:
                 yt += Dv[:, None] * ut
-            tl.store(y_ptr + offs, yt, mask=tmask[None, :])
+            tl.store(y_ptr + row[:, None] + t[None, :], yt, mask=tmask[None, :])
             h = tl.sum(tl.where((tt == CHUNK_T - 1)[None, None, :], hs, 0.0), axis=2)  # state after the chunk
 
     @triton.jit
@@ -139,19 +156,10 @@ if triton is not None:
         CHUNK_T: tl.constexpr, BLOCK_D: tl.constexpr, BLOCK_N: tl.constexpr,
         HAS_D: tl.constexpr, HAS_BIAS: tl.constexpr, SOFTPLUS: tl.constexpr,
     ):
-        pid_b = tl.program_id(0).to(tl.int64)  # 64-bit offsets: batch * dim * L can exceed 2**31
-        pid_d = tl.program_id(1)
-        d = (pid_d * BLOCK_D + tl.arange(0, BLOCK_D)).to(tl.int64)
-        n = tl.arange(0, BLOCK_N)
-        tt = tl.arange(0, CHUNK_T)
-        nmask = n < N
-        grp = ((pid_d * BLOCK_D) // DIM_PER_GROUP).to(tl.int64)
-        A = tl.load(A_ptr + d[:, None] * N + n[None, :], mask=nmask[None, :], other=0.0)
+        d, n, tt, nmask, A, row, bc, ck = _program_tiles(A_ptr, L, DIM, N, DIM_PER_GROUP, G, NCHUNK,
+                                                         CHUNK_T, BLOCK_D, BLOCK_N)
         if HAS_D:
             Dv = tl.load(D_ptr + d).to(tl.float32)
-        row = pid_b * DIM * L + d * L
-        bc = pid_b * G * N * L + grp * N * L + n * L
-        ck = (pid_b * DIM + d)[:, None] * (NCHUNK * BLOCK_N) + n[None, :]
         g_next = tl.zeros((BLOCK_D, BLOCK_N), dtype=tl.float32)  # adjoint of the state after the chunk
         dA_acc = tl.zeros((BLOCK_D, BLOCK_N), dtype=tl.float32)
         dD_acc = tl.zeros((BLOCK_D,), dtype=tl.float32)
@@ -164,17 +172,11 @@ if triton is not None:
             t1mask = (t + 1) < L
             bmask = nmask[:, None] & tmask[None, :]
             offs = row[:, None] + t[None, :]
-            dt, x = _delta_eff(delta_ptr, bias_ptr, offs, d, tmask[None, :], HAS_BIAS, SOFTPLUS)
-            dt1, _ = _delta_eff(delta_ptr, bias_ptr, offs + 1, d, t1mask[None, :], HAS_BIAS, SOFTPLUS)
-            ut = tl.load(u_ptr + offs, mask=tmask[None, :], other=0.0).to(tl.float32)
-            dyt = tl.load(dy_ptr + offs, mask=tmask[None, :], other=0.0).to(tl.float32)
-            Bt = tl.load(B_ptr + bc[:, None] + t[None, :], mask=bmask, other=0.0).to(tl.float32)
-            Ct = tl.load(C_ptr + bc[:, None] + t[None, :], mask=bmask, other=0.0).to(tl.float32)
             # recompute the chunk's states from its checkpoint
-            a = tl.exp(dt[:, None, :] * A[:, :, None])
-            b = (dt * ut)[:, None, :] * Bt[None, :, :]
-            a_acc, b_acc = tl.associative_scan((a, b), axis=2, combine_fn=_combine)
-            hs = a_acc * h0[:, :, None] + b_acc
+            dt, x, ut, Bt, Ct, b, hs = _chunk_states(u_ptr, delta_ptr, bias_ptr, B_ptr, C_ptr, A, h0, d, row, bc,
+                                                     t, tmask, nmask, HAS_BIAS, SOFTPLUS)
+            dt1, _ = _delta_eff(delta_ptr, bias_ptr, offs + 1, d, t1mask[None, :], HAS_BIAS, SOFTPLUS)
+            dyt = tl.load(dy_ptr + offs, mask=tmask[None, :], other=0.0).to(tl.float32)
             # adjoint g_t = dy_t C_t + a_{t+1} g_{t+1}: a reverse scan, seeded with the next chunk's g
             a1 = tl.where(t1mask[None, None, :], tl.exp(dt1[:, None, :] * A[:, :, None]), 0.0)
             src = dyt[:, None, :] * Ct[None, :, :]
