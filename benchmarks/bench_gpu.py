@@ -86,7 +86,9 @@ def bench_scan(quick: bool) -> list[dict[str, Any]]:
 
 def bench_sigma(quick: bool) -> dict[str, Any]:
     from tofdenoise.physics.calibration import default_calibration
-    from tofdenoise.physics.uncertainty import information_matrix, sigma_depth_mm
+    from bench_physics import generic_sigma  # benchmarks/ is on sys.path when run as a script
+
+    from tofdenoise.physics.uncertainty import sigma_depth_mm
     from tofdenoise.physics.uncertainty_compiled import sigma_depth_mm_compiled
 
     calib = default_calibration()
@@ -95,10 +97,8 @@ def bench_sigma(quick: bool) -> dict[str, Any]:
     depth = 300.0 + 2400.0 * torch.rand(h, w, device="cuda", generator=g)
     signal = calib.signal_min_e + (calib.signal_max_e - calib.signal_min_e) * torch.rand(h, w, device="cuda", generator=g)
 
-    def generic():
-        i_dd, i_da, i_aa = information_matrix(depth, signal, calib)
-        m = torch.stack([torch.stack([i_dd, i_da], -1), torch.stack([i_da, i_aa], -1)], -2)
-        return torch.linalg.inv(m)[..., 0, 0].sqrt()
+    def generic():  # the sums+inv route of bench_physics, on the GPU
+        return generic_sigma(depth, signal, calib)
 
     ref = sigma_depth_mm(depth.double(), signal.double(), calib)
     eager = sigma_depth_mm(depth, signal, calib)
