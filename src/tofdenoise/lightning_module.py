@@ -351,7 +351,7 @@ class DepthRestorer(pl.LightningModule):
             counts = metric.counts()
             self.test_results[set_name] = set_entry(restored, raw, counts)
             self.test_per_image[set_name] = {"rows": rows, "raw_rows": raw_rows,
-                                             "names": dict(self._test_names[set_name])}
+                                             "names": _gather_names(self._test_names[set_name])}
             logged = {f"test/{set_name}/{k}": v for k, v in restored.items()}
             logged.update({f"test/{set_name}/raw/{k}": v for k, v in raw.items()})
             self.log_dict(logged)
@@ -454,6 +454,20 @@ def _loader_index(index: Any, dataloader_idx: int) -> Tensor | None:
         return None
     index = torch.as_tensor(index)
     return index + dataloader_idx * _LOADER_INDEX_STRIDE if dataloader_idx else index
+
+
+def _gather_names(names: dict[int, str]) -> dict[int, str]:
+    """{image index: name} of every process (under DDP each saw only its share of the images)."""
+    dist = torch.distributed
+    if not (dist.is_available() and dist.is_initialized() and dist.get_world_size() > 1):
+        return dict(names)
+    parts: list[dict[int, str] | None] = [None] * dist.get_world_size()
+    dist.all_gather_object(parts, dict(names))
+    out: dict[int, str] = {}
+    for part in parts:
+        for index, name in (part or {}).items():
+            out.setdefault(int(index), name)
+    return out
 
 
 def _record_from_checkpoint(checkpoint: dict[str, Any]) -> dict[str, Any]:
