@@ -239,8 +239,10 @@ def _test_checkpoint(cfg: DictConfig, trainer: Any, run_dir: Path) -> str | None
 
 
 def write_test_outputs(model: Any, run_dir: Path) -> dict[str, Any]:
-    """``<run_dir>/metrics.json`` (final test metrics per set, restored + raw) and
-    ``<run_dir>/per_image/<set>.csv`` from a ``DepthRestorer`` after ``trainer.test``."""
+    """``<run_dir>/metrics.json`` (final test metrics per set, restored + raw, and the learned guard's run-level
+    fields ``trained_steps``, ``best_val_mae_mm``, ``raw_val_mae_mm``, ``learned_margin``, ``learned``,
+    ``learned_reason`` from ``model.learned_record()``) and ``<run_dir>/per_image/<set>.csv`` from a
+    ``DepthRestorer`` after ``trainer.test``."""
     from tofdenoise.callbacks.metrics_writer import write_metrics_json, write_per_image_csv
 
     results = dict(getattr(model, "test_results", {}) or {})
@@ -249,7 +251,8 @@ def write_test_outputs(model: Any, run_dir: Path) -> dict[str, Any]:
     for set_name, per in (getattr(model, "test_per_image", {}) or {}).items():
         write_per_image_csv(run_dir / "per_image" / f"{set_name}.csv", per["rows"], per["raw_rows"],
                             names=per["names"])
-    write_metrics_json(run_dir / METRICS_NAME, results)
+    learned = model.learned_record() if hasattr(model, "learned_record") else None
+    write_metrics_json(run_dir / METRICS_NAME, results, run=learned)
     return json.loads((run_dir / METRICS_NAME).read_text())
 
 
