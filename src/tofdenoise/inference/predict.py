@@ -1,13 +1,14 @@
 """LightningCLI ``predict`` on a folder of camera frames, with no noise synthesis: ``FramesDataModule`` reads the
 frames as ``tofdenoise-denoise`` does and ``FramesPredictionWriter`` writes the same per-frame outputs::
 
-    tofdenoise predict --ckpt_path best.ckpt --model tofdenoise.lightning_module.DepthRestorer \\
-        --data tofdenoise.inference.FramesDataModule --data.inputs '[frames/]' \\
-        --trainer.callbacks tofdenoise.inference.FramesPredictionWriter --trainer.callbacks.out_dir restored/ \\
-        --trainer.logger false --trainer.accelerator cpu
+    python -m tofdenoise.inference.predict predict --ckpt_path best.ckpt --data.inputs '[frames/]' \\
+        --trainer.callbacks tofdenoise.inference.FramesPredictionWriter --trainer.callbacks.out_dir restored/
 
-LightningCLI reads the model's hyper-parameters from ``--ckpt_path``. ``DepthRestorer.predict_step`` restores
-every frame (invalid input pixels back to 0; ``--fill-holes`` is the command's only), one frame per batch.
+(``main``: a LightningCLI over ``DepthRestorer`` and ``FramesDataModule``; ``tofdenoise predict`` takes only
+``ToFDataModule`` subclasses as ``--data``). LightningCLI reads the model's hyper-parameters from
+``--ckpt_path``; the trainer defaults to no logger and the CPU/GPU Lightning picks. ``DepthRestorer.predict_step``
+restores every frame (invalid input pixels back to 0; ``--fill-holes`` is the command's only), one frame per
+batch.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ from torch.utils.data import DataLoader, Dataset
 from tofdenoise.inference.frames import AmplitudeSource, FrameInput, find_frames, load_frame
 from tofdenoise.inference.outputs import OutputOptions, frame_sigma, write_frame_outputs
 
-__all__ = ["FramesDataModule", "FramesDataset", "FramesPredictionWriter"]
+__all__ = ["FramesDataModule", "FramesDataset", "FramesPredictionWriter", "main"]
 
 
 class FramesDataset(Dataset):
@@ -109,3 +110,19 @@ class FramesPredictionWriter(BasePredictionWriter):
             self.written += write_frame_outputs(
                 self.out_dir, str(batch["name"][i]), batch["noisy"][i, 0].cpu().numpy(),
                 batch["mask"][i, 0].cpu().numpy() > 0, pred[i, 0].float().cpu().numpy(), self.options, sigma)
+
+
+def main(args: list[str] | None = None) -> int:
+    """``python -m tofdenoise.inference.predict predict --ckpt_path CKPT --data.inputs [...] ...``"""
+    from lightning.pytorch.cli import LightningCLI
+
+    from tofdenoise.lightning_module import DepthRestorer
+
+    LightningCLI(DepthRestorer, FramesDataModule, args=args, save_config_callback=None,
+                 auto_configure_optimizers=False,
+                 trainer_defaults={"logger": False, "enable_checkpointing": False, "enable_model_summary": False})
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()
