@@ -95,7 +95,7 @@ def restore_frame(model: Any, depth_mm: np.ndarray, valid: np.ndarray, amplitude
     if model.hparams.use_signal_channel and amplitude is None:
         raise ValueError("this checkpoint uses the amplitude (signal) channel: give the frame's amplitude "
                          "(tofdenoise-denoise --amplitude DIR_OR_PATTERN)")
-    device = next(model.parameters()).device
+    device = model.device
     valid_t = torch.from_numpy(np.ascontiguousarray(valid, dtype=np.float32))[None, None].to(device)
     depth = np.where(valid, depth_mm, 0.0).astype(np.float32)
     batch: dict[str, torch.Tensor] = {"noisy": torch.from_numpy(depth)[None, None].to(device), "mask": valid_t}
