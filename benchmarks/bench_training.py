@@ -51,9 +51,7 @@ def time_steps(model, optimizer, batches, steps: int) -> list[float]:
     for _ in range(steps):
         t0 = time.perf_counter()
         batch = batches()
-        x = model.network_input(batch)
-        pred = model.backbone(x)
-        loss = model.criterion(pred, batch["clean"] / model.hparams.depth_scale_mm, batch["sigma"], batch["mask"])
+        loss = model.training_loss(batch, model.backbone)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()

@@ -2,9 +2,11 @@
 
 Training recipe of the paper (Sec. V-A): AdamW (lr 2e-4), cosine annealing of the learning rate to 1e-6 over
 the run, batch 4 of 320 x 320 crops, checkpoint with the lowest validation MAE. The network works in
-normalised units: its input channel 0 is ``noisy_mm / depth_scale_mm`` (optional channel 1: the amplitude
-divided by its per-image maximum over valid pixels) and it predicts ``depth_mm / depth_scale_mm``; losses are
-computed in those units, metrics in millimetres.
+normalised units: its input channel 0 is ``(filled_mm - offset_mm) / depth_scale_mm`` -- input holes filled and
+the depth centred on a smooth local offset (``tofdenoise.models.conditioning``) -- (optional channel 1: the
+amplitude divided by its per-image maximum over valid pixels) and it predicts ``(depth_mm - offset_mm) /
+depth_scale_mm``; the offset is added back in float32 outside the network. Losses are computed in those units,
+metrics in millimetres.
 
 Every hyper-parameter is a plain value (backbone and loss chosen by registered name), so a checkpoint loads
 with ``torch.load(weights_only=True)`` and ``DepthRestorer.load_from_checkpoint(path)`` needs no argument.
@@ -34,13 +36,20 @@ import torch
 from torch import Tensor, nn
 
 from tofdenoise.metrics import DepthMetrics, depth_metrics_per_image
+from tofdenoise.models.conditioning import (
+    CENTERING_MODES,
+    fill_invalid_mm,
+    image_offset_mm,
+    local_offset_mm,
+    valid_input_mask,
+)
 
 __all__ = ["DepthRestorer", "ARCHITECTURE_HPARAMS", "CheckpointMismatchError"]
 
 log = logging.getLogger(__name__)
 
 #: hyper-parameters that define the network's parameters: a checkpoint must agree on all of them.
-ARCHITECTURE_HPARAMS = ("backbone", "backbone_kwargs", "use_signal_channel", "ema")
+ARCHITECTURE_HPARAMS = ("backbone", "backbone_kwargs", "use_signal_channel", "ema", "input_centering")
 
 
 class CheckpointMismatchError(ValueError):
@@ -53,6 +62,8 @@ def _architecture(hparams: dict[str, Any]) -> dict[str, Any]:
         "backbone_kwargs": dict(hparams.get("backbone_kwargs") or {}),
         "use_signal_channel": bool(hparams.get("use_signal_channel", False)),
         "ema": hparams.get("ema_decay") is not None,
+        # checkpoints written before input centring existed fed raw depth / depth_scale_mm
+        "input_centering": hparams.get("input_centering", "none"),
     }
 
 
@@ -66,6 +77,10 @@ class DepthRestorer(pl.LightningModule):
         loss: registered loss name (``tofdenoise.losses.available_losses()``: ``l1``, ``nar``, ``full``).
         loss_kwargs: keyword arguments of the loss (e.g. ``beta``, ``lambda_g``).
         depth_scale_mm: fixed divisor turning millimetres into network units.
+        input_centering: ``local`` (default: depth minus a smooth local offset, see
+            ``tofdenoise.models.conditioning``), ``image`` (minus the per-image valid median) or ``none``
+            (raw depth / depth_scale_mm, checkpoints written before centring).
+        centering_block_px: block size of the ``local`` offset in pixels.
         use_signal_channel: feed the normalised amplitude as a second input channel.
         lr: AdamW initial learning rate (paper: 2e-4).
         weight_decay: AdamW weight decay on >= 2-D weights not flagged `_no_weight_decay` (AdamW's default 1e-2;
@@ -91,6 +106,8 @@ class DepthRestorer(pl.LightningModule):
         loss: str = "full",
         loss_kwargs: dict[str, Any] | None = None,
         depth_scale_mm: float = 1000.0,
+        input_centering: str = "local",
+        centering_block_px: int = 16,
         use_signal_channel: bool = False,
         lr: float = 2e-4,
         weight_decay: float = 1e-2,
@@ -118,6 +135,11 @@ class DepthRestorer(pl.LightningModule):
                              f"valid names: {', '.join(available_losses())}")
         if not depth_scale_mm > 0:
             raise ValueError(f"DepthRestorer.depth_scale_mm must be > 0, got {depth_scale_mm}")
+        if input_centering not in CENTERING_MODES:
+            raise ValueError(f"DepthRestorer.input_centering: unknown mode {input_centering!r}; "
+                             f"valid: {', '.join(CENTERING_MODES)}")
+        if int(centering_block_px) < 1:
+            raise ValueError(f"DepthRestorer.centering_block_px must be >= 1, got {centering_block_px}")
         if not (lr > 0 and 0 <= lr_min <= lr):
             raise ValueError(f"DepthRestorer: need lr > 0 and 0 <= lr_min <= lr, got lr={lr}, lr_min={lr_min}")
         if warmup_steps < 0:
@@ -175,28 +197,50 @@ class DepthRestorer(pl.LightningModule):
         """Backbone forward in network units, (B, C, H, W) -> (B, 1, H, W)."""
         return self.backbone(x)
 
+    def condition(self, batch: dict[str, Any]) -> tuple[Tensor, Tensor]:
+        """Network input (B, C, H, W) and the offset (mm) to add back to ``depth_scale_mm`` x its output.
+
+        Channel 0: ``(filled - offset) / depth_scale_mm`` where ``filled`` is the noisy depth with its invalid
+        pixels (0, negative, NaN) filled by pull-push and ``offset`` the smooth local level (or the image
+        median, or 0; ``input_centering``); computed in float32 whatever the autocast setting. Channel 1
+        (optional): amplitude / its per-image maximum over valid pixels.
+        """
+        noisy = batch["noisy"]
+        with torch.autocast(device_type=noisy.device.type, enabled=False):
+            valid = valid_input_mask(noisy)
+            filled = fill_invalid_mm(noisy.float(), valid)
+            mode = self.hparams.get("input_centering", "local")
+            if mode == "local":
+                offset = local_offset_mm(filled, int(self.hparams.get("centering_block_px", 16)))
+            elif mode == "image":
+                offset = image_offset_mm(filled, valid)
+            else:
+                offset = torch.zeros_like(filled[:, :, :1, :1])
+            x = (filled - offset) / self.hparams.depth_scale_mm
+            if self.hparams.use_signal_channel:
+                if "amplitude" not in batch:
+                    raise KeyError("DepthRestorer(use_signal_channel=True) needs batch['amplitude']")
+                amp = batch["amplitude"].float() * batch["mask"]
+                peak = amp.amax(dim=(1, 2, 3), keepdim=True).clamp_min(1e-12)
+                x = torch.cat([x, amp / peak], dim=1)
+        return x, offset
+
     def network_input(self, batch: dict[str, Any]) -> Tensor:
-        """Channel 0: noisy depth / depth_scale_mm; channel 1 (optional): amplitude / per-image max."""
-        x = batch["noisy"] / self.hparams.depth_scale_mm
-        if not self.hparams.use_signal_channel:
-            return x
-        if "amplitude" not in batch:
-            raise KeyError("DepthRestorer(use_signal_channel=True) needs batch['amplitude']")
-        amp = batch["amplitude"] * batch["mask"]
-        peak = amp.amax(dim=(1, 2, 3), keepdim=True).clamp_min(1e-12)
-        return torch.cat([x, amp / peak], dim=1)
+        """The conditioned network input of :meth:`condition` (without the offset)."""
+        return self.condition(batch)[0]
 
     def restore_mm(self, batch: dict[str, Any], tile: int | None = None, net: nn.Module | None = None) -> Tensor:
-        """Restored depth in millimetres (B, 1, H, W), tiled when a side exceeds ``tile``."""
+        """Restored depth in millimetres (B, 1, H, W) at every pixel (input holes get the network's estimate;
+        callers mask them), tiled when a side exceeds ``tile``."""
         net = self.eval_net if net is None else net
-        x = self.network_input(batch)
+        x, offset = self.condition(batch)
         if tile is not None and max(x.shape[-2:]) > tile:
             from tofdenoise.models import tiled_forward
 
             y = tiled_forward(net, x, tile=tile, overlap=self.hparams.tile_overlap)
         else:
             y = net(x)
-        return y.float() * self.hparams.depth_scale_mm
+        return y.float() * self.hparams.depth_scale_mm + offset
 
     # ------------------------------------------------------------------ optimisation
     def parameter_groups(self) -> list[dict[str, Any]]:
@@ -227,11 +271,18 @@ class DepthRestorer(pl.LightningModule):
             sched = torch.optim.lr_scheduler.SequentialLR(opt, [ramp, sched], milestones=[warm])
         return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step", "frequency": 1}}
 
+    def training_loss(self, batch: dict[str, Any], net: nn.Module | None = None) -> Tensor:
+        """The loss of one training batch through ``net`` (default: the training network)."""
+        if net is None:
+            net = self._compiled if self._compiled is not None else self.backbone
+        x, offset = self.condition(batch)
+        pred = net(x)
+        # the target in the network's units: both sides shifted by the same offset, so differences are mm / scale
+        target = (batch["clean"].float() - offset) / self.hparams.depth_scale_mm
+        return self.criterion(pred.float(), target, batch["sigma"], batch["mask"])
+
     def training_step(self, batch: dict[str, Any], batch_idx: int) -> Tensor:
-        net = self._compiled if self._compiled is not None else self.backbone
-        pred = net(self.network_input(batch))
-        target = batch["clean"] / self.hparams.depth_scale_mm
-        loss = self.criterion(pred.float(), target, batch["sigma"], batch["mask"])
+        loss = self.training_loss(batch)
         if not torch.isfinite(loss):
             raise FloatingPointError(f"DepthRestorer: non-finite training loss {loss.item()} at step "
                                      f"{self.global_step} (lower lr, enable gradient clipping, check the data)")

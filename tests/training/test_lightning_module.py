@@ -57,9 +57,11 @@ def test_hparams_are_plain_values():
 def test_signal_channel_input(tiny_data):
     model = tiny_model(use_signal_channel=True)
     batch = next(iter(tiny_data.val_dataloader()))
-    x = model.network_input(batch)
+    x, offset = model.condition(batch)
     assert x.shape[1] == 2
-    torch.testing.assert_close(x[:, :1], batch["noisy"] / 1000.0)
+    # channel 0: the depth centred on the local offset (no input holes here: noisy > 0 wherever mask is 1)
+    valid = batch["noisy"] > 0
+    torch.testing.assert_close((x[:, :1] * 1000.0 + offset)[valid], batch["noisy"][valid])
     amp = batch["amplitude"] * batch["mask"]
     assert torch.allclose(x[:, 1:].amax(dim=(1, 2, 3)), torch.ones(x.shape[0]))
     torch.testing.assert_close(x[0, 1], amp[0, 0] / amp[0].max())
