@@ -57,17 +57,32 @@ def eval_frames(cache_dir) -> list[dict[str, torch.Tensor]]:
     return frames
 
 
+def depth_edges(clean_mm: np.ndarray, jump: float = 0.02, margin_px: int = 2) -> np.ndarray:
+    """Pixels within ``margin_px`` of a depth discontinuity of the clean scene (relative jump > ``jump``)."""
+    gy = np.abs(np.diff(clean_mm, axis=0)) > jump * np.maximum(clean_mm[1:], clean_mm[:-1])
+    gx = np.abs(np.diff(clean_mm, axis=1)) > jump * np.maximum(clean_mm[:, 1:], clean_mm[:, :-1])
+    edge = np.zeros(clean_mm.shape, dtype=bool)
+    edge[1:] |= gy
+    edge[:-1] |= gy
+    edge[:, 1:] |= gx
+    edge[:, :-1] |= gx
+    return ndimage.binary_dilation(edge, iterations=margin_px)
+
+
 def near_far_errors(model, frames) -> tuple[np.ndarray, np.ndarray, bool]:
-    """|restored - clean| over valid pixels within NEAR_PX of a hole / farther than 2 NEAR_PX from any; and
-    whether every valid pixel got a valid (> 0) depth and every hole stayed 0."""
+    """|restored - clean| over valid pixels within NEAR_PX of a hole / farther than 2 NEAR_PX from any, both away
+    from depth edges (where every local method errs, holes or not); and whether every valid pixel got a valid
+    (> 0) depth and every hole stayed 0."""
     near, far, stays_valid = [], [], True
     for item in frames:
         valid = (item["mask"][0] > 0).numpy()
+        clean = item["clean"][0].numpy()
         restored = tofdenoise.denoise(item["noisy"][0].numpy(), model)
-        err = np.abs(restored - item["clean"][0].numpy())
+        err = np.abs(restored - clean)
         dist = ndimage.distance_transform_edt(~item["holes"][0].numpy())
-        near.append(err[valid & (dist <= NEAR_PX)])
-        far.append(err[valid & (dist > 2 * NEAR_PX)])
+        surface = valid & ~depth_edges(clean)
+        near.append(err[surface & (dist <= NEAR_PX)])
+        far.append(err[surface & (dist > 2 * NEAR_PX)])
         stays_valid &= bool(np.all(restored[valid] > 0)) and bool(np.all(restored[~valid] == 0))
     return np.concatenate(near), np.concatenate(far), stays_valid
 
@@ -81,7 +96,7 @@ def test_no_halo_with_a_local_denoiser(tmp_path):
     model.backbone = MedianDenoiser(3)
     frames = eval_frames(tmp_path / "cache")
     near, far, stays_valid = near_far_errors(model.eval(), frames)
-    assert np.median(far) < 0.8 * np.median(raw_errors(frames))  # it does denoise (the median: away from edges)
+    assert far.mean() < 0.8 * raw_errors(frames).mean()  # it does denoise
     assert stays_valid
     assert near.mean() <= 1.5 * far.mean(), f"MAE next to holes {near.mean():.2f} mm vs far {far.mean():.2f} mm"
 
