@@ -43,3 +43,30 @@ def _wandb_dirs(tmp_path_factory, monkeypatch):
     for var in ("WANDB_DIR", "WANDB_CACHE_DIR", "WANDB_CONFIG_DIR", "WANDB_DATA_DIR"):
         monkeypatch.setenv(var, str(base))
     yield
+
+
+def save_restorer_checkpoint(path, **hparams):
+    """A DepthRestorer checkpoint (untrained tiny U-Net unless ``hparams`` say otherwise) in Lightning's format."""
+    import lightning
+    import torch
+
+    from tofdenoise.lightning_module import DepthRestorer
+
+    kwargs = {"backbone": "unet", "backbone_kwargs": {"width": 8, "stages": 2}, **hparams}
+    torch.manual_seed(0)
+    model = DepthRestorer(**kwargs)
+    torch.save({"state_dict": model.state_dict(), "hyper_parameters": dict(model.hparams),
+                "pytorch-lightning_version": lightning.__version__, "epoch": 0, "global_step": 0}, path)
+    return path
+
+
+@pytest.fixture(scope="session")
+def restorer_ckpt(tmp_path_factory):
+    """Path of a tiny untrained DepthRestorer checkpoint (depth only)."""
+    return save_restorer_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny.ckpt")
+
+
+@pytest.fixture(scope="session")
+def make_restorer_ckpt():
+    """``save_restorer_checkpoint(path, **hparams)``: writes a tiny DepthRestorer checkpoint."""
+    return save_restorer_checkpoint

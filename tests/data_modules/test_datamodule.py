@@ -55,7 +55,7 @@ def test_validation_noise_identical_across_epochs_runs_and_workers(tmp_path):
 
 
 def test_training_noise_is_fresh_and_workers_do_not_repeat(tmp_path):
-    dm = make_dm(tmp_path, crop_size=None, flips=False, num_workers=2, batch_size=1)
+    dm = make_dm(tmp_path, crop_size=None, flips=False, num_workers=2, batch_size=1, holes=False)
     ds = dm.datasets["train"]
     a, b = ds[0], ds[0]
     torch.testing.assert_close(a["clean"], b["clean"])
@@ -71,7 +71,7 @@ def test_training_noise_is_fresh_and_workers_do_not_repeat(tmp_path):
 
 
 def test_crops_keep_maps_aligned(tmp_path):
-    dm = make_dm(tmp_path)
+    dm = make_dm(tmp_path, holes=False)  # holes change the maps (tests/data_modules/test_holes.py)
     full = dm.cache.read
     ds = dm.datasets["train"]
     for index in range(len(ds)):
@@ -101,7 +101,7 @@ def test_crops_keep_maps_aligned(tmp_path):
 
 
 def test_hetero_noise_std_matches_sigma_map(tmp_path):
-    dm = make_dm(tmp_path, num_samples=20, height=64, width=96)
+    dm = make_dm(tmp_path, num_samples=20, height=64, width=96, holes=False)
     z = torch.cat([((b["noisy"] - b["clean"]) / b["sigma"])[b["mask"] > 0] for b in dm.val_dataloader()])
     assert z.numel() > 20000
     assert float(z.mean()) == pytest.approx(0.0, abs=0.03)

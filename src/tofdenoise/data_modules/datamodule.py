@@ -59,6 +59,9 @@ class ToFDataModule(L.LightningDataModule):
         signal_lower_percentile / signal_upper_percentile: amplitude normalisation (None: physics defaults).
         real_min_count: valid high-exposure frames a reference pixel needs (None: half of the frames).
         depth_unit_mm, min_valid_mm, max_valid_mm: folder / flyingthings3d reading options.
+        holes: give synthetic inputs realistic invalid regions (low signal, depth edges, dropout blobs;
+            ``tofdenoise.data_modules.holes``), zero there and out of ``mask``: random in training, fixed per
+            sample (seeded) in validation/test/predict. holes_kwargs: ``HoleModel`` settings.
     """
 
     def __init__(
@@ -96,6 +99,8 @@ class ToFDataModule(L.LightningDataModule):
         depth_unit_mm: float = 1.0,
         min_valid_mm: float | None = None,
         max_valid_mm: float | None = None,
+        holes: bool = True,
+        holes_kwargs: dict[str, Any] | None = None,
     ):
         super().__init__()
         from tofdenoise.physics.calibration import SensorCalibration, resolve_calibration
@@ -103,6 +108,7 @@ class ToFDataModule(L.LightningDataModule):
         if isinstance(sensor, SensorCalibration):
             sensor = sensor.to_dict()
         noise_kwargs = dict(noise_kwargs or {})
+        holes_kwargs = dict(holes_kwargs or {})
         split_ratios = [float(r) for r in split_ratios]
         self.save_hyperparameters()
         if source not in SOURCES:
@@ -112,6 +118,13 @@ class ToFDataModule(L.LightningDataModule):
         self.noise_name = str(noise).lower()
         self.noise_kwargs = noise_kwargs
         self.crop = _crop_pair(crop_size)
+        from tofdenoise.data_modules.holes import HoleModel
+
+        try:
+            self.hole_model = HoleModel(**holes_kwargs) if holes else None
+        except TypeError as exc:
+            raise ValueError(f"data.holes_kwargs: {exc}; valid keys: max_low_signal_fraction, edge_jump, edge_prob, "
+                             "blob_density, blob_radius_px") from None
         if batch_size < 1 or eval_batch_size < 1:
             raise ValueError("data.batch_size and data.eval_batch_size must be >= 1")
         if not 0 < max_depth_fraction <= 1:
@@ -276,11 +289,12 @@ class ToFDataModule(L.LightningDataModule):
         state = self._require_state()
         hp = self.hparams
         provider, splits, model = state["provider"], state["splits"], state["noise_model"]
+        holes = self.hole_model
         self.datasets = {
             "train": SyntheticPairs(provider, splits["train"], "train", model, hp.seed, train=True, crop=self.crop,
-                                    flips=hp.flips),
-            "val": SyntheticPairs(provider, splits["val"], "val", model, hp.seed, train=False),
-            "test": SyntheticPairs(provider, splits["test"], "test", model, hp.seed, train=False),
+                                    flips=hp.flips, holes=holes),
+            "val": SyntheticPairs(provider, splits["val"], "val", model, hp.seed, train=False, holes=holes),
+            "test": SyntheticPairs(provider, splits["test"], "test", model, hp.seed, train=False, holes=holes),
         }
         if state["real_scenes"]:
             calib, min_count = self.calib, hp.real_min_count

@@ -3,6 +3,8 @@
 Batch items (after default collation) are float32 tensors (B, 1, H, W) in mm: ``noisy``, ``clean``, ``sigma``
 (the hetero sigma_D map whatever the training noise is), ``mask`` (1 valid / 0 invalid), ``amplitude``; plus
 ``index`` (position in the split) and ``name`` (sample id). Invalid pixels are 0 in ``clean`` and ``noisy``.
+Synthetic pairs may carry holes (``tofdenoise.data_modules.holes``): pixels invalid in the simulated input,
+0 in every map and in ``mask``.
 """
 
 from __future__ import annotations
@@ -59,10 +61,13 @@ class SyntheticPairs(Dataset):
     different ``torch.initial_seed()`` per epoch, so workers never repeat each other's streams.
     train=False: full resolution, noise from ``torch.Generator().manual_seed(stable_seed(seed, split, id))``:
     the same noisy input for a sample in every epoch and every run.
+    holes (a ``HoleModel``): invalid input regions drawn after the noise, from the training generator (train) or
+    from ``manual_seed(stable_seed(seed, split, id, "holes"))`` (eval: the same holes in every epoch and run,
+    and the noise is the same as without holes).
     """
 
     def __init__(self, provider: MapProvider, sample_ids: list[str], split: str, noise_model: Any, seed: int,
-                 train: bool, crop: tuple[int, int] | None = None, flips: bool = True):
+                 train: bool, crop: tuple[int, int] | None = None, flips: bool = True, holes: Any = None):
         self.provider = provider
         self.sample_ids = list(sample_ids)
         self.split = split
@@ -71,6 +76,7 @@ class SyntheticPairs(Dataset):
         self.train = bool(train)
         self.crop = crop
         self.flips = flips
+        self.holes = holes
         self._generator: torch.Generator | None = None
         self._generator_base: int | None = None
 
@@ -96,6 +102,8 @@ class SyntheticPairs(Dataset):
             "mask": _as_tensor(maps.mask),
             "amplitude": _as_tensor(maps.amplitude),
         }
+        if self.holes is not None:
+            tensors["signal"] = _as_tensor(maps.signal_e)
         if self.train:
             generator = self.train_generator()
             tensors = random_crop_flip(tensors, self.crop, generator, hflip=self.flips, vflip=self.flips)
@@ -104,7 +112,16 @@ class SyntheticPairs(Dataset):
         valid = tensors["mask"] > 0.5
         noisy = self.noise_model.sample(tensors["clean"], tensors["sigma"], valid=valid, generator=generator)
         noisy = torch.where(valid, noisy.to(torch.float32), torch.zeros((), dtype=torch.float32))
-        return {"noisy": noisy, **tensors, "index": index, "name": sample_id}
+        tensors = {"noisy": noisy, **tensors}
+        if self.holes is not None:
+            from tofdenoise.data_modules.holes import apply_holes
+
+            signal = tensors.pop("signal")
+            hole_generator = generator if self.train else torch.Generator().manual_seed(
+                stable_seed(self.seed, self.split, sample_id, "holes"))
+            holes = self.holes.sample(tensors["clean"], signal, valid, self.provider.calib, hole_generator)
+            tensors = apply_holes(tensors, holes)
+        return {**tensors, "index": index, "name": sample_id}
 
 
 class RealCaptures(Dataset):

@@ -1,0 +1,158 @@
+"""Denoise camera frames with a trained ``DepthRestorer``: the one restoration path of ``tofdenoise-denoise``, the
+Python API ``tofdenoise.denoise`` and LightningCLI ``predict`` on a folder of frames.
+
+A frame is restored as ``DepthRestorer.predict_step`` does: ``model.restore_mm({"noisy", "mask"[, "amplitude"]},
+tile=...)`` (the model fills invalid input pixels before the network and centres the input; frames larger than
+the tile size run tile by tile), then pixels invalid in the input are set back to 0 unless ``fill_holes``.
+On CUDA the network runs under bf16 autocast (``precision="bf16"``; ``"fp32"`` to turn it off).
+"""
+
+from __future__ import annotations
+
+from contextlib import nullcontext
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+__all__ = ["CheckpointError", "denoise", "load_restorer", "resolve_device", "restore_frame", "sigma_map_mm"]
+
+
+class CheckpointError(ValueError):
+    """A file given as a checkpoint is not a DepthRestorer checkpoint."""
+
+
+def resolve_device(device: str | torch.device = "auto") -> torch.device:
+    """``"auto"`` -> CUDA when available, else CPU; ``"cuda"`` without a GPU is an error."""
+    name = str(device)
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    dev = torch.device(name)
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError("--device cuda: no CUDA device is available (use --device cpu or auto)")
+    if dev.type not in ("cpu", "cuda"):
+        raise ValueError(f"device must be auto, cpu or cuda, got {name!r}")
+    return dev
+
+
+def load_restorer(ckpt: str | Path, device: str | torch.device = "cpu"):
+    """A ``DepthRestorer`` in eval mode from a checkpoint of ``tofdenoise-train`` / ``tofdenoise fit``; anything
+    else is a ``CheckpointError`` naming the file and what was expected."""
+    from tofdenoise.lightning_module import DepthRestorer
+
+    path = Path(ckpt).expanduser()
+    expected = "expected a DepthRestorer checkpoint (.ckpt written by tofdenoise-train or tofdenoise fit)"
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint file not found: {path}")
+    try:
+        content = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # not a torch file, truncated, pickled objects ...
+        raise CheckpointError(f"checkpoint {path} could not be read as a PyTorch checkpoint ({exc}); {expected}") \
+            from exc
+    hparams = content.get("hyper_parameters") if isinstance(content, dict) else None
+    if not isinstance(content, dict) or "state_dict" not in content or not isinstance(hparams, dict) \
+            or "backbone" not in hparams:
+        keys = sorted(content)[:8] if isinstance(content, dict) else type(content).__name__
+        raise CheckpointError(f"checkpoint {path} is not a DepthRestorer checkpoint (found {keys}); {expected}")
+    if not any(k.startswith("backbone.") for k in content["state_dict"]):
+        raise CheckpointError(f"checkpoint {path} has no backbone weights; {expected}")
+    del content
+    try:
+        model = DepthRestorer.load_from_checkpoint(path, map_location="cpu")
+    except Exception as exc:
+        raise CheckpointError(f"checkpoint {path} could not be loaded as a DepthRestorer: {exc}") from exc
+    return model.to(resolve_device(device)).eval()
+
+
+def _as_model(model_or_ckpt: Any, device: str | torch.device):
+    from tofdenoise.lightning_module import DepthRestorer
+
+    if isinstance(model_or_ckpt, DepthRestorer):
+        return model_or_ckpt.eval()
+    if isinstance(model_or_ckpt, (str, Path)):
+        return load_restorer(model_or_ckpt, device)
+    raise TypeError(f"model_or_ckpt: expected a DepthRestorer or a checkpoint path, got {type(model_or_ckpt).__name__}")
+
+
+def _autocast(device: torch.device, precision: str):
+    if precision not in ("bf16", "fp32"):
+        raise ValueError(f"precision must be 'bf16' or 'fp32', got {precision!r}")
+    if device.type == "cuda" and precision == "bf16":
+        return torch.autocast("cuda", dtype=torch.bfloat16)
+    return nullcontext()
+
+
+@torch.no_grad()
+def restore_frame(model: Any, depth_mm: np.ndarray, valid: np.ndarray, amplitude: np.ndarray | None = None,
+                  fill_holes: bool = False, tile: int | None = None, precision: str = "bf16") -> np.ndarray:
+    """Restored depth [mm] float32 (H, W) of one frame (0 at invalid input pixels unless ``fill_holes``).
+
+    ``depth_mm``: float (H, W), any value at invalid pixels (set to 0 here); ``valid``: bool (H, W);
+    ``amplitude``: (H, W) or None (required when the model uses the signal channel); ``tile``: tile side
+    (default: the model's ``predict_tile_size``). The model's device is used.
+    """
+    if model.hparams.use_signal_channel and amplitude is None:
+        raise ValueError("this checkpoint uses the amplitude (signal) channel: give the frame's amplitude "
+                         "(tofdenoise-denoise --amplitude DIR_OR_PATTERN)")
+    device = model.device
+    valid_t = torch.from_numpy(np.ascontiguousarray(valid, dtype=np.float32))[None, None].to(device)
+    depth = np.where(valid, depth_mm, 0.0).astype(np.float32)
+    batch: dict[str, torch.Tensor] = {"noisy": torch.from_numpy(depth)[None, None].to(device), "mask": valid_t}
+    if model.hparams.use_signal_channel:
+        batch["amplitude"] = torch.from_numpy(np.ascontiguousarray(amplitude, dtype=np.float32))[None, None].to(device)
+    tile = model.hparams.predict_tile_size if tile is None else int(tile)
+    with _autocast(device, precision):
+        pred = model.restore_mm(batch, tile=tile)
+    pred = pred.float()
+    if not fill_holes:
+        pred = torch.where(valid_t > 0, pred, torch.zeros_like(pred))
+    return pred[0, 0].cpu().numpy().astype(np.float32)
+
+
+def denoise(depth_mm: Any, model_or_ckpt: Any, amplitude: Any = None, fill_holes: bool = False,
+            device: str | torch.device = "auto", tile: int | None = None, precision: str = "bf16") -> np.ndarray:
+    """Denoise one depth frame: ``tofdenoise.denoise(depth_mm, "best.ckpt") -> np.ndarray``.
+
+    ``depth_mm``: (H, W) numpy array or tensor in millimetres; NaN, inf, 0 and negative values mark invalid
+    pixels. ``model_or_ckpt``: a ``DepthRestorer`` (used on its device) or a checkpoint path (loaded on
+    ``device``; load once with ``load_restorer`` for many frames). ``amplitude``: (H, W), required by models
+    that use the signal channel. Returns float32 (H, W) restored depth [mm], 0 at invalid input pixels unless
+    ``fill_holes`` (then every pixel gets a depth). Same result as ``tofdenoise-denoise`` on the same frame.
+    """
+    model = _as_model(model_or_ckpt, device)
+    depth = depth_mm.detach().cpu().numpy() if isinstance(depth_mm, torch.Tensor) else np.asarray(depth_mm)
+    depth = np.squeeze(depth) if depth.ndim > 2 else depth
+    if depth.ndim != 2 or not (np.issubdtype(depth.dtype, np.floating) or np.issubdtype(depth.dtype, np.integer)):
+        raise ValueError(f"denoise: depth_mm must be a numeric (H, W) map, got {depth.dtype} {np.shape(depth_mm)}")
+    depth = depth.astype(np.float64)
+    with np.errstate(invalid="ignore"):
+        valid = np.isfinite(depth) & (depth > 0)
+    amp = None
+    if amplitude is not None:
+        amp = amplitude.detach().cpu().numpy() if isinstance(amplitude, torch.Tensor) else np.asarray(amplitude)
+        amp = np.squeeze(amp) if amp.ndim > 2 else amp
+        if amp.shape != depth.shape:
+            raise ValueError(f"denoise: amplitude has shape {amp.shape}; expected {depth.shape} like depth_mm")
+        amp = np.where(np.isfinite(amp), amp, 0.0).astype(np.float32)
+    return restore_frame(model, depth, valid, amp, fill_holes=fill_holes, tile=tile, precision=precision)
+
+
+def sigma_map_mm(depth_mm: np.ndarray, valid: np.ndarray, amplitude: np.ndarray, calib: Any) -> np.ndarray:
+    """Per-pixel sigma_D [mm] of the input frame (paper Eqs. 1-15), NaN where invalid.
+
+    The returned signal a(p) comes from the amplitude as in training (``amplitude_to_signal_e``: per-image
+    percentiles of the valid amplitudes mapped to the calibration's signal interval, paper Sec. III-A);
+    sigma_D from ``sigma_depth_mm`` at the measured depth.
+    """
+    from tofdenoise.physics.uncertainty import amplitude_to_signal_e, sigma_depth_mm
+
+    amp = np.asarray(amplitude, dtype=np.float32)
+    ok = np.asarray(valid, dtype=bool) & np.isfinite(amp) & (amp >= 0)
+    signal = np.asarray(amplitude_to_signal_e(np.where(ok, np.maximum(amp, 1e-12), 0.0), calib, valid=ok),
+                        dtype=np.float32)
+    ok &= np.isfinite(signal)
+    safe_depth = np.where(ok, depth_mm, 1.0).astype(np.float32)
+    safe_signal = np.where(ok, signal, calib.signal_min_e).astype(np.float32)
+    sigma = np.asarray(sigma_depth_mm(safe_depth, safe_signal, calib), dtype=np.float32)
+    return np.where(ok & np.isfinite(sigma), sigma, np.nan).astype(np.float32)

@@ -1,0 +1,184 @@
+"""Camera frames for inference: find depth frames, read them with their validity, pair amplitude frames by stem.
+
+Depth formats (by suffix): 16-bit PNG/TIFF holding millimetres (0 = invalid), ``.npy`` float or integer maps in
+millimetres (NaN, inf, 0 and negative values = invalid), ``.exr`` (the depth-like channel, same validity). A
+``depth_scale_mm`` other than 1 converts stored units to mm (e.g. 0.25 for a camera counting quarter millimetres,
+1000 for metres). An 8-bit or colour image is refused: it cannot hold depth in millimetres.
+
+Amplitude frames are paired by the depth frame's stem (``pair_amplitude``): from a folder (the depth frame's
+sub-folder mirrored, then the folder itself), from a template with ``{stem}`` (e.g. ``amp/{stem}_amp.png``), or
+from a glob pattern (``amp/*.png``) whose matches are keyed by stem.
+"""
+
+from __future__ import annotations
+
+import glob as _glob
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import numpy as np
+
+from tofdenoise.data_modules.io import DataFileError, read_amplitude, read_array, read_image
+
+__all__ = ["DEPTH_FRAME_SUFFIXES", "Frame", "FrameInput", "AmplitudeSource", "find_frames", "read_depth_frame",
+           "load_frame", "FrameError"]
+
+DEPTH_FRAME_SUFFIXES = (".png", ".tif", ".tiff", ".npy", ".exr")
+AMPLITUDE_SUFFIXES = (".png", ".tif", ".tiff", ".npy", ".exr")
+
+
+class FrameError(ValueError):
+    """A frame (or its amplitude) cannot be used; the message names the file and what was expected."""
+
+
+@dataclass(frozen=True)
+class FrameInput:
+    """A depth frame on disk and its output name: ``rel`` is the path relative to the input folder (the file
+    name for a file given directly); outputs mirror it."""
+
+    path: Path
+    rel: Path
+
+    @property
+    def rel_stem(self) -> Path:
+        return self.rel.with_suffix("")
+
+
+@dataclass
+class Frame:
+    """A depth frame in memory: ``depth_mm`` float32 (H, W) with 0 at invalid pixels, ``valid`` bool (H, W),
+    ``amplitude`` float32 (H, W) in its own units (0 where not finite) or None."""
+
+    depth_mm: np.ndarray
+    valid: np.ndarray
+    amplitude: np.ndarray | None = None
+    name: str = ""
+
+
+def _is_candidate(path: Path) -> bool:
+    return path.is_file() and not path.name.startswith(".") and path.suffix.lower() in DEPTH_FRAME_SUFFIXES
+
+
+def find_frames(inputs: Sequence[str | Path], exclude: Iterable[str | Path] = ()) -> list[FrameInput]:
+    """Depth frames of ``inputs`` (files, or folders searched recursively), in a stable order; files under any
+    ``exclude`` folder (e.g. the output folder) are left out. Missing inputs are an error."""
+    excluded = [Path(e).expanduser().resolve() for e in exclude]
+
+    def skipped(path: Path) -> bool:
+        resolved = path.resolve()
+        return any(resolved == e or e in resolved.parents for e in excluded)
+
+    frames: list[FrameInput] = []
+    for item in inputs:
+        root = Path(item).expanduser()
+        if root.is_dir():
+            found = sorted(p for p in root.rglob("*") if _is_candidate(p) and not skipped(p)
+                           and not any(part.startswith(".") for part in p.relative_to(root).parts))
+            frames += [FrameInput(p, p.relative_to(root)) for p in found]
+        elif root.is_file():
+            if root.suffix.lower() not in DEPTH_FRAME_SUFFIXES:
+                raise FrameError(f"input file {root} has suffix {root.suffix!r}; expected a depth frame "
+                                 f"({', '.join(DEPTH_FRAME_SUFFIXES)})")
+            frames.append(FrameInput(root, Path(root.name)))
+        else:
+            raise FrameError(f"input not found: {root} (expected a depth frame or a folder of them)")
+    return frames
+
+
+def read_depth_frame(path: str | Path, depth_scale_mm: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """(depth_mm float32 with 0 at invalid pixels, valid bool) of one depth frame; see the module docstring."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in DEPTH_FRAME_SUFFIXES:
+        raise FrameError(f"depth file {path} has suffix {suffix!r}; expected one of {', '.join(DEPTH_FRAME_SUFFIXES)}")
+    if not depth_scale_mm > 0:
+        raise FrameError(f"depth scale must be > 0 mm per stored unit, got {depth_scale_mm}")
+    try:
+        if suffix in (".png", ".tif", ".tiff"):
+            image = read_image(path, what="depth", allowed_dtypes=(np.uint8, np.uint16, np.float32))
+            if image.dtype == np.uint8:
+                raise FrameError(f"depth file {path} is an 8-bit image: it cannot hold depth in millimetres; "
+                                 "expected a single-channel 16-bit PNG (mm, 0 = invalid), .npy or .exr")
+            raw = image
+        else:
+            raw = read_array(path, what="depth")
+    except DataFileError as exc:
+        raise FrameError(str(exc)) from exc
+    except OSError as exc:
+        raise FrameError(f"depth file {path} could not be read: {exc}") from exc
+    if raw.dtype == np.bool_:
+        raise FrameError(f"depth file {path} is boolean; expected depth values")
+    depth = raw.astype(np.float64) * float(depth_scale_mm)
+    with np.errstate(invalid="ignore"):
+        valid = np.isfinite(depth) & (depth > 0)
+    if valid.any() and float(depth[valid].max()) > np.finfo(np.float32).max:
+        raise FrameError(f"depth file {path} holds values beyond float32 range; check --depth-scale-mm")
+    return np.where(valid, depth, 0.0).astype(np.float32), valid
+
+
+class AmplitudeSource:
+    """Where amplitude frames are found: a folder, a ``{stem}`` template or a glob pattern (module docstring)."""
+
+    def __init__(self, spec: str | Path):
+        self.spec = str(spec)
+        path = Path(self.spec).expanduser()
+        self.folder: Path | None = path if path.is_dir() else None
+        self.template = self.spec if "{stem}" in self.spec else None
+        self.by_stem: dict[str, list[Path]] | None = None
+        if self.folder is None and self.template is None:
+            if not _glob.has_magic(self.spec):
+                raise FrameError(f"--amplitude {self.spec}: not a folder, a template with {{stem}} or a glob pattern")
+            self.by_stem = {}
+            for match in sorted(_glob.glob(str(path), recursive=True)):
+                p = Path(match)
+                if p.is_file() and p.suffix.lower() in AMPLITUDE_SUFFIXES:
+                    self.by_stem.setdefault(p.stem, []).append(p)
+            if not self.by_stem:
+                raise FrameError(f"--amplitude {self.spec}: the pattern matches no amplitude file")
+
+    def find(self, frame: FrameInput) -> Path:
+        """The amplitude file of ``frame``; FrameError when there is none or more than one."""
+        stem = frame.path.stem
+        if self.template is not None:
+            candidate = Path(self.template.replace("{stem}", stem)).expanduser()
+            if candidate.is_file():
+                return candidate
+            raise FrameError(f"no amplitude file for depth frame {frame.path}: {candidate} does not exist")
+        if self.by_stem is not None:
+            found = self.by_stem.get(stem, [])
+            where = f"files matching {self.spec}"
+        else:
+            assert self.folder is not None
+            found = []
+            for folder in (self.folder / frame.rel.parent, self.folder):
+                found = [p for p in sorted(folder.glob(f"{_glob.escape(stem)}.*"))
+                         if p.is_file() and p.suffix.lower() in AMPLITUDE_SUFFIXES and p.resolve() != frame.path.resolve()]
+                if found:
+                    break
+            where = f"{self.folder} (and {self.folder / frame.rel.parent})"
+        if not found:
+            raise FrameError(f"no amplitude file for depth frame {frame.path}: expected {stem}.<"
+                             f"{'|'.join(s.lstrip('.') for s in AMPLITUDE_SUFFIXES)}> in {where}")
+        if len(found) > 1:
+            raise FrameError(f"depth frame {frame.path} has {len(found)} amplitude candidates: "
+                             f"{', '.join(str(p) for p in found)}; keep one")
+        return found[0]
+
+
+def load_frame(frame: FrameInput, depth_scale_mm: float = 1.0, amplitude: AmplitudeSource | None = None) -> Frame:
+    """Read a depth frame and (when ``amplitude`` is given) its paired amplitude frame of the same shape."""
+    depth, valid = read_depth_frame(frame.path, depth_scale_mm)
+    amp = None
+    if amplitude is not None:
+        amp_path = amplitude.find(frame)
+        try:
+            amp = read_amplitude(amp_path)
+        except (DataFileError, OSError) as exc:
+            raise FrameError(f"amplitude file {amp_path} (for depth frame {frame.path}) could not be read: "
+                             f"{exc}") from exc
+        if amp.shape != depth.shape:
+            raise FrameError(f"amplitude file {amp_path} has shape {amp.shape}; expected {depth.shape} like its "
+                             f"depth frame {frame.path}")
+        amp = np.where(np.isfinite(amp), amp, 0.0).astype(np.float32)
+    return Frame(depth_mm=depth, valid=valid, amplitude=amp, name=frame.rel_stem.as_posix())

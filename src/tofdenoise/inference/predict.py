@@ -1,0 +1,128 @@
+"""LightningCLI ``predict`` on a folder of camera frames, with no noise synthesis: ``FramesDataModule`` reads the
+frames as ``tofdenoise-denoise`` does and ``FramesPredictionWriter`` writes the same per-frame outputs::
+
+    python -m tofdenoise.inference.predict predict --ckpt_path best.ckpt --data.inputs '[frames/]' \\
+        --trainer.callbacks tofdenoise.inference.FramesPredictionWriter --trainer.callbacks.out_dir restored/
+
+(``main``: a LightningCLI over ``DepthRestorer`` and ``FramesDataModule``; ``tofdenoise predict`` takes only
+``ToFDataModule`` subclasses as ``--data``). LightningCLI reads the model's hyper-parameters from
+``--ckpt_path``; the trainer defaults to no logger and the CPU/GPU Lightning picks. ``DepthRestorer.predict_step``
+restores every frame (invalid input pixels back to 0; ``--fill-holes`` is the command's only), one frame per
+batch.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Sequence
+
+import lightning as L
+import numpy as np
+import torch
+from lightning.pytorch.callbacks import BasePredictionWriter
+from torch.utils.data import DataLoader, Dataset
+
+from tofdenoise.inference.frames import AmplitudeSource, FrameInput, find_frames, load_frame
+from tofdenoise.inference.outputs import OutputOptions, frame_sigma, write_frame_outputs
+
+__all__ = ["FramesDataModule", "FramesDataset", "FramesPredictionWriter", "main"]
+
+
+class FramesDataset(Dataset):
+    """One camera frame per item: ``noisy`` (1, H, W) depth mm (0 = invalid), ``mask``, optional ``amplitude``,
+    ``sigma`` (sigma_D of the input, NaN = invalid; with a calibration and amplitude), ``name`` (output name)."""
+
+    def __init__(self, frames: Sequence[FrameInput], depth_scale_mm: float = 1.0,
+                 amplitude: AmplitudeSource | None = None, calib: Any = None):
+        self.frames = list(frames)
+        self.depth_scale_mm = float(depth_scale_mm)
+        self.amplitude = amplitude
+        self.calib = calib
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def __getitem__(self, index: int) -> dict[str, Any]:
+        frame = load_frame(self.frames[index], self.depth_scale_mm, self.amplitude)
+        item: dict[str, Any] = {"noisy": torch.from_numpy(frame.depth_mm)[None],
+                                "mask": torch.from_numpy(frame.valid.astype(np.float32))[None],
+                                "index": index, "name": frame.name}
+        if frame.amplitude is not None:
+            item["amplitude"] = torch.from_numpy(frame.amplitude)[None]
+        sigma = frame_sigma(frame, self.calib)
+        if sigma is not None:
+            item["sigma"] = torch.from_numpy(sigma)[None]
+        return item
+
+
+class FramesDataModule(L.LightningDataModule):
+    """Predict-only datamodule over camera frames (no noise synthesis, no reference).
+
+    Args:
+        inputs: depth frames or folders of them (recursive), as ``tofdenoise-denoise``.
+        amplitude: amplitude frames paired by stem (folder, ``{stem}`` template or glob); needed by checkpoints
+            that use the signal channel.
+        depth_scale_mm: millimetres per stored depth unit.
+        calib: calibration file / preset for the sigma_D map of the input (needs ``amplitude``).
+        exclude: folders whose files are not inputs (e.g. the output folder).
+        num_workers: DataLoader workers.
+    """
+
+    test_set_names = ["frames"]
+
+    def __init__(self, inputs: list[str], amplitude: str | None = None, depth_scale_mm: float = 1.0,
+                 calib: str | None = None, exclude: list[str] | None = None, num_workers: int = 0):
+        super().__init__()
+        self.save_hyperparameters()
+        if not depth_scale_mm > 0:
+            raise ValueError(f"FramesDataModule.depth_scale_mm must be > 0, got {depth_scale_mm}")
+        if calib is not None and amplitude is None:
+            raise ValueError("FramesDataModule: calib needs amplitude (the sigma_D map comes from the amplitude)")
+        self.frames = find_frames(inputs, exclude=exclude or [])
+        if not self.frames:
+            raise ValueError(f"FramesDataModule: no depth frame found in {', '.join(map(str, inputs))}")
+        self.amplitude = AmplitudeSource(amplitude) if amplitude is not None else None
+        self.calib = None
+        if calib is not None:
+            from tofdenoise.physics.calibration import resolve_calibration
+
+            self.calib = resolve_calibration(calib)
+
+    def predict_dataloader(self) -> DataLoader:
+        dataset = FramesDataset(self.frames, self.hparams.depth_scale_mm, self.amplitude, self.calib)
+        return DataLoader(dataset, batch_size=1, shuffle=False, num_workers=int(self.hparams.num_workers))
+
+
+class FramesPredictionWriter(BasePredictionWriter):
+    """Writes each predicted frame as ``tofdenoise-denoise`` does (``tofdenoise.inference.outputs``)."""
+
+    def __init__(self, out_dir: str, npy: bool = False, previews: bool = False) -> None:
+        super().__init__(write_interval="batch")
+        self.out_dir = Path(out_dir)
+        self.options = OutputOptions(npy=npy, previews=previews)
+        self.written: list[Path] = []
+
+    def write_on_batch_end(self, trainer: Any, pl_module: Any, prediction: Any, batch_indices: Any, batch: Any,
+                           batch_idx: int, dataloader_idx: int = 0) -> None:
+        pred = prediction["pred_mm"] if isinstance(prediction, dict) else prediction
+        for i in range(pred.shape[0]):
+            sigma = batch["sigma"][i, 0].cpu().numpy() if "sigma" in batch else None
+            self.written += write_frame_outputs(
+                self.out_dir, str(batch["name"][i]), batch["noisy"][i, 0].cpu().numpy(),
+                batch["mask"][i, 0].cpu().numpy() > 0, pred[i, 0].float().cpu().numpy(), self.options, sigma)
+
+
+def main(args: list[str] | None = None) -> int:
+    """``python -m tofdenoise.inference.predict predict --ckpt_path CKPT --data.inputs [...] ...``"""
+    from lightning.pytorch.cli import LightningCLI
+
+    from tofdenoise.lightning_module import DepthRestorer
+
+    LightningCLI(DepthRestorer, FramesDataModule, args=args, save_config_callback=None,
+                 auto_configure_optimizers=False,
+                 trainer_defaults={"logger": False, "enable_checkpointing": False, "enable_model_summary": False})
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

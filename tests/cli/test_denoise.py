@@ -1,0 +1,152 @@
+"""tofdenoise-denoise: formats, outputs (PNG16 / npy / sigma / preview), bad inputs, exit codes, atomic writes."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+import tofdenoise
+from tofdenoise.cli.denoise import main
+from tofdenoise.data_modules.io import depth_mm_to_png16, read_depth_mm
+from tofdenoise.inference.denoise import load_restorer, sigma_map_mm
+from tofdenoise.physics.calibration import resolve_calibration, save_calibration
+
+
+_EXR_TEST = Path(__file__).resolve().parents[1] / "data_modules" / "test_exr.py"
+
+
+def write_exr(path, depth: np.ndarray) -> None:
+    spec = importlib.util.spec_from_file_location("_exr_writer", _EXR_TEST)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    module.write_exr(path, {"Z": depth.astype(np.float32)}, 3)
+
+
+def frame(seed: int, h: int = 36, w: int = 48) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[0:h, 0:w]
+    d = np.rint(800 + 4 * x + 3 * y + rng.normal(0, 5, (h, w))).astype(np.float32)
+    d[5:11, 8:16] = 0
+    return d
+
+
+@pytest.fixture
+def frames_dir(tmp_path):
+    src = tmp_path / "frames"
+    (src / "sub").mkdir(parents=True)
+    amp = tmp_path / "amp"
+    (amp / "sub").mkdir(parents=True)
+    cv2.imwrite(str(src / "a.png"), frame(0).astype(np.uint16))
+    np.save(src / "sub" / "b.npy", np.where(frame(1) > 0, frame(1), np.nan))
+    write_exr(src / "sub" / "c.exr", frame(2))
+    for rel in ("a", "sub/b", "sub/c"):
+        np.save(amp / f"{rel}.npy", np.random.default_rng(3).uniform(100, 3000, (36, 48)).astype(np.float32))
+    return src, amp
+
+
+def test_png_npy_exr_frames_equal_the_python_api(frames_dir, restorer_ckpt, tmp_path, capsys):
+    src, amp = frames_dir
+    calib_file = save_calibration(resolve_calibration(None), tmp_path / "calib.yaml") or tmp_path / "calib.yaml"
+    out = tmp_path / "out"
+    code = main([str(src), "--ckpt", str(restorer_ckpt), "--out", str(out), "--amplitude", str(amp),
+                 "--calib", str(calib_file), "--npy", "--previews", "--device", "cpu", "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 0, err
+    assert "3 frame(s) done, 0 skipped, 0 failed" in err and "s/frame" in err
+    model = load_restorer(restorer_ckpt)
+    calib = resolve_calibration(calib_file)
+    for rel, path in (("a", src / "a.png"), ("sub/b", src / "sub" / "b.npy"), ("sub/c", src / "sub" / "c.exr")):
+        depth = read_depth_mm(path)
+        api = tofdenoise.denoise(depth, model)
+        np.testing.assert_array_equal(np.load(out / f"{rel}.npy"), api)
+        written = cv2.imread(str(out / f"{rel}.png"), cv2.IMREAD_UNCHANGED)
+        assert written.dtype == np.uint16
+        np.testing.assert_array_equal(written, depth_mm_to_png16(api))
+        valid = np.isfinite(depth) & (depth > 0)
+        assert np.all(written[~valid] == 0)  # holes stay invalid
+        sigma = np.load(out / f"{rel}_sigma_mm.npy")
+        expected = sigma_map_mm(np.where(valid, depth, 0), valid, np.load(amp / f"{rel}.npy"), calib)
+        np.testing.assert_array_equal(sigma, expected)
+        preview = cv2.imread(str(out / f"{rel}_preview.png"))
+        assert preview is not None and preview.shape[1] > 3 * 48
+    assert not list(out.rglob(".*.tmp*"))  # atomic writes leave no temporary file
+
+
+def test_fill_holes_and_depth_scale(frames_dir, restorer_ckpt, tmp_path, capsys):
+    src, _ = frames_dir
+    out = tmp_path / "filled"
+    assert main([str(src / "a.png"), "--ckpt", str(restorer_ckpt), "--out", str(out), "--fill-holes", "--npy",
+                 "--depth-scale-mm", "0.5", "--quiet"]) == 0
+    depth = read_depth_mm(src / "a.png", scale_mm=0.5)
+    expected = tofdenoise.denoise(depth, load_restorer(restorer_ckpt), fill_holes=True)
+    np.testing.assert_array_equal(np.load(out / "a.npy"), expected)
+    assert np.all(np.load(out / "a.npy")[5:11, 8:16] != 0)
+
+
+def test_bad_frames_fail_alone_and_are_listed(frames_dir, restorer_ckpt, tmp_path, capsys):
+    src, amp = frames_dir
+    cv2.imwrite(str(src / "eight.png"), np.full((36, 48), 9, np.uint8))
+    cv2.imwrite(str(src / "colour.png"), np.full((36, 48, 3), 900, np.uint16))
+    (src / "broken.npy").write_bytes(b"garbage")
+    cv2.imwrite(str(src / "odd.png"), frame(4).astype(np.uint16))
+    np.save(amp / "odd.npy", np.ones((10, 10), np.float32))  # another shape
+    cv2.imwrite(str(src / "noamp.png"), frame(5).astype(np.uint16))
+    np.save(amp / "eight.npy", np.ones((36, 48), np.float32))
+    np.save(amp / "colour.npy", np.ones((36, 48), np.float32))
+    np.save(amp / "broken.npy", np.ones((36, 48), np.float32))
+    out = tmp_path / "out"
+    code = main([str(src), "--ckpt", str(restorer_ckpt), "--out", str(out), "--amplitude", str(amp), "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 1
+    assert "3 frame(s) done, 0 skipped, 5 failed" in err
+    for name, why in (("eight.png", "8-bit"), ("colour.png", "channels"), ("broken.npy", "could not be read"),
+                      ("odd.png", "shape"), ("noamp.png", "no amplitude file")):
+        line = next(line for line in err.splitlines() if f"FAILED {src / name}" in line)
+        assert why in line, line
+        assert not (out / f"{Path(name).stem}.png").exists()
+    assert (out / "a.png").is_file() and (out / "sub" / "b.png").is_file()
+
+
+def test_startup_errors_exit_2(frames_dir, restorer_ckpt, tmp_path, capsys, make_restorer_ckpt):
+    src, _ = frames_dir
+    junk = tmp_path / "junk.ckpt"
+    junk.write_bytes(b"zzz")
+    assert main([str(src), "--ckpt", str(junk), "--out", str(tmp_path / "o")]) == 2
+    assert "junk.ckpt" in capsys.readouterr().err
+    signal_ckpt = make_restorer_ckpt(tmp_path / "sig.ckpt", use_signal_channel=True)
+    assert main([str(src), "--ckpt", str(signal_ckpt), "--out", str(tmp_path / "o")]) == 2
+    assert "--amplitude" in capsys.readouterr().err
+    assert main([str(tmp_path / "nope"), "--ckpt", str(restorer_ckpt), "--out", str(tmp_path / "o")]) == 2
+    assert "input not found" in capsys.readouterr().err
+    assert main([str(src), "--ckpt", str(restorer_ckpt), "--out", str(tmp_path / "o"), "--calib", "default"]) == 2
+    assert "--calib needs --amplitude" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+def test_output_never_overwrites_the_input(frames_dir, restorer_ckpt, capsys):
+    src, _ = frames_dir
+    before = (src / "a.png").read_bytes()
+    assert main([str(src / "a.png"), "--ckpt", str(restorer_ckpt), "--out", str(src), "--quiet"]) == 0
+    assert "skipped" in capsys.readouterr().err and (src / "a.png").read_bytes() == before
+
+
+def test_a_failed_write_leaves_no_partial_file(frames_dir, restorer_ckpt, tmp_path, monkeypatch, capsys):
+    src, _ = frames_dir
+    import tofdenoise.atomic as atomic
+
+    real = atomic.os.replace
+
+    def failing_replace(a, b):
+        if str(b).endswith("_preview.png"):
+            raise OSError("disk full")
+        return real(a, b)
+
+    monkeypatch.setattr(atomic.os, "replace", failing_replace)
+    out = tmp_path / "out"
+    assert main([str(src / "a.png"), "--ckpt", str(restorer_ckpt), "--out", str(out), "--previews", "--quiet"]) == 1
+    assert "disk full" in capsys.readouterr().err
+    assert not (out / "a_preview.png").exists() and not list(out.glob(".*tmp*"))

@@ -1,0 +1,109 @@
+"""Frame discovery, reading (PNG16 / npy / EXR, validity, units) and amplitude pairing, with errors naming files."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from tofdenoise.inference.frames import (AmplitudeSource, FrameError, FrameInput, find_frames, load_frame,
+                                         read_depth_frame)
+
+_EXR_TEST = Path(__file__).resolve().parents[1] / "data_modules" / "test_exr.py"
+
+
+def write_exr(path, depth: np.ndarray) -> None:
+    """The EXR writer of the reader's tests (ZIP compression, one FLOAT channel 'Z')."""
+    spec = importlib.util.spec_from_file_location("_exr_writer", _EXR_TEST)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    module.write_exr(path, {"Z": depth.astype(np.float32)}, 3)
+
+
+def depth_with_holes(h: int = 24, w: int = 32) -> np.ndarray:
+    d = np.linspace(500, 1500, h * w, dtype=np.float32).reshape(h, w).round()
+    d[3:7, 5:9] = 0
+    return d
+
+
+def test_png16_npy_and_exr_read_the_same_frame(tmp_path):
+    d = depth_with_holes()
+    cv2.imwrite(str(tmp_path / "a.png"), d.astype(np.uint16))
+    f = d.copy()
+    f[3:7, 5:9] = np.nan
+    f[0, 0] = -4.0
+    np.save(tmp_path / "b.npy", f)
+    write_exr(tmp_path / "c.exr", f)
+    expected_valid = d > 0
+    expected_valid[0, 0] = False
+    for name in ("a.png", "b.npy", "c.exr"):
+        depth, valid = read_depth_frame(tmp_path / name)
+        assert depth.dtype == np.float32 and depth.shape == d.shape
+        want = expected_valid if name != "a.png" else d > 0
+        np.testing.assert_array_equal(valid, want, err_msg=name)
+        np.testing.assert_array_equal(depth[want], d[want])
+        assert np.all(depth[~want] == 0)
+    depth, _ = read_depth_frame(tmp_path / "a.png", depth_scale_mm=0.25)
+    np.testing.assert_allclose(depth[d > 0], 0.25 * d[d > 0])
+
+
+def test_bad_depth_files_are_named(tmp_path):
+    cv2.imwrite(str(tmp_path / "eight.png"), np.full((8, 8), 7, np.uint8))
+    cv2.imwrite(str(tmp_path / "colour.png"), np.full((8, 8, 3), 700, np.uint16))
+    (tmp_path / "broken.png").write_bytes(b"\x89PNG not really")
+    np.save(tmp_path / "cube.npy", np.ones((2, 3, 4), np.float32))
+    (tmp_path / "text.npy").write_text("hello")
+    cases = {"eight.png": "8-bit", "colour.png": "3 channels", "broken.png": "could not be decoded",
+             "cube.npy": "2-D", "text.npy": "could not be read"}
+    for name, message in cases.items():
+        with pytest.raises(FrameError, match=message) as info:
+            read_depth_frame(tmp_path / name)
+        assert name in str(info.value)
+
+
+def test_find_frames_recursive_mirrored_and_excluding_outputs(tmp_path):
+    (tmp_path / "in" / "sub").mkdir(parents=True)
+    (tmp_path / "in" / "out").mkdir()
+    for rel in ("x.png", "sub/y.npy", "out/old.png", ".hidden.png", "notes.txt"):
+        (tmp_path / "in" / rel).write_bytes(b"")
+    frames = find_frames([tmp_path / "in"], exclude=[tmp_path / "in" / "out"])
+    assert [f.rel.as_posix() for f in frames] == ["sub/y.npy", "x.png"]
+    single = find_frames([tmp_path / "in" / "sub" / "y.npy"])
+    assert single[0].rel == Path("y.npy") and single[0].rel_stem == Path("y")
+    with pytest.raises(FrameError, match="not found"):
+        find_frames([tmp_path / "missing"])
+    with pytest.raises(FrameError, match="notes.txt"):
+        find_frames([tmp_path / "in" / "notes.txt"])
+
+
+def test_amplitude_pairing_folder_template_glob_and_errors(tmp_path):
+    d = depth_with_holes()
+    (tmp_path / "depth" / "sub").mkdir(parents=True)
+    (tmp_path / "amp" / "sub").mkdir(parents=True)
+    cv2.imwrite(str(tmp_path / "depth" / "sub" / "f1.png"), d.astype(np.uint16))
+    amp = np.arange(d.size, dtype=np.float32).reshape(d.shape)
+    np.save(tmp_path / "amp" / "sub" / "f1.npy", amp)
+    np.save(tmp_path / "amp" / "f1_amp.npy", amp * 2)
+    frame = find_frames([tmp_path / "depth"])[0]
+    loaded = load_frame(frame, amplitude=AmplitudeSource(tmp_path / "amp"))
+    np.testing.assert_array_equal(loaded.amplitude, amp)
+    assert loaded.name == "sub/f1"
+    templ = load_frame(frame, amplitude=AmplitudeSource(str(tmp_path / "amp" / "{stem}_amp.npy")))
+    np.testing.assert_array_equal(templ.amplitude, amp * 2)
+    globbed = load_frame(frame, amplitude=AmplitudeSource(str(tmp_path / "amp" / "sub" / "*.npy")))
+    np.testing.assert_array_equal(globbed.amplitude, amp)
+    # another shape: both files named
+    np.save(tmp_path / "amp" / "sub" / "f1.npy", amp[:-1])
+    with pytest.raises(FrameError, match="shape") as info:
+        load_frame(frame, amplitude=AmplitudeSource(tmp_path / "amp"))
+    assert "f1.npy" in str(info.value) and "f1.png" in str(info.value)
+    # missing amplitude
+    other = FrameInput(tmp_path / "depth" / "sub" / "f2.png", Path("sub/f2.png"))
+    cv2.imwrite(str(other.path), d.astype(np.uint16))
+    with pytest.raises(FrameError, match="no amplitude file for depth frame .*f2.png"):
+        load_frame(other, amplitude=AmplitudeSource(tmp_path / "amp"))
+    with pytest.raises(FrameError, match="matches no amplitude"):
+        AmplitudeSource(str(tmp_path / "nothing" / "*.png"))
