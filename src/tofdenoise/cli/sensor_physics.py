@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 from typing import Any
 
 
@@ -79,9 +80,14 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     )
     header = (
         f"Calibrated by tofdenoise-sensor calibrate\nsweep: {args.sweep} ({report.sweep_points} steps)\n"
-        f"dark: {args.dark} ({report.dark_frames} frames)\ndistances: {args.distances or '-'}"
+        f"dark: {args.dark} ({report.dark_frames} frames)\ndistances: {args.distances or '-'}\n"
+        f"clipping: {report.clipping_summary()}"
     )
     path = save_calibration(report.calibration, args.out, header=header)
+    if report.clipped_samples:
+        worst = sorted(report.clipped_by_file.items(), key=lambda kv: -kv[1])[:3]
+        print(f"tofdenoise-sensor calibrate: warning: {report.clipping_summary()} (most in "
+              f"{', '.join(f'{f} ({n})' for f, n in worst)})", file=sys.stderr)
     print(f"wrote {path}")
     print(json.dumps(report.calibration.to_dict(), indent=2))
     return 0
