@@ -294,11 +294,30 @@ def write_test_outputs(model: Any, run_dir: Path) -> dict[str, Any]:
     results = dict(getattr(model, "test_results", {}) or {})
     if not results:
         raise RuntimeError("no test results to write: trainer.test produced no test set")
+    results = _with_dataset_skips(results, model)
     for set_name, per in (getattr(model, "test_per_image", {}) or {}).items():
         write_per_image_csv(run_dir / "per_image" / f"{set_name}.csv", per["rows"], per["raw_rows"],
                             names=per["names"])
     write_metrics_json(run_dir / METRICS_NAME, results)
     return json.loads((run_dir / METRICS_NAME).read_text())
+
+
+#: test set name -> the datamodule's ``skipped_samples`` key of the samples it left out before testing
+_SKIP_KEYS = {"synthetic": "test", "real": "real"}
+
+
+def _with_dataset_skips(results: dict[str, Any], model: Any) -> dict[str, Any]:
+    """Add the samples the datamodule left out of a test set (no valid pixel, a capture scene without an input
+    frame) to that set's ``skipped_images``: they never reached the metric, which counts only its own."""
+    trainer = getattr(model, "_trainer", None)
+    skipped = getattr(getattr(trainer, "datamodule", None), "skipped_samples", None) or {}
+    out = {}
+    for set_name, entry in results.items():
+        n = len(skipped.get(_SKIP_KEYS.get(set_name, set_name), []))
+        if n and isinstance(entry, dict):
+            entry = {**entry, "skipped_images": int(entry.get("skipped_images") or 0) + n}
+        out[set_name] = entry
+    return out
 
 
 def _hydra_entry(cfg: DictConfig) -> None:
