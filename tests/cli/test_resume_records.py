@@ -75,6 +75,27 @@ def test_checkpoint_that_does_not_fit_the_model_leaves_the_records(finished_run,
     assert _snapshot(run_dir) == before
 
 
+def test_test_only_run_that_cannot_load_leaves_the_records(finished_run, tmp_path, tiny):
+    run_dir = _copy_run(finished_run[0], tmp_path / "run")
+    before = _snapshot(run_dir)
+    cfg = compose_config(tiny(run_dir, finished_run[1]) + ["train=false", "logger=csv", "backbone.kwargs.width=16"])
+    with pytest.raises(Exception, match="another architecture"):
+        run(cfg)
+    assert _snapshot(run_dir) == before
+    best = run_dir / "checkpoints" / "best.ckpt"
+    os.truncate(best, best.stat().st_size // 3)
+    cfg = compose_config(tiny(run_dir, finished_run[1]) + ["train=false", "logger=csv"])
+    with pytest.raises(CheckpointFileError, match=rf"checkpoint {best} is not a complete checkpoint"):
+        run(cfg)
+    assert _snapshot(run_dir) == before
+    # a test-only run that loads writes its records (after loading) and new metrics
+    good = _copy_run(finished_run[0], tmp_path / "good")
+    run(compose_config(tiny(good, finished_run[1]) + ["train=false", "logger=csv"]))
+    info = json.loads((good / "run_info.json").read_text())
+    assert info["best_ckpt"] == str(good / "checkpoints" / "best.ckpt") and "finished" in info
+    assert (good / "config.yaml").is_file() and (good / "metrics.json").is_file()
+
+
 def test_resumed_run_rewrites_its_records_after_loading(finished_run, tmp_path, tiny):
     run_dir = _copy_run(finished_run[0], tmp_path / "run")
     old = json.loads((run_dir / "run_info.json").read_text())

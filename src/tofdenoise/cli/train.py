@@ -196,14 +196,16 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     run_info = {"backbone": cfg.backbone.name, "noise": cfg.noise.name, "loss": cfg.loss.name,
                 "run_name": str(cfg.run_name), "data": str(cfg.data.get("source", "procedural")),
                 "seed": int(cfg.seed), "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+    # a resumed or test-only attempt rewrites the run's records only once its checkpoint is loaded
+    deferred = resume_ckpt is not None or not cfg.get("train", True)
     records = RunRecords(run_dir, run_info, cfg, resumed=resume_ckpt is not None)
-    if resume_ckpt is None:
+    if not deferred:
         records.write()
 
     datamodule = instantiate(cfg.data, _convert_="all")
     model = instantiate(cfg.model, _convert_="all")
     callbacks = _instantiate_group(cfg.get("callbacks"))
-    if resume_ckpt is not None:  # a resumed run's records are rewritten once its checkpoint is loaded
+    if deferred:
         callbacks.append(records)
     loggers = _instantiate_group(cfg.get("logger"))
     trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False, _convert_="all")
@@ -254,10 +256,10 @@ def _test_checkpoint(cfg: DictConfig, trainer: Any, run_dir: Path) -> str | None
 class RunRecords(Callback):
     """``run_info.json`` and ``config.yaml`` of a run attempt (atomic writes).
 
-    A fresh run writes them at once (``write()``). A resumed run writes them only once Lightning has restored
-    its checkpoint (``on_train_start``; or after a fit with nothing left to train), so an attempt that fails
-    to load its checkpoint leaves the records of the earlier attempt untouched. A resumed attempt keeps the
-    first attempt's ``started`` time and adds ``resumed``.
+    A fresh run writes them at once (``write()``). A resumed or test-only run writes them only once Lightning
+    has restored its checkpoint (``on_train_start`` / ``on_test_start``; or after a fit with nothing left to
+    train), so an attempt that fails to load its checkpoint leaves the records of the earlier attempt
+    untouched. A resumed attempt keeps the first attempt's ``started`` time and adds ``resumed``.
     """
 
     def __init__(self, run_dir: Path, run_info: dict[str, Any], cfg: DictConfig, resumed: bool = False) -> None:
@@ -283,6 +285,9 @@ class RunRecords(Callback):
             self.write()
 
     def on_train_start(self, trainer: Any, pl_module: Any) -> None:
+        self.write_if_pending(trainer)
+
+    def on_test_start(self, trainer: Any, pl_module: Any) -> None:
         self.write_if_pending(trainer)
 
 
