@@ -96,3 +96,30 @@ def test_fit_test_predict_from_the_smoke_config(tmp_path, data_cache, monkeypatc
     assert png.dtype == np.uint16 and png.shape == npy.shape == (32, 48)
     valid = np.isfinite(npy) & (npy > 0)
     assert np.abs(png[valid].astype(np.float64) - npy[valid]).max() <= 0.5 + 1e-6
+
+
+def test_truncated_checkpoint_stops_before_config_yaml_is_rewritten(tmp_path, data_cache, monkeypatch, capsys):
+    import os
+
+    import pytest
+
+    monkeypatch.setattr(sys, "argv", ["tofdenoise"])
+    monkeypatch.chdir(tmp_path)
+    common = ["--config", str(CLI_DIR / "smoke.yaml"), f"--trainer.default_root_dir={tmp_path}/run",
+              "--trainer.logger=false", "--trainer.enable_progress_bar=false",
+              f"--data.init_args.cache_dir={data_cache}", "--data.init_args.num_samples=10",
+              "--data.init_args.height=32", "--data.init_args.width=48", "--data.init_args.crop_size=32",
+              "--model.init_args.backbone_kwargs={in_channels: 1, width: 8, stages: 2}",
+              "--model.init_args.backbone=unet"]
+    cli_main(["fit", *common, "--trainer.max_epochs=1"])
+    config = tmp_path / "run" / "config.yaml"
+    last = tmp_path / "outputs" / "cli" / "smoke" / "checkpoints" / "last.ckpt"
+    before = config.read_bytes()
+    os.truncate(last, last.stat().st_size - 100)
+    for ckpt in ("last", str(last)):
+        with pytest.raises(SystemExit) as exit_info:
+            cli_main(["fit", *common, "--trainer.max_epochs=3", "--ckpt_path", ckpt])
+        assert exit_info.value.code == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert err[-1].startswith(f"tofdenoise: error: checkpoint {last} is ") and "best.ckpt" in err[-1]
+        assert config.read_bytes() == before  # max_epochs: 3 never reached the run's config.yaml

@@ -172,3 +172,24 @@ def test_report_flags_runs_that_did_not_learn_or_were_not_trained(tmp_path, caps
     assert "not trained: 0 optimiser steps" in page
     run = load_run(root / "flat")
     assert sorted(run.metrics) == ["synthetic"] and run.learned["learned"] is False
+from tofdenoise.cli.output_guard import OutputPathError, check_output_file
+
+
+
+
+@pytest.mark.parametrize("rel", ["dvss-hetero-full/metrics.json", "dvss-hetero-full/run_info.json",
+                                 "dvss-hetero-full/metrics.html", "report.txt", "dvss-hetero-full"])
+def test_out_that_would_replace_a_run_record_is_refused(runs, capsys, rel):
+    root = runs[0]
+    before = {p: p.read_bytes() for p in root.rglob("*") if p.is_file()}
+    assert main([str(root), "--out", str(root / rel)]) == 2
+    err = capsys.readouterr().err
+    assert "error: --out" in err and str(root / rel) in err
+    assert {p: p.read_bytes() for p in root.rglob("*") if p.is_file()} == before  # nothing replaced
+
+
+def test_out_html_outside_or_new_in_the_runs_folder_is_fine(runs):
+    root = runs[0]
+    assert main([str(root), "--out", str(root / "report.html")]) == 0
+    assert (root / "report.html").read_text().startswith("<!DOCTYPE html>")
+    assert main([str(root), "--out", str(root / "report.html")]) == 0  # a report may replace itself

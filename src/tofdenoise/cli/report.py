@@ -51,6 +51,7 @@ from tofdenoise.callbacks.metrics_writer import (
     read_metrics_json,
     run_fields,
 )
+from tofdenoise.cli.output_guard import OutputPathError, check_output_file
 
 __all__ = ["Run", "find_runs", "load_run", "results_table", "table_markdown", "render_html", "main",
            "learned_flag"]
@@ -441,6 +442,19 @@ def render_html(runs: Sequence[Run], title: str = "tofdenoise runs", skipped: Se
     return "".join(parts)
 
 
+def _check_out(out: Path, run_dirs: Sequence[Path]) -> None:
+    """``--out`` must be a new or replaceable ``.html`` file, never a file a run records (``metrics.json``,
+    ``run_info.json``, a CSV log, a checkpoint: anything inside a run folder) or a name beside one."""
+    inputs = [f for d in run_dirs for f in d.iterdir() if f.is_file()]
+    check_output_file(out, (".html", ".htm"), inputs)
+    if out.exists():
+        target = out.resolve()
+        for d in run_dirs:
+            if target.is_relative_to(d.resolve()):
+                raise OutputPathError(f"--out {out} is a file of the run {d}; write the report outside the run "
+                                      f"folders or under a new name")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="tofdenoise-report",
                                 description="Self-contained offline HTML report comparing tofdenoise runs; "
@@ -451,7 +465,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = p.parse_args(argv)
     try:
         dirs = find_runs(args.runs_dir)
-    except FileNotFoundError as exc:
+        _check_out(args.out, dirs)
+    except (FileNotFoundError, OutputPathError) as exc:
         print(f"tofdenoise-report: error: {exc}", file=sys.stderr)
         return 2
     runs: list[Run] = []

@@ -58,9 +58,8 @@ def robustness_specs(backbones: Sequence[str] | None = None, noises: Sequence[st
 def _val_maes(metrics: dict[str, Any] | None) -> tuple[float, float]:
     if not metrics:
         return math.nan, math.nan
-    training = metrics.get("training") or {}
-    best = training.get("best_val_mae_mm", math.nan)
-    raw = training.get("raw_val_mae_mm", math.nan)
+    best = metrics.get("best_val_mae_mm", math.nan)  # run-level fields of the learned guard
+    raw = metrics.get("raw_val_mae_mm", math.nan)
     return (math.nan if best is None else float(best)), (math.nan if raw is None else float(raw))
 
 
