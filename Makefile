@@ -23,7 +23,7 @@ export WANDB_SILENT ?= true
 export WANDB_ERROR_REPORTING ?= false
 export PYTHONUNBUFFERED := 1
 
-.PHONY: help venv train test test-slow bench cli-configs clean
+.PHONY: help venv train test test-slow bench robustness cli-configs clean
 
 help:
 	@echo "make train   - small default training on built-in procedural scenes (CPU)"
@@ -31,6 +31,7 @@ help:
 	@echo "make test    - run the test suite (slow experiments excluded)"
 	@echo "make test-slow - run the slow experiments too"
 	@echo "make bench   - side-by-side performance measurements (see docs/benchmarks.md); BENCH_ARGS=--quick"
+	@echo "make robustness - the robustness grid (108 small runs, resumable; GRID_DIR=runs/robustness GRID_ARGS=...)"
 	@echo "make cli-configs - regenerate the LightningCLI YAMLs (configs/cli/) after editing configs/"
 	@echo "make venv    - only create/refresh .venv (TORCH='torch==X' to choose the torch build)"
 
@@ -60,6 +61,13 @@ test-slow: $(STAMP)
 
 bench: $(STAMP)
 	$(PY) benchmarks/run_all.py $(BENCH_ARGS)
+
+# Does the default recipe learn for every backbone x noise x loss x seed x camera? Finished runs are skipped,
+# interrupted ones resume; the table goes to the terminal and to $(GRID_DIR)/robustness.md.
+GRID_DIR ?= runs/robustness
+GRID_ARGS ?=
+robustness: $(STAMP)
+	$(VENV)/bin/tofdenoise-grid robustness --out $(GRID_DIR) --markdown $(GRID_DIR)/robustness.md $(GRID_ARGS)
 
 # configs/cli/*.yaml are generated from the Hydra configs (one source of truth); a test fails when they are stale
 cli-configs: $(STAMP)

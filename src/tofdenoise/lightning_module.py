@@ -5,8 +5,8 @@ the run, batch 4 of 320 x 320 crops, checkpoint with the lowest validation MAE. 
 normalised units: its input channel 0 is ``(filled_mm - offset_mm) / depth_scale_mm`` -- input holes filled and
 the depth centred on a smooth local offset (``tofdenoise.models.conditioning``) -- (optional channel 1: the
 amplitude divided by its per-image maximum over valid pixels) and it predicts ``(depth_mm - offset_mm) /
-depth_scale_mm``; the offset is added back in float32 outside the network. Losses are computed in those units,
-metrics in millimetres.
+depth_scale_mm``; the offset is added back in float32 outside the network. Losses and metrics are computed in
+millimetres (the Charbonnier eps = 1e-3 mm of the paper, whatever the network's units).
 
 Every hyper-parameter is a plain value (backbone and loss chosen by registered name), so a checkpoint loads
 with ``torch.load(weights_only=True)`` and ``DepthRestorer.load_from_checkpoint(path)`` needs no argument.
@@ -81,7 +81,9 @@ class DepthRestorer(pl.LightningModule):
             from ``use_signal_channel``).
         loss: registered loss name (``tofdenoise.losses.available_losses()``: ``l1``, ``nar``, ``full``).
         loss_kwargs: keyword arguments of the loss (e.g. ``beta``, ``lambda_g``).
-        depth_scale_mm: fixed divisor turning millimetres into network units.
+        depth_scale_mm: fixed divisor turning (centred) millimetres into network units. 100 mm puts the noise
+            (3-12 mm) at 0.03-0.12 and surface detail near 1: inputs of unit order, which Adam's first steps
+            cannot swamp (docs/training.md#what-the-network-sees-input-conditioning).
         input_centering: ``local`` (default: depth minus a smooth local offset, see
             ``tofdenoise.models.conditioning``), ``image`` (minus the per-image valid median) or ``none``
             (raw depth / depth_scale_mm, checkpoints written before centring).
@@ -112,7 +114,7 @@ class DepthRestorer(pl.LightningModule):
         backbone_kwargs: dict[str, Any] | None = None,
         loss: str = "full",
         loss_kwargs: dict[str, Any] | None = None,
-        depth_scale_mm: float = 1000.0,
+        depth_scale_mm: float = 100.0,
         input_centering: str = "local",
         centering_block_px: int = 16,
         use_signal_channel: bool = False,
@@ -294,9 +296,9 @@ class DepthRestorer(pl.LightningModule):
             net = self._compiled if self._compiled is not None else self.backbone
         x, offset = self.condition(batch)
         pred = net(x)
-        # the target in the network's units: both sides shifted by the same offset, so differences are mm / scale
-        target = (batch["clean"].float() - offset) / self.hparams.depth_scale_mm
-        return self.criterion(pred.float(), target, batch["sigma"], batch["mask"])
+        # the loss in millimetres relative to the offset (differences are those of the restored depth in mm)
+        pred_mm = pred.float() * self.hparams.depth_scale_mm
+        return self.criterion(pred_mm, batch["clean"].float() - offset, batch["sigma"], batch["mask"])
 
     def training_step(self, batch: dict[str, Any], batch_idx: int) -> Tensor:
         loss = self.training_loss(batch)
@@ -315,7 +317,7 @@ class DepthRestorer(pl.LightningModule):
     # ------------------------------------------------------------------ validation
     def validation_step(self, batch: dict[str, Any], batch_idx: int, dataloader_idx: int = 0) -> dict[str, Tensor]:
         pred_mm = self.restore_mm(batch, tile=self.hparams.eval_tile_size)
-        loss = self.criterion(pred_mm / self.hparams.depth_scale_mm, batch["clean"] / self.hparams.depth_scale_mm,
+        loss = self.criterion(pred_mm, batch["clean"],
                               batch["sigma"], batch["mask"])
         self.log("val/loss", loss, on_step=False, on_epoch=True, batch_size=pred_mm.shape[0], sync_dist=True)
         index = _loader_index(batch.get("index"), dataloader_idx)

@@ -5,14 +5,15 @@ Public API:
 - ``build_loss(name, **kwargs) -> DepthLoss`` (unknown name -> ValueError listing the valid names; unknown
   keyword -> ValueError listing the accepted keywords), ``available_losses() -> ["full", "l1", "nar"]``.
 - A loss is an ``nn.Module`` called ``loss(pred, target, sigma_mm, mask) -> scalar Tensor`` with
-  ``pred``/``target`` the depth in the network's normalised units (depth_mm / depth_scale_mm) and
+  ``pred``/``target`` the depth in millimetres (``DepthRestorer`` passes both relative to the same offset) and
   ``sigma_mm``/``mask`` of the same shape, (B, 1, H, W) or (B, H, W). ``loss.terms(...)`` returns a dict with
   the total under ``"loss"`` and the parts (``"l1"``; ``"nar"``; ``"nar"``, ``"grad"``) for logging.
 
 Definitions (Omega = valid pixels, i.e. mask nonzero and target finite; sums run over all images of the
 batch, so a batch average pools the valid pixels of its images):
 
-- Charbonnier penalty rho(x) = sqrt(x^2 + eps^2), eps = 1e-3.
+- Charbonnier penalty rho(x) = sqrt(x^2 + eps^2), eps = 1e-3 mm (the paper converts all depth to millimetres:
+  rho is a smooth approximation of L1, not a Huber loss with a 1 mm knee).
 - Normalised uncertainty sigma~(t) = (sigma_D(t) - min_Omega sigma_D) / (max_Omega sigma_D - min_Omega sigma_D
   + eta), min/max per image over its valid pixels, eta = 1e-6; w(t) = 1 + beta sigma~(t), beta = 0.5.
   A non-finite sigma_D at a valid pixel is treated as the image's largest uncertainty (weight 1 + beta).
