@@ -45,7 +45,7 @@ __all__ = [
 #: positions per checkpoint chunk (the backward recomputes one chunk of states at a time)
 CHUNK = 64
 SOURCE = Path(__file__).resolve().parent / "csrc" / "selective_scan_cpu.cpp"
-CFLAGS = ["-O3", "-march=native", "-fno-math-errno", "-fno-trapping-math", "-fassociative-math", "-fno-signed-zeros"]
+CFLAGS = ["-O3", "-march=native", "-ffp-contract=fast", "-fno-math-errno", "-fno-trapping-math"]
 ENV_SWITCH = "TOFDENOISE_SCAN_CPU"
 
 

@@ -31,45 +31,102 @@
 
 namespace {
 
-constexpr int W = 16;      // lanes: channels per task
-constexpr int NMAX = 64;   // largest d_state
+constexpr int W = 16;     // lanes: channels per task
+constexpr int NMAX = 64;  // largest d_state
+constexpr int PREFETCH = 8;  // steps ahead for software prefetches
+
+// 16-float vectors (GCC / Clang vector extensions: one AVX-512 register, two AVX2 registers, ...). Values
+// that live across the state loop are vf locals, so that the compiler keeps them in registers.
+typedef float vf __attribute__((vector_size(64)));
+typedef int32_t vi __attribute__((vector_size(64)));
+
+inline vf splat(float x) { return vf{} + x; }
+inline vf loadv(const float* p) {
+    vf v;
+    std::memcpy(&v, p, sizeof(v));
+    return v;
+}
+inline void storev(float* p, vf v) { std::memcpy(p, &v, sizeof(v)); }
+// lanes [0, nw) from p, the rest 0
+inline vf load_lanes(const float* p, int nw) {
+    if (nw == W) return loadv(p);
+    alignas(64) float tmp[W] = {};
+    std::memcpy(tmp, p, sizeof(float) * nw);
+    return loadv(tmp);
+}
+inline void store_lanes(float* p, vf v, int nw) {
+    if (nw == W) {
+        storev(p, v);
+    } else {
+        alignas(64) float tmp[W];
+        storev(tmp, v);
+        std::memcpy(p, tmp, sizeof(float) * nw);
+    }
+}
+inline vf select(vi mask, vf a, vf b) { return (vf)((mask & (vi)a) | (~mask & (vi)b)); }
+inline vf vmax(vf a, vf b) { return select(a > b, a, b); }
+inline vf vmin(vf a, vf b) { return select(a < b, a, b); }
 
 // exp(x): x = n ln2 + r, |r| <= ln2 / 2, exp(r) by its degree-6 Taylor polynomial (rel. error ~1.2e-7), 2^n
-// by building the exponent bits. Branch-free so that loops over lanes vectorise. Clamped to [-87, 88].
-inline float exp_fast(float x) {
-    x = std::min(std::max(x, -87.0f), 88.0f);
-    const float n = std::floor(x * 1.44269504088896341f + 0.5f);
-    float r = std::fma(n, -0.693359375f, x);
-    r = std::fma(n, 2.12194440e-4f, r);
-    float p = 1.0f / 720.0f;
-    p = std::fma(p, r, 1.0f / 120.0f);
-    p = std::fma(p, r, 1.0f / 24.0f);
-    p = std::fma(p, r, 1.0f / 6.0f);
-    p = std::fma(p, r, 0.5f);
-    p = std::fma(p, r, 1.0f);
-    p = std::fma(p, r, 1.0f);
-    int32_t e = (static_cast<int32_t>(n) + 127) << 23;
-    float s;
-    std::memcpy(&s, &e, sizeof(s));
-    return p * s;
+// built in the exponent bits. n = round(x / ln2) by the 1.5 * 2^23 trick (needs no reassociation of float
+// sums: the build does not use -fassociative-math). Clamped to [-87, 88] (exp(-87) ~ 1.6e-38 stands for 0).
+inline vf exp_v(vf x) {
+    x = vmin(vmax(x, splat(-87.0f)), splat(88.0f));
+    const vf magic = splat(12582912.0f);
+    const vf n = (x * 1.44269504088896341f + magic) - magic;
+    vf r = x - n * 0.693359375f;
+    r = r + n * 2.12194440e-4f;
+    vf p = splat(1.0f / 720.0f);
+    p = p * r + 1.0f / 120.0f;
+    p = p * r + 1.0f / 24.0f;
+    p = p * r + 1.0f / 6.0f;
+    p = p * r + 0.5f;
+    p = p * r + 1.0f;
+    p = p * r + 1.0f;
+    const vi e = (__builtin_convertvector(n, vi) + 127) << 23;
+    return p * (vf)e;
 }
 
 // softplus(x) = max(x, 0) + log(1 + e), e = exp(-|x|) in (0, 1]; log(1 + e) = 2 atanh(s), s = e / (2 + e)
 // in (0, 1/3], by its odd series to s^13 (truncation < 2e-8 relative). Also returns sigmoid(x).
-inline float softplus_fast(float x, float* sig) {
-    const float e = exp_fast(-std::fabs(x));
-    const float s = e / (2.0f + e);
-    const float s2 = s * s;
-    float p = 1.0f / 13.0f;
-    p = std::fma(p, s2, 1.0f / 11.0f);
-    p = std::fma(p, s2, 1.0f / 9.0f);
-    p = std::fma(p, s2, 1.0f / 7.0f);
-    p = std::fma(p, s2, 1.0f / 5.0f);
-    p = std::fma(p, s2, 1.0f / 3.0f);
-    p = std::fma(p, s2, 1.0f);
-    const float inv = 1.0f / (1.0f + e);
-    *sig = x >= 0.0f ? inv : e * inv;
-    return std::max(x, 0.0f) + 2.0f * s * p;
+inline vf softplus_v(vf x, vf* sig) {
+    const vf e = exp_v(select(x > 0.0f, -x, x));
+    const vf s = e / (2.0f + e);
+    const vf s2 = s * s;
+    vf p = splat(1.0f / 13.0f);
+    p = p * s2 + 1.0f / 11.0f;
+    p = p * s2 + 1.0f / 9.0f;
+    p = p * s2 + 1.0f / 7.0f;
+    p = p * s2 + 1.0f / 5.0f;
+    p = p * s2 + 1.0f / 3.0f;
+    p = p * s2 + 1.0f;
+    const vf inv = 1.0f / (1.0f + e);
+    *sig = select(x >= 0.0f, inv, e * inv);
+    return vmax(x, splat(0.0f)) + 2.0f * s * p;
+}
+
+// out[n] = sum_j P[n][j] for 16 vectors P[0..15] (a transposing tree: 15 adds, 30 shuffles).
+inline vf transpose_sum16(const vf* P) {
+    vf q[8], r[4], s[2];
+    for (int i = 0; i < 8; ++i)
+        q[i] = __builtin_shufflevector(P[2 * i], P[2 * i + 1], 0, 1, 2, 3, 4, 5, 6, 7, 16, 17, 18, 19, 20, 21, 22, 23) +
+               __builtin_shufflevector(P[2 * i], P[2 * i + 1], 8, 9, 10, 11, 12, 13, 14, 15, 24, 25, 26, 27, 28, 29, 30, 31);
+    for (int i = 0; i < 4; ++i)
+        r[i] = __builtin_shufflevector(q[2 * i], q[2 * i + 1], 0, 1, 2, 3, 8, 9, 10, 11, 16, 17, 18, 19, 24, 25, 26, 27) +
+               __builtin_shufflevector(q[2 * i], q[2 * i + 1], 4, 5, 6, 7, 12, 13, 14, 15, 20, 21, 22, 23, 28, 29, 30, 31);
+    for (int i = 0; i < 2; ++i)
+        s[i] = __builtin_shufflevector(r[2 * i], r[2 * i + 1], 0, 1, 4, 5, 8, 9, 12, 13, 16, 17, 20, 21, 24, 25, 28, 29) +
+               __builtin_shufflevector(r[2 * i], r[2 * i + 1], 2, 3, 6, 7, 10, 11, 14, 15, 18, 19, 22, 23, 26, 27, 30, 31);
+    return __builtin_shufflevector(s[0], s[1], 0, 2, 4, 6, 8, 10, 12, 14, 16, 18, 20, 22, 24, 26, 28, 30) +
+           __builtin_shufflevector(s[0], s[1], 1, 3, 5, 7, 9, 11, 13, 15, 17, 19, 21, 23, 25, 27, 29, 31);
+}
+
+inline float hsum(vf v) {
+    alignas(64) float t[W];
+    storev(t, v);
+    float s = 0.0f;
+    for (int j = 0; j < W; ++j) s += t[j];
+    return s;
 }
 
 struct Geometry {
@@ -130,52 +187,34 @@ Geometry make_geometry(const at::Tensor& u, const at::Tensor& A, const at::Tenso
     return geo;
 }
 
-// Per-block constants: A, D, bias in lanes (inactive lanes: A = 0, D = 0, bias = 0).
+
+// Per-block constants in lanes (inactive lanes: A = D = bias = 0, mask = 0).
 struct BlockParams {
-    alignas(64) float A[NMAX][W];
-    alignas(64) float D[W];
-    alignas(64) float bias[W];
+    vf A[NMAX];
+    vf D, bias, mask;
 };
 
 inline void load_params(BlockParams& p, const float* A, const float* D, const float* bias, int64_t c0, int nw, int64_t N) {
-    for (int64_t n = 0; n < N; ++n)
-        for (int j = 0; j < W; ++j) p.A[n][j] = j < nw ? A[(c0 + j) * N + n] : 0.0f;
-    for (int j = 0; j < W; ++j) {
-        p.D[j] = (D != nullptr && j < nw) ? D[c0 + j] : 0.0f;
-        p.bias[j] = (bias != nullptr && j < nw) ? bias[c0 + j] : 0.0f;
+    alignas(64) float t[W];
+    for (int64_t n = 0; n < N; ++n) {
+        for (int j = 0; j < W; ++j) t[j] = j < nw ? A[(c0 + j) * N + n] : 0.0f;
+        p.A[n] = loadv(t);
     }
+    for (int j = 0; j < W; ++j) t[j] = (D != nullptr && j < nw) ? D[c0 + j] : 0.0f;
+    p.D = loadv(t);
+    for (int j = 0; j < W; ++j) t[j] = (bias != nullptr && j < nw) ? bias[c0 + j] : 0.0f;
+    p.bias = loadv(t);
+    for (int j = 0; j < W; ++j) t[j] = j < nw ? 1.0f : 0.0f;
+    p.mask = loadv(t);
 }
 
-// Copy nw <= W floats into lanes, zero-filling the rest. One block copy when full: element-wise stores
-// followed by a vector load of the same array stall store-to-load forwarding.
-inline void load_lanes(float* dst, const float* src, int nw) {
-    if (nw == W) {
-        std::memcpy(dst, src, sizeof(float) * W);
-    } else {
-        std::memset(dst, 0, sizeof(float) * W);
-        std::memcpy(dst, src, sizeof(float) * nw);
+// delta (after bias / softplus) and its derivative w.r.t. the raw delta, in lanes (inactive lanes: 0).
+inline vf step_delta(vf raw, const BlockParams& p, bool softplus, vf* dsig) {
+    if (!softplus) {
+        *dsig = splat(1.0f);
+        return raw + p.bias;
     }
-}
-
-// delta (after bias / softplus), its derivative w.r.t. the raw delta, and u of one step, in lanes.
-inline void load_step(const float* delta_row, const float* u_row, const BlockParams& p, int nw, bool softplus,
-                      float* dl, float* dsig, float* uu) {
-    alignas(64) float raw[W];
-    load_lanes(raw, delta_row, nw);
-    load_lanes(uu, u_row, nw);
-    if (softplus) {
-        for (int j = 0; j < W; ++j) {
-            float s;
-            const float v = softplus_fast(raw[j] + p.bias[j], &s);
-            dl[j] = j < nw ? v : 0.0f;  // inactive lanes: no step, no decay
-            dsig[j] = s;
-        }
-    } else {
-        for (int j = 0; j < W; ++j) {
-            dl[j] = raw[j] + p.bias[j];
-            dsig[j] = 1.0f;
-        }
-    }
+    return softplus_v(raw + p.bias, dsig) * p.mask;
 }
 
 struct FwdArgs {
@@ -187,62 +226,6 @@ struct FwdArgs {
     Strides4 sB, sC;
 };
 
-// Forward tasks [begin, end); NT = d_state known at compile time (the state loop unrolls and the states
-// live in registers), or 0 = runtime d_state.
-template <int NT>
-void fwd_tasks(const FwdArgs& a, int64_t begin, int64_t end) {
-    const Geometry& geo = a.geo;
-    const int64_t N = NT > 0 ? NT : geo.N, L = geo.L, G = geo.G, Dg = geo.Dg, Du = geo.Du, Dall = G * Dg;
-    const int64_t nblk = a.nblk, nck = a.nck, chunk = a.chunk;
-    const bool ss2d = geo.ss2d, softplus = a.softplus;
-    const Strides4 sB = a.sB, sC = a.sC;
-    BlockParams prm;
-    alignas(64) float h[NMAX][W];
-    alignas(64) float dl[W], dsig[W], uu[W], du[W], yy[W];
-    for (int64_t task = begin; task < end; ++task) {
-        const int64_t b = task / nblk, blk = task % nblk;
-        const int64_t d0 = blk * W;
-        const int nw = static_cast<int>(std::min<int64_t>(W, Dg - d0));
-        for (int64_t g = 0; g < G; ++g) {
-            const int64_t c0 = g * Dg + d0;      // channel of lane 0
-            const int64_t uc0 = ss2d ? d0 : c0;  // u / y column of lane 0
-            load_params(prm, a.A, a.D, a.bias, c0, nw, N);
-            for (int64_t n = 0; n < N; ++n)
-                for (int j = 0; j < W; ++j) h[n][j] = 0.0f;
-            float* ckg = a.ck + (((b * nblk + blk) * G + g) * nck) * N * W;
-            int64_t in_chunk = 0;
-            for (int64_t l = 0; l < L; ++l, ++in_chunk) {
-                if (in_chunk == chunk) in_chunk = 0;
-                if (in_chunk == 0) std::memcpy(ckg + (l / chunk) * N * W, h, sizeof(float) * N * W);
-                const int64_t p = geo.pos(g, l);
-                load_step(a.delta + (b * L + p) * Dall + c0, a.u + (b * L + p) * Du + uc0, prm, nw, softplus, dl, dsig, uu);
-                const float* Bl = a.B + b * sB.b + p * sB.l + g * sB.g;
-                const float* Cl = a.C + b * sC.b + p * sC.l + g * sC.g;
-                for (int j = 0; j < W; ++j) {
-                    du[j] = dl[j] * uu[j];
-                    yy[j] = prm.D[j] * uu[j];
-                }
-#pragma GCC unroll 16
-                for (int64_t n = 0; n < N; ++n) {
-                    const float bn = Bl[n * sB.n], cn = Cl[n * sC.n];
-                    for (int j = 0; j < W; ++j) {
-                        const float decay = exp_fast(dl[j] * prm.A[n][j]);
-                        const float hn = std::fma(decay, h[n][j], du[j] * bn);
-                        h[n][j] = hn;
-                        yy[j] = std::fma(cn, hn, yy[j]);
-                    }
-                }
-                float* yrow = a.y + (b * L + p) * Du + uc0;
-                if (ss2d) {
-                    for (int j = 0; j < nw; ++j) yrow[j] += yy[j];
-                } else {
-                    for (int j = 0; j < nw; ++j) yrow[j] = yy[j];
-                }
-            }
-        }
-    }
-}
-
 struct BwdArgs {
     Geometry geo;
     int64_t nblk, nck, chunk;
@@ -252,21 +235,77 @@ struct BwdArgs {
     Strides4 sB, sC;
 };
 
+// Forward tasks [begin, end). NT = d_state known at compile time (the state loop unrolls and the 16 state
+// vectors stay in registers), or 0 = runtime d_state.
+template <int NT>
+void fwd_tasks(const FwdArgs& a, int64_t begin, int64_t end) {
+    const Geometry& geo = a.geo;
+    const int64_t N = NT > 0 ? NT : geo.N, L = geo.L, G = geo.G, Dg = geo.Dg, Du = geo.Du, Dall = G * Dg;
+    const int64_t nblk = a.nblk, nck = a.nck, chunk = a.chunk;
+    const bool ss2d = geo.ss2d;
+    const Strides4 sB = a.sB, sC = a.sC;
+    BlockParams prm;
+    vf h[NT > 0 ? NT : NMAX];
+    for (int64_t task = begin; task < end; ++task) {
+        const int64_t b = task / nblk, blk = task % nblk;
+        const int64_t d0 = blk * W;
+        const int nw = static_cast<int>(std::min<int64_t>(W, Dg - d0));
+        for (int64_t g = 0; g < G; ++g) {
+            const int64_t c0 = g * Dg + d0;      // channel of lane 0
+            const int64_t uc0 = ss2d ? d0 : c0;  // u / y column of lane 0
+            load_params(prm, a.A, a.D, a.bias, c0, nw, N);
+            for (int64_t n = 0; n < N; ++n) h[n] = splat(0.0f);
+            float* ckg = a.ck + (((b * nblk + blk) * G + g) * nck) * N * W;
+            int64_t in_chunk = 0;
+            for (int64_t l = 0; l < L; ++l, ++in_chunk) {
+                if (in_chunk == chunk) in_chunk = 0;
+                if (in_chunk == 0) {
+                    float* dst = ckg + (l / chunk) * N * W;
+                    for (int64_t n = 0; n < N; ++n) storev(dst + n * W, h[n]);
+                }
+                const int64_t p = geo.pos(g, l);
+                if (l + PREFETCH < L) {  // column-major directions jump a whole image row per step
+                    const int64_t q = geo.pos(g, l + PREFETCH);
+                    __builtin_prefetch(a.delta + (b * L + q) * Dall + c0);
+                    __builtin_prefetch(a.u + (b * L + q) * Du + uc0);
+                    __builtin_prefetch(a.y + (b * L + q) * Du + uc0);
+                    __builtin_prefetch(a.B + b * sB.b + q * sB.l + g * sB.g);
+                    __builtin_prefetch(a.C + b * sC.b + q * sC.l + g * sC.g);
+                }
+                vf dsig;
+                const vf dl = step_delta(load_lanes(a.delta + (b * L + p) * Dall + c0, nw), prm, a.softplus, &dsig);
+                const vf uu = load_lanes(a.u + (b * L + p) * Du + uc0, nw);
+                const float* Bl = a.B + b * sB.b + p * sB.l + g * sB.g;
+                const float* Cl = a.C + b * sC.b + p * sC.l + g * sC.g;
+                const vf du = dl * uu;
+                vf yy = prm.D * uu;
+#pragma GCC unroll 16
+                for (int64_t n = 0; n < N; ++n) {
+                    h[n] = exp_v(dl * prm.A[n]) * h[n] + du * Bl[n * sB.n];
+                    yy += h[n] * Cl[n * sC.n];
+                }
+                float* yrow = a.y + (b * L + p) * Du + uc0;
+                if (ss2d) yy += load_lanes(yrow, nw);
+                store_lanes(yrow, yy, nw);
+            }
+        }
+    }
+}
+
 // Backward tasks [begin, end) (NT as in fwd_tasks).
 template <int NT>
 void bwd_tasks(const BwdArgs& a, int64_t begin, int64_t end) {
     const Geometry& geo = a.geo;
     const int64_t N = NT > 0 ? NT : geo.N, L = geo.L, G = geo.G, Dg = geo.Dg, Du = geo.Du, Dall = G * Dg;
     const int64_t nblk = a.nblk, nck = a.nck, chunk = a.chunk;
-    const bool ss2d = geo.ss2d, softplus = a.softplus;
+    const bool ss2d = geo.ss2d;
     const Strides4 sB = a.sB, sC = a.sC;
-    const float *up = a.u, *dp = a.delta, *Ap = a.A, *Bp = a.B, *Cp = a.C, *Dp = a.D, *bp = a.bias, *ckp = a.ck, *dyp = a.dy;
-    float *dup = a.du, *ddp = a.ddelta, *dAp = a.dA, *dBpp = a.dB, *dCpp = a.dC, *dDp = a.dD, *dbp = a.dbias;
     BlockParams prm;
-    // per chunk: states h_t and decays a_t (T x N x W), steps, sigmoids, inputs (T x W)
-    std::vector<float> Hbuf(chunk * N * W), Abuf(chunk * N * W), DLbuf(chunk * W), SGbuf(chunk * W), Ubuf(chunk * W);
-    alignas(64) float h[NMAX][W], gn[NMAX][W], dAacc[NMAX][W], pB[NMAX][W], pC[NMAX][W];
-    alignas(64) float dsum[W], ssum[W], dyv[W], dd[W], dDacc[W], dbacc[W], tmp[W];
+    // per chunk: states h_t and decays a_t (T x N vectors), steps, sigmoids, inputs (T vectors)
+    std::vector<vf> Hbuf(chunk * N), Abuf(chunk * N), DLbuf(chunk), SGbuf(chunk), Ubuf(chunk);
+    constexpr int NA = NT > 0 ? NT : NMAX;
+    vf h[NA], gn[NA], dAacc[NA], pB[NA], pC[NA];
+    alignas(64) float sums[W];
     for (int64_t task = begin; task < end; ++task) {
         const int64_t b = task / nblk, blk = task % nblk;
         const int64_t d0 = blk * W;
@@ -274,112 +313,101 @@ void bwd_tasks(const BwdArgs& a, int64_t begin, int64_t end) {
         for (int64_t g = 0; g < G; ++g) {
             const int64_t c0 = g * Dg + d0;
             const int64_t uc0 = ss2d ? d0 : c0;
-            load_params(prm, Ap, Dp, bp, c0, nw, N);
-            for (int64_t n = 0; n < N; ++n)
-                for (int j = 0; j < W; ++j) {
-                    gn[n][j] = 0.0f;  // a_{t+1} g_{t+1}, carried backwards
-                    dAacc[n][j] = 0.0f;
-                }
-            for (int j = 0; j < W; ++j) dDacc[j] = dbacc[j] = 0.0f;
-            const float* ckg = ckp + (((b * nblk + blk) * G + g) * nck) * N * W;
+            load_params(prm, a.A, a.D, a.bias, c0, nw, N);
+            for (int64_t n = 0; n < N; ++n) {
+                gn[n] = splat(0.0f);  // a_{t+1} g_{t+1}, carried backwards
+                dAacc[n] = splat(0.0f);
+            }
+            vf dDacc = splat(0.0f), dbacc = splat(0.0f);
+            const float* ckg = a.ck + (((b * nblk + blk) * G + g) * nck) * N * W;
             for (int64_t k = nck - 1; k >= 0; --k) {
                 const int64_t t0 = k * chunk, t1 = std::min(L, t0 + chunk);
-                std::memcpy(h, ckg + k * N * W, sizeof(float) * N * W);
+                for (int64_t n = 0; n < N; ++n) h[n] = loadv(ckg + (k * N + n) * W);
                 // recompute the chunk's states and decays
                 for (int64_t t = t0; t < t1; ++t) {
                     const int64_t p = geo.pos(g, t), s = t - t0;
-                    float* dl = &DLbuf[s * W];
-                    float* uu = &Ubuf[s * W];
-                    load_step(dp + (b * L + p) * Dall + c0, up + (b * L + p) * Du + uc0, prm, nw, softplus, dl, &SGbuf[s * W], uu);
-                    const float* Bl = Bp + b * sB.b + p * sB.l + g * sB.g;
-                    float* Hs = &Hbuf[s * N * W];
-                    float* As = &Abuf[s * N * W];
-                    for (int j = 0; j < W; ++j) tmp[j] = dl[j] * uu[j];
+                    if (t + PREFETCH < t1) {
+                        const int64_t q = geo.pos(g, t + PREFETCH);
+                        __builtin_prefetch(a.delta + (b * L + q) * Dall + c0);
+                        __builtin_prefetch(a.u + (b * L + q) * Du + uc0);
+                        __builtin_prefetch(a.B + b * sB.b + q * sB.l + g * sB.g);
+                    }
+                    // rows the adjoint pass reads next (a chunk of them stays in L1)
+                    __builtin_prefetch(a.dy + (b * L + p) * Du + uc0);
+                    __builtin_prefetch(a.du + (b * L + p) * Du + uc0);
+                    __builtin_prefetch(a.C + b * sC.b + p * sC.l + g * sC.g);
+                    vf dsig;
+                    const vf dl = step_delta(load_lanes(a.delta + (b * L + p) * Dall + c0, nw), prm, a.softplus, &dsig);
+                    const vf uu = load_lanes(a.u + (b * L + p) * Du + uc0, nw);
+                    DLbuf[s] = dl;
+                    SGbuf[s] = dsig;
+                    Ubuf[s] = uu;
+                    const float* Bl = a.B + b * sB.b + p * sB.l + g * sB.g;
+                    const vf du = dl * uu;
+                    vf* Hs = &Hbuf[s * N];
+                    vf* As = &Abuf[s * N];
+#pragma GCC unroll 16
+                    for (int64_t n = 0; n < N; ++n) {
+                        const vf decay = exp_v(dl * prm.A[n]);
+                        h[n] = decay * h[n] + du * Bl[n * sB.n];
+                        As[n] = decay;
+                        Hs[n] = h[n];
+                    }
+                }
+                // adjoint recursion g_t = C_t dy_t + a_{t+1} g_{t+1}, newest position first
+                for (int64_t t = t1 - 1; t >= t0; --t) {
+                    const int64_t p = geo.pos(g, t), s = t - t0;
+                    const vf dl = DLbuf[s], uu = Ubuf[s];
+                    const vf* Hs = &Hbuf[s * N];
+                    const vf* As = &Abuf[s * N];
+                    const float* Bl = a.B + b * sB.b + p * sB.l + g * sB.g;
+                    const float* Cl = a.C + b * sC.b + p * sC.l + g * sC.g;
+                    const vf dyv = load_lanes(a.dy + (b * L + p) * Du + uc0, nw);
+                    const vf du = dl * uu;
+                    vf dsum = splat(0.0f);  // sum_n g_n A_n a_n h_{t-1,n}
+                    vf ssum = splat(0.0f);  // sum_n g_n B_n
 #pragma GCC unroll 16
                     for (int64_t n = 0; n < N; ++n) {
                         const float bn = Bl[n * sB.n];
-                        for (int j = 0; j < W; ++j) {
-                            const float decay = exp_fast(dl[j] * prm.A[n][j]);
-                            const float hn = std::fma(decay, h[n][j], tmp[j] * bn);
-                            h[n][j] = hn;
-                            As[n * W + j] = decay;
-                            Hs[n * W + j] = hn;
-                        }
+                        const vf gt = dyv * Cl[n * sC.n] + gn[n];
+                        const vf gah = gt * (Hs[n] - du * bn);  // a_t h_{t-1} = h_t - delta u B
+                        dsum += prm.A[n] * gah;
+                        dAacc[n] += dl * gah;
+                        ssum += gt * bn;
+                        pB[n] = gt * du;
+                        pC[n] = Hs[n] * dyv;
+                        gn[n] = As[n] * gt;
                     }
-                }
-                // adjoint recursion, newest position first
-                for (int64_t t = t1 - 1; t >= t0; --t) {
-                    const int64_t p = geo.pos(g, t), s = t - t0;
-                    const float* dl = &DLbuf[s * W];
-                    const float* uu = &Ubuf[s * W];
-                    const float* Hs = &Hbuf[s * N * W];
-                    const float* As = &Abuf[s * N * W];
-                    const float* Bl = Bp + b * sB.b + p * sB.l + g * sB.g;
-                    const float* Cl = Cp + b * sC.b + p * sC.l + g * sC.g;
-                    const float* dyrow = dyp + (b * L + p) * Du + uc0;
-                    load_lanes(dyv, dyrow, nw);
-                    for (int j = 0; j < W; ++j) {
-                        dsum[j] = 0.0f;  // dL/d(delta_t)
-                        ssum[j] = 0.0f;  // sum_n g_n B_n
-                        tmp[j] = dl[j] * uu[j];
-                    }
-                    float* dBrow = dBpp + (((blk * geo.batch + b) * L + p) * G + g) * N;
-                    float* dCrow = dCpp + (((blk * geo.batch + b) * L + p) * G + g) * N;
-#pragma GCC unroll 16
-                    for (int64_t n = 0; n < N; ++n) {
-                        const float bn = Bl[n * sB.n], cn = Cl[n * sC.n];
-                        float* gnn = gn[n];
-                        float* dAn = dAacc[n];
-                        const float* An = prm.A[n];
-                        const float* Hn = Hs + n * W;
-                        const float* Asn = As + n * W;
-                        for (int j = 0; j < W; ++j) {
-                            const float gt = std::fma(cn, dyv[j], gnn[j]);
-                            const float hn = Hn[j];
-                            const float ah = std::fma(-tmp[j], bn, hn);  // a_t h_{t-1} = h_t - delta u B
-                            const float gah = gt * ah;
-                            dsum[j] = std::fma(An[j], gah, dsum[j]);
-                            dAn[j] = std::fma(dl[j], gah, dAn[j]);
-                            ssum[j] = std::fma(gt, bn, ssum[j]);
-                            pB[n][j] = gt * tmp[j];
-                            pC[n][j] = hn * dyv[j];
-                            gnn[j] = Asn[j] * gt;
-                        }
-                    }
-                    // dB_t[n], dC_t[n]: sums over the lanes (a transpose-free tree over the N x W products)
-                    for (int64_t n = 0; n < N; ++n) {
-                        float sb = 0.0f, sc = 0.0f;
-                        for (int j = 0; j < W; ++j) {
-                            sb += pB[n][j];
-                            sc += pC[n][j];
-                        }
-                        dBrow[n] = sb;
-                        dCrow[n] = sc;
-                    }
-                    const float* sg = &SGbuf[s * W];
-                    for (int j = 0; j < W; ++j) {
-                        // d delta_t = sum_n g_n (A_n a_n h_{t-1,n} + u B_n); through softplus: * sigmoid
-                        const float ddl = std::fma(uu[j], ssum[j], dsum[j]) * sg[j];
-                        dd[j] = ddl;
-                        dbacc[j] += ddl;
-                        dDacc[j] = std::fma(dyv[j], uu[j], dDacc[j]);
-                        tmp[j] = std::fma(dl[j], ssum[j], prm.D[j] * dyv[j]);  // dL/du_t
-                    }
-                    float* ddrow = ddp + (b * L + p) * Dall + c0;
-                    for (int j = 0; j < nw; ++j) ddrow[j] = dd[j];
-                    float* durow = dup + (b * L + p) * Du + uc0;
-                    if (ss2d) {
-                        for (int j = 0; j < nw; ++j) durow[j] += tmp[j];
+                    float* dBrow = a.dB + (((blk * geo.batch + b) * L + p) * G + g) * N;
+                    float* dCrow = a.dC + (((blk * geo.batch + b) * L + p) * G + g) * N;
+                    if constexpr (NT == W) {
+                        storev(dBrow, transpose_sum16(pB));  // dB_t[n], dC_t[n]: sums over the lanes
+                        storev(dCrow, transpose_sum16(pC));
                     } else {
-                        for (int j = 0; j < nw; ++j) durow[j] = tmp[j];
+                        for (int64_t n = 0; n < N; ++n) {
+                            dBrow[n] = hsum(pB[n]);
+                            dCrow[n] = hsum(pC[n]);
+                        }
                     }
+                    // d delta_t = sum_n g_n (A_n a_n h_{t-1,n} + u B_n); through softplus: * sigmoid
+                    const vf ddl = (dsum + uu * ssum) * SGbuf[s];
+                    dbacc += ddl;
+                    dDacc += dyv * uu;
+                    store_lanes(a.ddelta + (b * L + p) * Dall + c0, ddl, nw);
+                    vf dU = dl * ssum + prm.D * dyv;  // dL/du_t
+                    float* durow = a.du + (b * L + p) * Du + uc0;
+                    if (ss2d) dU += load_lanes(durow, nw);
+                    store_lanes(durow, dU, nw);
                 }
             }
-            for (int j = 0; j < nw; ++j) {
-                for (int64_t n = 0; n < N; ++n) dAp[(b * Dall + c0 + j) * N + n] = dAacc[n][j];
-                dDp[b * Dall + c0 + j] = dDacc[j];
-                dbp[b * Dall + c0 + j] = dbacc[j];
+            for (int64_t n = 0; n < N; ++n) {
+                storev(sums, dAacc[n]);
+                for (int j = 0; j < nw; ++j) a.dA[(b * Dall + c0 + j) * N + n] = sums[j];
             }
+            storev(sums, dDacc);
+            for (int j = 0; j < nw; ++j) a.dD[b * Dall + c0 + j] = sums[j];
+            storev(sums, dbacc);
+            for (int j = 0; j < nw; ++j) a.dbias[b * Dall + c0 + j] = sums[j];
         }
     }
 }
@@ -483,23 +511,24 @@ std::vector<at::Tensor> scan_bwd(const at::Tensor& u, const at::Tensor& delta, c
 double roofline_loop(int64_t tasks, int64_t repeats) {
     std::vector<double> sums(tasks, 0.0);
     at::parallel_for(0, tasks, 1, [&](int64_t begin, int64_t end) {
-        constexpr int M = 256;
-        alignas(64) float x[M], h[M], y[M];
+        constexpr int M = 256 / W;
         for (int64_t task = begin; task < end; ++task) {
+            vf x[M], h[M], y[M];
             for (int i = 0; i < M; ++i) {
-                x[i] = -0.01f * static_cast<float>(i + task % 7);
-                h[i] = y[i] = 0.0f;
+                alignas(64) float t[W];
+                for (int j = 0; j < W; ++j) t[j] = -0.01f * static_cast<float>(i * W + j + task % 7);
+                x[i] = loadv(t);
+                h[i] = y[i] = splat(0.0f);
             }
             for (int64_t r = 0; r < repeats; ++r) {
                 const float bn = 1.0f + 1e-6f * static_cast<float>(r & 15), cn = 0.5f;
                 for (int i = 0; i < M; ++i) {
-                    const float a = exp_fast(x[i] * 1.5f);
-                    h[i] = std::fma(a, h[i], x[i] * bn);
-                    y[i] = std::fma(cn, h[i], y[i]);
+                    h[i] = exp_v(x[i] * 1.5f) * h[i] + x[i] * bn;
+                    y[i] += h[i] * cn;
                 }
             }
             double s = 0.0;
-            for (int i = 0; i < M; ++i) s += y[i];
+            for (int i = 0; i < M; ++i) s += hsum(y[i]);
             sums[task] = s;
         }
     });
@@ -514,10 +543,13 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.def("roofline_loop", &roofline_loop, "exp + 3 FMA per element, the scan's per-update floor");
     m.def("exp_fast", [](const at::Tensor& x) {
         at::Tensor xc = x.contiguous().to(at::kFloat);
-        at::Tensor out = at::empty_like(xc);
-        const float* xp = xc.data_ptr<float>();
+        const int64_t n = xc.numel(), padded = (n + W - 1) / W * W;
+        at::Tensor in = at::zeros({padded}, xc.options());
+        in.narrow(0, 0, n).copy_(xc.view(-1));
+        at::Tensor out = at::empty_like(in);
+        const float* xp = in.data_ptr<float>();
         float* op = out.data_ptr<float>();
-        for (int64_t i = 0; i < xc.numel(); ++i) op[i] = exp_fast(xp[i]);
-        return out;
+        for (int64_t i = 0; i < padded; i += W) storev(op + i, exp_v(loadv(xp + i)));
+        return out.narrow(0, 0, n).view(x.sizes()).clone();
     }, "the kernel's exp (for tests)");
 }
