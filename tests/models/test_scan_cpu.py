@@ -221,3 +221,22 @@ def test_ss2d_direction_reading_equals_cross_scan_route(ext, dim, h, w):
 def test_roofline_loop_runs(ext):
     rate, seconds = scan_cpu.roofline_updates_per_s(seconds=0.05)
     assert rate > 1e7 and seconds > 0
+
+
+def test_threads_give_bitwise_identical_results(ext):
+    """Tasks are handed out dynamically to torch's threads; each task's arithmetic is fixed, so 1 and 3
+    threads give bit-identical outputs and gradients."""
+    tensors = _inputs(3, 48, 97, 3, 16, seed=5)
+    w = torch.randn(3, 48, 97, generator=torch.Generator().manual_seed(6))
+    threads = torch.get_num_threads()
+    out = []
+    try:
+        for n in (1, 3):
+            torch.set_num_threads(n)
+            out.append(_grads(scan_cpu.selective_scan_cpu, tensors, True, True, True, w))
+    finally:
+        torch.set_num_threads(threads)
+    (y1, g1), (y3, g3) = out
+    assert torch.equal(y1, y3)
+    for a, b in zip(g1, g3):
+        assert torch.equal(a, b)

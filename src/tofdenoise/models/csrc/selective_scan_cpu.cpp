@@ -24,6 +24,7 @@
 #include <ATen/Parallel.h>
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <cstdint>
 #include <cstring>
@@ -235,10 +236,10 @@ struct BwdArgs {
     Strides4 sB, sC;
 };
 
-// Forward tasks [begin, end). NT = d_state known at compile time (the state loop unrolls and the 16 state
+// Forward tasks, taken from next() until it returns -1. NT = d_state known at compile time (the state loop unrolls and the 16 state
 // vectors stay in registers), or 0 = runtime d_state.
-template <int NT>
-void fwd_tasks(const FwdArgs& a, int64_t begin, int64_t end) {
+template <int NT, class Next>
+void fwd_tasks(const FwdArgs& a, Next next) {
     const Geometry& geo = a.geo;
     const int64_t N = NT > 0 ? NT : geo.N, L = geo.L, G = geo.G, Dg = geo.Dg, Du = geo.Du, Dall = G * Dg;
     const int64_t nblk = a.nblk, nck = a.nck, chunk = a.chunk;
@@ -246,7 +247,7 @@ void fwd_tasks(const FwdArgs& a, int64_t begin, int64_t end) {
     const Strides4 sB = a.sB, sC = a.sC;
     BlockParams prm;
     vf h[NT > 0 ? NT : NMAX];
-    for (int64_t task = begin; task < end; ++task) {
+    for (int64_t task = next(); task >= 0; task = next()) {
         const int64_t b = task / nblk, blk = task % nblk;
         const int64_t d0 = blk * W;
         const int nw = static_cast<int>(std::min<int64_t>(W, Dg - d0));
@@ -292,9 +293,9 @@ void fwd_tasks(const FwdArgs& a, int64_t begin, int64_t end) {
     }
 }
 
-// Backward tasks [begin, end) (NT as in fwd_tasks).
-template <int NT>
-void bwd_tasks(const BwdArgs& a, int64_t begin, int64_t end) {
+// Backward tasks, taken from next() until it returns -1 (NT as in fwd_tasks).
+template <int NT, class Next>
+void bwd_tasks(const BwdArgs& a, Next next) {
     const Geometry& geo = a.geo;
     const int64_t N = NT > 0 ? NT : geo.N, L = geo.L, G = geo.G, Dg = geo.Dg, Du = geo.Du, Dall = G * Dg;
     const int64_t nblk = a.nblk, nck = a.nck, chunk = a.chunk;
@@ -306,7 +307,7 @@ void bwd_tasks(const BwdArgs& a, int64_t begin, int64_t end) {
     constexpr int NA = NT > 0 ? NT : NMAX;
     vf h[NA], gn[NA], dAacc[NA], pB[NA], pC[NA];
     alignas(64) float sums[W];
-    for (int64_t task = begin; task < end; ++task) {
+    for (int64_t task = next(); task >= 0; task = next()) {
         const int64_t b = task / nblk, blk = task % nblk;
         const int64_t d0 = blk * W;
         const int nw = static_cast<int>(std::min<int64_t>(W, Dg - d0));
@@ -412,6 +413,21 @@ void bwd_tasks(const BwdArgs& a, int64_t begin, int64_t end) {
     }
 }
 
+// Runs body(next) on torch's intra-op threads; next() hands out task indices 0..ntasks-1 one at a time
+// (dynamic scheduling: on a shared machine a descheduled thread holds up one task, not half of them).
+template <class Body>
+void run_tasks(int64_t ntasks, Body body) {
+    std::atomic<int64_t> counter{0};
+    auto next = [&]() -> int64_t {
+        const int64_t t = counter.fetch_add(1, std::memory_order_relaxed);
+        return t < ntasks ? t : -1;
+    };
+    const int64_t workers = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), ntasks));
+    at::parallel_for(0, workers, 1, [&](int64_t begin, int64_t end) {
+        if (begin < end) body(next);
+    });
+}
+
 }  // namespace
 
 std::vector<at::Tensor> scan_fwd(const at::Tensor& u, const at::Tensor& delta, const at::Tensor& A, const at::Tensor& B,
@@ -441,11 +457,11 @@ std::vector<at::Tensor> scan_fwd(const at::Tensor& u, const at::Tensor& delta, c
     const int64_t N = geo.N, L = geo.L, G = geo.G, Dg = geo.Dg, Du = geo.Du, Dall = G * Dg;
 
     const FwdArgs args{geo, nblk, nck, chunk, softplus, up, dp, Ap, Bp, Cp, Dp, bp, yp, ckp, sB, sC};
-    at::parallel_for(0, geo.batch * nblk, 1, [&](int64_t begin, int64_t end) {
+    run_tasks(geo.batch * nblk, [&](auto next) {
         if (geo.N == 16) {
-            fwd_tasks<16>(args, begin, end);
+            fwd_tasks<16>(args, next);
         } else {
-            fwd_tasks<0>(args, begin, end);
+            fwd_tasks<0>(args, next);
         }
     });
     return {y, ck};
@@ -494,11 +510,11 @@ std::vector<at::Tensor> scan_bwd(const at::Tensor& u, const at::Tensor& delta, c
 
     const BwdArgs args{geo, nblk, nck, chunk, softplus, up, dp, Ap, Bp, Cp, Dp, bp, ckp, dyp,
                        dup, ddp, dAp, dBpp, dCpp, dDp, dbp, sB, sC};
-    at::parallel_for(0, geo.batch * nblk, 1, [&](int64_t begin, int64_t end) {
+    run_tasks(geo.batch * nblk, [&](auto next) {
         if (geo.N == 16) {
-            bwd_tasks<16>(args, begin, end);
+            bwd_tasks<16>(args, next);
         } else {
-            bwd_tasks<0>(args, begin, end);
+            bwd_tasks<0>(args, next);
         }
     });
     return {du_out, ddelta, dA.sum(0), dBp.sum(0), dCp.sum(0), dD.sum(0), dbias.sum(0)};
