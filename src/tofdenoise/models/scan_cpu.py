@@ -124,6 +124,12 @@ def cpu_kernel_available() -> bool:
     return True
 
 
+def _dense(t: torch.Tensor) -> torch.Tensor:
+    """t itself when it is (batch, L, C) contiguous or a transposed (batch, C, L) contiguous tensor (the
+    kernel reads strides), else a contiguous copy."""
+    return t if t.is_contiguous() or t.transpose(1, 2).is_contiguous() else t.contiguous()
+
+
 def _opt(t: torch.Tensor | None) -> torch.Tensor | None:
     return None if t is None else t.detach().float().contiguous()
 
@@ -135,7 +141,7 @@ class _CpuScanFn(torch.autograd.Function):
     @staticmethod
     def forward(ctx, u, delta, A, B, C, D, bias, softplus: bool, ss2d: bool, H: int, W: int, ext):
         with torch.autocast("cpu", enabled=False):
-            args = (u.contiguous(), delta.contiguous(), A.contiguous(), B, C, _opt(D), _opt(bias))
+            args = (_dense(u), _dense(delta), A.contiguous(), B, C, _opt(D), _opt(bias))
             y, ck = ext.scan_fwd(*args, softplus, ss2d, H, W, CHUNK)
         ctx.save_for_backward(*args[:5], ck)
         ctx.D, ctx.bias = args[5], args[6]
@@ -158,8 +164,8 @@ def selective_scan_cpu(u, delta, A, B, C, D=None, delta_bias=None, delta_softplu
     """``selective_scan`` on the native kernel: mamba-ssm's shapes (u, delta (batch, dim, L); B, C
     (batch, groups, N, L) or (batch, N, L)); float32 CPU tensors (other float dtypes are computed in float32
     and returned in theirs; callers route float64 to the PyTorch scan to keep float64 precision).
-    The (batch, dim, L) inputs are transposed once to the kernel's channels-last layout; B and C are read
-    through strides."""
+    u and delta are read in place through strides (no transposed copies; y and the gradients come back in
+    the same (batch, dim, L) layout); B and C are transposed once to (batch, L, groups, N)."""
     from .scan import _check_shapes
 
     ext = _ext if _ext is not None else load_extension()
@@ -171,11 +177,11 @@ def selective_scan_cpu(u, delta, A, B, C, D=None, delta_bias=None, delta_softplu
     dtype = u.dtype
     f = torch.float32
     y = _CpuScanFn.apply(
-        u.to(f).transpose(1, 2),
+        u.to(f).transpose(1, 2),  # views: the kernel reads the (batch, dim, L) memory with gathered lanes
         delta.to(f).transpose(1, 2),
         A.to(f),
-        B.to(f).permute(0, 3, 1, 2),
-        C.to(f).permute(0, 3, 1, 2),
+        B.to(f).permute(0, 3, 1, 2).contiguous(),  # (b, L, G, N): one cache line per step, not N
+        C.to(f).permute(0, 3, 1, 2).contiguous(),
         None if D is None else D.to(f),
         None if delta_bias is None else delta_bias.to(f),
         bool(delta_softplus), False, 0, 0, ext,

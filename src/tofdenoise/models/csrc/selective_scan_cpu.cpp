@@ -64,6 +64,19 @@ inline void store_lanes(float* p, vf v, int nw) {
         std::memcpy(p, tmp, sizeof(float) * nw);
     }
 }
+// lanes at element stride `stride` (a channel axis that is not innermost: gathered / scattered)
+inline vf load_lanes(const float* p, int64_t stride, int nw) {
+    if (stride == 1) return load_lanes(p, nw);
+    alignas(64) float tmp[W] = {};
+    for (int j = 0; j < nw; ++j) tmp[j] = p[j * stride];
+    return loadv(tmp);
+}
+inline void store_lanes(float* p, int64_t stride, vf v, int nw) {
+    if (stride == 1) return store_lanes(p, v, nw);
+    alignas(64) float tmp[W];
+    storev(tmp, v);
+    for (int j = 0; j < nw; ++j) p[j * stride] = tmp[j];
+}
 inline vf select(vi mask, vf a, vf b) { return (vf)((mask & (vi)a) | (~mask & (vi)b)); }
 inline vf vmax(vf a, vf b) { return select(a > b, a, b); }
 inline vf vmin(vf a, vf b) { return select(a < b, a, b); }
@@ -149,13 +162,21 @@ struct Strides4 {
 
 inline Strides4 strides4(const at::Tensor& t) { return {t.stride(0), t.stride(1), t.stride(2), t.stride(3)}; }
 
+struct Strides3 {
+    int64_t b, l, c;
+};
+
+inline Strides3 strides3(const at::Tensor& t) { return {t.stride(0), t.stride(1), t.stride(2)}; }
+
 void check_inputs(const at::Tensor& u, const at::Tensor& delta, const at::Tensor& A, const at::Tensor& B,
                   const at::Tensor& C, const at::Tensor& D, const at::Tensor& bias, const Geometry& geo) {
     for (const at::Tensor* t : {&u, &delta, &A, &B, &C}) {
         TORCH_CHECK(t->device().is_cpu() && t->scalar_type() == at::kFloat, "selective_scan_cpu: float32 CPU tensors expected");
     }
-    TORCH_CHECK(u.dim() == 3 && u.is_contiguous(), "selective_scan_cpu: u must be a contiguous (batch, L, Du) tensor");
-    TORCH_CHECK(delta.dim() == 3 && delta.is_contiguous(), "selective_scan_cpu: delta must be a contiguous (batch, L, dim) tensor");
+    // u and delta: any strides (channels-last is fastest; a (batch, dim, L) tensor viewed as (batch, L, dim) is
+    // read with gathered lanes); outputs are allocated with the same strides
+    TORCH_CHECK(u.dim() == 3 && u.is_non_overlapping_and_dense(), "selective_scan_cpu: u must be a dense (batch, L, Du) tensor");
+    TORCH_CHECK(delta.dim() == 3 && delta.is_non_overlapping_and_dense(), "selective_scan_cpu: delta must be a dense (batch, L, dim) tensor");
     TORCH_CHECK(A.dim() == 2 && A.is_contiguous(), "selective_scan_cpu: A must be a contiguous (dim, N) tensor");
     TORCH_CHECK(B.dim() == 4 && C.dim() == 4, "selective_scan_cpu: B and C must be (batch, L, G, N)");
     TORCH_CHECK(geo.N <= NMAX, "selective_scan_cpu: d_state must be <= ", NMAX);
@@ -225,6 +246,7 @@ struct FwdArgs {
     const float *u, *delta, *A, *B, *C, *D, *bias;
     float *y, *ck;
     Strides4 sB, sC;
+    Strides3 su, sd;  // (batch, position, channel) strides of u / y and of delta
 };
 
 struct BwdArgs {
@@ -234,6 +256,7 @@ struct BwdArgs {
     const float *u, *delta, *A, *B, *C, *D, *bias, *ck, *dy;
     float *du, *ddelta, *dA, *dB, *dC, *dD, *dbias;
     Strides4 sB, sC;
+    Strides3 su, sd, sdy;  // u / du, delta / ddelta, dy
 };
 
 // Forward tasks, taken from next() until it returns -1. NT = d_state known at compile time (the state loop unrolls and the 16 state
@@ -267,15 +290,15 @@ void fwd_tasks(const FwdArgs& a, Next next) {
                 const int64_t p = geo.pos(g, l);
                 if (l + PREFETCH < L) {  // column-major directions jump a whole image row per step
                     const int64_t q = geo.pos(g, l + PREFETCH);
-                    __builtin_prefetch(a.delta + (b * L + q) * Dall + c0);
-                    __builtin_prefetch(a.u + (b * L + q) * Du + uc0);
-                    __builtin_prefetch(a.y + (b * L + q) * Du + uc0);
+                    __builtin_prefetch(a.delta + b * a.sd.b + q * a.sd.l + c0 * a.sd.c);
+                    __builtin_prefetch(a.u + b * a.su.b + q * a.su.l + uc0 * a.su.c);
+                    __builtin_prefetch(a.y + b * a.su.b + q * a.su.l + uc0 * a.su.c);
                     __builtin_prefetch(a.B + b * sB.b + q * sB.l + g * sB.g);
                     __builtin_prefetch(a.C + b * sC.b + q * sC.l + g * sC.g);
                 }
                 vf dsig;
-                const vf dl = step_delta(load_lanes(a.delta + (b * L + p) * Dall + c0, nw), prm, a.softplus, &dsig);
-                const vf uu = load_lanes(a.u + (b * L + p) * Du + uc0, nw);
+                const vf dl = step_delta(load_lanes(a.delta + b * a.sd.b + p * a.sd.l + c0 * a.sd.c, a.sd.c, nw), prm, a.softplus, &dsig);
+                const vf uu = load_lanes(a.u + b * a.su.b + p * a.su.l + uc0 * a.su.c, a.su.c, nw);
                 const float* Bl = a.B + b * sB.b + p * sB.l + g * sB.g;
                 const float* Cl = a.C + b * sC.b + p * sC.l + g * sC.g;
                 const vf du = dl * uu;
@@ -285,9 +308,9 @@ void fwd_tasks(const FwdArgs& a, Next next) {
                     h[n] = exp_v(dl * prm.A[n]) * h[n] + du * Bl[n * sB.n];
                     yy += h[n] * Cl[n * sC.n];
                 }
-                float* yrow = a.y + (b * L + p) * Du + uc0;
-                if (ss2d) yy += load_lanes(yrow, nw);
-                store_lanes(yrow, yy, nw);
+                float* yrow = a.y + b * a.su.b + p * a.su.l + uc0 * a.su.c;
+                if (ss2d) yy += load_lanes(yrow, a.su.c, nw);
+                store_lanes(yrow, a.su.c, yy, nw);
             }
         }
     }
@@ -329,17 +352,17 @@ void bwd_tasks(const BwdArgs& a, Next next) {
                     const int64_t p = geo.pos(g, t), s = t - t0;
                     if (t + PREFETCH < t1) {
                         const int64_t q = geo.pos(g, t + PREFETCH);
-                        __builtin_prefetch(a.delta + (b * L + q) * Dall + c0);
-                        __builtin_prefetch(a.u + (b * L + q) * Du + uc0);
+                        __builtin_prefetch(a.delta + b * a.sd.b + q * a.sd.l + c0 * a.sd.c);
+                        __builtin_prefetch(a.u + b * a.su.b + q * a.su.l + uc0 * a.su.c);
                         __builtin_prefetch(a.B + b * sB.b + q * sB.l + g * sB.g);
                     }
                     // rows the adjoint pass reads next (a chunk of them stays in L1)
-                    __builtin_prefetch(a.dy + (b * L + p) * Du + uc0);
-                    __builtin_prefetch(a.du + (b * L + p) * Du + uc0);
+                    __builtin_prefetch(a.dy + b * a.sdy.b + p * a.sdy.l + uc0 * a.sdy.c);
+                    __builtin_prefetch(a.du + b * a.su.b + p * a.su.l + uc0 * a.su.c);
                     __builtin_prefetch(a.C + b * sC.b + p * sC.l + g * sC.g);
                     vf dsig;
-                    const vf dl = step_delta(load_lanes(a.delta + (b * L + p) * Dall + c0, nw), prm, a.softplus, &dsig);
-                    const vf uu = load_lanes(a.u + (b * L + p) * Du + uc0, nw);
+                    const vf dl = step_delta(load_lanes(a.delta + b * a.sd.b + p * a.sd.l + c0 * a.sd.c, a.sd.c, nw), prm, a.softplus, &dsig);
+                    const vf uu = load_lanes(a.u + b * a.su.b + p * a.su.l + uc0 * a.su.c, a.su.c, nw);
                     DLbuf[s] = dl;
                     SGbuf[s] = dsig;
                     Ubuf[s] = uu;
@@ -363,7 +386,7 @@ void bwd_tasks(const BwdArgs& a, Next next) {
                     const vf* As = &Abuf[s * N];
                     const float* Bl = a.B + b * sB.b + p * sB.l + g * sB.g;
                     const float* Cl = a.C + b * sC.b + p * sC.l + g * sC.g;
-                    const vf dyv = load_lanes(a.dy + (b * L + p) * Du + uc0, nw);
+                    const vf dyv = load_lanes(a.dy + b * a.sdy.b + p * a.sdy.l + uc0 * a.sdy.c, a.sdy.c, nw);
                     const vf du = dl * uu;
                     vf dsum = splat(0.0f);  // sum_n g_n A_n a_n h_{t-1,n}
                     vf ssum = splat(0.0f);  // sum_n g_n B_n
@@ -394,11 +417,11 @@ void bwd_tasks(const BwdArgs& a, Next next) {
                     const vf ddl = (dsum + uu * ssum) * SGbuf[s];
                     dbacc += ddl;
                     dDacc += dyv * uu;
-                    store_lanes(a.ddelta + (b * L + p) * Dall + c0, ddl, nw);
+                    store_lanes(a.ddelta + b * a.sd.b + p * a.sd.l + c0 * a.sd.c, a.sd.c, ddl, nw);
                     vf dU = dl * ssum + prm.D * dyv;  // dL/du_t
-                    float* durow = a.du + (b * L + p) * Du + uc0;
-                    if (ss2d) dU += load_lanes(durow, nw);
-                    store_lanes(durow, dU, nw);
+                    float* durow = a.du + b * a.su.b + p * a.su.l + uc0 * a.su.c;
+                    if (ss2d) dU += load_lanes(durow, a.su.c, nw);
+                    store_lanes(durow, a.su.c, dU, nw);
                 }
             }
             for (int64_t n = 0; n < N; ++n) {
@@ -456,7 +479,8 @@ std::vector<at::Tensor> scan_fwd(const at::Tensor& u, const at::Tensor& delta, c
     const Strides4 sB = strides4(B), sC = strides4(C);
     const int64_t N = geo.N, L = geo.L, G = geo.G, Dg = geo.Dg, Du = geo.Du, Dall = G * Dg;
 
-    const FwdArgs args{geo, nblk, nck, chunk, softplus, up, dp, Ap, Bp, Cp, Dp, bp, yp, ckp, sB, sC};
+    TORCH_CHECK(y.strides() == u.strides(), "selective_scan_cpu: output layout differs from u's");
+    const FwdArgs args{geo, nblk, nck, chunk, softplus, up, dp, Ap, Bp, Cp, Dp, bp, yp, ckp, sB, sC, strides3(u), strides3(delta)};
     run_tasks(geo.batch * nblk, [&](auto next) {
         if (geo.N == 16) {
             fwd_tasks<16>(args, next);
@@ -475,7 +499,7 @@ std::vector<at::Tensor> scan_bwd(const at::Tensor& u, const at::Tensor& delta, c
     const at::Tensor bias = bias_opt.has_value() ? *bias_opt : at::Tensor();
     const Geometry geo = make_geometry(u, A, B, ss2d, H, Wd);
     check_inputs(u, delta, A, B, C, D, bias, geo);
-    const at::Tensor dy = dy_in.contiguous();
+    const at::Tensor& dy = dy_in;  // any strides (autograd may hand over an expanded or transposed gradient)
     TORCH_CHECK(dy.sizes() == u.sizes() && dy.scalar_type() == at::kFloat, "selective_scan_cpu: dy must have y's shape");
     const int64_t nblk = (geo.Dg + W - 1) / W;
     const int64_t nck = (geo.L + chunk - 1) / chunk;
@@ -484,6 +508,7 @@ std::vector<at::Tensor> scan_bwd(const at::Tensor& u, const at::Tensor& delta, c
 
     at::Tensor du_out = ss2d ? at::zeros_like(u) : at::empty_like(u);
     at::Tensor ddelta = at::empty_like(delta);
+    TORCH_CHECK(du_out.strides() == u.strides() && ddelta.strides() == delta.strides(), "selective_scan_cpu: gradient layout differs");
     at::Tensor dA = at::empty({geo.batch, Dall, N}, u.options());
     at::Tensor dBp = at::empty({nblk, geo.batch, L, G, N}, u.options());
     at::Tensor dCp = at::empty({nblk, geo.batch, L, G, N}, u.options());
@@ -509,7 +534,7 @@ std::vector<at::Tensor> scan_bwd(const at::Tensor& u, const at::Tensor& delta, c
     const Strides4 sB = strides4(B), sC = strides4(C);
 
     const BwdArgs args{geo, nblk, nck, chunk, softplus, up, dp, Ap, Bp, Cp, Dp, bp, ckp, dyp,
-                       dup, ddp, dAp, dBpp, dCpp, dDp, dbp, sB, sC};
+                       dup, ddp, dAp, dBpp, dCpp, dDp, dbp, sB, sC, strides3(u), strides3(delta), strides3(dy)};
     run_tasks(geo.batch * nblk, [&](auto next) {
         if (geo.N == 16) {
             bwd_tasks<16>(args, next);
