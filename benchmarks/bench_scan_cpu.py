@@ -79,10 +79,12 @@ def bench_scan(args) -> None:
         with torch.no_grad():
             selective_scan(*tensors, True, backend=backend)
 
+    dy = torch.randn(batch, dim, length, generator=torch.Generator().manual_seed(1))  # a dense upstream gradient
+
     def fwdbwd(backend):
         for t in tensors:
             t.grad = None
-        selective_scan(*tensors, True, backend=backend).sum().backward()
+        selective_scan(*tensors, True, backend=backend).backward(dy)
 
     # SS2D route: channels-last x (b, L, dg), raw steps (b, L, 4 dg), B/C (b, L, 4, N), 4 directions over H x W
     side = int(round(length**0.5))
@@ -92,8 +94,10 @@ def bench_scan(args) -> None:
     Bs, Cs = (t.permute(0, 3, 1, 2).contiguous().requires_grad_() for t in (B, C))
     Ar, Dr, br = (t.clone().requires_grad_() for t in (A, D, bias))
 
+    dy_cl = dy[:, :dg].transpose(1, 2).contiguous()
+
     def ss2d_fwdbwd():
-        scan_cpu.ss2d_scan_cpu(xs, dts, Ar, Bs, Cs, Dr, br, side, side).sum().backward()
+        scan_cpu.ss2d_scan_cpu(xs, dts, Ar, Bs, Cs, Dr, br, side, side).backward(dy_cl)
 
     fwd("cpu")
     fwdbwd("cpu")
