@@ -107,7 +107,8 @@ def test_dispatch_and_errors():
     u, delta, A, B, C, D, bias = _inputs(1, 4, 9, 2, 3)
     y = selective_scan(u, delta, A, B, C, D, bias, True)
     torch.testing.assert_close(y, selective_scan_ref(u, delta, A, B, C, D, bias, True), rtol=1e-5, atol=1e-6)
-    assert available_scan_backends("cpu") == ["torch"]
+    assert available_scan_backends("cpu")[-1] == "torch"
+    assert set(available_scan_backends("cpu")) <= {"cpu", "torch"}
     with pytest.raises(ValueError, match="unknown backend"):
         selective_scan(u, delta, A, B, C, backend="nope")
     with pytest.raises(ValueError, match="needs CUDA"):

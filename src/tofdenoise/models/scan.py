@@ -28,7 +28,8 @@ Three implementations share the gradient formulas of :func:`_state_gradients`:
   the loops (T positions, chunks of a group) run inside a custom ``autograd.Function``.
 
 :func:`selective_scan` dispatches: on CUDA to mamba-ssm when importable, else to the Triton kernels
-(``scan_triton``, after an on-device self-check), otherwise to the chunked PyTorch scan.
+(``scan_triton``, after an on-device self-check); on the CPU to the native C++ kernel (``scan_cpu``, built
+on first use, after a self-check); otherwise to the chunked PyTorch scan.
 """
 
 from __future__ import annotations
@@ -46,6 +47,7 @@ __all__ = [
     "selective_scan_sequential",
     "selective_scan_chunked",
     "available_scan_backends",
+    "resolve_scan_backend",
 ]
 
 DEFAULT_CHUNK_SIZE = 64
@@ -481,7 +483,8 @@ def selective_scan_chunked(
 def available_scan_backends(device: torch.device | str | None = None, verify: bool = False) -> list[str]:
     """Backends usable on ``device`` (default: CUDA if available) in ``auto`` preference order; ``torch``
     always last. On CUDA: ``mamba_ssm`` when its compiled extension imports, then ``triton`` when Triton
-    imports (with ``verify=True``: only if its kernels pass the on-device self-check)."""
+    imports (with ``verify=True``: only if its kernels pass the on-device self-check). On the CPU: ``cpu``
+    (the native kernel of ``scan_cpu``) when it builds and passes its self-check (this builds it once)."""
     dev = torch.device(device) if device is not None else torch.device("cuda" if torch.cuda.is_available() else "cpu")
     out: list[str] = []
     if dev.type == "cuda":
@@ -492,8 +495,36 @@ def available_scan_backends(device: torch.device | str | None = None, verify: bo
         index = dev.index if dev.index is not None else torch.cuda.current_device()
         if scan_triton.triton_available() and (not verify or scan_triton.triton_verified(index)):
             out.append("triton")
+    elif dev.type == "cpu":
+        from .scan_cpu import cpu_kernel_available
+
+        if cpu_kernel_available():
+            out.append("cpu")
     out.append("torch")
     return out
+
+
+SCAN_BACKENDS = ("auto", "cpu", "torch", "sequential", "triton", "mamba_ssm")
+
+
+def resolve_scan_backend(backend: str, u: torch.Tensor) -> str:
+    """The route ``selective_scan`` takes for ``u``: ``auto`` -> the first of
+    :func:`available_scan_backends` (CUDA: mamba_ssm / triton / torch; CPU: cpu / torch); ``cpu`` -> the
+    native kernel for float32/bf16/fp16 CPU tensors, else (float64, or the kernel failed to build: one
+    warning at build time) the chunked ``torch`` scan."""
+    if backend not in SCAN_BACKENDS:
+        raise ValueError(f"selective_scan: unknown backend {backend!r}; valid: {', '.join(SCAN_BACKENDS)}")
+    if backend == "auto":
+        if u.is_cuda:
+            return available_scan_backends(u.device, verify=True)[0]
+        backend = "cpu"
+    if backend == "cpu":
+        if u.is_cuda:
+            raise ValueError(f"selective_scan: backend 'cpu' needs CPU tensors, got device {u.device}")
+        from .scan_cpu import cpu_kernel_available
+
+        return "cpu" if u.dtype != torch.float64 and cpu_kernel_available() else "torch"
+    return backend
 
 
 def selective_scan(
@@ -509,23 +540,23 @@ def selective_scan(
 ) -> torch.Tensor:
     """Selective scan with mamba-ssm's ``selective_scan_fn`` signature and shapes; returns (batch, dim, L).
 
-    ``backend``: ``"auto"`` (CUDA: mamba-ssm, else the self-checked Triton kernels, else PyTorch; CPU:
-    PyTorch), ``"torch"``
-    (chunked), ``"sequential"`` (stores all states), ``"triton"``, ``"mamba_ssm"``.
+    ``backend``: ``"auto"`` (CUDA: mamba-ssm, else the self-checked Triton kernels, else PyTorch; CPU: the
+    native kernel when it builds, else PyTorch), ``"cpu"`` (native CPU kernel; float64 inputs and a failed
+    build fall back to the chunked scan), ``"torch"`` (chunked), ``"sequential"`` (stores all states),
+    ``"triton"``, ``"mamba_ssm"``. :func:`resolve_scan_backend` names the route a call takes.
     """
-    if backend == "auto":
-        backend = available_scan_backends(u.device, verify=True)[0] if u.is_cuda else "torch"
+    backend = resolve_scan_backend(backend, u)
+    if backend == "cpu":
+        from .scan_cpu import selective_scan_cpu
+
+        return selective_scan_cpu(u, delta, A, B, C, D, delta_bias, delta_softplus)
     if backend == "torch":
         return selective_scan_chunked(u, delta, A, B, C, D, delta_bias, delta_softplus)
     if backend == "sequential":
         return selective_scan_sequential(u, delta, A, B, C, D, delta_bias, delta_softplus)
-    if backend in ("triton", "mamba_ssm"):
-        if not u.is_cuda:
-            raise ValueError(f"selective_scan: backend {backend!r} needs CUDA tensors, got device {u.device}")
-        from . import scan_triton
+    if not u.is_cuda:
+        raise ValueError(f"selective_scan: backend {backend!r} needs CUDA tensors, got device {u.device}")
+    from . import scan_triton
 
-        fn = scan_triton.selective_scan_triton if backend == "triton" else scan_triton.selective_scan_mamba
-        return fn(u, delta, A, B, C, D, delta_bias, delta_softplus)
-    raise ValueError(
-        f"selective_scan: unknown backend {backend!r}; valid: auto, torch, sequential, triton, mamba_ssm"
-    )
+    fn = scan_triton.selective_scan_triton if backend == "triton" else scan_triton.selective_scan_mamba
+    return fn(u, delta, A, B, C, D, delta_bias, delta_softplus)

@@ -81,26 +81,74 @@ class SS2D(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         b, h, w, _ = x.shape
-        k, n, r, di = self.directions, self.d_state, self.dt_rank, self.d_inner
         xz = self.in_proj(x)
         xi, z = xz.chunk(2, dim=-1)
-        xi = F.silu(self.conv(xi.permute(0, 3, 1, 2).contiguous()))
+        if self._spatial_scan(xz):
+            # channels-last depthwise conv: xi is read once into NHWC, and the output's (b, h, w, d_inner)
+            # view is what the kernel reads (no cross_scan copies)
+            xi = xi.permute(0, 3, 1, 2).contiguous(memory_format=torch.channels_last)
+            xi = F.silu(self.conv(xi)).permute(0, 2, 3, 1)
+            y = self._scan_spatial(xi.contiguous(), h, w)
+        else:
+            xi = F.silu(self.conv(xi.permute(0, 3, 1, 2).contiguous()))
+            y = self._scan_cross(xi, h, w)
+        y = self.out_norm(y) * F.silu(z)
+        return self.out_proj(y)
+
+    def _spatial_scan(self, x: torch.Tensor) -> bool:
+        """Whether the native CPU kernel runs this call (float32 CPU tensors, backend auto/cpu, built)."""
+        if x.is_cuda or x.dtype != torch.float32 or self.scan_backend not in ("auto", "cpu"):
+            return False
+        from .scan_cpu import cpu_kernel_available
+
+        return cpu_kernel_available()
+
+    def _scan_params(self):
+        return (
+            -torch.exp(self.A_logs.float()),
+            self.Ds.float(),
+            self.dt_projs_bias.reshape(-1).float(),
+        )
+
+    def _scan_cross(self, xi: torch.Tensor, h: int, w: int) -> torch.Tensor:
+        """Reference route: cross_scan copies, per-direction projections, one selective_scan call over the
+        4 d_inner channels, cross_merge. xi (b, d_inner, h, w) -> (b, h, w, d_inner)."""
+        b = xi.shape[0]
+        k, n, r, di = self.directions, self.d_state, self.dt_rank, self.d_inner
         xs = cross_scan(xi)  # (b, 4, di, L)
         length = h * w
         x_dbl = torch.einsum("bkdl,kcd->bkcl", xs, self.x_proj_weight)
         dts, Bs, Cs = torch.split(x_dbl, [r, n, n], dim=2)
         dts = torch.einsum("bkrl,kdr->bkdl", dts, self.dt_projs_weight)
+        A, D, bias = self._scan_params()
         y = selective_scan(
             xs.reshape(b, k * di, length),
             dts.reshape(b, k * di, length),
-            -torch.exp(self.A_logs.float()),
+            A,
             Bs.contiguous(),
             Cs.contiguous(),
-            self.Ds.float(),
-            delta_bias=self.dt_projs_bias.reshape(-1).float(),
+            D,
+            delta_bias=bias,
             delta_softplus=True,
-            backend=self.scan_backend,
+            backend="torch" if self.scan_backend == "cpu" else self.scan_backend,
         ).view(b, k, di, length)
-        y = cross_merge(y, h, w).permute(0, 2, 3, 1)
-        y = self.out_norm(y) * F.silu(z)
-        return self.out_proj(y)
+        return cross_merge(y, h, w).permute(0, 2, 3, 1)
+
+    def _scan_spatial(self, xs: torch.Tensor, h: int, w: int) -> torch.Tensor:
+        """Native-kernel route on channels-last activations xs (b, h, w, d_inner), same math as
+        :meth:`_scan_cross`: x_proj and dt_proj are per-position linear maps, applied once in row-major
+        order as matrix products (the 4 directions' x_proj weights stacked into one matrix, the dt
+        projections as one block-diagonal matrix); the kernel reads direction k's step l at position
+        pi_k(l) and sums the 4 directions' outputs in place of cross_merge."""
+        b = xs.shape[0]
+        k, n, r, di = self.directions, self.d_state, self.dt_rank, self.d_inner
+        length = h * w
+        xs = xs.view(b, length, di)
+        x_dbl = (xs @ self.x_proj_weight.reshape(k * (r + 2 * n), di).t()).view(b, length, k, r + 2 * n)
+        dt_block = torch.block_diag(*self.dt_projs_weight.transpose(1, 2))  # (k r, k di)
+        dts = x_dbl[..., :r].reshape(b, length, k * r) @ dt_block  # (b, L, k di)
+        A, D, bias = self._scan_params()
+        from .scan_cpu import ss2d_scan_cpu
+
+        y = ss2d_scan_cpu(xs, dts, A, x_dbl[..., r : r + n], x_dbl[..., r + n :], D, bias, h, w)
+        return y.view(b, h, w, di)

@@ -1,0 +1,223 @@
+"""Native CPU selective scan (issue 11): the kernel against the chunked PyTorch scan and the CPU's roofline,
+the DVSS training step against the U-Net's, and full-resolution DVSS inference memory -- side by side.
+
+    python benchmarks/bench_scan_cpu.py [--quick] [--threads 2] [--rounds 3]
+
+1. Selective scan forward and forward+backward at the DVSS level-0 size of a 64x64 batch-4 training step
+   (batch 4, 4 directions x 64 channels = 256 channels in 4 groups, L = 4096, N = 16, softplus + bias + D):
+   ``selective_scan(backend="cpu")`` vs ``backend="torch"`` (chunked), rounds alternating the order; and
+   the SS2D route (``ss2d_scan_cpu``: channels-last input, the 4 directions read in place, merged output).
+   Throughput in state updates per second (batch x channels x L x N per forward) against the roofline: the
+   measured peak of the kernel's own exp + 3 multiply-add loop (same compiler flags, same threads).
+2. Training step (DepthRestorer input normalisation + backbone + L_full + backward + AdamW), 64x64 crops,
+   batch 4, one pre-loaded batch: U-Net vs DVSS (native scan) vs DVSS on the pure-PyTorch route, steps
+   interleaved round by round so that load from other processes hits all alike; ratio DVSS / U-Net.
+3. Full-resolution DVSS inference, 480x640 batch 1 (``--quick``: 240x320), in a fresh subprocess: time and
+   peak resident memory above the pre-run baseline (bench_models' method).
+
+Times are wall clock (medians over rounds); on a shared machine the ratios, measured side by side, are the
+figures to compare.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+sys.path.insert(0, str(HERE.parent / "src"))
+
+
+CPU_TIMES: dict[int, float] = {}  # id(fn) -> process CPU seconds of its best wall-clock repetition
+
+
+def _time(fn, reps: int = 1) -> float:
+    """Best wall-clock seconds over ``reps`` runs (its process CPU time is kept in CPU_TIMES)."""
+    best = float("inf")
+    for _ in range(reps):
+        t0, c0 = time.perf_counter(), time.process_time()
+        fn()
+        wall = time.perf_counter() - t0
+        if wall < best:
+            best, CPU_TIMES[id(fn)] = wall, time.process_time() - c0
+    return best
+
+
+def scan_inputs(batch: int, groups: int, dg: int, length: int, n: int):
+    import torch
+
+    g = torch.Generator().manual_seed(0)
+    dim = groups * dg
+    u = torch.randn(batch, dim, length, generator=g)
+    delta = 0.5 * torch.randn(batch, dim, length, generator=g) - 4.0
+    A = -torch.arange(1, n + 1.0).repeat(dim, 1)
+    B = torch.randn(batch, groups, n, length, generator=g)
+    C = torch.randn(batch, groups, n, length, generator=g)
+    D = torch.ones(dim)
+    bias = 0.1 * torch.randn(dim, generator=g)
+    return [t.requires_grad_() for t in (u, delta, A, B, C, D, bias)]
+
+
+def bench_scan(args) -> None:
+    import torch
+
+    from tofdenoise.models import scan_cpu, selective_scan
+
+    batch, groups, dg, length, n = (4, 4, 64, 1024 if args.quick else 4096, 16)
+    dim = groups * dg
+    tensors = scan_inputs(batch, groups, dg, length, n)
+    updates = batch * dim * length * n
+    print(f"\n### Selective scan at DVSS level 0: batch {batch}, {groups} directions x {dg} channels, L = {length}, "
+          f"N = {n}; {args.rounds} rounds, order alternating; threads {torch.get_num_threads()}")
+
+    def fwd(backend):
+        with torch.no_grad():
+            selective_scan(*tensors, True, backend=backend)
+
+    dy = torch.randn(batch, dim, length, generator=torch.Generator().manual_seed(1))  # a dense upstream gradient
+
+    def fwdbwd(backend):
+        for t in tensors:
+            t.grad = None
+        selective_scan(*tensors, True, backend=backend).backward(dy)
+
+    # SS2D route: channels-last x (b, L, dg), raw steps (b, L, 4 dg), B/C (b, L, 4, N), 4 directions over H x W
+    side = int(round(length**0.5))
+    u, delta, A, B, C, D, bias = (t.detach() for t in tensors)
+    xs = u[:, :dg].transpose(1, 2).contiguous().requires_grad_()
+    dts = delta.transpose(1, 2).contiguous().requires_grad_()
+    Bs, Cs = (t.permute(0, 3, 1, 2).contiguous().requires_grad_() for t in (B, C))
+    Ar, Dr, br = (t.clone().requires_grad_() for t in (A, D, bias))
+
+    dy_cl = dy[:, :dg].transpose(1, 2).contiguous()
+
+    def ss2d_fwdbwd():
+        scan_cpu.ss2d_scan_cpu(xs, dts, Ar, Bs, Cs, Dr, br, side, side).backward(dy_cl)
+
+    fwd("cpu")
+    fwdbwd("cpu")
+    rows: dict[str, list[float]] = {k: [] for k in ("cpu_f", "torch_f", "cpu_fb", "torch_fb", "ss2d_fb", "roof")}
+    cpu_s: dict[str, list[float]] = {"cpu_fb": [], "torch_fb": []}
+    for r in range(args.rounds):
+        order = ("cpu", "torch") if r % 2 == 0 else ("torch", "cpu")
+        for backend in order:
+            rows[f"{backend}_f"].append(_time(lambda: fwd(backend), 2 if backend == "cpu" else 1))
+            run = lambda: fwdbwd(backend)  # noqa: E731
+            rows[f"{backend}_fb"].append(_time(run, 2 if backend == "cpu" else 1))
+            cpu_s[f"{backend}_fb"].append(CPU_TIMES[id(run)])
+        rows["ss2d_fb"].append(_time(ss2d_fwdbwd, 2))
+        rows["roof"].append(scan_cpu.roofline_updates_per_s(seconds=0.5)[0])
+    med = {k: statistics.median(v) for k, v in rows.items()}
+    roof = med["roof"]
+    print("| route | forward (ms) | forward+backward (ms) | forward updates/s | fraction of roofline |")
+    print("|---|---:|---:|---:|---:|")
+    print(f"| native kernel (`backend=\"cpu\"`) | {med['cpu_f'] * 1e3:.1f} | {med['cpu_fb'] * 1e3:.1f} | "
+          f"{updates / med['cpu_f'] / 1e9:.2f} G | {updates / med['cpu_f'] / roof:.2f} |")
+    print(f"| chunked PyTorch (`backend=\"torch\"`) | {med['torch_f'] * 1e3:.1f} | {med['torch_fb'] * 1e3:.1f} | "
+          f"{updates / med['torch_f'] / 1e9:.3f} G | {updates / med['torch_f'] / roof:.3f} |")
+    print(f"| SS2D route (`ss2d_scan_cpu`, {side}x{side}, directions read in place) | - | {med['ss2d_fb'] * 1e3:.1f} | - | - |")
+    print(f"roofline (exp + 3 FMA loop, same flags and threads): {roof / 1e9:.2f} G updates/s; "
+          f"forward+backward at the roofline's pace would take ~3 forward passes = {3 * updates / roof * 1e3:.1f} ms")
+    ratios_f = [t / c for t, c in zip(rows["torch_f"], rows["cpu_f"])]
+    ratios_fb = [t / c for t, c in zip(rows["torch_fb"], rows["cpu_fb"])]
+    print(f"speed-up native / chunked: forward {statistics.median(ratios_f):.1f}x, forward+backward "
+          f"{statistics.median(ratios_fb):.1f}x (per round: {', '.join(f'{v:.1f}' for v in ratios_fb)}); target >= 8x")
+    ratios_cpu = [t / c for t, c in zip(cpu_s["torch_fb"], cpu_s["cpu_fb"])]
+    print(f"forward+backward in process CPU time: native {statistics.median(cpu_s['cpu_fb']) * 1e3:.1f} ms, chunked "
+          f"{statistics.median(cpu_s['torch_fb']) * 1e3:.1f} ms, ratio {statistics.median(ratios_cpu):.1f}x (the stable "
+          f"measure on a shared machine with 1 thread; with more threads it counts OpenMP spin-waiting too)")
+
+
+def bench_step(args) -> None:
+    import torch
+
+    from bench_training import backbone_kwargs, make_data, time_steps
+    from tofdenoise.lightning_module import DepthRestorer
+
+    crop, batch = 64, 4
+    print(f"\n### Training step, {crop}x{crop} crops, batch {batch}, L_full + AdamW, pre-loaded batch; "
+          f"{args.rounds} rounds of interleaved steps; threads {torch.get_num_threads()}")
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as cache:
+        dm = make_data(crop, batch, 0, cache)
+        fixed = next(iter(dm.train_dataloader()))
+    configs = [("unet", {}), ("dvss", {}), ("dvss", {"scan_backend": "torch"})]
+    if args.quick:
+        configs = configs[:2]
+    runs = []
+    for name, extra in configs:
+        torch.manual_seed(0)
+        model = DepthRestorer(backbone=name, backbone_kwargs={**backbone_kwargs(name), **extra}, loss="full")
+        model.train()
+        opt = torch.optim.AdamW(model.backbone.parameters(), lr=2e-4)
+        time_steps(model, opt, lambda: fixed, 1)  # warm-up (and the kernel build)
+        label = name if not extra else f"{name} (PyTorch scan route)"
+        runs.append((label, model, opt, []))
+    for _ in range(args.rounds):
+        for label, model, opt, times in runs:
+            steps = 1 if "PyTorch" in label else 2
+            times.append(min(time_steps(model, opt, lambda: fixed, steps)))
+    base = statistics.median(runs[0][3])
+    print("| backbone | step (s), median | / U-Net (per round) |")
+    print("|---|---:|---:|")
+    for label, _, _, times in runs:
+        per_round = [t / u for t, u in zip(times, runs[0][3])]
+        print(f"| {label} | {statistics.median(times):.3f} | {statistics.median(per_round):.2f} "
+              f"({', '.join(f'{v:.2f}' for v in per_round)}) |")
+    print(f"DVSS / U-Net = {statistics.median(runs[1][3]) / base:.2f}; target <= 6")
+
+
+def bench_inference(args) -> None:
+    from bench_models import run_isolated
+
+    h, w = (240, 320) if args.quick else (480, 640)
+    print(f"\n### DVSS inference {h}x{w}, batch 1, fresh subprocess per route (peak RSS above baseline)")
+    print("| scan route | time (s) | peak memory (MiB) |")
+    print("|---|---:|---:|")
+    routes = [("native kernel (auto)", {})] + ([] if args.quick else [("PyTorch (`scan_backend=torch`)", {"scan_backend": "torch"})])
+    for label, kwargs in routes:
+        case = {"kind": "backbone", "name": "dvss", "mode": "fwd", "H": h, "W": w, "batch": 1, "reps": 1, "kwargs": kwargs}
+        res = run_isolated(case, args.threads, timeout_s=1800, mem_cap_gib=12)
+        if "error" in res:
+            print(f"| {label} | {res['error']} | - |")
+        else:
+            print(f"| {label} | {res['time_s']:.2f} | {res['peak_mib']:.0f} |")
+    print("target: peak under 4096 MiB")
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--quick", action="store_true", help="L = 1024 scan, no PyTorch-route step, 240x320 inference")
+    p.add_argument("--threads", type=int, default=2, help="torch threads (default 2, the issue's setting)")
+    p.add_argument("--rounds", type=int, default=None, help="interleaved rounds (default 3, --quick 2)")
+    p.add_argument("--only", default="scan,step,inference", help="comma list of: scan, step, inference")
+    args = p.parse_args(argv)
+    args.rounds = args.rounds or (2 if args.quick else 3)
+    import torch
+
+    torch.set_num_threads(args.threads)
+    from tofdenoise.models.scan_cpu import cpu_kernel_available
+
+    print(f"# bench_scan_cpu: torch {torch.__version__}, threads {torch.get_num_threads()}, cpu count "
+          f"{os.cpu_count()}, load average {os.getloadavg()[0]:.1f} (other processes share the machine)")
+    if not cpu_kernel_available():
+        print("native CPU scan not available (build failed or disabled): nothing to compare")
+        return 1
+    parts = {"scan": bench_scan, "step": bench_step, "inference": bench_inference}
+    for part in args.only.split(","):
+        if part not in parts:
+            p.error(f"--only: unknown part {part!r}; valid: {', '.join(parts)}")
+        parts[part](args)
+        sys.stdout.flush()
+    print(f"# load average at the end {os.getloadavg()[0]:.1f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,596 @@
+// Selective scan (Mamba S6 recurrence) on the CPU: forward and recomputing backward, float32.
+//
+//   delta_t = softplus(delta_raw_t + bias)            (bias / softplus optional)
+//   h_t     = exp(delta_t A) h_{t-1} + delta_t u_t B_t
+//   y_t     = C_t . h_t + D u_t
+//
+// Layout (channels last, what the Python side hands over without copies in SS2D):
+//   u      (batch, L, Du)        Du = G * Dg (plain scan) or Dg (SS2D: the 4 directions read the same x)
+//   delta  (batch, L, G * Dg)    raw steps, one channel per (group, channel-in-group)
+//   A      (G * Dg, N)           D, bias (G * Dg)
+//   B, C   (batch, L, G, N)      any strides (SS2D passes slices of the x_proj output)
+//   y      (batch, L, Du)        SS2D: the 4 directions are summed (cross_merge) into one output
+// Position: the scan step l of group g reads spatial position p = pos(g, l). Plain scan: p = l. SS2D
+// (G = 4 directions over an H x W image, L = H W): row-major, column-major, and both reversed.
+//
+// Work split: one task per (batch, block of W = 16 channels-in-group); a task walks every group in turn, so
+// the SS2D sum over directions (y, du) needs no atomics. The 16 channels are the vector lanes; the N states
+// of the block (N x 16 floats) stay in L1. exp(delta A) is one vectorisable range reduction + polynomial.
+// The forward saves the state entering every chunk of T positions; the backward walks chunks in reverse,
+// recomputes the chunk's states and decays from that checkpoint into a small buffer, and runs the adjoint
+// recursion g_t = C_t dy_t + a_{t+1} g_{t+1}. dB, dC (shared by a group's channels) are reduced over the
+// lanes and written per channel block; dA, dD, dbias per batch element (summed by the caller).
+#include <torch/extension.h>
+#include <ATen/Parallel.h>
+
+#include <algorithm>
+#include <atomic>
+#include <cmath>
+#include <cstdint>
+#include <cstring>
+#include <vector>
+
+namespace {
+
+constexpr int W = 16;     // lanes: channels per task
+constexpr int NMAX = 64;  // largest d_state
+constexpr int PREFETCH = 8;  // steps ahead for software prefetches
+
+// 16-float vectors (GCC / Clang vector extensions: one AVX-512 register, two AVX2 registers, ...). Values
+// that live across the state loop are vf locals, so that the compiler keeps them in registers.
+typedef float vf __attribute__((vector_size(64)));
+typedef int32_t vi __attribute__((vector_size(64)));
+
+inline vf splat(float x) { return vf{} + x; }
+inline vf loadv(const float* p) {
+    vf v;
+    std::memcpy(&v, p, sizeof(v));
+    return v;
+}
+inline void storev(float* p, vf v) { std::memcpy(p, &v, sizeof(v)); }
+// lanes [0, nw) from p, the rest 0
+inline vf load_lanes(const float* p, int nw) {
+    if (nw == W) return loadv(p);
+    alignas(64) float tmp[W] = {};
+    std::memcpy(tmp, p, sizeof(float) * nw);
+    return loadv(tmp);
+}
+inline void store_lanes(float* p, vf v, int nw) {
+    if (nw == W) {
+        storev(p, v);
+    } else {
+        alignas(64) float tmp[W];
+        storev(tmp, v);
+        std::memcpy(p, tmp, sizeof(float) * nw);
+    }
+}
+// lanes at element stride `stride` (a channel axis that is not innermost: gathered / scattered)
+inline vf load_lanes(const float* p, int64_t stride, int nw) {
+    if (stride == 1) return load_lanes(p, nw);
+    alignas(64) float tmp[W] = {};
+    for (int j = 0; j < nw; ++j) tmp[j] = p[j * stride];
+    return loadv(tmp);
+}
+inline void store_lanes(float* p, int64_t stride, vf v, int nw) {
+    if (stride == 1) return store_lanes(p, v, nw);
+    alignas(64) float tmp[W];
+    storev(tmp, v);
+    for (int j = 0; j < nw; ++j) p[j * stride] = tmp[j];
+}
+inline vf select(vi mask, vf a, vf b) { return (vf)((mask & (vi)a) | (~mask & (vi)b)); }
+inline vf vmax(vf a, vf b) { return select(a > b, a, b); }
+inline vf vmin(vf a, vf b) { return select(a < b, a, b); }
+
+// exp(x): x = n ln2 + r, |r| <= ln2 / 2, exp(r) by its degree-6 Taylor polynomial (rel. error ~1.2e-7), 2^n
+// built in the exponent bits. n = round(x / ln2) by the 1.5 * 2^23 trick (needs no reassociation of float
+// sums: the build does not use -fassociative-math). Clamped to [-87, 88] (exp(-87) ~ 1.6e-38 stands for 0).
+inline vf exp_v(vf x) {
+    x = vmin(vmax(x, splat(-87.0f)), splat(88.0f));
+    const vf magic = splat(12582912.0f);
+    const vf n = (x * 1.44269504088896341f + magic) - magic;
+    vf r = x - n * 0.693359375f;
+    r = r + n * 2.12194440e-4f;
+    vf p = splat(1.0f / 720.0f);
+    p = p * r + 1.0f / 120.0f;
+    p = p * r + 1.0f / 24.0f;
+    p = p * r + 1.0f / 6.0f;
+    p = p * r + 0.5f;
+    p = p * r + 1.0f;
+    p = p * r + 1.0f;
+    const vi e = (__builtin_convertvector(n, vi) + 127) << 23;
+    return p * (vf)e;
+}
+
+// softplus(x) = max(x, 0) + log(1 + e), e = exp(-|x|) in (0, 1]; log(1 + e) = 2 atanh(s), s = e / (2 + e)
+// in (0, 1/3], by its odd series to s^13 (truncation < 2e-8 relative). Also returns sigmoid(x).
+inline vf softplus_v(vf x, vf* sig) {
+    const vf e = exp_v(select(x > 0.0f, -x, x));
+    const vf s = e / (2.0f + e);
+    const vf s2 = s * s;
+    vf p = splat(1.0f / 13.0f);
+    p = p * s2 + 1.0f / 11.0f;
+    p = p * s2 + 1.0f / 9.0f;
+    p = p * s2 + 1.0f / 7.0f;
+    p = p * s2 + 1.0f / 5.0f;
+    p = p * s2 + 1.0f / 3.0f;
+    p = p * s2 + 1.0f;
+    const vf inv = 1.0f / (1.0f + e);
+    *sig = select(x >= 0.0f, inv, e * inv);
+    return vmax(x, splat(0.0f)) + 2.0f * s * p;
+}
+
+// out[n] = sum_j P[n][j] for 16 vectors P[0..15] (a transposing tree: 15 adds, 30 shuffles).
+inline vf transpose_sum16(const vf* P) {
+    vf q[8], r[4], s[2];
+    for (int i = 0; i < 8; ++i)
+        q[i] = __builtin_shufflevector(P[2 * i], P[2 * i + 1], 0, 1, 2, 3, 4, 5, 6, 7, 16, 17, 18, 19, 20, 21, 22, 23) +
+               __builtin_shufflevector(P[2 * i], P[2 * i + 1], 8, 9, 10, 11, 12, 13, 14, 15, 24, 25, 26, 27, 28, 29, 30, 31);
+    for (int i = 0; i < 4; ++i)
+        r[i] = __builtin_shufflevector(q[2 * i], q[2 * i + 1], 0, 1, 2, 3, 8, 9, 10, 11, 16, 17, 18, 19, 24, 25, 26, 27) +
+               __builtin_shufflevector(q[2 * i], q[2 * i + 1], 4, 5, 6, 7, 12, 13, 14, 15, 20, 21, 22, 23, 28, 29, 30, 31);
+    for (int i = 0; i < 2; ++i)
+        s[i] = __builtin_shufflevector(r[2 * i], r[2 * i + 1], 0, 1, 4, 5, 8, 9, 12, 13, 16, 17, 20, 21, 24, 25, 28, 29) +
+               __builtin_shufflevector(r[2 * i], r[2 * i + 1], 2, 3, 6, 7, 10, 11, 14, 15, 18, 19, 22, 23, 26, 27, 30, 31);
+    return __builtin_shufflevector(s[0], s[1], 0, 2, 4, 6, 8, 10, 12, 14, 16, 18, 20, 22, 24, 26, 28, 30) +
+           __builtin_shufflevector(s[0], s[1], 1, 3, 5, 7, 9, 11, 13, 15, 17, 19, 21, 23, 25, 27, 29, 31);
+}
+
+inline float hsum(vf v) {
+    alignas(64) float t[W];
+    storev(t, v);
+    float s = 0.0f;
+    for (int j = 0; j < W; ++j) s += t[j];
+    return s;
+}
+
+struct Geometry {
+    int64_t batch, L, G, Dg, N, Du, H, Wd;
+    bool ss2d;
+    // spatial position of scan step l in group (direction) g
+    inline int64_t pos(int64_t g, int64_t l) const {
+        if (!ss2d) return l;
+        if (g >= 2) l = L - 1 - l;
+        if (g == 0 || g == 2) return l;
+        const int64_t i = l % H, j = l / H;  // column-major step l = j H + i
+        return i * Wd + j;
+    }
+};
+
+struct Strides4 {
+    int64_t b, l, g, n;
+};
+
+inline Strides4 strides4(const at::Tensor& t) { return {t.stride(0), t.stride(1), t.stride(2), t.stride(3)}; }
+
+struct Strides3 {
+    int64_t b, l, c;
+};
+
+inline Strides3 strides3(const at::Tensor& t) { return {t.stride(0), t.stride(1), t.stride(2)}; }
+
+void check_inputs(const at::Tensor& u, const at::Tensor& delta, const at::Tensor& A, const at::Tensor& B,
+                  const at::Tensor& C, const at::Tensor& D, const at::Tensor& bias, const Geometry& geo) {
+    for (const at::Tensor* t : {&u, &delta, &A, &B, &C}) {
+        TORCH_CHECK(t->device().is_cpu() && t->scalar_type() == at::kFloat, "selective_scan_cpu: float32 CPU tensors expected");
+    }
+    // u and delta: any strides (channels-last is fastest; a (batch, dim, L) tensor viewed as (batch, L, dim) is
+    // read with gathered lanes); outputs are allocated with the same strides
+    TORCH_CHECK(u.dim() == 3 && u.is_non_overlapping_and_dense(), "selective_scan_cpu: u must be a dense (batch, L, Du) tensor");
+    TORCH_CHECK(delta.dim() == 3 && delta.is_non_overlapping_and_dense(), "selective_scan_cpu: delta must be a dense (batch, L, dim) tensor");
+    TORCH_CHECK(A.dim() == 2 && A.is_contiguous(), "selective_scan_cpu: A must be a contiguous (dim, N) tensor");
+    TORCH_CHECK(B.dim() == 4 && C.dim() == 4, "selective_scan_cpu: B and C must be (batch, L, G, N)");
+    TORCH_CHECK(geo.N <= NMAX, "selective_scan_cpu: d_state must be <= ", NMAX);
+    TORCH_CHECK(u.size(0) == geo.batch && u.size(1) == geo.L && delta.size(2) == geo.G * geo.Dg, "selective_scan_cpu: shape mismatch");
+    TORCH_CHECK(B.size(1) == geo.L && B.size(2) == geo.G && B.size(3) == geo.N && C.sizes() == B.sizes(), "selective_scan_cpu: B/C shape mismatch");
+    for (const at::Tensor* t : {&D, &bias}) {
+        if (t->defined()) {
+            TORCH_CHECK(t->is_contiguous() && t->numel() == geo.G * geo.Dg && t->scalar_type() == at::kFloat,
+                        "selective_scan_cpu: D / bias must be contiguous float32 (dim,)");
+        }
+    }
+    if (geo.ss2d) {
+        TORCH_CHECK(geo.G == 4 && geo.H * geo.Wd == geo.L && geo.Du == geo.Dg, "selective_scan_cpu: SS2D needs 4 directions over H x W");
+    } else {
+        TORCH_CHECK(geo.Du == geo.G * geo.Dg, "selective_scan_cpu: u must have dim channels");
+    }
+}
+
+Geometry make_geometry(const at::Tensor& u, const at::Tensor& A, const at::Tensor& B, bool ss2d, int64_t H, int64_t Wd) {
+    Geometry geo;
+    geo.batch = u.size(0);
+    geo.L = u.size(1);
+    geo.Du = u.size(2);
+    geo.G = B.size(2);
+    geo.N = A.size(1);
+    geo.Dg = A.size(0) / geo.G;
+    geo.ss2d = ss2d;
+    geo.H = H;
+    geo.Wd = Wd;
+    return geo;
+}
+
+
+// Per-block constants in lanes (inactive lanes: A = D = bias = 0, mask = 0).
+struct BlockParams {
+    vf A[NMAX];
+    vf D, bias, mask;
+};
+
+inline void load_params(BlockParams& p, const float* A, const float* D, const float* bias, int64_t c0, int nw, int64_t N) {
+    alignas(64) float t[W];
+    for (int64_t n = 0; n < N; ++n) {
+        for (int j = 0; j < W; ++j) t[j] = j < nw ? A[(c0 + j) * N + n] : 0.0f;
+        p.A[n] = loadv(t);
+    }
+    for (int j = 0; j < W; ++j) t[j] = (D != nullptr && j < nw) ? D[c0 + j] : 0.0f;
+    p.D = loadv(t);
+    for (int j = 0; j < W; ++j) t[j] = (bias != nullptr && j < nw) ? bias[c0 + j] : 0.0f;
+    p.bias = loadv(t);
+    for (int j = 0; j < W; ++j) t[j] = j < nw ? 1.0f : 0.0f;
+    p.mask = loadv(t);
+}
+
+// delta (after bias / softplus) and its derivative w.r.t. the raw delta, in lanes (inactive lanes: 0).
+inline vf step_delta(vf raw, const BlockParams& p, bool softplus, vf* dsig) {
+    if (!softplus) {
+        *dsig = splat(1.0f);
+        return raw + p.bias;
+    }
+    return softplus_v(raw + p.bias, dsig) * p.mask;
+}
+
+struct FwdArgs {
+    Geometry geo;
+    int64_t nblk, nck, chunk;
+    bool softplus;
+    const float *u, *delta, *A, *B, *C, *D, *bias;
+    float *y, *ck;
+    Strides4 sB, sC;
+    Strides3 su, sd;  // (batch, position, channel) strides of u / y and of delta
+};
+
+struct BwdArgs {
+    Geometry geo;
+    int64_t nblk, nck, chunk;
+    bool softplus;
+    const float *u, *delta, *A, *B, *C, *D, *bias, *ck, *dy;
+    float *du, *ddelta, *dA, *dB, *dC, *dD, *dbias;
+    Strides4 sB, sC;
+    Strides3 su, sd, sdy;  // u / du, delta / ddelta, dy
+};
+
+// Forward tasks, taken from next() until it returns -1. NT = d_state known at compile time (the state loop unrolls and the 16 state
+// vectors stay in registers), or 0 = runtime d_state.
+template <int NT, class Next>
+void fwd_tasks(const FwdArgs& a, Next next) {
+    const Geometry& geo = a.geo;
+    const int64_t N = NT > 0 ? NT : geo.N, L = geo.L, G = geo.G, Dg = geo.Dg, Du = geo.Du, Dall = G * Dg;
+    const int64_t nblk = a.nblk, nck = a.nck, chunk = a.chunk;
+    const bool ss2d = geo.ss2d;
+    const Strides4 sB = a.sB, sC = a.sC;
+    BlockParams prm;
+    vf h[NT > 0 ? NT : NMAX];
+    for (int64_t task = next(); task >= 0; task = next()) {
+        const int64_t b = task / nblk, blk = task % nblk;
+        const int64_t d0 = blk * W;
+        const int nw = static_cast<int>(std::min<int64_t>(W, Dg - d0));
+        for (int64_t g = 0; g < G; ++g) {
+            const int64_t c0 = g * Dg + d0;      // channel of lane 0
+            const int64_t uc0 = ss2d ? d0 : c0;  // u / y column of lane 0
+            load_params(prm, a.A, a.D, a.bias, c0, nw, N);
+            for (int64_t n = 0; n < N; ++n) h[n] = splat(0.0f);
+            float* ckg = a.ck + (((b * nblk + blk) * G + g) * nck) * N * W;
+            int64_t in_chunk = 0;
+            for (int64_t l = 0; l < L; ++l, ++in_chunk) {
+                if (in_chunk == chunk) in_chunk = 0;
+                if (in_chunk == 0) {
+                    float* dst = ckg + (l / chunk) * N * W;
+                    for (int64_t n = 0; n < N; ++n) storev(dst + n * W, h[n]);
+                }
+                const int64_t p = geo.pos(g, l);
+                if (l + PREFETCH < L) {  // column-major directions jump a whole image row per step
+                    const int64_t q = geo.pos(g, l + PREFETCH);
+                    __builtin_prefetch(a.delta + b * a.sd.b + q * a.sd.l + c0 * a.sd.c);
+                    __builtin_prefetch(a.u + b * a.su.b + q * a.su.l + uc0 * a.su.c);
+                    __builtin_prefetch(a.y + b * a.su.b + q * a.su.l + uc0 * a.su.c);
+                    __builtin_prefetch(a.B + b * sB.b + q * sB.l + g * sB.g);
+                    __builtin_prefetch(a.C + b * sC.b + q * sC.l + g * sC.g);
+                }
+                vf dsig;
+                const vf dl = step_delta(load_lanes(a.delta + b * a.sd.b + p * a.sd.l + c0 * a.sd.c, a.sd.c, nw), prm, a.softplus, &dsig);
+                const vf uu = load_lanes(a.u + b * a.su.b + p * a.su.l + uc0 * a.su.c, a.su.c, nw);
+                const float* Bl = a.B + b * sB.b + p * sB.l + g * sB.g;
+                const float* Cl = a.C + b * sC.b + p * sC.l + g * sC.g;
+                const vf du = dl * uu;
+                vf yy = prm.D * uu;
+#pragma GCC unroll 16
+                for (int64_t n = 0; n < N; ++n) {
+                    h[n] = exp_v(dl * prm.A[n]) * h[n] + du * Bl[n * sB.n];
+                    yy += h[n] * Cl[n * sC.n];
+                }
+                float* yrow = a.y + b * a.su.b + p * a.su.l + uc0 * a.su.c;
+                if (ss2d) yy += load_lanes(yrow, a.su.c, nw);
+                store_lanes(yrow, a.su.c, yy, nw);
+            }
+        }
+    }
+}
+
+// Backward tasks, taken from next() until it returns -1 (NT as in fwd_tasks).
+template <int NT, class Next>
+void bwd_tasks(const BwdArgs& a, Next next) {
+    const Geometry& geo = a.geo;
+    const int64_t N = NT > 0 ? NT : geo.N, L = geo.L, G = geo.G, Dg = geo.Dg, Du = geo.Du, Dall = G * Dg;
+    const int64_t nblk = a.nblk, nck = a.nck, chunk = a.chunk;
+    const bool ss2d = geo.ss2d;
+    const Strides4 sB = a.sB, sC = a.sC;
+    BlockParams prm;
+    // per chunk: states h_t and decays a_t (T x N vectors), steps, sigmoids, inputs (T vectors)
+    std::vector<vf> Hbuf(chunk * N), Abuf(chunk * N), DLbuf(chunk), SGbuf(chunk), Ubuf(chunk);
+    constexpr int NA = NT > 0 ? NT : NMAX;
+    vf h[NA], gn[NA], dAacc[NA], pB[NA], pC[NA];
+    alignas(64) float sums[W];
+    for (int64_t task = next(); task >= 0; task = next()) {
+        const int64_t b = task / nblk, blk = task % nblk;
+        const int64_t d0 = blk * W;
+        const int nw = static_cast<int>(std::min<int64_t>(W, Dg - d0));
+        for (int64_t g = 0; g < G; ++g) {
+            const int64_t c0 = g * Dg + d0;
+            const int64_t uc0 = ss2d ? d0 : c0;
+            load_params(prm, a.A, a.D, a.bias, c0, nw, N);
+            for (int64_t n = 0; n < N; ++n) {
+                gn[n] = splat(0.0f);  // a_{t+1} g_{t+1}, carried backwards
+                dAacc[n] = splat(0.0f);
+            }
+            vf dDacc = splat(0.0f), dbacc = splat(0.0f);
+            const float* ckg = a.ck + (((b * nblk + blk) * G + g) * nck) * N * W;
+            for (int64_t k = nck - 1; k >= 0; --k) {
+                const int64_t t0 = k * chunk, t1 = std::min(L, t0 + chunk);
+                for (int64_t n = 0; n < N; ++n) h[n] = loadv(ckg + (k * N + n) * W);
+                // recompute the chunk's states and decays
+                for (int64_t t = t0; t < t1; ++t) {
+                    const int64_t p = geo.pos(g, t), s = t - t0;
+                    if (t + PREFETCH < t1) {
+                        const int64_t q = geo.pos(g, t + PREFETCH);
+                        __builtin_prefetch(a.delta + b * a.sd.b + q * a.sd.l + c0 * a.sd.c);
+                        __builtin_prefetch(a.u + b * a.su.b + q * a.su.l + uc0 * a.su.c);
+                        __builtin_prefetch(a.B + b * sB.b + q * sB.l + g * sB.g);
+                    }
+                    // rows the adjoint pass reads next (a chunk of them stays in L1)
+                    __builtin_prefetch(a.dy + b * a.sdy.b + p * a.sdy.l + uc0 * a.sdy.c);
+                    __builtin_prefetch(a.du + b * a.su.b + p * a.su.l + uc0 * a.su.c);
+                    __builtin_prefetch(a.C + b * sC.b + p * sC.l + g * sC.g);
+                    vf dsig;
+                    const vf dl = step_delta(load_lanes(a.delta + b * a.sd.b + p * a.sd.l + c0 * a.sd.c, a.sd.c, nw), prm, a.softplus, &dsig);
+                    const vf uu = load_lanes(a.u + b * a.su.b + p * a.su.l + uc0 * a.su.c, a.su.c, nw);
+                    DLbuf[s] = dl;
+                    SGbuf[s] = dsig;
+                    Ubuf[s] = uu;
+                    const float* Bl = a.B + b * sB.b + p * sB.l + g * sB.g;
+                    const vf du = dl * uu;
+                    vf* Hs = &Hbuf[s * N];
+                    vf* As = &Abuf[s * N];
+#pragma GCC unroll 16
+                    for (int64_t n = 0; n < N; ++n) {
+                        const vf decay = exp_v(dl * prm.A[n]);
+                        h[n] = decay * h[n] + du * Bl[n * sB.n];
+                        As[n] = decay;
+                        Hs[n] = h[n];
+                    }
+                }
+                // adjoint recursion g_t = C_t dy_t + a_{t+1} g_{t+1}, newest position first
+                for (int64_t t = t1 - 1; t >= t0; --t) {
+                    const int64_t p = geo.pos(g, t), s = t - t0;
+                    const vf dl = DLbuf[s], uu = Ubuf[s];
+                    const vf* Hs = &Hbuf[s * N];
+                    const vf* As = &Abuf[s * N];
+                    const float* Bl = a.B + b * sB.b + p * sB.l + g * sB.g;
+                    const float* Cl = a.C + b * sC.b + p * sC.l + g * sC.g;
+                    const vf dyv = load_lanes(a.dy + b * a.sdy.b + p * a.sdy.l + uc0 * a.sdy.c, a.sdy.c, nw);
+                    const vf du = dl * uu;
+                    vf dsum = splat(0.0f);  // sum_n g_n A_n a_n h_{t-1,n}
+                    vf ssum = splat(0.0f);  // sum_n g_n B_n
+#pragma GCC unroll 16
+                    for (int64_t n = 0; n < N; ++n) {
+                        const float bn = Bl[n * sB.n];
+                        const vf gt = dyv * Cl[n * sC.n] + gn[n];
+                        const vf gah = gt * (Hs[n] - du * bn);  // a_t h_{t-1} = h_t - delta u B
+                        dsum += prm.A[n] * gah;
+                        dAacc[n] += dl * gah;
+                        ssum += gt * bn;
+                        pB[n] = gt * du;
+                        pC[n] = Hs[n] * dyv;
+                        gn[n] = As[n] * gt;
+                    }
+                    float* dBrow = a.dB + (((blk * geo.batch + b) * L + p) * G + g) * N;
+                    float* dCrow = a.dC + (((blk * geo.batch + b) * L + p) * G + g) * N;
+                    if constexpr (NT == W) {
+                        storev(dBrow, transpose_sum16(pB));  // dB_t[n], dC_t[n]: sums over the lanes
+                        storev(dCrow, transpose_sum16(pC));
+                    } else {
+                        for (int64_t n = 0; n < N; ++n) {
+                            dBrow[n] = hsum(pB[n]);
+                            dCrow[n] = hsum(pC[n]);
+                        }
+                    }
+                    // d delta_t = sum_n g_n (A_n a_n h_{t-1,n} + u B_n); through softplus: * sigmoid
+                    const vf ddl = (dsum + uu * ssum) * SGbuf[s];
+                    dbacc += ddl;
+                    dDacc += dyv * uu;
+                    store_lanes(a.ddelta + b * a.sd.b + p * a.sd.l + c0 * a.sd.c, a.sd.c, ddl, nw);
+                    vf dU = dl * ssum + prm.D * dyv;  // dL/du_t
+                    float* durow = a.du + b * a.su.b + p * a.su.l + uc0 * a.su.c;
+                    if (ss2d) dU += load_lanes(durow, a.su.c, nw);
+                    store_lanes(durow, a.su.c, dU, nw);
+                }
+            }
+            for (int64_t n = 0; n < N; ++n) {
+                storev(sums, dAacc[n]);
+                for (int j = 0; j < nw; ++j) a.dA[(b * Dall + c0 + j) * N + n] = sums[j];
+            }
+            storev(sums, dDacc);
+            for (int j = 0; j < nw; ++j) a.dD[b * Dall + c0 + j] = sums[j];
+            storev(sums, dbacc);
+            for (int j = 0; j < nw; ++j) a.dbias[b * Dall + c0 + j] = sums[j];
+        }
+    }
+}
+
+// Runs body(next) on torch's intra-op threads; next() hands out task indices 0..ntasks-1 one at a time
+// (dynamic scheduling: on a shared machine a descheduled thread holds up one task, not half of them).
+template <class Body>
+void run_tasks(int64_t ntasks, Body body) {
+    std::atomic<int64_t> counter{0};
+    auto next = [&]() -> int64_t {
+        const int64_t t = counter.fetch_add(1, std::memory_order_relaxed);
+        return t < ntasks ? t : -1;
+    };
+    const int64_t workers = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), ntasks));
+    at::parallel_for(0, workers, 1, [&](int64_t begin, int64_t end) {
+        if (begin < end) body(next);
+    });
+}
+
+}  // namespace
+
+std::vector<at::Tensor> scan_fwd(const at::Tensor& u, const at::Tensor& delta, const at::Tensor& A, const at::Tensor& B,
+                                 const at::Tensor& C, const c10::optional<at::Tensor>& D_opt,
+                                 const c10::optional<at::Tensor>& bias_opt, bool softplus, bool ss2d, int64_t H,
+                                 int64_t Wd, int64_t chunk) {
+    const at::Tensor D = D_opt.has_value() ? *D_opt : at::Tensor();
+    const at::Tensor bias = bias_opt.has_value() ? *bias_opt : at::Tensor();
+    const Geometry geo = make_geometry(u, A, B, ss2d, H, Wd);
+    check_inputs(u, delta, A, B, C, D, bias, geo);
+    TORCH_CHECK(chunk >= 1, "selective_scan_cpu: chunk must be >= 1");
+    const int64_t nblk = (geo.Dg + W - 1) / W;
+    const int64_t nck = (geo.L + chunk - 1) / chunk;
+    at::Tensor y = ss2d ? at::zeros_like(u) : at::empty_like(u);
+    // state entering each chunk: (batch, nblk, G, nck, N, W)
+    at::Tensor ck = at::empty({geo.batch, nblk, geo.G, nck, geo.N, W}, u.options());
+    const float* up = u.data_ptr<float>();
+    const float* dp = delta.data_ptr<float>();
+    const float* Ap = A.data_ptr<float>();
+    const float* Bp = B.data_ptr<float>();
+    const float* Cp = C.data_ptr<float>();
+    const float* Dp = D.defined() ? D.data_ptr<float>() : nullptr;
+    const float* bp = bias.defined() ? bias.data_ptr<float>() : nullptr;
+    float* yp = y.data_ptr<float>();
+    float* ckp = ck.data_ptr<float>();
+    const Strides4 sB = strides4(B), sC = strides4(C);
+    const int64_t N = geo.N, L = geo.L, G = geo.G, Dg = geo.Dg, Du = geo.Du, Dall = G * Dg;
+
+    TORCH_CHECK(y.strides() == u.strides(), "selective_scan_cpu: output layout differs from u's");
+    const FwdArgs args{geo, nblk, nck, chunk, softplus, up, dp, Ap, Bp, Cp, Dp, bp, yp, ckp, sB, sC, strides3(u), strides3(delta)};
+    run_tasks(geo.batch * nblk, [&](auto next) {
+        if (geo.N == 16) {
+            fwd_tasks<16>(args, next);
+        } else {
+            fwd_tasks<0>(args, next);
+        }
+    });
+    return {y, ck};
+}
+
+std::vector<at::Tensor> scan_bwd(const at::Tensor& u, const at::Tensor& delta, const at::Tensor& A, const at::Tensor& B,
+                                 const at::Tensor& C, const c10::optional<at::Tensor>& D_opt,
+                                 const c10::optional<at::Tensor>& bias_opt, bool softplus, bool ss2d, int64_t H,
+                                 int64_t Wd, int64_t chunk, const at::Tensor& ck, const at::Tensor& dy_in) {
+    const at::Tensor D = D_opt.has_value() ? *D_opt : at::Tensor();
+    const at::Tensor bias = bias_opt.has_value() ? *bias_opt : at::Tensor();
+    const Geometry geo = make_geometry(u, A, B, ss2d, H, Wd);
+    check_inputs(u, delta, A, B, C, D, bias, geo);
+    const at::Tensor& dy = dy_in;  // any strides (autograd may hand over an expanded or transposed gradient)
+    TORCH_CHECK(dy.sizes() == u.sizes() && dy.scalar_type() == at::kFloat, "selective_scan_cpu: dy must have y's shape");
+    const int64_t nblk = (geo.Dg + W - 1) / W;
+    const int64_t nck = (geo.L + chunk - 1) / chunk;
+    TORCH_CHECK(ck.is_contiguous() && ck.numel() == geo.batch * nblk * geo.G * nck * geo.N * W, "selective_scan_cpu: bad checkpoints");
+    const int64_t N = geo.N, L = geo.L, G = geo.G, Dg = geo.Dg, Du = geo.Du, Dall = G * Dg;
+
+    at::Tensor du_out = ss2d ? at::zeros_like(u) : at::empty_like(u);
+    at::Tensor ddelta = at::empty_like(delta);
+    TORCH_CHECK(du_out.strides() == u.strides() && ddelta.strides() == delta.strides(), "selective_scan_cpu: gradient layout differs");
+    at::Tensor dA = at::empty({geo.batch, Dall, N}, u.options());
+    at::Tensor dBp = at::empty({nblk, geo.batch, L, G, N}, u.options());
+    at::Tensor dCp = at::empty({nblk, geo.batch, L, G, N}, u.options());
+    at::Tensor dD = at::empty({geo.batch, Dall}, u.options());
+    at::Tensor dbias = at::empty({geo.batch, Dall}, u.options());
+
+    const float* up = u.data_ptr<float>();
+    const float* dp = delta.data_ptr<float>();
+    const float* Ap = A.data_ptr<float>();
+    const float* Bp = B.data_ptr<float>();
+    const float* Cp = C.data_ptr<float>();
+    const float* Dp = D.defined() ? D.data_ptr<float>() : nullptr;
+    const float* bp = bias.defined() ? bias.data_ptr<float>() : nullptr;
+    const float* ckp = ck.data_ptr<float>();
+    const float* dyp = dy.data_ptr<float>();
+    float* dup = du_out.data_ptr<float>();
+    float* ddp = ddelta.data_ptr<float>();
+    float* dAp = dA.data_ptr<float>();
+    float* dBpp = dBp.data_ptr<float>();
+    float* dCpp = dCp.data_ptr<float>();
+    float* dDp = dD.data_ptr<float>();
+    float* dbp = dbias.data_ptr<float>();
+    const Strides4 sB = strides4(B), sC = strides4(C);
+
+    const BwdArgs args{geo, nblk, nck, chunk, softplus, up, dp, Ap, Bp, Cp, Dp, bp, ckp, dyp,
+                       dup, ddp, dAp, dBpp, dCpp, dDp, dbp, sB, sC, strides3(u), strides3(delta), strides3(dy)};
+    run_tasks(geo.batch * nblk, [&](auto next) {
+        if (geo.N == 16) {
+            bwd_tasks<16>(args, next);
+        } else {
+            bwd_tasks<0>(args, next);
+        }
+    });
+    return {du_out, ddelta, dA.sum(0), dBp.sum(0), dCp.sum(0), dD.sum(0), dbias.sum(0)};
+}
+
+// The roofline of the scan: a plain vectorised loop doing what one state update costs at least, one exp and
+// three multiply-adds per element (decay argument, state update, readout), on L1-resident lanes. ``tasks``
+// independent tasks of 256 elements x ``repeats`` sweeps (tasks x 256 x repeats updates in all); returns a
+// checksum so that the work cannot be optimised away.
+double roofline_loop(int64_t tasks, int64_t repeats) {
+    std::vector<double> sums(tasks, 0.0);
+    at::parallel_for(0, tasks, 1, [&](int64_t begin, int64_t end) {
+        constexpr int M = 256 / W;
+        for (int64_t task = begin; task < end; ++task) {
+            vf x[M], h[M], y[M];
+            for (int i = 0; i < M; ++i) {
+                alignas(64) float t[W];
+                for (int j = 0; j < W; ++j) t[j] = -0.01f * static_cast<float>(i * W + j + task % 7);
+                x[i] = loadv(t);
+                h[i] = y[i] = splat(0.0f);
+            }
+            for (int64_t r = 0; r < repeats; ++r) {
+                const float bn = 1.0f + 1e-6f * static_cast<float>(r & 15), cn = 0.5f;
+                for (int i = 0; i < M; ++i) {
+                    h[i] = exp_v(x[i] * 1.5f) * h[i] + x[i] * bn;
+                    y[i] += h[i] * cn;
+                }
+            }
+            double s = 0.0;
+            for (int i = 0; i < M; ++i) s += hsum(y[i]);
+            sums[task] = s;
+        }
+    });
+    double total = 0.0;
+    for (double s : sums) total += s;
+    return total;
+}
+
+PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+    m.def("scan_fwd", &scan_fwd, "selective scan forward (CPU, float32)");
+    m.def("scan_bwd", &scan_bwd, "selective scan backward (CPU, float32)");
+    m.def("roofline_loop", &roofline_loop, "exp + 3 FMA per element, the scan's per-update floor");
+    m.def("exp_fast", [](const at::Tensor& x) {
+        at::Tensor xc = x.contiguous().to(at::kFloat);
+        const int64_t n = xc.numel(), padded = (n + W - 1) / W * W;
+        at::Tensor in = at::zeros({padded}, xc.options());
+        in.narrow(0, 0, n).copy_(xc.view(-1));
+        at::Tensor out = at::empty_like(in);
+        const float* xp = in.data_ptr<float>();
+        float* op = out.data_ptr<float>();
+        for (int64_t i = 0; i < padded; i += W) storev(op + i, exp_v(loadv(xp + i)));
+        return out.narrow(0, 0, n).view(x.sizes()).clone();
+    }, "the kernel's exp (for tests)");
+}

@@ -1,0 +1,222 @@
+"""Native CPU selective scan: a C++ kernel (``csrc/selective_scan_cpu.cpp``) built on first use.
+
+The kernel computes the recurrence of :mod:`tofdenoise.models.scan` in float32 with delta_bias, softplus and
+the D skip term fused, forward and a recomputing backward (gradients for u, delta, A, B, C, D, delta_bias):
+
+* one task per (batch, block of 16 channels), run in parallel by ``at::parallel_for`` (torch's threads); the
+  16 channels are the vector lanes and the N states of a block (N x 16 floats) stay in L1, so no
+  (batch, dim, N, L) tensor exists;
+* exp(delta A) -- one per state update, the cost of the scan -- is a range reduction by ln 2 and a degree-6
+  polynomial written branch-free, so that the loop over lanes vectorises (``-O3 -march=native``);
+* the forward saves the state entering every chunk of ``CHUNK`` positions; the backward walks the chunks in
+  reverse, recomputes a chunk's states and decays from its checkpoint and runs the adjoint recursion.
+
+Inputs are channels-last, (batch, L, channels), so SS2D hands its activations over without the
+``cross_scan`` copies: :func:`ss2d_scan_cpu` reads the four scan directions (row-major, column-major, both
+reversed) of an H x W image by index arithmetic and sums their outputs (``cross_merge``) inside the kernel.
+
+Build: ``torch.utils.cpp_extension.load`` compiles the source once into torch's per-user extension cache
+(``TORCH_EXTENSIONS_DIR``, default ``~/.cache/torch_extensions``); the module name carries a hash of the
+source, the flags and this CPU's model and flags, so an edited source or another CPU type gets its own build.
+Any failure (no compiler, no ninja, a compile error, a failed self-check against the PyTorch scan) gives one
+warning and :func:`cpu_kernel_available` returns False: callers then use the chunked PyTorch scan.
+``TOFDENOISE_SCAN_CPU=0`` in the environment disables the kernel without trying to build it.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import os
+import platform
+import warnings
+from pathlib import Path
+
+import torch
+
+__all__ = [
+    "cpu_kernel_available",
+    "load_extension",
+    "selective_scan_cpu",
+    "ss2d_scan_cpu",
+    "CHUNK",
+]
+
+#: positions per checkpoint chunk (the backward recomputes one chunk of states at a time)
+CHUNK = 64
+SOURCE = Path(__file__).resolve().parent / "csrc" / "selective_scan_cpu.cpp"
+CFLAGS = ["-O3", "-march=native", "-ffp-contract=fast", "-fno-math-errno", "-fno-trapping-math"]
+ENV_SWITCH = "TOFDENOISE_SCAN_CPU"
+
+
+def _cpu_signature() -> str:
+    """CPU model and feature flags (a -march=native build must not be reused on another CPU type)."""
+    info = platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith(("model name", "flags", "Features")):
+                info += line
+                if line.startswith(("flags", "Features")):
+                    break
+    except OSError:
+        pass
+    return info
+
+
+def _build_name() -> str:
+    digest = hashlib.sha256()
+    digest.update(SOURCE.read_bytes())
+    digest.update(" ".join(CFLAGS).encode())
+    digest.update(_cpu_signature().encode())
+    digest.update(torch.__version__.encode())
+    return f"tofdenoise_scan_cpu_{digest.hexdigest()[:12]}"
+
+
+@functools.lru_cache(maxsize=1)
+def load_extension():
+    """The compiled extension module, or None (with one warning) when it cannot be built or loaded."""
+    if os.environ.get(ENV_SWITCH, "1").strip().lower() in ("0", "false", "no", "off"):
+        return None
+    try:
+        from torch.utils import cpp_extension
+
+        return cpp_extension.load(
+            name=_build_name(), sources=[str(SOURCE)], extra_cflags=CFLAGS, verbose=False
+        )
+    except Exception as exc:  # noqa: BLE001 - any build/load failure means "use the PyTorch scan"
+        warnings.warn(
+            f"tofdenoise: the native CPU selective scan could not be built ({type(exc).__name__}: "
+            f"{str(exc).strip().splitlines()[-1][:200] if str(exc).strip() else ''}); using the pure-PyTorch "
+            f"chunked scan (slower). Needs a C++ compiler and ninja; set {ENV_SWITCH}=0 to skip the attempt.",
+            RuntimeWarning,
+            stacklevel=2,
+        )
+        return None
+
+
+@functools.lru_cache(maxsize=1)
+def cpu_kernel_available() -> bool:
+    """True when the extension builds and agrees with the chunked PyTorch scan on a small case (checked once
+    per process; a disagreement gives a warning and False)."""
+    ext = load_extension()
+    if ext is None:
+        return False
+    from .scan import selective_scan_chunked
+
+    g = torch.Generator().manual_seed(0)
+    u = torch.randn(2, 20, 37, generator=g)
+    delta = 0.5 * torch.randn(2, 20, 37, generator=g)
+    A = -torch.exp(0.5 * torch.randn(20, 5, generator=g))
+    B, C = torch.randn(2, 2, 5, 37, generator=g), torch.randn(2, 2, 5, 37, generator=g)
+    D, bias = torch.randn(20, generator=g), torch.randn(20, generator=g)
+    try:
+        got = selective_scan_cpu(u, delta, A, B, C, D, bias, True, _ext=ext)
+    except Exception as exc:  # noqa: BLE001
+        warnings.warn(f"tofdenoise: the native CPU selective scan failed its self-check ({exc}); using the PyTorch scan",
+                      RuntimeWarning, stacklevel=2)
+        return False
+    want = selective_scan_chunked(u, delta, A, B, C, D, bias, True)
+    err = ((got - want).abs().max() / want.abs().max()).item()
+    if not err < 1e-4:
+        warnings.warn(f"tofdenoise: the native CPU selective scan disagrees with the PyTorch scan (relative error "
+                      f"{err:.1e}); using the PyTorch scan", RuntimeWarning, stacklevel=2)
+        return False
+    return True
+
+
+def _dense(t: torch.Tensor) -> torch.Tensor:
+    """t itself when it is (batch, L, C) contiguous or a transposed (batch, C, L) contiguous tensor (the
+    kernel reads strides), else a contiguous copy."""
+    return t if t.is_contiguous() or t.transpose(1, 2).is_contiguous() else t.contiguous()
+
+
+def _opt(t: torch.Tensor | None) -> torch.Tensor | None:
+    return None if t is None else t.detach().float().contiguous()
+
+
+class _CpuScanFn(torch.autograd.Function):
+    """Autograd wrapper of the kernel on channels-last tensors: u (b, L, Du), delta (b, L, dim),
+    A (dim, N), B / C (b, L, G, N) (any strides), D / bias (dim,) or None."""
+
+    @staticmethod
+    def forward(ctx, u, delta, A, B, C, D, bias, softplus: bool, ss2d: bool, H: int, W: int, ext):
+        with torch.autocast("cpu", enabled=False):
+            args = (_dense(u), _dense(delta), A.contiguous(), B, C, _opt(D), _opt(bias))
+            y, ck = ext.scan_fwd(*args, softplus, ss2d, H, W, CHUNK)
+        ctx.save_for_backward(*args[:5], ck)
+        ctx.D, ctx.bias = args[5], args[6]
+        ctx.has_D, ctx.has_bias = D is not None, bias is not None
+        ctx.cfg = (softplus, ss2d, H, W, ext)
+        return y
+
+    @staticmethod
+    def backward(ctx, dy):
+        u, delta, A, B, C, ck = ctx.saved_tensors
+        softplus, ss2d, H, W, ext = ctx.cfg
+        du, ddelta, dA, dB, dC, dD, dbias = ext.scan_bwd(
+            u, delta, A, B, C, ctx.D, ctx.bias, softplus, ss2d, H, W, CHUNK, ck, dy.float()
+        )
+        return (du, ddelta, dA, dB, dC, dD if ctx.has_D else None, dbias if ctx.has_bias else None,
+                None, None, None, None, None)
+
+
+def selective_scan_cpu(u, delta, A, B, C, D=None, delta_bias=None, delta_softplus=False, *, _ext=None) -> torch.Tensor:
+    """``selective_scan`` on the native kernel: mamba-ssm's shapes (u, delta (batch, dim, L); B, C
+    (batch, groups, N, L) or (batch, N, L)); float32 CPU tensors (other float dtypes are computed in float32
+    and returned in theirs; callers route float64 to the PyTorch scan to keep float64 precision).
+    u and delta are read in place through strides (no transposed copies; y and the gradients come back in
+    the same (batch, dim, L) layout); B and C are transposed once to (batch, L, groups, N)."""
+    from .scan import _check_shapes
+
+    ext = _ext if _ext is not None else load_extension()
+    if ext is None:
+        raise RuntimeError("selective_scan_cpu: the native CPU kernel is not available (see the build warning)")
+    B, C, _ = _check_shapes(u, delta, A, B, C, D, delta_bias)
+    if u.is_cuda:
+        raise ValueError(f"selective_scan_cpu: CPU tensors expected, got device {u.device}")
+    dtype = u.dtype
+    f = torch.float32
+    y = _CpuScanFn.apply(
+        u.to(f).transpose(1, 2),  # views: the kernel reads the (batch, dim, L) memory with gathered lanes
+        delta.to(f).transpose(1, 2),
+        A.to(f),
+        B.to(f).permute(0, 3, 1, 2).contiguous(),  # (b, L, G, N): one cache line per step, not N
+        C.to(f).permute(0, 3, 1, 2).contiguous(),
+        None if D is None else D.to(f),
+        None if delta_bias is None else delta_bias.to(f),
+        bool(delta_softplus), False, 0, 0, ext,
+    )
+    return y.transpose(1, 2).to(dtype)
+
+
+def ss2d_scan_cpu(x, delta, A, B, C, D, delta_bias, height: int, width: int) -> torch.Tensor:
+    """The four-direction SS2D scan with softplus, read in spatial order: x (b, H W, d) channels-last
+    (row-major positions), delta (b, H W, 4 d) raw steps, A (4 d, N), B / C (b, H W, 4, N) (any strides),
+    D and delta_bias (4 d,). Direction k of channel c is channel k d + c; its step l reads position
+    pi_k(l) (row-major, column-major, both reversed). Returns sum_k y_k at each position, (b, H W, d) --
+    ``cross_merge(selective_scan(cross_scan(x), ...))`` without the layout copies. float32 CPU tensors."""
+    ext = load_extension()
+    if ext is None:
+        raise RuntimeError("ss2d_scan_cpu: the native CPU kernel is not available (see the build warning)")
+    return _CpuScanFn.apply(x, delta, A, B, C, D, delta_bias, True, True, int(height), int(width), ext)
+
+
+def roofline_updates_per_s(seconds: float = 1.0) -> tuple[float, float]:
+    """Measured peak of the kernel's exp + 3 multiply-add loop (the scan's floor per state update), using
+    torch's threads: (updates per second, seconds spent)."""
+    import time
+
+    ext = load_extension()
+    if ext is None:
+        raise RuntimeError("roofline: the native CPU kernel is not available")
+    tasks = 8 * torch.get_num_threads()
+    repeats = 2000
+    ext.roofline_loop(tasks, 10)  # warm-up
+    while True:
+        t0 = time.perf_counter()
+        ext.roofline_loop(tasks, repeats)
+        dt = time.perf_counter() - t0
+        if dt > 0.2 * seconds or repeats > 10**8:
+            break
+        repeats *= 4
+    return tasks * 256 * repeats / dt, dt

@@ -1,0 +1,242 @@
+"""Native CPU selective scan (scan_cpu): equality with the PyTorch scans (forward and every gradient),
+routing of dtypes and backends, the fallback when the build fails, and SS2D's direction-reading route."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import warnings
+
+import pytest
+import torch
+
+from tofdenoise.models import available_scan_backends, selective_scan
+from tofdenoise.models import scan_cpu
+from tofdenoise.models.scan import (
+    resolve_scan_backend,
+    selective_scan_chunked,
+    selective_scan_ref,
+    selective_scan_sequential,
+)
+from tofdenoise.models.ss2d import SS2D
+
+NO_BUILD = os.environ.get(scan_cpu.ENV_SWITCH, "1") in ("0", "false", "no", "off") or shutil.which("c++") is None
+
+
+@pytest.fixture(scope="module")
+def ext():
+    """The extension, compiled once per test session (cached on disk by torch afterwards). A failed build on a
+    machine with a compiler is a test failure, not a skip."""
+    if NO_BUILD:
+        pytest.skip("native CPU scan disabled or no C++ compiler")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a build failure warning fails here
+        mod = scan_cpu.load_extension()
+    assert mod is not None
+    assert scan_cpu.cpu_kernel_available()
+    return mod
+
+
+def _inputs(batch, dim, length, groups, n, dtype=torch.float32, three_d=False, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    u = torch.randn(batch, dim, length, generator=g, dtype=dtype)
+    delta = 0.5 * torch.randn(batch, dim, length, generator=g, dtype=dtype)
+    A = -torch.exp(0.5 * torch.randn(dim, n, generator=g, dtype=dtype))
+    shape = (batch, n, length) if three_d else (batch, groups, n, length)
+    B = torch.randn(*shape, generator=g, dtype=dtype)
+    C = torch.randn(*shape, generator=g, dtype=dtype)
+    D = torch.randn(dim, generator=g, dtype=dtype)
+    bias = torch.randn(dim, generator=g, dtype=dtype)
+    return [t.requires_grad_() for t in (u, delta, A, B, C, D, bias)]
+
+
+def _rel(a, b):
+    return ((a - b).abs().max() / b.abs().max().clamp_min(1e-30)).item()
+
+
+def _grads(fn, tensors, use_d, use_bias, softplus, w):
+    u, delta, A, B, C, D, bias = tensors
+    d_in = delta if (softplus or use_bias) else delta.abs()  # without softplus: positive steps
+    inputs = [u, delta, A, B, C] + ([D] if use_d else []) + ([bias] if use_bias else [])
+    y = fn(u, d_in, A, B, C, D if use_d else None, bias if use_bias else None, softplus)
+    return y, torch.autograd.grad((y * w.to(y.dtype)).sum(), inputs)
+
+
+CASES = [
+    # batch, dim, L, groups, N, D, delta_bias, softplus, three_d B/C
+    (2, 6, 23, 1, 4, True, True, True, False),  # one group, fewer channels than lanes
+    (1, 6, 23, 3, 5, True, False, True, False),  # 3 groups of 2 channels, N = 5
+    (2, 8, 17, 2, 3, False, True, False, False),  # no D, bias without softplus
+    (1, 4, 31, 4, 7, False, False, False, False),  # plain steps, 4 groups of 1 channel
+    (2, 40, 151, 2, 16, True, True, True, False),  # 20 channels per group: a full and a partial lane block
+    (1, 34, 130, 1, 16, True, True, True, True),  # 3-D B/C, N = 16 (the compiled-N path), 3 chunks
+    (2, 64, 129, 4, 12, True, True, True, False),  # SS2D-like grouping, 16 channels per group
+]
+
+
+@pytest.mark.parametrize("case", CASES)
+def test_kernel_matches_reference_and_chunked(ext, case):
+    batch, dim, length, groups, n, use_d, use_bias, softplus, three_d = case
+    tensors = _inputs(batch, dim, length, groups, n, three_d=three_d)
+    w = torch.randn(batch, dim, length, generator=torch.Generator().manual_seed(1))
+    y, g = _grads(scan_cpu.selective_scan_cpu, tensors, use_d, use_bias, softplus, w)
+    y_chk, g_chk = _grads(selective_scan_chunked, tensors, use_d, use_bias, softplus, w)
+    t64 = [t.detach().double().requires_grad_() for t in tensors]
+    y_ref, g_ref = _grads(selective_scan_ref if length < 64 else selective_scan_sequential, t64, use_d, use_bias, softplus, w)
+    assert y.dtype == torch.float32 and y.shape == (batch, dim, length)
+    assert _rel(y.double(), y_ref) < 2e-6
+    assert _rel(y, y_chk) < 2e-6
+    names = ["u", "delta", "A", "B", "C"] + (["D"] if use_d else []) + (["bias"] if use_bias else [])
+    for name, a, c, r in zip(names, g, g_chk, g_ref):
+        assert a.shape == r.shape, name
+        assert _rel(a.double(), r) < 5e-6, f"d{name} vs float64: {_rel(a.double(), r):.1e}"
+        assert _rel(a, c) < 5e-6, f"d{name} vs chunked: {_rel(a, c):.1e}"
+
+
+def test_long_sequence_stays_close_to_float64(ext):
+    u, delta, A, B, C, D, bias = _inputs(1, 32, 3001, 2, 16, dtype=torch.float64, seed=3)
+    with torch.no_grad():
+        delta -= 3.0
+        y64 = selective_scan_sequential(u, delta, A, B, C, D, bias, True)
+        y32 = scan_cpu.selective_scan_cpu(*(t.float() for t in (u, delta, A, B, C, D, bias)), True)
+    assert _rel(y32.double(), y64) < 1e-5
+
+
+def test_exp_and_backward_save_no_per_position_states(ext):
+    x = torch.linspace(-87.0, 88.0, 200001)
+    e = ext.exp_fast(x).double()
+    assert ((e - torch.exp(x.double())).abs() / torch.exp(x.double())).max() < 3e-7
+    batch, dim, length, n = 2, 32, 640, 16
+    u, delta, A, B, C, D, bias = _inputs(batch, dim, length, 2, n)
+    y = scan_cpu.selective_scan_cpu(u, delta, A, B, C, D, bias, True)
+    node = y.grad_fn.next_functions[0][0]  # transpose back -> the kernel's node
+    saved = [t.numel() for t in node.saved_tensors]
+    states = batch * dim * n * length  # one (batch, dim, N, L) tensor
+    # inputs (u, delta, A, B, C) and the chunk checkpoints (states / CHUNK): nothing per position and state
+    assert len(saved) == 6 and saved[-1] == states // scan_cpu.CHUNK
+    assert max(saved) <= states / 16 and sum(saved) < states / 2
+
+
+def test_dtype_routes_and_backend_names(ext):
+    u, delta, A, B, C, D, bias = _inputs(1, 8, 40, 2, 4, dtype=torch.float64)
+    assert resolve_scan_backend("auto", u.float()) == "cpu"
+    assert resolve_scan_backend("cpu", u.float()) == "cpu"
+    assert resolve_scan_backend("cpu", u) == "torch"  # float64: the chunked scan keeps float64 precision
+    assert resolve_scan_backend("auto", u) == "torch"
+    assert resolve_scan_backend("torch", u.float()) == "torch"
+    assert available_scan_backends("cpu") == ["cpu", "torch"]
+    with pytest.raises(ValueError, match="unknown backend"):
+        resolve_scan_backend("numba", u)
+    with torch.no_grad():
+        y64 = selective_scan(u, delta, A, B, C, D, bias, True, backend="cpu")
+        assert y64.dtype == torch.float64
+        assert _rel(y64, selective_scan_chunked(u, delta, A, B, C, D, bias, True)) < 1e-12
+        bf = [t.to(torch.bfloat16) for t in (u, delta, A, B, C, D, bias)]
+        ybf = selective_scan(*bf, True, backend="cpu")  # computed in float32, returned in bf16
+        assert ybf.dtype == torch.bfloat16
+        want = selective_scan_chunked(*(t.float() for t in bf), True)
+        assert _rel(ybf.float(), want) < 1e-2
+
+
+@pytest.fixture
+def fresh_loader():
+    """Clear the build/availability caches around a test (they are per process)."""
+    scan_cpu.load_extension.cache_clear()
+    scan_cpu.cpu_kernel_available.cache_clear()
+    yield
+    scan_cpu.load_extension.cache_clear()
+    scan_cpu.cpu_kernel_available.cache_clear()
+
+
+def test_failed_build_falls_back_with_one_warning(fresh_loader, monkeypatch):
+    from torch.utils import cpp_extension
+
+    calls = []
+
+    def broken_load(*args, **kwargs):
+        calls.append(kwargs.get("name"))
+        raise RuntimeError("Error building extension: c++: command not found")
+
+    monkeypatch.setattr(cpp_extension, "load", broken_load)
+    u, delta, A, B, C, D, bias = _inputs(1, 8, 30, 2, 4)
+    with pytest.warns(RuntimeWarning, match="could not be built.*command not found"):
+        assert not scan_cpu.cpu_kernel_available()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no second warning, no second build attempt
+        assert available_scan_backends("cpu") == ["torch"]
+        assert resolve_scan_backend("auto", u) == "torch"
+        assert resolve_scan_backend("cpu", u) == "torch"
+        y = selective_scan(u, delta, A, B, C, D, bias, True, backend="cpu")
+        block = SS2D(8, d_state=4)
+        x = torch.randn(1, 5, 6, 8)
+        assert not block._spatial_scan(x)
+        assert block(x).shape == x.shape
+    assert len(calls) == 1
+    torch.testing.assert_close(y, selective_scan_chunked(u, delta, A, B, C, D, bias, True))
+    with pytest.raises(RuntimeError, match="not available"):
+        scan_cpu.ss2d_scan_cpu(x, x, A, B, C, D, bias, 5, 6)
+
+
+def test_environment_switch_skips_the_build(fresh_loader, monkeypatch):
+    from torch.utils import cpp_extension
+
+    monkeypatch.setenv(scan_cpu.ENV_SWITCH, "0")
+    monkeypatch.setattr(cpp_extension, "load", lambda *a, **k: pytest.fail("must not build"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert not scan_cpu.cpu_kernel_available()
+
+
+def _ss2d_run(block, x, spatial: bool):
+    block.zero_grad(set_to_none=True)
+    x = x.detach().requires_grad_()
+    original = block._spatial_scan
+    block._spatial_scan = lambda t: spatial and original(t)
+    try:
+        assert original(x) or not spatial
+        y = block(x)
+    finally:
+        block._spatial_scan = original
+    w = torch.linspace(-1.0, 1.0, y.numel()).view_as(y)
+    (y * w).sum().backward()
+    return y.detach(), x.grad, {k: p.grad.clone() for k, p in block.named_parameters()}
+
+
+@pytest.mark.parametrize("dim,h,w", [(20, 7, 9), (16, 8, 8), (24, 1, 5)])
+def test_ss2d_direction_reading_equals_cross_scan_route(ext, dim, h, w):
+    torch.manual_seed(0)
+    block = SS2D(dim, d_state=16 if dim != 24 else 6)
+    with torch.no_grad():  # move the parameters off their symmetric initial values
+        for p in block.parameters():
+            p.add_(0.1 * torch.randn_like(p))
+    x = torch.randn(2, h, w, dim)
+    y0, gx0, g0 = _ss2d_run(block, x, spatial=False)
+    y1, gx1, g1 = _ss2d_run(block, x, spatial=True)
+    assert _rel(y1, y0) < 2e-6
+    assert _rel(gx1, gx0) < 2e-6
+    for name in g0:
+        assert _rel(g1[name], g0[name]) < 5e-6, name
+
+
+def test_roofline_loop_runs(ext):
+    rate, seconds = scan_cpu.roofline_updates_per_s(seconds=0.05)
+    assert rate > 1e7 and seconds > 0
+
+
+def test_threads_give_bitwise_identical_results(ext):
+    """Tasks are handed out dynamically to torch's threads; each task's arithmetic is fixed, so 1 and 3
+    threads give bit-identical outputs and gradients."""
+    tensors = _inputs(3, 48, 97, 3, 16, seed=5)
+    w = torch.randn(3, 48, 97, generator=torch.Generator().manual_seed(6))
+    threads = torch.get_num_threads()
+    out = []
+    try:
+        for n in (1, 3):
+            torch.set_num_threads(n)
+            out.append(_grads(scan_cpu.selective_scan_cpu, tensors, True, True, True, w))
+    finally:
+        torch.set_num_threads(threads)
+    (y1, g1), (y3, g3) = out
+    assert torch.equal(y1, y3)
+    for a, b in zip(g1, g3):
+        assert torch.equal(a, b)
