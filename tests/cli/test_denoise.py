@@ -150,3 +150,10 @@ def test_a_failed_write_leaves_no_partial_file(frames_dir, restorer_ckpt, tmp_pa
     assert main([str(src / "a.png"), "--ckpt", str(restorer_ckpt), "--out", str(out), "--previews", "--quiet"]) == 1
     assert "disk full" in capsys.readouterr().err
     assert not (out / "a_preview.png").exists() and not list(out.glob(".*tmp*"))
+
+
+def test_console_script_points_at_main():
+    tomllib = pytest.importorskip("tomllib")  # Python >= 3.11
+    pyproject = Path(__file__).resolve().parents[2] / "pyproject.toml"
+    scripts = tomllib.loads(pyproject.read_text())["project"]["scripts"]
+    assert scripts["tofdenoise-denoise"] == "tofdenoise.cli.denoise:main" and callable(main)
