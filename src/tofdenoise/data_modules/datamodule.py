@@ -342,6 +342,7 @@ class ToFDataModule(L.LightningDataModule):
                 "skipped": {k: len(v) for k, v in self.skipped_samples.items()},
                 "variance_scale": None if state["variance_scale"] is None else state["variance_scale"]["scale"],
                 "real_scenes": len(state["real_scenes"]), "max_depth_mm": self.max_depth_mm,
+                "holes": None if self.hole_model is None else self.hole_model.to_dict(),
                 "calibration": self.calib.fingerprint()[:16]}
 
 
