@@ -273,6 +273,139 @@ def test_depth_metrics_sync_across_two_ddp_processes(tmp_path):
     assert [r["valid_px"] for r in data["rows"]] == [64, 64, 64, 1]
 
 
+def _padded_image(i: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Image ``i`` of the padded-sampler tests: its own error level and mask; image 1 has no valid pixel and
+    image 2 only a few, so means, pooled MAE and counts all depend on which images are counted."""
+    g = torch.Generator().manual_seed(100 + i)
+    ref = 900.0 + 50.0 * torch.rand(1, 1, 12, 16, generator=g)
+    pred = ref + (2.0 + 3.0 * i) * torch.randn(ref.shape, generator=g)
+    mask = (torch.rand(ref.shape, generator=g) > 0.25).float()
+    if i == 1:
+        mask.zero_()
+    if i == 2:
+        mask.zero_()
+        mask[..., :2, :3] = 1
+    return pred, ref, mask
+
+
+_DDP_PADDED_SCRIPT = r"""
+import json, os, sys
+import torch
+import torch.distributed as dist
+from torch.utils.data import DistributedSampler
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from images import padded_image
+
+def run(rank, world, port, out, n, batch):
+    os.environ["MASTER_ADDR"] = "127.0.0.1"
+    os.environ["MASTER_PORT"] = str(port)
+    dist.init_process_group("gloo", rank=rank, world_size=world)
+    from tofdenoise.metrics import DepthMetrics
+    # Lightning's evaluation sampler: DistributedSampler(shuffle=False) pads to a multiple of the world size
+    mine = list(DistributedSampler(range(n), num_replicas=world, rank=rank, shuffle=False))
+    m = DepthMetrics()
+    for k in range(0, len(mine), batch):
+        ids = mine[k:k + batch]
+        imgs = [padded_image(i) for i in ids]
+        pred, ref, mask = (torch.cat([im[j] for im in imgs]) for j in range(3))
+        m.update(pred, ref, mask, index=torch.tensor(ids))
+    res = {k: float(v) for k, v in m.compute().items()}
+    counts = m.counts()
+    rows = m.per_image_rows()
+    try:
+        m.update(pred, ref, mask)
+        no_index = "accepted"
+    except ValueError as exc:
+        no_index = str(exc)
+    with open(f"{out}.{rank}", "w") as f:
+        json.dump({"mine": mine, "res": res, "counts": counts, "rows": rows, "no_index": no_index}, f)
+    dist.destroy_process_group()
+
+if __name__ == "__main__":
+    run(int(sys.argv[1]), 2, int(sys.argv[2]), sys.argv[3], int(sys.argv[4]), int(sys.argv[5]))
+"""
+
+
+def _run_two_gloo_processes(tmp_path, script_text: str, extra: list[str]) -> list[dict]:
+    import inspect
+    import json
+    import socket
+    import subprocess
+    import sys
+
+    script = tmp_path / "ddp_metrics.py"
+    script.write_text(script_text)
+    (tmp_path / "images.py").write_text("import torch\n\n" + inspect.getsource(_padded_image).replace(
+        "_padded_image", "padded_image"))
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    out = tmp_path / "out.json"
+    procs = [subprocess.Popen([sys.executable, str(script), str(rank), str(port), str(out), *extra],
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for rank in (0, 1)]
+    for p in procs:
+        _, err = p.communicate(timeout=120)
+        assert p.returncode == 0, err[-3000:]
+    return [json.loads((tmp_path / f"out.json.{rank}").read_text()) for rank in (0, 1)]
+
+
+@pytest.mark.parametrize("n, batch", [(3, 1), (5, 2)])
+def test_depth_metrics_under_ddp_count_padded_repeats_once(tmp_path, n, batch):
+    """Two gloo processes, an odd number of images, Lightning's DistributedSampler (it repeats image 0 to
+    pad): compute(), counts() and the rows equal the single-process results over the n unique images, on
+    both ranks, to the last bit. Before the fix the repeated image was counted twice in the means and counts."""
+    ranks = _run_two_gloo_processes(tmp_path, _DDP_PADDED_SCRIPT, [str(n), str(batch)])
+    seen = ranks[0]["mine"] + ranks[1]["mine"]
+    assert sorted(seen) == sorted(list(range(n)) + [0])  # the sampler really padded with a repeat of image 0
+    single = DepthMetrics()
+    for i in range(n):
+        single.update(*_padded_image(i), index=torch.tensor([i]))
+    want = {k: float(v) for k, v in single.compute().items()}
+    want_counts = single.counts()
+    assert want_counts == {"images": n - 1, "skipped_images": 1,
+                           "valid_px": sum(int(_padded_image(i)[2].sum()) for i in range(n))}
+    # hand check of the per-image mean and the pooled MAE from the single-process rows
+    rows = single.per_image_rows()
+    ok = [r for r in rows if r["valid_px"] > 0]
+    assert want["mae_mm"] == pytest.approx(sum(r["mae_mm"] for r in ok) / (n - 1), rel=1e-12)
+    assert want["mae_mm_pooled"] == pytest.approx(
+        sum(r["mae_mm"] * r["valid_px"] for r in ok) / sum(r["valid_px"] for r in ok), rel=1e-12)
+    for rank in ranks:
+        assert rank["res"] == want  # bit-identical: same per-image values summed in the same (index) order
+        assert rank["counts"] == want_counts
+        assert [r["index"] for r in rank["rows"]] == list(range(n))
+        assert json_rows_equal(rank["rows"], rows)
+        # an update without index cannot be de-duplicated: refused under DDP with a clear message
+        assert "index is required with 2 distributed processes" in rank["no_index"]
+
+
+def json_rows_equal(a: list[dict], b: list[dict]) -> bool:
+    """Per-image rows equal, NaN == NaN (a skipped image has NaN metrics)."""
+    def norm(rows):
+        return [{k: ("nan" if isinstance(v, float) and math.isnan(v) else v) for k, v in r.items()} for r in rows]
+    return norm(a) == norm(b)
+
+
+def test_repeated_index_counts_once_and_rows_without_index_all_count():
+    pred, ref, mask = (torch.cat(t) for t in zip(*[_padded_image(i) for i in (0, 3)]))
+    once = DepthMetrics()
+    once.update(pred, ref, mask, index=torch.tensor([0, 3]))
+    twice = DepthMetrics()
+    twice.update(pred, ref, mask, index=torch.tensor([0, 3]))
+    twice.update(pred[:1], ref[:1], mask[:1], index=torch.tensor([0]))  # a padded repeat
+    assert {k: float(v) for k, v in twice.compute().items()} == {k: float(v) for k, v in once.compute().items()}
+    assert twice.counts() == once.counts() and len(twice.per_image_rows()) == 2
+    # one process without indices: every row counts (nothing can be told apart), rows keep index None
+    anon = DepthMetrics()
+    anon.update(pred, ref, mask)
+    anon.update(pred[:1], ref[:1], mask[:1])
+    assert anon.counts()["images"] == 3
+    assert [r["index"] for r in anon.per_image_rows()] == [None, None, None]
+    with pytest.raises(ValueError, match="non-negative whole numbers"):
+        DepthMetrics().update(pred, ref, mask, index=torch.tensor([0.5, 1.0]))
+
+
 @pytest.mark.gpu
 def test_metrics_on_cuda_match_cpu():
     ref = _scene(2)

@@ -23,6 +23,11 @@ Design decisions:
 - ``compile``: ``torch.compile`` of the backbone for the training forward/backward (validation and test
   run the eager module: full-resolution frames vary in size).
 - Validation/test also measure the raw noisy input against the reference (the "Raw" row of the paper).
+- Validation/test metrics are exact under DDP: every batch passes its images' dataset ``index`` to
+  ``DepthMetrics``, which counts the samples the ``DistributedSampler`` repeats (padding) once.
+- The learned guard (``learned_record()``): the run's optimiser steps, its lowest validation MAE and the raw
+  validation MAE, judged by ``tofdenoise.callbacks.metrics_writer.learned_verdict`` with ``learned_margin``;
+  written to ``metrics.json`` and checkpoints, and printed by ``RunSummary``.
 """
 
 from __future__ import annotations
@@ -97,6 +102,8 @@ class DepthRestorer(pl.LightningModule):
             (``tofdenoise.models.tiled_forward``); ``None`` = never tile.
         eval_tile_size: the same for validation and test (``None`` = whole frames, the paper's protocol).
         tile_overlap: overlap of neighbouring tiles in pixels.
+        learned_margin: the learned guard: a run counts as learned only when its best validation MAE is at
+            most ``(1 - learned_margin)`` x the raw validation MAE (default 0.05: 5 % below raw).
     """
 
     def __init__(
@@ -120,6 +127,7 @@ class DepthRestorer(pl.LightningModule):
         predict_tile_size: int | None = 512,
         eval_tile_size: int | None = None,
         tile_overlap: int = 32,
+        learned_margin: float = 0.05,
     ) -> None:
         super().__init__()
         from tofdenoise.losses import available_losses, build_loss
@@ -146,6 +154,8 @@ class DepthRestorer(pl.LightningModule):
             raise ValueError(f"DepthRestorer.warmup_steps must be >= 0, got {warmup_steps}")
         if ema_decay is not None and not 0.0 < ema_decay < 1.0:
             raise ValueError(f"DepthRestorer.ema_decay must be in (0, 1) or null, got {ema_decay}")
+        if not 0.0 <= learned_margin < 1.0:
+            raise ValueError(f"DepthRestorer.learned_margin must be in [0, 1), got {learned_margin}")
         if len(betas) != 2:
             raise ValueError(f"DepthRestorer.betas needs two values, got {betas}")
         betas = (float(betas[0]), float(betas[1]))  # a tuple whichever front end passed a list
@@ -168,8 +178,8 @@ class DepthRestorer(pl.LightningModule):
             self.ema.requires_grad_(False)
         self._compiled: Any = None
 
-        self.val_metrics = DepthMetrics(d_max_mm=d_max_mm, keep_per_image=False)
-        self.val_raw_metrics = DepthMetrics(d_max_mm=d_max_mm, keep_per_image=False)
+        self.val_metrics = DepthMetrics(d_max_mm=d_max_mm)
+        self.val_raw_metrics = DepthMetrics(d_max_mm=d_max_mm)
         #: per-image Raw-row values of each validation batch with the batch's fingerprint: the validation noise
         #: is fixed, so they are computed once and reused every epoch (recomputed if the batch ever differs)
         self._raw_val_cache: dict[tuple[int, int], tuple[Tensor, dict[str, Tensor]]] = {}
@@ -181,6 +191,13 @@ class DepthRestorer(pl.LightningModule):
         self.test_results: dict[str, dict[str, Any]] = {}
         #: per-image rows per set: {set: {"rows", "raw_rows", "names"}} (``DepthMetrics.per_image_rows``)
         self.test_per_image: dict[str, dict[str, Any]] = {}
+        # learned guard: raw and lowest validation MAE of the fit (float64, not sanity checks), the record of a
+        # fit run in this process (frozen at its end) and the one of the last checkpoint loaded
+        self._raw_val_mae_mm: float | None = None
+        self._min_val_mae_mm: float | None = None
+        self._fit_in_process = False
+        self._fit_record: dict[str, Any] | None = None
+        self._loaded_record: dict[str, Any] | None = None
 
     # ------------------------------------------------------------------ networks
     @property
@@ -301,8 +318,9 @@ class DepthRestorer(pl.LightningModule):
         loss = self.criterion(pred_mm / self.hparams.depth_scale_mm, batch["clean"] / self.hparams.depth_scale_mm,
                               batch["sigma"], batch["mask"])
         self.log("val/loss", loss, on_step=False, on_epoch=True, batch_size=pred_mm.shape[0], sync_dist=True)
-        self.val_metrics.update(pred_mm, batch["clean"], batch["mask"])
-        self.val_raw_metrics.update(batch["noisy"], batch["clean"], batch["mask"],
+        index = _loader_index(batch.get("index"), dataloader_idx)
+        self.val_metrics.update(pred_mm, batch["clean"], batch["mask"], index=index)
+        self.val_raw_metrics.update(batch["noisy"], batch["clean"], batch["mask"], index=index,
                                     per_image=self._raw_val_per_image(batch, batch_idx, dataloader_idx))
         return {"pred_mm": pred_mm}
 
@@ -323,6 +341,10 @@ class DepthRestorer(pl.LightningModule):
         raw = self.val_raw_metrics.compute()
         values = {f"val/{k}": float(v) for k, v in restored.items()}
         values.update({f"val/raw/{k}": float(v) for k, v in raw.items()})
+        if self._trainer is not None and self.trainer.state.fn == "fit" and not self.trainer.sanity_checking:
+            self._record_validation(values["val/mae_mm"], values["val/raw/mae_mm"])
+        # compute() gathered the rows of every process: each rank logs the same exact value (no sync_dist
+        # reduction needed; the checkpoint callback of every rank sees the single-process value)
         self.log("val/mae_mm", values.pop("val/mae_mm"), prog_bar=True)
         self.log("val/psnr_db", values.pop("val/psnr_db"), prog_bar=True)
         self.log_dict(values)
@@ -356,13 +378,15 @@ class DepthRestorer(pl.LightningModule):
         set_name = names[dataloader_idx]
         pred_mm = self.restore_mm(batch, tile=self.hparams.eval_tile_size)
         index = batch.get("index")
-        if index is None:
+        if index is None and self.trainer.world_size == 1:
+            # one process: the position in the loader identifies the image (under DDP DepthMetrics refuses
+            # a batch without index: the sampler's padded repeats could not be told apart)
             start = batch_idx * pred_mm.shape[0]
             index = torch.arange(start, start + pred_mm.shape[0], device=pred_mm.device)
         self.test_metrics[set_name].update(pred_mm, batch["clean"], batch["mask"], index=index)
         self.test_raw_metrics[set_name].update(batch["noisy"], batch["clean"], batch["mask"], index=index)
-        if "name" in batch:
-            for i, n in zip(index.tolist(), batch["name"]):
+        if "name" in batch and index is not None:
+            for i, n in zip(torch.as_tensor(index).tolist(), batch["name"]):
                 self._test_names[set_name][int(i)] = str(n)
         return {"pred_mm": pred_mm}
 
@@ -373,12 +397,12 @@ class DepthRestorer(pl.LightningModule):
             metric, raw_metric = self.test_metrics[set_name], self.test_raw_metrics[set_name]
             restored = {k: float(v) for k, v in metric.compute().items()}
             raw = {k: float(v) for k, v in raw_metric.compute().items()}
-            with metric.sync_context(), raw_metric.sync_context():
-                rows, raw_rows = metric.per_image_rows(), raw_metric.per_image_rows()
-                counts = metric.counts()
+            # gathered from every process, each image once (DistributedSampler padding dropped)
+            rows, raw_rows = metric.per_image_rows(), raw_metric.per_image_rows()
+            counts = metric.counts()
             self.test_results[set_name] = set_entry(restored, raw, counts)
             self.test_per_image[set_name] = {"rows": rows, "raw_rows": raw_rows,
-                                             "names": dict(self._test_names[set_name])}
+                                             "names": _gather_names(self._test_names[set_name])}
             logged = {f"test/{set_name}/{k}": v for k, v in restored.items()}
             logged.update({f"test/{set_name}/raw/{k}": v for k, v in raw.items()})
             self.log_dict(logged)
@@ -393,9 +417,70 @@ class DepthRestorer(pl.LightningModule):
             pred_mm = torch.where(batch["mask"] > 0, pred_mm, torch.zeros_like(pred_mm))
         return pred_mm
 
+    # ------------------------------------------------------------------ learned guard
+    def _record_validation(self, val_mae_mm: float, raw_val_mae_mm: float) -> None:
+        if math.isfinite(raw_val_mae_mm):
+            self._raw_val_mae_mm = raw_val_mae_mm
+        if math.isfinite(val_mae_mm) and (self._min_val_mae_mm is None or val_mae_mm < self._min_val_mae_mm):
+            self._min_val_mae_mm = val_mae_mm
+
+    def _live_record(self) -> dict[str, Any]:
+        """Optimiser steps so far, lowest validation MAE (this module's float64 value, else the checkpoint
+        callback's ``best_model_score`` of ``val/mae_mm``) and raw validation MAE."""
+        best = self._min_val_mae_mm
+        if best is None:
+            cb = self.trainer.checkpoint_callback
+            score = getattr(cb, "best_model_score", None)
+            if score is not None and getattr(cb, "monitor", None) == "val/mae_mm":
+                best = float(score)
+        return {"trained_steps": int(self.trainer.global_step), "best_val_mae_mm": best,
+                "raw_val_mae_mm": self._raw_val_mae_mm}
+
+    def learned_record(self) -> dict[str, Any]:
+        """The learned guard's verdict (``metrics_writer.learned_verdict``: ``trained_steps``,
+        ``best_val_mae_mm``, ``raw_val_mae_mm``, ``learned_margin``, ``learned``, ``learned_reason``).
+
+        Its inputs: the fit of this process when there was one (its steps, lowest validation MAE, raw
+        validation MAE), else the record saved in the checkpoint last loaded (a test of a saved checkpoint:
+        the steps behind those weights), else 0 steps (an untrained network)."""
+        from tofdenoise.callbacks.metrics_writer import learned_verdict
+
+        if self._fit_record is not None:
+            rec = self._fit_record
+        elif self._fit_in_process and self._trainer is not None:
+            rec = self._live_record()
+        elif self._loaded_record is not None:
+            rec = self._loaded_record
+        else:
+            rec = {"trained_steps": 0, "best_val_mae_mm": None, "raw_val_mae_mm": None}
+        return learned_verdict(rec["trained_steps"], rec["best_val_mae_mm"], rec["raw_val_mae_mm"],
+                               margin=float(self.hparams.get("learned_margin", 0.05)))
+
+    def on_fit_start(self) -> None:
+        self._fit_in_process = True
+        self._fit_record = None
+
+    def on_fit_end(self) -> None:
+        self._fit_record = self._live_record()
+
     # ------------------------------------------------------------------ checkpoints
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        """Keep the learned guard's inputs in the checkpoint (plain values: loads with weights_only=True)."""
+        if self._trainer is not None:
+            checkpoint[LEARNED_RECORD_KEY] = self._live_record()
+
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        """Refuse a checkpoint written for another backbone/architecture with a readable message."""
+        """Refuse a checkpoint written for another backbone/architecture with a readable message; restore the
+        learned guard's record (validation MAEs continue across a resume)."""
+        self._check_architecture(checkpoint)
+        rec = _record_from_checkpoint(checkpoint)
+        self._loaded_record = rec
+        if self._raw_val_mae_mm is None:
+            self._raw_val_mae_mm = rec["raw_val_mae_mm"]
+        if self._min_val_mae_mm is None:
+            self._min_val_mae_mm = rec["best_val_mae_mm"]
+
+    def _check_architecture(self, checkpoint: dict[str, Any]) -> None:
         saved = checkpoint.get("hyper_parameters")
         if not saved:
             return
@@ -407,6 +492,48 @@ class DepthRestorer(pl.LightningModule):
                 f"checkpoint was written by a DepthRestorer with another architecture ({lines}). "
                 f"Load it with DepthRestorer.load_from_checkpoint(path) (it rebuilds the saved backbone), "
                 f"or select backbone={theirs['backbone']!r} with the same backbone_kwargs")
+
+
+#: key of the learned guard's record inside a checkpoint
+LEARNED_RECORD_KEY = "tofdenoise_learned_record"
+#: image indices of validation loader k are offset by k x this, so that several loaders never share an index
+_LOADER_INDEX_STRIDE = 1 << 32
+
+
+def _loader_index(index: Any, dataloader_idx: int) -> Tensor | None:
+    if index is None:
+        return None
+    index = torch.as_tensor(index)
+    return index + dataloader_idx * _LOADER_INDEX_STRIDE if dataloader_idx else index
+
+
+def _gather_names(names: dict[int, str]) -> dict[int, str]:
+    """{image index: name} of every process (under DDP each saw only its share of the images)."""
+    dist = torch.distributed
+    if not (dist.is_available() and dist.is_initialized() and dist.get_world_size() > 1):
+        return dict(names)
+    parts: list[dict[int, str] | None] = [None] * dist.get_world_size()
+    dist.all_gather_object(parts, dict(names))
+    out: dict[int, str] = {}
+    for part in parts:
+        for index, name in (part or {}).items():
+            out.setdefault(int(index), name)
+    return out
+
+
+def _record_from_checkpoint(checkpoint: dict[str, Any]) -> dict[str, Any]:
+    """The learned guard's inputs saved in a checkpoint; for checkpoints written before they were saved: its
+    ``global_step`` and the ``val/mae_mm`` checkpoint callback's best score (raw MAE unknown)."""
+    saved = checkpoint.get(LEARNED_RECORD_KEY)
+    if isinstance(saved, dict):
+        return {"trained_steps": int(saved.get("trained_steps") or 0),
+                "best_val_mae_mm": saved.get("best_val_mae_mm"), "raw_val_mae_mm": saved.get("raw_val_mae_mm")}
+    best = None
+    for state in (checkpoint.get("callbacks") or {}).values():
+        score = state.get("best_model_score") if isinstance(state, dict) else None
+        if score is not None and state.get("monitor") == "val/mae_mm":
+            best = float(score)
+    return {"trained_steps": int(checkpoint.get("global_step") or 0), "best_val_mae_mm": best, "raw_val_mae_mm": None}
 
 
 def _batch_fingerprint(batch: dict[str, Any]) -> Tensor:

@@ -11,7 +11,9 @@ Public API (used by the LightningModule, the callbacks and ``tofdenoise-eval``):
   ``update(pred_mm, ref_mm, mask, index=None)``, ``compute() -> {"psnr_db", "mae_mm", "mse_mm2", "ssim",
   "mae_mm_pooled"}`` (per-image means, plus the pixel-pooled MAE), ``counts() -> {"images",
   "skipped_images", "valid_px"}`` and ``per_image_rows() -> list[dict]`` (one row per image:
-  ``index``, ``valid_px`` and the four keys, sorted by index) for the per-image CSV.
+  ``index``, ``valid_px`` and the four keys, sorted by index) for the per-image CSV. Its state is the
+  per-image rows; every result is computed over UNIQUE image indices, so under DDP the samples that the
+  ``DistributedSampler`` repeats to pad the last batch count once (results equal the single-process ones).
 
 Protocol (the paper's): every metric is computed over the valid pixels of each image and then averaged over
 images. A pixel is valid where ``mask`` is nonzero, the reference is finite and > 0, and the prediction is
@@ -53,6 +55,7 @@ __all__ = [
     "psnr_from_mse_db",
     "depth_metrics_per_image",
     "DepthMetrics",
+    "ROW_COLUMNS",
 ]
 
 METRIC_KEYS: tuple[str, str, str, str] = ("psnr_db", "mae_mm", "mse_mm2", "ssim")
@@ -191,99 +194,137 @@ def depth_metrics_per_image(pred_mm: Tensor, ref_mm: Tensor, mask: Tensor | None
     }
 
 
-class DepthMetrics(Metric):
-    """Accumulates the depth metrics over batches (and DDP processes) with float64 sum states.
+#: columns of one stored per-image row of :class:`DepthMetrics` (the metric's only state)
+ROW_COLUMNS: tuple[str, ...] = ("index", "valid_px") + METRIC_KEYS
 
-    ``compute()`` returns the per-image means of ``psnr_db``, ``mae_mm``, ``mse_mm2``, ``ssim`` (images with
-    no valid pixel skipped) and ``mae_mm_pooled`` (all valid pixels pooled). ``per_image_rows()`` returns
-    the per-image values (gathered across processes after ``compute``/sync) for CSV output.
+
+class DepthMetrics(Metric):
+    """Accumulates the depth metrics over batches (and DDP processes), exactly over UNIQUE images.
+
+    The state is one row per image seen (``index``, ``valid_px`` and the four per-image values, float64). Every
+    result is computed from the rows gathered from all processes after dropping repeated indices, so the
+    samples that Lightning's ``DistributedSampler`` repeats to pad the last batch of a process count once:
+    ``compute()``, ``counts()`` and ``per_image_rows()`` under DDP equal the single-process results over the
+    same images (the sums run in index order, so they agree to the last bit when the per-image values do).
+
+    - ``compute()``: per-image means of ``psnr_db``, ``mae_mm``, ``mse_mm2``, ``ssim`` (images with no valid
+      pixel skipped) and ``mae_mm_pooled`` (all valid pixels pooled: sum of mae x valid_px / sum of valid_px).
+    - ``counts()``: ``images`` averaged, ``skipped_images`` (no valid pixel), ``valid_px``.
+    - ``per_image_rows()``: the rows for the per-image CSV.
+
+    ``update(..., index=None)``: rows without an index are never merged (each counts); that is exact in one
+    process but cannot be made exact under DDP (a padded repeat is indistinguishable from a new image), so an
+    update without ``index`` while ``torch.distributed`` runs more than one process (and this metric syncs on
+    compute) raises ``ValueError``. Rows with the same index are kept once (the first one seen).
     """
 
     is_differentiable = False
     higher_is_better = None
     full_state_update = False
 
-    def __init__(self, d_max_mm: float = D_MAX_MM, keep_per_image: bool = True, **kwargs: Any) -> None:
+    def __init__(self, d_max_mm: float = D_MAX_MM, **kwargs: Any) -> None:
         super().__init__(**kwargs)
         if not d_max_mm > 0:
             raise ValueError(f"d_max_mm must be > 0, got {d_max_mm}")
         self.d_max_mm = float(d_max_mm)
-        self.keep_per_image = keep_per_image
-        for key in METRIC_KEYS:
-            self.add_state(f"sum_{key}", default=torch.tensor(0.0, dtype=torch.float64), dist_reduce_fx="sum")
-        self.add_state("num_images", default=torch.tensor(0.0, dtype=torch.float64), dist_reduce_fx="sum")
-        self.add_state("num_skipped", default=torch.tensor(0.0, dtype=torch.float64), dist_reduce_fx="sum")
-        self.add_state("abs_err_sum_mm", default=torch.tensor(0.0, dtype=torch.float64), dist_reduce_fx="sum")
-        self.add_state("valid_px", default=torch.tensor(0.0, dtype=torch.float64), dist_reduce_fx="sum")
-        # per-image rows, stored flat (1-D, 6 values per image: index, valid_px, psnr_db, mae_mm, mse_mm2,
-        # ssim) so that DDP gathering works even for a process that saw no image
+        # per-image rows, stored flat (1-D, len(ROW_COLUMNS) values per image) so that DDP gathering works even
+        # for a process that saw no image (torchmetrics then gathers an empty tensor of the metric's dtype)
         self.add_state("rows", default=[], dist_reduce_fx="cat")
+        self.set_dtype(torch.float64)
+
+    def _world_size(self) -> int:
+        """Processes this metric gathers from on ``compute`` (1 without torch.distributed or without sync)."""
+        if not self.sync_on_compute or self.distributed_available_fn is None or not self.distributed_available_fn():
+            return 1
+        return int(torch.distributed.get_world_size(self.process_group))
 
     def update(self, pred_mm: Tensor, ref_mm: Tensor, mask: Tensor | None,  # type: ignore[override]
                index: Tensor | None = None, per_image: dict[str, Tensor] | None = None) -> None:
-        """Accumulate one batch. ``per_image``: the batch's values already computed by
-        ``depth_metrics_per_image`` with this metric's ``d_max_mm`` (e.g. cached ones that do not change between
-        epochs); the maps are then not measured again."""
+        """Accumulate one batch. ``index``: each image's position in its dataset (``batch["index"]``), required
+        under DDP. ``per_image``: the batch's values already computed by ``depth_metrics_per_image`` with this
+        metric's ``d_max_mm`` (e.g. cached ones that do not change between epochs); the maps are then not
+        measured again."""
         per = per_image if per_image is not None else depth_metrics_per_image(pred_mm, ref_mm, mask, self.d_max_mm)
-        n_px = per["valid_px"]
-        ok = n_px > 0
-        for key in METRIC_KEYS:
-            acc = getattr(self, f"sum_{key}")
-            setattr(self, f"sum_{key}", acc + per[key][ok].sum())
-        self.num_images += ok.sum().to(torch.float64)
-        self.num_skipped += (~ok).sum().to(torch.float64)
-        self.valid_px += n_px.sum()
-        self.abs_err_sum_mm += (per["mae_mm"][ok] * n_px[ok]).sum()
-        if self.keep_per_image:
-            b = n_px.shape[0]
-            if index is None:
-                idx = torch.full((b,), math.nan, dtype=torch.float64, device=n_px.device)
+        n_px = per["valid_px"].to(torch.float64)
+        b = n_px.shape[0]
+        if index is None:
+            world = self._world_size()
+            if world > 1:
+                raise ValueError(
+                    f"DepthMetrics.update: index is required with {world} distributed processes: the "
+                    "DistributedSampler repeats samples to pad the last batch, and only the image index tells a "
+                    "repeat from a new image (pass index=batch['index'])")
+            idx = torch.full((b,), math.nan, dtype=torch.float64, device=n_px.device)
+        else:
+            idx = torch.as_tensor(index, device=n_px.device).reshape(-1).to(torch.float64)
+            if idx.numel() != b:
+                raise ValueError(f"index has {idx.numel()} entries for a batch of {b} images")
+            if not bool(torch.all((idx >= 0) & (idx == torch.floor(idx)))):
+                raise ValueError(f"index must hold non-negative whole numbers, got {idx.tolist()}")
+        cols = [idx, n_px] + [per[k].to(torch.float64) for k in METRIC_KEYS]
+        self.rows.append(torch.stack(cols, dim=1).reshape(-1))
+
+    def _unique_table(self) -> Tensor:
+        """(N, len(ROW_COLUMNS)) float64 rows of the current (local or synced) state: one per distinct index
+        (the first seen), sorted by index, then the rows without index in the order seen."""
+        rows = self.rows
+        if isinstance(rows, list) and not rows:
+            return torch.zeros((0, len(ROW_COLUMNS)), dtype=torch.float64, device=self.device)
+        table = dim_zero_cat(rows).to(torch.float64).reshape(-1, len(ROW_COLUMNS))
+        first: dict[int, int] = {}
+        unindexed: list[int] = []
+        for pos, idx in enumerate(table[:, 0].tolist()):
+            if math.isnan(idx):
+                unindexed.append(pos)
             else:
-                idx = torch.as_tensor(index, device=n_px.device).reshape(-1).to(torch.float64)
-                if idx.numel() != b:
-                    raise ValueError(f"index has {idx.numel()} entries for a batch of {b} images")
-            self.rows.append(torch.stack([idx, n_px] + [per[k] for k in METRIC_KEYS], dim=1).reshape(-1))
+                first.setdefault(int(idx), pos)
+        order = [first[i] for i in sorted(first)] + unindexed
+        return table[torch.tensor(order, dtype=torch.long, device=table.device)]
 
     def compute(self) -> dict[str, Tensor]:
-        n = self.num_images
+        table = self._unique_table()
+        n_px = table[:, 1]
+        ok = n_px > 0
+        n = int(ok.sum())
+        nan = torch.tensor(math.nan, dtype=torch.float64, device=table.device)
         out = {}
-        for key in METRIC_KEYS:
-            total = getattr(self, f"sum_{key}")
-            out[key] = total / n if n > 0 else torch.tensor(math.nan, dtype=torch.float64, device=total.device)
-        px = self.valid_px
-        out["mae_mm_pooled"] = self.abs_err_sum_mm / px if px > 0 else torch.tensor(
-            math.nan, dtype=torch.float64, device=px.device)
+        for col, key in enumerate(METRIC_KEYS, start=2):
+            out[key] = table[ok, col].sum() / n if n > 0 else nan
+        px = n_px.sum()
+        out["mae_mm_pooled"] = (table[ok, 3] * n_px[ok]).sum() / px if px > 0 else nan
         return out
 
-    def counts(self) -> dict[str, int]:
-        """Number of images averaged, images skipped (no valid pixel) and valid pixels (local state)."""
-        return {"images": int(self.num_images.item()), "skipped_images": int(self.num_skipped.item()),
-                "valid_px": int(self.valid_px.item())}
-
-    def per_image_rows(self, sync: bool = True) -> list[dict[str, float | int | None]]:
-        """One dict per image seen (``index`` None where no index was given), sorted by index.
-
-        With ``sync`` (default) and torch.distributed initialised, the rows of every process are gathered
-        (call it on every rank). Rows with equal index (DistributedSampler padding) are kept once.
-        """
+    def _synced(self, fn: Any, sync: bool) -> Any:
+        """``fn()`` on the rows of every process (``sync`` and torch.distributed initialised; call it on every
+        rank then), else on the local rows."""
         if sync and not self._is_synced and self.distributed_available_fn is not None \
                 and self.distributed_available_fn():
             with self.sync_context():
-                return self.per_image_rows(sync=False)
-        rows = self.rows
-        if isinstance(rows, list) and not rows:
-            return []
-        table = dim_zero_cat(rows).detach().cpu().to(torch.float64).reshape(-1, 2 + len(METRIC_KEYS))
-        out: list[dict[str, float | int | None]] = []
-        seen: set[int] = set()
-        for r in table.tolist():
-            idx = None if math.isnan(r[0]) else int(r[0])
-            if idx is not None:
-                if idx in seen:
-                    continue
-                seen.add(idx)
-            row: dict[str, float | int | None] = {"index": idx, "valid_px": int(r[1])}
-            row.update({k: float(v) for k, v in zip(METRIC_KEYS, r[2:])})
-            out.append(row)
-        out.sort(key=lambda d: (d["index"] is None, d["index"] if d["index"] is not None else 0))
-        return out
+                return fn()
+        return fn()
+
+    def counts(self, sync: bool = True) -> dict[str, int]:
+        """Number of (unique) images averaged, images skipped (no valid pixel) and valid pixels; gathered from
+        every process like ``compute()`` (with ``sync`` and torch.distributed initialised: call it on every rank)."""
+        def local() -> dict[str, int]:
+            table = self._unique_table()
+            ok = table[:, 1] > 0
+            return {"images": int(ok.sum()), "skipped_images": int((~ok).sum()),
+                    "valid_px": int(table[:, 1].sum().item())}
+
+        return self._synced(local, sync)
+
+    def per_image_rows(self, sync: bool = True) -> list[dict[str, float | int | None]]:
+        """One dict per image (``index`` None where no index was given), sorted by index; rows with equal index
+        (DistributedSampler padding) are kept once. With ``sync`` (default) and torch.distributed initialised,
+        the rows of every process are gathered (call it on every rank)."""
+        def local() -> list[dict[str, float | int | None]]:
+            out: list[dict[str, float | int | None]] = []
+            for r in self._unique_table().detach().cpu().tolist():
+                row: dict[str, float | int | None] = {"index": None if math.isnan(r[0]) else int(r[0]),
+                                                      "valid_px": int(r[1])}
+                row.update({k: float(v) for k, v in zip(METRIC_KEYS, r[2:])})
+                out.append(row)
+            return out
+
+        return self._synced(local, sync)

@@ -9,7 +9,12 @@ import pytest
 import torch
 
 from tofdenoise.callbacks.metrics_writer import (
+    RUN_KEYS,
+    learned_status,
+    learned_verdict,
+    metric_sets,
     read_metrics_json,
+    run_fields,
     read_per_image_csv,
     set_entry,
     update_metrics_json,
@@ -94,3 +99,61 @@ def test_per_image_csv_requires_matching_raw_rows(tmp_path):
     rows = _metric(1.0).per_image_rows()
     with pytest.raises(ValueError, match="no raw row for image index"):
         write_per_image_csv(tmp_path / "x.csv", rows, raw_rows=rows[:1])
+
+
+# ------------------------------------------------------------------------------------------ learned guard
+@pytest.mark.parametrize("steps, best, raw, margin, learned, status", [
+    (100, 9.5, 10.0, 0.05, True, "learned"),         # exactly (1 - 0.05) x 10 = 9.5: on the boundary counts
+    (100, 9.51, 10.0, 0.05, False, "did not learn"),
+    (100, 7.68, 7.79, 0.05, False, "did not learn"),  # the DVSS run of issue 9: 7.68 > 7.4005
+    (100, 2.24, 7.79, 0.05, True, "learned"),
+    (100, 7.0, 7.79, 0.10, True, "learned"),         # 7.0 <= 0.9 x 7.79 = 7.011
+    (100, 7.02, 7.79, 0.10, False, "did not learn"),
+    (100, 8.0, 7.79, 0.0, False, "did not learn"),   # margin 0: only "not worse than raw" is asked
+    (100, 7.79, 7.79, 0.0, True, "learned"),
+    (0, 1.0, 7.79, 0.05, False, "not trained"),      # no optimiser step: never learned, whatever the MAEs
+    (None, None, None, 0.05, False, "not trained"),
+    (5, None, 7.79, 0.05, False, "not verified"),    # no validation ran
+    (5, 2.0, float("nan"), 0.05, False, "not verified"),
+])
+def test_learned_verdict_hand_computed_cases(steps, best, raw, margin, learned, status):
+    v = learned_verdict(steps, best, raw, margin)
+    assert v["learned"] is learned
+    assert learned_status(v) == status
+    assert v["learned_reason"].startswith(status)
+    assert v["trained_steps"] == (steps or 0) and v["learned_margin"] == margin
+    assert set(v) == set(RUN_KEYS)
+
+
+def test_learned_verdict_reason_in_plain_words():
+    v = learned_verdict(89, 7.68, 7.79)
+    assert v["learned_reason"] == "did not learn: best val MAE 7.68 mm vs raw 7.79 mm (needs <= 7.40 mm, 5% below raw)"
+    assert learned_verdict(0, None, None)["learned_reason"].startswith("not trained: 0 optimiser steps")
+    v = learned_verdict(10, torch.tensor(2.0), torch.tensor(8.0))  # tensors (a checkpoint's best score) are fine
+    assert v["best_val_mae_mm"] == 2.0 and v["learned"] is True
+    with pytest.raises(ValueError, match="margin"):
+        learned_verdict(1, 1.0, 2.0, margin=1.0)
+
+
+def test_metrics_json_carries_the_run_fields_and_keeps_them_on_update(tmp_path):
+    path = tmp_path / "metrics.json"
+    entry = set_entry(_metric(1.0).compute(), _metric(4.0).compute())
+    write_metrics_json(path, {"synthetic": entry}, run=learned_verdict(0, None, None))
+    data = json.loads(path.read_text())
+    assert data["learned"] is False and data["trained_steps"] == 0 and data["best_val_mae_mm"] is None
+    assert list(metric_sets(data)) == ["synthetic"]
+    assert run_fields(data) == learned_verdict(0, None, None)
+    update_metrics_json(path, "real", entry)
+    data = read_metrics_json(path)
+    assert sorted(metric_sets(data)) == ["real", "synthetic"] and data["learned"] is False
+    with pytest.raises(ValueError, match="run-level field"):
+        update_metrics_json(path, "learned", entry)
+    with pytest.raises(KeyError, match="unknown run-level"):
+        write_metrics_json(path, {"synthetic": entry}, run={"learnt": True})
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({**data, "learned": "no"}))
+    with pytest.raises(ValueError, match="'learned' must be bool"):
+        read_metrics_json(bad)
+    bad.write_text(json.dumps({"learned": False}))  # run fields alone: no test set
+    with pytest.raises(ValueError, match="non-empty"):
+        read_metrics_json(bad)

@@ -121,3 +121,41 @@ def test_console_scripts_point_at_main():
     scripts = tomllib.loads(pyproject.read_text())["project"]["scripts"]
     assert scripts["tofdenoise-eval"] == "tofdenoise.cli.evaluate:main" and callable(evaluate.main)
     assert scripts["tofdenoise-report"] == "tofdenoise.cli.report:main" and callable(report.main)
+
+
+@pytest.mark.parametrize("out", ["pred/b.png", "pred/b.json", "ref/a.png", "result.png", "pred"])
+def test_out_that_would_replace_an_input_is_refused(dirs, capsys, out):
+    before = {p: p.read_bytes() for p in dirs.rglob("*") if p.is_file()}
+    assert main(["--pred", str(dirs / "pred"), "--ref", str(dirs / "ref"), "--out", str(dirs / out)]) == 2
+    err = capsys.readouterr().err
+    assert "tofdenoise-eval: error: --out" in err and str(dirs / out) in err and "Traceback" not in err
+    assert {p: p.read_bytes() for p in dirs.rglob("*") if p.is_file()} == before
+
+
+def test_nan_predictions_are_counted_as_failures_not_rewards(tmp_path, capsys):
+    ref = np.full((10, 10), 1000.0)
+    good = ref + 4.0
+    good[:5] = ref[:5] + 40.0  # the hard half: 40 mm off
+    _png16(tmp_path / "ref" / "s0.png", ref)
+    _png16(tmp_path / "ref" / "s1.png", ref)
+    _npy(tmp_path / "honest" / "s0.npy", good)
+    _npy(tmp_path / "honest" / "s1.npy", good)
+    cheat = good.copy()
+    cheat[:5] = np.nan  # gives up where it is hard
+    _npy(tmp_path / "cheat" / "s0.npy", cheat)
+    _npy(tmp_path / "cheat" / "s1.npy", np.full_like(ref, np.nan))  # gives up everywhere
+
+    honest = evaluate_dirs(tmp_path / "honest", tmp_path / "ref")
+    assert honest["nan_px"] == 0 and honest["failed"] == [] and honest["mean"]["mae_mm"] == pytest.approx(22.0)
+    assert main(["--pred", str(tmp_path / "cheat"), "--ref", str(tmp_path / "ref"),
+                 "--out", str(tmp_path / "cheat.json")]) == 0
+    err = capsys.readouterr().err
+    assert "warning: 150 pixel(s)" in err and "2 image(s)" in err and "failed" in err
+    res = json.loads((tmp_path / "cheat.json").read_text())
+    assert res["nan_px"] == 150
+    assert res["images"]["s0"]["nan_px"] == 50 and res["images"]["s0"]["valid_px"] == 50
+    assert res["images"]["s0"]["mae_mm"] == pytest.approx(4.0)
+    # the all-NaN image is a failure row (not "skipped", which means no valid reference pixel)
+    assert res["failed"] == ["s1"] and res["skipped"] == []
+    assert res["images"]["s1"]["nan_px"] == 100 and res["images"]["s1"]["mae_mm"] is None
+    assert res["num_images"] == 1

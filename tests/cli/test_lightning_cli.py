@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 import torch
 from hydra.utils import instantiate
 from lightning.pytorch import seed_everything
@@ -69,6 +70,21 @@ def test_fit_test_predict_from_the_smoke_config(tmp_path, data_cache, monkeypatc
     metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert set(metrics["synthetic"]) >= {"psnr_db", "mae_mm", "mse_mm2", "ssim", "raw"}
     assert (tmp_path / "run" / "per_image" / "synthetic.csv").is_file()
+    # the learned guard's fields come from the tested checkpoint (6 training scenes, batch 2: 3 steps)
+    from tofdenoise.callbacks.metrics_writer import learned_status, learned_verdict
+
+    ckpt = torch.load(best, weights_only=True)
+    assert metrics["trained_steps"] == ckpt["global_step"] == 3
+    assert metrics["best_val_mae_mm"] > 0 and metrics["raw_val_mae_mm"] > 0
+    assert metrics["best_val_mae_mm"] == pytest.approx(float(ckpt["callbacks"][next(
+        k for k in ckpt["callbacks"] if k.startswith("BestAndLastCheckpoint"))]["best_model_score"]), rel=1e-6)
+    assert {k: metrics[k] for k in ("learned", "learned_reason")} == {k: v for k, v in learned_verdict(
+        3, metrics["best_val_mae_mm"], metrics["raw_val_mae_mm"]).items() if k in ("learned", "learned_reason")}
+    # `test` without a checkpoint evaluates an untrained network: never reported as trained
+    untrained = [a.replace(f"{tmp_path}/run", f"{tmp_path}/untrained") for a in common]
+    cli_main(["test", *untrained])
+    fresh = json.loads((tmp_path / "untrained" / "metrics.json").read_text())
+    assert fresh["learned"] is False and fresh["trained_steps"] == 0 and learned_status(fresh) == "not trained"
     cli_main(["predict", *common, f"--ckpt_path={best}"])
     pngs = sorted((tmp_path / "outputs" / "cli" / "smoke" / "predictions" / "synthetic" / "png").glob("*.png"))
     npys = sorted((tmp_path / "outputs" / "cli" / "smoke" / "predictions" / "synthetic" / "npy").glob("*.npy"))
@@ -80,3 +96,30 @@ def test_fit_test_predict_from_the_smoke_config(tmp_path, data_cache, monkeypatc
     assert png.dtype == np.uint16 and png.shape == npy.shape == (32, 48)
     valid = np.isfinite(npy) & (npy > 0)
     assert np.abs(png[valid].astype(np.float64) - npy[valid]).max() <= 0.5 + 1e-6
+
+
+def test_truncated_checkpoint_stops_before_config_yaml_is_rewritten(tmp_path, data_cache, monkeypatch, capsys):
+    import os
+
+    import pytest
+
+    monkeypatch.setattr(sys, "argv", ["tofdenoise"])
+    monkeypatch.chdir(tmp_path)
+    common = ["--config", str(CLI_DIR / "smoke.yaml"), f"--trainer.default_root_dir={tmp_path}/run",
+              "--trainer.logger=false", "--trainer.enable_progress_bar=false",
+              f"--data.init_args.cache_dir={data_cache}", "--data.init_args.num_samples=10",
+              "--data.init_args.height=32", "--data.init_args.width=48", "--data.init_args.crop_size=32",
+              "--model.init_args.backbone_kwargs={in_channels: 1, width: 8, stages: 2}",
+              "--model.init_args.backbone=unet"]
+    cli_main(["fit", *common, "--trainer.max_epochs=1"])
+    config = tmp_path / "run" / "config.yaml"
+    last = tmp_path / "outputs" / "cli" / "smoke" / "checkpoints" / "last.ckpt"
+    before = config.read_bytes()
+    os.truncate(last, last.stat().st_size - 100)
+    for ckpt in ("last", str(last)):
+        with pytest.raises(SystemExit) as exit_info:
+            cli_main(["fit", *common, "--trainer.max_epochs=3", "--ckpt_path", ckpt])
+        assert exit_info.value.code == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert err[-1].startswith(f"tofdenoise: error: checkpoint {last} is ") and "best.ckpt" in err[-1]
+        assert config.read_bytes() == before  # max_epochs: 3 never reached the run's config.yaml

@@ -85,13 +85,14 @@ def test_table_has_one_raw_row_per_distinct_raw_result_and_bold_best(runs):
     assert sets == ["synthetic", "real"]
     assert [r["kind"] for r in rows] == ["raw", "run", "run"]  # same synthetic raw result -> one raw row
     md = table_markdown(sets, rows).splitlines()
-    assert md[0].startswith("| Method | Noise | Loss | Synthetic PSNR (dB)↑")
+    assert md[0].startswith("| Method | Noise | Loss | Learned | Synthetic PSNR (dB)↑")
     dvss = next(line for line in md if line.startswith("| dvss"))
     unet = next(line for line in md if line.startswith("| unet"))
     assert "**40.85**" in dvss and "**2.54**" in dvss and "**0.9987**" in dvss
     assert "39.19" in unet and "**" not in unet
     assert unet.rstrip(" |").endswith("–")  # no real set for this run
-    assert "| Raw input | hetero, range | – | 31.68 | 0.9500 | 680.00 | 7.21 | 31.00 |" in "\n".join(md)
+    assert "| Raw input | hetero, range | – | – | 31.68 | 0.9500 | 680.00 | 7.21 | 31.00 |" in "\n".join(md)
+    assert "| dvss | hetero | full | ? | **40.85** |" in dvss  # metrics.json written before the learned guard
     # a different raw result (other test data) gets its own raw row
     loaded[1].metrics["synthetic"]["raw"]["mae_mm"] = 9.0
     assert [r["kind"] for r in results_table(loaded)[1]] == ["raw", "raw", "run", "run"]
@@ -102,7 +103,7 @@ def test_report_html_is_self_contained(runs, tmp_path, capsys):
     out = tmp_path / "report" / "report.html"
     assert main([str(root), "--out", str(out), "--title", "My runs"]) == 0
     captured = capsys.readouterr()
-    assert "| dvss | hetero | full | **40.85** |" in captured.out
+    assert "| dvss | hetero | full | ? | **40.85** |" in captured.out
     assert "broken" in captured.err and "left out" in captured.err
     page = out.read_text()
     assert page.startswith("<!DOCTYPE html>") and "<title>My runs</title>" in page
@@ -125,3 +126,70 @@ def test_no_runs_is_an_error(tmp_path, capsys):
     assert "no run with a valid metrics.json" in capsys.readouterr().err
     assert main([str(tmp_path / "missing"), "--out", str(tmp_path / "r.html")]) == 2
     assert not (tmp_path / "r.html").exists()
+
+
+def _guarded_run(root: Path, name: str, mae: float, steps: int, best, raw=7.5) -> Path:
+    """A run folder whose metrics.json carries the learned guard's fields, as the training writes them."""
+    from tofdenoise.callbacks.metrics_writer import learned_verdict
+
+    d = root / name
+    write_metrics_json(d / "metrics.json", {"synthetic": set_entry(_m(40.0 - mae, 0.99, mae * mae, mae), RAW)},
+                       run=learned_verdict(steps, best, raw))
+    (d / "run_info.json").write_text(json.dumps({"backbone": name, "noise": "hetero", "loss": "l1",
+                                                 "run_name": name}))
+    return d
+
+
+def test_report_flags_runs_that_did_not_learn_or_were_not_trained(tmp_path, capsys):
+    """A run whose best val MAE is not 5 % below raw is NOT LEARNED, a max_epochs=0 run NOT TRAINED (never
+    presented as trained): a visible column in Markdown and HTML, red rows, and no bold 'best' value even
+    when its numbers are the best of the table."""
+    root = tmp_path / "runs"
+    _guarded_run(root, "good", 3.0, 900, 2.9)          # 2.9 <= 0.95 x 7.5 = 7.125: learned
+    _guarded_run(root, "fair", 4.0, 900, 7.1)          # 7.1 <= 7.125: learned, just
+    _guarded_run(root, "flat", 2.0, 900, 7.4)          # 7.4 > 7.125: did not learn (its test MAE looks best)
+    _guarded_run(root, "zero", 1.0, 0, None, None)     # trainer.max_epochs=0
+    _guarded_run(root, "noval", 2.5, 10, None)         # trained, but no validation result
+    out = tmp_path / "r.html"
+    assert main([str(root), "--out", str(out)]) == 0
+    md = capsys.readouterr().out.splitlines()
+    line = {n: next(row for row in md if row.startswith(f"| {n} ")) for n in ("good", "flat", "zero", "noval")}
+    assert line["good"].startswith("| good | hetero | l1 | yes | **37.00** |")
+    assert next(row for row in md if row.startswith("| fair ")).startswith("| fair | hetero | l1 | yes | 36.00 |")
+    assert line["flat"].startswith("| flat | hetero | l1 | NOT LEARNED | 38.00 |")
+    assert line["zero"].startswith("| zero | hetero | l1 | NOT TRAINED | 39.00 |")
+    assert line["noval"].startswith("| noval | hetero | l1 | unverified | 37.50 |")
+    for n in ("flat", "zero", "noval"):
+        assert "**" not in line[n]
+    assert "**3.00** |" in line["good"]  # the best MAE among the runs that learned
+    page = out.read_text()
+    rows = {m.group(1): m.group(0) for m in re.finditer(r'<tr class="[^"]*" title="(\w+)">.*?</tr>', page)}
+    assert 'class="run flagged"' in rows["flat"] and ">NOT LEARNED</td>" in rows["flat"]
+    assert 'class="run flagged"' in rows["zero"] and ">NOT TRAINED</td>" in rows["zero"]
+    assert 'class="run"' in rows["good"] and ">yes</td>" in rows["good"] and "<b>" in rows["good"]
+    assert "<b>" not in rows["flat"] + rows["zero"]
+    assert "did not learn: best val MAE 7.40 mm vs raw 7.50 mm (needs &lt;= 7.12 mm" in page
+    assert "not trained: 0 optimiser steps" in page
+    run = load_run(root / "flat")
+    assert sorted(run.metrics) == ["synthetic"] and run.learned["learned"] is False
+from tofdenoise.cli.output_guard import OutputPathError, check_output_file
+
+
+
+
+@pytest.mark.parametrize("rel", ["dvss-hetero-full/metrics.json", "dvss-hetero-full/run_info.json",
+                                 "dvss-hetero-full/metrics.html", "report.txt", "dvss-hetero-full"])
+def test_out_that_would_replace_a_run_record_is_refused(runs, capsys, rel):
+    root = runs[0]
+    before = {p: p.read_bytes() for p in root.rglob("*") if p.is_file()}
+    assert main([str(root), "--out", str(root / rel)]) == 2
+    err = capsys.readouterr().err
+    assert "error: --out" in err and str(root / rel) in err
+    assert {p: p.read_bytes() for p in root.rglob("*") if p.is_file()} == before  # nothing replaced
+
+
+def test_out_html_outside_or_new_in_the_runs_folder_is_fine(runs):
+    root = runs[0]
+    assert main([str(root), "--out", str(root / "report.html")]) == 0
+    assert (root / "report.html").read_text().startswith("<!DOCTYPE html>")
+    assert main([str(root), "--out", str(root / "report.html")]) == 0  # a report may replace itself

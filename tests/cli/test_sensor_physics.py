@@ -97,3 +97,51 @@ def test_validate_command_writes_outputs(tmp_path, capsys):
     assert data["settings"]["num_frames"] == 20 and data["settings"]["roi_px"] == 8
     assert data["pooled"]["proposed"]["mape_percent"] < data["pooled"]["range_gaussian"]["mape_percent"]
     assert (tmp_path / "validation.png").stat().st_size > 10_000
+
+
+def test_sigma_prints_strict_json_and_refuses_meaningless_depths(capsys):
+    from tofdenoise.cli.sensor import main
+
+    assert main(["sigma", "--depth-mm", "nan", "inf", "1000", "--signal-e", "10000", "10000", "inf"]) == 0
+    out = capsys.readouterr().out
+    assert "NaN" not in out and "Infinity" not in out
+    rows = json.loads(out)  # strict JSON
+    assert rows == [{"depth_mm": None, "signal_e": 10000.0, "sigma_mm": None},
+                    {"depth_mm": None, "signal_e": 10000.0, "sigma_mm": None},
+                    {"depth_mm": 1000.0, "signal_e": None, "sigma_mm": None}]
+    r = default_calibration().unambiguous_range_mm
+    assert main(["sigma", "--depth-mm", str(0.99e6 * r), "--signal-e", "10000"]) == 0  # far, but allowed
+    capsys.readouterr()
+    assert main(["sigma", "--depth-mm", "1000", "1e12", "--signal-e", "10000"]) == 2
+    err = capsys.readouterr().err
+    assert "--depth-mm 1e+12 is 3.34e+08 unambiguous ranges" in err and "refused" in err
+
+
+def test_unknown_preset_lists_the_presets(capsys):
+    from tofdenoise.cli.sensor import main
+
+    assert main(["show-calib", "--calib", "defualt"]) == 2
+    err = capsys.readouterr().err
+    assert "'defualt': no such file and no preset of that name; presets: default" in err
+    assert main(["show-calib", "--calib", "default"]) == 0
+
+
+@pytest.mark.parametrize("argv", [["show-calib"], ["show-calib", "--json"],
+                                  ["sigma", "--depth-mm", "1000", "--signal-e", "10000"]])
+def test_closed_stdout_pipe_ends_quietly(argv):
+    """`tofdenoise-sensor show-calib | head`: the reader is gone before anything is written."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    read_end, write_end = os.pipe()
+    os.close(read_end)
+    src = Path(__file__).resolve().parents[2] / "src"
+    try:
+        proc = subprocess.run([sys.executable, "-c", "import sys; from tofdenoise.cli.sensor import main; "
+                               "sys.exit(main())", *argv], stdout=write_end, stderr=subprocess.PIPE, text=True,
+                              timeout=120, env={**os.environ, "PYTHONPATH": str(src)})
+    finally:
+        os.close(write_end)
+    assert proc.returncode == 141 and proc.stderr == ""

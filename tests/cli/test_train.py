@@ -14,7 +14,13 @@ from pathlib import Path
 import pytest
 import torch
 
-from tofdenoise.callbacks.metrics_writer import read_metrics_json, read_per_image_csv
+from tofdenoise.callbacks.metrics_writer import (
+    RUN_KEYS,
+    learned_status,
+    metric_sets,
+    read_metrics_json,
+    read_per_image_csv,
+)
 from tofdenoise.cli.train import compose_config, run
 from tofdenoise.metrics import METRIC_KEYS
 from tofdenoise.models import available_backbones
@@ -24,7 +30,8 @@ REPO = Path(__file__).resolve().parents[2]
 
 def _check_metrics_json(path: Path, sets=("synthetic",)) -> dict:
     data = read_metrics_json(path)  # validates the schema
-    assert sorted(data) == sorted(sets)
+    assert sorted(metric_sets(data)) == sorted(sets)
+    assert set(data) - set(sets) == set(RUN_KEYS)  # the learned guard's run-level fields
     for s in sets:
         for k in METRIC_KEYS:
             assert isinstance(data[s][k], float), (s, k)
@@ -160,17 +167,106 @@ def test_resume_after_sigkill_reaches_the_same_number_of_steps(tmp_path, data_ca
     assert rows_killed == log_rows(fresh)
 
 
+def _val_csv(run_dir: Path) -> list[tuple[int, float, float]]:
+    with open(run_dir / "csv" / "metrics.csv") as fh:
+        return [(int(r["epoch"]), float(r["val/mae_mm"]), float(r["val/raw/mae_mm"]))
+                for r in csv.DictReader(fh) if r.get("val/mae_mm")]
+
+
 def test_ddp_two_cpu_processes(tmp_path, data_cache, tiny):
-    """trainer=ddp with two CPU processes (Lightning re-launches the Hydra command for rank 1)."""
-    args = tiny(tmp_path, data_cache, num_samples=20) + [
+    """trainer=ddp with two CPU processes (Lightning re-launches the Hydra command for rank 1), on 3
+    validation and 5 test images: the DistributedSampler pads each to an even count by repeating image 0.
+    val/mae_mm (logged, picks best.ckpt), the learned fields, metrics.json (means, pooled MAE, counts) and the
+    per-image CSV equal a single-process evaluation of the same checkpoints over the unique images. Before
+    the fix the repeated image was counted twice (test images 6, wrong means)."""
+    data = ["++data.split_ratios=[6,3,5]"]  # 14 scenes -> 6 train, 3 val, 5 test
+    run_dir = tmp_path / "ddp"
+    args = tiny(run_dir, data_cache, num_samples=14) + data + [
         "trainer=ddp", "trainer.accelerator=cpu", "trainer.devices=2", "trainer.precision=32-true",
         "trainer.sync_batchnorm=false", "trainer.max_epochs=2", "logger=csv"]
     proc = _cli(args)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    _check_metrics_json(tmp_path / "metrics.json")
-    info = json.loads((tmp_path / "run_info.json").read_text())
-    # 12 training samples, batch 2 per process, 2 processes -> 3 steps per epoch
-    assert info["global_step"] == 2 * 3
+    ddp = _check_metrics_json(run_dir / "metrics.json")
+    info = json.loads((run_dir / "run_info.json").read_text())
+    # 6 training samples, batch 2 per process, 2 processes -> 1 step per epoch (drop_last)
+    assert info["global_step"] == 2 * 1 == ddp["trained_steps"]
+    assert ddp["synthetic"]["images"] == 5 and ddp["synthetic"]["skipped_images"] == 0
+    rows = read_per_image_csv(run_dir / "per_image" / "synthetic.csv")
+    assert [r["index"] for r in rows] == [0, 1, 2, 3, 4]
+    assert ddp["synthetic"]["mae_mm"] == pytest.approx(sum(r["mae_mm"] for r in rows) / 5, rel=1e-12)
+    assert ddp["synthetic"]["raw"]["mae_mm"] == pytest.approx(sum(r["raw_mae_mm"] for r in rows) / 5, rel=1e-12)
+    assert ddp["synthetic"]["valid_px"] == sum(r["valid_px"] for r in rows)
+
+    # test: one process, the same best.ckpt, the same 5 images
+    single_dir = tmp_path / "single"
+    run(compose_config(tiny(single_dir, data_cache, num_samples=14) + data + [
+        "train=false", f"ckpt_path={run_dir / 'checkpoints' / 'best.ckpt'}", "logger=csv"]))
+    single = read_metrics_json(single_dir / "metrics.json")
+    assert ddp["synthetic"] == single["synthetic"]  # every mean, pooled value and count, raw block included
+    assert rows == read_per_image_csv(single_dir / "per_image" / "synthetic.csv")
+
+    # validation: one process, the weights of the last epoch (last.ckpt), the same 3 images
+    from hydra.utils import instantiate
+    from lightning.pytorch import Trainer
+
+    from tofdenoise.lightning_module import DepthRestorer
+
+    cfg = compose_config(tiny(single_dir, data_cache, num_samples=14) + data)
+    model = DepthRestorer.load_from_checkpoint(run_dir / "checkpoints" / "last.ckpt")
+    trainer = Trainer(accelerator="cpu", devices=1, logger=False, enable_checkpointing=False,
+                      enable_progress_bar=False, enable_model_summary=False)
+    (val,) = trainer.validate(model, datamodule=instantiate(cfg.data, _convert_="all"))
+    logged = _val_csv(run_dir)
+    assert [e for e, _, _ in logged] == [0, 1]
+    assert logged[-1][1] == pytest.approx(val["val/mae_mm"], rel=1e-6)  # logged as float32
+    assert logged[-1][2] == pytest.approx(val["val/raw/mae_mm"], rel=1e-6)
+    assert ddp["raw_val_mae_mm"] == pytest.approx(val["val/raw/mae_mm"], rel=1e-6)
+    assert ddp["best_val_mae_mm"] == pytest.approx(min(m for _, m, _ in logged), rel=1e-6)
+
+
+def _summary_lines(text: str) -> list[str]:
+    return [line for line in text.splitlines() if line.startswith("WARNING: ")]
+
+
+def test_max_epochs_0_is_recorded_as_not_trained(tmp_path, data_cache, tiny, capsys):
+    """No training at all: metrics.json says learned false / not trained, the summary says so."""
+    run(compose_config(tiny(tmp_path, data_cache) + ["trainer.max_epochs=0", "logger=csv"]))
+    data = _check_metrics_json(tmp_path / "metrics.json")
+    assert data["learned"] is False and data["trained_steps"] == 0 and learned_status(data) == "not trained"
+    assert data["learned_reason"].startswith("not trained: 0 optimiser steps")
+    warnings = _summary_lines(capsys.readouterr().out)
+    assert warnings and all(w.startswith("WARNING: the network was not trained") for w in warnings)
+
+
+def test_a_run_that_does_not_learn_is_flagged_and_a_test_of_its_checkpoint_too(tmp_path, data_cache, tiny,
+                                                                                 capsys):
+    """One epoch at a learning rate far too small to move the weights: the best val MAE stays at the raw MAE,
+    so learned is false with the numbers in the reason; testing the saved best.ckpt alone (train=false) takes
+    the record from the checkpoint and says the same."""
+    run_dir = tmp_path / "tiny-lr"
+    run(compose_config(tiny(run_dir, data_cache) + ["trainer.max_epochs=1", "logger=csv", "++model.lr=1e-12",
+                                                     "++model.lr_min=0", "++model.warmup_steps=0"]))
+    data = _check_metrics_json(run_dir / "metrics.json")
+    (epoch, val_mae, raw_mae), = _val_csv(run_dir)
+    assert data["trained_steps"] == 3 == json.loads((run_dir / "run_info.json").read_text())["global_step"]
+    assert data["best_val_mae_mm"] == pytest.approx(val_mae, rel=1e-6)
+    assert data["raw_val_mae_mm"] == pytest.approx(raw_mae, rel=1e-6)
+    assert data["best_val_mae_mm"] > 0.95 * data["raw_val_mae_mm"]
+    assert data["learned"] is False and learned_status(data) == "did not learn"
+    assert f"best val MAE {val_mae:.2f} mm vs raw {raw_mae:.2f} mm" in data["learned_reason"]
+    warnings = _summary_lines(capsys.readouterr().out)
+    assert warnings and warnings[-1] == f"WARNING: the network {data['learned_reason']}; treat this run as failed"
+
+    test_dir = tmp_path / "test-only"
+    run(compose_config(tiny(test_dir, data_cache) + [
+        "train=false", f"ckpt_path={run_dir / 'checkpoints' / 'best.ckpt'}", "logger=csv",
+        "++model.learned_margin=0.5"]))
+    again = read_metrics_json(test_dir / "metrics.json")
+    # best.ckpt is the last step here: the same record; the margin is the configured one
+    assert {k: again[k] for k in ("trained_steps", "best_val_mae_mm", "raw_val_mae_mm", "learned")} == {
+        k: data[k] for k in ("trained_steps", "best_val_mae_mm", "raw_val_mae_mm", "learned")}
+    assert again["learned_margin"] == 0.5 and "50% below raw" in again["learned_reason"]
+    assert _summary_lines(capsys.readouterr().out)[-1].startswith("WARNING: the network did not learn")
 
 
 @pytest.mark.parametrize("backbone", ["unet", "tofkpn"])

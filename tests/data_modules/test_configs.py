@@ -52,3 +52,13 @@ def test_dataset_configs_ask_for_root(tmp_path, monkeypatch):
         assert OmegaConf.load(CONFIG_DIR / "data" / f"{data}.yaml")._target_ == "tofdenoise.data_modules.ToFDataModule"
         with pytest.raises(Exception, match="data.root"):
             hydra.utils.instantiate(cfg.data, _convert_="all")
+
+
+@pytest.mark.parametrize("data", ["procedural", "folder", "flyingthings3d"])
+def test_documented_real_dir_override_needs_no_plus(tmp_path, data):
+    """docs/data.md writes `data.real_dir=SCENES_DIR`: Hydra accepts it because every data config declares it."""
+    from tofdenoise.cli.train import compose_config
+
+    cfg = compose_config([f"data={data}", f"paths.run_dir={tmp_path}", f"data.real_dir={tmp_path}/scenes"])
+    assert cfg.data.real_dir == f"{tmp_path}/scenes"
+    assert compose_config([f"data={data}", f"paths.run_dir={tmp_path}"]).data.real_dir is None

@@ -146,3 +146,48 @@ def test_scene_without_common_valid_region_is_skipped(tmp_path):
     with pytest.warns(UserWarning, match="1 scene\\(s\\) with no common valid pixel skipped: scene_0001"):
         dm.prepare_data()
     assert dm.skipped_samples["real"] == ["scene_0001"] and dm.summary()["real_scenes"] == 1
+
+
+def test_scene_without_input_frame_is_warned_and_counted(tmp_path):
+    from tofdenoise.data_modules import ToFDataModule
+    from tofdenoise.data_modules.capture_simulation import simulate_capture_set
+    from tofdenoise.data_modules.real_captures import list_scenes
+
+    simulate_capture_set(tmp_path / "set", scenes=3, frames=2, height=16, width=24, seed=2)
+    (tmp_path / "set" / "scene_0001" / "input_depth_mm.png").unlink()
+    (tmp_path / "set" / "notes").mkdir()  # an unrelated folder is no scene and no warning
+    incomplete: list[str] = []
+    with pytest.warns(UserWarning, match=r"1 scene folder\(s\) with hiexp/ but no input_depth_mm\.png skipped: "
+                                         r"scene_0001"):
+        scenes = list_scenes(tmp_path / "set", incomplete=incomplete)
+    assert [s.name for s in scenes] == ["scene_0000", "scene_0002"] and incomplete == ["scene_0001"]
+    # an empty-mask scene and the incomplete one are both counted as skipped by the datamodule
+    cv2.imwrite(str(tmp_path / "set" / "scene_0002" / "input_depth_mm.png"), np.zeros((16, 24), np.uint16))
+    dm = ToFDataModule(num_samples=6, height=16, width=24, crop_size=8, cache_dir=str(tmp_path / "c"),
+                       real_dir=str(tmp_path / "set"))
+    with pytest.warns(UserWarning, match="hiexp/ but no input_depth_mm.png"):
+        dm.prepare_data()
+    assert dm.skipped_samples["real"] == ["scene_0001", "scene_0002"]
+    assert dm.summary()["real_scenes"] == 1 and dm.summary()["skipped"]["real"] == 2
+
+
+def test_metrics_json_counts_the_scenes_the_datamodule_skipped(tmp_path):
+    """The real set's skipped_images = scenes left out by the datamodule + images without a valid pixel."""
+    import json
+    from types import SimpleNamespace
+
+    from tofdenoise.callbacks.metrics_writer import set_entry
+    from tofdenoise.cli.train import write_test_outputs
+
+    m = {"psnr_db": 40.0, "mae_mm": 2.0, "mse_mm2": 9.0, "ssim": 0.99}
+    model = SimpleNamespace(
+        test_results={"synthetic": set_entry(m, m, {"images": 2, "skipped_images": 0, "valid_px": 10}),
+                      "real": set_entry(m, m, {"images": 1, "skipped_images": 1, "valid_px": 5})},
+        test_per_image={},
+        _trainer=SimpleNamespace(datamodule=SimpleNamespace(
+            skipped_samples={"real": ["scene_0001", "scene_0002"], "train": ["x"]})))
+    write_test_outputs(model, tmp_path)
+    data = json.loads((tmp_path / "metrics.json").read_text())
+    assert data["real"]["skipped_images"] == 3 and data["real"]["images"] == 1
+    assert data["synthetic"]["skipped_images"] == 0  # skipped training samples are not test images
+    assert model.test_results["real"]["skipped_images"] == 1  # the module's own record is left as it was

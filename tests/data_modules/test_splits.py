@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import pytest
 
@@ -53,3 +54,26 @@ def test_bad_ratios_and_too_few_samples():
         split_sizes(10, (6, 2))
     with pytest.raises(ValueError, match="too few"):
         split_sizes(2, (1, 5, 5))  # val 1 + test 1 leave no training sample
+
+
+@pytest.mark.parametrize("edit", ['{"train": ["x0", "x1",], "val": []}',  # trailing comma: not JSON
+                                  '{"train": ["x0"], "val": ["x1"]}',  # no "test"
+                                  '["x0"]'])
+def test_edited_split_that_does_not_parse_is_an_error_naming_the_file(tmp_path, edit):
+    ids = [f"x{i}" for i in range(10)]
+    path = tmp_path / "split_seed0_6-2-2.json"
+    path.write_text(edit)
+    with pytest.raises(ValueError, match=rf"split file {re.escape(str(path))}.*delete it"):
+        load_or_make_split(path, ids, seed=0, ratios=(6, 2, 2), source={})
+    assert path.read_text() == edit  # the user's file is kept
+
+
+def test_split_with_an_id_in_two_parts_is_an_error(tmp_path):
+    ids = [f"x{i}" for i in range(10)]
+    path = tmp_path / "split.json"
+    split = load_or_make_split(path, ids, seed=0, ratios=(6, 2, 2), source={})
+    stored = json.loads(path.read_text())
+    stored["val"].append(split["train"][0])
+    path.write_text(json.dumps(stored))
+    with pytest.raises(ValueError, match=f"sample '{split['train'][0]}' is in both 'train' and 'val'"):
+        load_or_make_split(path, ids, seed=0, ratios=(6, 2, 2), source={})

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -15,7 +16,7 @@ from tofdenoise.physics.calibrate import (
     signal_interval,
 )
 from tofdenoise.physics.calibration import TapResponse, default_calibration
-from tofdenoise.physics.capture_io import CaptureFormatError, read_index, write_capture_folder
+from tofdenoise.physics.capture_io import CaptureFormatError, load_stack, read_index, write_capture_folder
 from tofdenoise.physics.synthetic_captures import write_dark_folder, write_distances_folder, write_sweep_folder
 from tofdenoise.physics.uncertainty import sigma_depth_mm
 
@@ -143,3 +144,78 @@ def test_index_errors(tmp_path, patch, needle):
     (folder / "index.json").write_text(json.dumps(index))
     with pytest.raises(CaptureFormatError, match=needle):
         read_index(folder)
+
+
+def test_fit_tap_response_with_missing_taps_is_exact_on_noise_free_samples():
+    true = TapResponse(1.0, (0.5, 0.03, 0.01), (0.1, 0.0, -0.02))
+    psi = 2 * np.pi * (np.arange(12) + 0.3) / 12
+    theta = 2 * np.pi * np.arange(4) / 4
+    a_s = np.linspace(8000.0, 30000.0, 12)[:, None]  # the signal changes from step to step
+    taps = 100.0 + a_s * true.value(psi[:, None] - theta[None, :])
+    taps[::2, 1] = np.nan  # a tap above the full well at every other step
+    taps[3, 2] = np.nan
+    got = fit_tap_response(psi, taps, dark_mean_e=100.0, num_harmonics=3)
+    assert got.c0 == pytest.approx(1.0, abs=1e-9)
+    np.testing.assert_allclose(got.cos, true.cos, atol=1e-9)
+    np.testing.assert_allclose(got.sin, true.sin, atol=1e-9)
+
+
+def test_partly_clipped_sweep_is_calibrated_from_its_unclipped_samples(tmp_path):
+    """A quarter of the tap samples at the full well (the brightest tap of most steps): left out and counted,
+    the fit still gives cos1 = 0.5 (with them it gave ~0.46; the issue saw 0.378)."""
+    cal = default_calibration()  # cos = (0.5, 0, 0.01), full well 100000 e-, dark 2000 e-
+    # peak tap a (1 + 0.5 cos x) + dark reaches the full well for cos x >= 0.707: 25 % of the phases
+    sweep = write_sweep_folder(cal, tmp_path / "sweep", num_steps=24, num_frames=10, signal_e=72400.0)
+    dark = write_dark_folder(cal, tmp_path / "dark", num_frames=20)
+    rep = calibrate_from_folders(sweep, dark)
+    assert rep.tap_samples == 24 * 10 * 4 * 64
+    assert rep.clipped_samples / rep.tap_samples == pytest.approx(0.25, abs=0.02)
+    assert len(rep.clipped_by_file) >= 20 and "25.00 %" in rep.clipping_summary()
+    tr = rep.calibration.tap_response
+    assert tr.cos[0] == pytest.approx(0.5, abs=0.003) and tr.contrast == pytest.approx(0.5, abs=0.003)
+    np.testing.assert_allclose(tr.cos[1:], cal.tap_response.cos[1:], atol=0.003)
+    # the returned signal of every pixel is recovered too (not the clipped remainder)
+    assert rep.calibration.signal_min_e == pytest.approx(72400.0, rel=0.01)
+    assert rep.calibration.signal_max_e == pytest.approx(72400.0, rel=0.01)
+
+
+def test_sweep_or_distance_step_at_the_full_well_is_an_error_naming_the_file(tmp_path):
+    cal = default_calibration()
+    dark = write_dark_folder(cal, tmp_path / "dark", num_frames=20)
+    sweep = write_sweep_folder(cal, tmp_path / "sat", num_steps=12, num_frames=5, signal_e=200000.0)
+    with pytest.raises(CaptureFormatError, match=r"sat/step_000\.npy: 100\.0 % of the tap samples are clipped"):
+        calibrate_from_folders(sweep, dark)
+    good = write_sweep_folder(cal, tmp_path / "sweep", num_steps=12, num_frames=5)
+    dist = write_distances_folder(cal, tmp_path / "dist", [300.0, 800.0, 1200.0], num_frames=5, reflectance=20.0)
+    with pytest.raises(CaptureFormatError, match=r"dist/dist_000\.npy: only 0\.0 % of the pixels are unclipped"):
+        calibrate_from_folders(good, dark, dist)
+
+
+def test_clipped_samples_at_the_full_well_or_the_dtype_maximum(tmp_path):
+    from tofdenoise.physics.capture_io import clipped_samples, write_capture_folder
+
+    raw = np.array([0, 100, 65534, 65535], np.uint16).reshape(1, 4, 1, 1).repeat(2, axis=0)
+    folder = write_capture_folder(tmp_path / "c", "sweep", 4, [("s", raw, {"phase_rad": 0.0})],
+                                  modulation_frequency_hz=5e7, units="dn", adc_gain_e_per_dn=2.0)
+    idx = read_index(folder, "sweep")
+    values = load_stack(idx, "s.npy")
+    assert clipped_samples(idx, "s.npy", values, None)[0, :, 0, 0].tolist() == [False, False, False, True]
+    assert clipped_samples(idx, "s.npy", values, 200.0)[0, :, 0, 0].tolist() == [False, True, True, True]
+
+
+def test_calibration_errors_name_the_folder_or_file(tmp_path):
+    from tofdenoise.physics.capture_io import write_capture_folder
+
+    cal = default_calibration()
+    sweep = write_sweep_folder(cal, tmp_path / "sweep", num_steps=12, num_frames=5)
+    dark = write_dark_folder(cal, tmp_path / "dark", num_frames=10)
+    zero = write_capture_folder(tmp_path / "dark0", "dark", 4, [("d", np.zeros((4, 4, 8, 8), np.uint16), {})],
+                                units="dn", adc_gain_e_per_dn=25.0)
+    with pytest.raises(CaptureFormatError, match=rf"{re.escape(str(zero))}: the dark frames have no temporal noise"):
+        calibrate_from_folders(sweep, zero)
+    int8 = write_capture_folder(
+        tmp_path / "sweep8", "sweep", 4,
+        [(f"s{i}", np.full((3, 4, 8, 8), 100 + i, np.int8), {"phase_rad": 0.5 * i}) for i in range(12)],
+        modulation_frequency_hz=5e7, full_well_e=1e5)
+    with pytest.raises(CaptureFormatError, match=r"sweep8/s0\.npy: no returned signal .*dtype int8"):
+        calibrate_from_folders(int8, dark)

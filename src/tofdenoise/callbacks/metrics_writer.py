@@ -5,15 +5,28 @@ Functions for the LightningModule / training entry points (no Lightning import h
 - ``set_entry(restored, raw=None, counts=None) -> dict``: one test-set entry of ``metrics.json`` from
   ``DepthMetrics.compute()`` dicts (tensors or floats): ``{"psnr_db", "mae_mm", "mse_mm2", "ssim",
   ["mae_mm_pooled", "images", "skipped_images", "valid_px"], "raw": {same keys for the noisy input}}``.
-- ``write_metrics_json(path, results)``: writes ``{"synthetic": entry, "real": entry}`` (whatever sets are
-  given) atomically after validating the schema; ``update_metrics_json(path, set_name, entry)`` merges one set
-  into an existing file (read-modify-write, atomic); ``read_metrics_json(path)`` reads and validates.
+- ``write_metrics_json(path, results, run=None)``: writes ``{"synthetic": entry, "real": entry}`` (whatever
+  sets are given) atomically after validating the schema, plus the run-level fields ``run`` (below) at the top
+  level; ``update_metrics_json(path, set_name, entry)`` merges one set into an existing file (read-modify-write,
+  atomic, run fields kept); ``read_metrics_json(path)`` reads and validates; ``metric_sets(data)`` keeps only
+  the sets of a read file, ``run_fields(data)`` only the run-level fields.
+- ``learned_verdict(trained_steps, best_val_mae_mm, raw_val_mae_mm, margin=0.05) -> dict``: the guard against
+  runs that learned nothing (the one place its rule lives). The dict holds the run-level fields of
+  ``metrics.json`` (``RUN_KEYS``): ``trained_steps``, ``best_val_mae_mm``, ``raw_val_mae_mm``,
+  ``learned_margin``, ``learned`` (bool) and ``learned_reason`` (plain words).
 - ``write_per_image_csv(path, rows, raw_rows=None, names=None)``: rows from
   ``DepthMetrics.per_image_rows()``; columns ``index, name, valid_px, psnr_db, mae_mm, mse_mm2, ssim`` and,
   with ``raw_rows`` (matched by index), ``raw_psnr_db, raw_mae_mm, raw_mse_mm2, raw_ssim``. ``names`` maps an
   index to the image name (a dict or a sequence indexed by ``index``). ``read_per_image_csv(path)`` reads it.
 - ``atomic_write_text(path, text)`` / ``atomic_write_bytes(path, data)``: temp file in the same folder +
   ``os.replace`` (readers see the old or the complete new file, never a partial one).
+
+The learned rule: ``learned = trained_steps > 0 and best_val_mae_mm <= (1 - margin) x raw_val_mae_mm``, where
+``best_val_mae_mm`` is the lowest validation MAE of the run (``val/mae_mm``, what the checkpoint callback picks
+``best.ckpt`` by) and ``raw_val_mae_mm`` the MAE of the noisy input on the same validation images
+(``val/raw/mae_mm``). A run without training steps is never learned ("not trained"); a run without a validation
+result cannot be verified and is not learned either ("not verified"). The margin (default 5 %) is the
+``DepthRestorer(learned_margin=...)`` setting.
 
 JSON numbers: NaN is written as ``null`` (e.g. a set where every image was skipped); an infinite PSNR (a
 perfect image, MSE = 0) as the string ``"inf"``, so the file is strict JSON that any tool can parse.
@@ -45,10 +58,88 @@ __all__ = [
     "write_per_image_csv",
     "read_per_image_csv",
     "json_number",
+    "RUN_KEYS",
+    "DEFAULT_LEARNED_MARGIN",
+    "learned_verdict",
+    "learned_status",
+    "metric_sets",
+    "run_fields",
 ]
 
 EXTRA_KEYS = ("mae_mm_pooled", "images", "skipped_images", "valid_px")
 CSV_COLUMNS = ("index", "name", "valid_px") + METRIC_KEYS
+#: run-level (top-level, not per-set) fields of ``metrics.json``: the learned guard
+RUN_KEYS = ("trained_steps", "best_val_mae_mm", "raw_val_mae_mm", "learned_margin", "learned", "learned_reason")
+#: default margin of the learned guard: the best validation MAE must be at least 5 % below the raw MAE
+DEFAULT_LEARNED_MARGIN = 0.05
+
+
+def _finite_or_none(value: Any) -> float | None:
+    if value is None:
+        return None
+    v = float(value.item() if hasattr(value, "item") else value)
+    return v if math.isfinite(v) else None
+
+
+def learned_verdict(trained_steps: int | None, best_val_mae_mm: Any, raw_val_mae_mm: Any,
+                    margin: float = DEFAULT_LEARNED_MARGIN) -> dict[str, Any]:
+    """Did the network learn? ``learned`` is True only when the run took at least one optimiser step and its
+    best validation MAE is at most ``(1 - margin)`` times the raw (noisy input) validation MAE.
+
+    Returns the run-level fields of ``metrics.json`` (``RUN_KEYS``); ``learned_reason`` says why in plain
+    words (it starts with "not trained", "not verified", "did not learn" or "learned").
+    """
+    if not 0.0 <= float(margin) < 1.0:
+        raise ValueError(f"learned margin must be in [0, 1), got {margin}")
+    steps = int(trained_steps or 0)
+    best, raw = _finite_or_none(best_val_mae_mm), _finite_or_none(raw_val_mae_mm)
+    out: dict[str, Any] = {"trained_steps": steps, "best_val_mae_mm": best, "raw_val_mae_mm": raw,
+                           "learned_margin": float(margin)}
+    if steps <= 0:
+        out["learned"] = False
+        out["learned_reason"] = ("not trained: 0 optimiser steps (e.g. trainer.max_epochs=0); the metrics are "
+                                 "those of the untrained network")
+        return out
+    if best is None or raw is None:
+        missing = " and ".join(n for n, v in (("best val MAE", best), ("raw val MAE", raw)) if v is None)
+        out["learned"] = False
+        out["learned_reason"] = (f"not verified: no {missing} was recorded (validation did not run), so nothing "
+                                 "shows that the network learned")
+        return out
+    needed = (1.0 - float(margin)) * raw
+    out["learned"] = best <= needed
+    if out["learned"]:
+        out["learned_reason"] = (f"learned: best val MAE {best:.2f} mm <= {needed:.2f} mm "
+                                 f"(raw {raw:.2f} mm less {margin:.0%})")
+    else:
+        out["learned_reason"] = (f"did not learn: best val MAE {best:.2f} mm vs raw {raw:.2f} mm "
+                                 f"(needs <= {needed:.2f} mm, {margin:.0%} below raw)")
+    return out
+
+
+def learned_status(fields: Mapping[str, Any]) -> str:
+    """One word-group for a verdict (``learned_verdict`` or the run fields of a ``metrics.json``):
+    ``"learned"``, ``"not trained"``, ``"did not learn"``, ``"not verified"``, or ``"unknown"`` for a file
+    written before the guard existed."""
+    if "learned" not in fields:
+        return "unknown"
+    if int(fields.get("trained_steps") or 0) <= 0:
+        return "not trained"
+    if fields["learned"] is True:
+        return "learned"
+    if fields.get("best_val_mae_mm") is None or fields.get("raw_val_mae_mm") is None:
+        return "not verified"
+    return "did not learn"
+
+
+def metric_sets(data: Mapping[str, Any]) -> dict[str, Any]:
+    """The test sets of a ``metrics.json`` (``{set: entry}``), without the run-level fields."""
+    return {k: v for k, v in data.items() if k not in RUN_KEYS}
+
+
+def run_fields(data: Mapping[str, Any]) -> dict[str, Any]:
+    """The run-level fields (``RUN_KEYS``) of a ``metrics.json``; empty for files written before they existed."""
+    return {k: data[k] for k in RUN_KEYS if k in data}
 
 
 def json_number(value: Any) -> float | int | str | None:
@@ -89,11 +180,25 @@ def set_entry(restored: Mapping[str, Any], raw: Mapping[str, Any] | None = None,
     return entry
 
 
+def _validate_run_fields(results: Mapping[str, Any], source: str) -> None:
+    types: dict[str, tuple[type, ...]] = {"trained_steps": (int,), "best_val_mae_mm": (int, float, type(None)),
+                                          "raw_val_mae_mm": (int, float, type(None)), "learned_margin": (int, float),
+                                          "learned": (bool,), "learned_reason": (str,)}
+    for key, allowed in types.items():
+        if key not in results:
+            continue
+        v = results[key]
+        if not isinstance(v, allowed) or (key != "learned" and isinstance(v, bool)):
+            raise ValueError(f"{source}: '{key}' must be {' or '.join(t.__name__ for t in allowed)}, got {v!r}")
+
+
 def validate_metrics_results(results: Mapping[str, Any], source: str = "metrics") -> None:
-    """Raise ValueError naming ``source`` and the set/key when ``results`` does not follow the schema."""
-    if not isinstance(results, Mapping) or not results:
+    """Raise ValueError naming ``source`` and the set/key when ``results`` does not follow the schema (test
+    sets ``{set: entry}`` plus the optional run-level fields ``RUN_KEYS``)."""
+    if not isinstance(results, Mapping) or not metric_sets(results):
         raise ValueError(f"{source}: expected a non-empty object {{set name: metrics}}, got {type(results).__name__}")
-    for set_name, entry in results.items():
+    _validate_run_fields(results, source)
+    for set_name, entry in metric_sets(results).items():
         if not isinstance(entry, Mapping):
             raise ValueError(f"{source}: set '{set_name}' must be an object, got {type(entry).__name__}")
         blocks = [(str(set_name), entry)]
@@ -112,7 +217,7 @@ def validate_metrics_results(results: Mapping[str, Any], source: str = "metrics"
 
 def _normalise(results: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
     out: dict[str, Any] = {}
-    for set_name, entry in results.items():
+    for set_name, entry in metric_sets(results).items():
         block = _metric_block(entry, f"set '{set_name}'")
         for k, v in entry.items():
             if k not in block and k != "raw":
@@ -123,9 +228,20 @@ def _normalise(results: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
     return out
 
 
-def write_metrics_json(path: str | Path, results: Mapping[str, Mapping[str, Any]]) -> Path:
-    """Write ``{"synthetic": {...}, "real": {...}}`` to ``path`` atomically (strict JSON, sorted sets)."""
+def write_metrics_json(path: str | Path, results: Mapping[str, Any],
+                       run: Mapping[str, Any] | None = None) -> Path:
+    """Write ``{"synthetic": {...}, "real": {...}}`` to ``path`` atomically (strict JSON, sorted sets), with
+    the run-level fields of ``run`` (e.g. ``learned_verdict(...)``; keys outside ``RUN_KEYS`` are refused) or,
+    without ``run``, those already in ``results``."""
     data = _normalise(results)
+    fields = dict(run_fields(results) if run is None else run)
+    unknown = sorted(set(fields) - set(RUN_KEYS))
+    if unknown:
+        raise KeyError(f"{path}: unknown run-level field(s) {unknown}; expected some of {list(RUN_KEYS)}")
+    for key in RUN_KEYS:
+        if key in fields:
+            v = fields[key]
+            data[key] = v if isinstance(v, (bool, str, int)) or v is None else json_number(v)
     validate_metrics_results(data, str(path))
     return atomic_write_text(path, json.dumps(data, indent=2, allow_nan=False) + "\n")
 
@@ -144,8 +260,10 @@ def read_metrics_json(path: str | Path) -> dict[str, Any]:
 
 
 def update_metrics_json(path: str | Path, set_name: str, entry: Mapping[str, Any]) -> Path:
-    """Add or replace one set in ``path`` (created when missing), keeping the other sets."""
+    """Add or replace one set in ``path`` (created when missing), keeping the other sets and the run fields."""
     path = Path(path)
+    if str(set_name) in RUN_KEYS:
+        raise ValueError(f"{path}: {set_name!r} is a run-level field of metrics.json, not a valid set name")
     current: dict[str, Any] = read_metrics_json(path) if path.exists() else {}
     current[str(set_name)] = entry
     return write_metrics_json(path, current)

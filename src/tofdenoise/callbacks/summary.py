@@ -10,7 +10,7 @@ from typing import Any
 import lightning.pytorch as pl
 from lightning.pytorch.callbacks import Callback
 
-__all__ = ["RunSummary", "format_fit_summary", "format_test_summary"]
+__all__ = ["RunSummary", "format_fit_summary", "format_test_summary", "format_learned_warning"]
 
 log = logging.getLogger(__name__)
 
@@ -54,9 +54,30 @@ def format_test_summary(name: str, results: dict[str, dict[str, Any]], seconds: 
     return f"[{name}] test in {_duration(seconds)} | {body}"
 
 
+def format_learned_warning(record: dict[str, Any] | None) -> str | None:
+    """The learned guard in plain words (``None`` when the run learned): ``WARNING: the network did not learn:
+    best val MAE 7.68 mm vs raw 7.79 mm (needs <= 7.40 mm, 5% below raw); treat this run as failed``."""
+    from tofdenoise.callbacks.metrics_writer import learned_status
+
+    if not record:
+        return None
+    status = learned_status(record)
+    reason = str(record.get("learned_reason", ""))
+    if status == "did not learn":
+        return f"WARNING: the network {reason}; treat this run as failed"
+    if status == "not trained":
+        return f"WARNING: the network was {reason}"
+    if status == "not verified":
+        return f"WARNING: learning {reason}; treat this run as unverified"
+    return None
+
+
 class RunSummary(Callback):
     """Prints one line after ``fit`` (epochs, optimiser steps, time, best val MAE and checkpoint) and one
     after ``test`` (per test set: restored vs raw MAE / PSNR / SSIM). Only on global rank 0.
+
+    When the network did not learn (``DepthRestorer.learned_record()``: not trained, best validation MAE not
+    ``learned_margin`` below the raw MAE, or no validation to tell), a ``WARNING: ...`` line follows both.
 
     Args:
         name: run name shown in brackets (the Hydra config passes ``run_name``).
@@ -87,6 +108,13 @@ class RunSummary(Callback):
         self._emit(trainer, format_fit_summary(
             self.name, trainer.current_epoch, trainer.global_step, time.perf_counter() - self._t0,
             best_score, best_path, monitor, raw))
+        self._warn_if_not_learned(trainer, pl_module)
+
+    def _warn_if_not_learned(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        record_fn = getattr(pl_module, "learned_record", None)
+        warning = format_learned_warning(record_fn()) if callable(record_fn) else None
+        if warning:
+            self._emit(trainer, warning)
 
     def on_test_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
         self._t0 = time.perf_counter()
@@ -94,3 +122,4 @@ class RunSummary(Callback):
     def on_test_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
         results = getattr(pl_module, "test_results", None) or {}
         self._emit(trainer, format_test_summary(self.name, results, time.perf_counter() - self._t0))
+        self._warn_if_not_learned(trainer, pl_module)

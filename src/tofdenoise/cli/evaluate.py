@@ -10,14 +10,23 @@ given) is nonzero and the prediction is finite; metrics are per image, then aver
 (``tofdenoise.metrics``; PSNR with D_max = 1000 mm, no clamping). An image without a valid pixel is listed
 with null values and left out of the mean.
 
+Non-finite predictions (NaN or +-inf) are failures, never a reward: a pixel the method should have
+predicted (reference valid, mask nonzero) but left non-finite is left out of that image's metrics, *counted*
+as ``nan_px`` (per image and in total) and reported with a warning on stderr; an image whose every such
+pixel is non-finite is a failure row (null metrics, listed in ``failed``, left out of the mean). A result
+with ``nan_px > 0`` is therefore not comparable with one without: its mean covers fewer pixels.
+
 Output (atomic write, strict JSON)::
 
     {"mean": {"psnr_db", "mae_mm", "mse_mm2", "ssim"},
-     "images": {"<stem>": {"psnr_db", "mae_mm", "mse_mm2", "ssim", "valid_px"}},
-     "mae_mm_pooled": float, "num_images": int, "skipped": [stems without a valid pixel], "d_max_mm": float}
+     "images": {"<stem>": {"psnr_db", "mae_mm", "mse_mm2", "ssim", "valid_px", "nan_px"}},
+     "mae_mm_pooled": float, "num_images": int, "skipped": [stems without a valid reference pixel],
+     "nan_px": int, "failed": [stems whose prediction is non-finite wherever it is evaluated],
+     "d_max_mm": float}
 
 Errors (exit status 2) name the file: missing counterpart, shape mismatch, wrong dtype, unreadable file,
-empty or missing folder, two files with the same stem.
+empty or missing folder, two files with the same stem, and an ``--out`` that is a folder, is not ``.json``,
+or is one of the inputs (``tofdenoise.cli.output_guard``).
 """
 
 from __future__ import annotations
@@ -32,6 +41,7 @@ import numpy as np
 import torch
 
 from tofdenoise.callbacks.metrics_writer import atomic_write_text, json_number
+from tofdenoise.cli.output_guard import OutputPathError, check_output_file
 from tofdenoise.metrics import D_MAX_MM, METRIC_KEYS, DepthMetrics
 
 __all__ = ["DEPTH_SUFFIXES", "EvalInputError", "list_maps", "evaluate_dirs", "main"]
@@ -103,6 +113,7 @@ def evaluate_dirs(pred_dir: str | Path, ref_dir: str | Path, mask_dir: str | Pat
         _match(refs, masks, "mask", Path(mask_dir))
     metric = DepthMetrics(d_max_mm=d_max_mm)
     stems = sorted(refs)
+    nan_px: dict[str, int] = {}
     for i, stem in enumerate(stems):
         ref = _read_depth(refs[stem], "reference depth")
         pred = _read_depth(preds[stem], "predicted depth")
@@ -116,24 +127,47 @@ def evaluate_dirs(pred_dir: str | Path, ref_dir: str | Path, mask_dir: str | Pat
                 raise EvalInputError(f"mask file {masks[stem]} has shape {m.shape}; expected {ref.shape} "
                                      f"like {refs[stem]}")
             mask = torch.from_numpy(m)
+        nan_px[stem] = _nonfinite_px(pred, ref, None if mask is None else m)
         metric.update(torch.from_numpy(pred), torch.from_numpy(ref), mask, index=torch.tensor([i]))
     mean = metric.compute()
     images: dict[str, dict] = {}
     skipped: list[str] = []
+    failed: list[str] = []
     for row in metric.per_image_rows():
         stem = stems[int(row["index"])]
         images[stem] = {k: json_number(row[k]) for k in METRIC_KEYS}
         images[stem]["valid_px"] = row["valid_px"]
+        images[stem]["nan_px"] = nan_px[stem]
         if row["valid_px"] == 0:
-            skipped.append(stem)
+            (failed if nan_px[stem] > 0 else skipped).append(stem)
     return {
         "mean": {k: json_number(mean[k]) for k in METRIC_KEYS},
         "images": images,
         "mae_mm_pooled": json_number(mean["mae_mm_pooled"]),
         "num_images": metric.counts()["images"],
         "skipped": skipped,
+        "nan_px": int(sum(nan_px.values())),
+        "failed": failed,
         "d_max_mm": float(d_max_mm),
     }
+
+
+def _nonfinite_px(pred: np.ndarray, ref: np.ndarray, mask: np.ndarray | None) -> int:
+    """Pixels to be evaluated (reference finite and > 0, mask nonzero) where the prediction is NaN or inf."""
+    with np.errstate(invalid="ignore"):
+        wanted = np.isfinite(ref) & (ref > 0)
+    if mask is not None:
+        wanted &= mask
+    return int((wanted & ~np.isfinite(pred)).sum())
+
+
+def _input_files(*folders: Path | None) -> list[Path]:
+    """Every file directly in the given (existing) input folders: what ``--out`` must never replace."""
+    files: list[Path] = []
+    for folder in folders:
+        if folder is not None and Path(folder).is_dir():
+            files += [p for p in Path(folder).iterdir() if p.is_file()]
+    return files
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -154,17 +188,26 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         if not args.d_max_mm > 0:
             raise EvalInputError(f"--d-max-mm must be > 0, got {args.d_max_mm}")
+        check_output_file(args.out, (".json",), _input_files(args.pred, args.ref, args.mask))
         result = evaluate_dirs(args.pred, args.ref, args.mask, args.d_max_mm)
-    except EvalInputError as exc:
+    except (EvalInputError, OutputPathError) as exc:
         print(f"tofdenoise-eval: error: {exc}", file=sys.stderr)
         return 2
+    if result["nan_px"]:
+        bad = [stem for stem, row in result["images"].items() if row["nan_px"]]
+        failed = f"; {len(result['failed'])} image(s) with no finite prediction at all (failed)" \
+            if result["failed"] else ""
+        print(f"tofdenoise-eval: warning: {result['nan_px']} pixel(s) to evaluate hold a non-finite prediction "
+              f"(NaN/inf) in {len(bad)} image(s) ({', '.join(bad[:5])}{' ...' if len(bad) > 5 else ''}): "
+              f"failures, left out of the metrics and counted in nan_px{failed}", file=sys.stderr)
     atomic_write_text(args.out, json.dumps(result, indent=2, allow_nan=False) + "\n")
     m = result["mean"]
 
     def f(v, d):
         return "n/a" if v is None else (v if isinstance(v, str) else f"{v:.{d}f}")
 
-    print(f"{result['num_images']} images ({len(result['skipped'])} without valid pixels): "
+    nan_note = f", {result['nan_px']} non-finite predicted px" if result["nan_px"] else ""
+    print(f"{result['num_images']} images ({len(result['skipped'])} without valid pixels{nan_note}): "
           f"PSNR {f(m['psnr_db'], 2)} dB, SSIM {f(m['ssim'], 4)}, MSE {f(m['mse_mm2'], 2)} mm^2, "
           f"MAE {f(m['mae_mm'], 3)} mm -> {args.out}")
     return 0

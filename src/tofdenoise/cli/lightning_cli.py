@@ -39,6 +39,48 @@ class ToFLightningCLI(LightningCLI):
             root_path.mkdir(parents=True, exist_ok=True)
             _setup_wandb_env(root_path)
 
+    def _check_ckpt_path(self) -> None:
+        """Check ``--ckpt_path`` before the trainer writes anything (SaveConfigCallback's config.yaml)."""
+        from tofdenoise.cli.checkpoint_check import check_checkpoint_file
+
+        sub = self.config.get("subcommand") if hasattr(self.config, "get") else None
+        cfg = self.config[sub] if sub else self.config
+        ckpt = cfg.get("ckpt_path") if hasattr(cfg, "get") else None
+        if ckpt in (None, "", "best", "hpc") or str(ckpt).startswith("registry"):
+            return
+        if ckpt == "last":  # Lightning resolves it to the checkpoint callbacks' last.ckpt
+            for cb in self.trainer.checkpoint_callbacks:
+                dirpath = getattr(cb, "dirpath", None)
+                last = Path(str(dirpath)) / f"{cb.CHECKPOINT_NAME_LAST}{cb.FILE_EXTENSION}" if dirpath else None
+                if last is not None and last.is_file():
+                    check_checkpoint_file(last, option="--ckpt_path")
+            return
+        check_checkpoint_file(ckpt, option="--ckpt_path")
+
+    def _parse_ckpt_path(self) -> None:
+        # Lightning (2.6) reads the hyperparameters of a --ckpt_path file while parsing: check the file first
+        sub = self.config.get("subcommand") if hasattr(self.config, "get") else None
+        ckpt = self.config[sub].get("ckpt_path") if sub else None
+        if ckpt not in (None, "", "last", "best", "hpc") and not str(ckpt).startswith("registry"):
+            from tofdenoise.cli.checkpoint_check import check_checkpoint_file
+
+            check_checkpoint_file(ckpt, option="--ckpt_path")
+        parse = getattr(super(), "_parse_ckpt_path", None)
+        if parse is not None:
+            parse()
+
+    def before_fit(self) -> None:
+        self._check_ckpt_path()
+
+    def before_validate(self) -> None:
+        self._check_ckpt_path()
+
+    def before_test(self) -> None:
+        self._check_ckpt_path()
+
+    def before_predict(self) -> None:
+        self._check_ckpt_path()
+
     def after_test(self) -> None:
         if self.trainer.is_global_zero:
             from tofdenoise.cli.train import write_test_outputs
@@ -73,8 +115,13 @@ def main(args: list[str] | None = None) -> Any:
     """Console script ``tofdenoise``."""
     os.environ.setdefault("WANDB_SILENT", "true")
     os.environ.setdefault("WANDB_ERROR_REPORTING", "false")
+    from tofdenoise.cli.checkpoint_check import CheckpointFileError
+
     try:
         build_cli(args)
+    except CheckpointFileError as exc:  # one line that says what to do, not a traceback
+        print(f"tofdenoise: error: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None
     finally:
         _finish_wandb()
     return 0

@@ -6,7 +6,8 @@ A run is any folder (searched recursively under each RUNS_DIR, which may itself 
 ``metrics.json`` (written by the training, schema in ``tofdenoise.callbacks.metrics_writer``). From a run
 folder the report reads:
 
-- ``metrics.json``: final test metrics per set (``synthetic``, ``real``) with the ``raw`` (noisy input) block;
+- ``metrics.json``: final test metrics per set (``synthetic``, ``real``) with the ``raw`` (noisy input) block,
+  and the learned guard's run-level fields (``learned``, ``learned_reason``, ``trained_steps``, ...);
 - ``run_info.json`` ``{"backbone", "noise", "loss", "run_name"}`` (optional ``"method"`` label), else
   ``.hydra/config.yaml`` (``backbone.name``, ``noise.name``, ``loss.name``, ``run_name``), else the folder name;
 - every ``metrics.csv`` below the run (Lightning's CSVLogger) for learning curves: columns ``step``/``epoch``
@@ -15,10 +16,16 @@ folder the report reads:
 - ``panels/*.png`` (``ImagePanelLogger``): the latest validation panel (highest epoch number in the name).
 
 The page has a table like the paper's (one "Raw input" row per distinct raw result, then one row per run:
-method, noise model, loss, PSNR/SSIM/MSE/MAE on synthetic and, when any run has it, real data; the best
-value of each column in bold), a plot of validation MAE of all runs, and per run its learning curves and
+method, noise model, loss, the "Learned" flag, PSNR/SSIM/MSE/MAE on synthetic and, when any run has it, real
+data; the best value of each column in bold), a plot of validation MAE of all runs, and per run its learning curves and
 latest sample panel. Images are embedded as base64 ``data:`` URIs, CSS is inline, nothing is fetched from
-a network. The same table is printed to stdout as Markdown. Runs whose metrics.json is invalid are listed
+a network. The same table is printed to stdout as Markdown.
+
+The "Learned" column (``learned_flag``) shows the learned guard of each run: ``yes``; ``NOT LEARNED`` (the best
+validation MAE was not ``learned_margin`` below the raw MAE); ``NOT TRAINED`` (0 optimiser steps, e.g.
+``trainer.max_epochs=0``: the metrics are those of an untrained network); ``unverified`` (no validation result);
+``?`` (a metrics.json written before the guard existed). Flagged runs (all but ``yes`` and ``?``) are
+shown in red and never get a bold "best" value. Runs whose metrics.json is invalid are listed
 (with the reason) instead of stopping the report. Exit status 2 when no run is found.
 """
 
@@ -37,9 +44,17 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
-from tofdenoise.callbacks.metrics_writer import atomic_write_text, read_metrics_json
+from tofdenoise.callbacks.metrics_writer import (
+    atomic_write_text,
+    learned_status,
+    metric_sets,
+    read_metrics_json,
+    run_fields,
+)
+from tofdenoise.cli.output_guard import OutputPathError, check_output_file
 
-__all__ = ["Run", "find_runs", "load_run", "results_table", "table_markdown", "render_html", "main"]
+__all__ = ["Run", "find_runs", "load_run", "results_table", "table_markdown", "render_html", "main",
+           "learned_flag"]
 
 METRIC_COLUMNS = (  # key, header, decimals, higher is better
     ("psnr_db", "PSNR (dB)&uarr;", "PSNR (dB)↑", 2, True),
@@ -48,6 +63,10 @@ METRIC_COLUMNS = (  # key, header, decimals, higher is better
     ("mae_mm", "MAE (mm)&darr;", "MAE (mm)↓", 2, False),
 )
 SET_LABELS = {"synthetic": "Synthetic", "real": "Real"}
+#: the Learned column per ``metrics_writer.learned_status``
+LEARNED_FLAGS = {"learned": "yes", "did not learn": "NOT LEARNED", "not trained": "NOT TRAINED",
+                 "not verified": "unverified", "unknown": "?"}
+_FLAGGED = {"did not learn", "not trained", "not verified"}
 _SKIP_DIRS = {"wandb", "checkpoints", "panels", ".hydra", "csv", "tensorboard", "predictions", "__pycache__"}
 
 
@@ -61,6 +80,13 @@ class Run:
     metrics: dict[str, Any]
     curves: list[dict[str, Any]] = field(default_factory=list)
     panel: Path | None = None
+    #: the learned guard's run-level fields of metrics.json (empty for files written before it existed)
+    learned: dict[str, Any] = field(default_factory=dict)
+
+
+def learned_flag(run: Run) -> str:
+    """The Learned column of a run: ``yes``, ``NOT LEARNED``, ``NOT TRAINED``, ``unverified`` or ``?``."""
+    return LEARNED_FLAGS[learned_status(run.learned)]
 
 
 def find_runs(roots: Sequence[str | Path]) -> list[Path]:
@@ -143,12 +169,13 @@ def _epoch_order(path: Path) -> tuple[int, str]:
 def load_run(run_dir: str | Path) -> Run:
     """Read one run folder (raises ValueError/FileNotFoundError naming the bad file)."""
     run_dir = Path(run_dir)
-    metrics = read_metrics_json(run_dir / "metrics.json")
+    data = read_metrics_json(run_dir / "metrics.json")
+    metrics, learned = metric_sets(data), run_fields(data)
     info = _read_info(run_dir)
     panels = sorted((run_dir / "panels").glob("*.png"), key=_epoch_order) if (run_dir / "panels").is_dir() else []
     return Run(path=run_dir, name=info["run_name"], method=info.get("method", info.get("backbone", info["run_name"])),
                noise=info.get("noise", "?"), loss=info.get("loss", "?"), metrics=metrics,
-               curves=_read_curves(run_dir), panel=panels[-1] if panels else None)
+               curves=_read_curves(run_dir), panel=panels[-1] if panels else None, learned=learned)
 
 
 # ------------------------------------------------------------------------------------------------ table
@@ -172,7 +199,8 @@ def _same(a: float | None, b: float | None) -> bool:
 
 
 def results_table(runs: Sequence[Run]) -> tuple[list[str], list[dict[str, Any]]]:
-    """(set names shown, rows); a row: {"kind": "raw"|"run", "method", "noise", "loss", (set, key) -> float}."""
+    """(set names shown, rows); a row: {"kind": "raw"|"run", "method", "noise", "loss", "learned" (the flag),
+    (set, key) -> float}; run rows also carry "name", "flagged" (bool) and "learned_reason"."""
     sets = [s for s in ("synthetic", "real") if any(s in r.metrics for r in runs)]
     sets += sorted({s for r in runs for s in r.metrics} - set(sets))
     raw_rows: list[dict[str, Any]] = []
@@ -190,12 +218,16 @@ def results_table(runs: Sequence[Run]) -> tuple[list[str], list[dict[str, Any]]]
                     row["noises"].append(r.noise)
                 break
         else:
-            raw_rows.append({"kind": "raw", "method": "Raw input", "loss": "–", "noises": [r.noise], **values})
+            raw_rows.append({"kind": "raw", "method": "Raw input", "loss": "–", "learned": "–", "noises": [r.noise],
+                             **values})
     for row in raw_rows:
         row["noise"] = ", ".join(row.pop("noises"))
     run_rows = []
     for r in runs:
-        row: dict[str, Any] = {"kind": "run", "method": r.method, "noise": r.noise, "loss": r.loss, "name": r.name}
+        status = learned_status(r.learned)
+        row: dict[str, Any] = {"kind": "run", "method": r.method, "noise": r.noise, "loss": r.loss, "name": r.name,
+                               "learned": LEARNED_FLAGS[status], "flagged": status in _FLAGGED,
+                               "learned_reason": str(r.learned.get("learned_reason", ""))}
         for s in sets:
             for k, *_ in METRIC_COLUMNS:
                 row[(s, k)] = _value(r.metrics.get(s, {}).get(k))
@@ -204,7 +236,8 @@ def results_table(runs: Sequence[Run]) -> tuple[list[str], list[dict[str, Any]]]
 
 
 def _best(rows: list[dict[str, Any]], col: tuple[str, str], higher: bool) -> float | None:
-    vals = [row[col] for row in rows if row["kind"] == "run" and row.get(col) is not None]
+    """Best value of a column among the runs not flagged by the learned guard (None with fewer than two)."""
+    vals = [row[col] for row in rows if row["kind"] == "run" and not row.get("flagged") and row.get(col) is not None]
     if len(vals) < 2:
         return None
     return max(vals) if higher else min(vals)
@@ -220,15 +253,16 @@ def _fmt(v: float | None, decimals: int) -> str:
 
 def table_markdown(sets: Sequence[str], rows: list[dict[str, Any]]) -> str:
     """The comparison table as GitHub Markdown (best run value per column in bold)."""
-    header = ["Method", "Noise", "Loss"] + [f"{SET_LABELS.get(s, s)} {m[2]}" for s in sets for m in METRIC_COLUMNS]
-    lines = ["| " + " | ".join(header) + " |", "|" + "|".join(["---"] * 3 + ["---:"] * (len(header) - 3)) + "|"]
+    header = (["Method", "Noise", "Loss", "Learned"]
+              + [f"{SET_LABELS.get(s, s)} {m[2]}" for s in sets for m in METRIC_COLUMNS])
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join(["---"] * 4 + ["---:"] * (len(header) - 4)) + "|"]
     for row in rows:
-        cells = [row["method"], row["noise"], row["loss"]]
+        cells = [row["method"], row["noise"], row["loss"], row["learned"]]
         for s in sets:
             for key, _, _, dec, higher in METRIC_COLUMNS:
                 v = row.get((s, key))
                 text = _fmt(v, dec)
-                if v is not None and row["kind"] == "run" and v == _best(rows, (s, key), higher):
+                if v is not None and row["kind"] == "run" and not row["flagged"] and v == _best(rows, (s, key), higher):
                     text = f"**{text}**"
                 cells.append(text)
         lines.append("| " + " | ".join(cells) + " |")
@@ -334,30 +368,38 @@ th,td{padding:4px 9px;border-bottom:1px solid #e3e3e3;text-align:right;white-spa
 th{background:#f5f5f7;border-bottom:2px solid #999} td.l,th.l{text-align:left}
 tr.raw td{color:#666;font-style:italic} th.set{text-align:center;border-bottom:1px solid #bbb}
 img{max-width:100%;border:1px solid #ddd;margin:4px 0} .run{margin-bottom:28px}
-.warn{color:#a40000}
+.warn{color:#a40000} tr.flagged td{color:#a40000} tr.flagged td.learned{font-weight:bold}
 """
+
+
+def _learned_cell(row: dict[str, Any]) -> str:
+    e = html.escape
+    reason = row.get("learned_reason")
+    title = f' title="{e(reason)}"' if reason else ""
+    return f'<td class="l learned"{title}>{e(str(row["learned"]))}</td>'
 
 
 def _table_html(sets: Sequence[str], rows: list[dict[str, Any]]) -> str:
     e = html.escape
     head1 = '<tr><th class="l" rowspan="2">Method</th><th class="l" rowspan="2">Noise</th>' \
-            '<th class="l" rowspan="2">Loss</th>' + "".join(
+            '<th class="l" rowspan="2">Loss</th><th class="l" rowspan="2">Learned</th>' + "".join(
                 f'<th class="set" colspan="{len(METRIC_COLUMNS)}">{e(SET_LABELS.get(s, s))}</th>' for s in sets) + \
             "</tr>"
     head2 = "<tr>" + "".join(f"<th>{m[1]}</th>" for _ in sets for m in METRIC_COLUMNS) + "</tr>"
     body = []
     for row in rows:
         cells = [f'<td class="l">{e(str(row["method"]))}</td>', f'<td class="l">{e(str(row["noise"]))}</td>',
-                 f'<td class="l">{e(str(row["loss"]))}</td>']
+                 f'<td class="l">{e(str(row["loss"]))}</td>', _learned_cell(row)]
         for s in sets:
             for key, _, _, dec, higher in METRIC_COLUMNS:
                 v = row.get((s, key))
                 text = e(_fmt(v, dec))
-                if v is not None and row["kind"] == "run" and v == _best(rows, (s, key), higher):
+                if v is not None and row["kind"] == "run" and not row["flagged"] and v == _best(rows, (s, key), higher):
                     text = f"<b>{text}</b>"
                 cells.append(f"<td>{text}</td>")
         title = f' title="{e(str(row["name"]))}"' if "name" in row else ""
-        body.append(f'<tr class="{row["kind"]}"{title}>' + "".join(cells) + "</tr>")
+        kind = row["kind"] + (" flagged" if row.get("flagged") else "")
+        body.append(f'<tr class="{kind}"{title}>' + "".join(cells) + "</tr>")
     return f"<table><thead>{head1}{head2}</thead><tbody>{''.join(body)}</tbody></table>"
 
 
@@ -369,7 +411,9 @@ def render_html(runs: Sequence[Run], title: str = "tofdenoise runs", skipped: Se
              f"<style>{_CSS}</style></head><body><h1>{e(title)}</h1>",
              f'<p class="meta">{len(runs)} run(s). Metrics over valid pixels, per image then averaged '
              "(PSNR with D<sub>max</sub> = 1000 mm). &ldquo;Raw input&rdquo; rows: the noisy input itself. "
-             "Best run value per column in bold.</p>",
+             "Best run value per column in bold. &ldquo;Learned&rdquo;: NOT LEARNED = the best validation MAE was not "
+             "below the raw one by the margin; NOT TRAINED = no optimiser step (the untrained network); unverified = "
+             "no validation result; ? = written before this check existed. Flagged runs are red and never bold.</p>",
              "<h2>Results</h2>", _table_html(sets, rows)]
     if skipped:
         parts.append("<h2>Runs left out</h2><ul>" + "".join(
@@ -381,6 +425,10 @@ def render_html(runs: Sequence[Run], title: str = "tofdenoise runs", skipped: Se
     for r in runs:
         parts.append(f'<div class="run"><h3>{e(r.name)}</h3><p class="meta">{e(str(r.path))} &middot; '
                      f"method {e(r.method)} &middot; noise {e(r.noise)} &middot; loss {e(r.loss)}</p>")
+        status = learned_status(r.learned)
+        if status != "unknown":
+            css = "warn" if status in _FLAGGED else "meta"
+            parts.append(f'<p class="{css}">{e(learned_flag(r))}: {e(str(r.learned.get("learned_reason", "")))}</p>')
         curves = learning_curves_png(r)
         if curves:
             parts.append(f'<img alt="learning curves of {e(r.name)}" src="{_png_data_uri(curves)}">')
@@ -394,6 +442,19 @@ def render_html(runs: Sequence[Run], title: str = "tofdenoise runs", skipped: Se
     return "".join(parts)
 
 
+def _check_out(out: Path, run_dirs: Sequence[Path]) -> None:
+    """``--out`` must be a new or replaceable ``.html`` file, never a file a run records (``metrics.json``,
+    ``run_info.json``, a CSV log, a checkpoint: anything inside a run folder) or a name beside one."""
+    inputs = [f for d in run_dirs for f in d.iterdir() if f.is_file()]
+    check_output_file(out, (".html", ".htm"), inputs)
+    if out.exists():
+        target = out.resolve()
+        for d in run_dirs:
+            if target.is_relative_to(d.resolve()):
+                raise OutputPathError(f"--out {out} is a file of the run {d}; write the report outside the run "
+                                      f"folders or under a new name")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="tofdenoise-report",
                                 description="Self-contained offline HTML report comparing tofdenoise runs; "
@@ -404,7 +465,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = p.parse_args(argv)
     try:
         dirs = find_runs(args.runs_dir)
-    except FileNotFoundError as exc:
+        _check_out(args.out, dirs)
+    except (FileNotFoundError, OutputPathError) as exc:
         print(f"tofdenoise-report: error: {exc}", file=sys.stderr)
         return 2
     runs: list[Run] = []

@@ -9,6 +9,7 @@ Each module exposes `add_commands(subparsers)`; every sub-parser sets `func(args
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 
 
@@ -25,11 +26,25 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+#: exit status when the reader of stdout went away (`tofdenoise-sensor show-calib | head`): 128 + SIGPIPE,
+#: what a shell reports for a process killed by a broken pipe
+EXIT_BROKEN_PIPE = 141
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        return int(args.func(args) or 0)
+        status = int(args.func(args) or 0)
+        sys.stdout.flush()
+        return status
+    except BrokenPipeError:
+        # the reader closed the pipe: stop quietly; stdout goes to devnull so the interpreter's final flush of
+        # the unwritten output does not fail again at exit
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+        return EXIT_BROKEN_PIPE
     except (FileNotFoundError, ValueError, KeyError) as exc:
         print(f"tofdenoise-sensor {args.command}: error: {exc}", file=sys.stderr)
         return 2

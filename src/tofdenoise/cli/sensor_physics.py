@@ -5,13 +5,37 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
+from pathlib import Path
 from typing import Any
+
+
+#: depths beyond this many unambiguous ranges are refused by `sigma`: the phase 4 pi f D / c of such a depth
+#: is a huge float whose fractional part (all an iToF camera measures) is no longer meaningful (float32
+#: resolves it to ~2 mm at 1e4 ranges, float64 keeps digits only by accident), and no camera sees that far
+MAX_UNAMBIGUOUS_RANGES: float = 1e6
+
+
+def _presets() -> list[str]:
+    from tofdenoise.paths import CONFIG_DIR
+
+    return sorted(p.stem for p in (Path(CONFIG_DIR) / "sensor").glob("*.yaml"))
 
 
 def _calib(args: argparse.Namespace) -> Any:
     from tofdenoise.physics.calibration import resolve_calibration
 
-    return resolve_calibration(getattr(args, "calib", None))
+    spec = getattr(args, "calib", None)
+    if spec is not None and not Path(spec).suffix and not Path(spec).exists() and spec not in _presets():
+        raise ValueError(f"--calib {spec!r}: no such file and no preset of that name; presets: "
+                         f"{', '.join(_presets())} (configs/sensor/), or give a .yaml/.json calibration file")
+    return resolve_calibration(spec)
+
+
+def _json_float(value: float) -> float | None:
+    """A strict-JSON number: NaN and +-inf become null."""
+    value = float(value)
+    return value if math.isfinite(value) else None
 
 
 def cmd_show_calib(args: argparse.Namespace) -> int:
@@ -59,12 +83,17 @@ def cmd_sigma(args: argparse.Namespace) -> int:
     pairs = pair_lists(args.depth_mm, args.signal_e)
     d = np.array([p[0] for p in pairs], dtype=np.float64)
     a = np.array([p[1] for p in pairs], dtype=np.float64)
+    limit = MAX_UNAMBIGUOUS_RANGES * calib.unambiguous_range_mm
+    too_far = np.isfinite(d) & (np.abs(d) > limit)
+    if too_far.any():
+        raise ValueError(
+            f"--depth-mm {d[too_far][0]:g} is {abs(d[too_far][0]) / calib.unambiguous_range_mm:.3g} unambiguous "
+            f"ranges ({calib.unambiguous_range_mm:.1f} mm at {calib.modulation_frequency_hz / 1e6:g} MHz); depths "
+            f"beyond {MAX_UNAMBIGUOUS_RANGES:.0e} ranges ({limit:.4g} mm) have no meaningful phase and are refused")
     s = sigma_depth_mm(d, a, calib)
-    rows = [
-        {"depth_mm": float(di), "signal_e": float(ai), "sigma_mm": float(si) if math.isfinite(si) else None}
-        for di, ai, si in zip(d, a, s)
-    ]
-    print(json.dumps(rows, indent=None if len(rows) > 20 else 2))
+    rows = [{"depth_mm": _json_float(di), "signal_e": _json_float(ai), "sigma_mm": _json_float(si)}
+            for di, ai, si in zip(d, a, s)]
+    print(json.dumps(rows, indent=None if len(rows) > 20 else 2, allow_nan=False))
     return 0
 
 
@@ -79,9 +108,14 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     )
     header = (
         f"Calibrated by tofdenoise-sensor calibrate\nsweep: {args.sweep} ({report.sweep_points} steps)\n"
-        f"dark: {args.dark} ({report.dark_frames} frames)\ndistances: {args.distances or '-'}"
+        f"dark: {args.dark} ({report.dark_frames} frames)\ndistances: {args.distances or '-'}\n"
+        f"clipping: {report.clipping_summary()}"
     )
     path = save_calibration(report.calibration, args.out, header=header)
+    if report.clipped_samples:
+        worst = sorted(report.clipped_by_file.items(), key=lambda kv: -kv[1])[:3]
+        print(f"tofdenoise-sensor calibrate: warning: {report.clipping_summary()} (most in "
+              f"{', '.join(f'{f} ({n})' for f, n in worst)})", file=sys.stderr)
     print(f"wrote {path}")
     print(json.dumps(report.calibration.to_dict(), indent=2))
     return 0
@@ -134,7 +168,8 @@ def add_commands(subparsers: Any) -> None:
         "sigma", help="per-pixel depth uncertainty sigma_D for (depth, signal) pairs",
         description="Print a JSON list of {depth_mm, signal_e, sigma_mm}. The two lists are paired element by "
                     "element; if one has a single value it is used with every value of the other. Invalid "
-                    "inputs (<= 0, nan) give sigma_mm null.",
+                    "inputs (<= 0, nan, inf) give sigma_mm null (non-finite inputs are printed as null too); "
+                    "depths beyond 1e6 unambiguous ranges are refused.",
     )
     p.add_argument("--depth-mm", nargs="+", type=_float_list("--depth-mm"), required=True, metavar="D")
     p.add_argument("--signal-e", nargs="+", type=_float_list("--signal-e"), required=True, metavar="A")

@@ -26,12 +26,14 @@ from pathlib import Path
 from typing import Any
 
 import hydra
+from lightning.pytorch.callbacks import Callback
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from tofdenoise.atomic import atomic_write_text
+from tofdenoise.cli.checkpoint_check import CheckpointFileError, check_checkpoint_file
 
 __all__ = ["main", "run", "validate_config", "resolve_ckpt_path", "config_dir", "compose_config",
-           "write_json_atomic", "write_test_outputs", "RUN_INFO_NAME", "METRICS_NAME"]
+           "write_json_atomic", "write_test_outputs", "RunRecords", "RUN_INFO_NAME", "METRICS_NAME"]
 
 log = logging.getLogger("tofdenoise.train")
 
@@ -183,16 +185,28 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         with open_dict(cfg):
             cfg.logger.wandb.id = _wandb_run_id(run_dir)
 
+    # the checkpoint to resume from (or to test) is checked before anything of the run is written
+    resume_ckpt = resolve_ckpt_path(cfg.get("ckpt_path"), run_dir) if cfg.get("train", True) else None
+    if resume_ckpt is not None:
+        check_checkpoint_file(resume_ckpt)
+    elif cfg.get("test", True) and not cfg.get("train", True):
+        _test_checkpoint(cfg, None, run_dir)
+
     seed_everything(int(cfg.seed), workers=True)
     run_info = {"backbone": cfg.backbone.name, "noise": cfg.noise.name, "loss": cfg.loss.name,
                 "run_name": str(cfg.run_name), "data": str(cfg.data.get("source", "procedural")),
                 "seed": int(cfg.seed), "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
-    write_json_atomic(run_dir / RUN_INFO_NAME, run_info)
-    OmegaConf.save(cfg, run_dir / "config.yaml", resolve=True)
+    # a resumed or test-only attempt rewrites the run's records only once its checkpoint is loaded
+    deferred = resume_ckpt is not None or not cfg.get("train", True)
+    records = RunRecords(run_dir, run_info, cfg, resumed=resume_ckpt is not None)
+    if not deferred:
+        records.write()
 
     datamodule = instantiate(cfg.data, _convert_="all")
     model = instantiate(cfg.model, _convert_="all")
     callbacks = _instantiate_group(cfg.get("callbacks"))
+    if deferred:
+        callbacks.append(records)
     loggers = _instantiate_group(cfg.get("logger"))
     trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False, _convert_="all")
     for lg in trainer.loggers:
@@ -201,7 +215,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     result: dict[str, Any] = {"run_dir": str(run_dir), "best_ckpt": None, "metrics": None}
     try:
         if cfg.get("train", True):
-            trainer.fit(model, datamodule=datamodule, ckpt_path=resolve_ckpt_path(cfg.get("ckpt_path"), run_dir))
+            trainer.fit(model, datamodule=datamodule, ckpt_path=resume_ckpt)
+            records.write_if_pending(trainer)  # a resumed run that had nothing left to train
         if cfg.get("test", True):
             ckpt = _test_checkpoint(cfg, trainer, run_dir)
             result["best_ckpt"] = ckpt
@@ -230,27 +245,87 @@ def _test_checkpoint(cfg: DictConfig, trainer: Any, run_dir: Path) -> str | None
         return None
     given = cfg.get("ckpt_path")
     if given not in (None, "", "last"):
-        return resolve_ckpt_path(given, run_dir)
+        return str(check_checkpoint_file(resolve_ckpt_path(given, run_dir)))
     best = run_dir / "checkpoints" / "best.ckpt"
     if not best.is_file():
         raise FileNotFoundError(f"train=false: no checkpoint to test; {best} does not exist "
                                 "(set ckpt_path=/path/to/model.ckpt)")
-    return str(best)
+    return str(check_checkpoint_file(best))
+
+
+class RunRecords(Callback):
+    """``run_info.json`` and ``config.yaml`` of a run attempt (atomic writes).
+
+    A fresh run writes them at once (``write()``). A resumed or test-only run writes them only once Lightning
+    has restored its checkpoint (``on_train_start`` / ``on_test_start``; or after a fit with nothing left to
+    train), so an attempt that fails to load its checkpoint leaves the records of the earlier attempt
+    untouched. A resumed attempt keeps the first attempt's ``started`` time and adds ``resumed``.
+    """
+
+    def __init__(self, run_dir: Path, run_info: dict[str, Any], cfg: DictConfig, resumed: bool = False) -> None:
+        self.run_dir, self.run_info, self.cfg, self.resumed = run_dir, run_info, cfg, resumed
+        self.pending = True
+
+    def write(self) -> None:
+        path = self.run_dir / RUN_INFO_NAME
+        if self.resumed and self.pending and path.is_file():
+            try:
+                started = json.loads(path.read_text(encoding="utf-8")).get("started")
+            except (OSError, ValueError, AttributeError):
+                started = None
+            if started:
+                self.run_info["resumed"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
+                self.run_info["started"] = started
+        write_json_atomic(path, self.run_info)
+        atomic_write_text(self.run_dir / "config.yaml", OmegaConf.to_yaml(self.cfg, resolve=True))
+        self.pending = False
+
+    def write_if_pending(self, trainer: Any) -> None:
+        if self.pending and trainer.is_global_zero:
+            self.write()
+
+    def on_train_start(self, trainer: Any, pl_module: Any) -> None:
+        self.write_if_pending(trainer)
+
+    def on_test_start(self, trainer: Any, pl_module: Any) -> None:
+        self.write_if_pending(trainer)
 
 
 def write_test_outputs(model: Any, run_dir: Path) -> dict[str, Any]:
-    """``<run_dir>/metrics.json`` (final test metrics per set, restored + raw) and
-    ``<run_dir>/per_image/<set>.csv`` from a ``DepthRestorer`` after ``trainer.test``."""
+    """``<run_dir>/metrics.json`` (final test metrics per set, restored + raw, and the learned guard's run-level
+    fields ``trained_steps``, ``best_val_mae_mm``, ``raw_val_mae_mm``, ``learned_margin``, ``learned``,
+    ``learned_reason`` from ``model.learned_record()``) and ``<run_dir>/per_image/<set>.csv`` from a
+    ``DepthRestorer`` after ``trainer.test``."""
     from tofdenoise.callbacks.metrics_writer import write_metrics_json, write_per_image_csv
 
     results = dict(getattr(model, "test_results", {}) or {})
     if not results:
         raise RuntimeError("no test results to write: trainer.test produced no test set")
+    results = _with_dataset_skips(results, model)
     for set_name, per in (getattr(model, "test_per_image", {}) or {}).items():
         write_per_image_csv(run_dir / "per_image" / f"{set_name}.csv", per["rows"], per["raw_rows"],
                             names=per["names"])
-    write_metrics_json(run_dir / METRICS_NAME, results)
+    learned = model.learned_record() if hasattr(model, "learned_record") else None
+    write_metrics_json(run_dir / METRICS_NAME, results, run=learned)
     return json.loads((run_dir / METRICS_NAME).read_text())
+
+
+#: test set name -> the datamodule's ``skipped_samples`` key of the samples it left out before testing
+_SKIP_KEYS = {"synthetic": "test", "real": "real"}
+
+
+def _with_dataset_skips(results: dict[str, Any], model: Any) -> dict[str, Any]:
+    """Add the samples the datamodule left out of a test set (no valid pixel, a capture scene without an input
+    frame) to that set's ``skipped_images``: they never reached the metric, which counts only its own."""
+    trainer = getattr(model, "_trainer", None)
+    skipped = getattr(getattr(trainer, "datamodule", None), "skipped_samples", None) or {}
+    out = {}
+    for set_name, entry in results.items():
+        n = len(skipped.get(_SKIP_KEYS.get(set_name, set_name), []))
+        if n and isinstance(entry, dict):
+            entry = {**entry, "skipped_images": int(entry.get("skipped_images") or 0) + n}
+        out[set_name] = entry
+    return out
 
 
 def _hydra_entry(cfg: DictConfig) -> None:
@@ -260,7 +335,11 @@ def _hydra_entry(cfg: DictConfig) -> None:
         # the folder Hydra created (paths.run_dir may contain ${now:...}: resolve it once)
         with open_dict(cfg):
             cfg.paths.run_dir = HydraConfig.get().runtime.output_dir
-    run(cfg)
+    try:
+        run(cfg)
+    except CheckpointFileError as exc:  # one line that says what to do, not a traceback
+        print(f"tofdenoise-train: error: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None
 
 
 def main() -> None:

@@ -267,7 +267,8 @@ class ToFDataModule(L.LightningDataModule):
 
     def _prepare_real(self) -> list[Path]:
         hp = self.hparams
-        scenes = list_scenes(self.real_dir)
+        incomplete: list[str] = []  # scene folders without an input frame (list_scenes warns)
+        scenes = list_scenes(self.real_dir, incomplete=incomplete)
         usable = []
         empty = []
         for scene in scenes:
@@ -279,7 +280,8 @@ class ToFDataModule(L.LightningDataModule):
         if empty:
             warnings.warn(f"real capture set {self.real_dir}: {len(empty)} scene(s) with no common valid pixel "
                           f"skipped: {', '.join(empty[:5])}", stacklevel=2)
-            self.skipped_samples["real"] = empty
+        if empty or incomplete:
+            self.skipped_samples["real"] = sorted(empty + incomplete)
         if not usable:
             raise ValueError(f"real capture set {self.real_dir} has no scene with a valid common region")
         return usable

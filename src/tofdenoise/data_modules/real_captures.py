@@ -21,6 +21,7 @@ from __future__ import annotations
 import json
 import math
 import re
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -44,12 +45,28 @@ def default_min_count(num_frames: int) -> int:
     return max(1, int(math.ceil(0.5 * num_frames)))
 
 
-def list_scenes(scenes_dir: str | Path, *, config_key: str = "data.real_dir") -> list[Path]:
-    """Scene folders (those holding ``input_depth_mm.png``), sorted by name."""
+def list_scenes(scenes_dir: str | Path, *, config_key: str = "data.real_dir",
+                incomplete: list[str] | None = None) -> list[Path]:
+    """Scene folders (those holding ``input_depth_mm.png``), sorted by name.
+
+    A folder that looks like a scene (it has ``hiexp/``) but lacks ``input_depth_mm.png`` cannot be evaluated:
+    it is left out with a warning naming it, and its name is appended to ``incomplete`` when given (the
+    caller counts it as skipped).
+    """
     root = Path(scenes_dir).expanduser()
     if not root.is_dir():
         raise FileNotFoundError(f"capture set folder not found: {root} (check {config_key})")
-    scenes = sorted(p for p in root.iterdir() if p.is_dir() and (p / INPUT_DEPTH).is_file())
+    scenes, partial = [], []
+    for p in sorted(root.iterdir()):
+        if p.is_dir() and (p / INPUT_DEPTH).is_file():
+            scenes.append(p)
+        elif p.is_dir() and (p / HIEXP_DIR).is_dir():
+            partial.append(p.name)
+    if partial:
+        warnings.warn(f"capture set {root}: {len(partial)} scene folder(s) with {HIEXP_DIR}/ but no {INPUT_DEPTH} "
+                      f"skipped: {', '.join(partial[:5])}{' ...' if len(partial) > 5 else ''}", stacklevel=2)
+        if incomplete is not None:
+            incomplete.extend(partial)
     if not scenes:
         raise FileNotFoundError(f"capture set {root} has no scene folder with {INPUT_DEPTH} (check {config_key})")
     return scenes

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import warnings
 from pathlib import Path
 from typing import Sequence
 
@@ -57,31 +58,52 @@ def save_split(path: str | Path, split: dict[str, list[str]], *, seed: int, rati
 
 
 def load_split(path: str | Path) -> dict:
+    """Read a split file; errors name the file and say what is wrong (not JSON, a part missing, bad ids)."""
     path = Path(path)
     try:
         payload = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, json.JSONDecodeError) as exc:
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise ValueError(f"split file {path} is unreadable: {exc}") from exc
+    if not isinstance(payload, dict):
+        raise ValueError(f"split file {path}: expected a JSON object with lists 'train', 'val', 'test'")
+    seen: dict[str, str] = {}
     for name in SPLIT_NAMES:
-        if not isinstance(payload.get(name), list):
+        part = payload.get(name)
+        if not isinstance(part, list):
             raise ValueError(f"split file {path} has no list {name!r}")
+        for sample_id in part:
+            if not isinstance(sample_id, str):
+                raise ValueError(f"split file {path}: {name!r} holds {sample_id!r}; sample ids are strings")
+            if sample_id in seen:
+                raise ValueError(f"split file {path}: sample {sample_id!r} is in both {seen[sample_id]!r} and "
+                                 f"{name!r}")
+            seen[sample_id] = name
     return payload
 
 
 def load_or_make_split(path: str | Path, sample_ids: Sequence[str], seed: int, ratios: Sequence[float],
                        source: dict) -> dict[str, list[str]]:
-    """Reuse the split stored at ``path`` when it was made from the same ids, seed and ratios; else make one."""
+    """Reuse the split stored at ``path`` when it was made from the same ids, seed and ratios; else make one.
+
+    A stored file that does not parse (e.g. after a hand edit) is an error naming the file, never silently
+    replaced; one made from other ids, seed or ratios is replaced by a new split with a warning.
+    """
     path = Path(path)
     ids = list(sample_ids)
     if path.is_file():
         try:
             stored = load_split(path)
-        except ValueError:
-            stored = None
-        if (stored is not None and stored.get("seed") == int(seed)
-                and stored.get("ratios") == [float(r) for r in ratios]
+        except ValueError as exc:
+            raise ValueError(f"{exc}. Fix the file (docs/data.md, 'Cache'), or delete it to make a new seeded "
+                             f"split") from None
+        if (stored.get("seed") == int(seed) and stored.get("ratios") == [float(r) for r in ratios]
                 and sorted(stored["train"] + stored["val"] + stored["test"]) == sorted(ids)):
             return {name: list(stored[name]) for name in SPLIT_NAMES}
+        stored_ids = set(stored["train"] + stored["val"] + stored["test"])
+        warnings.warn(f"split file {path} was made for other samples, seed or ratios (seed {stored.get('seed')}, "
+                      f"ratios {stored.get('ratios')}, {len(stored_ids)} ids of which "
+                      f"{len(stored_ids - set(ids))} unknown, {len(set(ids) - stored_ids)} missing): replaced by "
+                      f"a new split", stacklevel=2)
     split = make_split(ids, seed, ratios)
     save_split(path, split, seed=seed, ratios=ratios, source=source)
     return split

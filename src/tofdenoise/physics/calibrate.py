@@ -17,16 +17,22 @@ from __future__ import annotations
 
 import math
 import os
+import re
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from tofdenoise.physics.calibration import C_LIGHT_MM_PER_S, SensorCalibration, TapResponse
-from tofdenoise.physics.capture_io import CaptureFormatError, load_stack, read_index
+from tofdenoise.physics.capture_io import INDEX_NAME, CaptureFormatError, clipped_samples, load_stack, read_index
 from tofdenoise.physics.simulator import demodulate
+
+
+def _design(x: np.ndarray, num_harmonics: int) -> np.ndarray:
+    k = np.arange(1, num_harmonics + 1)
+    return np.concatenate([np.ones((x.size, 1)), np.cos(np.outer(x, k)), np.sin(np.outer(x, k))], axis=1)
 
 
 def fit_tap_response(
@@ -39,6 +45,12 @@ def fit_tap_response(
 
     Each step is normalised by its signal level a_s = mean_n(tap_n - mu_dark), so c0 ~ 1.
     Needs at least 2K+1 distinct sample phases psi_s - theta_n.
+
+    A NaN entry is a missing tap (e.g. clipped at the full well at that step). A step with missing taps has
+    no tap mean to normalise by; its a_s is estimated with c(x) instead (the model tap_n - mu_dark =
+    a_s c(psi_s - theta_n), c0 = 1): a_s and c are refined alternately (a_s = sum y c / sum c^2 over the
+    step's present taps, then c from all points) until they settle. Without missing taps this is the
+    closed-form fit above.
     """
     psi = np.asarray(phase_rad, dtype=np.float64).reshape(-1)
     taps = np.asarray(mean_taps_e, dtype=np.float64)
@@ -48,22 +60,40 @@ def fit_tap_response(
     if num_harmonics < 1:
         raise ValueError(f"num_harmonics must be >= 1, got {num_harmonics}")
     sig = taps - dark_mean_e
-    a_s = sig.mean(axis=1, keepdims=True)
+    present = np.isfinite(sig)
+    complete = present.all(axis=1)
+    if not present.any(axis=1).all():
+        bad = int(np.argmin(present.any(axis=1)))
+        raise ValueError(f"sweep step {bad}: no tap to fit (every tap missing)")
+    a_s = np.where(complete, np.where(present, sig, 0.0).sum(axis=1) / n,
+                   np.where(present, sig, 0.0).sum(axis=1) / np.maximum(present.sum(axis=1), 1))[:, None]
     if np.any(a_s <= 0):
         bad = int(np.argmax(a_s[:, 0] <= 0))
         raise ValueError(f"sweep step {bad}: no returned signal above the dark offset (mean tap - dark <= 0)")
-    y = (sig / a_s).reshape(-1)
     theta = 2.0 * np.pi * np.arange(n) / n
-    x = (psi[:, None] - theta[None, :]).reshape(-1)
-    k = np.arange(1, num_harmonics + 1)
-    design = np.concatenate([np.ones((x.size, 1)), np.cos(np.outer(x, k)), np.sin(np.outer(x, k))], axis=1)
+    x_all = psi[:, None] - theta[None, :]
+    x = x_all[present]
+    design = _design(x, num_harmonics)
     distinct = np.unique(np.round(np.mod(x, 2 * np.pi), 9)).size
     if distinct < design.shape[1]:
         raise ValueError(
             f"phase sweep has {distinct} distinct sample phases; {design.shape[1]} are needed for "
             f"{num_harmonics} harmonics (add phase steps or lower num_harmonics)"
         )
-    coef, *_ = np.linalg.lstsq(design, y, rcond=None)
+    coef = np.linalg.lstsq(design, (sig / a_s)[present], rcond=None)[0]
+    if not complete.all():
+        full_design = _design(x_all.reshape(-1), num_harmonics)
+        for _ in range(500):
+            coef = coef / coef[0]  # convention c0 = 1 (the scale lives in a_s)
+            c = (full_design @ coef).reshape(sig.shape)
+            num = np.where(present, sig * c, 0.0).sum(axis=1)
+            den = np.where(present, c * c, 0.0).sum(axis=1)
+            a_new = np.where(complete, a_s[:, 0], num / np.maximum(den, 1e-300))[:, None]
+            new = np.linalg.lstsq(design, (sig / a_new)[present], rcond=None)[0]
+            done = np.max(np.abs(new / new[0] - coef)) < 1e-12
+            a_s, coef = a_new, new
+            if done:
+                break
     K = num_harmonics
     return TapResponse(c0=float(coef[0]), cos=tuple(float(v) for v in coef[1 : K + 1]), sin=tuple(float(v) for v in coef[K + 1 :]))
 
@@ -124,18 +154,76 @@ def temporal_std_roi_mm(depth_frames_mm: np.ndarray, valid: np.ndarray | None = 
     return float(std.mean()), int(ok.sum())
 
 
+#: a (step, tap) whose samples are clipped more often than this is treated as missing (its unclipped
+#: samples would be a truncated, biased remainder); at or below it, its unclipped samples are averaged
+MAX_CLIPPED_TAP_FRACTION: float = 0.5
+#: a sweep or distance step needs at least this fraction of unclipped samples (sweep: tap samples;
+#: distances: pixels unclipped in every frame), else it is an error naming the file
+MIN_UNCLIPPED_FRACTION: float = 0.1
+
+
 @dataclass
 class CalibrationReport:
     calibration: SensorCalibration
     sweep_points: int
     dark_frames: int
     range_points: list[tuple[float, float]]
+    #: tap samples at the full well (or the dtype's maximum) left out of the fit, and all tap samples read
+    clipped_samples: int = 0
+    tap_samples: int = 0
+    #: file -> clipped tap samples, for the files with any
+    clipped_by_file: dict[str, int] = field(default_factory=dict)
+
+    def clipping_summary(self) -> str:
+        if not self.clipped_samples:
+            return "no clipped tap samples"
+        pct = 100.0 * self.clipped_samples / max(self.tap_samples, 1)
+        return (f"{self.clipped_samples} of {self.tap_samples} tap samples ({pct:.2f} %) clipped at the full well "
+                f"in {len(self.clipped_by_file)} file(s), left out of the fit")
 
 
 def _phase_of(entry: dict, freq: float) -> float:
     if "phase_rad" in entry:
         return float(entry["phase_rad"])
     return 4.0 * math.pi * freq * float(entry["distance_mm"]) / C_LIGHT_MM_PER_S
+
+
+def _sweep_step(taps: np.ndarray, clipped: np.ndarray, path: Path,
+                min_unclipped_fraction: float) -> tuple[np.ndarray, np.ndarray]:
+    """One sweep step: ROI mean of each tap over its unclipped samples (N,) and the per-pixel temporal mean
+    of each tap over its unclipped frames (N, H, W), NaN where the tap is clipped too often to be used."""
+    kept = 1.0 - float(clipped.mean())
+    if kept < min_unclipped_fraction:
+        raise CaptureFormatError(
+            f"{path}: {100 * (1 - kept):.1f} % of the tap samples are clipped (at the full well or the dtype's "
+            f"maximum); at least {100 * min_unclipped_fraction:.0f} % must be unclipped. Capture this step with a "
+            f"shorter exposure or a darker target")
+    ok = ~clipped
+    frac_per_tap = clipped.mean(axis=(0, 2, 3))
+    counts = ok.sum(axis=(0, 2, 3))
+    means = np.where((frac_per_tap <= MAX_CLIPPED_TAP_FRACTION) & (counts > 0),
+                     np.where(ok, taps, 0.0).sum(axis=(0, 2, 3)) / np.maximum(counts, 1), np.nan)
+    if np.isfinite(means).sum() < 2:
+        raise CaptureFormatError(f"{path}: fewer than 2 taps with unclipped samples (clipped fraction per tap "
+                                 f"{np.round(frac_per_tap, 3).tolist()}); capture this step with a shorter exposure")
+    n_ok = ok.sum(axis=0)  # (N, H, W)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        pixel = np.where(ok, taps, 0.0).sum(axis=0) / n_ok
+    pixel = np.where(n_ok >= MAX_CLIPPED_TAP_FRACTION * taps.shape[0], pixel, np.nan).astype(np.float32)
+    return means, pixel
+
+
+def _pixel_signal(pixel_taps_e: np.ndarray, psi: float, dark_mean: float, response: TapResponse) -> np.ndarray:
+    """Per-pixel returned signal a = sum_n (m_n - mu_dark) / sum_n c(psi - theta_n) over the taps m_n present
+    (all taps: the mean over taps divided by c0, the usual DC-bin estimate)."""
+    n = pixel_taps_e.shape[0]
+    theta = 2.0 * np.pi * np.arange(n) / n
+    c = np.asarray(response.value(psi - theta), dtype=np.float64)
+    m = pixel_taps_e.astype(np.float64) - dark_mean
+    present = np.isfinite(m)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        a = np.where(present, m, 0.0).sum(axis=0) / np.where(present, c[:, None, None], 0.0).sum(axis=0)
+    return np.where(present.any(axis=0), a, np.nan).reshape(-1)
 
 
 def calibrate_from_folders(
@@ -146,73 +234,145 @@ def calibrate_from_folders(
     full_well_e: float | None = None,
     lower_percentile: float = 1.0,
     upper_percentile: float = 99.0,
+    min_unclipped_fraction: float = MIN_UNCLIPPED_FRACTION,
 ) -> CalibrationReport:
-    """Run the whole calibration procedure on capture folders (format: tofdenoise.physics.capture_io)."""
+    """Run the whole calibration procedure on capture folders (format: tofdenoise.physics.capture_io).
+
+    Tap samples at the full well (``full_well_e``, else the sweep index's) or at their dtype's maximum are
+    clipped: they are left out of every estimate and counted in the report. Every error names the file or
+    folder it comes from.
+    """
     dark_idx = read_index(dark_dir, "dark")
     dark_stacks = [load_stack(dark_idx, e["file"], ndim=(4,)) for e in dark_idx.stacks]
-    dark_mean, dark_std = estimate_dark(dark_stacks)
+    try:
+        dark_mean, dark_std = estimate_dark(dark_stacks)
+    except ValueError as exc:
+        raise CaptureFormatError(f"{dark_idx.folder}: {exc}") from None
+    if not (dark_std > 0):
+        raise CaptureFormatError(
+            f"{dark_idx.folder}: the dark frames have no temporal noise (sigma_dark = {dark_std:g} e-, mean "
+            f"{dark_mean:g} e-): constant frames (all zero?) are not emitter-off captures of a sensor")
     dark_frames = sum(s.shape[0] for s in dark_stacks)
     del dark_stacks
 
     sweep_idx = read_index(sweep_dir, "sweep")
+    sweep_index_path = Path(sweep_dir) / INDEX_NAME
     if sweep_idx.num_taps != dark_idx.num_taps:
         raise CaptureFormatError(
-            f"{Path(sweep_dir) / 'index.json'}: num_taps={sweep_idx.num_taps} differs from the dark folder's "
-            f"{dark_idx.num_taps}"
+            f"{sweep_index_path}: num_taps={sweep_idx.num_taps} differs from the dark folder's {dark_idx.num_taps}"
         )
-    freq = float(sweep_idx.modulation_frequency_hz)  # type: ignore[arg-type]
-    phases, means, signal_samples = [], [], []
-    for e in sweep_idx.stacks:
-        taps = load_stack(sweep_idx, e["file"], ndim=(4,))
-        phases.append(_phase_of(e, freq))
-        means.append(taps.mean(axis=(0, 2, 3)))
-        signal_samples.append((taps.mean(axis=(0, 1)) - dark_mean).reshape(-1))
-    tap_response = fit_tap_response(np.array(phases), np.stack(means), dark_mean, num_harmonics)
-    signal_samples = [s / tap_response.c0 for s in signal_samples]
-
     fw = full_well_e if full_well_e is not None else sweep_idx.full_well_e
+    freq = float(sweep_idx.modulation_frequency_hz)  # type: ignore[arg-type]
+    phases, means, pixel_taps = [], [], []
+    clipped_total, tap_total, clipped_by_file = 0, 0, {}
+    files = []
+    for e in sweep_idx.stacks:
+        path = sweep_idx.folder / e["file"]
+        taps = load_stack(sweep_idx, e["file"], ndim=(4,))
+        clipped = clipped_samples(sweep_idx, e["file"], taps, fw)
+        n_clipped = int(clipped.sum())
+        clipped_total += n_clipped
+        tap_total += clipped.size
+        if n_clipped:
+            clipped_by_file[str(path)] = n_clipped
+        step_means, pixel = _sweep_step(taps, clipped, path, min_unclipped_fraction)
+        phases.append(_phase_of(e, freq))
+        means.append(step_means)
+        pixel_taps.append(pixel)
+        files.append(path)
     if fw is None:
         raise CaptureFormatError(
-            f"{Path(sweep_dir) / 'index.json'}: no 'full_well_e' in the sweep index; pass the sensor's full-well "
+            f"{sweep_index_path}: no 'full_well_e' in the sweep index; pass the sensor's full-well "
             f"capacity (--full-well-e)"
         )
+    try:
+        tap_response = fit_tap_response(np.array(phases), np.stack(means), dark_mean, num_harmonics)
+    except ValueError as exc:
+        msg = str(exc)
+        match = re.match(r"sweep step (\d+): (.*)", msg)
+        if match:
+            path = files[int(match.group(1))]
+            dtype = np.load(path, mmap_mode="r", allow_pickle=False).dtype
+            msg = (f"{path}: {match.group(2)} (stack dtype {dtype}, units {sweep_idx.units!r}; dark offset "
+                   f"{dark_mean:g} e- from {dark_idx.folder})")
+        else:
+            msg = f"{sweep_idx.folder}: {msg}"
+        raise CaptureFormatError(msg) from None
+    if not tap_response.contrast > 0:
+        raise CaptureFormatError(f"{sweep_idx.folder}: the fitted tap response has no contrast "
+                                 f"({tap_response}); the sweep does not modulate the taps")
+    signal_samples = [_pixel_signal(px, psi, dark_mean, tap_response) for px, psi in zip(pixel_taps, phases)]
+    del pixel_taps
+
     gain = sweep_idx.adc_gain_e_per_dn if sweep_idx.adc_gain_e_per_dn is not None else dark_idx.adc_gain_e_per_dn
 
-    partial = SensorCalibration(
-        num_taps=sweep_idx.num_taps, modulation_frequency_hz=freq, tap_response=tap_response,
-        dark_mean_e=dark_mean, dark_std_e=dark_std, signal_min_e=1.0, signal_max_e=2.0,
-        full_well_e=float(fw), adc_gain_e_per_dn=gain, range_sigma_mm=None,
-    )
+    try:
+        partial = SensorCalibration(
+            num_taps=sweep_idx.num_taps, modulation_frequency_hz=freq, tap_response=tap_response,
+            dark_mean_e=dark_mean, dark_std_e=dark_std, signal_min_e=1.0, signal_max_e=2.0,
+            full_well_e=float(fw), adc_gain_e_per_dn=gain, range_sigma_mm=None,
+        )
+    except ValueError as exc:
+        raise CaptureFormatError(f"calibration from {sweep_idx.folder} and {dark_idx.folder}: {exc}") from None
 
     range_points: list[tuple[float, float]] = []
     if distances_dir is not None:
         dist_idx = read_index(distances_dir, "distances")
         if dist_idx.num_taps != partial.num_taps:
             raise CaptureFormatError(
-                f"{Path(distances_dir) / 'index.json'}: num_taps={dist_idx.num_taps} differs from the sweep's "
+                f"{Path(distances_dir) / INDEX_NAME}: num_taps={dist_idx.num_taps} differs from the sweep's "
                 f"{partial.num_taps}"
             )
         for e in dist_idx.stacks:
+            path = dist_idx.folder / e["file"]
             arr = load_stack(dist_idx, e["file"], ndim=(3, 4))
+            valid = None
             if arr.ndim == 4:
+                clipped = clipped_samples(dist_idx, e["file"], arr, fw)
+                n_clipped = int(clipped.sum())
+                clipped_total += n_clipped
+                tap_total += clipped.size
+                if n_clipped:
+                    clipped_by_file[str(path)] = n_clipped
+                valid = ~clipped.any(axis=1)  # (F, H, W): pixel-frames without a clipped tap
+                kept = float(valid.all(axis=0).mean())
+                if kept < min_unclipped_fraction:
+                    raise CaptureFormatError(
+                        f"{path}: only {100 * kept:.1f} % of the pixels are unclipped in every frame (taps at the "
+                        f"full well or the dtype's maximum); at least {100 * min_unclipped_fraction:.0f} % are "
+                        f"needed. Capture this distance with a shorter exposure")
                 depth, _ = demodulate(torch.from_numpy(arr), partial, tap_axis=1)
                 depth_np = depth.numpy()
-                signal_samples.append(((arr.mean(axis=(0, 1)) - dark_mean) / tap_response.c0).reshape(-1))
+                n_ok = valid.sum(axis=0)
+                with np.errstate(invalid="ignore", divide="ignore"):
+                    pix = np.where(valid[:, None], arr, 0.0).sum(axis=(0, 1)) / (n_ok * arr.shape[1])
+                signal_samples.append((np.where(n_ok > 0, pix - dark_mean, np.nan) / tap_response.c0).reshape(-1))
             else:
                 depth_np = arr
-            std, _ = temporal_std_roi_mm(depth_np)
+            std, _ = temporal_std_roi_mm(depth_np, valid)
             if not math.isfinite(std):
-                raise CaptureFormatError(f"{dist_idx.folder / e['file']}: no pixel valid in every frame")
+                raise CaptureFormatError(f"{path}: no pixel valid in every frame")
             range_points.append((float(e["distance_mm"]), std))
-    a_min, a_max = signal_interval(np.concatenate(signal_samples), lower_percentile, upper_percentile)
+    try:
+        a_min, a_max = signal_interval(np.concatenate(signal_samples), lower_percentile, upper_percentile)
+    except ValueError as exc:
+        where = f"{sweep_idx.folder}" + (f" and {distances_dir}" if distances_dir is not None else "")
+        raise CaptureFormatError(f"{where}: {exc}") from None
     if a_max <= a_min:
         a_max = a_min * (1.0 + 1e-6)
-    alphas = fit_range_sigma(*zip(*range_points)) if range_points else None
+    try:
+        alphas = fit_range_sigma(*zip(*range_points)) if range_points else None
+    except ValueError as exc:
+        raise CaptureFormatError(f"{distances_dir}: {exc}") from None
     calib = partial.replace(signal_min_e=a_min, signal_max_e=a_max, range_sigma_mm=alphas)
-    return CalibrationReport(calibration=calib, sweep_points=len(phases), dark_frames=dark_frames, range_points=range_points)
+    return CalibrationReport(calibration=calib, sweep_points=len(phases), dark_frames=dark_frames,
+                             range_points=range_points, clipped_samples=clipped_total, tap_samples=tap_total,
+                             clipped_by_file=clipped_by_file)
 
 
 __all__ = [
+    "MAX_CLIPPED_TAP_FRACTION",
+    "MIN_UNCLIPPED_FRACTION",
     "CalibrationReport",
     "calibrate_from_folders",
     "estimate_dark",

@@ -178,6 +178,20 @@ def load_stack(index: CaptureIndex, file: str, ndim: tuple[int, ...] = (4,), sca
     return out
 
 
+def clipped_samples(index: CaptureIndex, file: str, values_e: np.ndarray, full_well_e: float | None) -> np.ndarray:
+    """Boolean mask of the samples of a tap stack that sit at a clipping level: at or above ``full_well_e``
+    [e-], or (integer stacks) at the dtype's maximum, e.g. 65535 for uint16 (``values_e`` as returned by
+    :func:`load_stack`, in electrons). Clipped samples carry no measurement: calibration leaves them out."""
+    dtype = np.load(index.folder / file, mmap_mode="r", allow_pickle=False).dtype
+    clipped = np.zeros(values_e.shape, dtype=bool)
+    if full_well_e is not None:
+        clipped |= values_e >= float(full_well_e)
+    if dtype.kind in "iu":
+        top = float(np.iinfo(dtype).max) * (index.scale_to_e if index.units == "dn" else 1.0)
+        clipped |= values_e >= top
+    return clipped
+
+
 def write_capture_folder(
     folder: str | os.PathLike[str],
     kind: str,
@@ -206,6 +220,7 @@ __all__ = [
     "KINDS",
     "CaptureFormatError",
     "CaptureIndex",
+    "clipped_samples",
     "load_stack",
     "read_index",
     "write_capture_folder",

@@ -1,0 +1,107 @@
+"""Named grids of runs and their tables.
+
+``robustness``: does the default recipe learn, whatever the backbone, noise model, loss, seed and camera?
+U-Net, Restormer and a small DVSS x hetero/range/fixed x L1/L_full x 3 seeds x 2 calibrations (the default
+sensor and ``configs/sensor/cam75.yaml``), each at the ``experiment=grid`` scale. A run passes when its best
+validation MAE is at least 30 % below the raw (noisy-input) validation MAE.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from .runner import RunSpec, read_run
+
+__all__ = [
+    "ROBUSTNESS_BACKBONES",
+    "ROBUSTNESS_MIN_REDUCTION",
+    "robustness_specs",
+    "robustness_rows",
+    "robustness_table",
+]
+
+#: backbone -> extra overrides ("small DVSS": width 16, one block per level)
+ROBUSTNESS_BACKBONES: dict[str, tuple[str, ...]] = {
+    "unet": (),
+    "restormer": (),
+    "dvss": ("backbone.kwargs.width=16", "backbone.kwargs.enc_blocks=[1,1,1]", "backbone.kwargs.bottleneck_blocks=1"),
+}
+ROBUSTNESS_NOISES = ("hetero", "range", "fixed")
+ROBUSTNESS_LOSSES = ("l1", "full")
+ROBUSTNESS_SENSORS = ("default", "cam75")
+ROBUSTNESS_SEEDS = (0, 1, 2)
+#: a run passes when 1 - best val MAE / raw val MAE >= this
+ROBUSTNESS_MIN_REDUCTION = 0.30
+
+
+def robustness_specs(backbones: Sequence[str] | None = None, noises: Sequence[str] = ROBUSTNESS_NOISES,
+                     losses: Sequence[str] = ROBUSTNESS_LOSSES, sensors: Sequence[str] = ROBUSTNESS_SENSORS,
+                     seeds: Sequence[int] = ROBUSTNESS_SEEDS, extra: Sequence[str] = ()) -> list[RunSpec]:
+    """The grid's runs, cheapest backbone first, named ``<backbone>-<sensor>-<noise>-<loss>-s<seed>``."""
+    backbones = list(backbones) if backbones else list(ROBUSTNESS_BACKBONES)
+    unknown = [b for b in backbones if b not in ROBUSTNESS_BACKBONES]
+    if unknown:
+        raise ValueError(f"robustness grid: unknown backbone(s) {unknown}; valid: {', '.join(ROBUSTNESS_BACKBONES)}")
+    specs = []
+    for b, s, n, loss, seed in itertools.product(backbones, sensors, noises, losses, seeds):
+        overrides = ("experiment=grid", f"backbone={b}", f"noise={n}", f"loss={loss}", f"sensor={s}",
+                     f"seed={seed}", "logger=csv", *ROBUSTNESS_BACKBONES[b], *extra)
+        specs.append(RunSpec(f"{b}-{s}-{n}-{loss}-s{seed}", overrides,
+                             {"backbone": b, "sensor": s, "noise": n, "loss": loss, "seed": seed}))
+    return specs
+
+
+def _val_maes(metrics: dict[str, Any] | None) -> tuple[float, float]:
+    if not metrics:
+        return math.nan, math.nan
+    best = metrics.get("best_val_mae_mm", math.nan)  # run-level fields of the learned guard
+    raw = metrics.get("raw_val_mae_mm", math.nan)
+    return (math.nan if best is None else float(best)), (math.nan if raw is None else float(raw))
+
+
+def robustness_rows(specs: Sequence[RunSpec], out_dir: Path | str) -> list[dict[str, Any]]:
+    """One row per spec: its meta, best and raw validation MAE, reduction, test MAE, pass/fail/missing."""
+    rows = []
+    for spec in specs:
+        info, metrics = read_run(Path(out_dir) / spec.name)
+        best, raw = _val_maes(metrics)
+        reduction = 1.0 - best / raw if raw and math.isfinite(best) and math.isfinite(raw) else math.nan
+        synthetic = (metrics or {}).get("synthetic") or {}
+        finished = bool(info and info.get("finished")) and metrics is not None
+        status = "missing" if not finished else ("pass" if reduction >= ROBUSTNESS_MIN_REDUCTION else "FAIL")
+        rows.append({**spec.meta, "name": spec.name, "best_val_mae_mm": best, "raw_val_mae_mm": raw,
+                     "reduction": reduction, "test_mae_mm": synthetic.get("mae_mm"),
+                     "test_raw_mae_mm": (synthetic.get("raw") or {}).get("mae_mm"), "status": status})
+    return rows
+
+
+def _fmt(v: Any, spec: str = ".2f") -> str:
+    return "-" if v is None or (isinstance(v, float) and not math.isfinite(v)) else format(v, spec)
+
+
+def robustness_table(rows: Sequence[dict[str, Any]]) -> str:
+    """Markdown: one line per (backbone, sensor, noise, loss) with the per-seed reductions, then a summary."""
+    groups: dict[tuple, list[dict[str, Any]]] = {}
+    for r in rows:
+        groups.setdefault((r["backbone"], r["sensor"], r["noise"], r["loss"]), []).append(r)
+    lines = ["| backbone | sensor | noise | loss | raw val MAE (mm) | best val MAE (mm) per seed | "
+             "reduction per seed | status |", "|---|---|---|---|---|---|---|---|"]
+    for (b, s, n, loss), rs in groups.items():
+        raw = [r["raw_val_mae_mm"] for r in rs if math.isfinite(r["raw_val_mae_mm"])]
+        best = " / ".join(_fmt(r["best_val_mae_mm"]) for r in rs)
+        red = " / ".join(_fmt(100 * r["reduction"], ".0f") + ("%" if math.isfinite(r["reduction"]) else "")
+                         for r in rs)
+        statuses = {r["status"] for r in rs}
+        status = "FAIL" if "FAIL" in statuses else ("incomplete" if "missing" in statuses else "pass")
+        lines.append(f"| {b} | {s} | {n} | {loss} | {_fmt(raw[0]) if raw else '-'} | {best} | {red} | {status} |")
+    done = [r for r in rows if r["status"] != "missing"]
+    failed = [r for r in done if r["status"] == "FAIL"]
+    lines.append("")
+    lines.append(f"{len(done)} of {len(rows)} runs finished; {len(done) - len(failed)} pass "
+                 f"(>= {100 * ROBUSTNESS_MIN_REDUCTION:.0f} % below the raw validation MAE), {len(failed)} fail"
+                 + (": " + ", ".join(r["name"] for r in failed) if failed else "") + ".")
+    return "\n".join(lines)
