@@ -127,6 +127,20 @@ def test_startup_errors_exit_2(frames_dir, restorer_ckpt, tmp_path, capsys, make
     assert not (tmp_path / "o").exists()
 
 
+def test_amplitude_folder_inside_the_input_folder_is_not_read_as_depth(frames_dir, restorer_ckpt, tmp_path, capsys):
+    src, amp = frames_dir
+    inner = src / "amp"
+    inner.mkdir()
+    for p in amp.rglob("*.npy"):
+        target = inner / p.relative_to(amp)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        target.write_bytes(p.read_bytes())
+    out = tmp_path / "out"
+    assert main([str(src), "--ckpt", str(restorer_ckpt), "--out", str(out), "--amplitude", str(inner), "--quiet"]) == 0
+    assert "3 frame(s) done, 0 skipped, 0 failed" in capsys.readouterr().err
+    assert not (out / "amp").exists()
+
+
 def test_output_never_overwrites_the_input(frames_dir, restorer_ckpt, capsys):
     src, _ = frames_dir
     before = (src / "a.png").read_bytes()
@@ -150,3 +164,10 @@ def test_a_failed_write_leaves_no_partial_file(frames_dir, restorer_ckpt, tmp_pa
     assert main([str(src / "a.png"), "--ckpt", str(restorer_ckpt), "--out", str(out), "--previews", "--quiet"]) == 1
     assert "disk full" in capsys.readouterr().err
     assert not (out / "a_preview.png").exists() and not list(out.glob(".*tmp*"))
+
+
+def test_console_script_points_at_main():
+    tomllib = pytest.importorskip("tomllib")  # Python >= 3.11
+    pyproject = Path(__file__).resolve().parents[2] / "pyproject.toml"
+    scripts = tomllib.loads(pyproject.read_text())["project"]["scripts"]
+    assert scripts["tofdenoise-denoise"] == "tofdenoise.cli.denoise:main" and callable(main)

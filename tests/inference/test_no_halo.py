@@ -42,8 +42,9 @@ class MedianDenoiser(nn.Module):
         return windows.median(dim=1).values.view_as(x[:, :1])
 
 
-def eval_frames(cache_dir) -> list[dict[str, torch.Tensor]]:
-    dm = ToFDataModule(**SCENES, cache_dir=str(cache_dir), holes=False)
+def eval_frames(cache_dir, **scenes) -> list[dict[str, torch.Tensor]]:
+    """The val/test scenes (never trained on) without training holes, plus dropout blobs."""
+    dm = ToFDataModule(**{**SCENES, **scenes}, cache_dir=str(cache_dir), holes=False)
     dm.prepare_data()
     dm.setup("test")
     blobs = HoleModel(max_low_signal_fraction=0.0, edge_prob=0.0, blob_density=8.0, blob_radius_px=(2.0, 6.0))
@@ -69,11 +70,11 @@ def depth_edges(clean_mm: np.ndarray, jump: float = 0.02, margin_px: int = 2) ->
     return ndimage.binary_dilation(edge, iterations=margin_px)
 
 
-def near_far_errors(model, frames) -> tuple[np.ndarray, np.ndarray, bool]:
+def near_far_errors(model, frames) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
     """|restored - clean| over valid pixels within NEAR_PX of a hole / farther than 2 NEAR_PX from any, both away
-    from depth edges (where every local method errs, holes or not); and whether every valid pixel got a valid
-    (> 0) depth and every hole stayed 0."""
-    near, far, stays_valid = [], [], True
+    from depth edges (where every local method errs, holes or not); |noisy - clean| over the far pixels; and
+    whether every valid pixel got a valid (> 0) depth and every hole stayed 0."""
+    near, far, raw_far, stays_valid = [], [], [], True
     for item in frames:
         valid = (item["mask"][0] > 0).numpy()
         clean = item["clean"][0].numpy()
@@ -83,34 +84,35 @@ def near_far_errors(model, frames) -> tuple[np.ndarray, np.ndarray, bool]:
         surface = valid & ~depth_edges(clean)
         near.append(err[surface & (dist <= NEAR_PX)])
         far.append(err[surface & (dist > 2 * NEAR_PX)])
+        raw_far.append((item["noisy"] - item["clean"]).abs()[0].numpy()[surface & (dist > 2 * NEAR_PX)])
         stays_valid &= bool(np.all(restored[valid] > 0)) and bool(np.all(restored[~valid] == 0))
-    return np.concatenate(near), np.concatenate(far), stays_valid
-
-
-def raw_errors(frames) -> np.ndarray:
-    return np.concatenate([(f["noisy"] - f["clean"]).abs()[f["mask"] > 0].numpy() for f in frames])
+    return np.concatenate(near), np.concatenate(far), np.concatenate(raw_far), stays_valid
 
 
 def test_no_halo_with_a_local_denoiser(tmp_path):
     model = DepthRestorer(backbone="unet", backbone_kwargs={"width": 4, "stages": 1})
     model.backbone = MedianDenoiser(3)
     frames = eval_frames(tmp_path / "cache")
-    near, far, stays_valid = near_far_errors(model.eval(), frames)
-    assert far.mean() < 0.8 * raw_errors(frames).mean()  # it does denoise
+    near, far, raw_far, stays_valid = near_far_errors(model.eval(), frames)
+    assert far.mean() < 0.8 * raw_far.mean()  # it does denoise
     assert stays_valid
     assert near.mean() <= 1.5 * far.mean(), f"MAE next to holes {near.mean():.2f} mm vs far {far.mean():.2f} mm"
 
 
 @pytest.mark.slow
 def test_no_halo_with_a_unet_trained_with_holes(tmp_path):
+    """The default run's recipe (experiment=default: U-Net width 32, 4 stages, 64 x 64 crops, batch 4, lr 1e-3 with
+    100 warm-up steps, 720 steps), on scenes of 64 x 64 with the default holes. Passed in 35 min on 2 CPU cores shared
+    with other jobs."""
     torch.manual_seed(0)
-    dm = ToFDataModule(**SCENES, batch_size=8, cache_dir=str(tmp_path / "cache"))
-    model = DepthRestorer(backbone="unet", backbone_kwargs={"width": 16, "stages": 2}, loss="l1", lr=2e-3,
-                          warmup_steps=20)
-    L.Trainer(max_steps=800, accelerator="cpu", logger=False, enable_checkpointing=False, enable_progress_bar=False,
+    scenes = {"num_samples": 60, "crop_size": 64}
+    dm = ToFDataModule(**{**SCENES, **scenes}, batch_size=4, cache_dir=str(tmp_path / "cache"))
+    model = DepthRestorer(backbone="unet", backbone_kwargs={"width": 32, "stages": 4, "norm": False, "residual": True},
+                          lr=1e-3, warmup_steps=100)
+    L.Trainer(max_steps=720, accelerator="cpu", logger=False, enable_checkpointing=False, enable_progress_bar=False,
               enable_model_summary=False, limit_val_batches=0, num_sanity_val_steps=0).fit(model, datamodule=dm)
-    frames = eval_frames(tmp_path / "cache")
-    near, far, stays_valid = near_far_errors(model.eval(), frames)
-    assert far.mean() < raw_errors(frames).mean()  # it does denoise
+    frames = eval_frames(tmp_path / "cache", **scenes)
+    near, far, raw_far, stays_valid = near_far_errors(model.eval(), frames)
+    assert far.mean() < 0.6 * raw_far.mean()  # it does denoise
     assert stays_valid
     assert near.mean() <= 1.5 * far.mean(), f"MAE next to holes {near.mean():.2f} mm vs far {far.mean():.2f} mm"

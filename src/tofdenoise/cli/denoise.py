@@ -71,8 +71,10 @@ def run(args: argparse.Namespace) -> int:
         return _fail("--calib needs --amplitude: the sigma_D map is computed from the input's amplitude")
     try:
         device = resolve_device(args.device)
-        frames = find_frames(args.inputs, exclude=[args.out])
         amplitude = AmplitudeSource(args.amplitude) if args.amplitude is not None else None
+        # an amplitude folder inside an input folder holds no depth frames
+        frames = find_frames(args.inputs, exclude=[args.out] + ([amplitude.folder] if amplitude and amplitude.folder
+                                                                 else []))
         calib = None
         if args.calib is not None:
             from tofdenoise.physics.calibration import resolve_calibration

@@ -108,7 +108,6 @@ class ToFDataModule(L.LightningDataModule):
         if isinstance(sensor, SensorCalibration):
             sensor = sensor.to_dict()
         noise_kwargs = dict(noise_kwargs or {})
-        holes_kwargs = dict(holes_kwargs or {})
         split_ratios = [float(r) for r in split_ratios]
         self.save_hyperparameters()
         if source not in SOURCES:
@@ -121,7 +120,7 @@ class ToFDataModule(L.LightningDataModule):
         from tofdenoise.data_modules.holes import HoleModel
 
         try:
-            self.hole_model = HoleModel(**holes_kwargs) if holes else None
+            self.hole_model = HoleModel(**dict(holes_kwargs or {})) if holes else None
         except TypeError as exc:
             raise ValueError(f"data.holes_kwargs: {exc}; valid keys: max_low_signal_fraction, edge_jump, edge_prob, "
                              "blob_density, blob_radius_px") from None
@@ -344,6 +343,7 @@ class ToFDataModule(L.LightningDataModule):
                 "skipped": {k: len(v) for k, v in self.skipped_samples.items()},
                 "variance_scale": None if state["variance_scale"] is None else state["variance_scale"]["scale"],
                 "real_scenes": len(state["real_scenes"]), "max_depth_mm": self.max_depth_mm,
+                "holes": None if self.hole_model is None else self.hole_model.to_dict(),
                 "calibration": self.calib.fingerprint()[:16]}
 
 

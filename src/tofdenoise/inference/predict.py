@@ -64,7 +64,7 @@ class FramesDataModule(L.LightningDataModule):
             that use the signal channel.
         depth_scale_mm: millimetres per stored depth unit.
         calib: calibration file / preset for the sigma_D map of the input (needs ``amplitude``).
-        exclude: folders whose files are not inputs (e.g. the output folder).
+        exclude: folders whose files are not inputs (e.g. the output folder; an amplitude folder is excluded).
         num_workers: DataLoader workers.
     """
 
@@ -78,10 +78,11 @@ class FramesDataModule(L.LightningDataModule):
             raise ValueError(f"FramesDataModule.depth_scale_mm must be > 0, got {depth_scale_mm}")
         if calib is not None and amplitude is None:
             raise ValueError("FramesDataModule: calib needs amplitude (the sigma_D map comes from the amplitude)")
-        self.frames = find_frames(inputs, exclude=exclude or [])
+        self.amplitude = AmplitudeSource(amplitude) if amplitude is not None else None
+        skip = list(exclude or []) + ([self.amplitude.folder] if self.amplitude and self.amplitude.folder else [])
+        self.frames = find_frames(inputs, exclude=skip)
         if not self.frames:
             raise ValueError(f"FramesDataModule: no depth frame found in {', '.join(map(str, inputs))}")
-        self.amplitude = AmplitudeSource(amplitude) if amplitude is not None else None
         self.calib = None
         if calib is not None:
             from tofdenoise.physics.calibration import resolve_calibration
