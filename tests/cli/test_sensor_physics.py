@@ -122,7 +122,7 @@ def test_unknown_preset_lists_the_presets(capsys):
 
     assert main(["show-calib", "--calib", "defualt"]) == 2
     err = capsys.readouterr().err
-    assert "'defualt': no such file and no preset of that name; presets: default" in err
+    assert "'defualt': no such file and no preset of that name; presets: cam75, default" in err
     assert main(["show-calib", "--calib", "default"]) == 0
 
 
