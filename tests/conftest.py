@@ -70,3 +70,23 @@ def restorer_ckpt(tmp_path_factory):
 def make_restorer_ckpt():
     """``save_restorer_checkpoint(path, **hparams)``: writes a tiny DepthRestorer checkpoint."""
     return save_restorer_checkpoint
+
+
+@pytest.fixture(scope="session")
+def write_exr():
+    """``write_exr(path, depth)``: the EXR writer of the reader's tests (tests/data_modules/test_exr.py; ZIP
+    compression, one FLOAT channel 'Z')."""
+    import importlib.util
+    from pathlib import Path
+
+    import numpy as np
+
+    spec = importlib.util.spec_from_file_location("_exr_writer", Path(__file__).parent / "data_modules" / "test_exr.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+
+    def write(path, depth) -> None:
+        module.write_exr(path, {"Z": np.asarray(depth, dtype=np.float32)}, 3)
+
+    return write
+

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 
 import cv2
@@ -16,14 +15,6 @@ from tofdenoise.inference.denoise import load_restorer, sigma_map_mm
 from tofdenoise.physics.calibration import resolve_calibration, save_calibration
 
 
-_EXR_TEST = Path(__file__).resolve().parents[1] / "data_modules" / "test_exr.py"
-
-
-def write_exr(path, depth: np.ndarray) -> None:
-    spec = importlib.util.spec_from_file_location("_exr_writer", _EXR_TEST)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    module.write_exr(path, {"Z": depth.astype(np.float32)}, 3)
 
 
 def frame(seed: int, h: int = 36, w: int = 48) -> np.ndarray:
@@ -35,7 +26,7 @@ def frame(seed: int, h: int = 36, w: int = 48) -> np.ndarray:
 
 
 @pytest.fixture
-def frames_dir(tmp_path):
+def frames_dir(tmp_path, write_exr):
     src = tmp_path / "frames"
     (src / "sub").mkdir(parents=True)
     amp = tmp_path / "amp"

@@ -54,15 +54,20 @@ def test_hydra_and_lightning_cli_build_the_same_model(tmp_path, monkeypatch):
     assert any(type(cb).__name__ == "CSVLogResume" for cb in cli.trainer.callbacks)
 
 
+def _smoke_args(tmp_path, data_cache) -> list[str]:
+    """The smoke config at the test suite's tiny size, outputs under tmp_path."""
+    return ["--config", str(CLI_DIR / "smoke.yaml"), f"--trainer.default_root_dir={tmp_path}/run",
+            "--trainer.logger=false", "--trainer.enable_progress_bar=false",
+            f"--data.init_args.cache_dir={data_cache}", "--data.init_args.num_samples=10",
+            "--data.init_args.height=32", "--data.init_args.width=48", "--data.init_args.crop_size=32",
+            "--model.init_args.backbone_kwargs={in_channels: 1, width: 8, stages: 2}",
+            "--model.init_args.backbone=unet"]
+
+
 def test_fit_test_predict_from_the_smoke_config(tmp_path, data_cache, monkeypatch):
     monkeypatch.setattr(sys, "argv", ["tofdenoise"])  # the arguments come from `args`, not pytest's argv
     monkeypatch.chdir(tmp_path)  # relative paths of the YAML (outputs/cli/...) land in tmp_path
-    common = ["--config", str(CLI_DIR / "smoke.yaml"), f"--trainer.default_root_dir={tmp_path}/run",
-              "--trainer.logger=false", "--trainer.enable_progress_bar=false",
-              f"--data.init_args.cache_dir={data_cache}", "--data.init_args.num_samples=10",
-              "--data.init_args.height=32", "--data.init_args.width=48", "--data.init_args.crop_size=32",
-              "--model.init_args.backbone_kwargs={in_channels: 1, width: 8, stages: 2}",
-              "--model.init_args.backbone=unet"]
+    common = _smoke_args(tmp_path, data_cache)
     cli_main(["fit", *common, "--trainer.max_epochs=1"])
     best = tmp_path / "outputs" / "cli" / "smoke" / "checkpoints" / "best.ckpt"
     assert best.is_file() and (best.parent / "last.ckpt").is_file()
@@ -105,12 +110,7 @@ def test_truncated_checkpoint_stops_before_config_yaml_is_rewritten(tmp_path, da
 
     monkeypatch.setattr(sys, "argv", ["tofdenoise"])
     monkeypatch.chdir(tmp_path)
-    common = ["--config", str(CLI_DIR / "smoke.yaml"), f"--trainer.default_root_dir={tmp_path}/run",
-              "--trainer.logger=false", "--trainer.enable_progress_bar=false",
-              f"--data.init_args.cache_dir={data_cache}", "--data.init_args.num_samples=10",
-              "--data.init_args.height=32", "--data.init_args.width=48", "--data.init_args.crop_size=32",
-              "--model.init_args.backbone_kwargs={in_channels: 1, width: 8, stages: 2}",
-              "--model.init_args.backbone=unet"]
+    common = _smoke_args(tmp_path, data_cache)
     cli_main(["fit", *common, "--trainer.max_epochs=1"])
     config = tmp_path / "run" / "config.yaml"
     last = tmp_path / "outputs" / "cli" / "smoke" / "checkpoints" / "last.ckpt"

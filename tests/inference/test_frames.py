@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 
 import cv2
@@ -12,15 +11,6 @@ import pytest
 from tofdenoise.inference.frames import (AmplitudeSource, FrameError, FrameInput, find_frames, load_frame,
                                          read_depth_frame)
 
-_EXR_TEST = Path(__file__).resolve().parents[1] / "data_modules" / "test_exr.py"
-
-
-def write_exr(path, depth: np.ndarray) -> None:
-    """The EXR writer of the reader's tests (ZIP compression, one FLOAT channel 'Z')."""
-    spec = importlib.util.spec_from_file_location("_exr_writer", _EXR_TEST)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    module.write_exr(path, {"Z": depth.astype(np.float32)}, 3)
 
 
 def depth_with_holes(h: int = 24, w: int = 32) -> np.ndarray:
@@ -29,7 +19,7 @@ def depth_with_holes(h: int = 24, w: int = 32) -> np.ndarray:
     return d
 
 
-def test_png16_npy_and_exr_read_the_same_frame(tmp_path):
+def test_png16_npy_and_exr_read_the_same_frame(tmp_path, write_exr):
     d = depth_with_holes()
     cv2.imwrite(str(tmp_path / "a.png"), d.astype(np.uint16))
     f = d.copy()

@@ -10,6 +10,7 @@ import warnings
 import pytest
 import torch
 
+
 from tofdenoise.models import available_scan_backends, selective_scan
 from tofdenoise.models import scan_cpu
 from tofdenoise.models.scan import (
@@ -19,6 +20,8 @@ from tofdenoise.models.scan import (
     selective_scan_sequential,
 )
 from tofdenoise.models.ss2d import SS2D
+
+from .test_scan import _inputs, _rel  # the same random problems as the PyTorch scan tests
 
 NO_BUILD = os.environ.get(scan_cpu.ENV_SWITCH, "1") in ("0", "false", "no", "off") or shutil.which("c++") is None
 
@@ -35,23 +38,6 @@ def ext():
     assert mod is not None
     assert scan_cpu.cpu_kernel_available()
     return mod
-
-
-def _inputs(batch, dim, length, groups, n, dtype=torch.float32, three_d=False, seed=0):
-    g = torch.Generator().manual_seed(seed)
-    u = torch.randn(batch, dim, length, generator=g, dtype=dtype)
-    delta = 0.5 * torch.randn(batch, dim, length, generator=g, dtype=dtype)
-    A = -torch.exp(0.5 * torch.randn(dim, n, generator=g, dtype=dtype))
-    shape = (batch, n, length) if three_d else (batch, groups, n, length)
-    B = torch.randn(*shape, generator=g, dtype=dtype)
-    C = torch.randn(*shape, generator=g, dtype=dtype)
-    D = torch.randn(dim, generator=g, dtype=dtype)
-    bias = torch.randn(dim, generator=g, dtype=dtype)
-    return [t.requires_grad_() for t in (u, delta, A, B, C, D, bias)]
-
-
-def _rel(a, b):
-    return ((a - b).abs().max() / b.abs().max().clamp_min(1e-30)).item()
 
 
 def _grads(fn, tensors, use_d, use_bias, softplus, w):

@@ -61,7 +61,7 @@ def test_signal_channel_input(tiny_data):
     assert x.shape[1] == 2
     # channel 0: the depth centred on the local offset (no input holes here: noisy > 0 wherever mask is 1)
     valid = batch["noisy"] > 0
-    torch.testing.assert_close((x[:, :1] * 1000.0 + offset)[valid], batch["noisy"][valid])
+    torch.testing.assert_close((x[:, :1] * model.hparams.depth_scale_mm + offset)[valid], batch["noisy"][valid])
     amp = batch["amplitude"] * batch["mask"]
     assert torch.allclose(x[:, 1:].amax(dim=(1, 2, 3)), torch.ones(x.shape[0]))
     torch.testing.assert_close(x[0, 1], amp[0, 0] / amp[0].max())
