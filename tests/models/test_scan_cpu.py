@@ -226,3 +226,18 @@ def test_threads_give_bitwise_identical_results(ext):
     assert torch.equal(y1, y3)
     for a, b in zip(g1, g3):
         assert torch.equal(a, b)
+
+
+def test_ninja_of_the_venv_is_found_when_the_venv_is_not_activated(monkeypatch, tmp_path):
+    """`.venv/bin/python -m pytest` on a machine without a system ninja: the ninja wheel's binary sits next to
+    the interpreter, and cpp_extension looks for it on PATH."""
+    import sys as _sys
+
+    fake_bin = tmp_path / "bin"
+    fake_bin.mkdir()
+    (fake_bin / "ninja").write_text("#!/bin/sh\necho 1.11.1\n")
+    (fake_bin / "ninja").chmod(0o755)
+    monkeypatch.setattr(_sys, "executable", str(fake_bin / "python"))
+    monkeypatch.setenv("PATH", str(tmp_path / "empty"))
+    scan_cpu._ninja_on_path()
+    assert shutil.which("ninja") == str(fake_bin / "ninja")

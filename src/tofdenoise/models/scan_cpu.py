@@ -29,6 +29,8 @@ import functools
 import hashlib
 import os
 import platform
+import shutil
+import sys
 import warnings
 from pathlib import Path
 
@@ -72,6 +74,15 @@ def _build_name() -> str:
     return f"tofdenoise_scan_cpu_{digest.hexdigest()[:12]}"
 
 
+def _ninja_on_path() -> None:
+    """cpp_extension runs ``ninja`` from PATH; the ``ninja`` wheel (a dependency) installs it next to this
+    interpreter, which is not on PATH when the venv is not activated (``.venv/bin/python -m pytest``)."""
+    if shutil.which("ninja") is None:
+        here = Path(sys.executable).parent
+        if (here / "ninja").exists():
+            os.environ["PATH"] = str(here) + os.pathsep + os.environ.get("PATH", "")
+
+
 @functools.lru_cache(maxsize=1)
 def load_extension():
     """The compiled extension module, or None (with one warning) when it cannot be built or loaded."""
@@ -80,6 +91,7 @@ def load_extension():
     try:
         from torch.utils import cpp_extension
 
+        _ninja_on_path()
         return cpp_extension.load(
             name=_build_name(), sources=[str(SOURCE)], extra_cflags=CFLAGS, verbose=False
         )
