@@ -107,3 +107,11 @@ def test_centred_input_resolves_half_a_millimetre_in_bf16(depth_mm, slope_mm_per
     raw_err = (x_raw.to(torch.bfloat16).float() - x_raw).abs() * raw.hparams.depth_scale_mm
     if depth_mm >= 600:
         assert raw_err.max().item() > 1.0  # what the issue measured: the raw input is rounded to mm steps
+
+
+def test_fill_works_on_a_single_row_and_column():
+    row = b1hw([[0.0, 100.0, 0.0, 0.0, 300.0, 0.0, 0.0]])
+    out = fill_invalid_mm(row)
+    assert (out > 0).all() and out[0, 0, 0, 1] == 100.0 and out[0, 0, 0, 4] == 300.0
+    col = row.transpose(2, 3)
+    torch.testing.assert_close(fill_invalid_mm(col).transpose(2, 3), out)

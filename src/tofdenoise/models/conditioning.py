@@ -91,7 +91,7 @@ def fill_invalid_mm(depth_mm: Tensor, valid: Tensor | None = None) -> Tensor:
     values = depth
     while True:
         levels.append((values, weight))
-        if min(values.shape[-2:]) <= 1 or bool((weight > 0).all()):
+        if max(values.shape[-2:]) <= 1 or bool((weight > 0).all()):
             break
         sums, counts = _masked_half(values, weight)
         values = sums / counts.clamp_min(1e-12)
