@@ -182,6 +182,22 @@ class CalibrationReport:
                 f"in {len(self.clipped_by_file)} file(s), left out of the fit")
 
 
+@dataclass
+class _ClipTally:
+    """Clipped and total tap samples over the files of a calibration, and the clipped count per file."""
+
+    clipped: int = 0
+    total: int = 0
+    by_file: dict[str, int] = field(default_factory=dict)
+
+    def add(self, path: Path, clipped: np.ndarray) -> None:
+        n = int(clipped.sum())
+        self.clipped += n
+        self.total += clipped.size
+        if n:
+            self.by_file[str(path)] = n
+
+
 def _phase_of(entry: dict, freq: float) -> float:
     if "phase_rad" in entry:
         return float(entry["phase_rad"])
@@ -264,17 +280,13 @@ def calibrate_from_folders(
     fw = full_well_e if full_well_e is not None else sweep_idx.full_well_e
     freq = float(sweep_idx.modulation_frequency_hz)  # type: ignore[arg-type]
     phases, means, pixel_taps = [], [], []
-    clipped_total, tap_total, clipped_by_file = 0, 0, {}
+    tally = _ClipTally()
     files = []
     for e in sweep_idx.stacks:
         path = sweep_idx.folder / e["file"]
         taps = load_stack(sweep_idx, e["file"], ndim=(4,))
         clipped = clipped_samples(sweep_idx, e["file"], taps, fw)
-        n_clipped = int(clipped.sum())
-        clipped_total += n_clipped
-        tap_total += clipped.size
-        if n_clipped:
-            clipped_by_file[str(path)] = n_clipped
+        tally.add(path, clipped)
         step_means, pixel = _sweep_step(taps, clipped, path, min_unclipped_fraction)
         phases.append(_phase_of(e, freq))
         means.append(step_means)
@@ -329,11 +341,7 @@ def calibrate_from_folders(
             valid = None
             if arr.ndim == 4:
                 clipped = clipped_samples(dist_idx, e["file"], arr, fw)
-                n_clipped = int(clipped.sum())
-                clipped_total += n_clipped
-                tap_total += clipped.size
-                if n_clipped:
-                    clipped_by_file[str(path)] = n_clipped
+                tally.add(path, clipped)
                 valid = ~clipped.any(axis=1)  # (F, H, W): pixel-frames without a clipped tap
                 kept = float(valid.all(axis=0).mean())
                 if kept < min_unclipped_fraction:
@@ -366,8 +374,8 @@ def calibrate_from_folders(
         raise CaptureFormatError(f"{distances_dir}: {exc}") from None
     calib = partial.replace(signal_min_e=a_min, signal_max_e=a_max, range_sigma_mm=alphas)
     return CalibrationReport(calibration=calib, sweep_points=len(phases), dark_frames=dark_frames,
-                             range_points=range_points, clipped_samples=clipped_total, tap_samples=tap_total,
-                             clipped_by_file=clipped_by_file)
+                             range_points=range_points, clipped_samples=tally.clipped, tap_samples=tally.total,
+                             clipped_by_file=tally.by_file)
 
 
 __all__ = [
