@@ -15,8 +15,7 @@ The classes are imported lazily, so that light users of ``metrics_writer`` (``to
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from tofdenoise.lazy import lazy_getattr
 
 _LAZY = {
     "BestAndLastCheckpoint": "tofdenoise.callbacks.checkpointing",
@@ -29,8 +28,4 @@ _LAZY = {
 
 __all__ = sorted(_LAZY)
 
-
-def __getattr__(name: str) -> Any:
-    if name in _LAZY:
-        return getattr(importlib.import_module(_LAZY[name]), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__ = lazy_getattr(__name__, _LAZY)

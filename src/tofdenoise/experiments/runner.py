@@ -20,7 +20,7 @@ import os
 import subprocess
 import sys
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -133,7 +133,3 @@ def run_all(specs: Sequence[RunSpec], out_dir: Path | str, dry_run: bool = False
             print(f"  {o.spec.name} (exit {o.returncode}), last lines of {o.run_dir / LOG_NAME}:\n"
                   + "\n".join("    " + line for line in o.log_tail.splitlines()), flush=True)
     return outcomes
-
-
-def spec_names(specs: Iterable[RunSpec]) -> list[str]:
-    return [s.name for s in specs]
