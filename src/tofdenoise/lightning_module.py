@@ -228,9 +228,9 @@ class DepthRestorer(pl.LightningModule):
         with torch.autocast(device_type=noisy.device.type, enabled=False):
             valid = valid_input_mask(noisy)
             filled = fill_invalid_mm(noisy.float(), valid)
-            mode = self.hparams.get("input_centering", "local")
+            mode = self.hparams.input_centering
             if mode == "local":
-                offset = local_offset_mm(filled, int(self.hparams.get("centering_block_px", 16)))
+                offset = local_offset_mm(filled, int(self.hparams.centering_block_px))
             elif mode == "image":
                 offset = image_offset_mm(filled, valid)
             else:
@@ -317,8 +317,7 @@ class DepthRestorer(pl.LightningModule):
     # ------------------------------------------------------------------ validation
     def validation_step(self, batch: dict[str, Any], batch_idx: int, dataloader_idx: int = 0) -> dict[str, Tensor]:
         pred_mm = self.restore_mm(batch, tile=self.hparams.eval_tile_size)
-        loss = self.criterion(pred_mm, batch["clean"],
-                              batch["sigma"], batch["mask"])
+        loss = self.criterion(pred_mm, batch["clean"], batch["sigma"], batch["mask"])
         self.log("val/loss", loss, on_step=False, on_epoch=True, batch_size=pred_mm.shape[0], sync_dist=True)
         index = _loader_index(batch.get("index"), dataloader_idx)
         self.val_metrics.update(pred_mm, batch["clean"], batch["mask"], index=index)
