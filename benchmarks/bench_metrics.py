@@ -11,7 +11,7 @@ import time
 import torch
 from torchmetrics.functional.image import structural_similarity_index_measure as tm_ssim
 
-from tofdenoise.metrics import D_MAX_MM, depth_metrics_per_image
+from tofdenoise.training.metrics import D_MAX_MM, depth_metrics_per_image
 
 
 def _time(fn, repeats: int) -> float:

@@ -137,7 +137,7 @@ def bench_step(args) -> None:
     import torch
 
     from bench_training import backbone_kwargs, make_data, time_steps
-    from tofdenoise.lightning_module import DepthRestorer
+    from tofdenoise.training.module import DepthRestorer
 
     crop, batch = 64, 4
     print(f"\n### Training step, {crop}x{crop} crops, batch {batch}, L_full + AdamW, pre-loaded batch; "

@@ -60,7 +60,7 @@ def time_steps(model, optimizer, batches, steps: int) -> list[float]:
 
 
 def bench_backbone(name: str, dm, steps: int) -> tuple[float, float, int]:
-    from tofdenoise.lightning_module import DepthRestorer
+    from tofdenoise.training.module import DepthRestorer
     from tofdenoise.models import count_parameters
 
     model = DepthRestorer(backbone=name, backbone_kwargs=backbone_kwargs(name), loss="full")

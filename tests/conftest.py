@@ -50,7 +50,7 @@ def save_restorer_checkpoint(path, **hparams):
     import lightning
     import torch
 
-    from tofdenoise.lightning_module import DepthRestorer
+    from tofdenoise.training.module import DepthRestorer
 
     kwargs = {"backbone": "unet", "backbone_kwargs": {"width": 8, "stages": 2}, **hparams}
     torch.manual_seed(0)

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from tofdenoise.callbacks.metrics_writer import learned_verdict
+from tofdenoise.training.results import learned_verdict
 from tofdenoise.callbacks.summary import format_learned_warning
 
 

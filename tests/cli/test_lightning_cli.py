@@ -42,7 +42,7 @@ def test_hydra_and_lightning_cli_build_the_same_model(tmp_path, monkeypatch):
     # (a tuple read from YAML is a list: compare the JSON forms)
     cli_hparams = {k: v for k, v in cli.model.hparams.items() if not k.startswith("_")}
     assert json.dumps(cli_hparams, sort_keys=True) == json.dumps(dict(hydra_model.hparams), sort_keys=True)
-    assert cli.model.hparams["_class_path"] == "tofdenoise.lightning_module.DepthRestorer"
+    assert cli.model.hparams["_class_path"] == "tofdenoise.training.module.DepthRestorer"
     assert {k: v for k, v in cli.datamodule.hparams.items() if not k.startswith("_")} == dict(hydra_data.hparams)
     a, b = hydra_model.state_dict(), cli.model.state_dict()
     assert list(a) == list(b)
@@ -76,7 +76,7 @@ def test_fit_test_predict_from_the_smoke_config(tmp_path, data_cache, monkeypatc
     assert set(metrics["synthetic"]) >= {"psnr_db", "mae_mm", "mse_mm2", "ssim", "raw"}
     assert (tmp_path / "run" / "per_image" / "synthetic.csv").is_file()
     # the learned guard's fields come from the tested checkpoint (6 training scenes, batch 2: 3 steps)
-    from tofdenoise.callbacks.metrics_writer import learned_status, learned_verdict
+    from tofdenoise.training.results import learned_status, learned_verdict
 
     ckpt = torch.load(best, weights_only=True)
     assert metrics["trained_steps"] == ckpt["global_step"] == 3

@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
-from tofdenoise.callbacks.metrics_writer import set_entry, write_metrics_json
+from tofdenoise.training.results import set_entry, write_metrics_json
 from tofdenoise.cli.report import find_runs, load_run, main, results_table, table_markdown
 
 RAW = {"psnr_db": 31.68, "ssim": 0.95, "mse_mm2": 680.0, "mae_mm": 7.21}
@@ -130,7 +130,7 @@ def test_no_runs_is_an_error(tmp_path, capsys):
 
 def _guarded_run(root: Path, name: str, mae: float, steps: int, best, raw=7.5) -> Path:
     """A run folder whose metrics.json carries the learned guard's fields, as the training writes them."""
-    from tofdenoise.callbacks.metrics_writer import learned_verdict
+    from tofdenoise.training.results import learned_verdict
 
     d = root / name
     write_metrics_json(d / "metrics.json", {"synthetic": set_entry(_m(40.0 - mae, 0.99, mae * mae, mae), RAW)},

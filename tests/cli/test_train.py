@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from tofdenoise.callbacks.metrics_writer import (
+from tofdenoise.training.results import (
     RUN_KEYS,
     learned_status,
     metric_sets,
@@ -22,7 +22,7 @@ from tofdenoise.callbacks.metrics_writer import (
     read_per_image_csv,
 )
 from tofdenoise.cli.train import compose_config, run
-from tofdenoise.metrics import METRIC_KEYS
+from tofdenoise.training.metrics import METRIC_KEYS
 from tofdenoise.models import available_backbones
 
 REPO = Path(__file__).resolve().parents[2]
@@ -209,7 +209,7 @@ def test_ddp_two_cpu_processes(tmp_path, data_cache, tiny):
     from hydra.utils import instantiate
     from lightning.pytorch import Trainer
 
-    from tofdenoise.lightning_module import DepthRestorer
+    from tofdenoise.training.module import DepthRestorer
 
     cfg = compose_config(tiny(single_dir, data_cache, num_samples=14) + data)
     model = DepthRestorer.load_from_checkpoint(run_dir / "checkpoints" / "last.ckpt")
@@ -272,7 +272,7 @@ def test_a_run_that_does_not_learn_is_flagged_and_a_test_of_its_checkpoint_too(t
 @pytest.mark.parametrize("backbone", ["unet", "tofkpn"])
 def test_signal_channel_from_the_config_alone(backbone, tmp_path, data_cache, tiny):
     """`model.use_signal_channel=true` is the only switch: the backbone configs leave in_channels to the module."""
-    from tofdenoise.lightning_module import DepthRestorer
+    from tofdenoise.training.module import DepthRestorer
 
     cfg = compose_config(tiny(tmp_path, data_cache, backbone)
                          + ["+trainer.fast_dev_run=true", "logger=csv", "++model.use_signal_channel=true"])

@@ -176,7 +176,7 @@ def test_metrics_json_counts_the_scenes_the_datamodule_skipped(tmp_path):
     import json
     from types import SimpleNamespace
 
-    from tofdenoise.callbacks.metrics_writer import set_entry
+    from tofdenoise.training.results import set_entry
     from tofdenoise.cli.train import write_test_outputs
 
     m = {"psnr_db": 40.0, "mae_mm": 2.0, "mse_mm2": 9.0, "ssim": 0.99}

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from tofdenoise.callbacks.metrics_writer import learned_verdict, set_entry, write_metrics_json
+from tofdenoise.training.results import learned_verdict, set_entry, write_metrics_json
 from tofdenoise.cli.grid import main
 from tofdenoise.experiments.grids import robustness_rows, robustness_specs, robustness_table
 from tofdenoise.experiments.runner import run_all

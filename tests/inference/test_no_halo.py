@@ -22,7 +22,7 @@ from torch import nn
 import tofdenoise
 from tofdenoise.data_modules import ToFDataModule
 from tofdenoise.data_modules.holes import HoleModel, apply_holes
-from tofdenoise.lightning_module import DepthRestorer
+from tofdenoise.training.module import DepthRestorer
 
 NEAR_PX = 3
 SCENES = dict(num_samples=24, height=64, width=64, seed=3, crop_size=32)

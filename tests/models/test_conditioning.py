@@ -91,7 +91,7 @@ def test_bf16_step_formula():
 def test_centred_input_resolves_half_a_millimetre_in_bf16(depth_mm, slope_mm_per_px):
     """Issue item 7: the network input's bf16 quantisation step is below 0.5 mm at every depth up to 4 m
     (smooth surfaces with 12 mm noise, holes included); raw depth / 1000 has a step of 2-16 mm there."""
-    from tofdenoise.lightning_module import DepthRestorer
+    from tofdenoise.training.module import DepthRestorer
 
     g = torch.Generator().manual_seed(int(depth_mm))
     yy, xx = torch.meshgrid(torch.arange(96.0), torch.arange(128.0), indexing="ij")

@@ -54,7 +54,7 @@ def test_csv_log_survives_a_resume_without_duplicates(tmp_path, tiny_data):
     from lightning.pytorch.callbacks import ModelCheckpoint
 
     from tofdenoise.callbacks.csv_log import CSVLogResume, ResumableCSVLogger
-    from tofdenoise.lightning_module import DepthRestorer
+    from tofdenoise.training.module import DepthRestorer
 
     def fit(ckpt_path=None):
         model = DepthRestorer(backbone="unet", backbone_kwargs={"width": 4, "stages": 2}, loss="l1")

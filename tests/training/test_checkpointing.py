@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from tofdenoise.callbacks.checkpointing import BestAndLastCheckpoint
-from tofdenoise.lightning_module import DepthRestorer
+from tofdenoise.training.module import DepthRestorer
 
 SCORES = [5.0, 3.0, 4.0, 2.0, 6.0, 2.0, 2.5]  # best at epoch 3 (the tie at epoch 5 does not replace it)
 

@@ -9,7 +9,7 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 from tofdenoise.cli.train import compose_config, config_dir, resolve_ckpt_path, validate_config
-from tofdenoise.losses import available_losses
+from tofdenoise.training.losses import available_losses
 from tofdenoise.models import available_backbones
 from tofdenoise.physics.noise_models import available_noise_models
 

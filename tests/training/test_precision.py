@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import torch
 
-from tofdenoise.lightning_module import DepthRestorer
-from tofdenoise.metrics import depth_metrics_per_image
+from tofdenoise.training.module import DepthRestorer
+from tofdenoise.training.metrics import depth_metrics_per_image
 
 from .conftest import TinyDepthData
 

@@ -12,8 +12,8 @@ import pytest
 import torch
 import yaml
 
-from tofdenoise.lightning_module import DepthRestorer
-from tofdenoise.metrics import depth_metrics_per_image
+from tofdenoise.training.module import DepthRestorer
+from tofdenoise.training.metrics import depth_metrics_per_image
 from tofdenoise.models import available_backbones
 
 from .conftest import TinyDepthData

@@ -7,10 +7,9 @@
 - :class:`~tofdenoise.callbacks.summary.RunSummary`: a readable one-line summary after fit and test.
 - :class:`~tofdenoise.callbacks.predict_writer.DepthPredictionWriter`: 16-bit PNG (mm) + ``.npy`` predictions.
 - :class:`~tofdenoise.callbacks.image_panels.ImagePanelLogger`: a fixed panel of validation samples per epoch.
-- ``metrics_writer``: ``metrics.json`` and per-image CSV writers (functions).
 
-The classes are imported lazily, so that light users of ``metrics_writer`` (``tofdenoise-eval``,
-``tofdenoise-report``) do not pay for importing Lightning.
+The run-results schema and its writers (``metrics.json``, per-image CSVs) live in :mod:`tofdenoise.training.results`.
+The classes are imported lazily, so that importing this package does not pay for importing Lightning.
 """
 
 from __future__ import annotations

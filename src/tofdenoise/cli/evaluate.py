@@ -7,7 +7,7 @@ Files are matched by stem (``scene_001.png`` <-> ``scene_001.npy`` is fine). Dep
 millimetres. An 8-bit PNG cannot hold depth in mm and is an error. Mask files: any single-channel image or
 array, nonzero = evaluate. A pixel counts where the reference is valid (finite and > 0), the mask (if
 given) is nonzero and the prediction is finite; metrics are per image, then averaged over images
-(``tofdenoise.metrics``; PSNR with D_max = 1000 mm, no clamping). An image without a valid pixel is listed
+(``tofdenoise.training.metrics``; PSNR with D_max = 1000 mm, no clamping). An image without a valid pixel is listed
 with null values and left out of the mean.
 
 Non-finite predictions (NaN or +-inf) are failures, never a reward: a pixel the method should have
@@ -40,9 +40,10 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from tofdenoise.callbacks.metrics_writer import atomic_write_text, json_number
+from tofdenoise.atomic import atomic_write_text
+from tofdenoise.training.results import json_number
 from tofdenoise.cli.output_guard import OutputPathError, check_output_file
-from tofdenoise.metrics import D_MAX_MM, METRIC_KEYS, DepthMetrics
+from tofdenoise.training.metrics import D_MAX_MM, METRIC_KEYS, DepthMetrics
 
 __all__ = ["DEPTH_SUFFIXES", "EvalInputError", "list_maps", "evaluate_dirs", "main"]
 

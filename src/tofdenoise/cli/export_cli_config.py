@@ -100,7 +100,7 @@ def main(argv: list[str] | None = None) -> int:
             if not path.is_file() or path.read_text() != text:
                 stale.append(str(path))
             continue
-        from tofdenoise.callbacks.metrics_writer import atomic_write_text
+        from tofdenoise.atomic import atomic_write_text
 
         atomic_write_text(path, text)
         print(f"wrote {path}")

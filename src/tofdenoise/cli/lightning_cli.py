@@ -91,7 +91,7 @@ class ToFLightningCLI(LightningCLI):
 def build_cli(args: list[str] | None = None, run: bool = True) -> ToFLightningCLI:
     """The CLI object (``run=False``: parse the config and instantiate model/data/trainer without running)."""
     from tofdenoise.data_modules import ToFDataModule
-    from tofdenoise.lightning_module import DepthRestorer
+    from tofdenoise.training.module import DepthRestorer
 
     return ToFLightningCLI(
         DepthRestorer,

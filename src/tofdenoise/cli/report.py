@@ -3,7 +3,7 @@
     tofdenoise-report RUNS_DIR [RUNS_DIR ...] --out report.html [--title TEXT]
 
 A run is any folder (searched recursively under each RUNS_DIR, which may itself be a run) that holds a
-``metrics.json`` (written by the training, schema in ``tofdenoise.callbacks.metrics_writer``). From a run
+``metrics.json`` (written by the training, schema in ``tofdenoise.training.results``). From a run
 folder the report reads:
 
 - ``metrics.json``: final test metrics per set (``synthetic``, ``real``) with the ``raw`` (noisy input) block,
@@ -44,8 +44,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
-from tofdenoise.callbacks.metrics_writer import (
-    atomic_write_text,
+from tofdenoise.atomic import atomic_write_text
+from tofdenoise.training.results import (
     learned_status,
     metric_sets,
     read_metrics_json,
@@ -63,7 +63,7 @@ METRIC_COLUMNS = (  # key, header, decimals, higher is better
     ("mae_mm", "MAE (mm)&darr;", "MAE (mm)↓", 2, False),
 )
 SET_LABELS = {"synthetic": "Synthetic", "real": "Real"}
-#: the Learned column per ``metrics_writer.learned_status``
+#: the Learned column per ``tofdenoise.training.results.learned_status``
 LEARNED_FLAGS = {"learned": "yes", "did not learn": "NOT LEARNED", "not trained": "NOT TRAINED",
                  "not verified": "unverified", "unknown": "?"}
 _FLAGGED = {"did not learn", "not trained", "not verified"}

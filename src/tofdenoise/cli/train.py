@@ -75,7 +75,7 @@ def _names_or_error(kind: str, key: str, value: str, valid: list[str]) -> None:
 
 def validate_config(cfg: DictConfig) -> None:
     """Fail early (before any data or model is built) on unknown names or missing dataset paths."""
-    from tofdenoise.losses import available_losses
+    from tofdenoise.training.losses import available_losses
     from tofdenoise.models import available_backbones
     from tofdenoise.physics.noise_models import available_noise_models
 
@@ -296,7 +296,7 @@ def write_test_outputs(model: Any, run_dir: Path) -> dict[str, Any]:
     fields ``trained_steps``, ``best_val_mae_mm``, ``raw_val_mae_mm``, ``learned_margin``, ``learned``,
     ``learned_reason`` from ``model.learned_record()``) and ``<run_dir>/per_image/<set>.csv`` from a
     ``DepthRestorer`` after ``trainer.test``."""
-    from tofdenoise.callbacks.metrics_writer import write_metrics_json, write_per_image_csv
+    from tofdenoise.training.results import write_metrics_json, write_per_image_csv
 
     results = dict(getattr(model, "test_results", {}) or {})
     if not results:

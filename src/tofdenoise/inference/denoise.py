@@ -39,7 +39,7 @@ def resolve_device(device: str | torch.device = "auto") -> torch.device:
 def load_restorer(ckpt: str | Path, device: str | torch.device = "cpu"):
     """A ``DepthRestorer`` in eval mode from a checkpoint of ``tofdenoise-train`` / ``tofdenoise fit``; anything
     else is a ``CheckpointError`` naming the file and what was expected."""
-    from tofdenoise.lightning_module import DepthRestorer
+    from tofdenoise.training.module import DepthRestorer
 
     path = Path(ckpt).expanduser()
     expected = "expected a DepthRestorer checkpoint (.ckpt written by tofdenoise-train or tofdenoise fit)"
@@ -66,7 +66,7 @@ def load_restorer(ckpt: str | Path, device: str | torch.device = "cpu"):
 
 
 def _as_model(model_or_ckpt: Any, device: str | torch.device):
-    from tofdenoise.lightning_module import DepthRestorer
+    from tofdenoise.training.module import DepthRestorer
 
     if isinstance(model_or_ckpt, DepthRestorer):
         return model_or_ckpt.eval()

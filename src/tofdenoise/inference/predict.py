@@ -117,7 +117,7 @@ def main(args: list[str] | None = None) -> int:
     """``python -m tofdenoise.inference.predict predict --ckpt_path CKPT --data.inputs [...] ...``"""
     from lightning.pytorch.cli import LightningCLI
 
-    from tofdenoise.lightning_module import DepthRestorer
+    from tofdenoise.training.module import DepthRestorer
 
     LightningCLI(DepthRestorer, FramesDataModule, args=args, save_config_callback=None,
                  auto_configure_optimizers=False,

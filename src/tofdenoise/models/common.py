@@ -1,4 +1,5 @@
-"""Shared building blocks for the backbones: size padding, channels-first LayerNorm, parameter count."""
+"""Shared building blocks for the backbones: size padding, channels-first LayerNorm, pixel-(un)shuffle
+down/up-sampling, parameter count."""
 
 from __future__ import annotations
 
@@ -7,6 +8,8 @@ import torch.nn.functional as F
 from torch import nn
 
 __all__ = [
+    "Downsample",
+    "Upsample",
     "LayerNorm2d",
     "count_parameters",
     "pad_to_multiple",
@@ -73,3 +76,17 @@ class LayerNorm2d(nn.Module):
         x = x.permute(0, 2, 3, 1)
         x = F.layer_norm(x, x.shape[-1:], self.weight, self.bias, self.eps)
         return x.permute(0, 3, 1, 2)
+
+
+class Downsample(nn.Sequential):
+    """3x3 conv C -> C/2 then pixel-unshuffle: (C, H, W) -> (2C, H/2, W/2)."""
+
+    def __init__(self, dim: int) -> None:
+        super().__init__(nn.Conv2d(dim, dim // 2, 3, padding=1, bias=False), nn.PixelUnshuffle(2))
+
+
+class Upsample(nn.Sequential):
+    """3x3 conv C -> 2C then pixel-shuffle: (C, H, W) -> (C/2, 2H, 2W)."""
+
+    def __init__(self, dim: int) -> None:
+        super().__init__(nn.Conv2d(dim, dim * 2, 3, padding=1, bias=False), nn.PixelShuffle(2))

@@ -18,7 +18,7 @@ import torch
 import torch.utils.checkpoint
 from torch import nn
 
-from .common import LayerNorm2d, check_input, crop_to, pad_to_multiple
+from .common import Downsample, LayerNorm2d, Upsample, check_input, crop_to, pad_to_multiple
 from .registry import register_backbone
 from .scr import SCR, SqueezeExcitation
 from .ss2d import SS2D
@@ -60,20 +60,6 @@ class DVSSBlock(nn.Module):
             return x + self.fuse(xg)
         xl = self.refine(self.dwconv(xn))
         return x + self.fuse(torch.cat([xg, xl], dim=1))
-
-
-class Downsample(nn.Sequential):
-    """3x3 conv C -> C/2 then pixel-unshuffle: (C, H, W) -> (2C, H/2, W/2)."""
-
-    def __init__(self, dim: int) -> None:
-        super().__init__(nn.Conv2d(dim, dim // 2, 3, padding=1, bias=False), nn.PixelUnshuffle(2))
-
-
-class Upsample(nn.Sequential):
-    """3x3 conv C -> 2C then pixel-shuffle: (C, H, W) -> (C/2, 2H, 2W)."""
-
-    def __init__(self, dim: int) -> None:
-        super().__init__(nn.Conv2d(dim, dim * 2, 3, padding=1, bias=False), nn.PixelShuffle(2))
 
 
 class _Stage(nn.Sequential):

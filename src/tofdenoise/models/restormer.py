@@ -9,8 +9,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .common import LayerNorm2d, check_input, crop_to, pad_to_multiple
-from .dvss import Downsample, Upsample
+from .common import Downsample, LayerNorm2d, Upsample, check_input, crop_to, pad_to_multiple
 from .registry import register_backbone
 
 __all__ = ["Restormer", "MDTA", "GDFN", "TransformerBlock"]

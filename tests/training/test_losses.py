@@ -9,7 +9,7 @@ import pytest
 import torch
 import yaml
 
-from tofdenoise.losses import (
+from tofdenoise.training.losses import (
     FullLoss,
     L1DepthLoss,
     NoiseAwareLoss,

@@ -26,7 +26,7 @@ Design decisions:
 - Validation/test metrics are exact under DDP: every batch passes its images' dataset ``index`` to
   ``DepthMetrics``, which counts the samples the ``DistributedSampler`` repeats (padding) once.
 - The learned guard (``learned_record()``): the run's optimiser steps, its lowest validation MAE and the raw
-  validation MAE, judged by ``tofdenoise.callbacks.metrics_writer.learned_verdict`` with ``learned_margin``;
+  validation MAE, judged by ``tofdenoise.training.results.learned_verdict`` with ``learned_margin``;
   written to ``metrics.json`` and checkpoints, and printed by ``RunSummary``.
 """
 
@@ -40,7 +40,7 @@ import lightning.pytorch as pl
 import torch
 from torch import Tensor, nn
 
-from tofdenoise.metrics import DepthMetrics, depth_metrics_per_image
+from tofdenoise.training.metrics import DepthMetrics, depth_metrics_per_image
 from tofdenoise.models.conditioning import (
     CENTERING_MODES,
     fill_invalid_mm,
@@ -79,7 +79,7 @@ class DepthRestorer(pl.LightningModule):
         backbone: registered backbone name (``tofdenoise.models.available_backbones()``).
         backbone_kwargs: constructor keyword arguments of the backbone (plain values; ``in_channels`` is set
             from ``use_signal_channel``).
-        loss: registered loss name (``tofdenoise.losses.available_losses()``: ``l1``, ``nar``, ``full``).
+        loss: registered loss name (``tofdenoise.training.losses.available_losses()``: ``l1``, ``nar``, ``full``).
         loss_kwargs: keyword arguments of the loss (e.g. ``beta``, ``lambda_g``).
         depth_scale_mm: fixed divisor turning (centred) millimetres into network units. 100 mm puts the noise
             (3-12 mm) at 0.03-0.12 and surface detail near 1: inputs of unit order, which Adam's first steps
@@ -132,7 +132,7 @@ class DepthRestorer(pl.LightningModule):
         learned_margin: float = 0.05,
     ) -> None:
         super().__init__()
-        from tofdenoise.losses import available_losses, build_loss
+        from tofdenoise.training.losses import available_losses, build_loss
         from tofdenoise.models import available_backbones, build_backbone
 
         backbone_kwargs = dict(backbone_kwargs or {})
@@ -392,7 +392,7 @@ class DepthRestorer(pl.LightningModule):
         return {"pred_mm": pred_mm}
 
     def on_test_epoch_end(self) -> None:
-        from tofdenoise.callbacks.metrics_writer import set_entry
+        from tofdenoise.training.results import set_entry
 
         for set_name in self.test_set_names():
             metric, raw_metric = self.test_metrics[set_name], self.test_raw_metrics[set_name]
@@ -438,13 +438,13 @@ class DepthRestorer(pl.LightningModule):
                 "raw_val_mae_mm": self._raw_val_mae_mm}
 
     def learned_record(self) -> dict[str, Any]:
-        """The learned guard's verdict (``metrics_writer.learned_verdict``: ``trained_steps``,
+        """The learned guard's verdict (``training.results.learned_verdict``: ``trained_steps``,
         ``best_val_mae_mm``, ``raw_val_mae_mm``, ``learned_margin``, ``learned``, ``learned_reason``).
 
         Its inputs: the fit of this process when there was one (its steps, lowest validation MAE, raw
         validation MAE), else the record saved in the checkpoint last loaded (a test of a saved checkpoint:
         the steps behind those weights), else 0 steps (an untrained network)."""
-        from tofdenoise.callbacks.metrics_writer import learned_verdict
+        from tofdenoise.training.results import learned_verdict
 
         if self._fit_record is not None:
             rec = self._fit_record

@@ -1,6 +1,6 @@
-"""Writers for the final metrics of a run: per-image CSVs and ``metrics.json`` (all atomic).
+"""The run-results schema and its I/O: per-image CSVs and ``metrics.json`` (all written atomically).
 
-Functions for the LightningModule / training entry points (no Lightning import here):
+Functions for the LightningModule, the callbacks and the entry points (no Lightning import here):
 
 - ``set_entry(restored, raw=None, counts=None) -> dict``: one test-set entry of ``metrics.json`` from
   ``DepthMetrics.compute()`` dicts (tensors or floats): ``{"psnr_db", "mae_mm", "mse_mm2", "ssim",
@@ -18,8 +18,9 @@ Functions for the LightningModule / training entry points (no Lightning import h
   ``DepthMetrics.per_image_rows()``; columns ``index, name, valid_px, psnr_db, mae_mm, mse_mm2, ssim`` and,
   with ``raw_rows`` (matched by index), ``raw_psnr_db, raw_mae_mm, raw_mse_mm2, raw_ssim``. ``names`` maps an
   index to the image name (a dict or a sequence indexed by ``index``). ``read_per_image_csv(path)`` reads it.
-- ``atomic_write_text(path, text)`` / ``atomic_write_bytes(path, data)``: temp file in the same folder +
-  ``os.replace`` (readers see the old or the complete new file, never a partial one).
+
+Every file is written through :mod:`tofdenoise.atomic` (temp file in the same folder + ``os.replace``: readers see
+the old or the complete new file, never a partial one).
 
 The learned rule: ``learned = trained_steps > 0 and best_val_mae_mm <= (1 - margin) x raw_val_mae_mm``, where
 ``best_val_mae_mm`` is the lowest validation MAE of the run (``val/mae_mm``, what the checkpoint callback picks
@@ -43,13 +44,11 @@ from pathlib import Path
 from typing import Any
 
 from tofdenoise.atomic import atomic_write_bytes, atomic_write_text
-from tofdenoise.metrics import METRIC_KEYS
+from tofdenoise.training.metrics import METRIC_KEYS
 
 __all__ = [
     "METRIC_KEYS",
     "EXTRA_KEYS",
-    "atomic_write_text",
-    "atomic_write_bytes",
     "set_entry",
     "write_metrics_json",
     "update_metrics_json",

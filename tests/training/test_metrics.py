@@ -8,7 +8,7 @@ import pytest
 import torch
 from torchmetrics.functional.image import structural_similarity_index_measure
 
-from tofdenoise.metrics import (
+from tofdenoise.training.metrics import (
     METRIC_KEYS,
     DepthMetrics,
     depth_metrics_per_image,
@@ -226,7 +226,7 @@ def run(rank, world, port, out):
     os.environ["MASTER_ADDR"] = "127.0.0.1"
     os.environ["MASTER_PORT"] = str(port)
     dist.init_process_group("gloo", rank=rank, world_size=world)
-    from tofdenoise.metrics import DepthMetrics
+    from tofdenoise.training.metrics import DepthMetrics
     ref = torch.full((2, 1, 8, 8), 1000.0)
     # rank 0 sees images 0, 1 (errors 1, 2 mm); rank 1 sees images 2, 3 (errors 3, 4 mm), image 3 has 1 pixel
     err = torch.tensor([1.0, 2.0]) + 2 * rank
@@ -301,7 +301,7 @@ def run(rank, world, port, out, n, batch):
     os.environ["MASTER_ADDR"] = "127.0.0.1"
     os.environ["MASTER_PORT"] = str(port)
     dist.init_process_group("gloo", rank=rank, world_size=world)
-    from tofdenoise.metrics import DepthMetrics
+    from tofdenoise.training.metrics import DepthMetrics
     # Lightning's evaluation sampler: DistributedSampler(shuffle=False) pads to a multiple of the world size
     mine = list(DistributedSampler(range(n), num_replicas=world, rank=rank, shuffle=False))
     m = DepthMetrics()

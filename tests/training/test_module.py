@@ -10,8 +10,8 @@ import pytest
 import torch
 from lightning.pytorch.callbacks import Callback
 
-from tofdenoise.lightning_module import CheckpointMismatchError, DepthRestorer
-from tofdenoise.metrics import depth_metrics_per_image
+from tofdenoise.training.module import CheckpointMismatchError, DepthRestorer
+from tofdenoise.training.metrics import depth_metrics_per_image
 
 TINY = {"width": 4, "stages": 2}
 
@@ -138,7 +138,7 @@ def test_validation_logs_restored_and_raw_metrics(tmp_path, tiny_data):
 
 
 def test_raw_val_metrics_are_computed_once_and_recomputed_when_the_batch_changes(tmp_path, tiny_data, monkeypatch):
-    import tofdenoise.lightning_module as lm
+    import tofdenoise.training.module as lm
 
     calls = []
 
@@ -237,7 +237,7 @@ def test_compile_switch_keeps_the_state_dict_keys():
 
 def test_ss2d_state_parameters_are_not_weight_decayed():
     """A_log and D of the selective scan are excluded from weight decay (VMamba/MambaIR practice)."""
-    from tofdenoise.lightning_module import DepthRestorer
+    from tofdenoise.training.module import DepthRestorer
 
     module = DepthRestorer(backbone="dvss", backbone_kwargs={"width": 8, "enc_blocks": [1], "bottleneck_blocks": 1,
                                                              "d_state": 4})

@@ -8,7 +8,7 @@ import math
 import pytest
 import torch
 
-from tofdenoise.callbacks.metrics_writer import (
+from tofdenoise.training.results import (
     RUN_KEYS,
     learned_status,
     learned_verdict,
@@ -21,7 +21,7 @@ from tofdenoise.callbacks.metrics_writer import (
     write_metrics_json,
     write_per_image_csv,
 )
-from tofdenoise.metrics import DepthMetrics
+from tofdenoise.training.metrics import DepthMetrics
 
 
 def _metric(offset_mm: float) -> DepthMetrics:
