@@ -23,7 +23,7 @@ export WANDB_SILENT ?= true
 export WANDB_ERROR_REPORTING ?= false
 export PYTHONUNBUFFERED := 1
 
-.PHONY: help venv train test test-slow bench robustness cli-configs clean
+.PHONY: help venv train test test-slow bench robustness reproduce cli-configs clean
 
 help:
 	@echo "make train   - small default training on built-in procedural scenes (CPU)"
@@ -32,6 +32,8 @@ help:
 	@echo "make test-slow - run the slow experiments too"
 	@echo "make bench   - side-by-side performance measurements (see docs/benchmarks.md); BENCH_ARGS=--quick"
 	@echo "make robustness - the robustness grid (108 small runs, resumable; GRID_DIR=runs/robustness GRID_ARGS=...)"
+	@echo "make reproduce TABLE=1|2|3|fig6 [PROFILE=cpu|gpu] [SEEDS=0,1,2] - one of the paper's tables (resumable;"
+	@echo "               records in docs/results/, page docs/results.md; REPRO_ARGS='--extra data.root=...')"
 	@echo "make cli-configs - regenerate the LightningCLI YAMLs (configs/cli/) after editing configs/"
 	@echo "make venv    - only create/refresh .venv (TORCH='torch==X' to choose the torch build)"
 
@@ -68,6 +70,16 @@ GRID_DIR ?= runs/robustness
 GRID_ARGS ?=
 robustness: $(STAMP)
 	$(VENV)/bin/tofdenoise-grid robustness --out $(GRID_DIR) --markdown $(GRID_DIR)/robustness.md $(GRID_ARGS)
+
+# The paper's tables (docs/results.md): finished runs are skipped, interrupted ones resume, failures are listed.
+TABLE ?=
+PROFILE ?= cpu
+SEEDS ?= 0,1,2
+REPRO_ARGS ?=
+comma := ,
+reproduce: $(STAMP)
+	@test -n "$(TABLE)" || { echo "make reproduce: set TABLE=1, 2, 3 or fig6 (e.g. make reproduce TABLE=3)"; exit 2; }
+	$(VENV)/bin/tofdenoise-reproduce --table $(TABLE) --profile $(PROFILE) --seeds $(subst $(comma), ,$(SEEDS)) $(REPRO_ARGS)
 
 # configs/cli/*.yaml are generated from the Hydra configs (one source of truth); a test fails when they are stale
 cli-configs: $(STAMP)

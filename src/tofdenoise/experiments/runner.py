@@ -25,11 +25,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-__all__ = ["RunSpec", "RunOutcome", "run_finished", "run_all", "read_run"]
+__all__ = ["RunSpec", "RunOutcome", "run_finished", "run_all", "read_run", "ENTRY_MODULES"]
 
 RUN_INFO_NAME = "run_info.json"
 METRICS_NAME = "metrics.json"
 LOG_NAME = "train.log"
+#: RunSpec.entry -> the module run as ``python -m <module> <overrides> paths.run_dir=<folder>``
+ENTRY_MODULES = {"train": "tofdenoise.cli.train", "classical": "tofdenoise.cli.classic"}
 
 
 @dataclass(frozen=True)
@@ -39,8 +41,12 @@ class RunSpec:
     name: str
     overrides: tuple[str, ...]
     meta: dict[str, Any] = field(default_factory=dict, compare=False, hash=False)
+    #: which command runs it: a key of ``ENTRY_MODULES`` ("train": ``tofdenoise-train``)
+    entry: str = "train"
 
     def __post_init__(self) -> None:
+        if self.entry not in ENTRY_MODULES:
+            raise ValueError(f"RunSpec {self.name}: unknown entry {self.entry!r}; valid: {', '.join(ENTRY_MODULES)}")
         if not self.name or "/" in self.name or self.name.startswith("."):
             raise ValueError(f"RunSpec.name must be a plain folder name, got {self.name!r}")
         for o in self.overrides:
@@ -101,7 +107,7 @@ def run_all(specs: Sequence[RunSpec], out_dir: Path | str, dry_run: bool = False
                 print(f"{head}: finished before, skipped", flush=True)
             continue
         resume = (run_dir / "checkpoints" / "last.ckpt").is_file()
-        cmd = [python, "-m", "tofdenoise.cli.train", *spec.overrides, f"paths.run_dir={run_dir}"]
+        cmd = [python, "-m", ENTRY_MODULES[spec.entry], *spec.overrides, f"paths.run_dir={run_dir}"]
         if resume:
             cmd.append("ckpt_path=last")
         if dry_run:

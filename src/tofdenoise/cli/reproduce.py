@@ -1,0 +1,156 @@
+"""``tofdenoise-reproduce``: run one of the paper's tables (resumable) and rebuild ``docs/results.md``.
+
+    tofdenoise-reproduce --table 3 --profile cpu --seeds 0 1 2      # make reproduce TABLE=3 PROFILE=cpu SEEDS=0,1,2
+    tofdenoise-reproduce --table fig6 --profile cpu                  # the noise-model validation figure
+    tofdenoise-reproduce --table 1 --dry-run                         # list what would run
+    tofdenoise-reproduce --page-only                                 # rebuild docs/results.md from docs/results/
+
+Steps: (1) the stand-in real set, once per profile: a second simulated camera (other frequency, contrast,
+harmonics, dark level, gain, mixed pixels at depth edges) writes its calibration captures and its capture set,
+and ``tofdenoise-sensor calibrate`` estimates its calibration (``<out>/realset``; docs/camera-tutorial.md);
+(2) every run of the table, trained with that calibration and tested on the synthetic split and on that capture
+set (finished runs are skipped, interrupted ones resume, a failing run does not stop the others and is listed);
+(3) each finished run's ``metrics.json`` and ``run_info.json`` copied to ``docs/results/<profile>/<run>/``;
+(4) ``docs/results.md`` rebuilt from those records. Exit status 0 when every run of the table finished.
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+from pathlib import Path
+
+from tofdenoise.atomic import atomic_write_bytes, atomic_write_text
+from tofdenoise.paths import REPO_ROOT
+
+__all__ = ["main", "build_parser", "PROFILES", "profile_overrides"]
+
+#: profile -> Hydra overrides shared by every training run of a table
+PROFILES: dict[str, tuple[str, ...]] = {
+    "cpu": ("experiment=reproduce_cpu",),
+    # the paper's settings (Sec. V-A): ToF-FlyingThings3D (data.root=...), 320 crops, batch 4, 300 epochs, one GPU
+    "gpu": ("experiment=paper", "logger=csv"),
+}
+#: the stand-in real set of each profile: capture-set size (scenes, height, width)
+REALSET_SIZES: dict[str, tuple[int, int, int]] = {"cpu": (24, 128, 160), "gpu": (200, 480, 640)}
+
+
+def profile_overrides(profile: str, realset_dir: Path, extra: list[str]) -> list[str]:
+    """The overrides of every run: the profile's experiment, the second camera's calibration and capture set."""
+    return [*PROFILES[profile], f"++data.sensor={realset_dir / 'calibration.yaml'}",
+            f"++data.real_dir={realset_dir / 'captures'}", *extra]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="tofdenoise-reproduce", description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--table", choices=["1", "2", "3", "fig6"], help="which table (or the Fig. 6 validation)")
+    p.add_argument("--profile", choices=sorted(PROFILES), default="cpu")
+    p.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    p.add_argument("--out", type=Path, default=None, help="run folders (default runs/reproduce/<profile>)")
+    p.add_argument("--results", type=Path, default=REPO_ROOT / "docs" / "results",
+                   help="where the run records are committed (default docs/results)")
+    p.add_argument("--page", type=Path, default=REPO_ROOT / "docs" / "results.md", help="the results page")
+    p.add_argument("--extra", nargs="*", default=[], help="extra Hydra overrides for every run (e.g. data.root=...)")
+    p.add_argument("--dry-run", action="store_true", help="print what would run, run nothing")
+    p.add_argument("--page-only", action="store_true", help="only rebuild the results page from the records")
+    return p
+
+
+def _run(cmd: list[str], what: str) -> None:
+    print(f"[reproduce] {what}: {' '.join(cmd)}", flush=True)
+    proc = subprocess.run(cmd, check=False)
+    if proc.returncode != 0:
+        raise SystemExit(f"tofdenoise-reproduce: {what} failed (exit {proc.returncode}): {' '.join(cmd)}")
+
+
+def realset_command(realset_dir: Path, profile: str) -> list[str]:
+    """``tofdenoise-sensor realset``: the second camera's calibration captures, their calibration and its capture
+    set (docs/camera-tutorial.md); finished steps and complete scenes are skipped, so it is cheap to repeat."""
+    scenes, height, width = REALSET_SIZES[profile]
+    return [sys.executable, "-m", "tofdenoise.cli.sensor", "realset", "--out", str(realset_dir),
+            "--scenes", str(scenes), "--height", str(height), "--width", str(width)]
+
+
+def ensure_realset(realset_dir: Path, profile: str, dry_run: bool = False) -> None:
+    cmd = realset_command(realset_dir, profile)
+    if dry_run:
+        print(f"[reproduce] would run the stand-in real set: {' '.join(cmd)}")
+    else:
+        _run(cmd, "the stand-in real set (second camera)")
+
+
+#: what a finished run leaves in docs/results/<profile>/<run>/ (small files; checkpoints and panels stay in runs/)
+RECORD_FILES = ("metrics.json", "run_info.json", "config.yaml", "csv/metrics.csv", "per_image/synthetic.csv",
+                "per_image/real.csv")
+
+
+def copy_records(run_dirs: list[Path], dest: Path) -> list[str]:
+    """Copy each finished run's records (``RECORD_FILES`` that exist) to ``dest/<run>/`` atomically; the names."""
+    from tofdenoise.experiments.runner import run_finished
+
+    copied = []
+    for run_dir in run_dirs:
+        if not run_finished(run_dir):
+            continue
+        for name in RECORD_FILES:
+            if (run_dir / name).is_file():
+                atomic_write_bytes(dest / run_dir.name / name, (run_dir / name).read_bytes())
+        copied.append(run_dir.name)
+    return copied
+
+
+def write_report(dest: Path) -> None:
+    """The offline HTML report of the recorded runs (``dest/report.html``), when there are any."""
+    if any(dest.glob("*/metrics.json")):
+        _run([sys.executable, "-m", "tofdenoise.cli.report", str(dest), "--out", str(dest / "report.html"),
+              "--title", f"tofdenoise: paper tables, {dest.name} profile"], "HTML report")
+
+
+def _fig6(args: argparse.Namespace, realset_dir: Path, dest: Path) -> int:
+    cmd = [sys.executable, "-m", "tofdenoise.cli.sensor", "validate", "--out", str(args.out / "fig6"),
+           "--calib", str(realset_dir / "calibration.yaml"), "--captures", str(realset_dir / "validation")]
+    if args.dry_run:
+        print(f"[reproduce] would run fig6: {' '.join(cmd)}")
+        return 0
+    _run(cmd, "fig6 (noise-model validation on the second camera)")
+    for name in ("validation.json", "validation.png"):
+        atomic_write_bytes(dest / "fig6" / name, (args.out / "fig6" / name).read_bytes())
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    from tofdenoise.experiments.results_page import results_markdown
+    from tofdenoise.experiments.runner import run_all
+    from tofdenoise.experiments.tables import table_specs
+
+    args = build_parser().parse_args(argv)
+    if args.page.suffix.lower() != ".md":
+        raise SystemExit(f"tofdenoise-reproduce: --page {args.page}: expected a .md file")
+    if not args.page_only and args.table is None:
+        raise SystemExit("tofdenoise-reproduce: give --table 1|2|3|fig6 (or --page-only)")
+    status = 0
+    if not args.page_only:
+        args.out = (args.out or REPO_ROOT / "runs" / "reproduce" / args.profile).expanduser().resolve()
+        realset_dir = args.out / "realset"
+        dest = args.results / args.profile
+        ensure_realset(realset_dir, args.profile, dry_run=args.dry_run)
+        if args.table == "fig6":
+            status = _fig6(args, realset_dir, dest)
+        else:
+            specs = table_specs(args.table, args.seeds, profile_overrides(args.profile, realset_dir, args.extra))
+            outcomes = run_all(specs, args.out, dry_run=args.dry_run)
+            if args.dry_run:
+                return 0
+            copy_records([o.run_dir for o in outcomes], dest)
+            write_report(dest)
+            status = 0 if all(o.status in ("done", "skipped") for o in outcomes) else 1
+    page = results_markdown(args.results)
+    atomic_write_text(args.page, page)
+    print(f"[reproduce] wrote {args.page}", flush=True)
+    return status
+
+
+if __name__ == "__main__":
+    sys.exit(main())

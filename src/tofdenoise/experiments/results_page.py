@@ -1,0 +1,204 @@
+"""``docs/results.md`` from the committed run records under ``docs/results/<profile>/`` (one function, one page).
+
+Every finished run of ``tofdenoise-reproduce`` leaves its ``metrics.json`` and ``run_info.json`` in
+``docs/results/<profile>/<run>/``. :func:`results_markdown` rebuilds the whole page from those files (and the
+hand-written discussion ``docs/results/discussion.md``), so the page can always be checked against the records:
+``tofdenoise-reproduce --page-only`` rewrites it, and a test checks that the committed page equals the output.
+
+Per table: one line per row with the paper's number next to our mean ± standard deviation over the seeds that
+finished (``n``), then the paper's orderings with the seeds in which each holds.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import statistics
+from collections.abc import Sequence
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+from .tables import CLAIMS, METRIC_COLUMNS, TABLE_COLUMNS, TABLE_TITLES, TABLES, claim_holds, row_values, run_name
+
+__all__ = ["PROFILE_COMMANDS", "load_records", "results_markdown", "run_minutes", "seeds_present"]
+
+#: how each profile's tables are produced (quoted on the page)
+PROFILE_COMMANDS = {
+    "cpu": "make reproduce TABLE={table} PROFILE=cpu SEEDS=0,1,2",
+    "gpu": "make reproduce TABLE={table} PROFILE=gpu SEEDS=0,1,2",
+}
+RUN_FILES = ("metrics.json", "run_info.json")
+
+
+def _read_json(path: Path) -> dict[str, Any] | None:
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    return data if isinstance(data, dict) else None
+
+
+def load_records(profile_dir: Path | str) -> dict[str, dict[str, Any]]:
+    """``{run name: {"metrics": dict, "run_info": dict}}`` for every run folder holding both files."""
+    profile_dir = Path(profile_dir)
+    records: dict[str, dict[str, Any]] = {}
+    if not profile_dir.is_dir():
+        return records
+    for run_dir in sorted(p for p in profile_dir.iterdir() if p.is_dir()):
+        metrics = _read_json(run_dir / "metrics.json")
+        info = _read_json(run_dir / "run_info.json")
+        if metrics is not None and info is not None:
+            records[run_dir.name] = {"metrics": metrics, "run_info": info}
+    return records
+
+
+def seeds_present(records: dict[str, dict[str, Any]]) -> list[int]:
+    """The seeds of the recorded runs, sorted."""
+    seeds = set()
+    for name in records:
+        stem, _, tail = name.rpartition("-s")
+        if stem and tail.isdigit():
+            seeds.add(int(tail))
+    return sorted(seeds)
+
+
+def run_minutes(run_info: dict[str, Any]) -> float:
+    """Wall-clock minutes from ``started`` to ``finished`` (NaN when either is missing or unparsable)."""
+    try:
+        t0 = datetime.strptime(run_info["started"], "%Y-%m-%dT%H:%M:%S%z")
+        t1 = datetime.strptime(run_info["finished"], "%Y-%m-%dT%H:%M:%S%z")
+    except (KeyError, TypeError, ValueError):
+        return math.nan
+    return (t1 - t0).total_seconds() / 60.0
+
+
+def _fmt(v: float, decimals: int) -> str:
+    if math.isinf(v):
+        return "inf"
+    return "-" if not math.isfinite(v) else f"{v:.{decimals}f}"
+
+
+def _mean_std(values: Sequence[float], decimals: int) -> str:
+    finite = [v for v in values if math.isfinite(v)]
+    if not finite:
+        return "-"
+    if len(finite) == 1:
+        return f"{finite[0]:.{decimals}f} (n=1)"
+    return f"{statistics.fmean(finite):.{decimals}f} ± {statistics.stdev(finite):.{decimals}f} (n={len(finite)})"
+
+
+def _table_section(table: str, profile: str, records: dict[str, dict[str, Any]], seeds: list[int]) -> list[str]:
+    def metrics_of(name: str) -> dict[str, Any] | None:
+        rec = records.get(name)
+        return rec["metrics"] if rec else None
+
+    cols = TABLE_COLUMNS[table]
+    lines = [f"## {TABLE_TITLES[table]}", "",
+             f"Command: `{PROFILE_COMMANDS[profile].format(table=table)}` (profile `{profile}`).", ""]
+    head = ["method"] + [f"{METRIC_COLUMNS[c][2]} paper / ours" for c in cols]
+    lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for row in TABLES[table]:
+        cells = [row.label]
+        for c in cols:
+            decimals = METRIC_COLUMNS[c][3]
+            paper = row.paper.get(c)
+            ours = _mean_std(row_values(row, seeds, metrics_of, c), decimals)
+            cells.append(f"{'-' if paper is None else format(paper, f'.{decimals}f')} / {ours}")
+        lines.append("| " + " | ".join(cells) + " |")
+    claims = [c for c in CLAIMS if c.table == table]
+    lines += ["", "| the paper's ordering | holds in seeds | verdict |", "|---|---|---|"]
+    for claim in claims:
+        verdicts = {s: claim_holds(claim, s, metrics_of) for s in seeds}
+        known = {s: v for s, v in verdicts.items() if v is not None}
+        held = [s for s, v in known.items() if v]
+        if not known:
+            verdict = "not run"
+        elif len(held) == len(known):
+            verdict = "holds in every seed" + ("" if len(known) == len(seeds) and len(known) >= 3 else " run so far")
+        elif held:
+            verdict = "mixed"
+        else:
+            verdict = "does not hold"
+        seeds_text = ", ".join(f"{s}: {'yes' if v else 'no'}" for s, v in known.items()) or "-"
+        lines.append(f"| {claim.text} | {seeds_text} | {verdict} |")
+    lines.append("")
+    return lines
+
+
+def _runs_section(records: dict[str, dict[str, Any]]) -> list[str]:
+    lines = ["## Runs", "", "| run | learned | trained steps | best val MAE (mm) | raw val MAE (mm) | minutes |",
+             "|---|---|---|---|---|---|"]
+    for name, rec in records.items():
+        m, info = rec["metrics"], rec["run_info"]
+        learned = m.get("learned")
+        lines.append(f"| {name} | {'-' if learned is None else ('yes' if learned else 'NO')} | "
+                     f"{m.get('trained_steps', '-')} | {_fmt(float(m.get('best_val_mae_mm') or math.nan), 2)} | "
+                     f"{_fmt(float(m.get('raw_val_mae_mm') or math.nan), 2)} | {_fmt(run_minutes(info), 1)} |")
+    lines.append("")
+    return lines
+
+
+def _fig6_section(profile_dir: Path) -> list[str]:
+    data = _read_json(profile_dir / "fig6" / "validation.json")
+    lines = ["## Fig. 6: noise-model validation on the second camera", ""]
+    if data is None:
+        return lines + ["Not run yet (`make reproduce TABLE=fig6`).", ""]
+    lines += [f"Source: {data.get('source', '?')}. Paper: proposed MAPE 7.7 %, R² 0.93 (pooled).", "",
+              "| panel | model | MAPE % | R² | n |", "|---|---|---|---|---|"]
+    pooled = data.get("pooled") or {}
+    for model in ("proposed", "range_gaussian"):
+        p = pooled.get(model) or {}
+        lines.append(f"| pooled | {model} | {_fmt(float(p.get('mape_percent', math.nan)), 2)} | "
+                     f"{_fmt(float(p.get('r2', math.nan)), 3)} | {p.get('n', '-')} |")
+    for panel, entry in (data.get("panels") or {}).items():
+        for model in ("proposed", "range_gaussian"):
+            p = (entry or {}).get(model) or {}
+            lines.append(f"| {panel} | {model} | {_fmt(float(p.get('mape_percent', math.nan)), 2)} | "
+                         f"{_fmt(float(p.get('r2', math.nan)), 3)} | {p.get('n', '-')} |")
+    if (profile_dir / "fig6" / "validation.png").is_file():
+        lines += ["", f"![Fig. 6: {profile_dir.name} profile](results/{profile_dir.name}/fig6/validation.png)"]
+    lines.append("")
+    return lines
+
+
+def _profile_sections(results_dir: Path, profile: str) -> list[str]:
+    profile_dir = results_dir / profile
+    records = load_records(profile_dir)
+    seeds = seeds_present(records) or [0, 1, 2]
+    lines = [f"# Profile `{profile}`", "",
+             f"Seeds with records: {', '.join(map(str, seeds_present(records))) or 'none'}.", ""]
+    for table in TABLES:
+        lines += _table_section(table, profile, records, seeds)
+    lines += _fig6_section(profile_dir)
+    return lines + _runs_section(records)
+
+
+def results_markdown(results_dir: Path | str) -> str:
+    """The whole ``docs/results.md`` from ``results_dir`` (``docs/results``): the CPU profile always, the GPU
+    profile when it has records, then the hand-written ``discussion.md``."""
+    results_dir = Path(results_dir)
+    lines = ["# Reproducing the paper's tables", "",
+             "<!-- generated by `tofdenoise-reproduce --page-only` from docs/results/; do not edit by hand "
+             "(edit docs/results/discussion.md) -->", "",
+             "Each cell: the paper's number / ours as mean ± standard deviation over the seeds (n = seeds that "
+             "finished). Every run of a seed is validated and tested on identical inputs (`data.eval_noise=hetero`); "
+             "the real set is the second camera's capture set (docs/camera-tutorial.md).", ""]
+    discussion = results_dir / "discussion.md"
+    if discussion.is_file():
+        lines += [discussion.read_text().rstrip(), ""]
+    for profile in PROFILE_COMMANDS:
+        if profile == "cpu" or load_records(results_dir / profile):
+            lines += _profile_sections(results_dir, profile)
+    return "\n".join(lines).rstrip() + "\n"
+
+
+def record_names(table: str, seeds: Sequence[int]) -> list[str]:
+    """The run folders a table needs for ``seeds`` (the raw row reads the DVSS L1 runs)."""
+    names: list[str] = []
+    for seed in seeds:
+        for row in TABLES[table]:
+            name = f"dvss-hetero-l1-s{seed}" if row.key == "raw" else run_name(row, seed)
+            if name not in names:
+                names.append(name)
+    return names

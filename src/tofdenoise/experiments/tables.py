@@ -1,0 +1,223 @@
+"""The paper's tables as grids of runs, their numbers, and the orderings the paper claims.
+
+Each table is a list of :class:`Row` (a method as the paper names it, the run that reproduces it, the paper's
+numbers). A run is identified by ``(backbone, noise, loss)`` and a seed, so a run that appears in several tables
+(DVSS + hetero + L1 is a row of Tables 1, 2 and 3) is trained once: its folder is ``<backbone>-<noise>-<loss>-s<seed>``.
+
+The paper's orderings are :class:`Claim` s: a chain of rows whose metric must increase (MAE, lower is better).
+A claim is checked in every seed separately; ``docs/results.md`` says in how many seeds it holds.
+
+Tables (``../shared/seeds`` paper, Sec. V):
+
+* ``1``: Table I (synthetic test set) and the real-set comparison (Table IV): DeepToF, ToF-KPN, RCF, the
+  classical amplitude-guided bilateral filter (not in the paper), DVSS with L1 and with L_full. Baselines train
+  with L1 on the hetero synthesis, like DVSS w/ L1.
+* ``2``: Table II: DVSS structure ablation with L1 (``dvss_no_local`` = w/o DWConv & SCR, ``dvss_no_dwconv``,
+  ``dvss_se``, ``dvss``) and the loss ablation L1 / L_nar / L_full on the full DVSS.
+* ``3``: Table III: DVSS trained with fixed / range / hetero noise, and U-Net / Restormer / DVSS with range vs
+  hetero, all with L1; synthetic test split and the real set.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+from .runner import RunSpec
+
+__all__ = ["Row", "Claim", "TABLES", "TABLE_TITLES", "CLAIMS", "run_name", "table_rows", "table_specs",
+           "METRIC_COLUMNS"]
+
+#: metric column key -> (metrics.json set, metric key, header, decimals)
+METRIC_COLUMNS: dict[str, tuple[str, str, str, int]] = {
+    "psnr_db": ("synthetic", "psnr_db", "PSNR (dB)↑", 2),
+    "ssim": ("synthetic", "ssim", "SSIM↑", 4),
+    "mse_mm2": ("synthetic", "mse_mm2", "MSE (mm²)↓", 2),
+    "mae_mm": ("synthetic", "mae_mm", "MAE (mm)↓", 2),
+    "real_psnr_db": ("real", "psnr_db", "real PSNR (dB)↑", 2),
+    "real_mae_mm": ("real", "mae_mm", "real MAE (mm)↓", 2),
+}
+
+
+@dataclass(frozen=True)
+class Row:
+    """One row of a table: the method's label, the run that reproduces it, and the paper's numbers."""
+
+    key: str
+    label: str
+    backbone: str
+    noise: str = "hetero"
+    loss: str = "l1"
+    paper: Mapping[str, float] = field(default_factory=dict, compare=False, hash=False)
+    #: "train": a ``tofdenoise-train`` run; "classical": the tuned, parameter-free filter (``tofdenoise.cli.classic``)
+    kind: str = "train"
+
+    def run_stem(self) -> str:
+        return self.backbone if self.kind == "classical" else f"{self.backbone}-{self.noise}-{self.loss}"
+
+
+@dataclass(frozen=True)
+class Claim:
+    """An ordering the paper reports: ``metric`` increases along ``chain`` (row keys, best first)."""
+
+    table: str
+    text: str
+    metric: str
+    chain: tuple[str, ...]
+
+
+def run_name(row: Row, seed: int) -> str:
+    """The folder name of ``row``'s run for ``seed`` (shared by every table the row appears in)."""
+    return f"{row.run_stem()}-s{seed}"
+
+
+_DVSS_L1 = {"psnr_db": 40.37, "ssim": 0.9985, "mse_mm2": 91.75, "mae_mm": 2.78,
+            "real_psnr_db": 35.12, "real_mae_mm": 5.04}
+
+TABLE_TITLES = {
+    "1": "Table I: comparison with iToF denoising methods (synthetic test set) and on the real set (Table IV)",
+    "2": "Table II: DVSS structure ablation (L1) and training-objective ablation",
+    "3": "Table III: training-noise models and their cross-backbone generalisation (L1)",
+}
+
+TABLES: dict[str, tuple[Row, ...]] = {
+    "1": (
+        Row("raw", "Raw iToF (the noisy input)", "dvss", "hetero", "l1",
+            {"real_psnr_db": 31.68, "real_mae_mm": 7.21}),
+        Row("deeptof", "DeepToF", "deeptof", paper={"psnr_db": 37.99, "ssim": 0.9951, "mse_mm2": 158.94,
+                                                    "mae_mm": 6.12, "real_psnr_db": 33.29, "real_mae_mm": 6.18}),
+        Row("tofkpn", "ToF-KPN", "tofkpn", paper={"psnr_db": 39.19, "ssim": 0.9969, "mse_mm2": 120.52,
+                                                 "mae_mm": 4.88, "real_psnr_db": 34.76, "real_mae_mm": 5.31}),
+        Row("rcf", "RCF (our reading)", "rcf", paper={"psnr_db": 39.53, "ssim": 0.9972, "mse_mm2": 111.41,
+                                                     "mae_mm": 4.63, "real_psnr_db": 34.48, "real_mae_mm": 5.52}),
+        Row("bilateral", "Joint bilateral (classical, not in the paper)", "bilateral", kind="classical"),
+        Row("dvss_l1", "DVSS w/ L1", "dvss", "hetero", "l1", _DVSS_L1),
+        Row("dvss_full", "DVSS w/ L_full", "dvss", "hetero", "full",
+            {"psnr_db": 40.85, "ssim": 0.9987, "mse_mm2": 82.30, "mae_mm": 2.54,
+             "real_psnr_db": 35.42, "real_mae_mm": 4.87}),
+    ),
+    "2": (
+        Row("no_local", "w/o DWConv & SCR (L1)", "dvss_no_local",
+            paper={"psnr_db": 39.76, "ssim": 0.9954, "mse_mm2": 105.66, "mae_mm": 3.55}),
+        Row("no_dwconv", "w/o DWConv (L1)", "dvss_no_dwconv",
+            paper={"psnr_db": 40.00, "ssim": 0.9976, "mse_mm2": 99.89, "mae_mm": 3.19}),
+        Row("se", "w/ SE (L1)", "dvss_se", paper={"psnr_db": 40.16, "ssim": 0.9983, "mse_mm2": 96.35, "mae_mm": 3.06}),
+        Row("dvss_l1", "Full DVSS (L1)", "dvss", "hetero", "l1",
+            {k: v for k, v in _DVSS_L1.items() if not k.startswith("real")}),
+        Row("dvss_nar", "Full DVSS (L_nar)", "dvss", "hetero", "nar",
+            {"psnr_db": 40.66, "ssim": 0.9986, "mse_mm2": 85.90, "mae_mm": 2.62}),
+        Row("dvss_full", "Full DVSS (L_full)", "dvss", "hetero", "full",
+            {"psnr_db": 40.85, "ssim": 0.9987, "mse_mm2": 82.30, "mae_mm": 2.54}),
+    ),
+    "3": (
+        Row("dvss_fixed", "DVSS, fixed Gaussian", "dvss", "fixed", "l1",
+            {"psnr_db": 39.40, "mae_mm": 3.42, "real_psnr_db": 34.41, "real_mae_mm": 5.82}),
+        Row("dvss_range", "DVSS, range-aware Gaussian", "dvss", "range", "l1",
+            {"psnr_db": 39.89, "mae_mm": 3.08, "real_psnr_db": 34.88, "real_mae_mm": 5.36}),
+        Row("dvss_hetero", "DVSS, hetero (proposed)", "dvss", "hetero", "l1",
+            {"psnr_db": 40.37, "mae_mm": 2.78, "real_psnr_db": 35.12, "real_mae_mm": 5.04}),
+        Row("unet_range", "U-Net, range-aware Gaussian", "unet", "range", "l1",
+            {"psnr_db": 38.56, "mae_mm": 4.18, "real_psnr_db": 33.67, "real_mae_mm": 6.34}),
+        Row("unet_hetero", "U-Net, hetero (proposed)", "unet", "hetero", "l1",
+            {"psnr_db": 39.01, "mae_mm": 3.76, "real_psnr_db": 34.12, "real_mae_mm": 5.84}),
+        Row("restormer_range", "Restormer, range-aware Gaussian", "restormer", "range", "l1",
+            {"psnr_db": 39.22, "mae_mm": 3.58, "real_psnr_db": 34.19, "real_mae_mm": 5.91}),
+        Row("restormer_hetero", "Restormer, hetero (proposed)", "restormer", "hetero", "l1",
+            {"psnr_db": 39.68, "mae_mm": 3.22, "real_psnr_db": 34.55, "real_mae_mm": 5.46}),
+    ),
+}
+
+#: which metric columns each table shows (the paper's)
+TABLE_COLUMNS: dict[str, tuple[str, ...]] = {
+    "1": ("psnr_db", "ssim", "mse_mm2", "mae_mm", "real_psnr_db", "real_mae_mm"),
+    "2": ("psnr_db", "ssim", "mse_mm2", "mae_mm"),
+    "3": ("psnr_db", "mae_mm", "real_psnr_db", "real_mae_mm"),
+}
+
+CLAIMS: tuple[Claim, ...] = (
+    Claim("1", "DVSS L_full < DVSS L1 (synthetic MAE)", "mae_mm", ("dvss_full", "dvss_l1")),
+    Claim("1", "DVSS L1 < RCF < ToF-KPN < DeepToF (synthetic MAE)", "mae_mm", ("dvss_l1", "rcf", "tofkpn", "deeptof")),
+    Claim("1", "real MAE: DVSS L_full < ToF-KPN < RCF < DeepToF < raw", "real_mae_mm",
+          ("dvss_full", "tofkpn", "rcf", "deeptof", "raw")),
+    Claim("2", "structure (L1): full < w/ SE < w/o DWConv < w/o DWConv & SCR (MAE)", "mae_mm",
+          ("dvss_l1", "se", "no_dwconv", "no_local")),
+    Claim("2", "objective: L_full < L_nar < L1 (MAE)", "mae_mm", ("dvss_full", "dvss_nar", "dvss_l1")),
+    Claim("3", "DVSS: hetero < range < fixed (synthetic MAE)", "mae_mm", ("dvss_hetero", "dvss_range", "dvss_fixed")),
+    Claim("3", "DVSS: hetero < range < fixed (real MAE)", "real_mae_mm",
+          ("dvss_hetero", "dvss_range", "dvss_fixed")),
+    Claim("3", "hetero < range for U-Net (synthetic MAE)", "mae_mm", ("unet_hetero", "unet_range")),
+    Claim("3", "hetero < range for Restormer (synthetic MAE)", "mae_mm", ("restormer_hetero", "restormer_range")),
+    Claim("3", "hetero < range for U-Net (real MAE)", "real_mae_mm", ("unet_hetero", "unet_range")),
+    Claim("3", "hetero < range for Restormer (real MAE)", "real_mae_mm", ("restormer_hetero", "restormer_range")),
+    Claim("3", "hetero training: DVSS < Restormer < U-Net (synthetic MAE)", "mae_mm",
+          ("dvss_hetero", "restormer_hetero", "unet_hetero")),
+)
+
+
+def table_rows(table: str) -> tuple[Row, ...]:
+    if table not in TABLES:
+        raise ValueError(f"unknown table {table!r}; valid: {', '.join(TABLES)}")
+    return TABLES[table]
+
+
+def table_specs(table: str, seeds: Sequence[int], common: Sequence[str] = (),
+                per_backbone: Mapping[str, Sequence[str]] | None = None) -> list[RunSpec]:
+    """The runs of ``table`` for ``seeds`` (one per distinct run; the raw row needs no run of its own).
+
+    ``common``: overrides for every training run (the profile's experiment, the sensor, the real set);
+    ``per_backbone``: extra overrides for one backbone. Classical rows become ``RunSpec`` s with
+    ``entry="classical"`` (run by ``python -m tofdenoise.cli.classic``, which reads the same overrides).
+    """
+    per_backbone = per_backbone or {}
+    specs: dict[str, RunSpec] = {}
+    for seed in seeds:
+        for row in table_rows(table):
+            if row.key == "raw":
+                continue
+            name = run_name(row, seed)
+            if name in specs:
+                continue
+            if row.kind == "classical":
+                overrides = (*common, f"seed={seed}")
+            else:
+                overrides = (f"backbone={row.backbone}", f"noise={row.noise}", f"loss={row.loss}", f"seed={seed}",
+                             *common, *per_backbone.get(row.backbone, ()))
+            specs[name] = RunSpec(name, tuple(overrides),
+                                  {"table": table, "row": row.key, "seed": seed, "kind": row.kind},
+                                  entry=row.kind)
+    return list(specs.values())
+
+
+def _value(metrics: Mapping[str, Any] | None, column: str, raw: bool = False) -> float:
+    if not metrics:
+        return math.nan
+    set_name, key, _, _ = METRIC_COLUMNS[column]
+    entry = metrics.get(set_name) or {}
+    if raw:
+        entry = entry.get("raw") or {}
+    v = entry.get(key)
+    if v == "inf":
+        return math.inf
+    return math.nan if v is None else float(v)
+
+
+def row_values(row: Row, seeds: Sequence[int], metrics_of: Any, column: str) -> list[float]:
+    """Per-seed values of ``column`` for ``row``; ``metrics_of(run_name) -> metrics.json dict or None``.
+
+    The raw row reads the noisy input's metrics from the DVSS L1 run of the same seed (every run of a seed is
+    evaluated on identical inputs: ``data.eval_noise``).
+    """
+    if row.key == "raw":
+        return [_value(metrics_of(f"dvss-hetero-l1-s{s}"), column, raw=True) for s in seeds]
+    return [_value(metrics_of(run_name(row, s)), column) for s in seeds]
+
+
+def claim_holds(claim: Claim, seed: int, metrics_of: Any) -> bool | None:
+    """Whether ``claim`` holds for ``seed``: True / False, or None when a value is missing."""
+    rows = {r.key: r for r in TABLES[claim.table]}
+    values = [row_values(rows[k], [seed], metrics_of, claim.metric)[0] for k in claim.chain]
+    if any(not math.isfinite(v) for v in values):
+        return None
+    return all(a < b for a, b in zip(values, values[1:]))
