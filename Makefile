@@ -19,8 +19,6 @@ ARGS ?=
 PYTEST_ARGS ?=
 BENCH_ARGS ?=
 
-export WANDB_SILENT ?= true
-export WANDB_ERROR_REPORTING ?= false
 export PYTHONUNBUFFERED := 1
 
 .PHONY: help venv train test test-slow bench robustness reproduce cli-configs clean

@@ -6,9 +6,9 @@ import os
 
 import pytest
 
-os.environ.setdefault("WANDB_MODE", "offline")
-os.environ.setdefault("WANDB_SILENT", "true")
-os.environ.setdefault("WANDB_ERROR_REPORTING", "false")
+from tofdenoise.wandb_env import quiet_wandb
+
+quiet_wandb(offline=True)  # WANDB_MODE=offline, quiet (subprocesses inherit it)
 os.environ.setdefault("HYDRA_FULL_ERROR", "1")
 
 

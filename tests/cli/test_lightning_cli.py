@@ -15,7 +15,7 @@ from lightning.pytorch import seed_everything
 
 from tofdenoise.cli.export_cli_config import PRESETS, export_preset, main as export_main
 from tofdenoise.cli.lightning_cli import build_cli, main as cli_main
-from tofdenoise.cli.train import compose_config, config_dir
+from tofdenoise.config import compose_config, config_dir
 
 CLI_DIR = config_dir() / "cli"
 
@@ -75,6 +75,11 @@ def test_fit_test_predict_from_the_smoke_config(tmp_path, data_cache, monkeypatc
     metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert set(metrics["synthetic"]) >= {"psnr_db", "mae_mm", "mse_mm2", "ssim", "raw"}
     assert (tmp_path / "run" / "per_image" / "synthetic.csv").is_file()
+    # the same RunOutputs callback as the Hydra run: run_info.json with the tested checkpoint
+    info = json.loads((tmp_path / "run" / "run_info.json").read_text())
+    assert {"backbone": "unet", "noise": "hetero", "loss": "full", "run_name": "unet-hetero-full",
+            "data": "procedural", "seed": 0, "best_ckpt": str(best)}.items() <= info.items()
+    assert "finished" in info and "started" in info
     # the learned guard's fields come from the tested checkpoint (6 training scenes, batch 2: 3 steps)
     from tofdenoise.training.results import learned_status, learned_verdict
 

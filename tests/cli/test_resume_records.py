@@ -13,7 +13,8 @@ import pytest
 import torch
 
 from tofdenoise.cli.checkpoint_check import CheckpointFileError, check_checkpoint_file
-from tofdenoise.cli.train import compose_config, run
+from tofdenoise.cli.train import run
+from tofdenoise.config import compose_config
 
 REPO = Path(__file__).resolve().parents[2]
 RECORDS = ("run_info.json", "config.yaml", "metrics.json")

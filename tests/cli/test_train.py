@@ -21,7 +21,8 @@ from tofdenoise.training.results import (
     read_metrics_json,
     read_per_image_csv,
 )
-from tofdenoise.cli.train import compose_config, run
+from tofdenoise.cli.train import run
+from tofdenoise.config import compose_config
 from tofdenoise.training.metrics import METRIC_KEYS
 from tofdenoise.models import available_backbones
 

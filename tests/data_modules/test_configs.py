@@ -57,7 +57,7 @@ def test_dataset_configs_ask_for_root(tmp_path, monkeypatch):
 @pytest.mark.parametrize("data", ["procedural", "folder", "flyingthings3d"])
 def test_documented_real_dir_override_needs_no_plus(tmp_path, data):
     """docs/data.md writes `data.real_dir=SCENES_DIR`: Hydra accepts it because every data config declares it."""
-    from tofdenoise.cli.train import compose_config
+    from tofdenoise.config import compose_config
 
     cfg = compose_config([f"data={data}", f"paths.run_dir={tmp_path}", f"data.real_dir={tmp_path}/scenes"])
     assert cfg.data.real_dir == f"{tmp_path}/scenes"

@@ -177,7 +177,7 @@ def test_metrics_json_counts_the_scenes_the_datamodule_skipped(tmp_path):
     from types import SimpleNamespace
 
     from tofdenoise.training.results import set_entry
-    from tofdenoise.cli.train import write_test_outputs
+    from tofdenoise.callbacks.run_outputs import write_test_outputs
 
     m = {"psnr_db": 40.0, "mae_mm": 2.0, "mse_mm2": 9.0, "ssim": 0.99}
     model = SimpleNamespace(

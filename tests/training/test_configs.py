@@ -8,7 +8,9 @@ from hydra.errors import ConfigCompositionException
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
-from tofdenoise.cli.train import compose_config, config_dir, resolve_ckpt_path, validate_config
+from tofdenoise.cli.checkpoint_check import resolve_ckpt_path
+from tofdenoise.cli.train import validate_config
+from tofdenoise.config import compose_config, config_dir
 from tofdenoise.training.losses import available_losses
 from tofdenoise.models import available_backbones
 from tofdenoise.physics.noise_models import available_noise_models

@@ -5,10 +5,13 @@
 - :class:`~tofdenoise.callbacks.csv_log.ResumableCSVLogger` + :class:`~tofdenoise.callbacks.csv_log.CSVLogResume`:
   a ``metrics.csv`` that keeps the rows of an interrupted run when it is resumed.
 - :class:`~tofdenoise.callbacks.summary.RunSummary`: a readable one-line summary after fit and test.
+- :class:`~tofdenoise.callbacks.run_outputs.RunOutputs`: the run's records (``run_info.json``, ``metrics.json``,
+  ``per_image/<set>.csv``), the same for both front ends.
 - :class:`~tofdenoise.callbacks.predict_writer.DepthPredictionWriter`: 16-bit PNG (mm) + ``.npy`` predictions.
 - :class:`~tofdenoise.callbacks.image_panels.ImagePanelLogger`: a fixed panel of validation samples per epoch.
 
-The run-results schema and its writers (``metrics.json``, per-image CSVs) live in :mod:`tofdenoise.training.results`.
+The run-results schema and its writers (``metrics.json``, per-image CSVs, the file names) live in
+:mod:`tofdenoise.training.results`.
 The classes are imported lazily, so that importing this package does not pay for importing Lightning.
 """
 
@@ -22,6 +25,7 @@ _LAZY = {
     "DepthPredictionWriter": "tofdenoise.callbacks.predict_writer",
     "ImagePanelLogger": "tofdenoise.callbacks.image_panels",
     "ResumableCSVLogger": "tofdenoise.callbacks.csv_log",
+    "RunOutputs": "tofdenoise.callbacks.run_outputs",
     "RunSummary": "tofdenoise.callbacks.summary",
 }
 

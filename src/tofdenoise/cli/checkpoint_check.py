@@ -7,15 +7,21 @@ A run killed while its checkpoint was copied, a full disk or a partial download 
 1.6) whose members pass their CRC check, and ``torch.load`` (memory-mapped, on CPU) must give a Lightning
 checkpoint dict with a ``state_dict``. Otherwise :class:`CheckpointFileError` says in one line which file is
 broken and what to do: resume from ``best.ckpt`` (when there is one) or delete the file to start afresh.
+
+:func:`resolve_ckpt_path` turns the Hydra entry point's ``ckpt_path`` setting (``null``, ``last`` or a file)
+into the checkpoint to resume from.
 """
 
 from __future__ import annotations
 
+import logging
 import os
 import zipfile
 from pathlib import Path
 
-__all__ = ["CheckpointFileError", "check_checkpoint_file"]
+__all__ = ["CheckpointFileError", "check_checkpoint_file", "resolve_ckpt_path"]
+
+log = logging.getLogger("tofdenoise.train")
 
 
 class CheckpointFileError(ValueError):
@@ -64,3 +70,22 @@ def check_checkpoint_file(path: str | os.PathLike[str], option: str = "ckpt_path
     if problem is not None:
         raise CheckpointFileError(f"checkpoint {path} is {problem}; {_advice(path, option)}")
     return path
+
+
+def resolve_ckpt_path(ckpt_path: str | None, run_dir: Path) -> str | None:
+    """``None`` -> fresh run; ``"last"`` -> ``<run_dir>/checkpoints/last.ckpt`` when it exists (else fresh);
+    any other value -> that file (which must exist)."""
+    if ckpt_path in (None, "", "null"):
+        return None
+    if ckpt_path == "last":
+        last = run_dir / "checkpoints" / "last.ckpt"
+        if last.is_file():
+            log.info("resuming from %s", last)
+            return str(last)
+        log.warning("ckpt_path=last: %s does not exist yet, starting a fresh run", last)
+        return None
+    path = Path(str(ckpt_path)).expanduser()
+    if not path.is_file():
+        raise FileNotFoundError(f"config ckpt_path: checkpoint {path} does not exist "
+                                "(use ckpt_path=last to resume the run in paths.run_dir)")
+    return str(path)

@@ -73,7 +73,7 @@ def render_yaml(cli_cfg: dict[str, Any], name: str, overrides: list[str], run_di
 
 def export_preset(name: str, overrides: list[str]) -> str:
     """YAML text of one preset (the run folder is ``outputs/cli/<name>``)."""
-    from tofdenoise.cli.train import compose_config
+    from tofdenoise.config import compose_config
 
     run_dir = f"outputs/cli/{name}"
     cfg = compose_config([*overrides, f"paths.run_dir={run_dir}"])
@@ -81,7 +81,7 @@ def export_preset(name: str, overrides: list[str]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from tofdenoise.cli.train import config_dir
+    from tofdenoise.config import config_dir
 
     ap = argparse.ArgumentParser(prog="python -m tofdenoise.cli.export_cli_config", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)

@@ -9,35 +9,38 @@ generated from the Hydra configs (``configs/cli/{default,smoke,paper}.yaml``, se
     tofdenoise test --config configs/cli/default.yaml --ckpt_path outputs/cli/default/checkpoints/best.ckpt
     tofdenoise predict --config configs/cli/default.yaml --ckpt_path outputs/cli/default/checkpoints/best.ckpt
 
-``test`` writes ``metrics.json`` and ``per_image/<set>.csv`` into ``trainer.default_root_dir`` (as the Hydra
-run does); ``predict`` writes PNG/``.npy`` depth maps through ``DepthPredictionWriter``.
+The run's records come from the ``RunOutputs`` callback of the configs (as in the Hydra run): ``fit`` and
+``test`` write ``run_info.json``, ``test`` also ``metrics.json`` and ``per_image/<set>.csv``, all into
+``trainer.default_root_dir``; ``predict`` writes PNG/``.npy`` depth maps through ``DepthPredictionWriter``.
+wandb's environment (quiet, its files under ``trainer.default_root_dir``) and its ``wandb.finish()`` at the end
+come from ``tofdenoise.wandb_env``.
 """
 
 from __future__ import annotations
 
-import os
 import sys
 from pathlib import Path
 from typing import Any
 
 from lightning.pytorch.cli import LightningCLI
 
+from tofdenoise.wandb_env import finish_wandb, quiet_wandb, setup_wandb_env
+
 __all__ = ["ToFLightningCLI", "main", "build_cli"]
 
 
 class ToFLightningCLI(LightningCLI):
-    """LightningCLI over ``DepthRestorer`` / ``ToFDataModule`` that also writes ``metrics.json`` after test."""
+    """LightningCLI over ``DepthRestorer`` / ``ToFDataModule`` that checks ``--ckpt_path`` before anything is
+    written and keeps wandb's files in the run folder."""
 
     def before_instantiate_classes(self) -> None:
         sub = self.config.get("subcommand") if hasattr(self.config, "get") else None
         cfg = self.config[sub] if sub else self.config
         root = cfg.get("trainer", {}).get("default_root_dir") if hasattr(cfg, "get") else None
         if root:
-            from tofdenoise.cli.train import _setup_wandb_env
-
             root_path = Path(str(root)).expanduser().resolve()
             root_path.mkdir(parents=True, exist_ok=True)
-            _setup_wandb_env(root_path)
+            setup_wandb_env(root_path)
 
     def _check_ckpt_path(self) -> None:
         """Check ``--ckpt_path`` before the trainer writes anything (SaveConfigCallback's config.yaml)."""
@@ -81,12 +84,6 @@ class ToFLightningCLI(LightningCLI):
     def before_predict(self) -> None:
         self._check_ckpt_path()
 
-    def after_test(self) -> None:
-        if self.trainer.is_global_zero:
-            from tofdenoise.cli.train import write_test_outputs
-
-            write_test_outputs(self.model, Path(self.trainer.default_root_dir).resolve())
-
 
 def build_cli(args: list[str] | None = None, run: bool = True) -> ToFLightningCLI:
     """The CLI object (``run=False``: parse the config and instantiate model/data/trainer without running)."""
@@ -105,16 +102,9 @@ def build_cli(args: list[str] | None = None, run: bool = True) -> ToFLightningCL
     )
 
 
-def _finish_wandb() -> None:
-    wandb = sys.modules.get("wandb")
-    if wandb is not None and getattr(wandb, "run", None) is not None:
-        wandb.finish()
-
-
 def main(args: list[str] | None = None) -> Any:
     """Console script ``tofdenoise``."""
-    os.environ.setdefault("WANDB_SILENT", "true")
-    os.environ.setdefault("WANDB_ERROR_REPORTING", "false")
+    quiet_wandb()
     from tofdenoise.cli.checkpoint_check import CheckpointFileError
 
     try:
@@ -123,7 +113,7 @@ def main(args: list[str] | None = None) -> Any:
         print(f"tofdenoise: error: {exc}", file=sys.stderr)
         raise SystemExit(2) from None
     finally:
-        _finish_wandb()
+        finish_wandb()
     return 0
 
 

@@ -25,10 +25,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from tofdenoise.training.results import METRICS_NAME, RUN_INFO_NAME
+
 __all__ = ["RunSpec", "RunOutcome", "run_finished", "run_all", "read_run", "ENTRY_MODULES"]
 
-RUN_INFO_NAME = "run_info.json"
-METRICS_NAME = "metrics.json"
 LOG_NAME = "train.log"
 #: RunSpec.entry -> the module run as ``python -m <module> <overrides> paths.run_dir=<folder>``
 ENTRY_MODULES = {"train": "tofdenoise.cli.train", "classical": "tofdenoise.cli.classic"}

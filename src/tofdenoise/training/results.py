@@ -19,6 +19,9 @@ Functions for the LightningModule, the callbacks and the entry points (no Lightn
   with ``raw_rows`` (matched by index), ``raw_psnr_db, raw_mae_mm, raw_mse_mm2, raw_ssim``. ``names`` maps an
   index to the image name (a dict or a sequence indexed by ``index``). ``read_per_image_csv(path)`` reads it.
 
+File names of a run folder: ``METRICS_NAME`` (``metrics.json``), ``RUN_INFO_NAME`` (``run_info.json``) and
+``PER_IMAGE_DIR`` (``per_image/``); ``tofdenoise.callbacks.run_outputs.RunOutputs`` writes them.
+
 Every file is written through :mod:`tofdenoise.atomic` (temp file in the same folder + ``os.replace``: readers see
 the old or the complete new file, never a partial one).
 
@@ -63,12 +66,21 @@ __all__ = [
     "learned_status",
     "metric_sets",
     "run_fields",
+    "METRICS_NAME",
+    "RUN_INFO_NAME",
+    "PER_IMAGE_DIR",
 ]
 
 EXTRA_KEYS = ("mae_mm_pooled", "images", "skipped_images", "valid_px")
 CSV_COLUMNS = ("index", "name", "valid_px") + METRIC_KEYS
 #: run-level (top-level, not per-set) fields of ``metrics.json``: the learned guard
 RUN_KEYS = ("trained_steps", "best_val_mae_mm", "raw_val_mae_mm", "learned_margin", "learned", "learned_reason")
+#: the records of a run folder (written by ``tofdenoise.callbacks.run_outputs.RunOutputs``): the test metrics,
+#: the run's description (``backbone``, ``noise``, ``loss``, ``run_name``, ``started``, ``finished``, ...) and the
+#: folder of the per-image CSVs (``per_image/<set>.csv``)
+METRICS_NAME = "metrics.json"
+RUN_INFO_NAME = "run_info.json"
+PER_IMAGE_DIR = "per_image"
 #: default margin of the learned guard: the best validation MAE must be at least 5 % below the raw MAE
 DEFAULT_LEARNED_MARGIN = 0.05
 
