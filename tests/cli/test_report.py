@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 from tofdenoise.training.results import set_entry, write_metrics_json
-from tofdenoise.cli.report import find_runs, load_run, main, results_table, table_markdown
+from tofdenoise.cli.report import main
+from tofdenoise.reporting import find_runs, load_run, results_table, table_markdown
 
 RAW = {"psnr_db": 31.68, "ssim": 0.95, "mse_mm2": 680.0, "mae_mm": 7.21}
 

@@ -1,0 +1,129 @@
+"""The comparison table of runs, like the paper's: one "Raw input" row per distinct raw result, then one row per
+run (method, noise model, loss, the "Learned" flag, PSNR/SSIM/MSE/MAE per test set; the best value of each
+column in bold, never that of a run flagged by the learned guard).
+
+The "Learned" column (:func:`learned_flag`) shows the learned guard of each run: ``yes``; ``NOT LEARNED`` (the
+best validation MAE was not ``learned_margin`` below the raw MAE); ``NOT TRAINED`` (0 optimiser steps, e.g.
+``trainer.max_epochs=0``: the metrics are those of an untrained network); ``unverified`` (no validation
+result); ``?`` (a metrics.json written before the guard existed).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any
+
+from tofdenoise.reporting.runs import Run
+from tofdenoise.training.results import learned_status
+
+__all__ = ["METRIC_COLUMNS", "SET_LABELS", "LEARNED_FLAGS", "FLAGGED", "learned_flag", "results_table", "table_markdown",
+           "best_value", "fmt_value"]
+
+METRIC_COLUMNS = (  # key, header, decimals, higher is better
+    ("psnr_db", "PSNR (dB)&uarr;", "PSNR (dB)↑", 2, True),
+    ("ssim", "SSIM&uarr;", "SSIM↑", 4, True),
+    ("mse_mm2", "MSE (mm&sup2;)&darr;", "MSE (mm²)↓", 2, False),
+    ("mae_mm", "MAE (mm)&darr;", "MAE (mm)↓", 2, False),
+)
+SET_LABELS = {"synthetic": "Synthetic", "real": "Real"}
+#: the Learned column per ``tofdenoise.training.results.learned_status``
+LEARNED_FLAGS = {"learned": "yes", "did not learn": "NOT LEARNED", "not trained": "NOT TRAINED",
+                 "not verified": "unverified", "unknown": "?"}
+#: learned-guard statuses shown in red and never bold
+FLAGGED = {"did not learn", "not trained", "not verified"}
+
+
+def learned_flag(run: Run) -> str:
+    """The Learned column of a run: ``yes``, ``NOT LEARNED``, ``NOT TRAINED``, ``unverified`` or ``?``."""
+    return LEARNED_FLAGS[learned_status(run.learned)]
+
+
+def _value(v: Any) -> float | None:
+    if v is None:
+        return None
+    if v == "inf":
+        return math.inf
+    if v == "-inf":
+        return -math.inf
+    try:
+        return float(v)
+    except (TypeError, ValueError):
+        return None
+
+
+def _same(a: float | None, b: float | None) -> bool:
+    if a is None or b is None:
+        return a is b
+    return a == b or abs(a - b) <= 1e-6 * max(1.0, abs(a), abs(b))
+
+
+def results_table(runs: Sequence[Run]) -> tuple[list[str], list[dict[str, Any]]]:
+    """(set names shown, rows); a row: {"kind": "raw"|"run", "method", "noise", "loss", "learned" (the flag),
+    (set, key) -> float}; run rows also carry "name", "flagged" (bool) and "learned_reason"."""
+    sets = [s for s in ("synthetic", "real") if any(s in r.metrics for r in runs)]
+    sets += sorted({s for r in runs for s in r.metrics} - set(sets))
+    raw_rows: list[dict[str, Any]] = []
+    for r in runs:
+        values = {(s, k): _value(r.metrics[s]["raw"][k]) for s in sets if s in r.metrics and "raw" in r.metrics[s]
+                  for k, *_ in METRIC_COLUMNS}
+        if not values:
+            continue
+        # runs evaluated on the same data share one raw row: merge when no common value differs
+        for row in raw_rows:
+            common = [c for c in values if c in row]
+            if common and all(_same(row[c], values[c]) for c in common):
+                row.update(values)
+                if r.noise not in row["noises"]:
+                    row["noises"].append(r.noise)
+                break
+        else:
+            raw_rows.append({"kind": "raw", "method": "Raw input", "loss": "–", "learned": "–", "noises": [r.noise],
+                             **values})
+    for row in raw_rows:
+        row["noise"] = ", ".join(row.pop("noises"))
+    run_rows = []
+    for r in runs:
+        status = learned_status(r.learned)
+        row: dict[str, Any] = {"kind": "run", "method": r.method, "noise": r.noise, "loss": r.loss, "name": r.name,
+                               "learned": LEARNED_FLAGS[status], "flagged": status in FLAGGED,
+                               "learned_reason": str(r.learned.get("learned_reason", ""))}
+        for s in sets:
+            for k, *_ in METRIC_COLUMNS:
+                row[(s, k)] = _value(r.metrics.get(s, {}).get(k))
+        run_rows.append(row)
+    return sets, raw_rows + run_rows
+
+
+def best_value(rows: list[dict[str, Any]], col: tuple[str, str], higher: bool) -> float | None:
+    """Best value of a column among the runs not flagged by the learned guard (None with fewer than two)."""
+    vals = [row[col] for row in rows if row["kind"] == "run" and not row.get("flagged") and row.get(col) is not None]
+    if len(vals) < 2:
+        return None
+    return max(vals) if higher else min(vals)
+
+
+def fmt_value(v: float | None, decimals: int) -> str:
+    if v is None:
+        return "–"
+    if math.isinf(v):
+        return "inf" if v > 0 else "-inf"
+    return f"{v:.{decimals}f}"
+
+
+def table_markdown(sets: Sequence[str], rows: list[dict[str, Any]]) -> str:
+    """The comparison table as GitHub Markdown (best run value per column in bold)."""
+    header = (["Method", "Noise", "Loss", "Learned"]
+              + [f"{SET_LABELS.get(s, s)} {m[2]}" for s in sets for m in METRIC_COLUMNS])
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join(["---"] * 4 + ["---:"] * (len(header) - 4)) + "|"]
+    for row in rows:
+        cells = [row["method"], row["noise"], row["loss"], row["learned"]]
+        for s in sets:
+            for key, _, _, dec, higher in METRIC_COLUMNS:
+                v = row.get((s, key))
+                text = fmt_value(v, dec)
+                if v is not None and row["kind"] == "run" and not row["flagged"] and v == best_value(rows, (s, key), higher):
+                    text = f"**{text}**"
+                cells.append(text)
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
