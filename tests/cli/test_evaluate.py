@@ -11,7 +11,8 @@ import cv2
 import numpy as np
 import pytest
 
-from tofdenoise.cli.evaluate import evaluate_dirs, main
+from tofdenoise.cli.evaluate import main
+from tofdenoise.evaluation import evaluate_dirs
 
 
 def _png16(path: Path, depth_mm: np.ndarray) -> None:

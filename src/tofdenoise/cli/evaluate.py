@@ -2,27 +2,9 @@
 
     tofdenoise-eval --pred DIR --ref DIR [--mask DIR] --out FILE.json [--d-max-mm 1000]
 
-Files are matched by stem (``scene_001.png`` <-> ``scene_001.npy`` is fine). Depth files: single-channel
-16-bit PNG/TIFF holding millimetres (0 = invalid), or ``.npy``/``.npz`` (single array)/``.exr`` float maps in
-millimetres. An 8-bit PNG cannot hold depth in mm and is an error. Mask files: any single-channel image or
-array, nonzero = evaluate. A pixel counts where the reference is valid (finite and > 0), the mask (if
-given) is nonzero and the prediction is finite; metrics are per image, then averaged over images
-(``tofdenoise.training.metrics``; PSNR with D_max = 1000 mm, no clamping). An image without a valid pixel is listed
-with null values and left out of the mean.
-
-Non-finite predictions (NaN or +-inf) are failures, never a reward: a pixel the method should have
-predicted (reference valid, mask nonzero) but left non-finite is left out of that image's metrics, *counted*
-as ``nan_px`` (per image and in total) and reported with a warning on stderr; an image whose every such
-pixel is non-finite is a failure row (null metrics, listed in ``failed``, left out of the mean). A result
-with ``nan_px > 0`` is therefore not comparable with one without: its mean covers fewer pixels.
-
-Output (atomic write, strict JSON)::
-
-    {"mean": {"psnr_db", "mae_mm", "mse_mm2", "ssim"},
-     "images": {"<stem>": {"psnr_db", "mae_mm", "mse_mm2", "ssim", "valid_px", "nan_px"}},
-     "mae_mm_pooled": float, "num_images": int, "skipped": [stems without a valid reference pixel],
-     "nan_px": int, "failed": [stems whose prediction is non-finite wherever it is evaluated],
-     "d_max_mm": float}
+Files are matched by stem; which files count, which pixels count, how non-finite predictions are counted and
+the result's layout: :mod:`tofdenoise.evaluation` (``evaluate_dirs``). The result is written atomically as
+strict JSON; non-finite predicted pixels are reported with a warning on stderr.
 
 Errors (exit status 2) name the file: missing counterpart, shape mismatch, wrong dtype, unreadable file,
 empty or missing folder, two files with the same stem, and an ``--out`` that is a folder, is not ``.json``,
@@ -37,129 +19,12 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
-import numpy as np
-import torch
-
 from tofdenoise.atomic import atomic_write_text
-from tofdenoise.training.results import json_number
 from tofdenoise.cli.output_guard import OutputPathError, check_output_file
-from tofdenoise.training.metrics import D_MAX_MM, METRIC_KEYS, DepthMetrics
+from tofdenoise.evaluation import EvalInputError, evaluate_dirs
+from tofdenoise.training.metrics import D_MAX_MM
 
-__all__ = ["DEPTH_SUFFIXES", "EvalInputError", "list_maps", "evaluate_dirs", "main"]
-
-DEPTH_SUFFIXES = (".png", ".tif", ".tiff", ".npy", ".npz", ".exr")
-
-
-class EvalInputError(ValueError):
-    """Bad evaluation input; the message names the file or folder."""
-
-
-def list_maps(folder: str | Path, what: str) -> dict[str, Path]:
-    """stem -> file for the depth/mask files in ``folder`` (non-recursive); errors for empty or ambiguous."""
-    folder = Path(folder)
-    if not folder.is_dir():
-        raise EvalInputError(f"{what} folder not found: {folder}")
-    found: dict[str, Path] = {}
-    for path in sorted(folder.iterdir()):
-        if not path.is_file() or path.name.startswith(".") or path.suffix.lower() not in DEPTH_SUFFIXES:
-            continue
-        if path.stem in found:
-            raise EvalInputError(f"{what} folder {folder} has two files for '{path.stem}': "
-                                 f"{found[path.stem].name} and {path.name}")
-        found[path.stem] = path
-    if not found:
-        raise EvalInputError(f"{what} folder {folder} holds no depth file ({', '.join(DEPTH_SUFFIXES)})")
-    return found
-
-
-def _read_depth(path: Path, what: str) -> np.ndarray:
-    from tofdenoise.data_modules.io import read_depth_mm
-
-    try:
-        return read_depth_mm(path, what=what).astype(np.float64)
-    except (OSError, ValueError) as exc:
-        raise EvalInputError(str(exc)) from exc
-
-
-def _read_mask(path: Path) -> np.ndarray:
-    from tofdenoise.data_modules.io import read_array
-
-    try:
-        return read_array(path, what="mask", image_dtypes=(np.uint8, np.uint16)) != 0
-    except (OSError, ValueError) as exc:
-        raise EvalInputError(str(exc)) from exc
-
-
-def _match(ref: dict[str, Path], other: dict[str, Path], what: str, folder: Path) -> None:
-    for stem, path in ref.items():
-        if stem not in other:
-            raise EvalInputError(f"no {what} for reference file {path.name}: expected {folder}/{stem}.<"
-                                 f"{'|'.join(s.lstrip('.') for s in DEPTH_SUFFIXES)}>")
-    extra = sorted(set(other) - set(ref))
-    if extra:
-        raise EvalInputError(f"{what} file {other[extra[0]]} has no reference counterpart "
-                             f"({len(extra)} unmatched file(s) in {folder})")
-
-
-def evaluate_dirs(pred_dir: str | Path, ref_dir: str | Path, mask_dir: str | Path | None = None,
-                  d_max_mm: float = D_MAX_MM) -> dict:
-    """Compute the result object written by ``tofdenoise-eval`` (see the module docstring)."""
-    pred_dir, ref_dir = Path(pred_dir), Path(ref_dir)
-    refs = list_maps(ref_dir, "reference")
-    preds = list_maps(pred_dir, "prediction")
-    _match(refs, preds, "prediction", pred_dir)
-    masks: dict[str, Path] = {}
-    if mask_dir is not None:
-        masks = list_maps(mask_dir, "mask")
-        _match(refs, masks, "mask", Path(mask_dir))
-    metric = DepthMetrics(d_max_mm=d_max_mm)
-    stems = sorted(refs)
-    nan_px: dict[str, int] = {}
-    for i, stem in enumerate(stems):
-        ref = _read_depth(refs[stem], "reference depth")
-        pred = _read_depth(preds[stem], "predicted depth")
-        if pred.shape != ref.shape:
-            raise EvalInputError(f"predicted depth file {preds[stem]} has shape {pred.shape}; expected "
-                                 f"{ref.shape} like {refs[stem]}")
-        mask = None
-        if masks:
-            m = _read_mask(masks[stem])
-            if m.shape != ref.shape:
-                raise EvalInputError(f"mask file {masks[stem]} has shape {m.shape}; expected {ref.shape} "
-                                     f"like {refs[stem]}")
-            mask = torch.from_numpy(m)
-        nan_px[stem] = _nonfinite_px(pred, ref, None if mask is None else m)
-        metric.update(torch.from_numpy(pred), torch.from_numpy(ref), mask, index=torch.tensor([i]))
-    mean = metric.compute()
-    images: dict[str, dict] = {}
-    skipped: list[str] = []
-    failed: list[str] = []
-    for row in metric.per_image_rows():
-        stem = stems[int(row["index"])]
-        images[stem] = {k: json_number(row[k]) for k in METRIC_KEYS}
-        images[stem]["valid_px"] = row["valid_px"]
-        images[stem]["nan_px"] = nan_px[stem]
-        if row["valid_px"] == 0:
-            (failed if nan_px[stem] > 0 else skipped).append(stem)
-    return {
-        "mean": {k: json_number(mean[k]) for k in METRIC_KEYS},
-        "images": images,
-        "mae_mm_pooled": json_number(mean["mae_mm_pooled"]),
-        "num_images": metric.counts()["images"],
-        "skipped": skipped,
-        "nan_px": int(sum(nan_px.values())),
-        "failed": failed,
-        "d_max_mm": float(d_max_mm),
-    }
-
-
-def _nonfinite_px(pred: np.ndarray, ref: np.ndarray, mask: np.ndarray | None) -> int:
-    """Pixels to be evaluated (reference finite and > 0, mask nonzero) where the prediction is NaN or inf."""
-    with np.errstate(invalid="ignore"):
-        wanted = np.isfinite(ref) & (ref > 0)
-    if mask is not None:
-        wanted &= mask
-    return int((wanted & ~np.isfinite(pred)).sum())
+__all__ = ["build_parser", "main"]
 
 
 def _input_files(*folders: Path | None) -> list[Path]:
