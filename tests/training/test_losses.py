@@ -20,7 +20,7 @@ from tofdenoise.training.losses import (
     uncertainty_weight,
 )
 
-CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
+CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs"
 
 EPS = 1e-3
 
