@@ -23,6 +23,7 @@ from pathlib import Path
 
 from tofdenoise.atomic import atomic_write_bytes, atomic_write_text
 from tofdenoise.paths import REPO_ROOT
+from tofdenoise.training.results import METRICS_NAME, PER_IMAGE_DIR, RUN_INFO_NAME
 
 __all__ = ["main", "build_parser", "PROFILES", "profile_overrides"]
 
@@ -82,8 +83,8 @@ def ensure_realset(realset_dir: Path, profile: str, dry_run: bool = False) -> No
 
 
 #: what a finished run leaves in docs/results/<profile>/<run>/ (small files; checkpoints and panels stay in runs/)
-RECORD_FILES = ("metrics.json", "run_info.json", "config.yaml", "csv/metrics.csv", "per_image/synthetic.csv",
-                "per_image/real.csv")
+RECORD_FILES = (METRICS_NAME, RUN_INFO_NAME, "config.yaml", "csv/metrics.csv", f"{PER_IMAGE_DIR}/synthetic.csv",
+                f"{PER_IMAGE_DIR}/real.csv")
 
 
 def copy_records(run_dirs: list[Path], dest: Path) -> list[str]:
@@ -103,7 +104,7 @@ def copy_records(run_dirs: list[Path], dest: Path) -> list[str]:
 
 def write_report(dest: Path) -> None:
     """The offline HTML report of the recorded runs (``dest/report.html``), when there are any."""
-    if any(dest.glob("*/metrics.json")):
+    if any(dest.glob(f"*/{METRICS_NAME}")):
         _run([sys.executable, "-m", "tofdenoise.cli.report", str(dest), "--out", str(dest / "report.html"),
               "--title", f"tofdenoise: paper tables, {dest.name} profile"], "HTML report")
 

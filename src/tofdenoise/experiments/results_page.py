@@ -19,6 +19,8 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
+from tofdenoise.training.results import METRICS_NAME, RUN_INFO_NAME
+
 from .tables import CLAIMS, METRIC_COLUMNS, TABLE_COLUMNS, TABLE_TITLES, TABLES, claim_holds, row_values, run_name
 
 __all__ = ["PROFILE_COMMANDS", "load_records", "results_markdown", "run_minutes", "seeds_present"]
@@ -28,7 +30,7 @@ PROFILE_COMMANDS = {
     "cpu": "make reproduce TABLE={table} PROFILE=cpu SEEDS=0,1,2",
     "gpu": "make reproduce TABLE={table} PROFILE=gpu SEEDS=0,1,2",
 }
-RUN_FILES = ("metrics.json", "run_info.json")
+RUN_FILES = (METRICS_NAME, RUN_INFO_NAME)
 
 
 def _read_json(path: Path) -> dict[str, Any] | None:
@@ -46,8 +48,8 @@ def load_records(profile_dir: Path | str) -> dict[str, dict[str, Any]]:
     if not profile_dir.is_dir():
         return records
     for run_dir in sorted(p for p in profile_dir.iterdir() if p.is_dir()):
-        metrics = _read_json(run_dir / "metrics.json")
-        info = _read_json(run_dir / "run_info.json")
+        metrics = _read_json(run_dir / METRICS_NAME)
+        info = _read_json(run_dir / RUN_INFO_NAME)
         if metrics is not None and info is not None:
             records[run_dir.name] = {"metrics": metrics, "run_info": info}
     return records
