@@ -159,3 +159,27 @@ def test_unknown_source_and_noise(tmp_path):
         ToFDataModule(source="kinect")
     with pytest.raises(ValueError, match="unknown noise model"):
         make_dm(tmp_path, noise="pink")
+
+
+def test_setup_loads_what_another_instance_prepared(tmp_path, monkeypatch):
+    """Rank > 0: ``setup`` on an instance whose ``prepare_data`` never ran loads the split, the sample index
+    and the variance scale that another instance (rank 0, maybe another process) wrote, recomputing nothing."""
+    args = {**SMALL, "cache_dir": str(tmp_path / "cache"), "noise": "range"}
+    rank0 = ToFDataModule(**args)
+    rank0.prepare_data()
+    assert rank0._prepared is None  # prepare_data only writes; nothing is kept on the instance
+    import tofdenoise.data_modules.datasets as datasets
+    import tofdenoise.physics.noise_models as nm
+
+    monkeypatch.setattr(nm, "variance_matching_scale", lambda *a, **k: pytest.fail("variance scale recomputed"))
+    monkeypatch.setattr(datasets, "compute_sample_maps", lambda *a, **k: pytest.fail("maps recomputed"))
+    other = ToFDataModule(**args)
+    other.setup("fit")
+    rank0.setup("fit")
+    assert other.splits == rank0.splits and other.split_path == rank0.split_path
+    assert other.noise_model.scale == pytest.approx(rank0.noise_model.scale) and other.noise_model.scale != 1.0
+    for name in ("train", "val", "test"):
+        assert len(other.datasets[name]) == len(rank0.datasets[name])
+    a, b = next(iter(other.val_dataloader())), next(iter(rank0.val_dataloader()))
+    torch.testing.assert_close(a["noisy"], b["noisy"], rtol=0, atol=0)
+    torch.testing.assert_close(a["clean"], b["clean"], rtol=0, atol=0)

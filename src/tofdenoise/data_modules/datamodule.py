@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import logging
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -37,6 +38,21 @@ def _crop_pair(crop_size: int | Sequence[int] | None) -> tuple[int, int] | None:
     if min(pair) < 1:
         raise ValueError(f"data.crop_size must be positive, got {crop_size!r}")
     return pair
+
+
+@dataclass(frozen=True)
+class PreparedData:
+    """What ``setup`` loads from ``cache_dir`` (written there by ``prepare_data``, on this rank or another)."""
+
+    source: Any
+    split_path: Path
+    splits: dict[str, list[str]]  # usable sample ids per split (samples without a valid pixel removed)
+    skipped: dict[str, list[str]]  # split -> ids left out; "real": capture scenes left out
+    cache: MapCache
+    provider: MapProvider
+    noise_model: Any  # the training noise model (a Gaussian baseline variance-matched)
+    variance_scale: dict | None  # the stored variance-matching record of the training noise, if any
+    real_scenes: list[Path]
 
 
 class ToFDataModule(L.LightningDataModule):
@@ -133,8 +149,7 @@ class ToFDataModule(L.LightningDataModule):
         self.cache_root = Path(cache_dir).expanduser()
         self.real_dir = real_dir
         self.test_set_names: list[str] = ["synthetic", "real"] if real_dir else ["synthetic"]
-        self.skipped_samples: dict[str, list[str]] = {}
-        self._state: dict[str, Any] | None = None
+        self._prepared: PreparedData | None = None
         self.datasets: dict[str, Any] = {}
         self.make_source()  # fail fast: unknown source, missing data.root, bad sizes / depth range
 
@@ -158,77 +173,115 @@ class ToFDataModule(L.LightningDataModule):
 
     @property
     def split_path(self) -> Path:
-        return self._require_state()["split_path"]
+        return self.prepared.split_path
 
     @property
     def cache(self) -> MapCache:
-        return self._require_state()["cache"]
+        return self.prepared.cache
 
     @property
     def noise_model(self):
-        return self._require_state()["noise_model"]
+        return self.prepared.noise_model
 
     @property
     def splits(self) -> dict[str, list[str]]:
-        return self._require_state()["splits"]
+        return self.prepared.splits
 
-    def _require_state(self) -> dict[str, Any]:
-        if self._state is None:
-            self._prepare()
-        assert self._state is not None
-        return self._state
+    @property
+    def skipped_samples(self) -> dict[str, list[str]]:
+        """Split name -> sample ids left out (no valid pixel; ``"real"``: capture scenes without a common valid
+        region or without an input frame)."""
+        return self.prepared.skipped
+
+    @property
+    def prepared(self) -> PreparedData:
+        """The prepared data, loaded from ``cache_dir`` on first use (``setup``)."""
+        if self._prepared is None:
+            self._prepared = self._load_prepared()
+        return self._prepared
 
     # ------------------------------------------------------------------ preparation
     def prepare_data(self) -> None:
-        """Check the source, write the split, compute missing cached maps, the variance scale and references."""
-        self._prepare()
+        """Write what ``setup`` reads: source description, seeded split, per-sample maps and their index, the
+        variance scale of a Gaussian baseline and the capture set's references. Lightning runs it on one
+        process (rank 0); every write is atomic and skipped when up to date, so calling it again is cheap.
+        Nothing is kept on the instance: ``setup`` loads the same files on every rank."""
+        self._load_prepared()
 
-    def _prepare(self) -> None:
-        if self._state is not None:
-            return
-        hp = self.hparams
+    def _load_prepared(self) -> PreparedData:
+        """The preparation steps in order; each reuses what is stored under ``cache_dir`` and writes what is
+        missing, so the same call prepares (rank 0) and loads (every rank)."""
+        source, described, base = self._open_source()
+        split_path, splits = self._load_split(base, source.sample_ids(), described)
+        cache, provider = self._map_cache(base, described, source)
+        index = self._sample_index(provider, cache, [i for name in SPLIT_NAMES for i in splits[name]])
+        splits, skipped = self._drop_empty(splits, index)
+        if not splits["train"]:
+            raise ValueError(f"the {source.name} source has no usable training sample")
+        self._check_crop(splits["train"], index)
+        noise_model, scale_record = self._training_noise(provider, cache, splits["train"])
+        real_scenes = self._real_scenes(skipped) if self.real_dir else []
+        return PreparedData(source=source, split_path=split_path, splits=splits, skipped=skipped, cache=cache,
+                            provider=provider, noise_model=noise_model, variance_scale=scale_record,
+                            real_scenes=real_scenes)
+
+    def _open_source(self) -> tuple[Any, dict, Path]:
+        """The source (checked: a listed but missing sample fails here, before training), its description and
+        its folder under ``cache_dir`` (``source.json`` written there)."""
         source = self.make_source()
-        source.check()  # a listed but missing sample fails here, before training
-        ids = source.sample_ids()
+        source.check()
         described = source.describe()
         base = self.cache_root / f"{source.name}-{canonical_digest(described)[:12]}"
         base.mkdir(parents=True, exist_ok=True)
         atomic_write_text(base / "source.json", json.dumps(described, indent=1, default=str) + "\n")
+        return source, described, base
+
+    def _load_split(self, base: Path, ids: list[str], described: dict) -> tuple[Path, dict[str, list[str]]]:
+        """The seeded split file ``split_seed<S>_<ratios>.json`` (reused when it matches, else written)."""
+        hp = self.hparams
         ratio_tag = "-".join(f"{r:g}" for r in hp.split_ratios)
         split_path = base / f"split_seed{hp.seed}_{ratio_tag}.json"
-        splits = load_or_make_split(split_path, ids, hp.seed, hp.split_ratios, described)
+        return split_path, load_or_make_split(split_path, ids, hp.seed, hp.split_ratios, described)
+
+    def _map_cache(self, base: Path, described: dict, source: Any) -> tuple[MapCache, MapProvider]:
+        """The map cache of this source x calibration x signal mapping, and the provider reading through it."""
+        hp = self.hparams
         key = {"source": described, "calibration": self.calib.fingerprint(),
                "signal_percentiles": [hp.signal_lower_percentile, hp.signal_upper_percentile]}
         cache = MapCache(base, key, enabled=hp.use_cache)
         provider = MapProvider(source, self.calib, cache, hp.signal_lower_percentile, hp.signal_upper_percentile)
-        index = self._sample_index(provider, cache, [i for name in SPLIT_NAMES for i in splits[name]])
-        self.skipped_samples = {}
+        return cache, provider
+
+    @staticmethod
+    def _drop_empty(splits: dict[str, list[str]], index: dict[str, dict]
+                    ) -> tuple[dict[str, list[str]], dict[str, list[str]]]:
+        """Splits without the samples that have no valid pixel (warned), and those left out per split."""
+        kept, skipped = {}, {}
         for name in SPLIT_NAMES:
             empty = [i for i in splits[name] if index[i]["num_valid"] == 0]
             if empty:
                 warnings.warn(f"{name} split: {len(empty)} sample(s) with no valid pixel skipped: "
-                              f"{', '.join(empty[:5])}{' ...' if len(empty) > 5 else ''}", stacklevel=2)
-                self.skipped_samples[name] = empty
-                splits[name] = [i for i in splits[name] if index[i]["num_valid"] > 0]
-        if not splits["train"]:
-            raise ValueError(f"the {source.name} source has no usable training sample")
-        if self.crop is not None:
-            too_small = [i for i in splits["train"]
-                         if index[i]["shape"][0] < self.crop[0] or index[i]["shape"][1] < self.crop[1]]
-            if too_small:
-                shape = index[too_small[0]]["shape"]
-                raise ValueError(f"data.crop_size={list(self.crop)} does not fit sample {too_small[0]} of size "
-                                 f"{shape[0]}x{shape[1]}; lower data.crop_size (or set it to null)")
+                              f"{', '.join(empty[:5])}{' ...' if len(empty) > 5 else ''}", stacklevel=3)
+                skipped[name] = empty
+            kept[name] = [i for i in splits[name] if index[i]["num_valid"] > 0]
+        return kept, skipped
+
+    def _check_crop(self, train_ids: list[str], index: dict[str, dict]) -> None:
+        """A training crop larger than a training sample is a configuration error naming data.crop_size."""
+        if self.crop is None:
+            return
+        too_small = [i for i in train_ids if index[i]["shape"][0] < self.crop[0] or index[i]["shape"][1] < self.crop[1]]
+        if too_small:
+            shape = index[too_small[0]]["shape"]
+            raise ValueError(f"data.crop_size={list(self.crop)} does not fit sample {too_small[0]} of size "
+                             f"{shape[0]}x{shape[1]}; lower data.crop_size (or set it to null)")
+
+    def _training_noise(self, provider: MapProvider, cache: MapCache, train_ids: list[str]):
+        """The training noise model, a Gaussian baseline variance-matched (its scale record stored)."""
         noise_model = self.build_noise_model()
-        scale_record = None
-        if self.noise_name in GAUSSIAN_BASELINES and hp.match_variance:
-            noise_model, scale_record = self._match_variance(noise_model, provider, cache, splits["train"])
-        real_scenes: list[Path] = []
-        if self.real_dir:
-            real_scenes = self._prepare_real()
-        self._state = {"source": source, "split_path": split_path, "splits": splits, "cache": cache,
-                       "provider": provider, "index": index, "noise_model": noise_model,
-                       "variance_scale": scale_record, "real_scenes": real_scenes}
+        if self.noise_name in GAUSSIAN_BASELINES and self.hparams.match_variance:
+            return self._match_variance(noise_model, provider, cache, train_ids)
+        return noise_model, None
 
     def _sample_index(self, provider: MapProvider, cache: MapCache, ids: list[str]) -> dict[str, dict]:
         """Valid-pixel count and shape per sample (computing, and caching, any maps not seen yet)."""
@@ -264,7 +317,8 @@ class ToFDataModule(L.LightningDataModule):
         log.info("variance-matched %s noise: scale %.6g", self.noise_name, record["scale"])
         return noise_model.with_scale(float(record["scale"])), record
 
-    def _prepare_real(self) -> list[Path]:
+    def _real_scenes(self, skipped: dict[str, list[str]]) -> list[Path]:
+        """Usable scenes of the capture set (references built or reused); scenes left out go to ``skipped``."""
         hp = self.hparams
         incomplete: list[str] = []  # scene folders without an input frame (list_scenes warns)
         scenes = list_scenes(self.real_dir, incomplete=incomplete)
@@ -280,16 +334,17 @@ class ToFDataModule(L.LightningDataModule):
             warnings.warn(f"real capture set {self.real_dir}: {len(empty)} scene(s) with no common valid pixel "
                           f"skipped: {', '.join(empty[:5])}", stacklevel=2)
         if empty or incomplete:
-            self.skipped_samples["real"] = sorted(empty + incomplete)
+            skipped["real"] = sorted(empty + incomplete)
         if not usable:
             raise ValueError(f"real capture set {self.real_dir} has no scene with a valid common region")
         return usable
 
     # ------------------------------------------------------------------ datasets
     def setup(self, stage: str | None = None) -> None:
-        state = self._require_state()
+        """Load what ``prepare_data`` wrote (in this process or another) and build the datasets."""
+        state = self.prepared
         hp = self.hparams
-        provider, splits, model = state["provider"], state["splits"], state["noise_model"]
+        provider, splits, model = state.provider, state.splits, state.noise_model
         holes = self.hole_model
         self.datasets = {
             "train": SyntheticPairs(provider, splits["train"], "train", model, hp.seed, train=True, crop=self.crop,
@@ -297,9 +352,9 @@ class ToFDataModule(L.LightningDataModule):
             "val": SyntheticPairs(provider, splits["val"], "val", model, hp.seed, train=False, holes=holes),
             "test": SyntheticPairs(provider, splits["test"], "test", model, hp.seed, train=False, holes=holes),
         }
-        if state["real_scenes"]:
+        if state.real_scenes:
             calib, min_count = self.calib, hp.real_min_count
-            self.datasets["real"] = RealCaptures(state["real_scenes"], _RealLoader(calib, min_count))
+            self.datasets["real"] = RealCaptures(state.real_scenes, _RealLoader(calib, min_count))
 
     def _loader(self, dataset, train: bool) -> DataLoader:
         hp = self.hparams
@@ -336,13 +391,13 @@ class ToFDataModule(L.LightningDataModule):
 
     def summary(self) -> dict[str, Any]:
         """Plain description of what was prepared (sizes, paths, skipped samples, variance scale)."""
-        state = self._require_state()
-        return {"source": self.source_name, "noise": self.noise_name, "split_file": str(state["split_path"]),
-                "cache_folder": str(state["cache"].folder), "cache_enabled": state["cache"].enabled,
-                "sizes": {k: len(v) for k, v in state["splits"].items()},
-                "skipped": {k: len(v) for k, v in self.skipped_samples.items()},
-                "variance_scale": None if state["variance_scale"] is None else state["variance_scale"]["scale"],
-                "real_scenes": len(state["real_scenes"]), "max_depth_mm": self.max_depth_mm,
+        state = self.prepared
+        return {"source": self.source_name, "noise": self.noise_name, "split_file": str(state.split_path),
+                "cache_folder": str(state.cache.folder), "cache_enabled": state.cache.enabled,
+                "sizes": {k: len(v) for k, v in state.splits.items()},
+                "skipped": {k: len(v) for k, v in state.skipped.items()},
+                "variance_scale": None if state.variance_scale is None else state.variance_scale["scale"],
+                "real_scenes": len(state.real_scenes), "max_depth_mm": self.max_depth_mm,
                 "holes": None if self.hole_model is None else self.hole_model.to_dict(),
                 "calibration": self.calib.fingerprint()[:16]}
 
