@@ -52,6 +52,7 @@ class PreparedData:
     provider: MapProvider
     noise_model: Any  # the training noise model (a Gaussian baseline variance-matched)
     variance_scale: dict | None  # the stored variance-matching record of the training noise, if any
+    eval_noise_model: Any  # synthesises the validation / test / predict inputs (``eval_noise``)
     real_scenes: list[Path]
 
 
@@ -60,7 +61,11 @@ class ToFDataModule(L.LightningDataModule):
 
     Args (all plain values; the Hydra configs in ``configs/data`` and ``configs/noise`` set them):
         source: "procedural" (built-in scenes, default), "flyingthings3d" or "folder".
-        noise: training / evaluation noise model ("hetero", "range", "fixed", "none"); noise_kwargs its kwargs.
+        noise: training noise model ("hetero", "range", "fixed", "none"); noise_kwargs its kwargs.
+        eval_noise: the noise model that synthesises the validation, test and predict inputs (default "hetero",
+            the physics-faithful synthesis; its default kwargs, a Gaussian baseline variance-matched like the
+            training noise), whatever ``noise`` is: runs trained with different noise models are validated and
+            tested on identical inputs (the same fixed per-sample seed).
         sensor: calibration (None = default, a path, a preset name, or a mapping in ``to_dict()`` layout).
         root: dataset folder (flyingthings3d / folder). list_file: folder list (default ``root/list.txt``).
         list_files: flyingthings3d list files (default: train_list.txt and test_list.txt, merged then re-split).
@@ -85,6 +90,7 @@ class ToFDataModule(L.LightningDataModule):
         source: str = "procedural",
         noise: str = "hetero",
         noise_kwargs: dict[str, Any] | None = None,
+        eval_noise: str = "hetero",
         sensor: dict[str, Any] | str | None = None,
         root: str | None = None,
         list_file: str | None = None,
@@ -132,6 +138,11 @@ class ToFDataModule(L.LightningDataModule):
         self.calib = resolve_calibration(sensor)
         self.noise_name = str(noise).lower()
         self.noise_kwargs = noise_kwargs
+        from tofdenoise.physics.noise_models import available_noise_models
+
+        self.eval_noise_name = str(eval_noise).lower()
+        if self.eval_noise_name not in available_noise_models():
+            raise ValueError(f"unknown data.eval_noise {eval_noise!r}; valid: {', '.join(available_noise_models())}")
         self.crop = _crop_pair(crop_size)
         from tofdenoise.data_modules.holes import HoleModel
 
@@ -165,11 +176,6 @@ class ToFDataModule(L.LightningDataModule):
         if self.source_name == "flyingthings3d":
             return FlyingThings3DSource(hp.root, list_files=hp.list_files, **valid_kwargs)
         return FolderSource(hp.root, list_file=hp.list_file, depth_unit_mm=hp.depth_unit_mm, **valid_kwargs)
-
-    def build_noise_model(self):
-        from tofdenoise.physics.noise_models import build_noise_model
-
-        return build_noise_model(self.noise_name, self.calib, **self.noise_kwargs)
 
     @property
     def split_path(self) -> Path:
@@ -219,11 +225,12 @@ class ToFDataModule(L.LightningDataModule):
         if not splits["train"]:
             raise ValueError(f"the {source.name} source has no usable training sample")
         self._check_crop(splits["train"], index)
-        noise_model, scale_record = self._training_noise(provider, cache, splits["train"])
+        noise_model, scale_record = self._noise(self.noise_name, self.noise_kwargs, provider, cache, splits["train"])
+        eval_model, _ = self._noise(self.eval_noise_name, {}, provider, cache, splits["train"])
         real_scenes = self._real_scenes(skipped) if self.real_dir else []
         return PreparedData(source=source, split_path=split_path, splits=splits, skipped=skipped, cache=cache,
                             provider=provider, noise_model=noise_model, variance_scale=scale_record,
-                            real_scenes=real_scenes)
+                            eval_noise_model=eval_model, real_scenes=real_scenes)
 
     def _open_source(self) -> tuple[Any, dict, Path]:
         """The source (checked: a listed but missing sample fails here, before training), its description and
@@ -276,11 +283,15 @@ class ToFDataModule(L.LightningDataModule):
             raise ValueError(f"data.crop_size={list(self.crop)} does not fit sample {too_small[0]} of size "
                              f"{shape[0]}x{shape[1]}; lower data.crop_size (or set it to null)")
 
-    def _training_noise(self, provider: MapProvider, cache: MapCache, train_ids: list[str]):
-        """The training noise model, a Gaussian baseline variance-matched (its scale record stored)."""
-        noise_model = self.build_noise_model()
-        if self.noise_name in GAUSSIAN_BASELINES and self.hparams.match_variance:
-            return self._match_variance(noise_model, provider, cache, train_ids)
+    def _noise(self, name: str, kwargs: dict[str, Any], provider: MapProvider, cache: MapCache,
+               train_ids: list[str]):
+        """A noise model and its variance-scale record: a Gaussian baseline is variance-matched over the
+        training split (``match_variance``; the record stored next to the maps), any other model has none."""
+        from tofdenoise.physics.noise_models import build_noise_model
+
+        noise_model = build_noise_model(name, self.calib, **kwargs)
+        if name in GAUSSIAN_BASELINES and self.hparams.match_variance:
+            return self._match_variance(name, kwargs, noise_model, provider, cache, train_ids)
         return noise_model, None
 
     def _sample_index(self, provider: MapProvider, cache: MapCache, ids: list[str]) -> dict[str, dict]:
@@ -296,12 +307,13 @@ class ToFDataModule(L.LightningDataModule):
             cache.save_record("index.json", {"samples": index})
         return index
 
-    def _match_variance(self, noise_model, provider: MapProvider, cache: MapCache, train_ids: list[str]):
+    def _match_variance(self, noise_name: str, noise_kwargs: dict[str, Any], noise_model, provider: MapProvider,
+                        cache: MapCache, train_ids: list[str]):
         from tofdenoise.physics.noise_models import variance_matching_scale
 
-        key = {"noise": self.noise_name, "noise_kwargs": self.noise_kwargs, "maps": cache.digest,
+        key = {"noise": noise_name, "noise_kwargs": noise_kwargs, "maps": cache.digest,
                "train_ids": ids_digest(train_ids)}
-        name = f"variance_scale_{self.noise_name}_{canonical_digest(key)[:12]}.json"
+        name = f"variance_scale_{noise_name}_{canonical_digest(key)[:12]}.json"
         record = cache.load_record(name, expected_key=key)
         if record is None:
             def samples():
@@ -310,11 +322,11 @@ class ToFDataModule(L.LightningDataModule):
                     yield maps.depth_mm, maps.sigma_mm, maps.mask
 
             scale = float(variance_matching_scale(noise_model, samples()))
-            record = {"scale": scale, "noise": self.noise_name, "num_train_samples": len(train_ids),
+            record = {"scale": scale, "noise": noise_name, "num_train_samples": len(train_ids),
                       "note": "std multiplier giving the hetero mean perturbation variance over the training split"}
             cache.save_record(name, record, key=key)
             record = cache.load_record(name, expected_key=key) or record
-        log.info("variance-matched %s noise: scale %.6g", self.noise_name, record["scale"])
+        log.info("variance-matched %s noise: scale %.6g", noise_name, record["scale"])
         return noise_model.with_scale(float(record["scale"])), record
 
     def _real_scenes(self, skipped: dict[str, list[str]]) -> list[Path]:
@@ -344,13 +356,13 @@ class ToFDataModule(L.LightningDataModule):
         """Load what ``prepare_data`` wrote (in this process or another) and build the datasets."""
         state = self.prepared
         hp = self.hparams
-        provider, splits, model = state.provider, state.splits, state.noise_model
+        provider, splits, model, eval_model = state.provider, state.splits, state.noise_model, state.eval_noise_model
         holes = self.hole_model
         self.datasets = {
             "train": SyntheticPairs(provider, splits["train"], "train", model, hp.seed, train=True, crop=self.crop,
                                     flips=hp.flips, holes=holes),
-            "val": SyntheticPairs(provider, splits["val"], "val", model, hp.seed, train=False, holes=holes),
-            "test": SyntheticPairs(provider, splits["test"], "test", model, hp.seed, train=False, holes=holes),
+            "val": SyntheticPairs(provider, splits["val"], "val", eval_model, hp.seed, train=False, holes=holes),
+            "test": SyntheticPairs(provider, splits["test"], "test", eval_model, hp.seed, train=False, holes=holes),
         }
         if state.real_scenes:
             calib, min_count = self.calib, hp.real_min_count
@@ -392,7 +404,8 @@ class ToFDataModule(L.LightningDataModule):
     def summary(self) -> dict[str, Any]:
         """Plain description of what was prepared (sizes, paths, skipped samples, variance scale)."""
         state = self.prepared
-        return {"source": self.source_name, "noise": self.noise_name, "split_file": str(state.split_path),
+        return {"source": self.source_name, "noise": self.noise_name, "eval_noise": self.eval_noise_name,
+                "split_file": str(state.split_path),
                 "cache_folder": str(state.cache.folder), "cache_enabled": state.cache.enabled,
                 "sizes": {k: len(v) for k, v in state.splits.items()},
                 "skipped": {k: len(v) for k, v in state.skipped.items()},
