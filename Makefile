@@ -21,7 +21,7 @@ BENCH_ARGS ?=
 
 export PYTHONUNBUFFERED := 1
 
-.PHONY: help venv train test test-slow bench robustness reproduce cli-configs clean
+.PHONY: help venv train test test-slow bench robustness realset reproduce cli-configs clean
 
 help:
 	@echo "make train   - small default training on built-in procedural scenes (CPU)"
@@ -30,6 +30,8 @@ help:
 	@echo "make test-slow - run the slow experiments too"
 	@echo "make bench   - side-by-side performance measurements (see docs/benchmarks.md); BENCH_ARGS=--quick"
 	@echo "make robustness - the robustness grid (108 small runs, resumable; GRID_DIR=runs/robustness GRID_ARGS=...)"
+	@echo "make realset - the stand-in real set: a second simulated camera, calibrated from its own captures"
+	@echo "               (REALSET_DIR=runs/realset REALSET_ARGS='--scenes 40 ...'; docs/camera-tutorial.md)"
 	@echo "make reproduce TABLE=1|2|3|fig6 [PROFILE=cpu|gpu] [SEEDS=0,1,2] - one of the paper's tables (resumable;"
 	@echo "               records in docs/results/, page docs/results.md; REPRO_ARGS='--extra data.root=...')"
 	@echo "make cli-configs - regenerate the LightningCLI YAMLs (configs/cli/) after editing configs/"
@@ -68,6 +70,14 @@ GRID_DIR ?= runs/robustness
 GRID_ARGS ?=
 robustness: $(STAMP)
 	$(VENV)/bin/tofdenoise-grid robustness --out $(GRID_DIR) --markdown $(GRID_DIR)/robustness.md $(GRID_ARGS)
+
+# The stand-in real set (docs/camera-tutorial.md): camera cam75's calibration captures -> calibrate ->
+# $(REALSET_DIR)/calibration.yaml, and its capture set with mixed pixels -> $(REALSET_DIR)/captures. Then:
+#   tofdenoise-train ++data.sensor=$(REALSET_DIR)/calibration.yaml ++data.real_dir=$(REALSET_DIR)/captures
+REALSET_DIR ?= runs/realset
+REALSET_ARGS ?=
+realset: $(STAMP)
+	$(VENV)/bin/tofdenoise-sensor realset --out $(REALSET_DIR) $(REALSET_ARGS)
 
 # The paper's tables (docs/results.md): finished runs are skipped, interrupted ones resume, failures are listed.
 TABLE ?=

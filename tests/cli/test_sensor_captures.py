@@ -63,3 +63,76 @@ def test_build_reference_bad_folder(tmp_path, capsys):
     assert "SCENES_DIR" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         run(["simulate-captures"])  # --out is required
+
+
+def test_simulate_calibration_then_calibrate_recovers_the_camera(tmp_path, capsys):
+    """Step a) + b) of docs/camera-tutorial.md: the second camera's calibration captures (sweep, 100 dark frames,
+    distance sequence) in the capture format, then `calibrate` recovers that camera, not the default one."""
+    from tofdenoise.physics.calibration import load_calibration, resolve_calibration
+    from tofdenoise.physics.capture_io import read_index
+
+    caps = tmp_path / "caps"
+    assert run(["simulate-calibration", "--sensor", "cam75", "--out", caps, "--sweep-steps", 16, "--sweep-frames", 8,
+                "--distance-frames", 30, "--size", 8]) == 0
+    assert "next: tofdenoise-sensor calibrate" in capsys.readouterr().out
+    assert read_index(caps / "sweep", "sweep").modulation_frequency_hz == 75e6
+    dark = read_index(caps / "dark", "dark")
+    assert dark.units == "dn" and dark.adc_gain_e_per_dn == 4.0
+    assert np.load(caps / "dark" / dark.stacks[0]["file"]).shape == (100, 4, 8, 8)  # 100 dark frames
+    distances = [e["distance_mm"] for e in read_index(caps / "distances", "distances").stacks]
+    assert len(distances) == 10 and 400 < min(distances) and max(distances) < 1600  # inside 1999 mm
+    out = tmp_path / "calibration.yaml"
+    assert run(["calibrate", "--sweep", caps / "sweep", "--dark", caps / "dark", "--distances",
+                caps / "distances", "--out", out]) == 0
+    got, true = load_calibration(out), resolve_calibration("cam75")
+    assert got.modulation_frequency_hz == true.modulation_frequency_hz
+    assert got.tap_response.contrast == pytest.approx(true.tap_response.contrast, abs=0.01)
+    np.testing.assert_allclose(got.tap_response.cos[:2], true.tap_response.cos, atol=5e-3)  # 2nd harmonic
+    np.testing.assert_allclose(got.tap_response.sin[:2], true.tap_response.sin, atol=5e-3)
+    assert got.dark_mean_e == pytest.approx(true.dark_mean_e, rel=0.01)
+    assert got.dark_std_e == pytest.approx(true.dark_std_e, rel=0.05)
+    assert got.adc_gain_e_per_dn == true.adc_gain_e_per_dn and got.full_well_e == true.full_well_e
+    assert got.range_sigma_mm is not None
+    capsys.readouterr()
+    assert run(["simulate-calibration", "--sensor", "cam75", "--out", caps, "--distances-mm", 500, 2500]) == 2
+    assert "unambiguous range" in capsys.readouterr().err
+
+
+def test_mixed_pixels_bias_the_captured_depth_at_edges(tmp_path):
+    """Step c): with --mixed-pixels 3 the pixels whose footprint spans a depth edge are flying pixels in the input
+    and in the reference (a mix of both surfaces); elsewhere, and without mixing, they follow the ground truth."""
+    import json
+
+    from tofdenoise.data_modules.capture_simulation import _supersampled
+    from tofdenoise.data_modules.sources.procedural import ProceduralSource
+    from tofdenoise.physics.calibration import resolve_calibration
+    from tofdenoise.physics.mixed_pixels import mixed_pixel_map
+
+    source = ProceduralSource(num_samples=2, height=40, width=56, seed=5,
+                              max_depth_mm=0.8 * resolve_calibration("cam75").unambiguous_range_mm)
+    errors = {}
+    for factor in (1, 3):
+        out = tmp_path / f"set{factor}"
+        assert run(["simulate-captures", "--out", out, "--scenes", 2, "--frames", 6, "--height", 40, "--width", 56,
+                    "--seed", 5, "--sensor", "cam75", "--mixed-pixels", factor, "--quiet"]) == 0
+        at_edges, elsewhere = [], []
+        for scene in sorted(out.glob("scene_*")):
+            info = json.loads((scene / "scene.json").read_text())
+            assert info["mixed_pixels"] == factor
+            gt = np.load(scene / "ground_truth_depth_mm.npy")
+            ref = np.load(scene / "reference_depth_mm.npy")
+            fine = _supersampled(source, 3).load(f"scene_{info['scene_index']:06d}")
+            fine_depth = np.where(fine.valid, fine.depth_mm, 0)
+            ok = np.isfinite(ref) & np.isfinite(gt)
+            at_edges.append(np.abs(ref - gt)[ok & mixed_pixel_map(fine_depth, 3, rel_jump=0.2)])
+            elsewhere.append(np.abs(ref - gt)[ok & ~mixed_pixel_map(fine_depth, 3)])
+        errors[factor] = (float(np.median(np.concatenate(at_edges))), float(np.median(np.concatenate(elsewhere))))
+    assert errors[3][0] > 5 * errors[1][0], errors  # flying pixels at depth edges
+    assert errors[3][0] > 10 * errors[3][1], errors
+    assert errors[3][1] < 2 * errors[1][1] + 1.0, errors  # smooth regions: mixing changes (almost) nothing
+    # another --mixed-pixels is another set: the completed scenes are simulated again, not reused
+    out = tmp_path / "set1"
+    assert run(["simulate-captures", "--out", out, "--scenes", 2, "--frames", 6, "--height", 40, "--width", 56,
+                "--seed", 5, "--sensor", "cam75", "--mixed-pixels", 3, "--quiet"]) == 0
+    assert json.loads((out / "scene_0000" / "scene.json").read_text())["mixed_pixels"] == 3
+    assert run(["simulate-captures", "--out", out, "--scenes", 1, "--frames", 2, "--mixed-pixels", 0]) == 2

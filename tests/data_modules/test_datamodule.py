@@ -143,7 +143,7 @@ def test_variance_matching_equals_hetero_mean_variance(tmp_path, monkeypatch):
 def test_unmatched_baseline_and_none(tmp_path):
     dm = make_dm(tmp_path, noise="fixed", match_variance=False, noise_kwargs={"sigma_mm": 3.0})
     assert dm.summary()["variance_scale"] is None and dm.noise_model.scale == 1.0
-    none = make_dm(tmp_path, noise="none")
+    none = make_dm(tmp_path, noise="none", eval_noise="none")
     batch = next(iter(none.val_dataloader()))
     torch.testing.assert_close(batch["noisy"], batch["clean"])
     assert float(batch["sigma"].max()) > 0  # the hetero sigma_D map is carried whatever the noise model
@@ -159,3 +159,58 @@ def test_unknown_source_and_noise(tmp_path):
         ToFDataModule(source="kinect")
     with pytest.raises(ValueError, match="unknown noise model"):
         make_dm(tmp_path, noise="pink")
+
+
+def test_setup_loads_what_another_instance_prepared(tmp_path, monkeypatch):
+    """Rank > 0: ``setup`` on an instance whose ``prepare_data`` never ran loads the split, the sample index
+    and the variance scale that another instance (rank 0, maybe another process) wrote, recomputing nothing."""
+    args = {**SMALL, "cache_dir": str(tmp_path / "cache"), "noise": "range"}
+    rank0 = ToFDataModule(**args)
+    rank0.prepare_data()
+    assert rank0._prepared is None  # prepare_data only writes; nothing is kept on the instance
+    import tofdenoise.data_modules.datasets as datasets
+    import tofdenoise.physics.noise_models as nm
+
+    monkeypatch.setattr(nm, "variance_matching_scale", lambda *a, **k: pytest.fail("variance scale recomputed"))
+    monkeypatch.setattr(datasets, "compute_sample_maps", lambda *a, **k: pytest.fail("maps recomputed"))
+    other = ToFDataModule(**args)
+    other.setup("fit")
+    rank0.setup("fit")
+    assert other.splits == rank0.splits and other.split_path == rank0.split_path
+    assert other.noise_model.scale == pytest.approx(rank0.noise_model.scale) and other.noise_model.scale != 1.0
+    for name in ("train", "val", "test"):
+        assert len(other.datasets[name]) == len(rank0.datasets[name])
+    a, b = next(iter(other.val_dataloader())), next(iter(rank0.val_dataloader()))
+    torch.testing.assert_close(a["noisy"], b["noisy"], rtol=0, atol=0)
+    torch.testing.assert_close(a["clean"], b["clean"], rtol=0, atol=0)
+
+
+def test_evaluation_inputs_do_not_depend_on_the_training_noise(tmp_path):
+    """data.eval_noise (default hetero) synthesises val/test/predict inputs whatever data.noise is: runs trained
+    with fixed and hetero noise are validated and tested on bit-identical inputs; their training inputs differ."""
+    fixed = make_dm(tmp_path, noise="fixed", flips=False, crop_size=None)
+    hetero = make_dm(tmp_path, noise="hetero", flips=False, crop_size=None)
+    assert fixed.noise_model.name != hetero.noise_model.name
+    for loaders in (lambda dm: [dm.val_dataloader()], lambda dm: dm.test_dataloader(),
+                    lambda dm: [dm.predict_dataloader()]):
+        a = [b for loader in loaders(fixed) for b in loader]
+        b = [b for loader in loaders(hetero) for b in loader]
+        assert len(a) == len(b) > 0
+        for x, y in zip(a, b):
+            assert x["name"] == y["name"]
+            torch.testing.assert_close(x["noisy"], y["noisy"], rtol=0, atol=0)
+            torch.testing.assert_close(x["mask"], y["mask"], rtol=0, atol=0)
+            assert not torch.equal(x["noisy"], x["clean"])
+    # the evaluation inputs are the hetero synthesis: residual / sigma_D is standard normal
+    z = torch.cat([((v["noisy"] - v["clean"]) / v["sigma"])[v["mask"] > 0] for v in fixed.val_dataloader()])
+    assert float(z.std()) == pytest.approx(1.0, abs=0.05)
+    # training inputs follow each run's own noise: fixed noise has one std for every pixel, hetero does not
+    ta, tb = fixed.datasets["train"][0], hetero.datasets["train"][0]
+    torch.testing.assert_close(ta["clean"], tb["clean"], rtol=0, atol=0)
+    assert not torch.equal(ta["noisy"], tb["noisy"])
+    # eval_noise=fixed: the evaluation inputs follow it (variance-matched like the training baseline)
+    fixed_eval = make_dm(tmp_path, noise="hetero", eval_noise="fixed")
+    fv, hv = next(iter(fixed_eval.val_dataloader())), next(iter(hetero.val_dataloader()))
+    assert not torch.equal(fv["noisy"], hv["noisy"])
+    with pytest.raises(ValueError, match="unknown data.eval_noise 'pink'"):
+        ToFDataModule(eval_noise="pink")

@@ -191,3 +191,39 @@ def test_metrics_json_counts_the_scenes_the_datamodule_skipped(tmp_path):
     assert data["real"]["skipped_images"] == 3 and data["real"]["images"] == 1
     assert data["synthetic"]["skipped_images"] == 0  # skipped training samples are not test images
     assert model.test_results["real"]["skipped_images"] == 1  # the module's own record is left as it was
+
+
+def test_reference_validity_changes_only_the_scoring_mask(tmp_path):
+    """The real set's network input is the frame as captured: invalidating part of the reference shrinks the
+    scoring mask (common ROI of input and reference) but leaves the input, and the network input, unchanged."""
+    from tofdenoise.data_modules.capture_simulation import simulate_capture_set
+    from tofdenoise.training.module import DepthRestorer
+    from tofdenoise.physics.calibration import default_calibration
+
+    simulate_capture_set(tmp_path / "set", scenes=1, frames=4, height=24, width=32, seed=3)
+    scene = tmp_path / "set" / "scene_0000"
+    calib = default_calibration()
+    before = load_real_scene(scene, calib)
+    block = np.zeros((24, 32), bool)
+    block[4:12, 6:20] = True
+    for path in (scene / "hiexp").glob("depth_mm_*.png"):  # no high-exposure frame is valid in the block
+        depth = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        depth[block] = 0
+        cv2.imwrite(str(path), depth)
+    build_reference(scene, force=True)
+    after = load_real_scene(scene, calib)
+    mask_before, mask_after = before["mask"] > 0, after["mask"] > 0
+    assert mask_before[block].mean() > 0.9 and not mask_after[block].any()
+    np.testing.assert_array_equal(mask_after, mask_before & ~block)
+    for key in ("noisy", "amplitude"):
+        np.testing.assert_array_equal(after[key], before[key])
+    input_valid = cv2.imread(str(scene / "input_depth_mm.png"), cv2.IMREAD_UNCHANGED) > 0
+    assert np.all(after["noisy"][block & input_valid] > 0)  # fed although not scored
+    assert np.all(after["noisy"][~input_valid] == 0) and np.all(after["amplitude"][~input_valid] == 0)
+    assert np.all(after["clean"][~mask_after] == 0) and np.all(after["sigma"][~mask_after] == 0)
+
+    def batch(item):
+        return {k: torch.from_numpy(item[k])[None, None] for k in ("noisy", "clean", "sigma", "mask", "amplitude")}
+
+    model = DepthRestorer(backbone="unet", backbone_kwargs={"width": 4, "stages": 2}, use_signal_channel=True)
+    torch.testing.assert_close(model.network_input(batch(after)), model.network_input(batch(before)), rtol=0, atol=0)

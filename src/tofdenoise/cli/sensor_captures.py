@@ -1,6 +1,8 @@
-"""`tofdenoise-sensor simulate-captures` and `tofdenoise-sensor build-reference` (capture sets).
+"""`tofdenoise-sensor simulate-calibration`, `simulate-captures` and `build-reference` (a simulated camera's
+calibration captures and capture sets).
 
-Format of a capture set: see `tofdenoise.data_modules.real_captures` and docs/data.md.
+Formats: calibration captures `tofdenoise.physics.capture_io` (docs/physics.md), capture sets
+`tofdenoise.data_modules.real_captures` (docs/data.md); the whole flow: docs/camera-tutorial.md.
 """
 
 from __future__ import annotations
@@ -22,11 +24,94 @@ def _simulate(args: argparse.Namespace) -> int:
     summary = simulate_capture_set(
         args.out, scenes=args.scenes, frames=args.frames, height=args.height, width=args.width, seed=args.seed,
         calib=args.sensor, hi_exposure=args.hi_exposure, write_taps=args.taps, force=args.force,
-        min_count=args.min_count, progress=progress,
+        min_count=args.min_count, mixed_pixels=args.mixed_pixels, progress=progress,
     )
     per_scene = summary.seconds / max(summary.scenes_written, 1)
     print(f"simulated capture set in {summary.out_dir}: {summary.scenes_written} scene(s) written, "
           f"{summary.scenes_skipped} already complete, {summary.seconds:.1f} s ({per_scene:.2f} s per scene)")
+    return 0
+
+
+def _simulate_calibration(args: argparse.Namespace) -> int:
+    from tofdenoise.physics.calibration import resolve_calibration
+    from tofdenoise.physics.synthetic_captures import default_distances_mm, write_calibration_captures
+
+    calib = resolve_calibration(args.sensor)
+    distances = args.distances_mm if args.distances_mm is not None else default_distances_mm(calib)
+    too_far = [d for d in distances if not 0 < d < calib.unambiguous_range_mm]
+    if too_far:
+        raise ValueError(f"--distances-mm {too_far[0]:g}: distances must lie in (0, {calib.unambiguous_range_mm:.0f}) "
+                         f"mm, the unambiguous range of this camera ({calib.modulation_frequency_hz / 1e6:g} MHz)")
+    for name, value in (("--sweep-steps", args.sweep_steps), ("--sweep-frames", args.sweep_frames),
+                        ("--dark-frames", args.dark_frames), ("--distance-frames", args.distance_frames),
+                        ("--size", args.size)):
+        if value < 2:
+            raise ValueError(f"{name} must be >= 2, got {value}")
+    folders = write_calibration_captures(
+        calib, args.out, sweep_steps=args.sweep_steps, sweep_frames=args.sweep_frames, dark_frames=args.dark_frames,
+        distances_mm=distances, distance_frames=args.distance_frames, shape=(args.size, args.size), seed=args.seed)
+    out = Path(args.out)
+    for name, folder in folders.items():
+        print(f"wrote {folder} ({name})")
+    print("next: tofdenoise-sensor calibrate --sweep {0}/sweep --dark {0}/dark --distances {0}/distances "
+          "--out CALIBRATION.yaml".format(out))
+    return 0
+
+
+#: the stand-in real set's camera: differs from configs/sensor/default.yaml in modulation frequency (75 vs 50 MHz),
+#: contrast (0.54 vs 0.50), harmonics (a 2nd harmonic with a sine part vs a 3rd), dark level (800 vs 2000 e-)
+#: and ADC gain (4 vs 25 e-/DN); tests/cli/test_sensor_captures.py checks each difference
+REALSET_CAMERA = "cam75"
+#: procedural scene seed of the stand-in real set: not a training seed (the training scenes use data.seed)
+REALSET_SEED = 1000
+
+
+def realset_commands(out: Path, camera: str = REALSET_CAMERA, scenes: int = 40, frames: int = 100,
+                     height: int = 144, width: int = 192, seed: int = REALSET_SEED, mixed_pixels: int = 3
+                     ) -> list[list[str]]:
+    """The camera engineer's flow (docs/camera-tutorial.md) for a simulated second camera, as
+    ``tofdenoise-sensor`` argument lists: a) its calibration captures, b) calibrate them, c) its capture set."""
+    caps = out / "calibration-captures"
+    return [
+        ["simulate-calibration", "--sensor", camera, "--out", str(caps), "--seed", str(seed)],
+        ["calibrate", "--sweep", str(caps / "sweep"), "--dark", str(caps / "dark"), "--distances",
+         str(caps / "distances"), "--out", str(out / "calibration.yaml")],
+        ["simulate-captures", "--sensor", camera, "--out", str(out / "captures"), "--scenes", str(scenes),
+         "--frames", str(frames), "--height", str(height), "--width", str(width), "--seed", str(seed),
+         "--mixed-pixels", str(mixed_pixels)],
+    ]
+
+
+def _realset(args: argparse.Namespace) -> int:
+    import json
+    import shlex
+
+    from tofdenoise.atomic import atomic_write_text
+    from tofdenoise.cli.sensor import main
+    from tofdenoise.physics.calibration import resolve_calibration
+
+    out = Path(args.out).expanduser()
+    commands = realset_commands(out, args.camera, args.scenes, args.frames, args.height, args.width, args.seed,
+                                args.mixed_pixels)
+    record = {"camera": str(args.camera), "camera_fingerprint": resolve_calibration(args.camera).fingerprint(),
+              "seed": args.seed}
+    done = out / "realset.json"
+    try:
+        calibrated = json.loads(done.read_text(encoding="utf-8")) == record and (out / "calibration.yaml").is_file()
+    except (OSError, json.JSONDecodeError):
+        calibrated = False
+    if calibrated and not args.force:
+        print(f"{out / 'calibration.yaml'} is up to date: steps a) and b) skipped (--force redoes them)")
+        commands = commands[2:]
+    for argv in commands:
+        print("$ tofdenoise-sensor " + shlex.join(argv), flush=True)
+        status = main(argv)
+        if status:
+            return status
+        if argv[0] == "calibrate":
+            atomic_write_text(done, json.dumps(record, indent=1) + "\n")
+    print(f"stand-in real set ready: train with its calibration and test on its captures:\n"
+          f"  tofdenoise-train ++data.sensor={out / 'calibration.yaml'} ++data.real_dir={out / 'captures'}")
     return 0
 
 
@@ -72,10 +157,58 @@ def add_commands(subparsers) -> None:
                      help="requested reference exposure (lowered per scene to stay below the full well)")
     sim.add_argument("--min-count", type=int, default=None,
                      help="valid frames a reference pixel needs (default: half of the frames)")
+    sim.add_argument("--mixed-pixels", type=int, default=1, metavar="S",
+                     help="integrate S x S samples per pixel, so pixels at depth edges mix the returns of both "
+                          "surfaces (default 1: one surface per pixel)")
     sim.add_argument("--taps", action="store_true", help="also write raw tap stacks (.npy)")
     sim.add_argument("--force", action="store_true", help="rewrite scenes that are already complete")
     sim.add_argument("--quiet", action="store_true")
     sim.set_defaults(func=_simulate)
+
+    cal = subparsers.add_parser(
+        "simulate-calibration",
+        help="write a simulated camera's calibration captures (phase sweep, dark frames, distance sequence)",
+        description="Write the three capture folders `tofdenoise-sensor calibrate` reads (format "
+                    "tofdenoise-captures-v1, docs/physics.md) as the camera --sensor records them through the "
+                    "tap-level simulator: OUT/sweep (a planar target at --sweep-steps phases), OUT/dark "
+                    "(--dark-frames emitter-off frames, in DN when the camera has an ADC gain) and OUT/distances "
+                    "(a planar target at --distances-mm).",
+    )
+    cal.add_argument("--out", required=True, help="output folder (sweep/, dark/, distances/ are written in it)")
+    cal.add_argument("--sensor", default=None,
+                     help="the simulated camera: calibration file or preset (default: configs/sensor/default.yaml)")
+    cal.add_argument("--sweep-steps", type=int, default=24, help="phase steps of the sweep (default 24)")
+    cal.add_argument("--sweep-frames", type=int, default=20, help="frames per sweep step (default 20)")
+    cal.add_argument("--dark-frames", type=int, default=100, help="emitter-off frames (default 100)")
+    cal.add_argument("--distances-mm", type=float, nargs="+", default=None, metavar="D",
+                     help="planar-target distances (default: 10 from 25 %% to 75 %% of the unambiguous range)")
+    cal.add_argument("--distance-frames", type=int, default=100, help="frames per distance (default 100)")
+    cal.add_argument("--size", type=int, default=16, help="captured region side in pixels (default 16)")
+    cal.add_argument("--seed", type=int, default=0, help="noise seed")
+    cal.set_defaults(func=_simulate_calibration)
+
+    real = subparsers.add_parser(
+        "realset",
+        help="the stand-in real set: a second simulated camera's calibration and capture set (one command)",
+        description="Run the camera tutorial's steps for a simulated camera unlike the training default "
+                    "(docs/camera-tutorial.md): simulate-calibration -> OUT/calibration-captures, calibrate -> "
+                    "OUT/calibration.yaml, simulate-captures (mixed pixels at depth edges) -> OUT/captures. Each "
+                    "command is printed before it runs. Resumable: an existing OUT/calibration.yaml is kept "
+                    "(--force redoes it) and completed scenes are skipped.",
+    )
+    real.add_argument("--out", required=True, help="output folder")
+    real.add_argument("--camera", default=REALSET_CAMERA,
+                      help=f"the simulated camera: preset or calibration file (default {REALSET_CAMERA})")
+    real.add_argument("--scenes", type=int, default=40, help="static scenes (default 40; the paper has 200)")
+    real.add_argument("--frames", type=int, default=100, help="high-exposure frames per scene (default 100)")
+    real.add_argument("--height", type=int, default=144)
+    real.add_argument("--width", type=int, default=192)
+    real.add_argument("--seed", type=int, default=REALSET_SEED,
+                      help=f"scene and noise seed (default {REALSET_SEED}; not a training data.seed)")
+    real.add_argument("--mixed-pixels", type=int, default=3, metavar="S",
+                      help="samples per pixel side (default 3: mixed pixels at depth edges)")
+    real.add_argument("--force", action="store_true", help="redo the calibration captures and the calibration")
+    real.set_defaults(func=_realset)
 
     ref = subparsers.add_parser(
         "build-reference",

@@ -9,7 +9,11 @@ a(p) (amplitude mapped to the calibration's signal interval, as in training); th
   is flagged in ``saturated_NNN.png`` and excluded by build-reference).
 The simulator draws Poisson photo-electrons, Gaussian dark/read noise, clips at the full well, quantises to the
 ADC gain and demodulates with the camera's N-phase atan2 decoder using the calibrated response (harmonics
-included) - effects the Gaussian WLS training synthesis leaves out. Frames are generated and written in chunks,
+included) - effects the Gaussian WLS training synthesis leaves out. With ``mixed_pixels = s > 1`` the scene is
+ray-cast at s times the resolution and every pixel's taps integrate its s x s samples
+(``tofdenoise.physics.mixed_pixels``): at a depth edge a pixel's taps mix the returns of both surfaces, a
+flying pixel between them (in the input and in the high-exposure frames, as in a real camera); the ground
+truth is the 1x render (the ray through the pixel centre). Frames are generated and written in chunks,
 one scene at a time, so memory does not grow with the number of frames or scenes; a scene whose ``scene.json``
 exists is complete and is skipped when the command is re-run (resume).
 """
@@ -33,6 +37,7 @@ from tofdenoise.data_modules.sources.procedural import ProceduralSource
 
 SCENE_DONE = "scene.json"
 GROUND_TRUTH = "ground_truth_depth_mm.npy"
+SIMULATED_CAMERA = "simulated_camera.yaml"
 SATURATION_MARGIN = 0.9
 
 
@@ -83,39 +88,62 @@ Layout per scene (`<scene>/`):
 - `reference_depth_mm.npy` (float32, NaN = invalid), `reference_count.npy`, `reference.json`: the multi-frame
   reference (`tofdenoise-sensor build-reference`)
 - `ground_truth_depth_mm.npy`: the clean rendered depth (only simulated sets have it)
+
+`simulated_camera.yaml` (next to this file) is the camera the set was simulated with: the simulation's ground
+truth, not a calibration to train with (calibrate the camera from its own captures, docs/camera-tutorial.md).
 - `scene.json`: per-scene settings; its presence marks the scene as complete
 """
     atomic_write_text(out_dir / "README.md", text)
 
 
+def _supersampled(source: ProceduralSource, factor: int) -> ProceduralSource:
+    """The same scenes ray-cast at ``factor`` times the resolution (scene geometry depends on the field of view
+    and the aspect ratio only, so scene i is the same scene)."""
+    return ProceduralSource(num_samples=source.num_samples, height=source.height * factor,
+                            width=source.width * factor, seed=source.seed, min_depth_mm=source.min_depth_mm,
+                            max_depth_mm=source.max_depth_mm, hfov_deg=source.hfov_deg)
+
+
 def simulate_scene(scene_dir: Path, source: ProceduralSource, index: int, calib: Any, frames: int,
                    hi_exposure: float, seed: int, chunk_frames: int = 8, write_taps: bool = False,
-                   min_count: int | None = None) -> dict[str, Any]:
-    from tofdenoise.physics.simulator import simulate_frames
+                   min_count: int | None = None, mixed_pixels: int = 1) -> dict[str, Any]:
+    from tofdenoise.physics.mixed_pixels import footprint_tap_means_e, mixed_pixel_map
+    from tofdenoise.physics.simulator import simulate_frames, simulate_tap_mean_frames
     from tofdenoise.physics.uncertainty import amplitude_to_signal_e
 
-    raw = source.load(f"scene_{index:06d}")
-    signal = np.asarray(amplitude_to_signal_e(raw.amplitude, calib, valid=raw.valid, fill_value=0.0),
+    sample_id = f"scene_{index:06d}"
+    raw = source.load(sample_id)
+    fine = raw if mixed_pixels == 1 else _supersampled(source, mixed_pixels).load(sample_id)
+    signal = np.asarray(amplitude_to_signal_e(fine.amplitude, calib, valid=fine.valid, fill_value=0.0),
                         dtype=np.float32)
-    depth = np.where(raw.valid, raw.depth_mm, 0.0).astype(np.float32)
+    depth = np.where(fine.valid, fine.depth_mm, 0.0).astype(np.float32)
     generator = torch.Generator().manual_seed(stable_seed(seed, "captures", index))
+    if mixed_pixels == 1:  # one surface per pixel: the simulator's own tap means (bit-identical to earlier sets)
+        def simulate(count: int, exposure: float):
+            return simulate_frames(depth, signal, calib, count, exposure=exposure, generator=generator,
+                                   return_taps=write_taps)
+    else:
+        tap_means = footprint_tap_means_e(depth, signal, calib, mixed_pixels)
+
+        def simulate(count: int, exposure: float):
+            return simulate_tap_mean_frames(tap_means, calib, count, exposure=exposure, generator=generator,
+                                            return_taps=write_taps)
     hiexp = scene_dir / HIEXP_DIR
     hiexp.mkdir(parents=True, exist_ok=True)
 
-    standard = simulate_frames(depth, signal, calib, 1, exposure=1.0, generator=generator, return_taps=write_taps)
+    standard = simulate(1, 1.0)
     write_depth_png16(scene_dir / INPUT_DEPTH, standard.depth_mm[0].numpy())
     write_png_uint16(scene_dir / INPUT_AMPLITUDE, amplitude_to_png(standard.amplitude[0].numpy()))
     if write_taps:
         save_npy_atomic(scene_dir / "input_taps.npy", standard.taps[0].numpy())
     save_npy_atomic(scene_dir / GROUND_TRUTH, np.where(raw.valid, raw.depth_mm, np.nan).astype(np.float32))
 
-    exposure = safe_exposure(depth, signal, calib, hi_exposure)
+    exposure = safe_exposure(depth, signal, calib, hi_exposure)  # the brightest sample bounds every mix
     saturated_pixels = 0
     width = max(3, len(str(frames - 1)))
     for start in range(0, frames, chunk_frames):
         count = min(chunk_frames, frames - start)
-        captured = simulate_frames(depth, signal, calib, count, exposure=exposure, generator=generator,
-                                   return_taps=write_taps)
+        captured = simulate(count, exposure)
         for k in range(count):
             tag = f"{start + k:0{width}d}"
             write_depth_png16(hiexp / f"depth_mm_{tag}.png", captured.depth_mm[k].numpy())
@@ -128,6 +156,8 @@ def simulate_scene(scene_dir: Path, source: ProceduralSource, index: int, calib:
     reference = build_reference(scene_dir, min_count=min_count, force=True)
     info = {"scene_index": index, "seed": seed, "height": source.height, "width": source.width, "frames": frames,
             "input_exposure": 1.0, "reference_exposure": exposure, "saturated_pixel_frames": saturated_pixels,
+            "mixed_pixels": mixed_pixels,
+            "mixed_pixel_fraction": float(mixed_pixel_map(depth, mixed_pixels).mean()),
             "input_valid_fraction": float(standard.valid[0].float().mean()),
             "reference_valid_fraction": float(np.isfinite(reference.depth_mm).mean()),
             "calibration_fingerprint": calib.fingerprint()}
@@ -138,15 +168,19 @@ def simulate_scene(scene_dir: Path, source: ProceduralSource, index: int, calib:
 def simulate_capture_set(out_dir: str | Path, scenes: int, frames: int, height: int = 480, width: int = 640,
                          seed: int = 0, calib: Any = None, hi_exposure: float = 4.0, min_depth_mm: float = 300.0,
                          max_depth_fraction: float = 0.8, write_taps: bool = False, force: bool = False,
-                         min_count: int | None = None,
+                         min_count: int | None = None, mixed_pixels: int = 1,
                          progress: Callable[[int, int, dict], None] | None = None) -> SimulationSummary:
-    """Write ``scenes`` simulated scenes (``scene_0000`` ...) with ``frames`` high-exposure frames each."""
+    """Write ``scenes`` simulated scenes (``scene_0000`` ...) with ``frames`` high-exposure frames each;
+    ``mixed_pixels`` = s > 1 integrates s x s samples per pixel (mixed pixels at depth edges)."""
     from tofdenoise.physics.calibration import resolve_calibration
 
     if scenes < 1 or frames < 1:
         raise ValueError(f"--scenes and --frames must be >= 1, got {scenes} and {frames}")
     if hi_exposure <= 0:
         raise ValueError(f"--hi-exposure must be > 0, got {hi_exposure}")
+    if int(mixed_pixels) != mixed_pixels or mixed_pixels < 1:
+        raise ValueError(f"--mixed-pixels must be an integer >= 1 (samples per pixel side), got {mixed_pixels}")
+    mixed_pixels = int(mixed_pixels)
     calib = resolve_calibration(calib)
     out = Path(out_dir).expanduser()
     out.mkdir(parents=True, exist_ok=True)
@@ -154,11 +188,14 @@ def simulate_capture_set(out_dir: str | Path, scenes: int, frames: int, height: 
                               max_depth_mm=max_depth_fraction * calib.unambiguous_range_mm)
     params = {"scenes": scenes, "frames": frames, "height": height, "width": width, "seed": seed,
               "hi_exposure_requested": hi_exposure, "calibration_fingerprint": calib.fingerprint(),
-              "min_depth_mm": min_depth_mm, "max_depth_mm": source.max_depth_mm}
+              "min_depth_mm": min_depth_mm, "max_depth_mm": source.max_depth_mm, "mixed_pixels": mixed_pixels}
     write_readme(out, params)
     from tofdenoise.physics.calibration import save_calibration
 
-    save_calibration(calib, out / "calibration.yaml")
+    save_calibration(calib, out / SIMULATED_CAMERA, header=(
+        "The camera this capture set was simulated with (ground truth of the simulation). A real capture set has\n"
+        "no such file: calibrate the camera (tofdenoise-sensor calibrate, docs/camera-tutorial.md) and train\n"
+        "with that calibration, not with this one."))
     started = time.perf_counter()
     written = skipped = 0
     digits = max(4, len(str(scenes - 1)))
@@ -171,12 +208,13 @@ def simulate_capture_set(out_dir: str | Path, scenes: int, frames: int, height: 
             except (OSError, json.JSONDecodeError):
                 info = {}
             if info.get("frames") == frames and info.get("calibration_fingerprint") == calib.fingerprint() \
-                    and info.get("seed") == seed and info.get("height") == height and info.get("width") == width:
+                    and info.get("seed") == seed and info.get("height") == height and info.get("width") == width \
+                    and info.get("mixed_pixels", 1) == mixed_pixels:
                 skipped += 1
                 continue
         scene_dir.mkdir(parents=True, exist_ok=True)
         info = simulate_scene(scene_dir, source, index, calib, frames, hi_exposure, seed, write_taps=write_taps,
-                              min_count=min_count)
+                              min_count=min_count, mixed_pixels=mixed_pixels)
         written += 1
         if progress is not None:
             progress(index, scenes, info)

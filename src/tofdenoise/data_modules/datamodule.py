@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import logging
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -39,12 +40,32 @@ def _crop_pair(crop_size: int | Sequence[int] | None) -> tuple[int, int] | None:
     return pair
 
 
+@dataclass(frozen=True)
+class PreparedData:
+    """What ``setup`` loads from ``cache_dir`` (written there by ``prepare_data``, on this rank or another)."""
+
+    source: Any
+    split_path: Path
+    splits: dict[str, list[str]]  # usable sample ids per split (samples without a valid pixel removed)
+    skipped: dict[str, list[str]]  # split -> ids left out; "real": capture scenes left out
+    cache: MapCache
+    provider: MapProvider
+    noise_model: Any  # the training noise model (a Gaussian baseline variance-matched)
+    variance_scale: dict | None  # the stored variance-matching record of the training noise, if any
+    eval_noise_model: Any  # synthesises the validation / test / predict inputs (``eval_noise``)
+    real_scenes: list[Path]
+
+
 class ToFDataModule(L.LightningDataModule):
     """Clean depth + signal + sigma_D maps from a source, noisy depth synthesised by a physics noise model.
 
     Args (all plain values; the Hydra configs in ``configs/data`` and ``configs/noise`` set them):
         source: "procedural" (built-in scenes, default), "flyingthings3d" or "folder".
-        noise: training / evaluation noise model ("hetero", "range", "fixed", "none"); noise_kwargs its kwargs.
+        noise: training noise model ("hetero", "range", "fixed", "none"); noise_kwargs its kwargs.
+        eval_noise: the noise model that synthesises the validation, test and predict inputs (default "hetero",
+            the physics-faithful synthesis; its default kwargs, a Gaussian baseline variance-matched like the
+            training noise), whatever ``noise`` is: runs trained with different noise models are validated and
+            tested on identical inputs (the same fixed per-sample seed).
         sensor: calibration (None = default, a path, a preset name, or a mapping in ``to_dict()`` layout).
         root: dataset folder (flyingthings3d / folder). list_file: folder list (default ``root/list.txt``).
         list_files: flyingthings3d list files (default: train_list.txt and test_list.txt, merged then re-split).
@@ -69,6 +90,7 @@ class ToFDataModule(L.LightningDataModule):
         source: str = "procedural",
         noise: str = "hetero",
         noise_kwargs: dict[str, Any] | None = None,
+        eval_noise: str = "hetero",
         sensor: dict[str, Any] | str | None = None,
         root: str | None = None,
         list_file: str | None = None,
@@ -116,6 +138,11 @@ class ToFDataModule(L.LightningDataModule):
         self.calib = resolve_calibration(sensor)
         self.noise_name = str(noise).lower()
         self.noise_kwargs = noise_kwargs
+        from tofdenoise.physics.noise_models import available_noise_models
+
+        self.eval_noise_name = str(eval_noise).lower()
+        if self.eval_noise_name not in available_noise_models():
+            raise ValueError(f"unknown data.eval_noise {eval_noise!r}; valid: {', '.join(available_noise_models())}")
         self.crop = _crop_pair(crop_size)
         from tofdenoise.data_modules.holes import HoleModel
 
@@ -133,8 +160,7 @@ class ToFDataModule(L.LightningDataModule):
         self.cache_root = Path(cache_dir).expanduser()
         self.real_dir = real_dir
         self.test_set_names: list[str] = ["synthetic", "real"] if real_dir else ["synthetic"]
-        self.skipped_samples: dict[str, list[str]] = {}
-        self._state: dict[str, Any] | None = None
+        self._prepared: PreparedData | None = None
         self.datasets: dict[str, Any] = {}
         self.make_source()  # fail fast: unknown source, missing data.root, bad sizes / depth range
 
@@ -151,84 +177,122 @@ class ToFDataModule(L.LightningDataModule):
             return FlyingThings3DSource(hp.root, list_files=hp.list_files, **valid_kwargs)
         return FolderSource(hp.root, list_file=hp.list_file, depth_unit_mm=hp.depth_unit_mm, **valid_kwargs)
 
-    def build_noise_model(self):
-        from tofdenoise.physics.noise_models import build_noise_model
-
-        return build_noise_model(self.noise_name, self.calib, **self.noise_kwargs)
-
     @property
     def split_path(self) -> Path:
-        return self._require_state()["split_path"]
+        return self.prepared.split_path
 
     @property
     def cache(self) -> MapCache:
-        return self._require_state()["cache"]
+        return self.prepared.cache
 
     @property
     def noise_model(self):
-        return self._require_state()["noise_model"]
+        return self.prepared.noise_model
 
     @property
     def splits(self) -> dict[str, list[str]]:
-        return self._require_state()["splits"]
+        return self.prepared.splits
 
-    def _require_state(self) -> dict[str, Any]:
-        if self._state is None:
-            self._prepare()
-        assert self._state is not None
-        return self._state
+    @property
+    def skipped_samples(self) -> dict[str, list[str]]:
+        """Split name -> sample ids left out (no valid pixel; ``"real"``: capture scenes without a common valid
+        region or without an input frame)."""
+        return self.prepared.skipped
+
+    @property
+    def prepared(self) -> PreparedData:
+        """The prepared data, loaded from ``cache_dir`` on first use (``setup``)."""
+        if self._prepared is None:
+            self._prepared = self._load_prepared()
+        return self._prepared
 
     # ------------------------------------------------------------------ preparation
     def prepare_data(self) -> None:
-        """Check the source, write the split, compute missing cached maps, the variance scale and references."""
-        self._prepare()
+        """Write what ``setup`` reads: source description, seeded split, per-sample maps and their index, the
+        variance scale of a Gaussian baseline and the capture set's references. Lightning runs it on one
+        process (rank 0); every write is atomic and skipped when up to date, so calling it again is cheap.
+        Nothing is kept on the instance: ``setup`` loads the same files on every rank."""
+        self._load_prepared()
 
-    def _prepare(self) -> None:
-        if self._state is not None:
-            return
-        hp = self.hparams
+    def _load_prepared(self) -> PreparedData:
+        """The preparation steps in order; each reuses what is stored under ``cache_dir`` and writes what is
+        missing, so the same call prepares (rank 0) and loads (every rank)."""
+        source, described, base = self._open_source()
+        split_path, splits = self._load_split(base, source.sample_ids(), described)
+        cache, provider = self._map_cache(base, described, source)
+        index = self._sample_index(provider, cache, [i for name in SPLIT_NAMES for i in splits[name]])
+        splits, skipped = self._drop_empty(splits, index)
+        if not splits["train"]:
+            raise ValueError(f"the {source.name} source has no usable training sample")
+        self._check_crop(splits["train"], index)
+        noise_model, scale_record = self._noise(self.noise_name, self.noise_kwargs, provider, cache, splits["train"])
+        eval_model, _ = self._noise(self.eval_noise_name, {}, provider, cache, splits["train"])
+        real_scenes = self._real_scenes(skipped) if self.real_dir else []
+        return PreparedData(source=source, split_path=split_path, splits=splits, skipped=skipped, cache=cache,
+                            provider=provider, noise_model=noise_model, variance_scale=scale_record,
+                            eval_noise_model=eval_model, real_scenes=real_scenes)
+
+    def _open_source(self) -> tuple[Any, dict, Path]:
+        """The source (checked: a listed but missing sample fails here, before training), its description and
+        its folder under ``cache_dir`` (``source.json`` written there)."""
         source = self.make_source()
-        source.check()  # a listed but missing sample fails here, before training
-        ids = source.sample_ids()
+        source.check()
         described = source.describe()
         base = self.cache_root / f"{source.name}-{canonical_digest(described)[:12]}"
         base.mkdir(parents=True, exist_ok=True)
         atomic_write_text(base / "source.json", json.dumps(described, indent=1, default=str) + "\n")
+        return source, described, base
+
+    def _load_split(self, base: Path, ids: list[str], described: dict) -> tuple[Path, dict[str, list[str]]]:
+        """The seeded split file ``split_seed<S>_<ratios>.json`` (reused when it matches, else written)."""
+        hp = self.hparams
         ratio_tag = "-".join(f"{r:g}" for r in hp.split_ratios)
         split_path = base / f"split_seed{hp.seed}_{ratio_tag}.json"
-        splits = load_or_make_split(split_path, ids, hp.seed, hp.split_ratios, described)
+        return split_path, load_or_make_split(split_path, ids, hp.seed, hp.split_ratios, described)
+
+    def _map_cache(self, base: Path, described: dict, source: Any) -> tuple[MapCache, MapProvider]:
+        """The map cache of this source x calibration x signal mapping, and the provider reading through it."""
+        hp = self.hparams
         key = {"source": described, "calibration": self.calib.fingerprint(),
                "signal_percentiles": [hp.signal_lower_percentile, hp.signal_upper_percentile]}
         cache = MapCache(base, key, enabled=hp.use_cache)
         provider = MapProvider(source, self.calib, cache, hp.signal_lower_percentile, hp.signal_upper_percentile)
-        index = self._sample_index(provider, cache, [i for name in SPLIT_NAMES for i in splits[name]])
-        self.skipped_samples = {}
+        return cache, provider
+
+    @staticmethod
+    def _drop_empty(splits: dict[str, list[str]], index: dict[str, dict]
+                    ) -> tuple[dict[str, list[str]], dict[str, list[str]]]:
+        """Splits without the samples that have no valid pixel (warned), and those left out per split."""
+        kept, skipped = {}, {}
         for name in SPLIT_NAMES:
             empty = [i for i in splits[name] if index[i]["num_valid"] == 0]
             if empty:
                 warnings.warn(f"{name} split: {len(empty)} sample(s) with no valid pixel skipped: "
-                              f"{', '.join(empty[:5])}{' ...' if len(empty) > 5 else ''}", stacklevel=2)
-                self.skipped_samples[name] = empty
-                splits[name] = [i for i in splits[name] if index[i]["num_valid"] > 0]
-        if not splits["train"]:
-            raise ValueError(f"the {source.name} source has no usable training sample")
-        if self.crop is not None:
-            too_small = [i for i in splits["train"]
-                         if index[i]["shape"][0] < self.crop[0] or index[i]["shape"][1] < self.crop[1]]
-            if too_small:
-                shape = index[too_small[0]]["shape"]
-                raise ValueError(f"data.crop_size={list(self.crop)} does not fit sample {too_small[0]} of size "
-                                 f"{shape[0]}x{shape[1]}; lower data.crop_size (or set it to null)")
-        noise_model = self.build_noise_model()
-        scale_record = None
-        if self.noise_name in GAUSSIAN_BASELINES and hp.match_variance:
-            noise_model, scale_record = self._match_variance(noise_model, provider, cache, splits["train"])
-        real_scenes: list[Path] = []
-        if self.real_dir:
-            real_scenes = self._prepare_real()
-        self._state = {"source": source, "split_path": split_path, "splits": splits, "cache": cache,
-                       "provider": provider, "index": index, "noise_model": noise_model,
-                       "variance_scale": scale_record, "real_scenes": real_scenes}
+                              f"{', '.join(empty[:5])}{' ...' if len(empty) > 5 else ''}", stacklevel=3)
+                skipped[name] = empty
+            kept[name] = [i for i in splits[name] if index[i]["num_valid"] > 0]
+        return kept, skipped
+
+    def _check_crop(self, train_ids: list[str], index: dict[str, dict]) -> None:
+        """A training crop larger than a training sample is a configuration error naming data.crop_size."""
+        if self.crop is None:
+            return
+        too_small = [i for i in train_ids if index[i]["shape"][0] < self.crop[0] or index[i]["shape"][1] < self.crop[1]]
+        if too_small:
+            shape = index[too_small[0]]["shape"]
+            raise ValueError(f"data.crop_size={list(self.crop)} does not fit sample {too_small[0]} of size "
+                             f"{shape[0]}x{shape[1]}; lower data.crop_size (or set it to null)")
+
+    def _noise(self, name: str, kwargs: dict[str, Any], provider: MapProvider, cache: MapCache,
+               train_ids: list[str]):
+        """A noise model and its variance-scale record: a Gaussian baseline is variance-matched over the
+        training split (``match_variance``; the record stored next to the maps), any other model has none."""
+        from tofdenoise.physics.noise_models import build_noise_model
+
+        noise_model = build_noise_model(name, self.calib, **kwargs)
+        if name in GAUSSIAN_BASELINES and self.hparams.match_variance:
+            return self._match_variance(name, kwargs, noise_model, provider, cache, train_ids)
+        return noise_model, None
 
     def _sample_index(self, provider: MapProvider, cache: MapCache, ids: list[str]) -> dict[str, dict]:
         """Valid-pixel count and shape per sample (computing, and caching, any maps not seen yet)."""
@@ -243,12 +307,13 @@ class ToFDataModule(L.LightningDataModule):
             cache.save_record("index.json", {"samples": index})
         return index
 
-    def _match_variance(self, noise_model, provider: MapProvider, cache: MapCache, train_ids: list[str]):
+    def _match_variance(self, noise_name: str, noise_kwargs: dict[str, Any], noise_model, provider: MapProvider,
+                        cache: MapCache, train_ids: list[str]):
         from tofdenoise.physics.noise_models import variance_matching_scale
 
-        key = {"noise": self.noise_name, "noise_kwargs": self.noise_kwargs, "maps": cache.digest,
+        key = {"noise": noise_name, "noise_kwargs": noise_kwargs, "maps": cache.digest,
                "train_ids": ids_digest(train_ids)}
-        name = f"variance_scale_{self.noise_name}_{canonical_digest(key)[:12]}.json"
+        name = f"variance_scale_{noise_name}_{canonical_digest(key)[:12]}.json"
         record = cache.load_record(name, expected_key=key)
         if record is None:
             def samples():
@@ -257,14 +322,15 @@ class ToFDataModule(L.LightningDataModule):
                     yield maps.depth_mm, maps.sigma_mm, maps.mask
 
             scale = float(variance_matching_scale(noise_model, samples()))
-            record = {"scale": scale, "noise": self.noise_name, "num_train_samples": len(train_ids),
+            record = {"scale": scale, "noise": noise_name, "num_train_samples": len(train_ids),
                       "note": "std multiplier giving the hetero mean perturbation variance over the training split"}
             cache.save_record(name, record, key=key)
             record = cache.load_record(name, expected_key=key) or record
-        log.info("variance-matched %s noise: scale %.6g", self.noise_name, record["scale"])
+        log.info("variance-matched %s noise: scale %.6g", noise_name, record["scale"])
         return noise_model.with_scale(float(record["scale"])), record
 
-    def _prepare_real(self) -> list[Path]:
+    def _real_scenes(self, skipped: dict[str, list[str]]) -> list[Path]:
+        """Usable scenes of the capture set (references built or reused); scenes left out go to ``skipped``."""
         hp = self.hparams
         incomplete: list[str] = []  # scene folders without an input frame (list_scenes warns)
         scenes = list_scenes(self.real_dir, incomplete=incomplete)
@@ -280,26 +346,27 @@ class ToFDataModule(L.LightningDataModule):
             warnings.warn(f"real capture set {self.real_dir}: {len(empty)} scene(s) with no common valid pixel "
                           f"skipped: {', '.join(empty[:5])}", stacklevel=2)
         if empty or incomplete:
-            self.skipped_samples["real"] = sorted(empty + incomplete)
+            skipped["real"] = sorted(empty + incomplete)
         if not usable:
             raise ValueError(f"real capture set {self.real_dir} has no scene with a valid common region")
         return usable
 
     # ------------------------------------------------------------------ datasets
     def setup(self, stage: str | None = None) -> None:
-        state = self._require_state()
+        """Load what ``prepare_data`` wrote (in this process or another) and build the datasets."""
+        state = self.prepared
         hp = self.hparams
-        provider, splits, model = state["provider"], state["splits"], state["noise_model"]
+        provider, splits, model, eval_model = state.provider, state.splits, state.noise_model, state.eval_noise_model
         holes = self.hole_model
         self.datasets = {
             "train": SyntheticPairs(provider, splits["train"], "train", model, hp.seed, train=True, crop=self.crop,
                                     flips=hp.flips, holes=holes),
-            "val": SyntheticPairs(provider, splits["val"], "val", model, hp.seed, train=False, holes=holes),
-            "test": SyntheticPairs(provider, splits["test"], "test", model, hp.seed, train=False, holes=holes),
+            "val": SyntheticPairs(provider, splits["val"], "val", eval_model, hp.seed, train=False, holes=holes),
+            "test": SyntheticPairs(provider, splits["test"], "test", eval_model, hp.seed, train=False, holes=holes),
         }
-        if state["real_scenes"]:
+        if state.real_scenes:
             calib, min_count = self.calib, hp.real_min_count
-            self.datasets["real"] = RealCaptures(state["real_scenes"], _RealLoader(calib, min_count))
+            self.datasets["real"] = RealCaptures(state.real_scenes, _RealLoader(calib, min_count))
 
     def _loader(self, dataset, train: bool) -> DataLoader:
         hp = self.hparams
@@ -336,13 +403,14 @@ class ToFDataModule(L.LightningDataModule):
 
     def summary(self) -> dict[str, Any]:
         """Plain description of what was prepared (sizes, paths, skipped samples, variance scale)."""
-        state = self._require_state()
-        return {"source": self.source_name, "noise": self.noise_name, "split_file": str(state["split_path"]),
-                "cache_folder": str(state["cache"].folder), "cache_enabled": state["cache"].enabled,
-                "sizes": {k: len(v) for k, v in state["splits"].items()},
-                "skipped": {k: len(v) for k, v in self.skipped_samples.items()},
-                "variance_scale": None if state["variance_scale"] is None else state["variance_scale"]["scale"],
-                "real_scenes": len(state["real_scenes"]), "max_depth_mm": self.max_depth_mm,
+        state = self.prepared
+        return {"source": self.source_name, "noise": self.noise_name, "eval_noise": self.eval_noise_name,
+                "split_file": str(state.split_path),
+                "cache_folder": str(state.cache.folder), "cache_enabled": state.cache.enabled,
+                "sizes": {k: len(v) for k, v in state.splits.items()},
+                "skipped": {k: len(v) for k, v in state.skipped.items()},
+                "variance_scale": None if state.variance_scale is None else state.variance_scale["scale"],
+                "real_scenes": len(state.real_scenes), "max_depth_mm": self.max_depth_mm,
                 "holes": None if self.hole_model is None else self.hole_model.to_dict(),
                 "calibration": self.calib.fingerprint()[:16]}
 

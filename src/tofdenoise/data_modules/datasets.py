@@ -1,8 +1,11 @@
 """Torch datasets: synthetic pairs (clean maps + noise drawn by a physics noise model) and real capture sets.
 
 Batch items (after default collation) are float32 tensors (B, 1, H, W) in mm: ``noisy``, ``clean``, ``sigma``
-(the hetero sigma_D map whatever the training noise is), ``mask`` (1 valid / 0 invalid), ``amplitude``; plus
-``index`` (position in the split) and ``name`` (sample id). Invalid pixels are 0 in ``clean`` and ``noisy``.
+(the hetero sigma_D map whatever the training noise is), ``mask`` (1 valid / 0 invalid: the pixels the loss and
+the metrics score), ``amplitude``; plus ``index`` (position in the split) and ``name`` (sample id). Invalid
+pixels are 0 in ``clean`` and ``noisy``. The network input (``noisy``, ``amplitude``) is 0 exactly at the
+input's own invalid pixels: for synthetic pairs these are the ``mask == 0`` pixels; for a capture set
+``mask`` is the common valid region of input and reference, and the input keeps its valid pixels outside it.
 Synthetic pairs may carry holes (``tofdenoise.data_modules.holes``): pixels invalid in the simulated input,
 0 in every map and in ``mask``.
 """

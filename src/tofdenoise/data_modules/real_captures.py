@@ -175,8 +175,13 @@ def build_reference(scene_dir: str | Path, min_count: int | None = None, force: 
 
 
 def load_real_scene(scene_dir: str | Path, calib: Any, min_count: int | None = None) -> dict[str, Any]:
-    """One evaluation sample: noisy = input depth, clean = reference, mask = common valid region,
-    sigma = WLS sigma_D from the input amplitude (calibration interval), amplitude = input amplitude."""
+    """One evaluation sample.
+
+    The network input is the frame as captured: ``noisy`` = input depth and ``amplitude`` = input amplitude at
+    every valid input pixel (depth > 0; 0 elsewhere), whatever the reference. ``mask`` = the scoring region,
+    the common valid region of input and reference (paper Sec. V-D applies this ROI to the metrics only);
+    ``clean`` = reference and ``sigma`` = WLS sigma_D of the input (amplitude mapped to the calibration's
+    signal interval) inside it, 0 outside."""
     from tofdenoise.physics.uncertainty import amplitude_to_signal_e, sigma_depth_mm
 
     scene = Path(scene_dir)
@@ -187,17 +192,18 @@ def load_real_scene(scene_dir: str | Path, calib: Any, min_count: int | None = N
     reference = build_reference(scene, min_count=min_count).depth_mm
     check_same_shape(depth, reference, reference_path=depth_path, other_path=scene / REFERENCE_DEPTH,
                      what="reference depth")
+    input_valid = depth > 0
     with np.errstate(invalid="ignore"):
-        mask = (depth > 0) & np.isfinite(reference) & (reference > 0)
+        mask = input_valid & np.isfinite(reference) & (reference > 0)
     sigma = np.zeros_like(depth)
     if mask.any():
-        signal = np.asarray(amplitude_to_signal_e(np.maximum(amplitude, 1e-6), calib, valid=depth > 0),
+        signal = np.asarray(amplitude_to_signal_e(np.maximum(amplitude, 1e-6), calib, valid=input_valid),
                             dtype=np.float32)
-        safe_signal = np.where(mask & np.isfinite(signal), signal, calib.signal_min_e).astype(np.float32)
-        sigma = np.asarray(sigma_depth_mm(np.where(mask, depth, 1.0).astype(np.float32), safe_signal, calib),
+        safe_signal = np.where(input_valid & np.isfinite(signal), signal, calib.signal_min_e).astype(np.float32)
+        sigma = np.asarray(sigma_depth_mm(np.where(input_valid, depth, 1.0).astype(np.float32), safe_signal, calib),
                            dtype=np.float32)
         mask &= np.isfinite(sigma)
     zero = np.float32(0.0)
-    return {"name": scene.name, "noisy": np.where(mask, depth, zero), "clean": np.where(mask, reference, zero),
+    return {"name": scene.name, "noisy": np.where(input_valid, depth, zero), "clean": np.where(mask, reference, zero),
             "sigma": np.where(mask, sigma, zero), "mask": mask.astype(np.float32),
-            "amplitude": np.where(mask, amplitude, zero)}
+            "amplitude": np.where(input_valid, amplitude, zero)}

@@ -1,6 +1,7 @@
 """Sensor physics: calibration, per-pixel depth uncertainty (WLS), noise models, capture simulator.
 
-See docs/physics.md. Sub-modules: calibration, uncertainty, noise_models, simulator, calibrate, validation.
+See docs/physics.md. Sub-modules: calibration, uncertainty, noise_models, simulator, mixed_pixels, calibrate,
+validation.
 """
 
 from tofdenoise.physics.calibration import (

@@ -262,17 +262,56 @@ def simulate_frames(
     a_eff = torch.where(in_valid, a * float(exposure), torch.zeros_like(a))
     r, _ = tap_responses(d_safe, calib)  # (..., N)
     mean_signal = (a_eff.unsqueeze(-1) * r).clamp_min(0.0).movedim(-1, 0).contiguous()  # (N, ...)
-    n_pix = int(np.prod(d.shape))
+    return _frames_from_means(mean_signal, in_valid, calib, num_frames, generator, quantize, return_taps,
+                              min_amplitude_e, chunk_frames)
+
+
+def simulate_tap_mean_frames(
+    tap_means_e: Any,
+    calib: SensorCalibration,
+    num_frames: int,
+    exposure: float = 1.0,
+    generator: torch.Generator | None = None,
+    quantize: bool = True,
+    return_taps: bool = False,
+    min_amplitude_e: float | None = None,
+    chunk_frames: int | None = None,
+) -> CaptureFrames:
+    """Like ``simulate_frames``, from the expected signal photo-electrons of each tap (N, ...) at exposure 1
+    (dark offset excluded): e.g. mixed pixels (``tofdenoise.physics.mixed_pixels``), whose taps sum the returns
+    of several surfaces. A pixel with no expected signal in any tap is invalid (no return)."""
+    if int(num_frames) != num_frames or num_frames < 1:
+        raise ValueError(f"num_frames must be a positive integer, got {num_frames}")
+    if not math.isfinite(float(exposure)) or exposure <= 0:
+        raise ValueError(f"exposure must be a finite number > 0, got {exposure}")
+    means = _to_tensor(tap_means_e, "tap_means_e").float()
+    if means.ndim < 2 or means.shape[0] != calib.num_taps:
+        raise ValueError(f"tap_means_e: expected ({calib.num_taps}, ...) with the taps on axis 0, got "
+                         f"{tuple(means.shape)}")
+    finite = torch.isfinite(means).all(dim=0)
+    means = torch.where(finite.unsqueeze(0), means, torch.zeros_like(means))
+    in_valid = finite & (means.sum(dim=0) > 0)
+    mean_signal = (means * float(exposure)).clamp_min(0.0).contiguous()
+    return _frames_from_means(mean_signal, in_valid, calib, num_frames, generator, quantize, return_taps,
+                              min_amplitude_e, chunk_frames)
+
+
+def _frames_from_means(mean_signal: torch.Tensor, in_valid: torch.Tensor, calib: SensorCalibration,
+                       num_frames: int, generator: torch.Generator | None, quantize: bool, return_taps: bool,
+                       min_amplitude_e: float | None, chunk_frames: int | None) -> CaptureFrames:
+    """Noisy frames from the expected signal electrons per tap (N, ...) and the input validity (...)."""
+    shape, device = tuple(in_valid.shape), in_valid.device
+    n_pix = int(np.prod(shape))
     if chunk_frames is None:
         chunk_frames = max(1, DEFAULT_CHUNK_ELEMENTS // max(1, n_pix * calib.num_taps))
     thr = default_min_amplitude_e(calib) if min_amplitude_e is None else float(min_amplitude_e)
 
     f = int(num_frames)
-    depth_out = torch.empty((f, *d.shape), dtype=torch.float32, device=d.device)
+    depth_out = torch.empty((f, *shape), dtype=torch.float32, device=device)
     amp_out = torch.empty_like(depth_out)
-    valid_out = torch.empty((f, *d.shape), dtype=torch.bool, device=d.device)
+    valid_out = torch.empty((f, *shape), dtype=torch.bool, device=device)
     sat_out = torch.empty_like(valid_out)
-    taps_out = torch.empty((f, calib.num_taps, *d.shape), dtype=torch.float32, device=d.device) if return_taps else None
+    taps_out = torch.empty((f, calib.num_taps, *shape), dtype=torch.float32, device=device) if return_taps else None
     for start in range(0, f, chunk_frames):
         stop = min(f, start + chunk_frames)
         taps, saturated = simulate_taps_chunk(mean_signal, calib, stop - start, generator, quantize)
@@ -317,5 +356,6 @@ __all__ = [
     "signal_from_taps_e",
     "simulate_dark_taps",
     "simulate_frames",
+    "simulate_tap_mean_frames",
     "simulate_taps_chunk",
 ]

@@ -115,11 +115,45 @@ def write_distances_folder(
     return write_capture_folder(folder, "distances", calib.num_taps, stacks, units="e")
 
 
+def default_distances_mm(calib: SensorCalibration, count: int = 10) -> list[float]:
+    """``count`` planar-target distances from 25 % to 75 % of the unambiguous range (mm, rounded to 1 mm)."""
+    return [float(round(v)) for v in np.linspace(0.25, 0.75, int(count)) * calib.unambiguous_range_mm]
+
+
+def write_calibration_captures(
+    calib: SensorCalibration,
+    out_dir: str | os.PathLike[str],
+    sweep_steps: int = 24,
+    sweep_frames: int = 20,
+    dark_frames: int = 100,
+    distances_mm: Sequence[float] | None = None,
+    distance_frames: int = 100,
+    shape: tuple[int, int] = (16, 16),
+    signal_spread: tuple[float, float] = (0.3, 1.0),
+    seed: int = 0,
+) -> dict[str, Path]:
+    """The three capture folders ``tofdenoise-sensor calibrate`` reads, as a camera with ``calib`` records them:
+    ``out_dir/sweep`` (phase sweep), ``out_dir/dark`` (emitter-off frames) and ``out_dir/distances`` (planar
+    target at ``distances_mm``, default ``default_distances_mm``, with a left-to-right signal ramp
+    ``signal_spread``). Each folder has its own generator seeded from ``seed``."""
+    out = Path(out_dir)
+    distances = list(distances_mm) if distances_mm is not None else default_distances_mm(calib)
+    return {
+        "sweep": write_sweep_folder(calib, out / "sweep", num_steps=sweep_steps, num_frames=sweep_frames,
+                                    shape=shape, seed=seed * 3 + 11),
+        "dark": write_dark_folder(calib, out / "dark", num_frames=dark_frames, shape=shape, seed=seed * 3 + 12),
+        "distances": write_distances_folder(calib, out / "distances", distances, num_frames=distance_frames,
+                                            shape=shape, signal_spread=signal_spread, seed=seed * 3 + 13),
+    }
+
+
 __all__ = [
     "REFERENCE_DISTANCE_MM",
     "SIGNAL_AT_1M_E",
+    "default_distances_mm",
     "planar_signal_e",
     "planar_tap_stack",
+    "write_calibration_captures",
     "write_dark_folder",
     "write_distances_folder",
     "write_sweep_folder",

@@ -222,7 +222,8 @@ class DepthRestorer(pl.LightningModule):
         Channel 0: ``(filled - offset) / depth_scale_mm`` where ``filled`` is the noisy depth with its invalid
         pixels (0, negative, NaN) filled by pull-push and ``offset`` the smooth local level (or the image
         median, or 0; ``input_centering``); computed in float32 whatever the autocast setting. Channel 1
-        (optional): amplitude / its per-image maximum over valid pixels.
+        (optional): amplitude / its per-image maximum over the valid input pixels (those of ``noisy``, not
+        ``mask``: on a capture set the scoring mask also depends on the reference, the input must not).
         """
         noisy = batch["noisy"]
         with torch.autocast(device_type=noisy.device.type, enabled=False):
@@ -239,7 +240,7 @@ class DepthRestorer(pl.LightningModule):
             if self.hparams.use_signal_channel:
                 if "amplitude" not in batch:
                     raise KeyError("DepthRestorer(use_signal_channel=True) needs batch['amplitude']")
-                amp = batch["amplitude"].float() * batch["mask"]
+                amp = batch["amplitude"].float() * valid  # the input's own validity, not the scoring mask
                 peak = amp.amax(dim=(1, 2, 3), keepdim=True).clamp_min(1e-12)
                 x = torch.cat([x, amp / peak], dim=1)
         return x, offset

@@ -1,0 +1,95 @@
+"""The stand-in real set (docs/camera-tutorial.md): a second simulated camera, calibrated from its own captures;
+training with that calibration and testing on that camera's capture set (`tofdenoise-sensor realset`,
+`make realset`)."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tofdenoise.cli.sensor import main
+from tofdenoise.cli.sensor_captures import REALSET_CAMERA, REALSET_SEED, realset_commands
+from tofdenoise.physics.calibration import default_calibration, load_calibration, resolve_calibration
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def test_the_realset_camera_is_not_the_training_camera():
+    """frequency, contrast, harmonics, dark level and ADC gain all differ from configs/sensor/default.yaml."""
+    cam, default = resolve_calibration(REALSET_CAMERA), default_calibration()
+    assert cam.modulation_frequency_hz != default.modulation_frequency_hz
+    assert abs(cam.tap_response.contrast - default.tap_response.contrast) > 0.02
+
+    def harmonics(c):
+        tr = c.tap_response
+        return {k + 1 for k, (a, b) in enumerate(zip(tr.cos, tr.sin)) if k > 0 and (a or b)}
+
+    assert harmonics(cam) and harmonics(cam) != harmonics(default)
+    assert cam.dark_mean_e != default.dark_mean_e and cam.adc_gain_e_per_dn != default.adc_gain_e_per_dn
+    # the capture set's scenes are not the training scenes (procedural seed != the default data.seed 0)
+    assert REALSET_SEED != 0
+    # `make realset` runs this command
+    makefile = (REPO / "Makefile").read_text()
+    recipe = re.search(r"^realset:.*\n((?:\t.*\n)+)", makefile, re.M)
+    assert recipe and "tofdenoise-sensor realset --out $(REALSET_DIR)" in recipe.group(1)
+
+
+def make_realset(out: Path) -> None:
+    assert main(["realset", "--out", str(out), "--scenes", "2", "--frames", "4", "--height", "32", "--width",
+                 "48"]) == 0
+
+
+def realset_overrides(out: Path) -> list[str]:
+    return [f"++data.sensor={out / 'calibration.yaml'}", f"++data.real_dir={out / 'captures'}"]
+
+
+def test_realset_command_writes_calibration_and_captures(tmp_path, capsys, data_cache, tiny):
+    """Steps a)-c) at tiny sizes, resumable; the training config reads that calibration and capture set."""
+    from hydra.utils import instantiate
+
+    from tofdenoise.cli.train import compose_config
+
+    out = tmp_path / "realset"
+    make_realset(out)
+    printed = capsys.readouterr().out
+    for argv in realset_commands(out, scenes=2, frames=4, height=32, width=48):
+        assert f"$ tofdenoise-sensor {argv[0]}" in printed
+    calib = load_calibration(out / "calibration.yaml")
+    true = resolve_calibration(REALSET_CAMERA)
+    assert calib.modulation_frequency_hz == true.modulation_frequency_hz
+    assert calib.fingerprint() != true.fingerprint()  # estimated from captures, not copied
+    assert abs(calib.dark_mean_e - true.dark_mean_e) < 0.01 * true.dark_mean_e
+    scenes = sorted(p.name for p in (out / "captures").iterdir() if p.is_dir())
+    assert scenes == ["scene_0000", "scene_0001"]
+    assert json.loads((out / "captures" / "scene_0000" / "scene.json").read_text())["mixed_pixels"] == 3
+    # resumable: the calibration is kept, the completed scenes are skipped
+    make_realset(out)
+    again = capsys.readouterr().out
+    assert "steps a) and b) skipped" in again and "0 scene(s) written, 2 already complete" in again
+    # step d)'s configuration: the datamodule synthesises training data with that calibration and adds the real set
+    cfg = compose_config(tiny(tmp_path / "run", data_cache) + realset_overrides(out))
+    dm = instantiate(cfg.data, _convert_="all")
+    assert dm.calib.fingerprint() == calib.fingerprint()
+    assert dm.max_depth_mm == 0.8 * calib.unambiguous_range_mm  # the second camera's range
+    dm.prepare_data()
+    dm.setup("test")
+    assert dm.test_set_names == ["synthetic", "real"] and len(dm.datasets["real"]) == 2
+
+
+@pytest.mark.slow
+def test_train_with_the_realset_calibration_and_test_on_its_captures(tmp_path, data_cache, tiny):
+    """Step d) (30-45 s measured on the shared 2-core machine): fit with the calibration, test on the capture set."""
+    from tofdenoise.cli.train import compose_config, run
+
+    out = tmp_path / "realset"
+    make_realset(out)
+    run_dir = tmp_path / "run"
+    run(compose_config(tiny(run_dir, data_cache) + realset_overrides(out) + ["trainer.max_epochs=1", "logger=csv"]))
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    assert metrics["real"]["images"] == 2 and metrics["real"]["valid_px"] > 0.5 * 2 * 32 * 48
+    assert np.isfinite(metrics["real"]["mae_mm"]) and metrics["real"]["raw"]["mae_mm"] > 0
+    assert str(out / "calibration.yaml") in (run_dir / "config.yaml").read_text()
