@@ -51,7 +51,7 @@ def test_realset_command_writes_calibration_and_captures(tmp_path, capsys, data_
     """Steps a)-c) at tiny sizes, resumable; the training config reads that calibration and capture set."""
     from hydra.utils import instantiate
 
-    from tofdenoise.cli.train import compose_config
+    from tofdenoise.config import compose_config
 
     out = tmp_path / "realset"
     make_realset(out)
@@ -66,10 +66,13 @@ def test_realset_command_writes_calibration_and_captures(tmp_path, capsys, data_
     scenes = sorted(p.name for p in (out / "captures").iterdir() if p.is_dir())
     assert scenes == ["scene_0000", "scene_0001"]
     assert json.loads((out / "captures" / "scene_0000" / "scene.json").read_text())["mixed_pixels"] == 3
+    # the Fig. 6 conditions as that camera records them (tofdenoise-sensor validate --captures)
+    assert json.loads((out / "validation" / "index.json").read_text())["kind"] == "validation"
     # resumable: the calibration is kept, the completed scenes are skipped
     make_realset(out)
     again = capsys.readouterr().out
     assert "steps a) and b) skipped" in again and "0 scene(s) written, 2 already complete" in again
+    assert "$ tofdenoise-sensor simulate-validation" not in again
     # step d)'s configuration: the datamodule synthesises training data with that calibration and adds the real set
     cfg = compose_config(tiny(tmp_path / "run", data_cache) + realset_overrides(out))
     dm = instantiate(cfg.data, _convert_="all")
@@ -83,7 +86,8 @@ def test_realset_command_writes_calibration_and_captures(tmp_path, capsys, data_
 @pytest.mark.slow
 def test_train_with_the_realset_calibration_and_test_on_its_captures(tmp_path, data_cache, tiny):
     """Step d) (30-45 s measured on the shared 2-core machine): fit with the calibration, test on the capture set."""
-    from tofdenoise.cli.train import compose_config, run
+    from tofdenoise.cli.train import run
+    from tofdenoise.config import compose_config
 
     out = tmp_path / "realset"
     make_realset(out)

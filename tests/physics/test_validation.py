@@ -101,3 +101,28 @@ def test_validation_from_capture_folder(tmp_path):
     (folder / "index.json").write_text(json.dumps(index))
     with pytest.raises(CaptureFormatError, match="group"):
         run_validation(calib, captures_dir=folder)
+
+
+def test_written_validation_captures_measure_what_the_simulator_measures(tmp_path):
+    """write_validation_captures records every condition of the experiment; read back through the captures path,
+    the measured temporal std agrees with the in-memory simulation of the same camera and random streams."""
+    from tofdenoise.physics.calibration import resolve_calibration
+    from tofdenoise.physics.validation import condition_plan, write_validation_captures
+
+    camera = resolve_calibration("cam75")
+    settings = ValidationSettings(num_frames=40, roi_px=8)
+    folder = write_validation_captures(camera, tmp_path / "val", settings)
+    index = json.loads((folder / "index.json").read_text())
+    plan = condition_plan()
+    assert index["kind"] == "validation" and index["num_taps"] == camera.num_taps
+    assert [(e["group"], e["distance_mm"], e["surface"], e["exposure"]) for e in index["stacks"]] == [
+        (c.group, c.distance_mm, c.surface, c.exposure) for c, _, _ in plan]
+    assert len(plan) == 11 + 12 + 10
+    captured = run_validation(camera, captures_dir=folder)
+    simulated = run_validation(camera, settings)
+    got = {(c.group, c.distance_mm, c.surface, c.exposure): c.measured_std_mm for c in captured.conditions}
+    want = {(c.group, c.distance_mm, c.surface, c.exposure): c.measured_std_mm for c in simulated.conditions}
+    assert got.keys() == want.keys()
+    for key in got:
+        assert got[key] == pytest.approx(want[key], rel=0.02), key
+    assert captured.pooled["proposed"]["mape_percent"] < 5.0

@@ -58,6 +58,20 @@ def _simulate_calibration(args: argparse.Namespace) -> int:
     return 0
 
 
+def _simulate_validation(args: argparse.Namespace) -> int:
+    from tofdenoise.physics.calibration import resolve_calibration
+    from tofdenoise.physics.validation import ValidationSettings, write_validation_captures
+
+    for name, value in (("--frames", args.frames), ("--roi-px", args.roi_px)):
+        if value < 2:
+            raise ValueError(f"{name} must be >= 2, got {value}")
+    settings = ValidationSettings(num_frames=args.frames, roi_px=args.roi_px, seed=args.seed, fit_seed=args.seed + 1)
+    folder = write_validation_captures(resolve_calibration(args.sensor), args.out, settings)
+    print(f"wrote {folder} (validation)")
+    print(f"next: tofdenoise-sensor validate --captures {folder} --calib CALIBRATION.yaml --out DIR")
+    return 0
+
+
 #: the stand-in real set's camera: differs from configs/sensor/default.yaml in modulation frequency (75 vs 50 MHz),
 #: contrast (0.54 vs 0.50), harmonics (a 2nd harmonic with a sine part vs a 3rd), dark level (800 vs 2000 e-)
 #: and ADC gain (4 vs 25 e-/DN); tests/cli/test_sensor_captures.py checks each difference
@@ -70,7 +84,8 @@ def realset_commands(out: Path, camera: str = REALSET_CAMERA, scenes: int = 40, 
                      height: int = 144, width: int = 192, seed: int = REALSET_SEED, mixed_pixels: int = 3
                      ) -> list[list[str]]:
     """The camera engineer's flow (docs/camera-tutorial.md) for a simulated second camera, as
-    ``tofdenoise-sensor`` argument lists: a) its calibration captures, b) calibrate them, c) its capture set."""
+    ``tofdenoise-sensor`` argument lists: a) its calibration captures, b) calibrate them, c) its capture set,
+    d) its noise-validation captures (Fig. 6: ``tofdenoise-sensor validate --captures OUT/validation``)."""
     caps = out / "calibration-captures"
     return [
         ["simulate-calibration", "--sensor", camera, "--out", str(caps), "--seed", str(seed)],
@@ -79,6 +94,7 @@ def realset_commands(out: Path, camera: str = REALSET_CAMERA, scenes: int = 40, 
         ["simulate-captures", "--sensor", camera, "--out", str(out / "captures"), "--scenes", str(scenes),
          "--frames", str(frames), "--height", str(height), "--width", str(width), "--seed", str(seed),
          "--mixed-pixels", str(mixed_pixels)],
+        ["simulate-validation", "--sensor", camera, "--out", str(out / "validation"), "--seed", str(seed)],
     ]
 
 
@@ -103,6 +119,8 @@ def _realset(args: argparse.Namespace) -> int:
     if calibrated and not args.force:
         print(f"{out / 'calibration.yaml'} is up to date: steps a) and b) skipped (--force redoes them)")
         commands = commands[2:]
+    if (out / "validation" / "index.json").is_file() and not args.force:
+        commands = [c for c in commands if c[0] != "simulate-validation"]
     for argv in commands:
         print("$ tofdenoise-sensor " + shlex.join(argv), flush=True)
         status = main(argv)
@@ -192,7 +210,8 @@ def add_commands(subparsers) -> None:
         help="the stand-in real set: a second simulated camera's calibration and capture set (one command)",
         description="Run the camera tutorial's steps for a simulated camera unlike the training default "
                     "(docs/camera-tutorial.md): simulate-calibration -> OUT/calibration-captures, calibrate -> "
-                    "OUT/calibration.yaml, simulate-captures (mixed pixels at depth edges) -> OUT/captures. Each "
+                    "OUT/calibration.yaml, simulate-captures (mixed pixels at depth edges) -> OUT/captures, "
+                    "simulate-validation -> OUT/validation (the Fig. 6 conditions). Each "
                     "command is printed before it runs. Resumable: an existing OUT/calibration.yaml is kept "
                     "(--force redoes it) and completed scenes are skipped.",
     )
@@ -209,6 +228,23 @@ def add_commands(subparsers) -> None:
                       help="samples per pixel side (default 3: mixed pixels at depth edges)")
     real.add_argument("--force", action="store_true", help="redo the calibration captures and the calibration")
     real.set_defaults(func=_realset)
+
+    val = subparsers.add_parser(
+        "simulate-validation",
+        help="write a simulated camera's noise-validation captures (the Fig. 6 conditions)",
+        description="Planar targets at 500..1500 mm every 100 mm, black/gray/white surfaces at 1500 mm under "
+                    "exposures 1-4, and an independent 550..1450 mm sequence for the range-aware fit, as tap "
+                    "stacks of the camera --sensor (kind validation, format tofdenoise-captures-v1). "
+                    "`tofdenoise-sensor validate --captures OUT --calib C` then compares the measured temporal "
+                    "noise with the prediction of the calibration C (e.g. the one `calibrate` estimated).",
+    )
+    val.add_argument("--out", required=True, help="output folder")
+    val.add_argument("--sensor", default=None,
+                     help="the simulated camera: calibration file or preset (default: configs/sensor/default.yaml)")
+    val.add_argument("--frames", type=int, default=100, help="frames per condition (default 100)")
+    val.add_argument("--roi-px", type=int, default=32, help="captured region side in pixels (default 32)")
+    val.add_argument("--seed", type=int, default=2024, help="noise seed (the range-fit sequence uses seed + 1)")
+    val.set_defaults(func=_simulate_validation)
 
     ref = subparsers.add_parser(
         "build-reference",

@@ -141,23 +141,56 @@ def _simulated_stats(
     return stack_stats(fr.depth_mm.numpy(), fr.valid.numpy(), sig.numpy())
 
 
-def simulated_conditions(calib: SensorCalibration, settings: ValidationSettings) -> list[tuple[Condition, StackStats]]:
-    """All range / signal / range-fit conditions measured on the tap-level simulator."""
-    out: list[tuple[Condition, StackStats]] = []
-    g = torch.Generator().manual_seed(settings.seed)
+def condition_plan() -> list[tuple[Condition, float, str]]:
+    """Every condition of the experiment with its returned signal [e-] and its random stream ("main" or "fit"):
+    the range panel, the signal panel, then the independent range-fit sequence."""
+    plan: list[tuple[Condition, float, str]] = []
     for d in RANGE_DISTANCES_MM:
-        cond = Condition("range", d, "planar", PLANAR_REFLECTANCE, 1.0)
-        out.append((cond, _simulated_stats(calib, d, float(planar_signal_e(d, PLANAR_REFLECTANCE)), 1.0, settings, g)))
+        plan.append((Condition("range", d, "planar", PLANAR_REFLECTANCE, 1.0),
+                     float(planar_signal_e(d, PLANAR_REFLECTANCE)), "main"))
     for surface, refl in SURFACES.items():
         for e in EXPOSURES:
-            cond = Condition("signal", SIGNAL_DISTANCE_MM, surface, refl, e)
-            a = float(planar_signal_e(SIGNAL_DISTANCE_MM, refl))
-            out.append((cond, _simulated_stats(calib, SIGNAL_DISTANCE_MM, a, e, settings, g)))
-    g_fit = torch.Generator().manual_seed(settings.fit_seed)  # independent calibration sequence
+            plan.append((Condition("signal", SIGNAL_DISTANCE_MM, surface, refl, e),
+                         float(planar_signal_e(SIGNAL_DISTANCE_MM, refl)), "main"))
     for d in RANGE_FIT_DISTANCES_MM:
-        cond = Condition("range_fit", d, "planar", PLANAR_REFLECTANCE, 1.0)
-        out.append((cond, _simulated_stats(calib, d, float(planar_signal_e(d, PLANAR_REFLECTANCE)), 1.0, settings, g_fit)))
-    return out
+        plan.append((Condition("range_fit", d, "planar", PLANAR_REFLECTANCE, 1.0),
+                     float(planar_signal_e(d, PLANAR_REFLECTANCE)), "fit"))
+    return plan
+
+
+def simulated_conditions(calib: SensorCalibration, settings: ValidationSettings) -> list[tuple[Condition, StackStats]]:
+    """All range / signal / range-fit conditions measured on the tap-level simulator."""
+    streams = {"main": torch.Generator().manual_seed(settings.seed),
+               "fit": torch.Generator().manual_seed(settings.fit_seed)}  # independent calibration sequence
+    return [(cond, _simulated_stats(calib, cond.distance_mm, a, cond.exposure, settings, streams[stream]))
+            for cond, a, stream in condition_plan()]
+
+
+def write_validation_captures(calib: SensorCalibration, folder: str | os.PathLike[str],
+                              settings: ValidationSettings | None = None) -> Path:
+    """The experiment's captures as the camera ``calib`` records them (tap stacks (F, N, H, W) [e-], kind
+    "validation", format ``capture_io``): what ``run_validation(captures_dir=...)`` reads. With a simulated camera
+    unlike the calibration used for the prediction (e.g. one estimated by ``calibrate`` from that camera's own
+    captures), the comparison tests the model and the calibration, not the simulator against itself."""
+    from tofdenoise.physics.capture_io import write_capture_folder
+
+    settings = settings or ValidationSettings()
+    streams = {"main": torch.Generator().manual_seed(settings.seed),
+               "fit": torch.Generator().manual_seed(settings.fit_seed)}
+    shape = (settings.roi_px, settings.roi_px)
+    stacks = []
+    for i, (cond, a, stream) in enumerate(condition_plan()):
+        depth = torch.full(shape, float(cond.distance_mm))
+        frames = simulate_frames(depth, torch.full(shape, a), calib, settings.num_frames, exposure=cond.exposure,
+                                 generator=streams[stream], return_taps=True)
+        assert frames.taps is not None
+        fields = {"group": cond.group, "distance_mm": cond.distance_mm, "surface": cond.surface,
+                  "exposure": cond.exposure}
+        if cond.reflectance is not None:
+            fields["reflectance"] = cond.reflectance
+        stacks.append((f"{cond.group}_{i:03d}", frames.taps.numpy().astype(np.float32), fields))
+    return write_capture_folder(folder, "validation", calib.num_taps, stacks, units="e",
+                                modulation_frequency_hz=calib.modulation_frequency_hz)
 
 
 def captured_conditions(calib: SensorCalibration, captures_dir: str | os.PathLike[str]) -> list[tuple[Condition, StackStats]]:
