@@ -132,17 +132,11 @@ class DepthRestorer(pl.LightningModule):
         learned_margin: float = 0.05,
     ) -> None:
         super().__init__()
-        from tofdenoise.training.losses import available_losses, build_loss
-        from tofdenoise.models import available_backbones, build_backbone
+        from tofdenoise.models import build_backbone
+        from tofdenoise.training.losses import build_loss
 
         backbone_kwargs = dict(backbone_kwargs or {})
         loss_kwargs = dict(loss_kwargs or {})
-        if backbone not in available_backbones():
-            raise ValueError(f"DepthRestorer.backbone: unknown backbone {backbone!r}; "
-                             f"valid names: {', '.join(available_backbones())}")
-        if loss not in available_losses():
-            raise ValueError(f"DepthRestorer.loss: unknown loss {loss!r}; "
-                             f"valid names: {', '.join(available_losses())}")
         if not depth_scale_mm > 0:
             raise ValueError(f"DepthRestorer.depth_scale_mm must be > 0, got {depth_scale_mm}")
         if input_centering not in CENTERING_MODES:
