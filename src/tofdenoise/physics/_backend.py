@@ -9,10 +9,6 @@ import numpy as np
 import torch
 
 
-def is_torch(x: Any) -> bool:
-    return isinstance(x, torch.Tensor)
-
-
 def namespace(*arrays: Any) -> ModuleType:
     """`torch` if any argument is a tensor, else `numpy`."""
     return torch if any(isinstance(a, torch.Tensor) for a in arrays) else np
@@ -65,14 +61,6 @@ def where(cond: Any, a: Any, b: Any) -> Any:
             b = torch.as_tensor(b, dtype=a.dtype, device=cond.device)
         return torch.where(cond, a, b)
     return np.where(cond, a, b)
-
-
-def matmul_last(x: Any, matrix: np.ndarray) -> Any:
-    """x (..., K) @ matrix (K, M) -> (..., M), with `matrix` a numpy constant cast to x's type."""
-    if isinstance(x, torch.Tensor):
-        m = torch.as_tensor(matrix, dtype=x.dtype, device=x.device)
-        return x @ m
-    return x @ matrix.astype(x.dtype, copy=False)
 
 
 def stack_last(items: list[Any]) -> Any:

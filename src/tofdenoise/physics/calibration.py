@@ -328,14 +328,9 @@ class SensorCalibration:
 
 def _plain_mapping(d: Any) -> Any:
     """Convert an omegaconf DictConfig (e.g. a Hydra node) to a plain dict; leave others alone."""
-    try:
-        from omegaconf import DictConfig, OmegaConf
+    from omegaconf import DictConfig, OmegaConf
 
-        if isinstance(d, DictConfig):
-            return OmegaConf.to_container(d, resolve=True)
-    except ImportError:  # pragma: no cover
-        pass
-    return d
+    return OmegaConf.to_container(d, resolve=True) if isinstance(d, DictConfig) else d
 
 
 def validate_calibration(calib: SensorCalibration) -> None:

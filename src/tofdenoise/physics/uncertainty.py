@@ -356,11 +356,6 @@ def sigma_depth_mm(depth_mm: Any, signal_e: Any, calib: SensorCalibration) -> An
     return var.sqrt() if isinstance(var, torch.Tensor) else np.sqrt(var)
 
 
-def phase_sigma_rad(depth_mm: Any, signal_e: Any, calib: SensorCalibration) -> Any:
-    """The same uncertainty in phase units: sigma_psi = sigma_D 4 pi f / c_light [rad]."""
-    return sigma_depth_mm(depth_mm, signal_e, calib) * calib.phase_per_mm
-
-
 def amplitude_to_signal_e(
     amplitude: Any,
     calib: SensorCalibration,
@@ -417,7 +412,6 @@ __all__ = [
     "amplitude_to_signal_e",
     "depth_variance_mm2",
     "information_matrix",
-    "phase_sigma_rad",
     "sigma_depth_mm",
     "tap_jacobian",
     "tap_mean_e",
