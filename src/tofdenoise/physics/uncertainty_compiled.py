@@ -17,8 +17,8 @@ harmonic costs two multiply-adds per tap for r_n and two for r'_n. One kernel is
 
 Pixels whose information matrix is ill-conditioned (rho^2 = S_dr^2 / (S_dd S_rr) > 0.75, where the determinant
 loses more than two bits) are recomputed with the reference path, so the result matches it everywhere; the
-kernel reports whether there are any in the same pass. Compilation takes ~20 s on the first call per
-calibration and needs a C++ compiler on CPU; when compilation is not possible the reference path is used with
+kernel reports whether there are any in the same pass. Compilation runs on the first call per calibration
+(its time and the kernel's speed: docs/benchmarks.md, "Sensor physics") and needs a C++ compiler on CPU; when compilation is not possible the reference path is used with
 a warning. Use :func:`sigma_depth_mm` (the reference) for small inputs and numpy arrays.
 """
 
