@@ -1,4 +1,9 @@
-"""Tiny numpy/torch shim so the physics equations are written once for both array types."""
+"""Tiny numpy/torch shim so the physics equations are written once for both array types.
+
+Imported as ``arrays`` (``from tofdenoise.physics import _backend as arrays``): ``arrays.where``,
+``arrays.full_like``, ...; ``xp = arrays.namespace(x)`` is the array library itself (numpy or torch) for the
+calls that both spell the same way (``xp.cos``, ``xp.isfinite``).
+"""
 
 from __future__ import annotations
 
