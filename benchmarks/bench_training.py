@@ -34,7 +34,7 @@ def backbone_kwargs(name: str) -> dict:
     """The kwargs of configs/backbone/<name>.yaml as Hydra composes it (the dvss ablations inherit dvss.yaml)."""
     from omegaconf import OmegaConf
 
-    from tofdenoise.cli.train import compose_config
+    from tofdenoise.config import compose_config
 
     return dict(OmegaConf.to_container(compose_config([f"backbone={name}"]).backbone.kwargs, resolve=True))
 

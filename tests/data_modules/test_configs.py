@@ -7,7 +7,7 @@ import pytest
 from hydra.errors import InstantiationException
 from omegaconf import OmegaConf
 
-from tofdenoise.cli.train import compose_config
+from tofdenoise.config import compose_config
 from tofdenoise.paths import CONFIG_DIR
 from tofdenoise.physics.noise_models import available_noise_models
 

@@ -137,7 +137,7 @@ def backbone_config(name: str) -> dict:
     """configs/backbone/<name>.yaml as Hydra composes it (the dvss ablations inherit dvss.yaml)."""
     from omegaconf import OmegaConf
 
-    from tofdenoise.cli.train import compose_config
+    from tofdenoise.config import compose_config
 
     return OmegaConf.to_container(compose_config([f"backbone={name}"]).backbone, resolve=True)
 

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from tofdenoise.cli.train import compose_config
+from tofdenoise.config import compose_config
 from tofdenoise.training.module import DepthRestorer
 from tofdenoise.training.metrics import depth_metrics_per_image
 from tofdenoise.models import available_backbones
