@@ -25,15 +25,18 @@ import time
 from pathlib import Path
 
 import torch
-import yaml
 
 REPO = Path(__file__).resolve().parents[1]
 QUICK_BACKBONES = ["unet", "deeptof", "tofkpn", "restormer", "dvss"]
 
 
 def backbone_kwargs(name: str) -> dict:
-    path = REPO / "configs" / "backbone" / f"{name}.yaml"
-    return dict(yaml.safe_load(path.read_text())["kwargs"])
+    """The kwargs of configs/backbone/<name>.yaml as Hydra composes it (the dvss ablations inherit dvss.yaml)."""
+    from omegaconf import OmegaConf
+
+    from tofdenoise.config import compose_config
+
+    return dict(OmegaConf.to_container(compose_config([f"backbone={name}"]).backbone.kwargs, resolve=True))
 
 
 def make_data(crop: int, batch: int, workers: int, cache: str):

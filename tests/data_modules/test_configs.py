@@ -4,24 +4,18 @@ from __future__ import annotations
 
 import hydra
 import pytest
+from hydra.errors import InstantiationException
 from omegaconf import OmegaConf
 
+from tofdenoise.config import compose_config
 from tofdenoise.paths import CONFIG_DIR
 from tofdenoise.physics.noise_models import available_noise_models
 
 
-def compose(data: str, noise: str, **overrides):
-    cfg = OmegaConf.create({
-        "noise": OmegaConf.load(CONFIG_DIR / "noise" / f"{noise}.yaml"),
-        "sensor": OmegaConf.load(CONFIG_DIR / "sensor" / "default.yaml"),
-        "data": OmegaConf.load(CONFIG_DIR / "data" / f"{data}.yaml"),
-    })
-    cfg.data.noise = "${noise.name}"
-    cfg.data.noise_kwargs = "${noise.kwargs}"
-    cfg.data.sensor = "${sensor}"
-    for key, value in overrides.items():
-        cfg.data[key] = value
-    return cfg
+def compose(tmp_path, data: str, noise: str, **overrides):
+    """The real train.yaml composition (its data.noise / data.sensor interpolations included) with data overrides."""
+    return compose_config([f"data={data}", f"noise={noise}", f"paths.run_dir={tmp_path}/run",
+                           f"++data.cache_dir={tmp_path}/cache", *(f"data.{k}={v}" for k, v in overrides.items())])
 
 
 def test_noise_configs_match_the_physics_registry():
@@ -34,10 +28,10 @@ def test_noise_configs_match_the_physics_registry():
 
 @pytest.mark.parametrize("noise", ["hetero", "fixed"])
 def test_procedural_config_instantiates_and_loads(tmp_path, noise):
-    cfg = compose("procedural", noise, num_samples=5, height=32, width=40, crop_size=16,
-                  cache_dir=str(tmp_path))
+    cfg = compose(tmp_path, "procedural", noise, num_samples=5, height=32, width=40, crop_size=16)
     dm = hydra.utils.instantiate(cfg.data, _convert_="all")
     assert type(dm).__name__ == "ToFDataModule" and dm.noise_name == noise
+    assert dm.hparams.noise_kwargs == OmegaConf.to_container(cfg.noise.kwargs)
     assert isinstance(dm.hparams.sensor, dict) and dm.calib.num_taps == cfg.sensor.num_taps
     dm.prepare_data()
     dm.setup("fit")
@@ -48,10 +42,12 @@ def test_dataset_configs_ask_for_root(tmp_path, monkeypatch):
     monkeypatch.delenv("TOF_FLYINGTHINGS3D_ROOT", raising=False)
     monkeypatch.delenv("TOFDENOISE_DATA_ROOT", raising=False)
     for data in ("flyingthings3d", "folder"):
-        cfg = compose(data, "hetero", cache_dir=str(tmp_path))
+        cfg = compose(tmp_path, data, "hetero")
         assert OmegaConf.load(CONFIG_DIR / "data" / f"{data}.yaml")._target_ == "tofdenoise.data_modules.ToFDataModule"
-        with pytest.raises(Exception, match="data.root"):
+        with pytest.raises(InstantiationException,
+                           match=rf"ValueError\('the {data} source needs its dataset folder: set data\.root=") as err:
             hydra.utils.instantiate(cfg.data, _convert_="all")
+        assert isinstance(err.value.__cause__, ValueError)
 
 
 @pytest.mark.parametrize("data", ["procedural", "folder", "flyingthings3d"])

@@ -1,12 +1,12 @@
-"""The built-in OpenEXR reader: a real file from CPython's test data, and files written here (NONE/ZIPS/ZIP)."""
+"""The built-in OpenEXR reader: a committed fixture file (fixtures/depth_rle.exr, RLE, FLOAT/HALF/UINT channels),
+and files written here (NONE/RLE/ZIPS/ZIP)."""
 
 from __future__ import annotations
 
-import glob
 import struct
 import zlib
+from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
 
@@ -18,20 +18,49 @@ def _attr(name: str, kind: str, value: bytes) -> bytes:
     return name.encode() + b"\0" + kind.encode() + b"\0" + struct.pack("<i", len(value)) + value
 
 
-def _zip_pack(raw: bytes) -> bytes:
-    """OpenEXR ZIP encoding: split even/odd bytes, delta predictor (+128), zlib."""
+FIXTURE = Path(__file__).resolve().parent / "fixtures" / "depth_rle.exr"
+PIXEL_TYPES = {np.dtype(np.uint32): 0, np.dtype(np.float16): 1, np.dtype(np.float32): 2}
+
+
+def _predict(raw: bytes) -> bytes:
+    """OpenEXR's ZIP/RLE preprocessing: split even/odd bytes, then a delta predictor (+128)."""
     a = np.frombuffer(raw, np.uint8)
     t = np.concatenate([a[0::2], a[1::2]]).astype(np.int64)
     p = t.copy()
     p[1:] = (t[1:] - t[:-1] + 128) & 0xFF
-    return zlib.compress(p.astype(np.uint8).tobytes())
+    return p.astype(np.uint8).tobytes()
+
+
+def _zip_pack(raw: bytes) -> bytes:
+    return zlib.compress(_predict(raw))
+
+
+def _rle_pack(raw: bytes) -> bytes:
+    """OpenEXR RLE: after the predictor, a run of 3..128 equal bytes -> (count - 1, byte); other bytes go as
+    literals -> (-n, n bytes), n <= 127."""
+    a, out, i = _predict(raw), bytearray(), 0
+    while i < len(a):
+        run = 1
+        while i + run < len(a) and a[i + run] == a[i] and run < 128:
+            run += 1
+        if run >= 3:
+            out += struct.pack("<bB", run - 1, a[i])
+            i += run
+            continue
+        j = i
+        while j < len(a) and j - i < 127 and not (j + 2 < len(a) and a[j] == a[j + 1] == a[j + 2]):
+            j += 1
+        out += struct.pack("<b", -(j - i)) + a[i:j]
+        i = j
+    return bytes(out)
 
 
 def write_exr(path, channels: dict[str, np.ndarray], compression: int) -> None:
-    """Minimal scanline EXR writer (compression 0 NONE, 2 ZIPS, 3 ZIP); arrays float16 -> HALF, float32 -> FLOAT."""
+    """Minimal scanline EXR writer (compression 0 NONE, 1 RLE, 2 ZIPS, 3 ZIP); arrays uint32 -> UINT,
+    float16 -> HALF, float32 -> FLOAT."""
     names = sorted(channels)
     h, w = channels[names[0]].shape
-    chlist = b"".join(n.encode() + b"\0" + struct.pack("<iB3xii", 1 if channels[n].dtype == np.float16 else 2, 0, 1, 1)
+    chlist = b"".join(n.encode() + b"\0" + struct.pack("<iB3xii", PIXEL_TYPES[channels[n].dtype], 0, 1, 1)
                       for n in names) + b"\0"
     header = (struct.pack("<ii", 20000630, 2) + _attr("channels", "chlist", chlist)
               + _attr("compression", "compression", bytes([compression]))
@@ -45,7 +74,7 @@ def write_exr(path, channels: dict[str, np.ndarray], compression: int) -> None:
     for y in range(0, h, lines):
         raw = b"".join(channels[n][row].astype(channels[n].dtype.newbyteorder("<")).tobytes()
                        for row in range(y, min(y + lines, h)) for n in names)
-        data = raw if compression == 0 else _zip_pack(raw)
+        data = raw if compression == 0 else _rle_pack(raw) if compression == 1 else _zip_pack(raw)
         if len(data) >= len(raw):
             data = raw  # stored uncompressed when compression does not help (as OpenEXR does)
         chunks.append(struct.pack("<ii", y, len(data)) + data)
@@ -58,17 +87,33 @@ def write_exr(path, channels: dict[str, np.ndarray], compression: int) -> None:
         handle.write(header + table + b"".join(chunks))
 
 
-def test_real_exr_file_matches_its_png_twin():
-    found = sorted(glob.glob("/root/.pyenv/versions/*/lib/python3*/test/imghdrdata/python.exr"))
-    if not found:
-        pytest.skip("CPython's imghdr test images are not on this machine")
-    channels = read_exr_channels(found[0])
-    png = cv2.imread(found[0].replace(".exr", ".png"), cv2.IMREAD_UNCHANGED)
-    assert set(channels) == {"R", "G", "B", "A"} and channels["R"].shape == (16, 16)
-    assert np.corrcoef(channels["R"].ravel(), png[..., 2].ravel().astype(float))[0, 1] > 0.999
+def fixture_channels() -> dict[str, np.ndarray]:
+    """What fixtures/depth_rle.exr holds (written once with ``write_exr(FIXTURE, fixture_channels(), 1)``)."""
+    yy, xx = np.mgrid[0:12, 0:20]
+    depth = (1000.0 + 12.5 * xx + 250.0 * yy).astype(np.float32)
+    depth[:3] = 1500.0  # equal rows: long runs for RLE
+    depth[5, 7] = np.nan
+    amplitude = (0.001 * (xx + 20 * yy)).astype(np.float16)
+    label = (xx // 4 + 7 * yy).astype(np.uint32)
+    return {"Z": depth, "A": amplitude, "L": label}
 
 
-@pytest.mark.parametrize("compression", [0, 2, 3])
+def test_committed_exr_fixture_reads_back():
+    """A file on disk (not written by this run): a reader change that breaks RLE, HALF or UINT shows here."""
+    expected = fixture_channels()
+    channels = read_exr_channels(FIXTURE)
+    assert sorted(channels) == ["A", "L", "Z"] and channels["Z"].shape == (12, 20)
+    assert all(c.dtype == np.float32 for c in channels.values())
+    np.testing.assert_array_equal(channels["Z"], expected["Z"])  # NaN in the same place
+    np.testing.assert_array_equal(channels["A"], expected["A"].astype(np.float32))
+    np.testing.assert_array_equal(channels["L"], expected["L"].astype(np.float32))
+    assert channels["Z"][0, 19] == 1500.0 and channels["Z"][11, 19] == np.float32(1000.0 + 12.5 * 19 + 250.0 * 11)
+    np.testing.assert_array_equal(read_depth_mm(FIXTURE), expected["Z"])  # the "Z" channel is the depth
+    data = FIXTURE.read_bytes()
+    assert data[data.index(b"compression\0compression\0") + 28] == 1  # RLE, as the file name says
+
+
+@pytest.mark.parametrize("compression", [0, 1, 2, 3])
 def test_written_exr_round_trips(tmp_path, compression):
     rng = np.random.default_rng(compression)
     depth = rng.uniform(300, 3000, size=(37, 21)).astype(np.float32)

@@ -101,7 +101,7 @@ def test_no_halo_with_a_local_denoiser(tmp_path):
 
 @pytest.mark.slow
 def test_no_halo_with_a_unet_trained_with_holes(tmp_path):
-    """The default run's recipe (experiment=default: U-Net width 32, 4 stages, 64 x 64 crops, batch 4, lr 1e-3 with
+    """The default run's recipe (configs/train.yaml: U-Net width 32, 4 stages, 64 x 64 crops, batch 4, lr 1e-3 with
     100 warm-up steps, 720 steps), on scenes of 64 x 64 with the default holes. Passed in 35 min on 2 CPU cores shared
     with other jobs."""
     torch.manual_seed(0)

@@ -6,7 +6,6 @@ from pathlib import Path
 
 import pytest
 import torch
-import yaml
 
 from tofdenoise.models import available_backbones, build_backbone, count_parameters
 from tofdenoise.models.common import crop_to, pad_to_multiple
@@ -134,10 +133,19 @@ def test_cross_scan_merge_and_refinement_modules():
     assert SCR(8)(torch.zeros(1, 8, 4, 4)).abs().max() == 0
 
 
+def backbone_config(name: str) -> dict:
+    """configs/backbone/<name>.yaml as Hydra composes it (the dvss ablations inherit dvss.yaml)."""
+    from omegaconf import OmegaConf
+
+    from tofdenoise.config import compose_config
+
+    return OmegaConf.to_container(compose_config([f"backbone={name}"]).backbone, resolve=True)
+
+
 @pytest.mark.parametrize("name", NAMES)
 def test_config_files_build(name):
-    path = CONFIG_DIR / f"{name}.yaml"
-    cfg = yaml.safe_load(path.read_text())
+    assert (CONFIG_DIR / f"{name}.yaml").is_file()
+    cfg = backbone_config(name)
     assert cfg["name"] == name
     model = build_backbone(cfg["name"], **cfg["kwargs"])
     assert count_parameters(model) > 100_000

@@ -185,14 +185,14 @@ def test_amplitude_to_signal_map():
 def test_two_pass_fallback_matches_single_pass(monkeypatch):
     """Ill-conditioned pixels (rho^2 above the bound) are recomputed with the two-pass residual form;
     forcing that path for every pixel gives the same numbers."""
-    import tofdenoise.physics.uncertainty as U
+    import tofdenoise.physics.uncertainty_numpy as UN
 
     calib = default_calibration()
     rng = np.random.default_rng(3)
     d = rng.uniform(100, 2900, 5000)
     a = np.exp(rng.uniform(np.log(100), np.log(1e5), 5000))
     single = sigma_depth_mm(d, a, calib)
-    monkeypatch.setattr(U, "_RHO2_SINGLE_PASS_MAX", -1.0)
+    monkeypatch.setattr(UN, "RHO2_SINGLE_PASS_MAX", -1.0)
     forced = sigma_depth_mm(d, a, calib)
     np.testing.assert_allclose(forced, single, rtol=1e-10)
     np.testing.assert_allclose(forced, _generic_sigma(d, a, calib), rtol=1e-6)
@@ -234,12 +234,12 @@ def test_threaded_blocks_work_after_fork():
     on the parent's (thread-less) pool. Pure numpy in the child (torch's OpenMP is not fork-safe)."""
     import multiprocessing as mp
 
-    import tofdenoise.physics.uncertainty as U
+    import tofdenoise.physics.uncertainty_numpy as UN
 
     calib = default_calibration()
     d = np.full((400, 400), 1000.0, np.float32)
     a = np.full((400, 400), 8000.0, np.float32)
-    expected = float(U._variance_numpy(d, a, calib, workers=2)[0, 0])  # creates the pool in the parent
+    expected = float(UN.depth_variance_numpy(d, a, calib, workers=2)[0, 0])  # creates the pool in the parent
     ctx = mp.get_context("fork")
     with ctx.Pool(1) as pool:
         got = pool.apply_async(_child_variance, (calib,)).get(timeout=60)
@@ -247,11 +247,11 @@ def test_threaded_blocks_work_after_fork():
 
 
 def _child_variance(calib):
-    import tofdenoise.physics.uncertainty as U
+    import tofdenoise.physics.uncertainty_numpy as UN
 
     d = np.full((400, 400), 1000.0, np.float32)
     a = np.full((400, 400), 8000.0, np.float32)
-    return float(U._variance_numpy(d, a, calib, workers=2)[0, 0])
+    return float(UN.depth_variance_numpy(d, a, calib, workers=2)[0, 0])
 
 
 def test_trailing_zero_harmonics_change_nothing():

@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 from hydra.errors import ConfigCompositionException
 from hydra.utils import instantiate
-from omegaconf import OmegaConf
+from omegaconf import DictConfig, OmegaConf
 
 from tofdenoise.cli.checkpoint_check import resolve_ckpt_path
 from tofdenoise.cli.train import validate_config
@@ -33,7 +33,7 @@ def test_group_options_match_the_registries():
         assert options(group), group
     assert {"cpu", "gpu", "ddp"} <= set(options("trainer"))
     assert {"wandb_offline", "csv", "tensorboard"} <= set(options("logger"))
-    assert {"default", "smoke", "paper"} <= set(options("experiment"))
+    assert {"smoke", "paper", "grid"} <= set(options("experiment"))
 
 
 def _plain(v) -> bool:
@@ -141,10 +141,68 @@ def test_paper_experiment_is_the_paper_configuration(tmp_path):
     assert model.hparams.lr == 2e-4 and model.hparams.lr_min == 1e-6 and model.hparams.d_max_mm == 1000.0
 
 
-def test_command_line_choices_beat_the_experiment(tmp_path):
-    cfg = compose_config(["backbone=dvss", f"paths.run_dir={tmp_path}"])
-    assert cfg.model.backbone == "dvss"  # the default experiment picks unet, the command line wins
-    assert compose_config([f"paths.run_dir={tmp_path}"]).model.backbone == "unet"
+# What `make train` ran before the CPU recipe moved from experiment/default.yaml into train.yaml (resolved
+# `tofdenoise-train --cfg job`, data.sensor aside): the move must not change it.
+MAKE_TRAIN = {
+    "model": {"_target_": "tofdenoise.training.module.DepthRestorer", "backbone": "unet",
+              "backbone_kwargs": {"norm": False, "residual": True, "stages": 4, "width": 32}, "loss": "full",
+              "loss_kwargs": {"beta": 0.5, "eps": 0.001, "eta": 1e-06, "lambda_g": 0.1}, "lr": 0.001,
+              "warmup_steps": 100},
+    "data": {"_target_": "tofdenoise.data_modules.ToFDataModule", "batch_size": 4, "crop_size": 64, "height": 144,
+             "noise": "hetero", "noise_kwargs": {}, "num_samples": 300, "num_workers": 0, "real_dir": None,
+             "source": "procedural", "width": 192},
+    "trainer": {"_target_": "lightning.pytorch.Trainer", "accelerator": "cpu", "check_val_every_n_epoch": 2,
+                "default_root_dir": "RUN_DIR", "deterministic": False, "devices": 1, "enable_model_summary": True,
+                "enable_progress_bar": True, "gradient_clip_val": None, "log_every_n_steps": 10, "max_epochs": 16,
+                "num_sanity_val_steps": 1, "precision": "32-true"},
+}
+
+
+def _resolved(overrides: list[str], tmp_path) -> dict:
+    c = OmegaConf.to_container(compose_config([*overrides, f"paths.run_dir={tmp_path}"]), resolve=True)
+    c["data"].pop("sensor")
+    c["trainer"]["default_root_dir"] = c["trainer"]["default_root_dir"].replace(str(tmp_path), "RUN_DIR")
+    return c
+
+
+def test_make_train_runs_the_cpu_recipe_written_in_train_yaml(tmp_path):
+    c = _resolved([], tmp_path)
+    assert "experiment" not in c  # experiments are opt-in
+    assert {k: c[k] for k in MAKE_TRAIN} == MAKE_TRAIN
+    # readable in train.yaml itself: every recipe value it writes is what the composed config holds
+    own = OmegaConf.load(CONFIGS / "train.yaml")
+    assert [d for d in own.defaults if isinstance(d, DictConfig) and "backbone" in d] == [{"backbone": "unet"}]
+    for group in ("data", "model", "trainer"):
+        for key in own[group]:
+            if not OmegaConf.is_interpolation(own[group], key):
+                assert c[group][key] == own[group][key], f"{group}.{key}"
+    assert OmegaConf.is_interpolation(own.model, "lr") and own.model._get_node("lr")._value() == "${backbone.recipe.lr}"
+
+
+@pytest.mark.parametrize("backbone, lr", [("dvss", 5e-4), ("dvss_se", 5e-4), ("restormer", 5e-4), ("deeptof", 1e-3)])
+def test_make_train_backbone_keeps_the_recipe_with_its_own_rate(tmp_path, backbone, lr):
+    """`make train BACKBONE=dvss` (= `tofdenoise-train backbone=dvss`): the backbone's recipe rate, the rest as is."""
+    c = _resolved([f"backbone={backbone}"], tmp_path)
+    assert c["model"]["backbone"] == backbone and c["model"]["lr"] == lr and c["model"]["warmup_steps"] == 100
+    assert c["data"] == MAKE_TRAIN["data"] and c["trainer"] == MAKE_TRAIN["trainer"]
+    assert _resolved([f"backbone={backbone}", "model.lr=3e-4"], tmp_path)["model"]["lr"] == 3e-4  # ARGS= wins
+
+
+def test_dvss_ablation_configs_differ_from_dvss_only_in_name(tmp_path):
+    dvss = _resolved(["backbone=dvss"], tmp_path)["backbone"]
+    for variant in ("dvss_no_local", "dvss_no_dwconv", "dvss_se"):
+        node = _resolved([f"backbone={variant}"], tmp_path)["backbone"]
+        assert node == {**dvss, "name": variant}
+
+
+def test_experiments_override_the_base_recipe_where_it_does_not_apply(tmp_path):
+    smoke = _resolved(["experiment=smoke"], tmp_path)
+    assert smoke["model"]["lr"] == 2e-4 and smoke["model"]["warmup_steps"] == 0  # the DepthRestorer defaults
+    assert smoke["trainer"]["check_val_every_n_epoch"] == 1 and smoke["data"]["num_samples"] == 10
+    paper = _resolved(["experiment=paper", f"data.root={tmp_path}"], tmp_path)
+    assert paper["model"]["warmup_steps"] == 0 and paper["data"]["num_workers"] == 4
+    grid = _resolved(["experiment=grid", "backbone=dvss"], tmp_path)
+    assert grid["model"]["lr"] == 5e-4 and grid["trainer"]["max_epochs"] == 15
 
 
 def test_run_dir_from_environment(monkeypatch, tmp_path):

@@ -39,6 +39,8 @@ def test_available_losses_and_unknown_names():
         build_loss("l2")
     with pytest.raises(ValueError, match="accepted"):
         build_loss("nar", lambda_g=0.1)
+    with pytest.raises(ValueError, match=r"loss 'l1' got unexpected keyword argument\(s\) 'beta'; accepted: none"):
+        build_loss("l1", beta=0.5)
     assert isinstance(build_loss("L1"), L1DepthLoss)
     full = build_loss("full", beta=0.25, lambda_g=0.5)
     assert isinstance(full, FullLoss) and full.beta == 0.25 and full.lambda_g == 0.5

@@ -105,6 +105,31 @@ def test_linear_warmup_then_cosine(tmp_path, tiny_data):
     assert lrs == pytest.approx(expected, rel=1e-6)
 
 
+@pytest.mark.parametrize("loss, parts", [("full", ("nar", "grad")), ("l1", ("l1",))])
+def test_training_logs_the_loss_terms(tmp_path, tiny_data, loss, parts):
+    """DepthLoss.terms reach the logs: train/loss_<part> every step and per epoch, and they add up to train/loss."""
+    steps: list[dict[str, float]] = []
+
+    class Rec(Callback):
+        def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+            steps.append({k: float(v) for k, v in trainer.callback_metrics.items() if k.startswith("train/loss")})
+
+    kwargs = {} if loss == "full" else {"loss": "l1", "loss_kwargs": {}}
+    model = tiny_model(**kwargs)
+    t = trainer(tmp_path, max_epochs=2, limit_val_batches=0, callbacks=[Rec()])
+    t.fit(model, datamodule=tiny_data)
+    assert len(steps) == 4
+    for logged in steps:
+        assert {f"train/loss_{p}_step" for p in parts} <= set(logged)
+        total = logged["train/loss_step"]
+        if loss == "full":  # L_full = L_nar + lambda_g L_grad, lambda_g = 0.1
+            assert logged["train/loss_grad_step"] > 0
+            assert logged["train/loss_nar_step"] + 0.1 * logged["train/loss_grad_step"] == pytest.approx(total, rel=1e-5)
+        else:
+            assert logged["train/loss_l1_step"] == pytest.approx(total, rel=1e-6)
+    assert {f"train/loss_{p}_epoch" for p in parts} <= set(t.callback_metrics)
+
+
 def test_ema_update_rule_and_use_in_eval():
     model = tiny_model(ema_decay=0.75)
     p0 = [p.detach().clone() for p in model.backbone.parameters()]

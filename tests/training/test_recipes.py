@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 import torch
-import yaml
 
+from tofdenoise.config import compose_config
 from tofdenoise.training.module import DepthRestorer
 from tofdenoise.training.metrics import depth_metrics_per_image
 from tofdenoise.models import available_backbones
@@ -32,7 +32,9 @@ for _v in ("dvss_no_local", "dvss_no_dwconv", "dvss_se"):
 
 
 def recipe(backbone: str) -> dict:
-    return dict(yaml.safe_load((CONFIGS / f"{backbone}.yaml").read_text())["recipe"])
+    """The ``recipe`` of configs/backbone/<backbone>.yaml as Hydra composes it (the dvss ablations inherit it)."""
+    assert (CONFIGS / f"{backbone}.yaml").is_file()
+    return dict(compose_config([f"backbone={backbone}"]).backbone.recipe)
 
 
 def train_tiny(backbone: str, seed: int, steps: int = 150) -> tuple[float, float]:

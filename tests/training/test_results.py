@@ -17,7 +17,6 @@ from tofdenoise.training.results import (
     run_fields,
     read_per_image_csv,
     set_entry,
-    update_metrics_json,
     write_metrics_json,
     write_per_image_csv,
 )
@@ -45,18 +44,6 @@ def test_metrics_json_schema_from_depth_metrics(tmp_path):
     assert syn["images"] == 2
     assert read_metrics_json(path) == data
     assert not [p for p in path.parent.iterdir() if p.name != "metrics.json"]  # no temp files left
-
-
-def test_update_metrics_json_merges_sets(tmp_path):
-    path = tmp_path / "metrics.json"
-    update_metrics_json(path, "synthetic", set_entry(_metric(1.0).compute(), _metric(4.0).compute()))
-    update_metrics_json(path, "real", set_entry(_metric(2.0).compute(), _metric(8.0).compute()))
-    data = read_metrics_json(path)
-    assert list(data) == ["synthetic", "real"]
-    assert data["real"]["mae_mm"] == pytest.approx(3.0)
-    update_metrics_json(path, "real", set_entry(_metric(3.0).compute()))
-    assert read_metrics_json(path)["real"]["mae_mm"] == pytest.approx(4.5)
-    assert "raw" not in read_metrics_json(path)["real"]
 
 
 def test_nan_and_inf_are_strict_json(tmp_path):
@@ -135,7 +122,7 @@ def test_learned_verdict_reason_in_plain_words():
         learned_verdict(1, 1.0, 2.0, margin=1.0)
 
 
-def test_metrics_json_carries_the_run_fields_and_keeps_them_on_update(tmp_path):
+def test_metrics_json_carries_the_run_fields(tmp_path):
     path = tmp_path / "metrics.json"
     entry = set_entry(_metric(1.0).compute(), _metric(4.0).compute())
     write_metrics_json(path, {"synthetic": entry}, run=learned_verdict(0, None, None))
@@ -143,11 +130,7 @@ def test_metrics_json_carries_the_run_fields_and_keeps_them_on_update(tmp_path):
     assert data["learned"] is False and data["trained_steps"] == 0 and data["best_val_mae_mm"] is None
     assert list(metric_sets(data)) == ["synthetic"]
     assert run_fields(data) == learned_verdict(0, None, None)
-    update_metrics_json(path, "real", entry)
-    data = read_metrics_json(path)
-    assert sorted(metric_sets(data)) == ["real", "synthetic"] and data["learned"] is False
-    with pytest.raises(ValueError, match="run-level field"):
-        update_metrics_json(path, "learned", entry)
+    assert read_metrics_json(path) == data
     with pytest.raises(KeyError, match="unknown run-level"):
         write_metrics_json(path, {"synthetic": entry}, run={"learnt": True})
     bad = tmp_path / "bad.json"

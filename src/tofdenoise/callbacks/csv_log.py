@@ -100,7 +100,8 @@ class ResumableCSVLogger(CSVLogger):
     with the :class:`CSVLogResume` callback, which drops the rows the resumed run logs again.
 
     ``flush_logs_every_n_steps`` defaults to 1 (Lightning: 100): every row is on disk as soon as it is logged,
-    so a killed run loses no row that its checkpoint covers (one appended line per step costs ~0.1 ms)."""
+    so a killed run loses no row that its checkpoint covers (the cost of a flush per step: docs/benchmarks.md,
+    "Training")."""
 
     def __init__(self, save_dir: str | os.PathLike[str], name: str | None = "lightning_logs",
                  version: int | str | None = None, prefix: str = "", flush_logs_every_n_steps: int = 1) -> None:

@@ -29,6 +29,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 
 from tofdenoise.cli.checkpoint_check import CheckpointFileError, check_checkpoint_file, resolve_ckpt_path
 from tofdenoise.config import config_dir
+from tofdenoise.registry import Registry
 from tofdenoise.wandb_env import finish_wandb, setup_wandb_env, wandb_run_id
 
 __all__ = ["main", "run", "validate_config"]
@@ -36,24 +37,24 @@ __all__ = ["main", "run", "validate_config"]
 log = logging.getLogger("tofdenoise.train")
 
 
-def _names_or_error(kind: str, key: str, value: str, valid: list[str]) -> None:
-    if value not in valid:
-        raise ValueError(f"config {key}: unknown {kind} {value!r}; valid names: {', '.join(valid)} "
-                         f"(choose with `{key.split('.')[0]}=<name>`)")
+def _names_or_error(key: str, value: str, registry: Registry) -> None:
+    if value not in registry:
+        raise ValueError(f"config {key}: unknown {registry.kind} {value!r}; valid names: "
+                         f"{', '.join(sorted(registry.names()))} (choose with `{key.split('.')[0]}=<name>`)")
 
 
 def validate_config(cfg: DictConfig) -> None:
     """Fail early (before any data or model is built) on unknown names or missing dataset paths."""
-    from tofdenoise.training.losses import available_losses
-    from tofdenoise.models import available_backbones
-    from tofdenoise.physics.noise_models import available_noise_models
+    from tofdenoise.models.registry import BACKBONES
+    from tofdenoise.physics.noise_models import NOISE_MODELS
+    from tofdenoise.training.losses import LOSSES
 
     for group in ("backbone", "noise", "loss", "data", "model", "trainer"):
         if group not in cfg or cfg[group] is None:
             raise ValueError(f"config: group {group!r} is missing (configs/train.yaml defaults list)")
-    _names_or_error("backbone", "backbone.name", cfg.backbone.name, available_backbones())
-    _names_or_error("noise model", "noise.name", cfg.noise.name, available_noise_models())
-    _names_or_error("loss", "loss.name", cfg.loss.name, available_losses())
+    _names_or_error("backbone.name", cfg.backbone.name, BACKBONES)
+    _names_or_error("noise.name", cfg.noise.name, NOISE_MODELS)
+    _names_or_error("loss.name", cfg.loss.name, LOSSES)
     data = cfg.data
     source = data.get("source", "procedural")
     if source not in (None, "procedural"):

@@ -17,7 +17,7 @@ from tofdenoise.data_modules.cache import MapCache, canonical_digest
 from tofdenoise.data_modules.datasets import MapProvider, RealCaptures, SyntheticPairs
 from tofdenoise.atomic import atomic_write_text
 from tofdenoise.data_modules.real_captures import build_reference, list_scenes, load_real_scene
-from tofdenoise.data_modules.sources import SOURCES, FlyingThings3DSource, FolderSource, ProceduralSource
+from tofdenoise.data_modules.sources import build_source
 from tofdenoise.data_modules.splits import SPLIT_NAMES, ids_digest, load_or_make_split
 
 log = logging.getLogger(__name__)
@@ -132,8 +132,6 @@ class ToFDataModule(L.LightningDataModule):
         noise_kwargs = dict(noise_kwargs or {})
         split_ratios = [float(r) for r in split_ratios]
         self.save_hyperparameters()
-        if source not in SOURCES:
-            raise ValueError(f"unknown data.source {source!r}; valid: {', '.join(SOURCES)}")
         self.source_name = source
         self.calib = resolve_calibration(sensor)
         self.noise_name = str(noise).lower()
@@ -166,16 +164,17 @@ class ToFDataModule(L.LightningDataModule):
 
     # ------------------------------------------------------------------ pieces
     def make_source(self):
+        """The data source ``data.source`` names, built from this datamodule's settings for that source."""
         hp = self.hparams
-        if self.source_name == "procedural":
-            return ProceduralSource(num_samples=hp.num_samples, height=hp.height, width=hp.width, seed=hp.seed,
-                                    min_depth_mm=hp.min_depth_mm, max_depth_mm=self.max_depth_mm,
-                                    hfov_deg=hp.hfov_deg)
         valid_kwargs = {k: v for k, v in (("min_valid_mm", hp.min_valid_mm), ("max_valid_mm", hp.max_valid_mm))
                         if v is not None}
-        if self.source_name == "flyingthings3d":
-            return FlyingThings3DSource(hp.root, list_files=hp.list_files, **valid_kwargs)
-        return FolderSource(hp.root, list_file=hp.list_file, depth_unit_mm=hp.depth_unit_mm, **valid_kwargs)
+        source_kwargs = {
+            "procedural": dict(num_samples=hp.num_samples, height=hp.height, width=hp.width, seed=hp.seed,
+                               min_depth_mm=hp.min_depth_mm, max_depth_mm=self.max_depth_mm, hfov_deg=hp.hfov_deg),
+            "flyingthings3d": dict(root=hp.root, list_files=hp.list_files, **valid_kwargs),
+            "folder": dict(root=hp.root, list_file=hp.list_file, depth_unit_mm=hp.depth_unit_mm, **valid_kwargs),
+        }
+        return build_source(self.source_name, **source_kwargs.get(str(self.source_name).lower(), {}))
 
     @property
     def split_path(self) -> Path:

@@ -3,7 +3,7 @@ mamba-ssm's ``selective_scan_fn`` when its compiled extension imports. Both are 
 ``tofdenoise.models.selective_scan`` on CUDA tensors, with the pure-PyTorch chunked scan as the fallback.
 
 Triton kernels (same recurrence as ``scan.py``: h_t = exp(delta_t A) h_{t-1} + delta_t u_t B_t,
-y_t = C_t . h_t; softplus / delta_bias / D are applied around them in PyTorch):
+y_t = C_t . h_t + D u_t, with delta_t = softplus(delta_raw_t + delta_bias) computed inside the kernels):
 - one program per (batch, block of BLOCK_D channels of one group) walks the sequence in chunks of CHUNK
   positions; each chunk is loaded as coalesced (BLOCK_D, CHUNK) / (N, CHUNK) tiles and its states are one
   ``tl.associative_scan`` of the affine maps h -> a h + b over a (BLOCK_D, N, CHUNK) tile, continued from the
@@ -16,10 +16,8 @@ y_t = C_t . h_t; softplus / delta_bias / D are applied around them in PyTorch):
 
 delta_bias, softplus and the D skip term are applied inside the kernels (their gradients too), and bf16/fp16
 u, delta, B, C are read as they are, so SS2D under autocast pays for no conversion copies; everything is
-computed in float32. Measured on an H100 (docs/benchmarks.md, ``benchmarks/bench_gpu.py``): forward+backward
-of the first DVSS stage on a 320x320 batch of 4 (4 x 256 channels, L = 102400, N = 16) in 27-29 ms against
-2.7-4.2 s for the chunked PyTorch scan, agreeing to 1.5e-6 relative. The ``auto`` dispatch still uses the Triton kernels only
-after :func:`triton_verified` has checked them against the PyTorch scan on the device (once per process), so
+computed in float32. Speed and agreement with the PyTorch scan on an H100: docs/benchmarks.md ("GPU",
+``benchmarks/bench_gpu.py``). The ``auto`` dispatch uses the Triton kernels only after :func:`triton_verified` has checked them against the PyTorch scan on the device (once per process), so
 a toolchain problem falls back to the PyTorch scan with a warning instead of wrong results.
 """
 
@@ -40,9 +38,8 @@ __all__ = [
 
 #: positions per chunk (one associative scan over a (BLOCK_D, N, CHUNK) tile; a state checkpoint per chunk)
 CHUNK = 32
-#: channels per program. Tuned on an H100 at the DVSS training size (chunk 32/64 x block 1/2/4 x 2/4/8 warps,
-#: float32 and bf16 inputs): 2 channels per program with 4 warps was the fastest in both dtypes (26.8 / 29.0 ms
-#: forward+backward); 1 channel: 28.4 / 37.5 ms, 4 channels with chunk 64: 33.7 / 37.0 ms
+#: channels per program: the fastest setting on an H100 at the DVSS training size, float32 and bf16 inputs
+#: (``benchmarks/tune_scan_triton.py``; the sweep is in docs/benchmarks.md, "GPU")
 BLOCK_D_MAX = 2
 NUM_WARPS = 4
 

@@ -1,4 +1,9 @@
-"""Tiny numpy/torch shim so the physics equations are written once for both array types."""
+"""Tiny numpy/torch shim so the physics equations are written once for both array types.
+
+Imported as ``arrays`` (``from tofdenoise.physics import _backend as arrays``): ``arrays.where``,
+``arrays.full_like``, ...; ``xp = arrays.namespace(x)`` is the array library itself (numpy or torch) for the
+calls that both spell the same way (``xp.cos``, ``xp.isfinite``).
+"""
 
 from __future__ import annotations
 
@@ -7,10 +12,6 @@ from typing import Any
 
 import numpy as np
 import torch
-
-
-def is_torch(x: Any) -> bool:
-    return isinstance(x, torch.Tensor)
 
 
 def namespace(*arrays: Any) -> ModuleType:
@@ -65,14 +66,6 @@ def where(cond: Any, a: Any, b: Any) -> Any:
             b = torch.as_tensor(b, dtype=a.dtype, device=cond.device)
         return torch.where(cond, a, b)
     return np.where(cond, a, b)
-
-
-def matmul_last(x: Any, matrix: np.ndarray) -> Any:
-    """x (..., K) @ matrix (K, M) -> (..., M), with `matrix` a numpy constant cast to x's type."""
-    if isinstance(x, torch.Tensor):
-        m = torch.as_tensor(matrix, dtype=x.dtype, device=x.device)
-        return x @ m
-    return x @ matrix.astype(x.dtype, copy=False)
 
 
 def stack_last(items: list[Any]) -> Any:

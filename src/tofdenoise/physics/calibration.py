@@ -24,7 +24,7 @@ import numpy as np
 import yaml
 
 from tofdenoise.atomic import atomic_write_text
-from tofdenoise.physics import _backend as B
+from tofdenoise.physics import _backend as arrays
 
 C_LIGHT_M_PER_S: float = 299_792_458.0
 C_LIGHT_MM_PER_S: float = C_LIGHT_M_PER_S * 1000.0
@@ -121,9 +121,9 @@ class TapResponse:
 
     def value(self, x: Any) -> Any:
         """c(x) for a numpy array or torch tensor of phases x [rad]."""
-        xp = B.namespace(x)
-        x = B.as_float_array(x)
-        out = B.full_like(x, self.c0)
+        xp = arrays.namespace(x)
+        x = arrays.as_float_array(x)
+        out = arrays.full_like(x, self.c0)
         for k, (ck, sk) in enumerate(zip(self.cos, self.sin), start=1):
             if ck:
                 out = out + ck * xp.cos(k * x)
@@ -133,9 +133,9 @@ class TapResponse:
 
     def derivative(self, x: Any) -> Any:
         """c'(x) = sum_k k (-cos[k-1] sin(kx) + sin[k-1] cos(kx))."""
-        xp = B.namespace(x)
-        x = B.as_float_array(x)
-        out = B.full_like(x, 0.0)
+        xp = arrays.namespace(x)
+        x = arrays.as_float_array(x)
+        out = arrays.full_like(x, 0.0)
         for k, (ck, sk) in enumerate(zip(self.cos, self.sin), start=1):
             if ck:
                 out = out - (k * ck) * xp.sin(k * x)
@@ -328,14 +328,9 @@ class SensorCalibration:
 
 def _plain_mapping(d: Any) -> Any:
     """Convert an omegaconf DictConfig (e.g. a Hydra node) to a plain dict; leave others alone."""
-    try:
-        from omegaconf import DictConfig, OmegaConf
+    from omegaconf import DictConfig, OmegaConf
 
-        if isinstance(d, DictConfig):
-            return OmegaConf.to_container(d, resolve=True)
-    except ImportError:  # pragma: no cover
-        pass
-    return d
+    return OmegaConf.to_container(d, resolve=True) if isinstance(d, DictConfig) else d
 
 
 def validate_calibration(calib: SensorCalibration) -> None:

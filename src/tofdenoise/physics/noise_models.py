@@ -28,6 +28,7 @@ from typing import Any
 import torch
 
 from tofdenoise.physics.calibration import SensorCalibration
+from tofdenoise.registry import Registry
 
 DEFAULT_FIXED_SIGMA_MM: float = 5.0
 
@@ -146,13 +147,6 @@ class NoNoise(NoiseModel):
         return torch.zeros_like(depth_mm)
 
 
-_REGISTRY = {"hetero": HeteroNoise, "range": RangeNoise, "fixed": FixedNoise, "none": NoNoise}
-
-
-def available_noise_models() -> list[str]:
-    return list(_REGISTRY)
-
-
 def _check_scale(scale: Any) -> float:
     try:
         s = float(scale)
@@ -163,6 +157,48 @@ def _check_scale(scale: Any) -> float:
     return s
 
 
+NOISE_MODELS: Registry[NoiseModel] = Registry("noise model")
+
+
+@NOISE_MODELS.register("hetero")
+def _hetero(calib: SensorCalibration | None = None, scale: float = 1.0) -> NoiseModel:
+    return HeteroNoise(scale=_check_scale(scale))
+
+
+@NOISE_MODELS.register("range")
+def _range(calib: SensorCalibration | None = None, scale: float = 1.0, alpha_mm: Any = None) -> NoiseModel:
+    if alpha_mm is None:
+        if calib is None or calib.range_sigma_mm is None:
+            raise ValueError(
+                "noise model 'range' needs coefficients: pass alpha_mm=[alpha0, alpha1, alpha2] or a "
+                "calibration with range_sigma_mm set"
+            )
+        alpha_mm = calib.range_sigma_mm
+    alpha_t = tuple(float(v) for v in alpha_mm)
+    if len(alpha_t) != 3 or not all(math.isfinite(v) for v in alpha_t):
+        raise ValueError(f"noise kwarg 'alpha_mm' must be 3 finite numbers, got {alpha_mm!r}")
+    return RangeNoise(alpha_mm=alpha_t, scale=_check_scale(scale))  # type: ignore[arg-type]
+
+
+@NOISE_MODELS.register("fixed")
+def _fixed(calib: SensorCalibration | None = None, scale: float = 1.0,
+           sigma_mm: float = DEFAULT_FIXED_SIGMA_MM) -> NoiseModel:
+    sigma = float(sigma_mm)
+    if not math.isfinite(sigma) or sigma < 0:
+        raise ValueError(f"noise kwarg 'sigma_mm' must be a finite number >= 0, got {sigma}")
+    return FixedNoise(sigma_mm=sigma, scale=_check_scale(scale))
+
+
+@NOISE_MODELS.register("none")
+def _none(calib: SensorCalibration | None = None, scale: float = 1.0) -> NoiseModel:
+    return NoNoise(scale=_check_scale(scale))
+
+
+def available_noise_models() -> list[str]:
+    """Registered noise model names, the paper's ``hetero`` first."""
+    return NOISE_MODELS.names()
+
+
 def build_noise_model(name: str, calib: SensorCalibration | None = None, **kwargs: Any) -> NoiseModel:
     """Build a noise model by name.
 
@@ -170,35 +206,7 @@ def build_noise_model(name: str, calib: SensorCalibration | None = None, **kwarg
     ([alpha0, alpha1, alpha2]; default: calib.range_sigma_mm). `fixed` takes `sigma_mm` (default 5.0).
     Unknown names or keyword arguments raise ValueError listing what is accepted.
     """
-    key = str(name).lower()
-    if key not in _REGISTRY:
-        raise ValueError(f"unknown noise model '{name}'; valid names: {available_noise_models()}")
-    kwargs = dict(kwargs)
-    scale = _check_scale(kwargs.pop("scale", 1.0))
-    if key == "range":
-        alpha = kwargs.pop("alpha_mm", None)
-        if alpha is None:
-            if calib is None or calib.range_sigma_mm is None:
-                raise ValueError(
-                    "noise model 'range' needs coefficients: pass alpha_mm=[alpha0, alpha1, alpha2] or a "
-                    "calibration with range_sigma_mm set"
-                )
-            alpha = calib.range_sigma_mm
-        alpha_t = tuple(float(v) for v in alpha)
-        if len(alpha_t) != 3 or not all(math.isfinite(v) for v in alpha_t):
-            raise ValueError(f"noise kwarg 'alpha_mm' must be 3 finite numbers, got {alpha!r}")
-        model: NoiseModel = RangeNoise(alpha_mm=alpha_t)  # type: ignore[arg-type]
-    elif key == "fixed":
-        sigma = float(kwargs.pop("sigma_mm", DEFAULT_FIXED_SIGMA_MM))
-        if not math.isfinite(sigma) or sigma < 0:
-            raise ValueError(f"noise kwarg 'sigma_mm' must be a finite number >= 0, got {sigma}")
-        model = FixedNoise(sigma_mm=sigma)
-    else:
-        model = _REGISTRY[key]()
-    if kwargs:
-        allowed = {"hetero": ["scale"], "range": ["scale", "alpha_mm"], "fixed": ["scale", "sigma_mm"], "none": ["scale"]}
-        raise ValueError(f"noise model '{key}' got unknown kwargs {sorted(kwargs)}; accepted: {allowed[key]}")
-    return model.with_scale(scale)
+    return NOISE_MODELS.build(name, calib=calib, **kwargs)
 
 
 def variance_matching_scale(model: NoiseModel, samples: Iterable[tuple[Any, Any, Any]]) -> float:
@@ -236,6 +244,7 @@ __all__ = [
     "DEFAULT_FIXED_SIGMA_MM",
     "FixedNoise",
     "HeteroNoise",
+    "NOISE_MODELS",
     "NoNoise",
     "NoiseModel",
     "RangeNoise",

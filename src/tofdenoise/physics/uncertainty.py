@@ -12,31 +12,53 @@ The denominator I_DD - I_Da^2 / I_aa is evaluated as the weighted residual sum
 sum_n w_n (g_n - beta r_n)^2 with beta = I_Da / I_aa (the depth sensitivity left after projecting out the
 signal-level direction): a sum of non-negative terms, so float32 does not suffer the cancellation of
 I_DD I_aa - I_Da^2. Everything is vectorised over pixels and the N taps; numpy or torch, any shape.
+
+The four sigma_D routes. They give the same numbers (tests/physics/test_uncertainty.py and
+test_uncertainty_compiled.py check each against route 1); their speeds are in docs/benchmarks.md ("Sensor physics").
+
+  route                                form; where it is the one to use              called by
+  1 information_matrix (here)          THE REFERENCE: Eq. 15 as written, from the    tests, benchmarks/bench_physics.py
+                                       (..., N) Jacobian; numpy or torch; slowest
+                                       (N-wide temporaries)
+  2 _variance_block (here)             two-pass residual form sum w (g - beta r)^2:  depth_variance_mm2 for tensors
+                                       no cancellation, stable in float32; the       off the CPU; route 3 (and 4,
+                                       route on a GPU                                through depth_variance_mm2) for
+                                                                                     pixels with rho^2 > 0.75
+  3 uncertainty_numpy.variance_block   single pass over the taps, tap pairs          depth_variance_mm2 /
+                                       (n, n + N/2) share their harmonics; numpy     sigma_depth_mm on the CPU:
+                                       arrays and CPU tensors (zero-copy), blocks    data_modules (maps, real_captures),
+                                       on threads; the fast CPU route                inference.denoise,
+                                                                                     physics.validation,
+                                                                                     cli.sensor_physics
+  4 uncertainty_compiled.              route 3's sums and the square root fused      exported by tofdenoise.physics; no
+    sigma_depth_mm_compiled            into one torch.compile kernel (CPU with a     package code calls it yet (tests,
+                                       C++ compiler, or GPU); fastest on large maps  benchmarks/bench_gpu.py)
+                                       once compiled (one compile per calibration)
+
+The public ``depth_variance_mm2`` / ``sigma_depth_mm`` pick the route by where the data lives: route 3 on the
+CPU, route 2 on other devices.
 """
 
 from __future__ import annotations
 
 import math
-import os
-from concurrent.futures import ThreadPoolExecutor
-from functools import lru_cache
 from typing import Any
 
 import numpy as np
 import torch
 
-from tofdenoise.physics import _backend as B
+from tofdenoise.physics import _backend as arrays
 from tofdenoise.physics.calibration import SensorCalibration
 
 
 def _prepare(depth_mm: Any, signal_e: Any) -> tuple[Any, Any, Any, Any]:
     """Convert to a common floating array family/dtype, broadcast, and compute the validity mask."""
-    xp = B.namespace(depth_mm, signal_e)
+    xp = arrays.namespace(depth_mm, signal_e)
     like = depth_mm if isinstance(depth_mm, torch.Tensor) else signal_e if isinstance(signal_e, torch.Tensor) else None
-    d = B.as_float_array(depth_mm, like)
-    a = B.as_float_array(signal_e, like if like is not None else None)
-    dtype = B.result_dtype(d, a)
-    d, a = B.cast(d, dtype), B.cast(a, dtype)
+    d = arrays.as_float_array(depth_mm, like)
+    a = arrays.as_float_array(signal_e, like if like is not None else None)
+    dtype = arrays.result_dtype(d, a)
+    d, a = arrays.cast(d, dtype), arrays.cast(a, dtype)
     if xp is torch:
         d, a = torch.broadcast_tensors(d, a)
     else:
@@ -54,7 +76,7 @@ def _harmonics(psi: Any, num_harmonics: int) -> list[Any]:
     """[cos(psi) .. cos(K psi), sin(psi) .. sin(K psi)] by the Chebyshev recursion
     cos(k psi) = 2 cos(psi) cos((k-1) psi) - cos((k-2) psi) (same for sin): only cos(psi), sin(psi) are
     transcendental."""
-    xp = B.namespace(psi)
+    xp = arrays.namespace(psi)
     c1, s1 = xp.cos(psi), xp.sin(psi)
     cos_list, sin_list = [c1], [s1]
     if num_harmonics >= 2:
@@ -83,7 +105,7 @@ def _lincomb(feats: list[Any], coefs: np.ndarray, const: float) -> Any:
             continue
         out = f * float(c) if out is None else _axpy_(out, f, float(c))
     if out is None:
-        return B.full_like(feats[0], const)
+        return arrays.full_like(feats[0], const)
     if const:
         out += const
     return out
@@ -106,7 +128,7 @@ def tap_planes(depth_mm: Any, calib: SensorCalibration) -> tuple[list[Any], list
 def tap_responses(depth_mm: Any, calib: SensorCalibration) -> tuple[Any, Any]:
     """(r_n, c'(psi - theta_n)) with the taps on a new last axis of length N (paper Eq. 3)."""
     r_list, g_list = tap_planes(depth_mm, calib)
-    return B.stack_last(r_list), B.stack_last(g_list)
+    return arrays.stack_last(r_list), arrays.stack_last(g_list)
 
 
 def tap_mean_e(depth_mm: Any, signal_e: Any, calib: SensorCalibration) -> Any:
@@ -132,9 +154,6 @@ def information_matrix(depth_mm: Any, signal_e: Any, calib: SensorCalibration) -
     g, r = tap_jacobian(depth_mm, signal_e, calib)
     w = 1.0 / (signal_e[..., None] * r + calib.dark_std_e**2)
     return (w * g * g).sum(-1), (w * g * r).sum(-1), (w * r * r).sum(-1)
-
-
-BLOCK_PIXELS = 32768  # pixels per CPU block: keeps the ~20 temporaries of a block in cache
 
 
 def _variance_block(d: Any, a: Any, calib: SensorCalibration, R: np.ndarray, G: np.ndarray) -> Any:
@@ -173,149 +192,6 @@ def _variance_block(d: Any, a: Any, calib: SensorCalibration, R: np.ndarray, G: 
     return 1.0 / i_eff
 
 
-# Single-pass accumulation of I_DD I_aa - I_Da^2 loses about log2(1 / (1 - rho^2)) bits, rho^2 = I_Da^2 /
-# (I_DD I_aa); pixels with rho^2 above this bound are recomputed with the two-pass residual form.
-_RHO2_SINGLE_PASS_MAX = 0.75
-
-
-@lru_cache(maxsize=64)
-def _numpy_plan(calib: SensorCalibration) -> tuple[int, list[tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]]:
-    """Constant coefficients for the numpy kernel: for each tap pair (n, n + N/2) (or single tap when N is
-    odd) the even- and odd-harmonic coefficients of r_n and c'_n. Returns (K_eff, plan)."""
-    R, G, _, _ = calib.tap_response.tap_matrices(calib.num_taps)
-    K = calib.tap_response.num_harmonics
-    nonzero = [k for k in range(1, K + 1) if calib.tap_response.harmonic(k) != (0.0, 0.0)]
-    k_eff = max(nonzero)
-    parity = np.array([(j % K) + 1 for j in range(2 * K)]) % 2  # 1 = odd harmonic
-    n_taps = calib.num_taps
-    half = n_taps // 2 if n_taps % 2 == 0 else None
-    plan = []
-    for n in range(half if half is not None else n_taps):
-        r_odd = np.where(parity == 1, R[:, n], 0.0)
-        r_even = np.where(parity == 0, R[:, n], 0.0)
-        g_odd = np.where(parity == 1, G[:, n], 0.0)
-        g_even = np.where(parity == 0, G[:, n], 0.0)
-        plan.append((n, r_odd, r_even, g_odd, g_even))
-    return k_eff, plan
-
-
-def _variance_block_np(d: np.ndarray, a: np.ndarray, calib: SensorCalibration) -> np.ndarray:
-    """Numpy kernel: sigma_D^2 for a block of valid pixels, single pass over the taps.
-
-    For even N, tap n + N/2 is tap n shifted by pi: even harmonics keep their sign, odd ones flip, so each
-    pair costs one harmonic combination. I_DD, I_Da, I_aa are accumulated (common factor a k dropped) and
-    ill-conditioned pixels (rho^2 > 0.75) are recomputed with the two-pass residual form.
-    """
-    k_eff, plan = _numpy_plan(calib)
-    K = calib.tap_response.num_harmonics
-    feats = _harmonics(d * calib.phase_per_mm, k_eff)
-    # pad to the 2K layout of tap_matrices (cos 1..K, sin 1..K)
-    zeros = None
-    if k_eff < K:
-        zeros = np.zeros_like(d)
-        feats = feats[:k_eff] + [zeros] * (K - k_eff) + feats[k_eff:] + [zeros] * (K - k_eff)
-    c0 = calib.tap_response.c0
-    s2 = calib.dark_std_e**2
-    even_n = calib.num_taps % 2 == 0
-    s_rr = np.zeros_like(d)
-    s_gr = np.zeros_like(d)
-    s_gg = np.zeros_like(d)
-
-    def combo(coefs: np.ndarray) -> np.ndarray | None:
-        out = None
-        for f, c in zip(feats, coefs):
-            if c != 0.0:
-                out = f * float(c) if out is None else _axpy_(out, f, float(c))
-        return out
-
-    def accumulate(r: np.ndarray, g: np.ndarray | None) -> None:
-        w = a * r
-        w += s2
-        np.reciprocal(w, out=w)
-        wr = w * r
-        wr_r = wr * r
-        s_rr.__iadd__(wr_r)
-        if g is not None:
-            np.multiply(wr, g, out=wr)
-            s_gr.__iadd__(wr)
-            np.multiply(w, g, out=w)
-            w *= g
-            s_gg.__iadd__(w)
-
-    for _, r_odd, r_even, g_odd, g_even in plan:
-        ro, re_, go, ge = combo(r_odd), combo(r_even), combo(g_odd), combo(g_even)
-        base_r = c0 if re_ is None else re_ + c0
-        for sign in ((1.0, -1.0) if even_n else (1.0,)):
-            if ro is None:
-                r = np.broadcast_to(np.asarray(base_r, dtype=d.dtype), d.shape).copy() if re_ is None else base_r.copy()
-            elif sign > 0:
-                r = ro + base_r
-            else:
-                r = base_r - ro
-            if go is None and ge is None:
-                g = None
-            elif go is None:
-                g = ge
-            elif ge is None:
-                g = go if sign > 0 else -go
-            else:
-                g = ge + go if sign > 0 else ge - go
-            accumulate(r, g)
-    det = s_gg * s_rr
-    cross = s_gr * s_gr
-    det -= cross
-    ill = cross > _RHO2_SINGLE_PASS_MAX * (s_gg * s_rr)
-    k = calib.phase_per_mm
-    scale = a * a
-    scale *= k * k
-    det *= scale
-    var = np.divide(s_rr, det, out=det)
-    if ill.any():
-        R, G, _, _ = calib.tap_response.tap_matrices(calib.num_taps)
-        var[ill] = _variance_block(d[ill], a[ill], calib, R, G)
-    return var
-
-
-def _variance_numpy(d: np.ndarray, a: np.ndarray, calib: SensorCalibration, workers: int | None = None) -> np.ndarray:
-    """Blocked CPU evaluation (numpy): validity, safe values and sigma_D^2 per cache-sized block;
-    blocks run on up to torch.get_num_threads() threads (numpy releases the GIL inside its loops)."""
-    fd, fa = d.reshape(-1), a.reshape(-1)
-    out = np.empty(fd.shape, dtype=fd.dtype)
-
-    def run(start: int) -> None:
-        db, ab = fd[start : start + BLOCK_PIXELS], fa[start : start + BLOCK_PIXELS]
-        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-            valid = np.isfinite(db) & np.isfinite(ab) & (db > 0) & (ab > 0)
-            if valid.all():
-                out[start : start + BLOCK_PIXELS] = _variance_block_np(db, ab, calib)
-            else:
-                one = db.dtype.type(1.0)
-                v = _variance_block_np(np.where(valid, db, one), np.where(valid, ab, one), calib)
-                v[~valid] = np.nan
-                out[start : start + BLOCK_PIXELS] = v
-
-    starts = list(range(0, fd.shape[0], BLOCK_PIXELS))
-    workers = min(len(starts), max(1, torch.get_num_threads() if workers is None else workers))
-    if workers > 1:
-        list(_thread_pool(workers).map(run, starts))
-    else:
-        for st in starts:
-            run(st)
-    return out.reshape(d.shape)
-
-
-_POOLS: dict[tuple[int, int], ThreadPoolExecutor] = {}
-
-
-def _thread_pool(workers: int) -> ThreadPoolExecutor:
-    """A per-process pool (keyed by pid: threads do not survive fork, e.g. into DataLoader workers)."""
-    key = (os.getpid(), workers)
-    pool = _POOLS.get(key)
-    if pool is None:
-        pool = _POOLS[key] = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="tofdenoise-sigma")
-    return pool
-
-
 def depth_variance_mm2(depth_mm: Any, signal_e: Any, calib: SensorCalibration) -> Any:
     """sigma_D^2 [mm^2] = e_D^T (J^T Sigma^-1 J)^-1 e_D (paper Eq. 16), closed form, NaN where invalid.
 
@@ -325,6 +201,8 @@ def depth_variance_mm2(depth_mm: Any, signal_e: Any, calib: SensorCalibration) -
     On the CPU the map is evaluated in blocks of BLOCK_PIXELS pixels (cache-sized temporaries, through
     numpy, zero-copy for torch tensors); on other devices in one pass with torch.
     """
+    from tofdenoise.physics.uncertainty_numpy import depth_variance_numpy  # it builds on this module
+
     is_t = isinstance(depth_mm, torch.Tensor) or isinstance(signal_e, torch.Tensor)
     device = None
     if is_t:
@@ -340,25 +218,20 @@ def depth_variance_mm2(depth_mm: Any, signal_e: Any, calib: SensorCalibration) -
         at = torch.as_tensor(signal_e, device=device)
         dtype = torch.float64 if torch.float64 in (dt.dtype, at.dtype) else torch.float32
         dt, at = torch.broadcast_tensors(dt.detach().to(dtype), at.detach().to(dtype))
-        var = _variance_numpy(dt.contiguous().numpy(), at.contiguous().numpy(), calib)
+        var = depth_variance_numpy(dt.contiguous().numpy(), at.contiguous().numpy(), calib)
         return torch.from_numpy(var)
     d = np.asarray(depth_mm)
     a = np.asarray(signal_e)
     both_f32 = all(x.dtype in (np.float32, np.float16) for x in (d, a))
     dtype = np.float32 if both_f32 else np.float64
     d, a = np.broadcast_arrays(d.astype(dtype, copy=False), a.astype(dtype, copy=False))
-    return _variance_numpy(d, a, calib)
+    return depth_variance_numpy(d, a, calib)
 
 
 def sigma_depth_mm(depth_mm: Any, signal_e: Any, calib: SensorCalibration) -> Any:
     """sigma_D(p) = sqrt(sigma_D^2(p)) [mm] (paper Eq. 17); NaN where invalid. See depth_variance_mm2."""
     var = depth_variance_mm2(depth_mm, signal_e, calib)
     return var.sqrt() if isinstance(var, torch.Tensor) else np.sqrt(var)
-
-
-def phase_sigma_rad(depth_mm: Any, signal_e: Any, calib: SensorCalibration) -> Any:
-    """The same uncertainty in phase units: sigma_psi = sigma_D 4 pi f / c_light [rad]."""
-    return sigma_depth_mm(depth_mm, signal_e, calib) * calib.phase_per_mm
 
 
 def amplitude_to_signal_e(
@@ -382,8 +255,8 @@ def amplitude_to_signal_e(
         raise ValueError(
             f"need 0 <= lower_percentile < upper_percentile <= 100, got {lower_percentile}, {upper_percentile}"
         )
-    xp = B.namespace(amplitude)
-    amp = B.as_float_array(amplitude)
+    xp = arrays.namespace(amplitude)
+    amp = arrays.as_float_array(amplitude)
     if xp is np and amp.dtype not in (np.float32, np.float64):
         amp = amp.astype(np.float64)
     ok = xp.isfinite(amp) & (amp > 0)
@@ -408,16 +281,15 @@ def amplitude_to_signal_e(
         norm = (amp - lo) / (hi - lo)
         norm = norm.clamp(0.0, 1.0) if xp is torch else np.clip(norm, 0.0, 1.0)
     else:
-        norm = B.full_like(amp, 0.5)
+        norm = arrays.full_like(amp, 0.5)
     signal = a_min + (a_max - a_min) * norm
-    return B.where(ok, signal, B.full_like(signal, fill_value))
+    return arrays.where(ok, signal, arrays.full_like(signal, fill_value))
 
 
 __all__ = [
     "amplitude_to_signal_e",
     "depth_variance_mm2",
     "information_matrix",
-    "phase_sigma_rad",
     "sigma_depth_mm",
     "tap_jacobian",
     "tap_mean_e",

@@ -17,9 +17,11 @@ harmonic costs two multiply-adds per tap for r_n and two for r'_n. One kernel is
 
 Pixels whose information matrix is ill-conditioned (rho^2 = S_dr^2 / (S_dd S_rr) > 0.75, where the determinant
 loses more than two bits) are recomputed with the reference path, so the result matches it everywhere; the
-kernel reports whether there are any in the same pass. Compilation takes ~20 s on the first call per
-calibration and needs a C++ compiler on CPU; when compilation is not possible the reference path is used with
-a warning. Use :func:`sigma_depth_mm` (the reference) for small inputs and numpy arrays.
+kernel reports whether there are any in the same pass. Compilation runs on the first call per calibration
+(its time and the kernel's speed: docs/benchmarks.md, "Sensor physics") and needs a C++ compiler on CPU; when
+compilation is not possible the reference path is used with a warning. Use :func:`sigma_depth_mm` for small
+inputs and numpy arrays. Where this route stands among the four sigma_D routes: the table in
+:mod:`tofdenoise.physics.uncertainty`.
 """
 
 from __future__ import annotations
@@ -33,11 +35,12 @@ import torch
 
 from tofdenoise.physics.calibration import SensorCalibration
 from tofdenoise.physics.uncertainty import depth_variance_mm2
+from tofdenoise.physics.uncertainty_numpy import RHO2_SINGLE_PASS_MAX
 
 __all__ = ["depth_variance_mm2_compiled", "sigma_depth_mm_compiled", "tap_expansion"]
 
-#: rho^2 above which a pixel is recomputed with the reference path
-ILL_CONDITIONED_RHO2 = 0.75
+#: rho^2 above which a pixel is recomputed through ``depth_variance_mm2`` (the bound of the numpy single pass)
+ILL_CONDITIONED_RHO2 = RHO2_SINGLE_PASS_MAX
 #: expansion coefficients smaller than this fraction of the largest one are exact zeros in disguise
 _ZERO_RTOL = 1e-12
 

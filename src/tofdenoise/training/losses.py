@@ -30,11 +30,12 @@ Values in invalid pixels (NaN, garbage) never reach the result or the gradient: 
 
 from __future__ import annotations
 
-import inspect
 from typing import Any
 
 import torch
 from torch import Tensor, nn
+
+from tofdenoise.registry import Registry
 
 __all__ = [
     "charbonnier",
@@ -118,6 +119,9 @@ class DepthLoss(nn.Module):
 
     name: str = ""
 
+    def __init__(self) -> None:  # no keywords: ``build_loss`` lists what each loss accepts from its signature
+        super().__init__()
+
     def terms(self, pred: Tensor, target: Tensor, sigma_mm: Tensor | None, mask: Tensor) -> dict[str, Tensor]:
         raise NotImplementedError
 
@@ -198,22 +202,17 @@ class FullLoss(NoiseAwareLoss):
         return {"loss": nar + self.lambda_g * grad, "nar": nar.detach(), "grad": grad.detach()}
 
 
-_LOSSES: dict[str, type[DepthLoss]] = {"l1": L1DepthLoss, "nar": NoiseAwareLoss, "full": FullLoss}
+LOSSES: Registry[DepthLoss] = Registry("loss")
+LOSSES.register("l1")(L1DepthLoss)
+LOSSES.register("nar")(NoiseAwareLoss)
+LOSSES.register("full")(FullLoss)
 
 
 def available_losses() -> list[str]:
     """Registered loss names, sorted."""
-    return sorted(_LOSSES)
+    return sorted(LOSSES.names())
 
 
 def build_loss(name: str, **kwargs: Any) -> DepthLoss:
     """Instantiate a loss by name with plain keyword values (e.g. from ``configs/loss/<name>.yaml``)."""
-    key = str(name).lower()
-    if key not in _LOSSES:
-        raise ValueError(f"unknown loss '{name}'; valid names: {', '.join(available_losses())}")
-    cls = _LOSSES[key]
-    accepted = [p for p in inspect.signature(cls.__init__).parameters if p != "self"]
-    unknown = sorted(set(kwargs) - set(accepted))
-    if unknown:
-        raise ValueError(f"loss '{key}' got unknown keyword(s) {unknown}; accepted: {accepted or 'none'}")
-    return cls(**kwargs)
+    return LOSSES.build(name, **kwargs)

@@ -109,8 +109,8 @@ def gaussian_window_1d(sigma: float = SSIM_SIGMA, dtype: torch.dtype = torch.flo
 def _gaussian_filter(x: Tensor, window: Tensor) -> Tensor:
     """Separable Gaussian filter of a (N, 1, H, W) tensor, reflect padding, output (N, 1, H, W).
 
-    Written as weighted sums of shifted views (in-place adds): exact like a convolution, and for float64 about
-    twice as fast as ``conv2d`` on CPU (measured in docs/evaluation.md).
+    Written as weighted sums of shifted views (in-place adds): exact like a convolution, and for float64 faster
+    than ``conv2d`` on CPU (docs/benchmarks.md, "Metrics").
     """
     taps = window.numel()
     pad = (taps - 1) // 2

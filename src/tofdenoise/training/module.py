@@ -40,6 +40,7 @@ import lightning.pytorch as pl
 import torch
 from torch import Tensor, nn
 
+from tofdenoise.training.losses import DepthLoss, build_loss
 from tofdenoise.training.metrics import DepthMetrics, depth_metrics_per_image
 from tofdenoise.models.conditioning import (
     CENTERING_MODES,
@@ -49,12 +50,9 @@ from tofdenoise.models.conditioning import (
     valid_input_mask,
 )
 
-__all__ = ["DepthRestorer", "ARCHITECTURE_HPARAMS", "CheckpointMismatchError"]
+__all__ = ["DepthRestorer", "CheckpointMismatchError"]
 
 log = logging.getLogger(__name__)
-
-#: hyper-parameters that define the network's parameters: a checkpoint must agree on all of them.
-ARCHITECTURE_HPARAMS = ("backbone", "backbone_kwargs", "use_signal_channel", "ema", "input_centering")
 
 
 class CheckpointMismatchError(ValueError):
@@ -62,6 +60,7 @@ class CheckpointMismatchError(ValueError):
 
 
 def _architecture(hparams: dict[str, Any]) -> dict[str, Any]:
+    """What defines the network's parameters, from a hyper-parameter dict: a checkpoint must agree on all of it."""
     return {
         "backbone": hparams.get("backbone"),
         "backbone_kwargs": dict(hparams.get("backbone_kwargs") or {}),
@@ -132,17 +131,10 @@ class DepthRestorer(pl.LightningModule):
         learned_margin: float = 0.05,
     ) -> None:
         super().__init__()
-        from tofdenoise.training.losses import available_losses, build_loss
-        from tofdenoise.models import available_backbones, build_backbone
+        from tofdenoise.models import build_backbone
 
         backbone_kwargs = dict(backbone_kwargs or {})
         loss_kwargs = dict(loss_kwargs or {})
-        if backbone not in available_backbones():
-            raise ValueError(f"DepthRestorer.backbone: unknown backbone {backbone!r}; "
-                             f"valid names: {', '.join(available_backbones())}")
-        if loss not in available_losses():
-            raise ValueError(f"DepthRestorer.loss: unknown loss {loss!r}; "
-                             f"valid names: {', '.join(available_losses())}")
         if not depth_scale_mm > 0:
             raise ValueError(f"DepthRestorer.depth_scale_mm must be > 0, got {depth_scale_mm}")
         if input_centering not in CENTERING_MODES:
@@ -171,7 +163,7 @@ class DepthRestorer(pl.LightningModule):
 
         net_kwargs = {k: v for k, v in backbone_kwargs.items() if k != "in_channels"}
         self.backbone: nn.Module = build_backbone(backbone, in_channels=in_channels, **net_kwargs)
-        self.criterion: nn.Module = build_loss(loss, **loss_kwargs)
+        self.criterion: DepthLoss = build_loss(loss, **loss_kwargs)
         self.ema: torch.optim.swa_utils.AveragedModel | None = None
         if ema_decay is not None:
             self.ema = torch.optim.swa_utils.AveragedModel(
@@ -291,23 +283,32 @@ class DepthRestorer(pl.LightningModule):
             sched = torch.optim.lr_scheduler.SequentialLR(opt, [ramp, sched], milestones=[warm])
         return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step", "frequency": 1}}
 
-    def training_loss(self, batch: dict[str, Any], net: nn.Module | None = None) -> Tensor:
-        """The loss of one training batch through ``net`` (default: the training network)."""
+    def training_terms(self, batch: dict[str, Any], net: nn.Module | None = None) -> dict[str, Tensor]:
+        """The loss of one training batch through ``net`` (default: the training network) with its parts:
+        ``DepthLoss.terms`` (``"loss"``: the total, with gradient; the parts, e.g. ``"nar"``, ``"grad"``, detached)."""
         if net is None:
             net = self._compiled if self._compiled is not None else self.backbone
         x, offset = self.condition(batch)
         pred = net(x)
         # the loss in millimetres relative to the offset (differences are those of the restored depth in mm)
         pred_mm = pred.float() * self.hparams.depth_scale_mm
-        return self.criterion(pred_mm, batch["clean"].float() - offset, batch["sigma"], batch["mask"])
+        return self.criterion.terms(pred_mm, batch["clean"].float() - offset, batch["sigma"], batch["mask"])
+
+    def training_loss(self, batch: dict[str, Any], net: nn.Module | None = None) -> Tensor:
+        """The loss of one training batch through ``net`` (default: the training network)."""
+        return self.training_terms(batch, net)["loss"]
 
     def training_step(self, batch: dict[str, Any], batch_idx: int) -> Tensor:
-        loss = self.training_loss(batch)
+        terms = self.training_terms(batch)
+        loss = terms["loss"]
         if not torch.isfinite(loss):
             raise FloatingPointError(f"DepthRestorer: non-finite training loss {loss.item()} at step "
                                      f"{self.global_step} (lower lr, enable gradient clipping, check the data)")
-        self.log("train/loss", loss, on_step=True, on_epoch=True, prog_bar=True,
-                 batch_size=batch["noisy"].shape[0])
+        batch_size = batch["noisy"].shape[0]
+        self.log("train/loss", loss, on_step=True, on_epoch=True, prog_bar=True, batch_size=batch_size)
+        for name, value in terms.items():  # the parts: train/loss_l1; train/loss_nar; train/loss_nar + _grad
+            if name != "loss":
+                self.log(f"train/loss_{name}", value, on_step=True, on_epoch=True, batch_size=batch_size)
         self.log("train/lr", self.trainer.optimizers[0].param_groups[0]["lr"], on_step=True, on_epoch=False)
         return loss
 

@@ -7,9 +7,8 @@ Functions for the LightningModule, the callbacks and the entry points (no Lightn
   ["mae_mm_pooled", "images", "skipped_images", "valid_px"], "raw": {same keys for the noisy input}}``.
 - ``write_metrics_json(path, results, run=None)``: writes ``{"synthetic": entry, "real": entry}`` (whatever
   sets are given) atomically after validating the schema, plus the run-level fields ``run`` (below) at the top
-  level; ``update_metrics_json(path, set_name, entry)`` merges one set into an existing file (read-modify-write,
-  atomic, run fields kept); ``read_metrics_json(path)`` reads and validates; ``metric_sets(data)`` keeps only
-  the sets of a read file, ``run_fields(data)`` only the run-level fields.
+  level; ``read_metrics_json(path)`` reads and validates; ``metric_sets(data)`` keeps only the sets of a read
+  file, ``run_fields(data)`` only the run-level fields.
 - ``learned_verdict(trained_steps, best_val_mae_mm, raw_val_mae_mm, margin=0.05) -> dict``: the guard against
   runs that learned nothing (the one place its rule lives). The dict holds the run-level fields of
   ``metrics.json`` (``RUN_KEYS``): ``trained_steps``, ``best_val_mae_mm``, ``raw_val_mae_mm``,
@@ -54,7 +53,6 @@ __all__ = [
     "EXTRA_KEYS",
     "set_entry",
     "write_metrics_json",
-    "update_metrics_json",
     "read_metrics_json",
     "validate_metrics_results",
     "write_per_image_csv",
@@ -268,16 +266,6 @@ def read_metrics_json(path: str | Path) -> dict[str, Any]:
         raise ValueError(f"{path}: not valid JSON ({exc})") from None
     validate_metrics_results(data, str(path))
     return data
-
-
-def update_metrics_json(path: str | Path, set_name: str, entry: Mapping[str, Any]) -> Path:
-    """Add or replace one set in ``path`` (created when missing), keeping the other sets and the run fields."""
-    path = Path(path)
-    if str(set_name) in RUN_KEYS:
-        raise ValueError(f"{path}: {set_name!r} is a run-level field of metrics.json, not a valid set name")
-    current: dict[str, Any] = read_metrics_json(path) if path.exists() else {}
-    current[str(set_name)] = entry
-    return write_metrics_json(path, current)
 
 
 def _name_for(names: Mapping[int, str] | Sequence[str] | None, index: int | None) -> str:

@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol
 
 import numpy as np
+
+from tofdenoise.registry import Registry
 
 
 @dataclass
@@ -38,6 +41,25 @@ class DataSource(Protocol):
 
     def describe(self) -> dict[str, Any]:
         """Plain values that determine the samples' content (part of the cache key)."""
+
+
+DATA_SOURCES: Registry[DataSource] = Registry("data source")
+
+
+def register_source(name: str) -> Callable[[Callable[..., DataSource]], Callable[..., DataSource]]:
+    """Decorator registering a data source class under ``name`` (the value of ``data.source``)."""
+    return DATA_SOURCES.register(name)
+
+
+def available_sources() -> list[str]:
+    """Registered data source names, sorted."""
+    return sorted(DATA_SOURCES.names())
+
+
+def build_source(name: str, **kwargs: Any) -> DataSource:
+    """Build the data source registered as ``name``; ValueError for an unknown name or keyword (listing the valid
+    ones)."""
+    return DATA_SOURCES.build(name, **kwargs)
 
 
 def depth_validity(depth_mm: np.ndarray, min_depth_mm: float = 0.0, max_depth_mm: float = float("inf")) -> np.ndarray:

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from tofdenoise.data_modules.io import DataFileError, check_same_shape, read_amplitude, read_mat
-from tofdenoise.data_modules.sources.base import RawSample, raise_if_missing, read_list_file
+from tofdenoise.data_modules.sources.base import RawSample, raise_if_missing, read_list_file, register_source
 
 GT_DIRS = ("gt_depth_rgb", "gt_depth_rgb_small_pt")
 DEFAULT_LISTS = ("train_list.txt", "test_list.txt")
@@ -43,6 +43,7 @@ def radial_to_z(radial_mm: np.ndarray, hfov_deg: float = HFOV_DEG) -> np.ndarray
     return (radial_mm / norm).astype(np.float32)
 
 
+@register_source("flyingthings3d")
 class FlyingThings3DSource:
     """Clean depth (mm, z) + ToF amplitude + validity from a ToF-FlyingThings3D copy."""
 

@@ -19,9 +19,16 @@ from typing import Any
 import numpy as np
 
 from tofdenoise.data_modules.io import DataFileError, check_same_shape, read_amplitude, read_array, read_depth_mm
-from tofdenoise.data_modules.sources.base import RawSample, depth_validity, raise_if_missing, read_list_file
+from tofdenoise.data_modules.sources.base import (
+    RawSample,
+    depth_validity,
+    raise_if_missing,
+    read_list_file,
+    register_source,
+)
 
 
+@register_source("folder")
 class FolderSource:
     name = "folder"
 

@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from tofdenoise.data_modules.sources.base import RawSample, depth_validity
+from tofdenoise.data_modules.sources.base import RawSample, depth_validity, register_source
 
 DEFAULT_HFOV_DEG = 63.5
 
@@ -380,6 +380,7 @@ def render_scene(spec: SceneSpec) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return depth, amplitude, valid
 
 
+@register_source("procedural")
 class ProceduralSource:
     """Deterministic built-in scenes (no download): ids ``scene_000000`` ... ``scene_{n-1}``."""
 
