@@ -45,13 +45,17 @@ def _names_or_error(kind: str, key: str, value: str, valid: list[str]) -> None:
 def validate_config(cfg: DictConfig) -> None:
     """Fail early (before any data or model is built) on unknown names or missing dataset paths."""
     from tofdenoise.training.losses import available_losses
-    from tofdenoise.models import available_backbones
+    from tofdenoise.models import available_backbones, is_trainable
     from tofdenoise.physics.noise_models import available_noise_models
 
     for group in ("backbone", "noise", "loss", "data", "model", "trainer"):
         if group not in cfg or cfg[group] is None:
             raise ValueError(f"config: group {group!r} is missing (configs/train.yaml defaults list)")
     _names_or_error("backbone", "backbone.name", cfg.backbone.name, available_backbones())
+    if not is_trainable(cfg.backbone.name):
+        raise ValueError(f"config backbone.name: {cfg.backbone.name!r} is a classical filter without trainable "
+                         "parameters: nothing to train; tune and evaluate it with `tofdenoise-classic` "
+                         "(docs/models.md#classical-row-joint-bilateral-filter)")
     _names_or_error("noise model", "noise.name", cfg.noise.name, available_noise_models())
     _names_or_error("loss", "loss.name", cfg.loss.name, available_losses())
     data = cfg.data
