@@ -23,8 +23,9 @@ Where no neighbour (the pixel itself included) has a weight (a hole surrounded b
 beyond the range term's reach), the output is the input depth. The frame border is not padded with data:
 pixels outside the frame have no weight (the window shrinks), so no value is invented there.
 
-No separable shortcut exists (the range term depends on the centre pixel); the filter loops over the
-(2r + 1)^2 window offsets inside the disc, each a vectorised operation on the whole batch, in O(B H W) memory
+No separable shortcut exists (the range term depends on the centre pixel); the filter loops over the 2r + 1
+rows of the window, each row's 2r + 1 offsets one vectorised operation on the whole batch (strided views of the
+padded frame), in O((2r + 1) B H W) memory
 (measured time per 480 x 640 frame: docs/models.md#classical-row-joint-bilateral-filter).
 
 ``JointBilateral`` (registered as the backbone ``bilateral``, ``trainable=False``) applies it to the network
@@ -109,20 +110,24 @@ def joint_bilateral_filter(depth_mm: Tensor, amplitude: Tensor, valid: Tensor | 
     c_pad = torch.nn.functional.pad(confidence, pad)  # outside the frame: no weight
     inv_2ss = 1.0 / (2.0 * float(sigma_spatial_px) ** 2)
     inv_2sd = 0.0 if math.isinf(sigma_depth_mm) else 1.0 / (2.0 * float(sigma_depth_mm) ** 2)
+    dx = torch.arange(-r, r + 1, dtype=dtype, device=depth.device)
     num = torch.zeros_like(centre)
     den = torch.zeros_like(centre)
+    centre_row = centre.unsqueeze(-2)  # (B, 1, H, 1, W)
     for dy in range(-r, r + 1):
-        for dx in range(-r, r + 1):
-            if dy * dy + dx * dx > r * r:
-                continue
-            spatial = math.exp(-(dy * dy + dx * dx) * inv_2ss)
-            diff = d_pad[..., r + dy:r + dy + h, r + dx:r + dx + w] - centre
-            weight = c_pad[..., r + dy:r + dy + h, r + dx:r + dx + w] * spatial
-            if inv_2sd > 0:
-                weight = weight * torch.exp(-inv_2sd * diff.square())
-            # an invalid neighbour has weight 0 and a finite diff: it adds exactly 0
-            num = num + weight * diff
-            den = den + weight
+        # the 2r + 1 horizontal offsets of one window row at once: strided views (B, 1, H, 2r + 1, W), no copy
+        rows = slice(r + dy, r + dy + h)
+        d_win = d_pad[..., rows, :].unfold(-1, w, 1)
+        c_win = c_pad[..., rows, :].unfold(-1, w, 1)
+        # spatial weight, 0 outside the disc |(dy, dx)| <= r
+        spatial = torch.exp(-(dy * dy + dx.square()) * inv_2ss) * (dy * dy + dx.square() <= r * r)
+        diff = d_win - centre_row
+        weight = c_win * spatial[:, None]
+        if inv_2sd > 0:
+            weight = weight * torch.exp(-inv_2sd * diff.square())
+        # an invalid or out-of-disc neighbour has weight 0 and a finite diff: it adds exactly 0
+        num = num + (weight * diff).sum(dim=-2)
+        den = den + weight.sum(dim=-2)
     has_weight = den > 0
     correction = torch.where(has_weight, num / torch.where(has_weight, den, torch.ones_like(den)), zero)
     return torch.where(has_weight, centre + correction, depth)
