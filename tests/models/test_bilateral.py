@@ -83,6 +83,16 @@ def test_masked_pixels_never_contribute():
     amp_poisoned = torch.where(valid, amp, torch.full_like(amp, 1e9))
     out2 = bf(poisoned, amp_poisoned, valid, **kw)
     assert torch.equal(out[valid], out2[valid])
+    # without range term and amplitude weight: the normalised convolution conv(v D) / conv(v) (hand-built kernel)
+    r, ss = 2, 1.5
+    offsets = torch.arange(-r, r + 1.0, dtype=torch.float64)
+    ys, xs = torch.meshgrid(offsets, offsets, indexing="ij")
+    kernel = (torch.exp(-(xs ** 2 + ys ** 2) / (2 * ss ** 2)) * ((xs ** 2 + ys ** 2) <= r * r))[None, None]
+    v = valid.to(torch.float64)
+    expected = F.conv2d(F.pad(poisoned * v, (r,) * 4), kernel) / F.conv2d(F.pad(v, (r,) * 4), kernel)
+    out4 = bf(poisoned, amp_poisoned, valid, sigma_spatial_px=ss, sigma_depth_mm=math.inf, amplitude_power=0.0,
+              radius_px=r)
+    torch.testing.assert_close(out4[valid], expected[valid], rtol=0, atol=1e-9)
     # no neighbour with a weight: the input is returned (holes surrounded by holes, far from valid pixels)
     lone = torch.zeros_like(depth, dtype=torch.bool)
     lone[0, 0, 3, 3] = True
