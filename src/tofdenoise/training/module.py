@@ -28,6 +28,11 @@ Design decisions:
 - The learned guard (``learned_record()``): the run's optimiser steps, its lowest validation MAE and the raw
   validation MAE, judged by ``tofdenoise.training.results.learned_verdict`` with ``learned_margin``;
   written to ``metrics.json`` and checkpoints, and printed by ``RunSummary``.
+- A classical filter as the backbone (registered with ``trainable=False``: ``bilateral``): its class states
+  its input needs (``input_centering_modes``, ``needs_signal_channel``; checked here), it receives
+  ``depth_scale_mm`` when its signature names it, it is never fitted (``configure_optimizers`` refuses), and
+  ``learned_record`` gives ``classical_verdict`` with the validation MAEs of its grid search
+  (``record_tuning``, called by ``tofdenoise-classic``).
 """
 
 from __future__ import annotations
