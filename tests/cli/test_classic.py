@@ -9,7 +9,8 @@ import math
 import pytest
 
 from tofdenoise.cli.classic import grid_points, run, select_best
-from tofdenoise.cli.train import compose_config, validate_config
+from tofdenoise.cli.train import validate_config
+from tofdenoise.config import compose_config
 from tofdenoise.training.results import RUN_KEYS, learned_status, metric_sets, read_metrics_json, read_per_image_csv
 
 
@@ -82,6 +83,7 @@ def test_tune_on_validation_then_test_through_the_network_path(tmp_path, data_ca
     from hydra.utils import instantiate
 
     dm = instantiate(cfg.data, _convert_="all")
+    dm.prepare_data()
     dm.setup("validate")
     model = DepthRestorer(backbone="bilateral", backbone_kwargs=result["best"], use_signal_channel=True,
                           input_centering="none")

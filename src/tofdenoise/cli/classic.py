@@ -7,7 +7,7 @@ image through ``DepthRestorer.restore_mm`` with backbone ``bilateral`` and is sc
 (the validation metrics of the networks); the lowest validation MAE wins (ties: the first point in grid order)
 -> ``tuning.json`` (every point's validation metrics, the raw input's, the choice) -> **test**: a
 ``DepthRestorer`` with the chosen parameters goes through ``trainer.test`` exactly like a trained network, and
-``tofdenoise.cli.train.write_test_outputs`` writes ``metrics.json`` (run-level fields from
+``tofdenoise.callbacks.run_outputs.write_test_outputs`` writes ``metrics.json`` (run-level fields from
 ``training.results.classical_verdict``: ``method_kind`` "classical", 0 steps, the tuned validation MAE) and
 ``per_image/<set>.csv`` -> ``run_info.json`` and ``config.yaml``. Every file is written atomically.
 
@@ -35,7 +35,9 @@ import torch
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from tofdenoise.atomic import atomic_write_text
-from tofdenoise.cli.train import RUN_INFO_NAME, config_dir, validate_config, write_json_atomic, write_test_outputs
+from tofdenoise.cli.train import validate_config
+from tofdenoise.config import config_dir
+from tofdenoise.training.results import RUN_INFO_NAME
 
 __all__ = ["main", "run", "grid_points", "tune", "select_best", "TUNING_NAME", "GRID_KEYS", "DEFAULT_BACKBONE"]
 
@@ -153,6 +155,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     from hydra.utils import instantiate
     from lightning.pytorch import seed_everything
 
+    from tofdenoise.callbacks.run_outputs import write_json_atomic, write_test_outputs
     from tofdenoise.models import available_backbones, is_trainable
     from tofdenoise.training.module import DepthRestorer
 
