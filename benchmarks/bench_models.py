@@ -1,14 +1,16 @@
 """Backbone and selective-scan benchmarks (CPU), side by side in one run.
 
-    python benchmarks/bench_models.py [--quick] [--threads N] [--only scan,block,backbones]
+    python benchmarks/bench_models.py [--quick] [--threads N] [--only scan,block,backbones,bilateral]
 
 1. Selective scan, forward+backward, batch 1, 4 directions x d_inner 96 (dim 384), d_state 16, L = 25600
    (160 x 160): the chunked scan with recomputing backward vs a sequential loop whose hand-written backward
    stores every state. Ratios: time chunked / sequential (target <= 1) and peak memory sequential / chunked
    (target >= 3).
 2. One DVSS block (width 48 -> d_inner 96, d_state 16) at 160 x 160, forward+backward, both scan backends.
-3. Every registered backbone (default kwargs): parameters; forward and forward+backward time and peak
+3. Every trainable backbone (default kwargs): parameters; forward and forward+backward time and peak
    memory at 320 x 320, batch 4; forward time and peak memory at 480 x 640, batch 1.
+4. The classical row (``bilateral``, no parameters, not in the default ``--only``): one 480 x 640 frame
+   (depth + amplitude channels) per window radius of the default tuning grid's sigma_spatial_px.
 
 Peak memory: every case runs in a fresh subprocess; peak = ru_maxrss at the end (the process's resident-set
 high-water mark) minus the resident set just before the timed work (after imports, model and inputs are
@@ -102,6 +104,18 @@ def _run_case(case: dict) -> dict:
                 model.zero_grad(set_to_none=True)
                 model(x).square().mean().backward()
 
+    elif kind == "bilateral":
+        from tofdenoise.models import build_backbone
+
+        model = build_backbone("bilateral", in_channels=2, sigma_spatial_px=case["sigma_spatial_px"],
+                               sigma_depth_mm=80.0, amplitude_power=case["amplitude_power"])
+        depth = 10.0 + torch.rand(1, 1, case["H"], case["W"])
+        x = torch.cat([depth, torch.rand(1, 1, case["H"], case["W"])], dim=1)
+
+        def fn():
+            with torch.no_grad():
+                model(x)
+
     else:
         raise ValueError(f"unknown case kind {kind!r}")
     base = _rss_bytes()
@@ -194,13 +208,13 @@ def bench_block(args) -> None:
 
 def bench_backbones(args) -> None:
     sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "src"))
-    from tofdenoise.models import available_backbones
+    from tofdenoise.models import trainable_backbones
 
     if args.quick:
         (h, w, b), (h2, w2) = (64, 64, 2), (96, 128)
     else:
         (h, w, b), (h2, w2) = (320, 320, 4), (480, 640)
-    names = args.backbones.split(",") if args.backbones else available_backbones()
+    names = args.backbones.split(",") if args.backbones else trainable_backbones()
     print(f"\n### Backbones (default kwargs): fwd / fwd+bwd at {h}x{w} batch {b}; fwd at {h2}x{w2} batch 1")
     print(f"# memory cap per case {args.mem_cap_gib:g} GiB (address space): OOM = needs more than that")
     head = (f"{'backbone':<18}{'params':>10}{'fwd_s':>9}{'fwd_MiB':>9}{'fwdbwd_s':>10}{'fwdbwd_MiB':>11}"
@@ -227,11 +241,27 @@ def bench_backbones(args) -> None:
         print(f"# {e}")
 
 
+def bench_bilateral(args) -> None:
+    sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "src"))
+    from tofdenoise.models.bilateral import default_radius_px
+
+    h, w = (96, 128) if args.quick else (480, 640)
+    print(f"\n### Classical row: joint bilateral filter, one {h}x{w} frame (no parameters, forward only)")
+    print(f"{'sigma_s_px':>10}{'radius':>8}{'gamma':>7}{'time_s':>9}{'cpu_s':>8}{'MiB':>7}")
+    for ss in (1.0, 1.5, 2.0, 3.0):
+        for gamma in (0.0, 1.0):
+            res = run_isolated({"kind": "bilateral", "sigma_spatial_px": ss, "amplitude_power": gamma, "H": h,
+                                "W": w, "reps": 3}, args.threads, args.timeout, args.mem_cap_gib)
+            print(f"{ss:>10g}{default_radius_px(ss):>8}{gamma:>7g}{_fmt(res, 'time_s', '9.3f')}"
+                  f"{_fmt(res, 'cpu_s', '8.3f')}{_fmt(res, 'peak_mib', '7.0f')}", flush=True)
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true", help="small sizes: a fast smoke run")
     p.add_argument("--threads", type=int, default=None, help="torch intra-op threads per case (default: torch's)")
-    p.add_argument("--only", default="scan,block,backbones", help="comma list of: scan, block, backbones")
+    p.add_argument("--only", default="scan,block,backbones",
+                   help="comma list of: scan, block, backbones, bilateral")
     p.add_argument("--backbones", default="", help="comma list of backbone names (default: all registered)")
     p.add_argument("--timeout", type=float, default=1800.0, help="seconds allowed per case")
     p.add_argument("--mem-cap-gib", type=float, default=12.0,
@@ -250,7 +280,8 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     print(f"# bench_models: torch {torch.__version__}, threads per case {args.threads or torch.get_num_threads()}, "
           f"{'quick' if args.quick else 'full'} sizes; every case in its own subprocess", flush=True)
-    parts = {"scan": bench_scan, "block": bench_block, "backbones": bench_backbones}
+    parts = {"scan": bench_scan, "block": bench_block, "backbones": bench_backbones,
+             "bilateral": bench_bilateral}
     for part in args.only.split(","):
         if part not in parts:
             p.error(f"--only: unknown part {part!r}; valid: {', '.join(parts)}")

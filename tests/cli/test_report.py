@@ -178,6 +178,30 @@ from tofdenoise.cli.output_guard import OutputPathError, check_output_file
 
 
 
+def test_classical_row_is_listed_as_classical_and_can_be_best(tmp_path, capsys):
+    """A classical filter's metrics.json (0 steps, learned False, method_kind classical) is a plain row of the
+    table: "classical" in the Learned column, not red, and bold where it is best."""
+    from tofdenoise.training.results import classical_verdict
+
+    root = tmp_path / "runs"
+    _guarded_run(root, "net", 3.0, 900, 2.9)
+    d = root / "bilateral"
+    write_metrics_json(d / "metrics.json", {"synthetic": set_entry(_m(39.0, 0.995, 6.0, 2.5), RAW)},
+                       run=classical_verdict(2.6, 7.5))
+    (d / "run_info.json").write_text(json.dumps({"backbone": "bilateral", "method": "bilateral (classical)",
+                                                 "noise": "hetero", "loss": "none", "run_name": "bilateral"}))
+    out = tmp_path / "r.html"
+    assert main([str(root), "--out", str(out)]) == 0
+    md = capsys.readouterr().out
+    row = next(r for r in md.splitlines() if r.startswith("| bilateral (classical) "))
+    assert row.startswith("| bilateral (classical) | hetero | none | classical | **39.00** |")
+    assert row.endswith("| **2.50** |")
+    page = out.read_text()
+    html_row = re.search(r'<tr class="([^"]*)" title="bilateral">.*?</tr>', page)
+    assert html_row.group(1) == "run" and ">classical</td>" in html_row.group(0)
+    assert "classical method: no trainable parameters" in page
+
+
 @pytest.mark.parametrize("rel", ["dvss-hetero-full/metrics.json", "dvss-hetero-full/run_info.json",
                                  "dvss-hetero-full/metrics.html", "report.txt", "dvss-hetero-full"])
 def test_out_that_would_replace_a_run_record_is_refused(runs, capsys, rel):

@@ -24,7 +24,7 @@ from tofdenoise.training.results import (
 from tofdenoise.cli.train import run
 from tofdenoise.config import compose_config
 from tofdenoise.training.metrics import METRIC_KEYS
-from tofdenoise.models import available_backbones
+from tofdenoise.models import trainable_backbones
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -41,7 +41,7 @@ def _check_metrics_json(path: Path, sets=("synthetic",)) -> dict:
     return data
 
 
-@pytest.mark.parametrize("backbone", sorted(available_backbones()))
+@pytest.mark.parametrize("backbone", trainable_backbones())
 def test_fast_dev_run_fit_and_test_every_backbone(backbone, tmp_path, data_cache, tiny):
     cfg = compose_config(tiny(tmp_path, data_cache, backbone) + ["+trainer.fast_dev_run=true", "logger=csv"])
     result = run(cfg)

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from tofdenoise.models import available_backbones, build_backbone, count_parameters
+from tofdenoise.models import available_backbones, build_backbone, count_parameters, trainable_backbones
 from tofdenoise.models.common import crop_to, pad_to_multiple
 from tofdenoise.models.scr import SCR, SqueezeExcitation
 from tofdenoise.models.ss2d import cross_merge, cross_scan
@@ -41,7 +41,9 @@ def _randomise_heads(model: torch.nn.Module) -> None:
 
 
 def test_registry_lists_all_names():
-    assert available_backbones() == sorted(NAMES)
+    assert trainable_backbones() == sorted(NAMES)
+    # the classical row (tests/models/test_bilateral.py): registered, not trainable
+    assert available_backbones() == sorted(NAMES + ["bilateral"])
 
 
 def test_unknown_name_and_bad_kwargs_raise():

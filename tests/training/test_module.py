@@ -275,3 +275,56 @@ def test_ss2d_state_parameters_are_not_weight_decayed():
             assert not ids & flagged
     no_decay = {id(p) for g in groups if g["weight_decay"] == 0 for p in g["params"]}
     assert flagged <= no_decay
+
+
+# ------------------------------------------------------------------ a classical filter as the backbone
+BILATERAL = {"sigma_spatial_px": 1.5, "sigma_depth_mm": 15.0, "amplitude_power": 1.0}
+
+
+def bilateral_model(**kw) -> DepthRestorer:
+    args = {"backbone": "bilateral", "backbone_kwargs": dict(BILATERAL), "use_signal_channel": True,
+            "input_centering": "none"}
+    args.update(kw)
+    return DepthRestorer(**args)
+
+
+def test_classical_backbone_input_requirements_are_checked():
+    with pytest.raises(ValueError, match=r"backbone 'bilateral' needs input_centering in \['none', 'image'\]"):
+        bilateral_model(input_centering="local")
+    with pytest.raises(ValueError, match="needs the amplitude channel: set use_signal_channel=true"):
+        bilateral_model(use_signal_channel=False)
+    with pytest.raises(ValueError, match="depth_scale_mm=50.0 contradicts depth_scale_mm=100.0"):
+        bilateral_model(backbone_kwargs={**BILATERAL, "depth_scale_mm": 50.0})
+    model = bilateral_model(depth_scale_mm=250.0, input_centering="image")
+    assert model.backbone.depth_scale_mm == 250.0 and not model.trainable and tiny_model().trainable
+
+
+@pytest.mark.parametrize("centering", ["none", "image"])
+def test_classical_restore_mm_is_the_filter_of_the_input_in_mm(tiny_data, centering):
+    """Through condition() (holes filled, amplitude x mask / peak, depth / depth_scale_mm) the backbone computes
+    the joint bilateral filter of the noisy depth in mm with the invalid input pixels given no weight."""
+    from tofdenoise.models.bilateral import joint_bilateral_filter
+
+    batch = next(iter(tiny_data.val_dataloader()))
+    model = bilateral_model(input_centering=centering)
+    got = model.restore_mm(batch)
+    valid = batch["mask"] > 0
+    want = joint_bilateral_filter(batch["noisy"], batch["amplitude"], valid, radius_px=3, **BILATERAL)
+    assert (got - want)[valid].abs().max() < 2e-3
+    mae = depth_metrics_per_image(got, batch["clean"], batch["mask"])["mae_mm"]
+    raw = depth_metrics_per_image(batch["noisy"], batch["clean"], batch["mask"])["mae_mm"]
+    assert (mae < 0.8 * raw).all()
+
+
+def test_classical_backbone_cannot_be_fitted_and_reports_its_tuning(tmp_path, tiny_data):
+    model = bilateral_model()
+    with pytest.raises(ValueError, match="classical filter without trainable parameters.*tofdenoise-classic"):
+        trainer(tmp_path, max_epochs=1).fit(model, datamodule=tiny_data)
+    rec = model.learned_record()
+    assert rec["method_kind"] == "classical" and rec["trained_steps"] == 0 and rec["best_val_mae_mm"] is None
+    model.record_tuning(3.25, 7.5)
+    rec = model.learned_record()
+    assert (rec["best_val_mae_mm"], rec["raw_val_mae_mm"], rec["learned"]) == (3.25, 7.5, False)
+    with pytest.raises(RuntimeError, match="is a network"):
+        tiny_model().record_tuning(1.0, 2.0)
+    assert tiny_model().learned_record()["method_kind"] == "network"

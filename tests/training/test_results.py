@@ -10,6 +10,7 @@ import torch
 
 from tofdenoise.training.results import (
     RUN_KEYS,
+    classical_verdict,
     learned_status,
     learned_verdict,
     metric_sets,
@@ -140,3 +141,27 @@ def test_metrics_json_carries_the_run_fields(tmp_path):
     bad.write_text(json.dumps({"learned": False}))  # run fields alone: no test set
     with pytest.raises(ValueError, match="non-empty"):
         read_metrics_json(bad)
+
+
+def test_classical_verdict_is_its_own_status_not_a_failure(tmp_path):
+    v = classical_verdict(4.1, 7.2)
+    assert set(v) == set(RUN_KEYS) and v["method_kind"] == "classical"
+    assert v["trained_steps"] == 0 and v["learned"] is False and learned_status(v) == "classical"
+    assert v["best_val_mae_mm"] == 4.1 and v["raw_val_mae_mm"] == 7.2
+    assert v["learned_reason"] == ("classical method: no trainable parameters, nothing learned; parameters tuned on "
+                                   "the validation split: val MAE 4.10 mm vs raw 7.20 mm (below 6.84 mm, 5% below raw)")
+    assert "NOT below 6.84 mm" in classical_verdict(7.0, 7.2)["learned_reason"]
+    assert "no validation result" in classical_verdict(None, 7.2)["learned_reason"]
+    assert learned_verdict(0, None, None)["method_kind"] == "network"
+    # the same 0 steps without method_kind are an untrained network (files written before the field existed)
+    old = {k: x for k, x in v.items() if k != "method_kind"}
+    assert learned_status(old) == "not trained"
+    path = tmp_path / "metrics.json"
+    entry = set_entry(_metric(1.0).compute(), _metric(4.0).compute())
+    write_metrics_json(path, {"synthetic": entry}, run=v)
+    assert run_fields(read_metrics_json(path)) == v
+    bad = json.loads(path.read_text())
+    bad["method_kind"] = "magic"
+    path.write_text(json.dumps(bad))
+    with pytest.raises(ValueError, match=r"metrics.json: 'method_kind' must be one of \['network', 'classical'\]"):
+        read_metrics_json(path)

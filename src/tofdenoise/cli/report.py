@@ -11,7 +11,7 @@ panel; the same table is printed to stdout as Markdown. What is read from a run 
 and the page: :mod:`tofdenoise.reporting`.
 
 The "Learned" column shows the learned guard of each run: ``yes``; ``NOT LEARNED``; ``NOT TRAINED``;
-``unverified``; ``?`` (``tofdenoise.reporting.table``). Flagged runs are shown in red and never get a bold
+``unverified``; ``classical`` (a non-learned method, not flagged); ``?`` (``tofdenoise.reporting.table``). Flagged runs are shown in red and never get a bold
 "best" value. Runs whose metrics.json is invalid are listed (with the reason) instead of stopping the report.
 ``--out`` must be a new or replaceable ``.html`` file outside the runs' records. Exit status 2 when no run is
 found or ``--out`` is refused.

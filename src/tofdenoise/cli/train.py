@@ -45,7 +45,7 @@ def _names_or_error(key: str, value: str, registry: Registry) -> None:
 
 def validate_config(cfg: DictConfig) -> None:
     """Fail early (before any data or model is built) on unknown names or missing dataset paths."""
-    from tofdenoise.models.registry import BACKBONES
+    from tofdenoise.models.registry import BACKBONES, is_trainable
     from tofdenoise.physics.noise_models import NOISE_MODELS
     from tofdenoise.training.losses import LOSSES
 
@@ -53,6 +53,10 @@ def validate_config(cfg: DictConfig) -> None:
         if group not in cfg or cfg[group] is None:
             raise ValueError(f"config: group {group!r} is missing (configs/train.yaml defaults list)")
     _names_or_error("backbone.name", cfg.backbone.name, BACKBONES)
+    if not is_trainable(cfg.backbone.name):
+        raise ValueError(f"config backbone.name: {cfg.backbone.name!r} is a classical filter without trainable "
+                         "parameters: nothing to train; tune and evaluate it with `tofdenoise-classic` "
+                         "(docs/models.md#classical-row-joint-bilateral-filter)")
     _names_or_error("noise.name", cfg.noise.name, NOISE_MODELS)
     _names_or_error("loss.name", cfg.loss.name, LOSSES)
     data = cfg.data

@@ -87,7 +87,8 @@ def render_html(runs: Sequence[Run], title: str = "tofdenoise runs", skipped: Se
              "(PSNR with D<sub>max</sub> = 1000 mm). &ldquo;Raw input&rdquo; rows: the noisy input itself. "
              "Best run value per column in bold. &ldquo;Learned&rdquo;: NOT LEARNED = the best validation MAE was not "
              "below the raw one by the margin; NOT TRAINED = no optimiser step (the untrained network); unverified = "
-             "no validation result; ? = written before this check existed. Flagged runs are red and never bold.</p>",
+             "no validation result; classical = a non-learned filter, parameters tuned on validation; "
+             "? = written before this check existed. Flagged runs are red and never bold.</p>",
              "<h2>Results</h2>", _table_html(sets, rows)]
     if skipped:
         parts.append("<h2>Runs left out</h2><ul>" + "".join(

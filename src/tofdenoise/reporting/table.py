@@ -5,7 +5,8 @@ column in bold, never that of a run flagged by the learned guard).
 The "Learned" column (:func:`learned_flag`) shows the learned guard of each run: ``yes``; ``NOT LEARNED`` (the
 best validation MAE was not ``learned_margin`` below the raw MAE); ``NOT TRAINED`` (0 optimiser steps, e.g.
 ``trainer.max_epochs=0``: the metrics are those of an untrained network); ``unverified`` (no validation
-result); ``?`` (a metrics.json written before the guard existed).
+result); ``classical`` (a non-learned method, ``method_kind`` "classical": its parameters were tuned on the
+validation split, no training is expected; not flagged); ``?`` (a metrics.json written before the guard existed).
 """
 
 from __future__ import annotations
@@ -29,13 +30,14 @@ METRIC_COLUMNS = (  # key, header, decimals, higher is better
 SET_LABELS = {"synthetic": "Synthetic", "real": "Real"}
 #: the Learned column per ``tofdenoise.training.results.learned_status``
 LEARNED_FLAGS = {"learned": "yes", "did not learn": "NOT LEARNED", "not trained": "NOT TRAINED",
-                 "not verified": "unverified", "unknown": "?"}
+                 "not verified": "unverified", "unknown": "?", "classical": "classical"}
 #: learned-guard statuses shown in red and never bold
 FLAGGED = {"did not learn", "not trained", "not verified"}
 
 
 def learned_flag(run: Run) -> str:
-    """The Learned column of a run: ``yes``, ``NOT LEARNED``, ``NOT TRAINED``, ``unverified`` or ``?``."""
+    """The Learned column of a run: ``yes``, ``NOT LEARNED``, ``NOT TRAINED``, ``unverified``, ``classical`` or
+    ``?``."""
     return LEARNED_FLAGS[learned_status(run.learned)]
 
 

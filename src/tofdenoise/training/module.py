@@ -28,6 +28,11 @@ Design decisions:
 - The learned guard (``learned_record()``): the run's optimiser steps, its lowest validation MAE and the raw
   validation MAE, judged by ``tofdenoise.training.results.learned_verdict`` with ``learned_margin``;
   written to ``metrics.json`` and checkpoints, and printed by ``RunSummary``.
+- A classical filter as the backbone (registered with ``trainable=False``: ``bilateral``): its class states
+  its input needs (``input_centering_modes``, ``needs_signal_channel``; checked here), it receives
+  ``depth_scale_mm`` when its signature names it, it is never fitted (``configure_optimizers`` refuses), and
+  ``learned_record`` gives ``classical_verdict`` with the validation MAEs of its grid search
+  (``record_tuning``, called by ``tofdenoise-classic``).
 """
 
 from __future__ import annotations
@@ -132,6 +137,7 @@ class DepthRestorer(pl.LightningModule):
     ) -> None:
         super().__init__()
         from tofdenoise.models import build_backbone
+        from tofdenoise.models.registry import accepts_kwarg, is_trainable
 
         backbone_kwargs = dict(backbone_kwargs or {})
         loss_kwargs = dict(loss_kwargs or {})
@@ -158,10 +164,15 @@ class DepthRestorer(pl.LightningModule):
             raise ValueError(
                 f"DepthRestorer: backbone_kwargs.in_channels={backbone_kwargs['in_channels']} contradicts "
                 f"use_signal_channel={use_signal_channel} (needs {in_channels}); leave in_channels out")
+        _check_backbone_input(backbone, backbone_kwargs, input_centering, use_signal_channel, depth_scale_mm)
         # plain values only: checkpoints load with weights_only=True
         self.save_hyperparameters()
 
         net_kwargs = {k: v for k, v in backbone_kwargs.items() if k != "in_channels"}
+        if accepts_kwarg(backbone, "depth_scale_mm"):  # a filter comparing depth differences in mm
+            net_kwargs["depth_scale_mm"] = float(depth_scale_mm)
+        #: False for a classical filter without trainable parameters (``tofdenoise-classic``): never fitted
+        self.trainable = is_trainable(backbone)
         self.backbone: nn.Module = build_backbone(backbone, in_channels=in_channels, **net_kwargs)
         self.criterion: DepthLoss = build_loss(loss, **loss_kwargs)
         self.ema: torch.optim.swa_utils.AveragedModel | None = None
@@ -268,6 +279,10 @@ class DepthRestorer(pl.LightningModule):
         return [g for g in groups if g["params"]]
 
     def configure_optimizers(self) -> dict[str, Any]:
+        if not self.trainable:
+            raise ValueError(f"DepthRestorer: backbone {self.hparams.backbone!r} is a classical filter without "
+                             "trainable parameters: there is nothing to fit; tune and test it with "
+                             "`tofdenoise-classic` (docs/models.md#classical-row-joint-bilateral-filter)")
         opt = torch.optim.AdamW(self.parameter_groups(), lr=self.hparams.lr,
                                 betas=tuple(self.hparams.betas))
         total = self.trainer.estimated_stepping_batches
@@ -445,9 +460,14 @@ class DepthRestorer(pl.LightningModule):
 
         Its inputs: the fit of this process when there was one (its steps, lowest validation MAE, raw
         validation MAE), else the record saved in the checkpoint last loaded (a test of a saved checkpoint:
-        the steps behind those weights), else 0 steps (an untrained network)."""
-        from tofdenoise.training.results import learned_verdict
+        the steps behind those weights), else 0 steps (an untrained network). A classical filter
+        (``trainable`` False) gets ``training.results.classical_verdict`` with the validation MAEs of its
+        tuning (:meth:`record_tuning`)."""
+        from tofdenoise.training.results import classical_verdict, learned_verdict
 
+        margin = float(self.hparams.get("learned_margin", 0.05))
+        if not self.trainable:
+            return classical_verdict(self._min_val_mae_mm, self._raw_val_mae_mm, margin=margin)
         if self._fit_record is not None:
             rec = self._fit_record
         elif self._fit_in_process and self._trainer is not None:
@@ -456,8 +476,16 @@ class DepthRestorer(pl.LightningModule):
             rec = self._loaded_record
         else:
             rec = {"trained_steps": 0, "best_val_mae_mm": None, "raw_val_mae_mm": None}
-        return learned_verdict(rec["trained_steps"], rec["best_val_mae_mm"], rec["raw_val_mae_mm"],
-                               margin=float(self.hparams.get("learned_margin", 0.05)))
+        return learned_verdict(rec["trained_steps"], rec["best_val_mae_mm"], rec["raw_val_mae_mm"], margin=margin)
+
+    def record_tuning(self, best_val_mae_mm: float, raw_val_mae_mm: float) -> None:
+        """The validation result of a classical filter's parameter search (its "fit"): the validation MAE of
+        the chosen parameters and the raw validation MAE on the same images, for :meth:`learned_record`."""
+        if self.trainable:
+            raise RuntimeError(f"DepthRestorer.record_tuning: backbone {self.hparams.backbone!r} is a network; "
+                               "its validation MAEs come from trainer.fit")
+        self._min_val_mae_mm = float(best_val_mae_mm)
+        self._raw_val_mae_mm = float(raw_val_mae_mm)
 
     def on_fit_start(self) -> None:
         self._fit_in_process = True
@@ -501,6 +529,26 @@ class DepthRestorer(pl.LightningModule):
 LEARNED_RECORD_KEY = "tofdenoise_learned_record"
 #: image indices of validation loader k are offset by k x this, so that several loaders never share an index
 _LOADER_INDEX_STRIDE = 1 << 32
+
+
+def _check_backbone_input(backbone: str, backbone_kwargs: dict[str, Any], input_centering: str,
+                          use_signal_channel: bool, depth_scale_mm: float) -> None:
+    """A backbone's stated input needs (class attributes ``input_centering_modes``, ``needs_signal_channel``;
+    a ``depth_scale_mm`` argument is DepthRestorer's own) against the DepthRestorer settings."""
+    from tofdenoise.models.registry import backbone_factory
+
+    factory = backbone_factory(backbone)
+    modes = tuple(getattr(factory, "input_centering_modes", CENTERING_MODES))
+    if input_centering not in modes:
+        raise ValueError(f"DepthRestorer: backbone {backbone!r} needs input_centering in {list(modes)}, got "
+                         f"{input_centering!r} (a local offset changes the depth differences it compares)")
+    if getattr(factory, "needs_signal_channel", False) and not use_signal_channel:
+        raise ValueError(f"DepthRestorer: backbone {backbone!r} needs the amplitude channel: set "
+                         "use_signal_channel=true")
+    given = backbone_kwargs.get("depth_scale_mm", depth_scale_mm)
+    if given != depth_scale_mm:
+        raise ValueError(f"DepthRestorer: backbone_kwargs.depth_scale_mm={given} contradicts depth_scale_mm="
+                         f"{depth_scale_mm}; leave it out of backbone_kwargs (DepthRestorer passes its own)")
 
 
 def _loader_index(index: Any, dataloader_idx: int) -> Tensor | None:

@@ -11,8 +11,9 @@ Functions for the LightningModule, the callbacks and the entry points (no Lightn
   file, ``run_fields(data)`` only the run-level fields.
 - ``learned_verdict(trained_steps, best_val_mae_mm, raw_val_mae_mm, margin=0.05) -> dict``: the guard against
   runs that learned nothing (the one place its rule lives). The dict holds the run-level fields of
-  ``metrics.json`` (``RUN_KEYS``): ``trained_steps``, ``best_val_mae_mm``, ``raw_val_mae_mm``,
-  ``learned_margin``, ``learned`` (bool) and ``learned_reason`` (plain words).
+  ``metrics.json`` (``RUN_KEYS``): ``method_kind`` ("network"), ``trained_steps``, ``best_val_mae_mm``,
+  ``raw_val_mae_mm``, ``learned_margin``, ``learned`` (bool) and ``learned_reason`` (plain words);
+  ``classical_verdict(best_val_mae_mm, raw_val_mae_mm, margin)`` the same fields for a classical method.
 - ``write_per_image_csv(path, rows, raw_rows=None, names=None)``: rows from
   ``DepthMetrics.per_image_rows()``; columns ``index, name, valid_px, psnr_db, mae_mm, mse_mm2, ssim`` and,
   with ``raw_rows`` (matched by index), ``raw_psnr_db, raw_mae_mm, raw_mse_mm2, raw_ssim``. ``names`` maps an
@@ -30,6 +31,11 @@ The learned rule: ``learned = trained_steps > 0 and best_val_mae_mm <= (1 - marg
 (``val/raw/mae_mm``). A run without training steps is never learned ("not trained"); a run without a validation
 result cannot be verified and is not learned either ("not verified"). The margin (default 5 %) is the
 ``DepthRestorer(learned_margin=...)`` setting.
+
+``method_kind`` tells the two kinds of rows apart: ``"network"`` (the rule above) or ``"classical"`` (a filter
+without trainable parameters, ``tofdenoise-classic``; ``classical_verdict``): 0 steps and ``learned`` False by
+construction, reported as "classical", never as a failed run; its ``best_val_mae_mm`` is the validation MAE of
+the parameters its grid search chose. A file without ``method_kind`` was written by a network run.
 
 JSON numbers: NaN is written as ``null`` (e.g. a set where every image was skipped); an infinite PSNR (a
 perfect image, MSE = 0) as the string ``"inf"``, so the file is strict JSON that any tool can parse.
@@ -61,7 +67,9 @@ __all__ = [
     "RUN_KEYS",
     "DEFAULT_LEARNED_MARGIN",
     "learned_verdict",
+    "classical_verdict",
     "learned_status",
+    "METHOD_KINDS",
     "metric_sets",
     "run_fields",
     "METRICS_NAME",
@@ -71,8 +79,11 @@ __all__ = [
 
 EXTRA_KEYS = ("mae_mm_pooled", "images", "skipped_images", "valid_px")
 CSV_COLUMNS = ("index", "name", "valid_px") + METRIC_KEYS
-#: run-level (top-level, not per-set) fields of ``metrics.json``: the learned guard
-RUN_KEYS = ("trained_steps", "best_val_mae_mm", "raw_val_mae_mm", "learned_margin", "learned", "learned_reason")
+#: run-level (top-level, not per-set) fields of ``metrics.json``: the learned guard and the kind of method
+RUN_KEYS = ("trained_steps", "best_val_mae_mm", "raw_val_mae_mm", "learned_margin", "learned", "learned_reason",
+            "method_kind")
+#: ``method_kind``: a trained network, or a classical filter whose few parameters were tuned on validation
+METHOD_KINDS = ("network", "classical")
 #: the records of a run folder (written by ``tofdenoise.callbacks.run_outputs.RunOutputs``): the test metrics,
 #: the run's description (``backbone``, ``noise``, ``loss``, ``run_name``, ``started``, ``finished``, ...) and the
 #: folder of the per-image CSVs (``per_image/<set>.csv``)
@@ -102,8 +113,8 @@ def learned_verdict(trained_steps: int | None, best_val_mae_mm: Any, raw_val_mae
         raise ValueError(f"learned margin must be in [0, 1), got {margin}")
     steps = int(trained_steps or 0)
     best, raw = _finite_or_none(best_val_mae_mm), _finite_or_none(raw_val_mae_mm)
-    out: dict[str, Any] = {"trained_steps": steps, "best_val_mae_mm": best, "raw_val_mae_mm": raw,
-                           "learned_margin": float(margin)}
+    out: dict[str, Any] = {"method_kind": "network", "trained_steps": steps, "best_val_mae_mm": best,
+                           "raw_val_mae_mm": raw, "learned_margin": float(margin)}
     if steps <= 0:
         out["learned"] = False
         out["learned_reason"] = ("not trained: 0 optimiser steps (e.g. trainer.max_epochs=0); the metrics are "
@@ -126,10 +137,35 @@ def learned_verdict(trained_steps: int | None, best_val_mae_mm: Any, raw_val_mae
     return out
 
 
+def classical_verdict(best_val_mae_mm: Any, raw_val_mae_mm: Any,
+                      margin: float = DEFAULT_LEARNED_MARGIN) -> dict[str, Any]:
+    """The run-level fields of a classical (non-learned) method: ``method_kind`` "classical", 0 training steps,
+    ``learned`` False (nothing was learned, and that is no failure: ``learned_status`` says "classical"), and
+    as ``best_val_mae_mm`` the validation MAE of the parameters its tuning chose (``raw_val_mae_mm`` on the same
+    images); ``learned_reason`` says whether that beat the raw input by ``margin``."""
+    if not 0.0 <= float(margin) < 1.0:
+        raise ValueError(f"learned margin must be in [0, 1), got {margin}")
+    best, raw = _finite_or_none(best_val_mae_mm), _finite_or_none(raw_val_mae_mm)
+    out: dict[str, Any] = {"method_kind": "classical", "trained_steps": 0, "best_val_mae_mm": best,
+                           "raw_val_mae_mm": raw, "learned_margin": float(margin), "learned": False}
+    base = "classical method: no trainable parameters, nothing learned"
+    if best is None or raw is None:
+        out["learned_reason"] = f"{base}; no validation result of its parameter tuning was recorded"
+    else:
+        needed = (1.0 - float(margin)) * raw
+        verdict = "below" if best <= needed else "NOT below"
+        out["learned_reason"] = (f"{base}; parameters tuned on the validation split: val MAE {best:.2f} mm vs raw "
+                                 f"{raw:.2f} mm ({verdict} {needed:.2f} mm, {margin:.0%} below raw)")
+    return out
+
+
 def learned_status(fields: Mapping[str, Any]) -> str:
-    """One word-group for a verdict (``learned_verdict`` or the run fields of a ``metrics.json``):
-    ``"learned"``, ``"not trained"``, ``"did not learn"``, ``"not verified"``, or ``"unknown"`` for a file
-    written before the guard existed."""
+    """One word-group for a verdict (``learned_verdict``, ``classical_verdict`` or the run fields of a
+    ``metrics.json``): ``"learned"``, ``"not trained"``, ``"did not learn"``, ``"not verified"``,
+    ``"classical"`` (a non-learned method: not a failure), or ``"unknown"`` for a file written before the guard
+    existed."""
+    if fields.get("method_kind") == "classical":
+        return "classical"
     if "learned" not in fields:
         return "unknown"
     if int(fields.get("trained_steps") or 0) <= 0:
@@ -192,13 +228,16 @@ def set_entry(restored: Mapping[str, Any], raw: Mapping[str, Any] | None = None,
 def _validate_run_fields(results: Mapping[str, Any], source: str) -> None:
     types: dict[str, tuple[type, ...]] = {"trained_steps": (int,), "best_val_mae_mm": (int, float, type(None)),
                                           "raw_val_mae_mm": (int, float, type(None)), "learned_margin": (int, float),
-                                          "learned": (bool,), "learned_reason": (str,)}
+                                          "learned": (bool,), "learned_reason": (str,), "method_kind": (str,)}
     for key, allowed in types.items():
         if key not in results:
             continue
         v = results[key]
         if not isinstance(v, allowed) or (key != "learned" and isinstance(v, bool)):
             raise ValueError(f"{source}: '{key}' must be {' or '.join(t.__name__ for t in allowed)}, got {v!r}")
+    if "method_kind" in results and results["method_kind"] not in METHOD_KINDS:
+        raise ValueError(f"{source}: 'method_kind' must be one of {list(METHOD_KINDS)}, got "
+                         f"{results['method_kind']!r}")
 
 
 def validate_metrics_results(results: Mapping[str, Any], source: str = "metrics") -> None:
