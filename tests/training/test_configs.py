@@ -150,7 +150,7 @@ MAKE_TRAIN = {
               "loss_kwargs": {"beta": 0.5, "eps": 0.001, "eta": 1e-06, "lambda_g": 0.1}, "lr": 0.001,
               "warmup_steps": 100},
     "data": {"_target_": "tofdenoise.data_modules.ToFDataModule", "batch_size": 4, "crop_size": 64, "height": 144,
-             "noise": "hetero", "noise_kwargs": {}, "num_samples": 300, "num_workers": 0, "real_dir": None,
+             "eval_noise": "hetero", "noise": "hetero", "noise_kwargs": {}, "num_samples": 300, "num_workers": 0, "real_dir": None,
              "source": "procedural", "width": 192},
     "trainer": {"_target_": "lightning.pytorch.Trainer", "accelerator": "cpu", "check_val_every_n_epoch": 2,
                 "default_root_dir": "RUN_DIR", "deterministic": False, "devices": 1, "enable_model_summary": True,
