@@ -89,7 +89,8 @@ def _run_case(case: dict) -> dict:
         from tofdenoise.models import build_backbone, count_parameters
 
         model = build_backbone(case["name"], **case.get("kwargs", {}))
-        x = torch.randn(case["batch"], 1, case["H"], case["W"])
+        # depth (+ amplitude for a backbone that needs it: rcf's default in_channels is 2)
+        x = torch.randn(case["batch"], getattr(model, "in_channels", 1), case["H"], case["W"])
         if case["mode"] == "fwd":
             model.eval()
 
@@ -102,7 +103,9 @@ def _run_case(case: dict) -> dict:
 
             def fn():
                 model.zero_grad(set_to_none=True)
-                model(x).square().mean().backward()
+                out = model(x)  # a deep-supervised backbone (rcf) returns its step predictions in training
+                steps = out if isinstance(out, (list, tuple)) else [out]
+                sum(o.square().mean() for o in steps).backward()
 
     elif kind == "bilateral":
         from tofdenoise.models import build_backbone

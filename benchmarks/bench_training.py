@@ -30,13 +30,17 @@ REPO = Path(__file__).resolve().parents[1]
 QUICK_BACKBONES = ["unet", "deeptof", "tofkpn", "restormer", "dvss"]
 
 
-def backbone_kwargs(name: str) -> dict:
-    """The kwargs of configs/backbone/<name>.yaml as Hydra composes it (the dvss ablations inherit dvss.yaml)."""
+def backbone_config(name: str) -> dict:
+    """configs/backbone/<name>.yaml as Hydra composes it (the dvss ablations inherit dvss.yaml)."""
     from omegaconf import OmegaConf
 
     from tofdenoise.config import compose_config
 
-    return dict(OmegaConf.to_container(compose_config([f"backbone={name}"]).backbone.kwargs, resolve=True))
+    return dict(OmegaConf.to_container(compose_config([f"backbone={name}"]).backbone, resolve=True))
+
+
+def backbone_kwargs(name: str) -> dict:
+    return dict(backbone_config(name)["kwargs"])
 
 
 def make_data(crop: int, batch: int, workers: int, cache: str):
@@ -66,7 +70,10 @@ def bench_backbone(name: str, dm, steps: int) -> tuple[float, float, int]:
     from tofdenoise.training.module import DepthRestorer
     from tofdenoise.models import count_parameters
 
-    model = DepthRestorer(backbone=name, backbone_kwargs=backbone_kwargs(name), loss="full")
+    # the amplitude channel when the backbone's config asks for it (rcf), as configs/model/default.yaml does
+    signal = bool(backbone_config(name).get("use_signal_channel", False))
+    model = DepthRestorer(backbone=name, backbone_kwargs=backbone_kwargs(name), loss="full",
+                          use_signal_channel=signal)
     model.train()
     optimizer = torch.optim.AdamW(model.backbone.parameters(), lr=2e-4)
     loader = dm.train_dataloader()

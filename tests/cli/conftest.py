@@ -13,6 +13,8 @@ TINY_BACKBONE_KWARGS: dict[str, list[str]] = {
                   "backbone.kwargs.refinement_blocks=1"],
     "deeptof": ["backbone.kwargs.channels=[8,8,16,16]"],
     "tofkpn": ["backbone.kwargs.channels=[8,8,16,16]"],
+    "rcf": ["backbone.kwargs.width=8", "backbone.kwargs.hidden=8", "backbone.kwargs.steps=2",
+            "backbone.kwargs.global_levels=2"],
 }
 for _variant in ("dvss_no_local", "dvss_no_dwconv", "dvss_se"):
     TINY_BACKBONE_KWARGS[_variant] = TINY_BACKBONE_KWARGS["dvss"]

@@ -41,9 +41,10 @@ def _randomise_heads(model: torch.nn.Module) -> None:
 
 
 def test_registry_lists_all_names():
-    assert trainable_backbones() == sorted(NAMES)
-    # the classical row (tests/models/test_bilateral.py): registered, not trainable
-    assert available_backbones() == sorted(NAMES + ["bilateral"])
+    assert trainable_backbones() == sorted(NAMES + ["rcf"])
+    # the classical row (tests/models/test_bilateral.py): registered, not trainable; rcf needs two input channels
+    # and returns its steps in training: tested in test_rcf.py
+    assert available_backbones() == sorted(NAMES + ["bilateral", "rcf"])
 
 
 def test_unknown_name_and_bad_kwargs_raise():

@@ -328,3 +328,59 @@ def test_classical_backbone_cannot_be_fitted_and_reports_its_tuning(tmp_path, ti
     with pytest.raises(RuntimeError, match="is a network"):
         tiny_model().record_tuning(1.0, 2.0)
     assert tiny_model().learned_record()["method_kind"] == "network"
+
+
+class _ThreeSteps(torch.nn.Module):
+    """Toy deep-supervised backbone: step k shifts the depth channel by shift_k (network units); training mode
+    returns the three step predictions, eval mode the last."""
+
+    deep_supervision = True
+
+    def __init__(self, weights=None) -> None:
+        super().__init__()
+        self.shift = torch.nn.Parameter(torch.tensor([0.01, 0.03, -0.02]))
+        if weights is not None:
+            self.step_loss_weights = weights
+
+    def forward(self, x):
+        steps = [x[:, :1] + s for s in self.shift]
+        return steps if self.training else steps[-1]
+
+
+@pytest.mark.parametrize("weights", [None, (1.0, 2.0, 5.0)])
+def test_deep_supervision_loss_is_the_weighted_mean_of_the_step_losses(tiny_data, weights):
+    """Per-step losses by hand: L1 over valid pixels of (noisy + 100 mm x shift_k - clean); the training loss is
+    their mean (no weights) or sum_k w_k L_k / sum_k w_k."""
+    model = tiny_model(loss="l1", loss_kwargs={})
+    batch = next(iter(tiny_data.train_dataloader()))
+    net = _ThreeSteps(weights).train()
+    valid = batch["mask"] > 0
+    per_step = [((batch["noisy"] + 100.0 * s - batch["clean"])[valid]).abs().mean().item() for s in (0.01, 0.03, -0.02)]
+    w = (1.0, 1.0, 1.0) if weights is None else weights
+    expected = sum(wk * lk for wk, lk in zip(w, per_step)) / sum(w)
+    loss = model.training_loss(batch, net=net)
+    assert loss.item() == pytest.approx(expected, rel=1e-5)
+    assert loss.item() != pytest.approx(per_step[-1], rel=1e-3)  # not only the final step
+    loss.backward()
+    assert torch.all(net.shift.grad != 0)  # every step receives a gradient
+    # the final prediction only, whatever the mode: restore_mm and forward
+    final = (batch["noisy"] + 100.0 * -0.02)[valid]
+    for mode in (True, False):
+        net.train(mode)
+        with torch.no_grad():
+            torch.testing.assert_close(model.restore_mm(batch, net=net)[valid], final, rtol=0, atol=1e-3)
+
+
+def test_deep_supervision_rejects_step_weights_that_do_not_match(tiny_data):
+    from tofdenoise.training.module import final_prediction, step_predictions
+
+    model = tiny_model(loss="l1", loss_kwargs={})
+    batch = next(iter(tiny_data.train_dataloader()))
+    with pytest.raises(ValueError, match=r"_ThreeSteps.step_loss_weights: expected 3 non-negative weights"):
+        model.training_loss(batch, net=_ThreeSteps((1.0, 1.0)).train())
+    with pytest.raises(ValueError, match="not all 0"):
+        model.training_loss(batch, net=_ThreeSteps((0.0, 0.0, 0.0)).train())
+    with pytest.raises(TypeError, match="one per refinement step"):
+        step_predictions([])
+    x = torch.zeros(1, 1, 2, 2)
+    assert final_prediction(x) is x and final_prediction((x + 1, x)) is x

@@ -26,9 +26,17 @@ TINY = {
     "restormer": {"width": 8, "blocks": [1, 1, 1, 1], "heads": [1, 1, 2, 2], "refinement_blocks": 1},
     "deeptof": {"channels": [8, 8, 16, 16]},
     "tofkpn": {"channels": [8, 8, 16, 16]},
+    "rcf": {"width": 8, "hidden": 8, "steps": 3, "global_levels": 2},
 }
 for _v in ("dvss_no_local", "dvss_no_dwconv", "dvss_se"):
     TINY[_v] = TINY["dvss"]
+
+
+def backbone_config(backbone: str) -> dict:
+    """configs/backbone/<backbone>.yaml as Hydra composes it (the dvss ablations inherit dvss.yaml)."""
+    from omegaconf import OmegaConf
+
+    return OmegaConf.to_container(compose_config([f"backbone={backbone}"]).backbone, resolve=True)
 
 
 def recipe(backbone: str) -> dict:
@@ -43,7 +51,9 @@ def train_tiny(backbone: str, seed: int, steps: int = 150) -> tuple[float, float
     torch.manual_seed(seed)
     r = recipe(backbone)
     data = TinyDepthData(n_train=16, n_val=8)
-    model = DepthRestorer(backbone=backbone, backbone_kwargs=TINY[backbone], loss="l1")
+    # the amplitude channel when the backbone's config asks for it (rcf), as configs/model/default.yaml does
+    signal = bool(backbone_config(backbone).get("use_signal_channel", False))
+    model = DepthRestorer(backbone=backbone, backbone_kwargs=TINY[backbone], loss="l1", use_signal_channel=signal)
     opt = torch.optim.AdamW(model.parameter_groups(), lr=r["lr"])
     warm = max(1, int(r["warmup_steps"]))
     sched = torch.optim.lr_scheduler.LinearLR(opt, start_factor=1.0 / warm, total_iters=warm)

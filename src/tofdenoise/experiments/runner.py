@@ -81,7 +81,9 @@ def run_finished(run_dir: Path) -> bool:
     return bool(info and info.get("finished")) and metrics is not None
 
 
-def _tail(path: Path, lines: int = 15) -> str:
+def _tail(path: Path, lines: int = 40) -> str:
+    """The last ``lines`` lines of a run's log. 40 keeps the head of a Hydra composition error ("Could not find
+    'backbone/nope'"), which is followed by one line per option of the group (9 backbones + 8 lines)."""
     try:
         return "\n".join(path.read_text(errors="replace").splitlines()[-lines:])
     except OSError:

@@ -3,6 +3,7 @@
 from . import bilateral as _bilateral  # noqa: F401  (the classical row: joint bilateral filter, not trainable)
 from . import dvss as _dvss  # noqa: F401  (registers dvss, dvss_no_local, dvss_no_dwconv, dvss_se)
 from . import deeptof as _deeptof  # noqa: F401
+from . import rcf as _rcf  # noqa: F401
 from . import restormer as _restormer  # noqa: F401
 from . import tofkpn as _tofkpn  # noqa: F401
 from . import unet as _unet  # noqa: F401

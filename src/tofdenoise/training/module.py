@@ -22,6 +22,9 @@ Design decisions:
   checkpoints, restored on resume).
 - ``compile``: ``torch.compile`` of the backbone for the training forward/backward (validation and test
   run the eager module: full-resolution frames vary in size).
+- Deep supervision (RCF): a backbone may return, in training mode, the list of its K step predictions (final
+  last); the training loss is then the ``step_loss_weights``-weighted mean of the K step losses
+  (:func:`step_predictions`, :func:`step_loss_weights`); validation, test and predict use the final one.
 - Validation/test also measure the raw noisy input against the reference (the "Raw" row of the paper).
 - Validation/test metrics are exact under DDP: every batch passes its images' dataset ``index`` to
   ``DepthMetrics``, which counts the samples the ``DistributedSampler`` repeats (padding) once.
@@ -39,6 +42,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Sequence
 from typing import Any
 
 import lightning.pytorch as pl
@@ -55,7 +59,7 @@ from tofdenoise.models.conditioning import (
     valid_input_mask,
 )
 
-__all__ = ["DepthRestorer", "CheckpointMismatchError"]
+__all__ = ["DepthRestorer", "CheckpointMismatchError", "step_predictions", "final_prediction", "step_loss_weights"]
 
 log = logging.getLogger(__name__)
 
@@ -216,8 +220,9 @@ class DepthRestorer(pl.LightningModule):
             object.__setattr__(self, "_compiled", torch.compile(self.backbone))
 
     def forward(self, x: Tensor) -> Tensor:
-        """Backbone forward in network units, (B, C, H, W) -> (B, 1, H, W)."""
-        return self.backbone(x)
+        """Backbone forward in network units, (B, C, H, W) -> (B, 1, H, W) (the final prediction of a
+        deep-supervised backbone)."""
+        return final_prediction(self.backbone(x))
 
     def condition(self, batch: dict[str, Any]) -> tuple[Tensor, Tensor]:
         """Network input (B, C, H, W) and the offset (mm) to add back to ``depth_scale_mm`` x its output.
@@ -260,9 +265,9 @@ class DepthRestorer(pl.LightningModule):
         if tile is not None and max(x.shape[-2:]) > tile:
             from tofdenoise.models import tiled_forward
 
-            y = tiled_forward(net, x, tile=tile, overlap=self.hparams.tile_overlap)
+            y = tiled_forward(lambda t: final_prediction(net(t)), x, tile=tile, overlap=self.hparams.tile_overlap)
         else:
-            y = net(x)
+            y = final_prediction(net(x))
         return y.float() * self.hparams.depth_scale_mm + offset
 
     # ------------------------------------------------------------------ optimisation
@@ -300,14 +305,23 @@ class DepthRestorer(pl.LightningModule):
 
     def training_terms(self, batch: dict[str, Any], net: nn.Module | None = None) -> dict[str, Tensor]:
         """The loss of one training batch through ``net`` (default: the training network) with its parts:
-        ``DepthLoss.terms`` (``"loss"``: the total, with gradient; the parts, e.g. ``"nar"``, ``"grad"``, detached)."""
+        ``DepthLoss.terms`` (``"loss"``: the total, with gradient; the parts, e.g. ``"nar"``, ``"grad"``, detached).
+
+        Deep supervision: when the network returns a list of step predictions (:func:`step_predictions`), every
+        term is ``sum_k w_k term(pred_k)`` with the backbone's ``step_loss_weights`` (normalised to sum 1;
+        uniform when it has none)."""
         if net is None:
             net = self._compiled if self._compiled is not None else self.backbone
         x, offset = self.condition(batch)
-        pred = net(x)
+        preds = step_predictions(net(x))
+        weights = step_loss_weights(net, len(preds))
         # the loss in millimetres relative to the offset (differences are those of the restored depth in mm)
-        pred_mm = pred.float() * self.hparams.depth_scale_mm
-        return self.criterion.terms(pred_mm, batch["clean"].float() - offset, batch["sigma"], batch["mask"])
+        target_mm = batch["clean"].float() - offset
+        terms = [self.criterion.terms(p.float() * self.hparams.depth_scale_mm, target_mm, batch["sigma"],
+                                      batch["mask"]) for p in preds]
+        if len(terms) == 1:
+            return terms[0]
+        return {key: sum(w * t[key] for w, t in zip(weights, terms)) for key in terms[0]}
 
     def training_loss(self, batch: dict[str, Any], net: nn.Module | None = None) -> Tensor:
         """The loss of one training batch through ``net`` (default: the training network)."""
@@ -523,6 +537,37 @@ class DepthRestorer(pl.LightningModule):
                 f"checkpoint was written by a DepthRestorer with another architecture ({lines}). "
                 f"Load it with DepthRestorer.load_from_checkpoint(path) (it rebuilds the saved backbone), "
                 f"or select backbone={theirs['backbone']!r} with the same backbone_kwargs")
+
+
+def step_predictions(out: Tensor | Sequence[Tensor]) -> list[Tensor]:
+    """The deep-supervision protocol: a backbone's forward returns one prediction (B, 1, H, W), or -- a
+    backbone with ``deep_supervision = True`` in training mode -- a list/tuple of its K step predictions, the
+    final one last. Returns the predictions as a list (one element for an ordinary backbone)."""
+    if isinstance(out, Tensor):
+        return [out]
+    if isinstance(out, (list, tuple)) and out and all(isinstance(p, Tensor) for p in out):
+        return list(out)
+    raise TypeError(f"backbone output: expected a tensor or a non-empty list/tuple of tensors (one per refinement "
+                    f"step), got {type(out).__name__}")
+
+
+def final_prediction(out: Tensor | Sequence[Tensor]) -> Tensor:
+    """The prediction a backbone output stands for: the tensor itself, or the last of a list of step predictions."""
+    return step_predictions(out)[-1]
+
+
+def step_loss_weights(backbone: nn.Module, steps: int) -> list[float]:
+    """Loss weights of ``steps`` step predictions, normalised to sum 1: the backbone's ``step_loss_weights``
+    (a sequence of ``steps`` non-negative numbers, not all 0) when it has one, else uniform (the mean)."""
+    raw = getattr(backbone, "step_loss_weights", None)
+    if raw is None:
+        return [1.0 / steps] * steps
+    raw = [float(w) for w in raw]
+    if len(raw) != steps or min(raw) < 0 or not sum(raw) > 0:
+        raise ValueError(f"{type(backbone).__name__}.step_loss_weights: expected {steps} non-negative weights (one per "
+                         f"returned step prediction, not all 0), got {raw}")
+    total = sum(raw)
+    return [w / total for w in raw]
 
 
 #: key of the learned guard's record inside a checkpoint
