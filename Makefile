@@ -21,13 +21,14 @@ BENCH_ARGS ?=
 
 export PYTHONUNBUFFERED := 1
 
-.PHONY: help venv train test test-slow bench robustness realset reproduce cli-configs clean
+.PHONY: help venv train test test-slow lint format bench robustness realset reproduce cli-configs clean
 
 help:
 	@echo "make train   - small default training on built-in procedural scenes (CPU)"
 	@echo "               BACKBONE=dvss NOISE=hetero LOSS=full DATA=procedural RUN_DIR=path ARGS='hydra overrides'"
 	@echo "make test    - run the test suite (slow experiments excluded)"
 	@echo "make test-slow - run the slow experiments too"
+	@echo "make lint    - ruff lint + format check (CI runs it before the tests); make format applies both"
 	@echo "make bench   - side-by-side performance measurements (see docs/benchmarks.md); BENCH_ARGS=--quick"
 	@echo "make robustness - the robustness grid (108 small runs, resumable; GRID_DIR=runs/robustness GRID_ARGS=...)"
 	@echo "make realset - the stand-in real set: a second simulated camera, calibrated from its own captures"
@@ -60,6 +61,14 @@ test: $(STAMP)
 
 test-slow: $(STAMP)
 	$(PY) -m pytest -m "slow" $(PYTEST_ARGS)
+
+lint: $(STAMP)
+	$(VENV)/bin/ruff check src tests benchmarks
+	$(VENV)/bin/ruff format --check src tests benchmarks
+
+format: $(STAMP)
+	$(VENV)/bin/ruff check --fix src tests benchmarks
+	$(VENV)/bin/ruff format src tests benchmarks
 
 bench: $(STAMP)
 	$(PY) benchmarks/run_all.py $(BENCH_ARGS)

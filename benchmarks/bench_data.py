@@ -28,8 +28,16 @@ def loader_throughput(use_cache: bool, cache_dir: Path, num_samples: int, batche
     """Samples per second over `batches` batches after one warm-up batch (workers already running)."""
     from tofdenoise.data_modules import ToFDataModule
 
-    dm = ToFDataModule(num_samples=num_samples, cache_dir=str(cache_dir), use_cache=use_cache, crop_size=320,
-                       batch_size=4, num_workers=workers, persistent_workers=True, seed=0)
+    dm = ToFDataModule(
+        num_samples=num_samples,
+        cache_dir=str(cache_dir),
+        use_cache=use_cache,
+        crop_size=320,
+        batch_size=4,
+        num_workers=workers,
+        persistent_workers=True,
+        seed=0,
+    )
     dm.prepare_data()
     dm.setup("fit")
     loader = dm.train_dataloader()
@@ -91,15 +99,21 @@ def dvss_step_rate(steps: int, size: int, warmup: bool) -> tuple[float | None, s
     for _ in range(steps):
         step()
     seconds = (time.perf_counter() - start) / steps
-    return 4 / seconds, f"{seconds:.2f} s/step at {size}x{size}" + ("" if size >= 320 else " (upper bound of the 320x320 rate)")
+    return 4 / seconds, f"{seconds:.2f} s/step at {size}x{size}" + (
+        "" if size >= 320 else " (upper bound of the 320x320 rate)"
+    )
 
 
 def main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="fewer scenes and batches (smoke run)")
     parser.add_argument("--workers", type=int, default=2)
-    parser.add_argument("--dvss-size", type=int, default=None,
-                        help="crop size of the DVSS step (default 64, --quick 32; 320 = the training crop, slow on CPU)")
+    parser.add_argument(
+        "--dvss-size",
+        type=int,
+        default=None,
+        help="crop size of the DVSS step (default 64, --quick 32; 320 = the training crop, slow on CPU)",
+    )
     args = parser.parse_args(argv)
     num_samples, batches, steps = (10, 6, 1) if args.quick else (24, 24, 2)
     dvss_size = args.dvss_size or (32 if args.quick else 64)
@@ -111,8 +125,11 @@ def main(argv: list[str]) -> int:
 
         ToFDataModule(num_samples=num_samples, cache_dir=str(cache_dir)).prepare_data()  # fills the cache
         fill = time.perf_counter() - t0
-        print(f"procedural 640x480 scenes: {num_samples}; crops 320x320, batch 4, {args.workers} workers, "
-              f"torch threads {torch.get_num_threads()}; cache fill (prepare_data) {fill:.1f} s", flush=True)
+        print(
+            f"procedural 640x480 scenes: {num_samples}; crops 320x320, batch 4, {args.workers} workers, "
+            f"torch threads {torch.get_num_threads()}; cache fill (prepare_data) {fill:.1f} s",
+            flush=True,
+        )
         print(f"{'':34s}{'samples/s':>12s}{'ratio':>10s}", flush=True)
         # interleaved measurements (uncached, cached, uncached, cached) so load changes hit both alike
         rates = {True: [], False: []}

@@ -20,7 +20,8 @@ import statistics
 import sys
 import time
 import traceback
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import torch
 
@@ -79,15 +80,23 @@ def bench_scan(quick: bool) -> list[dict[str, Any]]:
         err_g = max(float(((a - b).abs().max() / b.abs().max().clamp_min(1e-30)).item()) for a, b in zip(grads, ref_g))
         ms = time_cuda(lambda: run(backend), repeats=3 if quick else 10)
         mib = _peak_mib(lambda: run(backend))
-        rows.append({"backend": backend, "ms_fwd_bwd": ms, "peak_mib": mib, "max_rel_err_y": err_y,
-                     "max_rel_err_grads": err_g, "shape": [batch, dim, length, groups, n]})
+        rows.append(
+            {
+                "backend": backend,
+                "ms_fwd_bwd": ms,
+                "peak_mib": mib,
+                "max_rel_err_y": err_y,
+                "max_rel_err_grads": err_g,
+                "shape": [batch, dim, length, groups, n],
+            }
+        )
     return rows
 
 
 def bench_sigma(quick: bool) -> dict[str, Any]:
-    from tofdenoise.physics.calibration import default_calibration
     from bench_physics import generic_sigma  # benchmarks/ is on sys.path when run as a script
 
+    from tofdenoise.physics.calibration import default_calibration
     from tofdenoise.physics.uncertainty import sigma_depth_mm
     from tofdenoise.physics.uncertainty_compiled import sigma_depth_mm_compiled
 
@@ -95,7 +104,9 @@ def bench_sigma(quick: bool) -> dict[str, Any]:
     g = torch.Generator(device="cuda").manual_seed(0)
     h, w = 480, 640
     depth = 300.0 + 2400.0 * torch.rand(h, w, device="cuda", generator=g)
-    signal = calib.signal_min_e + (calib.signal_max_e - calib.signal_min_e) * torch.rand(h, w, device="cuda", generator=g)
+    signal = calib.signal_min_e + (calib.signal_max_e - calib.signal_min_e) * torch.rand(
+        h, w, device="cuda", generator=g
+    )
 
     def generic():  # the sums+inv route of bench_physics, on the GPU
         return generic_sigma(depth, signal, calib)
@@ -107,13 +118,15 @@ def bench_sigma(quick: bool) -> dict[str, Any]:
     torch.cuda.synchronize()
     compile_s = time.perf_counter() - t0
     reps = 20 if quick else 100
-    out = {"compile_s": compile_s,
-           "generic_ms": time_cuda(generic, reps),
-           "eager_ms": time_cuda(lambda: sigma_depth_mm(depth, signal, calib), reps),
-           "fused_ms": time_cuda(lambda: sigma_depth_mm_compiled(depth, signal, calib), reps),
-           "max_rel_err_eager": float(((eager.double() - ref) / ref).abs().max()),
-           "max_rel_err_fused": float(((fused.double() - ref) / ref).abs().max()),
-           "max_rel_err_generic": float(((generic().double() - ref) / ref).abs().max())}
+    out = {
+        "compile_s": compile_s,
+        "generic_ms": time_cuda(generic, reps),
+        "eager_ms": time_cuda(lambda: sigma_depth_mm(depth, signal, calib), reps),
+        "fused_ms": time_cuda(lambda: sigma_depth_mm_compiled(depth, signal, calib), reps),
+        "max_rel_err_eager": float(((eager.double() - ref) / ref).abs().max()),
+        "max_rel_err_fused": float(((fused.double() - ref) / ref).abs().max()),
+        "max_rel_err_generic": float(((generic().double() - ref) / ref).abs().max()),
+    }
     out["ratio_generic_over_eager"] = out["generic_ms"] / out["eager_ms"]
     out["ratio_generic_over_fused"] = out["generic_ms"] / out["fused_ms"]
     out["fused_mpx_s"] = h * w / 1e3 / out["fused_ms"]
@@ -130,6 +143,7 @@ def _bench_backbone(name: str, kwargs: dict[str, Any], size: int, quick: bool) -
     x = torch.randn(4, 1, size, size, device="cuda")
     target = torch.randn(4, 1, size, size, device="cuda")
     for precision in ("fp32", "bf16"):
+
         def step():
             opt.zero_grad(set_to_none=True)
             with torch.autocast("cuda", dtype=torch.bfloat16, enabled=precision == "bf16"):
@@ -137,6 +151,7 @@ def _bench_backbone(name: str, kwargs: dict[str, Any], size: int, quick: bool) -
             loss = (y.float() - target).abs().mean()
             loss.backward()
             opt.step()
+
         row[f"{precision}_ms_step"] = time_cuda(step, repeats=3 if quick else 10)
         row[f"{precision}_peak_mib"] = _peak_mib(step)
     net.eval()
@@ -149,8 +164,11 @@ def _bench_backbone(name: str, kwargs: dict[str, Any], size: int, quick: bool) -
 def bench_backbones(quick: bool) -> list[dict[str, Any]]:
     size = 128 if quick else 320
     rows = []
-    for name, kwargs in (("unet", {}), ("restormer", {}),
-                         ("dvss", {"width": 32, "enc_blocks": [1, 1, 2], "bottleneck_blocks": 2})):
+    for name, kwargs in (
+        ("unet", {}),
+        ("restormer", {}),
+        ("dvss", {"width": 32, "enc_blocks": [1, 1, 2], "bottleneck_blocks": 2}),
+    ):
         try:
             rows.append(_bench_backbone(name, kwargs, size, quick))
         except Exception as exc:  # report and go on with the next backbone

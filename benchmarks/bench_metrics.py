@@ -35,9 +35,11 @@ def main() -> None:
     ours = _time(lambda: depth_metrics_per_image(pred, ref, mask), repeats)
     tm64 = _time(lambda: tm_ssim(pred.double(), ref.double(), data_range=D_MAX_MM, reduction="none"), repeats)
     tm32 = _time(lambda: tm_ssim(pred, ref, data_range=D_MAX_MM, reduction="none"), repeats)
-    print(f"batch {batch}x1x{height}x{width}, 10% of pixels masked, torch {torch.__version__}, "
-          f"threads {torch.get_num_threads()}, {repeats} repeats")
-    print(f"| computation | ms per batch | ratio |\n|---|---:|---:|")
+    print(
+        f"batch {batch}x1x{height}x{width}, 10% of pixels masked, torch {torch.__version__}, "
+        f"threads {torch.get_num_threads()}, {repeats} repeats"
+    )
+    print("| computation | ms per batch | ratio |\n|---|---:|---:|")
     print(f"| depth_metrics_per_image (4 metrics, masked SSIM, float64) | {ours * 1e3:.1f} | 1.00 |")
     print(f"| torchmetrics SSIM alone, float64, no mask | {tm64 * 1e3:.1f} | {tm64 / ours:.2f} |")
     print(f"| torchmetrics SSIM alone, float32, no mask | {tm32 * 1e3:.1f} | {tm32 / ours:.2f} |")

@@ -110,8 +110,13 @@ def _run_case(case: dict) -> dict:
     elif kind == "bilateral":
         from tofdenoise.models import build_backbone
 
-        model = build_backbone("bilateral", in_channels=2, sigma_spatial_px=case["sigma_spatial_px"],
-                               sigma_depth_mm=80.0, amplitude_power=case["amplitude_power"])
+        model = build_backbone(
+            "bilateral",
+            in_channels=2,
+            sigma_spatial_px=case["sigma_spatial_px"],
+            sigma_depth_mm=80.0,
+            amplitude_power=case["amplitude_power"],
+        )
         depth = 10.0 + torch.rand(1, 1, case["H"], case["W"])
         x = torch.cat([depth, torch.rand(1, 1, case["H"], case["W"])], dim=1)
 
@@ -165,14 +170,20 @@ def bench_scan(args) -> None:
     L = 2500 if args.quick else 25600
     dim = 384
     rounds = 2 if args.quick else 3
-    print(f"\n### Selective scan, forward+backward: batch 1, 4 directions x d_inner 96 (dim {dim}), d_state 16, L = {L}")
+    print(
+        f"\n### Selective scan, forward+backward: batch 1, 4 directions x d_inner 96 (dim {dim}), d_state 16, L = {L}"
+    )
     print(f"# {rounds} rounds, each running both implementations in fresh subprocesses (alternating order)")
     runs: dict[str, list[dict]] = {"sequential": [], "chunked": []}
     ratios: dict[str, list[float]] = {"cpu": [], "wall": [], "mem": []}
     for r in range(rounds):
         order = ("sequential", "chunked") if r % 2 == 0 else ("chunked", "sequential")
-        got = {impl: run_isolated({"kind": "scan", "impl": impl, "dim": dim, "L": L, "reps": 1}, args.threads, args.timeout)
-               for impl in order}
+        got = {
+            impl: run_isolated(
+                {"kind": "scan", "impl": impl, "dim": dim, "L": L, "reps": 1}, args.threads, args.timeout
+            )
+            for impl in order
+        }
         for impl, res in got.items():
             runs[impl].append(res)
         if all("error" not in v for v in got.values()):
@@ -204,7 +215,9 @@ def bench_block(args) -> None:
     print(f"\n### One DVSS block (width 48, d_inner 96, d_state 16) at {size}x{size}, batch 1, forward+backward")
     print(f"{'scan backend':<34}{'cpu_s':>9}{'wall_s':>9}{'peak_MiB':>10}")
     for backend in ("torch", "sequential"):
-        r = run_isolated({"kind": "block", "backend": backend, "dim": 48, "size": size, "reps": 3}, args.threads, args.timeout)
+        r = run_isolated(
+            {"kind": "block", "backend": backend, "dim": 48, "size": size, "reps": 3}, args.threads, args.timeout
+        )
         name = "chunked (default)" if backend == "torch" else "sequential (stores all states)"
         print(f"{name:<34}{_fmt(r, 'cpu_s', '9.3f')}{_fmt(r, 'time_s', '9.3f')}{_fmt(r, 'peak_mib', '10.1f')}")
 
@@ -220,8 +233,10 @@ def bench_backbones(args) -> None:
     names = args.backbones.split(",") if args.backbones else trainable_backbones()
     print(f"\n### Backbones (default kwargs): fwd / fwd+bwd at {h}x{w} batch {b}; fwd at {h2}x{w2} batch 1")
     print(f"# memory cap per case {args.mem_cap_gib:g} GiB (address space): OOM = needs more than that")
-    head = (f"{'backbone':<18}{'params':>10}{'fwd_s':>9}{'fwd_MiB':>9}{'fwdbwd_s':>10}{'fwdbwd_MiB':>11}"
-            f"{f'fwd{h2}x{w2}_s':>14}{'MiB':>8}")
+    head = (
+        f"{'backbone':<18}{'params':>10}{'fwd_s':>9}{'fwd_MiB':>9}{'fwdbwd_s':>10}{'fwdbwd_MiB':>11}"
+        f"{f'fwd{h2}x{w2}_s':>14}{'MiB':>8}"
+    )
     print(head)
     errors = []
     rows = [(name, {}, True) for name in names]
@@ -235,11 +250,17 @@ def bench_backbones(args) -> None:
         fb = run({**common, "mode": "fwdbwd", "H": h, "W": w, "batch": b})
         big = run({**common, "mode": "fwd", "H": h2, "W": w2, "batch": 1}) if full else {"error": "skipped"}
         params = f.get("params", fb.get("params", 0))
-        print(f"{label:<18}{params:>10,}{_fmt(f, 'time_s', '9.2f')}{_fmt(f, 'peak_mib', '9.0f')}"
-              f"{_fmt(fb, 'time_s', '10.2f')}{_fmt(fb, 'peak_mib', '11.0f')}"
-              f"{_fmt(big, 'time_s', '14.2f')}{_fmt(big, 'peak_mib', '8.0f')}", flush=True)
-        errors += [f"{label} {m}: {r['error']}" for m, r in (("fwd", f), ("fwdbwd", fb), ("fwd-large", big))
-                   if "error" in r and r["error"] != "skipped"]
+        print(
+            f"{label:<18}{params:>10,}{_fmt(f, 'time_s', '9.2f')}{_fmt(f, 'peak_mib', '9.0f')}"
+            f"{_fmt(fb, 'time_s', '10.2f')}{_fmt(fb, 'peak_mib', '11.0f')}"
+            f"{_fmt(big, 'time_s', '14.2f')}{_fmt(big, 'peak_mib', '8.0f')}",
+            flush=True,
+        )
+        errors += [
+            f"{label} {m}: {r['error']}"
+            for m, r in (("fwd", f), ("fwdbwd", fb), ("fwd-large", big))
+            if "error" in r and r["error"] != "skipped"
+        ]
     for e in errors:
         print(f"# {e}")
 
@@ -253,22 +274,32 @@ def bench_bilateral(args) -> None:
     print(f"{'sigma_s_px':>10}{'radius':>8}{'gamma':>7}{'time_s':>9}{'cpu_s':>8}{'MiB':>7}")
     for ss in (1.0, 1.5, 2.0, 3.0):
         for gamma in (0.0, 1.0):
-            res = run_isolated({"kind": "bilateral", "sigma_spatial_px": ss, "amplitude_power": gamma, "H": h,
-                                "W": w, "reps": 3}, args.threads, args.timeout, args.mem_cap_gib)
-            print(f"{ss:>10g}{default_radius_px(ss):>8}{gamma:>7g}{_fmt(res, 'time_s', '9.3f')}"
-                  f"{_fmt(res, 'cpu_s', '8.3f')}{_fmt(res, 'peak_mib', '7.0f')}", flush=True)
+            res = run_isolated(
+                {"kind": "bilateral", "sigma_spatial_px": ss, "amplitude_power": gamma, "H": h, "W": w, "reps": 3},
+                args.threads,
+                args.timeout,
+                args.mem_cap_gib,
+            )
+            print(
+                f"{ss:>10g}{default_radius_px(ss):>8}{gamma:>7g}{_fmt(res, 'time_s', '9.3f')}"
+                f"{_fmt(res, 'cpu_s', '8.3f')}{_fmt(res, 'peak_mib', '7.0f')}",
+                flush=True,
+            )
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true", help="small sizes: a fast smoke run")
     p.add_argument("--threads", type=int, default=None, help="torch intra-op threads per case (default: torch's)")
-    p.add_argument("--only", default="scan,block,backbones",
-                   help="comma list of: scan, block, backbones, bilateral")
+    p.add_argument("--only", default="scan,block,backbones", help="comma list of: scan, block, backbones, bilateral")
     p.add_argument("--backbones", default="", help="comma list of backbone names (default: all registered)")
     p.add_argument("--timeout", type=float, default=1800.0, help="seconds allowed per case")
-    p.add_argument("--mem-cap-gib", type=float, default=12.0,
-                   help="address-space cap per backbone case (fails with OOM instead of exhausting the machine)")
+    p.add_argument(
+        "--mem-cap-gib",
+        type=float,
+        default=12.0,
+        help="address-space cap per backbone case (fails with OOM instead of exhausting the machine)",
+    )
     p.add_argument("--case", default=None, help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     import torch
@@ -281,10 +312,12 @@ def main(argv: list[str] | None = None) -> int:
     if args.case:
         print("RESULT " + json.dumps(_run_case(json.loads(args.case))), flush=True)
         return 0
-    print(f"# bench_models: torch {torch.__version__}, threads per case {args.threads or torch.get_num_threads()}, "
-          f"{'quick' if args.quick else 'full'} sizes; every case in its own subprocess", flush=True)
-    parts = {"scan": bench_scan, "block": bench_block, "backbones": bench_backbones,
-             "bilateral": bench_bilateral}
+    print(
+        f"# bench_models: torch {torch.__version__}, threads per case {args.threads or torch.get_num_threads()}, "
+        f"{'quick' if args.quick else 'full'} sizes; every case in its own subprocess",
+        flush=True,
+    )
+    parts = {"scan": bench_scan, "block": bench_block, "backbones": bench_backbones, "bilateral": bench_bilateral}
     for part in args.only.split(","):
         if part not in parts:
             p.error(f"--only: unknown part {part!r}; valid: {', '.join(parts)}")

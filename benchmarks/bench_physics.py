@@ -58,7 +58,9 @@ def bench_sigma(threads: int, repeats: int, h: int = 480, w: int = 640) -> dict[
     max_rel = float(((closed - ref).abs() / ref).max())
     i_dd, i_da, i_aa = information_matrix(depth, signal, calib)
     stack = torch.stack([torch.stack([i_dd, i_da], -1), torch.stack([i_da, i_aa], -1)], -2).contiguous()
-    max_rel = max(max_rel, float(((closed - jtwj_sigma(depth.double(), signal.double(), calib).float()).abs() / ref).max()))
+    max_rel = max(
+        max_rel, float(((closed - jtwj_sigma(depth.double(), signal.double(), calib).float()).abs() / ref).max())
+    )
     fused = sigma_depth_mm_compiled(depth, signal, calib)  # compiles once (not timed)
     max_rel = max(max_rel, float(((fused - ref).abs() / ref).max()))
     t_closed, t_generic, t_jtwj, t_inv, t_fused = [], [], [], [], []
@@ -80,10 +82,23 @@ def bench_sigma(threads: int, repeats: int, h: int = 480, w: int = 640) -> dict[
         t_inv.append(t4 - t3)
     c, gen, jt, inv, fu = (statistics.median(t) for t in (t_closed, t_generic, t_jtwj, t_inv, t_fused))
     mpx = h * w / 1e6
-    return {"threads": threads, "closed_ms": 1e3 * c, "generic_ms": 1e3 * gen, "jtwj_ms": 1e3 * jt,
-            "inv_only_ms": 1e3 * inv, "closed_mpx_s": mpx / c, "generic_mpx_s": mpx / gen, "ratio": gen / c,
-            "ratio_jtwj": jt / c, "ratio_vs_inv_only": inv / c, "max_rel_diff": max_rel,
-            "fused_ms": 1e3 * fu, "fused_mpx_s": mpx / fu, "ratio_fused": gen / fu, "ratio_fused_jtwj": jt / fu}
+    return {
+        "threads": threads,
+        "closed_ms": 1e3 * c,
+        "generic_ms": 1e3 * gen,
+        "jtwj_ms": 1e3 * jt,
+        "inv_only_ms": 1e3 * inv,
+        "closed_mpx_s": mpx / c,
+        "generic_mpx_s": mpx / gen,
+        "ratio": gen / c,
+        "ratio_jtwj": jt / c,
+        "ratio_vs_inv_only": inv / c,
+        "max_rel_diff": max_rel,
+        "fused_ms": 1e3 * fu,
+        "fused_mpx_s": mpx / fu,
+        "ratio_fused": gen / fu,
+        "ratio_fused_jtwj": jt / fu,
+    }
 
 
 def bench_simulator(frames: int, threads: int, h: int = 480, w: int = 640) -> dict[str, float]:
@@ -96,15 +111,25 @@ def bench_simulator(frames: int, threads: int, h: int = 480, w: int = 640) -> di
     out = simulate_frames(depth, signal, calib, frames, generator=torch.Generator().manual_seed(1))
     dt = time.perf_counter() - t0
     assert out.depth_mm.shape == (frames, h, w)
-    return {"threads": threads, "frames": frames, "seconds": dt, "frames_per_s": frames / dt,
-            "seconds_per_100_frames": 100.0 * dt / frames}
+    return {
+        "threads": threads,
+        "frames": frames,
+        "seconds": dt,
+        "frames_per_s": frames / dt,
+        "seconds_per_100_frames": 100.0 * dt / frames,
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="few repeats, 10 simulator frames")
-    parser.add_argument("--threads", type=int, nargs="+", default=None,
-                        help="torch thread counts to measure (default: 1 and the current setting)")
+    parser.add_argument(
+        "--threads",
+        type=int,
+        nargs="+",
+        default=None,
+        help="torch thread counts to measure (default: 1 and the current setting)",
+    )
     args = parser.parse_args(argv)
     default_threads = torch.get_num_threads()
     threads = args.threads or sorted({1, default_threads})
@@ -113,27 +138,36 @@ def main(argv: list[str] | None = None) -> int:
 
     print(f"torch {torch.__version__}, numpy {np.__version__}, default threads {default_threads}")
     print("\n### sigma_D on a 640x480 float32 map (CPU), median of interleaved repeats")
-    print(f"{'threads':>7} {'closed ms':>10} {'sums+inv ms':>12} {'JtWJ+inv ms':>12} {'inv-only ms':>12} "
-          f"{'closed Mpx/s':>13} {'sums+inv Mpx/s':>15} {'ratio':>7} {'ratio JtWJ':>11} {'vs inv-only':>12} "
-          f"{'max rel diff':>13} {'fused ms':>9} {'fused Mpx/s':>12} {'ratio fused':>12} {'fused JtWJ':>11}")
+    print(
+        f"{'threads':>7} {'closed ms':>10} {'sums+inv ms':>12} {'JtWJ+inv ms':>12} {'inv-only ms':>12} "
+        f"{'closed Mpx/s':>13} {'sums+inv Mpx/s':>15} {'ratio':>7} {'ratio JtWJ':>11} {'vs inv-only':>12} "
+        f"{'max rel diff':>13} {'fused ms':>9} {'fused Mpx/s':>12} {'ratio fused':>12} {'fused JtWJ':>11}"
+    )
     rows = []
     for t in threads:
         r = bench_sigma(t, repeats)
         rows.append(r)
-        print(f"{r['threads']:>7d} {r['closed_ms']:>10.2f} {r['generic_ms']:>12.2f} {r['jtwj_ms']:>12.2f} "
-              f"{r['inv_only_ms']:>12.2f} {r['closed_mpx_s']:>13.1f} {r['generic_mpx_s']:>15.2f} {r['ratio']:>6.1f}x "
-              f"{r['ratio_jtwj']:>10.1f}x {r['ratio_vs_inv_only']:>11.1f}x {r['max_rel_diff']:>13.1e} "
-              f"{r['fused_ms']:>9.2f} {r['fused_mpx_s']:>12.1f} {r['ratio_fused']:>11.1f}x {r['ratio_fused_jtwj']:>10.1f}x")
-    print("ratio = (vectorised sums + batched torch.linalg.inv) / closed; ratio JtWJ = (J^T Sigma^-1 J by batched\n"
-          "matmul + torch.linalg.inv) / closed; vs inv-only = torch.linalg.inv alone / closed; ratio fused /\n"
-          "fused JtWJ = the same two generic routes / the fused kernel. Target >= 20x.")
+        print(
+            f"{r['threads']:>7d} {r['closed_ms']:>10.2f} {r['generic_ms']:>12.2f} {r['jtwj_ms']:>12.2f} "
+            f"{r['inv_only_ms']:>12.2f} {r['closed_mpx_s']:>13.1f} {r['generic_mpx_s']:>15.2f} {r['ratio']:>6.1f}x "
+            f"{r['ratio_jtwj']:>10.1f}x {r['ratio_vs_inv_only']:>11.1f}x {r['max_rel_diff']:>13.1e} "
+            f"{r['fused_ms']:>9.2f} {r['fused_mpx_s']:>12.1f} {r['ratio_fused']:>11.1f}x "
+            f"{r['ratio_fused_jtwj']:>10.1f}x"
+        )
+    print(
+        "ratio = (vectorised sums + batched torch.linalg.inv) / closed; ratio JtWJ = (J^T Sigma^-1 J by batched\n"
+        "matmul + torch.linalg.inv) / closed; vs inv-only = torch.linalg.inv alone / closed; ratio fused /\n"
+        "fused JtWJ = the same two generic routes / the fused kernel. Target >= 20x."
+    )
 
     print(f"\n### simulate_frames: {frames} frames of 640x480, 4 taps (target: 100 frames < 30 s on 2 cores)")
     print(f"{'threads':>7} {'frames':>7} {'seconds':>8} {'frames/s':>9} {'s per 100 frames':>17}")
     for t in sorted({default_threads}):
         s = bench_simulator(frames, t)
-        print(f"{s['threads']:>7d} {s['frames']:>7d} {s['seconds']:>8.2f} {s['frames_per_s']:>9.2f} "
-              f"{s['seconds_per_100_frames']:>17.2f}")
+        print(
+            f"{s['threads']:>7d} {s['frames']:>7d} {s['seconds']:>8.2f} {s['frames_per_s']:>9.2f} "
+            f"{s['seconds_per_100_frames']:>17.2f}"
+        )
     torch.set_num_threads(default_threads)
     return 0
 

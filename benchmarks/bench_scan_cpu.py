@@ -72,8 +72,10 @@ def bench_scan(args) -> None:
     dim = groups * dg
     tensors = scan_inputs(batch, groups, dg, length, n)
     updates = batch * dim * length * n
-    print(f"\n### Selective scan at DVSS level 0: batch {batch}, {groups} directions x {dg} channels, L = {length}, "
-          f"N = {n}; {args.rounds} rounds, order alternating; threads {torch.get_num_threads()}")
+    print(
+        f"\n### Selective scan at DVSS level 0: batch {batch}, {groups} directions x {dg} channels, L = {length}, "
+        f"N = {n}; {args.rounds} rounds, order alternating; threads {torch.get_num_threads()}"
+    )
 
     def fwd(backend):
         with torch.no_grad():
@@ -116,32 +118,47 @@ def bench_scan(args) -> None:
     roof = med["roof"]
     print("| route | forward (ms) | forward+backward (ms) | forward updates/s | fraction of roofline |")
     print("|---|---:|---:|---:|---:|")
-    print(f"| native kernel (`backend=\"cpu\"`) | {med['cpu_f'] * 1e3:.1f} | {med['cpu_fb'] * 1e3:.1f} | "
-          f"{updates / med['cpu_f'] / 1e9:.2f} G | {updates / med['cpu_f'] / roof:.2f} |")
-    print(f"| chunked PyTorch (`backend=\"torch\"`) | {med['torch_f'] * 1e3:.1f} | {med['torch_fb'] * 1e3:.1f} | "
-          f"{updates / med['torch_f'] / 1e9:.3f} G | {updates / med['torch_f'] / roof:.3f} |")
-    print(f"| SS2D route (`ss2d_scan_cpu`, {side}x{side}, directions read in place) | - | {med['ss2d_fb'] * 1e3:.1f} | - | - |")
-    print(f"roofline (exp + 3 FMA loop, same flags and threads): {roof / 1e9:.2f} G updates/s; "
-          f"forward+backward at the roofline's pace would take ~3 forward passes = {3 * updates / roof * 1e3:.1f} ms")
+    print(
+        f'| native kernel (`backend="cpu"`) | {med["cpu_f"] * 1e3:.1f} | {med["cpu_fb"] * 1e3:.1f} | '
+        f"{updates / med['cpu_f'] / 1e9:.2f} G | {updates / med['cpu_f'] / roof:.2f} |"
+    )
+    print(
+        f'| chunked PyTorch (`backend="torch"`) | {med["torch_f"] * 1e3:.1f} | {med["torch_fb"] * 1e3:.1f} | '
+        f"{updates / med['torch_f'] / 1e9:.3f} G | {updates / med['torch_f'] / roof:.3f} |"
+    )
+    print(
+        f"| SS2D route (`ss2d_scan_cpu`, {side}x{side}, directions read in place) | - | "
+        f"{med['ss2d_fb'] * 1e3:.1f} | - | - |"
+    )
+    print(
+        f"roofline (exp + 3 FMA loop, same flags and threads): {roof / 1e9:.2f} G updates/s; "
+        f"forward+backward at the roofline's pace would take ~3 forward passes = {3 * updates / roof * 1e3:.1f} ms"
+    )
     ratios_f = [t / c for t, c in zip(rows["torch_f"], rows["cpu_f"])]
     ratios_fb = [t / c for t, c in zip(rows["torch_fb"], rows["cpu_fb"])]
-    print(f"speed-up native / chunked: forward {statistics.median(ratios_f):.1f}x, forward+backward "
-          f"{statistics.median(ratios_fb):.1f}x (per round: {', '.join(f'{v:.1f}' for v in ratios_fb)}); target >= 8x")
+    print(
+        f"speed-up native / chunked: forward {statistics.median(ratios_f):.1f}x, forward+backward "
+        f"{statistics.median(ratios_fb):.1f}x (per round: {', '.join(f'{v:.1f}' for v in ratios_fb)}); target >= 8x"
+    )
     ratios_cpu = [t / c for t, c in zip(cpu_s["torch_fb"], cpu_s["cpu_fb"])]
-    print(f"forward+backward in process CPU time: native {statistics.median(cpu_s['cpu_fb']) * 1e3:.1f} ms, chunked "
-          f"{statistics.median(cpu_s['torch_fb']) * 1e3:.1f} ms, ratio {statistics.median(ratios_cpu):.1f}x (the stable "
-          f"measure on a shared machine with 1 thread; with more threads it counts OpenMP spin-waiting too)")
+    print(
+        f"forward+backward in process CPU time: native {statistics.median(cpu_s['cpu_fb']) * 1e3:.1f} ms, chunked "
+        f"{statistics.median(cpu_s['torch_fb']) * 1e3:.1f} ms, ratio {statistics.median(ratios_cpu):.1f}x (the stable "
+        f"measure on a shared machine with 1 thread; with more threads it counts OpenMP spin-waiting too)"
+    )
 
 
 def bench_step(args) -> None:
     import torch
-
     from bench_training import backbone_kwargs, make_data, time_steps
+
     from tofdenoise.training.module import DepthRestorer
 
     crop, batch = 64, 4
-    print(f"\n### Training step, {crop}x{crop} crops, batch {batch}, L_full + AdamW, pre-loaded batch; "
-          f"{args.rounds} rounds of interleaved steps; threads {torch.get_num_threads()}")
+    print(
+        f"\n### Training step, {crop}x{crop} crops, batch {batch}, L_full + AdamW, pre-loaded batch; "
+        f"{args.rounds} rounds of interleaved steps; threads {torch.get_num_threads()}"
+    )
     import tempfile
 
     with tempfile.TemporaryDirectory() as cache:
@@ -168,8 +185,10 @@ def bench_step(args) -> None:
     print("|---|---:|---:|")
     for label, _, _, times in runs:
         per_round = [t / u for t, u in zip(times, runs[0][3])]
-        print(f"| {label} | {statistics.median(times):.3f} | {statistics.median(per_round):.2f} "
-              f"({', '.join(f'{v:.2f}' for v in per_round)}) |")
+        print(
+            f"| {label} | {statistics.median(times):.3f} | {statistics.median(per_round):.2f} "
+            f"({', '.join(f'{v:.2f}' for v in per_round)}) |"
+        )
     print(f"DVSS / U-Net = {statistics.median(runs[1][3]) / base:.2f}; target <= 6")
 
 
@@ -180,9 +199,20 @@ def bench_inference(args) -> None:
     print(f"\n### DVSS inference {h}x{w}, batch 1, fresh subprocess per route (peak RSS above baseline)")
     print("| scan route | time (s) | peak memory (MiB) |")
     print("|---|---:|---:|")
-    routes = [("native kernel (auto)", {})] + ([] if args.quick else [("PyTorch (`scan_backend=torch`)", {"scan_backend": "torch"})])
+    routes = [("native kernel (auto)", {})] + (
+        [] if args.quick else [("PyTorch (`scan_backend=torch`)", {"scan_backend": "torch"})]
+    )
     for label, kwargs in routes:
-        case = {"kind": "backbone", "name": "dvss", "mode": "fwd", "H": h, "W": w, "batch": 1, "reps": 1, "kwargs": kwargs}
+        case = {
+            "kind": "backbone",
+            "name": "dvss",
+            "mode": "fwd",
+            "H": h,
+            "W": w,
+            "batch": 1,
+            "reps": 1,
+            "kwargs": kwargs,
+        }
         res = run_isolated(case, args.threads, timeout_s=1800, mem_cap_gib=12)
         if "error" in res:
             print(f"| {label} | {res['error']} | - |")
@@ -204,8 +234,10 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
     from tofdenoise.models.scan_cpu import cpu_kernel_available
 
-    print(f"# bench_scan_cpu: torch {torch.__version__}, threads {torch.get_num_threads()}, cpu count "
-          f"{os.cpu_count()}, load average {os.getloadavg()[0]:.1f} (other processes share the machine)")
+    print(
+        f"# bench_scan_cpu: torch {torch.__version__}, threads {torch.get_num_threads()}, cpu count "
+        f"{os.cpu_count()}, load average {os.getloadavg()[0]:.1f} (other processes share the machine)"
+    )
     if not cpu_kernel_available():
         print("native CPU scan not available (build failed or disabled): nothing to compare")
         return 1

@@ -47,8 +47,17 @@ def make_data(crop: int, batch: int, workers: int, cache: str):
     from tofdenoise.data_modules import ToFDataModule
 
     height, width = max(480, crop), max(640, crop)
-    dm = ToFDataModule(source="procedural", num_samples=20, height=height, width=width, crop_size=crop,
-                       batch_size=batch, num_workers=workers, cache_dir=cache, seed=0)
+    dm = ToFDataModule(
+        source="procedural",
+        num_samples=20,
+        height=height,
+        width=width,
+        crop_size=crop,
+        batch_size=batch,
+        num_workers=workers,
+        cache_dir=cache,
+        seed=0,
+    )
     dm.setup("fit")
     return dm
 
@@ -67,13 +76,12 @@ def time_steps(model, optimizer, batches, steps: int) -> list[float]:
 
 
 def bench_backbone(name: str, dm, steps: int) -> tuple[float, float, int]:
-    from tofdenoise.training.module import DepthRestorer
     from tofdenoise.models import count_parameters
+    from tofdenoise.training.module import DepthRestorer
 
     # the amplitude channel when the backbone's config asks for it (rcf), as configs/model/default.yaml does
     signal = bool(backbone_config(name).get("use_signal_channel", False))
-    model = DepthRestorer(backbone=name, backbone_kwargs=backbone_kwargs(name), loss="full",
-                          use_signal_channel=signal)
+    model = DepthRestorer(backbone=name, backbone_kwargs=backbone_kwargs(name), loss="full", use_signal_channel=signal)
     model.train()
     optimizer = torch.optim.AdamW(model.backbone.parameters(), lr=2e-4)
     loader = dm.train_dataloader()
@@ -113,18 +121,22 @@ def main(argv: list[str] | None = None) -> int:
         print(f"unknown backbone(s) {unknown}; valid names: {', '.join(available_backbones())}", file=sys.stderr)
         return 2
     torch.manual_seed(0)
-    print(f"# training step, batch {args.batch}, crop {crop}x{crop}, loss full, AdamW; median of {steps} steps "
-          f"per mode; torch threads {torch.get_num_threads()}, loader workers {args.workers}")
+    print(
+        f"# training step, batch {args.batch}, crop {crop}x{crop}, loss full, AdamW; median of {steps} steps "
+        f"per mode; torch threads {torch.get_num_threads()}, loader workers {args.workers}"
+    )
     with tempfile.TemporaryDirectory() as cache:
         t0 = time.perf_counter()
         dm = make_data(crop, args.batch, args.workers, cache)
         print(f"# data set-up (20 procedural scenes, noise maps): {time.perf_counter() - t0:.1f} s")
-        print(f"| backbone | params | step with loader (s) | step, batch pre-loaded (s) | loader / compute |")
-        print(f"|---|---:|---:|---:|---:|")
+        print("| backbone | params | step with loader (s) | step, batch pre-loaded (s) | loader / compute |")
+        print("|---|---:|---:|---:|---:|")
         for name in names:
             loader_s, compute_s, params = bench_backbone(name, dm, steps)
-            print(f"| {name} | {params / 1e6:.2f} M | {loader_s:.3f} | {compute_s:.3f} | "
-                  f"{loader_s / compute_s:.2f} |", flush=True)
+            print(
+                f"| {name} | {params / 1e6:.2f} M | {loader_s:.3f} | {compute_s:.3f} | {loader_s / compute_s:.2f} |",
+                flush=True,
+            )
     return 0
 
 

@@ -24,8 +24,10 @@ def main(argv: list[str]) -> int:
     import torch
 
     print(f"# tofdenoise benchmarks  {time.strftime('%Y-%m-%d %H:%M:%S')}")
-    print(f"# python {platform.python_version()}  torch {torch.__version__}  "
-          f"threads {torch.get_num_threads()}  cpu {platform.processor() or platform.machine()}")
+    print(
+        f"# python {platform.python_version()}  torch {torch.__version__}  "
+        f"threads {torch.get_num_threads()}  cpu {platform.processor() or platform.machine()}"
+    )
     failed = []
     for script in scripts:
         if not script.exists():

@@ -40,8 +40,15 @@ def main(argv: list[str] | None = None) -> int:
     def randn(*shape):
         return torch.randn(*shape, device="cuda", generator=g)
 
-    base = [randn(b, dim, length), 0.5 * randn(b, dim, length), -torch.exp(0.5 * randn(dim, n)),
-            randn(b, groups, n, length), randn(b, groups, n, length), randn(dim), randn(dim)]
+    base = [
+        randn(b, dim, length),
+        0.5 * randn(b, dim, length),
+        -torch.exp(0.5 * randn(dim, n)),
+        randn(b, groups, n, length),
+        randn(b, groups, n, length),
+        randn(dim),
+        randn(dim),
+    ]
     dy = randn(b, dim, length)
     ref_in = [t.clone().requires_grad_() for t in base]
     ref_y = selective_scan_chunked(*ref_in, True)
@@ -58,10 +65,15 @@ def main(argv: list[str] | None = None) -> int:
             y = fwd()
             got = [y, *torch.autograd.grad(y, ins, dy.to(dtype))]
             err = max(float(((a.float() - r).abs().max() / r.abs().max()).item()) for a, r in zip(got, ref))
-            row = {"dtype": str(dtype).replace("torch.", ""), "chunk": chunk, "block_d": block_d, "warps": warps,
-                   "fwd_ms": round(time_cuda(fwd, 5), 3),
-                   "fwd_bwd_ms": round(time_cuda(lambda: torch.autograd.grad(fwd(), ins, dy.to(dtype)), 5), 3),
-                   "max_rel_err": err}
+            row = {
+                "dtype": str(dtype).replace("torch.", ""),
+                "chunk": chunk,
+                "block_d": block_d,
+                "warps": warps,
+                "fwd_ms": round(time_cuda(fwd, 5), 3),
+                "fwd_bwd_ms": round(time_cuda(lambda: torch.autograd.grad(fwd(), ins, dy.to(dtype)), 5), 3),
+                "max_rel_err": err,
+            }
             print(json.dumps(row), flush=True)
     st.CHUNK, st.BLOCK_D_MAX, st.NUM_WARPS = defaults
     return 0

@@ -55,8 +55,16 @@ def save_restorer_checkpoint(path, **hparams):
     kwargs = {"backbone": "unet", "backbone_kwargs": {"width": 8, "stages": 2}, **hparams}
     torch.manual_seed(0)
     model = DepthRestorer(**kwargs)
-    torch.save({"state_dict": model.state_dict(), "hyper_parameters": dict(model.hparams),
-                "pytorch-lightning_version": lightning.__version__, "epoch": 0, "global_step": 0}, path)
+    torch.save(
+        {
+            "state_dict": model.state_dict(),
+            "hyper_parameters": dict(model.hparams),
+            "pytorch-lightning_version": lightning.__version__,
+            "epoch": 0,
+            "global_step": 0,
+        },
+        path,
+    )
     return path
 
 
@@ -89,4 +97,3 @@ def write_exr():
         module.write_exr(path, {"Z": np.asarray(depth, dtype=np.float32)}, 3)
 
     return write
-

@@ -51,8 +51,11 @@ def test_unknown_name_names_the_kind_and_lists_the_valid_names():
 
 def test_bad_keyword_is_named_and_the_accepted_ones_listed():
     reg = _registry()
-    with pytest.raises(ValueError, match=r"^widget 'box' got unexpected keyword argument\(s\) 'hight', 'lenght'; "
-                                         r"accepted: width, depth$"):
+    with pytest.raises(
+        ValueError,
+        match=r"^widget 'box' got unexpected keyword argument\(s\) 'hight', 'lenght'; "
+        r"accepted: width, depth$",
+    ):
         reg.build("box", lenght=1, hight=2, width=3)
     empty: Registry = Registry("gadget")
     empty.register("plain")(lambda: "built")
@@ -67,12 +70,15 @@ def test_var_keyword_factory_accepts_any_keyword():
     assert reg.accepted_kwargs("bag") == ([], True)
 
 
-@pytest.mark.parametrize("module, attr, kind", [
-    ("tofdenoise.models.registry", "BACKBONES", "backbone"),
-    ("tofdenoise.training.losses", "LOSSES", "loss"),
-    ("tofdenoise.physics.noise_models", "NOISE_MODELS", "noise model"),
-    ("tofdenoise.data_modules.sources", "DATA_SOURCES", "data source"),
-])
+@pytest.mark.parametrize(
+    "module, attr, kind",
+    [
+        ("tofdenoise.models.registry", "BACKBONES", "backbone"),
+        ("tofdenoise.training.losses", "LOSSES", "loss"),
+        ("tofdenoise.physics.noise_models", "NOISE_MODELS", "noise model"),
+        ("tofdenoise.data_modules.sources", "DATA_SOURCES", "data source"),
+    ],
+)
 def test_the_four_kinds_use_it(module, attr, kind):
     import importlib
 

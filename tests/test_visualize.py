@@ -85,7 +85,7 @@ def test_sample_panel_shares_the_depth_scale_across_maps():
     h, w = clean.shape
     panel = sample_panel(noisy, clean.copy(), clean, sigma, mask, max_tile=None)
     strip, gap = 20, 4
-    tile = lambda k: panel[strip:strip + h, k * (w + gap):k * (w + gap) + w]  # noqa: E731
+    tile = lambda k: panel[strip : strip + h, k * (w + gap) : k * (w + gap) + w]  # noqa: E731
     # restored == clean -> identical tiles; noisy differs but its invalid pixels are grey too
     assert np.array_equal(tile(1), tile(2))
     assert not np.array_equal(tile(0), tile(2))
@@ -103,8 +103,8 @@ def test_sample_panel_error_row_shows_mae_in_title_and_zero_error_is_darkest():
     noisy, restored, clean, sigma, mask = _scene()
     h, w = clean.shape
     panel = sample_panel(noisy, clean.copy(), clean, sigma, mask, max_tile=None)
-    row2 = panel[20 + h + 4 + 36:]
-    err_tile = row2[:h, 2 * (w + 4):2 * (w + 4) + w]
+    row2 = panel[20 + h + 4 + 36 :]
+    err_tile = row2[:h, 2 * (w + 4) : 2 * (w + 4) + w]
     lut = _lut(cv2.COLORMAP_INFERNO)
     assert tuple(err_tile[30, 40]) == tuple(lut[0])
 
@@ -122,7 +122,7 @@ def test_small_maps_are_enlarged_by_an_integer_factor():
     panel = sample_panel(noisy, clean.copy(), clean, sigma, mask, max_tile=None, min_tile=64)
     h, w = 12 * 4, 16 * 4  # factor ceil(64 / 16) = 4, nearest neighbour
     assert panel.shape[0] == (20 + h) + 4 + (36 + h)
-    tile = panel[20:20 + h, 0:w]
+    tile = panel[20 : 20 + h, 0:w]
     assert np.array_equal(tile[::4, ::4], tile[3::4, 3::4])  # 4x4 blocks of one colour
 
 

@@ -55,8 +55,9 @@ def list_maps(folder: str | Path, what: str) -> dict[str, Path]:
         if not path.is_file() or path.name.startswith(".") or path.suffix.lower() not in DEPTH_SUFFIXES:
             continue
         if path.stem in found:
-            raise EvalInputError(f"{what} folder {folder} has two files for '{path.stem}': "
-                                 f"{found[path.stem].name} and {path.name}")
+            raise EvalInputError(
+                f"{what} folder {folder} has two files for '{path.stem}': {found[path.stem].name} and {path.name}"
+            )
         found[path.stem] = path
     if not found:
         raise EvalInputError(f"{what} folder {folder} holds no depth file ({', '.join(DEPTH_SUFFIXES)})")
@@ -84,16 +85,20 @@ def _read_mask(path: Path) -> np.ndarray:
 def _match(ref: dict[str, Path], other: dict[str, Path], what: str, folder: Path) -> None:
     for stem, path in ref.items():
         if stem not in other:
-            raise EvalInputError(f"no {what} for reference file {path.name}: expected {folder}/{stem}.<"
-                                 f"{'|'.join(s.lstrip('.') for s in DEPTH_SUFFIXES)}>")
+            raise EvalInputError(
+                f"no {what} for reference file {path.name}: expected {folder}/{stem}.<"
+                f"{'|'.join(s.lstrip('.') for s in DEPTH_SUFFIXES)}>"
+            )
     extra = sorted(set(other) - set(ref))
     if extra:
-        raise EvalInputError(f"{what} file {other[extra[0]]} has no reference counterpart "
-                             f"({len(extra)} unmatched file(s) in {folder})")
+        raise EvalInputError(
+            f"{what} file {other[extra[0]]} has no reference counterpart ({len(extra)} unmatched file(s) in {folder})"
+        )
 
 
-def evaluate_dirs(pred_dir: str | Path, ref_dir: str | Path, mask_dir: str | Path | None = None,
-                  d_max_mm: float = D_MAX_MM) -> dict:
+def evaluate_dirs(
+    pred_dir: str | Path, ref_dir: str | Path, mask_dir: str | Path | None = None, d_max_mm: float = D_MAX_MM
+) -> dict:
     """Compute the result object written by ``tofdenoise-eval`` (see the module docstring)."""
     pred_dir, ref_dir = Path(pred_dir), Path(ref_dir)
     refs = list_maps(ref_dir, "reference")
@@ -110,14 +115,16 @@ def evaluate_dirs(pred_dir: str | Path, ref_dir: str | Path, mask_dir: str | Pat
         ref = _read_depth(refs[stem], "reference depth")
         pred = _read_depth(preds[stem], "predicted depth")
         if pred.shape != ref.shape:
-            raise EvalInputError(f"predicted depth file {preds[stem]} has shape {pred.shape}; expected "
-                                 f"{ref.shape} like {refs[stem]}")
+            raise EvalInputError(
+                f"predicted depth file {preds[stem]} has shape {pred.shape}; expected {ref.shape} like {refs[stem]}"
+            )
         mask = None
         if masks:
             m = _read_mask(masks[stem])
             if m.shape != ref.shape:
-                raise EvalInputError(f"mask file {masks[stem]} has shape {m.shape}; expected {ref.shape} "
-                                     f"like {refs[stem]}")
+                raise EvalInputError(
+                    f"mask file {masks[stem]} has shape {m.shape}; expected {ref.shape} like {refs[stem]}"
+                )
             mask = torch.from_numpy(m)
         nan_px[stem] = _nonfinite_px(pred, ref, None if mask is None else m)
         metric.update(torch.from_numpy(pred), torch.from_numpy(ref), mask, index=torch.tensor([i]))

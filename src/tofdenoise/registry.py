@@ -68,8 +68,10 @@ class Registry(Generic[T]):
         accepted, var_keyword = self.accepted_kwargs(name)
         unknown = sorted(k for k in kwargs if k not in accepted)
         if unknown and not var_keyword:
-            raise ValueError(f"{self.kind} {self._key(name)!r} got unexpected keyword argument(s) "
-                             f"{', '.join(map(repr, unknown))}; accepted: {', '.join(accepted) or 'none'}")
+            raise ValueError(
+                f"{self.kind} {self._key(name)!r} got unexpected keyword argument(s) "
+                f"{', '.join(map(repr, unknown))}; accepted: {', '.join(accepted) or 'none'}"
+            )
         return factory(**kwargs)
 
     def _key(self, name: str) -> str:

@@ -73,10 +73,10 @@ def to_numpy_2d(x: Any, name: str = "map") -> np.ndarray:
     return a
 
 
-
 def batch_plane(batch_maps: Any, i: int, name: str = "map") -> np.ndarray:
     """float32 (H, W) numpy map of image ``i`` of a (B, 1, H, W) or (B, H, W) tensor/array."""
     return to_numpy_2d(batch_maps[i], name).astype(np.float32)
+
 
 def _valid(values: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
     ok = np.isfinite(values)
@@ -85,8 +85,11 @@ def _valid(values: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
     return ok
 
 
-def robust_range(values: np.ndarray | Sequence[np.ndarray], mask: np.ndarray | None = None,
-                 percentiles: tuple[float, float] = (1.0, 99.0)) -> tuple[float, float]:
+def robust_range(
+    values: np.ndarray | Sequence[np.ndarray],
+    mask: np.ndarray | None = None,
+    percentiles: tuple[float, float] = (1.0, 99.0),
+) -> tuple[float, float]:
     """(lo, hi) percentiles of the finite values under ``mask``; a flat or empty set gives a unit-wide range."""
     arrays = [values] if isinstance(values, np.ndarray) else list(values)
     pool = [a[_valid(a, mask)] for a in arrays]
@@ -99,8 +102,9 @@ def robust_range(values: np.ndarray | Sequence[np.ndarray], mask: np.ndarray | N
     return lo, hi
 
 
-def colorize(values: Any, vmin: float, vmax: float, colormap: int = DEPTH_COLORMAP,
-             mask: np.ndarray | None = None) -> np.ndarray:
+def colorize(
+    values: Any, vmin: float, vmax: float, colormap: int = DEPTH_COLORMAP, mask: np.ndarray | None = None
+) -> np.ndarray:
     """Map ``values`` linearly from [vmin, vmax] (clipped) through an OpenCV colour map; uint8 RGB (H, W, 3)."""
     v = to_numpy_2d(values)
     if not vmax > vmin:
@@ -128,8 +132,15 @@ def _tick_decimals(span: float) -> int:
     return 0 if span >= 100 else (1 if span >= 10 else 2)
 
 
-def colorbar(height: int, vmin: float, vmax: float, colormap: int = DEPTH_COLORMAP, unit: str = "mm",
-             bar_width: int = 16, label_width: int = 62) -> np.ndarray:
+def colorbar(
+    height: int,
+    vmin: float,
+    vmax: float,
+    colormap: int = DEPTH_COLORMAP,
+    unit: str = "mm",
+    bar_width: int = 16,
+    label_width: int = 62,
+) -> np.ndarray:
     """Vertical colour bar (vmax at the top) with five labelled ticks and the unit; uint8 RGB."""
     height = max(int(height), 40)
     top, bottom = 14, 8
@@ -137,15 +148,23 @@ def colorbar(height: int, vmin: float, vmax: float, colormap: int = DEPTH_COLORM
     ramp = np.linspace(255, 0, h_bar).round().astype(np.uint8)[:, None].repeat(bar_width, axis=1)
     bar_rgb = cv2.cvtColor(cv2.applyColorMap(ramp, colormap), cv2.COLOR_BGR2RGB)
     out = np.full((height, bar_width + label_width + 4, 3), _BG_RGB, dtype=np.uint8)
-    out[top:top + h_bar, 2:2 + bar_width] = bar_rgb
+    out[top : top + h_bar, 2 : 2 + bar_width] = bar_rgb
     cv2.putText(out, unit, (2, 10), _FONT, 0.35, _TEXT_RGB, 1, cv2.LINE_AA)
     decimals = _tick_decimals(abs(vmax - vmin))
     for frac in (0.0, 0.25, 0.5, 0.75, 1.0):
         y = top + int(round(frac * (h_bar - 1)))
         value = vmax - frac * (vmax - vmin)
         cv2.line(out, (2 + bar_width, y), (5 + bar_width, y), _TEXT_RGB, 1)
-        cv2.putText(out, f"{value:.{decimals}f}", (8 + bar_width, min(max(y + 4, 10), height - 2)), _FONT, 0.35,
-                    _TEXT_RGB, 1, cv2.LINE_AA)
+        cv2.putText(
+            out,
+            f"{value:.{decimals}f}",
+            (8 + bar_width, min(max(y + 4, 10), height - 2)),
+            _FONT,
+            0.35,
+            _TEXT_RGB,
+            1,
+            cv2.LINE_AA,
+        )
     return out
 
 
@@ -213,9 +232,15 @@ def _mae(err: np.ndarray, ok: np.ndarray) -> str:
     return f"{float(np.mean(err[ok])):.2f}" if ok.any() else "n/a"
 
 
-def compose_panel(depth_maps: Mapping[str, Any], sigma_mm: Any | None = None, mask: Any | None = None,
-                  reference_key: str = "clean", max_tile: int | None = 320, title: str | None = None,
-                  min_tile: int | None = None) -> np.ndarray:
+def compose_panel(
+    depth_maps: Mapping[str, Any],
+    sigma_mm: Any | None = None,
+    mask: Any | None = None,
+    reference_key: str = "clean",
+    max_tile: int | None = 320,
+    title: str | None = None,
+    min_tile: int | None = None,
+) -> np.ndarray:
     """Two-row panel (uint8 RGB): depth maps on a shared scale; sigma_D and |map - reference| on a shared mm scale.
 
     ``depth_maps``: ordered name -> depth in mm (H, W). ``mask``: nonzero = valid (all pixels when None).
@@ -269,15 +294,31 @@ def compose_panel(depth_maps: Mapping[str, Any], sigma_mm: Any | None = None, ma
     return np.ascontiguousarray(panel)
 
 
-def sample_panel(noisy_mm: Any, restored_mm: Any, clean_mm: Any, sigma_mm: Any | None, mask: Any | None,
-                 title: str | None = None, max_tile: int | None = 320, min_tile: int | None = None) -> np.ndarray:
+def sample_panel(
+    noisy_mm: Any,
+    restored_mm: Any,
+    clean_mm: Any,
+    sigma_mm: Any | None,
+    mask: Any | None,
+    title: str | None = None,
+    max_tile: int | None = 320,
+    min_tile: int | None = None,
+) -> np.ndarray:
     """The validation panel of one sample (uint8 RGB): noisy | restored | clean, then sigma_D and errors."""
-    return compose_panel({"noisy": noisy_mm, "restored": restored_mm, "clean": clean_mm}, sigma_mm, mask,
-                         reference_key="clean", max_tile=max_tile, title=title, min_tile=min_tile)
+    return compose_panel(
+        {"noisy": noisy_mm, "restored": restored_mm, "clean": clean_mm},
+        sigma_mm,
+        mask,
+        reference_key="clean",
+        max_tile=max_tile,
+        title=title,
+        min_tile=min_tile,
+    )
 
 
-def prediction_preview(maps: Mapping[str, Any], sigma_mm: Any | None = None, mask: Any | None = None,
-                       max_tile: int | None = None) -> np.ndarray:
+def prediction_preview(
+    maps: Mapping[str, Any], sigma_mm: Any | None = None, mask: Any | None = None, max_tile: int | None = None
+) -> np.ndarray:
     """``compose_panel`` of ``maps`` (e.g. noisy, restored, clean) as uint8 BGR, ready for ``cv2.imwrite``."""
     rgb = compose_panel(maps, sigma_mm, mask, reference_key="clean", max_tile=max_tile)
     return cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)

@@ -37,8 +37,10 @@ def test_writer_keeps_the_file_and_lines_up_with_its_header(tmp_path):
         assert fh.readline().strip() == "epoch,step,val/mae_mm"
     writer.log_metrics({"val/mae_mm": 3.0, "epoch": 1}, step=5)
     writer.save()
-    assert _read(tmp_path / "metrics.csv") == [{"val/mae_mm": "3.5", "step": "2", "epoch": "0"},
-                                               {"val/mae_mm": "3.0", "step": "5", "epoch": "1"}]
+    assert _read(tmp_path / "metrics.csv") == [
+        {"val/mae_mm": "3.5", "step": "2", "epoch": "0"},
+        {"val/mae_mm": "3.0", "step": "5", "epoch": "1"},
+    ]
     writer.log_metrics({"train/loss": 0.5}, step=6)  # a new column extends the header, old rows kept
     writer.save()
     rows = _read(tmp_path / "metrics.csv")

@@ -34,8 +34,15 @@ class _Scenes(Dataset):
         noisy = clean + sigma * torch.randn(clean.shape, generator=g)
         mask = torch.ones_like(clean)
         mask[:, :3, :4] = 0
-        return {"noisy": noisy * mask, "clean": clean * mask, "sigma": sigma, "mask": mask,
-                "amplitude": torch.ones_like(clean), "index": i, "name": f"scene_{i:02d}"}
+        return {
+            "noisy": noisy * mask,
+            "clean": clean * mask,
+            "sigma": sigma,
+            "mask": mask,
+            "amplitude": torch.ones_like(clean),
+            "index": i,
+            "name": f"scene_{i:02d}",
+        }
 
 
 class _Tiny(pl.LightningModule):
@@ -56,10 +63,20 @@ class _Tiny(pl.LightningModule):
 
 
 def _fit(tmp_path, callback, loggers, epochs: int = 2):
-    trainer = pl.Trainer(max_epochs=epochs, accelerator="cpu", devices=1, default_root_dir=tmp_path,
-                         logger=loggers, callbacks=[callback], enable_checkpointing=False,
-                         enable_progress_bar=False, enable_model_summary=False, limit_train_batches=1,
-                         num_sanity_val_steps=2, log_every_n_steps=1)
+    trainer = pl.Trainer(
+        max_epochs=epochs,
+        accelerator="cpu",
+        devices=1,
+        default_root_dir=tmp_path,
+        logger=loggers,
+        callbacks=[callback],
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        limit_train_batches=1,
+        num_sanity_val_steps=2,
+        log_every_n_steps=1,
+    )
     loader = DataLoader(_Scenes(), batch_size=4)
     trainer.fit(_Tiny(), train_dataloaders=DataLoader(_Scenes(4), batch_size=2), val_dataloaders=loader)
     return trainer
@@ -72,8 +89,8 @@ def _panel_height(n: int, tile_h: int = 5 * H) -> int:
 
 
 def test_fixed_panels_every_epoch_as_png_and_in_offline_wandb(tmp_path):
-    from lightning.pytorch.loggers import WandbLogger
     import wandb
+    from lightning.pytorch.loggers import WandbLogger
 
     cb = ImagePanelLogger(indices=3)
     logger = WandbLogger(offline=True, save_dir=str(tmp_path), project="tofdenoise-test")
@@ -110,8 +127,15 @@ def test_tensorboard_logger_receives_hwc_image(tmp_path):
     calls = []
     tb._recorder = SimpleNamespace(add_image=lambda *a, **k: calls.append((a, k)))
     loader = DataLoader(_Scenes(), batch_size=4)
-    trainer = SimpleNamespace(sanity_checking=False, current_epoch=4, global_step=40, global_rank=0,
-                              val_dataloaders=loader, default_root_dir=str(tmp_path), loggers=[tb])
+    trainer = SimpleNamespace(
+        sanity_checking=False,
+        current_epoch=4,
+        global_step=40,
+        global_rank=0,
+        val_dataloaders=loader,
+        default_root_dir=str(tmp_path),
+        loggers=[tb],
+    )
     cb = ImagePanelLogger(indices=[5])
     cb.on_validation_epoch_start(trainer, None)
     for batch_idx, batch in enumerate(loader):
@@ -126,8 +150,15 @@ def test_tensorboard_logger_receives_hwc_image(tmp_path):
 
 def test_missing_pred_mm_is_a_clear_error(tmp_path):
     loader = DataLoader(_Scenes(2), batch_size=2)
-    trainer = SimpleNamespace(sanity_checking=False, current_epoch=0, global_step=0, global_rank=0,
-                              val_dataloaders=loader, default_root_dir=str(tmp_path), loggers=[])
+    trainer = SimpleNamespace(
+        sanity_checking=False,
+        current_epoch=0,
+        global_step=0,
+        global_rank=0,
+        val_dataloaders=loader,
+        default_root_dir=str(tmp_path),
+        loggers=[],
+    )
     cb = ImagePanelLogger(indices=1)
     cb.on_validation_epoch_start(trainer, None)
     batch = next(iter(loader))

@@ -21,10 +21,12 @@ def classic_overrides(tiny, run_dir, cache, grid: dict) -> list[str]:
 
 def test_grid_points_order_and_errors():
     pts = grid_points({"sigma_spatial_px": [1.0, 2.0], "sigma_depth_mm": [5.0, math.inf]}, {"radius_px": 3})
-    assert pts == [{"sigma_spatial_px": 1.0, "sigma_depth_mm": 5.0, "radius_px": 3},
-                   {"sigma_spatial_px": 1.0, "sigma_depth_mm": math.inf, "radius_px": 3},
-                   {"sigma_spatial_px": 2.0, "sigma_depth_mm": 5.0, "radius_px": 3},
-                   {"sigma_spatial_px": 2.0, "sigma_depth_mm": math.inf, "radius_px": 3}]
+    assert pts == [
+        {"sigma_spatial_px": 1.0, "sigma_depth_mm": 5.0, "radius_px": 3},
+        {"sigma_spatial_px": 1.0, "sigma_depth_mm": math.inf, "radius_px": 3},
+        {"sigma_spatial_px": 2.0, "sigma_depth_mm": 5.0, "radius_px": 3},
+        {"sigma_spatial_px": 2.0, "sigma_depth_mm": math.inf, "radius_px": 3},
+    ]
     assert grid_points({"amplitude_power": 1.0}, {"radius_px": None}) == [{"amplitude_power": 1.0}]
     with pytest.raises(ValueError, match=r"unknown parameter\(s\) \['sigma_range'\]"):
         grid_points({"sigma_range": [1.0]})
@@ -37,20 +39,27 @@ def test_grid_points_order_and_errors():
 
 
 def test_select_best_takes_the_lowest_finite_val_mae_first_of_ties():
-    scores = [{"val_mae_mm": 3.0}, {"val_mae_mm": math.nan}, {"val_mae_mm": 2.5}, {"val_mae_mm": 2.5},
-              {"val_mae_mm": None}]
+    scores = [
+        {"val_mae_mm": 3.0},
+        {"val_mae_mm": math.nan},
+        {"val_mae_mm": 2.5},
+        {"val_mae_mm": 2.5},
+        {"val_mae_mm": None},
+    ]
     assert select_best(scores) == 2
     with pytest.raises(ValueError, match="no grid point has a finite val_mae_mm"):
         select_best([{"val_mae_mm": math.nan}])
 
 
 def test_bad_configuration_fails_before_any_data(tmp_path, tiny):
-    cfg = compose_config(classic_overrides(tiny, tmp_path, tmp_path / "never", {"sigma_depth_mm": [-1.0]}),
-                         config_name="classical")
+    cfg = compose_config(
+        classic_overrides(tiny, tmp_path, tmp_path / "never", {"sigma_depth_mm": [-1.0]}), config_name="classical"
+    )
     with pytest.raises(ValueError, match="sigma_depth_mm must be > 0"):
         run(cfg)
-    cfg = compose_config(classic_overrides(tiny, tmp_path, tmp_path / "never", {}) + ["classical.backbone=unet"],
-                         config_name="classical")
+    cfg = compose_config(
+        classic_overrides(tiny, tmp_path, tmp_path / "never", {}) + ["classical.backbone=unet"], config_name="classical"
+    )
     with pytest.raises(ValueError, match="classical.backbone: 'unet' is not a registered classical filter"):
         run(cfg)
     assert not (tmp_path / "never").exists()
@@ -85,8 +94,9 @@ def test_tune_on_validation_then_test_through_the_network_path(tmp_path, data_ca
     dm = instantiate(cfg.data, _convert_="all")
     dm.prepare_data()
     dm.setup("validate")
-    model = DepthRestorer(backbone="bilateral", backbone_kwargs=result["best"], use_signal_channel=True,
-                          input_centering="none")
+    model = DepthRestorer(
+        backbone="bilateral", backbone_kwargs=result["best"], use_signal_channel=True, input_centering="none"
+    )
     metric = DepthMetrics()
     for batch in dm.val_dataloader():
         metric.update(model.restore_mm(batch), batch["clean"], batch["mask"], index=batch["index"])
@@ -103,8 +113,14 @@ def test_tune_on_validation_then_test_through_the_network_path(tmp_path, data_ca
     assert len(rows) == 2 and all(r["name"] for r in rows)
     assert sum(r["mae_mm"] for r in rows) / 2 == pytest.approx(syn["mae_mm"], rel=1e-9)
     info = json.loads((run_dir / "run_info.json").read_text())
-    assert {"backbone": "bilateral", "method": "bilateral (classical)", "noise": "hetero", "loss": "none",
-            "global_step": 0, "tuning": "tuning.json"}.items() <= info.items()
+    assert {
+        "backbone": "bilateral",
+        "method": "bilateral (classical)",
+        "noise": "hetero",
+        "loss": "none",
+        "global_step": 0,
+        "tuning": "tuning.json",
+    }.items() <= info.items()
     assert info["params"]["sigma_depth_mm"] == 30.0 and (run_dir / "config.yaml").is_file()
 
     capsys.readouterr()
@@ -120,8 +136,10 @@ def test_real_capture_set_is_tested_like_the_networks(tmp_path, data_cache, tiny
     simulate_capture_set(tmp_path / "set", scenes=3, frames=4, height=32, width=48, seed=1)
     run_dir = tmp_path / "run"
     grid = {"sigma_spatial_px": [1.0], "sigma_depth_mm": [40.0], "amplitude_power": [0.0, 1.0]}
-    cfg = compose_config(classic_overrides(tiny, run_dir, data_cache, grid) + [f"data.real_dir={tmp_path / 'set'}"],
-                         config_name="classical")
+    cfg = compose_config(
+        classic_overrides(tiny, run_dir, data_cache, grid) + [f"data.real_dir={tmp_path / 'set'}"],
+        config_name="classical",
+    )
     run(cfg)
     data = read_metrics_json(run_dir / "metrics.json")
     assert sorted(metric_sets(data)) == ["real", "synthetic"] and data["real"]["images"] == 3

@@ -15,8 +15,6 @@ from tofdenoise.inference.denoise import load_restorer, sigma_map_mm
 from tofdenoise.physics.calibration import resolve_calibration, save_calibration
 
 
-
-
 def frame(seed: int, h: int = 36, w: int = 48) -> np.ndarray:
     rng = np.random.default_rng(seed)
     y, x = np.mgrid[0:h, 0:w]
@@ -43,8 +41,24 @@ def test_png_npy_exr_frames_equal_the_python_api(frames_dir, restorer_ckpt, tmp_
     src, amp = frames_dir
     calib_file = save_calibration(resolve_calibration(None), tmp_path / "calib.yaml") or tmp_path / "calib.yaml"
     out = tmp_path / "out"
-    code = main([str(src), "--ckpt", str(restorer_ckpt), "--out", str(out), "--amplitude", str(amp),
-                 "--calib", str(calib_file), "--npy", "--previews", "--device", "cpu", "--quiet"])
+    code = main(
+        [
+            str(src),
+            "--ckpt",
+            str(restorer_ckpt),
+            "--out",
+            str(out),
+            "--amplitude",
+            str(amp),
+            "--calib",
+            str(calib_file),
+            "--npy",
+            "--previews",
+            "--device",
+            "cpu",
+            "--quiet",
+        ]
+    )
     err = capsys.readouterr().err
     assert code == 0, err
     assert "3 frame(s) done, 0 skipped, 0 failed" in err and "s/frame" in err
@@ -70,8 +84,23 @@ def test_png_npy_exr_frames_equal_the_python_api(frames_dir, restorer_ckpt, tmp_
 def test_fill_holes_and_depth_scale(frames_dir, restorer_ckpt, tmp_path, capsys):
     src, _ = frames_dir
     out = tmp_path / "filled"
-    assert main([str(src / "a.png"), "--ckpt", str(restorer_ckpt), "--out", str(out), "--fill-holes", "--npy",
-                 "--depth-scale-mm", "0.5", "--quiet"]) == 0
+    assert (
+        main(
+            [
+                str(src / "a.png"),
+                "--ckpt",
+                str(restorer_ckpt),
+                "--out",
+                str(out),
+                "--fill-holes",
+                "--npy",
+                "--depth-scale-mm",
+                "0.5",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     depth = read_depth_mm(src / "a.png", scale_mm=0.5)
     expected = tofdenoise.denoise(depth, load_restorer(restorer_ckpt), fill_holes=True)
     np.testing.assert_array_equal(np.load(out / "a.npy"), expected)
@@ -94,8 +123,13 @@ def test_bad_frames_fail_alone_and_are_listed(frames_dir, restorer_ckpt, tmp_pat
     err = capsys.readouterr().err
     assert code == 1
     assert "3 frame(s) done, 0 skipped, 5 failed" in err
-    for name, why in (("eight.png", "8-bit"), ("colour.png", "channels"), ("broken.npy", "could not be read"),
-                      ("odd.png", "shape"), ("noamp.png", "no amplitude file")):
+    for name, why in (
+        ("eight.png", "8-bit"),
+        ("colour.png", "channels"),
+        ("broken.npy", "could not be read"),
+        ("odd.png", "shape"),
+        ("noamp.png", "no amplitude file"),
+    ):
         line = next(line for line in err.splitlines() if f"FAILED {src / name}" in line)
         assert why in line, line
         assert not (out / f"{Path(name).stem}.png").exists()

@@ -158,8 +158,10 @@ def test_nan_predictions_are_counted_as_failures_not_rewards(tmp_path, capsys):
 
     honest = evaluate_dirs(tmp_path / "honest", tmp_path / "ref")
     assert honest["nan_px"] == 0 and honest["failed"] == [] and honest["mean"]["mae_mm"] == pytest.approx(22.0)
-    assert main(["--pred", str(tmp_path / "cheat"), "--ref", str(tmp_path / "ref"),
-                 "--out", str(tmp_path / "cheat.json")]) == 0
+    assert (
+        main(["--pred", str(tmp_path / "cheat"), "--ref", str(tmp_path / "ref"), "--out", str(tmp_path / "cheat.json")])
+        == 0
+    )
     err = capsys.readouterr().err
     assert "warning: 150 pixel(s)" in err and "2 image(s)" in err and "failed" in err
     res = json.loads((tmp_path / "cheat.json").read_text())

@@ -13,8 +13,10 @@ import torch
 from hydra.utils import instantiate
 from lightning.pytorch import seed_everything
 
-from tofdenoise.cli.export_cli_config import PRESETS, export_preset, main as export_main
-from tofdenoise.cli.lightning_cli import build_cli, main as cli_main
+from tofdenoise.cli.export_cli_config import PRESETS, export_preset
+from tofdenoise.cli.export_cli_config import main as export_main
+from tofdenoise.cli.lightning_cli import build_cli
+from tofdenoise.cli.lightning_cli import main as cli_main
 from tofdenoise.config import compose_config, config_dir
 
 CLI_DIR = config_dir() / "cli"
@@ -24,7 +26,8 @@ def test_committed_cli_configs_are_generated_from_hydra(tmp_path):
     for name, overrides in PRESETS.items():
         committed = (CLI_DIR / f"{name}.yaml").read_text()
         assert committed == export_preset(name, overrides), (
-            f"configs/cli/{name}.yaml is stale: run python -m tofdenoise.cli.export_cli_config")
+            f"configs/cli/{name}.yaml is stale: run python -m tofdenoise.cli.export_cli_config"
+        )
     assert export_main(["--check"]) == 0
     (tmp_path / "default.yaml").write_text("seed_everything: 1\n")
     assert export_main(["--check", "--out", str(tmp_path)]) == 1
@@ -49,19 +52,30 @@ def test_hydra_and_lightning_cli_build_the_same_model(tmp_path, monkeypatch):
     for k in a:  # same seed -> same initial weights
         assert a[k].shape == b[k].shape and torch.equal(a[k], b[k]), k
     assert cli.trainer.max_epochs == cfg.trainer.max_epochs
-    assert Path(cli.trainer.checkpoint_callback.dirpath).resolve() == (tmp_path / "outputs/cli/default/checkpoints").resolve()
+    assert (
+        Path(cli.trainer.checkpoint_callback.dirpath).resolve()
+        == (tmp_path / "outputs/cli/default/checkpoints").resolve()
+    )
     assert sorted(type(lg).__name__ for lg in cli.trainer.loggers) == ["ResumableCSVLogger", "WandbLogger"]
     assert any(type(cb).__name__ == "CSVLogResume" for cb in cli.trainer.callbacks)
 
 
 def _smoke_args(tmp_path, data_cache) -> list[str]:
     """The smoke config at the test suite's tiny size, outputs under tmp_path."""
-    return ["--config", str(CLI_DIR / "smoke.yaml"), f"--trainer.default_root_dir={tmp_path}/run",
-            "--trainer.logger=false", "--trainer.enable_progress_bar=false",
-            f"--data.init_args.cache_dir={data_cache}", "--data.init_args.num_samples=10",
-            "--data.init_args.height=32", "--data.init_args.width=48", "--data.init_args.crop_size=32",
-            "--model.init_args.backbone_kwargs={in_channels: 1, width: 8, stages: 2}",
-            "--model.init_args.backbone=unet"]
+    return [
+        "--config",
+        str(CLI_DIR / "smoke.yaml"),
+        f"--trainer.default_root_dir={tmp_path}/run",
+        "--trainer.logger=false",
+        "--trainer.enable_progress_bar=false",
+        f"--data.init_args.cache_dir={data_cache}",
+        "--data.init_args.num_samples=10",
+        "--data.init_args.height=32",
+        "--data.init_args.width=48",
+        "--data.init_args.crop_size=32",
+        "--model.init_args.backbone_kwargs={in_channels: 1, width: 8, stages: 2}",
+        "--model.init_args.backbone=unet",
+    ]
 
 
 def test_fit_test_predict_from_the_smoke_config(tmp_path, data_cache, monkeypatch):
@@ -77,8 +91,15 @@ def test_fit_test_predict_from_the_smoke_config(tmp_path, data_cache, monkeypatc
     assert (tmp_path / "run" / "per_image" / "synthetic.csv").is_file()
     # the same RunOutputs callback as the Hydra run: run_info.json with the tested checkpoint
     info = json.loads((tmp_path / "run" / "run_info.json").read_text())
-    assert {"backbone": "unet", "noise": "hetero", "loss": "full", "run_name": "unet-hetero-full",
-            "data": "procedural", "seed": 0, "best_ckpt": str(best)}.items() <= info.items()
+    assert {
+        "backbone": "unet",
+        "noise": "hetero",
+        "loss": "full",
+        "run_name": "unet-hetero-full",
+        "data": "procedural",
+        "seed": 0,
+        "best_ckpt": str(best),
+    }.items() <= info.items()
     assert "finished" in info and "started" in info
     # the learned guard's fields come from the tested checkpoint (6 training scenes, batch 2: 3 steps)
     from tofdenoise.training.results import learned_status, learned_verdict
@@ -86,10 +107,19 @@ def test_fit_test_predict_from_the_smoke_config(tmp_path, data_cache, monkeypatc
     ckpt = torch.load(best, weights_only=True)
     assert metrics["trained_steps"] == ckpt["global_step"] == 3
     assert metrics["best_val_mae_mm"] > 0 and metrics["raw_val_mae_mm"] > 0
-    assert metrics["best_val_mae_mm"] == pytest.approx(float(ckpt["callbacks"][next(
-        k for k in ckpt["callbacks"] if k.startswith("BestAndLastCheckpoint"))]["best_model_score"]), rel=1e-6)
-    assert {k: metrics[k] for k in ("learned", "learned_reason")} == {k: v for k, v in learned_verdict(
-        3, metrics["best_val_mae_mm"], metrics["raw_val_mae_mm"]).items() if k in ("learned", "learned_reason")}
+    assert metrics["best_val_mae_mm"] == pytest.approx(
+        float(
+            ckpt["callbacks"][next(k for k in ckpt["callbacks"] if k.startswith("BestAndLastCheckpoint"))][
+                "best_model_score"
+            ]
+        ),
+        rel=1e-6,
+    )
+    assert {k: metrics[k] for k in ("learned", "learned_reason")} == {
+        k: v
+        for k, v in learned_verdict(3, metrics["best_val_mae_mm"], metrics["raw_val_mae_mm"]).items()
+        if k in ("learned", "learned_reason")
+    }
     # `test` without a checkpoint evaluates an untrained network: never reported as trained
     untrained = [a.replace(f"{tmp_path}/run", f"{tmp_path}/untrained") for a in common]
     cli_main(["test", *untrained])

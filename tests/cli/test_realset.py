@@ -39,8 +39,9 @@ def test_the_realset_camera_is_not_the_training_camera():
 
 
 def make_realset(out: Path) -> None:
-    assert main(["realset", "--out", str(out), "--scenes", "2", "--frames", "4", "--height", "32", "--width",
-                 "48"]) == 0
+    assert (
+        main(["realset", "--out", str(out), "--scenes", "2", "--frames", "4", "--height", "32", "--width", "48"]) == 0
+    )
 
 
 def realset_overrides(out: Path) -> list[str]:

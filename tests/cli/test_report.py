@@ -11,9 +11,9 @@ import cv2
 import numpy as np
 import pytest
 
-from tofdenoise.training.results import set_entry, write_metrics_json
 from tofdenoise.cli.report import main
 from tofdenoise.reporting import find_runs, load_run, results_table, table_markdown
+from tofdenoise.training.results import set_entry, write_metrics_json
 
 RAW = {"psnr_db": 31.68, "ssim": 0.95, "mse_mm2": 680.0, "mae_mm": 7.21}
 
@@ -41,12 +41,16 @@ def _panel(path: Path, value: int) -> bytes:
 def runs(tmp_path):
     root = tmp_path / "runs"
     a = root / "dvss-hetero-full"
-    write_metrics_json(a / "metrics.json", {
-        "synthetic": set_entry(_m(40.85, 0.9987, 82.30, 2.54), RAW),
-        "real": set_entry(_m(35.42, 0.99, 120.0, 4.87), _m(31.0, 0.97, 300.0, 7.0)),
-    })
-    (a / "run_info.json").write_text(json.dumps({"backbone": "dvss", "noise": "hetero", "loss": "full",
-                                                 "run_name": "dvss-hetero-full"}))
+    write_metrics_json(
+        a / "metrics.json",
+        {
+            "synthetic": set_entry(_m(40.85, 0.9987, 82.30, 2.54), RAW),
+            "real": set_entry(_m(35.42, 0.99, 120.0, 4.87), _m(31.0, 0.97, 300.0, 7.0)),
+        },
+    )
+    (a / "run_info.json").write_text(
+        json.dumps({"backbone": "dvss", "noise": "hetero", "loss": "full", "run_name": "dvss-hetero-full"})
+    )
     _csv(a / "csv" / "version_0" / "metrics.csv", 3, 9.0)
     _panel(a / "panels" / "epoch_999.png", 10)
     latest = _panel(a / "panels" / "epoch_1000.png", 200)  # numeric, not name order
@@ -56,7 +60,8 @@ def runs(tmp_path):
     (b / ".hydra").mkdir(parents=True)
     (b / ".hydra" / "config.yaml").write_text(
         "backbone:\n  name: unet\n  kwargs: {}\nnoise:\n  name: range\nloss:\n  name: l1\n"
-        "run_name: ${backbone.name}-${noise.name}-${loss.name}\n")  # Hydra saves interpolations unresolved
+        "run_name: ${backbone.name}-${noise.name}-${loss.name}\n"
+    )  # Hydra saves interpolations unresolved
     _csv(b / "csv" / "metrics.csv", 2, 12.0)
 
     bad = root / "broken"
@@ -134,10 +139,12 @@ def _guarded_run(root: Path, name: str, mae: float, steps: int, best, raw=7.5) -
     from tofdenoise.training.results import learned_verdict
 
     d = root / name
-    write_metrics_json(d / "metrics.json", {"synthetic": set_entry(_m(40.0 - mae, 0.99, mae * mae, mae), RAW)},
-                       run=learned_verdict(steps, best, raw))
-    (d / "run_info.json").write_text(json.dumps({"backbone": name, "noise": "hetero", "loss": "l1",
-                                                 "run_name": name}))
+    write_metrics_json(
+        d / "metrics.json",
+        {"synthetic": set_entry(_m(40.0 - mae, 0.99, mae * mae, mae), RAW)},
+        run=learned_verdict(steps, best, raw),
+    )
+    (d / "run_info.json").write_text(json.dumps({"backbone": name, "noise": "hetero", "loss": "l1", "run_name": name}))
     return d
 
 
@@ -146,11 +153,11 @@ def test_report_flags_runs_that_did_not_learn_or_were_not_trained(tmp_path, caps
     presented as trained): a visible column in Markdown and HTML, red rows, and no bold 'best' value even
     when its numbers are the best of the table."""
     root = tmp_path / "runs"
-    _guarded_run(root, "good", 3.0, 900, 2.9)          # 2.9 <= 0.95 x 7.5 = 7.125: learned
-    _guarded_run(root, "fair", 4.0, 900, 7.1)          # 7.1 <= 7.125: learned, just
-    _guarded_run(root, "flat", 2.0, 900, 7.4)          # 7.4 > 7.125: did not learn (its test MAE looks best)
-    _guarded_run(root, "zero", 1.0, 0, None, None)     # trainer.max_epochs=0
-    _guarded_run(root, "noval", 2.5, 10, None)         # trained, but no validation result
+    _guarded_run(root, "good", 3.0, 900, 2.9)  # 2.9 <= 0.95 x 7.5 = 7.125: learned
+    _guarded_run(root, "fair", 4.0, 900, 7.1)  # 7.1 <= 7.125: learned, just
+    _guarded_run(root, "flat", 2.0, 900, 7.4)  # 7.4 > 7.125: did not learn (its test MAE looks best)
+    _guarded_run(root, "zero", 1.0, 0, None, None)  # trainer.max_epochs=0
+    _guarded_run(root, "noval", 2.5, 10, None)  # trained, but no validation result
     out = tmp_path / "r.html"
     assert main([str(root), "--out", str(out)]) == 0
     md = capsys.readouterr().out.splitlines()
@@ -173,9 +180,6 @@ def test_report_flags_runs_that_did_not_learn_or_were_not_trained(tmp_path, caps
     assert "not trained: 0 optimiser steps" in page
     run = load_run(root / "flat")
     assert sorted(run.metrics) == ["synthetic"] and run.learned["learned"] is False
-from tofdenoise.cli.output_guard import OutputPathError, check_output_file
-
-
 
 
 def test_classical_row_is_listed_as_classical_and_can_be_best(tmp_path, capsys):
@@ -186,10 +190,20 @@ def test_classical_row_is_listed_as_classical_and_can_be_best(tmp_path, capsys):
     root = tmp_path / "runs"
     _guarded_run(root, "net", 3.0, 900, 2.9)
     d = root / "bilateral"
-    write_metrics_json(d / "metrics.json", {"synthetic": set_entry(_m(39.0, 0.995, 6.0, 2.5), RAW)},
-                       run=classical_verdict(2.6, 7.5))
-    (d / "run_info.json").write_text(json.dumps({"backbone": "bilateral", "method": "bilateral (classical)",
-                                                 "noise": "hetero", "loss": "none", "run_name": "bilateral"}))
+    write_metrics_json(
+        d / "metrics.json", {"synthetic": set_entry(_m(39.0, 0.995, 6.0, 2.5), RAW)}, run=classical_verdict(2.6, 7.5)
+    )
+    (d / "run_info.json").write_text(
+        json.dumps(
+            {
+                "backbone": "bilateral",
+                "method": "bilateral (classical)",
+                "noise": "hetero",
+                "loss": "none",
+                "run_name": "bilateral",
+            }
+        )
+    )
     out = tmp_path / "r.html"
     assert main([str(root), "--out", str(out)]) == 0
     md = capsys.readouterr().out
@@ -202,8 +216,16 @@ def test_classical_row_is_listed_as_classical_and_can_be_best(tmp_path, capsys):
     assert "classical method: no trainable parameters" in page
 
 
-@pytest.mark.parametrize("rel", ["dvss-hetero-full/metrics.json", "dvss-hetero-full/run_info.json",
-                                 "dvss-hetero-full/metrics.html", "report.txt", "dvss-hetero-full"])
+@pytest.mark.parametrize(
+    "rel",
+    [
+        "dvss-hetero-full/metrics.json",
+        "dvss-hetero-full/run_info.json",
+        "dvss-hetero-full/metrics.html",
+        "report.txt",
+        "dvss-hetero-full",
+    ],
+)
 def test_out_that_would_replace_a_run_record_is_refused(runs, capsys, rel):
     root = runs[0]
     before = {p: p.read_bytes() for p in root.rglob("*") if p.is_file()}

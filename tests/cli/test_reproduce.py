@@ -12,24 +12,52 @@ from tofdenoise.cli.reproduce import copy_records, main, profile_overrides, real
 
 def test_dry_run_lists_the_realset_and_every_run(tmp_path, capsys):
     out, results, page = tmp_path / "runs", tmp_path / "results", tmp_path / "results.md"
-    assert main(["--table", "2", "--seeds", "0", "1", "--out", str(out), "--results", str(results), "--page",
-                 str(page), "--dry-run"]) == 0
+    assert (
+        main(
+            [
+                "--table",
+                "2",
+                "--seeds",
+                "0",
+                "1",
+                "--out",
+                str(out),
+                "--results",
+                str(results),
+                "--page",
+                str(page),
+                "--dry-run",
+            ]
+        )
+        == 0
+    )
     printed = capsys.readouterr().out
     assert f"realset --out {out / 'realset'} --scenes 24 --height 128 --width 160" in printed
     planned = [line for line in printed.splitlines() if ": would run" in line]
     assert len(planned) == 2 * 6
     first = planned[0]
-    for token in ("backbone=dvss_no_local", "noise=hetero", "loss=l1", "seed=0", "experiment=reproduce_cpu",
-                  f"++data.sensor={out / 'realset' / 'calibration.yaml'}",
-                  f"++data.real_dir={out / 'realset' / 'captures'}", f"paths.run_dir={out / 'dvss_no_local-hetero-l1-s0'}"):
+    for token in (
+        "backbone=dvss_no_local",
+        "noise=hetero",
+        "loss=l1",
+        "seed=0",
+        "experiment=reproduce_cpu",
+        f"++data.sensor={out / 'realset' / 'calibration.yaml'}",
+        f"++data.real_dir={out / 'realset' / 'captures'}",
+        f"paths.run_dir={out / 'dvss_no_local-hetero-l1-s0'}",
+    ):
         assert token in first
     assert not page.exists() and not results.exists()  # a dry run writes nothing
 
 
 def test_profiles_and_bad_arguments(tmp_path):
     assert profile_overrides("gpu", Path("/r"), ["data.root=/d"]) == [
-        "experiment=paper", "logger=csv", "++data.sensor=/r/calibration.yaml", "++data.real_dir=/r/captures",
-        "data.root=/d"]
+        "experiment=paper",
+        "logger=csv",
+        "++data.sensor=/r/calibration.yaml",
+        "++data.real_dir=/r/captures",
+        "data.root=/d",
+    ]
     assert realset_command(Path("/r"), "gpu")[-6:] == ["--scenes", "200", "--height", "480", "--width", "640"]
     with pytest.raises(SystemExit, match="give --table"):
         main(["--results", str(tmp_path), "--page", str(tmp_path / "p.md")])
@@ -45,14 +73,24 @@ def test_records_of_finished_runs_only_and_the_page(tmp_path):
         (d / "csv" / "metrics.csv").write_text("step,train/loss\n0,1.0\n")
         (d / "checkpoints").mkdir()
         (d / "checkpoints" / "best.ckpt").write_bytes(b"x" * 100)
-    metrics = {"synthetic": {"psnr_db": 40.0, "mae_mm": 2.5, "mse_mm2": 9.0, "ssim": 0.99,
-                             "raw": {"psnr_db": 30.0, "mae_mm": 7.0, "mse_mm2": 90.0, "ssim": 0.9}}}
+    metrics = {
+        "synthetic": {
+            "psnr_db": 40.0,
+            "mae_mm": 2.5,
+            "mse_mm2": 9.0,
+            "ssim": 0.99,
+            "raw": {"psnr_db": 30.0, "mae_mm": 7.0, "mse_mm2": 90.0, "ssim": 0.9},
+        }
+    }
     (done / "metrics.json").write_text(json.dumps(metrics))
     (done / "run_info.json").write_text(json.dumps({"finished": "2026-11-22T10:00:00+0000"}))
     (unfinished / "run_info.json").write_text(json.dumps({"started": "2026-11-22T10:00:00+0000"}))
     assert copy_records([done, unfinished], dest) == ["dvss-hetero-l1-s0"]
     assert sorted(p.relative_to(dest).as_posix() for p in dest.rglob("*") if p.is_file()) == [
-        "dvss-hetero-l1-s0/csv/metrics.csv", "dvss-hetero-l1-s0/metrics.json", "dvss-hetero-l1-s0/run_info.json"]
+        "dvss-hetero-l1-s0/csv/metrics.csv",
+        "dvss-hetero-l1-s0/metrics.json",
+        "dvss-hetero-l1-s0/run_info.json",
+    ]
     page = tmp_path / "results.md"
     assert main(["--page-only", "--results", str(tmp_path / "results"), "--page", str(page)]) == 0
     assert "| DVSS, hetero (proposed) | 40.37 / 40.00 (n=1) | 2.78 / 2.50 (n=1) |" in page.read_text()

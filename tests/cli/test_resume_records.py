@@ -46,18 +46,28 @@ def test_truncated_last_ckpt_is_named_and_the_finished_run_is_untouched(finished
     last = run_dir / "checkpoints" / "last.ckpt"
     os.truncate(last, last.stat().st_size // 2)
     before = _snapshot(run_dir)
-    cfg = compose_config(tiny(run_dir, finished_run[1]) + ["trainer.max_epochs=2", "logger=csv",
-                                                                     "ckpt_path=last"])
+    cfg = compose_config(tiny(run_dir, finished_run[1]) + ["trainer.max_epochs=2", "logger=csv", "ckpt_path=last"])
     with pytest.raises(CheckpointFileError) as err:
         run(cfg)
     msg = str(err.value)
     assert str(last) in msg and "truncated" in msg and "best.ckpt" in msg and f"delete {last}" in msg
     assert _snapshot(run_dir) == before
     # the console script: exit status 2 and one line, no traceback
-    proc = subprocess.run([sys.executable, "-c", "from tofdenoise.cli.train import main; main()",
-                           *tiny(run_dir, finished_run[1]), "logger=csv", "ckpt_path=last"],
-                          cwd=REPO, capture_output=True, text=True, timeout=300,
-                          env={**os.environ, "PYTHONPATH": str(REPO / "src")})
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            "from tofdenoise.cli.train import main; main()",
+            *tiny(run_dir, finished_run[1]),
+            "logger=csv",
+            "ckpt_path=last",
+        ],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={**os.environ, "PYTHONPATH": str(REPO / "src")},
+    )
     assert proc.returncode == 2, proc.stderr[-2000:]
     errors = [line for line in proc.stderr.splitlines() if "error" in line.lower()]
     assert len(errors) == 1 and errors[0].startswith("tofdenoise-train: error: checkpoint ")
@@ -69,8 +79,10 @@ def test_checkpoint_that_does_not_fit_the_model_leaves_the_records(finished_run,
     """Lightning fails while restoring (another network width): the records are only rewritten after a load."""
     run_dir = _copy_run(finished_run[0], tmp_path / "run")
     before = _snapshot(run_dir)
-    cfg = compose_config(tiny(run_dir, finished_run[1]) + [
-        "trainer.max_epochs=2", "logger=csv", "ckpt_path=last", "backbone.kwargs.width=16"])
+    cfg = compose_config(
+        tiny(run_dir, finished_run[1])
+        + ["trainer.max_epochs=2", "logger=csv", "ckpt_path=last", "backbone.kwargs.width=16"]
+    )
     with pytest.raises(Exception, match="another architecture"):
         run(cfg)
     assert _snapshot(run_dir) == before
@@ -100,8 +112,7 @@ def test_test_only_run_that_cannot_load_leaves_the_records(finished_run, tmp_pat
 def test_resumed_run_rewrites_its_records_after_loading(finished_run, tmp_path, tiny):
     run_dir = _copy_run(finished_run[0], tmp_path / "run")
     old = json.loads((run_dir / "run_info.json").read_text())
-    cfg = compose_config(tiny(run_dir, finished_run[1]) + ["trainer.max_epochs=2", "logger=csv",
-                                                                     "ckpt_path=last"])
+    cfg = compose_config(tiny(run_dir, finished_run[1]) + ["trainer.max_epochs=2", "logger=csv", "ckpt_path=last"])
     run(cfg)
     info = json.loads((run_dir / "run_info.json").read_text())
     assert info["started"] == old["started"] and "resumed" in info and "finished" in info
@@ -118,7 +129,7 @@ def test_check_checkpoint_file_damaged_and_foreign_files(tmp_path):
     with zipfile.ZipFile(good) as zf:
         info = next(i for i in zf.infolist() if i.filename.endswith("/data/0"))
     start = info.header_offset + 30 + len(info.filename.encode()) + len(info.extra) + 64
-    data[start:start + 16] = bytes(16)
+    data[start : start + 16] = bytes(16)
     bad = tmp_path / "last.ckpt"
     bad.write_bytes(bytes(data))
     with pytest.raises(CheckpointFileError, match=r"last\.ckpt is a damaged checkpoint .*CRC"):

@@ -15,8 +15,27 @@ def run(argv):
 
 def test_simulate_captures_writes_the_documented_format(tmp_path, capsys):
     out = tmp_path / "set"
-    assert run(["simulate-captures", "--out", out, "--scenes", 2, "--frames", 6, "--height", 24, "--width", 32,
-                "--seed", 3, "--quiet"]) == 0
+    assert (
+        run(
+            [
+                "simulate-captures",
+                "--out",
+                out,
+                "--scenes",
+                2,
+                "--frames",
+                6,
+                "--height",
+                24,
+                "--width",
+                32,
+                "--seed",
+                3,
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     assert "2 scene(s) written" in capsys.readouterr().out
     readme = (out / "README.md").read_text()
     assert "Simulated" in readme and "NOT real data" in readme
@@ -36,12 +55,47 @@ def test_simulate_captures_writes_the_documented_format(tmp_path, capsys):
     assert input_error > 1.0  # a noisy input (tap-level shot/read noise, quantisation)
     assert reference_error < 0.7 * input_error  # averaged high-exposure frames are cleaner
     # same seed -> same set; resumable: completed scenes are skipped
-    assert run(["simulate-captures", "--out", out, "--scenes", 2, "--frames", 6, "--height", 24, "--width", 32,
-                "--seed", 3, "--quiet"]) == 0
+    assert (
+        run(
+            [
+                "simulate-captures",
+                "--out",
+                out,
+                "--scenes",
+                2,
+                "--frames",
+                6,
+                "--height",
+                24,
+                "--width",
+                32,
+                "--seed",
+                3,
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     assert "0 scene(s) written, 2 already complete" in capsys.readouterr().out
     again = tmp_path / "again"
-    run(["simulate-captures", "--out", again, "--scenes", 1, "--frames", 6, "--height", 24, "--width", 32,
-         "--seed", 3, "--quiet"])
+    run(
+        [
+            "simulate-captures",
+            "--out",
+            again,
+            "--scenes",
+            1,
+            "--frames",
+            6,
+            "--height",
+            24,
+            "--width",
+            32,
+            "--seed",
+            3,
+            "--quiet",
+        ]
+    )
     np.testing.assert_array_equal(cv2.imread(str(again / "scene_0000" / "input_depth_mm.png"), -1), depth)
 
 
@@ -72,8 +126,26 @@ def test_simulate_calibration_then_calibrate_recovers_the_camera(tmp_path, capsy
     from tofdenoise.physics.capture_io import read_index
 
     caps = tmp_path / "caps"
-    assert run(["simulate-calibration", "--sensor", "cam75", "--out", caps, "--sweep-steps", 16, "--sweep-frames", 8,
-                "--distance-frames", 30, "--size", 8]) == 0
+    assert (
+        run(
+            [
+                "simulate-calibration",
+                "--sensor",
+                "cam75",
+                "--out",
+                caps,
+                "--sweep-steps",
+                16,
+                "--sweep-frames",
+                8,
+                "--distance-frames",
+                30,
+                "--size",
+                8,
+            ]
+        )
+        == 0
+    )
     assert "next: tofdenoise-sensor calibrate" in capsys.readouterr().out
     assert read_index(caps / "sweep", "sweep").modulation_frequency_hz == 75e6
     dark = read_index(caps / "dark", "dark")
@@ -82,8 +154,22 @@ def test_simulate_calibration_then_calibrate_recovers_the_camera(tmp_path, capsy
     distances = [e["distance_mm"] for e in read_index(caps / "distances", "distances").stacks]
     assert len(distances) == 10 and 400 < min(distances) and max(distances) < 1600  # inside 1999 mm
     out = tmp_path / "calibration.yaml"
-    assert run(["calibrate", "--sweep", caps / "sweep", "--dark", caps / "dark", "--distances",
-                caps / "distances", "--out", out]) == 0
+    assert (
+        run(
+            [
+                "calibrate",
+                "--sweep",
+                caps / "sweep",
+                "--dark",
+                caps / "dark",
+                "--distances",
+                caps / "distances",
+                "--out",
+                out,
+            ]
+        )
+        == 0
+    )
     got, true = load_calibration(out), resolve_calibration("cam75")
     assert got.modulation_frequency_hz == true.modulation_frequency_hz
     assert got.tap_response.contrast == pytest.approx(true.tap_response.contrast, abs=0.01)
@@ -108,13 +194,37 @@ def test_mixed_pixels_bias_the_captured_depth_at_edges(tmp_path):
     from tofdenoise.physics.calibration import resolve_calibration
     from tofdenoise.physics.mixed_pixels import mixed_pixel_map
 
-    source = ProceduralSource(num_samples=2, height=40, width=56, seed=5,
-                              max_depth_mm=0.8 * resolve_calibration("cam75").unambiguous_range_mm)
+    source = ProceduralSource(
+        num_samples=2, height=40, width=56, seed=5, max_depth_mm=0.8 * resolve_calibration("cam75").unambiguous_range_mm
+    )
     errors = {}
     for factor in (1, 3):
         out = tmp_path / f"set{factor}"
-        assert run(["simulate-captures", "--out", out, "--scenes", 2, "--frames", 6, "--height", 40, "--width", 56,
-                    "--seed", 5, "--sensor", "cam75", "--mixed-pixels", factor, "--quiet"]) == 0
+        assert (
+            run(
+                [
+                    "simulate-captures",
+                    "--out",
+                    out,
+                    "--scenes",
+                    2,
+                    "--frames",
+                    6,
+                    "--height",
+                    40,
+                    "--width",
+                    56,
+                    "--seed",
+                    5,
+                    "--sensor",
+                    "cam75",
+                    "--mixed-pixels",
+                    factor,
+                    "--quiet",
+                ]
+            )
+            == 0
+        )
         at_edges, elsewhere = [], []
         for scene in sorted(out.glob("scene_*")):
             info = json.loads((scene / "scene.json").read_text())
@@ -132,7 +242,30 @@ def test_mixed_pixels_bias_the_captured_depth_at_edges(tmp_path):
     assert errors[3][1] < 2 * errors[1][1] + 1.0, errors  # smooth regions: mixing changes (almost) nothing
     # another --mixed-pixels is another set: the completed scenes are simulated again, not reused
     out = tmp_path / "set1"
-    assert run(["simulate-captures", "--out", out, "--scenes", 2, "--frames", 6, "--height", 40, "--width", 56,
-                "--seed", 5, "--sensor", "cam75", "--mixed-pixels", 3, "--quiet"]) == 0
+    assert (
+        run(
+            [
+                "simulate-captures",
+                "--out",
+                out,
+                "--scenes",
+                2,
+                "--frames",
+                6,
+                "--height",
+                40,
+                "--width",
+                56,
+                "--seed",
+                5,
+                "--sensor",
+                "cam75",
+                "--mixed-pixels",
+                3,
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     assert json.loads((out / "scene_0000" / "scene.json").read_text())["mixed_pixels"] == 3
     assert run(["simulate-captures", "--out", out, "--scenes", 1, "--frames", 2, "--mixed-pixels", 0]) == 2

@@ -24,8 +24,16 @@ def test_show_calib_json_field_names(capsys):
     assert run(["show-calib", "--json"]) == 0
     data = json.loads(capsys.readouterr().out)
     assert list(data) == [
-        "num_taps", "modulation_frequency_hz", "tap_response", "dark_mean_e", "dark_std_e",
-        "signal_min_e", "signal_max_e", "full_well_e", "adc_gain_e_per_dn", "range_sigma_mm",
+        "num_taps",
+        "modulation_frequency_hz",
+        "tap_response",
+        "dark_mean_e",
+        "dark_std_e",
+        "signal_min_e",
+        "signal_max_e",
+        "full_well_e",
+        "adc_gain_e_per_dn",
+        "range_sigma_mm",
     ]
     assert list(data["tap_response"]) == ["c0", "cos", "sin"]
     assert data == default_calibration().to_dict()
@@ -79,8 +87,22 @@ def test_calibrate_command_round_trip(tmp_path, capsys):
     write_dark_folder(true, tmp_path / "dark", num_frames=50)
     write_distances_folder(true, tmp_path / "dist", [600.0, 900.0, 1200.0, 1500.0], num_frames=40)
     out = tmp_path / "calib.yaml"
-    assert run(["calibrate", "--sweep", str(tmp_path / "sweep"), "--dark", str(tmp_path / "dark"),
-                "--distances", str(tmp_path / "dist"), "--out", str(out)]) == 0
+    assert (
+        run(
+            [
+                "calibrate",
+                "--sweep",
+                str(tmp_path / "sweep"),
+                "--dark",
+                str(tmp_path / "dark"),
+                "--distances",
+                str(tmp_path / "dist"),
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     assert "wrote" in capsys.readouterr().out
     got = load_calibration(out)
     assert out.read_text().startswith("# Calibrated by tofdenoise-sensor calibrate")
@@ -106,9 +128,11 @@ def test_sigma_prints_strict_json_and_refuses_meaningless_depths(capsys):
     out = capsys.readouterr().out
     assert "NaN" not in out and "Infinity" not in out
     rows = json.loads(out)  # strict JSON
-    assert rows == [{"depth_mm": None, "signal_e": 10000.0, "sigma_mm": None},
-                    {"depth_mm": None, "signal_e": 10000.0, "sigma_mm": None},
-                    {"depth_mm": 1000.0, "signal_e": None, "sigma_mm": None}]
+    assert rows == [
+        {"depth_mm": None, "signal_e": 10000.0, "sigma_mm": None},
+        {"depth_mm": None, "signal_e": 10000.0, "sigma_mm": None},
+        {"depth_mm": 1000.0, "signal_e": None, "sigma_mm": None},
+    ]
     r = default_calibration().unambiguous_range_mm
     assert main(["sigma", "--depth-mm", str(0.99e6 * r), "--signal-e", "10000"]) == 0  # far, but allowed
     capsys.readouterr()
@@ -126,8 +150,9 @@ def test_unknown_preset_lists_the_presets(capsys):
     assert main(["show-calib", "--calib", "default"]) == 0
 
 
-@pytest.mark.parametrize("argv", [["show-calib"], ["show-calib", "--json"],
-                                  ["sigma", "--depth-mm", "1000", "--signal-e", "10000"]])
+@pytest.mark.parametrize(
+    "argv", [["show-calib"], ["show-calib", "--json"], ["sigma", "--depth-mm", "1000", "--signal-e", "10000"]]
+)
 def test_closed_stdout_pipe_ends_quietly(argv):
     """`tofdenoise-sensor show-calib | head`: the reader is gone before anything is written."""
     import os
@@ -139,9 +164,14 @@ def test_closed_stdout_pipe_ends_quietly(argv):
     os.close(read_end)
     src = Path(__file__).resolve().parents[2] / "src"
     try:
-        proc = subprocess.run([sys.executable, "-c", "import sys; from tofdenoise.cli.sensor import main; "
-                               "sys.exit(main())", *argv], stdout=write_end, stderr=subprocess.PIPE, text=True,
-                              timeout=120, env={**os.environ, "PYTHONPATH": str(src)})
+        proc = subprocess.run(
+            [sys.executable, "-c", "import sys; from tofdenoise.cli.sensor import main; sys.exit(main())", *argv],
+            stdout=write_end,
+            stderr=subprocess.PIPE,
+            text=True,
+            timeout=120,
+            env={**os.environ, "PYTHONPATH": str(src)},
+        )
     finally:
         os.close(write_end)
     assert proc.returncode == 141 and proc.stderr == ""

@@ -14,6 +14,10 @@ from pathlib import Path
 import pytest
 import torch
 
+from tofdenoise.cli.train import run
+from tofdenoise.config import compose_config
+from tofdenoise.models import trainable_backbones
+from tofdenoise.training.metrics import METRIC_KEYS
 from tofdenoise.training.results import (
     RUN_KEYS,
     learned_status,
@@ -21,10 +25,6 @@ from tofdenoise.training.results import (
     read_metrics_json,
     read_per_image_csv,
 )
-from tofdenoise.cli.train import run
-from tofdenoise.config import compose_config
-from tofdenoise.training.metrics import METRIC_KEYS
-from tofdenoise.models import trainable_backbones
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -88,8 +88,15 @@ def test_smoke_run_writes_every_output(tmp_path, data_cache, tiny):
 
 def _cli(args: list[str], **kw) -> subprocess.CompletedProcess:
     env = {**os.environ, "PYTHONUNBUFFERED": "1", "WANDB_MODE": "offline"}
-    return subprocess.run([sys.executable, "-m", "tofdenoise.cli.train", *args], capture_output=True, text=True,
-                          cwd=REPO, env=env, timeout=300, **kw)
+    return subprocess.run(
+        [sys.executable, "-m", "tofdenoise.cli.train", *args],
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+        env=env,
+        timeout=300,
+        **kw,
+    )
 
 
 def test_command_line_rejects_unknown_names_with_the_valid_ones(tmp_path):
@@ -104,15 +111,23 @@ def test_resume_after_sigkill_reaches_the_same_number_of_steps(tmp_path, data_ca
     uninterrupted run of the same config."""
     steps_per_epoch, epochs = 12, 2  # 40 scenes -> 24 training samples, batch 2
     common = tiny("RUN", data_cache, num_samples=40) + [
-        f"trainer.max_epochs={epochs}", "callbacks.model_checkpoint.every_n_train_steps=2", "logger=csv"]
+        f"trainer.max_epochs={epochs}",
+        "callbacks.model_checkpoint.every_n_train_steps=2",
+        "logger=csv",
+    ]
 
     def args(run_dir: Path, extra=()) -> list[str]:
         return [a.replace("RUN", str(run_dir)) for a in common] + list(extra)
 
     killed = tmp_path / "killed"
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    proc = subprocess.Popen([sys.executable, "-m", "tofdenoise.cli.train", *args(killed)], cwd=REPO, env=env,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "tofdenoise.cli.train", *args(killed)],
+        cwd=REPO,
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+    )
     last = killed / "checkpoints" / "last.ckpt"
     deadline = time.time() + 240
     try:
@@ -152,14 +167,18 @@ def test_resume_after_sigkill_reaches_the_same_number_of_steps(tmp_path, data_ca
     # the cosine schedule continued where it stopped: same final learning rate and scheduler step count
     assert end_resumed["lr_schedulers"][0]["last_epoch"] == end_fresh["lr_schedulers"][0]["last_epoch"]
     assert end_resumed["optimizer_states"][0]["param_groups"][0]["lr"] == pytest.approx(
-        end_fresh["optimizer_states"][0]["param_groups"][0]["lr"])
+        end_fresh["optimizer_states"][0]["param_groups"][0]["lr"]
+    )
     _check_metrics_json(killed / "metrics.json")
+
     # the CSV log went on across the kill: every optimiser step and every epoch's validation exactly once,
     # the same rows as the uninterrupted run
     def log_rows(run_dir: Path) -> list[tuple[str, str, tuple[str, ...]]]:
         with open(run_dir / "csv" / "metrics.csv", newline="") as fh:
-            return [(r["epoch"], r["step"], tuple(sorted(k for k, v in r.items() if v and k not in ("epoch", "step"))))
-                    for r in csv.DictReader(fh)]
+            return [
+                (r["epoch"], r["step"], tuple(sorted(k for k, v in r.items() if v and k not in ("epoch", "step"))))
+                for r in csv.DictReader(fh)
+            ]
 
     rows_killed = log_rows(killed)
     train_steps = [int(s) for _, s, keys in rows_killed if "train/loss_step" in keys]
@@ -170,8 +189,11 @@ def test_resume_after_sigkill_reaches_the_same_number_of_steps(tmp_path, data_ca
 
 def _val_csv(run_dir: Path) -> list[tuple[int, float, float]]:
     with open(run_dir / "csv" / "metrics.csv") as fh:
-        return [(int(r["epoch"]), float(r["val/mae_mm"]), float(r["val/raw/mae_mm"]))
-                for r in csv.DictReader(fh) if r.get("val/mae_mm")]
+        return [
+            (int(r["epoch"]), float(r["val/mae_mm"]), float(r["val/raw/mae_mm"]))
+            for r in csv.DictReader(fh)
+            if r.get("val/mae_mm")
+        ]
 
 
 def test_ddp_two_cpu_processes(tmp_path, data_cache, tiny):
@@ -182,9 +204,19 @@ def test_ddp_two_cpu_processes(tmp_path, data_cache, tiny):
     the fix the repeated image was counted twice (test images 6, wrong means)."""
     data = ["++data.split_ratios=[6,3,5]"]  # 14 scenes -> 6 train, 3 val, 5 test
     run_dir = tmp_path / "ddp"
-    args = tiny(run_dir, data_cache, num_samples=14) + data + [
-        "trainer=ddp", "trainer.accelerator=cpu", "trainer.devices=2", "trainer.precision=32-true",
-        "trainer.sync_batchnorm=false", "trainer.max_epochs=2", "logger=csv"]
+    args = (
+        tiny(run_dir, data_cache, num_samples=14)
+        + data
+        + [
+            "trainer=ddp",
+            "trainer.accelerator=cpu",
+            "trainer.devices=2",
+            "trainer.precision=32-true",
+            "trainer.sync_batchnorm=false",
+            "trainer.max_epochs=2",
+            "logger=csv",
+        ]
+    )
     proc = _cli(args)
     assert proc.returncode == 0, proc.stderr[-3000:]
     ddp = _check_metrics_json(run_dir / "metrics.json")
@@ -200,8 +232,13 @@ def test_ddp_two_cpu_processes(tmp_path, data_cache, tiny):
 
     # test: one process, the same best.ckpt, the same 5 images
     single_dir = tmp_path / "single"
-    run(compose_config(tiny(single_dir, data_cache, num_samples=14) + data + [
-        "train=false", f"ckpt_path={run_dir / 'checkpoints' / 'best.ckpt'}", "logger=csv"]))
+    run(
+        compose_config(
+            tiny(single_dir, data_cache, num_samples=14)
+            + data
+            + ["train=false", f"ckpt_path={run_dir / 'checkpoints' / 'best.ckpt'}", "logger=csv"]
+        )
+    )
     single = read_metrics_json(single_dir / "metrics.json")
     assert ddp["synthetic"] == single["synthetic"]  # every mean, pooled value and count, raw block included
     assert rows == read_per_image_csv(single_dir / "per_image" / "synthetic.csv")
@@ -214,8 +251,14 @@ def test_ddp_two_cpu_processes(tmp_path, data_cache, tiny):
 
     cfg = compose_config(tiny(single_dir, data_cache, num_samples=14) + data)
     model = DepthRestorer.load_from_checkpoint(run_dir / "checkpoints" / "last.ckpt")
-    trainer = Trainer(accelerator="cpu", devices=1, logger=False, enable_checkpointing=False,
-                      enable_progress_bar=False, enable_model_summary=False)
+    trainer = Trainer(
+        accelerator="cpu",
+        devices=1,
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+    )
     (val,) = trainer.validate(model, datamodule=instantiate(cfg.data, _convert_="all"))
     logged = _val_csv(run_dir)
     assert [e for e, _, _ in logged] == [0, 1]
@@ -239,16 +282,19 @@ def test_max_epochs_0_is_recorded_as_not_trained(tmp_path, data_cache, tiny, cap
     assert warnings and all(w.startswith("WARNING: the network was not trained") for w in warnings)
 
 
-def test_a_run_that_does_not_learn_is_flagged_and_a_test_of_its_checkpoint_too(tmp_path, data_cache, tiny,
-                                                                                 capsys):
+def test_a_run_that_does_not_learn_is_flagged_and_a_test_of_its_checkpoint_too(tmp_path, data_cache, tiny, capsys):
     """One epoch at a learning rate far too small to move the weights: the best val MAE stays at the raw MAE,
     so learned is false with the numbers in the reason; testing the saved best.ckpt alone (train=false) takes
     the record from the checkpoint and says the same."""
     run_dir = tmp_path / "tiny-lr"
-    run(compose_config(tiny(run_dir, data_cache) + ["trainer.max_epochs=1", "logger=csv", "++model.lr=1e-12",
-                                                     "++model.lr_min=0", "++model.warmup_steps=0"]))
+    run(
+        compose_config(
+            tiny(run_dir, data_cache)
+            + ["trainer.max_epochs=1", "logger=csv", "++model.lr=1e-12", "++model.lr_min=0", "++model.warmup_steps=0"]
+        )
+    )
     data = _check_metrics_json(run_dir / "metrics.json")
-    (epoch, val_mae, raw_mae), = _val_csv(run_dir)
+    ((epoch, val_mae, raw_mae),) = _val_csv(run_dir)
     assert data["trained_steps"] == 3 == json.loads((run_dir / "run_info.json").read_text())["global_step"]
     assert data["best_val_mae_mm"] == pytest.approx(val_mae, rel=1e-6)
     assert data["raw_val_mae_mm"] == pytest.approx(raw_mae, rel=1e-6)
@@ -259,13 +305,22 @@ def test_a_run_that_does_not_learn_is_flagged_and_a_test_of_its_checkpoint_too(t
     assert warnings and warnings[-1] == f"WARNING: the network {data['learned_reason']}; treat this run as failed"
 
     test_dir = tmp_path / "test-only"
-    run(compose_config(tiny(test_dir, data_cache) + [
-        "train=false", f"ckpt_path={run_dir / 'checkpoints' / 'best.ckpt'}", "logger=csv",
-        "++model.learned_margin=0.5"]))
+    run(
+        compose_config(
+            tiny(test_dir, data_cache)
+            + [
+                "train=false",
+                f"ckpt_path={run_dir / 'checkpoints' / 'best.ckpt'}",
+                "logger=csv",
+                "++model.learned_margin=0.5",
+            ]
+        )
+    )
     again = read_metrics_json(test_dir / "metrics.json")
     # best.ckpt is the last step here: the same record; the margin is the configured one
     assert {k: again[k] for k in ("trained_steps", "best_val_mae_mm", "raw_val_mae_mm", "learned")} == {
-        k: data[k] for k in ("trained_steps", "best_val_mae_mm", "raw_val_mae_mm", "learned")}
+        k: data[k] for k in ("trained_steps", "best_val_mae_mm", "raw_val_mae_mm", "learned")
+    }
     assert again["learned_margin"] == 0.5 and "50% below raw" in again["learned_reason"]
     assert _summary_lines(capsys.readouterr().out)[-1].startswith("WARNING: the network did not learn")
 
@@ -275,8 +330,10 @@ def test_signal_channel_from_the_config_alone(backbone, tmp_path, data_cache, ti
     """`model.use_signal_channel=true` is the only switch: the backbone configs leave in_channels to the module."""
     from tofdenoise.training.module import DepthRestorer
 
-    cfg = compose_config(tiny(tmp_path, data_cache, backbone)
-                         + ["+trainer.fast_dev_run=true", "logger=csv", "++model.use_signal_channel=true"])
+    cfg = compose_config(
+        tiny(tmp_path, data_cache, backbone)
+        + ["+trainer.fast_dev_run=true", "logger=csv", "++model.use_signal_channel=true"]
+    )
     assert "in_channels" not in cfg.backbone.kwargs
     run(cfg)
     data = _check_metrics_json(tmp_path / "metrics.json")
@@ -298,7 +355,9 @@ def test_two_identical_runs_give_identical_metrics(tmp_path, tiny):
         outs.append(tmp_path / name)
     a, b = (json.loads((d / "metrics.json").read_text()) for d in outs)
     assert a == b
-    assert (outs[0] / "per_image" / "synthetic.csv").read_text() == (outs[1] / "per_image" / "synthetic.csv").read_text()
+    assert (outs[0] / "per_image" / "synthetic.csv").read_text() == (
+        outs[1] / "per_image" / "synthetic.csv"
+    ).read_text()
     ta = torch.load(outs[0] / "checkpoints" / "last.ckpt", weights_only=True)["state_dict"]
     tb = torch.load(outs[1] / "checkpoints" / "last.ckpt", weights_only=True)["state_dict"]
     assert all(torch.equal(ta[k], tb[k]) for k in ta)

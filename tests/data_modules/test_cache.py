@@ -34,8 +34,7 @@ class StatusDataset(Dataset):
 
     def __getitem__(self, i):
         maps, status = self.provider.get(self.ids[i])
-        return {"status": status, "pid": os.getpid(), "sigma": torch.from_numpy(maps.sigma_mm),
-                "id": self.ids[i]}
+        return {"status": status, "pid": os.getpid(), "sigma": torch.from_numpy(maps.sigma_mm), "id": self.ids[i]}
 
 
 def read_all(provider, ids, workers=2):

@@ -14,8 +14,15 @@ from tofdenoise.physics.noise_models import available_noise_models
 
 def compose(tmp_path, data: str, noise: str, **overrides):
     """The real train.yaml composition (its data.noise / data.sensor interpolations included) with data overrides."""
-    return compose_config([f"data={data}", f"noise={noise}", f"paths.run_dir={tmp_path}/run",
-                           f"++data.cache_dir={tmp_path}/cache", *(f"data.{k}={v}" for k, v in overrides.items())])
+    return compose_config(
+        [
+            f"data={data}",
+            f"noise={noise}",
+            f"paths.run_dir={tmp_path}/run",
+            f"++data.cache_dir={tmp_path}/cache",
+            *(f"data.{k}={v}" for k, v in overrides.items()),
+        ]
+    )
 
 
 def test_noise_configs_match_the_physics_registry():
@@ -44,8 +51,9 @@ def test_dataset_configs_ask_for_root(tmp_path, monkeypatch):
     for data in ("flyingthings3d", "folder"):
         cfg = compose(tmp_path, data, "hetero")
         assert OmegaConf.load(CONFIG_DIR / "data" / f"{data}.yaml")._target_ == "tofdenoise.data_modules.ToFDataModule"
-        with pytest.raises(InstantiationException,
-                           match=rf"ValueError\('the {data} source needs its dataset folder: set data\.root=") as err:
+        with pytest.raises(
+            InstantiationException, match=rf"ValueError\('the {data} source needs its dataset folder: set data\.root="
+        ) as err:
             hydra.utils.instantiate(cfg.data, _convert_="all")
         assert isinstance(err.value.__cause__, ValueError)
 

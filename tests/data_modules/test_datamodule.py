@@ -84,7 +84,7 @@ def test_crops_keep_maps_aligned(tmp_path):
             view = np.flip(crop, flips) if flips else crop
             for top in range(48 - 16 + 1):
                 for left in range(64 - 16 + 1):
-                    if np.array_equal(ref["clean"][top:top + 16, left:left + 16], view):
+                    if np.array_equal(ref["clean"][top : top + 16, left : left + 16], view):
                         window = (slice(top, top + 16), slice(left, left + 16))
                         for key in ("sigma", "amplitude", "mask"):
                             got = np.flip(item[key][0].numpy(), flips) if flips else item[key][0].numpy()
@@ -123,9 +123,9 @@ def test_variance_matching_equals_hetero_mean_variance(tmp_path, monkeypatch):
     assert dm.noise_model.scale == pytest.approx(k)
     alpha = [1.0, 0.002, 1e-6]
     rng = make_dm(tmp_path, noise="range", noise_kwargs={"alpha_mm": alpha})
-    base2 = (alpha[0] + alpha[1] * depth + alpha[2] * depth ** 2) ** 2
+    base2 = (alpha[0] + alpha[1] * depth + alpha[2] * depth**2) ** 2
     k_range = rng.summary()["variance_scale"]
-    assert k_range ** 2 * base2.mean() == pytest.approx(sigma2.mean(), rel=1e-6)
+    assert k_range**2 * base2.mean() == pytest.approx(sigma2.mean(), rel=1e-6)
     # stored next to the cache and reused when the keys match: no recomputation in a new instance
     records = list(rng.cache.folder.glob("variance_scale_range_*.json"))
     assert len(records) == 1 and json.loads(records[0].read_text())["scale"] == pytest.approx(k_range)
@@ -191,8 +191,11 @@ def test_evaluation_inputs_do_not_depend_on_the_training_noise(tmp_path):
     fixed = make_dm(tmp_path, noise="fixed", flips=False, crop_size=None)
     hetero = make_dm(tmp_path, noise="hetero", flips=False, crop_size=None)
     assert fixed.noise_model.name != hetero.noise_model.name
-    for loaders in (lambda dm: [dm.val_dataloader()], lambda dm: dm.test_dataloader(),
-                    lambda dm: [dm.predict_dataloader()]):
+    for loaders in (
+        lambda dm: [dm.val_dataloader()],
+        lambda dm: dm.test_dataloader(),
+        lambda dm: [dm.predict_dataloader()],
+    ):
         a = [b for loader in loaders(fixed) for b in loader]
         b = [b for loader in loaders(hetero) for b in loader]
         assert len(a) == len(b) > 0

@@ -60,20 +60,30 @@ def write_exr(path, channels: dict[str, np.ndarray], compression: int) -> None:
     float16 -> HALF, float32 -> FLOAT."""
     names = sorted(channels)
     h, w = channels[names[0]].shape
-    chlist = b"".join(n.encode() + b"\0" + struct.pack("<iB3xii", PIXEL_TYPES[channels[n].dtype], 0, 1, 1)
-                      for n in names) + b"\0"
-    header = (struct.pack("<ii", 20000630, 2) + _attr("channels", "chlist", chlist)
-              + _attr("compression", "compression", bytes([compression]))
-              + _attr("dataWindow", "box2i", struct.pack("<4i", 0, 0, w - 1, h - 1))
-              + _attr("displayWindow", "box2i", struct.pack("<4i", 0, 0, w - 1, h - 1))
-              + _attr("lineOrder", "lineOrder", b"\0") + _attr("pixelAspectRatio", "float", struct.pack("<f", 1))
-              + _attr("screenWindowCenter", "v2f", struct.pack("<2f", 0, 0))
-              + _attr("screenWindowWidth", "float", struct.pack("<f", 1)) + b"\0")
+    chlist = (
+        b"".join(n.encode() + b"\0" + struct.pack("<iB3xii", PIXEL_TYPES[channels[n].dtype], 0, 1, 1) for n in names)
+        + b"\0"
+    )
+    header = (
+        struct.pack("<ii", 20000630, 2)
+        + _attr("channels", "chlist", chlist)
+        + _attr("compression", "compression", bytes([compression]))
+        + _attr("dataWindow", "box2i", struct.pack("<4i", 0, 0, w - 1, h - 1))
+        + _attr("displayWindow", "box2i", struct.pack("<4i", 0, 0, w - 1, h - 1))
+        + _attr("lineOrder", "lineOrder", b"\0")
+        + _attr("pixelAspectRatio", "float", struct.pack("<f", 1))
+        + _attr("screenWindowCenter", "v2f", struct.pack("<2f", 0, 0))
+        + _attr("screenWindowWidth", "float", struct.pack("<f", 1))
+        + b"\0"
+    )
     lines = 16 if compression == 3 else 1
     chunks = []
     for y in range(0, h, lines):
-        raw = b"".join(channels[n][row].astype(channels[n].dtype.newbyteorder("<")).tobytes()
-                       for row in range(y, min(y + lines, h)) for n in names)
+        raw = b"".join(
+            channels[n][row].astype(channels[n].dtype.newbyteorder("<")).tobytes()
+            for row in range(y, min(y + lines, h))
+            for n in names
+        )
         data = raw if compression == 0 else _rle_pack(raw) if compression == 1 else _zip_pack(raw)
         if len(data) >= len(raw):
             data = raw  # stored uncompressed when compression does not help (as OpenEXR does)

@@ -96,8 +96,9 @@ def test_datamodule_on_fixture(tmp_path):
     from tofdenoise.data_modules import ToFDataModule
 
     write_ft3d(tmp_path, [f"t{i:03d}" for i in range(7)], [f"v{i:03d}" for i in range(3)])
-    dm = ToFDataModule(source="flyingthings3d", root=str(tmp_path), cache_dir=str(tmp_path / "cache"), crop_size=16,
-                       batch_size=2)
+    dm = ToFDataModule(
+        source="flyingthings3d", root=str(tmp_path), cache_dir=str(tmp_path / "cache"), crop_size=16, batch_size=2
+    )
     dm.prepare_data()
     dm.setup("fit")
     assert {k: len(v) for k, v in dm.splits.items()} == {"train": 6, "val": 2, "test": 2}

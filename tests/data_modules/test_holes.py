@@ -45,8 +45,9 @@ def test_low_signal_rule_matches_the_simulator_decision_statistics():
     thr = default_min_amplitude_e(CALIB)
     signal_at_thr = thr / c1
     n = 20000
-    sim = simulate_frames(torch.full((n,), 1000.0), torch.full((n,), signal_at_thr), CALIB, 1,
-                          generator=gen(1), quantize=False)
+    sim = simulate_frames(
+        torch.full((n,), 1000.0), torch.full((n,), signal_at_thr), CALIB, 1, generator=gen(1), quantize=False
+    )
     sim_drop = 1.0 - float(sim.valid.double().mean())
     # one column at the threshold (after the fraction's scaling): fraction f of a two-level image
     signal = torch.cat([torch.full((n,), CALIB.signal_min_e), torch.full((n,), CALIB.signal_max_e)])[None]

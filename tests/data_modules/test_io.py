@@ -7,8 +7,16 @@ import numpy as np
 import pytest
 
 from tofdenoise.atomic import atomic_write
-from tofdenoise.data_modules.io import (DataFileError, depth_mm_to_png16, read_amplitude, read_depth_mm,
-                                        read_mat, read_npy, read_png_uint16, write_depth_png16)
+from tofdenoise.data_modules.io import (
+    DataFileError,
+    depth_mm_to_png16,
+    read_amplitude,
+    read_depth_mm,
+    read_mat,
+    read_npy,
+    read_png_uint16,
+    write_depth_png16,
+)
 
 
 def test_missing_file_names_the_path(tmp_path):

@@ -8,12 +8,23 @@ import time
 import numpy as np
 import pytest
 
-from tofdenoise.data_modules.sources.procedural import (Box, Cylinder, InverseDepthPlane, ProceduralSource, SceneSpec,
-                                                        Sphere, Texture, focal_length_px, generate_scene,
-                                                        pixel_rays, render_scene)
+from tofdenoise.data_modules.sources.procedural import (
+    Box,
+    Cylinder,
+    InverseDepthPlane,
+    ProceduralSource,
+    SceneSpec,
+    Sphere,
+    Texture,
+    focal_length_px,
+    generate_scene,
+    pixel_rays,
+    render_scene,
+)
 
-UNIFORM = Texture(base=0.5, kind="uniform", contrast=0.0, period_mm=100.0, direction=(1.0, 0.0, 0.0),
-                  phases=(0.0, 0.0, 0.0))
+UNIFORM = Texture(
+    base=0.5, kind="uniform", contrast=0.0, period_mm=100.0, direction=(1.0, 0.0, 0.0), phases=(0.0, 0.0, 0.0)
+)
 
 
 def _spec(*prims, h=48, w=64):
@@ -51,7 +62,7 @@ def test_fronto_parallel_plane_depth_and_inverse_square_amplitude():
     np.testing.assert_allclose(depth, 1000.0, rtol=1e-5)
     x, y = pixel_rays(48, 64)
     norm = np.sqrt(x * x + y * y + 1.0)
-    np.testing.assert_allclose(amp, 0.5 / norm ** 3, rtol=1e-4)
+    np.testing.assert_allclose(amp, 0.5 / norm**3, rtol=1e-4)
 
 
 def test_sphere_box_cylinder_analytic_depths():

@@ -10,8 +10,13 @@ import numpy as np
 import pytest
 import torch
 
-from tofdenoise.data_modules.real_captures import (REFERENCE_COUNT, REFERENCE_DEPTH, accumulate_reference,
-                                                   build_reference, load_real_scene)
+from tofdenoise.data_modules.real_captures import (
+    REFERENCE_COUNT,
+    REFERENCE_DEPTH,
+    accumulate_reference,
+    build_reference,
+    load_real_scene,
+)
 
 H, W = 6, 8
 
@@ -108,8 +113,9 @@ def test_real_test_dataloader_on_simulated_set(tmp_path):
     from tofdenoise.data_modules.capture_simulation import simulate_capture_set
 
     simulate_capture_set(tmp_path / "set", scenes=3, frames=4, height=32, width=48, seed=1)
-    dm = ToFDataModule(num_samples=6, height=32, width=48, crop_size=16, cache_dir=str(tmp_path / "c"),
-                       real_dir=str(tmp_path / "set"))
+    dm = ToFDataModule(
+        num_samples=6, height=32, width=48, crop_size=16, cache_dir=str(tmp_path / "c"), real_dir=str(tmp_path / "set")
+    )
     dm.prepare_data()
     dm.setup("test")
     assert dm.test_set_names == ["synthetic", "real"]
@@ -129,8 +135,14 @@ def test_real_test_dataloader_on_simulated_set(tmp_path):
 def test_missing_real_dir_names_the_key(tmp_path):
     from tofdenoise.data_modules import ToFDataModule
 
-    dm = ToFDataModule(num_samples=6, height=32, width=48, crop_size=16, cache_dir=str(tmp_path / "c"),
-                       real_dir=str(tmp_path / "nowhere"))
+    dm = ToFDataModule(
+        num_samples=6,
+        height=32,
+        width=48,
+        crop_size=16,
+        cache_dir=str(tmp_path / "c"),
+        real_dir=str(tmp_path / "nowhere"),
+    )
     with pytest.raises(FileNotFoundError, match="data.real_dir"):
         dm.prepare_data()
 
@@ -141,8 +153,9 @@ def test_scene_without_common_valid_region_is_skipped(tmp_path):
 
     simulate_capture_set(tmp_path / "set", scenes=2, frames=2, height=16, width=24, seed=2)
     cv2.imwrite(str(tmp_path / "set" / "scene_0001" / "input_depth_mm.png"), np.zeros((16, 24), np.uint16))
-    dm = ToFDataModule(num_samples=6, height=16, width=24, crop_size=8, cache_dir=str(tmp_path / "c"),
-                       real_dir=str(tmp_path / "set"))
+    dm = ToFDataModule(
+        num_samples=6, height=16, width=24, crop_size=8, cache_dir=str(tmp_path / "c"), real_dir=str(tmp_path / "set")
+    )
     with pytest.warns(UserWarning, match="1 scene\\(s\\) with no common valid pixel skipped: scene_0001"):
         dm.prepare_data()
     assert dm.skipped_samples["real"] == ["scene_0001"] and dm.summary()["real_scenes"] == 1
@@ -157,14 +170,18 @@ def test_scene_without_input_frame_is_warned_and_counted(tmp_path):
     (tmp_path / "set" / "scene_0001" / "input_depth_mm.png").unlink()
     (tmp_path / "set" / "notes").mkdir()  # an unrelated folder is no scene and no warning
     incomplete: list[str] = []
-    with pytest.warns(UserWarning, match=r"1 scene folder\(s\) with hiexp/ but no input_depth_mm\.png skipped: "
-                                         r"scene_0001"):
+    with pytest.warns(
+        UserWarning,
+        match=r"1 scene folder\(s\) with hiexp/ but no input_depth_mm\.png skipped: "
+        r"scene_0001",
+    ):
         scenes = list_scenes(tmp_path / "set", incomplete=incomplete)
     assert [s.name for s in scenes] == ["scene_0000", "scene_0002"] and incomplete == ["scene_0001"]
     # an empty-mask scene and the incomplete one are both counted as skipped by the datamodule
     cv2.imwrite(str(tmp_path / "set" / "scene_0002" / "input_depth_mm.png"), np.zeros((16, 24), np.uint16))
-    dm = ToFDataModule(num_samples=6, height=16, width=24, crop_size=8, cache_dir=str(tmp_path / "c"),
-                       real_dir=str(tmp_path / "set"))
+    dm = ToFDataModule(
+        num_samples=6, height=16, width=24, crop_size=8, cache_dir=str(tmp_path / "c"), real_dir=str(tmp_path / "set")
+    )
     with pytest.warns(UserWarning, match="hiexp/ but no input_depth_mm.png"):
         dm.prepare_data()
     assert dm.skipped_samples["real"] == ["scene_0001", "scene_0002"]
@@ -176,16 +193,20 @@ def test_metrics_json_counts_the_scenes_the_datamodule_skipped(tmp_path):
     import json
     from types import SimpleNamespace
 
-    from tofdenoise.training.results import set_entry
     from tofdenoise.callbacks.run_outputs import write_test_outputs
+    from tofdenoise.training.results import set_entry
 
     m = {"psnr_db": 40.0, "mae_mm": 2.0, "mse_mm2": 9.0, "ssim": 0.99}
     model = SimpleNamespace(
-        test_results={"synthetic": set_entry(m, m, {"images": 2, "skipped_images": 0, "valid_px": 10}),
-                      "real": set_entry(m, m, {"images": 1, "skipped_images": 1, "valid_px": 5})},
+        test_results={
+            "synthetic": set_entry(m, m, {"images": 2, "skipped_images": 0, "valid_px": 10}),
+            "real": set_entry(m, m, {"images": 1, "skipped_images": 1, "valid_px": 5}),
+        },
         test_per_image={},
-        _trainer=SimpleNamespace(datamodule=SimpleNamespace(
-            skipped_samples={"real": ["scene_0001", "scene_0002"], "train": ["x"]})))
+        _trainer=SimpleNamespace(
+            datamodule=SimpleNamespace(skipped_samples={"real": ["scene_0001", "scene_0002"], "train": ["x"]})
+        ),
+    )
     write_test_outputs(model, tmp_path)
     data = json.loads((tmp_path / "metrics.json").read_text())
     assert data["real"]["skipped_images"] == 3 and data["real"]["images"] == 1
@@ -197,8 +218,8 @@ def test_reference_validity_changes_only_the_scoring_mask(tmp_path):
     """The real set's network input is the frame as captured: invalidating part of the reference shrinks the
     scoring mask (common ROI of input and reference) but leaves the input, and the network input, unchanged."""
     from tofdenoise.data_modules.capture_simulation import simulate_capture_set
-    from tofdenoise.training.module import DepthRestorer
     from tofdenoise.physics.calibration import default_calibration
+    from tofdenoise.training.module import DepthRestorer
 
     simulate_capture_set(tmp_path / "set", scenes=1, frames=4, height=24, width=32, seed=3)
     scene = tmp_path / "set" / "scene_0000"

@@ -56,9 +56,14 @@ def test_bad_ratios_and_too_few_samples():
         split_sizes(2, (1, 5, 5))  # val 1 + test 1 leave no training sample
 
 
-@pytest.mark.parametrize("edit", ['{"train": ["x0", "x1",], "val": []}',  # trailing comma: not JSON
-                                  '{"train": ["x0"], "val": ["x1"]}',  # no "test"
-                                  '["x0"]'])
+@pytest.mark.parametrize(
+    "edit",
+    [
+        '{"train": ["x0", "x1",], "val": []}',  # trailing comma: not JSON
+        '{"train": ["x0"], "val": ["x1"]}',  # no "test"
+        '["x0"]',
+    ],
+)
 def test_edited_split_that_does_not_parse_is_an_error_naming_the_file(tmp_path, edit):
     ids = [f"x{i}" for i in range(10)]
     path = tmp_path / "split_seed0_6-2-2.json"

@@ -9,10 +9,10 @@ from pathlib import Path
 
 import pytest
 
-from tofdenoise.training.results import learned_verdict, set_entry, write_metrics_json
 from tofdenoise.cli.grid import main
 from tofdenoise.experiments.grids import robustness_rows, robustness_specs, robustness_table
 from tofdenoise.experiments.runner import run_all
+from tofdenoise.training.results import learned_verdict, set_entry, write_metrics_json
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -31,8 +31,11 @@ def test_the_grid_has_108_distinct_runs_over_both_cameras():
 def _fake_run(root: Path, name: str, best: float | None, raw: float = 6.0, finished: bool = True) -> None:
     d = root / name
     m = {"psnr_db": 45.0, "mae_mm": 2.0, "mse_mm2": 9.0, "ssim": 0.99, "mae_mm_pooled": 2.0}
-    write_metrics_json(d / "metrics.json", {"synthetic": set_entry(m, {**m, "mae_mm": 6.0}, {"images": 3})},
-                       run=learned_verdict(100, best, raw))
+    write_metrics_json(
+        d / "metrics.json",
+        {"synthetic": set_entry(m, {**m, "mae_mm": 6.0}, {"images": 3})},
+        run=learned_verdict(100, best, raw),
+    )
     info = {"run_name": name, **({"finished": "2026-11-22T00:00:00"} if finished else {})}
     (d / "run_info.json").write_text(json.dumps(info))
 
@@ -53,8 +56,24 @@ def test_cli_table_only_exit_status_and_markdown(tmp_path, capsys):
     specs = robustness_specs(["unet"], ["fixed"], ["full"], ["cam75"], [0])
     _fake_run(tmp_path, specs[0].name, best=1.0)
     md = tmp_path / "t.md"
-    args = ["robustness", "--out", str(tmp_path), "--backbones", "unet", "--noises", "fixed", "--losses", "full",
-            "--sensors", "cam75", "--seeds", "0", "--table-only", "--markdown", str(md)]
+    args = [
+        "robustness",
+        "--out",
+        str(tmp_path),
+        "--backbones",
+        "unet",
+        "--noises",
+        "fixed",
+        "--losses",
+        "full",
+        "--sensors",
+        "cam75",
+        "--seeds",
+        "0",
+        "--table-only",
+        "--markdown",
+        str(md),
+    ]
     assert main(args) == 0
     assert "| pass |" in md.read_text() and "| pass |" in capsys.readouterr().out
     assert main(args[:11] + ["--seeds", "0", "1", "--table-only"]) == 1  # seed 1 has not run: not all pass

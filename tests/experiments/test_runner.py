@@ -9,10 +9,19 @@ import pytest
 
 from tofdenoise.experiments.runner import RunSpec, run_all, run_finished
 
-SMOKE = ("experiment=smoke", "logger=csv", "trainer.max_epochs=1", "trainer.enable_progress_bar=false",
-         "data.num_samples=10", "data.height=32", "data.width=48", "data.crop_size=32", "backbone.kwargs.width=8",
-         "backbone.kwargs.stages=2",
-         "trainer.enable_model_summary=false")
+SMOKE = (
+    "experiment=smoke",
+    "logger=csv",
+    "trainer.max_epochs=1",
+    "trainer.enable_progress_bar=false",
+    "data.num_samples=10",
+    "data.height=32",
+    "data.width=48",
+    "data.crop_size=32",
+    "backbone.kwargs.width=8",
+    "backbone.kwargs.stages=2",
+    "trainer.enable_model_summary=false",
+)
 
 
 def test_spec_refuses_run_dir_overrides_and_bad_names():
@@ -29,8 +38,7 @@ def test_duplicate_names_are_refused(tmp_path):
 
 def test_run_skip_and_failure_listed(tmp_path, capsys):
     data_cache = tmp_path / "cache"
-    specs = [RunSpec("bad", (*SMOKE, "backbone=nope")),
-             RunSpec("good", (*SMOKE, f"++data.cache_dir={data_cache}"))]
+    specs = [RunSpec("bad", (*SMOKE, "backbone=nope")), RunSpec("good", (*SMOKE, f"++data.cache_dir={data_cache}"))]
     out = run_all(specs, tmp_path, python=sys.executable)
     assert [o.status for o in out] == ["failed", "done"]  # the failure did not stop the next run
     assert out[0].returncode != 0 and "backbone/nope" in out[0].log_tail

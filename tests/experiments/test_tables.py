@@ -11,7 +11,7 @@ import pytest
 
 from tofdenoise.experiments.results_page import load_records, results_markdown, run_minutes, seeds_present
 from tofdenoise.experiments.runner import RunSpec
-from tofdenoise.experiments.tables import CLAIMS, TABLES, claim_holds, run_name, table_specs
+from tofdenoise.experiments.tables import CLAIMS, TABLES, claim_holds, table_specs
 from tofdenoise.paths import REPO_ROOT
 
 
@@ -27,8 +27,12 @@ def test_specs_are_one_per_distinct_run_and_shared_across_tables():
 
 
 def test_spec_overrides_and_entries():
-    specs = {s.name: s for s in table_specs("3", [2], common=("experiment=reproduce_cpu",),
-                                            per_backbone={"unet": ("backbone.kwargs.width=8",)})}
+    specs = {
+        s.name: s
+        for s in table_specs(
+            "3", [2], common=("experiment=reproduce_cpu",), per_backbone={"unet": ("backbone.kwargs.width=8",)}
+        )
+    }
     s = specs["unet-range-l1-s2"]
     assert s.entry == "train"
     assert s.overrides[:4] == ("backbone=unet", "noise=range", "loss=l1", "seed=2")
@@ -49,8 +53,13 @@ def test_claims_name_rows_of_their_table():
 
 
 def _metrics(mae: float, real_mae: float | None = None, raw_mae: float = 7.0) -> dict:
-    entry = {"psnr_db": 40.0, "mae_mm": mae, "mse_mm2": mae * 10, "ssim": 0.99,
-             "raw": {"psnr_db": 35.0, "mae_mm": raw_mae, "mse_mm2": 70.0, "ssim": 0.9}}
+    entry = {
+        "psnr_db": 40.0,
+        "mae_mm": mae,
+        "mse_mm2": mae * 10,
+        "ssim": 0.99,
+        "raw": {"psnr_db": 35.0, "mae_mm": raw_mae, "mse_mm2": 70.0, "ssim": 0.9},
+    }
     out = {"synthetic": entry, "learned": True, "trained_steps": 10, "best_val_mae_mm": mae, "raw_val_mae_mm": raw_mae}
     if real_mae is not None:
         out["real"] = {**entry, "mae_mm": real_mae, "raw": {**entry["raw"], "mae_mm": raw_mae + 1}}
@@ -59,23 +68,34 @@ def _metrics(mae: float, real_mae: float | None = None, raw_mae: float = 7.0) ->
 
 def test_claim_holds_per_seed():
     claim = next(c for c in CLAIMS if c.text.startswith("DVSS: hetero < range < fixed (synthetic"))
-    table = {"dvss-hetero-l1-s0": _metrics(2.0), "dvss-range-l1-s0": _metrics(2.5), "dvss-fixed-l1-s0": _metrics(3.0),
-             "dvss-hetero-l1-s1": _metrics(2.6), "dvss-range-l1-s1": _metrics(2.5), "dvss-fixed-l1-s1": _metrics(3.0)}
+    table = {
+        "dvss-hetero-l1-s0": _metrics(2.0),
+        "dvss-range-l1-s0": _metrics(2.5),
+        "dvss-fixed-l1-s0": _metrics(3.0),
+        "dvss-hetero-l1-s1": _metrics(2.6),
+        "dvss-range-l1-s1": _metrics(2.5),
+        "dvss-fixed-l1-s1": _metrics(3.0),
+    }
     assert claim_holds(claim, 0, table.get) is True
     assert claim_holds(claim, 1, table.get) is False
     assert claim_holds(claim, 2, table.get) is None  # not run
     # the raw row of Table 1 reads the noisy input of the DVSS L1 run of the same seed
     real = next(c for c in CLAIMS if c.metric == "real_mae_mm" and c.table == "1")
-    runs = {"dvss-hetero-full-s0": _metrics(2.0, 3.0), "tofkpn-hetero-l1-s0": _metrics(3.0, 4.0),
-            "rcf-hetero-l1-s0": _metrics(3.1, 4.5), "deeptof-hetero-l1-s0": _metrics(4.0, 5.0),
-            "dvss-hetero-l1-s0": _metrics(2.2, 3.5, raw_mae=6.0)}  # raw real MAE = 7.0
+    runs = {
+        "dvss-hetero-full-s0": _metrics(2.0, 3.0),
+        "tofkpn-hetero-l1-s0": _metrics(3.0, 4.0),
+        "rcf-hetero-l1-s0": _metrics(3.1, 4.5),
+        "deeptof-hetero-l1-s0": _metrics(4.0, 5.0),
+        "dvss-hetero-l1-s0": _metrics(2.2, 3.5, raw_mae=6.0),
+    }  # raw real MAE = 7.0
     assert claim_holds(real, 0, runs.get) is True
     runs["dvss-hetero-l1-s0"] = _metrics(2.2, 3.5, raw_mae=3.5)  # raw real MAE 4.5 < DeepToF's 5.0
     assert claim_holds(real, 0, runs.get) is False
 
 
-def _write_run(root: Path, name: str, metrics: dict, started="2026-11-22T10:00:00+0000",
-               finished="2026-11-22T10:12:30+0000") -> None:
+def _write_run(
+    root: Path, name: str, metrics: dict, started="2026-11-22T10:00:00+0000", finished="2026-11-22T10:12:30+0000"
+) -> None:
     d = root / name
     d.mkdir(parents=True)
     (d / "metrics.json").write_text(json.dumps(metrics))
@@ -97,7 +117,7 @@ def test_results_page_mean_std_over_seeds(tmp_path):
     page = results_markdown(tmp_path)
     mean, std = statistics.fmean(maes.values()), statistics.stdev(maes.values())
     assert f"| DVSS, hetero (proposed) | 40.37 / 40.00 ± 0.00 (n=3) | 2.78 / {mean:.2f} ± {std:.2f} (n=3) |" in page
-    assert f"| DVSS, fixed Gaussian | 39.40 / - | 3.42 / - |" in page
+    assert "| DVSS, fixed Gaussian | 39.40 / - | 3.42 / - |" in page
     # hetero < range holds in all three seeds; the fixed run is missing, so the 3-chain is "not run"
     assert "| hetero < range for U-Net (synthetic MAE) | - | not run |" in page
     assert "| DVSS: hetero < range < fixed (synthetic MAE) | - | not run |" in page
@@ -114,4 +134,5 @@ def test_committed_results_page_matches_the_records():
     """docs/results.md is exactly what `tofdenoise-reproduce --page-only` prints from docs/results/."""
     page = REPO_ROOT / "docs" / "results.md"
     assert page.read_text() == results_markdown(REPO_ROOT / "docs" / "results"), (
-        "docs/results.md is stale: run `tofdenoise-reproduce --page-only`")
+        "docs/results.md is stale: run `tofdenoise-reproduce --page-only`"
+    )

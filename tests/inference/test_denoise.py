@@ -12,7 +12,6 @@ from tofdenoise.physics.calibration import resolve_calibration
 from tofdenoise.physics.uncertainty import amplitude_to_signal_e, sigma_depth_mm
 
 
-
 def frame(h: int = 40, w: int = 56) -> np.ndarray:
     y, x = np.mgrid[0:h, 0:w]
     d = (900 + 3 * x + 2 * y).astype(np.float32)
@@ -28,8 +27,10 @@ def test_denoise_matches_restore_mm_and_masks_holes(restorer_ckpt):
     valid = np.isfinite(d) & (d > 0)
     out = tofdenoise.denoise(d, model)
     assert out.dtype == np.float32 and out.shape == d.shape
-    batch = {"noisy": torch.from_numpy(np.where(valid, d, 0).astype(np.float32))[None, None],
-             "mask": torch.from_numpy(valid.astype(np.float32))[None, None]}
+    batch = {
+        "noisy": torch.from_numpy(np.where(valid, d, 0).astype(np.float32))[None, None],
+        "mask": torch.from_numpy(valid.astype(np.float32))[None, None],
+    }
     with torch.no_grad():
         expected = model.restore_mm(batch, tile=model.hparams.predict_tile_size)[0, 0].numpy()
     np.testing.assert_array_equal(out[valid], expected[valid])

@@ -8,9 +8,14 @@ import cv2
 import numpy as np
 import pytest
 
-from tofdenoise.inference.frames import (AmplitudeSource, FrameError, FrameInput, find_frames, load_frame,
-                                         read_depth_frame)
-
+from tofdenoise.inference.frames import (
+    AmplitudeSource,
+    FrameError,
+    FrameInput,
+    find_frames,
+    load_frame,
+    read_depth_frame,
+)
 
 
 def depth_with_holes(h: int = 24, w: int = 32) -> np.ndarray:
@@ -46,8 +51,13 @@ def test_bad_depth_files_are_named(tmp_path):
     (tmp_path / "broken.png").write_bytes(b"\x89PNG not really")
     np.save(tmp_path / "cube.npy", np.ones((2, 3, 4), np.float32))
     (tmp_path / "text.npy").write_text("hello")
-    cases = {"eight.png": "8-bit", "colour.png": "3 channels", "broken.png": "could not be decoded",
-             "cube.npy": "2-D", "text.npy": "could not be read"}
+    cases = {
+        "eight.png": "8-bit",
+        "colour.png": "3 channels",
+        "broken.png": "could not be decoded",
+        "cube.npy": "2-D",
+        "text.npy": "could not be read",
+    }
     for name, message in cases.items():
         with pytest.raises(FrameError, match=message) as info:
             read_depth_frame(tmp_path / name)

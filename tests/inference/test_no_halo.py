@@ -107,10 +107,22 @@ def test_no_halo_with_a_unet_trained_with_holes(tmp_path):
     torch.manual_seed(0)
     scenes = {"num_samples": 60, "crop_size": 64}
     dm = ToFDataModule(**{**SCENES, **scenes}, batch_size=4, cache_dir=str(tmp_path / "cache"))
-    model = DepthRestorer(backbone="unet", backbone_kwargs={"width": 32, "stages": 4, "norm": False, "residual": True},
-                          lr=1e-3, warmup_steps=100)
-    L.Trainer(max_steps=720, accelerator="cpu", logger=False, enable_checkpointing=False, enable_progress_bar=False,
-              enable_model_summary=False, limit_val_batches=0, num_sanity_val_steps=0).fit(model, datamodule=dm)
+    model = DepthRestorer(
+        backbone="unet",
+        backbone_kwargs={"width": 32, "stages": 4, "norm": False, "residual": True},
+        lr=1e-3,
+        warmup_steps=100,
+    )
+    L.Trainer(
+        max_steps=720,
+        accelerator="cpu",
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        limit_val_batches=0,
+        num_sanity_val_steps=0,
+    ).fit(model, datamodule=dm)
     frames = eval_frames(tmp_path / "cache", **scenes)
     near, far, raw_far, stays_valid = near_far_errors(model.eval(), frames)
     assert far.mean() < 0.6 * raw_far.mean()  # it does denoise

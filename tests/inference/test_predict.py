@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from tofdenoise.cli.denoise import main as denoise_main
-from tofdenoise.inference.predict import FramesDataModule, main as predict_main
+from tofdenoise.inference.predict import FramesDataModule
+from tofdenoise.inference.predict import main as predict_main
 
 
 def test_lightningcli_predict_equals_the_command(tmp_path, restorer_ckpt):
@@ -24,17 +25,64 @@ def test_lightningcli_predict_equals_the_command(tmp_path, restorer_ckpt):
     for stem in ("a", "b", "c"):
         np.save(amp / f"{stem}.npy", rng.uniform(10, 900, (30, 44)).astype(np.float32))
     cli_out, lit_out = tmp_path / "cli", tmp_path / "lit"
-    assert denoise_main([str(src), "--ckpt", str(restorer_ckpt), "--out", str(cli_out), "--npy", "--quiet",
-                         "--amplitude", str(amp), "--calib", "default"]) == 0
-    predict_main(["predict", "--ckpt_path", str(restorer_ckpt), "--data.inputs", f"[{src}]",
-                  "--data.amplitude", str(amp), "--data.calib", "default",
-                  "--trainer.callbacks", "tofdenoise.inference.FramesPredictionWriter",
-                  "--trainer.callbacks.out_dir", str(lit_out), "--trainer.callbacks.npy", "true",
-                  "--trainer.accelerator", "cpu", "--trainer.enable_progress_bar", "false"])
+    assert (
+        denoise_main(
+            [
+                str(src),
+                "--ckpt",
+                str(restorer_ckpt),
+                "--out",
+                str(cli_out),
+                "--npy",
+                "--quiet",
+                "--amplitude",
+                str(amp),
+                "--calib",
+                "default",
+            ]
+        )
+        == 0
+    )
+    predict_main(
+        [
+            "predict",
+            "--ckpt_path",
+            str(restorer_ckpt),
+            "--data.inputs",
+            f"[{src}]",
+            "--data.amplitude",
+            str(amp),
+            "--data.calib",
+            "default",
+            "--trainer.callbacks",
+            "tofdenoise.inference.FramesPredictionWriter",
+            "--trainer.callbacks.out_dir",
+            str(lit_out),
+            "--trainer.callbacks.npy",
+            "true",
+            "--trainer.accelerator",
+            "cpu",
+            "--trainer.enable_progress_bar",
+            "false",
+        ]
+    )
     cli_files = sorted(p.relative_to(cli_out).as_posix() for p in cli_out.rglob("*") if p.is_file())
     lit_files = sorted(p.relative_to(lit_out).as_posix() for p in lit_out.rglob("*") if p.is_file())
-    assert cli_files == lit_files == ["a.npy", "a.png", "a_sigma_mm.npy", "sub/b.npy", "sub/b.png",
-                                      "sub/b_sigma_mm.npy", "sub/c.npy", "sub/c.png", "sub/c_sigma_mm.npy"]
+    assert (
+        cli_files
+        == lit_files
+        == [
+            "a.npy",
+            "a.png",
+            "a_sigma_mm.npy",
+            "sub/b.npy",
+            "sub/b.png",
+            "sub/b_sigma_mm.npy",
+            "sub/c.npy",
+            "sub/c.png",
+            "sub/c_sigma_mm.npy",
+        ]
+    )
     for rel in cli_files:
         a, b = cli_out / rel, lit_out / rel
         if rel.endswith(".npy"):

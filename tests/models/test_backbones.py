@@ -95,7 +95,9 @@ def test_apply_kernels_hand_computed():
     # Uniform positive weights -> 3x3 mean of the replicate-padded depth (+ bias).
     w = torch.full((1, 9, 4, 4), 2.0)
     out = apply_kernels(depth, w, torch.full((1, 1, 4, 4), 0.5))
-    assert out[0, 0, 1, 1].item() == pytest.approx((0 + 1 + 2 + 4 + 5 + 6 + 8 + 9 + 10) / 9 * 18 / (18 + 1e-6) + 0.5, rel=1e-6)
+    assert out[0, 0, 1, 1].item() == pytest.approx(
+        (0 + 1 + 2 + 4 + 5 + 6 + 8 + 9 + 10) / 9 * 18 / (18 + 1e-6) + 0.5, rel=1e-6
+    )
     # Corner (0, 0) with replicate padding: window rows [0,0,1], cols [0,0,1].
     corner = (0 + 0 + 1 + 0 + 0 + 1 + 4 + 4 + 5) / 9
     assert out[0, 0, 0, 0].item() == pytest.approx(corner + 0.5, rel=1e-5)

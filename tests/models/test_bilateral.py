@@ -46,7 +46,7 @@ def test_huge_sigma_depth_equals_the_gaussian_blur():
     ss, r = 1.3, 2
     offsets = torch.arange(-r, r + 1.0, dtype=torch.float64)
     ys, xs = torch.meshgrid(offsets, offsets, indexing="ij")
-    kernel = torch.exp(-(xs ** 2 + ys ** 2) / (2 * ss ** 2)) * ((xs ** 2 + ys ** 2) <= r * r)
+    kernel = torch.exp(-(xs**2 + ys**2) / (2 * ss**2)) * ((xs**2 + ys**2) <= r * r)
     kernel = kernel[None, None]
     num = F.conv2d(F.pad(depth, (r,) * 4), kernel)
     den = F.conv2d(F.pad(torch.ones_like(depth), (r,) * 4), kernel)
@@ -87,11 +87,12 @@ def test_masked_pixels_never_contribute():
     r, ss = 2, 1.5
     offsets = torch.arange(-r, r + 1.0, dtype=torch.float64)
     ys, xs = torch.meshgrid(offsets, offsets, indexing="ij")
-    kernel = (torch.exp(-(xs ** 2 + ys ** 2) / (2 * ss ** 2)) * ((xs ** 2 + ys ** 2) <= r * r))[None, None]
+    kernel = (torch.exp(-(xs**2 + ys**2) / (2 * ss**2)) * ((xs**2 + ys**2) <= r * r))[None, None]
     v = valid.to(torch.float64)
     expected = F.conv2d(F.pad(poisoned * v, (r,) * 4), kernel) / F.conv2d(F.pad(v, (r,) * 4), kernel)
-    out4 = bf(poisoned, amp_poisoned, valid, sigma_spatial_px=ss, sigma_depth_mm=math.inf, amplitude_power=0.0,
-              radius_px=r)
+    out4 = bf(
+        poisoned, amp_poisoned, valid, sigma_spatial_px=ss, sigma_depth_mm=math.inf, amplitude_power=0.0, radius_px=r
+    )
     torch.testing.assert_close(out4[valid], expected[valid], rtol=0, atol=1e-9)
     # no neighbour with a weight: the input is returned (holes surrounded by holes, far from valid pixels)
     lone = torch.zeros_like(depth, dtype=torch.bool)
@@ -110,8 +111,11 @@ def test_amplitude_guidance_hand_computed_three_pixels():
     out = bf(depth, amp, sigma_spatial_px=ss, sigma_depth_mm=sd, amplitude_power=gamma, radius_px=1)
 
     def w(q, p=1):
-        return ((amp[0, 0, 0, q] / 1.0) ** gamma * math.exp(-((q - p) ** 2) / (2 * ss * ss))
-                * math.exp(-((depth[0, 0, 0, q] - depth[0, 0, 0, p]) ** 2) / (2 * sd * sd)))
+        return (
+            (amp[0, 0, 0, q] / 1.0) ** gamma
+            * math.exp(-((q - p) ** 2) / (2 * ss * ss))
+            * math.exp(-((depth[0, 0, 0, q] - depth[0, 0, 0, p]) ** 2) / (2 * sd * sd))
+        )
 
     ws = [float(w(q)) for q in range(3)]
     expected = sum(wq * float(depth[0, 0, 0, q]) for q, wq in enumerate(ws)) / sum(ws)
@@ -121,8 +125,12 @@ def test_amplitude_guidance_hand_computed_three_pixels():
     plain = bf(depth, amp, sigma_spatial_px=ss, sigma_depth_mm=sd, amplitude_power=0.0, radius_px=1)
     assert plain[0, 0, 0, 1].item() < out[0, 0, 0, 1].item()
     # a global amplitude scale cancels
-    torch.testing.assert_close(bf(depth, 37.0 * amp, sigma_spatial_px=ss, sigma_depth_mm=sd,
-                                  amplitude_power=gamma, radius_px=1), out, rtol=0, atol=1e-9)
+    torch.testing.assert_close(
+        bf(depth, 37.0 * amp, sigma_spatial_px=ss, sigma_depth_mm=sd, amplitude_power=gamma, radius_px=1),
+        out,
+        rtol=0,
+        atol=1e-9,
+    )
 
 
 def test_noise_reduction_on_a_noisy_plane():
@@ -157,19 +165,23 @@ def test_backbone_on_the_network_input_matches_the_function():
     amp[..., 2:4, 2:4] = 0.0  # invalid pixels: zero amplitude channel
     net = JointBilateral(sigma_spatial_px=1.0, sigma_depth_mm=10.0, amplitude_power=1.0, depth_scale_mm=100.0)
     y = net(torch.cat([depth / 100.0, amp / amp.max()], dim=1)) * 100.0
-    ref = joint_bilateral_filter(depth, amp, amp > 0, sigma_spatial_px=1.0, sigma_depth_mm=10.0,
-                                 amplitude_power=1.0, radius_px=2)
+    ref = joint_bilateral_filter(
+        depth, amp, amp > 0, sigma_spatial_px=1.0, sigma_depth_mm=10.0, amplitude_power=1.0, radius_px=2
+    )
     torch.testing.assert_close(y, ref, rtol=0, atol=2e-3)
 
 
-@pytest.mark.parametrize("kw,match", [
-    (dict(sigma_spatial_px=0.0), "sigma_spatial_px"),
-    (dict(sigma_depth_mm=-1.0), "sigma_depth_mm"),
-    (dict(sigma_depth_mm=math.nan), "sigma_depth_mm"),
-    (dict(amplitude_power=-0.5), "amplitude_power"),
-    (dict(radius_px=1.5), "radius_px"),
-    (dict(in_channels=1), "use_signal_channel"),
-])
+@pytest.mark.parametrize(
+    "kw,match",
+    [
+        (dict(sigma_spatial_px=0.0), "sigma_spatial_px"),
+        (dict(sigma_depth_mm=-1.0), "sigma_depth_mm"),
+        (dict(sigma_depth_mm=math.nan), "sigma_depth_mm"),
+        (dict(amplitude_power=-0.5), "amplitude_power"),
+        (dict(radius_px=1.5), "radius_px"),
+        (dict(in_channels=1), "use_signal_channel"),
+    ],
+)
 def test_bad_parameters_are_named(kw, match):
     with pytest.raises(ValueError, match=match):
         build_backbone("bilateral", **{"in_channels": 2, **kw})

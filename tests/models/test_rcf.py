@@ -147,16 +147,19 @@ def test_depth_restorer_trains_rcf_on_every_step_and_evaluates_the_last():
     _randomise_head(model.backbone)
     g = torch.Generator().manual_seed(3)
     clean = 800.0 + 50.0 * torch.rand(2, 1, 20, 20, generator=g)
-    batch = {"noisy": clean + 5.0 * torch.randn(2, 1, 20, 20, generator=g), "clean": clean,
-             "sigma": torch.full_like(clean, 5.0), "mask": torch.ones_like(clean),
-             "amplitude": torch.rand(2, 1, 20, 20, generator=g)}
+    batch = {
+        "noisy": clean + 5.0 * torch.randn(2, 1, 20, 20, generator=g),
+        "clean": clean,
+        "sigma": torch.full_like(clean, 5.0),
+        "mask": torch.ones_like(clean),
+        "amplitude": torch.rand(2, 1, 20, 20, generator=g),
+    }
     model.train()
     x, offset = model.condition(batch)
     steps = model.backbone(x)
     per_step = [(s * 100.0 + offset - clean).abs().mean() for s in steps]
-    expected = sum(w * l for w, l in zip(model.backbone.step_loss_weights, per_step))
+    expected = sum(w * loss for w, loss in zip(model.backbone.step_loss_weights, per_step))
     torch.testing.assert_close(model.training_loss(batch), expected, rtol=1e-5, atol=1e-5)
     model.eval()
     with torch.no_grad():
-        torch.testing.assert_close(model.restore_mm(batch), steps[-1].detach() * 100.0 + offset,
-                                   rtol=1e-5, atol=1e-4)
+        torch.testing.assert_close(model.restore_mm(batch), steps[-1].detach() * 100.0 + offset, rtol=1e-5, atol=1e-4)

@@ -10,9 +10,7 @@ import warnings
 import pytest
 import torch
 
-
-from tofdenoise.models import available_scan_backends, selective_scan
-from tofdenoise.models import scan_cpu
+from tofdenoise.models import available_scan_backends, scan_cpu, selective_scan
 from tofdenoise.models.scan import (
     resolve_scan_backend,
     selective_scan_chunked,
@@ -68,7 +66,9 @@ def test_kernel_matches_reference_and_chunked(ext, case):
     y, g = _grads(scan_cpu.selective_scan_cpu, tensors, use_d, use_bias, softplus, w)
     y_chk, g_chk = _grads(selective_scan_chunked, tensors, use_d, use_bias, softplus, w)
     t64 = [t.detach().double().requires_grad_() for t in tensors]
-    y_ref, g_ref = _grads(selective_scan_ref if length < 64 else selective_scan_sequential, t64, use_d, use_bias, softplus, w)
+    y_ref, g_ref = _grads(
+        selective_scan_ref if length < 64 else selective_scan_sequential, t64, use_d, use_bias, softplus, w
+    )
     assert y.dtype == torch.float32 and y.shape == (batch, dim, length)
     assert _rel(y.double(), y_ref) < 2e-6
     assert _rel(y, y_chk) < 2e-6

@@ -195,8 +195,15 @@ def test_clipped_samples_at_the_full_well_or_the_dtype_maximum(tmp_path):
     from tofdenoise.physics.capture_io import clipped_samples, write_capture_folder
 
     raw = np.array([0, 100, 65534, 65535], np.uint16).reshape(1, 4, 1, 1).repeat(2, axis=0)
-    folder = write_capture_folder(tmp_path / "c", "sweep", 4, [("s", raw, {"phase_rad": 0.0})],
-                                  modulation_frequency_hz=5e7, units="dn", adc_gain_e_per_dn=2.0)
+    folder = write_capture_folder(
+        tmp_path / "c",
+        "sweep",
+        4,
+        [("s", raw, {"phase_rad": 0.0})],
+        modulation_frequency_hz=5e7,
+        units="dn",
+        adc_gain_e_per_dn=2.0,
+    )
     idx = read_index(folder, "sweep")
     values = load_stack(idx, "s.npy")
     assert clipped_samples(idx, "s.npy", values, None)[0, :, 0, 0].tolist() == [False, False, False, True]
@@ -209,13 +216,23 @@ def test_calibration_errors_name_the_folder_or_file(tmp_path):
     cal = default_calibration()
     sweep = write_sweep_folder(cal, tmp_path / "sweep", num_steps=12, num_frames=5)
     dark = write_dark_folder(cal, tmp_path / "dark", num_frames=10)
-    zero = write_capture_folder(tmp_path / "dark0", "dark", 4, [("d", np.zeros((4, 4, 8, 8), np.uint16), {})],
-                                units="dn", adc_gain_e_per_dn=25.0)
+    zero = write_capture_folder(
+        tmp_path / "dark0",
+        "dark",
+        4,
+        [("d", np.zeros((4, 4, 8, 8), np.uint16), {})],
+        units="dn",
+        adc_gain_e_per_dn=25.0,
+    )
     with pytest.raises(CaptureFormatError, match=rf"{re.escape(str(zero))}: the dark frames have no temporal noise"):
         calibrate_from_folders(sweep, zero)
     int8 = write_capture_folder(
-        tmp_path / "sweep8", "sweep", 4,
+        tmp_path / "sweep8",
+        "sweep",
+        4,
         [(f"s{i}", np.full((3, 4, 8, 8), 100 + i, np.int8), {"phase_rad": 0.5 * i}) for i in range(12)],
-        modulation_frequency_hz=5e7, full_well_e=1e5)
+        modulation_frequency_hz=5e7,
+        full_well_e=1e5,
+    )
     with pytest.raises(CaptureFormatError, match=r"sweep8/s0\.npy: no returned signal .*dtype int8"):
         calibrate_from_folders(int8, dark)

@@ -35,7 +35,9 @@ def test_default_calibration_is_physically_sensible():
     assert c.tap_response.contrast < 1.0  # modulation contrast below 1
     assert c.dark_std_e > 0 and c.dark_mean_e > 0  # dark/ambient floor
     assert c.unambiguous_range_mm > 2500.0
-    assert c.signal_max_e * (c.tap_response.c0 + sum(abs(v) for v in c.tap_response.cos)) + c.dark_mean_e < c.full_well_e
+    assert (
+        c.signal_max_e * (c.tap_response.c0 + sum(abs(v) for v in c.tap_response.cos)) + c.dark_mean_e < c.full_well_e
+    )
     assert c.range_sigma_mm is not None and len(c.range_sigma_mm) == 3
 
 
@@ -48,7 +50,9 @@ def test_unambiguous_range_closed_form():
 def test_tap_response_value_and_derivative_numpy_torch():
     tr = TapResponse(c0=1.0, cos=(0.5, 0.02, 0.01), sin=(0.1, 0.0, -0.02))
     x = np.linspace(-3, 9, 101)
-    expected = 1.0 + 0.5 * np.cos(x) + 0.1 * np.sin(x) + 0.02 * np.cos(2 * x) + 0.01 * np.cos(3 * x) - 0.02 * np.sin(3 * x)
+    expected = (
+        1.0 + 0.5 * np.cos(x) + 0.1 * np.sin(x) + 0.02 * np.cos(2 * x) + 0.01 * np.cos(3 * x) - 0.02 * np.sin(3 * x)
+    )
     np.testing.assert_allclose(tr.value(x), expected, rtol=1e-12)
     h = 1e-6
     np.testing.assert_allclose(tr.derivative(x), (tr.value(x + h) - tr.value(x - h)) / (2 * h), atol=1e-7)

@@ -87,8 +87,13 @@ def test_tap_mean_frames_equal_simulate_frames_for_one_surface():
     signal = rng.uniform(3000, 40000, size=(6, 7)).astype(np.float32)
     depth[0, 0] = 0.0  # invalid input pixel
     a = simulate_frames(depth, signal, calib, 5, generator=torch.Generator().manual_seed(3), return_taps=True)
-    b = simulate_tap_mean_frames(footprint_tap_means_e(depth, signal, calib, 1), calib, 5,
-                                 generator=torch.Generator().manual_seed(3), return_taps=True)
+    b = simulate_tap_mean_frames(
+        footprint_tap_means_e(depth, signal, calib, 1),
+        calib,
+        5,
+        generator=torch.Generator().manual_seed(3),
+        return_taps=True,
+    )
     for name in ("depth_mm", "amplitude", "valid", "saturated", "taps"):
         assert torch.equal(getattr(a, name), getattr(b, name)), name
     assert not bool(b.valid[:, 0, 0].any())

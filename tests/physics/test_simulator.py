@@ -94,7 +94,9 @@ def test_outputs_shapes_flags_and_reproducibility():
     # ADC quantisation: taps on the gain grid
     g = calib.adc_gain_e_per_dn
     assert torch.allclose(f1.taps / g, torch.round(f1.taps / g))
-    f3 = simulate_frames(depth, signal, calib, 2, generator=torch.Generator().manual_seed(3), quantize=False, return_taps=True)
+    f3 = simulate_frames(
+        depth, signal, calib, 2, generator=torch.Generator().manual_seed(3), quantize=False, return_taps=True
+    )
     assert not torch.allclose(f3.taps / g, torch.round(f3.taps / g))
 
 
@@ -102,8 +104,12 @@ def test_exposure_scales_signal():
     calib = default_calibration()
     depth = torch.full((16, 16), 800.0)
     signal = torch.full((16, 16), 5000.0)
-    f1 = simulate_frames(depth, signal, calib, 20, exposure=1.0, generator=torch.Generator().manual_seed(1), return_taps=True)
-    f2 = simulate_frames(depth, signal, calib, 20, exposure=2.5, generator=torch.Generator().manual_seed(1), return_taps=True)
+    f1 = simulate_frames(
+        depth, signal, calib, 20, exposure=1.0, generator=torch.Generator().manual_seed(1), return_taps=True
+    )
+    f2 = simulate_frames(
+        depth, signal, calib, 20, exposure=2.5, generator=torch.Generator().manual_seed(1), return_taps=True
+    )
     a1 = float(signal_from_taps_e(f1.taps, calib, tap_axis=1).mean())
     a2 = float(signal_from_taps_e(f2.taps, calib, tap_axis=1).mean())
     assert a1 == pytest.approx(5000.0, rel=0.01)

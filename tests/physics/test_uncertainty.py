@@ -56,9 +56,7 @@ def test_closed_form_equals_generic_inverse(idx):
 def test_hand_computed_read_noise_limit():
     """Constant tap variance (read noise >> shot noise), pure cosine: sigma_D = s / (a k c1 sqrt(N/2))."""
     for n in (3, 4, 6):
-        calib = default_calibration().replace(
-            num_taps=n, tap_response=TapResponse(1.0, (0.5,), (0.0,)), dark_std_e=1e4
-        )
+        calib = default_calibration().replace(num_taps=n, tap_response=TapResponse(1.0, (0.5,), (0.0,)), dark_std_e=1e4)
         a = 1.0
         expected = 1e4 / (a * calib.phase_per_mm * 0.5 * math.sqrt(n / 2))
         got = sigma_depth_mm(np.array([321.0, 1234.0]), np.array([a, a]), calib)
@@ -169,7 +167,9 @@ def test_amplitude_to_signal_map():
     assert np.isnan(sig[0])  # zero amplitude -> invalid
     assert sig[50] == pytest.approx(calib.signal_max_e)
     hi = np.percentile(amp[1:], 99.0)
-    assert sig[10] == pytest.approx(calib.signal_min_e + (calib.signal_max_e - calib.signal_min_e) * (10.0 - 1.0) / (hi - 1.0))
+    assert sig[10] == pytest.approx(
+        calib.signal_min_e + (calib.signal_max_e - calib.signal_min_e) * (10.0 - 1.0) / (hi - 1.0)
+    )
     assert np.nanmin(sig) == pytest.approx(calib.signal_min_e)
     valid = amp < 90
     sig_v = amplitude_to_signal_e(torch.tensor(amp), calib, valid=torch.tensor(valid), fill_value=0.0)

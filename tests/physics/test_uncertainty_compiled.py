@@ -97,8 +97,13 @@ def test_tap_expansion_reproduces_the_tap_response():
 
 
 def test_float32_cos_sin_against_float64():
-    psi = torch.cat([torch.linspace(0.0, 4096.0, 400_001), torch.linspace(-10.0, 0.0, 10_001),
-                     torch.tensor([math.pi / 4, math.pi / 2, math.pi, 1.5 * math.pi])]).float()
+    psi = torch.cat(
+        [
+            torch.linspace(0.0, 4096.0, 400_001),
+            torch.linspace(-10.0, 0.0, 10_001),
+            torch.tensor([math.pi / 4, math.pi / 2, math.pi, 1.5 * math.pi]),
+        ]
+    ).float()
     cos_psi, sin_psi = uc._cos_sin_f32(psi)
     exact = psi.double()
     assert float((cos_psi.double() - exact.cos()).abs().max()) < 2e-7

@@ -58,7 +58,14 @@ def test_quick_validation_meets_paper_figures(tmp_path):
     groups = [c["group"] for c in data["conditions"]]
     assert groups.count("range") == 11 and groups.count("signal") == 12 and groups.count("range_fit") == 10
     for c in data["conditions"]:
-        assert {"distance_mm", "surface", "exposure", "measured_std_mm", "proposed_std_mm", "range_gaussian_std_mm"} <= set(c)
+        assert {
+            "distance_mm",
+            "surface",
+            "exposure",
+            "measured_std_mm",
+            "proposed_std_mm",
+            "range_gaussian_std_mm",
+        } <= set(c)
         assert c["num_frames"] == 50 and c["num_pixels"] == 256
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
@@ -79,11 +86,18 @@ def test_validation_from_capture_folder(tmp_path):
     for i, d in enumerate((600.0, 1000.0, 1400.0)):
         a = float(planar_signal_e(d, 0.9))
         stacks.append((f"r{i}", planar_tap_stack(calib, d, a, 40, (8, 8), g), {"group": "range", "distance_mm": d}))
-        stacks.append((f"f{i}", planar_tap_stack(calib, d + 50, a, 40, (8, 8), g), {"group": "range_fit", "distance_mm": d + 50}))
+        stacks.append(
+            (f"f{i}", planar_tap_stack(calib, d + 50, a, 40, (8, 8), g), {"group": "range_fit", "distance_mm": d + 50})
+        )
     # a depth + amplitude stack (cameras that only export depth/amplitude)
     fr = simulate_frames(torch.full((8, 8), 1500.0), torch.full((8, 8), 3000.0), calib, 40, generator=g)
-    stacks.append(("sd", fr.depth_mm.numpy(), {"group": "signal", "distance_mm": 1500.0, "surface": "gray",
-                                               "exposure": 1.0, "amplitude_file": "sa.npy"}))
+    stacks.append(
+        (
+            "sd",
+            fr.depth_mm.numpy(),
+            {"group": "signal", "distance_mm": 1500.0, "surface": "gray", "exposure": 1.0, "amplitude_file": "sa.npy"},
+        )
+    )
     folder = write_capture_folder(tmp_path / "val", "validation", 4, stacks)
     np.save(folder / "sa.npy", fr.amplitude.numpy())
     result = run_validation(calib, captures_dir=folder)
@@ -116,7 +130,8 @@ def test_written_validation_captures_measure_what_the_simulator_measures(tmp_pat
     plan = condition_plan()
     assert index["kind"] == "validation" and index["num_taps"] == camera.num_taps
     assert [(e["group"], e["distance_mm"], e["surface"], e["exposure"]) for e in index["stacks"]] == [
-        (c.group, c.distance_mm, c.surface, c.exposure) for c, _, _ in plan]
+        (c.group, c.distance_mm, c.surface, c.exposure) for c, _, _ in plan
+    ]
     assert len(plan) == 11 + 12 + 10
     captured = run_validation(camera, captures_dir=folder)
     simulated = run_validation(camera, settings)

@@ -11,12 +11,13 @@ from torch.utils.data import DataLoader, Dataset
 
 def make_sample(index: int, size: int = 32, noise_seed: int = 0) -> dict:
     g = torch.Generator().manual_seed(1000 + index)
-    yy, xx = torch.meshgrid(torch.arange(size, dtype=torch.float32), torch.arange(size, dtype=torch.float32),
-                            indexing="ij")
+    yy, xx = torch.meshgrid(
+        torch.arange(size, dtype=torch.float32), torch.arange(size, dtype=torch.float32), indexing="ij"
+    )
     base = 600.0 + 400.0 * torch.rand((), generator=g)
     clean = base + 3.0 * xx + 2.0 * yy
     x0, y0 = (torch.randint(0, size // 2, (2,), generator=g)).tolist()
-    clean[y0:y0 + size // 3, x0:x0 + size // 3] -= 150.0
+    clean[y0 : y0 + size // 3, x0 : x0 + size // 3] -= 150.0
     amplitude = 1e6 / clean**2
     sigma = 2.0 + 0.004 * clean
     gn = torch.Generator().manual_seed(noise_seed * 100003 + index)
@@ -25,8 +26,15 @@ def make_sample(index: int, size: int = 32, noise_seed: int = 0) -> dict:
     mask[:2, :5] = 0.0
     clean = clean * mask
     noisy = noisy * mask
-    return {"noisy": noisy[None], "clean": clean[None], "sigma": sigma[None], "mask": mask[None],
-            "amplitude": amplitude[None], "index": torch.tensor(index), "name": f"scene_{index:03d}"}
+    return {
+        "noisy": noisy[None],
+        "clean": clean[None],
+        "sigma": sigma[None],
+        "mask": mask[None],
+        "amplitude": amplitude[None],
+        "index": torch.tensor(index),
+        "name": f"scene_{index:03d}",
+    }
 
 
 class TinyDepthSet(Dataset):
@@ -43,8 +51,15 @@ class TinyDepthSet(Dataset):
 class TinyDepthData(pl.LightningDataModule):
     """Train / val / test loaders over a few 32x32 synthetic planes; ``test_set_names`` configurable."""
 
-    def __init__(self, n_train: int = 8, n_val: int = 4, n_test: int = 4, size: int = 32, batch_size: int = 4,
-                 test_set_names: tuple[str, ...] = ("synthetic",)) -> None:
+    def __init__(
+        self,
+        n_train: int = 8,
+        n_val: int = 4,
+        n_test: int = 4,
+        size: int = 32,
+        batch_size: int = 4,
+        test_set_names: tuple[str, ...] = ("synthetic",),
+    ) -> None:
         super().__init__()
         self.train_set = TinyDepthSet(n_train, size, 0)
         self.val_set = TinyDepthSet(n_val, size, 100)

@@ -11,14 +11,30 @@ from tofdenoise.callbacks.summary import format_fit_summary, format_test_summary
 
 
 def test_summary_lines():
-    line = format_fit_summary("unet-hetero-full", 20, 900, 370.4, torch.tensor(3.1234), "/r/checkpoints/best.ckpt",
-                              "val/mae_mm", torch.tensor(6.05))
-    assert line == ("[unet-hetero-full] fit: 20 epochs, 900 steps in 6m10s | best val/mae_mm 3.123 (raw 6.050)"
-                    " -> /r/checkpoints/best.ckpt")
+    line = format_fit_summary(
+        "unet-hetero-full",
+        20,
+        900,
+        370.4,
+        torch.tensor(3.1234),
+        "/r/checkpoints/best.ckpt",
+        "val/mae_mm",
+        torch.tensor(6.05),
+    )
+    assert line == (
+        "[unet-hetero-full] fit: 20 epochs, 900 steps in 6m10s | best val/mae_mm 3.123 (raw 6.050)"
+        " -> /r/checkpoints/best.ckpt"
+    )
     assert "(no checkpoint written)" in format_fit_summary("x", 1, 1, 1.0, None, "", "val/mae_mm")
-    res = {"synthetic": {"mae_mm": 3.1, "psnr_db": 44.12, "ssim": 0.99512,
-                         "raw": {"mae_mm": 6.0, "psnr_db": 39.9, "ssim": 0.93}},
-           "real": {"mae_mm": None, "psnr_db": 30.0, "ssim": 0.9, "raw": {}}}
+    res = {
+        "synthetic": {
+            "mae_mm": 3.1,
+            "psnr_db": 44.12,
+            "ssim": 0.99512,
+            "raw": {"mae_mm": 6.0, "psnr_db": 39.9, "ssim": 0.93},
+        },
+        "real": {"mae_mm": None, "psnr_db": 30.0, "ssim": 0.9, "raw": {}},
+    }
     line = format_test_summary("r", res, 3725.0)
     assert line.startswith("[r] test in 1h02m05s | synthetic: MAE 3.10 mm (raw 6.00), PSNR 44.12 dB (raw 39.90)")
     assert "| real: MAE n/a mm (raw n/a)" in line and "\n" not in line
@@ -31,9 +47,14 @@ def test_prediction_writer_layout(tmp_path):
 
     w = DepthPredictionWriter(write_sigma=True, write_reference=True, write_previews=True)
     pred = torch.full((2, 1, 8, 10), 1000.25)
-    batch = {"name": ["a_1", "b_2"], "index": torch.tensor([3, 4]), "sigma": torch.full((2, 1, 8, 10), 2.5),
-             "clean": torch.full((2, 1, 8, 10), 999.0), "noisy": torch.full((2, 1, 8, 10), 1003.0),
-             "mask": torch.ones(2, 1, 8, 10)}
+    batch = {
+        "name": ["a_1", "b_2"],
+        "index": torch.tensor([3, 4]),
+        "sigma": torch.full((2, 1, 8, 10), 2.5),
+        "clean": torch.full((2, 1, 8, 10), 999.0),
+        "noisy": torch.full((2, 1, 8, 10), 1003.0),
+        "mask": torch.ones(2, 1, 8, 10),
+    }
     w.write_on_batch_end(T(), None, pred, None, batch, 0, dataloader_idx=1)
     root = tmp_path / "predictions" / "real"
     assert sorted(p.name for p in (root / "png").iterdir()) == ["a_1.png", "b_2.png"]
@@ -60,14 +81,24 @@ def test_csv_log_survives_a_resume_without_duplicates(tmp_path, tiny_data):
         model = DepthRestorer(backbone="unet", backbone_kwargs={"width": 4, "stages": 2}, loss="l1")
         ckpt = ModelCheckpoint(dirpath=tmp_path / "ckpt", filename="{epoch}", save_top_k=-1, every_n_epochs=1)
         resume = CSVLogResume()
-        trainer = pl.Trainer(default_root_dir=tmp_path, accelerator="cpu", max_epochs=3, log_every_n_steps=1,
-                             logger=ResumableCSVLogger(tmp_path, name="csv", version=""), callbacks=[ckpt, resume],
-                             enable_progress_bar=False, enable_model_summary=False, num_sanity_val_steps=0)
+        trainer = pl.Trainer(
+            default_root_dir=tmp_path,
+            accelerator="cpu",
+            max_epochs=3,
+            log_every_n_steps=1,
+            logger=ResumableCSVLogger(tmp_path, name="csv", version=""),
+            callbacks=[ckpt, resume],
+            enable_progress_bar=False,
+            enable_model_summary=False,
+            num_sanity_val_steps=0,
+        )
         trainer.fit(model, datamodule=tiny_data, ckpt_path=ckpt_path)
         with open(tmp_path / "csv" / "metrics.csv", newline="") as fh:
             rows = list(csv.DictReader(fh))
-        return [(r["epoch"], r["step"], tuple(sorted(k for k, v in r.items() if v and k not in ("epoch", "step"))))
-                for r in rows], resume.dropped_rows
+        return [
+            (r["epoch"], r["step"], tuple(sorted(k for k, v in r.items() if v and k not in ("epoch", "step"))))
+            for r in rows
+        ], resume.dropped_rows
 
     uninterrupted, dropped = fit()
     assert dropped == 0 and len(uninterrupted) > 6

@@ -28,9 +28,18 @@ class ScriptedRestorer(DepthRestorer):
 def test_best_is_lowest_val_mae_and_last_is_last(tmp_path, tiny_data):
     model = ScriptedRestorer(backbone="unet", backbone_kwargs={"width": 4, "stages": 2}, loss="l1")
     ckpt = BestAndLastCheckpoint(dirpath=tmp_path / "checkpoints")
-    trainer = pl.Trainer(default_root_dir=tmp_path, max_epochs=len(SCORES), accelerator="cpu", logger=False,
-                         enable_progress_bar=False, enable_model_summary=False, callbacks=[ckpt],
-                         limit_train_batches=1, limit_val_batches=1, num_sanity_val_steps=0)
+    trainer = pl.Trainer(
+        default_root_dir=tmp_path,
+        max_epochs=len(SCORES),
+        accelerator="cpu",
+        logger=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        callbacks=[ckpt],
+        limit_train_batches=1,
+        limit_val_batches=1,
+        num_sanity_val_steps=0,
+    )
     trainer.fit(model, datamodule=tiny_data)
     files = sorted(p.name for p in (tmp_path / "checkpoints").iterdir())
     assert files == ["best.ckpt", "last.ckpt"]

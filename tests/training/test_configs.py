@@ -11,9 +11,9 @@ from omegaconf import DictConfig, OmegaConf
 from tofdenoise.cli.checkpoint_check import resolve_ckpt_path
 from tofdenoise.cli.train import validate_config
 from tofdenoise.config import compose_config, config_dir
-from tofdenoise.training.losses import available_losses
 from tofdenoise.models import trainable_backbones
 from tofdenoise.physics.noise_models import available_noise_models
+from tofdenoise.training.losses import available_losses
 
 CONFIGS = config_dir()
 
@@ -108,8 +108,11 @@ def test_unknown_group_option_lists_the_valid_ones():
 
 
 def test_unknown_names_inside_a_node_fail_at_config_time(tmp_path):
-    for key, value, listed in (("backbone.name", "nope", "dvss"), ("noise.name", "white", "hetero"),
-                               ("loss.name", "huber", "nar")):
+    for key, value, listed in (
+        ("backbone.name", "nope", "dvss"),
+        ("noise.name", "white", "hetero"),
+        ("loss.name", "huber", "nar"),
+    ):
         cfg = compose_config([f"paths.run_dir={tmp_path}", f"{key}={value}"])
         with pytest.raises(ValueError, match=rf"{key}: unknown .*'{value}'; valid names: .*{listed}"):
             validate_config(cfg)
@@ -145,17 +148,44 @@ def test_paper_experiment_is_the_paper_configuration(tmp_path):
 # What `make train` ran before the CPU recipe moved from experiment/default.yaml into train.yaml (resolved
 # `tofdenoise-train --cfg job`, data.sensor aside): the move must not change it.
 MAKE_TRAIN = {
-    "model": {"_target_": "tofdenoise.training.module.DepthRestorer", "backbone": "unet",
-              "backbone_kwargs": {"norm": False, "residual": True, "stages": 4, "width": 32}, "loss": "full",
-              "loss_kwargs": {"beta": 0.5, "eps": 0.001, "eta": 1e-06, "lambda_g": 0.1}, "lr": 0.001,
-              "warmup_steps": 100},
-    "data": {"_target_": "tofdenoise.data_modules.ToFDataModule", "batch_size": 4, "crop_size": 64, "height": 144,
-             "eval_noise": "hetero", "noise": "hetero", "noise_kwargs": {}, "num_samples": 300, "num_workers": 0, "real_dir": None,
-             "source": "procedural", "width": 192},
-    "trainer": {"_target_": "lightning.pytorch.Trainer", "accelerator": "cpu", "check_val_every_n_epoch": 2,
-                "default_root_dir": "RUN_DIR", "deterministic": False, "devices": 1, "enable_model_summary": True,
-                "enable_progress_bar": True, "gradient_clip_val": None, "log_every_n_steps": 10, "max_epochs": 16,
-                "num_sanity_val_steps": 1, "precision": "32-true"},
+    "model": {
+        "_target_": "tofdenoise.training.module.DepthRestorer",
+        "backbone": "unet",
+        "backbone_kwargs": {"norm": False, "residual": True, "stages": 4, "width": 32},
+        "loss": "full",
+        "loss_kwargs": {"beta": 0.5, "eps": 0.001, "eta": 1e-06, "lambda_g": 0.1},
+        "lr": 0.001,
+        "warmup_steps": 100,
+    },
+    "data": {
+        "_target_": "tofdenoise.data_modules.ToFDataModule",
+        "batch_size": 4,
+        "crop_size": 64,
+        "height": 144,
+        "eval_noise": "hetero",
+        "noise": "hetero",
+        "noise_kwargs": {},
+        "num_samples": 300,
+        "num_workers": 0,
+        "real_dir": None,
+        "source": "procedural",
+        "width": 192,
+    },
+    "trainer": {
+        "_target_": "lightning.pytorch.Trainer",
+        "accelerator": "cpu",
+        "check_val_every_n_epoch": 2,
+        "default_root_dir": "RUN_DIR",
+        "deterministic": False,
+        "devices": 1,
+        "enable_model_summary": True,
+        "enable_progress_bar": True,
+        "gradient_clip_val": None,
+        "log_every_n_steps": 10,
+        "max_epochs": 16,
+        "num_sanity_val_steps": 1,
+        "precision": "32-true",
+    },
 }
 
 

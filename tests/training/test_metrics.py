@@ -217,7 +217,7 @@ def test_bad_shapes_raise_clear_errors():
         DepthMetrics().update(torch.ones(2, 1, 4, 4), torch.ones(2, 1, 4, 4), None, index=torch.tensor([1]))
 
 
-_DDP_SCRIPT = r'''
+_DDP_SCRIPT = r"""
 import json, os, sys
 import torch
 import torch.distributed as dist
@@ -246,7 +246,7 @@ def run(rank, world, port, out):
 
 if __name__ == "__main__":
     run(int(sys.argv[1]), 2, int(sys.argv[2]), sys.argv[3])
-'''
+"""
 
 
 def test_depth_metrics_sync_across_two_ddp_processes(tmp_path):
@@ -261,8 +261,15 @@ def test_depth_metrics_sync_across_two_ddp_processes(tmp_path):
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     out = tmp_path / "out.json"
-    procs = [subprocess.Popen([sys.executable, str(script), str(rank), str(port), str(out)],
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for rank in (0, 1)]
+    procs = [
+        subprocess.Popen(
+            [sys.executable, str(script), str(rank), str(port), str(out)],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for rank in (0, 1)
+    ]
     for p in procs:
         _, err = p.communicate(timeout=120)
         assert p.returncode == 0, err[-3000:]
@@ -336,14 +343,22 @@ def _run_two_gloo_processes(tmp_path, script_text: str, extra: list[str]) -> lis
 
     script = tmp_path / "ddp_metrics.py"
     script.write_text(script_text)
-    (tmp_path / "images.py").write_text("import torch\n\n" + inspect.getsource(_padded_image).replace(
-        "_padded_image", "padded_image"))
+    (tmp_path / "images.py").write_text(
+        "import torch\n\n" + inspect.getsource(_padded_image).replace("_padded_image", "padded_image")
+    )
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     out = tmp_path / "out.json"
-    procs = [subprocess.Popen([sys.executable, str(script), str(rank), str(port), str(out), *extra],
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for rank in (0, 1)]
+    procs = [
+        subprocess.Popen(
+            [sys.executable, str(script), str(rank), str(port), str(out), *extra],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for rank in (0, 1)
+    ]
     for p in procs:
         _, err = p.communicate(timeout=120)
         assert p.returncode == 0, err[-3000:]
@@ -363,14 +378,18 @@ def test_depth_metrics_under_ddp_count_padded_repeats_once(tmp_path, n, batch):
         single.update(*_padded_image(i), index=torch.tensor([i]))
     want = {k: float(v) for k, v in single.compute().items()}
     want_counts = single.counts()
-    assert want_counts == {"images": n - 1, "skipped_images": 1,
-                           "valid_px": sum(int(_padded_image(i)[2].sum()) for i in range(n))}
+    assert want_counts == {
+        "images": n - 1,
+        "skipped_images": 1,
+        "valid_px": sum(int(_padded_image(i)[2].sum()) for i in range(n)),
+    }
     # hand check of the per-image mean and the pooled MAE from the single-process rows
     rows = single.per_image_rows()
     ok = [r for r in rows if r["valid_px"] > 0]
     assert want["mae_mm"] == pytest.approx(sum(r["mae_mm"] for r in ok) / (n - 1), rel=1e-12)
     assert want["mae_mm_pooled"] == pytest.approx(
-        sum(r["mae_mm"] * r["valid_px"] for r in ok) / sum(r["valid_px"] for r in ok), rel=1e-12)
+        sum(r["mae_mm"] * r["valid_px"] for r in ok) / sum(r["valid_px"] for r in ok), rel=1e-12
+    )
     for rank in ranks:
         assert rank["res"] == want  # bit-identical: same per-image values summed in the same (index) order
         assert rank["counts"] == want_counts
@@ -382,8 +401,10 @@ def test_depth_metrics_under_ddp_count_padded_repeats_once(tmp_path, n, batch):
 
 def json_rows_equal(a: list[dict], b: list[dict]) -> bool:
     """Per-image rows equal, NaN == NaN (a skipped image has NaN metrics)."""
+
     def norm(rows):
         return [{k: ("nan" if isinstance(v, float) and math.isnan(v) else v) for k, v in r.items()} for r in rows]
+
     return norm(a) == norm(b)
 
 

@@ -10,22 +10,34 @@ import pytest
 import torch
 from lightning.pytorch.callbacks import Callback
 
-from tofdenoise.training.module import CheckpointMismatchError, DepthRestorer
 from tofdenoise.training.metrics import depth_metrics_per_image
+from tofdenoise.training.module import CheckpointMismatchError, DepthRestorer
 
 TINY = {"width": 4, "stages": 2}
 
 
 def tiny_model(**kw) -> DepthRestorer:
-    args = {"backbone": "unet", "backbone_kwargs": dict(TINY), "loss": "full",
-            "loss_kwargs": {"beta": 0.5, "lambda_g": 0.1}}
+    args = {
+        "backbone": "unet",
+        "backbone_kwargs": dict(TINY),
+        "loss": "full",
+        "loss_kwargs": {"beta": 0.5, "lambda_g": 0.1},
+    }
     args.update(kw)
     return DepthRestorer(**args)
 
 
 def trainer(tmp_path, **kw) -> pl.Trainer:
-    args = dict(default_root_dir=tmp_path, accelerator="cpu", devices=1, logger=False, enable_progress_bar=False,
-                enable_model_summary=False, enable_checkpointing=False, num_sanity_val_steps=0)
+    args = dict(
+        default_root_dir=tmp_path,
+        accelerator="cpu",
+        devices=1,
+        logger=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        enable_checkpointing=False,
+        num_sanity_val_steps=0,
+    )
     args.update(kw)
     return pl.Trainer(**args)
 
@@ -100,8 +112,9 @@ def test_linear_warmup_then_cosine(tmp_path, tiny_data):
     trainer(tmp_path, max_epochs=4, limit_val_batches=0, callbacks=[Rec()]).fit(model, datamodule=tiny_data)
     total, warm = 8, 2
     expected = [1e-3 * (1 / warm + (1 - 1 / warm) * s / warm) for s in range(warm)]  # 5e-4, 7.5e-4
-    expected += [1e-5 + (1e-3 - 1e-5) * (1 + math.cos(math.pi * (s - warm) / (total - warm))) / 2
-                 for s in range(warm, total)]
+    expected += [
+        1e-5 + (1e-3 - 1e-5) * (1 + math.cos(math.pi * (s - warm) / (total - warm))) / 2 for s in range(warm, total)
+    ]
     assert lrs == pytest.approx(expected, rel=1e-6)
 
 
@@ -124,7 +137,9 @@ def test_training_logs_the_loss_terms(tmp_path, tiny_data, loss, parts):
         total = logged["train/loss_step"]
         if loss == "full":  # L_full = L_nar + lambda_g L_grad, lambda_g = 0.1
             assert logged["train/loss_grad_step"] > 0
-            assert logged["train/loss_nar_step"] + 0.1 * logged["train/loss_grad_step"] == pytest.approx(total, rel=1e-5)
+            assert logged["train/loss_nar_step"] + 0.1 * logged["train/loss_grad_step"] == pytest.approx(
+                total, rel=1e-5
+            )
         else:
             assert logged["train/loss_l1_step"] == pytest.approx(total, rel=1e-6)
     assert {f"train/loss_{p}_epoch" for p in parts} <= set(t.callback_metrics)
@@ -152,8 +167,16 @@ def test_validation_logs_restored_and_raw_metrics(tmp_path, tiny_data):
     t = trainer(tmp_path)
     t.validate(model, datamodule=tiny_data, verbose=False)
     m = t.callback_metrics
-    for key in ("val/mae_mm", "val/psnr_db", "val/ssim", "val/mse_mm2", "val/mae_mm_pooled", "val/raw/mae_mm",
-                "val/raw/psnr_db", "val/loss"):
+    for key in (
+        "val/mae_mm",
+        "val/psnr_db",
+        "val/ssim",
+        "val/mse_mm2",
+        "val/mae_mm_pooled",
+        "val/raw/mae_mm",
+        "val/raw/psnr_db",
+        "val/loss",
+    ):
         assert key in m, key
     # raw = the noisy input against the reference, per-image means over the validation set
     batch = next(iter(tiny_data.val_dataloader()))
@@ -183,7 +206,9 @@ def test_raw_val_metrics_are_computed_once_and_recomputed_when_the_batch_changes
     changed = dict(batch, noisy=batch["noisy"] + 1.0)
     per = model._raw_val_per_image(changed, 0, 0)
     assert len(calls) == n_batches + 1  # a different batch at the same position is measured again
-    assert torch.equal(per["mae_mm"], depth_metrics_per_image(changed["noisy"], batch["clean"], batch["mask"])["mae_mm"])
+    assert torch.equal(
+        per["mae_mm"], depth_metrics_per_image(changed["noisy"], batch["clean"], batch["mask"])["mae_mm"]
+    )
 
 
 def test_test_sets_are_namespaced_with_per_image_rows(tmp_path, tiny_data_cls):
@@ -264,8 +289,9 @@ def test_ss2d_state_parameters_are_not_weight_decayed():
     """A_log and D of the selective scan are excluded from weight decay (VMamba/MambaIR practice)."""
     from tofdenoise.training.module import DepthRestorer
 
-    module = DepthRestorer(backbone="dvss", backbone_kwargs={"width": 8, "enc_blocks": [1], "bottleneck_blocks": 1,
-                                                             "d_state": 4})
+    module = DepthRestorer(
+        backbone="dvss", backbone_kwargs={"width": 8, "enc_blocks": [1], "bottleneck_blocks": 1, "d_state": 4}
+    )
     flagged = {id(p) for p in module.backbone.parameters() if getattr(p, "_no_weight_decay", False)}
     assert flagged, "the DVSS backbone should flag its A_log / D parameters"
     groups = module.parameter_groups()
@@ -282,8 +308,12 @@ BILATERAL = {"sigma_spatial_px": 1.5, "sigma_depth_mm": 15.0, "amplitude_power":
 
 
 def bilateral_model(**kw) -> DepthRestorer:
-    args = {"backbone": "bilateral", "backbone_kwargs": dict(BILATERAL), "use_signal_channel": True,
-            "input_centering": "none"}
+    args = {
+        "backbone": "bilateral",
+        "backbone_kwargs": dict(BILATERAL),
+        "use_signal_channel": True,
+        "input_centering": "none",
+    }
     args.update(kw)
     return DepthRestorer(**args)
 

@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import torch
 
-from tofdenoise.training.module import DepthRestorer
 from tofdenoise.training.metrics import depth_metrics_per_image
+from tofdenoise.training.module import DepthRestorer
 
 from .conftest import TinyDepthData
 
@@ -16,8 +16,9 @@ from .conftest import TinyDepthData
 def _train(centering: str, steps: int = 150) -> tuple[DepthRestorer, TinyDepthData]:
     torch.manual_seed(0)
     data = TinyDepthData(n_train=16, n_val=8)
-    model = DepthRestorer(backbone="unet", backbone_kwargs={"width": 8, "stages": 2}, loss="l1",
-                          input_centering=centering)
+    model = DepthRestorer(
+        backbone="unet", backbone_kwargs={"width": 8, "stages": 2}, loss="l1", input_centering=centering
+    )
     opt = torch.optim.AdamW(model.parameter_groups(), lr=2e-3)
     model.train()
     step = 0

@@ -12,9 +12,9 @@ import pytest
 import torch
 
 from tofdenoise.config import compose_config
-from tofdenoise.training.module import DepthRestorer
-from tofdenoise.training.metrics import depth_metrics_per_image
 from tofdenoise.models import trainable_backbones
+from tofdenoise.training.metrics import depth_metrics_per_image
+from tofdenoise.training.module import DepthRestorer
 
 from .conftest import TinyDepthData
 

@@ -8,6 +8,7 @@ import math
 import pytest
 import torch
 
+from tofdenoise.training.metrics import DepthMetrics
 from tofdenoise.training.results import (
     RUN_KEYS,
     classical_verdict,
@@ -15,13 +16,12 @@ from tofdenoise.training.results import (
     learned_verdict,
     metric_sets,
     read_metrics_json,
-    run_fields,
     read_per_image_csv,
+    run_fields,
     set_entry,
     write_metrics_json,
     write_per_image_csv,
 )
-from tofdenoise.training.metrics import DepthMetrics
 
 
 def _metric(offset_mm: float) -> DepthMetrics:
@@ -48,8 +48,10 @@ def test_metrics_json_schema_from_depth_metrics(tmp_path):
 
 
 def test_nan_and_inf_are_strict_json(tmp_path):
-    entry = set_entry({"psnr_db": math.inf, "mae_mm": 0.0, "mse_mm2": 0.0, "ssim": 1.0},
-                      {"psnr_db": float("nan"), "mae_mm": float("nan"), "mse_mm2": float("nan"), "ssim": None})
+    entry = set_entry(
+        {"psnr_db": math.inf, "mae_mm": 0.0, "mse_mm2": 0.0, "ssim": 1.0},
+        {"psnr_db": float("nan"), "mae_mm": float("nan"), "mse_mm2": float("nan"), "ssim": None},
+    )
     path = write_metrics_json(tmp_path / "m.json", {"synthetic": entry})
     text = path.read_text()
     assert "NaN" not in text and "Infinity" not in text
@@ -72,8 +74,12 @@ def test_bad_schema_is_rejected_with_the_key_named(tmp_path):
 
 def test_per_image_csv_with_raw_and_names_round_trip(tmp_path):
     restored, raw = _metric(1.0), _metric(10.0)
-    path = write_per_image_csv(tmp_path / "csv" / "test_synthetic.csv", restored.per_image_rows(),
-                               raw_rows=raw.per_image_rows(), names={1: "scene_b", 3: "scene_d"})
+    path = write_per_image_csv(
+        tmp_path / "csv" / "test_synthetic.csv",
+        restored.per_image_rows(),
+        raw_rows=raw.per_image_rows(),
+        names={1: "scene_b", 3: "scene_d"},
+    )
     rows = read_per_image_csv(path)
     assert [r["index"] for r in rows] == [1, 3]
     assert [r["name"] for r in rows] == ["scene_b", "scene_d"]
@@ -90,20 +96,23 @@ def test_per_image_csv_requires_matching_raw_rows(tmp_path):
 
 
 # ------------------------------------------------------------------------------------------ learned guard
-@pytest.mark.parametrize("steps, best, raw, margin, learned, status", [
-    (100, 9.5, 10.0, 0.05, True, "learned"),         # exactly (1 - 0.05) x 10 = 9.5: on the boundary counts
-    (100, 9.51, 10.0, 0.05, False, "did not learn"),
-    (100, 7.68, 7.79, 0.05, False, "did not learn"),  # the DVSS run of issue 9: 7.68 > 7.4005
-    (100, 2.24, 7.79, 0.05, True, "learned"),
-    (100, 7.0, 7.79, 0.10, True, "learned"),         # 7.0 <= 0.9 x 7.79 = 7.011
-    (100, 7.02, 7.79, 0.10, False, "did not learn"),
-    (100, 8.0, 7.79, 0.0, False, "did not learn"),   # margin 0: only "not worse than raw" is asked
-    (100, 7.79, 7.79, 0.0, True, "learned"),
-    (0, 1.0, 7.79, 0.05, False, "not trained"),      # no optimiser step: never learned, whatever the MAEs
-    (None, None, None, 0.05, False, "not trained"),
-    (5, None, 7.79, 0.05, False, "not verified"),    # no validation ran
-    (5, 2.0, float("nan"), 0.05, False, "not verified"),
-])
+@pytest.mark.parametrize(
+    "steps, best, raw, margin, learned, status",
+    [
+        (100, 9.5, 10.0, 0.05, True, "learned"),  # exactly (1 - 0.05) x 10 = 9.5: on the boundary counts
+        (100, 9.51, 10.0, 0.05, False, "did not learn"),
+        (100, 7.68, 7.79, 0.05, False, "did not learn"),  # the DVSS run of issue 9: 7.68 > 7.4005
+        (100, 2.24, 7.79, 0.05, True, "learned"),
+        (100, 7.0, 7.79, 0.10, True, "learned"),  # 7.0 <= 0.9 x 7.79 = 7.011
+        (100, 7.02, 7.79, 0.10, False, "did not learn"),
+        (100, 8.0, 7.79, 0.0, False, "did not learn"),  # margin 0: only "not worse than raw" is asked
+        (100, 7.79, 7.79, 0.0, True, "learned"),
+        (0, 1.0, 7.79, 0.05, False, "not trained"),  # no optimiser step: never learned, whatever the MAEs
+        (None, None, None, 0.05, False, "not trained"),
+        (5, None, 7.79, 0.05, False, "not verified"),  # no validation ran
+        (5, 2.0, float("nan"), 0.05, False, "not verified"),
+    ],
+)
 def test_learned_verdict_hand_computed_cases(steps, best, raw, margin, learned, status):
     v = learned_verdict(steps, best, raw, margin)
     assert v["learned"] is learned
@@ -148,8 +157,10 @@ def test_classical_verdict_is_its_own_status_not_a_failure(tmp_path):
     assert set(v) == set(RUN_KEYS) and v["method_kind"] == "classical"
     assert v["trained_steps"] == 0 and v["learned"] is False and learned_status(v) == "classical"
     assert v["best_val_mae_mm"] == 4.1 and v["raw_val_mae_mm"] == 7.2
-    assert v["learned_reason"] == ("classical method: no trainable parameters, nothing learned; parameters tuned on "
-                                   "the validation split: val MAE 4.10 mm vs raw 7.20 mm (below 6.84 mm, 5% below raw)")
+    assert v["learned_reason"] == (
+        "classical method: no trainable parameters, nothing learned; parameters tuned on "
+        "the validation split: val MAE 4.10 mm vs raw 7.20 mm (below 6.84 mm, 5% below raw)"
+    )
     assert "NOT below 6.84 mm" in classical_verdict(7.0, 7.2)["learned_reason"]
     assert "no validation result" in classical_verdict(None, 7.2)["learned_reason"]
     assert learned_verdict(0, None, None)["method_kind"] == "network"

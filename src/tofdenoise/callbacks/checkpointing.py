@@ -15,7 +15,6 @@ from __future__ import annotations
 
 from datetime import timedelta
 from pathlib import Path
-
 from typing import Any
 
 import lightning.pytorch as pl
@@ -80,16 +79,15 @@ class BestAndLastCheckpoint(ModelCheckpoint):
 
     @staticmethod
     def _may_save(trainer: pl.Trainer) -> bool:
-        return not (bool(trainer.fast_dev_run) or trainer.state.fn != TrainerFn.FITTING
-                    or trainer.sanity_checking)
+        return not (bool(trainer.fast_dev_run) or trainer.state.fn != TrainerFn.FITTING or trainer.sanity_checking)
 
     def _ensure_last(self, trainer: pl.Trainer) -> None:
-        if self.save_last and self._may_save(trainer) and \
-                self._last_saved_marker != (self._phase, trainer.global_step):
+        if self.save_last and self._may_save(trainer) and self._last_saved_marker != (self._phase, trainer.global_step):
             self._save_last_checkpoint(trainer, self._monitor_candidates(trainer))
 
-    def on_train_batch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule, outputs: Any, batch: Any,
-                           batch_idx: int) -> None:
+    def on_train_batch_end(
+        self, trainer: pl.Trainer, pl_module: pl.LightningModule, outputs: Any, batch: Any, batch_idx: int
+    ) -> None:
         self._phase = "train"
         super().on_train_batch_end(trainer, pl_module, outputs, batch, batch_idx)
         n = self._every_n_train_steps

@@ -103,10 +103,17 @@ class ResumableCSVLogger(CSVLogger):
     so a killed run loses no row that its checkpoint covers (the cost of a flush per step: docs/benchmarks.md,
     "Training")."""
 
-    def __init__(self, save_dir: str | os.PathLike[str], name: str | None = "lightning_logs",
-                 version: int | str | None = None, prefix: str = "", flush_logs_every_n_steps: int = 1) -> None:
-        super().__init__(save_dir, name=name, version=version, prefix=prefix,
-                         flush_logs_every_n_steps=flush_logs_every_n_steps)
+    def __init__(
+        self,
+        save_dir: str | os.PathLike[str],
+        name: str | None = "lightning_logs",
+        version: int | str | None = None,
+        prefix: str = "",
+        flush_logs_every_n_steps: int = 1,
+    ) -> None:
+        super().__init__(
+            save_dir, name=name, version=version, prefix=prefix, flush_logs_every_n_steps=flush_logs_every_n_steps
+        )
 
     @property
     @rank_zero_experiment

@@ -28,8 +28,9 @@ Hydra entry (``configs/callbacks/default.yaml``)::
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import cv2
 import lightning.pytorch as pl
@@ -54,8 +55,15 @@ def write_png_rgb_atomic(path: str | Path, image_rgb: np.ndarray) -> Path:
 class ImagePanelLogger(Callback):
     """Every validation epoch: noisy | restored | clean, sigma_D and |error| maps of fixed samples."""
 
-    def __init__(self, indices: int | Sequence[int] = 4, dirpath: str | Path | None = None, max_tile: int = 256,
-                 every_n_epochs: int = 1, key: str = "val/panels", min_tile: int | None = 160) -> None:
+    def __init__(
+        self,
+        indices: int | Sequence[int] = 4,
+        dirpath: str | Path | None = None,
+        max_tile: int = 256,
+        every_n_epochs: int = 1,
+        key: str = "val/panels",
+        min_tile: int | None = 160,
+    ) -> None:
         super().__init__()
         if isinstance(indices, int):
             if indices < 1:
@@ -108,16 +116,26 @@ class ImagePanelLogger(Callback):
         if self._active(trainer):
             self._resolve(trainer)
 
-    def on_validation_batch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule, outputs: Any,
-                                batch: Any, batch_idx: int, dataloader_idx: int = 0) -> None:
+    def on_validation_batch_end(
+        self,
+        trainer: pl.Trainer,
+        pl_module: pl.LightningModule,
+        outputs: Any,
+        batch: Any,
+        batch_idx: int,
+        dataloader_idx: int = 0,
+    ) -> None:
         if dataloader_idx != 0 or not self._active(trainer) or self._wanted is None:
             return
         if not isinstance(outputs, dict) or "pred_mm" not in outputs:
-            raise KeyError("ImagePanelLogger needs validation_step to return a dict with 'pred_mm' "
-                           "(B, 1, H, W) restored depth in mm")
+            raise KeyError(
+                "ImagePanelLogger needs validation_step to return a dict with 'pred_mm' "
+                "(B, 1, H, W) restored depth in mm"
+            )
         if not isinstance(batch, dict) or any(k not in batch for k in _REQUIRED_KEYS):
-            raise KeyError(f"ImagePanelLogger needs batch dicts with keys {list(_REQUIRED_KEYS)} "
-                           f"(+ 'sigma', 'mask' optional)")
+            raise KeyError(
+                f"ImagePanelLogger needs batch dicts with keys {list(_REQUIRED_KEYS)} (+ 'sigma', 'mask' optional)"
+            )
         index = torch.as_tensor(batch["index"]).reshape(-1).tolist()
         wanted = set(self._wanted)
         for i, idx in enumerate(index):
@@ -143,9 +161,16 @@ class ImagePanelLogger(Callback):
             return
         epoch = trainer.current_epoch
         panels = [
-            visualize.sample_panel(s["noisy"], s["restored"], s["clean"], s["sigma"], s["mask"],
-                                   title=f"epoch {epoch} | index {idx}" + (f" | {s['name']}" if s["name"] else ""),
-                                   max_tile=self.max_tile, min_tile=self.min_tile)
+            visualize.sample_panel(
+                s["noisy"],
+                s["restored"],
+                s["clean"],
+                s["sigma"],
+                s["mask"],
+                title=f"epoch {epoch} | index {idx}" + (f" | {s['name']}" if s["name"] else ""),
+                max_tile=self.max_tile,
+                min_tile=self.min_tile,
+            )
             for idx, s in sorted(samples.items())
         ]
         image = visualize.stack_panels(panels)

@@ -15,8 +15,9 @@ All files are written atomically (``tofdenoise.atomic``). ``tofdenoise-eval --pr
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import lightning.pytorch as pl
 import numpy as np
@@ -27,6 +28,7 @@ from tofdenoise.data_modules.io import write_depth_png16
 from tofdenoise.visualize import batch_plane
 
 __all__ = ["DepthPredictionWriter"]
+
 
 class DepthPredictionWriter(BasePredictionWriter):
     """Saves every predicted depth map as it is produced (``write_interval="batch"``: no memory growth).
@@ -39,8 +41,13 @@ class DepthPredictionWriter(BasePredictionWriter):
         write_reference: also save the clean reference and the noisy input as 16-bit PNG.
     """
 
-    def __init__(self, output_dir: str | Path | None = None, write_sigma: bool = False,
-                 write_previews: bool = False, write_reference: bool = False) -> None:
+    def __init__(
+        self,
+        output_dir: str | Path | None = None,
+        write_sigma: bool = False,
+        write_previews: bool = False,
+        write_reference: bool = False,
+    ) -> None:
         super().__init__(write_interval="batch")
         self.output_dir = None if output_dir is None else Path(output_dir)
         self.write_sigma = write_sigma
@@ -58,9 +65,16 @@ class DepthPredictionWriter(BasePredictionWriter):
             return str(names[dataloader_idx])
         return "predict" if dataloader_idx == 0 else f"predict_{dataloader_idx}"
 
-    def write_on_batch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule, prediction: Any,
-                           batch_indices: Sequence[int] | None, batch: Any, batch_idx: int,
-                           dataloader_idx: int = 0) -> None:
+    def write_on_batch_end(
+        self,
+        trainer: pl.Trainer,
+        pl_module: pl.LightningModule,
+        prediction: Any,
+        batch_indices: Sequence[int] | None,
+        batch: Any,
+        batch_idx: int,
+        dataloader_idx: int = 0,
+    ) -> None:
         pred = prediction["pred_mm"] if isinstance(prediction, dict) else prediction
         root = self._root(trainer) / self._set_name(trainer, dataloader_idx)
         names = batch.get("name") if isinstance(batch, dict) else None

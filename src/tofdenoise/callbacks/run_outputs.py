@@ -68,8 +68,9 @@ def write_test_outputs(model: Any, run_dir: Path) -> dict[str, Any]:
         raise RuntimeError("no test results to write: trainer.test produced no test set")
     results = _with_dataset_skips(results, model)
     for set_name, per in (getattr(model, "test_per_image", {}) or {}).items():
-        write_per_image_csv(run_dir / PER_IMAGE_DIR / f"{set_name}.csv", per["rows"], per["raw_rows"],
-                            names=per["names"])
+        write_per_image_csv(
+            run_dir / PER_IMAGE_DIR / f"{set_name}.csv", per["rows"], per["raw_rows"], names=per["names"]
+        )
     learned = model.learned_record() if hasattr(model, "learned_record") else None
     write_metrics_json(run_dir / METRICS_NAME, results, run=learned)
     return json.loads((run_dir / METRICS_NAME).read_text())
@@ -125,9 +126,15 @@ class RunOutputs(Callback):
         datamodule = getattr(trainer, "datamodule", None)
         noise, source = _hparam(datamodule, "noise"), _hparam(datamodule, "source", "procedural")
         seed = os.environ.get("PL_GLOBAL_SEED")
-        return {"backbone": backbone, "noise": noise, "loss": loss,
-                "run_name": str(self.name) if self.name is not None else f"{backbone}-{noise}-{loss}",
-                "data": source, "seed": int(seed) if seed not in (None, "") else None, "started": self.started}
+        return {
+            "backbone": backbone,
+            "noise": noise,
+            "loss": loss,
+            "run_name": str(self.name) if self.name is not None else f"{backbone}-{noise}-{loss}",
+            "data": source,
+            "seed": int(seed) if seed not in (None, "") else None,
+            "started": self.started,
+        }
 
     def _write_records(self, trainer: pl.Trainer, pl_module: pl.LightningModule, resumed: bool) -> None:
         """The attempt's ``run_info.json`` and ``config.yaml`` (once per attempt, global zero only)."""
@@ -172,5 +179,9 @@ class RunOutputs(Callback):
             return
         self.metrics = write_test_outputs(pl_module, self.run_dir(trainer))
         ckpt = trainer.ckpt_path
-        self._update(trainer, finished=_now(), global_step=int(trainer.global_step),
-                     best_ckpt=None if ckpt is None else str(ckpt))
+        self._update(
+            trainer,
+            finished=_now(),
+            global_step=int(trainer.global_step),
+            best_ckpt=None if ckpt is None else str(ckpt),
+        )

@@ -32,8 +32,16 @@ def _duration(seconds: float) -> str:
     return f"{h}h{m:02d}m{s:02d}s" if h else f"{m}m{s:02d}s"
 
 
-def format_fit_summary(name: str, epochs: int, steps: int, seconds: float, best_score: Any,
-                       best_path: str, monitor: str, raw_mae_mm: Any = None) -> str:
+def format_fit_summary(
+    name: str,
+    epochs: int,
+    steps: int,
+    seconds: float,
+    best_score: Any,
+    best_path: str,
+    monitor: str,
+    raw_mae_mm: Any = None,
+) -> str:
     """``[name] fit: 10 epochs, 400 steps in 3m12s | best val/mae_mm 4.21 (raw 9.87) -> .../best.ckpt``."""
     raw = f" (raw {_fmt(raw_mae_mm)})" if raw_mae_mm is not None else ""
     best = f"best {monitor} {_fmt(best_score)}{raw}" if best_score is not None else f"no {monitor} yet"
@@ -49,7 +57,8 @@ def format_test_summary(name: str, results: dict[str, dict[str, Any]], seconds: 
         parts.append(
             f"{set_name}: MAE {_fmt(res.get('mae_mm'), 2)} mm (raw {_fmt(raw.get('mae_mm'), 2)}), "
             f"PSNR {_fmt(res.get('psnr_db'), 2)} dB (raw {_fmt(raw.get('psnr_db'), 2)}), "
-            f"SSIM {_fmt(res.get('ssim'), 4)} (raw {_fmt(raw.get('ssim'), 4)})")
+            f"SSIM {_fmt(res.get('ssim'), 4)} (raw {_fmt(raw.get('ssim'), 4)})"
+        )
     body = " | ".join(parts) if parts else "no test set"
     return f"[{name}] test in {_duration(seconds)} | {body}"
 
@@ -105,9 +114,19 @@ class RunSummary(Callback):
         raw = trainer.callback_metrics.get("val/raw/mae_mm")
         if best_score is None:
             best_score = trainer.callback_metrics.get(monitor)
-        self._emit(trainer, format_fit_summary(
-            self.name, trainer.current_epoch, trainer.global_step, time.perf_counter() - self._t0,
-            best_score, best_path, monitor, raw))
+        self._emit(
+            trainer,
+            format_fit_summary(
+                self.name,
+                trainer.current_epoch,
+                trainer.global_step,
+                time.perf_counter() - self._t0,
+                best_score,
+                best_path,
+                monitor,
+                raw,
+            ),
+        )
         self._warn_if_not_learned(trainer, pl_module)
 
     def _warn_if_not_learned(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:

@@ -31,15 +31,19 @@ class CheckpointFileError(ValueError):
 def _advice(path: Path, option: str) -> str:
     best = path.with_name("best.ckpt")
     if path.name != best.name and best.is_file():
-        return (f"resume from the best checkpoint instead ({option}={best}) or delete {path} to start a fresh "
-                f"run in that folder")
+        return (
+            f"resume from the best checkpoint instead ({option}={best}) or delete {path} to start a fresh "
+            f"run in that folder"
+        )
     return f"delete {path} to start a fresh run in that folder, or give another checkpoint ({option}=FILE)"
 
 
 def _problem(path: Path) -> str | None:
     if not zipfile.is_zipfile(path):
-        return f"not a complete checkpoint ({path.stat().st_size} bytes, no zip directory: truncated or not a " \
-               f"PyTorch checkpoint)"
+        return (
+            f"not a complete checkpoint ({path.stat().st_size} bytes, no zip directory: truncated or not a "
+            f"PyTorch checkpoint)"
+        )
     try:
         with zipfile.ZipFile(path) as zf:
             bad = zf.testzip()
@@ -86,6 +90,8 @@ def resolve_ckpt_path(ckpt_path: str | None, run_dir: Path) -> str | None:
         return None
     path = Path(str(ckpt_path)).expanduser()
     if not path.is_file():
-        raise FileNotFoundError(f"config ckpt_path: checkpoint {path} does not exist "
-                                "(use ckpt_path=last to resume the run in paths.run_dir)")
+        raise FileNotFoundError(
+            f"config ckpt_path: checkpoint {path} does not exist "
+            "(use ckpt_path=last to resume the run in paths.run_dir)"
+        )
     return str(path)

@@ -94,8 +94,12 @@ def _to_device(batch: Mapping[str, Any], device: torch.device) -> dict[str, Any]
     return {k: v.to(device) if isinstance(v, torch.Tensor) else v for k, v in batch.items()}
 
 
-def tune(models: Sequence[Any], loader: Iterable[Mapping[str, Any]], device: torch.device | str = "cpu",
-         d_max_mm: float = 1000.0) -> tuple[list[dict[str, float]], dict[str, float], int]:
+def tune(
+    models: Sequence[Any],
+    loader: Iterable[Mapping[str, Any]],
+    device: torch.device | str = "cpu",
+    d_max_mm: float = 1000.0,
+) -> tuple[list[dict[str, float]], dict[str, float], int]:
     """Validation metrics of each model (``DepthRestorer``s) in one pass over ``loader``, plus the raw input's.
 
     Returns (per model ``{"val_psnr_db", "val_mae_mm", "val_mse_mm2", "val_ssim", "val_mae_mm_pooled"}``,
@@ -145,8 +149,9 @@ def _device(choice: str, cfg: DictConfig) -> torch.device:
 def _model_kwargs(cfg: DictConfig, backbone: str) -> dict[str, Any]:
     model_cfg = OmegaConf.to_container(cfg.model, resolve=True) if cfg.get("model") is not None else {}
     kwargs = {k: model_cfg[k] for k in _MODEL_KEYS if k in model_cfg}
-    kwargs.update(backbone=backbone, use_signal_channel=True,
-                  input_centering=str(cfg.classical.get("input_centering", "none")))
+    kwargs.update(
+        backbone=backbone, use_signal_channel=True, input_centering=str(cfg.classical.get("input_centering", "none"))
+    )
     return kwargs
 
 
@@ -165,8 +170,10 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     ccfg = cfg.classical
     backbone = str(ccfg.get("backbone", DEFAULT_BACKBONE))
     if backbone not in available_backbones() or is_trainable(backbone):
-        raise ValueError(f"config classical.backbone: {backbone!r} is not a registered classical filter; valid: "
-                         f"{', '.join(b for b in available_backbones() if not is_trainable(b))}")
+        raise ValueError(
+            f"config classical.backbone: {backbone!r} is not a registered classical filter; valid: "
+            f"{', '.join(b for b in available_backbones() if not is_trainable(b))}"
+        )
     grid = OmegaConf.to_container(ccfg.grid, resolve=True) if ccfg.get("grid") is not None else {}
     points = grid_points(grid, {k: ccfg.get(k) for k in GRID_KEYS if k in ccfg})
     run_dir = Path(str(cfg.paths.run_dir)).expanduser().resolve()
@@ -188,19 +195,38 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     tune_s = time.perf_counter() - t0
     best_i = select_best(scores)
     best_params = dict(points[best_i])
-    rows = [{**{k: (_json_value(float(v)) if isinstance(v, float) else v) for k, v in p.items()},
-             "radius_px_used": int(m.backbone.radius_px), **{k: _json_value(v) for k, v in s.items()}}
-            for p, m, s in zip(points, models, scores)]
+    rows = [
+        {
+            **{k: (_json_value(float(v)) if isinstance(v, float) else v) for k, v in p.items()},
+            "radius_px_used": int(m.backbone.radius_px),
+            **{k: _json_value(v) for k, v in s.items()},
+        }
+        for p, m, s in zip(points, models, scores)
+    ]
     tuning = {
-        "method": backbone, "selection": "lowest validation MAE (val_mae_mm: per image, then averaged)",
-        "grid": grid, "fixed": {k: ccfg.get(k) for k in GRID_KEYS if ccfg.get(k) is not None},
-        "input_centering": base["input_centering"], "val_images": n_images, "device": str(device),
-        "seconds": round(tune_s, 3), "points": rows, "best_index": best_i, "best": rows[best_i],
+        "method": backbone,
+        "selection": "lowest validation MAE (val_mae_mm: per image, then averaged)",
+        "grid": grid,
+        "fixed": {k: ccfg.get(k) for k in GRID_KEYS if ccfg.get(k) is not None},
+        "input_centering": base["input_centering"],
+        "val_images": n_images,
+        "device": str(device),
+        "seconds": round(tune_s, 3),
+        "points": rows,
+        "best_index": best_i,
+        "best": rows[best_i],
         "raw": {k: _json_value(v) for k, v in raw.items()},
     }
     atomic_write_text(run_dir / TUNING_NAME, json.dumps(tuning, indent=2, allow_nan=False) + "\n")
-    log.info("%s: best of %d grid points %s (val MAE %.3f mm, raw %.3f mm) in %.1f s", backbone, len(points),
-             best_params, scores[best_i]["val_mae_mm"], raw["val_mae_mm"], tune_s)
+    log.info(
+        "%s: best of %d grid points %s (val MAE %.3f mm, raw %.3f mm) in %.1f s",
+        backbone,
+        len(points),
+        best_params,
+        scores[best_i]["val_mae_mm"],
+        raw["val_mae_mm"],
+        tune_s,
+    )
 
     model = models[best_i].cpu()
     model.record_tuning(scores[best_i]["val_mae_mm"], raw["val_mae_mm"])
@@ -209,15 +235,25 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     summary = (cfg.get("callbacks") or {}).get("summary")
     if summary is not None:
         callbacks.append(instantiate(summary, _convert_="all"))
-    trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=False, enable_checkpointing=False,
-                          _convert_="all")
+    trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=False, enable_checkpointing=False, _convert_="all")
     datamodule.setup("test")
     trainer.test(model, datamodule=datamodule, verbose=False)
     metrics = write_test_outputs(model, run_dir) if trainer.is_global_zero else None
-    run_info = {"backbone": backbone, "method": f"{backbone} (classical)", "noise": cfg.noise.name, "loss": "none",
-                "run_name": str(cfg.run_name), "data": str(cfg.data.get("source", "procedural")),
-                "seed": int(cfg.seed), "started": started, "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-                "global_step": 0, "best_ckpt": None, "params": rows[best_i], "tuning": TUNING_NAME}
+    run_info = {
+        "backbone": backbone,
+        "method": f"{backbone} (classical)",
+        "noise": cfg.noise.name,
+        "loss": "none",
+        "run_name": str(cfg.run_name),
+        "data": str(cfg.data.get("source", "procedural")),
+        "seed": int(cfg.seed),
+        "started": started,
+        "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        "global_step": 0,
+        "best_ckpt": None,
+        "params": rows[best_i],
+        "tuning": TUNING_NAME,
+    }
     if trainer.is_global_zero:
         write_json_atomic(run_dir / RUN_INFO_NAME, run_info)
     return {"run_dir": str(run_dir), "best": best_params, "metrics": metrics, "tuning": tuning}

@@ -16,8 +16,8 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 __all__ = ["build_parser", "main", "run"]
 
@@ -26,26 +26,46 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="tofdenoise-denoise",
         description="Denoise iToF depth frames (16-bit PNG mm, .npy, .exr) with a trained tofdenoise checkpoint; "
-                    "invalid pixels stay invalid unless --fill-holes.")
+        "invalid pixels stay invalid unless --fill-holes.",
+    )
     p.add_argument("inputs", nargs="+", metavar="INPUT", help="depth frames or folders of them (recursive)")
     p.add_argument("--ckpt", required=True, type=Path, help="DepthRestorer checkpoint (.ckpt)")
     p.add_argument("--out", required=True, type=Path, help="output folder (input sub-folders are mirrored)")
-    p.add_argument("--amplitude", default=None, metavar="DIR_OR_PATTERN",
-                   help="amplitude frames paired by stem: a folder, a template with {stem} (amp/{stem}_amp.png) or a "
-                        "glob (amp/*.png); required by checkpoints that use the signal channel")
-    p.add_argument("--calib", default=None, metavar="FILE",
-                   help="sensor calibration (YAML/JSON, or a preset name): with --amplitude, write the per-pixel "
-                        "sigma_D map of the input (<stem>_sigma_mm.npy, and in the preview)")
-    p.add_argument("--depth-scale-mm", type=float, default=1.0,
-                   help="millimetres per stored depth unit (default 1; e.g. 0.25, or 1000 for metres)")
+    p.add_argument(
+        "--amplitude",
+        default=None,
+        metavar="DIR_OR_PATTERN",
+        help="amplitude frames paired by stem: a folder, a template with {stem} (amp/{stem}_amp.png) or a "
+        "glob (amp/*.png); required by checkpoints that use the signal channel",
+    )
+    p.add_argument(
+        "--calib",
+        default=None,
+        metavar="FILE",
+        help="sensor calibration (YAML/JSON, or a preset name): with --amplitude, write the per-pixel "
+        "sigma_D map of the input (<stem>_sigma_mm.npy, and in the preview)",
+    )
+    p.add_argument(
+        "--depth-scale-mm",
+        type=float,
+        default=1.0,
+        help="millimetres per stored depth unit (default 1; e.g. 0.25, or 1000 for metres)",
+    )
     p.add_argument("--fill-holes", action="store_true", help="give invalid input pixels a restored depth too")
     p.add_argument("--npy", action="store_true", help="also write the restored depth as float32 .npy (mm)")
-    p.add_argument("--previews", action="store_true",
-                   help="write <stem>_preview.png: input | restored | |difference| (| sigma_D) with colour bars")
+    p.add_argument(
+        "--previews",
+        action="store_true",
+        help="write <stem>_preview.png: input | restored | |difference| (| sigma_D) with colour bars",
+    )
     p.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"), help="default: CUDA when available")
     p.add_argument("--fp32", action="store_true", help="no bf16 autocast on CUDA")
-    p.add_argument("--tile", type=int, default=None,
-                   help="tile side in pixels for large frames (default: the checkpoint's predict_tile_size)")
+    p.add_argument(
+        "--tile",
+        type=int,
+        default=None,
+        help="tile side in pixels for large frames (default: the checkpoint's predict_tile_size)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
 
@@ -73,8 +93,9 @@ def run(args: argparse.Namespace) -> int:
         device = resolve_device(args.device)
         amplitude = AmplitudeSource(args.amplitude) if args.amplitude is not None else None
         # an amplitude folder inside an input folder holds no depth frames
-        frames = find_frames(args.inputs, exclude=[args.out] + ([amplitude.folder] if amplitude and amplitude.folder
-                                                                 else []))
+        frames = find_frames(
+            args.inputs, exclude=[args.out] + ([amplitude.folder] if amplitude and amplitude.folder else [])
+        )
         calib = None
         if args.calib is not None:
             from tofdenoise.physics.calibration import resolve_calibration
@@ -84,8 +105,10 @@ def run(args: argparse.Namespace) -> int:
     except (FrameError, CheckpointError, ValueError, OSError) as exc:
         return _fail(str(exc))
     if model.hparams.use_signal_channel and amplitude is None:
-        return _fail(f"checkpoint {args.ckpt} uses the amplitude (signal) channel (use_signal_channel=true): give "
-                     "the frames' amplitude with --amplitude DIR_OR_PATTERN")
+        return _fail(
+            f"checkpoint {args.ckpt} uses the amplitude (signal) channel (use_signal_channel=true): give "
+            "the frames' amplitude with --amplitude DIR_OR_PATTERN"
+        )
     if not frames:
         return _fail(f"no depth frame found in {', '.join(map(str, args.inputs))}")
 
@@ -111,18 +134,29 @@ def run(args: argparse.Namespace) -> int:
             if not data.valid.any():
                 skipped.append((str(frame.path), "no valid pixel"))
                 continue
-            restored = restore_frame(model, data.depth_mm, data.valid, data.amplitude, fill_holes=args.fill_holes,
-                                     tile=args.tile, precision=precision)
-            write_frame_outputs(args.out, data.name, data.depth_mm, data.valid, restored, options,
-                                sigma_mm=frame_sigma(data, calib))
+            restored = restore_frame(
+                model,
+                data.depth_mm,
+                data.valid,
+                data.amplitude,
+                fill_holes=args.fill_holes,
+                tile=args.tile,
+                precision=precision,
+            )
+            write_frame_outputs(
+                args.out, data.name, data.depth_mm, data.valid, restored, options, sigma_mm=frame_sigma(data, calib)
+            )
         except (FrameError, ValueError, OSError, RuntimeError) as exc:
             failed.append((str(frame.path), str(exc)))
             continue
         seconds += time.perf_counter() - started
         done += 1
     per_frame = f"{seconds / done:.3f} s/frame" if done else "n/a s/frame"
-    print(f"tofdenoise-denoise: {done} frame(s) done, {len(skipped)} skipped, {len(failed)} failed; {per_frame} on "
-          f"{device.type} -> {args.out}", file=sys.stderr)
+    print(
+        f"tofdenoise-denoise: {done} frame(s) done, {len(skipped)} skipped, {len(failed)} failed; {per_frame} on "
+        f"{device.type} -> {args.out}",
+        file=sys.stderr,
+    )
     for path, reason in skipped:
         print(f"  skipped {path}: {reason}", file=sys.stderr)
     for path, reason in failed:

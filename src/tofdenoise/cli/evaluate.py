@@ -16,8 +16,8 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 from tofdenoise.atomic import atomic_write_text
 from tofdenoise.cli.output_guard import OutputPathError, check_output_file
@@ -40,7 +40,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="tofdenoise-eval",
         description="Unified depth metrics (PSNR with D_max, SSIM, MSE, MAE over valid pixels, per image then "
-                    "averaged) of predicted depth maps against references; files matched by name.")
+        "averaged) of predicted depth maps against references; files matched by name.",
+    )
     p.add_argument("--pred", required=True, type=Path, help="folder of predicted depth maps (16-bit PNG mm or .npy)")
     p.add_argument("--ref", required=True, type=Path, help="folder of reference depth maps (same stems)")
     p.add_argument("--mask", type=Path, default=None, help="optional folder of masks (nonzero = evaluate)")
@@ -61,11 +62,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     if result["nan_px"]:
         bad = [stem for stem, row in result["images"].items() if row["nan_px"]]
-        failed = f"; {len(result['failed'])} image(s) with no finite prediction at all (failed)" \
-            if result["failed"] else ""
-        print(f"tofdenoise-eval: warning: {result['nan_px']} pixel(s) to evaluate hold a non-finite prediction "
-              f"(NaN/inf) in {len(bad)} image(s) ({', '.join(bad[:5])}{' ...' if len(bad) > 5 else ''}): "
-              f"failures, left out of the metrics and counted in nan_px{failed}", file=sys.stderr)
+        failed = (
+            f"; {len(result['failed'])} image(s) with no finite prediction at all (failed)" if result["failed"] else ""
+        )
+        print(
+            f"tofdenoise-eval: warning: {result['nan_px']} pixel(s) to evaluate hold a non-finite prediction "
+            f"(NaN/inf) in {len(bad)} image(s) ({', '.join(bad[:5])}{' ...' if len(bad) > 5 else ''}): "
+            f"failures, left out of the metrics and counted in nan_px{failed}",
+            file=sys.stderr,
+        )
     atomic_write_text(args.out, json.dumps(result, indent=2, allow_nan=False) + "\n")
     m = result["mean"]
 
@@ -73,9 +78,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         return "n/a" if v is None else (v if isinstance(v, str) else f"{v:.{d}f}")
 
     nan_note = f", {result['nan_px']} non-finite predicted px" if result["nan_px"] else ""
-    print(f"{result['num_images']} images ({len(result['skipped'])} without valid pixels{nan_note}): "
-          f"PSNR {f(m['psnr_db'], 2)} dB, SSIM {f(m['ssim'], 4)}, MSE {f(m['mse_mm2'], 2)} mm^2, "
-          f"MAE {f(m['mae_mm'], 3)} mm -> {args.out}")
+    print(
+        f"{result['num_images']} images ({len(result['skipped'])} without valid pixels{nan_note}): "
+        f"PSNR {f(m['psnr_db'], 2)} dB, SSIM {f(m['ssim'], 4)}, MSE {f(m['mse_mm2'], 2)} mm^2, "
+        f"MAE {f(m['mae_mm'], 3)} mm -> {args.out}"
+    )
     return 0
 
 

@@ -31,10 +31,12 @@ PRESETS: dict[str, list[str]] = {
     "paper": ["experiment=paper"],
 }
 
-HEADER = ("# GENERATED from the Hydra configs by `python -m tofdenoise.cli.export_cli_config` ({overrides}).\n"
-          "# Do not edit: change configs/*.yaml and re-generate (tests check that the two agree).\n"
-          "# Usage: tofdenoise fit --config configs/cli/{name}.yaml  "
-          "(then: tofdenoise test --config configs/cli/{name}.yaml --ckpt_path {run_dir}/checkpoints/best.ckpt)\n")
+HEADER = (
+    "# GENERATED from the Hydra configs by `python -m tofdenoise.cli.export_cli_config` ({overrides}).\n"
+    "# Do not edit: change configs/*.yaml and re-generate (tests check that the two agree).\n"
+    "# Usage: tofdenoise fit --config configs/cli/{name}.yaml  "
+    "(then: tofdenoise test --config configs/cli/{name}.yaml --ckpt_path {run_dir}/checkpoints/best.ckpt)\n"
+)
 
 
 def _class_node(node: dict[str, Any], where: str) -> dict[str, Any]:
@@ -45,8 +47,11 @@ def _class_node(node: dict[str, Any], where: str) -> dict[str, Any]:
 
 
 def _class_list(group: dict[str, Any] | None, where: str) -> list[dict[str, Any]]:
-    return [_class_node(sub, f"{where}.{key}") for key, sub in (group or {}).items()
-            if isinstance(sub, dict) and "_target_" in sub]
+    return [
+        _class_node(sub, f"{where}.{key}")
+        for key, sub in (group or {}).items()
+        if isinstance(sub, dict) and "_target_" in sub
+    ]
 
 
 def hydra_to_cli(cfg: DictConfig) -> dict[str, Any]:
@@ -83,8 +88,11 @@ def export_preset(name: str, overrides: list[str]) -> str:
 def main(argv: list[str] | None = None) -> int:
     from tofdenoise.config import config_dir
 
-    ap = argparse.ArgumentParser(prog="python -m tofdenoise.cli.export_cli_config", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        prog="python -m tofdenoise.cli.export_cli_config",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     ap.add_argument("--out", type=Path, default=None, help="output folder (default: configs/cli)")
     ap.add_argument("--check", action="store_true", help="only compare with the files on disk; exit 1 if stale")
     ap.add_argument("--name", default=None, help="export one config under this name instead of the presets")
@@ -105,8 +113,10 @@ def main(argv: list[str] | None = None) -> int:
         atomic_write_text(path, text)
         print(f"wrote {path}")
     if stale:
-        print("stale LightningCLI configs (re-run python -m tofdenoise.cli.export_cli_config): "
-              + ", ".join(stale), file=sys.stderr)
+        print(
+            "stale LightningCLI configs (re-run python -m tofdenoise.cli.export_cli_config): " + ", ".join(stale),
+            file=sys.stderr,
+        )
         return 1
     return 0
 

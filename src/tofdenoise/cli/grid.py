@@ -29,15 +29,19 @@ def build_parser() -> argparse.ArgumentParser:
         ROBUSTNESS_SENSORS,
     )
 
-    p = argparse.ArgumentParser(prog="tofdenoise-grid", description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        prog="tofdenoise-grid",
+        description=__doc__.split("\n\n")[0],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("grid", choices=["robustness"], help="which grid")
     p.add_argument("--out", required=True, type=Path, help="folder of the grid's runs (one sub-folder per run)")
     p.add_argument("--backbones", nargs="+", default=list(ROBUSTNESS_BACKBONES), choices=list(ROBUSTNESS_BACKBONES))
     p.add_argument("--noises", nargs="+", default=list(ROBUSTNESS_NOISES), choices=list(ROBUSTNESS_NOISES))
     p.add_argument("--losses", nargs="+", default=list(ROBUSTNESS_LOSSES), choices=list(ROBUSTNESS_LOSSES))
-    p.add_argument("--sensors", nargs="+", default=list(ROBUSTNESS_SENSORS),
-                   help="sensor presets (configs/sensor/<name>.yaml)")
+    p.add_argument(
+        "--sensors", nargs="+", default=list(ROBUSTNESS_SENSORS), help="sensor presets (configs/sensor/<name>.yaml)"
+    )
     p.add_argument("--seeds", nargs="+", type=int, default=list(ROBUSTNESS_SEEDS))
     p.add_argument("--extra", nargs="*", default=[], help="extra Hydra overrides for every run")
     p.add_argument("--dry-run", action="store_true", help="print what would run, run nothing")

@@ -29,23 +29,28 @@ def _resolved(path: Path) -> Path:
     return Path(os.path.realpath(path.expanduser()))
 
 
-def check_output_file(out: str | os.PathLike[str], suffixes: Iterable[str], inputs: Iterable[Path] = (),
-                      what: str = "--out") -> Path:
+def check_output_file(
+    out: str | os.PathLike[str], suffixes: Iterable[str], inputs: Iterable[Path] = (), what: str = "--out"
+) -> Path:
     """Return ``out`` as a Path after the checks in the module docstring; ``inputs`` are the files read."""
     out = Path(out)
     allowed = tuple(s.lower() for s in suffixes)
     if out.is_dir():
         raise OutputPathError(f"{what} {out} is a folder; give a file name such as {out / ('result' + allowed[0])}")
     if out.suffix.lower() not in allowed:
-        raise OutputPathError(f"{what} {out}: expected a {' or '.join(allowed)} file, got "
-                              f"{out.suffix or 'no extension'} (refusing to write where an input or a run "
-                              f"record might live)")
+        raise OutputPathError(
+            f"{what} {out}: expected a {' or '.join(allowed)} file, got "
+            f"{out.suffix or 'no extension'} (refusing to write where an input or a run "
+            f"record might live)"
+        )
     target = _resolved(out)
     for path in inputs:
         src = _resolved(Path(path))
         if src == target:
             raise OutputPathError(f"{what} {out} is one of the inputs ({path}); choose another output file")
         if src.parent == target.parent and src.stem == target.stem:
-            raise OutputPathError(f"{what} {out} lies in the input folder {Path(path).parent} next to the input "
-                                  f"{Path(path).name} of the same name; choose another output file")
+            raise OutputPathError(
+                f"{what} {out} lies in the input folder {Path(path).parent} next to the input "
+                f"{Path(path).name} of the same name; choose another output file"
+            )
     return out

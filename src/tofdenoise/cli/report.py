@@ -11,7 +11,8 @@ panel; the same table is printed to stdout as Markdown. What is read from a run 
 and the page: :mod:`tofdenoise.reporting`.
 
 The "Learned" column shows the learned guard of each run: ``yes``; ``NOT LEARNED``; ``NOT TRAINED``;
-``unverified``; ``classical`` (a non-learned method, not flagged); ``?`` (``tofdenoise.reporting.table``). Flagged runs are shown in red and never get a bold
+``unverified``; ``classical`` (a non-learned method, not flagged); ``?`` (``tofdenoise.reporting.table``). Flagged
+runs are shown in red and never get a bold
 "best" value. Runs whose metrics.json is invalid are listed (with the reason) instead of stopping the report.
 ``--out`` must be a new or replaceable ``.html`` file outside the runs' records. Exit status 2 when no run is
 found or ``--out`` is refused.
@@ -21,8 +22,8 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 from tofdenoise.atomic import atomic_write_text
 from tofdenoise.cli.output_guard import OutputPathError, check_output_file
@@ -40,14 +41,18 @@ def _check_out(out: Path, run_dirs: Sequence[Path]) -> None:
         target = out.resolve()
         for d in run_dirs:
             if target.is_relative_to(d.resolve()):
-                raise OutputPathError(f"--out {out} is a file of the run {d}; write the report outside the run "
-                                      f"folders or under a new name")
+                raise OutputPathError(
+                    f"--out {out} is a file of the run {d}; write the report outside the run "
+                    f"folders or under a new name"
+                )
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="tofdenoise-report",
-                                description="Self-contained offline HTML report comparing tofdenoise runs; "
-                                            "prints the results table as Markdown.")
+    p = argparse.ArgumentParser(
+        prog="tofdenoise-report",
+        description="Self-contained offline HTML report comparing tofdenoise runs; "
+        "prints the results table as Markdown.",
+    )
     p.add_argument("runs_dir", nargs="+", type=Path, help="folder(s) searched recursively for runs (metrics.json)")
     p.add_argument("--out", required=True, type=Path, help="output HTML file")
     p.add_argument("--title", default="tofdenoise runs", help="page title")

@@ -39,19 +39,30 @@ REALSET_SIZES: dict[str, tuple[int, int, int]] = {"cpu": (24, 128, 160), "gpu": 
 
 def profile_overrides(profile: str, realset_dir: Path, extra: list[str]) -> list[str]:
     """The overrides of every run: the profile's experiment, the second camera's calibration and capture set."""
-    return [*PROFILES[profile], f"++data.sensor={realset_dir / 'calibration.yaml'}",
-            f"++data.real_dir={realset_dir / 'captures'}", *extra]
+    return [
+        *PROFILES[profile],
+        f"++data.sensor={realset_dir / 'calibration.yaml'}",
+        f"++data.real_dir={realset_dir / 'captures'}",
+        *extra,
+    ]
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="tofdenoise-reproduce", description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        prog="tofdenoise-reproduce",
+        description=__doc__.split("\n\n")[0],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("--table", choices=["1", "2", "3", "fig6"], help="which table (or the Fig. 6 validation)")
     p.add_argument("--profile", choices=sorted(PROFILES), default="cpu")
     p.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     p.add_argument("--out", type=Path, default=None, help="run folders (default runs/reproduce/<profile>)")
-    p.add_argument("--results", type=Path, default=REPO_ROOT / "docs" / "results",
-                   help="where the run records are committed (default docs/results)")
+    p.add_argument(
+        "--results",
+        type=Path,
+        default=REPO_ROOT / "docs" / "results",
+        help="where the run records are committed (default docs/results)",
+    )
     p.add_argument("--page", type=Path, default=REPO_ROOT / "docs" / "results.md", help="the results page")
     p.add_argument("--extra", nargs="*", default=[], help="extra Hydra overrides for every run (e.g. data.root=...)")
     p.add_argument("--dry-run", action="store_true", help="print what would run, run nothing")
@@ -70,8 +81,20 @@ def realset_command(realset_dir: Path, profile: str) -> list[str]:
     """``tofdenoise-sensor realset``: the second camera's calibration captures, their calibration and its capture
     set (docs/camera-tutorial.md); finished steps and complete scenes are skipped, so it is cheap to repeat."""
     scenes, height, width = REALSET_SIZES[profile]
-    return [sys.executable, "-m", "tofdenoise.cli.sensor", "realset", "--out", str(realset_dir),
-            "--scenes", str(scenes), "--height", str(height), "--width", str(width)]
+    return [
+        sys.executable,
+        "-m",
+        "tofdenoise.cli.sensor",
+        "realset",
+        "--out",
+        str(realset_dir),
+        "--scenes",
+        str(scenes),
+        "--height",
+        str(height),
+        "--width",
+        str(width),
+    ]
 
 
 def ensure_realset(realset_dir: Path, profile: str, dry_run: bool = False) -> None:
@@ -83,8 +106,14 @@ def ensure_realset(realset_dir: Path, profile: str, dry_run: bool = False) -> No
 
 
 #: what a finished run leaves in docs/results/<profile>/<run>/ (small files; checkpoints and panels stay in runs/)
-RECORD_FILES = (METRICS_NAME, RUN_INFO_NAME, "config.yaml", "csv/metrics.csv", f"{PER_IMAGE_DIR}/synthetic.csv",
-                f"{PER_IMAGE_DIR}/real.csv")
+RECORD_FILES = (
+    METRICS_NAME,
+    RUN_INFO_NAME,
+    "config.yaml",
+    "csv/metrics.csv",
+    f"{PER_IMAGE_DIR}/synthetic.csv",
+    f"{PER_IMAGE_DIR}/real.csv",
+)
 
 
 def copy_records(run_dirs: list[Path], dest: Path) -> list[str]:
@@ -105,13 +134,34 @@ def copy_records(run_dirs: list[Path], dest: Path) -> list[str]:
 def write_report(dest: Path) -> None:
     """The offline HTML report of the recorded runs (``dest/report.html``), when there are any."""
     if any(dest.glob(f"*/{METRICS_NAME}")):
-        _run([sys.executable, "-m", "tofdenoise.cli.report", str(dest), "--out", str(dest / "report.html"),
-              "--title", f"tofdenoise: paper tables, {dest.name} profile"], "HTML report")
+        _run(
+            [
+                sys.executable,
+                "-m",
+                "tofdenoise.cli.report",
+                str(dest),
+                "--out",
+                str(dest / "report.html"),
+                "--title",
+                f"tofdenoise: paper tables, {dest.name} profile",
+            ],
+            "HTML report",
+        )
 
 
 def _fig6(args: argparse.Namespace, realset_dir: Path, dest: Path) -> int:
-    cmd = [sys.executable, "-m", "tofdenoise.cli.sensor", "validate", "--out", str(args.out / "fig6"),
-           "--calib", str(realset_dir / "calibration.yaml"), "--captures", str(realset_dir / "validation")]
+    cmd = [
+        sys.executable,
+        "-m",
+        "tofdenoise.cli.sensor",
+        "validate",
+        "--out",
+        str(args.out / "fig6"),
+        "--calib",
+        str(realset_dir / "calibration.yaml"),
+        "--captures",
+        str(realset_dir / "validation"),
+    ]
     if args.dry_run:
         print(f"[reproduce] would run fig6: {' '.join(cmd)}")
         return 0

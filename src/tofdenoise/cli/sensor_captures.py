@@ -17,18 +17,33 @@ def _simulate(args: argparse.Namespace) -> int:
 
     def progress(index: int, total: int, info: dict) -> None:
         if not args.quiet:
-            print(f"scene {index + 1}/{total}: reference exposure {info['reference_exposure']:.3g}, "
-                  f"input valid {info['input_valid_fraction']:.3f}, reference valid "
-                  f"{info['reference_valid_fraction']:.3f}", flush=True)
+            print(
+                f"scene {index + 1}/{total}: reference exposure {info['reference_exposure']:.3g}, "
+                f"input valid {info['input_valid_fraction']:.3f}, reference valid "
+                f"{info['reference_valid_fraction']:.3f}",
+                flush=True,
+            )
 
     summary = simulate_capture_set(
-        args.out, scenes=args.scenes, frames=args.frames, height=args.height, width=args.width, seed=args.seed,
-        calib=args.sensor, hi_exposure=args.hi_exposure, write_taps=args.taps, force=args.force,
-        min_count=args.min_count, mixed_pixels=args.mixed_pixels, progress=progress,
+        args.out,
+        scenes=args.scenes,
+        frames=args.frames,
+        height=args.height,
+        width=args.width,
+        seed=args.seed,
+        calib=args.sensor,
+        hi_exposure=args.hi_exposure,
+        write_taps=args.taps,
+        force=args.force,
+        min_count=args.min_count,
+        mixed_pixels=args.mixed_pixels,
+        progress=progress,
     )
     per_scene = summary.seconds / max(summary.scenes_written, 1)
-    print(f"simulated capture set in {summary.out_dir}: {summary.scenes_written} scene(s) written, "
-          f"{summary.scenes_skipped} already complete, {summary.seconds:.1f} s ({per_scene:.2f} s per scene)")
+    print(
+        f"simulated capture set in {summary.out_dir}: {summary.scenes_written} scene(s) written, "
+        f"{summary.scenes_skipped} already complete, {summary.seconds:.1f} s ({per_scene:.2f} s per scene)"
+    )
     return 0
 
 
@@ -40,21 +55,37 @@ def _simulate_calibration(args: argparse.Namespace) -> int:
     distances = args.distances_mm if args.distances_mm is not None else default_distances_mm(calib)
     too_far = [d for d in distances if not 0 < d < calib.unambiguous_range_mm]
     if too_far:
-        raise ValueError(f"--distances-mm {too_far[0]:g}: distances must lie in (0, {calib.unambiguous_range_mm:.0f}) "
-                         f"mm, the unambiguous range of this camera ({calib.modulation_frequency_hz / 1e6:g} MHz)")
-    for name, value in (("--sweep-steps", args.sweep_steps), ("--sweep-frames", args.sweep_frames),
-                        ("--dark-frames", args.dark_frames), ("--distance-frames", args.distance_frames),
-                        ("--size", args.size)):
+        raise ValueError(
+            f"--distances-mm {too_far[0]:g}: distances must lie in (0, {calib.unambiguous_range_mm:.0f}) "
+            f"mm, the unambiguous range of this camera ({calib.modulation_frequency_hz / 1e6:g} MHz)"
+        )
+    for name, value in (
+        ("--sweep-steps", args.sweep_steps),
+        ("--sweep-frames", args.sweep_frames),
+        ("--dark-frames", args.dark_frames),
+        ("--distance-frames", args.distance_frames),
+        ("--size", args.size),
+    ):
         if value < 2:
             raise ValueError(f"{name} must be >= 2, got {value}")
     folders = write_calibration_captures(
-        calib, args.out, sweep_steps=args.sweep_steps, sweep_frames=args.sweep_frames, dark_frames=args.dark_frames,
-        distances_mm=distances, distance_frames=args.distance_frames, shape=(args.size, args.size), seed=args.seed)
+        calib,
+        args.out,
+        sweep_steps=args.sweep_steps,
+        sweep_frames=args.sweep_frames,
+        dark_frames=args.dark_frames,
+        distances_mm=distances,
+        distance_frames=args.distance_frames,
+        shape=(args.size, args.size),
+        seed=args.seed,
+    )
     out = Path(args.out)
     for name, folder in folders.items():
         print(f"wrote {folder} ({name})")
-    print("next: tofdenoise-sensor calibrate --sweep {0}/sweep --dark {0}/dark --distances {0}/distances "
-          "--out CALIBRATION.yaml".format(out))
+    print(
+        f"next: tofdenoise-sensor calibrate --sweep {out}/sweep --dark {out}/dark --distances {out}/distances "
+        "--out CALIBRATION.yaml"
+    )
     return 0
 
 
@@ -80,20 +111,52 @@ REALSET_CAMERA = "cam75"
 REALSET_SEED = 1000
 
 
-def realset_commands(out: Path, camera: str = REALSET_CAMERA, scenes: int = 40, frames: int = 100,
-                     height: int = 144, width: int = 192, seed: int = REALSET_SEED, mixed_pixels: int = 3
-                     ) -> list[list[str]]:
+def realset_commands(
+    out: Path,
+    camera: str = REALSET_CAMERA,
+    scenes: int = 40,
+    frames: int = 100,
+    height: int = 144,
+    width: int = 192,
+    seed: int = REALSET_SEED,
+    mixed_pixels: int = 3,
+) -> list[list[str]]:
     """The camera engineer's flow (docs/camera-tutorial.md) for a simulated second camera, as
     ``tofdenoise-sensor`` argument lists: a) its calibration captures, b) calibrate them, c) its capture set,
     d) its noise-validation captures (Fig. 6: ``tofdenoise-sensor validate --captures OUT/validation``)."""
     caps = out / "calibration-captures"
     return [
         ["simulate-calibration", "--sensor", camera, "--out", str(caps), "--seed", str(seed)],
-        ["calibrate", "--sweep", str(caps / "sweep"), "--dark", str(caps / "dark"), "--distances",
-         str(caps / "distances"), "--out", str(out / "calibration.yaml")],
-        ["simulate-captures", "--sensor", camera, "--out", str(out / "captures"), "--scenes", str(scenes),
-         "--frames", str(frames), "--height", str(height), "--width", str(width), "--seed", str(seed),
-         "--mixed-pixels", str(mixed_pixels)],
+        [
+            "calibrate",
+            "--sweep",
+            str(caps / "sweep"),
+            "--dark",
+            str(caps / "dark"),
+            "--distances",
+            str(caps / "distances"),
+            "--out",
+            str(out / "calibration.yaml"),
+        ],
+        [
+            "simulate-captures",
+            "--sensor",
+            camera,
+            "--out",
+            str(out / "captures"),
+            "--scenes",
+            str(scenes),
+            "--frames",
+            str(frames),
+            "--height",
+            str(height),
+            "--width",
+            str(width),
+            "--seed",
+            str(seed),
+            "--mixed-pixels",
+            str(mixed_pixels),
+        ],
         ["simulate-validation", "--sensor", camera, "--out", str(out / "validation"), "--seed", str(seed)],
     ]
 
@@ -107,10 +170,14 @@ def _realset(args: argparse.Namespace) -> int:
     from tofdenoise.physics.calibration import resolve_calibration
 
     out = Path(args.out).expanduser()
-    commands = realset_commands(out, args.camera, args.scenes, args.frames, args.height, args.width, args.seed,
-                                args.mixed_pixels)
-    record = {"camera": str(args.camera), "camera_fingerprint": resolve_calibration(args.camera).fingerprint(),
-              "seed": args.seed}
+    commands = realset_commands(
+        out, args.camera, args.scenes, args.frames, args.height, args.width, args.seed, args.mixed_pixels
+    )
+    record = {
+        "camera": str(args.camera),
+        "camera_fingerprint": resolve_calibration(args.camera).fingerprint(),
+        "seed": args.seed,
+    }
     done = out / "realset.json"
     try:
         calibrated = json.loads(done.read_text(encoding="utf-8")) == record and (out / "calibration.yaml").is_file()
@@ -128,8 +195,10 @@ def _realset(args: argparse.Namespace) -> int:
             return status
         if argv[0] == "calibrate":
             atomic_write_text(done, json.dumps(record, indent=1) + "\n")
-    print(f"stand-in real set ready: train with its calibration and test on its captures:\n"
-          f"  tofdenoise-train ++data.sensor={out / 'calibration.yaml'} ++data.real_dir={out / 'captures'}")
+    print(
+        f"stand-in real set ready: train with its calibration and test on its captures:\n"
+        f"  tofdenoise-train ++data.sensor={out / 'calibration.yaml'} ++data.real_dir={out / 'captures'}"
+    )
     return 0
 
 
@@ -149,9 +218,11 @@ def _build_reference(args: argparse.Namespace) -> int:
             valid = float((ref.count > 0).mean()) if ref.count.size else 0.0
             import numpy as np
 
-            print(f"{scene.name}: {'rebuilt' if ref.rebuilt else 'up to date'}; valid reference pixels "
-                  f"{float(np.isfinite(ref.depth_mm).mean()):.3f} (any frame {valid:.3f}); frames per pixel "
-                  f"max {int(ref.count.max())}")
+            print(
+                f"{scene.name}: {'rebuilt' if ref.rebuilt else 'up to date'}; valid reference pixels "
+                f"{float(np.isfinite(ref.depth_mm).mean()):.3f} (any frame {valid:.3f}); frames per pixel "
+                f"max {int(ref.count.max())}"
+            )
     print(f"{len(scenes)} scene(s): {rebuilt} reference(s) rebuilt, {len(scenes) - rebuilt} up to date")
     return 0
 
@@ -161,8 +232,8 @@ def add_commands(subparsers) -> None:
         "simulate-captures",
         help="write a simulated capture set (built-in scenes through the tap-level simulator)",
         description="Create a capture set in the real-capture format from built-in procedural scenes: one "
-                    "standard-exposure frame (noisy input) and high-exposure frames without saturation for the "
-                    "reference, simulated at tap level (Poisson, dark noise, full well, ADC, harmonics).",
+        "standard-exposure frame (noisy input) and high-exposure frames without saturation for the "
+        "reference, simulated at tap level (Poisson, dark noise, full well, ADC, harmonics).",
     )
     sim.add_argument("--out", required=True, help="output folder (SCENES_DIR)")
     sim.add_argument("--scenes", type=int, default=200, help="number of scenes (default 200)")
@@ -171,13 +242,23 @@ def add_commands(subparsers) -> None:
     sim.add_argument("--width", type=int, default=640)
     sim.add_argument("--seed", type=int, default=0, help="scene and noise seed")
     sim.add_argument("--sensor", default=None, help="calibration file or preset (default: configs/sensor/default.yaml)")
-    sim.add_argument("--hi-exposure", type=float, default=4.0,
-                     help="requested reference exposure (lowered per scene to stay below the full well)")
-    sim.add_argument("--min-count", type=int, default=None,
-                     help="valid frames a reference pixel needs (default: half of the frames)")
-    sim.add_argument("--mixed-pixels", type=int, default=1, metavar="S",
-                     help="integrate S x S samples per pixel, so pixels at depth edges mix the returns of both "
-                          "surfaces (default 1: one surface per pixel)")
+    sim.add_argument(
+        "--hi-exposure",
+        type=float,
+        default=4.0,
+        help="requested reference exposure (lowered per scene to stay below the full well)",
+    )
+    sim.add_argument(
+        "--min-count", type=int, default=None, help="valid frames a reference pixel needs (default: half of the frames)"
+    )
+    sim.add_argument(
+        "--mixed-pixels",
+        type=int,
+        default=1,
+        metavar="S",
+        help="integrate S x S samples per pixel, so pixels at depth edges mix the returns of both "
+        "surfaces (default 1: one surface per pixel)",
+    )
     sim.add_argument("--taps", action="store_true", help="also write raw tap stacks (.npy)")
     sim.add_argument("--force", action="store_true", help="rewrite scenes that are already complete")
     sim.add_argument("--quiet", action="store_true")
@@ -187,19 +268,28 @@ def add_commands(subparsers) -> None:
         "simulate-calibration",
         help="write a simulated camera's calibration captures (phase sweep, dark frames, distance sequence)",
         description="Write the three capture folders `tofdenoise-sensor calibrate` reads (format "
-                    "tofdenoise-captures-v1, docs/physics.md) as the camera --sensor records them through the "
-                    "tap-level simulator: OUT/sweep (a planar target at --sweep-steps phases), OUT/dark "
-                    "(--dark-frames emitter-off frames, in DN when the camera has an ADC gain) and OUT/distances "
-                    "(a planar target at --distances-mm).",
+        "tofdenoise-captures-v1, docs/physics.md) as the camera --sensor records them through the "
+        "tap-level simulator: OUT/sweep (a planar target at --sweep-steps phases), OUT/dark "
+        "(--dark-frames emitter-off frames, in DN when the camera has an ADC gain) and OUT/distances "
+        "(a planar target at --distances-mm).",
     )
     cal.add_argument("--out", required=True, help="output folder (sweep/, dark/, distances/ are written in it)")
-    cal.add_argument("--sensor", default=None,
-                     help="the simulated camera: calibration file or preset (default: configs/sensor/default.yaml)")
+    cal.add_argument(
+        "--sensor",
+        default=None,
+        help="the simulated camera: calibration file or preset (default: configs/sensor/default.yaml)",
+    )
     cal.add_argument("--sweep-steps", type=int, default=24, help="phase steps of the sweep (default 24)")
     cal.add_argument("--sweep-frames", type=int, default=20, help="frames per sweep step (default 20)")
     cal.add_argument("--dark-frames", type=int, default=100, help="emitter-off frames (default 100)")
-    cal.add_argument("--distances-mm", type=float, nargs="+", default=None, metavar="D",
-                     help="planar-target distances (default: 10 from 25 %% to 75 %% of the unambiguous range)")
+    cal.add_argument(
+        "--distances-mm",
+        type=float,
+        nargs="+",
+        default=None,
+        metavar="D",
+        help="planar-target distances (default: 10 from 25 %% to 75 %% of the unambiguous range)",
+    )
     cal.add_argument("--distance-frames", type=int, default=100, help="frames per distance (default 100)")
     cal.add_argument("--size", type=int, default=16, help="captured region side in pixels (default 16)")
     cal.add_argument("--seed", type=int, default=0, help="noise seed")
@@ -209,23 +299,35 @@ def add_commands(subparsers) -> None:
         "realset",
         help="the stand-in real set: a second simulated camera's calibration and capture set (one command)",
         description="Run the camera tutorial's steps for a simulated camera unlike the training default "
-                    "(docs/camera-tutorial.md): simulate-calibration -> OUT/calibration-captures, calibrate -> "
-                    "OUT/calibration.yaml, simulate-captures (mixed pixels at depth edges) -> OUT/captures, "
-                    "simulate-validation -> OUT/validation (the Fig. 6 conditions). Each "
-                    "command is printed before it runs. Resumable: an existing OUT/calibration.yaml is kept "
-                    "(--force redoes it) and completed scenes are skipped.",
+        "(docs/camera-tutorial.md): simulate-calibration -> OUT/calibration-captures, calibrate -> "
+        "OUT/calibration.yaml, simulate-captures (mixed pixels at depth edges) -> OUT/captures, "
+        "simulate-validation -> OUT/validation (the Fig. 6 conditions). Each "
+        "command is printed before it runs. Resumable: an existing OUT/calibration.yaml is kept "
+        "(--force redoes it) and completed scenes are skipped.",
     )
     real.add_argument("--out", required=True, help="output folder")
-    real.add_argument("--camera", default=REALSET_CAMERA,
-                      help=f"the simulated camera: preset or calibration file (default {REALSET_CAMERA})")
+    real.add_argument(
+        "--camera",
+        default=REALSET_CAMERA,
+        help=f"the simulated camera: preset or calibration file (default {REALSET_CAMERA})",
+    )
     real.add_argument("--scenes", type=int, default=40, help="static scenes (default 40; the paper has 200)")
     real.add_argument("--frames", type=int, default=100, help="high-exposure frames per scene (default 100)")
     real.add_argument("--height", type=int, default=144)
     real.add_argument("--width", type=int, default=192)
-    real.add_argument("--seed", type=int, default=REALSET_SEED,
-                      help=f"scene and noise seed (default {REALSET_SEED}; not a training data.seed)")
-    real.add_argument("--mixed-pixels", type=int, default=3, metavar="S",
-                      help="samples per pixel side (default 3: mixed pixels at depth edges)")
+    real.add_argument(
+        "--seed",
+        type=int,
+        default=REALSET_SEED,
+        help=f"scene and noise seed (default {REALSET_SEED}; not a training data.seed)",
+    )
+    real.add_argument(
+        "--mixed-pixels",
+        type=int,
+        default=3,
+        metavar="S",
+        help="samples per pixel side (default 3: mixed pixels at depth edges)",
+    )
     real.add_argument("--force", action="store_true", help="redo the calibration captures and the calibration")
     real.set_defaults(func=_realset)
 
@@ -233,14 +335,17 @@ def add_commands(subparsers) -> None:
         "simulate-validation",
         help="write a simulated camera's noise-validation captures (the Fig. 6 conditions)",
         description="Planar targets at 500..1500 mm every 100 mm, black/gray/white surfaces at 1500 mm under "
-                    "exposures 1-4, and an independent 550..1450 mm sequence for the range-aware fit, as tap "
-                    "stacks of the camera --sensor (kind validation, format tofdenoise-captures-v1). "
-                    "`tofdenoise-sensor validate --captures OUT --calib C` then compares the measured temporal "
-                    "noise with the prediction of the calibration C (e.g. the one `calibrate` estimated).",
+        "exposures 1-4, and an independent 550..1450 mm sequence for the range-aware fit, as tap "
+        "stacks of the camera --sensor (kind validation, format tofdenoise-captures-v1). "
+        "`tofdenoise-sensor validate --captures OUT --calib C` then compares the measured temporal "
+        "noise with the prediction of the calibration C (e.g. the one `calibrate` estimated).",
     )
     val.add_argument("--out", required=True, help="output folder")
-    val.add_argument("--sensor", default=None,
-                     help="the simulated camera: calibration file or preset (default: configs/sensor/default.yaml)")
+    val.add_argument(
+        "--sensor",
+        default=None,
+        help="the simulated camera: calibration file or preset (default: configs/sensor/default.yaml)",
+    )
     val.add_argument("--frames", type=int, default=100, help="frames per condition (default 100)")
     val.add_argument("--roi-px", type=int, default=32, help="captured region side in pixels (default 32)")
     val.add_argument("--seed", type=int, default=2024, help="noise seed (the range-fit sequence uses seed + 1)")
@@ -250,12 +355,13 @@ def add_commands(subparsers) -> None:
         "build-reference",
         help="build the multi-frame reference depth of every scene in a capture set",
         description="Per-pixel mean over the valid, unsaturated high-exposure frames (hiexp/), with a per-pixel "
-                    "count; pixels with fewer than --min-count frames are invalid (NaN). Written next to each "
-                    "scene (reference_depth_mm.npy, reference_count.npy); skipped when up to date.",
+        "count; pixels with fewer than --min-count frames are invalid (NaN). Written next to each "
+        "scene (reference_depth_mm.npy, reference_count.npy); skipped when up to date.",
     )
     ref.add_argument("scenes_dir", help="capture set folder (or one scene folder)")
-    ref.add_argument("--min-count", type=int, default=None,
-                     help="valid frames a pixel needs (default: half of the scene's frames)")
+    ref.add_argument(
+        "--min-count", type=int, default=None, help="valid frames a pixel needs (default: half of the scene's frames)"
+    )
     ref.add_argument("--force", action="store_true", help="rebuild even when up to date")
     ref.add_argument("--quiet", action="store_true")
     ref.set_defaults(func=_build_reference)

@@ -9,7 +9,6 @@ import sys
 from pathlib import Path
 from typing import Any
 
-
 #: depths beyond this many unambiguous ranges are refused by `sigma`: the phase 4 pi f D / c of such a depth
 #: is a huge float whose fractional part (all an iToF camera measures) is no longer meaningful (float32
 #: resolves it to ~2 mm at 1e4 ranges, float64 keeps digits only by accident), and no camera sees that far
@@ -27,8 +26,10 @@ def _calib(args: argparse.Namespace) -> Any:
 
     spec = getattr(args, "calib", None)
     if spec is not None and not Path(spec).suffix and not Path(spec).exists() and spec not in _presets():
-        raise ValueError(f"--calib {spec!r}: no such file and no preset of that name; presets: "
-                         f"{', '.join(_presets())} (configs/sensor/), or give a .yaml/.json calibration file")
+        raise ValueError(
+            f"--calib {spec!r}: no such file and no preset of that name; presets: "
+            f"{', '.join(_presets())} (configs/sensor/), or give a .yaml/.json calibration file"
+        )
     return resolve_calibration(spec)
 
 
@@ -47,15 +48,22 @@ def cmd_show_calib(args: argparse.Namespace) -> int:
     print(f"calibration: {args.calib or 'default (configs/sensor/default.yaml)'}")
     print(f"  fingerprint            {calib.fingerprint()[:16]}")
     print(f"  taps N                 {calib.num_taps}")
-    print(f"  modulation frequency   {calib.modulation_frequency_hz / 1e6:g} MHz "
-          f"(unambiguous range {calib.unambiguous_range_mm:.1f} mm)")
+    print(
+        f"  modulation frequency   {calib.modulation_frequency_hz / 1e6:g} MHz "
+        f"(unambiguous range {calib.unambiguous_range_mm:.1f} mm)"
+    )
     print(f"  tap response           c0={tr.c0:g} cos={list(tr.cos)} sin={list(tr.sin)} (contrast {tr.contrast:.3f})")
     print(f"  dark offset / std      {calib.dark_mean_e:g} e- / {calib.dark_std_e:g} e-")
     print(f"  signal interval        [{calib.signal_min_e:g}, {calib.signal_max_e:g}] e-")
     print(f"  full well              {calib.full_well_e:g} e-")
-    print(f"  ADC gain               {calib.adc_gain_e_per_dn if calib.adc_gain_e_per_dn is not None else 'none'} e-/DN")
+    print(
+        f"  ADC gain               {calib.adc_gain_e_per_dn if calib.adc_gain_e_per_dn is not None else 'none'} e-/DN"
+    )
     rs = calib.range_sigma_mm
-    print(f"  range-aware sigma(D)   {'none' if rs is None else f'{rs[0]:.4g} + {rs[1]:.4g} D + {rs[2]:.4g} D^2 mm (D in mm)'}")
+    print(
+        "  range-aware sigma(D)   "
+        + ("none" if rs is None else f"{rs[0]:.4g} + {rs[1]:.4g} D + {rs[2]:.4g} D^2 mm (D in mm)")
+    )
     return 0
 
 
@@ -89,10 +97,13 @@ def cmd_sigma(args: argparse.Namespace) -> int:
         raise ValueError(
             f"--depth-mm {d[too_far][0]:g} is {abs(d[too_far][0]) / calib.unambiguous_range_mm:.3g} unambiguous "
             f"ranges ({calib.unambiguous_range_mm:.1f} mm at {calib.modulation_frequency_hz / 1e6:g} MHz); depths "
-            f"beyond {MAX_UNAMBIGUOUS_RANGES:.0e} ranges ({limit:.4g} mm) have no meaningful phase and are refused")
+            f"beyond {MAX_UNAMBIGUOUS_RANGES:.0e} ranges ({limit:.4g} mm) have no meaningful phase and are refused"
+        )
     s = sigma_depth_mm(d, a, calib)
-    rows = [{"depth_mm": _json_float(di), "signal_e": _json_float(ai), "sigma_mm": _json_float(si)}
-            for di, ai, si in zip(d, a, s)]
+    rows = [
+        {"depth_mm": _json_float(di), "signal_e": _json_float(ai), "sigma_mm": _json_float(si)}
+        for di, ai, si in zip(d, a, s)
+    ]
     print(json.dumps(rows, indent=None if len(rows) > 20 else 2, allow_nan=False))
     return 0
 
@@ -103,8 +114,13 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
     lo, hi = args.signal_percentiles
     report = calibrate_from_folders(
-        args.sweep, args.dark, args.distances, num_harmonics=args.harmonics, full_well_e=args.full_well_e,
-        lower_percentile=lo, upper_percentile=hi,
+        args.sweep,
+        args.dark,
+        args.distances,
+        num_harmonics=args.harmonics,
+        full_well_e=args.full_well_e,
+        lower_percentile=lo,
+        upper_percentile=hi,
     )
     header = (
         f"Calibrated by tofdenoise-sensor calibrate\nsweep: {args.sweep} ({report.sweep_points} steps)\n"
@@ -114,8 +130,11 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     path = save_calibration(report.calibration, args.out, header=header)
     if report.clipped_samples:
         worst = sorted(report.clipped_by_file.items(), key=lambda kv: -kv[1])[:3]
-        print(f"tofdenoise-sensor calibrate: warning: {report.clipping_summary()} (most in "
-              f"{', '.join(f'{f} ({n})' for f, n in worst)})", file=sys.stderr)
+        print(
+            f"tofdenoise-sensor calibrate: warning: {report.clipping_summary()} (most in "
+            f"{', '.join(f'{f} ({n})' for f, n in worst)})",
+            file=sys.stderr,
+        )
     print(f"wrote {path}")
     print(json.dumps(report.calibration.to_dict(), indent=2))
     return 0
@@ -135,8 +154,10 @@ def cmd_validate(args: argparse.Namespace) -> int:
     result = run_validation(calib, settings, captures_dir=args.captures)
     json_path, png = write_validation(result, calib, args.out)
     print(f"source: {result.source}")
-    print(f"range-aware baseline: sigma(D) = {result.range_sigma_mm[0]:.4g} + {result.range_sigma_mm[1]:.4g} D "
-          f"+ {result.range_sigma_mm[2]:.4g} D^2 mm ({result.range_sigma_source})")
+    print(
+        f"range-aware baseline: sigma(D) = {result.range_sigma_mm[0]:.4g} + {result.range_sigma_mm[1]:.4g} D "
+        f"+ {result.range_sigma_mm[2]:.4g} D^2 mm ({result.range_sigma_source})"
+    )
     print(f"{'panel':<10}{'model':<16}{'MAPE %':>9}{'R^2':>9}{'n':>5}")
     for panel, metrics in [("pooled", result.pooled), *result.panels.items()]:
         for model, m in metrics.items():
@@ -156,20 +177,26 @@ def _float_list(name: str):
 
 
 def add_commands(subparsers: Any) -> None:
-    calib_help = "calibration file (.yaml/.json) or preset name in configs/sensor (default: configs/sensor/default.yaml)"
+    calib_help = (
+        "calibration file (.yaml/.json) or preset name in configs/sensor (default: configs/sensor/default.yaml)"
+    )
 
-    p = subparsers.add_parser("show-calib", help="print the sensor calibration",
-                              description="Print the sensor calibration (as JSON with --json).")
+    p = subparsers.add_parser(
+        "show-calib",
+        help="print the sensor calibration",
+        description="Print the sensor calibration (as JSON with --json).",
+    )
     p.add_argument("--calib", default=None, help=calib_help)
     p.add_argument("--json", action="store_true", help="print JSON with the calibration's field names")
     p.set_defaults(func=cmd_show_calib)
 
     p = subparsers.add_parser(
-        "sigma", help="per-pixel depth uncertainty sigma_D for (depth, signal) pairs",
+        "sigma",
+        help="per-pixel depth uncertainty sigma_D for (depth, signal) pairs",
         description="Print a JSON list of {depth_mm, signal_e, sigma_mm}. The two lists are paired element by "
-                    "element; if one has a single value it is used with every value of the other. Invalid "
-                    "inputs (<= 0, nan, inf) give sigma_mm null (non-finite inputs are printed as null too); "
-                    "depths beyond 1e6 unambiguous ranges are refused.",
+        "element; if one has a single value it is used with every value of the other. Invalid "
+        "inputs (<= 0, nan, inf) give sigma_mm null (non-finite inputs are printed as null too); "
+        "depths beyond 1e6 unambiguous ranges are refused.",
     )
     p.add_argument("--depth-mm", nargs="+", type=_float_list("--depth-mm"), required=True, metavar="D")
     p.add_argument("--signal-e", nargs="+", type=_float_list("--signal-e"), required=True, metavar="A")
@@ -177,28 +204,40 @@ def add_commands(subparsers: Any) -> None:
     p.set_defaults(func=cmd_sigma)
 
     p = subparsers.add_parser(
-        "calibrate", help="calibrate a sensor from capture folders",
+        "calibrate",
+        help="calibrate a sensor from capture folders",
         description="Fit the tap response (phase sweep), dark offset/noise (emitter-off frames), signal interval "
-                    "and, with --distances, the range-aware baseline. Folder format: docs/physics.md.",
+        "and, with --distances, the range-aware baseline. Folder format: docs/physics.md.",
     )
     p.add_argument("--sweep", required=True, help="phase-sweep capture folder (index.json kind 'sweep')")
     p.add_argument("--dark", required=True, help="emitter-off capture folder (index.json kind 'dark')")
     p.add_argument("--distances", default=None, help="planar distance sequence (index.json kind 'distances')")
     p.add_argument("--out", required=True, help="output calibration file (.yaml or .json)")
     p.add_argument("--harmonics", type=int, default=3, help="Fourier harmonics K of c(x) (default 3)")
-    p.add_argument("--full-well-e", type=float, default=None, help="full-well capacity [e-] (else from the sweep index)")
-    p.add_argument("--signal-percentiles", type=float, nargs=2, default=(1.0, 99.0), metavar=("LO", "HI"),
-                   help="percentiles of the returned signal giving [signal_min_e, signal_max_e] (default 1 99)")
+    p.add_argument(
+        "--full-well-e", type=float, default=None, help="full-well capacity [e-] (else from the sweep index)"
+    )
+    p.add_argument(
+        "--signal-percentiles",
+        type=float,
+        nargs=2,
+        default=(1.0, 99.0),
+        metavar=("LO", "HI"),
+        help="percentiles of the returned signal giving [signal_min_e, signal_max_e] (default 1 99)",
+    )
     p.set_defaults(func=cmd_calibrate)
 
     p = subparsers.add_parser(
-        "validate", help="noise-model validation (paper Sec. IV / Fig. 6)",
+        "validate",
+        help="noise-model validation (paper Sec. IV / Fig. 6)",
         description="Planar target 500..1500 mm and black/gray/white surfaces at 1500 mm under 4 exposures; "
-                    "proposed WLS model vs range-aware Gaussian; writes validation.json and validation.png.",
+        "proposed WLS model vs range-aware Gaussian; writes validation.json and validation.png.",
     )
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--calib", default=None, help=calib_help)
-    p.add_argument("--captures", default=None, help="real capture folder (index.json kind 'validation'); default: simulate")
+    p.add_argument(
+        "--captures", default=None, help="real capture folder (index.json kind 'validation'); default: simulate"
+    )
     p.add_argument("--quick", action="store_true", help="50 frames, 16x16 ROI (instead of 200 frames, 32x32)")
     p.add_argument("--frames", type=int, default=None, help="repeated frames per condition (override)")
     p.add_argument("--roi-px", type=int, default=None, help="ROI side in pixels (override)")

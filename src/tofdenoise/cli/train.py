@@ -39,8 +39,10 @@ log = logging.getLogger("tofdenoise.train")
 
 def _names_or_error(key: str, value: str, registry: Registry) -> None:
     if value not in registry:
-        raise ValueError(f"config {key}: unknown {registry.kind} {value!r}; valid names: "
-                         f"{', '.join(sorted(registry.names()))} (choose with `{key.split('.')[0]}=<name>`)")
+        raise ValueError(
+            f"config {key}: unknown {registry.kind} {value!r}; valid names: "
+            f"{', '.join(sorted(registry.names()))} (choose with `{key.split('.')[0]}=<name>`)"
+        )
 
 
 def validate_config(cfg: DictConfig) -> None:
@@ -54,9 +56,11 @@ def validate_config(cfg: DictConfig) -> None:
             raise ValueError(f"config: group {group!r} is missing (configs/train.yaml defaults list)")
     _names_or_error("backbone.name", cfg.backbone.name, BACKBONES)
     if not is_trainable(cfg.backbone.name):
-        raise ValueError(f"config backbone.name: {cfg.backbone.name!r} is a classical filter without trainable "
-                         "parameters: nothing to train; tune and evaluate it with `tofdenoise-classic` "
-                         "(docs/models.md#classical-row-joint-bilateral-filter)")
+        raise ValueError(
+            f"config backbone.name: {cfg.backbone.name!r} is a classical filter without trainable "
+            "parameters: nothing to train; tune and evaluate it with `tofdenoise-classic` "
+            "(docs/models.md#classical-row-joint-bilateral-filter)"
+        )
     _names_or_error("noise.name", cfg.noise.name, NOISE_MODELS)
     _names_or_error("loss.name", cfg.loss.name, LOSSES)
     data = cfg.data
@@ -64,15 +68,21 @@ def validate_config(cfg: DictConfig) -> None:
     if source not in (None, "procedural"):
         root = data.get("root")
         if root in (None, "", "???"):
-            raise ValueError(f"config data.root: data source {source!r} needs its dataset folder; set "
-                             f"data.root=/path/to/dataset (e.g. `make train DATA={source} "
-                             f"ARGS='data.root=/data/...'`)")
+            raise ValueError(
+                f"config data.root: data source {source!r} needs its dataset folder; set "
+                f"data.root=/path/to/dataset (e.g. `make train DATA={source} "
+                f"ARGS='data.root=/data/...'`)"
+            )
         if not Path(str(root)).expanduser().exists():
-            raise FileNotFoundError(f"config data.root: dataset folder {root} (data source {source!r}) does not "
-                                    f"exist; set data.root to the dataset folder")
+            raise FileNotFoundError(
+                f"config data.root: dataset folder {root} (data source {source!r}) does not "
+                f"exist; set data.root to the dataset folder"
+            )
     if data.get("real_dir") not in (None, "") and not Path(str(data.real_dir)).expanduser().exists():
-        raise FileNotFoundError(f"config data.real_dir: real capture folder {data.real_dir} does not exist "
-                                "(set data.real_dir=null to skip the real test set)")
+        raise FileNotFoundError(
+            f"config data.real_dir: real capture folder {data.real_dir} does not exist "
+            "(set data.real_dir=null to skip the real test set)"
+        )
     for name, node in (cfg.get("logger") or {}).items():
         target = str((node or {}).get("_target_", ""))
         if target.endswith("TensorBoardLogger"):
@@ -82,8 +92,10 @@ def validate_config(cfg: DictConfig) -> None:
                 try:
                     import tensorboardX  # noqa: F401
                 except ImportError as exc:
-                    raise ImportError(f"config logger.{name}: the TensorBoard logger needs the `tensorboard` "
-                                      "package (pip install tensorboard), or use logger=wandb_offline / csv") from exc
+                    raise ImportError(
+                        f"config logger.{name}: the TensorBoard logger needs the `tensorboard` "
+                        "package (pip install tensorboard), or use logger=wandb_offline / csv"
+                    ) from exc
 
 
 def _instantiate_group(node: DictConfig | None) -> list[Any]:
@@ -102,9 +114,11 @@ def _run_outputs(callbacks: list[Any]) -> Any:
 
     found = [cb for cb in callbacks if isinstance(cb, RunOutputs)]
     if len(found) != 1:
-        raise ValueError(f"config callbacks: expected one tofdenoise.callbacks.run_outputs.RunOutputs (it writes "
-                         f"run_info.json, config.yaml and metrics.json), found {len(found)}; keep "
-                         "callbacks.run_outputs of configs/callbacks/default.yaml")
+        raise ValueError(
+            f"config callbacks: expected one tofdenoise.callbacks.run_outputs.RunOutputs (it writes "
+            f"run_info.json, config.yaml and metrics.json), found {len(found)}; keep "
+            "callbacks.run_outputs of configs/callbacks/default.yaml"
+        )
     return found[0]
 
 
@@ -171,8 +185,9 @@ def _test_checkpoint(cfg: DictConfig, trainer: Any, run_dir: Path) -> str | None
         return str(check_checkpoint_file(resolve_ckpt_path(given, run_dir)))
     best = run_dir / "checkpoints" / "best.ckpt"
     if not best.is_file():
-        raise FileNotFoundError(f"train=false: no checkpoint to test; {best} does not exist "
-                                "(set ckpt_path=/path/to/model.ckpt)")
+        raise FileNotFoundError(
+            f"train=false: no checkpoint to test; {best} does not exist (set ckpt_path=/path/to/model.ckpt)"
+        )
     return str(check_checkpoint_file(best))
 
 

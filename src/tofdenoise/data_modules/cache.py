@@ -25,9 +25,10 @@ import hashlib
 import json
 import re
 import zipfile
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -109,8 +110,15 @@ class MapCache:
                 arrays = {name: data[name] for name in MAP_NAMES}  # reading to the end checks each zip CRC
         except FileNotFoundError:
             raise
-        except (zipfile.BadZipFile, KeyError, ValueError, OSError, EOFError, json.JSONDecodeError,
-                UnicodeDecodeError) as exc:
+        except (
+            zipfile.BadZipFile,
+            KeyError,
+            ValueError,
+            OSError,
+            EOFError,
+            json.JSONDecodeError,
+            UnicodeDecodeError,
+        ) as exc:
             raise CacheEntryError(f"cache entry {path} is unreadable: {exc}") from exc
         if meta.get("key") != self.digest or meta.get("sample_id") != sample_id:
             raise CacheEntryError(f"cache entry {path} belongs to another key or sample")
@@ -119,13 +127,22 @@ class MapCache:
             if array.shape != shape:
                 raise CacheEntryError(f"cache entry {path}: {name} has shape {array.shape}, expected {shape}")
         return SampleMaps(
-            depth_mm=arrays["depth_mm"], signal_e=arrays["signal_e"], sigma_mm=arrays["sigma_mm"],
-            mask=arrays["mask"].astype(bool), amplitude=arrays["amplitude"],
+            depth_mm=arrays["depth_mm"],
+            signal_e=arrays["signal_e"],
+            sigma_mm=arrays["sigma_mm"],
+            mask=arrays["mask"].astype(bool),
+            amplitude=arrays["amplitude"],
         )
 
     def write(self, sample_id: str, maps: SampleMaps) -> Path:
-        meta = json.dumps({"key": self.digest, "sample_id": sample_id, "shape": list(maps.depth_mm.shape),
-                           "format_version": FORMAT_VERSION}).encode("utf-8")
+        meta = json.dumps(
+            {
+                "key": self.digest,
+                "sample_id": sample_id,
+                "shape": list(maps.depth_mm.shape),
+                "format_version": FORMAT_VERSION,
+            }
+        ).encode("utf-8")
         arrays = maps.arrays()
         arrays["mask"] = arrays["mask"].astype(np.uint8)
 

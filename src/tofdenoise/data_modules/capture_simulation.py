@@ -22,17 +22,18 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import torch
 
-from tofdenoise.data_modules.datasets import stable_seed
 from tofdenoise.atomic import atomic_write_text, save_npy_atomic
+from tofdenoise.data_modules.datasets import stable_seed
 from tofdenoise.data_modules.io import write_depth_png16, write_png_uint8, write_png_uint16
-from tofdenoise.data_modules.real_captures import (HIEXP_DIR, INPUT_AMPLITUDE, INPUT_DEPTH, build_reference)
+from tofdenoise.data_modules.real_captures import HIEXP_DIR, INPUT_AMPLITUDE, INPUT_DEPTH, build_reference
 from tofdenoise.data_modules.sources.procedural import ProceduralSource
 
 SCENE_DONE = "scene.json"
@@ -99,14 +100,30 @@ truth, not a calibration to train with (calibrate the camera from its own captur
 def _supersampled(source: ProceduralSource, factor: int) -> ProceduralSource:
     """The same scenes ray-cast at ``factor`` times the resolution (scene geometry depends on the field of view
     and the aspect ratio only, so scene i is the same scene)."""
-    return ProceduralSource(num_samples=source.num_samples, height=source.height * factor,
-                            width=source.width * factor, seed=source.seed, min_depth_mm=source.min_depth_mm,
-                            max_depth_mm=source.max_depth_mm, hfov_deg=source.hfov_deg)
+    return ProceduralSource(
+        num_samples=source.num_samples,
+        height=source.height * factor,
+        width=source.width * factor,
+        seed=source.seed,
+        min_depth_mm=source.min_depth_mm,
+        max_depth_mm=source.max_depth_mm,
+        hfov_deg=source.hfov_deg,
+    )
 
 
-def simulate_scene(scene_dir: Path, source: ProceduralSource, index: int, calib: Any, frames: int,
-                   hi_exposure: float, seed: int, chunk_frames: int = 8, write_taps: bool = False,
-                   min_count: int | None = None, mixed_pixels: int = 1) -> dict[str, Any]:
+def simulate_scene(
+    scene_dir: Path,
+    source: ProceduralSource,
+    index: int,
+    calib: Any,
+    frames: int,
+    hi_exposure: float,
+    seed: int,
+    chunk_frames: int = 8,
+    write_taps: bool = False,
+    min_count: int | None = None,
+    mixed_pixels: int = 1,
+) -> dict[str, Any]:
     from tofdenoise.physics.mixed_pixels import footprint_tap_means_e, mixed_pixel_map
     from tofdenoise.physics.simulator import simulate_frames, simulate_tap_mean_frames
     from tofdenoise.physics.uncertainty import amplitude_to_signal_e
@@ -114,20 +131,25 @@ def simulate_scene(scene_dir: Path, source: ProceduralSource, index: int, calib:
     sample_id = f"scene_{index:06d}"
     raw = source.load(sample_id)
     fine = raw if mixed_pixels == 1 else _supersampled(source, mixed_pixels).load(sample_id)
-    signal = np.asarray(amplitude_to_signal_e(fine.amplitude, calib, valid=fine.valid, fill_value=0.0),
-                        dtype=np.float32)
+    signal = np.asarray(
+        amplitude_to_signal_e(fine.amplitude, calib, valid=fine.valid, fill_value=0.0), dtype=np.float32
+    )
     depth = np.where(fine.valid, fine.depth_mm, 0.0).astype(np.float32)
     generator = torch.Generator().manual_seed(stable_seed(seed, "captures", index))
     if mixed_pixels == 1:  # one surface per pixel: the simulator's own tap means (bit-identical to earlier sets)
+
         def simulate(count: int, exposure: float):
-            return simulate_frames(depth, signal, calib, count, exposure=exposure, generator=generator,
-                                   return_taps=write_taps)
+            return simulate_frames(
+                depth, signal, calib, count, exposure=exposure, generator=generator, return_taps=write_taps
+            )
     else:
         tap_means = footprint_tap_means_e(depth, signal, calib, mixed_pixels)
 
         def simulate(count: int, exposure: float):
-            return simulate_tap_mean_frames(tap_means, calib, count, exposure=exposure, generator=generator,
-                                            return_taps=write_taps)
+            return simulate_tap_mean_frames(
+                tap_means, calib, count, exposure=exposure, generator=generator, return_taps=write_taps
+            )
+
     hiexp = scene_dir / HIEXP_DIR
     hiexp.mkdir(parents=True, exist_ok=True)
 
@@ -154,22 +176,42 @@ def simulate_scene(scene_dir: Path, source: ProceduralSource, index: int, calib:
                 save_npy_atomic(hiexp / f"taps_{tag}.npy", captured.taps[k].numpy())
         del captured
     reference = build_reference(scene_dir, min_count=min_count, force=True)
-    info = {"scene_index": index, "seed": seed, "height": source.height, "width": source.width, "frames": frames,
-            "input_exposure": 1.0, "reference_exposure": exposure, "saturated_pixel_frames": saturated_pixels,
-            "mixed_pixels": mixed_pixels,
-            "mixed_pixel_fraction": float(mixed_pixel_map(depth, mixed_pixels).mean()),
-            "input_valid_fraction": float(standard.valid[0].float().mean()),
-            "reference_valid_fraction": float(np.isfinite(reference.depth_mm).mean()),
-            "calibration_fingerprint": calib.fingerprint()}
+    info = {
+        "scene_index": index,
+        "seed": seed,
+        "height": source.height,
+        "width": source.width,
+        "frames": frames,
+        "input_exposure": 1.0,
+        "reference_exposure": exposure,
+        "saturated_pixel_frames": saturated_pixels,
+        "mixed_pixels": mixed_pixels,
+        "mixed_pixel_fraction": float(mixed_pixel_map(depth, mixed_pixels).mean()),
+        "input_valid_fraction": float(standard.valid[0].float().mean()),
+        "reference_valid_fraction": float(np.isfinite(reference.depth_mm).mean()),
+        "calibration_fingerprint": calib.fingerprint(),
+    }
     atomic_write_text(scene_dir / SCENE_DONE, json.dumps(info, indent=1) + "\n")
     return info
 
 
-def simulate_capture_set(out_dir: str | Path, scenes: int, frames: int, height: int = 480, width: int = 640,
-                         seed: int = 0, calib: Any = None, hi_exposure: float = 4.0, min_depth_mm: float = 300.0,
-                         max_depth_fraction: float = 0.8, write_taps: bool = False, force: bool = False,
-                         min_count: int | None = None, mixed_pixels: int = 1,
-                         progress: Callable[[int, int, dict], None] | None = None) -> SimulationSummary:
+def simulate_capture_set(
+    out_dir: str | Path,
+    scenes: int,
+    frames: int,
+    height: int = 480,
+    width: int = 640,
+    seed: int = 0,
+    calib: Any = None,
+    hi_exposure: float = 4.0,
+    min_depth_mm: float = 300.0,
+    max_depth_fraction: float = 0.8,
+    write_taps: bool = False,
+    force: bool = False,
+    min_count: int | None = None,
+    mixed_pixels: int = 1,
+    progress: Callable[[int, int, dict], None] | None = None,
+) -> SimulationSummary:
     """Write ``scenes`` simulated scenes (``scene_0000`` ...) with ``frames`` high-exposure frames each;
     ``mixed_pixels`` = s > 1 integrates s x s samples per pixel (mixed pixels at depth edges)."""
     from tofdenoise.physics.calibration import resolve_calibration
@@ -184,18 +226,38 @@ def simulate_capture_set(out_dir: str | Path, scenes: int, frames: int, height: 
     calib = resolve_calibration(calib)
     out = Path(out_dir).expanduser()
     out.mkdir(parents=True, exist_ok=True)
-    source = ProceduralSource(num_samples=scenes, height=height, width=width, seed=seed, min_depth_mm=min_depth_mm,
-                              max_depth_mm=max_depth_fraction * calib.unambiguous_range_mm)
-    params = {"scenes": scenes, "frames": frames, "height": height, "width": width, "seed": seed,
-              "hi_exposure_requested": hi_exposure, "calibration_fingerprint": calib.fingerprint(),
-              "min_depth_mm": min_depth_mm, "max_depth_mm": source.max_depth_mm, "mixed_pixels": mixed_pixels}
+    source = ProceduralSource(
+        num_samples=scenes,
+        height=height,
+        width=width,
+        seed=seed,
+        min_depth_mm=min_depth_mm,
+        max_depth_mm=max_depth_fraction * calib.unambiguous_range_mm,
+    )
+    params = {
+        "scenes": scenes,
+        "frames": frames,
+        "height": height,
+        "width": width,
+        "seed": seed,
+        "hi_exposure_requested": hi_exposure,
+        "calibration_fingerprint": calib.fingerprint(),
+        "min_depth_mm": min_depth_mm,
+        "max_depth_mm": source.max_depth_mm,
+        "mixed_pixels": mixed_pixels,
+    }
     write_readme(out, params)
     from tofdenoise.physics.calibration import save_calibration
 
-    save_calibration(calib, out / SIMULATED_CAMERA, header=(
-        "The camera this capture set was simulated with (ground truth of the simulation). A real capture set has\n"
-        "no such file: calibrate the camera (tofdenoise-sensor calibrate, docs/camera-tutorial.md) and train\n"
-        "with that calibration, not with this one."))
+    save_calibration(
+        calib,
+        out / SIMULATED_CAMERA,
+        header=(
+            "The camera this capture set was simulated with (ground truth of the simulation). A real capture set has\n"
+            "no such file: calibrate the camera (tofdenoise-sensor calibrate, docs/camera-tutorial.md) and train\n"
+            "with that calibration, not with this one."
+        ),
+    )
     started = time.perf_counter()
     written = skipped = 0
     digits = max(4, len(str(scenes - 1)))
@@ -207,14 +269,29 @@ def simulate_capture_set(out_dir: str | Path, scenes: int, frames: int, height: 
                 info = json.loads(done.read_text(encoding="utf-8"))
             except (OSError, json.JSONDecodeError):
                 info = {}
-            if info.get("frames") == frames and info.get("calibration_fingerprint") == calib.fingerprint() \
-                    and info.get("seed") == seed and info.get("height") == height and info.get("width") == width \
-                    and info.get("mixed_pixels", 1) == mixed_pixels:
+            if (
+                info.get("frames") == frames
+                and info.get("calibration_fingerprint") == calib.fingerprint()
+                and info.get("seed") == seed
+                and info.get("height") == height
+                and info.get("width") == width
+                and info.get("mixed_pixels", 1) == mixed_pixels
+            ):
                 skipped += 1
                 continue
         scene_dir.mkdir(parents=True, exist_ok=True)
-        info = simulate_scene(scene_dir, source, index, calib, frames, hi_exposure, seed, write_taps=write_taps,
-                              min_count=min_count, mixed_pixels=mixed_pixels)
+        info = simulate_scene(
+            scene_dir,
+            source,
+            index,
+            calib,
+            frames,
+            hi_exposure,
+            seed,
+            write_taps=write_taps,
+            min_count=min_count,
+            mixed_pixels=mixed_pixels,
+        )
         written += 1
         if progress is not None:
             progress(index, scenes, info)

@@ -5,17 +5,18 @@ from __future__ import annotations
 import json
 import logging
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import lightning as L
 import numpy as np
 from torch.utils.data import DataLoader, Dataset
 
+from tofdenoise.atomic import atomic_write_text
 from tofdenoise.data_modules.cache import MapCache, canonical_digest
 from tofdenoise.data_modules.datasets import MapProvider, RealCaptures, SyntheticPairs
-from tofdenoise.atomic import atomic_write_text
 from tofdenoise.data_modules.real_captures import build_reference, list_scenes, load_real_scene
 from tofdenoise.data_modules.sources import build_source
 from tofdenoise.data_modules.splits import SPLIT_NAMES, ids_digest, load_or_make_split
@@ -147,14 +148,19 @@ class ToFDataModule(L.LightningDataModule):
         try:
             self.hole_model = HoleModel(**dict(holes_kwargs or {})) if holes else None
         except TypeError as exc:
-            raise ValueError(f"data.holes_kwargs: {exc}; valid keys: max_low_signal_fraction, edge_jump, edge_prob, "
-                             "blob_density, blob_radius_px") from None
+            raise ValueError(
+                f"data.holes_kwargs: {exc}; valid keys: max_low_signal_fraction, edge_jump, edge_prob, "
+                "blob_density, blob_radius_px"
+            ) from None
         if batch_size < 1 or eval_batch_size < 1:
             raise ValueError("data.batch_size and data.eval_batch_size must be >= 1")
         if not 0 < max_depth_fraction <= 1:
             raise ValueError(f"data.max_depth_fraction must be in (0, 1], got {max_depth_fraction}")
-        self.max_depth_mm = (float(max_depth_mm) if max_depth_mm is not None
-                             else max_depth_fraction * float(self.calib.unambiguous_range_mm))
+        self.max_depth_mm = (
+            float(max_depth_mm)
+            if max_depth_mm is not None
+            else max_depth_fraction * float(self.calib.unambiguous_range_mm)
+        )
         self.cache_root = Path(cache_dir).expanduser()
         self.real_dir = real_dir
         self.test_set_names: list[str] = ["synthetic", "real"] if real_dir else ["synthetic"]
@@ -166,11 +172,19 @@ class ToFDataModule(L.LightningDataModule):
     def make_source(self):
         """The data source ``data.source`` names, built from this datamodule's settings for that source."""
         hp = self.hparams
-        valid_kwargs = {k: v for k, v in (("min_valid_mm", hp.min_valid_mm), ("max_valid_mm", hp.max_valid_mm))
-                        if v is not None}
+        valid_kwargs = {
+            k: v for k, v in (("min_valid_mm", hp.min_valid_mm), ("max_valid_mm", hp.max_valid_mm)) if v is not None
+        }
         source_kwargs = {
-            "procedural": dict(num_samples=hp.num_samples, height=hp.height, width=hp.width, seed=hp.seed,
-                               min_depth_mm=hp.min_depth_mm, max_depth_mm=self.max_depth_mm, hfov_deg=hp.hfov_deg),
+            "procedural": dict(
+                num_samples=hp.num_samples,
+                height=hp.height,
+                width=hp.width,
+                seed=hp.seed,
+                min_depth_mm=hp.min_depth_mm,
+                max_depth_mm=self.max_depth_mm,
+                hfov_deg=hp.hfov_deg,
+            ),
             "flyingthings3d": dict(root=hp.root, list_files=hp.list_files, **valid_kwargs),
             "folder": dict(root=hp.root, list_file=hp.list_file, depth_unit_mm=hp.depth_unit_mm, **valid_kwargs),
         }
@@ -227,9 +241,18 @@ class ToFDataModule(L.LightningDataModule):
         noise_model, scale_record = self._noise(self.noise_name, self.noise_kwargs, provider, cache, splits["train"])
         eval_model, _ = self._noise(self.eval_noise_name, {}, provider, cache, splits["train"])
         real_scenes = self._real_scenes(skipped) if self.real_dir else []
-        return PreparedData(source=source, split_path=split_path, splits=splits, skipped=skipped, cache=cache,
-                            provider=provider, noise_model=noise_model, variance_scale=scale_record,
-                            eval_noise_model=eval_model, real_scenes=real_scenes)
+        return PreparedData(
+            source=source,
+            split_path=split_path,
+            splits=splits,
+            skipped=skipped,
+            cache=cache,
+            provider=provider,
+            noise_model=noise_model,
+            variance_scale=scale_record,
+            eval_noise_model=eval_model,
+            real_scenes=real_scenes,
+        )
 
     def _open_source(self) -> tuple[Any, dict, Path]:
         """The source (checked: a listed but missing sample fails here, before training), its description and
@@ -252,22 +275,29 @@ class ToFDataModule(L.LightningDataModule):
     def _map_cache(self, base: Path, described: dict, source: Any) -> tuple[MapCache, MapProvider]:
         """The map cache of this source x calibration x signal mapping, and the provider reading through it."""
         hp = self.hparams
-        key = {"source": described, "calibration": self.calib.fingerprint(),
-               "signal_percentiles": [hp.signal_lower_percentile, hp.signal_upper_percentile]}
+        key = {
+            "source": described,
+            "calibration": self.calib.fingerprint(),
+            "signal_percentiles": [hp.signal_lower_percentile, hp.signal_upper_percentile],
+        }
         cache = MapCache(base, key, enabled=hp.use_cache)
         provider = MapProvider(source, self.calib, cache, hp.signal_lower_percentile, hp.signal_upper_percentile)
         return cache, provider
 
     @staticmethod
-    def _drop_empty(splits: dict[str, list[str]], index: dict[str, dict]
-                    ) -> tuple[dict[str, list[str]], dict[str, list[str]]]:
+    def _drop_empty(
+        splits: dict[str, list[str]], index: dict[str, dict]
+    ) -> tuple[dict[str, list[str]], dict[str, list[str]]]:
         """Splits without the samples that have no valid pixel (warned), and those left out per split."""
         kept, skipped = {}, {}
         for name in SPLIT_NAMES:
             empty = [i for i in splits[name] if index[i]["num_valid"] == 0]
             if empty:
-                warnings.warn(f"{name} split: {len(empty)} sample(s) with no valid pixel skipped: "
-                              f"{', '.join(empty[:5])}{' ...' if len(empty) > 5 else ''}", stacklevel=3)
+                warnings.warn(
+                    f"{name} split: {len(empty)} sample(s) with no valid pixel skipped: "
+                    f"{', '.join(empty[:5])}{' ...' if len(empty) > 5 else ''}",
+                    stacklevel=3,
+                )
                 skipped[name] = empty
             kept[name] = [i for i in splits[name] if index[i]["num_valid"] > 0]
         return kept, skipped
@@ -279,11 +309,12 @@ class ToFDataModule(L.LightningDataModule):
         too_small = [i for i in train_ids if index[i]["shape"][0] < self.crop[0] or index[i]["shape"][1] < self.crop[1]]
         if too_small:
             shape = index[too_small[0]]["shape"]
-            raise ValueError(f"data.crop_size={list(self.crop)} does not fit sample {too_small[0]} of size "
-                             f"{shape[0]}x{shape[1]}; lower data.crop_size (or set it to null)")
+            raise ValueError(
+                f"data.crop_size={list(self.crop)} does not fit sample {too_small[0]} of size "
+                f"{shape[0]}x{shape[1]}; lower data.crop_size (or set it to null)"
+            )
 
-    def _noise(self, name: str, kwargs: dict[str, Any], provider: MapProvider, cache: MapCache,
-               train_ids: list[str]):
+    def _noise(self, name: str, kwargs: dict[str, Any], provider: MapProvider, cache: MapCache, train_ids: list[str]):
         """A noise model and its variance-scale record: a Gaussian baseline is variance-matched over the
         training split (``match_variance``; the record stored next to the maps), any other model has none."""
         from tofdenoise.physics.noise_models import build_noise_model
@@ -306,23 +337,39 @@ class ToFDataModule(L.LightningDataModule):
             cache.save_record("index.json", {"samples": index})
         return index
 
-    def _match_variance(self, noise_name: str, noise_kwargs: dict[str, Any], noise_model, provider: MapProvider,
-                        cache: MapCache, train_ids: list[str]):
+    def _match_variance(
+        self,
+        noise_name: str,
+        noise_kwargs: dict[str, Any],
+        noise_model,
+        provider: MapProvider,
+        cache: MapCache,
+        train_ids: list[str],
+    ):
         from tofdenoise.physics.noise_models import variance_matching_scale
 
-        key = {"noise": noise_name, "noise_kwargs": noise_kwargs, "maps": cache.digest,
-               "train_ids": ids_digest(train_ids)}
+        key = {
+            "noise": noise_name,
+            "noise_kwargs": noise_kwargs,
+            "maps": cache.digest,
+            "train_ids": ids_digest(train_ids),
+        }
         name = f"variance_scale_{noise_name}_{canonical_digest(key)[:12]}.json"
         record = cache.load_record(name, expected_key=key)
         if record is None:
+
             def samples():
                 for sample_id in train_ids:
                     maps = provider.maps(sample_id)
                     yield maps.depth_mm, maps.sigma_mm, maps.mask
 
             scale = float(variance_matching_scale(noise_model, samples()))
-            record = {"scale": scale, "noise": noise_name, "num_train_samples": len(train_ids),
-                      "note": "std multiplier giving the hetero mean perturbation variance over the training split"}
+            record = {
+                "scale": scale,
+                "noise": noise_name,
+                "num_train_samples": len(train_ids),
+                "note": "std multiplier giving the hetero mean perturbation variance over the training split",
+            }
             cache.save_record(name, record, key=key)
             record = cache.load_record(name, expected_key=key) or record
         log.info("variance-matched %s noise: scale %.6g", noise_name, record["scale"])
@@ -342,8 +389,11 @@ class ToFDataModule(L.LightningDataModule):
             else:
                 empty.append(scene.name)
         if empty:
-            warnings.warn(f"real capture set {self.real_dir}: {len(empty)} scene(s) with no common valid pixel "
-                          f"skipped: {', '.join(empty[:5])}", stacklevel=2)
+            warnings.warn(
+                f"real capture set {self.real_dir}: {len(empty)} scene(s) with no common valid pixel "
+                f"skipped: {', '.join(empty[:5])}",
+                stacklevel=2,
+            )
         if empty or incomplete:
             skipped["real"] = sorted(empty + incomplete)
         if not usable:
@@ -358,8 +408,17 @@ class ToFDataModule(L.LightningDataModule):
         provider, splits, model, eval_model = state.provider, state.splits, state.noise_model, state.eval_noise_model
         holes = self.hole_model
         self.datasets = {
-            "train": SyntheticPairs(provider, splits["train"], "train", model, hp.seed, train=True, crop=self.crop,
-                                    flips=hp.flips, holes=holes),
+            "train": SyntheticPairs(
+                provider,
+                splits["train"],
+                "train",
+                model,
+                hp.seed,
+                train=True,
+                crop=self.crop,
+                flips=hp.flips,
+                holes=holes,
+            ),
             "val": SyntheticPairs(provider, splits["val"], "val", eval_model, hp.seed, train=False, holes=holes),
             "test": SyntheticPairs(provider, splits["test"], "test", eval_model, hp.seed, train=False, holes=holes),
         }
@@ -403,15 +462,21 @@ class ToFDataModule(L.LightningDataModule):
     def summary(self) -> dict[str, Any]:
         """Plain description of what was prepared (sizes, paths, skipped samples, variance scale)."""
         state = self.prepared
-        return {"source": self.source_name, "noise": self.noise_name, "eval_noise": self.eval_noise_name,
-                "split_file": str(state.split_path),
-                "cache_folder": str(state.cache.folder), "cache_enabled": state.cache.enabled,
-                "sizes": {k: len(v) for k, v in state.splits.items()},
-                "skipped": {k: len(v) for k, v in state.skipped.items()},
-                "variance_scale": None if state.variance_scale is None else state.variance_scale["scale"],
-                "real_scenes": len(state.real_scenes), "max_depth_mm": self.max_depth_mm,
-                "holes": None if self.hole_model is None else self.hole_model.to_dict(),
-                "calibration": self.calib.fingerprint()[:16]}
+        return {
+            "source": self.source_name,
+            "noise": self.noise_name,
+            "eval_noise": self.eval_noise_name,
+            "split_file": str(state.split_path),
+            "cache_folder": str(state.cache.folder),
+            "cache_enabled": state.cache.enabled,
+            "sizes": {k: len(v) for k, v in state.splits.items()},
+            "skipped": {k: len(v) for k, v in state.skipped.items()},
+            "variance_scale": None if state.variance_scale is None else state.variance_scale["scale"],
+            "real_scenes": len(state.real_scenes),
+            "max_depth_mm": self.max_depth_mm,
+            "holes": None if self.hole_model is None else self.hole_model.to_dict(),
+            "calibration": self.calib.fingerprint()[:16],
+        }
 
 
 class _IndexEntries(Dataset):

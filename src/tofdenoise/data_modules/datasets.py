@@ -13,8 +13,9 @@ Synthetic pairs may carry holes (``tofdenoise.data_modules.holes``): pixels inva
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import torch
@@ -42,8 +43,9 @@ class MapProvider:
     upper_percentile: float | None = None
 
     def compute(self, sample_id: str) -> SampleMaps:
-        return compute_sample_maps(self.source.load(sample_id), self.calib, self.lower_percentile,
-                                   self.upper_percentile)
+        return compute_sample_maps(
+            self.source.load(sample_id), self.calib, self.lower_percentile, self.upper_percentile
+        )
 
     def get(self, sample_id: str) -> tuple[SampleMaps, str]:
         return self.cache.get_or_compute(sample_id, lambda: self.compute(sample_id))
@@ -69,8 +71,18 @@ class SyntheticPairs(Dataset):
     and the noise is the same as without holes).
     """
 
-    def __init__(self, provider: MapProvider, sample_ids: list[str], split: str, noise_model: Any, seed: int,
-                 train: bool, crop: tuple[int, int] | None = None, flips: bool = True, holes: Any = None):
+    def __init__(
+        self,
+        provider: MapProvider,
+        sample_ids: list[str],
+        split: str,
+        noise_model: Any,
+        seed: int,
+        train: bool,
+        crop: tuple[int, int] | None = None,
+        flips: bool = True,
+        holes: Any = None,
+    ):
         self.provider = provider
         self.sample_ids = list(sample_ids)
         self.split = split
@@ -120,8 +132,11 @@ class SyntheticPairs(Dataset):
             from tofdenoise.data_modules.holes import apply_holes
 
             signal = tensors.pop("signal")
-            hole_generator = generator if self.train else torch.Generator().manual_seed(
-                stable_seed(self.seed, self.split, sample_id, "holes"))
+            hole_generator = (
+                generator
+                if self.train
+                else torch.Generator().manual_seed(stable_seed(self.seed, self.split, sample_id, "holes"))
+            )
             holes = self.holes.sample(tensors["clean"], signal, valid, self.provider.calib, hole_generator)
             tensors = apply_holes(tensors, holes)
         return {**tensors, "index": index, "name": sample_id}

@@ -23,8 +23,18 @@ import numpy as np
 
 MAGIC = 20000630
 PIXEL_DTYPES = {0: np.dtype("<u4"), 1: np.dtype("<f2"), 2: np.dtype("<f4")}
-COMPRESSIONS = {0: "NONE", 1: "RLE", 2: "ZIPS", 3: "ZIP", 4: "PIZ", 5: "PXR24", 6: "B44", 7: "B44A", 8: "DWAA",
-                9: "DWAB"}
+COMPRESSIONS = {
+    0: "NONE",
+    1: "RLE",
+    2: "ZIPS",
+    3: "ZIP",
+    4: "PIZ",
+    5: "PXR24",
+    6: "B44",
+    7: "B44A",
+    8: "DWAA",
+    9: "DWAB",
+}
 LINES_PER_CHUNK = {0: 1, 1: 1, 2: 1, 3: 16}
 PREFERRED_CHANNELS = ("Z", "depth", "Depth", "Y", "R", "V")
 
@@ -45,8 +55,10 @@ def parse_header(data: bytes, path: Path) -> tuple[dict, int]:
     if version & 0xFF != 2:
         raise ExrError(f"EXR file {path} has format version {version & 0xFF}; expected 2")
     if version & (0x200 | 0x800 | 0x1000):
-        raise ExrError(f"EXR file {path} is tiled, deep or multi-part; only single-part scanline files are read "
-                       "(convert it to .npy)")
+        raise ExrError(
+            f"EXR file {path} is tiled, deep or multi-part; only single-part scanline files are read "
+            "(convert it to .npy)"
+        )
     pos = 8
     header: dict = {}
     while True:
@@ -56,12 +68,12 @@ def parse_header(data: bytes, path: Path) -> tuple[dict, int]:
         kind, pos = _cstring(data, pos)
         size = struct.unpack_from("<i", data, pos)[0]
         pos += 4
-        value = data[pos:pos + size]
+        value = data[pos : pos + size]
         pos += size
         if kind == "chlist":
             channels = []
             cpos = 0
-            while value[cpos:cpos + 1] not in (b"\x00", b""):
+            while value[cpos : cpos + 1] not in (b"\x00", b""):
                 cname, cpos = _cstring(value, cpos)
                 ptype, _plinear, xs, ys = struct.unpack_from("<iB3xii", value, cpos)
                 cpos += 16
@@ -97,10 +109,10 @@ def _rle_decode(data: bytes, expected: int) -> bytes:
         count = struct.unpack_from("<b", data, pos)[0]
         pos += 1
         if count < 0:
-            out += data[pos:pos - count]
+            out += data[pos : pos - count]
             pos -= count
         else:
-            out += data[pos:pos + 1] * (count + 1)
+            out += data[pos : pos + 1] * (count + 1)
             pos += 1
     return bytes(out)
 
@@ -117,15 +129,19 @@ def read_exr_channels(path: str | Path) -> dict[str, np.ndarray]:
         raise ExrError(f"EXR file {path} has a truncated or malformed header") from exc
     compression = header["compression"]
     if compression not in LINES_PER_CHUNK:
-        raise ExrError(f"EXR file {path} uses {COMPRESSIONS.get(compression, compression)} compression; this reader "
-                       "handles NONE, RLE, ZIPS and ZIP (convert the file to .npy or re-save it with ZIP)")
+        raise ExrError(
+            f"EXR file {path} uses {COMPRESSIONS.get(compression, compression)} compression; this reader "
+            "handles NONE, RLE, ZIPS and ZIP (convert the file to .npy or re-save it with ZIP)"
+        )
     x0, y0, x1, y1 = header["dataWindow"]
     width, height = x1 - x0 + 1, y1 - y0 + 1
     channels = sorted(header["channels"], key=lambda c: c[0])
     for name, ptype, xs, ys in channels:
         if ptype not in PIXEL_DTYPES or xs != 1 or ys != 1:
-            raise ExrError(f"EXR file {path} channel {name!r} has pixel type {ptype} / sampling {xs}x{ys}; expected "
-                           "HALF, FLOAT or UINT without subsampling")
+            raise ExrError(
+                f"EXR file {path} channel {name!r} has pixel type {ptype} / sampling {xs}x{ys}; expected "
+                "HALF, FLOAT or UINT without subsampling"
+            )
     lines = LINES_PER_CHUNK[compression]
     chunks = (height + lines - 1) // lines
     try:
@@ -139,7 +155,7 @@ def read_exr_channels(path: str | Path) -> dict[str, np.ndarray]:
             y, size = struct.unpack_from("<ii", data, offset)
         except struct.error as exc:
             raise ExrError(f"EXR file {path} is truncated (chunk at byte {offset})") from exc
-        payload = data[offset + 8:offset + 8 + size]
+        payload = data[offset + 8 : offset + 8 + size]
         if len(payload) != size:
             raise ExrError(f"EXR file {path} is truncated (chunk at line {y})")
         n_lines = min(lines, y1 - y + 1)

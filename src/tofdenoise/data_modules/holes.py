@@ -37,12 +37,15 @@ import torch
 __all__ = ["HoleModel", "apply_holes", "blob_holes", "edge_holes", "low_signal_holes"]
 
 
-def _uniform(generator: torch.Generator, low: float = 0.0, high: float = 1.0, size: tuple[int, ...] = ()) -> torch.Tensor:
+def _uniform(
+    generator: torch.Generator, low: float = 0.0, high: float = 1.0, size: tuple[int, ...] = ()
+) -> torch.Tensor:
     return low + (high - low) * torch.rand(size, generator=generator, dtype=torch.float64)
 
 
-def low_signal_holes(signal_e: torch.Tensor, valid: torch.Tensor, calib: Any, fraction: float,
-                     generator: torch.Generator) -> torch.Tensor:
+def low_signal_holes(
+    signal_e: torch.Tensor, valid: torch.Tensor, calib: Any, fraction: float, generator: torch.Generator
+) -> torch.Tensor:
     """Pixels invalid because the darkened frame's measured amplitude falls below the simulator's threshold.
 
     ``signal_e``: returned signal a(p) [e-] (H, W); ``valid``: bool (H, W); ``fraction``: target share f of
@@ -60,8 +63,11 @@ def low_signal_holes(signal_e: torch.Tensor, valid: torch.Tensor, calib: Any, fr
         return holes
     c1 = calib.tap_response.first_harmonic_amplitude
     thr = default_min_amplitude_e(calib)
-    q = float(torch.quantile(values, fraction)) if values.numel() <= 8_000_000 else float(
-        torch.quantile(values[:: math.ceil(values.numel() / 8_000_000)], fraction))
+    q = (
+        float(torch.quantile(values, fraction))
+        if values.numel() <= 8_000_000
+        else float(torch.quantile(values[:: math.ceil(values.numel() / 8_000_000)], fraction))
+    )
     if not q > 0:
         return holes
     scale = thr / (c1 * q)
@@ -72,8 +78,9 @@ def low_signal_holes(signal_e: torch.Tensor, valid: torch.Tensor, calib: Any, fr
     return valid & (measured < thr)
 
 
-def edge_holes(depth_mm: torch.Tensor, valid: torch.Tensor, jump: float, prob: float,
-               generator: torch.Generator) -> torch.Tensor:
+def edge_holes(
+    depth_mm: torch.Tensor, valid: torch.Tensor, jump: float, prob: float, generator: torch.Generator
+) -> torch.Tensor:
     """Pixels next to a depth discontinuity (|D - D_neighbour| > jump D, 4-neighbourhood, both valid), each
     invalid with probability ``prob``. Returns a bool (H, W) mask."""
     valid = valid.bool()
@@ -90,8 +97,9 @@ def edge_holes(depth_mm: torch.Tensor, valid: torch.Tensor, jump: float, prob: f
     return edge & (draw < prob)
 
 
-def blob_holes(shape: tuple[int, int], density: float, radius_px: tuple[float, float],
-               generator: torch.Generator) -> torch.Tensor:
+def blob_holes(
+    shape: tuple[int, int], density: float, radius_px: tuple[float, float], generator: torch.Generator
+) -> torch.Tensor:
     """Random irregular blobs: Poisson(density x H x W / 10^4) of them, each star-shaped around a uniform
     centre with boundary radius r(theta) = r0 (1 + 0.2 cos(2 theta + p2) + 0.1 cos(3 theta + p3)) on an
     ellipse of axis ratio U(0.5, 1) and random orientation, r0 ~ U(radius_px). Returns bool (H, W)."""
@@ -142,21 +150,32 @@ class HoleModel:
     def __post_init__(self) -> None:
         object.__setattr__(self, "blob_radius_px", tuple(float(r) for r in self.blob_radius_px))
         if not 0.0 <= self.max_low_signal_fraction < 1.0:
-            raise ValueError(f"data.holes_kwargs.max_low_signal_fraction must be in [0, 1), got "
-                             f"{self.max_low_signal_fraction}")
+            raise ValueError(
+                f"data.holes_kwargs.max_low_signal_fraction must be in [0, 1), got {self.max_low_signal_fraction}"
+            )
         if not 0.0 <= self.edge_prob <= 1.0 or not self.edge_jump > 0:
-            raise ValueError(f"data.holes_kwargs: need edge_jump > 0 and 0 <= edge_prob <= 1, got "
-                             f"edge_jump={self.edge_jump}, edge_prob={self.edge_prob}")
+            raise ValueError(
+                f"data.holes_kwargs: need edge_jump > 0 and 0 <= edge_prob <= 1, got "
+                f"edge_jump={self.edge_jump}, edge_prob={self.edge_prob}"
+            )
         lo_hi = self.blob_radius_px
         if self.blob_density < 0 or len(lo_hi) != 2 or not 0 < lo_hi[0] <= lo_hi[1]:
-            raise ValueError(f"data.holes_kwargs: need blob_density >= 0 and blob_radius_px = [min, max] with "
-                             f"0 < min <= max, got {self.blob_density}, {list(lo_hi)}")
+            raise ValueError(
+                f"data.holes_kwargs: need blob_density >= 0 and blob_radius_px = [min, max] with "
+                f"0 < min <= max, got {self.blob_density}, {list(lo_hi)}"
+            )
 
     def to_dict(self) -> dict[str, Any]:
         return {**asdict(self), "blob_radius_px": list(self.blob_radius_px)}
 
-    def sample(self, depth_mm: torch.Tensor, signal_e: torch.Tensor, valid: torch.Tensor, calib: Any,
-               generator: torch.Generator) -> torch.Tensor:
+    def sample(
+        self,
+        depth_mm: torch.Tensor,
+        signal_e: torch.Tensor,
+        valid: torch.Tensor,
+        calib: Any,
+        generator: torch.Generator,
+    ) -> torch.Tensor:
         """Hole mask (bool, shape of ``depth_mm``; 2-D, or (1, H, W)) of one sample, drawn from ``generator``."""
         squeeze = depth_mm.dim() == 3
         d = depth_mm[0] if squeeze else depth_mm

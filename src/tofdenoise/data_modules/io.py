@@ -41,8 +41,13 @@ def _require_file(path: Path, what: str) -> None:
         raise FileNotFoundError(f"{what} file not found: {path}")
 
 
-def read_image(path: str | Path, *, what: str = "image", allowed_dtypes: tuple[type, ...] = (np.uint8, np.uint16),
-               channels: str = "one") -> np.ndarray:
+def read_image(
+    path: str | Path,
+    *,
+    what: str = "image",
+    allowed_dtypes: tuple[type, ...] = (np.uint8, np.uint16),
+    channels: str = "one",
+) -> np.ndarray:
     """Read an image file unchanged. ``channels``: "one" (error on colour) or "grey" (convert colour)."""
     path = Path(path)
     _require_file(path, what)
@@ -83,8 +88,9 @@ def read_npy(path: str | Path, *, what: str = "array", key: str | None = None) -
                 raise DataFileError(f"{what} file {path} has arrays {names}; expected key {key!r}")
             loaded = loaded[key]
     array = np.asarray(loaded)
-    if not (np.issubdtype(array.dtype, np.floating) or np.issubdtype(array.dtype, np.integer)
-            or array.dtype == np.bool_):
+    if not (
+        np.issubdtype(array.dtype, np.floating) or np.issubdtype(array.dtype, np.integer) or array.dtype == np.bool_
+    ):
         raise DataFileError(f"{what} file {path} has dtype {array.dtype}; expected a numeric array")
     return array
 
@@ -139,8 +145,14 @@ def read_exr(path: str | Path, *, what: str = "EXR") -> np.ndarray:
     return image.astype(np.float32, copy=False)
 
 
-def read_array(path: str | Path, *, what: str, key: str | None = None,
-               image_dtypes: tuple[type, ...] = (np.uint8, np.uint16), channels: str = "one") -> np.ndarray:
+def read_array(
+    path: str | Path,
+    *,
+    what: str,
+    key: str | None = None,
+    image_dtypes: tuple[type, ...] = (np.uint8, np.uint16),
+    channels: str = "one",
+) -> np.ndarray:
     """Read a 2-D map from any supported format (by suffix); returns the stored dtype."""
     path = Path(path)
     suffix = path.suffix.lower()
@@ -155,15 +167,18 @@ def read_array(path: str | Path, *, what: str, key: str | None = None,
     elif suffix == ".exr":
         array = read_exr(path, what=what)
     else:
-        raise DataFileError(f"{what} file {path} has unsupported suffix {suffix!r}; expected one of "
-                            f"{', '.join(SUPPORTED_SUFFIXES)}")
+        raise DataFileError(
+            f"{what} file {path} has unsupported suffix {suffix!r}; expected one of {', '.join(SUPPORTED_SUFFIXES)}"
+        )
     array = np.squeeze(array) if array.ndim > 2 else array
     if array.ndim != 2:
         raise DataFileError(f"{what} file {path} has shape {array.shape}; expected a 2-D map (H, W)")
     return array
 
 
-def read_depth_mm(path: str | Path, *, what: str = "depth", scale_mm: float = 1.0, key: str | None = None) -> np.ndarray:
+def read_depth_mm(
+    path: str | Path, *, what: str = "depth", scale_mm: float = 1.0, key: str | None = None
+) -> np.ndarray:
     """Read a depth map in millimetres as float32; NaN/inf/<=0 are left for the caller's validity mask.
 
     16-bit PNGs hold mm (0 = invalid); float arrays / EXR hold mm (multiplied by ``scale_mm``).
@@ -183,19 +198,22 @@ def read_amplitude(path: str | Path, *, what: str = "amplitude", key: str | None
     return array.astype(np.float32)
 
 
-def check_same_shape(reference: np.ndarray, other: np.ndarray, *, reference_path: str | Path, other_path: str | Path,
-                     what: str) -> None:
+def check_same_shape(
+    reference: np.ndarray, other: np.ndarray, *, reference_path: str | Path, other_path: str | Path, what: str
+) -> None:
     if reference.shape != other.shape:
-        raise DataFileError(f"{what} file {other_path} has shape {other.shape}; expected {reference.shape} to match "
-                            f"{reference_path}")
+        raise DataFileError(
+            f"{what} file {other_path} has shape {other.shape}; expected {reference.shape} to match {reference_path}"
+        )
 
 
 def write_png(path: str | Path, image: np.ndarray, dtype: type = np.uint16) -> Path:
     """Write a single-channel PNG of ``dtype`` (uint16 or uint8) atomically; values must already be in range."""
     image = np.asarray(image)
     if image.dtype != dtype or image.ndim != 2:
-        raise ValueError(f"write_png({path}): expected a 2-D {np.dtype(dtype).name} array, got {image.dtype} "
-                         f"{image.shape}")
+        raise ValueError(
+            f"write_png({path}): expected a 2-D {np.dtype(dtype).name} array, got {image.dtype} {image.shape}"
+        )
     return atomic_write_png(path, image)
 
 
@@ -225,8 +243,12 @@ def write_depth_png16(path: str | Path, depth_mm: np.ndarray) -> Path:
     d = np.asarray(depth_mm, dtype=np.float64)
     beyond = int(np.count_nonzero(np.isfinite(d) & (d >= PNG16_MAX_MM + 0.5)))
     if beyond:
-        warnings.warn(f"{path}: {beyond} pixel(s) deeper than {PNG16_MAX_MM} mm do not fit a 16-bit millimetre PNG "
-                      "and were written as invalid (0)", RuntimeWarning, stacklevel=2)
+        warnings.warn(
+            f"{path}: {beyond} pixel(s) deeper than {PNG16_MAX_MM} mm do not fit a 16-bit millimetre PNG "
+            "and were written as invalid (0)",
+            RuntimeWarning,
+            stacklevel=2,
+        )
     return write_png_uint16(path, depth_mm_to_png16(d))
 
 

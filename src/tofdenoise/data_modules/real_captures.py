@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from tofdenoise.atomic import atomic_write_text, save_npy_atomic
-from tofdenoise.data_modules.io import (DataFileError, check_same_shape, read_image, read_png_uint16)
+from tofdenoise.data_modules.io import DataFileError, check_same_shape, read_image, read_png_uint16
 
 INPUT_DEPTH = "input_depth_mm.png"
 INPUT_AMPLITUDE = "input_amplitude.png"
@@ -45,8 +45,9 @@ def default_min_count(num_frames: int) -> int:
     return max(1, int(math.ceil(0.5 * num_frames)))
 
 
-def list_scenes(scenes_dir: str | Path, *, config_key: str = "data.real_dir",
-                incomplete: list[str] | None = None) -> list[Path]:
+def list_scenes(
+    scenes_dir: str | Path, *, config_key: str = "data.real_dir", incomplete: list[str] | None = None
+) -> list[Path]:
     """Scene folders (those holding ``input_depth_mm.png``), sorted by name.
 
     A folder that looks like a scene (it has ``hiexp/``) but lacks ``input_depth_mm.png`` cannot be evaluated:
@@ -63,8 +64,11 @@ def list_scenes(scenes_dir: str | Path, *, config_key: str = "data.real_dir",
         elif p.is_dir() and (p / HIEXP_DIR).is_dir():
             partial.append(p.name)
     if partial:
-        warnings.warn(f"capture set {root}: {len(partial)} scene folder(s) with {HIEXP_DIR}/ but no {INPUT_DEPTH} "
-                      f"skipped: {', '.join(partial[:5])}{' ...' if len(partial) > 5 else ''}", stacklevel=2)
+        warnings.warn(
+            f"capture set {root}: {len(partial)} scene folder(s) with {HIEXP_DIR}/ but no {INPUT_DEPTH} "
+            f"skipped: {', '.join(partial[:5])}{' ...' if len(partial) > 5 else ''}",
+            stacklevel=2,
+        )
         if incomplete is not None:
             incomplete.extend(partial)
     if not scenes:
@@ -155,8 +159,10 @@ def build_reference(scene_dir: str | Path, min_count: int | None = None, force: 
             if shape is None:
                 shape = depth.shape
             elif depth.shape != shape:
-                raise DataFileError(f"high-exposure depth file {depth_path} has shape {depth.shape}; expected {shape} "
-                                    f"like {frames[0][0]}")
+                raise DataFileError(
+                    f"high-exposure depth file {depth_path} has shape {depth.shape}; expected {shape} "
+                    f"like {frames[0][0]}"
+                )
             check_same_shape(depth, saturated, reference_path=depth_path, other_path=sat_path, what="saturation mask")
             yield depth, saturated != 0
 
@@ -164,12 +170,18 @@ def build_reference(scene_dir: str | Path, min_count: int | None = None, force: 
     input_path = scene / INPUT_DEPTH
     if input_path.is_file():
         input_depth = read_png_uint16(input_path, what="input depth")
-        check_same_shape(input_depth, mean, reference_path=input_path, other_path=frames[0][0],
-                         what="high-exposure depth")
+        check_same_shape(
+            input_depth, mean, reference_path=input_path, other_path=frames[0][0], what="high-exposure depth"
+        )
     save_npy_atomic(scene / REFERENCE_DEPTH, mean)
     save_npy_atomic(scene / REFERENCE_COUNT, count)
-    meta = {"min_count": needed, "num_frames": len(frames), "frames": [p.name for p, _ in frames],
-            "valid_pixels": int(np.isfinite(mean).sum()), "note": "mean over valid, unsaturated high-exposure frames"}
+    meta = {
+        "min_count": needed,
+        "num_frames": len(frames),
+        "frames": [p.name for p, _ in frames],
+        "valid_pixels": int(np.isfinite(mean).sum()),
+        "note": "mean over valid, unsaturated high-exposure frames",
+    }
     atomic_write_text(scene / REFERENCE_META, json.dumps(meta, indent=1) + "\n")
     return Reference(mean, count, rebuilt=True)
 
@@ -190,20 +202,28 @@ def load_real_scene(scene_dir: str | Path, calib: Any, min_count: int | None = N
     amplitude = read_png_uint16(amp_path, what="input amplitude").astype(np.float32)
     check_same_shape(depth, amplitude, reference_path=depth_path, other_path=amp_path, what="input amplitude")
     reference = build_reference(scene, min_count=min_count).depth_mm
-    check_same_shape(depth, reference, reference_path=depth_path, other_path=scene / REFERENCE_DEPTH,
-                     what="reference depth")
+    check_same_shape(
+        depth, reference, reference_path=depth_path, other_path=scene / REFERENCE_DEPTH, what="reference depth"
+    )
     input_valid = depth > 0
     with np.errstate(invalid="ignore"):
         mask = input_valid & np.isfinite(reference) & (reference > 0)
     sigma = np.zeros_like(depth)
     if mask.any():
-        signal = np.asarray(amplitude_to_signal_e(np.maximum(amplitude, 1e-6), calib, valid=input_valid),
-                            dtype=np.float32)
+        signal = np.asarray(
+            amplitude_to_signal_e(np.maximum(amplitude, 1e-6), calib, valid=input_valid), dtype=np.float32
+        )
         safe_signal = np.where(input_valid & np.isfinite(signal), signal, calib.signal_min_e).astype(np.float32)
-        sigma = np.asarray(sigma_depth_mm(np.where(input_valid, depth, 1.0).astype(np.float32), safe_signal, calib),
-                           dtype=np.float32)
+        sigma = np.asarray(
+            sigma_depth_mm(np.where(input_valid, depth, 1.0).astype(np.float32), safe_signal, calib), dtype=np.float32
+        )
         mask &= np.isfinite(sigma)
     zero = np.float32(0.0)
-    return {"name": scene.name, "noisy": np.where(input_valid, depth, zero), "clean": np.where(mask, reference, zero),
-            "sigma": np.where(mask, sigma, zero), "mask": mask.astype(np.float32),
-            "amplitude": np.where(input_valid, amplitude, zero)}
+    return {
+        "name": scene.name,
+        "noisy": np.where(input_valid, depth, zero),
+        "clean": np.where(mask, reference, zero),
+        "sigma": np.where(mask, sigma, zero),
+        "mask": mask.astype(np.float32),
+        "amplitude": np.where(input_valid, amplitude, zero),
+    }

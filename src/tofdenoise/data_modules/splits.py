@@ -5,8 +5,8 @@ from __future__ import annotations
 import hashlib
 import json
 import warnings
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
@@ -42,7 +42,7 @@ def make_split(sample_ids: Sequence[str], seed: int, ratios: Sequence[float] = (
         raise ValueError("sample ids must be unique to be split")
     n_train, n_val, _ = split_sizes(len(ids), ratios)
     order = np.random.default_rng(int(seed)).permutation(len(ids))
-    parts = {"train": order[:n_train], "val": order[n_train:n_train + n_val], "test": order[n_train + n_val:]}
+    parts = {"train": order[:n_train], "val": order[n_train : n_train + n_val], "test": order[n_train + n_val :]}
     return {name: [ids[i] for i in sorted(part.tolist())] for name, part in parts.items()}
 
 
@@ -50,10 +50,16 @@ def ids_digest(sample_ids: Sequence[str]) -> str:
     return hashlib.sha256("\n".join(sample_ids).encode("utf-8")).hexdigest()
 
 
-def save_split(path: str | Path, split: dict[str, list[str]], *, seed: int, ratios: Sequence[float],
-               source: dict) -> Path:
-    payload = {"seed": int(seed), "ratios": [float(r) for r in ratios], "source": source,
-               "sizes": {k: len(split[k]) for k in SPLIT_NAMES}, **{k: split[k] for k in SPLIT_NAMES}}
+def save_split(
+    path: str | Path, split: dict[str, list[str]], *, seed: int, ratios: Sequence[float], source: dict
+) -> Path:
+    payload = {
+        "seed": int(seed),
+        "ratios": [float(r) for r in ratios],
+        "source": source,
+        "sizes": {k: len(split[k]) for k in SPLIT_NAMES},
+        **{k: split[k] for k in SPLIT_NAMES},
+    }
     return atomic_write_text(path, json.dumps(payload, indent=1) + "\n")
 
 
@@ -75,14 +81,14 @@ def load_split(path: str | Path) -> dict:
             if not isinstance(sample_id, str):
                 raise ValueError(f"split file {path}: {name!r} holds {sample_id!r}; sample ids are strings")
             if sample_id in seen:
-                raise ValueError(f"split file {path}: sample {sample_id!r} is in both {seen[sample_id]!r} and "
-                                 f"{name!r}")
+                raise ValueError(f"split file {path}: sample {sample_id!r} is in both {seen[sample_id]!r} and {name!r}")
             seen[sample_id] = name
     return payload
 
 
-def load_or_make_split(path: str | Path, sample_ids: Sequence[str], seed: int, ratios: Sequence[float],
-                       source: dict) -> dict[str, list[str]]:
+def load_or_make_split(
+    path: str | Path, sample_ids: Sequence[str], seed: int, ratios: Sequence[float], source: dict
+) -> dict[str, list[str]]:
     """Reuse the split stored at ``path`` when it was made from the same ids, seed and ratios; else make one.
 
     A stored file that does not parse (e.g. after a hand edit) is an error naming the file, never silently
@@ -94,16 +100,23 @@ def load_or_make_split(path: str | Path, sample_ids: Sequence[str], seed: int, r
         try:
             stored = load_split(path)
         except ValueError as exc:
-            raise ValueError(f"{exc}. Fix the file (docs/data.md, 'Cache'), or delete it to make a new seeded "
-                             f"split") from None
-        if (stored.get("seed") == int(seed) and stored.get("ratios") == [float(r) for r in ratios]
-                and sorted(stored["train"] + stored["val"] + stored["test"]) == sorted(ids)):
+            raise ValueError(
+                f"{exc}. Fix the file (docs/data.md, 'Cache'), or delete it to make a new seeded split"
+            ) from None
+        if (
+            stored.get("seed") == int(seed)
+            and stored.get("ratios") == [float(r) for r in ratios]
+            and sorted(stored["train"] + stored["val"] + stored["test"]) == sorted(ids)
+        ):
             return {name: list(stored[name]) for name in SPLIT_NAMES}
         stored_ids = set(stored["train"] + stored["val"] + stored["test"])
-        warnings.warn(f"split file {path} was made for other samples, seed or ratios (seed {stored.get('seed')}, "
-                      f"ratios {stored.get('ratios')}, {len(stored_ids)} ids of which "
-                      f"{len(stored_ids - set(ids))} unknown, {len(set(ids) - stored_ids)} missing): replaced by "
-                      f"a new split", stacklevel=2)
+        warnings.warn(
+            f"split file {path} was made for other samples, seed or ratios (seed {stored.get('seed')}, "
+            f"ratios {stored.get('ratios')}, {len(stored_ids)} ids of which "
+            f"{len(stored_ids - set(ids))} unknown, {len(set(ids) - stored_ids)} missing): replaced by "
+            f"a new split",
+            stacklevel=2,
+        )
     split = make_split(ids, seed, ratios)
     save_split(path, split, seed=seed, ratios=ratios, source=source)
     return split

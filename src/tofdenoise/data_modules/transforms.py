@@ -14,8 +14,13 @@ def crop_window(height: int, width: int, crop_h: int, crop_w: int, generator: to
     return top, left
 
 
-def random_crop_flip(maps: dict[str, torch.Tensor], crop: tuple[int, int] | None, generator: torch.Generator,
-                     hflip: bool = True, vflip: bool = True) -> dict[str, torch.Tensor]:
+def random_crop_flip(
+    maps: dict[str, torch.Tensor],
+    crop: tuple[int, int] | None,
+    generator: torch.Generator,
+    hflip: bool = True,
+    vflip: bool = True,
+) -> dict[str, torch.Tensor]:
     """Crop and flip every (..., H, W) tensor in ``maps`` with the same window and flips (maps stay aligned)."""
     first = next(iter(maps.values()))
     height, width = first.shape[-2:]
@@ -24,7 +29,7 @@ def random_crop_flip(maps: dict[str, torch.Tensor], crop: tuple[int, int] | None
             raise ValueError(f"map {name!r} has size {tuple(tensor.shape[-2:])}, expected {(height, width)}")
     if crop is not None:
         top, left = crop_window(height, width, crop[0], crop[1], generator)
-        maps = {k: v[..., top:top + crop[0], left:left + crop[1]] for k, v in maps.items()}
+        maps = {k: v[..., top : top + crop[0], left : left + crop[1]] for k, v in maps.items()}
     flips = torch.rand(2, generator=generator)
     dims = []
     if hflip and flips[0] < 0.5:

@@ -38,9 +38,14 @@ ROBUSTNESS_SEEDS = (0, 1, 2)
 ROBUSTNESS_MIN_REDUCTION = 0.30
 
 
-def robustness_specs(backbones: Sequence[str] | None = None, noises: Sequence[str] = ROBUSTNESS_NOISES,
-                     losses: Sequence[str] = ROBUSTNESS_LOSSES, sensors: Sequence[str] = ROBUSTNESS_SENSORS,
-                     seeds: Sequence[int] = ROBUSTNESS_SEEDS, extra: Sequence[str] = ()) -> list[RunSpec]:
+def robustness_specs(
+    backbones: Sequence[str] | None = None,
+    noises: Sequence[str] = ROBUSTNESS_NOISES,
+    losses: Sequence[str] = ROBUSTNESS_LOSSES,
+    sensors: Sequence[str] = ROBUSTNESS_SENSORS,
+    seeds: Sequence[int] = ROBUSTNESS_SEEDS,
+    extra: Sequence[str] = (),
+) -> list[RunSpec]:
     """The grid's runs, cheapest backbone first, named ``<backbone>-<sensor>-<noise>-<loss>-s<seed>``."""
     backbones = list(backbones) if backbones else list(ROBUSTNESS_BACKBONES)
     unknown = [b for b in backbones if b not in ROBUSTNESS_BACKBONES]
@@ -48,10 +53,24 @@ def robustness_specs(backbones: Sequence[str] | None = None, noises: Sequence[st
         raise ValueError(f"robustness grid: unknown backbone(s) {unknown}; valid: {', '.join(ROBUSTNESS_BACKBONES)}")
     specs = []
     for b, s, n, loss, seed in itertools.product(backbones, sensors, noises, losses, seeds):
-        overrides = ("experiment=grid", f"backbone={b}", f"noise={n}", f"loss={loss}", f"sensor={s}",
-                     f"seed={seed}", "logger=csv", *ROBUSTNESS_BACKBONES[b], *extra)
-        specs.append(RunSpec(f"{b}-{s}-{n}-{loss}-s{seed}", overrides,
-                             {"backbone": b, "sensor": s, "noise": n, "loss": loss, "seed": seed}))
+        overrides = (
+            "experiment=grid",
+            f"backbone={b}",
+            f"noise={n}",
+            f"loss={loss}",
+            f"sensor={s}",
+            f"seed={seed}",
+            "logger=csv",
+            *ROBUSTNESS_BACKBONES[b],
+            *extra,
+        )
+        specs.append(
+            RunSpec(
+                f"{b}-{s}-{n}-{loss}-s{seed}",
+                overrides,
+                {"backbone": b, "sensor": s, "noise": n, "loss": loss, "seed": seed},
+            )
+        )
     return specs
 
 
@@ -72,11 +91,22 @@ def robustness_rows(specs: Sequence[RunSpec], out_dir: Path | str) -> list[dict[
         reduction = 1.0 - best / raw if raw and math.isfinite(best) and math.isfinite(raw) else math.nan
         synthetic = (metrics or {}).get("synthetic") or {}
         finished = bool(info and info.get("finished")) and metrics is not None
-        passed = math.isfinite(best) and math.isfinite(raw) and best <= (1.0 - ROBUSTNESS_MIN_REDUCTION) * raw * (1 + 1e-12)
+        passed = (
+            math.isfinite(best) and math.isfinite(raw) and best <= (1.0 - ROBUSTNESS_MIN_REDUCTION) * raw * (1 + 1e-12)
+        )
         status = "missing" if not finished else ("pass" if passed else "FAIL")
-        rows.append({**spec.meta, "name": spec.name, "best_val_mae_mm": best, "raw_val_mae_mm": raw,
-                     "reduction": reduction, "test_mae_mm": synthetic.get("mae_mm"),
-                     "test_raw_mae_mm": (synthetic.get("raw") or {}).get("mae_mm"), "status": status})
+        rows.append(
+            {
+                **spec.meta,
+                "name": spec.name,
+                "best_val_mae_mm": best,
+                "raw_val_mae_mm": raw,
+                "reduction": reduction,
+                "test_mae_mm": synthetic.get("mae_mm"),
+                "test_raw_mae_mm": (synthetic.get("raw") or {}).get("mae_mm"),
+                "status": status,
+            }
+        )
     return rows
 
 
@@ -89,20 +119,25 @@ def robustness_table(rows: Sequence[dict[str, Any]]) -> str:
     groups: dict[tuple, list[dict[str, Any]]] = {}
     for r in rows:
         groups.setdefault((r["backbone"], r["sensor"], r["noise"], r["loss"]), []).append(r)
-    lines = ["| backbone | sensor | noise | loss | raw val MAE (mm) | best val MAE (mm) per seed | "
-             "reduction per seed | status |", "|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "| backbone | sensor | noise | loss | raw val MAE (mm) | best val MAE (mm) per seed | "
+        "reduction per seed | status |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for (b, s, n, loss), rs in groups.items():
         raw = [r["raw_val_mae_mm"] for r in rs if math.isfinite(r["raw_val_mae_mm"])]
         best = " / ".join(_fmt(r["best_val_mae_mm"]) for r in rs)
-        red = " / ".join(_fmt(100 * r["reduction"], ".0f") + ("%" if math.isfinite(r["reduction"]) else "")
-                         for r in rs)
+        red = " / ".join(_fmt(100 * r["reduction"], ".0f") + ("%" if math.isfinite(r["reduction"]) else "") for r in rs)
         statuses = {r["status"] for r in rs}
         status = "FAIL" if "FAIL" in statuses else ("incomplete" if "missing" in statuses else "pass")
         lines.append(f"| {b} | {s} | {n} | {loss} | {_fmt(raw[0]) if raw else '-'} | {best} | {red} | {status} |")
     done = [r for r in rows if r["status"] != "missing"]
     failed = [r for r in done if r["status"] == "FAIL"]
     lines.append("")
-    lines.append(f"{len(done)} of {len(rows)} runs finished; {len(done) - len(failed)} pass "
-                 f"(>= {100 * ROBUSTNESS_MIN_REDUCTION:.0f} % below the raw validation MAE), {len(failed)} fail"
-                 + (": " + ", ".join(r["name"] for r in failed) if failed else "") + ".")
+    lines.append(
+        f"{len(done)} of {len(rows)} runs finished; {len(done) - len(failed)} pass "
+        f"(>= {100 * ROBUSTNESS_MIN_REDUCTION:.0f} % below the raw validation MAE), {len(failed)} fail"
+        + (": " + ", ".join(r["name"] for r in failed) if failed else "")
+        + "."
+    )
     return "\n".join(lines)

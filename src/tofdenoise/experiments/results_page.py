@@ -96,8 +96,12 @@ def _table_section(table: str, profile: str, records: dict[str, dict[str, Any]],
         return rec["metrics"] if rec else None
 
     cols = TABLE_COLUMNS[table]
-    lines = [f"## {TABLE_TITLES[table]}", "",
-             f"Command: `{PROFILE_COMMANDS[profile].format(table=table)}` (profile `{profile}`).", ""]
+    lines = [
+        f"## {TABLE_TITLES[table]}",
+        "",
+        f"Command: `{PROFILE_COMMANDS[profile].format(table=table)}` (profile `{profile}`).",
+        "",
+    ]
     head = ["method"] + [f"{METRIC_COLUMNS[c][2]} paper / ours" for c in cols]
     lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for row in TABLES[table]:
@@ -129,14 +133,20 @@ def _table_section(table: str, profile: str, records: dict[str, dict[str, Any]],
 
 
 def _runs_section(records: dict[str, dict[str, Any]]) -> list[str]:
-    lines = ["## Runs", "", "| run | learned | trained steps | best val MAE (mm) | raw val MAE (mm) | minutes |",
-             "|---|---|---|---|---|---|"]
+    lines = [
+        "## Runs",
+        "",
+        "| run | learned | trained steps | best val MAE (mm) | raw val MAE (mm) | minutes |",
+        "|---|---|---|---|---|---|",
+    ]
     for name, rec in records.items():
         m, info = rec["metrics"], rec["run_info"]
         learned = m.get("learned")
-        lines.append(f"| {name} | {'-' if learned is None else ('yes' if learned else 'NO')} | "
-                     f"{m.get('trained_steps', '-')} | {_fmt(float(m.get('best_val_mae_mm') or math.nan), 2)} | "
-                     f"{_fmt(float(m.get('raw_val_mae_mm') or math.nan), 2)} | {_fmt(run_minutes(info), 1)} |")
+        lines.append(
+            f"| {name} | {'-' if learned is None else ('yes' if learned else 'NO')} | "
+            f"{m.get('trained_steps', '-')} | {_fmt(float(m.get('best_val_mae_mm') or math.nan), 2)} | "
+            f"{_fmt(float(m.get('raw_val_mae_mm') or math.nan), 2)} | {_fmt(run_minutes(info), 1)} |"
+        )
     lines.append("")
     return lines
 
@@ -146,18 +156,26 @@ def _fig6_section(profile_dir: Path) -> list[str]:
     lines = ["## Fig. 6: noise-model validation on the second camera", ""]
     if data is None:
         return lines + ["Not run yet (`make reproduce TABLE=fig6`).", ""]
-    lines += [f"Source: {data.get('source', '?')}. Paper: proposed MAPE 7.7 %, R² 0.93 (pooled).", "",
-              "| panel | model | MAPE % | R² | n |", "|---|---|---|---|---|"]
+    lines += [
+        f"Source: {data.get('source', '?')}. Paper: proposed MAPE 7.7 %, R² 0.93 (pooled).",
+        "",
+        "| panel | model | MAPE % | R² | n |",
+        "|---|---|---|---|---|",
+    ]
     pooled = data.get("pooled") or {}
     for model in ("proposed", "range_gaussian"):
         p = pooled.get(model) or {}
-        lines.append(f"| pooled | {model} | {_fmt(float(p.get('mape_percent', math.nan)), 2)} | "
-                     f"{_fmt(float(p.get('r2', math.nan)), 3)} | {p.get('n', '-')} |")
+        lines.append(
+            f"| pooled | {model} | {_fmt(float(p.get('mape_percent', math.nan)), 2)} | "
+            f"{_fmt(float(p.get('r2', math.nan)), 3)} | {p.get('n', '-')} |"
+        )
     for panel, entry in (data.get("panels") or {}).items():
         for model in ("proposed", "range_gaussian"):
             p = (entry or {}).get(model) or {}
-            lines.append(f"| {panel} | {model} | {_fmt(float(p.get('mape_percent', math.nan)), 2)} | "
-                         f"{_fmt(float(p.get('r2', math.nan)), 3)} | {p.get('n', '-')} |")
+            lines.append(
+                f"| {panel} | {model} | {_fmt(float(p.get('mape_percent', math.nan)), 2)} | "
+                f"{_fmt(float(p.get('r2', math.nan)), 3)} | {p.get('n', '-')} |"
+            )
     if (profile_dir / "fig6" / "validation.png").is_file():
         lines += ["", f"![Fig. 6: {profile_dir.name} profile](results/{profile_dir.name}/fig6/validation.png)"]
     lines.append("")
@@ -168,8 +186,12 @@ def _profile_sections(results_dir: Path, profile: str) -> list[str]:
     profile_dir = results_dir / profile
     records = load_records(profile_dir)
     seeds = seeds_present(records) or [0, 1, 2]
-    lines = [f"# Profile `{profile}`", "",
-             f"Seeds with records: {', '.join(map(str, seeds_present(records))) or 'none'}.", ""]
+    lines = [
+        f"# Profile `{profile}`",
+        "",
+        f"Seeds with records: {', '.join(map(str, seeds_present(records))) or 'none'}.",
+        "",
+    ]
     for table in TABLES:
         lines += _table_section(table, profile, records, seeds)
     lines += _fig6_section(profile_dir)
@@ -180,12 +202,17 @@ def results_markdown(results_dir: Path | str) -> str:
     """The whole ``docs/results.md`` from ``results_dir`` (``docs/results``): the CPU profile always, the GPU
     profile when it has records, then the hand-written ``discussion.md``."""
     results_dir = Path(results_dir)
-    lines = ["# Reproducing the paper's tables", "",
-             "<!-- generated by `tofdenoise-reproduce --page-only` from docs/results/; do not edit by hand "
-             "(edit docs/results/discussion.md) -->", "",
-             "Each cell: the paper's number / ours as mean ± standard deviation over the seeds (n = seeds that "
-             "finished). Every run of a seed is validated and tested on identical inputs (`data.eval_noise=hetero`); "
-             "the real set is the second camera's capture set (docs/camera-tutorial.md).", ""]
+    lines = [
+        "# Reproducing the paper's tables",
+        "",
+        "<!-- generated by `tofdenoise-reproduce --page-only` from docs/results/; do not edit by hand "
+        "(edit docs/results/discussion.md) -->",
+        "",
+        "Each cell: the paper's number / ours as mean ± standard deviation over the seeds (n = seeds that "
+        "finished). Every run of a seed is validated and tested on identical inputs (`data.eval_noise=hetero`); "
+        "the real set is the second camera's capture set (docs/camera-tutorial.md).",
+        "",
+    ]
     discussion = results_dir / "discussion.md"
     if discussion.is_file():
         lines += [discussion.read_text().rstrip(), ""]

@@ -90,8 +90,14 @@ def _tail(path: Path, lines: int = 40) -> str:
         return ""
 
 
-def run_all(specs: Sequence[RunSpec], out_dir: Path | str, dry_run: bool = False, python: str | None = None,
-            env: dict[str, str] | None = None, echo: bool = True) -> list[RunOutcome]:
+def run_all(
+    specs: Sequence[RunSpec],
+    out_dir: Path | str,
+    dry_run: bool = False,
+    python: str | None = None,
+    env: dict[str, str] | None = None,
+    echo: bool = True,
+) -> list[RunOutcome]:
     """Run every spec not finished yet (see the module docstring); returns one outcome per spec, in order."""
     out_dir = Path(out_dir).expanduser().resolve()
     names = [s.name for s in specs]
@@ -124,20 +130,28 @@ def run_all(specs: Sequence[RunSpec], out_dir: Path | str, dry_run: bool = False
         with open(run_dir / LOG_NAME, "a") as log:
             log.write(f"\n# {time.strftime('%Y-%m-%dT%H:%M:%S')} {' '.join(cmd)}\n")
             log.flush()
-            proc = subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT, env={**os.environ, **(env or {})},
-                                  check=False)
+            proc = subprocess.run(
+                cmd, stdout=log, stderr=subprocess.STDOUT, env={**os.environ, **(env or {})}, check=False
+            )
         seconds = time.perf_counter() - t0
         ok = proc.returncode == 0 and run_finished(run_dir)
-        outcome = RunOutcome(spec, run_dir, "done" if ok else "failed", seconds, proc.returncode,
-                             "" if ok else _tail(run_dir / LOG_NAME))
+        outcome = RunOutcome(
+            spec, run_dir, "done" if ok else "failed", seconds, proc.returncode, "" if ok else _tail(run_dir / LOG_NAME)
+        )
         outcomes.append(outcome)
         if echo:
-            print(f"{head}: {outcome.status} in {seconds / 60:.1f} min"
-                  + ("" if ok else f" (exit {proc.returncode}; log: {run_dir / LOG_NAME})"), flush=True)
+            print(
+                f"{head}: {outcome.status} in {seconds / 60:.1f} min"
+                + ("" if ok else f" (exit {proc.returncode}; log: {run_dir / LOG_NAME})"),
+                flush=True,
+            )
     failed = [o for o in outcomes if o.status == "failed"]
     if echo and failed:
         print(f"{len(failed)} run(s) failed:", flush=True)
         for o in failed:
-            print(f"  {o.spec.name} (exit {o.returncode}), last lines of {o.run_dir / LOG_NAME}:\n"
-                  + "\n".join("    " + line for line in o.log_tail.splitlines()), flush=True)
+            print(
+                f"  {o.spec.name} (exit {o.returncode}), last lines of {o.run_dir / LOG_NAME}:\n"
+                + "\n".join("    " + line for line in o.log_tail.splitlines()),
+                flush=True,
+            )
     return outcomes

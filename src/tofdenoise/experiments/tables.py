@@ -27,8 +27,17 @@ from typing import Any
 
 from .runner import RunSpec
 
-__all__ = ["Row", "Claim", "TABLES", "TABLE_TITLES", "CLAIMS", "run_name", "table_rows", "table_specs",
-           "METRIC_COLUMNS"]
+__all__ = [
+    "Row",
+    "Claim",
+    "TABLES",
+    "TABLE_TITLES",
+    "CLAIMS",
+    "run_name",
+    "table_rows",
+    "table_specs",
+    "METRIC_COLUMNS",
+]
 
 #: metric column key -> (metrics.json set, metric key, header, decimals)
 METRIC_COLUMNS: dict[str, tuple[str, str, str, int]] = {
@@ -73,8 +82,14 @@ def run_name(row: Row, seed: int) -> str:
     return f"{row.run_stem()}-s{seed}"
 
 
-_DVSS_L1 = {"psnr_db": 40.37, "ssim": 0.9985, "mse_mm2": 91.75, "mae_mm": 2.78,
-            "real_psnr_db": 35.12, "real_mae_mm": 5.04}
+_DVSS_L1 = {
+    "psnr_db": 40.37,
+    "ssim": 0.9985,
+    "mse_mm2": 91.75,
+    "mae_mm": 2.78,
+    "real_psnr_db": 35.12,
+    "real_mae_mm": 5.04,
+}
 
 TABLE_TITLES = {
     "1": "Table I: comparison with iToF denoising methods (synthetic test set) and on the real set (Table IV)",
@@ -84,48 +99,160 @@ TABLE_TITLES = {
 
 TABLES: dict[str, tuple[Row, ...]] = {
     "1": (
-        Row("raw", "Raw iToF (the noisy input)", "dvss", "hetero", "l1",
-            {"real_psnr_db": 31.68, "real_mae_mm": 7.21}),
-        Row("deeptof", "DeepToF", "deeptof", paper={"psnr_db": 37.99, "ssim": 0.9951, "mse_mm2": 158.94,
-                                                    "mae_mm": 6.12, "real_psnr_db": 33.29, "real_mae_mm": 6.18}),
-        Row("tofkpn", "ToF-KPN", "tofkpn", paper={"psnr_db": 39.19, "ssim": 0.9969, "mse_mm2": 120.52,
-                                                 "mae_mm": 4.88, "real_psnr_db": 34.76, "real_mae_mm": 5.31}),
-        Row("rcf", "RCF (our reading)", "rcf", paper={"psnr_db": 39.53, "ssim": 0.9972, "mse_mm2": 111.41,
-                                                     "mae_mm": 4.63, "real_psnr_db": 34.48, "real_mae_mm": 5.52}),
+        Row("raw", "Raw iToF (the noisy input)", "dvss", "hetero", "l1", {"real_psnr_db": 31.68, "real_mae_mm": 7.21}),
+        Row(
+            "deeptof",
+            "DeepToF",
+            "deeptof",
+            paper={
+                "psnr_db": 37.99,
+                "ssim": 0.9951,
+                "mse_mm2": 158.94,
+                "mae_mm": 6.12,
+                "real_psnr_db": 33.29,
+                "real_mae_mm": 6.18,
+            },
+        ),
+        Row(
+            "tofkpn",
+            "ToF-KPN",
+            "tofkpn",
+            paper={
+                "psnr_db": 39.19,
+                "ssim": 0.9969,
+                "mse_mm2": 120.52,
+                "mae_mm": 4.88,
+                "real_psnr_db": 34.76,
+                "real_mae_mm": 5.31,
+            },
+        ),
+        Row(
+            "rcf",
+            "RCF (our reading)",
+            "rcf",
+            paper={
+                "psnr_db": 39.53,
+                "ssim": 0.9972,
+                "mse_mm2": 111.41,
+                "mae_mm": 4.63,
+                "real_psnr_db": 34.48,
+                "real_mae_mm": 5.52,
+            },
+        ),
         Row("bilateral", "Joint bilateral (classical, not in the paper)", "bilateral", kind="classical"),
         Row("dvss_l1", "DVSS w/ L1", "dvss", "hetero", "l1", _DVSS_L1),
-        Row("dvss_full", "DVSS w/ L_full", "dvss", "hetero", "full",
-            {"psnr_db": 40.85, "ssim": 0.9987, "mse_mm2": 82.30, "mae_mm": 2.54,
-             "real_psnr_db": 35.42, "real_mae_mm": 4.87}),
+        Row(
+            "dvss_full",
+            "DVSS w/ L_full",
+            "dvss",
+            "hetero",
+            "full",
+            {
+                "psnr_db": 40.85,
+                "ssim": 0.9987,
+                "mse_mm2": 82.30,
+                "mae_mm": 2.54,
+                "real_psnr_db": 35.42,
+                "real_mae_mm": 4.87,
+            },
+        ),
     ),
     "2": (
-        Row("no_local", "w/o DWConv & SCR (L1)", "dvss_no_local",
-            paper={"psnr_db": 39.76, "ssim": 0.9954, "mse_mm2": 105.66, "mae_mm": 3.55}),
-        Row("no_dwconv", "w/o DWConv (L1)", "dvss_no_dwconv",
-            paper={"psnr_db": 40.00, "ssim": 0.9976, "mse_mm2": 99.89, "mae_mm": 3.19}),
+        Row(
+            "no_local",
+            "w/o DWConv & SCR (L1)",
+            "dvss_no_local",
+            paper={"psnr_db": 39.76, "ssim": 0.9954, "mse_mm2": 105.66, "mae_mm": 3.55},
+        ),
+        Row(
+            "no_dwconv",
+            "w/o DWConv (L1)",
+            "dvss_no_dwconv",
+            paper={"psnr_db": 40.00, "ssim": 0.9976, "mse_mm2": 99.89, "mae_mm": 3.19},
+        ),
         Row("se", "w/ SE (L1)", "dvss_se", paper={"psnr_db": 40.16, "ssim": 0.9983, "mse_mm2": 96.35, "mae_mm": 3.06}),
-        Row("dvss_l1", "Full DVSS (L1)", "dvss", "hetero", "l1",
-            {k: v for k, v in _DVSS_L1.items() if not k.startswith("real")}),
-        Row("dvss_nar", "Full DVSS (L_nar)", "dvss", "hetero", "nar",
-            {"psnr_db": 40.66, "ssim": 0.9986, "mse_mm2": 85.90, "mae_mm": 2.62}),
-        Row("dvss_full", "Full DVSS (L_full)", "dvss", "hetero", "full",
-            {"psnr_db": 40.85, "ssim": 0.9987, "mse_mm2": 82.30, "mae_mm": 2.54}),
+        Row(
+            "dvss_l1",
+            "Full DVSS (L1)",
+            "dvss",
+            "hetero",
+            "l1",
+            {k: v for k, v in _DVSS_L1.items() if not k.startswith("real")},
+        ),
+        Row(
+            "dvss_nar",
+            "Full DVSS (L_nar)",
+            "dvss",
+            "hetero",
+            "nar",
+            {"psnr_db": 40.66, "ssim": 0.9986, "mse_mm2": 85.90, "mae_mm": 2.62},
+        ),
+        Row(
+            "dvss_full",
+            "Full DVSS (L_full)",
+            "dvss",
+            "hetero",
+            "full",
+            {"psnr_db": 40.85, "ssim": 0.9987, "mse_mm2": 82.30, "mae_mm": 2.54},
+        ),
     ),
     "3": (
-        Row("dvss_fixed", "DVSS, fixed Gaussian", "dvss", "fixed", "l1",
-            {"psnr_db": 39.40, "mae_mm": 3.42, "real_psnr_db": 34.41, "real_mae_mm": 5.82}),
-        Row("dvss_range", "DVSS, range-aware Gaussian", "dvss", "range", "l1",
-            {"psnr_db": 39.89, "mae_mm": 3.08, "real_psnr_db": 34.88, "real_mae_mm": 5.36}),
-        Row("dvss_hetero", "DVSS, hetero (proposed)", "dvss", "hetero", "l1",
-            {"psnr_db": 40.37, "mae_mm": 2.78, "real_psnr_db": 35.12, "real_mae_mm": 5.04}),
-        Row("unet_range", "U-Net, range-aware Gaussian", "unet", "range", "l1",
-            {"psnr_db": 38.56, "mae_mm": 4.18, "real_psnr_db": 33.67, "real_mae_mm": 6.34}),
-        Row("unet_hetero", "U-Net, hetero (proposed)", "unet", "hetero", "l1",
-            {"psnr_db": 39.01, "mae_mm": 3.76, "real_psnr_db": 34.12, "real_mae_mm": 5.84}),
-        Row("restormer_range", "Restormer, range-aware Gaussian", "restormer", "range", "l1",
-            {"psnr_db": 39.22, "mae_mm": 3.58, "real_psnr_db": 34.19, "real_mae_mm": 5.91}),
-        Row("restormer_hetero", "Restormer, hetero (proposed)", "restormer", "hetero", "l1",
-            {"psnr_db": 39.68, "mae_mm": 3.22, "real_psnr_db": 34.55, "real_mae_mm": 5.46}),
+        Row(
+            "dvss_fixed",
+            "DVSS, fixed Gaussian",
+            "dvss",
+            "fixed",
+            "l1",
+            {"psnr_db": 39.40, "mae_mm": 3.42, "real_psnr_db": 34.41, "real_mae_mm": 5.82},
+        ),
+        Row(
+            "dvss_range",
+            "DVSS, range-aware Gaussian",
+            "dvss",
+            "range",
+            "l1",
+            {"psnr_db": 39.89, "mae_mm": 3.08, "real_psnr_db": 34.88, "real_mae_mm": 5.36},
+        ),
+        Row(
+            "dvss_hetero",
+            "DVSS, hetero (proposed)",
+            "dvss",
+            "hetero",
+            "l1",
+            {"psnr_db": 40.37, "mae_mm": 2.78, "real_psnr_db": 35.12, "real_mae_mm": 5.04},
+        ),
+        Row(
+            "unet_range",
+            "U-Net, range-aware Gaussian",
+            "unet",
+            "range",
+            "l1",
+            {"psnr_db": 38.56, "mae_mm": 4.18, "real_psnr_db": 33.67, "real_mae_mm": 6.34},
+        ),
+        Row(
+            "unet_hetero",
+            "U-Net, hetero (proposed)",
+            "unet",
+            "hetero",
+            "l1",
+            {"psnr_db": 39.01, "mae_mm": 3.76, "real_psnr_db": 34.12, "real_mae_mm": 5.84},
+        ),
+        Row(
+            "restormer_range",
+            "Restormer, range-aware Gaussian",
+            "restormer",
+            "range",
+            "l1",
+            {"psnr_db": 39.22, "mae_mm": 3.58, "real_psnr_db": 34.19, "real_mae_mm": 5.91},
+        ),
+        Row(
+            "restormer_hetero",
+            "Restormer, hetero (proposed)",
+            "restormer",
+            "hetero",
+            "l1",
+            {"psnr_db": 39.68, "mae_mm": 3.22, "real_psnr_db": 34.55, "real_mae_mm": 5.46},
+        ),
     ),
 }
 
@@ -139,20 +266,31 @@ TABLE_COLUMNS: dict[str, tuple[str, ...]] = {
 CLAIMS: tuple[Claim, ...] = (
     Claim("1", "DVSS L_full < DVSS L1 (synthetic MAE)", "mae_mm", ("dvss_full", "dvss_l1")),
     Claim("1", "DVSS L1 < RCF < ToF-KPN < DeepToF (synthetic MAE)", "mae_mm", ("dvss_l1", "rcf", "tofkpn", "deeptof")),
-    Claim("1", "real MAE: DVSS L_full < ToF-KPN < RCF < DeepToF < raw", "real_mae_mm",
-          ("dvss_full", "tofkpn", "rcf", "deeptof", "raw")),
-    Claim("2", "structure (L1): full < w/ SE < w/o DWConv < w/o DWConv & SCR (MAE)", "mae_mm",
-          ("dvss_l1", "se", "no_dwconv", "no_local")),
+    Claim(
+        "1",
+        "real MAE: DVSS L_full < ToF-KPN < RCF < DeepToF < raw",
+        "real_mae_mm",
+        ("dvss_full", "tofkpn", "rcf", "deeptof", "raw"),
+    ),
+    Claim(
+        "2",
+        "structure (L1): full < w/ SE < w/o DWConv < w/o DWConv & SCR (MAE)",
+        "mae_mm",
+        ("dvss_l1", "se", "no_dwconv", "no_local"),
+    ),
     Claim("2", "objective: L_full < L_nar < L1 (MAE)", "mae_mm", ("dvss_full", "dvss_nar", "dvss_l1")),
     Claim("3", "DVSS: hetero < range < fixed (synthetic MAE)", "mae_mm", ("dvss_hetero", "dvss_range", "dvss_fixed")),
-    Claim("3", "DVSS: hetero < range < fixed (real MAE)", "real_mae_mm",
-          ("dvss_hetero", "dvss_range", "dvss_fixed")),
+    Claim("3", "DVSS: hetero < range < fixed (real MAE)", "real_mae_mm", ("dvss_hetero", "dvss_range", "dvss_fixed")),
     Claim("3", "hetero < range for U-Net (synthetic MAE)", "mae_mm", ("unet_hetero", "unet_range")),
     Claim("3", "hetero < range for Restormer (synthetic MAE)", "mae_mm", ("restormer_hetero", "restormer_range")),
     Claim("3", "hetero < range for U-Net (real MAE)", "real_mae_mm", ("unet_hetero", "unet_range")),
     Claim("3", "hetero < range for Restormer (real MAE)", "real_mae_mm", ("restormer_hetero", "restormer_range")),
-    Claim("3", "hetero training: DVSS < Restormer < U-Net (synthetic MAE)", "mae_mm",
-          ("dvss_hetero", "restormer_hetero", "unet_hetero")),
+    Claim(
+        "3",
+        "hetero training: DVSS < Restormer < U-Net (synthetic MAE)",
+        "mae_mm",
+        ("dvss_hetero", "restormer_hetero", "unet_hetero"),
+    ),
 )
 
 
@@ -162,8 +300,12 @@ def table_rows(table: str) -> tuple[Row, ...]:
     return TABLES[table]
 
 
-def table_specs(table: str, seeds: Sequence[int], common: Sequence[str] = (),
-                per_backbone: Mapping[str, Sequence[str]] | None = None) -> list[RunSpec]:
+def table_specs(
+    table: str,
+    seeds: Sequence[int],
+    common: Sequence[str] = (),
+    per_backbone: Mapping[str, Sequence[str]] | None = None,
+) -> list[RunSpec]:
     """The runs of ``table`` for ``seeds`` (one per distinct run; the raw row needs no run of its own).
 
     ``common``: overrides for every training run (the profile's experiment, the sensor, the real set);
@@ -182,11 +324,17 @@ def table_specs(table: str, seeds: Sequence[int], common: Sequence[str] = (),
             if row.kind == "classical":
                 overrides = (*common, f"seed={seed}")
             else:
-                overrides = (f"backbone={row.backbone}", f"noise={row.noise}", f"loss={row.loss}", f"seed={seed}",
-                             *common, *per_backbone.get(row.backbone, ()))
-            specs[name] = RunSpec(name, tuple(overrides),
-                                  {"table": table, "row": row.key, "seed": seed, "kind": row.kind},
-                                  entry=row.kind)
+                overrides = (
+                    f"backbone={row.backbone}",
+                    f"noise={row.noise}",
+                    f"loss={row.loss}",
+                    f"seed={seed}",
+                    *common,
+                    *per_backbone.get(row.backbone, ()),
+                )
+            specs[name] = RunSpec(
+                name, tuple(overrides), {"table": table, "row": row.key, "seed": seed, "kind": row.kind}, entry=row.kind
+            )
     return list(specs.values())
 
 

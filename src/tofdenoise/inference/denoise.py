@@ -48,11 +48,16 @@ def load_restorer(ckpt: str | Path, device: str | torch.device = "cpu"):
     try:
         content = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # not a torch file, truncated, pickled objects ...
-        raise CheckpointError(f"checkpoint {path} could not be read as a PyTorch checkpoint ({exc}); {expected}") \
-            from exc
+        raise CheckpointError(
+            f"checkpoint {path} could not be read as a PyTorch checkpoint ({exc}); {expected}"
+        ) from exc
     hparams = content.get("hyper_parameters") if isinstance(content, dict) else None
-    if not isinstance(content, dict) or "state_dict" not in content or not isinstance(hparams, dict) \
-            or "backbone" not in hparams:
+    if (
+        not isinstance(content, dict)
+        or "state_dict" not in content
+        or not isinstance(hparams, dict)
+        or "backbone" not in hparams
+    ):
         keys = sorted(content)[:8] if isinstance(content, dict) else type(content).__name__
         raise CheckpointError(f"checkpoint {path} is not a DepthRestorer checkpoint (found {keys}); {expected}")
     if not any(k.startswith("backbone.") for k in content["state_dict"]):
@@ -84,8 +89,15 @@ def _autocast(device: torch.device, precision: str):
 
 
 @torch.no_grad()
-def restore_frame(model: Any, depth_mm: np.ndarray, valid: np.ndarray, amplitude: np.ndarray | None = None,
-                  fill_holes: bool = False, tile: int | None = None, precision: str = "bf16") -> np.ndarray:
+def restore_frame(
+    model: Any,
+    depth_mm: np.ndarray,
+    valid: np.ndarray,
+    amplitude: np.ndarray | None = None,
+    fill_holes: bool = False,
+    tile: int | None = None,
+    precision: str = "bf16",
+) -> np.ndarray:
     """Restored depth [mm] float32 (H, W) of one frame (0 at invalid input pixels unless ``fill_holes``).
 
     ``depth_mm``: float (H, W), any value at invalid pixels (set to 0 here); ``valid``: bool (H, W);
@@ -93,8 +105,10 @@ def restore_frame(model: Any, depth_mm: np.ndarray, valid: np.ndarray, amplitude
     (default: the model's ``predict_tile_size``). The model's device is used.
     """
     if model.hparams.use_signal_channel and amplitude is None:
-        raise ValueError("this checkpoint uses the amplitude (signal) channel: give the frame's amplitude "
-                         "(tofdenoise-denoise --amplitude DIR_OR_PATTERN)")
+        raise ValueError(
+            "this checkpoint uses the amplitude (signal) channel: give the frame's amplitude "
+            "(tofdenoise-denoise --amplitude DIR_OR_PATTERN)"
+        )
     device = model.device
     valid_t = torch.from_numpy(np.ascontiguousarray(valid, dtype=np.float32))[None, None].to(device)
     depth = np.where(valid, depth_mm, 0.0).astype(np.float32)
@@ -110,8 +124,15 @@ def restore_frame(model: Any, depth_mm: np.ndarray, valid: np.ndarray, amplitude
     return pred[0, 0].cpu().numpy().astype(np.float32)
 
 
-def denoise(depth_mm: Any, model_or_ckpt: Any, amplitude: Any = None, fill_holes: bool = False,
-            device: str | torch.device = "auto", tile: int | None = None, precision: str = "bf16") -> np.ndarray:
+def denoise(
+    depth_mm: Any,
+    model_or_ckpt: Any,
+    amplitude: Any = None,
+    fill_holes: bool = False,
+    device: str | torch.device = "auto",
+    tile: int | None = None,
+    precision: str = "bf16",
+) -> np.ndarray:
     """Denoise one depth frame: ``tofdenoise.denoise(depth_mm, "best.ckpt") -> np.ndarray``.
 
     ``depth_mm``: (H, W) numpy array or tensor in millimetres; NaN, inf, 0 and negative values mark invalid
@@ -149,8 +170,9 @@ def sigma_map_mm(depth_mm: np.ndarray, valid: np.ndarray, amplitude: np.ndarray,
 
     amp = np.asarray(amplitude, dtype=np.float32)
     ok = np.asarray(valid, dtype=bool) & np.isfinite(amp) & (amp >= 0)
-    signal = np.asarray(amplitude_to_signal_e(np.where(ok, np.maximum(amp, 1e-12), 0.0), calib, valid=ok),
-                        dtype=np.float32)
+    signal = np.asarray(
+        amplitude_to_signal_e(np.where(ok, np.maximum(amp, 1e-12), 0.0), calib, valid=ok), dtype=np.float32
+    )
     ok &= np.isfinite(signal)
     safe_depth = np.where(ok, depth_mm, 1.0).astype(np.float32)
     safe_signal = np.where(ok, signal, calib.signal_min_e).astype(np.float32)

@@ -13,16 +13,24 @@ from a glob pattern (``amp/*.png``) whose matches are keyed by stem.
 from __future__ import annotations
 
 import glob as _glob
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable, Sequence
 
 import numpy as np
 
 from tofdenoise.data_modules.io import DataFileError, read_amplitude, read_array, read_image
 
-__all__ = ["DEPTH_FRAME_SUFFIXES", "Frame", "FrameInput", "AmplitudeSource", "find_frames", "read_depth_frame",
-           "load_frame", "FrameError"]
+__all__ = [
+    "DEPTH_FRAME_SUFFIXES",
+    "Frame",
+    "FrameInput",
+    "AmplitudeSource",
+    "find_frames",
+    "read_depth_frame",
+    "load_frame",
+    "FrameError",
+]
 
 DEPTH_FRAME_SUFFIXES = (".png", ".tif", ".tiff", ".npy", ".exr")
 AMPLITUDE_SUFFIXES = (".png", ".tif", ".tiff", ".npy", ".exr")
@@ -73,13 +81,20 @@ def find_frames(inputs: Sequence[str | Path], exclude: Iterable[str | Path] = ()
     for item in inputs:
         root = Path(item).expanduser()
         if root.is_dir():
-            found = sorted(p for p in root.rglob("*") if _is_candidate(p) and not skipped(p)
-                           and not any(part.startswith(".") for part in p.relative_to(root).parts))
+            found = sorted(
+                p
+                for p in root.rglob("*")
+                if _is_candidate(p)
+                and not skipped(p)
+                and not any(part.startswith(".") for part in p.relative_to(root).parts)
+            )
             frames += [FrameInput(p, p.relative_to(root)) for p in found]
         elif root.is_file():
             if root.suffix.lower() not in DEPTH_FRAME_SUFFIXES:
-                raise FrameError(f"input file {root} has suffix {root.suffix!r}; expected a depth frame "
-                                 f"({', '.join(DEPTH_FRAME_SUFFIXES)})")
+                raise FrameError(
+                    f"input file {root} has suffix {root.suffix!r}; expected a depth frame "
+                    f"({', '.join(DEPTH_FRAME_SUFFIXES)})"
+                )
             frames.append(FrameInput(root, Path(root.name)))
         else:
             raise FrameError(f"input not found: {root} (expected a depth frame or a folder of them)")
@@ -98,8 +113,10 @@ def read_depth_frame(path: str | Path, depth_scale_mm: float = 1.0) -> tuple[np.
         if suffix in (".png", ".tif", ".tiff"):
             image = read_image(path, what="depth", allowed_dtypes=(np.uint8, np.uint16, np.float32))
             if image.dtype == np.uint8:
-                raise FrameError(f"depth file {path} is an 8-bit image: it cannot hold depth in millimetres; "
-                                 "expected a single-channel 16-bit PNG (mm, 0 = invalid), .npy or .exr")
+                raise FrameError(
+                    f"depth file {path} is an 8-bit image: it cannot hold depth in millimetres; "
+                    "expected a single-channel 16-bit PNG (mm, 0 = invalid), .npy or .exr"
+                )
             raw = image
         else:
             raw = read_array(path, what="depth")
@@ -152,17 +169,24 @@ class AmplitudeSource:
             assert self.folder is not None
             found = []
             for folder in (self.folder / frame.rel.parent, self.folder):
-                found = [p for p in sorted(folder.glob(f"{_glob.escape(stem)}.*"))
-                         if p.is_file() and p.suffix.lower() in AMPLITUDE_SUFFIXES and p.resolve() != frame.path.resolve()]
+                found = [
+                    p
+                    for p in sorted(folder.glob(f"{_glob.escape(stem)}.*"))
+                    if p.is_file() and p.suffix.lower() in AMPLITUDE_SUFFIXES and p.resolve() != frame.path.resolve()
+                ]
                 if found:
                     break
             where = f"{self.folder} (and {self.folder / frame.rel.parent})"
         if not found:
-            raise FrameError(f"no amplitude file for depth frame {frame.path}: expected {stem}.<"
-                             f"{'|'.join(s.lstrip('.') for s in AMPLITUDE_SUFFIXES)}> in {where}")
+            raise FrameError(
+                f"no amplitude file for depth frame {frame.path}: expected {stem}.<"
+                f"{'|'.join(s.lstrip('.') for s in AMPLITUDE_SUFFIXES)}> in {where}"
+            )
         if len(found) > 1:
-            raise FrameError(f"depth frame {frame.path} has {len(found)} amplitude candidates: "
-                             f"{', '.join(str(p) for p in found)}; keep one")
+            raise FrameError(
+                f"depth frame {frame.path} has {len(found)} amplitude candidates: "
+                f"{', '.join(str(p) for p in found)}; keep one"
+            )
         return found[0]
 
 
@@ -175,10 +199,13 @@ def load_frame(frame: FrameInput, depth_scale_mm: float = 1.0, amplitude: Amplit
         try:
             amp = read_amplitude(amp_path)
         except (DataFileError, OSError) as exc:
-            raise FrameError(f"amplitude file {amp_path} (for depth frame {frame.path}) could not be read: "
-                             f"{exc}") from exc
+            raise FrameError(
+                f"amplitude file {amp_path} (for depth frame {frame.path}) could not be read: {exc}"
+            ) from exc
         if amp.shape != depth.shape:
-            raise FrameError(f"amplitude file {amp_path} has shape {amp.shape}; expected {depth.shape} like its "
-                             f"depth frame {frame.path}")
+            raise FrameError(
+                f"amplitude file {amp_path} has shape {amp.shape}; expected {depth.shape} like its "
+                f"depth frame {frame.path}"
+            )
         amp = np.where(np.isfinite(amp), amp, 0.0).astype(np.float32)
     return Frame(depth_mm=depth, valid=valid, amplitude=amp, name=frame.rel_stem.as_posix())

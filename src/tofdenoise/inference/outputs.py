@@ -34,12 +34,22 @@ class OutputOptions:
 
 def output_paths(out: Path, name: str) -> dict[str, Path]:
     base = Path(out) / name
-    return {"png": base.with_name(base.name + ".png"), "npy": base.with_name(base.name + ".npy"),
-            "sigma": base.with_name(base.name + SIGMA_SUFFIX), "preview": base.with_name(base.name + PREVIEW_SUFFIX)}
+    return {
+        "png": base.with_name(base.name + ".png"),
+        "npy": base.with_name(base.name + ".npy"),
+        "sigma": base.with_name(base.name + SIGMA_SUFFIX),
+        "preview": base.with_name(base.name + PREVIEW_SUFFIX),
+    }
 
 
-def preview_panel(input_mm: np.ndarray, valid: np.ndarray, restored_mm: np.ndarray, sigma_mm: np.ndarray | None = None,
-                  max_tile: int | None = 480, title: str | None = None) -> np.ndarray:
+def preview_panel(
+    input_mm: np.ndarray,
+    valid: np.ndarray,
+    restored_mm: np.ndarray,
+    sigma_mm: np.ndarray | None = None,
+    max_tile: int | None = 480,
+    title: str | None = None,
+) -> np.ndarray:
     """One-row panel (uint8 RGB): input | restored on a shared depth scale (1st..99th percentile of the valid
     input) with its colour bar, then |restored - input| over valid input pixels (and sigma_D of the input) on a
     shared millimetre scale with its colour bar. Invalid pixels are grey."""
@@ -53,15 +63,19 @@ def preview_panel(input_mm: np.ndarray, valid: np.ndarray, restored_mm: np.ndarr
     def tile(rgb: np.ndarray, label: str) -> np.ndarray:
         return vis.add_title(vis._resize(rgb, max_tile), label)
 
-    tiles = [tile(vis.colorize_depth(input_mm, lo, hi, valid), f"input ({share:.1f}% invalid)"),
-             tile(vis.colorize_depth(restored_mm, lo, hi, out_valid), "restored")]
+    tiles = [
+        tile(vis.colorize_depth(input_mm, lo, hi, valid), f"input ({share:.1f}% invalid)"),
+        tile(vis.colorize_depth(restored_mm, lo, hi, out_valid), "restored"),
+    ]
     tiles.append(vis.colorbar(tiles[0].shape[0], lo, hi, vis.DEPTH_COLORMAP, "mm"))
     diff = np.abs(np.asarray(restored_mm, dtype=np.float64) - input_mm)
     ok = valid & out_valid
     deviations = [(diff, ok, f"|restored-input| median {np.median(diff[ok]) if ok.any() else float('nan'):.2f} mm")]
     if sigma_mm is not None:
         s_ok = valid & np.isfinite(sigma_mm)
-        deviations.append((sigma_mm, s_ok, f"sigma_D input, mean {np.mean(sigma_mm[s_ok]) if s_ok.any() else float('nan'):.2f} mm"))
+        deviations.append(
+            (sigma_mm, s_ok, f"sigma_D input, mean {np.mean(sigma_mm[s_ok]) if s_ok.any() else float('nan'):.2f} mm")
+        )
     emax = max(vis.robust_range(d, m, (0.0, 99.0))[1] for d, m, _ in deviations)
     tiles += [tile(vis.colorize_error(d, emax, m), label) for d, m, label in deviations]
     tiles.append(vis.colorbar(tiles[0].shape[0], 0.0, emax, vis.ERROR_COLORMAP, "mm"))
@@ -71,8 +85,15 @@ def preview_panel(input_mm: np.ndarray, valid: np.ndarray, restored_mm: np.ndarr
     return np.ascontiguousarray(panel)
 
 
-def write_frame_outputs(out: str | Path, name: str, input_mm: np.ndarray, valid: np.ndarray, restored_mm: np.ndarray,
-                        options: OutputOptions = OutputOptions(), sigma_mm: np.ndarray | None = None) -> list[Path]:
+def write_frame_outputs(
+    out: str | Path,
+    name: str,
+    input_mm: np.ndarray,
+    valid: np.ndarray,
+    restored_mm: np.ndarray,
+    options: OutputOptions = OutputOptions(),
+    sigma_mm: np.ndarray | None = None,
+) -> list[Path]:
     """Write the outputs of one frame (module docstring); returns the written paths."""
     import cv2
 

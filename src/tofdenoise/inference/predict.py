@@ -13,8 +13,9 @@ batch.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import lightning as L
 import numpy as np
@@ -32,8 +33,13 @@ class FramesDataset(Dataset):
     """One camera frame per item: ``noisy`` (1, H, W) depth mm (0 = invalid), ``mask``, optional ``amplitude``,
     ``sigma`` (sigma_D of the input, NaN = invalid; with a calibration and amplitude), ``name`` (output name)."""
 
-    def __init__(self, frames: Sequence[FrameInput], depth_scale_mm: float = 1.0,
-                 amplitude: AmplitudeSource | None = None, calib: Any = None):
+    def __init__(
+        self,
+        frames: Sequence[FrameInput],
+        depth_scale_mm: float = 1.0,
+        amplitude: AmplitudeSource | None = None,
+        calib: Any = None,
+    ):
         self.frames = list(frames)
         self.depth_scale_mm = float(depth_scale_mm)
         self.amplitude = amplitude
@@ -44,9 +50,12 @@ class FramesDataset(Dataset):
 
     def __getitem__(self, index: int) -> dict[str, Any]:
         frame = load_frame(self.frames[index], self.depth_scale_mm, self.amplitude)
-        item: dict[str, Any] = {"noisy": torch.from_numpy(frame.depth_mm)[None],
-                                "mask": torch.from_numpy(frame.valid.astype(np.float32))[None],
-                                "index": index, "name": frame.name}
+        item: dict[str, Any] = {
+            "noisy": torch.from_numpy(frame.depth_mm)[None],
+            "mask": torch.from_numpy(frame.valid.astype(np.float32))[None],
+            "index": index,
+            "name": frame.name,
+        }
         if frame.amplitude is not None:
             item["amplitude"] = torch.from_numpy(frame.amplitude)[None]
         sigma = frame_sigma(frame, self.calib)
@@ -70,8 +79,15 @@ class FramesDataModule(L.LightningDataModule):
 
     test_set_names = ["frames"]
 
-    def __init__(self, inputs: list[str], amplitude: str | None = None, depth_scale_mm: float = 1.0,
-                 calib: str | None = None, exclude: list[str] | None = None, num_workers: int = 0):
+    def __init__(
+        self,
+        inputs: list[str],
+        amplitude: str | None = None,
+        depth_scale_mm: float = 1.0,
+        calib: str | None = None,
+        exclude: list[str] | None = None,
+        num_workers: int = 0,
+    ):
         super().__init__()
         self.save_hyperparameters()
         if not depth_scale_mm > 0:
@@ -103,14 +119,28 @@ class FramesPredictionWriter(BasePredictionWriter):
         self.options = OutputOptions(npy=npy, previews=previews)
         self.written: list[Path] = []
 
-    def write_on_batch_end(self, trainer: Any, pl_module: Any, prediction: Any, batch_indices: Any, batch: Any,
-                           batch_idx: int, dataloader_idx: int = 0) -> None:
+    def write_on_batch_end(
+        self,
+        trainer: Any,
+        pl_module: Any,
+        prediction: Any,
+        batch_indices: Any,
+        batch: Any,
+        batch_idx: int,
+        dataloader_idx: int = 0,
+    ) -> None:
         pred = prediction["pred_mm"] if isinstance(prediction, dict) else prediction
         for i in range(pred.shape[0]):
             sigma = batch["sigma"][i, 0].cpu().numpy() if "sigma" in batch else None
             self.written += write_frame_outputs(
-                self.out_dir, str(batch["name"][i]), batch["noisy"][i, 0].cpu().numpy(),
-                batch["mask"][i, 0].cpu().numpy() > 0, pred[i, 0].float().cpu().numpy(), self.options, sigma)
+                self.out_dir,
+                str(batch["name"][i]),
+                batch["noisy"][i, 0].cpu().numpy(),
+                batch["mask"][i, 0].cpu().numpy() > 0,
+                pred[i, 0].float().cpu().numpy(),
+                self.options,
+                sigma,
+            )
 
 
 def main(args: list[str] | None = None) -> int:
@@ -119,9 +149,14 @@ def main(args: list[str] | None = None) -> int:
 
     from tofdenoise.training.module import DepthRestorer
 
-    LightningCLI(DepthRestorer, FramesDataModule, args=args, save_config_callback=None,
-                 auto_configure_optimizers=False,
-                 trainer_defaults={"logger": False, "enable_checkpointing": False, "enable_model_summary": False})
+    LightningCLI(
+        DepthRestorer,
+        FramesDataModule,
+        args=args,
+        save_config_callback=None,
+        auto_configure_optimizers=False,
+        trainer_defaults={"logger": False, "enable_checkpointing": False, "enable_model_summary": False},
+    )
     return 0
 
 

@@ -1,8 +1,8 @@
 """Restoration backbones (registered by name), the selective scan, and tiled inference."""
 
 from . import bilateral as _bilateral  # noqa: F401  (the classical row: joint bilateral filter, not trainable)
-from . import dvss as _dvss  # noqa: F401  (registers dvss, dvss_no_local, dvss_no_dwconv, dvss_se)
 from . import deeptof as _deeptof  # noqa: F401
+from . import dvss as _dvss  # noqa: F401  (registers dvss, dvss_no_local, dvss_no_dwconv, dvss_se)
 from . import rcf as _rcf  # noqa: F401
 from . import restormer as _restormer  # noqa: F401
 from . import tofkpn as _tofkpn  # noqa: F401

@@ -64,9 +64,16 @@ def _check_params(sigma_spatial_px: float, sigma_depth_mm: float, amplitude_powe
         raise ValueError(f"bilateral filter: radius_px must be an integer >= 0, got {radius_px}")
 
 
-def joint_bilateral_filter(depth_mm: Tensor, amplitude: Tensor, valid: Tensor | None = None, *,
-                           sigma_spatial_px: float, sigma_depth_mm: float, amplitude_power: float = 1.0,
-                           radius_px: int | None = None) -> Tensor:
+def joint_bilateral_filter(
+    depth_mm: Tensor,
+    amplitude: Tensor,
+    valid: Tensor | None = None,
+    *,
+    sigma_spatial_px: float,
+    sigma_depth_mm: float,
+    amplitude_power: float = 1.0,
+    radius_px: int | None = None,
+) -> Tensor:
     """Amplitude-guided joint bilateral filter of depth (module docstring formula), (B, 1, H, W) -> (B, 1, H, W).
 
     Args:
@@ -84,8 +91,9 @@ def joint_bilateral_filter(depth_mm: Tensor, amplitude: Tensor, valid: Tensor | 
     if depth_mm.dim() != 4 or depth_mm.shape[1] != 1:
         raise ValueError(f"joint_bilateral_filter: depth_mm must be (B, 1, H, W), got {tuple(depth_mm.shape)}")
     if amplitude.shape != depth_mm.shape:
-        raise ValueError(f"joint_bilateral_filter: amplitude shape {tuple(amplitude.shape)} != depth shape "
-                         f"{tuple(depth_mm.shape)}")
+        raise ValueError(
+            f"joint_bilateral_filter: amplitude shape {tuple(amplitude.shape)} != depth shape {tuple(depth_mm.shape)}"
+        )
     r = default_radius_px(sigma_spatial_px) if radius_px is None else radius_px
     _check_params(float(sigma_spatial_px), float(sigma_depth_mm), float(amplitude_power), r)
     r = int(r)
@@ -95,8 +103,9 @@ def joint_bilateral_filter(depth_mm: Tensor, amplitude: Tensor, valid: Tensor | 
     if valid is None:
         valid = torch.isfinite(depth) & (depth > 0) & torch.isfinite(amp) & (amp > 0)
     elif valid.shape != depth_mm.shape:
-        raise ValueError(f"joint_bilateral_filter: valid shape {tuple(valid.shape)} != depth shape "
-                         f"{tuple(depth_mm.shape)}")
+        raise ValueError(
+            f"joint_bilateral_filter: valid shape {tuple(valid.shape)} != depth shape {tuple(depth_mm.shape)}"
+        )
     valid = valid.bool() & torch.isfinite(depth) & torch.isfinite(amp) & (amp >= 0)
     zero = torch.zeros((), dtype=dtype, device=depth.device)
     amp = torch.where(valid, amp, zero)
@@ -149,12 +158,21 @@ class JointBilateral(nn.Module):
     #: the filter needs the amplitude channel (and reads invalid pixels from its zeros)
     needs_signal_channel = True
 
-    def __init__(self, in_channels: int = 2, sigma_spatial_px: float = 2.0, sigma_depth_mm: float = 20.0,
-                 amplitude_power: float = 1.0, radius_px: int | None = None, depth_scale_mm: float = 100.0) -> None:
+    def __init__(
+        self,
+        in_channels: int = 2,
+        sigma_spatial_px: float = 2.0,
+        sigma_depth_mm: float = 20.0,
+        amplitude_power: float = 1.0,
+        radius_px: int | None = None,
+        depth_scale_mm: float = 100.0,
+    ) -> None:
         super().__init__()
         if in_channels != 2:
-            raise ValueError(f"bilateral backbone: needs in_channels=2 (depth and amplitude: "
-                             f"DepthRestorer(use_signal_channel=True)), got {in_channels}")
+            raise ValueError(
+                f"bilateral backbone: needs in_channels=2 (depth and amplitude: "
+                f"DepthRestorer(use_signal_channel=True)), got {in_channels}"
+            )
         if not depth_scale_mm > 0:
             raise ValueError(f"bilateral backbone: depth_scale_mm must be > 0, got {depth_scale_mm}")
         radius = default_radius_px(sigma_spatial_px) if radius_px is None else radius_px
@@ -167,15 +185,23 @@ class JointBilateral(nn.Module):
         self.depth_scale_mm = float(depth_scale_mm)
 
     def extra_repr(self) -> str:
-        return (f"sigma_spatial_px={self.sigma_spatial_px}, sigma_depth_mm={self.sigma_depth_mm}, "
-                f"amplitude_power={self.amplitude_power}, radius_px={self.radius_px}")
+        return (
+            f"sigma_spatial_px={self.sigma_spatial_px}, sigma_depth_mm={self.sigma_depth_mm}, "
+            f"amplitude_power={self.amplitude_power}, radius_px={self.radius_px}"
+        )
 
     def forward(self, x: Tensor) -> Tensor:
         check_input(x, self.in_channels, "JointBilateral")
         depth_mm = x[:, :1].float() * self.depth_scale_mm
         amplitude = x[:, 1:2].float()
         valid = torch.isfinite(depth_mm) & torch.isfinite(amplitude) & (amplitude > 0)
-        out = joint_bilateral_filter(depth_mm, amplitude, valid, sigma_spatial_px=self.sigma_spatial_px,
-                                     sigma_depth_mm=self.sigma_depth_mm, amplitude_power=self.amplitude_power,
-                                     radius_px=self.radius_px)
+        out = joint_bilateral_filter(
+            depth_mm,
+            amplitude,
+            valid,
+            sigma_spatial_px=self.sigma_spatial_px,
+            sigma_depth_mm=self.sigma_depth_mm,
+            amplitude_power=self.amplitude_power,
+            radius_px=self.radius_px,
+        )
         return out / self.depth_scale_mm

@@ -24,7 +24,8 @@ first-layer feature of a ReLU network is roughly (sum of its weights) x depth wi
 half the channels are dead for every input from the start. Centred but still divided by 1000, the input is
 ~0.005 (the noise): Adam moves every weight and bias by ~lr (1e-3) per step whatever the gradient's size, so
 biases swamp the activations and the last ReLUs die behind the zero-initialised residual head, leaving the network
-at the identity (measured: 75 % of the last U-Net block's channels dead after 50 steps; at 100 mm, 12 %). Under bf16 autocast a value in [1, 2) has a step of 2^-7 = 7.8 mm, coarser than
+at the identity (measured: 75 % of the last U-Net block's channels dead after 50 steps; at 100 mm, 12 %). Under bf16
+autocast a value in [1, 2) has a step of 2^-7 = 7.8 mm, coarser than
 the noise to be removed; bf16 keeps 8 significant bits, so a centred value below 125 mm is resolved to 0.5 mm or
 better, whatever the depth of the scene (:func:`bf16_step_mm`).
 """

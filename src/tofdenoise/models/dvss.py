@@ -110,7 +110,11 @@ class DVSSNet(nn.Module):
             raise ValueError(f"DVSSNet: in_channels must be >= 1, got {in_channels}")
         if width < 2 or width % 2:
             raise ValueError(f"DVSSNet: width must be an even number >= 2, got {width}")
-        if not enc_blocks or len(dec_blocks) != len(enc_blocks) or min(enc_blocks + dec_blocks + [bottleneck_blocks]) < 0:
+        if (
+            not enc_blocks
+            or len(dec_blocks) != len(enc_blocks)
+            or min(enc_blocks + dec_blocks + [bottleneck_blocks]) < 0
+        ):
             raise ValueError(
                 f"DVSSNet: enc_blocks and dec_blocks must be equally long lists of counts >= 0, "
                 f"got enc_blocks={enc_blocks}, dec_blocks={dec_blocks}"
@@ -159,7 +163,9 @@ def _variant(name: str, local: str, dwconv: bool):
     def factory(**kwargs) -> DVSSNet:
         return DVSSNet(local=local, dwconv=dwconv, **kwargs)
 
-    params = [p for p in inspect.signature(DVSSNet.__init__).parameters.values() if p.name not in ("self", "local", "dwconv")]
+    params = [
+        p for p in inspect.signature(DVSSNet.__init__).parameters.values() if p.name not in ("self", "local", "dwconv")
+    ]
     factory.__signature__ = inspect.Signature(params)  # type: ignore[attr-defined]
     factory.__name__ = factory.__qualname__ = f"build_{name}"
     factory.__doc__ = f"DVSS variant {name!r}: DVSSNet(local={local!r}, dwconv={dwconv})."

@@ -87,10 +87,10 @@ class GlobalRestoration(nn.Module):
         if levels < 1:
             raise ValueError(f"GlobalRestoration: levels must be >= 1, got {levels}")
         self.stages = nn.ModuleList(
-            [nn.Sequential(_conv_relu(width, width, stride=2), _conv_relu(width, width)) for _ in range(levels)])
+            [nn.Sequential(_conv_relu(width, width, stride=2), _conv_relu(width, width)) for _ in range(levels)]
+        )
         reduced = max(4, width // 4)
-        self.attention = nn.Sequential(nn.Linear(2 * width, reduced), nn.ReLU(inplace=True),
-                                       nn.Linear(reduced, width))
+        self.attention = nn.Sequential(nn.Linear(2 * width, reduced), nn.ReLU(inplace=True), nn.Linear(reduced, width))
         self.project = nn.Conv2d(width, width, 1)
 
     def forward(self, f: torch.Tensor) -> torch.Tensor:
@@ -137,7 +137,8 @@ class RCF(nn.Module):
         if in_channels != 2:
             raise ValueError(
                 f"RCF: fuses depth and amplitude, so in_channels must be 2 (channel 0 depth, channel 1 amplitude), "
-                f"got {in_channels}; train it with model.use_signal_channel=true (configs/backbone/rcf.yaml sets it)")
+                f"got {in_channels}; train it with model.use_signal_channel=true (configs/backbone/rcf.yaml sets it)"
+            )
         if width < 1 or hidden < 1:
             raise ValueError(f"RCF: width and hidden must be >= 1, got width={width}, hidden={hidden}")
         if steps < 1:

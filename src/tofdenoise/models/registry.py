@@ -12,16 +12,25 @@ from torch import nn
 
 from tofdenoise.registry import Registry
 
-__all__ = ["BACKBONES", "register_backbone", "build_backbone", "available_backbones", "trainable_backbones",
-           "is_trainable", "backbone_factory", "accepts_kwarg"]
+__all__ = [
+    "BACKBONES",
+    "register_backbone",
+    "build_backbone",
+    "available_backbones",
+    "trainable_backbones",
+    "is_trainable",
+    "backbone_factory",
+    "accepts_kwarg",
+]
 
 BACKBONES: Registry[nn.Module] = Registry("backbone")
 #: registered names of methods without trainable parameters (classical filters)
 _NOT_TRAINABLE: set[str] = set()
 
 
-def register_backbone(name: str,
-                      trainable: bool = True) -> Callable[[Callable[..., nn.Module]], Callable[..., nn.Module]]:
+def register_backbone(
+    name: str, trainable: bool = True
+) -> Callable[[Callable[..., nn.Module]], Callable[..., nn.Module]]:
     """Decorator registering a backbone class or factory under ``name``; ``trainable=False`` for a method
     without trainable parameters (a classical filter)."""
     register = BACKBONES.register(name)

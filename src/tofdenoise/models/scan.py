@@ -253,7 +253,9 @@ class _SequentialScanFn(torch.autograd.Function):
     @_no_autocast
     def backward(ctx, dy):
         if getattr(ctx, "consumed", False):
-            raise RuntimeError("selective_scan_sequential: backward reuses its saved buffers; retain_graph is not supported")
+            raise RuntimeError(
+                "selective_scan_sequential: backward reuses its saved buffers; retain_graph is not supported"
+            )
         ctx.consumed = True
         a, bb, H, A5, dl, ul, dul, Bl, Cl = ctx.saved_tensors
         dims = ctx.dims
@@ -279,8 +281,11 @@ def selective_scan_sequential(u, delta, A, B, C, D=None, delta_bias=None, delta_
     compute = torch.float64 if dtype == torch.float64 else torch.float32
     delta = _effective_delta(delta.to(compute), None if delta_bias is None else delta_bias.to(compute), delta_softplus)
     y = _SequentialScanFn.apply(
-        u.to(compute).contiguous(), delta.contiguous(), A.to(compute).contiguous(),
-        B.to(compute).contiguous(), C.to(compute).contiguous(),
+        u.to(compute).contiguous(),
+        delta.contiguous(),
+        A.to(compute).contiguous(),
+        B.to(compute).contiguous(),
+        C.to(compute).contiguous(),
     )
     return _finish(y, u.to(compute), None if D is None else D.to(compute)).to(dtype)
 
@@ -468,13 +473,20 @@ def selective_scan_chunked(
     """
     B, C, _ = _check_shapes(u, delta, A, B, C, D, delta_bias)
     if chunk_size < 1 or group_elems < 1:
-        raise ValueError(f"selective_scan_chunked: chunk_size and group_elems must be >= 1, got {chunk_size}, {group_elems}")
+        raise ValueError(
+            f"selective_scan_chunked: chunk_size and group_elems must be >= 1, got {chunk_size}, {group_elems}"
+        )
     dtype = u.dtype
     compute = torch.float64 if dtype == torch.float64 else torch.float32
     delta = _effective_delta(delta.to(compute), None if delta_bias is None else delta_bias.to(compute), delta_softplus)
     y = _ChunkedScanFn.apply(
-        u.to(compute).contiguous(), delta.contiguous(), A.to(compute).contiguous(),
-        B.to(compute).contiguous(), C.to(compute).contiguous(), int(chunk_size), int(group_elems),
+        u.to(compute).contiguous(),
+        delta.contiguous(),
+        A.to(compute).contiguous(),
+        B.to(compute).contiguous(),
+        C.to(compute).contiguous(),
+        int(chunk_size),
+        int(group_elems),
     )
     return _finish(y, u.to(compute), None if D is None else D.to(compute)).to(dtype)
 

@@ -92,9 +92,7 @@ def load_extension():
         from torch.utils import cpp_extension
 
         _ninja_on_path()
-        return cpp_extension.load(
-            name=_build_name(), sources=[str(SOURCE)], extra_cflags=CFLAGS, verbose=False
-        )
+        return cpp_extension.load(name=_build_name(), sources=[str(SOURCE)], extra_cflags=CFLAGS, verbose=False)
     except Exception as exc:  # noqa: BLE001 - any build/load failure means "use the PyTorch scan"
         warnings.warn(
             f"tofdenoise: the native CPU selective scan could not be built ({type(exc).__name__}: "
@@ -124,14 +122,21 @@ def cpu_kernel_available() -> bool:
     try:
         got = selective_scan_cpu(u, delta, A, B, C, D, bias, True, _ext=ext)
     except Exception as exc:  # noqa: BLE001
-        warnings.warn(f"tofdenoise: the native CPU selective scan failed its self-check ({exc}); using the PyTorch scan",
-                      RuntimeWarning, stacklevel=2)
+        warnings.warn(
+            f"tofdenoise: the native CPU selective scan failed its self-check ({exc}); using the PyTorch scan",
+            RuntimeWarning,
+            stacklevel=2,
+        )
         return False
     want = selective_scan_chunked(u, delta, A, B, C, D, bias, True)
     err = ((got - want).abs().max() / want.abs().max()).item()
     if not err < 1e-4:
-        warnings.warn(f"tofdenoise: the native CPU selective scan disagrees with the PyTorch scan (relative error "
-                      f"{err:.1e}); using the PyTorch scan", RuntimeWarning, stacklevel=2)
+        warnings.warn(
+            f"tofdenoise: the native CPU selective scan disagrees with the PyTorch scan (relative error "
+            f"{err:.1e}); using the PyTorch scan",
+            RuntimeWarning,
+            stacklevel=2,
+        )
         return False
     return True
 
@@ -168,8 +173,20 @@ class _CpuScanFn(torch.autograd.Function):
         du, ddelta, dA, dB, dC, dD, dbias = ext.scan_bwd(
             u, delta, A, B, C, ctx.D, ctx.bias, softplus, ss2d, H, W, CHUNK, ck, dy.float()
         )
-        return (du, ddelta, dA, dB, dC, dD if ctx.has_D else None, dbias if ctx.has_bias else None,
-                None, None, None, None, None)
+        return (
+            du,
+            ddelta,
+            dA,
+            dB,
+            dC,
+            dD if ctx.has_D else None,
+            dbias if ctx.has_bias else None,
+            None,
+            None,
+            None,
+            None,
+            None,
+        )
 
 
 def selective_scan_cpu(u, delta, A, B, C, D=None, delta_bias=None, delta_softplus=False, *, _ext=None) -> torch.Tensor:
@@ -196,7 +213,11 @@ def selective_scan_cpu(u, delta, A, B, C, D=None, delta_bias=None, delta_softplu
         C.to(f).permute(0, 3, 1, 2).contiguous(),
         None if D is None else D.to(f),
         None if delta_bias is None else delta_bias.to(f),
-        bool(delta_softplus), False, 0, 0, ext,
+        bool(delta_softplus),
+        False,
+        0,
+        0,
+        ext,
     )
     return y.transpose(1, 2).to(dtype)
 

@@ -17,7 +17,8 @@ y_t = C_t . h_t + D u_t, with delta_t = softplus(delta_raw_t + delta_bias) compu
 delta_bias, softplus and the D skip term are applied inside the kernels (their gradients too), and bf16/fp16
 u, delta, B, C are read as they are, so SS2D under autocast pays for no conversion copies; everything is
 computed in float32. Speed and agreement with the PyTorch scan on an H100: docs/benchmarks.md ("GPU",
-``benchmarks/bench_gpu.py``). The ``auto`` dispatch uses the Triton kernels only after :func:`triton_verified` has checked them against the PyTorch scan on the device (once per process), so
+``benchmarks/bench_gpu.py``). The ``auto`` dispatch uses the Triton kernels only after :func:`triton_verified` has
+checked them against the PyTorch scan on the device (once per process), so
 a toolchain problem falls back to the PyTorch scan with a warning instead of wrong results.
 """
 
@@ -65,6 +66,7 @@ except Exception:  # noqa: BLE001 - no Triton (CPU-only install): the PyTorch sc
     triton = tl = None
 
 if triton is not None:
+
     @triton.jit
     def _combine(a1, b1, a2, b2):
         # (a1, b1) then (a2, b2) for h -> a h + b: h -> a2 (a1 h + b1) + b2
@@ -88,8 +90,9 @@ if triton is not None:
         return dt, x
 
     @triton.jit
-    def _program_tiles(A_ptr, L, DIM, N, DIM_PER_GROUP, G, NCHUNK,
-                       CHUNK_T: tl.constexpr, BLOCK_D: tl.constexpr, BLOCK_N: tl.constexpr):
+    def _program_tiles(
+        A_ptr, L, DIM, N, DIM_PER_GROUP, G, NCHUNK, CHUNK_T: tl.constexpr, BLOCK_D: tl.constexpr, BLOCK_N: tl.constexpr
+    ):
         """This program's channels d, states n (and mask), chunk positions tt, its A block and the base offsets
         of its u/delta/y rows, its group's B/C rows and its state checkpoints."""
         pid_b = tl.program_id(0).to(tl.int64)  # 64-bit offsets: batch * dim * L can exceed 2**31
@@ -106,8 +109,23 @@ if triton is not None:
         return d, n, tt, nmask, A, row, bc, ck
 
     @triton.jit
-    def _chunk_states(u_ptr, delta_ptr, bias_ptr, B_ptr, C_ptr, A, h0, d, row, bc, t, tmask, nmask,
-                      HAS_BIAS: tl.constexpr, SOFTPLUS: tl.constexpr):
+    def _chunk_states(
+        u_ptr,
+        delta_ptr,
+        bias_ptr,
+        B_ptr,
+        C_ptr,
+        A,
+        h0,
+        d,
+        row,
+        bc,
+        t,
+        tmask,
+        nmask,
+        HAS_BIAS: tl.constexpr,
+        SOFTPLUS: tl.constexpr,
+    ):
         """Load one chunk's tiles and scan it from the entering state h0: (delta, pre-softplus delta, u, B, C,
         b = delta u B, states h_t), all float32; the states are (BLOCK_D, BLOCK_N, CHUNK_T)."""
         offs = row[:, None] + t[None, :]
@@ -123,13 +141,31 @@ if triton is not None:
 
     @triton.jit
     def fwd_kernel(
-        u_ptr, delta_ptr, A_ptr, B_ptr, C_ptr, D_ptr, bias_ptr, y_ptr, ckpt_ptr,
-        L, DIM, N, DIM_PER_GROUP, G, NCHUNK,
-        CHUNK_T: tl.constexpr, BLOCK_D: tl.constexpr, BLOCK_N: tl.constexpr,
-        HAS_D: tl.constexpr, HAS_BIAS: tl.constexpr, SOFTPLUS: tl.constexpr,
+        u_ptr,
+        delta_ptr,
+        A_ptr,
+        B_ptr,
+        C_ptr,
+        D_ptr,
+        bias_ptr,
+        y_ptr,
+        ckpt_ptr,
+        L,
+        DIM,
+        N,
+        DIM_PER_GROUP,
+        G,
+        NCHUNK,
+        CHUNK_T: tl.constexpr,
+        BLOCK_D: tl.constexpr,
+        BLOCK_N: tl.constexpr,
+        HAS_D: tl.constexpr,
+        HAS_BIAS: tl.constexpr,
+        SOFTPLUS: tl.constexpr,
     ):
-        d, n, tt, nmask, A, row, bc, ck = _program_tiles(A_ptr, L, DIM, N, DIM_PER_GROUP, G, NCHUNK,
-                                                         CHUNK_T, BLOCK_D, BLOCK_N)
+        d, n, tt, nmask, A, row, bc, ck = _program_tiles(
+            A_ptr, L, DIM, N, DIM_PER_GROUP, G, NCHUNK, CHUNK_T, BLOCK_D, BLOCK_N
+        )
         if HAS_D:
             Dv = tl.load(D_ptr + d).to(tl.float32)
         h = tl.zeros((BLOCK_D, BLOCK_N), dtype=tl.float32)
@@ -137,8 +173,9 @@ if triton is not None:
             tl.store(ckpt_ptr + ck + c * BLOCK_N, h)  # the state entering chunk c
             t = c * CHUNK_T + tt
             tmask = t < L
-            _, _, ut, _, Ct, _, hs = _chunk_states(u_ptr, delta_ptr, bias_ptr, B_ptr, C_ptr, A, h, d, row, bc,
-                                                     t, tmask, nmask, HAS_BIAS, SOFTPLUS)
+            _, _, ut, _, Ct, _, hs = _chunk_states(
+                u_ptr, delta_ptr, bias_ptr, B_ptr, C_ptr, A, h, d, row, bc, t, tmask, nmask, HAS_BIAS, SOFTPLUS
+            )
             yt = tl.sum(hs * Ct[None, :, :], axis=1)
             if HAS_D:
                 yt += Dv[:, None] * ut
@@ -147,14 +184,38 @@ if triton is not None:
 
     @triton.jit
     def bwd_kernel(
-        u_ptr, delta_ptr, A_ptr, B_ptr, C_ptr, D_ptr, bias_ptr, dy_ptr, ckpt_ptr,
-        du_ptr, ddelta_ptr, dA_ptr, dB_ptr, dC_ptr, dD_ptr, dbias_ptr,
-        L, DIM, N, DIM_PER_GROUP, G, NCHUNK,
-        CHUNK_T: tl.constexpr, BLOCK_D: tl.constexpr, BLOCK_N: tl.constexpr,
-        HAS_D: tl.constexpr, HAS_BIAS: tl.constexpr, SOFTPLUS: tl.constexpr,
+        u_ptr,
+        delta_ptr,
+        A_ptr,
+        B_ptr,
+        C_ptr,
+        D_ptr,
+        bias_ptr,
+        dy_ptr,
+        ckpt_ptr,
+        du_ptr,
+        ddelta_ptr,
+        dA_ptr,
+        dB_ptr,
+        dC_ptr,
+        dD_ptr,
+        dbias_ptr,
+        L,
+        DIM,
+        N,
+        DIM_PER_GROUP,
+        G,
+        NCHUNK,
+        CHUNK_T: tl.constexpr,
+        BLOCK_D: tl.constexpr,
+        BLOCK_N: tl.constexpr,
+        HAS_D: tl.constexpr,
+        HAS_BIAS: tl.constexpr,
+        SOFTPLUS: tl.constexpr,
     ):
-        d, n, tt, nmask, A, row, bc, ck = _program_tiles(A_ptr, L, DIM, N, DIM_PER_GROUP, G, NCHUNK,
-                                                         CHUNK_T, BLOCK_D, BLOCK_N)
+        d, n, tt, nmask, A, row, bc, ck = _program_tiles(
+            A_ptr, L, DIM, N, DIM_PER_GROUP, G, NCHUNK, CHUNK_T, BLOCK_D, BLOCK_N
+        )
         if HAS_D:
             Dv = tl.load(D_ptr + d).to(tl.float32)
         g_next = tl.zeros((BLOCK_D, BLOCK_N), dtype=tl.float32)  # adjoint of the state after the chunk
@@ -170,8 +231,9 @@ if triton is not None:
             bmask = nmask[:, None] & tmask[None, :]
             offs = row[:, None] + t[None, :]
             # recompute the chunk's states from its checkpoint
-            dt, x, ut, Bt, Ct, b, hs = _chunk_states(u_ptr, delta_ptr, bias_ptr, B_ptr, C_ptr, A, h0, d, row, bc,
-                                                     t, tmask, nmask, HAS_BIAS, SOFTPLUS)
+            dt, x, ut, Bt, Ct, b, hs = _chunk_states(
+                u_ptr, delta_ptr, bias_ptr, B_ptr, C_ptr, A, h0, d, row, bc, t, tmask, nmask, HAS_BIAS, SOFTPLUS
+            )
             dt1, _ = _delta_eff(delta_ptr, bias_ptr, offs + 1, d, t1mask[None, :], HAS_BIAS, SOFTPLUS)
             dyt = tl.load(dy_ptr + offs, mask=tmask[None, :], other=0.0).to(tl.float32)
             # adjoint g_t = dy_t C_t + a_{t+1} g_{t+1}: a reverse scan, seeded with the next chunk's g
@@ -216,7 +278,7 @@ def triton_available() -> bool:
     return torch.cuda.is_available() and _triton_kernels() is not None
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def triton_verified(device_index: int = 0) -> bool:
     """Triton is importable *and* its kernels reproduce the PyTorch scan (forward and all gradients, 1e-3
     relative) on a small random problem on this device. Run once per device by the ``auto`` dispatch, so a
@@ -229,8 +291,15 @@ def triton_verified(device_index: int = 0) -> bool:
         dev = torch.device("cuda", device_index)
         gen = torch.Generator(device="cpu").manual_seed(0)
         batch, dim, length, groups, n = 2, 64, 130, 2, 16
-        shapes = [(batch, dim, length), (batch, dim, length), (dim, n), (batch, groups, n, length),
-                  (batch, groups, n, length), (dim,), (dim,)]
+        shapes = [
+            (batch, dim, length),
+            (batch, dim, length),
+            (dim, n),
+            (batch, groups, n, length),
+            (batch, groups, n, length),
+            (dim,),
+            (dim,),
+        ]
         base = [torch.randn(s, generator=gen) for s in shapes]
         base[2] = -torch.exp(0.5 * base[2])
         results = []
@@ -276,10 +345,27 @@ class _TritonScanFn(torch.autograd.Function):
         dummy = A  # any float32 tensor: never read when HAS_D / HAS_BIAS is off
         grid = (batch, dim // block_d)
         fwd_kernel[grid](
-            u, delta, A, B, C, dummy if D is None else D, dummy if delta_bias is None else delta_bias, y, ckpt,
-            length, dim, n, dpg, groups, nchunk,
-            CHUNK_T=CHUNK, BLOCK_D=block_d, BLOCK_N=block_n,
-            HAS_D=D is not None, HAS_BIAS=delta_bias is not None, SOFTPLUS=bool(delta_softplus),
+            u,
+            delta,
+            A,
+            B,
+            C,
+            dummy if D is None else D,
+            dummy if delta_bias is None else delta_bias,
+            y,
+            ckpt,
+            length,
+            dim,
+            n,
+            dpg,
+            groups,
+            nchunk,
+            CHUNK_T=CHUNK,
+            BLOCK_D=block_d,
+            BLOCK_N=block_n,
+            HAS_D=D is not None,
+            HAS_BIAS=delta_bias is not None,
+            SOFTPLUS=bool(delta_softplus),
             num_warps=NUM_WARPS,
         )
         ctx.save_for_backward(u, delta, A, B, C, D, delta_bias, ckpt)
@@ -304,14 +390,46 @@ class _TritonScanFn(torch.autograd.Function):
         dummy = A
         grid = (batch, dim // block_d)
         bwd_kernel[grid](
-            u, delta, A, B, C, dummy if D is None else D, dummy if delta_bias is None else delta_bias, dy, ckpt,
-            du, ddelta, dA, dB, dC, dD, dbias,
-            length, dim, n, dim // groups, groups, nchunk,
-            CHUNK_T=chunk, BLOCK_D=block_d, BLOCK_N=block_n,
-            HAS_D=D is not None, HAS_BIAS=delta_bias is not None, SOFTPLUS=softplus, num_warps=num_warps,
+            u,
+            delta,
+            A,
+            B,
+            C,
+            dummy if D is None else D,
+            dummy if delta_bias is None else delta_bias,
+            dy,
+            ckpt,
+            du,
+            ddelta,
+            dA,
+            dB,
+            dC,
+            dD,
+            dbias,
+            length,
+            dim,
+            n,
+            dim // groups,
+            groups,
+            nchunk,
+            CHUNK_T=chunk,
+            BLOCK_D=block_d,
+            BLOCK_N=block_n,
+            HAS_D=D is not None,
+            HAS_BIAS=delta_bias is not None,
+            SOFTPLUS=softplus,
+            num_warps=num_warps,
         )
-        return (du, ddelta, dA, dB.to(B.dtype), dC.to(C.dtype), None if D is None else dD.to(D.dtype),
-                None if delta_bias is None else dbias.to(delta_bias.dtype), None)
+        return (
+            du,
+            ddelta,
+            dA,
+            dB.to(B.dtype),
+            dC.to(C.dtype),
+            None if D is None else dD.to(D.dtype),
+            None if delta_bias is None else dbias.to(delta_bias.dtype),
+            None,
+        )
 
 
 def selective_scan_triton(u, delta, A, B, C, D=None, delta_bias=None, delta_softplus=False) -> torch.Tensor:
@@ -324,9 +442,14 @@ def selective_scan_triton(u, delta, A, B, C, D=None, delta_bias=None, delta_soft
     B, C, _ = _check_shapes(u, delta, A, B, C, D, delta_bias)
     f32 = torch.float32
     return _TritonScanFn.apply(
-        u.contiguous(), delta.contiguous(), A.to(f32).contiguous(), B.contiguous(), C.contiguous(),
+        u.contiguous(),
+        delta.contiguous(),
+        A.to(f32).contiguous(),
+        B.contiguous(),
+        C.contiguous(),
         None if D is None else D.to(f32).contiguous(),
-        None if delta_bias is None else delta_bias.to(f32).contiguous(), bool(delta_softplus),
+        None if delta_bias is None else delta_bias.to(f32).contiguous(),
+        bool(delta_softplus),
     )
 
 

@@ -16,7 +16,7 @@ class ConvBlock(nn.Sequential):
 
     def __init__(self, in_ch: int, out_ch: int, norm: bool = False, act: str = "relu") -> None:
         layers: list[nn.Module] = []
-        for i, (a, b) in enumerate(((in_ch, out_ch), (out_ch, out_ch))):
+        for a, b in ((in_ch, out_ch), (out_ch, out_ch)):
             layers.append(nn.Conv2d(a, b, 3, padding=1, bias=not norm))
             if norm:
                 layers.append(nn.BatchNorm2d(b))

@@ -65,8 +65,11 @@ def fit_tap_response(
     if not present.any(axis=1).all():
         bad = int(np.argmin(present.any(axis=1)))
         raise ValueError(f"sweep step {bad}: no tap to fit (every tap missing)")
-    a_s = np.where(complete, np.where(present, sig, 0.0).sum(axis=1) / n,
-                   np.where(present, sig, 0.0).sum(axis=1) / np.maximum(present.sum(axis=1), 1))[:, None]
+    a_s = np.where(
+        complete,
+        np.where(present, sig, 0.0).sum(axis=1) / n,
+        np.where(present, sig, 0.0).sum(axis=1) / np.maximum(present.sum(axis=1), 1),
+    )[:, None]
     if np.any(a_s <= 0):
         bad = int(np.argmax(a_s[:, 0] <= 0))
         raise ValueError(f"sweep step {bad}: no returned signal above the dark offset (mean tap - dark <= 0)")
@@ -95,7 +98,9 @@ def fit_tap_response(
             if done:
                 break
     K = num_harmonics
-    return TapResponse(c0=float(coef[0]), cos=tuple(float(v) for v in coef[1 : K + 1]), sin=tuple(float(v) for v in coef[K + 1 :]))
+    return TapResponse(
+        c0=float(coef[0]), cos=tuple(float(v) for v in coef[1 : K + 1]), sin=tuple(float(v) for v in coef[K + 1 :])
+    )
 
 
 def estimate_dark(stacks_e: Sequence[np.ndarray]) -> tuple[float, float]:
@@ -114,7 +119,9 @@ def estimate_dark(stacks_e: Sequence[np.ndarray]) -> tuple[float, float]:
     return total / count, math.sqrt(var_sum / var_count)
 
 
-def signal_interval(signal_e: np.ndarray, lower_percentile: float = 1.0, upper_percentile: float = 99.0) -> tuple[float, float]:
+def signal_interval(
+    signal_e: np.ndarray, lower_percentile: float = 1.0, upper_percentile: float = 99.0
+) -> tuple[float, float]:
     """[a_min, a_max] = percentiles of the valid (finite, > 0) returned-signal samples."""
     s = np.asarray(signal_e, dtype=np.float64).reshape(-1)
     s = s[np.isfinite(s) & (s > 0)]
@@ -178,8 +185,10 @@ class CalibrationReport:
         if not self.clipped_samples:
             return "no clipped tap samples"
         pct = 100.0 * self.clipped_samples / max(self.tap_samples, 1)
-        return (f"{self.clipped_samples} of {self.tap_samples} tap samples ({pct:.2f} %) clipped at the full well "
-                f"in {len(self.clipped_by_file)} file(s), left out of the fit")
+        return (
+            f"{self.clipped_samples} of {self.tap_samples} tap samples ({pct:.2f} %) clipped at the full well "
+            f"in {len(self.clipped_by_file)} file(s), left out of the fit"
+        )
 
 
 @dataclass
@@ -204,8 +213,9 @@ def _phase_of(entry: dict, freq: float) -> float:
     return 4.0 * math.pi * freq * float(entry["distance_mm"]) / C_LIGHT_MM_PER_S
 
 
-def _sweep_step(taps: np.ndarray, clipped: np.ndarray, path: Path,
-                min_unclipped_fraction: float) -> tuple[np.ndarray, np.ndarray]:
+def _sweep_step(
+    taps: np.ndarray, clipped: np.ndarray, path: Path, min_unclipped_fraction: float
+) -> tuple[np.ndarray, np.ndarray]:
     """One sweep step: ROI mean of each tap over its unclipped samples (N,) and the per-pixel temporal mean
     of each tap over its unclipped frames (N, H, W), NaN where the tap is clipped too often to be used."""
     kept = 1.0 - float(clipped.mean())
@@ -213,15 +223,21 @@ def _sweep_step(taps: np.ndarray, clipped: np.ndarray, path: Path,
         raise CaptureFormatError(
             f"{path}: {100 * (1 - kept):.1f} % of the tap samples are clipped (at the full well or the dtype's "
             f"maximum); at least {100 * min_unclipped_fraction:.0f} % must be unclipped. Capture this step with a "
-            f"shorter exposure or a darker target")
+            f"shorter exposure or a darker target"
+        )
     ok = ~clipped
     frac_per_tap = clipped.mean(axis=(0, 2, 3))
     counts = ok.sum(axis=(0, 2, 3))
-    means = np.where((frac_per_tap <= MAX_CLIPPED_TAP_FRACTION) & (counts > 0),
-                     np.where(ok, taps, 0.0).sum(axis=(0, 2, 3)) / np.maximum(counts, 1), np.nan)
+    means = np.where(
+        (frac_per_tap <= MAX_CLIPPED_TAP_FRACTION) & (counts > 0),
+        np.where(ok, taps, 0.0).sum(axis=(0, 2, 3)) / np.maximum(counts, 1),
+        np.nan,
+    )
     if np.isfinite(means).sum() < 2:
-        raise CaptureFormatError(f"{path}: fewer than 2 taps with unclipped samples (clipped fraction per tap "
-                                 f"{np.round(frac_per_tap, 3).tolist()}); capture this step with a shorter exposure")
+        raise CaptureFormatError(
+            f"{path}: fewer than 2 taps with unclipped samples (clipped fraction per tap "
+            f"{np.round(frac_per_tap, 3).tolist()}); capture this step with a shorter exposure"
+        )
     n_ok = ok.sum(axis=0)  # (N, H, W)
     with np.errstate(invalid="ignore", divide="ignore"):
         pixel = np.where(ok, taps, 0.0).sum(axis=0) / n_ok
@@ -267,7 +283,8 @@ def calibrate_from_folders(
     if not (dark_std > 0):
         raise CaptureFormatError(
             f"{dark_idx.folder}: the dark frames have no temporal noise (sigma_dark = {dark_std:g} e-, mean "
-            f"{dark_mean:g} e-): constant frames (all zero?) are not emitter-off captures of a sensor")
+            f"{dark_mean:g} e-): constant frames (all zero?) are not emitter-off captures of a sensor"
+        )
     dark_frames = sum(s.shape[0] for s in dark_stacks)
     del dark_stacks
 
@@ -305,14 +322,18 @@ def calibrate_from_folders(
         if match:
             path = files[int(match.group(1))]
             dtype = np.load(path, mmap_mode="r", allow_pickle=False).dtype
-            msg = (f"{path}: {match.group(2)} (stack dtype {dtype}, units {sweep_idx.units!r}; dark offset "
-                   f"{dark_mean:g} e- from {dark_idx.folder})")
+            msg = (
+                f"{path}: {match.group(2)} (stack dtype {dtype}, units {sweep_idx.units!r}; dark offset "
+                f"{dark_mean:g} e- from {dark_idx.folder})"
+            )
         else:
             msg = f"{sweep_idx.folder}: {msg}"
         raise CaptureFormatError(msg) from None
     if not tap_response.contrast > 0:
-        raise CaptureFormatError(f"{sweep_idx.folder}: the fitted tap response has no contrast "
-                                 f"({tap_response}); the sweep does not modulate the taps")
+        raise CaptureFormatError(
+            f"{sweep_idx.folder}: the fitted tap response has no contrast "
+            f"({tap_response}); the sweep does not modulate the taps"
+        )
     signal_samples = [_pixel_signal(px, psi, dark_mean, tap_response) for px, psi in zip(pixel_taps, phases)]
     del pixel_taps
 
@@ -320,9 +341,16 @@ def calibrate_from_folders(
 
     try:
         partial = SensorCalibration(
-            num_taps=sweep_idx.num_taps, modulation_frequency_hz=freq, tap_response=tap_response,
-            dark_mean_e=dark_mean, dark_std_e=dark_std, signal_min_e=1.0, signal_max_e=2.0,
-            full_well_e=float(fw), adc_gain_e_per_dn=gain, range_sigma_mm=None,
+            num_taps=sweep_idx.num_taps,
+            modulation_frequency_hz=freq,
+            tap_response=tap_response,
+            dark_mean_e=dark_mean,
+            dark_std_e=dark_std,
+            signal_min_e=1.0,
+            signal_max_e=2.0,
+            full_well_e=float(fw),
+            adc_gain_e_per_dn=gain,
+            range_sigma_mm=None,
         )
     except ValueError as exc:
         raise CaptureFormatError(f"calibration from {sweep_idx.folder} and {dark_idx.folder}: {exc}") from None
@@ -348,7 +376,8 @@ def calibrate_from_folders(
                     raise CaptureFormatError(
                         f"{path}: only {100 * kept:.1f} % of the pixels are unclipped in every frame (taps at the "
                         f"full well or the dtype's maximum); at least {100 * min_unclipped_fraction:.0f} % are "
-                        f"needed. Capture this distance with a shorter exposure")
+                        f"needed. Capture this distance with a shorter exposure"
+                    )
                 depth, _ = demodulate(torch.from_numpy(arr), partial, tap_axis=1)
                 depth_np = depth.numpy()
                 n_ok = valid.sum(axis=0)
@@ -373,9 +402,15 @@ def calibrate_from_folders(
     except ValueError as exc:
         raise CaptureFormatError(f"{distances_dir}: {exc}") from None
     calib = partial.replace(signal_min_e=a_min, signal_max_e=a_max, range_sigma_mm=alphas)
-    return CalibrationReport(calibration=calib, sweep_points=len(phases), dark_frames=dark_frames,
-                             range_points=range_points, clipped_samples=tally.clipped, tap_samples=tally.total,
-                             clipped_by_file=tally.by_file)
+    return CalibrationReport(
+        calibration=calib,
+        sweep_points=len(phases),
+        dark_frames=dark_frames,
+        range_points=range_points,
+        clipped_samples=tally.clipped,
+        tap_samples=tally.total,
+        clipped_by_file=tally.by_file,
+    )
 
 
 __all__ = [

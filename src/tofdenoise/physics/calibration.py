@@ -292,8 +292,10 @@ class SensorCalibration:
         if unknown:
             raise CalibrationError(f"{_where(source)}unknown field(s) {unknown}; expected {list(FIELDS)}")
         num_taps_raw = d["num_taps"]
-        if isinstance(num_taps_raw, bool) or not isinstance(num_taps_raw, (int, np.integer)) and not (
-            isinstance(num_taps_raw, float) and num_taps_raw.is_integer()
+        if (
+            isinstance(num_taps_raw, bool)
+            or not isinstance(num_taps_raw, (int, np.integer))
+            and not (isinstance(num_taps_raw, float) and num_taps_raw.is_integer())
         ):
             raise CalibrationError(f"{_where(source)}field 'num_taps' must be an integer >= 3, got {num_taps_raw!r}")
         gain = d.get("adc_gain_e_per_dn")

@@ -137,8 +137,15 @@ def read_index(folder: str | os.PathLike[str], expected_kind: str | None = None)
                 f"{path}: stacks[{i}].group must be 'range', 'signal' or 'range_fit', got {entry.get('group')!r}"
             )
     return CaptureIndex(
-        folder=folder, kind=kind, num_taps=n, units=units, adc_gain_e_per_dn=gain,
-        modulation_frequency_hz=freq, full_well_e=fw, roi=roi, stacks=stacks,  # type: ignore[arg-type]
+        folder=folder,
+        kind=kind,
+        num_taps=n,
+        units=units,
+        adc_gain_e_per_dn=gain,
+        modulation_frequency_hz=freq,
+        full_well_e=fw,
+        roi=roi,
+        stacks=stacks,  # type: ignore[arg-type]
     )
 
 

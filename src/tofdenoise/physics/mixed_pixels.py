@@ -40,8 +40,10 @@ def mixed_tap_means_e(depth_mm: Any, signal_e: Any, weights: Any, calib: SensorC
     a = torch.as_tensor(signal_e, dtype=torch.float32)
     w = torch.as_tensor(weights, dtype=torch.float32)
     if d.shape != a.shape or d.shape != w.shape or d.ndim < 1:
-        raise ValueError(f"depth_mm {tuple(d.shape)}, signal_e {tuple(a.shape)} and weights {tuple(w.shape)} must "
-                         "have the same shape (K, ...) with the surfaces on axis 0")
+        raise ValueError(
+            f"depth_mm {tuple(d.shape)}, signal_e {tuple(a.shape)} and weights {tuple(w.shape)} must "
+            "have the same shape (K, ...) with the surfaces on axis 0"
+        )
     ok = torch.isfinite(d) & torch.isfinite(a) & (d > 0) & (a > 0) & torch.isfinite(w)
     r, _ = tap_responses(torch.where(ok, d, torch.ones_like(d)), calib)  # (K, ..., N)
     share = torch.where(ok, a * w, torch.zeros_like(a))
@@ -61,8 +63,10 @@ def footprint_tap_means_e(depth_mm: Any, signal_e: Any, calib: SensorCalibration
     if s != factor or s < 1:
         raise ValueError(f"factor must be a positive integer, got {factor!r}")
     if d.ndim != 2 or d.shape != a.shape or d.shape[0] % s or d.shape[1] % s:
-        raise ValueError(f"depth_mm {tuple(d.shape)} and signal_e {tuple(a.shape)} must be one (H, W) grid with "
-                         f"sides divisible by factor {s}")
+        raise ValueError(
+            f"depth_mm {tuple(d.shape)} and signal_e {tuple(a.shape)} must be one (H, W) grid with "
+            f"sides divisible by factor {s}"
+        )
     h, w = d.shape[0] // s, d.shape[1] // s
 
     def surfaces(x: torch.Tensor) -> torch.Tensor:  # (sH, sW) -> (s*s, H, W): the samples of each footprint

@@ -181,8 +181,9 @@ def _range(calib: SensorCalibration | None = None, scale: float = 1.0, alpha_mm:
 
 
 @NOISE_MODELS.register("fixed")
-def _fixed(calib: SensorCalibration | None = None, scale: float = 1.0,
-           sigma_mm: float = DEFAULT_FIXED_SIGMA_MM) -> NoiseModel:
+def _fixed(
+    calib: SensorCalibration | None = None, scale: float = 1.0, sigma_mm: float = DEFAULT_FIXED_SIGMA_MM
+) -> NoiseModel:
     sigma = float(sigma_mm)
     if not math.isfinite(sigma) or sigma < 0:
         raise ValueError(f"noise kwarg 'sigma_mm' must be a finite number >= 0, got {sigma}")

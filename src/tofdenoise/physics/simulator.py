@@ -80,8 +80,10 @@ class PhaseDecoder:
         hit = self._cache.get(key)
         if hit is None:
             assert self.table is not None and self.slope is not None
-            hit = (torch.as_tensor(self.table * scale, dtype=dtype, device=device),
-                   torch.as_tensor(self.slope * scale, dtype=dtype, device=device))
+            hit = (
+                torch.as_tensor(self.table * scale, dtype=dtype, device=device),
+                torch.as_tensor(self.slope * scale, dtype=dtype, device=device),
+            )
             self._cache[key] = hit
         return hit
 
@@ -164,9 +166,7 @@ def _first_bin_parts(t: torch.Tensor, calib: SensorCalibration, tap_axis: int) -
     return combo(cos), combo(sin)
 
 
-def demodulate(
-    taps: Any, calib: SensorCalibration, tap_axis: int = -3
-) -> tuple[torch.Tensor, torch.Tensor]:
+def demodulate(taps: Any, calib: SensorCalibration, tap_axis: int = -3) -> tuple[torch.Tensor, torch.Tensor]:
     """Standard N-phase demodulation of tap values [e-] -> (depth_mm, amplitude [e-]).
 
     taps: tensor/array with the N taps on `tap_axis` (default -3: (F,N,H,W) or (N,H,W)). depth is in
@@ -262,8 +262,9 @@ def simulate_frames(
     a_eff = torch.where(in_valid, a * float(exposure), torch.zeros_like(a))
     r, _ = tap_responses(d_safe, calib)  # (..., N)
     mean_signal = (a_eff.unsqueeze(-1) * r).clamp_min(0.0).movedim(-1, 0).contiguous()  # (N, ...)
-    return _frames_from_means(mean_signal, in_valid, calib, num_frames, generator, quantize, return_taps,
-                              min_amplitude_e, chunk_frames)
+    return _frames_from_means(
+        mean_signal, in_valid, calib, num_frames, generator, quantize, return_taps, min_amplitude_e, chunk_frames
+    )
 
 
 def simulate_tap_mean_frames(
@@ -286,19 +287,29 @@ def simulate_tap_mean_frames(
         raise ValueError(f"exposure must be a finite number > 0, got {exposure}")
     means = _to_tensor(tap_means_e, "tap_means_e").float()
     if means.ndim < 2 or means.shape[0] != calib.num_taps:
-        raise ValueError(f"tap_means_e: expected ({calib.num_taps}, ...) with the taps on axis 0, got "
-                         f"{tuple(means.shape)}")
+        raise ValueError(
+            f"tap_means_e: expected ({calib.num_taps}, ...) with the taps on axis 0, got {tuple(means.shape)}"
+        )
     finite = torch.isfinite(means).all(dim=0)
     means = torch.where(finite.unsqueeze(0), means, torch.zeros_like(means))
     in_valid = finite & (means.sum(dim=0) > 0)
     mean_signal = (means * float(exposure)).clamp_min(0.0).contiguous()
-    return _frames_from_means(mean_signal, in_valid, calib, num_frames, generator, quantize, return_taps,
-                              min_amplitude_e, chunk_frames)
+    return _frames_from_means(
+        mean_signal, in_valid, calib, num_frames, generator, quantize, return_taps, min_amplitude_e, chunk_frames
+    )
 
 
-def _frames_from_means(mean_signal: torch.Tensor, in_valid: torch.Tensor, calib: SensorCalibration,
-                       num_frames: int, generator: torch.Generator | None, quantize: bool, return_taps: bool,
-                       min_amplitude_e: float | None, chunk_frames: int | None) -> CaptureFrames:
+def _frames_from_means(
+    mean_signal: torch.Tensor,
+    in_valid: torch.Tensor,
+    calib: SensorCalibration,
+    num_frames: int,
+    generator: torch.Generator | None,
+    quantize: bool,
+    return_taps: bool,
+    min_amplitude_e: float | None,
+    chunk_frames: int | None,
+) -> CaptureFrames:
     """Noisy frames from the expected signal electrons per tap (N, ...) and the input validity (...)."""
     shape, device = tuple(in_valid.shape), in_valid.device
     n_pix = int(np.prod(shape))

@@ -30,7 +30,12 @@ def planar_signal_e(
     signal_at_1m_e: float = SIGNAL_AT_1M_E,
 ) -> float | np.ndarray:
     """a(D) = signal_at_1m_e * reflectance * exposure * (1000 / D)^2 [e-] (D in mm)."""
-    return signal_at_1m_e * reflectance * exposure * (REFERENCE_DISTANCE_MM / np.asarray(distance_mm, dtype=np.float64)) ** 2
+    return (
+        signal_at_1m_e
+        * reflectance
+        * exposure
+        * (REFERENCE_DISTANCE_MM / np.asarray(distance_mm, dtype=np.float64)) ** 2
+    )
 
 
 def planar_tap_stack(
@@ -65,11 +70,21 @@ def write_sweep_folder(
     for s in range(num_steps):
         psi = 2.0 * np.pi * (s + 0.5) / num_steps
         d = psi / calib.phase_per_mm
-        stacks.append((f"step_{s:03d}", planar_tap_stack(calib, d, signal_e, num_frames, shape, g).astype(np.float32),
-                       {"phase_rad": psi}))
+        stacks.append(
+            (
+                f"step_{s:03d}",
+                planar_tap_stack(calib, d, signal_e, num_frames, shape, g).astype(np.float32),
+                {"phase_rad": psi},
+            )
+        )
     return write_capture_folder(
-        folder, "sweep", calib.num_taps, stacks,
-        modulation_frequency_hz=calib.modulation_frequency_hz, units="e", full_well_e=calib.full_well_e,
+        folder,
+        "sweep",
+        calib.num_taps,
+        stacks,
+        modulation_frequency_hz=calib.modulation_frequency_hz,
+        units="e",
+        full_well_e=calib.full_well_e,
         adc_gain_e_per_dn=calib.adc_gain_e_per_dn,
     )
 
@@ -86,8 +101,14 @@ def write_dark_folder(
     taps = simulate_dark_taps(shape, calib, num_frames, generator=g).numpy()
     if calib.adc_gain_e_per_dn is not None:
         dn = np.round(taps / calib.adc_gain_e_per_dn).astype(np.uint16)
-        return write_capture_folder(folder, "dark", calib.num_taps, [("dark_000", dn, {})],
-                                    units="dn", adc_gain_e_per_dn=calib.adc_gain_e_per_dn)
+        return write_capture_folder(
+            folder,
+            "dark",
+            calib.num_taps,
+            [("dark_000", dn, {})],
+            units="dn",
+            adc_gain_e_per_dn=calib.adc_gain_e_per_dn,
+        )
     return write_capture_folder(folder, "dark", calib.num_taps, [("dark_000", taps.astype(np.float32), {})], units="e")
 
 
@@ -110,8 +131,13 @@ def write_distances_folder(
         if signal_spread is not None:
             ramp = np.linspace(signal_spread[0], signal_spread[1], shape[1])[None, :] * np.ones(shape)
             a = a * ramp
-        stacks.append((f"dist_{i:03d}", planar_tap_stack(calib, dist, a, num_frames, shape, g).astype(np.float32),
-                       {"distance_mm": float(dist)}))
+        stacks.append(
+            (
+                f"dist_{i:03d}",
+                planar_tap_stack(calib, dist, a, num_frames, shape, g).astype(np.float32),
+                {"distance_mm": float(dist)},
+            )
+        )
     return write_capture_folder(folder, "distances", calib.num_taps, stacks, units="e")
 
 
@@ -139,11 +165,19 @@ def write_calibration_captures(
     out = Path(out_dir)
     distances = list(distances_mm) if distances_mm is not None else default_distances_mm(calib)
     return {
-        "sweep": write_sweep_folder(calib, out / "sweep", num_steps=sweep_steps, num_frames=sweep_frames,
-                                    shape=shape, seed=seed * 3 + 11),
+        "sweep": write_sweep_folder(
+            calib, out / "sweep", num_steps=sweep_steps, num_frames=sweep_frames, shape=shape, seed=seed * 3 + 11
+        ),
         "dark": write_dark_folder(calib, out / "dark", num_frames=dark_frames, shape=shape, seed=seed * 3 + 12),
-        "distances": write_distances_folder(calib, out / "distances", distances, num_frames=distance_frames,
-                                            shape=shape, signal_spread=signal_spread, seed=seed * 3 + 13),
+        "distances": write_distances_folder(
+            calib,
+            out / "distances",
+            distances,
+            num_frames=distance_frames,
+            shape=shape,
+            signal_spread=signal_spread,
+            seed=seed * 3 + 13,
+        ),
     }
 
 

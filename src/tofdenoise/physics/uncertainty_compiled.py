@@ -29,7 +29,7 @@ from __future__ import annotations
 import math
 import threading
 import warnings
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 
@@ -89,7 +89,8 @@ _COS = (2.443315711809948e-5, -1.388731625493765e-3, 4.166664568298827e-2)
 def _cos_sin_f32(psi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """cos(psi), sin(psi) for float32 in plain arithmetic, so that Inductor fuses them into the kernel
     (~2x cheaper than two library calls). Absolute error < 1e-7 for |psi| < 2^12 rad (depths below ~2 km at
-    50 MHz) and < 1e-6 up to 1e5 rad (~48 km); far beyond any iToF range, float32 psi itself is the limit. Quadrant reduction psi = q pi/2 + x, |x| <= pi/4, then the two polynomials and the quadrant's
+    50 MHz) and < 1e-6 up to 1e5 rad (~48 km); far beyond any iToF range, float32 psi itself is the limit. Quadrant
+    reduction psi = q pi/2 + x, |x| <= pi/4, then the two polynomials and the quadrant's
     swap and signs: (cos, sin)(psi) = (c, s), (-s, c), (-c, -s), (s, -c) for q mod 4 = 0, 1, 2, 3."""
     q = torch.round(psi * (2.0 / math.pi))
     x = ((psi - q * _PIO2_1) - q * _PIO2_2) - q * _PIO2_3
@@ -165,8 +166,9 @@ def sigma_depth_mm_compiled(depth_mm: torch.Tensor, signal_e: torch.Tensor, cali
     ``sigma_depth_mm`` for torch tensors: broadcasting, NaN where depth <= 0, signal <= 0, NaN or inf; float64
     if either input is float64."""
     if not isinstance(depth_mm, torch.Tensor) or not isinstance(signal_e, torch.Tensor):
-        raise TypeError("the fused sigma_D kernel takes torch tensors; use sigma_depth_mm / depth_variance_mm2 "
-                        "for numpy arrays")
+        raise TypeError(
+            "the fused sigma_D kernel takes torch tensors; use sigma_depth_mm / depth_variance_mm2 for numpy arrays"
+        )
     dtype = torch.float64 if torch.float64 in (depth_mm.dtype, signal_e.dtype) else torch.float32
     d, a = torch.broadcast_tensors(depth_mm.detach().to(dtype), signal_e.detach().to(dtype))
 
@@ -180,8 +182,12 @@ def sigma_depth_mm_compiled(depth_mm: torch.Tensor, signal_e: torch.Tensor, cali
         out, any_ill = kernel(d.contiguous(), a.contiguous(), ILL_CONDITIONED_RHO2)
     except Exception as exc:  # no C++ compiler, unsupported backend, ...
         _FAILED.add(key)
-        warnings.warn(f"sigma_D: torch.compile of the fused kernel failed ({type(exc).__name__}: {exc}); "
-                      "using the reference path", RuntimeWarning, stacklevel=2)
+        warnings.warn(
+            f"sigma_D: torch.compile of the fused kernel failed ({type(exc).__name__}: {exc}); "
+            "using the reference path",
+            RuntimeWarning,
+            stacklevel=2,
+        )
         return reference(d, a)
     if bool(any_ill):
         ill = out < 0
@@ -189,6 +195,8 @@ def sigma_depth_mm_compiled(depth_mm: torch.Tensor, signal_e: torch.Tensor, cali
     return out
 
 
-def depth_variance_mm2_compiled(depth_mm: torch.Tensor, signal_e: torch.Tensor, calib: SensorCalibration) -> torch.Tensor:
+def depth_variance_mm2_compiled(
+    depth_mm: torch.Tensor, signal_e: torch.Tensor, calib: SensorCalibration
+) -> torch.Tensor:
     """sigma_D^2 [mm^2]: the square of ``sigma_depth_mm_compiled`` (one compiled kernel serves both)."""
     return sigma_depth_mm_compiled(depth_mm, signal_e, calib).square()

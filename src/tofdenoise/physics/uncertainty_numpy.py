@@ -105,7 +105,7 @@ def variance_block(d: np.ndarray, a: np.ndarray, calib: SensorCalibration) -> np
     for _, r_odd, r_even, g_odd, g_even in plan:
         ro, re_, go, ge = combo(r_odd), combo(r_even), combo(g_odd), combo(g_even)
         base_r = c0 if re_ is None else re_ + c0
-        for sign in ((1.0, -1.0) if even_n else (1.0,)):
+        for sign in (1.0, -1.0) if even_n else (1.0,):
             if ro is None:
                 r = np.broadcast_to(np.asarray(base_r, dtype=d.dtype), d.shape).copy() if re_ is None else base_r.copy()
             elif sign > 0:
@@ -136,8 +136,9 @@ def variance_block(d: np.ndarray, a: np.ndarray, calib: SensorCalibration) -> np
     return var
 
 
-def depth_variance_numpy(d: np.ndarray, a: np.ndarray, calib: SensorCalibration,
-                         workers: int | None = None) -> np.ndarray:
+def depth_variance_numpy(
+    d: np.ndarray, a: np.ndarray, calib: SensorCalibration, workers: int | None = None
+) -> np.ndarray:
     """sigma_D^2 [mm^2] of a numpy map (d, a of one shape and float dtype), NaN where invalid: validity, safe
     values and :func:`variance_block` per cache-sized block of BLOCK_PIXELS pixels; blocks run on up to
     ``workers`` (default torch.get_num_threads()) threads (numpy releases the GIL inside its loops)."""

@@ -30,8 +30,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from tofdenoise.physics.calibrate import fit_range_sigma, temporal_std_roi_mm
 from tofdenoise.atomic import atomic_write, atomic_write_text
+from tofdenoise.physics.calibrate import fit_range_sigma, temporal_std_roi_mm
 from tofdenoise.physics.calibration import SensorCalibration
 from tofdenoise.physics.capture_io import load_stack, read_index
 from tofdenoise.physics.simulator import demodulate, signal_from_taps_e, simulate_frames
@@ -129,13 +129,19 @@ def r2_score(predicted: np.ndarray, measured: np.ndarray) -> float:
 
 
 def _simulated_stats(
-    calib: SensorCalibration, distance_mm: float, signal_e: float, exposure: float, settings: ValidationSettings,
+    calib: SensorCalibration,
+    distance_mm: float,
+    signal_e: float,
+    exposure: float,
+    settings: ValidationSettings,
     generator: torch.Generator,
 ) -> StackStats:
     shape = (settings.roi_px, settings.roi_px)
     depth = torch.full(shape, float(distance_mm))
     signal = torch.full(shape, float(signal_e))
-    fr = simulate_frames(depth, signal, calib, settings.num_frames, exposure=exposure, generator=generator, return_taps=True)
+    fr = simulate_frames(
+        depth, signal, calib, settings.num_frames, exposure=exposure, generator=generator, return_taps=True
+    )
     assert fr.taps is not None
     sig = signal_from_taps_e(fr.taps, calib, tap_axis=1)
     return stack_stats(fr.depth_mm.numpy(), fr.valid.numpy(), sig.numpy())
@@ -146,28 +152,48 @@ def condition_plan() -> list[tuple[Condition, float, str]]:
     the range panel, the signal panel, then the independent range-fit sequence."""
     plan: list[tuple[Condition, float, str]] = []
     for d in RANGE_DISTANCES_MM:
-        plan.append((Condition("range", d, "planar", PLANAR_REFLECTANCE, 1.0),
-                     float(planar_signal_e(d, PLANAR_REFLECTANCE)), "main"))
+        plan.append(
+            (
+                Condition("range", d, "planar", PLANAR_REFLECTANCE, 1.0),
+                float(planar_signal_e(d, PLANAR_REFLECTANCE)),
+                "main",
+            )
+        )
     for surface, refl in SURFACES.items():
         for e in EXPOSURES:
-            plan.append((Condition("signal", SIGNAL_DISTANCE_MM, surface, refl, e),
-                         float(planar_signal_e(SIGNAL_DISTANCE_MM, refl)), "main"))
+            plan.append(
+                (
+                    Condition("signal", SIGNAL_DISTANCE_MM, surface, refl, e),
+                    float(planar_signal_e(SIGNAL_DISTANCE_MM, refl)),
+                    "main",
+                )
+            )
     for d in RANGE_FIT_DISTANCES_MM:
-        plan.append((Condition("range_fit", d, "planar", PLANAR_REFLECTANCE, 1.0),
-                     float(planar_signal_e(d, PLANAR_REFLECTANCE)), "fit"))
+        plan.append(
+            (
+                Condition("range_fit", d, "planar", PLANAR_REFLECTANCE, 1.0),
+                float(planar_signal_e(d, PLANAR_REFLECTANCE)),
+                "fit",
+            )
+        )
     return plan
 
 
 def simulated_conditions(calib: SensorCalibration, settings: ValidationSettings) -> list[tuple[Condition, StackStats]]:
     """All range / signal / range-fit conditions measured on the tap-level simulator."""
-    streams = {"main": torch.Generator().manual_seed(settings.seed),
-               "fit": torch.Generator().manual_seed(settings.fit_seed)}  # independent calibration sequence
-    return [(cond, _simulated_stats(calib, cond.distance_mm, a, cond.exposure, settings, streams[stream]))
-            for cond, a, stream in condition_plan()]
+    streams = {
+        "main": torch.Generator().manual_seed(settings.seed),
+        "fit": torch.Generator().manual_seed(settings.fit_seed),
+    }  # independent calibration sequence
+    return [
+        (cond, _simulated_stats(calib, cond.distance_mm, a, cond.exposure, settings, streams[stream]))
+        for cond, a, stream in condition_plan()
+    ]
 
 
-def write_validation_captures(calib: SensorCalibration, folder: str | os.PathLike[str],
-                              settings: ValidationSettings | None = None) -> Path:
+def write_validation_captures(
+    calib: SensorCalibration, folder: str | os.PathLike[str], settings: ValidationSettings | None = None
+) -> Path:
     """The experiment's captures as the camera ``calib`` records them (tap stacks (F, N, H, W) [e-], kind
     "validation", format ``capture_io``): what ``run_validation(captures_dir=...)`` reads. With a simulated camera
     unlike the calibration used for the prediction (e.g. one estimated by ``calibrate`` from that camera's own
@@ -175,29 +201,47 @@ def write_validation_captures(calib: SensorCalibration, folder: str | os.PathLik
     from tofdenoise.physics.capture_io import write_capture_folder
 
     settings = settings or ValidationSettings()
-    streams = {"main": torch.Generator().manual_seed(settings.seed),
-               "fit": torch.Generator().manual_seed(settings.fit_seed)}
+    streams = {
+        "main": torch.Generator().manual_seed(settings.seed),
+        "fit": torch.Generator().manual_seed(settings.fit_seed),
+    }
     shape = (settings.roi_px, settings.roi_px)
     stacks = []
     for i, (cond, a, stream) in enumerate(condition_plan()):
         depth = torch.full(shape, float(cond.distance_mm))
-        frames = simulate_frames(depth, torch.full(shape, a), calib, settings.num_frames, exposure=cond.exposure,
-                                 generator=streams[stream], return_taps=True)
+        frames = simulate_frames(
+            depth,
+            torch.full(shape, a),
+            calib,
+            settings.num_frames,
+            exposure=cond.exposure,
+            generator=streams[stream],
+            return_taps=True,
+        )
         assert frames.taps is not None
-        fields = {"group": cond.group, "distance_mm": cond.distance_mm, "surface": cond.surface,
-                  "exposure": cond.exposure}
+        fields = {
+            "group": cond.group,
+            "distance_mm": cond.distance_mm,
+            "surface": cond.surface,
+            "exposure": cond.exposure,
+        }
         if cond.reflectance is not None:
             fields["reflectance"] = cond.reflectance
         stacks.append((f"{cond.group}_{i:03d}", frames.taps.numpy().astype(np.float32), fields))
-    return write_capture_folder(folder, "validation", calib.num_taps, stacks, units="e",
-                                modulation_frequency_hz=calib.modulation_frequency_hz)
+    return write_capture_folder(
+        folder, "validation", calib.num_taps, stacks, units="e", modulation_frequency_hz=calib.modulation_frequency_hz
+    )
 
 
-def captured_conditions(calib: SensorCalibration, captures_dir: str | os.PathLike[str]) -> list[tuple[Condition, StackStats]]:
+def captured_conditions(
+    calib: SensorCalibration, captures_dir: str | os.PathLike[str]
+) -> list[tuple[Condition, StackStats]]:
     """Conditions from real stacks: kind 'validation' folder; tap stacks or depth + amplitude stacks."""
     idx = read_index(captures_dir, "validation")
     if idx.num_taps != calib.num_taps:
-        raise ValueError(f"{idx.folder / 'index.json'}: num_taps={idx.num_taps} but the calibration has {calib.num_taps}")
+        raise ValueError(
+            f"{idx.folder / 'index.json'}: num_taps={idx.num_taps} but the calibration has {calib.num_taps}"
+        )
     out = []
     for e in idx.stacks:
         arr = load_stack(idx, e["file"], ndim=(3, 4))
@@ -215,11 +259,16 @@ def captured_conditions(calib: SensorCalibration, captures_dir: str | os.PathLik
             depth_np = arr
             amp = load_stack(idx, e["amplitude_file"], ndim=(3,), scale=False) * idx.scale_to_e
             if amp.shape != depth_np.shape:
-                raise ValueError(f"{idx.folder / e['amplitude_file']}: shape {amp.shape} differs from depth {depth_np.shape}")
+                raise ValueError(
+                    f"{idx.folder / e['amplitude_file']}: shape {amp.shape} differs from depth {depth_np.shape}"
+                )
             signal = amp / calib.tap_response.first_harmonic_amplitude
         cond = Condition(
-            group=e["group"], distance_mm=float(e["distance_mm"]), surface=str(e.get("surface", "planar")),
-            reflectance=e.get("reflectance"), exposure=float(e.get("exposure", 1.0)),
+            group=e["group"],
+            distance_mm=float(e["distance_mm"]),
+            surface=str(e.get("surface", "planar")),
+            reflectance=e.get("reflectance"),
+            exposure=float(e.get("exposure", 1.0)),
         )
         out.append((cond, stack_stats(depth_np, None, signal)))
     return out
@@ -296,10 +345,19 @@ def run_validation(
     evaluated = [c for c in conds if c.group in ("range", "signal") and c.num_pixels > 0]
     if not evaluated:
         raise ValueError("no 'range' or 'signal' condition with valid pixels to evaluate")
-    panels = {g: _metrics([c for c in evaluated if c.group == g]) for g in ("range", "signal") if any(c.group == g for c in evaluated)}
+    panels = {
+        g: _metrics([c for c in evaluated if c.group == g])
+        for g in ("range", "signal")
+        if any(c.group == g for c in evaluated)
+    }
     return ValidationResult(
-        conditions=conds, range_sigma_mm=tuple(alpha), range_sigma_source=alpha_source,  # type: ignore[arg-type]
-        pooled=_metrics(evaluated), panels=panels, source=source, settings=asdict(settings) if captures_dir is None else {},
+        conditions=conds,
+        range_sigma_mm=tuple(alpha),
+        range_sigma_source=alpha_source,  # type: ignore[arg-type]
+        pooled=_metrics(evaluated),
+        panels=panels,
+        source=source,
+        settings=asdict(settings) if captures_dir is None else {},
     )
 
 
@@ -329,7 +387,9 @@ def plot_validation(result: ValidationResult, path: str | os.PathLike[str]) -> P
         x = [c.signal_e for c in sig]
         ax.plot(x, [c.measured_std_mm for c in sig], "ko", label="measured")
         ax.plot(x, [c.proposed_std_mm for c in sig], "s", color="tab:red", mfc="none", label="proposed (WLS)")
-        ax.plot(x, [c.range_gaussian_std_mm for c in sig], "^", color="tab:blue", mfc="none", label="range-aware Gaussian")
+        ax.plot(
+            x, [c.range_gaussian_std_mm for c in sig], "^", color="tab:blue", mfc="none", label="range-aware Gaussian"
+        )
         ax.set_xscale("log")
         from matplotlib.ticker import FixedLocator, NullFormatter, ScalarFormatter
 
@@ -349,10 +409,22 @@ def plot_validation(result: ValidationResult, path: str | os.PathLike[str]) -> P
         meas = np.array([c.measured_std_mm for c in ev])
         p = result.pooled["proposed"]
         r = result.pooled["range_gaussian"]
-        ax.plot(meas, [c.proposed_std_mm for c in ev], "s", color="tab:red", mfc="none",
-                label=f"proposed: MAPE {p['mape_percent']:.1f}%, R2 {p['r2']:.3f}")
-        ax.plot(meas, [c.range_gaussian_std_mm for c in ev], "^", color="tab:blue", mfc="none",
-                label=f"range-aware: MAPE {r['mape_percent']:.1f}%, R2 {r['r2']:.3f}")
+        ax.plot(
+            meas,
+            [c.proposed_std_mm for c in ev],
+            "s",
+            color="tab:red",
+            mfc="none",
+            label=f"proposed: MAPE {p['mape_percent']:.1f}%, R2 {p['r2']:.3f}",
+        )
+        ax.plot(
+            meas,
+            [c.range_gaussian_std_mm for c in ev],
+            "^",
+            color="tab:blue",
+            mfc="none",
+            label=f"range-aware: MAPE {r['mape_percent']:.1f}%, R2 {r['r2']:.3f}",
+        )
         lim = [0.0, float(max(meas.max(), max(c.proposed_std_mm for c in ev))) * 1.08]
         ax.plot(lim, lim, "k-", lw=0.8, label="identity")
         ax.set_xlim(lim)
@@ -369,7 +441,9 @@ def plot_validation(result: ValidationResult, path: str | os.PathLike[str]) -> P
     return path
 
 
-def write_validation(result: ValidationResult, calib: SensorCalibration, out_dir: str | os.PathLike[str]) -> tuple[Path, Path]:
+def write_validation(
+    result: ValidationResult, calib: SensorCalibration, out_dir: str | os.PathLike[str]
+) -> tuple[Path, Path]:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     json_path = out / "validation.json"
@@ -378,7 +452,9 @@ def write_validation(result: ValidationResult, calib: SensorCalibration, out_dir
     return json_path, png
 
 
-def fit_default_range_sigma(calib: SensorCalibration, num_frames: int = 400, roi_px: int = 32, seed: int = 4242) -> tuple[float, float, float]:
+def fit_default_range_sigma(
+    calib: SensorCalibration, num_frames: int = 400, roi_px: int = 32, seed: int = 4242
+) -> tuple[float, float, float]:
     """alpha coefficients for a calibration from its own simulated independent planar sequence
     (used to produce `range_sigma_mm` in configs/sensor/default.yaml)."""
     settings = ValidationSettings(num_frames=num_frames, roi_px=roi_px, fit_seed=seed)

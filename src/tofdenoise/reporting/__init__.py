@@ -17,5 +17,14 @@ from tofdenoise.reporting.plots import comparison_png, learning_curves_png
 from tofdenoise.reporting.runs import Run, find_runs, load_run
 from tofdenoise.reporting.table import learned_flag, results_table, table_markdown
 
-__all__ = ["Run", "find_runs", "load_run", "results_table", "table_markdown", "learned_flag", "render_html",
-           "learning_curves_png", "comparison_png"]
+__all__ = [
+    "Run",
+    "find_runs",
+    "load_run",
+    "results_table",
+    "table_markdown",
+    "learned_flag",
+    "render_html",
+    "learning_curves_png",
+    "comparison_png",
+]

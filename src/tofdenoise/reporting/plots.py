@@ -48,8 +48,7 @@ def _curve_groups(rows: list[dict[str, Any]]) -> list[tuple[str, list[str], tupl
     groups = [
         ("training loss", [c for c in cols if c.startswith("train") and "loss" in c], ("step",)),
         ("validation MAE (mm)", [c for c in cols if c.startswith("val") and c.endswith("mae_mm")], ("epoch", "step")),
-        ("validation PSNR (dB)", [c for c in cols if c.startswith("val") and c.endswith("psnr_db")],
-         ("epoch", "step")),
+        ("validation PSNR (dB)", [c for c in cols if c.startswith("val") and c.endswith("psnr_db")], ("epoch", "step")),
     ]
     return [g for g in groups if g[1]]
 
@@ -65,8 +64,7 @@ def learning_curves_png(run: Run) -> bytes | None:
             for c in cols:
                 x, y, xname = _series(run.curves, c, xs)
                 if x:
-                    ax.plot(x, y, "--" if "raw" in c else "-", marker="o" if len(x) < 30 else None, ms=3,
-                            label=c)
+                    ax.plot(x, y, "--" if "raw" in c else "-", marker="o" if len(x) < 30 else None, ms=3, label=c)
                     ax.set_xlabel(xname)
             ax.set_title(title, fontsize=10)
             ax.grid(alpha=0.3)
@@ -79,8 +77,11 @@ def comparison_png(runs: Sequence[Run]) -> bytes | None:
     """Validation MAE (mm) of all runs on one plot, or None when no run logged one."""
     series = []
     for r in runs:
-        cols = [c for c in sorted({k for row in r.curves for k in row}) if c.startswith("val")
-                and c.endswith("mae_mm") and "raw" not in c and "pooled" not in c]
+        cols = [
+            c
+            for c in sorted({k for row in r.curves for k in row})
+            if c.startswith("val") and c.endswith("mae_mm") and "raw" not in c and "pooled" not in c
+        ]
         if cols:
             x, y, xname = _series(r.curves, cols[0], ("epoch", "step"))
             if x:

@@ -76,8 +76,12 @@ def _hydra_info(path: Path) -> dict[str, Any]:
             return None
         return value if isinstance(value, (str, int, float)) else None
 
-    return {"backbone": pick("backbone.name"), "noise": pick("noise.name"), "loss": pick("loss.name"),
-            "run_name": pick("run_name")}
+    return {
+        "backbone": pick("backbone.name"),
+        "noise": pick("noise.name"),
+        "loss": pick("loss.name"),
+        "run_name": pick("run_name"),
+    }
 
 
 def _read_info(run_dir: Path) -> dict[str, str]:
@@ -129,6 +133,14 @@ def load_run(run_dir: str | Path) -> Run:
     metrics, learned = metric_sets(data), run_fields(data)
     info = _read_info(run_dir)
     panels = sorted((run_dir / "panels").glob("*.png"), key=_epoch_order) if (run_dir / "panels").is_dir() else []
-    return Run(path=run_dir, name=info["run_name"], method=info.get("method", info.get("backbone", info["run_name"])),
-               noise=info.get("noise", "?"), loss=info.get("loss", "?"), metrics=metrics,
-               curves=_read_curves(run_dir), panel=panels[-1] if panels else None, learned=learned)
+    return Run(
+        path=run_dir,
+        name=info["run_name"],
+        method=info.get("method", info.get("backbone", info["run_name"])),
+        noise=info.get("noise", "?"),
+        loss=info.get("loss", "?"),
+        metrics=metrics,
+        curves=_read_curves(run_dir),
+        panel=panels[-1] if panels else None,
+        learned=learned,
+    )

@@ -18,8 +18,17 @@ from typing import Any
 from tofdenoise.reporting.runs import Run
 from tofdenoise.training.results import learned_status
 
-__all__ = ["METRIC_COLUMNS", "SET_LABELS", "LEARNED_FLAGS", "FLAGGED", "learned_flag", "results_table", "table_markdown",
-           "best_value", "fmt_value"]
+__all__ = [
+    "METRIC_COLUMNS",
+    "SET_LABELS",
+    "LEARNED_FLAGS",
+    "FLAGGED",
+    "learned_flag",
+    "results_table",
+    "table_markdown",
+    "best_value",
+    "fmt_value",
+]
 
 METRIC_COLUMNS = (  # key, header, decimals, higher is better
     ("psnr_db", "PSNR (dB)&uarr;", "PSNR (dB)↑", 2, True),
@@ -29,8 +38,14 @@ METRIC_COLUMNS = (  # key, header, decimals, higher is better
 )
 SET_LABELS = {"synthetic": "Synthetic", "real": "Real"}
 #: the Learned column per ``tofdenoise.training.results.learned_status``
-LEARNED_FLAGS = {"learned": "yes", "did not learn": "NOT LEARNED", "not trained": "NOT TRAINED",
-                 "not verified": "unverified", "unknown": "?", "classical": "classical"}
+LEARNED_FLAGS = {
+    "learned": "yes",
+    "did not learn": "NOT LEARNED",
+    "not trained": "NOT TRAINED",
+    "not verified": "unverified",
+    "unknown": "?",
+    "classical": "classical",
+}
 #: learned-guard statuses shown in red and never bold
 FLAGGED = {"did not learn", "not trained", "not verified"}
 
@@ -67,8 +82,12 @@ def results_table(runs: Sequence[Run]) -> tuple[list[str], list[dict[str, Any]]]
     sets += sorted({s for r in runs for s in r.metrics} - set(sets))
     raw_rows: list[dict[str, Any]] = []
     for r in runs:
-        values = {(s, k): _value(r.metrics[s]["raw"][k]) for s in sets if s in r.metrics and "raw" in r.metrics[s]
-                  for k, *_ in METRIC_COLUMNS}
+        values = {
+            (s, k): _value(r.metrics[s]["raw"][k])
+            for s in sets
+            if s in r.metrics and "raw" in r.metrics[s]
+            for k, *_ in METRIC_COLUMNS
+        }
         if not values:
             continue
         # runs evaluated on the same data share one raw row: merge when no common value differs
@@ -80,16 +99,24 @@ def results_table(runs: Sequence[Run]) -> tuple[list[str], list[dict[str, Any]]]
                     row["noises"].append(r.noise)
                 break
         else:
-            raw_rows.append({"kind": "raw", "method": "Raw input", "loss": "–", "learned": "–", "noises": [r.noise],
-                             **values})
+            raw_rows.append(
+                {"kind": "raw", "method": "Raw input", "loss": "–", "learned": "–", "noises": [r.noise], **values}
+            )
     for row in raw_rows:
         row["noise"] = ", ".join(row.pop("noises"))
     run_rows = []
     for r in runs:
         status = learned_status(r.learned)
-        row: dict[str, Any] = {"kind": "run", "method": r.method, "noise": r.noise, "loss": r.loss, "name": r.name,
-                               "learned": LEARNED_FLAGS[status], "flagged": status in FLAGGED,
-                               "learned_reason": str(r.learned.get("learned_reason", ""))}
+        row: dict[str, Any] = {
+            "kind": "run",
+            "method": r.method,
+            "noise": r.noise,
+            "loss": r.loss,
+            "name": r.name,
+            "learned": LEARNED_FLAGS[status],
+            "flagged": status in FLAGGED,
+            "learned_reason": str(r.learned.get("learned_reason", "")),
+        }
         for s in sets:
             for k, *_ in METRIC_COLUMNS:
                 row[(s, k)] = _value(r.metrics.get(s, {}).get(k))
@@ -115,8 +142,9 @@ def fmt_value(v: float | None, decimals: int) -> str:
 
 def table_markdown(sets: Sequence[str], rows: list[dict[str, Any]]) -> str:
     """The comparison table as GitHub Markdown (best run value per column in bold)."""
-    header = (["Method", "Noise", "Loss", "Learned"]
-              + [f"{SET_LABELS.get(s, s)} {m[2]}" for s in sets for m in METRIC_COLUMNS])
+    header = ["Method", "Noise", "Loss", "Learned"] + [
+        f"{SET_LABELS.get(s, s)} {m[2]}" for s in sets for m in METRIC_COLUMNS
+    ]
     lines = ["| " + " | ".join(header) + " |", "|" + "|".join(["---"] * 4 + ["---:"] * (len(header) - 4)) + "|"]
     for row in rows:
         cells = [row["method"], row["noise"], row["loss"], row["learned"]]
@@ -124,7 +152,12 @@ def table_markdown(sets: Sequence[str], rows: list[dict[str, Any]]) -> str:
             for key, _, _, dec, higher in METRIC_COLUMNS:
                 v = row.get((s, key))
                 text = fmt_value(v, dec)
-                if v is not None and row["kind"] == "run" and not row["flagged"] and v == best_value(rows, (s, key), higher):
+                if (
+                    v is not None
+                    and row["kind"] == "run"
+                    and not row["flagged"]
+                    and v == best_value(rows, (s, key), higher)
+                ):
                     text = f"**{text}**"
                 cells.append(text)
         lines.append("| " + " | ".join(cells) + " |")

@@ -57,6 +57,7 @@ def charbonnier(x: Tensor, eps: float = 1e-3) -> Tensor:
 
 def _prepare(pred: Tensor, target: Tensor, sigma_mm: Tensor | None, mask: Tensor) -> tuple[Tensor, ...]:
     """Check shapes, bring to (B, 1, H, W) and build the valid map; invalid values replaced by 0."""
+
     def b1hw(x: Tensor, name: str) -> Tensor:
         if x.ndim == 3:
             return x[:, None]
@@ -68,8 +69,10 @@ def _prepare(pred: Tensor, target: Tensor, sigma_mm: Tensor | None, mask: Tensor
     target = b1hw(target, "target")
     mask = b1hw(mask, "mask")
     if target.shape != pred.shape or mask.shape != pred.shape:
-        raise ValueError(f"loss inputs differ in shape: pred {tuple(pred.shape)}, target {tuple(target.shape)}, "
-                         f"mask {tuple(mask.shape)}")
+        raise ValueError(
+            f"loss inputs differ in shape: pred {tuple(pred.shape)}, target {tuple(target.shape)}, "
+            f"mask {tuple(mask.shape)}"
+        )
     valid = (mask != 0) & torch.isfinite(target)
     if mask.is_floating_point():
         valid = valid & ~torch.isnan(mask)

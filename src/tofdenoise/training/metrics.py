@@ -97,8 +97,9 @@ def valid_pixel_mask(ref_mm: Tensor, mask: Tensor | None = None, pred_mm: Tensor
     return valid
 
 
-def gaussian_window_1d(sigma: float = SSIM_SIGMA, dtype: torch.dtype = torch.float64,
-                       device: torch.device | None = None) -> Tensor:
+def gaussian_window_1d(
+    sigma: float = SSIM_SIGMA, dtype: torch.dtype = torch.float64, device: torch.device | None = None
+) -> Tensor:
     """Normalised 1-D Gaussian of odd size ``2 * int(3.5 sigma + 0.5) + 1`` (11 taps for sigma = 1.5)."""
     half = int(3.5 * sigma + 0.5)
     x = torch.arange(-half, half + 1, dtype=dtype, device=device)
@@ -120,15 +121,22 @@ def _gaussian_filter(x: Tensor, window: Tensor) -> Tensor:
     weights = [float(v) for v in window]
     rows = xp[..., :, 0:w] * weights[0]
     for k in range(1, taps):
-        rows.add_(xp[..., :, k:k + w], alpha=weights[k])
+        rows.add_(xp[..., :, k : k + w], alpha=weights[k])
     out = rows[..., 0:h, :] * weights[0]
     for k in range(1, taps):
-        out.add_(rows[..., k:k + h, :], alpha=weights[k])
+        out.add_(rows[..., k : k + h, :], alpha=weights[k])
     return out
 
 
-def masked_ssim_map(pred_mm: Tensor, ref_mm: Tensor, valid: Tensor, data_range: float = D_MAX_MM,
-                    sigma: float = SSIM_SIGMA, k1: float = SSIM_K1, k2: float = SSIM_K2) -> Tensor:
+def masked_ssim_map(
+    pred_mm: Tensor,
+    ref_mm: Tensor,
+    valid: Tensor,
+    data_range: float = D_MAX_MM,
+    sigma: float = SSIM_SIGMA,
+    k1: float = SSIM_K1,
+    k2: float = SSIM_K2,
+) -> Tensor:
     """SSIM map (Wang et al. 2004) with Gaussian-weighted local statistics restricted to valid pixels.
 
     mu_x = G*(m x) / G*m, sigma_x^2 = G*(m x^2) / G*m - mu_x^2, sigma_xy likewise (normalised convolution);
@@ -160,8 +168,9 @@ def psnr_from_mse_db(mse_mm2: Tensor, d_max_mm: float = D_MAX_MM) -> Tensor:
 
 
 @torch.no_grad()
-def depth_metrics_per_image(pred_mm: Tensor, ref_mm: Tensor, mask: Tensor | None,
-                            d_max_mm: float = D_MAX_MM) -> dict[str, Tensor]:
+def depth_metrics_per_image(
+    pred_mm: Tensor, ref_mm: Tensor, mask: Tensor | None, d_max_mm: float = D_MAX_MM
+) -> dict[str, Tensor]:
     """Per-image ``psnr_db``, ``mae_mm``, ``mse_mm2``, ``ssim`` (float64, shape (B,)) plus ``valid_px``.
 
     ``pred_mm``/``ref_mm``/``mask``: (B, 1, H, W), (B, H, W) or (H, W), depth in millimetres; ``mask`` may be
@@ -238,8 +247,14 @@ class DepthMetrics(Metric):
             return 1
         return int(torch.distributed.get_world_size(self.process_group))
 
-    def update(self, pred_mm: Tensor, ref_mm: Tensor, mask: Tensor | None,  # type: ignore[override]
-               index: Tensor | None = None, per_image: dict[str, Tensor] | None = None) -> None:
+    def update(
+        self,
+        pred_mm: Tensor,
+        ref_mm: Tensor,
+        mask: Tensor | None,  # type: ignore[override]
+        index: Tensor | None = None,
+        per_image: dict[str, Tensor] | None = None,
+    ) -> None:
         """Accumulate one batch. ``index``: each image's position in its dataset (``batch["index"]``), required
         under DDP. ``per_image``: the batch's values already computed by ``depth_metrics_per_image`` with this
         metric's ``d_max_mm`` (e.g. cached ones that do not change between epochs); the maps are then not
@@ -253,7 +268,8 @@ class DepthMetrics(Metric):
                 raise ValueError(
                     f"DepthMetrics.update: index is required with {world} distributed processes: the "
                     "DistributedSampler repeats samples to pad the last batch, and only the image index tells a "
-                    "repeat from a new image (pass index=batch['index'])")
+                    "repeat from a new image (pass index=batch['index'])"
+                )
             idx = torch.full((b,), math.nan, dtype=torch.float64, device=n_px.device)
         else:
             idx = torch.as_tensor(index, device=n_px.device).reshape(-1).to(torch.float64)
@@ -297,8 +313,12 @@ class DepthMetrics(Metric):
     def _synced(self, fn: Any, sync: bool) -> Any:
         """``fn()`` on the rows of every process (``sync`` and torch.distributed initialised; call it on every
         rank then), else on the local rows."""
-        if sync and not self._is_synced and self.distributed_available_fn is not None \
-                and self.distributed_available_fn():
+        if (
+            sync
+            and not self._is_synced
+            and self.distributed_available_fn is not None
+            and self.distributed_available_fn()
+        ):
             with self.sync_context():
                 return fn()
         return fn()
@@ -306,11 +326,15 @@ class DepthMetrics(Metric):
     def counts(self, sync: bool = True) -> dict[str, int]:
         """Number of (unique) images averaged, images skipped (no valid pixel) and valid pixels; gathered from
         every process like ``compute()`` (with ``sync`` and torch.distributed initialised: call it on every rank)."""
+
         def local() -> dict[str, int]:
             table = self._unique_table()
             ok = table[:, 1] > 0
-            return {"images": int(ok.sum()), "skipped_images": int((~ok).sum()),
-                    "valid_px": int(table[:, 1].sum().item())}
+            return {
+                "images": int(ok.sum()),
+                "skipped_images": int((~ok).sum()),
+                "valid_px": int(table[:, 1].sum().item()),
+            }
 
         return self._synced(local, sync)
 
@@ -318,11 +342,14 @@ class DepthMetrics(Metric):
         """One dict per image (``index`` None where no index was given), sorted by index; rows with equal index
         (DistributedSampler padding) are kept once. With ``sync`` (default) and torch.distributed initialised,
         the rows of every process are gathered (call it on every rank)."""
+
         def local() -> list[dict[str, float | int | None]]:
             out: list[dict[str, float | int | None]] = []
             for r in self._unique_table().detach().cpu().tolist():
-                row: dict[str, float | int | None] = {"index": None if math.isnan(r[0]) else int(r[0]),
-                                                      "valid_px": int(r[1])}
+                row: dict[str, float | int | None] = {
+                    "index": None if math.isnan(r[0]) else int(r[0]),
+                    "valid_px": int(r[1]),
+                }
                 row.update({k: float(v) for k, v in zip(METRIC_KEYS, r[2:])})
                 out.append(row)
             return out

@@ -49,8 +49,6 @@ import lightning.pytorch as pl
 import torch
 from torch import Tensor, nn
 
-from tofdenoise.training.losses import DepthLoss, build_loss
-from tofdenoise.training.metrics import DepthMetrics, depth_metrics_per_image
 from tofdenoise.models.conditioning import (
     CENTERING_MODES,
     fill_invalid_mm,
@@ -58,6 +56,8 @@ from tofdenoise.models.conditioning import (
     local_offset_mm,
     valid_input_mask,
 )
+from tofdenoise.training.losses import DepthLoss, build_loss
+from tofdenoise.training.metrics import DepthMetrics, depth_metrics_per_image
 
 __all__ = ["DepthRestorer", "CheckpointMismatchError", "step_predictions", "final_prediction", "step_loss_weights"]
 
@@ -148,8 +148,9 @@ class DepthRestorer(pl.LightningModule):
         if not depth_scale_mm > 0:
             raise ValueError(f"DepthRestorer.depth_scale_mm must be > 0, got {depth_scale_mm}")
         if input_centering not in CENTERING_MODES:
-            raise ValueError(f"DepthRestorer.input_centering: unknown mode {input_centering!r}; "
-                             f"valid: {', '.join(CENTERING_MODES)}")
+            raise ValueError(
+                f"DepthRestorer.input_centering: unknown mode {input_centering!r}; valid: {', '.join(CENTERING_MODES)}"
+            )
         if int(centering_block_px) < 1:
             raise ValueError(f"DepthRestorer.centering_block_px must be >= 1, got {centering_block_px}")
         if not (lr > 0 and 0 <= lr_min <= lr):
@@ -167,7 +168,8 @@ class DepthRestorer(pl.LightningModule):
         if backbone_kwargs.get("in_channels", in_channels) != in_channels:
             raise ValueError(
                 f"DepthRestorer: backbone_kwargs.in_channels={backbone_kwargs['in_channels']} contradicts "
-                f"use_signal_channel={use_signal_channel} (needs {in_channels}); leave in_channels out")
+                f"use_signal_channel={use_signal_channel} (needs {in_channels}); leave in_channels out"
+            )
         _check_backbone_input(backbone, backbone_kwargs, input_centering, use_signal_channel, depth_scale_mm)
         # plain values only: checkpoints load with weights_only=True
         self.save_hyperparameters()
@@ -182,8 +184,8 @@ class DepthRestorer(pl.LightningModule):
         self.ema: torch.optim.swa_utils.AveragedModel | None = None
         if ema_decay is not None:
             self.ema = torch.optim.swa_utils.AveragedModel(
-                self.backbone, multi_avg_fn=torch.optim.swa_utils.get_ema_multi_avg_fn(ema_decay),
-                use_buffers=True)
+                self.backbone, multi_avg_fn=torch.optim.swa_utils.get_ema_multi_avg_fn(ema_decay), use_buffers=True
+            )
             self.ema.requires_grad_(False)
         self._compiled: Any = None
 
@@ -279,25 +281,31 @@ class DepthRestorer(pl.LightningModule):
             if p.requires_grad:
                 wants_decay = p.ndim >= 2 and not getattr(p, "_no_weight_decay", False)
                 (decay if wants_decay else no_decay).append(p)
-        groups = [{"params": decay, "weight_decay": self.hparams.weight_decay},
-                  {"params": no_decay, "weight_decay": 0.0}]
+        groups = [
+            {"params": decay, "weight_decay": self.hparams.weight_decay},
+            {"params": no_decay, "weight_decay": 0.0},
+        ]
         return [g for g in groups if g["params"]]
 
     def configure_optimizers(self) -> dict[str, Any]:
         if not self.trainable:
-            raise ValueError(f"DepthRestorer: backbone {self.hparams.backbone!r} is a classical filter without "
-                             "trainable parameters: there is nothing to fit; tune and test it with "
-                             "`tofdenoise-classic` (docs/models.md#classical-row-joint-bilateral-filter)")
-        opt = torch.optim.AdamW(self.parameter_groups(), lr=self.hparams.lr,
-                                betas=tuple(self.hparams.betas))
+            raise ValueError(
+                f"DepthRestorer: backbone {self.hparams.backbone!r} is a classical filter without "
+                "trainable parameters: there is nothing to fit; tune and test it with "
+                "`tofdenoise-classic` (docs/models.md#classical-row-joint-bilateral-filter)"
+            )
+        opt = torch.optim.AdamW(self.parameter_groups(), lr=self.hparams.lr, betas=tuple(self.hparams.betas))
         total = self.trainer.estimated_stepping_batches
         if not math.isfinite(total) or total < 1:
-            raise ValueError("DepthRestorer: the cosine schedule runs over the whole run; set trainer.max_epochs "
-                             f"or trainer.max_steps (estimated optimiser steps: {total})")
+            raise ValueError(
+                "DepthRestorer: the cosine schedule runs over the whole run; set trainer.max_epochs "
+                f"or trainer.max_steps (estimated optimiser steps: {total})"
+            )
         total = int(total)
         warm = min(int(self.hparams.warmup_steps), total - 1)
         sched: torch.optim.lr_scheduler.LRScheduler = torch.optim.lr_scheduler.CosineAnnealingLR(
-            opt, T_max=total - warm, eta_min=self.hparams.lr_min)
+            opt, T_max=total - warm, eta_min=self.hparams.lr_min
+        )
         if warm > 0:
             ramp = torch.optim.lr_scheduler.LinearLR(opt, start_factor=1.0 / warm, end_factor=1.0, total_iters=warm)
             sched = torch.optim.lr_scheduler.SequentialLR(opt, [ramp, sched], milestones=[warm])
@@ -317,8 +325,10 @@ class DepthRestorer(pl.LightningModule):
         weights = step_loss_weights(net, len(preds))
         # the loss in millimetres relative to the offset (differences are those of the restored depth in mm)
         target_mm = batch["clean"].float() - offset
-        terms = [self.criterion.terms(p.float() * self.hparams.depth_scale_mm, target_mm, batch["sigma"],
-                                      batch["mask"]) for p in preds]
+        terms = [
+            self.criterion.terms(p.float() * self.hparams.depth_scale_mm, target_mm, batch["sigma"], batch["mask"])
+            for p in preds
+        ]
         if len(terms) == 1:
             return terms[0]
         return {key: sum(w * t[key] for w, t in zip(weights, terms)) for key in terms[0]}
@@ -331,8 +341,10 @@ class DepthRestorer(pl.LightningModule):
         terms = self.training_terms(batch)
         loss = terms["loss"]
         if not torch.isfinite(loss):
-            raise FloatingPointError(f"DepthRestorer: non-finite training loss {loss.item()} at step "
-                                     f"{self.global_step} (lower lr, enable gradient clipping, check the data)")
+            raise FloatingPointError(
+                f"DepthRestorer: non-finite training loss {loss.item()} at step "
+                f"{self.global_step} (lower lr, enable gradient clipping, check the data)"
+            )
         batch_size = batch["noisy"].shape[0]
         self.log("train/loss", loss, on_step=True, on_epoch=True, prog_bar=True, batch_size=batch_size)
         for name, value in terms.items():  # the parts: train/loss_l1; train/loss_nar; train/loss_nar + _grad
@@ -352,8 +364,13 @@ class DepthRestorer(pl.LightningModule):
         self.log("val/loss", loss, on_step=False, on_epoch=True, batch_size=pred_mm.shape[0], sync_dist=True)
         index = _loader_index(batch.get("index"), dataloader_idx)
         self.val_metrics.update(pred_mm, batch["clean"], batch["mask"], index=index)
-        self.val_raw_metrics.update(batch["noisy"], batch["clean"], batch["mask"], index=index,
-                                    per_image=self._raw_val_per_image(batch, batch_idx, dataloader_idx))
+        self.val_raw_metrics.update(
+            batch["noisy"],
+            batch["clean"],
+            batch["mask"],
+            index=index,
+            per_image=self._raw_val_per_image(batch, batch_idx, dataloader_idx),
+        )
         return {"pred_mm": pred_mm}
 
     def _raw_val_per_image(self, batch: dict[str, Any], batch_idx: int, dataloader_idx: int) -> dict[str, Tensor]:
@@ -433,8 +450,11 @@ class DepthRestorer(pl.LightningModule):
             rows, raw_rows = metric.per_image_rows(), raw_metric.per_image_rows()
             counts = metric.counts()
             self.test_results[set_name] = set_entry(restored, raw, counts)
-            self.test_per_image[set_name] = {"rows": rows, "raw_rows": raw_rows,
-                                             "names": _gather_names(self._test_names[set_name])}
+            self.test_per_image[set_name] = {
+                "rows": rows,
+                "raw_rows": raw_rows,
+                "names": _gather_names(self._test_names[set_name]),
+            }
             logged = {f"test/{set_name}/{k}": v for k, v in restored.items()}
             logged.update({f"test/{set_name}/raw/{k}": v for k, v in raw.items()})
             self.log_dict(logged)
@@ -465,8 +485,11 @@ class DepthRestorer(pl.LightningModule):
             score = getattr(cb, "best_model_score", None)
             if score is not None and getattr(cb, "monitor", None) == "val/mae_mm":
                 best = float(score)
-        return {"trained_steps": int(self.trainer.global_step), "best_val_mae_mm": best,
-                "raw_val_mae_mm": self._raw_val_mae_mm}
+        return {
+            "trained_steps": int(self.trainer.global_step),
+            "best_val_mae_mm": best,
+            "raw_val_mae_mm": self._raw_val_mae_mm,
+        }
 
     def learned_record(self) -> dict[str, Any]:
         """The learned guard's verdict (``training.results.learned_verdict``: ``trained_steps``,
@@ -496,8 +519,10 @@ class DepthRestorer(pl.LightningModule):
         """The validation result of a classical filter's parameter search (its "fit"): the validation MAE of
         the chosen parameters and the raw validation MAE on the same images, for :meth:`learned_record`."""
         if self.trainable:
-            raise RuntimeError(f"DepthRestorer.record_tuning: backbone {self.hparams.backbone!r} is a network; "
-                               "its validation MAEs come from trainer.fit")
+            raise RuntimeError(
+                f"DepthRestorer.record_tuning: backbone {self.hparams.backbone!r} is a network; "
+                "its validation MAEs come from trainer.fit"
+            )
         self._min_val_mae_mm = float(best_val_mae_mm)
         self._raw_val_mae_mm = float(raw_val_mae_mm)
 
@@ -536,7 +561,8 @@ class DepthRestorer(pl.LightningModule):
             raise CheckpointMismatchError(
                 f"checkpoint was written by a DepthRestorer with another architecture ({lines}). "
                 f"Load it with DepthRestorer.load_from_checkpoint(path) (it rebuilds the saved backbone), "
-                f"or select backbone={theirs['backbone']!r} with the same backbone_kwargs")
+                f"or select backbone={theirs['backbone']!r} with the same backbone_kwargs"
+            )
 
 
 def step_predictions(out: Tensor | Sequence[Tensor]) -> list[Tensor]:
@@ -547,8 +573,10 @@ def step_predictions(out: Tensor | Sequence[Tensor]) -> list[Tensor]:
         return [out]
     if isinstance(out, (list, tuple)) and out and all(isinstance(p, Tensor) for p in out):
         return list(out)
-    raise TypeError(f"backbone output: expected a tensor or a non-empty list/tuple of tensors (one per refinement "
-                    f"step), got {type(out).__name__}")
+    raise TypeError(
+        f"backbone output: expected a tensor or a non-empty list/tuple of tensors (one per refinement "
+        f"step), got {type(out).__name__}"
+    )
 
 
 def final_prediction(out: Tensor | Sequence[Tensor]) -> Tensor:
@@ -564,8 +592,10 @@ def step_loss_weights(backbone: nn.Module, steps: int) -> list[float]:
         return [1.0 / steps] * steps
     raw = [float(w) for w in raw]
     if len(raw) != steps or min(raw) < 0 or not sum(raw) > 0:
-        raise ValueError(f"{type(backbone).__name__}.step_loss_weights: expected {steps} non-negative weights (one per "
-                         f"returned step prediction, not all 0), got {raw}")
+        raise ValueError(
+            f"{type(backbone).__name__}.step_loss_weights: expected {steps} non-negative weights (one per "
+            f"returned step prediction, not all 0), got {raw}"
+        )
     total = sum(raw)
     return [w / total for w in raw]
 
@@ -576,8 +606,13 @@ LEARNED_RECORD_KEY = "tofdenoise_learned_record"
 _LOADER_INDEX_STRIDE = 1 << 32
 
 
-def _check_backbone_input(backbone: str, backbone_kwargs: dict[str, Any], input_centering: str,
-                          use_signal_channel: bool, depth_scale_mm: float) -> None:
+def _check_backbone_input(
+    backbone: str,
+    backbone_kwargs: dict[str, Any],
+    input_centering: str,
+    use_signal_channel: bool,
+    depth_scale_mm: float,
+) -> None:
     """A backbone's stated input needs (class attributes ``input_centering_modes``, ``needs_signal_channel``;
     a ``depth_scale_mm`` argument is DepthRestorer's own) against the DepthRestorer settings."""
     from tofdenoise.models.registry import backbone_factory
@@ -585,15 +620,20 @@ def _check_backbone_input(backbone: str, backbone_kwargs: dict[str, Any], input_
     factory = backbone_factory(backbone)
     modes = tuple(getattr(factory, "input_centering_modes", CENTERING_MODES))
     if input_centering not in modes:
-        raise ValueError(f"DepthRestorer: backbone {backbone!r} needs input_centering in {list(modes)}, got "
-                         f"{input_centering!r} (a local offset changes the depth differences it compares)")
+        raise ValueError(
+            f"DepthRestorer: backbone {backbone!r} needs input_centering in {list(modes)}, got "
+            f"{input_centering!r} (a local offset changes the depth differences it compares)"
+        )
     if getattr(factory, "needs_signal_channel", False) and not use_signal_channel:
-        raise ValueError(f"DepthRestorer: backbone {backbone!r} needs the amplitude channel: set "
-                         "use_signal_channel=true")
+        raise ValueError(
+            f"DepthRestorer: backbone {backbone!r} needs the amplitude channel: set use_signal_channel=true"
+        )
     given = backbone_kwargs.get("depth_scale_mm", depth_scale_mm)
     if given != depth_scale_mm:
-        raise ValueError(f"DepthRestorer: backbone_kwargs.depth_scale_mm={given} contradicts depth_scale_mm="
-                         f"{depth_scale_mm}; leave it out of backbone_kwargs (DepthRestorer passes its own)")
+        raise ValueError(
+            f"DepthRestorer: backbone_kwargs.depth_scale_mm={given} contradicts depth_scale_mm="
+            f"{depth_scale_mm}; leave it out of backbone_kwargs (DepthRestorer passes its own)"
+        )
 
 
 def _loader_index(index: Any, dataloader_idx: int) -> Tensor | None:
@@ -622,8 +662,11 @@ def _record_from_checkpoint(checkpoint: dict[str, Any]) -> dict[str, Any]:
     ``global_step`` and the ``val/mae_mm`` checkpoint callback's best score (raw MAE unknown)."""
     saved = checkpoint.get(LEARNED_RECORD_KEY)
     if isinstance(saved, dict):
-        return {"trained_steps": int(saved.get("trained_steps") or 0),
-                "best_val_mae_mm": saved.get("best_val_mae_mm"), "raw_val_mae_mm": saved.get("raw_val_mae_mm")}
+        return {
+            "trained_steps": int(saved.get("trained_steps") or 0),
+            "best_val_mae_mm": saved.get("best_val_mae_mm"),
+            "raw_val_mae_mm": saved.get("raw_val_mae_mm"),
+        }
     best = None
     for state in (checkpoint.get("callbacks") or {}).values():
         score = state.get("best_model_score") if isinstance(state, dict) else None

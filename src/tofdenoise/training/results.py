@@ -51,7 +51,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from tofdenoise.atomic import atomic_write_bytes, atomic_write_text
+from tofdenoise.atomic import atomic_write_text
 from tofdenoise.training.metrics import METRIC_KEYS
 
 __all__ = [
@@ -80,8 +80,15 @@ __all__ = [
 EXTRA_KEYS = ("mae_mm_pooled", "images", "skipped_images", "valid_px")
 CSV_COLUMNS = ("index", "name", "valid_px") + METRIC_KEYS
 #: run-level (top-level, not per-set) fields of ``metrics.json``: the learned guard and the kind of method
-RUN_KEYS = ("trained_steps", "best_val_mae_mm", "raw_val_mae_mm", "learned_margin", "learned", "learned_reason",
-            "method_kind")
+RUN_KEYS = (
+    "trained_steps",
+    "best_val_mae_mm",
+    "raw_val_mae_mm",
+    "learned_margin",
+    "learned",
+    "learned_reason",
+    "method_kind",
+)
 #: ``method_kind``: a trained network, or a classical filter whose few parameters were tuned on validation
 METHOD_KINDS = ("network", "classical")
 #: the records of a run folder (written by ``tofdenoise.callbacks.run_outputs.RunOutputs``): the test metrics,
@@ -101,8 +108,9 @@ def _finite_or_none(value: Any) -> float | None:
     return v if math.isfinite(v) else None
 
 
-def learned_verdict(trained_steps: int | None, best_val_mae_mm: Any, raw_val_mae_mm: Any,
-                    margin: float = DEFAULT_LEARNED_MARGIN) -> dict[str, Any]:
+def learned_verdict(
+    trained_steps: int | None, best_val_mae_mm: Any, raw_val_mae_mm: Any, margin: float = DEFAULT_LEARNED_MARGIN
+) -> dict[str, Any]:
     """Did the network learn? ``learned`` is True only when the run took at least one optimiser step and its
     best validation MAE is at most ``(1 - margin)`` times the raw (noisy input) validation MAE.
 
@@ -113,32 +121,44 @@ def learned_verdict(trained_steps: int | None, best_val_mae_mm: Any, raw_val_mae
         raise ValueError(f"learned margin must be in [0, 1), got {margin}")
     steps = int(trained_steps or 0)
     best, raw = _finite_or_none(best_val_mae_mm), _finite_or_none(raw_val_mae_mm)
-    out: dict[str, Any] = {"method_kind": "network", "trained_steps": steps, "best_val_mae_mm": best,
-                           "raw_val_mae_mm": raw, "learned_margin": float(margin)}
+    out: dict[str, Any] = {
+        "method_kind": "network",
+        "trained_steps": steps,
+        "best_val_mae_mm": best,
+        "raw_val_mae_mm": raw,
+        "learned_margin": float(margin),
+    }
     if steps <= 0:
         out["learned"] = False
-        out["learned_reason"] = ("not trained: 0 optimiser steps (e.g. trainer.max_epochs=0); the metrics are "
-                                 "those of the untrained network")
+        out["learned_reason"] = (
+            "not trained: 0 optimiser steps (e.g. trainer.max_epochs=0); the metrics are those of the untrained network"
+        )
         return out
     if best is None or raw is None:
         missing = " and ".join(n for n, v in (("best val MAE", best), ("raw val MAE", raw)) if v is None)
         out["learned"] = False
-        out["learned_reason"] = (f"not verified: no {missing} was recorded (validation did not run), so nothing "
-                                 "shows that the network learned")
+        out["learned_reason"] = (
+            f"not verified: no {missing} was recorded (validation did not run), so nothing "
+            "shows that the network learned"
+        )
         return out
     needed = (1.0 - float(margin)) * raw
     out["learned"] = best <= needed
     if out["learned"]:
-        out["learned_reason"] = (f"learned: best val MAE {best:.2f} mm <= {needed:.2f} mm "
-                                 f"(raw {raw:.2f} mm less {margin:.0%})")
+        out["learned_reason"] = (
+            f"learned: best val MAE {best:.2f} mm <= {needed:.2f} mm (raw {raw:.2f} mm less {margin:.0%})"
+        )
     else:
-        out["learned_reason"] = (f"did not learn: best val MAE {best:.2f} mm vs raw {raw:.2f} mm "
-                                 f"(needs <= {needed:.2f} mm, {margin:.0%} below raw)")
+        out["learned_reason"] = (
+            f"did not learn: best val MAE {best:.2f} mm vs raw {raw:.2f} mm "
+            f"(needs <= {needed:.2f} mm, {margin:.0%} below raw)"
+        )
     return out
 
 
-def classical_verdict(best_val_mae_mm: Any, raw_val_mae_mm: Any,
-                      margin: float = DEFAULT_LEARNED_MARGIN) -> dict[str, Any]:
+def classical_verdict(
+    best_val_mae_mm: Any, raw_val_mae_mm: Any, margin: float = DEFAULT_LEARNED_MARGIN
+) -> dict[str, Any]:
     """The run-level fields of a classical (non-learned) method: ``method_kind`` "classical", 0 training steps,
     ``learned`` False (nothing was learned, and that is no failure: ``learned_status`` says "classical"), and
     as ``best_val_mae_mm`` the validation MAE of the parameters its tuning chose (``raw_val_mae_mm`` on the same
@@ -146,16 +166,24 @@ def classical_verdict(best_val_mae_mm: Any, raw_val_mae_mm: Any,
     if not 0.0 <= float(margin) < 1.0:
         raise ValueError(f"learned margin must be in [0, 1), got {margin}")
     best, raw = _finite_or_none(best_val_mae_mm), _finite_or_none(raw_val_mae_mm)
-    out: dict[str, Any] = {"method_kind": "classical", "trained_steps": 0, "best_val_mae_mm": best,
-                           "raw_val_mae_mm": raw, "learned_margin": float(margin), "learned": False}
+    out: dict[str, Any] = {
+        "method_kind": "classical",
+        "trained_steps": 0,
+        "best_val_mae_mm": best,
+        "raw_val_mae_mm": raw,
+        "learned_margin": float(margin),
+        "learned": False,
+    }
     base = "classical method: no trainable parameters, nothing learned"
     if best is None or raw is None:
         out["learned_reason"] = f"{base}; no validation result of its parameter tuning was recorded"
     else:
         needed = (1.0 - float(margin)) * raw
         verdict = "below" if best <= needed else "NOT below"
-        out["learned_reason"] = (f"{base}; parameters tuned on the validation split: val MAE {best:.2f} mm vs raw "
-                                 f"{raw:.2f} mm ({verdict} {needed:.2f} mm, {margin:.0%} below raw)")
+        out["learned_reason"] = (
+            f"{base}; parameters tuned on the validation split: val MAE {best:.2f} mm vs raw "
+            f"{raw:.2f} mm ({verdict} {needed:.2f} mm, {margin:.0%} below raw)"
+        )
     return out
 
 
@@ -216,8 +244,9 @@ def _metric_block(values: Mapping[str, Any], what: str) -> dict[str, Any]:
     return out
 
 
-def set_entry(restored: Mapping[str, Any], raw: Mapping[str, Any] | None = None,
-              counts: Mapping[str, Any] | None = None) -> dict[str, Any]:
+def set_entry(
+    restored: Mapping[str, Any], raw: Mapping[str, Any] | None = None, counts: Mapping[str, Any] | None = None
+) -> dict[str, Any]:
     """One set of ``metrics.json``: the restored metrics, optional counts, and ``raw`` (the noisy input)."""
     entry = _metric_block({**restored, **(counts or {})}, "restored metrics")
     if raw is not None:
@@ -226,9 +255,15 @@ def set_entry(restored: Mapping[str, Any], raw: Mapping[str, Any] | None = None,
 
 
 def _validate_run_fields(results: Mapping[str, Any], source: str) -> None:
-    types: dict[str, tuple[type, ...]] = {"trained_steps": (int,), "best_val_mae_mm": (int, float, type(None)),
-                                          "raw_val_mae_mm": (int, float, type(None)), "learned_margin": (int, float),
-                                          "learned": (bool,), "learned_reason": (str,), "method_kind": (str,)}
+    types: dict[str, tuple[type, ...]] = {
+        "trained_steps": (int,),
+        "best_val_mae_mm": (int, float, type(None)),
+        "raw_val_mae_mm": (int, float, type(None)),
+        "learned_margin": (int, float),
+        "learned": (bool,),
+        "learned_reason": (str,),
+        "method_kind": (str,),
+    }
     for key, allowed in types.items():
         if key not in results:
             continue
@@ -236,8 +271,7 @@ def _validate_run_fields(results: Mapping[str, Any], source: str) -> None:
         if not isinstance(v, allowed) or (key != "learned" and isinstance(v, bool)):
             raise ValueError(f"{source}: '{key}' must be {' or '.join(t.__name__ for t in allowed)}, got {v!r}")
     if "method_kind" in results and results["method_kind"] not in METHOD_KINDS:
-        raise ValueError(f"{source}: 'method_kind' must be one of {list(METHOD_KINDS)}, got "
-                         f"{results['method_kind']!r}")
+        raise ValueError(f"{source}: 'method_kind' must be one of {list(METHOD_KINDS)}, got {results['method_kind']!r}")
 
 
 def validate_metrics_results(results: Mapping[str, Any], source: str = "metrics") -> None:
@@ -276,8 +310,7 @@ def _normalise(results: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
     return out
 
 
-def write_metrics_json(path: str | Path, results: Mapping[str, Any],
-                       run: Mapping[str, Any] | None = None) -> Path:
+def write_metrics_json(path: str | Path, results: Mapping[str, Any], run: Mapping[str, Any] | None = None) -> Path:
     """Write ``{"synthetic": {...}, "real": {...}}`` to ``path`` atomically (strict JSON, sorted sets), with
     the run-level fields of ``run`` (e.g. ``learned_verdict(...)``; keys outside ``RUN_KEYS`` are refused) or,
     without ``run``, those already in ``results``."""
@@ -323,9 +356,12 @@ def _csv_value(v: Any) -> str:
     return str(v)
 
 
-def write_per_image_csv(path: str | Path, rows: Sequence[Mapping[str, Any]],
-                        raw_rows: Sequence[Mapping[str, Any]] | None = None,
-                        names: Mapping[int, str] | Sequence[str] | None = None) -> Path:
+def write_per_image_csv(
+    path: str | Path,
+    rows: Sequence[Mapping[str, Any]],
+    raw_rows: Sequence[Mapping[str, Any]] | None = None,
+    names: Mapping[int, str] | Sequence[str] | None = None,
+) -> Path:
     """Write one CSV row per image (atomic). ``raw_rows`` are matched to ``rows`` by ``index``."""
     raw_by_index: dict[Any, Mapping[str, Any]] = {}
     if raw_rows is not None:

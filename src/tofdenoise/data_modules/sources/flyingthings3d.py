@@ -49,13 +49,23 @@ class FlyingThings3DSource:
 
     name = "flyingthings3d"
 
-    def __init__(self, root: str | Path | None, list_files: list[str] | tuple[str, ...] | None = None,
-                 hfov_deg: float = HFOV_DEG, min_valid_mm: float = 10.0, max_valid_mm: float = 4095.0):
+    def __init__(
+        self,
+        root: str | Path | None,
+        list_files: list[str] | tuple[str, ...] | None = None,
+        hfov_deg: float = HFOV_DEG,
+        min_valid_mm: float = 10.0,
+        max_valid_mm: float = 4095.0,
+    ):
         if root is None or str(root) == "":
-            raise ValueError("the flyingthings3d source needs its dataset folder: set data.root=/path/to/ToF-FlyingThings3D")
+            raise ValueError(
+                "the flyingthings3d source needs its dataset folder: set data.root=/path/to/ToF-FlyingThings3D"
+            )
         self.root = Path(root).expanduser()
         if not self.root.is_dir():
-            raise FileNotFoundError(f"ToF-FlyingThings3D root not found: {self.root} (set data.root to the dataset folder)")
+            raise FileNotFoundError(
+                f"ToF-FlyingThings3D root not found: {self.root} (set data.root to the dataset folder)"
+            )
         self.list_files = tuple(list_files) if list_files else None
         self.hfov_deg = float(hfov_deg)
         self.min_valid_mm, self.max_valid_mm = float(min_valid_mm), float(max_valid_mm)
@@ -68,8 +78,9 @@ class FlyingThings3DSource:
             return [self.root / name for name in self.list_files]
         found = [self.root / name for name in DEFAULT_LISTS if (self.root / name).is_file()]
         if not found:
-            raise FileNotFoundError(f"no list file in {self.root}: expected {' or '.join(DEFAULT_LISTS)} "
-                                    "(or set data.list_files)")
+            raise FileNotFoundError(
+                f"no list file in {self.root}: expected {' or '.join(DEFAULT_LISTS)} (or set data.list_files)"
+            )
         return found
 
     def sample_ids(self) -> list[str]:
@@ -92,14 +103,19 @@ class FlyingThings3DSource:
                     self._gt_dir = self.root / name
                     break
             else:
-                raise FileNotFoundError(f"ToF-FlyingThings3D ground truth folder not found under {self.root}: "
-                                        f"expected {' or '.join(GT_DIRS)}/")
+                raise FileNotFoundError(
+                    f"ToF-FlyingThings3D ground truth folder not found under {self.root}: "
+                    f"expected {' or '.join(GT_DIRS)}/"
+                )
         return self._gt_dir
 
     def paths(self, token: str) -> dict[str, Path]:
         gt = self.gt_dir()
-        return {"depth": gt / f"{token}_gt_depth.mat", "conf": gt / f"{token}_gt_conf.mat",
-                "amplitude": self.root / "nToF" / f"{token}_noisy_intensity.png"}
+        return {
+            "depth": gt / f"{token}_gt_depth.mat",
+            "conf": gt / f"{token}_gt_conf.mat",
+            "amplitude": self.root / "nToF" / f"{token}_noisy_intensity.png",
+        }
 
     def check(self) -> None:
         """Every listed token must have its three files (reported before training, with the first misses)."""
@@ -113,20 +129,37 @@ class FlyingThings3DSource:
         if gt.ndim != 2:
             raise DataFileError(f"ToF-FlyingThings3D depth file {paths['depth']} has shape {gt.shape}; expected (H, W)")
         conf = read_mat(paths["conf"], "conf", what="ToF-FlyingThings3D confidence")
-        check_same_shape(gt, conf, reference_path=paths["depth"], other_path=paths["conf"],
-                         what="ToF-FlyingThings3D confidence")
+        check_same_shape(
+            gt, conf, reference_path=paths["depth"], other_path=paths["conf"], what="ToF-FlyingThings3D confidence"
+        )
         amplitude = read_amplitude(paths["amplitude"], what="ToF-FlyingThings3D amplitude")
-        check_same_shape(gt, amplitude, reference_path=paths["depth"], other_path=paths["amplitude"],
-                         what="ToF-FlyingThings3D amplitude")
+        check_same_shape(
+            gt,
+            amplitude,
+            reference_path=paths["depth"],
+            other_path=paths["amplitude"],
+            what="ToF-FlyingThings3D amplitude",
+        )
         radial_mm = gt * np.float32(GT_SCALE)
         with np.errstate(invalid="ignore"):
-            valid = (np.isfinite(radial_mm) & (gt > 0) & (conf > 0)
-                     & (radial_mm > self.min_valid_mm) & (radial_mm < self.max_valid_mm))
+            valid = (
+                np.isfinite(radial_mm)
+                & (gt > 0)
+                & (conf > 0)
+                & (radial_mm > self.min_valid_mm)
+                & (radial_mm < self.max_valid_mm)
+            )
         depth_mm = radial_to_z(np.where(valid, radial_mm, 0.0), self.hfov_deg)
         amplitude = np.where(valid & np.isfinite(amplitude), amplitude, 0.0).astype(np.float32)
         return RawSample(sample_id, depth_mm, amplitude, valid)
 
     def describe(self) -> dict[str, Any]:
-        return {"source": self.name, "root": str(self.root.resolve()),
-                "list_files": [p.name for p in self._list_paths()], "hfov_deg": self.hfov_deg,
-                "gt_scale": GT_SCALE, "min_valid_mm": self.min_valid_mm, "max_valid_mm": self.max_valid_mm}
+        return {
+            "source": self.name,
+            "root": str(self.root.resolve()),
+            "list_files": [p.name for p in self._list_paths()],
+            "hfov_deg": self.hfov_deg,
+            "gt_scale": GT_SCALE,
+            "min_valid_mm": self.min_valid_mm,
+            "max_valid_mm": self.max_valid_mm,
+        }

@@ -32,8 +32,14 @@ from tofdenoise.data_modules.sources.base import (
 class FolderSource:
     name = "folder"
 
-    def __init__(self, root: str | Path | None, list_file: str | Path | None = None, depth_unit_mm: float = 1.0,
-                 min_valid_mm: float = 0.0, max_valid_mm: float = float("inf")):
+    def __init__(
+        self,
+        root: str | Path | None,
+        list_file: str | Path | None = None,
+        depth_unit_mm: float = 1.0,
+        min_valid_mm: float = 0.0,
+        max_valid_mm: float = float("inf"),
+    ):
         if root is None or str(root) == "":
             raise ValueError("the folder source needs its dataset folder: set data.root=/path/to/folder")
         self.root = Path(root).expanduser()
@@ -51,8 +57,10 @@ class FolderSource:
             for number, line in enumerate(read_list_file(self.list_path, what="folder list file"), start=1):
                 parts = line.split()
                 if len(parts) not in (2, 3):
-                    raise ValueError(f"folder list file {self.list_path}, entry {number}: expected "
-                                     f"'<depth> <amplitude> [<mask>]', got {line!r}")
+                    raise ValueError(
+                        f"folder list file {self.list_path}, entry {number}: expected "
+                        f"'<depth> <amplitude> [<mask>]', got {line!r}"
+                    )
                 depth, amplitude = self.root / parts[0], self.root / parts[1]
                 mask = self.root / parts[2] if len(parts) == 3 else None
                 sample_id = str(Path(parts[0]).with_suffix("")).replace("\\", "/")
@@ -73,8 +81,9 @@ class FolderSource:
         depth_path, amplitude_path, mask_path = self.entries()[sample_id]
         depth = read_depth_mm(depth_path, what="folder depth", scale_mm=self.depth_unit_mm)
         amplitude = read_amplitude(amplitude_path, what="folder amplitude")
-        check_same_shape(depth, amplitude, reference_path=depth_path, other_path=amplitude_path,
-                         what="folder amplitude")
+        check_same_shape(
+            depth, amplitude, reference_path=depth_path, other_path=amplitude_path, what="folder amplitude"
+        )
         valid = depth_validity(depth, self.min_valid_mm, self.max_valid_mm)
         if mask_path is not None:
             mask = read_array(mask_path, what="folder mask")
@@ -83,10 +92,19 @@ class FolderSource:
         valid &= np.isfinite(amplitude)
         if np.any(amplitude[valid] < 0):
             raise DataFileError(f"folder amplitude file {amplitude_path} has negative values; expected amplitude >= 0")
-        return RawSample(sample_id, np.where(valid, depth, 0.0).astype(np.float32),
-                         np.where(valid, amplitude, 0.0).astype(np.float32), valid)
+        return RawSample(
+            sample_id,
+            np.where(valid, depth, 0.0).astype(np.float32),
+            np.where(valid, amplitude, 0.0).astype(np.float32),
+            valid,
+        )
 
     def describe(self) -> dict[str, Any]:
-        return {"source": self.name, "root": str(self.root.resolve()), "list_file": str(self.list_path.resolve()),
-                "depth_unit_mm": self.depth_unit_mm, "min_valid_mm": self.min_valid_mm,
-                "max_valid_mm": self.max_valid_mm}
+        return {
+            "source": self.name,
+            "root": str(self.root.resolve()),
+            "list_file": str(self.list_path.resolve()),
+            "depth_unit_mm": self.depth_unit_mm,
+            "min_valid_mm": self.min_valid_mm,
+            "max_valid_mm": self.max_valid_mm,
+        }

@@ -63,11 +63,14 @@ class Texture:
             if self.kind == "stripes":
                 pattern = np.sin(proj + self.phases[0])
             elif self.kind == "checker":
-                pattern = np.sign(np.sin(px * k + self.phases[0]) * np.sin(py * k + self.phases[1])
-                                  * np.sin(pz * k + self.phases[2]) + 1e-6)
+                pattern = np.sign(
+                    np.sin(px * k + self.phases[0]) * np.sin(py * k + self.phases[1]) * np.sin(pz * k + self.phases[2])
+                    + 1e-6
+                )
             else:  # waves: a smooth, non-periodic-looking mix
-                pattern = (np.sin(proj + self.phases[0]) * np.cos(0.37 * k * px + self.phases[1])
-                           + 0.5 * np.sin(0.61 * k * (py - pz) + self.phases[2]))
+                pattern = np.sin(proj + self.phases[0]) * np.cos(0.37 * k * px + self.phases[1]) + 0.5 * np.sin(
+                    0.61 * k * (py - pz) + self.phases[2]
+                )
         return np.clip(self.base * (1.0 + self.contrast * pattern), 0.02, 1.0).astype(np.float32)
 
 
@@ -120,7 +123,7 @@ class Sphere:
         cx, cy, cz = self.center
         dd = x * x + y * y + 1.0
         dc = x * cx + y * cy + cz
-        cc = cx * cx + cy * cy + cz * cz - self.radius ** 2
+        cc = cx * cx + cy * cy + cz * cz - self.radius**2
         disc = dc * dc - dd * cc
         hit = disc >= 0
         t = np.where(hit, (dc - np.sqrt(np.maximum(disc, 0.0))) / dd, _INF).astype(np.float32)
@@ -204,7 +207,7 @@ class Cylinder:
         wpx, wpy, wpz = -cx - w_a * ax, -cy - w_a * ay, -cz - w_a * az
         qa = dpx * dpx + dpy * dpy + dpz * dpz
         qb = 2.0 * (dpx * wpx + dpy * wpy + dpz * wpz)
-        qc = wpx * wpx + wpy * wpy + wpz * wpz - self.radius ** 2
+        qc = wpx * wpx + wpy * wpy + wpz * wpz - self.radius**2
         disc = qb * qb - 4.0 * qa * qc
         ok = (disc >= 0) & (qa > 1e-12)
         t_side = np.where(ok, (-qb - np.sqrt(np.maximum(disc, 0.0))) / (2.0 * np.maximum(qa, 1e-12)), _INF)
@@ -219,7 +222,7 @@ class Cylinder:
             px, py, pz = tc * x - cx, tc * y - cy, tc - cz
             along = px * ax + py * ay + pz * az
             radial2 = px * px + py * py + pz * pz - along * along
-            good = (tc > 0) & (radial2 <= self.radius ** 2) & (tc < t_cap)
+            good = (tc > 0) & (radial2 <= self.radius**2) & (tc < t_cap)
             t_cap = np.where(good, tc, t_cap)
             cap_sign = np.where(good, s, cap_sign)
         use_cap = t_cap < t_side
@@ -260,8 +263,15 @@ class SceneSpec:
     primitives: tuple[Any, ...]
 
 
-def generate_scene(seed: int, index: int, height: int, width: int, min_depth_mm: float, max_depth_mm: float,
-                   hfov_deg: float = DEFAULT_HFOV_DEG) -> SceneSpec:
+def generate_scene(
+    seed: int,
+    index: int,
+    height: int,
+    width: int,
+    min_depth_mm: float,
+    max_depth_mm: float,
+    hfov_deg: float = DEFAULT_HFOV_DEG,
+) -> SceneSpec:
     """Draw scene ``index`` of ``seed``: a slanted back wall, optional floor / side wall, 4-9 objects."""
     if not 0 < min_depth_mm < max_depth_mm:
         raise ValueError(f"procedural scenes need 0 < min_depth_mm < max_depth_mm, got {min_depth_mm}, {max_depth_mm}")
@@ -307,8 +317,11 @@ def generate_scene(seed: int, index: int, height: int, width: int, min_depth_mm:
             half = tuple(float(v) for v in rng.uniform(0.35, 1.0, size=3) * size / math.sqrt(3.0))
             prims.append(Box(center, tuple(map(tuple, _random_rotation(rng))), half, texture))
         elif kind == "plate":  # a thin slab: sharp-edged, nearly planar structure
-            half = (float(size * rng.uniform(0.5, 0.7)), float(size * rng.uniform(0.5, 0.7)),
-                    float(rng.uniform(2.0, 8.0)))
+            half = (
+                float(size * rng.uniform(0.5, 0.7)),
+                float(size * rng.uniform(0.5, 0.7)),
+                float(rng.uniform(2.0, 8.0)),
+            )
             prims.append(Box(center, tuple(map(tuple, _random_rotation(rng, 1.0))), half, texture))
         else:
             axis = _random_rotation(rng, 0.5 if kind == "cylinder" else 1.2)[:, 1]
@@ -350,7 +363,9 @@ def render_scene(spec: SceneSpec) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     normals = np.zeros((3, height, width), dtype=np.float32)
     for k, prim in enumerate(spec.primitives):
         bounds = prim.bounds()
-        window = (0, height, 0, width) if bounds is None else _screen_window(bounds, f, height, width, spec.min_depth_mm)
+        window = (
+            (0, height, 0, width) if bounds is None else _screen_window(bounds, f, height, width, spec.min_depth_mm)
+        )
         if window is None:
             continue
         v0, v1, u0, u1 = window
@@ -363,7 +378,7 @@ def render_scene(spec: SceneSpec) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
             normals[c, v0:v1, u0:u1] = np.where(closer, n, normals[c, v0:v1, u0:u1])
     # shading: cos(incidence) = |n . d| / (|n| |d|); range r = z |d|
     d_norm = np.sqrt(x * x + y * y + 1.0)
-    n_norm = np.sqrt((normals ** 2).sum(axis=0)) + 1e-12
+    n_norm = np.sqrt((normals**2).sum(axis=0)) + 1e-12
     cos_inc = np.abs(normals[0] * x + normals[1] * y + normals[2]) / (n_norm * d_norm)
     finite = np.isfinite(depth)
     px, py, pz = np.where(finite, depth * x, 0), np.where(finite, depth * y, 0), np.where(finite, depth, 0)
@@ -386,8 +401,16 @@ class ProceduralSource:
 
     name = "procedural"
 
-    def __init__(self, num_samples: int = 48, height: int = 480, width: int = 640, seed: int = 0,
-                 min_depth_mm: float = 300.0, max_depth_mm: float = 2000.0, hfov_deg: float = DEFAULT_HFOV_DEG):
+    def __init__(
+        self,
+        num_samples: int = 48,
+        height: int = 480,
+        width: int = 640,
+        seed: int = 0,
+        min_depth_mm: float = 300.0,
+        max_depth_mm: float = 2000.0,
+        hfov_deg: float = DEFAULT_HFOV_DEG,
+    ):
         if num_samples < 1:
             raise ValueError(f"data.num_samples must be >= 1 for the procedural source, got {num_samples}")
         if height < 8 or width < 8:
@@ -412,12 +435,26 @@ class ProceduralSource:
             raise KeyError(f"not a procedural sample id: {sample_id!r}") from exc
 
     def load(self, sample_id: str) -> RawSample:
-        spec = generate_scene(self.seed, self.index_of(sample_id), self.height, self.width, self.min_depth_mm,
-                              self.max_depth_mm, self.hfov_deg)
+        spec = generate_scene(
+            self.seed,
+            self.index_of(sample_id),
+            self.height,
+            self.width,
+            self.min_depth_mm,
+            self.max_depth_mm,
+            self.hfov_deg,
+        )
         depth, amplitude, valid = render_scene(spec)
         return RawSample(sample_id, depth, amplitude, valid)
 
     def describe(self) -> dict[str, Any]:
-        return {"source": self.name, "height": self.height, "width": self.width, "seed": self.seed,
-                "min_depth_mm": self.min_depth_mm, "max_depth_mm": self.max_depth_mm, "hfov_deg": self.hfov_deg,
-                "renderer": 1}
+        return {
+            "source": self.name,
+            "height": self.height,
+            "width": self.width,
+            "seed": self.seed,
+            "min_depth_mm": self.min_depth_mm,
+            "max_depth_mm": self.max_depth_mm,
+            "hfov_deg": self.hfov_deg,
+            "renderer": 1,
+        }
