@@ -6,6 +6,8 @@ notebooks); the folder is ``tofdenoise.paths.CONFIG_DIR``.
 
 from __future__ import annotations
 
+import sys
+from collections.abc import Callable
 from pathlib import Path
 
 from omegaconf import DictConfig
@@ -28,3 +30,30 @@ def compose_config(overrides: list[str] | None = None, config_name: str = "train
     GlobalHydra.instance().clear()
     with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
         return compose(config_name=config_name, overrides=list(overrides or []))
+
+
+def hydra_console_script(
+    config_name: str, run: Callable[[DictConfig], object], prog: str, errors: tuple[type[BaseException], ...]
+) -> Callable[[], None]:
+    """The ``main()`` of a Hydra console script: compose ``configs/<config_name>.yaml`` with the command line, set
+    ``paths.run_dir`` to the folder Hydra created (it may contain ``${now:...}``: resolved once), call ``run`` and
+    turn the ``errors`` into one ``<prog>: error: ...`` line and exit status 2 instead of a traceback."""
+    import hydra
+
+    def entry(cfg: DictConfig) -> None:
+        from hydra.core.hydra_config import HydraConfig
+        from omegaconf import open_dict
+
+        if HydraConfig.initialized():
+            with open_dict(cfg):
+                cfg.paths.run_dir = HydraConfig.get().runtime.output_dir
+        try:
+            run(cfg)
+        except errors as exc:
+            print(f"{prog}: error: {exc}", file=sys.stderr)
+            raise SystemExit(2) from None
+
+    def main() -> None:
+        hydra.main(version_base="1.3", config_path=str(config_dir()), config_name=config_name)(entry)()
+
+    return main

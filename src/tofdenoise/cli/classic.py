@@ -24,19 +24,17 @@ import itertools
 import json
 import logging
 import math
-import sys
 import time
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-import hydra
 import torch
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from tofdenoise.atomic import atomic_write_text
 from tofdenoise.cli.train import validate_config
-from tofdenoise.config import config_dir
+from tofdenoise.config import hydra_console_script
 from tofdenoise.training.results import RUN_INFO_NAME
 
 __all__ = ["main", "run", "grid_points", "tune", "select_best", "TUNING_NAME", "GRID_KEYS", "DEFAULT_BACKBONE"]
@@ -259,22 +257,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     return {"run_dir": str(run_dir), "best": best_params, "metrics": metrics, "tuning": tuning}
 
 
-def _hydra_entry(cfg: DictConfig) -> None:
-    from hydra.core.hydra_config import HydraConfig
-
-    if HydraConfig.initialized():
-        with open_dict(cfg):
-            cfg.paths.run_dir = HydraConfig.get().runtime.output_dir
-    try:
-        run(cfg)
-    except (ValueError, FileNotFoundError) as exc:
-        print(f"tofdenoise-classic: error: {exc}", file=sys.stderr)
-        raise SystemExit(2) from None
-
-
-def main() -> None:
-    """Console script ``tofdenoise-classic`` (Hydra command line, like ``tofdenoise-train``)."""
-    hydra.main(version_base="1.3", config_path=str(config_dir()), config_name="classical")(_hydra_entry)()
+#: console script ``tofdenoise-classic`` (Hydra command line, like ``tofdenoise-train``)
+main = hydra_console_script("classical", run, "tofdenoise-classic", (ValueError, FileNotFoundError))
 
 
 if __name__ == "__main__":

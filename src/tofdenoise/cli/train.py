@@ -20,15 +20,13 @@ Examples::
 from __future__ import annotations
 
 import logging
-import sys
 from pathlib import Path
 from typing import Any
 
-import hydra
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from tofdenoise.cli.checkpoint_check import CheckpointFileError, check_checkpoint_file, resolve_ckpt_path
-from tofdenoise.config import config_dir
+from tofdenoise.config import hydra_console_script
 from tofdenoise.registry import Registry
 from tofdenoise.wandb_env import finish_wandb, setup_wandb_env, wandb_run_id
 
@@ -191,23 +189,8 @@ def _test_checkpoint(cfg: DictConfig, trainer: Any, run_dir: Path) -> str | None
     return str(check_checkpoint_file(best))
 
 
-def _hydra_entry(cfg: DictConfig) -> None:
-    from hydra.core.hydra_config import HydraConfig
-
-    if HydraConfig.initialized():
-        # the folder Hydra created (paths.run_dir may contain ${now:...}: resolve it once)
-        with open_dict(cfg):
-            cfg.paths.run_dir = HydraConfig.get().runtime.output_dir
-    try:
-        run(cfg)
-    except CheckpointFileError as exc:  # one line that says what to do, not a traceback
-        print(f"tofdenoise-train: error: {exc}", file=sys.stderr)
-        raise SystemExit(2) from None
-
-
-def main() -> None:
-    """Console script ``tofdenoise-train`` (Hydra command line: overrides, ``--multirun``, ``--cfg job``)."""
-    hydra.main(version_base="1.3", config_path=str(config_dir()), config_name="train")(_hydra_entry)()
+#: console script ``tofdenoise-train`` (Hydra command line: overrides, ``--multirun``, ``--cfg job``)
+main = hydra_console_script("train", run, "tofdenoise-train", (CheckpointFileError,))
 
 
 if __name__ == "__main__":
