@@ -100,6 +100,14 @@ def _check_shapes(u, delta, A, B, C, D, delta_bias) -> tuple[torch.Tensor, torch
     return B, C, _Dims(batch, dim, length, groups, n)
 
 
+def _compute_inputs(u, delta, A, B, C, delta_bias, delta_softplus) -> tuple[torch.Tensor, ...]:
+    """``(u, delta, A, B, C)`` contiguous in the compute dtype (float64 for float64 input, else float32), with
+    ``delta`` already through the bias and softplus (:func:`_effective_delta`)."""
+    compute = torch.float64 if u.dtype == torch.float64 else torch.float32
+    delta = _effective_delta(delta.to(compute), None if delta_bias is None else delta_bias.to(compute), delta_softplus)
+    return tuple(t.to(compute).contiguous() for t in (u, delta, A, B, C))
+
+
 def _effective_delta(delta: torch.Tensor, delta_bias: torch.Tensor | None, delta_softplus: bool) -> torch.Tensor:
     if delta_bias is not None:
         delta = delta + delta_bias.to(delta.dtype)[None, :, None]
@@ -277,17 +285,9 @@ class _SequentialScanFn(torch.autograd.Function):
 def selective_scan_sequential(u, delta, A, B, C, D=None, delta_bias=None, delta_softplus=False) -> torch.Tensor:
     """Sequential loop over L with a hand-written backward storing all states (benchmark baseline)."""
     B, C, _ = _check_shapes(u, delta, A, B, C, D, delta_bias)
-    dtype = u.dtype
-    compute = torch.float64 if dtype == torch.float64 else torch.float32
-    delta = _effective_delta(delta.to(compute), None if delta_bias is None else delta_bias.to(compute), delta_softplus)
-    y = _SequentialScanFn.apply(
-        u.to(compute).contiguous(),
-        delta.contiguous(),
-        A.to(compute).contiguous(),
-        B.to(compute).contiguous(),
-        C.to(compute).contiguous(),
-    )
-    return _finish(y, u.to(compute), None if D is None else D.to(compute)).to(dtype)
+    ins = _compute_inputs(u, delta, A, B, C, delta_bias, delta_softplus)
+    y = _SequentialScanFn.apply(*ins)
+    return _finish(y, ins[0], None if D is None else D.to(ins[0].dtype)).to(u.dtype)
 
 
 # ------------------------------------------------------------------------------------ chunked scan
@@ -476,19 +476,9 @@ def selective_scan_chunked(
         raise ValueError(
             f"selective_scan_chunked: chunk_size and group_elems must be >= 1, got {chunk_size}, {group_elems}"
         )
-    dtype = u.dtype
-    compute = torch.float64 if dtype == torch.float64 else torch.float32
-    delta = _effective_delta(delta.to(compute), None if delta_bias is None else delta_bias.to(compute), delta_softplus)
-    y = _ChunkedScanFn.apply(
-        u.to(compute).contiguous(),
-        delta.contiguous(),
-        A.to(compute).contiguous(),
-        B.to(compute).contiguous(),
-        C.to(compute).contiguous(),
-        int(chunk_size),
-        int(group_elems),
-    )
-    return _finish(y, u.to(compute), None if D is None else D.to(compute)).to(dtype)
+    ins = _compute_inputs(u, delta, A, B, C, delta_bias, delta_softplus)
+    y = _ChunkedScanFn.apply(*ins, int(chunk_size), int(group_elems))
+    return _finish(y, ins[0], None if D is None else D.to(ins[0].dtype)).to(u.dtype)
 
 
 # ------------------------------------------------------------------------------------- dispatch
