@@ -155,6 +155,8 @@ MAKE_TRAIN = {
         "loss": "full",
         "loss_kwargs": {"beta": 0.5, "eps": 0.001, "eta": 1e-06, "lambda_g": 0.1},
         "lr": 0.001,
+        # rcf's amplitude channel (configs/model/default.yaml reads backbone.use_signal_channel, false for unet)
+        "use_signal_channel": False,
         "warmup_steps": 100,
     },
     "data": {
