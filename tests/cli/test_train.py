@@ -51,6 +51,9 @@ def test_fast_dev_run_fit_and_test_every_backbone(backbone, tmp_path, data_cache
     info = json.loads((tmp_path / "run_info.json").read_text())
     assert {"backbone": backbone, "noise": "hetero", "loss": "full"}.items() <= info.items()
     assert info["run_name"] == f"{backbone}-hetero-full" and info["global_step"] == 1
+    # what the datamodule prepared (ToFDataModule.summary): split sizes, training and evaluation noise
+    prepared = info["prepared_data"]
+    assert prepared["noise"] == "hetero" and prepared["eval_noise"] == "hetero" and prepared["sizes"]["test"] >= 1
     assert not (tmp_path / "checkpoints" / "best.ckpt").exists()
 
 

@@ -126,6 +126,7 @@ class RunOutputs(Callback):
         datamodule = getattr(trainer, "datamodule", None)
         noise, source = _hparam(datamodule, "noise"), _hparam(datamodule, "source", "procedural")
         seed = os.environ.get("PL_GLOBAL_SEED")
+        summary = getattr(datamodule, "summary", None)  # ToFDataModule: split sizes, skipped samples, noise, cache
         return {
             "backbone": backbone,
             "noise": noise,
@@ -134,6 +135,7 @@ class RunOutputs(Callback):
             "data": source,
             "seed": int(seed) if seed not in (None, "") else None,
             "started": self.started,
+            "prepared_data": summary() if callable(summary) else None,
         }
 
     def _write_records(self, trainer: pl.Trainer, pl_module: pl.LightningModule, resumed: bool) -> None:
