@@ -94,3 +94,38 @@ def test_records_of_finished_runs_only_and_the_page(tmp_path):
     page = tmp_path / "results.md"
     assert main(["--page-only", "--results", str(tmp_path / "results"), "--page", str(page)]) == 0
     assert "| DVSS, hetero (proposed) | 40.37 / 40.00 (n=1) | 2.78 / 2.50 (n=1) |" in page.read_text()
+
+
+def test_each_finished_run_is_recorded_at_once(tmp_path, monkeypatch):
+    """A table interrupted after its first run keeps that run's records and an updated page."""
+    import tofdenoise.cli.reproduce as reproduce
+    from tofdenoise.experiments.runner import RunOutcome
+
+    out, results, page = tmp_path / "runs", tmp_path / "results", tmp_path / "results.md"
+    metrics = {
+        "synthetic": {
+            "psnr_db": 41.0,
+            "mae_mm": 2.0,
+            "mse_mm2": 8.0,
+            "ssim": 0.99,
+            "raw": {"psnr_db": 30.0, "mae_mm": 7.0, "mse_mm2": 90.0, "ssim": 0.9},
+        }
+    }
+
+    def fake_run_all(specs, out_dir, dry_run=False, after_each=None):
+        first = out_dir / specs[0].name
+        first.mkdir(parents=True)
+        (first / "metrics.json").write_text(json.dumps(metrics))
+        (first / "run_info.json").write_text(json.dumps({"finished": "2026-11-22T10:00:00+0000"}))
+        after_each(RunOutcome(specs[0], first, "done"))
+        assert (results / "cpu" / specs[0].name / "metrics.json").is_file()  # recorded before the next run
+        assert "| DVSS, fixed Gaussian | 39.40 / 41.00 (n=1) | 3.42 / 2.00 (n=1) |" in page.read_text()
+        raise KeyboardInterrupt  # the sitting ends here
+
+    monkeypatch.setattr(reproduce, "ensure_realset", lambda *a, **k: None)
+    monkeypatch.setattr("tofdenoise.experiments.runner.run_all", fake_run_all)
+    with pytest.raises(KeyboardInterrupt):
+        reproduce.main(
+            ["--table", "3", "--seeds", "0", "--out", str(out), "--results", str(results), "--page", str(page)]
+        )
+    assert sorted(p.name for p in (results / "cpu").iterdir()) == ["dvss-fixed-l1-s0"]

@@ -48,8 +48,10 @@ def test_run_skip_and_failure_listed(tmp_path, capsys):
     metrics = json.loads((tmp_path / "good" / "metrics.json").read_text())
     assert "synthetic" in metrics
     # a second sitting: the finished run is skipped, the failed one is tried again (and fails again)
-    again = run_all(specs, tmp_path, python=sys.executable, echo=False)
+    seen = []
+    again = run_all(specs, tmp_path, python=sys.executable, echo=False, after_each=lambda o: seen.append(o.status))
     assert [o.status for o in again] == ["failed", "skipped"]
+    assert seen == ["failed", "skipped"]  # after_each sees every spec as it ends, in order
 
 
 def test_dry_run_marks_resume(tmp_path, capsys):

@@ -191,10 +191,14 @@ def main(argv: list[str] | None = None) -> int:
             status = _fig6(args, realset_dir, dest)
         else:
             specs = table_specs(args.table, args.seeds, profile_overrides(args.profile, realset_dir, args.extra))
-            outcomes = run_all(specs, args.out, dry_run=args.dry_run)
+
+            def record(outcome) -> None:  # commit each finished run at once: an interrupted table keeps it
+                if copy_records([outcome.run_dir], dest):
+                    atomic_write_text(args.page, results_markdown(args.results))
+
+            outcomes = run_all(specs, args.out, dry_run=args.dry_run, after_each=None if args.dry_run else record)
             if args.dry_run:
                 return 0
-            copy_records([o.run_dir for o in outcomes], dest)
             write_report(dest)
             status = 0 if all(o.status in ("done", "skipped") for o in outcomes) else 1
     page = results_markdown(args.results)

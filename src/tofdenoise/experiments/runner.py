@@ -20,7 +20,7 @@ import os
 import subprocess
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -97,8 +97,12 @@ def run_all(
     python: str | None = None,
     env: dict[str, str] | None = None,
     echo: bool = True,
+    after_each: Callable[[RunOutcome], None] | None = None,
 ) -> list[RunOutcome]:
-    """Run every spec not finished yet (see the module docstring); returns one outcome per spec, in order."""
+    """Run every spec not finished yet (see the module docstring); returns one outcome per spec, in order.
+
+    ``after_each(outcome)`` is called after every spec (run, skipped or failed; not in a dry run), e.g. to commit
+    a finished run's records at once, so that a grid interrupted later keeps what it has finished."""
     out_dir = Path(out_dir).expanduser().resolve()
     names = [s.name for s in specs]
     dupes = sorted({n for n in names if names.count(n) > 1})
@@ -113,6 +117,8 @@ def run_all(
             outcomes.append(RunOutcome(spec, run_dir, "skipped"))
             if echo:
                 print(f"{head}: finished before, skipped", flush=True)
+            if after_each is not None:
+                after_each(outcomes[-1])
             continue
         resume = (run_dir / "checkpoints" / "last.ckpt").is_file()
         cmd = [python, "-m", ENTRY_MODULES[spec.entry], *spec.overrides, f"paths.run_dir={run_dir}"]
@@ -145,6 +151,8 @@ def run_all(
                 + ("" if ok else f" (exit {proc.returncode}; log: {run_dir / LOG_NAME})"),
                 flush=True,
             )
+        if after_each is not None:
+            after_each(outcome)
     failed = [o for o in outcomes if o.status == "failed"]
     if echo and failed:
         print(f"{len(failed)} run(s) failed:", flush=True)
