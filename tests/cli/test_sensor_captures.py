@@ -13,29 +13,29 @@ def run(argv):
     return main([str(a) for a in argv])
 
 
+def simulate_args(out, scenes: int) -> list:
+    """`simulate-captures` at the tiny size of these tests (6 frames of 24 x 32, seed 3)."""
+    return [
+        "simulate-captures",
+        "--out",
+        out,
+        "--scenes",
+        scenes,
+        "--frames",
+        6,
+        "--height",
+        24,
+        "--width",
+        32,
+        "--seed",
+        3,
+        "--quiet",
+    ]
+
+
 def test_simulate_captures_writes_the_documented_format(tmp_path, capsys):
     out = tmp_path / "set"
-    assert (
-        run(
-            [
-                "simulate-captures",
-                "--out",
-                out,
-                "--scenes",
-                2,
-                "--frames",
-                6,
-                "--height",
-                24,
-                "--width",
-                32,
-                "--seed",
-                3,
-                "--quiet",
-            ]
-        )
-        == 0
-    )
+    assert run(simulate_args(out, scenes=2)) == 0
     assert "2 scene(s) written" in capsys.readouterr().out
     readme = (out / "README.md").read_text()
     assert "Simulated" in readme and "NOT real data" in readme
@@ -55,47 +55,10 @@ def test_simulate_captures_writes_the_documented_format(tmp_path, capsys):
     assert input_error > 1.0  # a noisy input (tap-level shot/read noise, quantisation)
     assert reference_error < 0.7 * input_error  # averaged high-exposure frames are cleaner
     # same seed -> same set; resumable: completed scenes are skipped
-    assert (
-        run(
-            [
-                "simulate-captures",
-                "--out",
-                out,
-                "--scenes",
-                2,
-                "--frames",
-                6,
-                "--height",
-                24,
-                "--width",
-                32,
-                "--seed",
-                3,
-                "--quiet",
-            ]
-        )
-        == 0
-    )
+    assert run(simulate_args(out, scenes=2)) == 0
     assert "0 scene(s) written, 2 already complete" in capsys.readouterr().out
     again = tmp_path / "again"
-    run(
-        [
-            "simulate-captures",
-            "--out",
-            again,
-            "--scenes",
-            1,
-            "--frames",
-            6,
-            "--height",
-            24,
-            "--width",
-            32,
-            "--seed",
-            3,
-            "--quiet",
-        ]
-    )
+    run(simulate_args(again, scenes=1))
     np.testing.assert_array_equal(cv2.imread(str(again / "scene_0000" / "input_depth_mm.png"), -1), depth)
 
 

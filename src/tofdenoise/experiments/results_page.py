@@ -21,7 +21,7 @@ from typing import Any
 
 from tofdenoise.training.results import METRICS_NAME, RUN_INFO_NAME
 
-from .tables import CLAIMS, METRIC_COLUMNS, TABLE_COLUMNS, TABLE_TITLES, TABLES, claim_holds, row_values, run_name
+from .tables import CLAIMS, METRIC_COLUMNS, TABLE_COLUMNS, TABLE_TITLES, TABLES, claim_holds, row_values
 
 __all__ = ["PROFILE_COMMANDS", "load_records", "results_markdown", "run_minutes", "seeds_present"]
 
@@ -185,9 +185,8 @@ def _fig6_section(profile_dir: Path) -> list[str]:
     return lines
 
 
-def _profile_sections(results_dir: Path, profile: str) -> list[str]:
-    profile_dir = results_dir / profile
-    records = load_records(profile_dir)
+def _profile_sections(profile_dir: Path, records: dict[str, dict[str, Any]]) -> list[str]:
+    profile = profile_dir.name
     seeds = seeds_present(records) or [0, 1, 2]
     lines = [
         f"# Profile `{profile}`",
@@ -220,17 +219,7 @@ def results_markdown(results_dir: Path | str) -> str:
     if discussion.is_file():
         lines += [discussion.read_text().rstrip(), ""]
     for profile in PROFILE_COMMANDS:
-        if profile == "cpu" or load_records(results_dir / profile):
-            lines += _profile_sections(results_dir, profile)
+        records = load_records(results_dir / profile)
+        if profile == "cpu" or records:
+            lines += _profile_sections(results_dir / profile, records)
     return "\n".join(lines).rstrip() + "\n"
-
-
-def record_names(table: str, seeds: Sequence[int]) -> list[str]:
-    """The run folders a table needs for ``seeds`` (the raw row reads the DVSS L1 runs)."""
-    names: list[str] = []
-    for seed in seeds:
-        for row in TABLES[table]:
-            name = f"dvss-hetero-l1-s{seed}" if row.key == "raw" else run_name(row, seed)
-            if name not in names:
-                names.append(name)
-    return names

@@ -358,7 +358,7 @@ def row_values(row: Row, seeds: Sequence[int], metrics_of: Any, column: str) -> 
     evaluated on identical inputs: ``data.eval_noise``).
     """
     if row.key == "raw":
-        return [_value(metrics_of(f"dvss-hetero-l1-s{s}"), column, raw=True) for s in seeds]
+        return [_value(metrics_of(run_name(row, s)), column, raw=True) for s in seeds]
     return [_value(metrics_of(run_name(row, s)), column) for s in seeds]
 
 

@@ -128,6 +128,25 @@ def r2_score(predicted: np.ndarray, measured: np.ndarray) -> float:
 # ----------------------------------------------------------------------------------------------------
 
 
+def _planar_frames(
+    calib: SensorCalibration,
+    distance_mm: float,
+    signal_e: float,
+    exposure: float,
+    settings: ValidationSettings,
+    generator: torch.Generator,
+):
+    """``settings.num_frames`` captures (with taps) of a planar ROI at one distance and returned signal."""
+    shape = (settings.roi_px, settings.roi_px)
+    depth = torch.full(shape, float(distance_mm))
+    signal = torch.full(shape, float(signal_e))
+    fr = simulate_frames(
+        depth, signal, calib, settings.num_frames, exposure=exposure, generator=generator, return_taps=True
+    )
+    assert fr.taps is not None
+    return fr
+
+
 def _simulated_stats(
     calib: SensorCalibration,
     distance_mm: float,
@@ -136,15 +155,18 @@ def _simulated_stats(
     settings: ValidationSettings,
     generator: torch.Generator,
 ) -> StackStats:
-    shape = (settings.roi_px, settings.roi_px)
-    depth = torch.full(shape, float(distance_mm))
-    signal = torch.full(shape, float(signal_e))
-    fr = simulate_frames(
-        depth, signal, calib, settings.num_frames, exposure=exposure, generator=generator, return_taps=True
-    )
-    assert fr.taps is not None
+    fr = _planar_frames(calib, distance_mm, signal_e, exposure, settings, generator)
     sig = signal_from_taps_e(fr.taps, calib, tap_axis=1)
     return stack_stats(fr.depth_mm.numpy(), fr.valid.numpy(), sig.numpy())
+
+
+def _streams(settings: ValidationSettings) -> dict[str, torch.Generator]:
+    """The experiment's random streams: "main" (range and signal panels), "fit" (the independent range-fit
+    sequence)."""
+    return {
+        "main": torch.Generator().manual_seed(settings.seed),
+        "fit": torch.Generator().manual_seed(settings.fit_seed),
+    }
 
 
 def condition_plan() -> list[tuple[Condition, float, str]]:
@@ -181,10 +203,7 @@ def condition_plan() -> list[tuple[Condition, float, str]]:
 
 def simulated_conditions(calib: SensorCalibration, settings: ValidationSettings) -> list[tuple[Condition, StackStats]]:
     """All range / signal / range-fit conditions measured on the tap-level simulator."""
-    streams = {
-        "main": torch.Generator().manual_seed(settings.seed),
-        "fit": torch.Generator().manual_seed(settings.fit_seed),
-    }  # independent calibration sequence
+    streams = _streams(settings)
     return [
         (cond, _simulated_stats(calib, cond.distance_mm, a, cond.exposure, settings, streams[stream]))
         for cond, a, stream in condition_plan()
@@ -201,24 +220,10 @@ def write_validation_captures(
     from tofdenoise.physics.capture_io import write_capture_folder
 
     settings = settings or ValidationSettings()
-    streams = {
-        "main": torch.Generator().manual_seed(settings.seed),
-        "fit": torch.Generator().manual_seed(settings.fit_seed),
-    }
-    shape = (settings.roi_px, settings.roi_px)
+    streams = _streams(settings)
     stacks = []
     for i, (cond, a, stream) in enumerate(condition_plan()):
-        depth = torch.full(shape, float(cond.distance_mm))
-        frames = simulate_frames(
-            depth,
-            torch.full(shape, a),
-            calib,
-            settings.num_frames,
-            exposure=cond.exposure,
-            generator=streams[stream],
-            return_taps=True,
-        )
-        assert frames.taps is not None
+        frames = _planar_frames(calib, cond.distance_mm, a, cond.exposure, settings, streams[stream])
         fields = {
             "group": cond.group,
             "distance_mm": cond.distance_mm,
