@@ -6,6 +6,9 @@ VENV ?= .venv
 # CPU build by default (no multi-GB CUDA download). GPU users: make TORCH="torch==2.11.0" ... or
 # TORCH="torch --index-url <your CUDA wheel index>".
 TORCH ?= torch==2.13.0
+# Triton for the selective-scan kernels' tests in Triton's interpreter (TRITON_INTERPRET=1, CPU tensors); installed
+# only next to a CPU torch on Linux x86-64 (a CUDA torch brings its own Triton).
+TRITON ?= triton==3.6.0
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.tofdenoise-installed
 
@@ -45,6 +48,8 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet "$(TORCH)"
 	$(PY) -m pip install --quiet -e ".[dev]"
+	@if $(PY) -c "import platform, sys, torch; sys.exit(not (torch.version.cuda is None and sys.platform == 'linux' and platform.machine() == 'x86_64'))"; then \
+		$(PY) -m pip install --quiet "$(TRITON)"; fi
 	@touch $(STAMP)
 
 train: $(STAMP)

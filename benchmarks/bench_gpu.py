@@ -7,7 +7,12 @@ Usage: python benchmarks/bench_gpu.py [--quick] [--json FILE]
    (and mamba-ssm when importable); time, peak memory and the largest relative difference to the PyTorch scan.
 2. sigma_D on a 640x480 float32 map: the batched 2x2 torch.linalg.inv route, the eager closed form
    (sigma_depth_mm) and the fused compiled kernel (sigma_depth_mm_compiled), with ratios.
-3. Training steps (forward+backward+AdamW) of every paper backbone at batch 4, 320x320: float32 vs bf16 autocast,
+3. The SS2D block (the DVSS first stage's size: batch 4, 320x320, dim 32 -> d_inner 64, d_state 16), float32 and
+   bf16 autocast, forward and forward+backward, side by side: the cross_scan route (layout copies + the plain
+   Triton scan) vs the fused route (the Triton kernels read the four directions in place); peak memory, and the
+   fused forward's effective bandwidth (bytes of x, delta, B, C read once and y written once, per second)
+   against the H100's 3.35 TB/s.
+4. Training steps (forward+backward+AdamW) of every paper backbone at batch 4, 320x320: float32 vs bf16 autocast,
    ms per step and peak memory; full-resolution 480x640 inference (batch 1, bf16 autocast) ms per frame.
 Timings: CUDA events around warm, synchronised repeats; medians.
 """
@@ -88,6 +93,70 @@ def bench_scan(quick: bool) -> list[dict[str, Any]]:
                 "max_rel_err_y": err_y,
                 "max_rel_err_grads": err_g,
                 "shape": [batch, dim, length, groups, n],
+            }
+        )
+    return rows
+
+
+H100_BYTES_PER_S = 3.35e12  # H100 SXM HBM3
+
+
+def bench_ss2d(quick: bool) -> list[dict[str, Any]]:
+    from tofdenoise.models.ss2d import SS2D
+
+    batch, size, dim = (2, 96, 32) if quick else (4, 320, 32)
+    torch.manual_seed(0)
+    block = SS2D(dim, scan_backend="triton").cuda()
+    x = torch.randn(batch, size, size, dim, device="cuda", requires_grad=True)
+    fused = block._spatial_scan(x)
+    rows = []
+    for precision in ("fp32", "bf16"):
+        for route in ("cross", "fused"):
+            if route == "fused" and fused != "triton":
+                rows.append({"precision": precision, "route": route, "error": "Triton not verified on this device"})
+                continue
+            block._spatial_scan = (lambda t: "triton") if route == "fused" else (lambda t: None)
+
+            def fwd():
+                with torch.autocast("cuda", dtype=torch.bfloat16, enabled=precision == "bf16"):
+                    return block(x)
+
+            def fwd_bwd():
+                fwd().float().square().mean().backward()
+
+            row = {
+                "precision": precision,
+                "route": route,
+                "shape": [batch, size, size, dim],
+                "ms_fwd": time_cuda(lambda: fwd(), repeats=3 if quick else 10),
+                "ms_fwd_bwd": time_cuda(fwd_bwd, repeats=3 if quick else 10),
+                "peak_mib_fwd_bwd": _peak_mib(fwd_bwd),
+            }
+            rows.append(row)
+        del block._spatial_scan  # back to the class's own dispatch
+    # the fused scan alone: bytes it must move at least once, per second of its forward
+    from tofdenoise.models.scan_triton import ss2d_scan_triton
+
+    di, n, length = block.d_inner, block.d_state, size * size
+    g = torch.Generator(device="cuda").manual_seed(0)
+    for dtype in (torch.float32, torch.bfloat16):
+        xs = torch.randn(batch, length, di, device="cuda", generator=g).to(dtype)
+        dts = (0.5 * torch.randn(batch, length, 4 * di, device="cuda", generator=g)).to(dtype)
+        x_dbl = torch.randn(batch, length, 4, 2 + 2 * n, device="cuda", generator=g).to(dtype)
+        A, D, bias = block._scan_params()
+        args = (xs, dts, A, x_dbl[..., 2 : 2 + n], x_dbl[..., 2 + n :], D, bias, size, size)
+        with torch.no_grad():
+            ms = time_cuda(lambda: ss2d_scan_triton(*args), repeats=3 if quick else 10)
+        item = xs.element_size()
+        moved = batch * length * (di + 4 * di + 8 * n) * item + batch * length * di * item
+        rows.append(
+            {
+                "kernel": "ss2d_scan_triton forward",
+                "dtype": str(dtype).replace("torch.", ""),
+                "ms": ms,
+                "min_bytes": moved,
+                "effective_bytes_per_s": moved / (ms / 1e3),
+                "fraction_of_h100": moved / (ms / 1e3) / H100_BYTES_PER_S,
             }
         )
     return rows
@@ -190,7 +259,8 @@ def main(argv: list[str] | None = None) -> int:
     torch.backends.cudnn.allow_tf32 = False
     print(f"torch {torch.__version__}, device {torch.cuda.get_device_name()}")
     results: dict[str, Any] = {"device": torch.cuda.get_device_name(), "torch": torch.__version__}
-    for name, fn in (("sigma", bench_sigma), ("scan", bench_scan), ("backbones", bench_backbones)):
+    sections = (("sigma", bench_sigma), ("scan", bench_scan), ("ss2d", bench_ss2d), ("backbones", bench_backbones))
+    for name, fn in sections:
         try:
             results[name] = fn(args.quick)
         except Exception as exc:

@@ -5,8 +5,14 @@ from __future__ import annotations
 import os
 
 import pytest
+import torch
 
-from tofdenoise.wandb_env import quiet_wandb
+# Without a GPU the Triton scan kernels are tested in Triton's interpreter (CPU tensors); the switch must be set
+# before tofdenoise.models.scan_triton is imported. With a GPU they are compiled and run on it.
+if not torch.cuda.is_available():
+    os.environ.setdefault("TRITON_INTERPRET", "1")
+
+from tofdenoise.wandb_env import quiet_wandb  # noqa: E402
 
 quiet_wandb(offline=True)  # WANDB_MODE=offline, quiet (subprocesses inherit it)
 os.environ.setdefault("HYDRA_FULL_ERROR", "1")

@@ -25,6 +25,7 @@ a toolchain problem falls back to the PyTorch scan with a warning instead of wro
 from __future__ import annotations
 
 import functools
+import os
 import warnings
 
 import torch
@@ -35,6 +36,9 @@ __all__ = [
     "mamba_ssm_available",
     "selective_scan_triton",
     "selective_scan_mamba",
+    "ss2d_scan_triton",
+    "ss2d_scan_reference",
+    "interpreting",
 ]
 
 #: positions per chunk (one associative scan over a (BLOCK_D, N, CHUNK) tile; a state checkpoint per chunk)
@@ -42,6 +46,9 @@ CHUNK = 32
 #: channels per program: the fastest setting on an H100 at the DVSS training size, float32 and bf16 inputs
 #: (``benchmarks/tune_scan_triton.py``; the sweep is in docs/benchmarks.md, "GPU")
 BLOCK_D_MAX = 2
+#: channels per program on the SS2D route (channels-last: a block's channels are adjacent in memory); not
+#: tuned on a GPU yet (``benchmarks/tune_scan_triton.py --ss2d``)
+SS2D_BLOCK_D_MAX = 8
 NUM_WARPS = 4
 
 
@@ -90,23 +97,57 @@ if triton is not None:
         return dt, x
 
     @triton.jit
+    def _positions(t, grp, L, H, W, SS2D: tl.constexpr):
+        """Memory position (int64) of scan step t. Plain layout: t. SS2D: direction grp of an H x W image read
+        in place -- 0 row-major, 1 column-major, 2 and 3 the same reversed (``cross_scan``'s order). Steps
+        past the end map to position 0 (they are masked)."""
+        if SS2D:
+            lk = tl.where(grp >= 2, L - 1 - t, t)
+            p = tl.where((grp % 2) == 1, (lk % H) * W + lk // H, lk)
+            p = tl.where(t < L, p, 0)
+        else:
+            p = t
+        return p.to(tl.int64)
+
+    @triton.jit
     def _program_tiles(
-        A_ptr, L, DIM, N, DIM_PER_GROUP, G, NCHUNK, CHUNK_T: tl.constexpr, BLOCK_D: tl.constexpr, BLOCK_N: tl.constexpr
+        A_ptr,
+        N,
+        DIM_PER_GROUP,
+        NCHUNK,
+        su_b,
+        su_c,
+        sd_b,
+        sd_c,
+        sB_b,
+        sB_g,
+        sB_n,
+        CHUNK_T: tl.constexpr,
+        BLOCK_D: tl.constexpr,
+        BLOCK_N: tl.constexpr,
+        SS2D: tl.constexpr,
     ):
-        """This program's channels d, states n (and mask), chunk positions tt, its A block and the base offsets
-        of its u/delta/y rows, its group's B/C rows and its state checkpoints."""
+        """This program's channels d (of delta, A, D, bias), their u/y channel uc (SS2D: the channel within
+        its direction), states n (and mask), chunk steps tt, group grp (SS2D: the direction), its A block,
+        the base offsets of its u and delta channels and of its group's B/C rows, and its checkpoint rows."""
         pid_b = tl.program_id(0).to(tl.int64)  # 64-bit offsets: batch * dim * L can exceed 2**31
         pid_d = tl.program_id(1)
+        DIM = tl.num_programs(1) * BLOCK_D
         d = (pid_d * BLOCK_D + tl.arange(0, BLOCK_D)).to(tl.int64)
         n = tl.arange(0, BLOCK_N)
         tt = tl.arange(0, CHUNK_T)
         nmask = n < N
         grp = ((pid_d * BLOCK_D) // DIM_PER_GROUP).to(tl.int64)
+        if SS2D:
+            uc = d - grp * DIM_PER_GROUP
+        else:
+            uc = d
         A = tl.load(A_ptr + d[:, None] * N + n[None, :], mask=nmask[None, :], other=0.0)  # (D, N)
-        row = pid_b * DIM * L + d * L  # (D,)
-        bc = pid_b * G * N * L + grp * N * L + n * L  # (N,)
+        u_row = pid_b * su_b + uc * su_c  # (D,)
+        d_row = pid_b * sd_b + d * sd_c  # (D,)
+        bc = pid_b * sB_b + grp * sB_g + n * sB_n  # (N,)
         ck = (pid_b * DIM + d)[:, None] * (NCHUNK * BLOCK_N) + n[None, :]
-        return d, n, tt, nmask, A, row, bc, ck
+        return pid_b, d, uc, grp, n, tt, nmask, A, u_row, d_row, bc, ck
 
     @triton.jit
     def _chunk_states(
@@ -118,22 +159,22 @@ if triton is not None:
         A,
         h0,
         d,
-        row,
-        bc,
-        t,
+        u_offs,
+        d_offs,
+        bc_offs,
         tmask,
         nmask,
         HAS_BIAS: tl.constexpr,
         SOFTPLUS: tl.constexpr,
     ):
-        """Load one chunk's tiles and scan it from the entering state h0: (delta, pre-softplus delta, u, B, C,
-        b = delta u B, states h_t), all float32; the states are (BLOCK_D, BLOCK_N, CHUNK_T)."""
-        offs = row[:, None] + t[None, :]
+        """Load one chunk's tiles (at the given offsets) and scan it from the entering state h0: (delta,
+        pre-softplus delta, u, B, C, b = delta u B, states h_t), all float32; the states are
+        (BLOCK_D, BLOCK_N, CHUNK_T)."""
         bmask = nmask[:, None] & tmask[None, :]
-        dt, x = _delta_eff(delta_ptr, bias_ptr, offs, d, tmask[None, :], HAS_BIAS, SOFTPLUS)  # (D, T)
-        ut = tl.load(u_ptr + offs, mask=tmask[None, :], other=0.0).to(tl.float32)
-        Bt = tl.load(B_ptr + bc[:, None] + t[None, :], mask=bmask, other=0.0).to(tl.float32)  # (N, T)
-        Ct = tl.load(C_ptr + bc[:, None] + t[None, :], mask=bmask, other=0.0).to(tl.float32)
+        dt, x = _delta_eff(delta_ptr, bias_ptr, d_offs, d, tmask[None, :], HAS_BIAS, SOFTPLUS)  # (D, T)
+        ut = tl.load(u_ptr + u_offs, mask=tmask[None, :], other=0.0).to(tl.float32)
+        Bt = tl.load(B_ptr + bc_offs, mask=bmask, other=0.0).to(tl.float32)  # (N, T)
+        Ct = tl.load(C_ptr + bc_offs, mask=bmask, other=0.0).to(tl.float32)
         a = tl.exp(dt[:, None, :] * A[:, :, None])  # (D, N, T)
         b = (dt * ut)[:, None, :] * Bt[None, :, :]
         a_acc, b_acc = tl.associative_scan((a, b), axis=2, combine_fn=_combine)
@@ -151,21 +192,37 @@ if triton is not None:
         y_ptr,
         ckpt_ptr,
         L,
-        DIM,
         N,
         DIM_PER_GROUP,
-        G,
         NCHUNK,
+        H,
+        W,
+        su_b,
+        su_c,
+        su_l,
+        sd_b,
+        sd_c,
+        sd_l,
+        sB_b,
+        sB_g,
+        sB_n,
+        sB_l,
+        so_b,
+        so_g,
+        so_c,
+        so_l,
         CHUNK_T: tl.constexpr,
         BLOCK_D: tl.constexpr,
         BLOCK_N: tl.constexpr,
         HAS_D: tl.constexpr,
         HAS_BIAS: tl.constexpr,
         SOFTPLUS: tl.constexpr,
+        SS2D: tl.constexpr,
     ):
-        d, n, tt, nmask, A, row, bc, ck = _program_tiles(
-            A_ptr, L, DIM, N, DIM_PER_GROUP, G, NCHUNK, CHUNK_T, BLOCK_D, BLOCK_N
+        pid_b, d, uc, grp, n, tt, nmask, A, u_row, d_row, bc, ck = _program_tiles(
+            A_ptr, N, DIM_PER_GROUP, NCHUNK, su_b, su_c, sd_b, sd_c, sB_b, sB_g, sB_n, CHUNK_T, BLOCK_D, BLOCK_N, SS2D
         )
+        o_row = pid_b * so_b + grp * so_g + uc * so_c
         if HAS_D:
             Dv = tl.load(D_ptr + d).to(tl.float32)
         h = tl.zeros((BLOCK_D, BLOCK_N), dtype=tl.float32)
@@ -173,13 +230,28 @@ if triton is not None:
             tl.store(ckpt_ptr + ck + c * BLOCK_N, h)  # the state entering chunk c
             t = c * CHUNK_T + tt
             tmask = t < L
+            p = _positions(t, grp, L, H, W, SS2D)
             _, _, ut, _, Ct, _, hs = _chunk_states(
-                u_ptr, delta_ptr, bias_ptr, B_ptr, C_ptr, A, h, d, row, bc, t, tmask, nmask, HAS_BIAS, SOFTPLUS
+                u_ptr,
+                delta_ptr,
+                bias_ptr,
+                B_ptr,
+                C_ptr,
+                A,
+                h,
+                d,
+                u_row[:, None] + p[None, :] * su_l,
+                d_row[:, None] + p[None, :] * sd_l,
+                bc[:, None] + p[None, :] * sB_l,
+                tmask,
+                nmask,
+                HAS_BIAS,
+                SOFTPLUS,
             )
             yt = tl.sum(hs * Ct[None, :, :], axis=1)
             if HAS_D:
                 yt += Dv[:, None] * ut
-            tl.store(y_ptr + row[:, None] + t[None, :], yt, mask=tmask[None, :])
+            tl.store(y_ptr + o_row[:, None] + p[None, :] * so_l, yt, mask=tmask[None, :])
             h = tl.sum(tl.where((tt == CHUNK_T - 1)[None, None, :], hs, 0.0), axis=2)  # state after the chunk
 
     @triton.jit
@@ -201,21 +273,46 @@ if triton is not None:
         dD_ptr,
         dbias_ptr,
         L,
-        DIM,
         N,
         DIM_PER_GROUP,
-        G,
         NCHUNK,
+        H,
+        W,
+        su_b,
+        su_c,
+        su_l,
+        sd_b,
+        sd_c,
+        sd_l,
+        sB_b,
+        sB_g,
+        sB_n,
+        sB_l,
+        so_b,
+        so_g,
+        so_c,
+        so_l,
+        sdy_b,
+        sdy_c,
+        sdy_l,
+        sdB_b,
+        sdB_g,
+        sdB_n,
+        sdB_l,
         CHUNK_T: tl.constexpr,
         BLOCK_D: tl.constexpr,
         BLOCK_N: tl.constexpr,
         HAS_D: tl.constexpr,
         HAS_BIAS: tl.constexpr,
         SOFTPLUS: tl.constexpr,
+        SS2D: tl.constexpr,
     ):
-        d, n, tt, nmask, A, row, bc, ck = _program_tiles(
-            A_ptr, L, DIM, N, DIM_PER_GROUP, G, NCHUNK, CHUNK_T, BLOCK_D, BLOCK_N
+        pid_b, d, uc, grp, n, tt, nmask, A, u_row, d_row, bc, ck = _program_tiles(
+            A_ptr, N, DIM_PER_GROUP, NCHUNK, su_b, su_c, sd_b, sd_c, sB_b, sB_g, sB_n, CHUNK_T, BLOCK_D, BLOCK_N, SS2D
         )
+        o_row = pid_b * so_b + grp * so_g + uc * so_c  # du: laid out like y
+        dy_row = pid_b * sdy_b + uc * sdy_c  # SS2D: every direction reads the merged output's gradient
+        dbc = pid_b * sdB_b + grp * sdB_g + n * sdB_n
         if HAS_D:
             Dv = tl.load(D_ptr + d).to(tl.float32)
         g_next = tl.zeros((BLOCK_D, BLOCK_N), dtype=tl.float32)  # adjoint of the state after the chunk
@@ -229,13 +326,31 @@ if triton is not None:
             tmask = t < L
             t1mask = (t + 1) < L
             bmask = nmask[:, None] & tmask[None, :]
-            offs = row[:, None] + t[None, :]
+            p = _positions(t, grp, L, H, W, SS2D)
+            p1 = _positions(t + 1, grp, L, H, W, SS2D)
+            d_offs = d_row[:, None] + p[None, :] * sd_l
             # recompute the chunk's states from its checkpoint
             dt, x, ut, Bt, Ct, b, hs = _chunk_states(
-                u_ptr, delta_ptr, bias_ptr, B_ptr, C_ptr, A, h0, d, row, bc, t, tmask, nmask, HAS_BIAS, SOFTPLUS
+                u_ptr,
+                delta_ptr,
+                bias_ptr,
+                B_ptr,
+                C_ptr,
+                A,
+                h0,
+                d,
+                u_row[:, None] + p[None, :] * su_l,
+                d_offs,
+                bc[:, None] + p[None, :] * sB_l,
+                tmask,
+                nmask,
+                HAS_BIAS,
+                SOFTPLUS,
             )
-            dt1, _ = _delta_eff(delta_ptr, bias_ptr, offs + 1, d, t1mask[None, :], HAS_BIAS, SOFTPLUS)
-            dyt = tl.load(dy_ptr + offs, mask=tmask[None, :], other=0.0).to(tl.float32)
+            dt1, _ = _delta_eff(
+                delta_ptr, bias_ptr, d_row[:, None] + p1[None, :] * sd_l, d, t1mask[None, :], HAS_BIAS, SOFTPLUS
+            )
+            dyt = tl.load(dy_ptr + dy_row[:, None] + p[None, :] * sdy_l, mask=tmask[None, :], other=0.0).to(tl.float32)
             # adjoint g_t = dy_t C_t + a_{t+1} g_{t+1}: a reverse scan, seeded with the next chunk's g
             a1 = tl.where(t1mask[None, None, :], tl.exp(dt1[:, None, :] * A[:, :, None]), 0.0)
             src = dyt[:, None, :] * Ct[None, :, :]
@@ -244,18 +359,19 @@ if triton is not None:
             # a_t h_{t-1} = h_t - b_t (no division, no shifted state)
             q = gs * (hs - b)
             sr = tl.sum(gs * Bt[None, :, :], axis=1)  # (D, T)
-            tl.atomic_add(dC_ptr + bc[:, None] + t[None, :], tl.sum(dyt[:, None, :] * hs, axis=0), mask=bmask)
-            tl.atomic_add(dB_ptr + bc[:, None] + t[None, :], tl.sum(gs * (dt * ut)[:, None, :], axis=0), mask=bmask)
+            dbc_offs = dbc[:, None] + p[None, :] * sdB_l
+            tl.atomic_add(dC_ptr + dbc_offs, tl.sum(dyt[:, None, :] * hs, axis=0), mask=bmask)
+            tl.atomic_add(dB_ptr + dbc_offs, tl.sum(gs * (dt * ut)[:, None, :], axis=0), mask=bmask)
             g_dt = tl.sum(q * A[:, :, None], axis=1) + ut * sr  # d loss / d delta (after softplus)
             if SOFTPLUS:
                 g_dt = g_dt / (1.0 + tl.exp(-x))  # softplus' = sigmoid
             g_dt = tl.where(tmask[None, :], g_dt, 0.0)
-            tl.store(ddelta_ptr + offs, g_dt, mask=tmask[None, :])
+            tl.store(ddelta_ptr + d_offs, g_dt, mask=tmask[None, :])
             du = dt * sr
             if HAS_D:
                 du += Dv[:, None] * dyt
                 dD_acc += tl.sum(dyt * ut, axis=1)
-            tl.store(du_ptr + offs, du, mask=tmask[None, :])
+            tl.store(du_ptr + o_row[:, None] + p[None, :] * so_l, du, mask=tmask[None, :])
             dbias_acc += tl.sum(g_dt, axis=1)
             dA_acc += tl.sum(q * dt[:, None, :], axis=2)
             g_next = tl.sum(tl.where((tt == 0)[None, None, :], gs, 0.0), axis=2)
@@ -273,58 +389,208 @@ def _triton_kernels():
     return triton, fwd_kernel, bwd_kernel
 
 
+def interpreting() -> bool:
+    """True when Triton runs its kernels in the interpreter on CPU tensors (``TRITON_INTERPRET=1``, set before
+    this module is imported): how the kernels are tested on a machine without a GPU."""
+    return triton is not None and os.environ.get("TRITON_INTERPRET", "0") == "1"
+
+
+def _interpreter_numpy_shim() -> None:
+    """Triton 3.6's interpreter turns a scalar kernel argument used as a loop bound (``range(0, NCHUNK)``)
+    into a Python int with ``int(array of shape (1,))``, which NumPy >= 2.4 refuses; take the single element
+    instead. Interpreter only: compiled kernels never run this code."""
+    try:
+        from triton.runtime import interpreter
+    except Exception:  # noqa: BLE001 - another Triton layout: nothing to mend
+        return
+    original = getattr(interpreter, "_patch_lang_tensor", None)
+    if original is None or getattr(original, "_tofdenoise_shim", False):
+        return
+
+    def patched(tensor, scope):
+        original(tensor, scope)
+        scope.set_attr(tensor, "__index__", lambda self: int(self.handle.data.reshape(-1)[0]))
+
+    patched._tofdenoise_shim = True  # type: ignore[attr-defined]
+    interpreter._patch_lang_tensor = patched
+
+
+if interpreting():
+    _interpreter_numpy_shim()
+
+
 def triton_available() -> bool:
     """True when CUDA is available and Triton imports."""
     return torch.cuda.is_available() and _triton_kernels() is not None
 
 
-@functools.cache
-def triton_verified(device_index: int = 0) -> bool:
-    """Triton is importable *and* its kernels reproduce the PyTorch scan (forward and all gradients, 1e-3
-    relative) on a small random problem on this device. Run once per device by the ``auto`` dispatch, so a
-    kernel or toolchain problem falls back to the PyTorch scan with a warning instead of wrong results."""
-    if not triton_available():
-        return False
+def _check_device(t: torch.Tensor, name: str) -> None:
+    if not (t.is_cuda or interpreting()):
+        raise RuntimeError(f"{name}: Triton with a CUDA device is not available (tensors on {t.device})")
+
+
+def _verify_case(dev: torch.device) -> None:
+    """Raise when the kernels disagree with the PyTorch scan on a small random problem on ``dev``: the plain
+    (batch, dim, L) route and the SS2D direction-reading route, forward and every gradient, 1e-3 relative."""
     from .scan import selective_scan_chunked
 
-    try:
-        dev = torch.device("cuda", device_index)
-        gen = torch.Generator(device="cpu").manual_seed(0)
-        batch, dim, length, groups, n = 2, 64, 130, 2, 16
-        shapes = [
-            (batch, dim, length),
-            (batch, dim, length),
-            (dim, n),
-            (batch, groups, n, length),
-            (batch, groups, n, length),
-            (dim,),
-            (dim,),
-        ]
-        base = [torch.randn(s, generator=gen) for s in shapes]
-        base[2] = -torch.exp(0.5 * base[2])
-        results = []
-        with torch.enable_grad():  # the first call may happen under no_grad (inference)
-            for fn in (selective_scan_triton, selective_scan_chunked):
-                ins = [t.to(dev).requires_grad_() for t in base]
-                y = fn(*ins, delta_softplus=True)
+    gen = torch.Generator(device="cpu").manual_seed(0)
+    batch, dim, length, groups, n = 2, 8, 70, 2, 16  # 3 chunks, the last one partial
+    shapes = [
+        (batch, dim, length),
+        (batch, dim, length),
+        (dim, n),
+        (batch, groups, n, length),
+        (batch, groups, n, length),
+        (dim,),
+        (dim,),
+    ]
+    base = [torch.randn(s, generator=gen) for s in shapes]
+    base[2] = -torch.exp(0.5 * base[2])
+    h, w, di = 5, 7, 4
+    ss2d_shapes = [(batch, h * w, di), (batch, h * w, 4 * di), (4 * di, n), (batch, h * w, 4, n), (batch, h * w, 4, n)]
+    ss2d = [torch.randn(s, generator=gen) for s in ss2d_shapes] + [torch.randn(4 * di, generator=gen) for _ in "DB"]
+    ss2d[2] = -torch.exp(0.5 * ss2d[2])
+    cases = [
+        (ss2d, lambda *t: ss2d_scan_triton(*t, h, w), lambda *t: ss2d_scan_reference(*t, h, w)),
+        (base, lambda *t: selective_scan_triton(*t, delta_softplus=True), lambda *t: selective_scan_chunked(*t, True)),
+    ]
+    with torch.enable_grad():  # the first call may happen under no_grad (inference)
+        for tensors, fn, ref in cases:
+            results = []
+            for f in (fn, ref):
+                ins = [t.to(dev).requires_grad_() for t in tensors]
+                y = f(*ins)
                 grads = torch.autograd.grad(y.square().sum(), ins)
                 results.append([y.detach(), *grads])
-        for a, b in zip(*results):
-            if not torch.isfinite(a).all() or (a - b).abs().max() > 1e-3 * b.abs().max().clamp_min(1e-6):
-                raise RuntimeError("Triton selective scan disagrees with the PyTorch scan")
+            for a, b in zip(*results):
+                if not torch.isfinite(a).all() or (a - b).abs().max() > 1e-3 * b.abs().max().clamp_min(1e-6):
+                    raise RuntimeError("Triton selective scan disagrees with the PyTorch scan")
+
+
+@functools.cache
+def triton_verified(device_index: int = 0) -> bool:
+    """Triton is importable *and* its kernels reproduce the PyTorch scan (plain and SS2D routes, forward and
+    all gradients, 1e-3 relative) on a small random problem on this device. Run once per device by the
+    ``auto`` dispatch, so a kernel or toolchain problem falls back to the PyTorch scan with a warning instead of
+    wrong results."""
+    if not triton_available():
+        return False
+    try:
+        _verify_case(torch.device("cuda", device_index))
     except Exception as exc:  # noqa: BLE001 - any failure means: do not use this path
         warnings.warn(f"Triton selective scan disabled ({exc}); using the PyTorch scan", RuntimeWarning, stacklevel=2)
         return False
     return True
 
 
-def _block_d(dim_per_group: int) -> int:
-    """Largest power of two <= BLOCK_D_MAX dividing the channels per group (a block never straddles two
+def _block_d(dim_per_group: int, block_max: int = BLOCK_D_MAX) -> int:
+    """Largest power of two <= block_max dividing the channels per group (a block never straddles two
     groups)."""
-    b = BLOCK_D_MAX
+    b = block_max
     while dim_per_group % b:
         b //= 2
     return b
+
+
+class _Layout:
+    """How the kernels address one call's tensors: the (batch, channel, position) strides of u and of delta,
+    the (batch, group, state, position) strides of B and C (which share them) and of dB / dC, the
+    (batch, group, channel, position) strides of the output y and du, the grid, and the SS2D image size
+    (height 0: the plain (batch, dim, L) route)."""
+
+    def __init__(self, batch, dim, groups, n, length, u_s, delta_s, bc_s, out_s, dbc_s, height=0, width=0):
+        dpg = dim // groups
+        self.block_d = _block_d(dpg, SS2D_BLOCK_D_MAX if height else BLOCK_D_MAX)
+        self.block_n = triton.next_power_of_2(n)
+        self.nchunk = triton.cdiv(length, CHUNK)
+        self.grid = (batch, dim // self.block_d)
+        self.sizes = (length, n, dpg, self.nchunk, height, width)
+        self.strides = (*u_s, *delta_s, *bc_s, *out_s)
+        self.dbc_strides = dbc_s
+        self.ss2d = bool(height)
+        self.dim = dim
+
+    def constants(self, D, bias, softplus: bool) -> dict:
+        return dict(
+            CHUNK_T=CHUNK,
+            BLOCK_D=self.block_d,
+            BLOCK_N=self.block_n,
+            HAS_D=D is not None,
+            HAS_BIAS=bias is not None,
+            SOFTPLUS=bool(softplus),
+            SS2D=self.ss2d,
+            num_warps=NUM_WARPS,
+        )
+
+
+def _channels_last_strides(t: torch.Tensor) -> tuple[int, ...]:
+    """(batch, channel, position) strides of a (batch, L, C) tensor; (batch, group, state, position) strides
+    of a (batch, L, G, N) tensor."""
+    s = t.stride()
+    return (s[0], s[2], s[1]) if t.dim() == 3 else (s[0], s[2], s[3], s[1])
+
+
+def _scan_forward(layout: _Layout, u, delta, A, B, C, D, bias, softplus, y):
+    """Run the forward kernel; returns the state checkpoints."""
+    _, fwd, _ = _triton_kernels()
+    batch = u.shape[0]
+    ckpt = torch.empty(batch, layout.dim, layout.nchunk, layout.block_n, device=u.device, dtype=torch.float32)
+    dummy = A  # any float32 tensor: never read when HAS_D / HAS_BIAS is off
+    fwd[layout.grid](
+        u,
+        delta,
+        A,
+        B,
+        C,
+        dummy if D is None else D,
+        dummy if bias is None else bias,
+        y,
+        ckpt,
+        *layout.sizes,
+        *layout.strides,
+        **layout.constants(D, bias, softplus),
+    )
+    return ckpt
+
+
+def _scan_backward(layout: _Layout, saved, softplus, dy, dy_strides, du, dB, dC):
+    """Run the backward kernel into du / dB / dC (given) and new ddelta, dA, dD, dbias; returns those four."""
+    _, _, bwd = _triton_kernels()
+    u, delta, A, B, C, D, bias, ckpt = saved
+    ddelta = torch.empty_like(delta)
+    dA = torch.zeros_like(A)
+    dD = torch.zeros(layout.dim, device=u.device, dtype=torch.float32)
+    dbias = torch.zeros(layout.dim, device=u.device, dtype=torch.float32)
+    dummy = A
+    bwd[layout.grid](
+        u,
+        delta,
+        A,
+        B,
+        C,
+        dummy if D is None else D,
+        dummy if bias is None else bias,
+        dy,
+        ckpt,
+        du,
+        ddelta,
+        dA,
+        dB,
+        dC,
+        dD,
+        dbias,
+        *layout.sizes,
+        *layout.strides,
+        *dy_strides,
+        *layout.dbc_strides,
+        **layout.constants(D, bias, softplus),
+    )
+    return ddelta, dA, dD, dbias
+
+
+def _opt_grad(grad: torch.Tensor, like: torch.Tensor | None) -> torch.Tensor | None:
+    return None if like is None else grad.to(like.dtype)
 
 
 class _TritonScanFn(torch.autograd.Function):
@@ -333,103 +599,26 @@ class _TritonScanFn(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, u, delta, A, B, C, D, delta_bias, delta_softplus):
-        triton, fwd_kernel, _ = _triton_kernels()
         batch, dim, length = u.shape
         groups, n = B.shape[1], A.shape[1]
-        dpg = dim // groups
-        block_d = _block_d(dpg)
-        block_n = triton.next_power_of_2(n)
-        nchunk = triton.cdiv(length, CHUNK)
         y = torch.empty(u.shape, device=u.device, dtype=u.dtype)
-        ckpt = torch.empty(batch, dim, nchunk, block_n, device=u.device, dtype=torch.float32)
-        dummy = A  # any float32 tensor: never read when HAS_D / HAS_BIAS is off
-        grid = (batch, dim // block_d)
-        fwd_kernel[grid](
-            u,
-            delta,
-            A,
-            B,
-            C,
-            dummy if D is None else D,
-            dummy if delta_bias is None else delta_bias,
-            y,
-            ckpt,
-            length,
-            dim,
-            n,
-            dpg,
-            groups,
-            nchunk,
-            CHUNK_T=CHUNK,
-            BLOCK_D=block_d,
-            BLOCK_N=block_n,
-            HAS_D=D is not None,
-            HAS_BIAS=delta_bias is not None,
-            SOFTPLUS=bool(delta_softplus),
-            num_warps=NUM_WARPS,
-        )
+        su = u.stride()  # y and du: u's layout, no group offset
+        out = (su[0], 0, su[1], su[2])
+        layout = _Layout(batch, dim, groups, n, length, su, delta.stride(), B.stride(), out, B.stride())
+        ckpt = _scan_forward(layout, u, delta, A, B, C, D, delta_bias, delta_softplus, y)
         ctx.save_for_backward(u, delta, A, B, C, D, delta_bias, ckpt)
-        ctx.meta = (block_d, block_n, nchunk, CHUNK, NUM_WARPS, bool(delta_softplus))
+        ctx.layout, ctx.softplus = layout, bool(delta_softplus)
         return y
 
     @staticmethod
     def backward(ctx, dy):
-        _, _, bwd_kernel = _triton_kernels()
-        u, delta, A, B, C, D, delta_bias, ckpt = ctx.saved_tensors
-        block_d, block_n, nchunk, chunk, num_warps, softplus = ctx.meta
-        batch, dim, length = u.shape
-        groups, n = B.shape[1], A.shape[1]
+        u, _, _, B, C, D, delta_bias, _ = saved = ctx.saved_tensors
         dy = dy.contiguous()
         du = torch.empty_like(u)
-        ddelta = torch.empty_like(delta)
-        dA = torch.zeros_like(A)
         dB = torch.zeros(B.shape, device=B.device, dtype=torch.float32)  # atomics accumulate in float32
         dC = torch.zeros(C.shape, device=C.device, dtype=torch.float32)
-        dD = torch.zeros(dim, device=u.device, dtype=torch.float32)
-        dbias = torch.zeros(dim, device=u.device, dtype=torch.float32)
-        dummy = A
-        grid = (batch, dim // block_d)
-        bwd_kernel[grid](
-            u,
-            delta,
-            A,
-            B,
-            C,
-            dummy if D is None else D,
-            dummy if delta_bias is None else delta_bias,
-            dy,
-            ckpt,
-            du,
-            ddelta,
-            dA,
-            dB,
-            dC,
-            dD,
-            dbias,
-            length,
-            dim,
-            n,
-            dim // groups,
-            groups,
-            nchunk,
-            CHUNK_T=chunk,
-            BLOCK_D=block_d,
-            BLOCK_N=block_n,
-            HAS_D=D is not None,
-            HAS_BIAS=delta_bias is not None,
-            SOFTPLUS=softplus,
-            num_warps=num_warps,
-        )
-        return (
-            du,
-            ddelta,
-            dA,
-            dB.to(B.dtype),
-            dC.to(C.dtype),
-            None if D is None else dD.to(D.dtype),
-            None if delta_bias is None else dbias.to(delta_bias.dtype),
-            None,
-        )
+        ddelta, dA, dD, dbias = _scan_backward(ctx.layout, saved, ctx.softplus, dy, dy.stride(), du, dB, dC)
+        return du, ddelta, dA, dB.to(B.dtype), dC.to(C.dtype), _opt_grad(dD, D), _opt_grad(dbias, delta_bias), None
 
 
 def selective_scan_triton(u, delta, A, B, C, D=None, delta_bias=None, delta_softplus=False) -> torch.Tensor:
@@ -437,8 +626,9 @@ def selective_scan_triton(u, delta, A, B, C, D=None, delta_bias=None, delta_soft
     result has u's dtype; bf16/fp16 u, delta, B, C are read as they are (no conversion copies)."""
     from .scan import _check_shapes
 
-    if not triton_available():
+    if not triton_available() and not interpreting():
         raise RuntimeError("selective_scan_triton: Triton with a CUDA device is not available")
+    _check_device(u, "selective_scan_triton")
     B, C, _ = _check_shapes(u, delta, A, B, C, D, delta_bias)
     f32 = torch.float32
     return _TritonScanFn.apply(
@@ -451,6 +641,119 @@ def selective_scan_triton(u, delta, A, B, C, D=None, delta_bias=None, delta_soft
         None if delta_bias is None else delta_bias.to(f32).contiguous(),
         bool(delta_softplus),
     )
+
+
+class _TritonSS2DFn(torch.autograd.Function):
+    """The four-direction SS2D scan on channels-last tensors read in place (see :func:`ss2d_scan_triton`).
+    The four directions' outputs (and u-gradients) land in a float32 (b, 4, L, d) buffer at their memory
+    positions and are summed in a fixed order (deterministic, no atomics); dB / dC are accumulated in a float32
+    (b, L, 4, 2N) buffer with atomics over the channel blocks."""
+
+    @staticmethod
+    def forward(ctx, x, delta, A, B, C, D, bias, height, width):
+        batch, length, di = x.shape
+        n = A.shape[1]
+        y4 = torch.empty(batch, 4, length, di, device=x.device, dtype=torch.float32)
+        s = y4.stride()
+        layout = _Layout(
+            batch,
+            4 * di,
+            4,
+            n,
+            length,
+            _channels_last_strides(x),
+            _channels_last_strides(delta),
+            _channels_last_strides(B),
+            (s[0], s[1], s[3], s[2]),
+            (length * 8 * n, 2 * n, 1, 8 * n),  # dB / dC: halves of a contiguous (b, L, 4, 2N) buffer
+            height,
+            width,
+        )
+        ckpt = _scan_forward(layout, x, delta, A, B, C, D, bias, True, y4)
+        ctx.save_for_backward(x, delta, A, B, C, D, bias, ckpt)
+        ctx.layout = layout
+        return y4.sum(dim=1).to(x.dtype)
+
+    @staticmethod
+    def backward(ctx, dy):
+        x, _, _, B, C, D, bias, _ = saved = ctx.saved_tensors
+        batch, length, di = x.shape
+        n = B.shape[-1]
+        du4 = torch.empty(batch, 4, length, di, device=x.device, dtype=torch.float32)
+        dBC = torch.zeros(batch, length, 4, 2 * n, device=x.device, dtype=torch.float32)
+        dB, dC = dBC[..., :n], dBC[..., n:]
+        ddelta, dA, dD, dbias = _scan_backward(ctx.layout, saved, True, dy, _channels_last_strides(dy), du4, dB, dC)
+        return (
+            du4.sum(dim=1).to(x.dtype),
+            ddelta,
+            dA,
+            dB.to(B.dtype),
+            dC.to(C.dtype),
+            _opt_grad(dD, D),
+            _opt_grad(dbias, bias),
+            None,
+            None,
+        )
+
+
+def ss2d_scan_triton(x, delta, A, B, C, D, delta_bias, height: int, width: int) -> torch.Tensor:
+    """The four-direction SS2D scan with softplus on the Triton kernels, reading the directions in place:
+    the same contract as :func:`tofdenoise.models.scan_cpu.ss2d_scan_cpu` -- x (b, H W, d) channels-last
+    (row-major positions), delta (b, H W, 4 d) raw steps, A (4 d, N), B / C (b, H W, 4, N) with any strides
+    (SS2D passes views into its x_proj output), D and delta_bias (4 d,) or None. Direction k of channel c is
+    channel k d + c; its step l reads position pi_k(l) (row-major, column-major, both reversed). Returns
+    sum_k y_k at each position, (b, H W, d), in x's dtype; bf16/fp16 x, delta, B, C are read as they are,
+    computation is float32."""
+    if not triton_available() and not interpreting():
+        raise RuntimeError("ss2d_scan_triton: Triton with a CUDA device is not available")
+    _check_device(x, "ss2d_scan_triton")
+    batch, length, di = x.shape
+    if length != height * width:
+        raise ValueError(f"ss2d_scan_triton: x has {length} positions, expected height x width = {height * width}")
+    n = A.shape[-1]
+    expect = {"delta": (batch, length, 4 * di), "A": (4 * di, n), "B": (batch, length, 4, n)}
+    for name, t, want in (
+        ("delta", delta, expect["delta"]),
+        ("A", A, expect["A"]),
+        ("B", B, expect["B"]),
+        ("C", C, expect["B"]),
+    ):
+        if tuple(t.shape) != want:
+            raise ValueError(f"ss2d_scan_triton: {name} has shape {tuple(t.shape)}, expected {want}")
+    if B.stride() != C.stride():
+        B, C = B.contiguous(), C.contiguous()
+    f32 = torch.float32
+    return _TritonSS2DFn.apply(
+        x.contiguous(),
+        delta.contiguous(),
+        A.to(f32).contiguous(),
+        B,
+        C,
+        None if D is None else D.to(f32).contiguous(),
+        None if delta_bias is None else delta_bias.to(f32).contiguous(),
+        int(height),
+        int(width),
+    )
+
+
+def ss2d_scan_reference(x, delta, A, B, C, D, delta_bias, height: int, width: int) -> torch.Tensor:
+    """:func:`ss2d_scan_triton`'s contract computed the plain way: ``cross_scan`` copies, the chunked PyTorch
+    scan over the 4 d channels, ``cross_merge``. The reference for the kernels' self-check and tests."""
+    from .scan import selective_scan_chunked
+    from .ss2d import cross_merge, cross_scan
+
+    batch, length, di = x.shape
+    xs = cross_scan(x.transpose(1, 2).reshape(batch, di, height, width))  # (b, 4, d, L)
+    d4 = cross_scan(delta.transpose(1, 2).reshape(batch, 4, di, height, width).flatten(0, 1))
+    d4 = d4.view(batch, 4, 4, di, length)[:, torch.arange(4), torch.arange(4)]  # direction k of delta's k-th block
+    bc = []
+    for t in (B, C):
+        t4 = cross_scan(t.permute(0, 2, 3, 1).reshape(batch * 4, -1, height, width))
+        bc.append(t4.view(batch, 4, 4, -1, length)[:, torch.arange(4), torch.arange(4)])
+    y = selective_scan_chunked(
+        xs.reshape(batch, 4 * di, length), d4.reshape(batch, 4 * di, length), A, bc[0], bc[1], D, delta_bias, True
+    ).view(batch, 4, di, length)
+    return cross_merge(y, height, width).flatten(2).transpose(1, 2).to(x.dtype)
 
 
 def selective_scan_mamba(u, delta, A, B, C, D=None, delta_bias=None, delta_softplus=False) -> torch.Tensor:

@@ -83,25 +83,36 @@ class SS2D(nn.Module):
         b, h, w, _ = x.shape
         xz = self.in_proj(x)
         xi, z = xz.chunk(2, dim=-1)
-        if self._spatial_scan(xz):
+        kernel = self._spatial_scan(xz)
+        if kernel:
             # channels-last depthwise conv: xi is read once into NHWC, and the output's (b, h, w, d_inner)
             # view is what the kernel reads (no cross_scan copies)
             xi = xi.permute(0, 3, 1, 2).contiguous(memory_format=torch.channels_last)
             xi = F.silu(self.conv(xi)).permute(0, 2, 3, 1)
-            y = self._scan_spatial(xi.contiguous(), h, w)
+            y = self._scan_spatial(xi.contiguous(), h, w, kernel)
         else:
             xi = F.silu(self.conv(xi.permute(0, 3, 1, 2).contiguous()))
             y = self._scan_cross(xi, h, w)
         y = self.out_norm(y) * F.silu(z)
         return self.out_proj(y)
 
-    def _spatial_scan(self, x: torch.Tensor) -> bool:
-        """Whether the native CPU kernel runs this call (float32 CPU tensors, backend auto/cpu, built)."""
-        if x.is_cuda or x.dtype != torch.float32 or self.scan_backend not in ("auto", "cpu"):
-            return False
+    def _spatial_scan(self, x: torch.Tensor) -> str | None:
+        """The kernel that reads the four directions in place for this call, or None (the cross_scan route):
+        ``"triton"`` on CUDA (backend auto/triton, Triton verified on the device; any float dtype, so bf16
+        activations under autocast are read as they are), ``"cpu"`` for float32 CPU tensors (backend
+        auto/cpu, the native kernel built)."""
+        if x.is_cuda:
+            if self.scan_backend not in ("auto", "triton"):
+                return None
+            from .scan_triton import triton_available, triton_verified
+
+            index = x.device.index if x.device.index is not None else torch.cuda.current_device()
+            return "triton" if triton_available() and triton_verified(index) else None
+        if x.dtype != torch.float32 or self.scan_backend not in ("auto", "cpu"):
+            return None
         from .scan_cpu import cpu_kernel_available
 
-        return cpu_kernel_available()
+        return "cpu" if cpu_kernel_available() else None
 
     def _scan_params(self):
         return (
@@ -134,10 +145,10 @@ class SS2D(nn.Module):
         ).view(b, k, di, length)
         return cross_merge(y, h, w).permute(0, 2, 3, 1)
 
-    def _scan_spatial(self, xs: torch.Tensor, h: int, w: int) -> torch.Tensor:
-        """Native-kernel route on channels-last activations xs (b, h, w, d_inner), same math as
-        :meth:`_scan_cross`: x_proj and dt_proj are per-position linear maps, applied once in row-major
-        order as matrix products (the 4 directions' x_proj weights stacked into one matrix, the dt
+    def _scan_spatial(self, xs: torch.Tensor, h: int, w: int, kernel: str = "cpu") -> torch.Tensor:
+        """Kernel route (``kernel``: "cpu" or "triton") on channels-last activations xs (b, h, w, d_inner),
+        the same math as :meth:`_scan_cross`: x_proj and dt_proj are per-position linear maps, applied once in
+        row-major order as matrix products (the 4 directions' x_proj weights stacked into one matrix, the dt
         projections as one block-diagonal matrix); the kernel reads direction k's step l at position
         pi_k(l) and sums the 4 directions' outputs in place of cross_merge."""
         b = xs.shape[0]
@@ -148,7 +159,10 @@ class SS2D(nn.Module):
         dt_block = torch.block_diag(*self.dt_projs_weight.transpose(1, 2))  # (k r, k di)
         dts = x_dbl[..., :r].reshape(b, length, k * r) @ dt_block  # (b, L, k di)
         A, D, bias = self._scan_params()
-        from .scan_cpu import ss2d_scan_cpu
+        if kernel == "triton":
+            from .scan_triton import ss2d_scan_triton as scan
+        else:
+            from .scan_cpu import ss2d_scan_cpu as scan
 
-        y = ss2d_scan_cpu(xs, dts, A, x_dbl[..., r : r + n], x_dbl[..., r + n :], D, bias, h, w)
+        y = scan(xs, dts, A, x_dbl[..., r : r + n], x_dbl[..., r + n :], D, bias, h, w)
         return y.view(b, h, w, di)

@@ -1,0 +1,203 @@
+"""Triton selective-scan kernels (scan_triton): the plain (batch, dim, L) route and the SS2D route that reads the
+four scan directions in place, against the PyTorch scans (forward and every gradient). Without a GPU the kernels
+run in Triton's interpreter on CPU tensors (tests/conftest.py sets TRITON_INTERPRET=1), so the same kernel code
+is checked on every machine; the `gpu` tests compile them on the device."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+triton = pytest.importorskip("triton", reason="Triton is not installed (make venv installs it next to a CPU torch)")
+
+from tofdenoise.models import scan_triton as st  # noqa: E402
+from tofdenoise.models.scan import selective_scan_chunked  # noqa: E402
+from tofdenoise.models.ss2d import SS2D  # noqa: E402
+
+from .test_scan import _inputs, _rel  # noqa: E402
+
+needs_kernels = pytest.mark.skipif(
+    not (st.interpreting() or st.triton_available()),
+    reason="neither a CUDA device nor Triton's interpreter (TRITON_INTERPRET=1)",
+)
+DEVICE = "cuda" if torch.cuda.is_available() else "cpu"
+
+
+def _grads(fn, tensors, weight):
+    ins = [t.detach().to(DEVICE).requires_grad_() for t in tensors]
+    y = fn(*ins)
+    return y, torch.autograd.grad((y * weight.to(y)).sum(), ins)
+
+
+@needs_kernels
+@pytest.mark.parametrize(
+    "batch,dim,length,groups,n,use_d,use_bias,softplus",
+    [
+        (2, 8, 70, 2, 5, True, True, True),  # 3 chunks (the last partial), N = 5 padded to 8 states
+        (1, 6, 33, 3, 3, False, False, False),  # plain steps, no D, no bias; 2 channels per group (BLOCK_D 2)
+        (1, 4, 31, 1, 16, True, False, True),  # one chunk, 3-D B/C (no group axis)
+    ],
+)
+def test_plain_route_matches_the_chunked_scan(batch, dim, length, groups, n, use_d, use_bias, softplus):
+    u, delta, A, B, C, D, bias = (t.detach() for t in _inputs(batch, dim, length, groups, n))
+    if groups == 1:
+        B, C = B[:, 0], C[:, 0]
+    if not (softplus or use_bias):
+        delta = delta.abs()  # positive steps without softplus
+    tensors = [u, delta, A, B, C] + ([D] if use_d else []) + ([bias] if use_bias else [])
+
+    def call(fn):
+        def run(u, delta, A, B, C, *rest):
+            rest = list(rest)
+            d = rest.pop(0) if use_d else None
+            b = rest.pop(0) if use_bias else None
+            return fn(u, delta, A, B, C, d, b, softplus)
+
+        return run
+
+    weight = torch.linspace(-1.0, 1.0, u.numel()).view_as(u)
+    y, grads = _grads(call(st.selective_scan_triton), tensors, weight)
+    y_ref, grads_ref = _grads(call(selective_scan_chunked), tensors, weight)
+    assert y.dtype == u.dtype
+    assert _rel(y.detach(), y_ref.detach()) < 1e-5
+    for i, (a, b) in enumerate(zip(grads, grads_ref)):
+        assert a.shape == b.shape
+        assert _rel(a, b) < 1e-4, i
+
+
+def _ss2d_inputs(batch, h, w, di, n, rank=3, seed=0):
+    """SS2D's scan inputs as SS2D passes them: B and C are strided views into one x_proj output."""
+    g = torch.Generator().manual_seed(seed)
+    x = torch.randn(batch, h * w, di, generator=g)
+    delta = 0.5 * torch.randn(batch, h * w, 4 * di, generator=g)
+    A = -torch.exp(0.5 * torch.randn(4 * di, n, generator=g))
+    x_dbl = torch.randn(batch, h * w, 4, rank + 2 * n, generator=g)
+    D, bias = torch.randn(4 * di, generator=g), torch.randn(4 * di, generator=g)
+    return x, delta, A, x_dbl, D, bias
+
+
+def _ss2d_grads(fn, x, delta, A, x_dbl, D, bias, h, w, n, rank=3):
+    ins = [t.detach().to(DEVICE).requires_grad_() for t in (x, delta, A, x_dbl)]
+    opt = [None if t is None else t.detach().to(DEVICE).requires_grad_() for t in (D, bias)]
+    xd = ins[3]
+    y = fn(ins[0], ins[1], ins[2], xd[..., rank : rank + n], xd[..., rank + n :], opt[0], opt[1], h, w)
+    weight = torch.linspace(-1.0, 1.0, y.numel(), device=y.device).view_as(y)
+    wanted = ins + [t for t in opt if t is not None]
+    return y, torch.autograd.grad((y * weight).sum(), wanted)
+
+
+@needs_kernels
+@pytest.mark.parametrize(
+    "h,w,di,n,use_d_bias",
+    [
+        (5, 7, 4, 5, True),  # non-square, 35 positions (2 chunks), N not a power of two
+        (4, 9, 8, 4, True),  # 36 positions, a full 8-channel block per direction, column-major across rows
+        (1, 6, 2, 3, False),  # one row: column-major = row-major; no D, no bias
+    ],
+)
+def test_ss2d_route_reads_the_four_directions_in_place(h, w, di, n, use_d_bias):
+    x, delta, A, x_dbl, D, bias = _ss2d_inputs(2, h, w, di, n)
+    if not use_d_bias:
+        D = bias = None
+    y, grads = _ss2d_grads(st.ss2d_scan_triton, x, delta, A, x_dbl, D, bias, h, w, n)
+    y_ref, grads_ref = _ss2d_grads(st.ss2d_scan_reference, x, delta, A, x_dbl, D, bias, h, w, n)
+    assert y.shape == (2, h * w, di)
+    assert _rel(y.detach(), y_ref.detach()) < 1e-5
+    names = ["x", "delta", "A", "x_dbl", "D", "delta_bias"]
+    for name, a, b in zip(names, grads, grads_ref):
+        assert _rel(a, b) < 1e-4, name
+
+
+@needs_kernels
+def test_ss2d_route_reads_bf16_inputs_as_they_are():
+    """bf16 x, delta, B, C (SS2D under autocast) are read without conversion copies; the result (bf16) equals
+    the float32 reference of the same bf16-rounded values up to bf16 rounding, gradients come back in bf16."""
+    h, w, di, n = 4, 6, 4, 4
+    x, delta, A, x_dbl, D, bias = _ss2d_inputs(1, h, w, di, n, seed=1)
+    x, delta, x_dbl = (t.to(torch.bfloat16) for t in (x, delta, x_dbl))
+    y, grads = _ss2d_grads(st.ss2d_scan_triton, x, delta, A, x_dbl, D, bias, h, w, n)
+    assert y.dtype == torch.bfloat16
+    f32 = [t.float() for t in (x, delta, A, x_dbl)]
+    y_ref, grads_ref = _ss2d_grads(st.ss2d_scan_reference, *f32, D, bias, h, w, n)
+    assert _rel(y.detach().float(), y_ref.detach()) < 1e-2
+    for i, (a, b) in enumerate(zip(grads, grads_ref)):
+        assert a.dtype == (torch.bfloat16 if i in (0, 1, 3) else torch.float32), i
+        assert _rel(a.float(), b) < 2e-2, i
+
+
+@needs_kernels
+def test_ss2d_block_on_the_triton_route_equals_the_cross_scan_route():
+    """The whole SS2D block (projections, scan, merge, norm, gate) on the Triton route gives the cross_scan
+    route's output and every parameter gradient."""
+    torch.manual_seed(0)
+    block = SS2D(8, d_state=4).to(DEVICE)
+    with torch.no_grad():  # move the parameters off their symmetric initial values
+        for p in block.parameters():
+            p.add_(0.1 * torch.randn_like(p))
+    x = torch.randn(2, 5, 6, 8, device=DEVICE)
+    runs = []
+    for route in ("triton", None):
+        block.zero_grad(set_to_none=True)
+        block._spatial_scan = lambda t, route=route: route
+        xi = x.clone().requires_grad_()
+        y = block(xi)
+        (y * torch.linspace(-1.0, 1.0, y.numel(), device=DEVICE).view_as(y)).sum().backward()
+        runs.append((y.detach(), xi.grad, {k: p.grad.clone() for k, p in block.named_parameters()}))
+    (y1, gx1, g1), (y0, gx0, g0) = runs
+    assert _rel(y1, y0) < 1e-5
+    assert _rel(gx1, gx0) < 1e-4
+    for name in g0:
+        assert _rel(g1[name], g0[name]) < 1e-4, name
+
+
+@needs_kernels
+def test_self_check_covers_both_routes():
+    """The check the auto dispatch runs once per device (plain and SS2D routes) passes; a broken kernel makes it
+    raise, so the dispatch falls back to the PyTorch scan."""
+    st._verify_case(torch.device(DEVICE))
+    original = st.ss2d_scan_triton
+    try:
+        st.ss2d_scan_triton = lambda *a: 1.01 * original(*a)
+        with pytest.raises(RuntimeError, match="disagrees"):
+            st._verify_case(torch.device(DEVICE))
+    finally:
+        st.ss2d_scan_triton = original
+
+
+def test_ss2d_route_names_bad_shapes():
+    x, delta, A, x_dbl, D, bias = _ss2d_inputs(1, 3, 4, 2, 3)
+    B, C = x_dbl[..., 3:6], x_dbl[..., 6:]
+    if not (st.interpreting() or st.triton_available()):
+        with pytest.raises(RuntimeError, match="not available"):
+            st.ss2d_scan_triton(x, delta, A, B, C, D, bias, 3, 4)
+        return
+    with pytest.raises(ValueError, match="expected height x width = 15"):
+        st.ss2d_scan_triton(x, delta, A, B, C, D, bias, 3, 5)
+    with pytest.raises(ValueError, match="delta has shape"):
+        st.ss2d_scan_triton(x, delta[..., :4], A, B, C, D, bias, 3, 4)
+
+
+def test_cpu_tensors_outside_the_interpreter_are_refused(monkeypatch):
+    monkeypatch.setenv("TRITON_INTERPRET", "0")
+    if torch.cuda.is_available():
+        pytest.skip("a CUDA machine runs the compiled kernels")
+    x, delta, A, x_dbl, D, bias = _ss2d_inputs(1, 3, 4, 2, 3)
+    with pytest.raises(RuntimeError, match="not available"):
+        st.ss2d_scan_triton(x, delta, A, x_dbl[..., 3:6], x_dbl[..., 6:], D, bias, 3, 4)
+
+
+@pytest.mark.gpu
+def test_ss2d_under_bf16_autocast_takes_the_triton_route():
+    """On a GPU, SS2D under bf16 autocast reads its bf16 activations with the fused-layout kernels (no
+    cross_scan copies) and agrees with the cross_scan route run in float32."""
+    if not st.triton_available() or not st.triton_verified(torch.cuda.current_device()):
+        pytest.skip("Triton not verified on this device")
+    torch.manual_seed(0)
+    block = SS2D(32).cuda()
+    x = torch.randn(2, 24, 20, 32, device="cuda")
+    assert block._spatial_scan(x) == "triton"
+    with torch.autocast("cuda", dtype=torch.bfloat16):
+        y = block(x)
+    block._spatial_scan = lambda t: None
+    y_ref = block(x)
+    assert _rel(y.float(), y_ref) < 3e-2
