@@ -204,6 +204,19 @@ def test_ss2d_direction_reading_equals_cross_scan_route(ext, dim, h, w):
         assert _rel(g1[name], g0[name]) < 5e-6, name
 
 
+def test_kernel_tasks_run_on_torchs_threads(ext):
+    """The build runs at::parallel_for in parallel: with 2 torch threads, tasks land on 2 threads (without
+    -fopenmp the OpenMP pragma is ignored and every task runs on the calling thread)."""
+    old = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        assert ext.threads_used(8) == 2
+        torch.set_num_threads(1)
+        assert ext.threads_used(8) == 1
+    finally:
+        torch.set_num_threads(old)
+
+
 def test_roofline_loop_runs(ext):
     rate, seconds = scan_cpu.roofline_updates_per_s(seconds=0.05)
     assert rate > 1e7 and seconds > 0

@@ -578,8 +578,27 @@ double roofline_loop(int64_t tasks, int64_t repeats) {
     return total;
 }
 
+// How many distinct intra-op threads run_tasks puts to work on `ntasks` tasks that each take a while: the check
+// that the build really runs in parallel (without -fopenmp, at::parallel_for's OpenMP pragma is ignored and
+// every task runs on the calling thread).
+int64_t threads_used(int64_t ntasks) {
+    std::vector<std::atomic<int>> seen(std::max<int64_t>(1, at::get_num_threads()));
+    run_tasks(ntasks, [&](auto next) {
+        for (int64_t t = next(); t >= 0; t = next()) {
+            const int id = at::get_thread_num();
+            if (id >= 0 && id < static_cast<int>(seen.size())) seen[id].store(1);
+            volatile double x = 0.0;  // a few ms of work, so that one thread cannot take every task alone
+            for (int i = 0; i < 2000000; ++i) x = x + 1e-9 * i;
+        }
+    });
+    int64_t used = 0;
+    for (auto& v : seen) used += v.load();
+    return used;
+}
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.def("scan_fwd", &scan_fwd, "selective scan forward (CPU, float32)");
+    m.def("threads_used", &threads_used, "distinct intra-op threads that ran tasks (the parallel build check)");
     m.def("scan_bwd", &scan_bwd, "selective scan backward (CPU, float32)");
     m.def("roofline_loop", &roofline_loop, "exp + 3 FMA per element, the scan's per-update floor");
     m.def("exp_fast", [](const at::Tensor& x) {
