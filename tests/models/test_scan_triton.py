@@ -186,6 +186,37 @@ def test_cpu_tensors_outside_the_interpreter_are_refused(monkeypatch):
         st.ss2d_scan_triton(x, delta, A, x_dbl[..., 3:6], x_dbl[..., 6:], D, bias, 3, 4)
 
 
+def test_kernels_compile_for_the_h100_without_spills():
+    """Both routes' kernels compile for sm_90 ahead of time (Triton -> PTX -> ptxas; no GPU needed), which the
+    interpreter cannot check; at the default launch setting neither backward spills registers."""
+    import json
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    code = (
+        "import json, sys; sys.path.insert(0, 'benchmarks'); import triton_resources as tr; "
+        "from tofdenoise.models import scan_triton as st; "
+        "rows = tr.resources(st, 'SS2D', 'bf16', st.NUM_WARPS, st.SS2D_BLOCK_D_MAX) "
+        "+ tr.resources(st, 'plain', 'fp32', st.NUM_WARPS, st.BLOCK_D_MAX); print(json.dumps(rows))"
+    )
+    env = {**os.environ, "TRITON_INTERPRET": "0"}
+    out = subprocess.run([sys.executable, "-c", code], cwd=root, env=env, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    rows = json.loads(out.stdout.strip().splitlines()[-1])
+    assert [(r["route"], r["kernel"]) for r in rows] == [
+        ("SS2D", "fwd"),
+        ("SS2D", "bwd"),
+        ("plain", "fwd"),
+        ("plain", "bwd"),
+    ]
+    for r in rows:
+        assert 0 < r["registers"] <= 255, r
+        assert r["spill_store_bytes"] == 0 and r["spill_load_bytes"] == 0, r
+
+
 @pytest.mark.gpu
 def test_ss2d_under_bf16_autocast_takes_the_triton_route():
     """On a GPU, SS2D under bf16 autocast reads its bf16 activations with the fused-layout kernels (no

@@ -46,9 +46,10 @@ CHUNK = 32
 #: channels per program: the fastest setting on an H100 at the DVSS training size, float32 and bf16 inputs
 #: (``benchmarks/tune_scan_triton.py``; the sweep is in docs/benchmarks.md, "GPU")
 BLOCK_D_MAX = 2
-#: channels per program on the SS2D route (channels-last: a block's channels are adjacent in memory); not
-#: tuned on a GPU yet (``benchmarks/tune_scan_triton.py --ss2d``)
-SS2D_BLOCK_D_MAX = 8
+#: channels per program on the SS2D route (channels-last: a block's channels are adjacent in memory). Not timed
+#: on a GPU yet (``benchmarks/tune_scan_triton.py --ss2d``); 4 is the largest whose backward compiles for sm_90
+#: without register spills at 4 warps, fp32 and bf16 (``benchmarks/triton_resources.py``; 8 spills)
+SS2D_BLOCK_D_MAX = 4
 NUM_WARPS = 4
 
 
