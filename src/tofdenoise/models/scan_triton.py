@@ -744,13 +744,15 @@ def ss2d_scan_reference(x, delta, A, B, C, D, delta_bias, height: int, width: in
     from .ss2d import cross_merge, cross_scan
 
     batch, length, di = x.shape
+
+    def per_direction(t: torch.Tensor) -> torch.Tensor:
+        """(b, 4, c, H, W), block k for direction k -> (b, 4, c, L): block k read in direction k's order."""
+        t4 = cross_scan(t.flatten(0, 1)).view(batch, 4, 4, -1, length)
+        return t4[:, torch.arange(4), torch.arange(4)]
+
     xs = cross_scan(x.transpose(1, 2).reshape(batch, di, height, width))  # (b, 4, d, L)
-    d4 = cross_scan(delta.transpose(1, 2).reshape(batch, 4, di, height, width).flatten(0, 1))
-    d4 = d4.view(batch, 4, 4, di, length)[:, torch.arange(4), torch.arange(4)]  # direction k of delta's k-th block
-    bc = []
-    for t in (B, C):
-        t4 = cross_scan(t.permute(0, 2, 3, 1).reshape(batch * 4, -1, height, width))
-        bc.append(t4.view(batch, 4, 4, -1, length)[:, torch.arange(4), torch.arange(4)])
+    d4 = per_direction(delta.transpose(1, 2).reshape(batch, 4, di, height, width))
+    bc = [per_direction(t.permute(0, 2, 3, 1).reshape(batch, 4, -1, height, width)) for t in (B, C)]
     y = selective_scan_chunked(
         xs.reshape(batch, 4 * di, length), d4.reshape(batch, 4 * di, length), A, bc[0], bc[1], D, delta_bias, True
     ).view(batch, 4, di, length)
