@@ -147,6 +147,28 @@ def test_simulate_calibration_then_calibrate_recovers_the_camera(tmp_path, capsy
     assert "unambiguous range" in capsys.readouterr().err
 
 
+def _mixed_pixel_set_argv(out, factor):
+    """simulate-captures of the small cam75 set the mixed-pixel test compares, with --mixed-pixels factor."""
+    size = ["--height", 40, "--width", 56]
+    return [
+        "simulate-captures",
+        "--out",
+        out,
+        "--scenes",
+        2,
+        "--frames",
+        6,
+        *size,
+        "--seed",
+        5,
+        "--sensor",
+        "cam75",
+        "--mixed-pixels",
+        factor,
+        "--quiet",
+    ]
+
+
 def test_mixed_pixels_bias_the_captured_depth_at_edges(tmp_path):
     """Step c): with --mixed-pixels 3 the pixels whose footprint spans a depth edge are flying pixels in the input
     and in the reference (a mix of both surfaces); elsewhere, and without mixing, they follow the ground truth."""
@@ -163,31 +185,7 @@ def test_mixed_pixels_bias_the_captured_depth_at_edges(tmp_path):
     errors = {}
     for factor in (1, 3):
         out = tmp_path / f"set{factor}"
-        assert (
-            run(
-                [
-                    "simulate-captures",
-                    "--out",
-                    out,
-                    "--scenes",
-                    2,
-                    "--frames",
-                    6,
-                    "--height",
-                    40,
-                    "--width",
-                    56,
-                    "--seed",
-                    5,
-                    "--sensor",
-                    "cam75",
-                    "--mixed-pixels",
-                    factor,
-                    "--quiet",
-                ]
-            )
-            == 0
-        )
+        assert run(_mixed_pixel_set_argv(out, factor)) == 0
         at_edges, elsewhere = [], []
         for scene in sorted(out.glob("scene_*")):
             info = json.loads((scene / "scene.json").read_text())
@@ -205,30 +203,6 @@ def test_mixed_pixels_bias_the_captured_depth_at_edges(tmp_path):
     assert errors[3][1] < 2 * errors[1][1] + 1.0, errors  # smooth regions: mixing changes (almost) nothing
     # another --mixed-pixels is another set: the completed scenes are simulated again, not reused
     out = tmp_path / "set1"
-    assert (
-        run(
-            [
-                "simulate-captures",
-                "--out",
-                out,
-                "--scenes",
-                2,
-                "--frames",
-                6,
-                "--height",
-                40,
-                "--width",
-                56,
-                "--seed",
-                5,
-                "--sensor",
-                "cam75",
-                "--mixed-pixels",
-                3,
-                "--quiet",
-            ]
-        )
-        == 0
-    )
+    assert run(_mixed_pixel_set_argv(out, 3)) == 0
     assert json.loads((out / "scene_0000" / "scene.json").read_text())["mixed_pixels"] == 3
     assert run(["simulate-captures", "--out", out, "--scenes", 1, "--frames", 2, "--mixed-pixels", 0]) == 2

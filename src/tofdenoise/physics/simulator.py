@@ -230,6 +230,14 @@ def simulate_taps_chunk(
     return taps, saturated
 
 
+def _check_frames_and_exposure(num_frames: Any, exposure: Any) -> None:
+    """The frame count is a positive integer and the exposure a finite number > 0 (else a ValueError naming it)."""
+    if int(num_frames) != num_frames or num_frames < 1:
+        raise ValueError(f"num_frames must be a positive integer, got {num_frames}")
+    if not math.isfinite(float(exposure)) or exposure <= 0:
+        raise ValueError(f"exposure must be a finite number > 0, got {exposure}")
+
+
 def simulate_frames(
     depth_mm: Any,
     signal_e: Any,
@@ -249,10 +257,7 @@ def simulate_frames(
     Computation is float32 on the inputs' device; frames are produced in chunks of `chunk_frames`
     (default: about 8 M tap values per chunk).
     """
-    if int(num_frames) != num_frames or num_frames < 1:
-        raise ValueError(f"num_frames must be a positive integer, got {num_frames}")
-    if not math.isfinite(float(exposure)) or exposure <= 0:
-        raise ValueError(f"exposure must be a finite number > 0, got {exposure}")
+    _check_frames_and_exposure(num_frames, exposure)
     d = _to_tensor(depth_mm, "depth_mm").float()
     a = _to_tensor(signal_e, "signal_e").float().to(d.device)
     if d.shape != a.shape:
@@ -281,10 +286,7 @@ def simulate_tap_mean_frames(
     """Like ``simulate_frames``, from the expected signal photo-electrons of each tap (N, ...) at exposure 1
     (dark offset excluded): e.g. mixed pixels (``tofdenoise.physics.mixed_pixels``), whose taps sum the returns
     of several surfaces. A pixel with no expected signal in any tap is invalid (no return)."""
-    if int(num_frames) != num_frames or num_frames < 1:
-        raise ValueError(f"num_frames must be a positive integer, got {num_frames}")
-    if not math.isfinite(float(exposure)) or exposure <= 0:
-        raise ValueError(f"exposure must be a finite number > 0, got {exposure}")
+    _check_frames_and_exposure(num_frames, exposure)
     means = _to_tensor(tap_means_e, "tap_means_e").float()
     if means.ndim < 2 or means.shape[0] != calib.num_taps:
         raise ValueError(
