@@ -122,6 +122,12 @@ def test_results_page_mean_std_over_seeds(tmp_path):
     assert "| hetero < range for U-Net (synthetic MAE) | - | not run |" in page
     assert "| DVSS: hetero < range < fixed (synthetic MAE) | - | not run |" in page
     assert "| dvss-hetero-l1-s0 | yes | 10 | 2.00 | 7.00 | 12.5 |" in page
+    # the runs table: a tuned classical filter is "classical", a run that stayed near the raw input is flagged
+    _write_run(cpu, "bilateral-s0", {**_metrics(2.5), "learned": False, "trained_steps": 0, "method_kind": "classical"})
+    _write_run(cpu, "unet-range-l1-s0", {**_metrics(6.9), "learned": False})
+    page = results_markdown(tmp_path)
+    assert "| bilateral-s0 | classical | 0 | 2.50 | 7.00 | 12.5 |" in page
+    assert "| unet-range-l1-s0 | NOT LEARNED | 10 | 6.90 | 7.00 | 12.5 |" in page
     assert "# Profile `gpu`" not in page  # no GPU records
 
 

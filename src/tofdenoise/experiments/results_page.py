@@ -19,7 +19,8 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from tofdenoise.training.results import METRICS_NAME, RUN_INFO_NAME
+from tofdenoise.reporting.table import LEARNED_FLAGS
+from tofdenoise.training.results import METRICS_NAME, RUN_INFO_NAME, learned_status, run_fields
 
 from .tables import CLAIMS, METRIC_COLUMNS, TABLE_COLUMNS, TABLE_TITLES, TABLES, claim_holds, row_values
 
@@ -141,9 +142,10 @@ def _runs_section(records: dict[str, dict[str, Any]]) -> list[str]:
     ]
     for name, rec in records.items():
         m, info = rec["metrics"], rec["run_info"]
-        learned = m.get("learned")
+        # the learned guard's verdict: "yes", "classical" (a tuned filter, nothing to learn) or a red flag
+        status = learned_status(run_fields(m))
         lines.append(
-            f"| {name} | {'-' if learned is None else ('yes' if learned else 'NO')} | "
+            f"| {name} | {'-' if status == 'unknown' else LEARNED_FLAGS[status]} | "
             f"{m.get('trained_steps', '-')} | {_fmt(float(m.get('best_val_mae_mm') or math.nan), 2)} | "
             f"{_fmt(float(m.get('raw_val_mae_mm') or math.nan), 2)} | {_fmt(run_minutes(info), 1)} |"
         )
