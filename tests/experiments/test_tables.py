@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 import statistics
 from pathlib import Path
 
@@ -11,7 +12,7 @@ import pytest
 
 from tofdenoise.experiments.results_page import load_records, results_markdown, run_minutes, seeds_present
 from tofdenoise.experiments.runner import RunSpec
-from tofdenoise.experiments.tables import CLAIMS, TABLES, claim_holds, table_specs
+from tofdenoise.experiments.tables import CLAIMS, TABLES, claim_holds, claim_steps, table_specs
 from tofdenoise.paths import REPO_ROOT
 
 
@@ -93,6 +94,27 @@ def test_claim_holds_per_seed():
     assert claim_holds(real, 0, runs.get) is False
 
 
+def test_claim_steps_mean_over_complete_seeds_and_seed_std():
+    """Hand-computed: steps are the differences of the seed means along the chain, over the seeds in which every
+    row ran; the spread is the largest per-row standard deviation over those seeds."""
+    claim = next(c for c in CLAIMS if c.text.startswith("DVSS: hetero < range < fixed (synthetic"))
+    table = {
+        "dvss-hetero-l1-s0": _metrics(2.0),
+        "dvss-range-l1-s0": _metrics(2.5),
+        "dvss-fixed-l1-s0": _metrics(3.0),
+        "dvss-hetero-l1-s1": _metrics(2.6),
+        "dvss-range-l1-s1": _metrics(2.5),
+        "dvss-fixed-l1-s1": _metrics(2.4),
+        "dvss-hetero-l1-s2": _metrics(9.0),  # seed 2 is incomplete: left out of every mean
+    }
+    steps, spread = claim_steps(claim, [0, 1, 2], table.get)
+    assert steps == pytest.approx([2.5 - 2.3, 2.7 - 2.5])
+    assert spread == pytest.approx(statistics.stdev([3.0, 2.4]))  # the fixed row varies most
+    steps, spread = claim_steps(claim, [0], table.get)
+    assert steps == pytest.approx([0.5, 0.5]) and spread is None
+    assert claim_steps(claim, [2], table.get) == ([], None)
+
+
 def _write_run(
     root: Path, name: str, metrics: dict, started="2026-11-22T10:00:00+0000", finished="2026-11-22T10:12:30+0000"
 ) -> None:
@@ -119,8 +141,8 @@ def test_results_page_mean_std_over_seeds(tmp_path):
     assert f"| DVSS, hetero (proposed) | 40.37 / 40.00 ± 0.00 (n=3) | 2.78 / {mean:.2f} ± {std:.2f} (n=3) |" in page
     assert "| DVSS, fixed Gaussian | 39.40 / - | 3.42 / - |" in page
     # hetero < range holds in all three seeds; the fixed run is missing, so the 3-chain is "not run"
-    assert "| hetero < range for U-Net (synthetic MAE) | - | not run |" in page
-    assert "| DVSS: hetero < range < fixed (synthetic MAE) | - | not run |" in page
+    assert "| hetero < range for U-Net (synthetic MAE) | - | not run | - |" in page
+    assert "| DVSS: hetero < range < fixed (synthetic MAE) | - | not run | - |" in page
     assert "| dvss-hetero-l1-s0 | yes | 10 | 2.00 | 7.00 | 12.5 |" in page
     # the runs table: a tuned classical filter is "classical", a run that stayed near the raw input is flagged
     _write_run(cpu, "bilateral-s0", {**_metrics(2.5), "learned": False, "trained_steps": 0, "method_kind": "classical"})
@@ -128,6 +150,16 @@ def test_results_page_mean_std_over_seeds(tmp_path):
     page = results_markdown(tmp_path)
     assert "| bilateral-s0 | classical | 0 | 2.50 | 7.00 | 12.5 |" in page
     assert "| unet-range-l1-s0 | NOT LEARNED | 10 | 6.90 | 7.00 | 12.5 |" in page
+    # with the fixed runs the 3-chain holds in every seed; its steps are +0.5 mm each, the seed std 0.45 mm
+    shutil.rmtree(cpu / "dvss-fixed-l1-s0")
+    for seed, mae in maes.items():
+        _write_run(cpu, f"dvss-fixed-l1-s{seed}", _metrics(mae + 1.0))
+    page = results_markdown(tmp_path)
+    std = statistics.stdev(maes.values())
+    assert (
+        "| DVSS: hetero < range < fixed (synthetic MAE) | 0: yes, 1: yes, 2: yes | holds in every seed | "
+        f"+0.500, +0.500 mm (seed std {std:.3f}) |"
+    ) in page
     assert "# Profile `gpu`" not in page  # no GPU records
 
 

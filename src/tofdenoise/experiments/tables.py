@@ -21,6 +21,7 @@ Tables (``../shared/seeds`` paper, Sec. V):
 from __future__ import annotations
 
 import math
+import statistics
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -369,3 +370,20 @@ def claim_holds(claim: Claim, seed: int, metrics_of: Any) -> bool | None:
     if any(not math.isfinite(v) for v in values):
         return None
     return all(a < b for a, b in zip(values, values[1:]))
+
+
+def claim_steps(claim: Claim, seeds: Sequence[int], metrics_of: Any) -> tuple[list[float], float | None]:
+    """How far apart the rows of ``claim``'s chain lie: per step (row k -> row k+1) the mean over the seeds of
+    ``value(k+1) - value(k)`` in ``claim.metric`` (positive where that step of the ordering holds), taken over the
+    seeds in which every row of the chain has a value; and the largest standard deviation of one row's value over
+    those seeds (None with fewer than 2 such seeds), the noise a step must clear. ``([], None)`` when no seed is
+    complete."""
+    rows = {r.key: r for r in TABLES[claim.table]}
+    per_row = [row_values(rows[k], seeds, metrics_of, claim.metric) for k in claim.chain]
+    complete = [i for i in range(len(seeds)) if all(math.isfinite(v[i]) for v in per_row)]
+    if not complete:
+        return [], None
+    values = [[v[i] for i in complete] for v in per_row]
+    steps = [statistics.fmean(b) - statistics.fmean(a) for a, b in zip(values, values[1:])]
+    spread = max(statistics.stdev(v) for v in values) if len(complete) >= 2 else None
+    return steps, spread
