@@ -67,16 +67,22 @@ def _metrics(mae: float, real_mae: float | None = None, raw_mae: float = 7.0) ->
     return out
 
 
-def test_claim_holds_per_seed():
-    claim = next(c for c in CLAIMS if c.text.startswith("DVSS: hetero < range < fixed (synthetic"))
-    table = {
-        "dvss-hetero-l1-s0": _metrics(2.0),
-        "dvss-range-l1-s0": _metrics(2.5),
-        "dvss-fixed-l1-s0": _metrics(3.0),
-        "dvss-hetero-l1-s1": _metrics(2.6),
-        "dvss-range-l1-s1": _metrics(2.5),
-        "dvss-fixed-l1-s1": _metrics(3.0),
+DVSS_NOISE_CLAIM = next(c for c in CLAIMS if c.text.startswith("DVSS: hetero < range < fixed (synthetic"))
+
+
+def _dvss_noise_runs(maes_by_seed: dict[int, tuple[float, ...]]) -> dict[str, dict]:
+    """Records of the DVSS noise rows: {seed: (hetero, range, fixed) synthetic MAE}, a shorter tuple = runs
+    missing."""
+    return {
+        f"dvss-{noise}-l1-s{seed}": _metrics(mae)
+        for seed, maes in maes_by_seed.items()
+        for noise, mae in zip(("hetero", "range", "fixed"), maes)
     }
+
+
+def test_claim_holds_per_seed():
+    claim = DVSS_NOISE_CLAIM
+    table = _dvss_noise_runs({0: (2.0, 2.5, 3.0), 1: (2.6, 2.5, 3.0)})
     assert claim_holds(claim, 0, table.get) is True
     assert claim_holds(claim, 1, table.get) is False
     assert claim_holds(claim, 2, table.get) is None  # not run
@@ -97,16 +103,9 @@ def test_claim_holds_per_seed():
 def test_claim_steps_mean_over_complete_seeds_and_seed_std():
     """Hand-computed: steps are the differences of the seed means along the chain, over the seeds in which every
     row ran; the spread is the largest per-row standard deviation over those seeds."""
-    claim = next(c for c in CLAIMS if c.text.startswith("DVSS: hetero < range < fixed (synthetic"))
-    table = {
-        "dvss-hetero-l1-s0": _metrics(2.0),
-        "dvss-range-l1-s0": _metrics(2.5),
-        "dvss-fixed-l1-s0": _metrics(3.0),
-        "dvss-hetero-l1-s1": _metrics(2.6),
-        "dvss-range-l1-s1": _metrics(2.5),
-        "dvss-fixed-l1-s1": _metrics(2.4),
-        "dvss-hetero-l1-s2": _metrics(9.0),  # seed 2 is incomplete: left out of every mean
-    }
+    claim = DVSS_NOISE_CLAIM
+    # seed 2 has only its hetero run: it is left out of every mean
+    table = _dvss_noise_runs({0: (2.0, 2.5, 3.0), 1: (2.6, 2.5, 2.4), 2: (9.0,)})
     steps, spread = claim_steps(claim, [0, 1, 2], table.get)
     assert steps == pytest.approx([2.5 - 2.3, 2.7 - 2.5])
     assert spread == pytest.approx(statistics.stdev([3.0, 2.4]))  # the fixed row varies most
