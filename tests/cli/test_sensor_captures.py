@@ -149,7 +149,6 @@ def test_simulate_calibration_then_calibrate_recovers_the_camera(tmp_path, capsy
 
 def _mixed_pixel_set_argv(out, factor):
     """simulate-captures of the small cam75 set the mixed-pixel test compares, with --mixed-pixels factor."""
-    size = ["--height", 40, "--width", 56]
     return [
         "simulate-captures",
         "--out",
@@ -158,7 +157,10 @@ def _mixed_pixel_set_argv(out, factor):
         2,
         "--frames",
         6,
-        *size,
+        "--height",
+        40,
+        "--width",
+        56,
         "--seed",
         5,
         "--sensor",

@@ -22,7 +22,17 @@ from typing import Any
 from tofdenoise.reporting.table import LEARNED_FLAGS
 from tofdenoise.training.results import METRICS_NAME, RUN_INFO_NAME, learned_status, run_fields
 
-from .tables import CLAIMS, METRIC_COLUMNS, TABLE_COLUMNS, TABLE_TITLES, TABLES, claim_holds, claim_steps, row_values
+from .tables import (
+    CLAIMS,
+    METRIC_COLUMNS,
+    TABLE_COLUMNS,
+    TABLE_TITLES,
+    TABLES,
+    Claim,
+    claim_holds,
+    claim_steps,
+    row_values,
+)
 
 __all__ = ["PROFILE_COMMANDS", "load_records", "results_markdown", "run_minutes", "seeds_present"]
 
@@ -91,7 +101,7 @@ def _mean_std(values: Sequence[float], decimals: int) -> str:
     return f"{statistics.fmean(finite):.{decimals}f} ± {statistics.stdev(finite):.{decimals}f} (n={len(finite)})"
 
 
-def _steps_text(claim: Any, seeds: list[int], metrics_of: Any) -> str:
+def _steps_text(claim: Claim, seeds: list[int], metrics_of: Any) -> str:
     """The chain's steps (``claim_steps``) as text, e.g. ``+0.100, -0.020 mm (seed std 0.040)``: a step below
     the seed std is within the seed noise, whatever its sign."""
     steps, spread = claim_steps(claim, seeds, metrics_of)

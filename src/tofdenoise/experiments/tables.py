@@ -363,10 +363,15 @@ def row_values(row: Row, seeds: Sequence[int], metrics_of: Any, column: str) -> 
     return [_value(metrics_of(run_name(row, s)), column) for s in seeds]
 
 
+def chain_values(claim: Claim, seeds: Sequence[int], metrics_of: Any) -> list[list[float]]:
+    """Per row of ``claim``'s chain (best first), its per-seed values of ``claim.metric`` (NaN where missing)."""
+    rows = {r.key: r for r in TABLES[claim.table]}
+    return [row_values(rows[k], seeds, metrics_of, claim.metric) for k in claim.chain]
+
+
 def claim_holds(claim: Claim, seed: int, metrics_of: Any) -> bool | None:
     """Whether ``claim`` holds for ``seed``: True / False, or None when a value is missing."""
-    rows = {r.key: r for r in TABLES[claim.table]}
-    values = [row_values(rows[k], [seed], metrics_of, claim.metric)[0] for k in claim.chain]
+    values = [v[0] for v in chain_values(claim, [seed], metrics_of)]
     if any(not math.isfinite(v) for v in values):
         return None
     return all(a < b for a, b in zip(values, values[1:]))
@@ -378,8 +383,7 @@ def claim_steps(claim: Claim, seeds: Sequence[int], metrics_of: Any) -> tuple[li
     seeds in which every row of the chain has a value; and the largest standard deviation of one row's value over
     those seeds (None with fewer than 2 such seeds), the noise a step must clear. ``([], None)`` when no seed is
     complete."""
-    rows = {r.key: r for r in TABLES[claim.table]}
-    per_row = [row_values(rows[k], seeds, metrics_of, claim.metric) for k in claim.chain]
+    per_row = chain_values(claim, seeds, metrics_of)
     complete = [i for i in range(len(seeds)) if all(math.isfinite(v[i]) for v in per_row)]
     if not complete:
         return [], None
