@@ -100,18 +100,25 @@ def test_claim_holds_per_seed():
     assert claim_holds(real, 0, runs.get) is False
 
 
-def test_claim_steps_mean_over_complete_seeds_and_seed_std():
-    """Hand-computed: steps are the differences of the seed means along the chain, over the seeds in which every
-    row ran; the spread is the largest per-row standard deviation over those seeds."""
+def test_claim_steps_are_paired_by_seed_over_complete_seeds():
+    """Hand-computed: each step is the mean over the seeds in which every row ran of the per-seed difference
+    between consecutive rows, with the standard deviation of that difference (not of either row)."""
     claim = DVSS_NOISE_CLAIM
-    # seed 2 has only its hetero run: it is left out of every mean
+    # seed 2 has only its hetero run: it is left out of every step
     table = _dvss_noise_runs({0: (2.0, 2.5, 3.0), 1: (2.6, 2.5, 2.4), 2: (9.0,)})
-    steps, spread = claim_steps(claim, [0, 1, 2], table.get)
-    assert steps == pytest.approx([2.5 - 2.3, 2.7 - 2.5])
-    assert spread == pytest.approx(statistics.stdev([3.0, 2.4]))  # the fixed row varies most
-    steps, spread = claim_steps(claim, [0], table.get)
-    assert steps == pytest.approx([0.5, 0.5]) and spread is None
-    assert claim_steps(claim, [2], table.get) == ([], None)
+    steps = claim_steps(claim, [0, 1, 2], table.get)
+    # seed 0: range - hetero = 0.5, fixed - range = 0.5; seed 1: -0.1, -0.1
+    assert [m for m, _ in steps] == pytest.approx([0.2, 0.2])
+    assert [sd for _, sd in steps] == pytest.approx([statistics.stdev([0.5, -0.1])] * 2)
+    # rows that move together across seeds: a small step with a small paired spread, although each row's own
+    # seed std (0.71) is far larger than the step
+    table = _dvss_noise_runs({0: (2.0, 2.1, 2.2), 1: (3.0, 3.1, 3.2)})
+    steps = claim_steps(claim, [0, 1], table.get)
+    assert [m for m, _ in steps] == pytest.approx([0.1, 0.1])
+    assert [sd for _, sd in steps] == pytest.approx([0.0, 0.0], abs=1e-12)
+    steps = claim_steps(claim, [0], table.get)
+    assert steps == [(pytest.approx(0.1), None), (pytest.approx(0.1), None)]
+    assert claim_steps(claim, [2], table.get) == []
 
 
 def _write_run(
@@ -149,15 +156,20 @@ def test_results_page_mean_std_over_seeds(tmp_path):
     page = results_markdown(tmp_path)
     assert "| bilateral-s0 | classical | 0 | 2.50 | 7.00 | 12.5 |" in page
     assert "| unet-range-l1-s0 | NOT LEARNED | 10 | 6.90 | 7.00 | 12.5 |" in page
-    # with the fixed runs the 3-chain holds in every seed; its steps are +0.5 mm each, the seed std 0.45 mm
+    # one seed of both U-Net rows: the step has no spread yet
+    _write_run(cpu, "unet-hetero-l1-s0", _metrics(3.0))
+    page = results_markdown(tmp_path)
+    unet_claim = "| hetero < range for U-Net (synthetic MAE) | 0: yes | holds in every seed run so far |"
+    assert f"{unet_claim} +3.900 mm (one seed) |" in page
+    # with the fixed runs the 3-chain holds in every seed. Paired by seed: hetero -> range is +0.5 mm in every
+    # seed (spread 0, although each row's own seed std is 0.45 mm); range -> fixed is +0.5 / +0.6 / +0.7 mm
     shutil.rmtree(cpu / "dvss-fixed-l1-s0")
     for seed, mae in maes.items():
-        _write_run(cpu, f"dvss-fixed-l1-s{seed}", _metrics(mae + 1.0))
+        _write_run(cpu, f"dvss-fixed-l1-s{seed}", _metrics(mae + 1.0 + 0.1 * seed))
     page = results_markdown(tmp_path)
-    std = statistics.stdev(maes.values())
     assert (
         "| DVSS: hetero < range < fixed (synthetic MAE) | 0: yes, 1: yes, 2: yes | holds in every seed | "
-        f"+0.500, +0.500 mm (seed std {std:.3f}) |"
+        "+0.500 ± 0.000, +0.600 ± 0.100 mm (n=3) |"
     ) in page
     assert "# Profile `gpu`" not in page  # no GPU records
 

@@ -102,14 +102,17 @@ def _mean_std(values: Sequence[float], decimals: int) -> str:
 
 
 def _steps_text(claim: Claim, seeds: list[int], metrics_of: Any) -> str:
-    """The chain's steps (``claim_steps``) as text, e.g. ``+0.100, -0.020 mm (seed std 0.040)``: a step below
-    the seed std is within the seed noise, whatever its sign."""
-    steps, spread = claim_steps(claim, seeds, metrics_of)
+    """The chain's steps (``claim_steps``) as text, e.g. ``+0.100 ± 0.020, -0.020 ± 0.030 mm (n=3)``: each step's
+    mean over the seeds ± the standard deviation of its per-seed difference; a step within that spread is seed
+    noise, whatever its sign."""
+    steps = claim_steps(claim, seeds, metrics_of)
     if not steps:
         return "-"
     unit = " mm" if claim.metric.endswith("_mm") else ""
-    text = ", ".join(f"{d:+.3f}" for d in steps) + unit
-    return text + (f" (seed std {spread:.3f})" if spread is not None else " (one seed)")
+    if steps[0][1] is None:
+        return ", ".join(f"{d:+.3f}" for d, _ in steps) + unit + " (one seed)"
+    n = sum(claim_holds(claim, s, metrics_of) is not None for s in seeds)
+    return ", ".join(f"{d:+.3f} ± {sd:.3f}" for d, sd in steps) + unit + f" (n={n})"
 
 
 def _table_section(table: str, profile: str, records: dict[str, dict[str, Any]], seeds: list[int]) -> list[str]:
@@ -137,7 +140,7 @@ def _table_section(table: str, profile: str, records: dict[str, dict[str, Any]],
     claims = [c for c in CLAIMS if c.table == table]
     lines += [
         "",
-        "| the paper's ordering | holds in seeds | verdict | steps along it, mean over seeds (largest seed std) |",
+        "| the paper's ordering | holds in seeds | verdict | steps along it: mean ± std of the per-seed difference |",
         "|---|---|---|---|",
     ]
     for claim in claims:

@@ -377,17 +377,18 @@ def claim_holds(claim: Claim, seed: int, metrics_of: Any) -> bool | None:
     return all(a < b for a, b in zip(values, values[1:]))
 
 
-def claim_steps(claim: Claim, seeds: Sequence[int], metrics_of: Any) -> tuple[list[float], float | None]:
-    """How far apart the rows of ``claim``'s chain lie: per step (row k -> row k+1) the mean over the seeds of
-    ``value(k+1) - value(k)`` in ``claim.metric`` (positive where that step of the ordering holds), taken over the
-    seeds in which every row of the chain has a value; and the largest standard deviation of one row's value over
-    those seeds (None with fewer than 2 such seeds), the noise a step must clear. ``([], None)`` when no seed is
-    complete."""
+def claim_steps(claim: Claim, seeds: Sequence[int], metrics_of: Any) -> list[tuple[float, float | None]]:
+    """How far apart the rows of ``claim``'s chain lie, paired by seed: per step (row k -> row k+1) the mean over
+    the seeds of ``value(k+1) - value(k)`` in ``claim.metric`` (positive where that step of the ordering holds) and
+    the standard deviation of that per-seed difference (None with fewer than 2 seeds), both over the seeds in which
+    every row of the chain has a value. The rows of one seed share its data order and, within a backbone, its
+    initial weights, so the spread of the per-seed difference is the noise a step must clear (it is not the larger
+    spread of either row). ``[]`` when no seed is complete."""
     per_row = chain_values(claim, seeds, metrics_of)
     complete = [i for i in range(len(seeds)) if all(math.isfinite(v[i]) for v in per_row)]
-    if not complete:
-        return [], None
-    values = [[v[i] for i in complete] for v in per_row]
-    steps = [statistics.fmean(b) - statistics.fmean(a) for a, b in zip(values, values[1:])]
-    spread = max(statistics.stdev(v) for v in values) if len(complete) >= 2 else None
-    return steps, spread
+    steps = []
+    for a, b in zip(per_row, per_row[1:]):
+        diffs = [b[i] - a[i] for i in complete]
+        if diffs:
+            steps.append((statistics.fmean(diffs), statistics.stdev(diffs) if len(diffs) >= 2 else None))
+    return steps
