@@ -7,10 +7,12 @@ import json
 import math
 
 import pytest
+from omegaconf import OmegaConf
 
 from tofdenoise.cli.classic import grid_points, run, select_best
 from tofdenoise.cli.train import validate_config
 from tofdenoise.config import compose_config
+from tofdenoise.physics.calibration import SensorCalibration, resolve_calibration, save_calibration
 from tofdenoise.training.results import RUN_KEYS, learned_status, metric_sets, read_metrics_json, read_per_image_csv
 
 
@@ -136,11 +138,17 @@ def test_real_capture_set_is_tested_like_the_networks(tmp_path, data_cache, tiny
     simulate_capture_set(tmp_path / "set", scenes=3, frames=4, height=32, width=48, seed=1)
     run_dir = tmp_path / "run"
     grid = {"sigma_spatial_px": [1.0], "sigma_depth_mm": [40.0], "amplitude_power": [0.0, 1.0]}
+    own = SensorCalibration.from_dict({**resolve_calibration(None).to_dict(), "dark_std_e": 55.0})
+    calib_file = save_calibration(own, tmp_path / "mycam" / "calibration.yaml")
     cfg = compose_config(
-        classic_overrides(tiny, run_dir, data_cache, grid) + [f"data.real_dir={tmp_path / 'set'}"],
+        classic_overrides(tiny, run_dir, data_cache, grid)
+        + [f"data.real_dir={tmp_path / 'set'}", f"++data.sensor={calib_file}"],
         config_name="classical",
     )
     run(cfg)
+    # config.yaml records the calibration file's camera, not the sensor group's default
+    saved = OmegaConf.load(run_dir / "config.yaml")
+    assert SensorCalibration.from_dict(OmegaConf.to_container(saved.sensor)).fingerprint() == own.fingerprint()
     data = read_metrics_json(run_dir / "metrics.json")
     assert sorted(metric_sets(data)) == ["real", "synthetic"] and data["real"]["images"] == 3
     assert data["real"]["mae_mm"] < data["real"]["raw"]["mae_mm"]

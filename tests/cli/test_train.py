@@ -13,10 +13,12 @@ from pathlib import Path
 
 import pytest
 import torch
+from omegaconf import OmegaConf
 
 from tofdenoise.cli.train import run
 from tofdenoise.config import compose_config
 from tofdenoise.models import trainable_backbones
+from tofdenoise.physics.calibration import SensorCalibration, resolve_calibration, save_calibration
 from tofdenoise.training.metrics import METRIC_KEYS
 from tofdenoise.training.results import (
     RUN_KEYS,
@@ -58,7 +60,10 @@ def test_fast_dev_run_fit_and_test_every_backbone(backbone, tmp_path, data_cache
 
 
 def test_smoke_run_writes_every_output(tmp_path, data_cache, tiny):
-    cfg = compose_config(tiny(tmp_path, data_cache) + ["trainer.max_epochs=3"])
+    # a camera of the user's own, given as a calibration file (data.sensor overrides the sensor group)
+    own = SensorCalibration.from_dict({**resolve_calibration(None).to_dict(), "dark_std_e": 55.0})
+    calib_file = save_calibration(own, tmp_path / "mycam" / "calibration.yaml")
+    cfg = compose_config(tiny(tmp_path, data_cache) + ["trainer.max_epochs=3", f"++data.sensor={calib_file}"])
     result = run(cfg)
     ck = tmp_path / "checkpoints"
     assert sorted(p.name for p in ck.iterdir()) == ["best.ckpt", "last.ckpt"]
@@ -85,7 +90,10 @@ def test_smoke_run_writes_every_output(tmp_path, data_cache, tiny):
     runs = list((tmp_path / "wandb").glob("offline-run-*"))
     run_id = (tmp_path / "wandb_run_id.txt").read_text().strip()
     assert len(runs) == 1 and runs[0].name.endswith(run_id)
-    assert (tmp_path / "config.yaml").is_file()
+    # config.yaml records the camera the run used, not the sensor group's default that data.sensor replaced
+    saved = OmegaConf.load(tmp_path / "config.yaml")
+    assert saved.data.sensor == str(calib_file)
+    assert SensorCalibration.from_dict(OmegaConf.to_container(saved.sensor)).fingerprint() == own.fingerprint()
     assert len(list((tmp_path / "panels").glob("epoch_*.png"))) == 3  # one sample panel per validation
 
 

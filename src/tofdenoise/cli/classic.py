@@ -33,7 +33,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from tofdenoise.atomic import atomic_write_text
-from tofdenoise.cli.train import validate_config
+from tofdenoise.cli.train import record_calibration, validate_config
 from tofdenoise.config import hydra_console_script
 from tofdenoise.training.results import RUN_INFO_NAME
 
@@ -181,11 +181,12 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     device = _device(ccfg.get("device", "auto"), cfg)
     seed_everything(int(cfg.seed), workers=True)
     started = time.strftime("%Y-%m-%dT%H:%M:%S%z")
-    atomic_write_text(run_dir / "config.yaml", OmegaConf.to_yaml(cfg, resolve=True))
 
     base = _model_kwargs(cfg, backbone)
     models = [DepthRestorer(**base, backbone_kwargs=dict(p)) for p in points]  # bad parameters fail here
     datamodule = instantiate(cfg.data, _convert_="all")
+    record_calibration(cfg, datamodule.calib)
+    atomic_write_text(run_dir / "config.yaml", OmegaConf.to_yaml(cfg, resolve=True))
     datamodule.prepare_data()
     datamodule.setup("validate")
     t0 = time.perf_counter()

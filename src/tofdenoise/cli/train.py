@@ -120,6 +120,16 @@ def _run_outputs(callbacks: list[Any]) -> Any:
     return found[0]
 
 
+def record_calibration(cfg: DictConfig, calib: Any) -> None:
+    """Set ``cfg.sensor`` to the calibration the data module resolved, before the config is saved.
+
+    ``data.sensor`` may name a calibration file or a preset (``++data.sensor=mycam/calibration.yaml``) and so
+    override the ``sensor`` group. Without this, the saved ``config.yaml`` would show that group's camera, which
+    the run never used."""
+    with open_dict(cfg):
+        cfg.sensor = calib.to_dict()
+
+
 def run(cfg: DictConfig) -> dict[str, Any]:
     """Train and/or test as configured; returns ``{"run_dir", "best_ckpt", "metrics"}``."""
     from hydra.utils import instantiate
@@ -144,6 +154,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
 
     seed_everything(int(cfg.seed), workers=True)
     datamodule = instantiate(cfg.data, _convert_="all")
+    record_calibration(cfg, datamodule.calib)
     model = instantiate(cfg.model, _convert_="all")
     callbacks = _instantiate_group(cfg.get("callbacks"))
     # run_info.json, config.yaml (written once the checkpoint is restored), metrics.json and the CSVs
