@@ -19,8 +19,9 @@ from tofdenoise.paths import REPO_ROOT
 def test_specs_are_one_per_distinct_run_and_shared_across_tables():
     specs1 = table_specs("1", [0, 1])
     names1 = [s.name for s in specs1]
-    assert len(names1) == len(set(names1)) == 2 * 6  # raw needs no run of its own
-    assert "dvss-hetero-l1-s0" in names1 and "bilateral-s1" in names1
+    # raw needs no run of its own; the classical filter has one run for all seeds (nothing in it depends on the seed)
+    assert len(names1) == len(set(names1)) == 2 * 5 + 1
+    assert "dvss-hetero-l1-s1" in names1 and "bilateral" in names1 and "bilateral-s1" not in names1
     # the DVSS + hetero + L1 run is a row of every table, under the same folder name
     for table in ("2", "3"):
         assert "dvss-hetero-l1-s0" in {s.name for s in table_specs(table, [0])}
@@ -38,8 +39,8 @@ def test_spec_overrides_and_entries():
     assert s.entry == "train"
     assert s.overrides[:4] == ("backbone=unet", "noise=range", "loss=l1", "seed=2")
     assert "experiment=reproduce_cpu" in s.overrides and s.overrides[-1] == "backbone.kwargs.width=8"
-    bil = {x.name: x for x in table_specs("1", [0])}["bilateral-s0"]
-    assert bil.entry == "classical" and bil.overrides == ("seed=0",)
+    bil = {x.name: x for x in table_specs("1", [1, 2])}["bilateral"]
+    assert bil.entry == "classical" and bil.overrides == ("seed=1",)
     with pytest.raises(ValueError, match="unknown entry 'nope'"):
         RunSpec("x", (), entry="nope")
     with pytest.raises(ValueError, match="unknown table '4'"):
@@ -151,10 +152,13 @@ def test_results_page_mean_std_over_seeds(tmp_path):
     assert "| DVSS: hetero < range < fixed (synthetic MAE) | - | not run | - |" in page
     assert "| dvss-hetero-l1-s0 | yes | 10 | 2.00 | 7.00 | 12.5 |" in page
     # the runs table: a tuned classical filter is "classical", a run that stayed near the raw input is flagged
-    _write_run(cpu, "bilateral-s0", {**_metrics(2.5), "learned": False, "trained_steps": 0, "method_kind": "classical"})
+    _write_run(cpu, "bilateral", {**_metrics(2.5), "learned": False, "trained_steps": 0, "method_kind": "classical"})
     _write_run(cpu, "unet-range-l1-s0", {**_metrics(6.9), "learned": False})
     page = results_markdown(tmp_path)
-    assert "| bilateral-s0 | classical | 0 | 2.50 | 7.00 | 12.5 |" in page
+    assert "| bilateral | classical | 0 | 2.50 | 7.00 | 12.5 |" in page
+    # one run for every seed, and the raw input is the same in every seed: one value each, not a mean over n
+    assert "| Joint bilateral (classical, not in the paper) | - / 40.00 (seed-independent) |" in page
+    assert "| Raw iToF (the noisy input) | - / 35.00 (seed-independent) |" in page
     assert "| unet-range-l1-s0 | NOT LEARNED | 10 | 6.90 | 7.00 | 12.5 |" in page
     # one seed of both U-Net rows: the step has no spread yet
     _write_run(cpu, "unet-hetero-l1-s0", _metrics(3.0))
@@ -172,6 +176,18 @@ def test_results_page_mean_std_over_seeds(tmp_path):
         "+0.500 ± 0.000, +0.600 ± 0.100 mm (n=3) |"
     ) in page
     assert "# Profile `gpu`" not in page  # no GPU records
+
+
+def test_a_seed_independent_row_shows_one_value_unless_its_seeds_disagree():
+    from tofdenoise.experiments.results_page import _row_cell
+
+    raw = TABLES["1"][0]
+    dvss = next(r for r in TABLES["1"] if r.key == "dvss_l1")
+    assert raw.seed_independent and not dvss.seed_independent
+    assert _row_cell(raw, [4.5, 4.5, math.nan], 2) == "4.50 (seed-independent)"
+    # inputs that did change with the seed are not hidden behind one value
+    assert _row_cell(raw, [4.0, 5.0], 2) == f"4.50 ± {statistics.stdev([4.0, 5.0]):.2f} (n=2)"
+    assert _row_cell(dvss, [4.5, 4.5], 2) == "4.50 ± 0.00 (n=2)"
 
 
 def test_run_minutes():

@@ -67,6 +67,13 @@ class Row:
     def run_stem(self) -> str:
         return self.backbone if self.kind == "classical" else f"{self.backbone}-{self.noise}-{self.loss}"
 
+    @property
+    def seed_independent(self) -> bool:
+        """True where the training seed cannot change the row's numbers: the raw input (validation and test inputs
+        are synthesised from ``data.seed``, not from the run's ``seed``) and a classical filter (nothing is
+        trained; its grid is tuned on those same inputs). Such a row has one value, not a mean over seeds."""
+        return self.key == "raw" or self.kind == "classical"
+
 
 @dataclass(frozen=True)
 class Claim:
@@ -79,7 +86,11 @@ class Claim:
 
 
 def run_name(row: Row, seed: int) -> str:
-    """The folder name of ``row``'s run for ``seed`` (shared by every table the row appears in)."""
+    """The folder name of ``row``'s run for ``seed`` (shared by every table the row appears in). A classical row
+    has one run for every seed (``Row.seed_independent``): running it per seed would repeat one result and count
+    it as several."""
+    if row.kind == "classical":
+        return row.run_stem()
     return f"{row.run_stem()}-s{seed}"
 
 
