@@ -12,7 +12,7 @@ from omegaconf import OmegaConf
 from tofdenoise.cli.classic import grid_points, run, select_best
 from tofdenoise.cli.train import validate_config
 from tofdenoise.config import compose_config
-from tofdenoise.physics.calibration import SensorCalibration, resolve_calibration, save_calibration
+from tofdenoise.physics.calibration import SensorCalibration
 from tofdenoise.training.results import RUN_KEYS, learned_status, metric_sets, read_metrics_json, read_per_image_csv
 
 
@@ -131,15 +131,14 @@ def test_tune_on_validation_then_test_through_the_network_path(tmp_path, data_ca
     assert row.startswith("| bilateral (classical) | hetero | none | classical |")
 
 
-def test_real_capture_set_is_tested_like_the_networks(tmp_path, data_cache, tiny):
+def test_real_capture_set_is_tested_like_the_networks(tmp_path, data_cache, tiny, own_camera_file):
     """With data.real_dir the chosen filter is also tested on the capture set (the "real" column)."""
     from tofdenoise.data_modules.capture_simulation import simulate_capture_set
 
     simulate_capture_set(tmp_path / "set", scenes=3, frames=4, height=32, width=48, seed=1)
     run_dir = tmp_path / "run"
     grid = {"sigma_spatial_px": [1.0], "sigma_depth_mm": [40.0], "amplitude_power": [0.0, 1.0]}
-    own = SensorCalibration.from_dict({**resolve_calibration(None).to_dict(), "dark_std_e": 55.0})
-    calib_file = save_calibration(own, tmp_path / "mycam" / "calibration.yaml")
+    own, calib_file = own_camera_file(tmp_path)  # data.sensor=<file> overrides the sensor group
     cfg = compose_config(
         classic_overrides(tiny, run_dir, data_cache, grid)
         + [f"data.real_dir={tmp_path / 'set'}", f"++data.sensor={calib_file}"],

@@ -18,7 +18,7 @@ from omegaconf import OmegaConf
 from tofdenoise.cli.train import run
 from tofdenoise.config import compose_config
 from tofdenoise.models import trainable_backbones
-from tofdenoise.physics.calibration import SensorCalibration, resolve_calibration, save_calibration
+from tofdenoise.physics.calibration import SensorCalibration
 from tofdenoise.training.metrics import METRIC_KEYS
 from tofdenoise.training.results import (
     RUN_KEYS,
@@ -59,10 +59,8 @@ def test_fast_dev_run_fit_and_test_every_backbone(backbone, tmp_path, data_cache
     assert not (tmp_path / "checkpoints" / "best.ckpt").exists()
 
 
-def test_smoke_run_writes_every_output(tmp_path, data_cache, tiny):
-    # a camera of the user's own, given as a calibration file (data.sensor overrides the sensor group)
-    own = SensorCalibration.from_dict({**resolve_calibration(None).to_dict(), "dark_std_e": 55.0})
-    calib_file = save_calibration(own, tmp_path / "mycam" / "calibration.yaml")
+def test_smoke_run_writes_every_output(tmp_path, data_cache, tiny, own_camera_file):
+    own, calib_file = own_camera_file(tmp_path)  # data.sensor=<file> overrides the sensor group
     cfg = compose_config(tiny(tmp_path, data_cache) + ["trainer.max_epochs=3", f"++data.sensor={calib_file}"])
     result = run(cfg)
     ck = tmp_path / "checkpoints"

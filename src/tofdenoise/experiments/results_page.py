@@ -111,18 +111,17 @@ def _mean_std(values: Sequence[float], decimals: int) -> str:
     return f"{statistics.fmean(finite):.{decimals}f} ± {statistics.stdev(finite):.{decimals}f} (n={len(finite)})"
 
 
-def _steps_text(claim: Claim, seeds: list[int], metrics_of: Any) -> str:
-    """The chain's steps (``claim_steps``) as text, e.g. ``+0.100 ± 0.020, -0.020 ± 0.030 mm (n=3)``: each step's
-    mean over the seeds ± the standard deviation of its per-seed difference; a step within that spread is seed
-    noise, whatever its sign."""
+def _steps_text(claim: Claim, seeds: list[int], metrics_of: Any, complete: int) -> str:
+    """The chain's steps (``claim_steps``) over its ``complete`` seeds (those with a verdict) as text, e.g.
+    ``+0.100 ± 0.020, -0.020 ± 0.030 mm (n=3)``: each step's mean over the seeds ± the standard deviation of its
+    per-seed difference; a step within that spread is seed noise, whatever its sign."""
     steps = claim_steps(claim, seeds, metrics_of)
     if not steps:
         return "-"
     unit = " mm" if claim.metric.endswith("_mm") else ""
-    if steps[0][1] is None:
+    if complete == 1:
         return ", ".join(f"{d:+.3f}" for d, _ in steps) + unit + " (one seed)"
-    n = sum(claim_holds(claim, s, metrics_of) is not None for s in seeds)
-    return ", ".join(f"{d:+.3f} ± {sd:.3f}" for d, sd in steps) + unit + f" (n={n})"
+    return ", ".join(f"{d:+.3f} ± {sd:.3f}" for d, sd in steps) + unit + f" (n={complete})"
 
 
 def _table_section(table: str, profile: str, records: dict[str, dict[str, Any]], seeds: list[int]) -> list[str]:
@@ -166,7 +165,8 @@ def _table_section(table: str, profile: str, records: dict[str, dict[str, Any]],
         else:
             verdict = "does not hold"
         seeds_text = ", ".join(f"{s}: {'yes' if v else 'no'}" for s, v in known.items()) or "-"
-        lines.append(f"| {claim.text} | {seeds_text} | {verdict} | {_steps_text(claim, seeds, metrics_of)} |")
+        steps_text = _steps_text(claim, seeds, metrics_of, len(known))
+        lines.append(f"| {claim.text} | {seeds_text} | {verdict} | {steps_text} |")
     lines.append("")
     return lines
 

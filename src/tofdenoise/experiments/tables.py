@@ -397,9 +397,10 @@ def claim_steps(claim: Claim, seeds: Sequence[int], metrics_of: Any) -> list[tup
     spread of either row). ``[]`` when no seed is complete."""
     per_row = chain_values(claim, seeds, metrics_of)
     complete = [i for i in range(len(seeds)) if all(math.isfinite(v[i]) for v in per_row)]
+    if not complete:
+        return []
     steps = []
     for a, b in zip(per_row, per_row[1:]):
         diffs = [b[i] - a[i] for i in complete]
-        if diffs:
-            steps.append((statistics.fmean(diffs), statistics.stdev(diffs) if len(diffs) >= 2 else None))
+        steps.append((statistics.fmean(diffs), statistics.stdev(diffs) if len(complete) >= 2 else None))
     return steps
