@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import csv
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from tofdenoise.cli.reproduce import copy_records, main, profile_overrides, realset_command
@@ -47,6 +49,17 @@ def test_dry_run_lists_the_realset_and_every_run(tmp_path, capsys):
         f"paths.run_dir={out / 'dvss_no_local-hetero-l1-s0'}",
     ):
         assert token in first
+    assert not page.exists() and not results.exists()  # a dry run writes nothing
+
+
+def test_dry_run_of_a_qualitative_figure_lists_its_runs(tmp_path, capsys):
+    out, results, page = tmp_path / "runs", tmp_path / "results", tmp_path / "results.md"
+    argv = ["--table", "fig8", "--seeds", "2", "1", "--out", str(out), "--results", str(results), "--page", str(page)]
+    assert main([*argv, "--dry-run"]) == 0
+    printed = capsys.readouterr().out
+    planned = [line.split(":")[0].split()[-1] for line in printed.splitlines() if ": would run" in line]
+    assert planned == ["deeptof-hetero-l1-s2", "tofkpn-hetero-l1-s2", "rcf-hetero-l1-s2", "dvss-hetero-full-s2"]
+    assert "would render fig8 from deeptof-hetero-l1-s2, " in printed
     assert not page.exists() and not results.exists()  # a dry run writes nothing
 
 
@@ -129,3 +142,37 @@ def test_each_finished_run_is_recorded_at_once(tmp_path, monkeypatch):
             ["--table", "3", "--seeds", "0", "--out", str(out), "--results", str(results), "--page", str(page)]
         )
     assert sorted(p.name for p in (results / "cpu").iterdir()) == ["dvss-fixed-l1-s0"]
+
+
+def test_figure_of_a_trained_run_matches_its_test_and_a_changed_checkpoint_is_refused(tmp_path, data_cache, tiny):
+    """End to end on a tiny run (about 15 s): the figure's per-scene MAE is the run's recorded per-image MAE;
+    a checkpoint that is not the one the test scored is an error naming the record."""
+    from tofdenoise.cli.train import run
+    from tofdenoise.config import compose_config
+    from tofdenoise.experiments.figures import FigureMismatch, FigureSpec, build_figure, figure_specs
+
+    out = tmp_path / "runs"
+    common = [o for o in tiny(out, data_cache) if not o.startswith(("paths.run_dir", "backbone="))]
+    spec = FigureSpec("figt", "Fig. T", "synthetic", (("U-Net", "3", "unet_hetero"),), 2, "Input", "GT")
+    specs = figure_specs(spec, 0, [*common, "trainer.max_epochs=1", "logger=csv"])
+    run(compose_config([*specs[0].overrides, f"paths.run_dir={out / specs[0].name}"]))
+    image, record = build_figure(spec, 0, specs, out)
+    assert record["runs"] == {"U-Net": "unet-hetero-l1-s0"} and len(record["scenes"]) == 2
+    assert image.dtype == np.uint8
+    recorded = {}
+    with (out / "unet-hetero-l1-s0" / "per_image" / "synthetic.csv").open() as f:
+        for row in csv.DictReader(f):
+            recorded[row["name"]] = float(row["mae_mm"])
+    for scene in record["scenes"]:
+        assert scene["mae_mm"]["U-Net"] == pytest.approx(recorded[scene["name"]], abs=1e-3)
+
+    ckpt = out / "unet-hetero-l1-s0" / "checkpoints" / "best.ckpt"
+    import torch
+
+    content = torch.load(ckpt, map_location="cpu", weights_only=False)
+    for key, value in content["state_dict"].items():  # every bias, whichever copy (EMA or not) restores
+        if key.endswith("bias"):
+            value += 0.5
+    torch.save(content, ckpt)
+    with pytest.raises(FigureMismatch, match="U-Net's prediction has MAE"):
+        build_figure(spec, 0, specs, out)

@@ -2,6 +2,7 @@
 
     tofdenoise-reproduce --table 3 --profile cpu --seeds 0 1 2      # make reproduce TABLE=3 PROFILE=cpu SEEDS=0,1,2
     tofdenoise-reproduce --table fig6 --profile cpu                  # the noise-model validation figure
+    tofdenoise-reproduce --table fig7                                # qualitative figures (fig7 synthetic, fig8 real)
     tofdenoise-reproduce --table 1 --dry-run                         # list what would run
     tofdenoise-reproduce --page-only                                 # rebuild docs/results.md from docs/results/
 
@@ -12,14 +13,19 @@ and ``tofdenoise-sensor calibrate`` estimates its calibration (``<out>/realset``
 set (finished runs are skipped, interrupted ones resume, a failing run does not stop the others and is listed);
 (3) each finished run's ``metrics.json`` and ``run_info.json`` copied to ``docs/results/<profile>/<run>/``;
 (4) ``docs/results.md`` rebuilt from those records. Exit status 0 when every run of the table finished.
+``fig7`` / ``fig8`` (the qualitative figures) train the runs of their columns for the first seed when missing,
+then render the figure from those runs' best checkpoints (``tofdenoise.experiments.figures``), check it against
+the runs' per-image records and commit ``figure.png`` and ``figure.json`` to ``docs/results/<profile>/<fig>/``.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 from tofdenoise.atomic import atomic_write_bytes, atomic_write_text
 from tofdenoise.paths import REPO_ROOT
@@ -53,7 +59,11 @@ def build_parser() -> argparse.ArgumentParser:
         description=__doc__.split("\n\n")[0],
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("--table", choices=["1", "2", "3", "fig6"], help="which table (or the Fig. 6 validation)")
+    p.add_argument(
+        "--table",
+        choices=["1", "2", "3", "fig6", "fig7", "fig8"],
+        help="which table, or figure (fig6: noise-model validation; fig7 / fig8: qualitative, synthetic / real)",
+    )
     p.add_argument("--profile", choices=sorted(PROFILES), default="cpu")
     p.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     p.add_argument("--out", type=Path, default=None, help="run folders (default runs/reproduce/<profile>)")
@@ -171,6 +181,38 @@ def _fig6(args: argparse.Namespace, realset_dir: Path, dest: Path) -> int:
     return 0
 
 
+def _qualitative(args: argparse.Namespace, realset_dir: Path, dest: Path, record: Any) -> int:
+    """Fig. 7 / Fig. 8: the columns' runs for the first seed (trained when missing), then the rendered figure."""
+    from tofdenoise.experiments.figures import (
+        FIGURE_JSON,
+        FIGURE_PNG,
+        FIGURES,
+        build_figure,
+        encode_png_palette,
+        figure_specs,
+    )
+    from tofdenoise.experiments.runner import run_all
+
+    spec, seed = FIGURES[args.table], args.seeds[0]
+    specs = figure_specs(spec, seed, profile_overrides(args.profile, realset_dir, args.extra))
+    outcomes = run_all(specs, args.out, dry_run=args.dry_run, after_each=None if args.dry_run else record)
+    if args.dry_run:
+        print(f"[reproduce] would render {spec.key} from {', '.join(s.name for s in specs)}")
+        return 0
+    unfinished = [o.spec.name for o in outcomes if o.status not in ("done", "skipped")]
+    if unfinished:
+        print(f"[reproduce] {spec.key} not rendered: run(s) {', '.join(unfinished)} did not finish", flush=True)
+        return 1
+    image, fig_record = build_figure(spec, seed, specs, args.out)
+    fig_record["profile"] = args.profile
+    png, text = encode_png_palette(image), json.dumps(fig_record, indent=1) + "\n"
+    for folder in (args.out / spec.key, dest / spec.key):
+        atomic_write_bytes(folder / FIGURE_PNG, png)
+        atomic_write_text(folder / FIGURE_JSON, text)
+    print(f"[reproduce] {spec.key}: {dest / spec.key / FIGURE_PNG} ({len(png) // 1024} KiB)", flush=True)
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     from tofdenoise.experiments.results_page import results_markdown
     from tofdenoise.experiments.runner import run_all
@@ -180,27 +222,30 @@ def main(argv: list[str] | None = None) -> int:
     if args.page.suffix.lower() != ".md":
         raise SystemExit(f"tofdenoise-reproduce: --page {args.page}: expected a .md file")
     if not args.page_only and args.table is None:
-        raise SystemExit("tofdenoise-reproduce: give --table 1|2|3|fig6 (or --page-only)")
+        raise SystemExit("tofdenoise-reproduce: give --table 1|2|3|fig6|fig7|fig8 (or --page-only)")
     status = 0
     if not args.page_only:
         args.out = (args.out or REPO_ROOT / "runs" / "reproduce" / args.profile).expanduser().resolve()
         realset_dir = args.out / "realset"
         dest = args.results / args.profile
         ensure_realset(realset_dir, args.profile, dry_run=args.dry_run)
+
+        def record(outcome) -> None:  # commit each finished run at once: an interrupted table keeps it
+            if copy_records([outcome.run_dir], dest):
+                atomic_write_text(args.page, results_markdown(args.results))
+
         if args.table == "fig6":
             status = _fig6(args, realset_dir, dest)
+        elif args.table in ("fig7", "fig8"):
+            status = _qualitative(args, realset_dir, dest, record)
         else:
             specs = table_specs(args.table, args.seeds, profile_overrides(args.profile, realset_dir, args.extra))
-
-            def record(outcome) -> None:  # commit each finished run at once: an interrupted table keeps it
-                if copy_records([outcome.run_dir], dest):
-                    atomic_write_text(args.page, results_markdown(args.results))
-
             outcomes = run_all(specs, args.out, dry_run=args.dry_run, after_each=None if args.dry_run else record)
-            if args.dry_run:
-                return 0
-            write_report(dest)
-            status = 0 if all(o.status in ("done", "skipped") for o in outcomes) else 1
+            if not args.dry_run:
+                write_report(dest)
+            status = 0 if all(o.status in ("done", "skipped", "planned") for o in outcomes) else 1
+        if args.dry_run:  # a dry run writes nothing
+            return status
     page = results_markdown(args.results)
     atomic_write_text(args.page, page)
     print(f"[reproduce] wrote {args.page}", flush=True)

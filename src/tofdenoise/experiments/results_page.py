@@ -225,6 +225,35 @@ def _fig6_section(profile_dir: Path) -> list[str]:
     return lines
 
 
+def _qualitative_section(profile_dir: Path, key: str, title: str) -> list[str]:
+    """A qualitative figure (``tofdenoise.experiments.figures``): its per-scene MAE table and the image."""
+    data = _read_json(profile_dir / key / "figure.json")
+    if data is None:
+        return [f"## {title}", "", f"Not run yet (`make reproduce TABLE={key}`).", ""]
+    columns = [data["input"], *data["columns"]]
+    runs = ", ".join(f"{label} = `{name}`" for label, name in data["runs"].items())
+    lines = [
+        f"## {data['title']}",
+        "",
+        f"Runs of seed {data['seed']}: {runs}. Ours is DVSS trained on the hetero synthesis with L_full, the "
+        "paper's configuration. The scenes are evenly spaced through the test set, not chosen by result. Each "
+        "prediction is the one the run's test scored: the figure is checked against every run's per-image "
+        "record. Per scene, the top row is depth on one scale and the bottom row |map − "
+        f"{data['reference']}| on one millimetre scale; grey pixels are invalid (holes, outside the scoring "
+        f"region). {data.get('note', '')}".rstrip(),
+        "",
+        f"| scene (MAE, mm) | {' | '.join(columns)} |",
+        "|---|" + "---|" * len(columns),
+    ]
+    for scene in data["scenes"]:
+        values = " | ".join(_fmt(float(scene["mae_mm"][c]), 2) for c in columns)
+        lines.append(f"| {scene['name']} (index {scene['index']}) | {values} |")
+    if (profile_dir / key / "figure.png").is_file():
+        lines += ["", f"![{data['title']}: {profile_dir.name} profile](results/{profile_dir.name}/{key}/figure.png)"]
+    lines.append("")
+    return lines
+
+
 def _profile_sections(profile_dir: Path, records: dict[str, dict[str, Any]]) -> list[str]:
     profile = profile_dir.name
     seeds = seeds_present(records) or [0, 1, 2]
@@ -237,6 +266,8 @@ def _profile_sections(profile_dir: Path, records: dict[str, dict[str, Any]]) -> 
     for table in TABLES:
         lines += _table_section(table, profile, records, seeds)
     lines += _fig6_section(profile_dir)
+    lines += _qualitative_section(profile_dir, "fig7", "Fig. 7: qualitative comparison on the synthetic test set")
+    lines += _qualitative_section(profile_dir, "fig8", "Fig. 8: results on the real set")
     return lines + _runs_section(records)
 
 

@@ -35,6 +35,7 @@ __all__ = [
     "TABLE_TITLES",
     "CLAIMS",
     "run_name",
+    "row_spec",
     "table_rows",
     "table_specs",
     "METRIC_COLUMNS",
@@ -312,6 +313,30 @@ def table_rows(table: str) -> tuple[Row, ...]:
     return TABLES[table]
 
 
+def row_spec(
+    row: Row,
+    seed: int,
+    common: Sequence[str] = (),
+    per_backbone: Mapping[str, Sequence[str]] | None = None,
+    table: str = "",
+) -> RunSpec:
+    """The run of ``row`` for ``seed`` (its folder is :func:`run_name`). A classical row becomes a ``RunSpec`` with
+    ``entry="classical"`` (run by ``python -m tofdenoise.cli.classic``, which reads the same overrides)."""
+    if row.kind == "classical":
+        overrides: tuple[str, ...] = (*common, f"seed={seed}")
+    else:
+        overrides = (
+            f"backbone={row.backbone}",
+            f"noise={row.noise}",
+            f"loss={row.loss}",
+            f"seed={seed}",
+            *common,
+            *(per_backbone or {}).get(row.backbone, ()),
+        )
+    meta = {"table": table, "row": row.key, "seed": seed, "kind": row.kind}
+    return RunSpec(run_name(row, seed), overrides, meta, entry=row.kind)
+
+
 def table_specs(
     table: str,
     seeds: Sequence[int],
@@ -321,32 +346,14 @@ def table_specs(
     """The runs of ``table`` for ``seeds`` (one per distinct run; the raw row needs no run of its own).
 
     ``common``: overrides for every training run (the profile's experiment, the sensor, the real set);
-    ``per_backbone``: extra overrides for one backbone. Classical rows become ``RunSpec`` s with
-    ``entry="classical"`` (run by ``python -m tofdenoise.cli.classic``, which reads the same overrides).
+    ``per_backbone``: extra overrides for one backbone (:func:`row_spec`).
     """
-    per_backbone = per_backbone or {}
     specs: dict[str, RunSpec] = {}
     for seed in seeds:
         for row in table_rows(table):
-            if row.key == "raw":
+            if row.key == "raw" or run_name(row, seed) in specs:
                 continue
-            name = run_name(row, seed)
-            if name in specs:
-                continue
-            if row.kind == "classical":
-                overrides = (*common, f"seed={seed}")
-            else:
-                overrides = (
-                    f"backbone={row.backbone}",
-                    f"noise={row.noise}",
-                    f"loss={row.loss}",
-                    f"seed={seed}",
-                    *common,
-                    *per_backbone.get(row.backbone, ()),
-                )
-            specs[name] = RunSpec(
-                name, tuple(overrides), {"table": table, "row": row.key, "seed": seed, "kind": row.kind}, entry=row.kind
-            )
+            specs[run_name(row, seed)] = row_spec(row, seed, common, per_backbone, table)
     return list(specs.values())
 
 
