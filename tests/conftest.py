@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 import pytest
 import torch
@@ -103,3 +104,45 @@ def write_exr():
         module.write_exr(path, {"Z": np.asarray(depth, dtype=np.float32)}, 3)
 
     return write
+
+
+#: image size of the ToF-FlyingThings3D fixture
+FT3D_SHAPE = (24, 32)
+
+
+def _write_ft3d(
+    root: Path, train: list[str], test: list[str], gt_dir: str = "gt_depth_rgb", seed: int = 0, shape=FT3D_SHAPE
+) -> dict:
+    """Write tokens in the published layout; returns {token: (gt_half_scale, conf, amplitude)}."""
+    import cv2
+    import numpy as np
+    import scipy.io
+
+    H, W = shape
+    rng = np.random.default_rng(seed)
+    (root / gt_dir).mkdir(parents=True, exist_ok=True)
+    (root / "nToF").mkdir(parents=True, exist_ok=True)
+    (root / "train_list.txt").write_text("\n".join(train) + "\n")
+    (root / "test_list.txt").write_text("\n".join(test) + "\n")
+    out = {}
+    for token in train + test:
+        gt = rng.uniform(300, 1500, size=(H, W)).astype(np.float32)  # half scale: x2 -> 600..3000 mm
+        gt[0, :3] = 0.0  # no return
+        conf = np.ones((H, W), np.uint8)
+        conf[5, 5] = 0
+        amp = rng.integers(1, 255, size=(H, W), dtype=np.uint8)
+        scipy.io.savemat(root / gt_dir / f"{token}_gt_depth.mat", {"gt_depth": gt})
+        scipy.io.savemat(root / gt_dir / f"{token}_gt_conf.mat", {"conf": conf})
+        cv2.imwrite(str(root / "nToF" / f"{token}_noisy_intensity.png"), amp)
+        # the dataset's own noisy depth must never be read: make it garbage
+        (root / "nToF" / f"{token}_noisy_depth.mat").write_bytes(b"garbage")
+        cv2.imwrite(str(root / gt_dir / f"{token}_rgb.png"), np.zeros((H, W, 3), np.uint8))
+        out[token] = (gt, conf, amp)
+    return out
+
+
+@pytest.fixture
+def write_ft3d():
+    """``write_ft3d(root, train_tokens, test_tokens, gt_dir=..., seed=...)``: a tiny ToF-FlyingThings3D in its
+    published layout (.mat v5, PNG, list files) of ``FT3D_SHAPE`` images; returns {token: (gt, conf, amplitude)}."""
+    return _write_ft3d

@@ -176,3 +176,48 @@ def test_figure_of_a_trained_run_matches_its_test_and_a_changed_checkpoint_is_re
     torch.save(content, ckpt)
     with pytest.raises(FigureMismatch, match="U-Net's prediction has MAE"):
         build_figure(spec, 0, specs, out)
+
+
+def test_gpu_profile_run_scaled_down_trains_and_tests_on_cpu(tmp_path, data_cache, tiny, write_ft3d):
+    """The GPU profile's first execution must not be on the GPU machine: a Table III run with the profile's
+    overrides (``experiment=paper``: ToF-FlyingThings3D, the row's backbone, noise and loss, the second camera's
+    calibration and capture set) trains and tests end to end, scaled down (fixture dataset, CPU, one epoch, tiny
+    DVSS). About 15 s."""
+    from tofdenoise.cli.sensor import main as sensor_main
+    from tofdenoise.cli.train import run
+    from tofdenoise.config import compose_config
+    from tofdenoise.experiments.tables import table_specs
+
+    ft3d, realset = tmp_path / "ft3d", tmp_path / "realset"
+    write_ft3d(ft3d, [f"t{i:03d}" for i in range(8)], [f"v{i:03d}" for i in range(2)])
+    assert (
+        sensor_main(
+            ["realset", "--out", str(realset), "--scenes", "2", "--frames", "4", "--height", "24", "--width", "32"]
+        )
+        == 0
+    )
+    tiny_dvss = [o for o in tiny(tmp_path, data_cache, backbone="dvss") if o.startswith("backbone.kwargs")]
+    scaled_down = [
+        f"data.root={ft3d}",
+        f"++data.cache_dir={data_cache}",
+        "trainer.accelerator=cpu",
+        "trainer.precision=32-true",
+        "trainer.max_epochs=1",
+        "trainer.enable_progress_bar=false",
+        "data.crop_size=16",
+        "data.batch_size=2",
+        "data.num_workers=0",
+        *tiny_dvss,
+    ]
+    specs = {s.name: s for s in table_specs("3", [0], profile_overrides("gpu", realset, scaled_down))}
+    spec = specs["dvss-range-l1-s0"]
+    run_dir = tmp_path / spec.name
+    run(compose_config([*spec.overrides, f"paths.run_dir={run_dir}"]))
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    info = json.loads((run_dir / "run_info.json").read_text())
+    assert info["data"] == "flyingthings3d" and info["noise"] == "range" and info["loss"] == "l1"
+    assert metrics["synthetic"]["images"] == 2 and metrics["real"]["images"] == 2
+    for test_set in ("synthetic", "real"):
+        assert np.isfinite(metrics[test_set]["mae_mm"]) and metrics[test_set]["raw"]["mae_mm"] > 0
+    config = (run_dir / "config.yaml").read_text()
+    assert "lr: 0.0002" in config and "max_epochs: 1" in config and str(realset / "calibration.yaml") in config

@@ -3,40 +3,14 @@
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
-import scipy.io
 
 from tofdenoise.data_modules.sources.flyingthings3d import FlyingThings3DSource, radial_to_z
 
 H, W = 24, 32
-
-
-def write_ft3d(root: Path, train: list[str], test: list[str], gt_dir: str = "gt_depth_rgb", seed: int = 0) -> dict:
-    """Write tokens in the published layout; returns {token: (gt_half_scale, conf, amplitude)}."""
-    rng = np.random.default_rng(seed)
-    (root / gt_dir).mkdir(parents=True, exist_ok=True)
-    (root / "nToF").mkdir(parents=True, exist_ok=True)
-    (root / "train_list.txt").write_text("\n".join(train) + "\n")
-    (root / "test_list.txt").write_text("\n".join(test) + "\n")
-    out = {}
-    for token in train + test:
-        gt = rng.uniform(300, 1500, size=(H, W)).astype(np.float32)  # half scale: x2 -> 600..3000 mm
-        gt[0, :3] = 0.0  # no return
-        conf = np.ones((H, W), np.uint8)
-        conf[5, 5] = 0
-        amp = rng.integers(1, 255, size=(H, W), dtype=np.uint8)
-        scipy.io.savemat(root / gt_dir / f"{token}_gt_depth.mat", {"gt_depth": gt})
-        scipy.io.savemat(root / gt_dir / f"{token}_gt_conf.mat", {"conf": conf})
-        cv2.imwrite(str(root / "nToF" / f"{token}_noisy_intensity.png"), amp)
-        # the dataset's own noisy depth must never be read: make it garbage
-        (root / "nToF" / f"{token}_noisy_depth.mat").write_bytes(b"garbage")
-        cv2.imwrite(str(root / gt_dir / f"{token}_rgb.png"), np.zeros((H, W, 3), np.uint8))
-        out[token] = (gt, conf, amp)
-    return out
 
 
 def test_radial_to_z_hand_values():
@@ -50,7 +24,7 @@ def test_radial_to_z_hand_values():
 
 
 @pytest.mark.parametrize("gt_dir", ["gt_depth_rgb", "gt_depth_rgb_small_pt"])
-def test_reader_scales_converts_and_masks(tmp_path, gt_dir):
+def test_reader_scales_converts_and_masks(tmp_path, gt_dir, write_ft3d):
     data = write_ft3d(tmp_path, ["a_0001", "a_0002"], ["b_0001"], gt_dir=gt_dir)
     src = FlyingThings3DSource(tmp_path)
     assert src.sample_ids() == ["a_0001", "a_0002", "b_0001"]
@@ -64,7 +38,7 @@ def test_reader_scales_converts_and_masks(tmp_path, gt_dir):
     assert s.depth_mm[s.valid].max() <= 3000 and s.depth_mm[s.valid].min() > 500
 
 
-def test_missing_listed_file_fails_before_training(tmp_path):
+def test_missing_listed_file_fails_before_training(tmp_path, write_ft3d):
     write_ft3d(tmp_path, ["a_0001", "a_0002"], ["b_0001"])
     (tmp_path / "nToF" / "a_0002_noisy_intensity.png").unlink()
     with pytest.raises(FileNotFoundError, match="a_0002_noisy_intensity.png"):
@@ -85,14 +59,14 @@ def test_missing_root_says_which_key_to_set(tmp_path):
         ToFDataModule(source="flyingthings3d", root=str(tmp_path / "absent"))
 
 
-def test_shape_mismatch_names_both_files(tmp_path):
+def test_shape_mismatch_names_both_files(tmp_path, write_ft3d):
     write_ft3d(tmp_path, ["a_0001"], ["b_0001"])
     cv2.imwrite(str(tmp_path / "nToF" / "a_0001_noisy_intensity.png"), np.ones((H, W + 1), np.uint8))
     with pytest.raises(ValueError, match=r"a_0001_noisy_intensity.png has shape \(24, 33\); expected \(24, 32\)"):
         FlyingThings3DSource(tmp_path).load("a_0001")
 
 
-def test_datamodule_on_fixture(tmp_path):
+def test_datamodule_on_fixture(tmp_path, write_ft3d):
     from tofdenoise.data_modules import ToFDataModule
 
     write_ft3d(tmp_path, [f"t{i:03d}" for i in range(7)], [f"v{i:03d}" for i in range(3)])
