@@ -144,6 +144,31 @@ def test_each_finished_run_is_recorded_at_once(tmp_path, monkeypatch):
     assert sorted(p.name for p in (results / "cpu").iterdir()) == ["dvss-fixed-l1-s0"]
 
 
+def test_a_figure_that_fails_its_check_is_not_written_and_fails_the_command(tmp_path, monkeypatch, capsys):
+    import tofdenoise.cli.reproduce as reproduce
+    from tofdenoise.experiments.figures import FigureMismatch
+    from tofdenoise.experiments.runner import RunOutcome
+
+    out, results, page = tmp_path / "runs", tmp_path / "results", tmp_path / "results.md"
+
+    def refuse(*args, **kwargs):
+        raise FigureMismatch("runs/x/per_image/real.csv: scene 'scene_0000': the figure's input has MAE 1.0 mm")
+
+    monkeypatch.setattr(reproduce, "ensure_realset", lambda *a, **k: None)
+    monkeypatch.setattr(
+        "tofdenoise.experiments.runner.run_all",
+        lambda specs, out_dir, dry_run=False, after_each=None: [
+            RunOutcome(s, out_dir / s.name, "skipped") for s in specs
+        ],
+    )
+    monkeypatch.setattr("tofdenoise.experiments.figures.build_figure", refuse)
+    argv = ["--table", "fig8", "--seeds", "0", "--out", str(out), "--results", str(results), "--page", str(page)]
+    assert reproduce.main(argv) == 1
+    assert "fig8 not rendered: runs/x/per_image/real.csv: scene 'scene_0000'" in capsys.readouterr().out
+    assert not (results / "cpu" / "fig8").exists() and not (out / "fig8").exists()
+    assert "Not run yet (`make reproduce TABLE=fig8`)" in page.read_text()
+
+
 def test_figure_of_a_trained_run_matches_its_test_and_a_changed_checkpoint_is_refused(tmp_path, data_cache, tiny):
     """End to end on a tiny run (about 15 s): the figure's per-scene MAE is the run's recorded per-image MAE;
     a checkpoint that is not the one the test scored is an error naming the record."""

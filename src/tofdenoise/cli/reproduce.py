@@ -187,11 +187,13 @@ def _qualitative(args: argparse.Namespace, realset_dir: Path, dest: Path, record
         FIGURE_JSON,
         FIGURE_PNG,
         FIGURES,
+        FigureMismatch,
         build_figure,
         encode_png_palette,
         figure_specs,
     )
     from tofdenoise.experiments.runner import run_all
+    from tofdenoise.inference.denoise import CheckpointError
 
     spec, seed = FIGURES[args.table], args.seeds[0]
     specs = figure_specs(spec, seed, profile_overrides(args.profile, realset_dir, args.extra))
@@ -203,7 +205,11 @@ def _qualitative(args: argparse.Namespace, realset_dir: Path, dest: Path, record
     if unfinished:
         print(f"[reproduce] {spec.key} not rendered: run(s) {', '.join(unfinished)} did not finish", flush=True)
         return 1
-    image, fig_record = build_figure(spec, seed, specs, args.out)
+    try:
+        image, fig_record = build_figure(spec, seed, specs, args.out)
+    except (FigureMismatch, CheckpointError) as exc:  # a figure that would not show what the tables scored
+        print(f"[reproduce] {spec.key} not rendered: {exc}", flush=True)
+        return 1
     fig_record["profile"] = args.profile
     png, text = encode_png_palette(image), json.dumps(fig_record, indent=1) + "\n"
     for folder in (args.out / spec.key, dest / spec.key):
