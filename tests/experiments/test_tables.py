@@ -160,6 +160,11 @@ def test_results_page_mean_std_over_seeds(tmp_path):
     assert "| Joint bilateral (classical, not in the paper) | - / 40.00 (seed-independent) |" in page
     assert "| Raw iToF (the noisy input) | - / 35.00 (seed-independent) |" in page
     assert "| unet-range-l1-s0 | NOT LEARNED | 10 | 6.90 | 7.00 | 12.5 |" in page
+    # a resumed run's span includes the stop: marked, and no minutes claimed
+    info = json.loads((cpu / "unet-range-l1-s0" / "run_info.json").read_text())
+    (cpu / "unet-range-l1-s0" / "run_info.json").write_text(json.dumps({**info, "resumed": "2026-11-22T11:00:00+0000"}))
+    assert math.isnan(run_minutes({**info, "resumed": "2026-11-22T11:00:00+0000"}))
+    assert "| unet-range-l1-s0 (resumed) | NOT LEARNED | 10 | 6.90 | 7.00 | - |" in results_markdown(tmp_path)
     # one seed of both U-Net rows: the step has no spread yet
     _write_run(cpu, "unet-hetero-l1-s0", _metrics(3.0))
     page = results_markdown(tmp_path)

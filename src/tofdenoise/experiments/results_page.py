@@ -78,7 +78,10 @@ def seeds_present(records: dict[str, dict[str, Any]]) -> list[int]:
 
 
 def run_minutes(run_info: dict[str, Any]) -> float:
-    """Wall-clock minutes from ``started`` to ``finished`` (NaN when either is missing or unparsable)."""
+    """Wall-clock minutes from ``started`` to ``finished`` (NaN when either is missing or unparsable, and for a
+    resumed run: its span includes the time it was stopped, and nothing records how long that was)."""
+    if run_info.get("resumed"):
+        return math.nan
     try:
         t0 = datetime.strptime(run_info["started"], "%Y-%m-%dT%H:%M:%S%z")
         t1 = datetime.strptime(run_info["finished"], "%Y-%m-%dT%H:%M:%S%z")
@@ -175,6 +178,9 @@ def _runs_section(records: dict[str, dict[str, Any]]) -> list[str]:
     lines = [
         "## Runs",
         "",
+        "A resumed run's minutes are not shown: its wall time includes the stop. Its data order differs from an "
+        "uninterrupted run after the stop (docs/training.md, resuming), so a fresh run of it is not bit-identical.",
+        "",
         "| run | learned | trained steps | best val MAE (mm) | raw val MAE (mm) | minutes |",
         "|---|---|---|---|---|---|",
     ]
@@ -182,8 +188,9 @@ def _runs_section(records: dict[str, dict[str, Any]]) -> list[str]:
         m, info = rec["metrics"], rec["run_info"]
         # the learned guard's verdict: "yes", "classical" (a tuned filter, nothing to learn) or a red flag
         status = learned_status(run_fields(m))
+        shown = f"{name} (resumed)" if info.get("resumed") else name
         lines.append(
-            f"| {name} | {'-' if status == 'unknown' else LEARNED_FLAGS[status]} | "
+            f"| {shown} | {'-' if status == 'unknown' else LEARNED_FLAGS[status]} | "
             f"{m.get('trained_steps', '-')} | {_fmt(float(m.get('best_val_mae_mm') or math.nan), 2)} | "
             f"{_fmt(float(m.get('raw_val_mae_mm') or math.nan), 2)} | {_fmt(run_minutes(info), 1)} |"
         )
