@@ -173,3 +173,18 @@ def test_page_section_from_a_figure_record(tmp_path):
     assert "RCF = `rcf-hetero-l1-s0`, Ours = `dvss-hetero-full-s0`" in page and "A note." in page
     assert "results/cpu/fig8/figure.png" not in page  # no image written
     assert "Not run yet (`make reproduce TABLE=fig7`)" in page
+
+
+def test_committed_figures_show_the_committed_records():
+    """Each committed figure's per-scene MAE equals its runs' committed per-image records: a run re-recorded
+    later without re-rendering its figure fails here."""
+    from tofdenoise.paths import REPO_ROOT
+
+    results = REPO_ROOT / "docs" / "results"
+    figures = sorted(results.glob("*/fig[78]/figure.json"))
+    assert {p.parent.name for p in figures} >= {"fig7", "fig8"}  # the committed CPU-profile figures
+    for path in figures:
+        record = json.loads(path.read_text())
+        profile_dir = path.parent.parent
+        assert list(record["runs"]) == record["columns"] and len(record["scenes"]) == FIGURES[record["figure"]].scenes
+        check_against_records(record, {label: profile_dir / name for label, name in record["runs"].items()})
