@@ -170,6 +170,11 @@ def test_resume_after_sigkill_reaches_the_same_number_of_steps(tmp_path, data_ca
     info_resumed = json.loads((killed / "run_info.json").read_text())
     info_fresh = json.loads((fresh / "run_info.json").read_text())
     assert info_resumed["global_step"] == info_fresh["global_step"] == steps_per_epoch * epochs
+    # training cost: each trained image counted once (the batches redone after the kill replace the lost ones)
+    assert info_resumed["train_images"] == info_fresh["train_images"] == 2 * steps_per_epoch * epochs
+    for info in (info_resumed, info_fresh):
+        assert info["train_seconds"] > 0 and info["peak_gpu_memory_gib"] is None and info["peak_rss_gib"] > 0.1
+        assert info["train_images_per_second"] == pytest.approx(info["train_images"] / info["train_seconds"], rel=1e-3)
     end_resumed = torch.load(killed / "checkpoints" / "last.ckpt", weights_only=True)
     end_fresh = torch.load(fresh / "checkpoints" / "last.ckpt", weights_only=True)
     assert end_resumed["epoch"] == end_fresh["epoch"] == epochs - 1

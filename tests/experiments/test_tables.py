@@ -150,21 +150,25 @@ def test_results_page_mean_std_over_seeds(tmp_path):
     # hetero < range holds in all three seeds; the fixed run is missing, so the 3-chain is "not run"
     assert "| hetero < range for U-Net (synthetic MAE) | - | not run | - |" in page
     assert "| DVSS: hetero < range < fixed (synthetic MAE) | - | not run | - |" in page
-    assert "| dvss-hetero-l1-s0 | yes | 10 | 2.00 | 7.00 | 12.5 |" in page
+    assert "| dvss-hetero-l1-s0 | yes | 10 | 2.00 | 7.00 | 12.5 | - | - | - |" in page
     # the runs table: a tuned classical filter is "classical", a run that stayed near the raw input is flagged
     _write_run(cpu, "bilateral", {**_metrics(2.5), "learned": False, "trained_steps": 0, "method_kind": "classical"})
     _write_run(cpu, "unet-range-l1-s0", {**_metrics(6.9), "learned": False})
     page = results_markdown(tmp_path)
-    assert "| bilateral | classical | 0 | 2.50 | 7.00 | 12.5 |" in page
+    assert "| bilateral | classical | 0 | 2.50 | 7.00 | 12.5 | - | - | - |" in page
     # one run for every seed, and the raw input is the same in every seed: one value each, not a mean over n
     assert "| Joint bilateral (classical, not in the paper) | - / 40.00 (seed-independent) |" in page
     assert "| Raw iToF (the noisy input) | - / 35.00 (seed-independent) |" in page
-    assert "| unet-range-l1-s0 | NOT LEARNED | 10 | 6.90 | 7.00 | 12.5 |" in page
+    assert "| unet-range-l1-s0 | NOT LEARNED | 10 | 6.90 | 7.00 | 12.5 | - | - | - |" in page
     # a resumed run's span includes the stop: marked, and no minutes claimed
+    # (its training minutes, images/s and memory come from TrainingCost, summed over the attempts)
     info = json.loads((cpu / "unet-range-l1-s0" / "run_info.json").read_text())
-    (cpu / "unet-range-l1-s0" / "run_info.json").write_text(json.dumps({**info, "resumed": "2026-11-22T11:00:00+0000"}))
-    assert math.isnan(run_minutes({**info, "resumed": "2026-11-22T11:00:00+0000"}))
-    assert "| unet-range-l1-s0 (resumed) | NOT LEARNED | 10 | 6.90 | 7.00 | - |" in results_markdown(tmp_path)
+    info.update(resumed="2026-11-22T11:00:00+0000", train_seconds=90.0, train_images_per_second=19.2)
+    info.update(peak_gpu_memory_gib=7.94, peak_rss_gib=1.62)
+    (cpu / "unet-range-l1-s0" / "run_info.json").write_text(json.dumps(info))
+    assert math.isnan(run_minutes(info))
+    row = "| unet-range-l1-s0 (resumed) | NOT LEARNED | 10 | 6.90 | 7.00 | - | 1.5 | 19.2 | 7.9 / 1.6 |"
+    assert row in results_markdown(tmp_path)
     # one seed of both U-Net rows: the step has no spread yet
     _write_run(cpu, "unet-hetero-l1-s0", _metrics(3.0))
     page = results_markdown(tmp_path)

@@ -7,6 +7,8 @@
 - :class:`~tofdenoise.callbacks.summary.RunSummary`: a readable one-line summary after fit and test.
 - :class:`~tofdenoise.callbacks.run_outputs.RunOutputs`: the run's records (``run_info.json``, ``metrics.json``,
   ``per_image/<set>.csv``), the same for both front ends.
+- :class:`~tofdenoise.callbacks.training_cost.TrainingCost`: training time (summed over resumes), images per
+  second and peak memory, written into ``run_info.json`` by ``RunOutputs``.
 - :class:`~tofdenoise.callbacks.predict_writer.DepthPredictionWriter`: 16-bit PNG (mm) + ``.npy`` predictions.
 - :class:`~tofdenoise.callbacks.image_panels.ImagePanelLogger`: a fixed panel of validation samples per epoch.
 
@@ -27,6 +29,7 @@ _LAZY = {
     "ResumableCSVLogger": "tofdenoise.callbacks.csv_log",
     "RunOutputs": "tofdenoise.callbacks.run_outputs",
     "RunSummary": "tofdenoise.callbacks.summary",
+    "TrainingCost": "tofdenoise.callbacks.training_cost",
 }
 
 __all__ = sorted(_LAZY)

@@ -7,7 +7,9 @@ the global-zero process only (file names in :mod:`tofdenoise.training.results`):
   restored the checkpoint it was given (train start of ``fit``, test start of ``test``), so an attempt that fails
   to load its checkpoint (a broken file, a checkpoint of another architecture) leaves the records of the earlier
   attempt untouched. A resumed fit keeps the first attempt's ``started`` and adds ``resumed``. After fit it adds
-  ``global_step`` and ``best_ckpt`` (the best checkpoint, ``null`` when none was written); after test
+  ``global_step``, ``best_ckpt`` (the best checkpoint, ``null`` when none was written) and, when the run has a
+  :class:`~tofdenoise.callbacks.training_cost.TrainingCost` callback, its ``train_seconds``, ``train_images``,
+  ``train_images_per_second``, ``peak_gpu_memory_gib`` and ``peak_rss_gib``; after test
   ``finished``, ``global_step`` and ``best_ckpt`` (the checkpoint tested, ``null`` for the weights in memory).
   A fit with nothing left to train (resumed at its last epoch) writes the records at fit end.
 - ``config.yaml``: ``config_text`` when a front end sets it, with ``run_info.json`` (the Hydra entry point
@@ -33,6 +35,7 @@ import lightning.pytorch as pl
 from lightning.pytorch.callbacks import Callback
 
 from tofdenoise.atomic import atomic_write_text
+from tofdenoise.callbacks.training_cost import TrainingCost
 from tofdenoise.training.results import (
     METRICS_NAME,
     PER_IMAGE_DIR,
@@ -171,7 +174,8 @@ class RunOutputs(Callback):
         self._write_records(trainer, pl_module, resumed=trainer.ckpt_path is not None)
         cb = trainer.checkpoint_callback
         best = getattr(cb, "best_model_path", "") if cb is not None else ""
-        self._update(trainer, global_step=int(trainer.global_step), best_ckpt=best or None)
+        cost = next((c.summary() for c in trainer.callbacks if isinstance(c, TrainingCost)), {})
+        self._update(trainer, global_step=int(trainer.global_step), best_ckpt=best or None, **cost)
 
     def on_test_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
         self._write_records(trainer, pl_module, resumed=False)

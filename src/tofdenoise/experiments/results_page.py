@@ -174,25 +174,41 @@ def _table_section(table: str, profile: str, records: dict[str, dict[str, Any]],
     return lines
 
 
+def _gib(v: Any) -> str:
+    return "-" if v is None else _fmt(float(v), 1)
+
+
 def _runs_section(records: dict[str, dict[str, Any]]) -> list[str]:
     lines = [
         "## Runs",
         "",
-        "A resumed run's minutes are not shown: its wall time includes the stop. Its data order differs from an "
-        "uninterrupted run after the stop (docs/training.md, resuming), so a fresh run of it is not bit-identical.",
+        "Wall minutes: from start to finish (validation and test included). Not shown for a resumed run: its span "
+        "includes the stop, and its data order differs from an uninterrupted run after the stop (docs/training.md, "
+        "resuming), so a fresh run of it is not bit-identical. Training minutes, images/s and peak memory (GPU / "
+        "process, GiB) come from the `TrainingCost` callback: the training epochs only, summed over resumes "
+        "(records written before it existed show -).",
         "",
-        "| run | learned | trained steps | best val MAE (mm) | raw val MAE (mm) | minutes |",
-        "|---|---|---|---|---|---|",
+        "| run | learned | trained steps | best val MAE (mm) | raw val MAE (mm) | wall minutes | training minutes "
+        "| images/s | peak memory GiB (GPU / process) |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for name, rec in records.items():
         m, info = rec["metrics"], rec["run_info"]
         # the learned guard's verdict: "yes", "classical" (a tuned filter, nothing to learn) or a red flag
         status = learned_status(run_fields(m))
         shown = f"{name} (resumed)" if info.get("resumed") else name
+        train_s, rate = info.get("train_seconds"), info.get("train_images_per_second")
+        memory = (
+            f"{_gib(info.get('peak_gpu_memory_gib'))} / {_gib(info.get('peak_rss_gib'))}"
+            if "peak_rss_gib" in info
+            else "-"
+        )
         lines.append(
             f"| {shown} | {'-' if status == 'unknown' else LEARNED_FLAGS[status]} | "
             f"{m.get('trained_steps', '-')} | {_fmt(float(m.get('best_val_mae_mm') or math.nan), 2)} | "
-            f"{_fmt(float(m.get('raw_val_mae_mm') or math.nan), 2)} | {_fmt(run_minutes(info), 1)} |"
+            f"{_fmt(float(m.get('raw_val_mae_mm') or math.nan), 2)} | {_fmt(run_minutes(info), 1)} | "
+            f"{_fmt(float(train_s) / 60.0 if train_s is not None else math.nan, 1)} | "
+            f"{_fmt(float(rate) if rate is not None else math.nan, 1)} | {memory} |"
         )
     lines.append("")
     return lines
