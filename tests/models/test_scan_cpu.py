@@ -254,3 +254,17 @@ def test_ninja_of_the_venv_is_found_when_the_venv_is_not_activated(monkeypatch, 
     monkeypatch.setenv("PATH", str(tmp_path / "empty"))
     scan_cpu._ninja_on_path()
     assert shutil.which("ninja") == str(fake_bin / "ninja")
+
+
+def test_the_kernel_builds_from_a_copy_shared_by_every_checkout(tmp_path, monkeypatch):
+    """ninja rebuilds when the source path changes: the build reads a copy outside the checkout, named by the
+    source's hash, written once and rewritten only if it no longer matches."""
+    monkeypatch.setenv("TORCH_EXTENSIONS_DIR", str(tmp_path))
+    name = scan_cpu._build_name()
+    copy = scan_cpu.stable_source(name)
+    assert copy == tmp_path / "tofdenoise_sources" / f"{name}.cpp"
+    assert copy.read_bytes() == scan_cpu.SOURCE.read_bytes()
+    stamp = copy.stat().st_mtime_ns
+    assert scan_cpu.stable_source(name) == copy and copy.stat().st_mtime_ns == stamp  # not rewritten
+    copy.write_text("// damaged")
+    assert scan_cpu.stable_source(name).read_bytes() == scan_cpu.SOURCE.read_bytes()

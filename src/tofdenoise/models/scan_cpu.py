@@ -18,6 +18,8 @@ reversed) of an H x W image by index arithmetic and sums their outputs (``cross_
 Build: ``torch.utils.cpp_extension.load`` compiles the source once into torch's per-user extension cache
 (``TORCH_EXTENSIONS_DIR``, default ``~/.cache/torch_extensions``); the module name carries a hash of the
 source, the flags and this CPU's model and flags, so an edited source or another CPU type gets its own build.
+It builds from a copy of the source in that cache (:func:`stable_source`), so clones and worktrees with the same
+source share the build instead of rebuilding it in turn.
 Any failure (no compiler, no ninja, a compile error, a failed self-check against the PyTorch scan) gives one
 warning and :func:`cpu_kernel_available` returns False: callers then use the chunked PyTorch scan.
 ``TOFDENOISE_SCAN_CPU=0`` in the environment disables the kernel without trying to build it.
@@ -87,6 +89,23 @@ def _ninja_on_path() -> None:
             os.environ["PATH"] = str(here) + os.pathsep + os.environ.get("PATH", "")
 
 
+def stable_source(name: str) -> Path:
+    """A copy of ``SOURCE`` at a path that does not depend on the checkout: ``<torch extensions root>/
+    tofdenoise_sources/<name>.cpp`` (``name`` carries the source's hash). ninja rebuilds when a source path
+    changes, so building from each checkout's own file rebuilt the kernel (about a minute) whenever another
+    clone or worktree had built it last; every checkout with the same source now shares one build."""
+    from torch.utils.cpp_extension import get_default_build_root
+
+    from tofdenoise.atomic import atomic_write_bytes
+
+    root = os.environ.get("TORCH_EXTENSIONS_DIR") or get_default_build_root()  # torch's own rule
+    target = Path(root) / "tofdenoise_sources" / f"{name}.cpp"
+    data = SOURCE.read_bytes()
+    if not target.is_file() or target.read_bytes() != data:
+        atomic_write_bytes(target, data)
+    return target
+
+
 @functools.lru_cache(maxsize=1)
 def load_extension():
     """The compiled extension module, or None (with one warning) when it cannot be built or loaded."""
@@ -96,8 +115,9 @@ def load_extension():
         from torch.utils import cpp_extension
 
         _ninja_on_path()
+        name = _build_name()
         return cpp_extension.load(
-            name=_build_name(), sources=[str(SOURCE)], extra_cflags=CFLAGS, extra_ldflags=LDFLAGS, verbose=False
+            name=name, sources=[str(stable_source(name))], extra_cflags=CFLAGS, extra_ldflags=LDFLAGS, verbose=False
         )
     except Exception as exc:  # noqa: BLE001 - any build/load failure means "use the PyTorch scan"
         warnings.warn(
