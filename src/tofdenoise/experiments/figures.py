@@ -129,13 +129,6 @@ def pick_indices(n: int, k: int) -> list[int]:
     return sorted({round(i * (n - 1) / (k - 1)) for i in range(k)})
 
 
-def _one(item: Mapping[str, Any]) -> dict[str, Any]:
-    """A dataset item as a batch of one (tensors get a leading dimension)."""
-    import torch
-
-    return {k: (v[None] if isinstance(v, torch.Tensor) else [v]) for k, v in item.items()}
-
-
 def render_figure(
     spec: FigureSpec,
     models: Mapping[str, Any],
@@ -152,18 +145,19 @@ def render_figure(
     mask (the test metrics' function).
     """
     import torch
+    from torch.utils.data import default_collate
 
     from tofdenoise.training.metrics import depth_metrics_per_image
     from tofdenoise.visualize import compose_panel, stack_panels
 
     if not models:
         raise ValueError(f"{spec.key}: no column to show")
+    d_max = float(next(iter(models.values())).hparams.d_max_mm)
     panels, scenes = [], []
     for index in indices:
         item = dataset[index]
-        batch = _one(item)
+        batch = default_collate([item])  # a batch of one, as the test loader (eval_batch_size 1) gives it
         clean, mask = batch["clean"], batch["mask"]
-        d_max = float(next(iter(models.values())).hparams.d_max_mm)
         maps: dict[str, np.ndarray] = {spec.input_label: batch["noisy"][0, 0].numpy()}
         mae = {spec.input_label: float(depth_metrics_per_image(batch["noisy"], clean, mask, d_max)["mae_mm"][0])}
         for label, model in models.items():

@@ -22,6 +22,7 @@ from typing import Any
 from tofdenoise.reporting.table import LEARNED_FLAGS
 from tofdenoise.training.results import METRICS_NAME, RUN_INFO_NAME, learned_status, run_fields
 
+from .figures import FIGURES
 from .tables import (
     CLAIMS,
     METRIC_COLUMNS,
@@ -174,8 +175,9 @@ def _table_section(table: str, profile: str, records: dict[str, dict[str, Any]],
     return lines
 
 
-def _gib(v: Any) -> str:
-    return "-" if v is None else _fmt(float(v), 1)
+def _optional(v: Any, decimals: int = 1) -> str:
+    """A record field that older records lack (``None``): ``-``."""
+    return "-" if v is None else _fmt(float(v), decimals)
 
 
 def _runs_section(records: dict[str, dict[str, Any]]) -> list[str]:
@@ -197,9 +199,9 @@ def _runs_section(records: dict[str, dict[str, Any]]) -> list[str]:
         # the learned guard's verdict: "yes", "classical" (a tuned filter, nothing to learn) or a red flag
         status = learned_status(run_fields(m))
         shown = f"{name} (resumed)" if info.get("resumed") else name
-        train_s, rate = info.get("train_seconds"), info.get("train_images_per_second")
+        train_s = info.get("train_seconds")
         memory = (
-            f"{_gib(info.get('peak_gpu_memory_gib'))} / {_gib(info.get('peak_rss_gib'))}"
+            f"{_optional(info.get('peak_gpu_memory_gib'))} / {_optional(info.get('peak_rss_gib'))}"
             if "peak_rss_gib" in info
             else "-"
         )
@@ -207,8 +209,8 @@ def _runs_section(records: dict[str, dict[str, Any]]) -> list[str]:
             f"| {shown} | {'-' if status == 'unknown' else LEARNED_FLAGS[status]} | "
             f"{m.get('trained_steps', '-')} | {_fmt(float(m.get('best_val_mae_mm') or math.nan), 2)} | "
             f"{_fmt(float(m.get('raw_val_mae_mm') or math.nan), 2)} | {_fmt(run_minutes(info), 1)} | "
-            f"{_fmt(float(train_s) / 60.0 if train_s is not None else math.nan, 1)} | "
-            f"{_fmt(float(rate) if rate is not None else math.nan, 1)} | {memory} |"
+            f"{_optional(None if train_s is None else float(train_s) / 60.0)} | "
+            f"{_optional(info.get('train_images_per_second'))} | {memory} |"
         )
     lines.append("")
     return lines
@@ -248,11 +250,11 @@ def _fig6_section(profile_dir: Path) -> list[str]:
     return lines
 
 
-def _qualitative_section(profile_dir: Path, key: str, title: str) -> list[str]:
+def _qualitative_section(profile_dir: Path, key: str) -> list[str]:
     """A qualitative figure (``tofdenoise.experiments.figures``): its per-scene MAE table and the image."""
     data = _read_json(profile_dir / key / "figure.json")
     if data is None:
-        return [f"## {title}", "", f"Not run yet (`make reproduce TABLE={key}`).", ""]
+        return [f"## {FIGURES[key].title}", "", f"Not run yet (`make reproduce TABLE={key}`).", ""]
     columns = [data["input"], *data["columns"]]
     runs = ", ".join(f"{label} = `{name}`" for label, name in data["runs"].items())
     lines = [
@@ -289,8 +291,8 @@ def _profile_sections(profile_dir: Path, records: dict[str, dict[str, Any]]) -> 
     for table in TABLES:
         lines += _table_section(table, profile, records, seeds)
     lines += _fig6_section(profile_dir)
-    lines += _qualitative_section(profile_dir, "fig7", "Fig. 7: qualitative comparison on the synthetic test set")
-    lines += _qualitative_section(profile_dir, "fig8", "Fig. 8: results on the real set")
+    for key in FIGURES:
+        lines += _qualitative_section(profile_dir, key)
     return lines + _runs_section(records)
 
 
