@@ -80,3 +80,13 @@ def test_peak_rss_is_this_process_in_gib():
     big = torch.ones(64 * 1024 * 1024, dtype=torch.uint8)  # 64 MiB touched
     big += 1
     assert 0.06 < peak_rss_gib() < 24.0
+
+
+def test_the_recorded_rate_is_computed_from_the_recorded_seconds():
+    """A short run's seconds are rounded to 1 ms in run_info.json; the rate must agree with them, not with the
+    unrounded time (0.44104 s -> 0.441 s: 0.01 % apart, beyond a reader's images / seconds check)."""
+    cost = TrainingCost()
+    cost.seconds, cost.images = 0.44104, 48
+    summary = cost.summary()
+    assert summary["train_seconds"] == 0.441
+    assert summary["train_images_per_second"] == pytest.approx(48 / 0.441, rel=1e-5)  # rate rounded to 1e-3

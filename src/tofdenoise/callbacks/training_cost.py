@@ -124,10 +124,11 @@ class TrainingCost(Callback):
     def summary(self) -> dict[str, Any]:
         """The ``run_info.json`` fields (all processes' images; this process's time and memory)."""
         images = self.images * self._world_size
+        seconds = round(self.seconds, 3)  # the recorded value; the rate is computed from it, so the two agree
         return {
-            "train_seconds": round(self.seconds, 3),
+            "train_seconds": seconds,
             "train_images": images,
-            "train_images_per_second": round(images / self.seconds, 3) if self.seconds > 0 else None,
+            "train_images_per_second": round(images / seconds, 3) if seconds > 0 else None,
             "peak_gpu_memory_gib": None if self.peak_gpu_bytes is None else round(self.peak_gpu_bytes / _GIB, 3),
             "peak_rss_gib": round(self.peak_rss, 3),
         }
