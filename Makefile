@@ -36,7 +36,7 @@ help:
 	@echo "make robustness - the robustness grid (108 small runs, resumable; GRID_DIR=runs/robustness GRID_ARGS=...)"
 	@echo "make realset - the stand-in real set: a second simulated camera, calibrated from its own captures"
 	@echo "               (REALSET_DIR=runs/realset REALSET_ARGS='--scenes 40 ...'; docs/camera-tutorial.md)"
-	@echo "make reproduce TABLE=1|2|3|fig6|fig7|fig8 [PROFILE=cpu|gpu] [SEEDS=0,1,2] - a paper table or figure (resumable;"
+	@echo "make reproduce TABLE=1|2|3|dynrange|fig6|fig7|fig8 [PROFILE=cpu|gpu] [SEEDS=0,1,2] - a paper table or figure (resumable;"
 	@echo "               records in docs/results/, page docs/results.md; REPRO_ARGS='--extra data.root=...')"
 	@echo "make cli-configs - regenerate the LightningCLI YAMLs (configs/cli/) after editing configs/"
 	@echo "make venv    - only create/refresh .venv (TORCH='torch==X' to choose the torch build)"
@@ -100,7 +100,7 @@ SEEDS ?= 0,1,2
 REPRO_ARGS ?=
 comma := ,
 reproduce: $(STAMP)
-	@test -n "$(TABLE)" || { echo "make reproduce: set TABLE=1, 2, 3, fig6, fig7 or fig8 (e.g. make reproduce TABLE=3)"; exit 2; }
+	@test -n "$(TABLE)" || { echo "make reproduce: set TABLE=1, 2, 3, dynrange, fig6, fig7 or fig8 (e.g. make reproduce TABLE=3)"; exit 2; }
 	$(VENV)/bin/tofdenoise-reproduce --table $(TABLE) --profile $(PROFILE) --seeds $(subst $(comma), ,$(SEEDS)) $(REPRO_ARGS)
 
 # configs/cli/*.yaml are generated from the Hydra configs (one source of truth); a test fails when they are stale

@@ -115,7 +115,8 @@ def test_simulate_calibration_then_calibrate_recovers_the_camera(tmp_path, capsy
     assert dark.units == "dn" and dark.adc_gain_e_per_dn == 4.0
     assert np.load(caps / "dark" / dark.stacks[0]["file"]).shape == (100, 4, 8, 8)  # 100 dark frames
     distances = [e["distance_mm"] for e in read_index(caps / "distances", "distances").stacks]
-    assert len(distances) == 10 and 400 < min(distances) and max(distances) < 1600  # inside 1999 mm
+    # the working range, 300 mm to 80 % of the unambiguous range (1999 mm): a grey chart at each distance
+    assert len(distances) == 10 and min(distances) == 300 and max(distances) == 1599
     out = tmp_path / "calibration.yaml"
     assert (
         run(

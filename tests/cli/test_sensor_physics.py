@@ -34,6 +34,8 @@ def test_show_calib_json_field_names(capsys):
         "full_well_e",
         "adc_gain_e_per_dn",
         "range_sigma_mm",
+        "signal_at_1m_e",
+        "vignetting_cos_power",
     ]
     assert list(data["tap_response"]) == ["c0", "cos", "sin"]
     assert data == default_calibration().to_dict()

@@ -133,3 +133,45 @@ def test_datamodule_holes_fixed_in_eval_random_in_training(tmp_path):
     assert 0.0 < share < 0.5
     with pytest.raises(ValueError, match="holes_kwargs"):
         ToFDataModule(**SMALL, cache_dir=str(tmp_path / "cache"), holes_kwargs={"nope": 1})
+
+
+# ---------------------------------------------------------------- physical signal route
+@pytest.mark.parametrize("level", [0.8, 1.0, 1.3])
+def test_physical_low_signal_holes_follow_the_rice_distribution_of_the_measured_amplitude(level):
+    """With the camera's own signal (s = 1) a pixel is a hole when |a |C1| + n| < thr: the share of holes of a
+    uniform signal is the Rice CDF at thr (nu = a |C1|, sigma^2 = 2/N (a c0 + sigma_dark^2))."""
+    from scipy.stats import rice
+
+    from tofdenoise.data_modules.holes import measured_amplitude_below_threshold
+
+    c1 = CALIB.tap_response.first_harmonic_amplitude
+    thr = default_min_amplitude_e(CALIB)
+    a = level * thr / c1
+    signal = torch.full((200, 200), a, dtype=torch.float64)
+    valid = torch.ones_like(signal, dtype=torch.bool)
+    holes = measured_amplitude_below_threshold(signal, valid, CALIB, 1.0, gen(7))
+    sigma = math.sqrt(2.0 / CALIB.num_taps * (a * CALIB.tap_response.c0 + CALIB.dark_std_e**2))
+    expected = float(rice.cdf(thr / sigma, a * c1 / sigma))
+    assert float(holes.double().mean()) == pytest.approx(expected, abs=4 * math.sqrt(expected * (1 - expected) / 4e4))
+
+
+def test_physical_hole_model_uses_the_cameras_own_threshold_and_full_well():
+    from tofdenoise.physics.photometry import saturated
+
+    model = HoleModel(edge_prob=0.0, blob_density=0.0, physical_signal=True, max_low_signal_fraction=0.0)
+    depth = torch.full((16, 64), 1000.0, dtype=torch.float64)
+    thr_signal = default_min_amplitude_e(CALIB) / CALIB.tap_response.first_harmonic_amplitude
+    signal = torch.logspace(math.log10(thr_signal / 4), math.log10(2e5), 64, dtype=torch.float64).expand(16, 64)
+    valid = torch.ones_like(depth, dtype=torch.bool)
+    holes = model.sample(depth, signal.clone(), valid, CALIB, gen(1))
+    sat = torch.from_numpy(saturated(depth.numpy(), signal.numpy(), CALIB))
+    assert sat.any() and bool(holes[sat].all())  # every saturated pixel is a hole
+    assert float(holes[:, :3].double().mean()) > 0.95  # a quarter of the threshold: always below
+    middle = (signal > 4 * thr_signal) & ~sat
+    assert not holes[middle].any()  # well above the threshold and below the full well: never
+    # the darkened-frame mechanism is off: a zero target fraction would give no low-signal holes at all
+    assert (
+        not HoleModel(edge_prob=0.0, blob_density=0.0, max_low_signal_fraction=0.0)
+        .sample(depth, signal.clone(), valid, CALIB, gen(1))
+        .any()
+    )

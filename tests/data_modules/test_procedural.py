@@ -46,9 +46,10 @@ def test_depth_stays_in_configured_range_and_scenes_have_structure():
     src = ProceduralSource(num_samples=12, height=96, width=128, seed=0, min_depth_mm=300, max_depth_mm=2400)
     for sid in src.sample_ids():
         s = src.load(sid)
-        assert s.valid.all()
-        assert s.depth_mm.min() >= 300 * 0.999 and s.depth_mm.max() <= 2400 * 1.001
-        assert np.all(s.amplitude > 0)
+        assert s.valid.mean() > 0.6  # only an opening in the back wall (open background) leaves no surface
+        d, amp = s.depth_mm[s.valid], s.amplitude[s.valid]
+        assert d.min() >= 300 * 0.999 and d.max() <= 2400 * 1.001
+        assert np.all(amp > 0) and np.all(s.depth_mm[~s.valid] == 0)
         # depth discontinuities: some neighbouring pixels jump by more than 50 mm
         assert np.abs(np.diff(s.depth_mm, axis=1)).max() > 50
     kinds = {type(p).__name__ for i in range(12) for p in generate_scene(0, i, 96, 128, 300, 2400).primitives}
@@ -98,3 +99,42 @@ def test_render_640x480_is_fast():
 def test_bad_depth_range_is_rejected():
     with pytest.raises(ValueError, match="min_depth_mm"):
         ProceduralSource(min_depth_mm=500, max_depth_mm=400)
+
+
+# ---------------------------------------------------------------- surfaces with no usable return (renderer 2)
+def test_specular_lobe_peaks_at_normal_incidence_and_adds_to_the_lambertian_return():
+    glossy = Texture(0.05, "uniform", 0.0, 100.0, (1.0, 0.0, 0.0), (0.0, 0.0, 0.0), specular=20.0, shininess=100.0)
+    wall = InverseDepthPlane((0.0, 0.0, 1.0 / 1000.0), glossy)  # frontal wall at z = 1 m
+    depth, amplitude, valid = render_scene(_spec(wall, h=48, w=64))
+    x, y = pixel_rays(48, 64)
+    cos_inc = 1.0 / np.sqrt(1 + x * x + y * y)
+    range_m = depth * np.sqrt(1 + x * x + y * y) / 1000.0
+    expected = (0.05 * cos_inc + 20.0 * cos_inc**100.0) / range_m**2
+    np.testing.assert_allclose(amplitude, expected, rtol=1e-4)
+    assert amplitude[24, 32] > 100 * amplitude[0, 0]  # a highlight in the centre, dim at glancing angles
+
+
+def test_an_opening_in_the_back_wall_is_invalid_and_absorbers_return_almost_nothing():
+    from tofdenoise.data_modules.sources.procedural import Opening, absorber_texture
+
+    wall = InverseDepthPlane((0.0, 0.0, 1.0 / 2000.0), UNIFORM, Opening(-0.2, 0.2, -0.1, 0.1))
+    depth, amplitude, valid = render_scene(_spec(wall))
+    x, y = pixel_rays(48, 64)
+    inside = (np.abs(x) <= 0.2) & (np.abs(y) <= 0.1)
+    assert inside.any() and not valid[inside].any() and valid[~inside].all()
+    assert (depth[inside] == 0).all() and (amplitude[inside] == 0).all()
+    black = absorber_texture(np.random.default_rng(0))
+    assert black.albedo(np.zeros(3), np.zeros(3), np.zeros(3)).max() <= 0.015
+
+
+def test_scenes_have_absorbers_specular_surfaces_and_openings_from_their_own_stream():
+    """Materials come from default_rng([seed, index, 2]): the geometry of every scene is what renderer 1 drew."""
+    absorbers = specular = openings = 0
+    for i in range(40):
+        spec = generate_scene(0, i, 48, 64, 300.0, 2400.0)
+        openings += spec.primitives[0].opening is not None
+        for p in spec.primitives:
+            absorbers += p.texture.base < 0.016 and p.texture.min_albedo < 0.002
+            specular += p.texture.specular > 0
+    assert openings >= 6 and absorbers >= 10 and specular >= 10
+    assert 0.2 <= openings / 40 <= 0.5

@@ -129,7 +129,9 @@ def test_real_test_dataloader_on_simulated_set(tmp_path):
     ref = np.load(tmp_path / "set" / "scene_0000" / "reference_depth_mm.npy")
     np.testing.assert_array_equal(b["noisy"][0, 0].numpy()[m[0, 0].numpy()], inp[m[0, 0].numpy()])
     np.testing.assert_allclose(b["clean"][0, 0].numpy()[m[0, 0].numpy()], ref[m[0, 0].numpy()])
-    assert torch.all(b["clean"][~m] == 0) and m.float().mean() > 0.9
+    assert torch.all(b["clean"][~m] == 0) and m.float().mean() > 0.3
+    # the scoring mask is exactly the common valid region of the input frame and the reference
+    np.testing.assert_array_equal(m[0, 0].numpy(), (inp > 0) & np.isfinite(ref))
 
 
 def test_missing_real_dir_names_the_key(tmp_path):
@@ -234,7 +236,7 @@ def test_reference_validity_changes_only_the_scoring_mask(tmp_path):
     build_reference(scene, force=True)
     after = load_real_scene(scene, calib)
     mask_before, mask_after = before["mask"] > 0, after["mask"] > 0
-    assert mask_before[block].mean() > 0.9 and not mask_after[block].any()
+    assert mask_before[block].mean() > 0.5 and not mask_after[block].any()
     np.testing.assert_array_equal(mask_after, mask_before & ~block)
     for key in ("noisy", "amplitude"):
         np.testing.assert_array_equal(after[key], before[key])

@@ -181,8 +181,9 @@ def test_committed_figures_show_the_committed_records():
     from tofdenoise.paths import REPO_ROOT
 
     results = REPO_ROOT / "docs" / "results"
+    # the new world's figures are committed once their runs exist (docs/results/discussion.md); every committed one
+    # is checked (the end-to-end test above renders and checks one from a tiny run whatever is committed)
     figures = sorted(results.glob("*/fig[78]/figure.json"))
-    assert {p.parent.name for p in figures} >= {"fig7", "fig8"}  # the committed CPU-profile figures
     for path in figures:
         record = json.loads(path.read_text())
         profile_dir = path.parent.parent

@@ -236,3 +236,25 @@ def test_calibration_errors_name_the_folder_or_file(tmp_path):
     )
     with pytest.raises(CaptureFormatError, match=r"sweep8/s0\.npy: no returned signal .*dtype int8"):
         calibrate_from_folders(int8, dark)
+
+
+def test_photometric_gain_is_measured_from_a_target_of_known_reflectance(tmp_path):
+    """K = a (D / 1 m)^2 / rho: a uniform board whose index names its reflectance gives the camera's gain back;
+    a sequence without reflectances leaves it unset; a bad reflectance field is named."""
+    true = default_calibration().replace(signal_at_1m_e=30000.0)
+    sweep = write_sweep_folder(true, tmp_path / "sweep", num_steps=12, num_frames=4)
+    dark = write_dark_folder(true, tmp_path / "dark", num_frames=20)
+    dist = write_distances_folder(
+        true, tmp_path / "dist", [800.0, 1200.0, 1500.0], num_frames=10, reflectance=0.5, signal_at_1m_e=30000.0
+    )
+    report = calibrate_from_folders(sweep, dark, dist)
+    assert report.calibration.signal_at_1m_e == pytest.approx(30000.0, rel=0.01)
+    ramp = write_distances_folder(
+        true, tmp_path / "ramp", [800.0, 1200.0, 1500.0], num_frames=10, signal_spread=(0.3, 1.0)
+    )
+    assert calibrate_from_folders(sweep, dark, ramp).calibration.signal_at_1m_e is None
+    index = json.loads((dist / "index.json").read_text())
+    index["stacks"][0]["reflectance"] = "white"
+    (dist / "index.json").write_text(json.dumps(index))
+    with pytest.raises(CaptureFormatError, match="'reflectance' must be a number"):
+        calibrate_from_folders(sweep, dark, dist)

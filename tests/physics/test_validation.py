@@ -15,7 +15,6 @@ from tofdenoise.physics.synthetic_captures import planar_signal_e, planar_tap_st
 from tofdenoise.physics.validation import (
     RANGE_DISTANCES_MM,
     ValidationSettings,
-    fit_default_range_sigma,
     mape_percent,
     r2_score,
     run_validation,
@@ -68,15 +67,6 @@ def test_quick_validation_meets_paper_figures(tmp_path):
         } <= set(c)
         assert c["num_frames"] == 50 and c["num_pixels"] == 256
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-
-
-def test_default_range_sigma_matches_its_fit():
-    """configs/sensor/default.yaml range_sigma_mm reproduces a fresh independent fit (within noise)."""
-    calib = default_calibration()
-    alpha = fit_default_range_sigma(calib, num_frames=60, roi_px=16, seed=99)
-    d = np.array([600.0, 1000.0, 1400.0])
-    ref = np.polyval(calib.range_sigma_mm[::-1], d)
-    np.testing.assert_allclose(np.polyval(alpha[::-1], d), ref, rtol=0.06)
 
 
 def test_validation_from_capture_folder(tmp_path):

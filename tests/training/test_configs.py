@@ -170,6 +170,7 @@ MAKE_TRAIN = {
         "num_samples": 300,
         "num_workers": 0,
         "real_dir": None,
+        "signal_route": "physical",
         "source": "procedural",
         "width": 192,
     },

@@ -61,8 +61,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--table",
-        choices=["1", "2", "3", "fig6", "fig7", "fig8"],
-        help="which table, or figure (fig6: noise-model validation; fig7 / fig8: qualitative, synthetic / real)",
+        choices=["1", "2", "3", "dynrange", "fig6", "fig7", "fig8"],
+        help="which table (dynrange: the dynamic-range study, beyond the paper), or figure (fig6: noise-model "
+        "validation; fig7 / fig8: qualitative, synthetic / real)",
     )
     p.add_argument("--profile", choices=sorted(PROFILES), default="cpu")
     p.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
@@ -159,6 +160,17 @@ def write_report(dest: Path) -> None:
         )
 
 
+def write_dynrange_figure(dest: Path, seeds: list[int]) -> None:
+    """The dynamic-range study's gain figure from the committed records (``dest/dynrange/gains.png``)."""
+    from tofdenoise.experiments.dynrange import gain_figure_png, gains
+    from tofdenoise.experiments.results_page import DYNRANGE_FIGURE, load_records
+
+    records = load_records(dest)
+    items = gains(lambda name: (records.get(name) or {}).get("metrics"), seeds)
+    if items:
+        atomic_write_bytes(dest / DYNRANGE_FIGURE, gain_figure_png(items))
+
+
 def _fig6(args: argparse.Namespace, realset_dir: Path, dest: Path) -> int:
     cmd = [
         sys.executable,
@@ -228,7 +240,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.page.suffix.lower() != ".md":
         raise SystemExit(f"tofdenoise-reproduce: --page {args.page}: expected a .md file")
     if not args.page_only and args.table is None:
-        raise SystemExit("tofdenoise-reproduce: give --table 1|2|3|fig6|fig7|fig8 (or --page-only)")
+        raise SystemExit("tofdenoise-reproduce: give --table 1|2|3|dynrange|fig6|fig7|fig8 (or --page-only)")
     status = 0
     if not args.page_only:
         args.out = (args.out or REPO_ROOT / "runs" / "reproduce" / args.profile).expanduser().resolve()
@@ -238,6 +250,8 @@ def main(argv: list[str] | None = None) -> int:
 
         def record(outcome) -> None:  # commit each finished run at once: an interrupted table keeps it
             if copy_records([outcome.run_dir], dest):
+                if args.table == "dynrange":
+                    write_dynrange_figure(dest, args.seeds)
                 atomic_write_text(args.page, results_markdown(args.results))
 
         if args.table == "fig6":

@@ -1,7 +1,9 @@
 """Simulated capture sets in the real capture format (see ``real_captures``), from built-in procedural scenes.
 
 Per scene: the clean depth and amplitude of procedural scene ``i`` (seed ``seed``) give the returned signal
-a(p) (amplitude mapped to the calibration's signal interval, as in training); then the tap-level simulator
+a(p) (``scene_signal_e``: the physical route when the camera has a photometric gain ``signal_at_1m_e``, so dark far
+surfaces and absorbers fall below the camera's threshold and specular highlights saturate; else the amplitude
+mapped to the calibration's signal interval); then the tap-level simulator
 (``tofdenoise.physics.simulator.simulate_frames``) produces
 - one standard-exposure frame (exposure 1): the noisy input;
 - ``frames`` high-exposure frames at ``min(hi_exposure, safe)`` where ``safe`` keeps the brightest expected tap
@@ -40,6 +42,8 @@ SCENE_DONE = "scene.json"
 GROUND_TRUTH = "ground_truth_depth_mm.npy"
 SIMULATED_CAMERA = "simulated_camera.yaml"
 SATURATION_MARGIN = 0.9
+# the high-exposure frames may saturate the brightest 2 % of the pixels that the standard exposure does not
+REFERENCE_PEAK_PERCENTILE = 98.0
 
 
 @dataclass
@@ -56,18 +60,41 @@ def amplitude_to_png(amplitude_e: np.ndarray) -> np.ndarray:
 
 
 def safe_exposure(depth_mm: np.ndarray, signal_e: np.ndarray, calib: Any, requested: float) -> float:
-    """Largest exposure <= requested whose brightest expected tap stays SATURATION_MARGIN below the full well."""
+    """Largest exposure <= requested whose brightest expected tap stays SATURATION_MARGIN below the full well.
+
+    Pixels that saturate already at the standard exposure (specular highlights, white surfaces close by) cannot be
+    kept out of saturation by any exposure above it, and a few bright ones should not hold the whole frame at the
+    standard exposure: the exposure is chosen for the REFERENCE_PEAK_PERCENTILE-th percentile of the others' peaks
+    (never below 1). Pixels that saturate are flagged in the high-exposure frames and left out of the reference."""
     from tofdenoise.physics.uncertainty import tap_responses
 
     ok = (depth_mm > 0) & np.isfinite(signal_e) & (signal_e > 0)
     if not ok.any():
         return float(requested)
     responses, _ = tap_responses(depth_mm[ok].astype(np.float64), calib)
-    peak = float((signal_e[ok][:, None] * np.asarray(responses)).max())
+    peaks = (signal_e[ok][:, None] * np.asarray(responses)).max(axis=1)
     headroom = SATURATION_MARGIN * calib.full_well_e - calib.dark_mean_e - 6.0 * calib.dark_std_e
-    if peak <= 0 or headroom <= 0:
+    peaks = peaks[peaks < headroom]
+    if peaks.size == 0 or headroom <= 0:
+        return 1.0 if peaks.size == 0 else float(requested)
+    peak = float(np.percentile(peaks, REFERENCE_PEAK_PERCENTILE))
+    if peak <= 0:
         return float(requested)
-    return float(min(requested, headroom / peak))
+    return float(max(min(requested, headroom / peak), min(requested, 1.0)))
+
+
+def scene_signal_e(raw: Any, calib: Any, hfov_deg: float) -> np.ndarray:
+    """The returned signal of a rendered scene as this camera collects it: the physical route (K t A V,
+    ``tofdenoise.physics.photometry``) when the camera has ``signal_at_1m_e``, else the paper's linear mapping into
+    its signal interval. 0 where the scene has no surface."""
+    if getattr(calib, "signal_at_1m_e", None) is not None:
+        from tofdenoise.physics.photometry import field_cosine, physical_signal_e
+
+        cos_field = field_cosine(*raw.depth_mm.shape, hfov_deg)
+        return np.where(raw.valid, physical_signal_e(raw.amplitude, calib, cos_field), 0.0).astype(np.float32)
+    from tofdenoise.physics.uncertainty import amplitude_to_signal_e
+
+    return np.asarray(amplitude_to_signal_e(raw.amplitude, calib, valid=raw.valid, fill_value=0.0), dtype=np.float32)
 
 
 def write_readme(out_dir: Path, params: dict[str, Any]) -> None:
@@ -126,14 +153,11 @@ def simulate_scene(
 ) -> dict[str, Any]:
     from tofdenoise.physics.mixed_pixels import footprint_tap_means_e, mixed_pixel_map
     from tofdenoise.physics.simulator import simulate_frames, simulate_tap_mean_frames
-    from tofdenoise.physics.uncertainty import amplitude_to_signal_e
 
     sample_id = f"scene_{index:06d}"
     raw = source.load(sample_id)
     fine = raw if mixed_pixels == 1 else _supersampled(source, mixed_pixels).load(sample_id)
-    signal = np.asarray(
-        amplitude_to_signal_e(fine.amplitude, calib, valid=fine.valid, fill_value=0.0), dtype=np.float32
-    )
+    signal = scene_signal_e(fine, calib, source.hfov_deg)
     depth = np.where(fine.valid, fine.depth_mm, 0.0).astype(np.float32)
     generator = torch.Generator().manual_seed(stable_seed(seed, "captures", index))
     if mixed_pixels == 1:  # one surface per pixel: the simulator's own tap means (bit-identical to earlier sets)

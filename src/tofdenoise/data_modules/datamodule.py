@@ -6,7 +6,7 @@ import json
 import logging
 import warnings
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -78,6 +78,14 @@ class ToFDataModule(L.LightningDataModule):
         seed: split permutation, procedural scenes and evaluation noise. split_ratios: train:val:test.
         match_variance: rescale the Gaussian baselines (range/fixed) to the hetero mean variance over the
             training split (paper Sec. V-A), computed once and stored next to the cache.
+        signal_route: how the source's amplitude becomes the returned signal a(p) [e-]: "linear" (the paper's
+            mapping into the calibration's [a_min, a_max], per-image percentiles) or "physical" (a = K t A V from
+            a radiometric amplitude, ``tofdenoise.physics.photometry``; the procedural scenes' default, needs the
+            calibration's ``signal_at_1m_e``). With "physical" the low-signal and saturation holes come from the
+            camera's own threshold and full well (``HoleModel.physical_signal``).
+        signal_dynamic_range: with the linear route, map into [a_max / r, a_max] instead of the calibration's
+            interval (a_max = its ``signal_max_e``): the dynamic-range study (``make reproduce TABLE=dynrange``).
+            None: the calibration's own interval.
         signal_lower_percentile / signal_upper_percentile: amplitude normalisation (None: physics defaults).
         real_min_count: valid high-exposure frames a reference pixel needs (None: half of the frames).
         depth_unit_mm, min_valid_mm, max_valid_mm: folder / flyingthings3d reading options.
@@ -118,6 +126,8 @@ class ToFDataModule(L.LightningDataModule):
         match_variance: bool = True,
         signal_lower_percentile: float | None = None,
         signal_upper_percentile: float | None = None,
+        signal_route: str = "linear",
+        signal_dynamic_range: float | None = None,
         real_min_count: int | None = None,
         depth_unit_mm: float = 1.0,
         min_valid_mm: float | None = None,
@@ -135,6 +145,13 @@ class ToFDataModule(L.LightningDataModule):
         self.save_hyperparameters()
         self.source_name = source
         self.calib = resolve_calibration(sensor)
+        if signal_dynamic_range is not None:
+            if str(signal_route).lower() != "linear" or not float(signal_dynamic_range) > 1:
+                raise ValueError(
+                    f"data.signal_dynamic_range={signal_dynamic_range!r}: a ratio a_max / a_min > 1 of the linear "
+                    f"signal route (data.signal_route={signal_route!r})"
+                )
+            self.calib = self.calib.replace(signal_min_e=self.calib.signal_max_e / float(signal_dynamic_range))
         self.noise_name = str(noise).lower()
         self.noise_kwargs = noise_kwargs
         from tofdenoise.physics.noise_models import available_noise_models
@@ -166,7 +183,12 @@ class ToFDataModule(L.LightningDataModule):
         self.test_set_names: list[str] = ["synthetic", "real"] if real_dir else ["synthetic"]
         self._prepared: PreparedData | None = None
         self.datasets: dict[str, Any] = {}
-        self.make_source()  # fail fast: unknown source, missing data.root, bad sizes / depth range
+        from tofdenoise.data_modules.maps import check_signal_route
+
+        # fail fast: unknown source, missing data.root, bad sizes / depth range, a signal route that cannot apply
+        self.signal_route = check_signal_route(signal_route, self.make_source(), self.calib)
+        if self.hole_model is not None and self.signal_route == "physical":
+            self.hole_model = replace(self.hole_model, physical_signal=True)
 
     # ------------------------------------------------------------------ pieces
     def make_source(self):
@@ -279,9 +301,12 @@ class ToFDataModule(L.LightningDataModule):
             "source": described,
             "calibration": self.calib.fingerprint(),
             "signal_percentiles": [hp.signal_lower_percentile, hp.signal_upper_percentile],
+            "signal_route": self.signal_route,
         }
         cache = MapCache(base, key, enabled=hp.use_cache)
-        provider = MapProvider(source, self.calib, cache, hp.signal_lower_percentile, hp.signal_upper_percentile)
+        provider = MapProvider(
+            source, self.calib, cache, hp.signal_lower_percentile, hp.signal_upper_percentile, self.signal_route
+        )
         return cache, provider
 
     @staticmethod

@@ -41,10 +41,17 @@ class MapProvider:
     cache: MapCache
     lower_percentile: float | None = None
     upper_percentile: float | None = None
+    signal_route: str = "linear"
 
     def compute(self, sample_id: str) -> SampleMaps:
+        raw = self.source.load(sample_id)
+        cos_field = None
+        if self.signal_route == "physical":
+            from tofdenoise.physics.photometry import field_cosine
+
+            cos_field = field_cosine(*raw.depth_mm.shape, self.source.hfov_deg)
         return compute_sample_maps(
-            self.source.load(sample_id), self.calib, self.lower_percentile, self.upper_percentile
+            raw, self.calib, self.lower_percentile, self.upper_percentile, self.signal_route, cos_field
         )
 
     def get(self, sample_id: str) -> tuple[SampleMaps, str]:

@@ -21,6 +21,12 @@ function of its inputs and an explicit ``torch.Generator`` (same generator state
    a Poisson number (mean ``blob_density`` per 10^4 px) of star-shaped regions with radius U(r_min, r_max)
    px, an elongation and orientation, and a boundary modulated by the 2nd and 3rd angular harmonics.
 
+With the physical signal route (``HoleModel.physical_signal``, set by the datamodule for
+``data.signal_route=physical``) the signal a(p) is already what the camera collects: mechanism 1 uses it as it
+is (scale s = 1, no target fraction) and a fourth mechanism joins:
+4. **Saturation** (``saturation_holes``): a pixel whose brightest expected tap max_n a r_n(D) + mu_dark reaches
+   the full well is flagged by the camera (near white surfaces, specular highlights).
+
 ``HoleModel`` combines them; ``apply_holes`` zeroes every map of a sample at the holes and removes them from
 the valid mask (so the loss and the metrics ignore them). The fill rule for invalid input pixels before the
 network is ``DepthRestorer``'s (see docs/training.md).
@@ -34,13 +40,45 @@ from typing import Any
 
 import torch
 
-__all__ = ["HoleModel", "apply_holes", "blob_holes", "edge_holes", "low_signal_holes"]
+__all__ = [
+    "HoleModel",
+    "apply_holes",
+    "blob_holes",
+    "edge_holes",
+    "low_signal_holes",
+    "measured_amplitude_below_threshold",
+    "saturation_holes",
+]
 
 
 def _uniform(
     generator: torch.Generator, low: float = 0.0, high: float = 1.0, size: tuple[int, ...] = ()
 ) -> torch.Tensor:
     return low + (high - low) * torch.rand(size, generator=generator, dtype=torch.float64)
+
+
+def measured_amplitude_below_threshold(
+    signal_e: torch.Tensor, valid: torch.Tensor, calib: Any, scale: float, generator: torch.Generator
+) -> torch.Tensor:
+    """Pixels whose measured amplitude |s a |C1| + n| falls below the simulator's validity threshold, n complex
+    Gaussian noise of per-quadrature std sqrt(2/N (s a c0 + sigma_dark^2)) (the N-phase DFT of the taps)."""
+    from tofdenoise.physics.simulator import default_min_amplitude_e
+
+    c1 = calib.tap_response.first_harmonic_amplitude
+    thr = default_min_amplitude_e(calib)
+    a = signal_e.double().clamp_min(0.0) * scale
+    std = torch.sqrt(2.0 / calib.num_taps * (a * calib.tap_response.c0 + calib.dark_std_e**2))
+    noise = torch.randn((2, *signal_e.shape), generator=generator, dtype=torch.float64)
+    measured = torch.hypot(a * c1 + std * noise[0], std * noise[1])
+    return valid.bool() & (measured < thr)
+
+
+def saturation_holes(depth_mm: torch.Tensor, signal_e: torch.Tensor, valid: torch.Tensor, calib: Any) -> torch.Tensor:
+    """Pixels whose brightest expected tap a max_n r_n(D) + mu_dark reaches the full well (paper Eq. 4)."""
+    from tofdenoise.physics.photometry import saturated
+
+    sat = saturated(depth_mm.double().numpy(), signal_e.double().numpy(), calib)
+    return valid.bool() & torch.from_numpy(sat)
 
 
 def low_signal_holes(
@@ -70,12 +108,7 @@ def low_signal_holes(
     )
     if not q > 0:
         return holes
-    scale = thr / (c1 * q)
-    a = signal_e.double().clamp_min(0.0) * scale
-    std = torch.sqrt(2.0 / calib.num_taps * (a * calib.tap_response.c0 + calib.dark_std_e**2))
-    noise = torch.randn((2, *signal_e.shape), generator=generator, dtype=torch.float64)
-    measured = torch.hypot(a * c1 + std * noise[0], std * noise[1])
-    return valid & (measured < thr)
+    return measured_amplitude_below_threshold(signal_e, valid, calib, thr / (c1 * q), generator)
 
 
 def edge_holes(
@@ -136,7 +169,10 @@ def blob_holes(
 class HoleModel:
     """The hole mechanisms of this module with their settings (``data.holes_kwargs``).
 
-    max_low_signal_fraction: low-signal holes cover f ~ U(0, this) of the valid pixels (0 = off).
+    max_low_signal_fraction: low-signal holes cover f ~ U(0, this) of the valid pixels (0 = off); not used with
+        ``physical_signal``.
+    physical_signal: the signal is a camera's (physical route): low-signal holes at its own level (s = 1) and
+        saturation holes; set by the datamodule from ``data.signal_route``.
     edge_jump, edge_prob: depth-edge holes (relative jump threshold, probability; prob 0 = off).
     blob_density: mean number of dropout blobs per 10^4 px (0 = off); blob_radius_px: (min, max) radius.
     """
@@ -146,6 +182,7 @@ class HoleModel:
     edge_prob: float = 0.5
     blob_density: float = 1.0
     blob_radius_px: tuple[float, float] = (2.0, 12.0)
+    physical_signal: bool = False
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "blob_radius_px", tuple(float(r) for r in self.blob_radius_px))
@@ -181,8 +218,12 @@ class HoleModel:
         d = depth_mm[0] if squeeze else depth_mm
         a = signal_e[0] if squeeze else signal_e
         v = (valid[0] if squeeze else valid).bool()
-        fraction = float(_uniform(generator, 0.0, self.max_low_signal_fraction))
-        holes = low_signal_holes(a, v, calib, fraction, generator)
+        if self.physical_signal:
+            holes = measured_amplitude_below_threshold(a, v, calib, 1.0, generator)
+            holes |= saturation_holes(d, a, v, calib)
+        else:
+            fraction = float(_uniform(generator, 0.0, self.max_low_signal_fraction))
+            holes = low_signal_holes(a, v, calib, fraction, generator)
         if self.edge_prob > 0:
             holes |= edge_holes(d, v, self.edge_jump, self.edge_prob, generator)
         if self.blob_density > 0:

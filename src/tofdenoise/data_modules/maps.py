@@ -1,4 +1,10 @@
-"""Per-sample sensor maps from a clean sample: signal a(p), sigma_D(p) and the valid mask (paper Sec. III-A/C)."""
+"""Per-sample sensor maps from a clean sample: signal a(p), sigma_D(p) and the valid mask (paper Sec. III-A/C).
+
+Two signal routes turn the source's amplitude into the returned signal a(p) [e-] (docs/physics.md, "Signal
+routes"): ``linear``, the paper's mapping a_min + (a_max - a_min) A~ into the calibration's interval, and
+``physical``, a = K t A V (``tofdenoise.physics.photometry``) from a radiometric amplitude (procedural scenes):
+dark far surfaces get a few hundred e-, white near ones saturate.
+"""
 
 from __future__ import annotations
 
@@ -9,11 +15,39 @@ import numpy as np
 from tofdenoise.data_modules.cache import SampleMaps
 from tofdenoise.data_modules.sources.base import RawSample, depth_validity
 
+SIGNAL_ROUTES = ("linear", "physical")
+
+
+def check_signal_route(route: str, source: Any, calib: Any) -> str:
+    """The route name, lower-cased; ValueError naming ``data.signal_route`` when it is unknown or cannot apply."""
+    name = str(route).lower()
+    if name not in SIGNAL_ROUTES:
+        raise ValueError(f"unknown data.signal_route {route!r}; valid: {', '.join(SIGNAL_ROUTES)}")
+    if name == "physical":
+        if not getattr(source, "radiometric_amplitude", False):
+            raise ValueError(
+                f"data.signal_route=physical needs a source with a radiometric amplitude (rho cos(theta) / r^2, the "
+                f"procedural scenes); the {getattr(source, 'name', source)!r} source's amplitude is in arbitrary "
+                "units: use data.signal_route=linear (the paper's mapping)"
+            )
+        if getattr(calib, "signal_at_1m_e", None) is None:
+            raise ValueError(
+                "data.signal_route=physical needs the calibration field 'signal_at_1m_e' (returned signal of a white "
+                "target at 1 m); the calibration has none: add it or use data.signal_route=linear"
+            )
+    return name
+
 
 def compute_sample_maps(
-    raw: RawSample, calib: Any, lower_percentile: float | None = None, upper_percentile: float | None = None
+    raw: RawSample,
+    calib: Any,
+    lower_percentile: float | None = None,
+    upper_percentile: float | None = None,
+    signal_route: str = "linear",
+    cos_field: Any = None,
 ) -> SampleMaps:
-    """Signal map from the amplitude (calibration interval, per-image percentiles), sigma_D from the WLS model.
+    """Signal map from the amplitude by ``signal_route`` (``linear``: calibration interval and per-image
+    percentiles; ``physical``: K t A V with ``cos_field`` for the vignetting), sigma_D from the WLS model.
 
     Invalid pixels (NaN/inf/<=0 depth, source mask, non-finite amplitude, non-finite sigma) are 0 in every map
     and False in ``mask``.
@@ -37,11 +71,19 @@ def compute_sample_maps(
         kwargs["lower_percentile"] = float(lower_percentile)
     if upper_percentile is not None:
         kwargs["upper_percentile"] = float(upper_percentile)
-    # amplitude 0 at a valid depth pixel is a legitimate (dark) measurement: nudge it to the lowest level
-    signal = np.asarray(
-        amplitude_to_signal_e(np.where(valid, np.maximum(amplitude, 1e-12), 0.0), calib, valid=valid, **kwargs),
-        dtype=np.float32,
-    )
+    if signal_route == "physical":
+        from tofdenoise.physics.photometry import physical_signal_e
+
+        signal = np.asarray(physical_signal_e(np.where(valid, amplitude, 0.0), calib, cos_field), dtype=np.float32)
+        # a surface that returns nothing has no defined sigma_D: the camera drops it (a hole in the input); it
+        # stays in the maps at a tiny signal so that the hole model, not the map, decides (ground truth is known)
+        signal = np.where(valid, np.maximum(signal, 1.0), 0.0).astype(np.float32)
+    else:
+        # amplitude 0 at a valid depth pixel is a legitimate (dark) measurement: nudge it to the lowest level
+        signal = np.asarray(
+            amplitude_to_signal_e(np.where(valid, np.maximum(amplitude, 1e-12), 0.0), calib, valid=valid, **kwargs),
+            dtype=np.float32,
+        )
     safe_depth = np.where(valid, depth, 1.0).astype(np.float32)
     safe_signal = np.where(valid & np.isfinite(signal), signal, calib.signal_min_e).astype(np.float32)
     sigma = np.asarray(sigma_depth_mm(safe_depth, safe_signal, calib), dtype=np.float32)

@@ -16,6 +16,11 @@ Tables (``../shared/seeds`` paper, Sec. V):
   ``dvss_se``, ``dvss``) and the loss ablation L1 / L_nar / L_full on the full DVSS.
 * ``3``: Table III: DVSS trained with fixed / range / hetero noise, and U-Net / Restormer / DVSS with range vs
   hetero, all with L1; synthetic test split and the real set.
+* ``dynrange``: beyond the paper: where the noise model pays. U-Net and DVSS trained with fixed / range / hetero
+  noise (L1; validation and test always hetero) across the camera's signal dynamic range: the linear route with
+  a_max / a_min = 16, 64, 256 (``data.signal_dynamic_range``, rows tagged ``dr16`` ...) and the physical route
+  (the default world: these rows are Table III's runs), plus U-Net at 4x the steps on the physical route
+  (``x4``) to separate the world from a short schedule. ``tofdenoise.experiments.dynrange`` computes the gains.
 """
 
 from __future__ import annotations
@@ -64,9 +69,15 @@ class Row:
     paper: Mapping[str, float] = field(default_factory=dict, compare=False, hash=False)
     #: "train": a ``tofdenoise-train`` run; "classical": the tuned, parameter-free filter (``tofdenoise.cli.classic``)
     kind: str = "train"
+    #: a variant of the (backbone, noise, loss) run: its folder gets ``-<tag>`` and its ``overrides`` are applied
+    tag: str = ""
+    overrides: tuple[str, ...] = ()
 
     def run_stem(self) -> str:
-        return self.backbone if self.kind == "classical" else f"{self.backbone}-{self.noise}-{self.loss}"
+        if self.kind == "classical":
+            return self.backbone
+        stem = f"{self.backbone}-{self.noise}-{self.loss}"
+        return f"{stem}-{self.tag}" if self.tag else stem
 
     @property
     def seed_independent(self) -> bool:
@@ -269,11 +280,53 @@ TABLES: dict[str, tuple[Row, ...]] = {
     ),
 }
 
+#: the dynamic-range study: tag -> (label, overrides); "" is the physical route, the default world (Table III's runs)
+DYNAMIC_RANGES: dict[str, tuple[str, tuple[str, ...]]] = {
+    "dr16": ("a_max/a_min = 16", ("++data.signal_route=linear", "++data.signal_dynamic_range=16")),
+    "dr64": ("a_max/a_min = 64", ("++data.signal_route=linear", "++data.signal_dynamic_range=64")),
+    "dr256": ("a_max/a_min = 256", ("++data.signal_route=linear", "++data.signal_dynamic_range=256")),
+    "": ("physical route", ()),
+}
+DYNRANGE_BACKBONES: dict[str, str] = {"unet": "U-Net", "dvss": "DVSS"}
+DYNRANGE_NOISES: dict[str, str] = {"fixed": "fixed", "range": "range", "hetero": "hetero"}
+#: the long-schedule control: 4x the optimiser steps (the CPU profile's 12 epochs -> 48), physical route, U-Net
+LONG_SCHEDULE = ("x4", "physical route, 4x steps", ("trainer.max_epochs=48",))
+
+
+def dynrange_key(backbone: str, noise: str, tag: str) -> str:
+    return f"{backbone}_{noise}_{tag or 'phys'}"
+
+
+def _dynrange_rows() -> tuple[Row, ...]:
+    rows = []
+    for backbone, b_label in DYNRANGE_BACKBONES.items():  # U-Net first: its runs are the quick ones
+        for tag, (dr_label, overrides) in DYNAMIC_RANGES.items():
+            for noise in DYNRANGE_NOISES:
+                label = f"{b_label}, {noise}, {dr_label}"
+                rows.append(
+                    Row(dynrange_key(backbone, noise, tag), label, backbone, noise, "l1", tag=tag, overrides=overrides)
+                )
+        if backbone == "unet":
+            tag, dr_label, overrides = LONG_SCHEDULE
+            for noise in DYNRANGE_NOISES:
+                label = f"{b_label}, {noise}, {dr_label}"
+                rows.append(
+                    Row(dynrange_key(backbone, noise, tag), label, backbone, noise, "l1", tag=tag, overrides=overrides)
+                )
+    return tuple(rows)
+
+
+TABLES["dynrange"] = _dynrange_rows()
+TABLE_TITLES["dynrange"] = (
+    "Beyond the paper: where the noise model pays (training noise across the signal dynamic range, L1)"
+)
+
 #: which metric columns each table shows (the paper's)
 TABLE_COLUMNS: dict[str, tuple[str, ...]] = {
     "1": ("psnr_db", "ssim", "mse_mm2", "mae_mm", "real_psnr_db", "real_mae_mm"),
     "2": ("psnr_db", "ssim", "mse_mm2", "mae_mm"),
     "3": ("psnr_db", "mae_mm", "real_psnr_db", "real_mae_mm"),
+    "dynrange": ("psnr_db", "mae_mm", "real_mae_mm"),
 }
 
 CLAIMS: tuple[Claim, ...] = (
@@ -304,6 +357,17 @@ CLAIMS: tuple[Claim, ...] = (
         "mae_mm",
         ("dvss_hetero", "restormer_hetero", "unet_hetero"),
     ),
+    *(
+        Claim(
+            "dynrange",
+            f"{b_label}, {label}: hetero < range < fixed (synthetic MAE)",
+            "mae_mm",
+            tuple(dynrange_key(backbone, noise, tag) for noise in ("hetero", "range", "fixed")),
+        )
+        for backbone, b_label in DYNRANGE_BACKBONES.items()
+        for tag, label in [(t, lab) for t, (lab, _) in DYNAMIC_RANGES.items()]
+        + ([(LONG_SCHEDULE[0], LONG_SCHEDULE[1])] if backbone == "unet" else [])
+    ),
 )
 
 
@@ -332,6 +396,7 @@ def row_spec(
             f"seed={seed}",
             *common,
             *(per_backbone or {}).get(row.backbone, ()),
+            *row.overrides,
         )
     meta = {"table": table, "row": row.key, "seed": seed, "kind": row.kind}
     return RunSpec(run_name(row, seed), overrides, meta, entry=row.kind)
@@ -349,11 +414,16 @@ def table_specs(
     ``per_backbone``: extra overrides for one backbone (:func:`row_spec`).
     """
     specs: dict[str, RunSpec] = {}
-    for seed in seeds:
-        for row in table_rows(table):
-            if row.key == "raw" or run_name(row, seed) in specs:
-                continue
-            specs[run_name(row, seed)] = row_spec(row, seed, common, per_backbone, table)
+    rows = table_rows(table)
+    # the dynamic-range study runs backbone by backbone (every seed of the quick U-Net runs first), the tables
+    # seed by seed
+    groups = [[r for r in rows if r.backbone == b] for b in dict.fromkeys(r.backbone for r in rows)]
+    for group in groups if table == "dynrange" else [list(rows)]:
+        for seed in seeds:
+            for row in group:
+                if row.key == "raw" or run_name(row, seed) in specs:
+                    continue
+                specs[run_name(row, seed)] = row_spec(row, seed, common, per_backbone, table)
     return list(specs.values())
 
 

@@ -7,10 +7,14 @@
   (x = psi_s - theta_n, y = tap_n / a_s).
 - Dark offset mu_dark and residual noise sigma_dark from emitter-off frames (the paper uses 100):
   mu_dark = mean of all values; sigma_dark^2 = mean over pixels and taps of the temporal variance.
-- Signal interval [a_min, a_max]: lower/upper percentiles of the valid per-pixel returned signal
+- Signal interval [a_min, a_max]: lower/upper percentiles of the valid per-pixel returned signal (valid: not
+  clipped, and above the camera's amplitude threshold in the frame, as the camera itself decides)
   (temporal mean of the DC bin, (mean_n y_n - mu_dark) / c0) of the captured tap stacks.
 - Range-aware baseline: sigma(D) = alpha0 + alpha1 D + alpha2 D^2 fitted by least squares to the
   ROI-averaged temporal depth std of an independent planar distance sequence.
+- Photometric gain ``signal_at_1m_e`` (the physical signal route), when the distance stacks name their target's
+  reflectance (``target_reflectance``): the median over valid pixels of a (D / 1 m)^2 / rho. Vignetting is not
+  measured (a flat-field capture would be needed): the calibration has none unless it is added by hand.
 """
 
 from __future__ import annotations
@@ -27,7 +31,7 @@ import torch
 
 from tofdenoise.physics.calibration import C_LIGHT_MM_PER_S, SensorCalibration, TapResponse
 from tofdenoise.physics.capture_io import INDEX_NAME, CaptureFormatError, clipped_samples, load_stack, read_index
-from tofdenoise.physics.simulator import demodulate
+from tofdenoise.physics.simulator import default_min_amplitude_e, demodulate
 
 
 def _design(x: np.ndarray, num_harmonics: int) -> np.ndarray:
@@ -258,6 +262,28 @@ def _pixel_signal(pixel_taps_e: np.ndarray, psi: float, dark_mean: float, respon
     return np.where(present.any(axis=0), a, np.nan).reshape(-1)
 
 
+def target_reflectance(entry: dict, shape: tuple[int, ...], path: Path) -> np.ndarray | None:
+    """The reflectance map (H, W) of a distance stack's target from its index entry, or None when it has none:
+    ``"reflectance": rho`` (a uniform board) or ``"reflectance_chart": [dark, white]`` (a grey chart whose
+    columns run log-spaced from dark to white). With it ``calibrate`` measures the photometric gain
+    ``signal_at_1m_e`` (the physical signal route)."""
+    if "reflectance" in entry:
+        rho = entry["reflectance"]
+        if isinstance(rho, bool) or not isinstance(rho, (int, float)) or not 0 < rho <= 10:
+            raise CaptureFormatError(f"{path}: index field 'reflectance' must be a number in (0, 10], got {rho!r}")
+        return np.full(shape, float(rho))
+    if "reflectance_chart" in entry:
+        chart = entry["reflectance_chart"]
+        ok = isinstance(chart, (list, tuple)) and len(chart) == 2
+        ok = ok and all(isinstance(v, (int, float)) and not isinstance(v, bool) and 0 < v <= 10 for v in chart)
+        if not ok:
+            raise CaptureFormatError(
+                f"{path}: index field 'reflectance_chart' must be [dark, white] reflectances in (0, 10], got {chart!r}"
+            )
+        return np.geomspace(float(chart[0]), float(chart[1]), shape[-1])[None, :] * np.ones(shape)
+    return None
+
+
 def calibrate_from_folders(
     sweep_dir: str | os.PathLike[str],
     dark_dir: str | os.PathLike[str],
@@ -356,6 +382,7 @@ def calibrate_from_folders(
         raise CaptureFormatError(f"calibration from {sweep_idx.folder} and {dark_idx.folder}: {exc}") from None
 
     range_points: list[tuple[float, float]] = []
+    gain_samples: list[np.ndarray] = []
     if distances_dir is not None:
         dist_idx = read_index(distances_dir, "distances")
         if dist_idx.num_taps != partial.num_taps:
@@ -378,12 +405,18 @@ def calibrate_from_folders(
                         f"full well or the dtype's maximum); at least {100 * min_unclipped_fraction:.0f} % are "
                         f"needed. Capture this distance with a shorter exposure"
                     )
-                depth, _ = demodulate(torch.from_numpy(arr), partial, tap_axis=1)
+                depth, amplitude = demodulate(torch.from_numpy(arr), partial, tap_axis=1)
                 depth_np = depth.numpy()
+                # the camera's own validity: a pixel-frame below the amplitude threshold has no depth
+                valid = valid & (amplitude.numpy() >= default_min_amplitude_e(partial))
                 n_ok = valid.sum(axis=0)
                 with np.errstate(invalid="ignore", divide="ignore"):
                     pix = np.where(valid[:, None], arr, 0.0).sum(axis=(0, 1)) / (n_ok * arr.shape[1])
-                signal_samples.append((np.where(n_ok > 0, pix - dark_mean, np.nan) / tap_response.c0).reshape(-1))
+                pixel_signal = np.where(n_ok > 0, pix - dark_mean, np.nan) / tap_response.c0
+                signal_samples.append(pixel_signal.reshape(-1))
+                reflectance = target_reflectance(e, pixel_signal.shape, path)
+                if reflectance is not None:  # K = a (D / 1 m)^2 / rho of every valid pixel of a known target
+                    gain_samples.append((pixel_signal * (float(e["distance_mm"]) / 1000.0) ** 2 / reflectance).ravel())
             else:
                 depth_np = arr
             std, _ = temporal_std_roi_mm(depth_np, valid)
@@ -401,7 +434,10 @@ def calibrate_from_folders(
         alphas = fit_range_sigma(*zip(*range_points)) if range_points else None
     except ValueError as exc:
         raise CaptureFormatError(f"{distances_dir}: {exc}") from None
-    calib = partial.replace(signal_min_e=a_min, signal_max_e=a_max, range_sigma_mm=alphas)
+    gains = np.concatenate(gain_samples) if gain_samples else np.array([])
+    gains = gains[np.isfinite(gains) & (gains > 0)]
+    k_1m = float(np.median(gains)) if gains.size else None
+    calib = partial.replace(signal_min_e=a_min, signal_max_e=a_max, range_sigma_mm=alphas, signal_at_1m_e=k_1m)
     return CalibrationReport(
         calibration=calib,
         sweep_points=len(phases),
@@ -415,6 +451,7 @@ def calibrate_from_folders(
 
 __all__ = [
     "MAX_CLIPPED_TAP_FRACTION",
+    "target_reflectance",
     "MIN_UNCLIPPED_FRACTION",
     "CalibrationReport",
     "calibrate_from_folders",

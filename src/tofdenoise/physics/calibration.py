@@ -40,7 +40,14 @@ FIELDS: tuple[str, ...] = (
     "full_well_e",
     "adc_gain_e_per_dn",
     "range_sigma_mm",
+    "signal_at_1m_e",
+    "vignetting_cos_power",
+    "fixed_pattern",
 )
+# optional fields that are left out of to_dict() (and so of the fingerprint) while unset: calibrations written
+# before they existed keep their fingerprints
+OPTIONAL_FIELDS: tuple[str, ...] = ("signal_at_1m_e", "vignetting_cos_power", "fixed_pattern")
+FIXED_PATTERN_FIELDS: tuple[str, ...] = ("pixel_offset_e", "column_phase_rad", "prnu", "seed")
 TAP_FIELDS: tuple[str, ...] = ("c0", "cos", "sin")
 
 
@@ -199,6 +206,79 @@ class TapResponse:
 
 
 # ----------------------------------------------------------------------------------------------------
+# Fixed-pattern noise of a (simulated) camera
+# ----------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class FixedPatternNoise:
+    """Spatial noise that is the same in every frame of a camera (the capture simulator's; not in the WLS model).
+
+    pixel_offset_e    std [e-] of a per-pixel, per-tap dark offset (DSNU): it does not cancel in the N-phase
+                      demodulation, so its depth error falls as 1 / signal
+    column_phase_rad  std [rad] of a per-column phase offset (modulation-clock skew across the column drivers):
+                      a depth offset that does not change with signal or exposure
+    prnu              std of a per-pixel relative gain (photo-response non-uniformity), the same on every tap
+    seed              the pattern's seed: one camera, one pattern (drawn per frame size from it)
+    """
+
+    pixel_offset_e: float = 0.0
+    column_phase_rad: float = 0.0
+    prnu: float = 0.0
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("pixel_offset_e", "column_phase_rad", "prnu"):
+            v = float(getattr(self, name))
+            if not math.isfinite(v) or v < 0:
+                raise CalibrationError(f"field 'fixed_pattern.{name}' must be a finite number >= 0, got {v!r}")
+            object.__setattr__(self, name, v)
+        if self.prnu >= 0.5:
+            raise CalibrationError(f"field 'fixed_pattern.prnu' must be < 0.5 (a relative gain std), got {self.prnu}")
+        seed = self.seed
+        if isinstance(seed, bool) or int(seed) != seed or seed < 0:
+            raise CalibrationError(f"field 'fixed_pattern.seed' must be an integer >= 0, got {seed!r}")
+        object.__setattr__(self, "seed", int(seed))
+
+    @property
+    def is_zero(self) -> bool:
+        return self.pixel_offset_e == 0 and self.column_phase_rad == 0 and self.prnu == 0
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "pixel_offset_e": self.pixel_offset_e,
+            "column_phase_rad": self.column_phase_rad,
+            "prnu": self.prnu,
+            "seed": self.seed,
+        }
+
+    @classmethod
+    def from_dict(cls, d: Any, source: str | None = None) -> FixedPatternNoise:
+        d = _plain_mapping(d)
+        if not isinstance(d, Mapping):
+            raise CalibrationError(f"{_where(source)}field 'fixed_pattern' must be a mapping, got {type(d).__name__}")
+        unknown = sorted(str(k) for k in d if k not in FIXED_PATTERN_FIELDS)
+        if unknown:
+            raise CalibrationError(
+                f"{_where(source)}unknown field(s) {['fixed_pattern.' + k for k in unknown]}; "
+                f"expected {list(FIXED_PATTERN_FIELDS)}"
+            )
+        values: dict[str, Any] = {}
+        for name in ("pixel_offset_e", "column_phase_rad", "prnu"):
+            if name in d:
+                values[name] = _as_float(d[name], f"fixed_pattern.{name}", source)
+        if "seed" in d:
+            seed = d["seed"]
+            if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
+                raise CalibrationError(f"{_where(source)}field 'fixed_pattern.seed' must be an integer, got {seed!r}")
+            values["seed"] = int(seed)
+        try:
+            return cls(**values)
+        except CalibrationError as exc:
+            raise CalibrationError(f"{_where(source)}{exc}") from None
+
+
+# ----------------------------------------------------------------------------------------------------
 # Sensor calibration
 # ----------------------------------------------------------------------------------------------------
 
@@ -217,6 +297,14 @@ class SensorCalibration:
     adc_gain_e_per_dn         ADC conversion gain [e-/DN] or None (no quantisation)
     range_sigma_mm            (alpha0 [mm], alpha1 [mm/mm], alpha2 [mm/mm^2]) of the range-aware
                               baseline sigma(D) = alpha0 + alpha1 D + alpha2 D^2 (D in mm), or None
+    signal_at_1m_e            photometric gain K: returned signal per tap [e-] of a white (reflectance 1)
+                              Lambertian target, frontal, at 1 m, exposure 1 (emitter power, optics and
+                              quantum efficiency folded in); the physical signal route
+                              (``tofdenoise.physics.photometry``). None: the camera has no photometric model
+    vignetting_cos_power      lens fall-off V = cos^k(field angle) of the physical signal route (None: 0, none)
+    fixed_pattern             the camera's fixed-pattern noise (``FixedPatternNoise``: per-pixel tap offsets,
+                              column phase offsets, PRNU) applied by the capture simulator only; the WLS
+                              model does not contain it (paper Sec. III-A assumes it calibrated away). None: none
     """
 
     num_taps: int
@@ -229,10 +317,15 @@ class SensorCalibration:
     full_well_e: float
     adc_gain_e_per_dn: float | None = None
     range_sigma_mm: tuple[float, float, float] | None = field(default=None)
+    signal_at_1m_e: float | None = None
+    vignetting_cos_power: float | None = None
+    fixed_pattern: FixedPatternNoise | None = None
 
     def __post_init__(self) -> None:
         if isinstance(self.tap_response, Mapping):
             object.__setattr__(self, "tap_response", TapResponse.from_dict(self.tap_response))
+        if isinstance(self.fixed_pattern, Mapping):
+            object.__setattr__(self, "fixed_pattern", FixedPatternNoise.from_dict(self.fixed_pattern))
         if self.range_sigma_mm is not None:
             object.__setattr__(self, "range_sigma_mm", tuple(float(v) for v in self.range_sigma_mm))
         validate_calibration(self)
@@ -258,12 +351,12 @@ class SensorCalibration:
         for key, value in changes.items():
             if key not in FIELDS:
                 raise CalibrationError(f"unknown calibration field '{key}'")
-            d[key] = value.to_dict() if isinstance(value, TapResponse) else value
+            d[key] = value.to_dict() if isinstance(value, (TapResponse, FixedPatternNoise)) else value
         return SensorCalibration.from_dict(d, source="replace()")
 
     # -- serialisation ------------------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
-        return {
+        d: dict[str, Any] = {
             "num_taps": int(self.num_taps),
             "modulation_frequency_hz": float(self.modulation_frequency_hz),
             "tap_response": self.tap_response.to_dict(),
@@ -275,6 +368,13 @@ class SensorCalibration:
             "adc_gain_e_per_dn": None if self.adc_gain_e_per_dn is None else float(self.adc_gain_e_per_dn),
             "range_sigma_mm": None if self.range_sigma_mm is None else [float(v) for v in self.range_sigma_mm],
         }
+        if self.signal_at_1m_e is not None:
+            d["signal_at_1m_e"] = float(self.signal_at_1m_e)
+        if self.vignetting_cos_power is not None:
+            d["vignetting_cos_power"] = float(self.vignetting_cos_power)
+        if self.fixed_pattern is not None:
+            d["fixed_pattern"] = self.fixed_pattern.to_dict()
+        return d
 
     @classmethod
     def from_dict(cls, d: Any, source: str | None = None) -> SensorCalibration:
@@ -285,7 +385,7 @@ class SensorCalibration:
         d = {k: v for k, v in d.items() if not str(k).startswith("_")}
         missing = [name for name in FIELDS if name not in d]
         # adc_gain_e_per_dn and range_sigma_mm are optional (None when absent)
-        missing = [m for m in missing if m not in ("adc_gain_e_per_dn", "range_sigma_mm")]
+        missing = [m for m in missing if m not in ("adc_gain_e_per_dn", "range_sigma_mm", *OPTIONAL_FIELDS)]
         if missing:
             raise CalibrationError(f"{_where(source)}missing field(s) {missing}")
         unknown = sorted(str(k) for k in d if k not in FIELDS)
@@ -300,6 +400,9 @@ class SensorCalibration:
             raise CalibrationError(f"{_where(source)}field 'num_taps' must be an integer >= 3, got {num_taps_raw!r}")
         gain = d.get("adc_gain_e_per_dn")
         rs = d.get("range_sigma_mm")
+        k1m = d.get("signal_at_1m_e")
+        vig = d.get("vignetting_cos_power")
+        fpn = d.get("fixed_pattern")
         try:
             return cls(
                 num_taps=int(num_taps_raw),
@@ -312,6 +415,9 @@ class SensorCalibration:
                 full_well_e=_as_float(d["full_well_e"], "full_well_e", source),
                 adc_gain_e_per_dn=None if gain is None else _as_float(gain, "adc_gain_e_per_dn", source),
                 range_sigma_mm=None if rs is None else _as_float_tuple(rs, "range_sigma_mm", source, length=3),  # type: ignore[arg-type]
+                signal_at_1m_e=None if k1m is None else _as_float(k1m, "signal_at_1m_e", source),
+                vignetting_cos_power=None if vig is None else _as_float(vig, "vignetting_cos_power", source),
+                fixed_pattern=None if fpn is None else FixedPatternNoise.from_dict(fpn, source=source),
             )
         except CalibrationError as exc:
             msg = str(exc)
@@ -375,6 +481,16 @@ def validate_calibration(calib: SensorCalibration) -> None:
                 f"field 'range_sigma_mm' must be 3 finite numbers [alpha0, alpha1, alpha2] or null, "
                 f"got {calib.range_sigma_mm!r}"
             )
+    if calib.signal_at_1m_e is not None:
+        k = float(calib.signal_at_1m_e)
+        if not math.isfinite(k) or k <= 0:
+            raise CalibrationError(f"field 'signal_at_1m_e' must be a finite number > 0 or null, got {k!r}")
+        object.__setattr__(calib, "signal_at_1m_e", k)
+    if calib.vignetting_cos_power is not None:
+        v = float(calib.vignetting_cos_power)
+        if not math.isfinite(v) or v < 0:
+            raise CalibrationError(f"field 'vignetting_cos_power' must be a finite number >= 0 or null, got {v!r}")
+        object.__setattr__(calib, "vignetting_cos_power", v)
     tr = calib.tap_response
     if not isinstance(tr, TapResponse):
         raise CalibrationError(f"field 'tap_response' must be a TapResponse, got {type(tr).__name__}")
@@ -473,6 +589,7 @@ __all__ = [
     "C_LIGHT_MM_PER_S",
     "CalibrationError",
     "FIELDS",
+    "FixedPatternNoise",
     "SensorCalibration",
     "TapResponse",
     "default_calibration",

@@ -55,7 +55,9 @@ def footprint_tap_means_e(depth_mm: Any, signal_e: Any, calib: SensorCalibration
 
     depth_mm, signal_e: (factor H, factor W) samples (e.g. a scene ray-cast at ``factor`` times the
     resolution); pixel (i, j) integrates samples [factor i, factor (i + 1)) x [factor j, factor (j + 1)), each
-    with weight 1 / factor^2 (``mixed_tap_means_e``). factor = 1 is the one-surface model.
+    with weight 1 / factor^2 (``mixed_tap_means_e``). factor = 1 is the one-surface model. A camera with a
+    fixed pattern (``calib.fixed_pattern``) gets its column phase offsets here; its PRNU and tap offsets are added
+    by ``simulate_tap_mean_frames``.
     """
     d = torch.as_tensor(depth_mm, dtype=torch.float32)
     a = torch.as_tensor(signal_e, dtype=torch.float32)
@@ -68,6 +70,12 @@ def footprint_tap_means_e(depth_mm: Any, signal_e: Any, calib: SensorCalibration
             f"sides divisible by factor {s}"
         )
     h, w = d.shape[0] // s, d.shape[1] // s
+    from tofdenoise.physics.fixed_pattern import camera_pattern, column_phase_depth_mm
+
+    pattern = camera_pattern(calib, h, w)
+    if pattern is not None:  # the camera's column phase offsets (its fixed pattern) shift psi of every sub-pixel
+        shift = torch.from_numpy(column_phase_depth_mm(pattern, calib, s))
+        d = torch.where(torch.isfinite(d) & (d > 0), d + shift, d)
 
     def surfaces(x: torch.Tensor) -> torch.Tensor:  # (sH, sW) -> (s*s, H, W): the samples of each footprint
         return x.reshape(h, s, w, s).permute(1, 3, 0, 2).reshape(s * s, h, w)

@@ -15,6 +15,9 @@ What a frame goes through (per pixel, per tap n, electrons):
 
 The dark offset cancels in B (sum_n exp(i theta_n) = 0). Exposure scales the returned signal only; the
 dark/ambient floor is the calibrated one (calibrate at the setting you simulate).
+Fixed-pattern noise (``calib.fixed_pattern``, ``tofdenoise.physics.fixed_pattern``): when the camera has one,
+its column phase offsets shift psi in step 1, its PRNU multiplies lambda_n and its per-pixel tap offsets are added
+in step 3, in every frame (dark frames included); the pattern is drawn for the frame's (H, W) = the last two axes.
 Validity: input pixel valid (depth > 0, signal > 0, finite), no saturated tap, amplitude above
 `min_amplitude_e` (default: 5 x the dark-only amplitude noise sqrt(2/N) sigma_dark). Invalid pixels get
 depth 0. Frames are generated in chunks to bound memory.
@@ -207,14 +210,25 @@ def _to_tensor(x: Any, name: str) -> torch.Tensor:
     return t
 
 
+def _pattern(calib: SensorCalibration, shape: tuple[int, ...]) -> Any:
+    """The camera's fixed pattern for frames whose last two axes are (H, W), or None."""
+    from tofdenoise.physics.fixed_pattern import camera_pattern
+
+    if len(shape) < 2:
+        return None
+    return camera_pattern(calib, int(shape[-2]), int(shape[-1]))
+
+
 def simulate_taps_chunk(
     mean_signal_e: torch.Tensor,
     calib: SensorCalibration,
     num_frames: int,
     generator: torch.Generator | None,
     quantize: bool,
+    tap_offset_e: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Noisy taps (F,N,...) [e-] and per-pixel saturation (F,...) from expected signal electrons (N,...)."""
+    """Noisy taps (F,N,...) [e-] and per-pixel saturation (F,...) from expected signal electrons (N,...);
+    ``tap_offset_e`` (N,...) is a fixed per-pixel tap offset added to the dark offset."""
     lam = mean_signal_e.unsqueeze(0).expand(num_frames, *mean_signal_e.shape).contiguous()
     taps = torch.poisson(lam, generator=generator) if generator is not None else torch.poisson(lam)
     del lam
@@ -222,6 +236,8 @@ def simulate_taps_chunk(
     noise = torch.randn(taps.shape, dtype=taps.dtype, device=taps.device, generator=generator)
     taps.add_(noise.mul_(s)).add_(calib.dark_mean_e)
     del noise
+    if tap_offset_e is not None:
+        taps.add_(tap_offset_e.to(taps.device, taps.dtype).unsqueeze(0))
     saturated = (taps >= calib.full_well_e).any(dim=1)
     taps.clamp_(0.0, calib.full_well_e)
     if quantize and calib.adc_gain_e_per_dn is not None:
@@ -265,6 +281,11 @@ def simulate_frames(
     in_valid = torch.isfinite(d) & torch.isfinite(a) & (d > 0) & (a > 0)
     d_safe = torch.where(in_valid, d, torch.ones_like(d))
     a_eff = torch.where(in_valid, a * float(exposure), torch.zeros_like(a))
+    pattern = _pattern(calib, tuple(d.shape))
+    if pattern is not None:  # the column phase offsets shift psi (the clean depth stays the truth)
+        from tofdenoise.physics.fixed_pattern import column_phase_depth_mm
+
+        d_safe = d_safe + torch.from_numpy(column_phase_depth_mm(pattern, calib)).to(d_safe.device)
     r, _ = tap_responses(d_safe, calib)  # (..., N)
     mean_signal = (a_eff.unsqueeze(-1) * r).clamp_min(0.0).movedim(-1, 0).contiguous()  # (N, ...)
     return _frames_from_means(
@@ -318,6 +339,11 @@ def _frames_from_means(
     if chunk_frames is None:
         chunk_frames = max(1, DEFAULT_CHUNK_ELEMENTS // max(1, n_pix * calib.num_taps))
     thr = default_min_amplitude_e(calib) if min_amplitude_e is None else float(min_amplitude_e)
+    pattern = _pattern(calib, shape)
+    offsets = None
+    if pattern is not None:  # PRNU scales the returned signal; the tap offsets join the dark offset
+        mean_signal = mean_signal * torch.from_numpy(pattern.gain).to(device)
+        offsets = torch.from_numpy(pattern.tap_offset_e).to(device)
 
     f = int(num_frames)
     depth_out = torch.empty((f, *shape), dtype=torch.float32, device=device)
@@ -327,7 +353,7 @@ def _frames_from_means(
     taps_out = torch.empty((f, calib.num_taps, *shape), dtype=torch.float32, device=device) if return_taps else None
     for start in range(0, f, chunk_frames):
         stop = min(f, start + chunk_frames)
-        taps, saturated = simulate_taps_chunk(mean_signal, calib, stop - start, generator, quantize)
+        taps, saturated = simulate_taps_chunk(mean_signal, calib, stop - start, generator, quantize, offsets)
         depth, amplitude = demodulate(taps, calib, tap_axis=1)
         valid = in_valid.unsqueeze(0) & ~saturated & (amplitude >= thr)
         depth_out[start:stop] = torch.where(valid, depth, torch.zeros_like(depth))
@@ -349,7 +375,9 @@ def simulate_dark_taps(
 ) -> torch.Tensor:
     """Emitter-off tap stack (F, N, *shape) [e-]: dark offset + Gaussian dark/read noise (+ ADC)."""
     zeros = torch.zeros((calib.num_taps, *shape), dtype=torch.float32)
-    taps, _ = simulate_taps_chunk(zeros, calib, num_frames, generator, quantize)
+    pattern = _pattern(calib, tuple(shape))
+    offsets = None if pattern is None else torch.from_numpy(pattern.tap_offset_e)
+    taps, _ = simulate_taps_chunk(zeros, calib, num_frames, generator, quantize, offsets)
     return taps
 
 

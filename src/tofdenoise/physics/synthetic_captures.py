@@ -121,13 +121,26 @@ def write_distances_folder(
     reflectance: float = 0.9,
     signal_spread: tuple[float, float] | None = None,
     seed: int = 13,
+    reflectance_chart: tuple[float, float] | None = None,
+    signal_at_1m_e: float = SIGNAL_AT_1M_E,
 ) -> Path:
     """Planar distance sequence (tap stacks). `signal_spread=(lo, hi)` multiplies the target's signal by a
-    left-to-right ramp lo..hi (illumination fall-off), giving a spread of returned signals."""
+    left-to-right ramp lo..hi (illumination fall-off), giving a spread of returned signals.
+    `reflectance_chart=(dark, white)` replaces the uniform target by a grey chart: the columns' reflectances run
+    log-spaced from dark to white (dark and bright targets at every distance: the signal-interval sequence)."""
     g = torch.Generator().manual_seed(seed)
     stacks = []
     for i, dist in enumerate(distances_mm):
-        a = float(planar_signal_e(dist, reflectance))
+        meta: dict = {"distance_mm": float(dist)}
+        if reflectance_chart is not None:
+            lo, hi = reflectance_chart
+            chart = np.geomspace(lo, hi, shape[1])[None, :] * np.ones(shape)
+            a = planar_signal_e(dist, chart, signal_at_1m_e=signal_at_1m_e)
+            meta["reflectance_chart"] = [float(lo), float(hi)]
+        else:
+            a = float(planar_signal_e(dist, reflectance, signal_at_1m_e=signal_at_1m_e))
+            if signal_spread is None:
+                meta["reflectance"] = float(reflectance)
         if signal_spread is not None:
             ramp = np.linspace(signal_spread[0], signal_spread[1], shape[1])[None, :] * np.ones(shape)
             a = a * ramp
@@ -135,14 +148,27 @@ def write_distances_folder(
             (
                 f"dist_{i:03d}",
                 planar_tap_stack(calib, dist, a, num_frames, shape, g).astype(np.float32),
-                {"distance_mm": float(dist)},
+                meta,
             )
         )
     return write_capture_folder(folder, "distances", calib.num_taps, stacks, units="e")
 
 
+# the signal-interval sequence of a camera with a photometric gain: a grey chart from black (2 %) to white (90 %)
+# at distances across the working range, WORKING_RANGE_MIN_MM .. WORKING_RANGE_FRACTION x the unambiguous range
+# (the procedural scenes' default depth range)
+GREY_CHART: tuple[float, float] = (0.02, 0.9)
+WORKING_RANGE_MIN_MM: float = 300.0
+WORKING_RANGE_FRACTION: float = 0.8
+
+
 def default_distances_mm(calib: SensorCalibration, count: int = 10) -> list[float]:
-    """``count`` planar-target distances from 25 % to 75 % of the unambiguous range (mm, rounded to 1 mm)."""
+    """``count`` planar-target distances (mm, rounded to 1 mm): across the working range (300 mm to 80 % of the
+    unambiguous range) for a camera with a photometric gain ``signal_at_1m_e``, else 25 % to 75 % of the
+    unambiguous range."""
+    if calib.signal_at_1m_e is not None:
+        hi = WORKING_RANGE_FRACTION * calib.unambiguous_range_mm
+        return [float(round(v)) for v in np.linspace(WORKING_RANGE_MIN_MM, hi, int(count))]
     return [float(round(v)) for v in np.linspace(0.25, 0.75, int(count)) * calib.unambiguous_range_mm]
 
 
@@ -160,10 +186,16 @@ def write_calibration_captures(
 ) -> dict[str, Path]:
     """The three capture folders ``tofdenoise-sensor calibrate`` reads, as a camera with ``calib`` records them:
     ``out_dir/sweep`` (phase sweep), ``out_dir/dark`` (emitter-off frames) and ``out_dir/distances`` (planar
-    target at ``distances_mm``, default ``default_distances_mm``, with a left-to-right signal ramp
-    ``signal_spread``). Each folder has its own generator seeded from ``seed``."""
+    target at ``distances_mm``, default ``default_distances_mm``). The target is a grey chart ``GREY_CHART`` lit
+    by the camera's own photometric gain when it has one (the paper's signal-interval sequence: dark and bright
+    targets across the working range), else a uniform white board with a left-to-right signal ramp
+    ``signal_spread``. Each folder has its own generator seeded from ``seed``."""
     out = Path(out_dir)
     distances = list(distances_mm) if distances_mm is not None else default_distances_mm(calib)
+    if calib.signal_at_1m_e is not None:
+        target = {"reflectance_chart": GREY_CHART, "signal_at_1m_e": calib.signal_at_1m_e, "signal_spread": None}
+    else:
+        target = {"signal_spread": signal_spread}
     return {
         "sweep": write_sweep_folder(
             calib, out / "sweep", num_steps=sweep_steps, num_frames=sweep_frames, shape=shape, seed=seed * 3 + 11
@@ -175,13 +207,14 @@ def write_calibration_captures(
             distances,
             num_frames=distance_frames,
             shape=shape,
-            signal_spread=signal_spread,
             seed=seed * 3 + 13,
+            **target,
         ),
     }
 
 
 __all__ = [
+    "GREY_CHART",
     "REFERENCE_DISTANCE_MM",
     "SIGNAL_AT_1M_E",
     "default_distances_mm",

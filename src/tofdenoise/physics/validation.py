@@ -457,23 +457,24 @@ def write_validation(
     return json_path, png
 
 
-def fit_default_range_sigma(
-    calib: SensorCalibration, num_frames: int = 400, roi_px: int = 32, seed: int = 4242
-) -> tuple[float, float, float]:
-    """alpha coefficients for a calibration from its own simulated independent planar sequence
-    (used to produce `range_sigma_mm` in configs/sensor/default.yaml)."""
-    settings = ValidationSettings(num_frames=num_frames, roi_px=roi_px, fit_seed=seed)
-    g = torch.Generator().manual_seed(seed)
-    ds, stds = [], []
-    for d in RANGE_FIT_DISTANCES_MM:
-        st = _simulated_stats(calib, d, float(planar_signal_e(d, PLANAR_REFLECTANCE)), 1.0, settings, g)
-        ds.append(d)
-        stds.append(st.measured_std_mm)
-    return fit_range_sigma(ds, stds)
+def calibrate_simulated_camera(calib: SensorCalibration, seed: int = 0, shape: tuple[int, int] = (16, 16)) -> Any:
+    """Calibrate a camera the way a user calibrates theirs (``tofdenoise-sensor calibrate``), from its own
+    simulated captures: the phase sweep, 100 dark frames and the distance sequence (``write_calibration_captures``:
+    a grey chart across the working range for a camera with a photometric gain). Returns the ``CalibrationReport``;
+    the presets' ``signal_min_e``/``signal_max_e`` and ``range_sigma_mm`` are measured with it (docs/physics.md)."""
+    import tempfile
+
+    from tofdenoise.physics.calibrate import calibrate_from_folders
+    from tofdenoise.physics.synthetic_captures import write_calibration_captures
+
+    with tempfile.TemporaryDirectory(prefix="tofdenoise-calib-") as tmp:
+        folders = write_calibration_captures(calib, tmp, shape=shape, seed=seed)
+        return calibrate_from_folders(folders["sweep"], folders["dark"], folders["distances"])
 
 
 __all__ = [
     "EXPOSURES",
+    "calibrate_simulated_camera",
     "PLANAR_REFLECTANCE",
     "RANGE_DISTANCES_MM",
     "RANGE_FIT_DISTANCES_MM",
@@ -483,7 +484,6 @@ __all__ = [
     "ValidationResult",
     "ValidationSettings",
     "captured_conditions",
-    "fit_default_range_sigma",
     "mape_percent",
     "plot_validation",
     "r2_score",

@@ -7,9 +7,18 @@ vectorised over pixels with per-object screen-space culling (a 640x480 scene tak
 
 Outputs per scene:
 - clean z-depth in mm (the camera's z, not the ray length);
-- amplitude = reflectance * cos(incidence) / (range_m)^2 (emitter next to the lens, inverse-square fall-off);
-- a validity mask (pixels beyond ``max_depth_mm`` or nearer than ``min_depth_mm`` are invalid; by construction
-  there are none unless the limits are changed after generation).
+- a radiometric amplitude [1/m^2] = (reflectance * cos(incidence) + specular lobe) / (range_m)^2 (emitter next
+  to the lens, inverse-square fall-off; ``tofdenoise.physics.photometry`` turns it into electrons);
+- a validity mask: pixels that see no surface (an opening in the back wall: open background beyond the working
+  range) and pixels beyond ``max_depth_mm`` or nearer than ``min_depth_mm`` are invalid.
+
+Surfaces a camera gets no usable return from (renderer 2; the geometry of scene i is unchanged, the materials
+come from a second random stream ``default_rng([s, i, 2])``):
+- black absorbers (reflectance 0.3-1.5 %, e.g. black velvet or foam at 850 nm) on some objects and walls;
+- specular surfaces (a dim diffuse part plus a narrow lobe rho_s cos^n(theta) towards the co-located emitter):
+  they saturate where they face the camera and return almost nothing elsewhere;
+- an opening in the back wall on some scenes (a window or a door to a far room): no ground truth there.
+Which of them become holes is decided by the camera (signal threshold, full well), not here.
 
 Depths stay inside [min_depth_mm, max_depth_mm]; the datamodule sets ``max_depth_mm`` to 80 % of the
 calibration's unambiguous range by default so that no scene would wrap in phase.
@@ -18,7 +27,7 @@ calibration's unambiguous range by default so that no scene would wrap in phase.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -44,7 +53,8 @@ def pixel_rays(height: int, width: int, hfov_deg: float = DEFAULT_HFOV_DEG) -> t
 # ---------------------------------------------------------------- reflectance textures
 @dataclass(frozen=True)
 class Texture:
-    """Reflectance r(p) = clip(base * (1 + contrast * pattern(p)), 0.02, 1) with p the 3-D point in mm."""
+    """Reflectance r(p) = clip(base * (1 + contrast * pattern(p)), min_albedo, 1) with p the 3-D point in mm, plus
+    an optional specular lobe ``specular`` * cos^``shininess``(incidence) (0: a Lambertian surface)."""
 
     base: float
     kind: str  # "uniform" | "stripes" | "checker" | "waves"
@@ -52,6 +62,9 @@ class Texture:
     period_mm: float
     direction: tuple[float, float, float]
     phases: tuple[float, float, float]
+    min_albedo: float = 0.02
+    specular: float = 0.0
+    shininess: float = 1.0
 
     def albedo(self, px: np.ndarray, py: np.ndarray, pz: np.ndarray) -> np.ndarray:
         if self.kind == "uniform":
@@ -71,7 +84,13 @@ class Texture:
                 pattern = np.sin(proj + self.phases[0]) * np.cos(0.37 * k * px + self.phases[1]) + 0.5 * np.sin(
                     0.61 * k * (py - pz) + self.phases[2]
                 )
-        return np.clip(self.base * (1.0 + self.contrast * pattern), 0.02, 1.0).astype(np.float32)
+        return np.clip(self.base * (1.0 + self.contrast * pattern), self.min_albedo, 1.0).astype(np.float32)
+
+    def lobe(self, cos_incidence: np.ndarray) -> np.ndarray:
+        """Specular return rho_s cos^n(theta) (emitter and camera share the half vector: it peaks at theta = 0)."""
+        if self.specular <= 0:
+            return np.zeros_like(cos_incidence)
+        return (self.specular * np.clip(cos_incidence, 0.0, 1.0) ** self.shininess).astype(np.float32)
 
 
 def random_texture(rng: np.random.Generator) -> Texture:
@@ -87,6 +106,85 @@ def random_texture(rng: np.random.Generator) -> Texture:
     )
 
 
+def absorber_texture(rng: np.random.Generator) -> Texture:
+    """A black absorber: reflectance 0.3-1.5 % with a faint texture."""
+    return Texture(
+        base=float(rng.uniform(0.003, 0.015)),
+        kind="uniform",
+        contrast=0.0,
+        period_mm=100.0,
+        direction=(1.0, 0.0, 0.0),
+        phases=(0.0, 0.0, 0.0),
+        min_albedo=0.001,
+    )
+
+
+def specular_texture(rng: np.random.Generator, diffuse: Texture) -> Texture:
+    """A glossy surface: a dim diffuse part (5-25 % of ``diffuse``'s) and a narrow bright lobe."""
+    return Texture(
+        base=diffuse.base * float(rng.uniform(0.05, 0.25)),
+        kind=diffuse.kind,
+        contrast=diffuse.contrast,
+        period_mm=diffuse.period_mm,
+        direction=diffuse.direction,
+        phases=diffuse.phases,
+        min_albedo=0.002,
+        specular=float(math.exp(rng.uniform(math.log(3.0), math.log(40.0)))),
+        shininess=float(math.exp(rng.uniform(math.log(30.0), math.log(400.0)))),
+    )
+
+
+# Shares of the surfaces that return (almost) nothing usable; drawn from the scene's material stream
+ABSORBER_SHARE = 0.12
+SPECULAR_SHARE = 0.12
+OPENING_SHARE = 0.35
+
+
+def assign_materials(prims: list[Any], rng: np.random.Generator) -> list[Any]:
+    """Replace the texture of some primitives by a black absorber or a specular material (the back wall is
+    never an absorber: a whole-frame hole teaches nothing)."""
+    out = []
+    for k, prim in enumerate(prims):
+        u = rng.random()
+        texture = prim.texture
+        if u < ABSORBER_SHARE and k > 0:
+            texture = absorber_texture(rng)
+        elif u < ABSORBER_SHARE + SPECULAR_SHARE:
+            texture = specular_texture(rng, texture)
+        else:
+            rng.random()  # keep the stream aligned whatever the choice
+        out.append(replace(prim, texture=texture))
+    return out
+
+
+@dataclass(frozen=True)
+class Opening:
+    """A window in the back wall, in normalised image coordinates x/z in [x0, x1], y/z in [y0, y1]: rays through
+    it see no surface of the room (the open background beyond the working range)."""
+
+    x0: float
+    x1: float
+    y0: float
+    y1: float
+
+    def contains(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        return (x >= self.x0) & (x <= self.x1) & (y >= self.y0) & (y <= self.y1)
+
+
+def random_opening(rng: np.random.Generator, xmax: float, ymax: float) -> Opening | None:
+    """With probability OPENING_SHARE an opening covering 4-25 % of the frame, anywhere in it."""
+    if rng.random() >= OPENING_SHARE:
+        rng.random(4)
+        return None
+    area = rng.uniform(0.04, 0.25)
+    aspect = math.exp(rng.uniform(math.log(0.5), math.log(2.0)))
+    w = min(2 * xmax, math.sqrt(area * 4 * xmax * ymax * aspect))
+    h = min(2 * ymax, area * 4 * xmax * ymax / w)
+    cx, cy = rng.uniform(-xmax + w / 2, xmax - w / 2), rng.uniform(-ymax + h / 2, ymax - h / 2)
+    rng.random(2)
+    return Opening(float(cx - w / 2), float(cx + w / 2), float(cy - h / 2), float(cy + h / 2))
+
+
 # ---------------------------------------------------------------- primitives
 # Every intersect(x, y) takes the normalised ray directions d = (x, y, 1) of a pixel window and returns
 # (t, nx, ny, nz): the hit's z-depth (inf = miss) and the unnormalised surface normal.
@@ -100,12 +198,15 @@ class InverseDepthPlane:
 
     g: tuple[float, float, float]
     texture: Texture
+    opening: Opening | None = None
 
     def intersect(self, x: np.ndarray, y: np.ndarray) -> Hit:
         gx, gy, g0 = self.g
         denom = gx * x + gy * y + g0
         with np.errstate(divide="ignore"):
             t = np.where(denom > 1e-9, 1.0 / np.maximum(denom, 1e-12), _INF).astype(np.float32)
+        if self.opening is not None:
+            t = np.where(self.opening.contains(x, y), _INF, t).astype(np.float32)
         n = np.ones_like(x)
         return t, gx * n, gy * n, g0 * n
 
@@ -331,6 +432,11 @@ def generate_scene(
                 radius, half_len = rng.uniform(3.0, 15.0), size * rng.uniform(1.5, 3.0)
                 half_len = min(half_len, 0.95 * (z_c - 1.05 * z_lo) / max(abs(float(axis[2])), 1e-3), half_len)
             prims.append(Cylinder(center, tuple(float(v) for v in axis), float(radius), float(half_len), texture))
+    materials = np.random.default_rng([int(seed), int(index), 2])
+    prims = assign_materials(prims, materials)
+    opening = random_opening(materials, xmax, ymax)
+    if opening is not None:
+        prims[0] = replace(prims[0], opening=opening)
     return SceneSpec(height, width, hfov_deg, z_lo, z_hi, tuple(prims))
 
 
@@ -354,7 +460,7 @@ def _screen_window(bounds, f: float, height: int, width: int, z_lo: float):
 
 
 def render_scene(spec: SceneSpec) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Ray-cast a scene: (depth_mm, amplitude, valid), each (H, W); amplitude = rho cos(theta) / r_m^2."""
+    """Ray-cast a scene: (depth_mm, amplitude, valid), each (H, W); amplitude = (rho cos(theta) + lobe) / r_m^2."""
     height, width = spec.height, spec.width
     f = focal_length_px(width, spec.hfov_deg)
     x, y = pixel_rays(height, width, spec.hfov_deg)
@@ -382,13 +488,15 @@ def render_scene(spec: SceneSpec) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     cos_inc = np.abs(normals[0] * x + normals[1] * y + normals[2]) / (n_norm * d_norm)
     finite = np.isfinite(depth)
     px, py, pz = np.where(finite, depth * x, 0), np.where(finite, depth * y, 0), np.where(finite, depth, 0)
-    albedo = np.zeros((height, width), dtype=np.float32)
+    returned = np.zeros((height, width), dtype=np.float32)  # rho cos(theta) + specular lobe
     for k, prim in enumerate(spec.primitives):
         sel = owner == k
         if sel.any():
-            albedo[sel] = prim.texture.albedo(px[sel], py[sel], pz[sel])
+            returned[sel] = prim.texture.albedo(px[sel], py[sel], pz[sel]) * cos_inc[sel] + prim.texture.lobe(
+                cos_inc[sel]
+            )
     range_m = np.where(finite, depth * d_norm, 1.0) / 1000.0
-    amplitude = (albedo * cos_inc / (range_m * range_m)).astype(np.float32)
+    amplitude = (returned / (range_m * range_m)).astype(np.float32)
     valid = depth_validity(depth, spec.min_depth_mm * 0.999, spec.max_depth_mm * 1.001)
     depth = np.where(valid, depth, 0.0).astype(np.float32)
     amplitude = np.where(valid, amplitude, 0.0).astype(np.float32)
@@ -400,6 +508,8 @@ class ProceduralSource:
     """Deterministic built-in scenes (no download): ids ``scene_000000`` ... ``scene_{n-1}``."""
 
     name = "procedural"
+    # the amplitude is radiometric, (rho cos(theta) + lobe) / r_m^2: the physical signal route applies
+    radiometric_amplitude = True
 
     def __init__(
         self,
@@ -456,5 +566,5 @@ class ProceduralSource:
             "min_depth_mm": self.min_depth_mm,
             "max_depth_mm": self.max_depth_mm,
             "hfov_deg": self.hfov_deg,
-            "renderer": 1,
+            "renderer": 2,
         }

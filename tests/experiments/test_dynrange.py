@@ -1,0 +1,66 @@
+"""The dynamic-range study: its runs, and hetero's paired gains computed by hand from records."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from tofdenoise.experiments.dynrange import gain_figure_png, gains, gains_markdown
+from tofdenoise.experiments.tables import TABLES, table_specs
+
+
+def test_study_runs_share_the_physical_world_with_table_3_and_start_with_unet():
+    specs = table_specs("dynrange", [0, 1, 2])
+    names = [s.name for s in specs]
+    assert len(names) == len(set(names)) == 3 * (5 * 3 + 4 * 3)  # U-Net: 4 worlds + x4; DVSS: 4 worlds
+    assert names[0] == "unet-fixed-l1-dr16-s0" and all(n.startswith("unet") for n in names[:45])
+    table3 = {s.name for s in table_specs("3", [0, 1, 2])}
+    assert {"dvss-hetero-l1-s0", "dvss-range-l1-s1", "dvss-fixed-l1-s2", "unet-range-l1-s0"} <= table3 & set(names)
+    by_name = {s.name: s for s in specs}
+    assert by_name["unet-hetero-l1-dr64-s1"].overrides[-2:] == (
+        "++data.signal_route=linear",
+        "++data.signal_dynamic_range=64",
+    )
+    assert by_name["unet-fixed-l1-x4-s0"].overrides[-1] == "trainer.max_epochs=48"
+    assert not any("signal" in o for o in by_name["dvss-hetero-l1-s0"].overrides)  # the default world
+
+
+def _metrics(syn: float, real: float | None = None) -> dict:
+    test = {"synthetic": {"mae_mm": syn}}
+    if real is not None:
+        test["real"] = {"mae_mm": real}
+    return {"test": test}
+
+
+def test_gains_are_paired_by_seed_and_count_only_complete_seeds():
+    records = {
+        # seed 0 and 1 complete for U-Net at dr16; seed 2 lacks the range run
+        "unet-fixed-l1-dr16-s0": _metrics(5.0, 7.0),
+        "unet-range-l1-dr16-s0": _metrics(4.5, 6.5),
+        "unet-hetero-l1-dr16-s0": _metrics(4.0, 6.0),
+        "unet-fixed-l1-dr16-s1": _metrics(6.0, 7.5),
+        "unet-range-l1-dr16-s1": _metrics(4.0, 6.4),
+        "unet-hetero-l1-dr16-s1": _metrics(4.2, 6.2),
+        "unet-fixed-l1-dr16-s2": _metrics(9.0),
+        "unet-hetero-l1-dr16-s2": _metrics(1.0),
+    }
+    items = gains(records.get, [0, 1, 2])
+    assert len(items) == 1
+    g = items[0]
+    assert (g.backbone, g.tag, g.n) == ("unet", "dr16", 2)
+    assert g.hetero_mae == pytest.approx(4.1)
+    assert g.over_fixed[0] == pytest.approx((1.0 + 1.8) / 2) and g.over_fixed[1] == pytest.approx(math.sqrt(0.32))
+    assert g.over_range[0] == pytest.approx((0.5 - 0.2) / 2)
+    assert g.real_over_fixed[0] == pytest.approx((1.0 + 1.3) / 2)
+    table = "\n".join(gains_markdown(items))
+    assert "| U-Net | a_max/a_min = 16 | 2 | 4.100 | +1.400 ± 0.566 | +0.150 ± 0.495 |" in table
+    png = gain_figure_png(items)
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and png == gain_figure_png(items)  # no timestamp in the file
+
+
+def test_every_study_row_is_one_of_its_worlds():
+    keys = [r.key for r in TABLES["dynrange"]]
+    assert len(keys) == len(set(keys)) == 27
+    assert {r.noise for r in TABLES["dynrange"]} == {"fixed", "range", "hetero"}
+    assert {r.loss for r in TABLES["dynrange"]} == {"l1"}
