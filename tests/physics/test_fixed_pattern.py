@@ -49,14 +49,19 @@ def test_bad_fixed_pattern_fields_are_named():
         BASE.replace(fixed_pattern={"seed": 1.5})
 
 
+def mean_depth_error_mm(calib, shape, depth_mm, signal_e, frames, seed, axis) -> np.ndarray:
+    """Mean decoded depth minus the truth of a flat scene, averaged over ``axis`` (frames, and rows for columns)."""
+    depth = np.full(shape, depth_mm, np.float32)
+    fr = simulate_frames(
+        depth, np.full(shape, signal_e, np.float32), calib, frames, generator=gen(seed), quantize=False
+    )
+    return (fr.depth_mm.double().mean(dim=axis) - depth_mm).numpy()
+
+
 def test_column_phase_is_a_per_column_depth_offset_that_does_not_change_with_signal():
     calib = with_pattern(column_phase_rad=0.02)
     shape = (40, 64)
-    depth = np.full(shape, 1200.0, dtype=np.float32)
-    offsets = {}
-    for signal in (3000.0, 30000.0):
-        fr = simulate_frames(depth, np.full(shape, signal, np.float32), calib, 60, generator=gen(1), quantize=False)
-        offsets[signal] = (fr.depth_mm.double().mean(dim=(0, 1)) - 1200.0).numpy()  # per column
+    offsets = {s: mean_depth_error_mm(calib, shape, 1200.0, s, 60, 1, (0, 1)) for s in (3000.0, 30000.0)}
     expected = camera_pattern(calib, *shape).column_phase_rad / calib.phase_per_mm
     for signal, off in offsets.items():
         # temporal + row average of 60 x 40 samples; sigma_D(3000 e-) ~ 11 mm -> ~0.25 mm per column estimate
@@ -67,12 +72,7 @@ def test_column_phase_is_a_per_column_depth_offset_that_does_not_change_with_sig
 
 def test_tap_offsets_bias_depth_as_one_over_signal_and_are_fixed_across_frames():
     calib = with_pattern(pixel_offset_e=20.0)
-    shape = (32, 32)
-    depth = np.full(shape, 900.0, dtype=np.float32)
-    bias = {}
-    for signal in (1000.0, 4000.0):
-        fr = simulate_frames(depth, np.full(shape, signal, np.float32), calib, 200, generator=gen(2), quantize=False)
-        bias[signal] = (fr.depth_mm.double().mean(dim=0) - 900.0).numpy()
+    bias = {s: mean_depth_error_mm(calib, (32, 32), 900.0, s, 200, 2, 0) for s in (1000.0, 4000.0)}
     # the same pattern in every frame: the per-pixel bias is the same map at both signals, 4 x smaller at 4 x signal
     slope = float((bias[1000.0] * bias[4000.0]).sum() / (bias[4000.0] ** 2).sum())
     assert slope == pytest.approx(4.0, rel=0.15)

@@ -441,6 +441,18 @@ def _plain_mapping(d: Any) -> Any:
     return OmegaConf.to_container(d, resolve=True) if isinstance(d, DictConfig) else d
 
 
+def _check_optional_number(calib: SensorCalibration, name: str, allow_zero: bool) -> None:
+    """An optional field is null or a finite number > 0 (>= 0 with ``allow_zero``), stored as float."""
+    value = getattr(calib, name)
+    if value is None:
+        return
+    v = float(value)
+    if not math.isfinite(v) or v < 0 or (v == 0 and not allow_zero):
+        bound = ">= 0" if allow_zero else "> 0"
+        raise CalibrationError(f"field '{name}' must be a finite number {bound} or null, got {value!r}")
+    object.__setattr__(calib, name, v)
+
+
 def validate_calibration(calib: SensorCalibration) -> None:
     """Range checks; raises CalibrationError naming the offending field."""
     if isinstance(calib.num_taps, bool) or int(calib.num_taps) != calib.num_taps or calib.num_taps < 3:
@@ -470,27 +482,15 @@ def validate_calibration(calib: SensorCalibration) -> None:
         raise CalibrationError(
             f"field 'full_well_e' ({calib.full_well_e}) must exceed 'dark_mean_e' ({calib.dark_mean_e})"
         )
-    if calib.adc_gain_e_per_dn is not None:
-        g = float(calib.adc_gain_e_per_dn)
-        if not math.isfinite(g) or g <= 0:
-            raise CalibrationError(f"field 'adc_gain_e_per_dn' must be > 0 or null, got {calib.adc_gain_e_per_dn!r}")
-        object.__setattr__(calib, "adc_gain_e_per_dn", g)
+    _check_optional_number(calib, "adc_gain_e_per_dn", allow_zero=False)
     if calib.range_sigma_mm is not None:
         if len(calib.range_sigma_mm) != 3 or not all(math.isfinite(v) for v in calib.range_sigma_mm):
             raise CalibrationError(
                 f"field 'range_sigma_mm' must be 3 finite numbers [alpha0, alpha1, alpha2] or null, "
                 f"got {calib.range_sigma_mm!r}"
             )
-    if calib.signal_at_1m_e is not None:
-        k = float(calib.signal_at_1m_e)
-        if not math.isfinite(k) or k <= 0:
-            raise CalibrationError(f"field 'signal_at_1m_e' must be a finite number > 0 or null, got {k!r}")
-        object.__setattr__(calib, "signal_at_1m_e", k)
-    if calib.vignetting_cos_power is not None:
-        v = float(calib.vignetting_cos_power)
-        if not math.isfinite(v) or v < 0:
-            raise CalibrationError(f"field 'vignetting_cos_power' must be a finite number >= 0 or null, got {v!r}")
-        object.__setattr__(calib, "vignetting_cos_power", v)
+    _check_optional_number(calib, "signal_at_1m_e", allow_zero=False)
+    _check_optional_number(calib, "vignetting_cos_power", allow_zero=True)
     tr = calib.tap_response
     if not isinstance(tr, TapResponse):
         raise CalibrationError(f"field 'tap_response' must be a TapResponse, got {type(tr).__name__}")
