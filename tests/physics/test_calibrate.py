@@ -258,3 +258,20 @@ def test_photometric_gain_is_measured_from_a_target_of_known_reflectance(tmp_pat
     (dist / "index.json").write_text(json.dumps(index))
     with pytest.raises(CaptureFormatError, match="'reflectance' must be a number"):
         calibrate_from_folders(sweep, dark, dist)
+
+
+def test_few_dark_frames_are_used_with_a_warning_and_mixed_sweep_sizes_are_refused(tmp_path):
+    true = default_calibration()
+    sweep = write_sweep_folder(true, tmp_path / "sweep", num_steps=12, num_frames=4)
+    few = write_dark_folder(true, tmp_path / "dark10", num_frames=10)
+    report = calibrate_from_folders(sweep, few)
+    assert report.dark_frames == 10
+    assert len(report.warnings) == 1 and "10 dark frames used" in report.warnings[0] and "100" in report.warnings[0]
+    enough = write_dark_folder(true, tmp_path / "dark100", num_frames=100)
+    assert calibrate_from_folders(sweep, enough).warnings == []
+    # one sweep step of another size: refused, naming the file
+    index = json.loads((sweep / "index.json").read_text())
+    odd = index["stacks"][5]["file"]
+    np.save(sweep / odd, np.load(sweep / odd)[:, :, :4, :])
+    with pytest.raises(CaptureFormatError, match=re.escape(odd) + r".*frames of 4x8 px"):
+        calibrate_from_folders(sweep, enough)

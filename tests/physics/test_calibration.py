@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 
 import numpy as np
 import pytest
@@ -153,3 +154,20 @@ def test_resolve_calibration_specs(tmp_path):
     assert resolve_calibration(str(p)).num_taps == 5
     with pytest.raises(CalibrationError):
         resolve_calibration(3.0)
+
+
+def test_a_range_baseline_that_is_not_positive_is_refused_naming_the_field():
+    c = default_calibration()
+    with pytest.raises(CalibrationError, match=r"field 'range_sigma_mm' \[-3.0, 0.0, 0.0\] gives sigma\(D\)"):
+        c.replace(range_sigma_mm=[-3, 0, 0])
+    with pytest.raises(CalibrationError, match="<= 0 at D = 1416 mm"):  # positive near, negative far (sqrt(2e6))
+        c.replace(range_sigma_mm=[2.0, 0.0, -1e-6])
+    assert c.replace(range_sigma_mm=[0.5, 0.001, 0.0]).range_sigma_mm == (0.5, 0.001, 0.0)
+
+
+def test_a_calibration_file_that_is_not_utf8_is_named(tmp_path):
+    path = tmp_path / "latin1.yaml"
+    text = (CONFIG_DIR / "sensor" / "default.yaml").read_text(encoding="utf-8")
+    path.write_bytes(("# caméra\n" + text).encode("latin-1", errors="replace"))
+    with pytest.raises(CalibrationError, match=rf"{re.escape(str(path))}: not UTF-8 text \(byte 0xe9"):
+        load_calibration(path)

@@ -126,6 +126,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         f"Calibrated by tofdenoise-sensor calibrate\nsweep: {args.sweep} ({report.sweep_points} steps)\n"
         f"dark: {args.dark} ({report.dark_frames} frames)\ndistances: {args.distances or '-'}\n"
         f"clipping: {report.clipping_summary()}"
+        + "".join(f"\nwarning: {w}" for w in report.warnings)
     )
     path = save_calibration(report.calibration, args.out, header=header)
     if report.clipped_samples:
@@ -135,7 +136,9 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
             f"{', '.join(f'{f} ({n})' for f, n in worst)})",
             file=sys.stderr,
         )
-    print(f"wrote {path}")
+    for warning in report.warnings:
+        print(f"tofdenoise-sensor calibrate: warning: {warning}", file=sys.stderr)
+    print(f"wrote {path} (dark: {report.dark_frames} frames, sweep: {report.sweep_points} steps)")
     print(json.dumps(report.calibration.to_dict(), indent=2))
     return 0
 

@@ -25,6 +25,7 @@ import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -171,6 +172,18 @@ MAX_CLIPPED_TAP_FRACTION: float = 0.5
 #: a sweep or distance step needs at least this fraction of unclipped samples (sweep: tap samples;
 #: distances: pixels unclipped in every frame), else it is an error naming the file
 MIN_UNCLIPPED_FRACTION: float = 0.1
+#: the paper's number of emitter-off frames; fewer are used, with a warning (at least 2: a temporal variance)
+MIN_DARK_FRAMES: int = 100
+
+
+def _check_same_size(index: Any, stacks: list[np.ndarray]) -> None:
+    """Every stack of a capture folder images the same (H, W) region, else an error naming the odd file."""
+    for entry, stack in zip(index.stacks, stacks):
+        if stack.shape[-2:] != stacks[0].shape[-2:]:
+            raise CaptureFormatError(
+                f"{index.folder / entry['file']}: frames of {stack.shape[-2]}x{stack.shape[-1]} px; "
+                f"{index.stacks[0]['file']} has {stacks[0].shape[-2]}x{stacks[0].shape[-1]} px"
+            )
 
 
 @dataclass
@@ -184,6 +197,8 @@ class CalibrationReport:
     tap_samples: int = 0
     #: file -> clipped tap samples, for the files with any
     clipped_by_file: dict[str, int] = field(default_factory=dict)
+    #: what the calibration was made from that falls short of the procedure (e.g. fewer dark frames than 100)
+    warnings: list[str] = field(default_factory=list)
 
     def clipping_summary(self) -> str:
         if not self.clipped_samples:
@@ -312,7 +327,15 @@ def calibrate_from_folders(
             f"{dark_mean:g} e-): constant frames (all zero?) are not emitter-off captures of a sensor"
         )
     dark_frames = sum(s.shape[0] for s in dark_stacks)
+    _check_same_size(dark_idx, dark_stacks)
     del dark_stacks
+    warnings = []
+    if dark_frames < MIN_DARK_FRAMES:
+        warnings.append(
+            f"{dark_idx.folder}: {dark_frames} dark frames used; the paper's procedure uses {MIN_DARK_FRAMES} "
+            f"(sigma_dark from {dark_frames} frames has a relative standard error of about "
+            f"{100 / math.sqrt(2 * max(dark_frames - 1, 1)) / math.sqrt(dark_idx.num_taps):.1f} % per pixel)"
+        )
 
     sweep_idx = read_index(sweep_dir, "sweep")
     sweep_index_path = Path(sweep_dir) / INDEX_NAME
@@ -325,9 +348,17 @@ def calibrate_from_folders(
     phases, means, pixel_taps = [], [], []
     tally = _ClipTally()
     files = []
+    sweep_size = None
     for e in sweep_idx.stacks:
         path = sweep_idx.folder / e["file"]
         taps = load_stack(sweep_idx, e["file"], ndim=(4,))
+        if sweep_size is None:
+            sweep_size = taps.shape[2:]
+        elif taps.shape[2:] != sweep_size:
+            raise CaptureFormatError(
+                f"{path}: frames of {taps.shape[2]}x{taps.shape[3]} px; the sweep's first stack has "
+                f"{sweep_size[0]}x{sweep_size[1]} px (every step must image the same region)"
+            )
         clipped = clipped_samples(sweep_idx, e["file"], taps, fw)
         tally.add(path, clipped)
         step_means, pixel = _sweep_step(taps, clipped, path, min_unclipped_fraction)
@@ -446,10 +477,12 @@ def calibrate_from_folders(
         clipped_samples=tally.clipped,
         tap_samples=tally.total,
         clipped_by_file=tally.by_file,
+        warnings=warnings,
     )
 
 
 __all__ = [
+    "MIN_DARK_FRAMES",
     "MAX_CLIPPED_TAP_FRACTION",
     "target_reflectance",
     "MIN_UNCLIPPED_FRACTION",

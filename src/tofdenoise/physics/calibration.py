@@ -489,6 +489,16 @@ def validate_calibration(calib: SensorCalibration) -> None:
                 f"field 'range_sigma_mm' must be 3 finite numbers [alpha0, alpha1, alpha2] or null, "
                 f"got {calib.range_sigma_mm!r}"
             )
+        a0, a1, a2 = calib.range_sigma_mm
+        depths = np.linspace(10.0, calib.unambiguous_range_mm, 256)
+        sigma = a0 + a1 * depths + a2 * depths**2
+        if not np.all(sigma > 0):
+            bad = float(depths[np.argmax(sigma <= 0)])
+            raise CalibrationError(
+                f"field 'range_sigma_mm' {list(calib.range_sigma_mm)} gives sigma(D) = alpha0 + alpha1 D + alpha2 D^2 "
+                f"<= 0 at D = {bad:.0f} mm: the range-aware baseline's std must be > 0 from 10 mm to the unambiguous "
+                f"range ({calib.unambiguous_range_mm:.0f} mm)"
+            )
     _check_optional_number(calib, "signal_at_1m_e", allow_zero=False)
     _check_optional_number(calib, "vignetting_cos_power", allow_zero=True)
     tr = calib.tap_response
@@ -527,7 +537,13 @@ def load_calibration(path: str | os.PathLike[str]) -> SensorCalibration:
     kind = _suffix_kind(path)
     if not path.is_file():
         raise FileNotFoundError(f"calibration file not found: {path}")
-    text = path.read_text(encoding="utf-8")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise CalibrationError(
+            f"{path}: not UTF-8 text (byte 0x{exc.object[exc.start]:02x} at offset {exc.start}); save the "
+            f"calibration file as UTF-8"
+        ) from None
     try:
         data = yaml.safe_load(text) if kind == "yaml" else json.loads(text)
     except (yaml.YAMLError, json.JSONDecodeError) as exc:
