@@ -9,6 +9,7 @@ from __future__ import annotations
 import sys
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from omegaconf import DictConfig
 
@@ -30,6 +31,25 @@ def compose_config(overrides: list[str] | None = None, config_name: str = "train
     GlobalHydra.instance().clear()
     with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
         return compose(config_name=config_name, overrides=list(overrides or []))
+
+
+class ConfigError(ValueError):
+    """A config node that cannot be built: the key and the reason, in one line."""
+
+
+def instantiate_node(node: Any, key: str, **kwargs: Any) -> Any:
+    """``hydra.utils.instantiate(node, _convert_="all")``; a bad value of the node (the class raised ValueError,
+    FileNotFoundError or TypeError) becomes a ``ConfigError`` naming ``key``, not Hydra's wrapped traceback."""
+    from hydra.errors import InstantiationException
+    from hydra.utils import instantiate
+
+    try:
+        return instantiate(node, _convert_="all", **kwargs)
+    except InstantiationException as exc:
+        cause = exc.__cause__
+        if isinstance(cause, (ValueError, FileNotFoundError, TypeError)):
+            raise ConfigError(f"{key}: {cause}") from None
+        raise
 
 
 def hydra_console_script(

@@ -375,3 +375,19 @@ def test_two_identical_runs_give_identical_metrics(tmp_path, tiny):
     ta = torch.load(outs[0] / "checkpoints" / "last.ckpt", weights_only=True)["state_dict"]
     tb = torch.load(outs[1] / "checkpoints" / "last.ckpt", weights_only=True)["state_dict"]
     assert all(torch.equal(ta[k], tb[k]) for k in ta)
+
+
+def test_a_bad_data_setting_is_one_line_naming_the_key_before_any_training(tmp_path):
+    """An empty capture set (data.real_dir) or a signal route that cannot apply is reported in one line with exit
+    status 2, before the trainer starts and before the run folder gets any file of a run."""
+    empty = tmp_path / "empty_set"
+    empty.mkdir()
+    run_dir = tmp_path / "run"
+    proc = _cli([f"++data.real_dir={empty}", f"paths.run_dir={run_dir}", "logger=csv"])
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert lines[-1].startswith("tofdenoise-train: error: data: capture set ") and "data.real_dir" in lines[-1]
+    assert "Traceback" not in proc.stderr
+    assert not (run_dir / "checkpoints").exists() and not (run_dir / "run_info.json").exists()
+    proc = _cli(["++data.signal_route=photons", f"paths.run_dir={run_dir}", "logger=csv"])
+    assert proc.returncode == 2 and "error: data: unknown data.signal_route 'photons'" in proc.stderr

@@ -125,8 +125,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     header = (
         f"Calibrated by tofdenoise-sensor calibrate\nsweep: {args.sweep} ({report.sweep_points} steps)\n"
         f"dark: {args.dark} ({report.dark_frames} frames)\ndistances: {args.distances or '-'}\n"
-        f"clipping: {report.clipping_summary()}"
-        + "".join(f"\nwarning: {w}" for w in report.warnings)
+        f"clipping: {report.clipping_summary()}" + "".join(f"\nwarning: {w}" for w in report.warnings)
     )
     path = save_calibration(report.calibration, args.out, header=header)
     if report.clipped_samples:

@@ -26,7 +26,7 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from tofdenoise.cli.checkpoint_check import CheckpointFileError, check_checkpoint_file, resolve_ckpt_path
-from tofdenoise.config import hydra_console_script
+from tofdenoise.config import ConfigError, hydra_console_script, instantiate_node
 from tofdenoise.registry import Registry
 from tofdenoise.wandb_env import finish_wandb, setup_wandb_env, wandb_run_id
 
@@ -153,7 +153,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         _test_checkpoint(cfg, None, run_dir)
 
     seed_everything(int(cfg.seed), workers=True)
-    datamodule = instantiate(cfg.data, _convert_="all")
+    datamodule = instantiate_node(cfg.data, "data")
     record_calibration(cfg, datamodule.calib)
     model = instantiate(cfg.model, _convert_="all")
     callbacks = _instantiate_group(cfg.get("callbacks"))
@@ -201,7 +201,7 @@ def _test_checkpoint(cfg: DictConfig, trainer: Any, run_dir: Path) -> str | None
 
 
 #: console script ``tofdenoise-train`` (Hydra command line: overrides, ``--multirun``, ``--cfg job``)
-main = hydra_console_script("train", run, "tofdenoise-train", (CheckpointFileError,))
+main = hydra_console_script("train", run, "tofdenoise-train", (CheckpointFileError, ConfigError))
 
 
 if __name__ == "__main__":

@@ -180,6 +180,8 @@ class ToFDataModule(L.LightningDataModule):
         )
         self.cache_root = Path(cache_dir).expanduser()
         self.real_dir = real_dir
+        if real_dir:  # fail before any training: a missing or empty capture set is a config error
+            list_scenes(real_dir)
         self.test_set_names: list[str] = ["synthetic", "real"] if real_dir else ["synthetic"]
         self._prepared: PreparedData | None = None
         self.datasets: dict[str, Any] = {}
