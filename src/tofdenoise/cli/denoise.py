@@ -6,9 +6,11 @@
 INPUT: depth frames or folders of them (searched recursively): 16-bit PNG/TIFF in mm (0 = invalid), ``.npy``
 float mm (NaN/0/negative = invalid) or ``.exr``. Outputs mirror the input sub-folders under ``--out``
 (``tofdenoise.inference.outputs``). Frames are processed one at a time (memory bounded by one frame; large frames
-run tile by tile). A frame that fails (unreadable, 8-bit/colour, amplitude missing or of another shape ...) is
-reported and the others go on; the exit status is 1 when any frame failed, 2 for a bad command line,
-checkpoint or calibration, 0 otherwise. See docs/denoise.md.
+run tile by tile). A frame that fails (unreadable, 8-bit/colour, amplitude missing or of another shape, depths
+implausible in millimetres without ``--depth-scale-mm`` ...) is reported and the others go on; the exit status is
+1 when any frame failed, 2 for a bad command line, checkpoint or calibration, or an output that would replace an
+input (``tofdenoise.output_guard``: checked for every frame before anything is written), 0 otherwise. See
+docs/denoise.md.
 """
 
 from __future__ import annotations
@@ -18,6 +20,8 @@ import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
+
+from tofdenoise.output_guard import OutputPathError, refuse_overwrite
 
 __all__ = ["build_parser", "main", "run", "timing_text"]
 
@@ -48,8 +52,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--depth-scale-mm",
         type=float,
-        default=1.0,
-        help="millimetres per stored depth unit (default 1; e.g. 0.25, or 1000 for metres)",
+        default=None,
+        help="millimetres per stored depth unit (default 1, and then a frame whose median valid depth is below "
+        "20 is refused as not in mm; e.g. 0.25, or 1000 for metres)",
     )
     p.add_argument("--fill-holes", action="store_true", help="give invalid input pixels a restored depth too")
     p.add_argument("--npy", action="store_true", help="also write the restored depth as float32 .npy (mm)")
@@ -80,10 +85,10 @@ def run(args: argparse.Namespace) -> int:
     from tqdm.auto import tqdm
 
     from tofdenoise.inference.denoise import CheckpointError, load_restorer, resolve_device, restore_frame
-    from tofdenoise.inference.frames import AmplitudeSource, FrameError, find_frames, load_frame
+    from tofdenoise.inference.frames import AmplitudeSource, FrameError, check_depth_units_mm, find_frames, load_frame
     from tofdenoise.inference.outputs import OutputOptions, frame_sigma, output_paths, write_frame_outputs
 
-    if not args.depth_scale_mm > 0:
+    if args.depth_scale_mm is not None and not args.depth_scale_mm > 0:
         return _fail(f"--depth-scale-mm must be > 0, got {args.depth_scale_mm}")
     if args.tile is not None and args.tile < 32:
         return _fail(f"--tile must be >= 32 pixels, got {args.tile}")
@@ -113,6 +118,11 @@ def run(args: argparse.Namespace) -> int:
         return _fail(f"no depth frame found in {', '.join(map(str, args.inputs))}")
 
     options = OutputOptions(npy=args.npy, previews=args.previews)
+    try:
+        _refuse_replacing_inputs(args, frames, amplitude, options, calib is not None)
+    except OutputPathError as exc:
+        return _fail(str(exc))
+    depth_scale_mm = 1.0 if args.depth_scale_mm is None else args.depth_scale_mm
     precision = "fp32" if args.fp32 else "bf16"
     skipped: list[tuple[str, str]] = []
     failed: list[tuple[str, str]] = []
@@ -121,19 +131,18 @@ def run(args: argparse.Namespace) -> int:
     seconds: list[float] = []
     for frame in tqdm(frames, desc="denoise", unit="frame", disable=args.quiet or None, file=sys.stderr):
         target = output_paths(args.out, frame.rel_stem.as_posix())["png"].resolve()
-        if target == frame.path.resolve():
-            skipped.append((str(frame.path), "its output would overwrite the input (choose another --out)"))
-            continue
         if target in claimed:
             skipped.append((str(frame.path), f"same output name as {claimed[target]}"))
             continue
         claimed[target] = frame.path
         started = time.perf_counter()
         try:
-            data = load_frame(frame, args.depth_scale_mm, amplitude)
+            data = load_frame(frame, depth_scale_mm, amplitude)
             if not data.valid.any():
                 skipped.append((str(frame.path), "no valid pixel"))
                 continue
+            if args.depth_scale_mm is None:
+                check_depth_units_mm(data, frame.path)
             restored = restore_frame(
                 model,
                 data.depth_mm,
@@ -162,6 +171,32 @@ def run(args: argparse.Namespace) -> int:
     for path, reason in failed:
         print(f"  FAILED {path}: {reason}", file=sys.stderr)
     return 1 if failed else 0
+
+
+def _refuse_replacing_inputs(args: argparse.Namespace, frames, amplitude, options, with_sigma: bool) -> None:
+    """Every output of every frame against every file the command reads (frames, their amplitude, checkpoint,
+    calibration), before the first write: ``OutputPathError`` names the output and the input."""
+    from tofdenoise.inference.frames import FrameError
+    from tofdenoise.inference.outputs import output_paths
+
+    inputs: list[Path] = [frame.path for frame in frames] + [Path(args.ckpt)]
+    if args.calib is not None and Path(args.calib).exists():
+        inputs.append(Path(args.calib))
+    if amplitude is not None:
+        for frame in frames:
+            try:
+                inputs.append(amplitude.find(frame))
+            except FrameError:  # reported for that frame when it is processed
+                pass
+    wanted = {"png"} | ({"npy"} if options.npy else set()) | ({"sigma"} if with_sigma else set())
+    wanted |= {"preview"} if options.previews else set()
+    outputs = [
+        path
+        for frame in frames
+        for key, path in output_paths(args.out, frame.rel_stem.as_posix()).items()
+        if key in wanted
+    ]
+    refuse_overwrite(outputs, inputs, "--out")
 
 
 def timing_text(seconds: Sequence[float]) -> str:
