@@ -12,7 +12,10 @@ and ``tofdenoise-sensor calibrate`` estimates its calibration (``<out>/realset``
 (2) every run of the table, trained with that calibration and tested on the synthetic split and on that capture
 set (finished runs are skipped, interrupted ones resume, a failing run does not stop the others and is listed);
 (3) each finished run's ``metrics.json`` and ``run_info.json`` copied to ``docs/results/<profile>/<run>/``;
-(4) ``docs/results.md`` rebuilt from those records. Exit status 0 when every run of the table finished.
+(4) ``docs/results.md`` rebuilt from those records. Exit status 0 when every run of the table finished; 2 when
+``--page`` would replace what the page is built from (the discussion, a record: ``tofdenoise.output_guard``,
+checked before anything runs) or when a record cannot be used (``results_page.RecordError``, naming the file; a
+run without a record is listed on the page as missing).
 ``fig7`` / ``fig8`` (the qualitative figures) train the runs of their columns for the first seed when missing,
 then render the figure from those runs' best checkpoints (``tofdenoise.experiments.figures``), check it against
 the runs' per-image records and commit ``figure.png`` and ``figure.json`` to ``docs/results/<profile>/<fig>/``.
@@ -220,15 +223,26 @@ def _qualitative(args: argparse.Namespace, realset_dir: Path, dest: Path, record
 
 
 def main(argv: list[str] | None = None) -> int:
+    from tofdenoise.experiments.results_page import RecordError, page_inputs
+    from tofdenoise.output_guard import OutputPathError, check_output_file
+
+    args = build_parser().parse_args(argv)
+    if not args.page_only and args.table is None:
+        raise SystemExit("tofdenoise-reproduce: give --table 1|2|3|fig6|fig7|fig8 (or --page-only)")
+    try:
+        # the page is rebuilt from the discussion and the records: it may never replace one of them
+        check_output_file(args.page, (".md",), page_inputs(args.results), what="--page", shadow=False)
+        return _reproduce(args)
+    except (OutputPathError, RecordError) as exc:
+        print(f"tofdenoise-reproduce: error: {exc}", file=sys.stderr)
+        return 2
+
+
+def _reproduce(args: argparse.Namespace) -> int:
     from tofdenoise.experiments.results_page import results_markdown
     from tofdenoise.experiments.runner import run_all
     from tofdenoise.experiments.tables import table_specs
 
-    args = build_parser().parse_args(argv)
-    if args.page.suffix.lower() != ".md":
-        raise SystemExit(f"tofdenoise-reproduce: --page {args.page}: expected a .md file")
-    if not args.page_only and args.table is None:
-        raise SystemExit("tofdenoise-reproduce: give --table 1|2|3|fig6|fig7|fig8 (or --page-only)")
     status = 0
     if not args.page_only:
         args.out = (args.out or REPO_ROOT / "runs" / "reproduce" / args.profile).expanduser().resolve()
