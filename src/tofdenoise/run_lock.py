@@ -14,8 +14,9 @@ through a Hydra callback, :class:`HydraRunLock`, before Hydra writes ``.hydra/``
   same machine can never take a lock that is held; after taking the flock a writer checks that the path still names
   the file it locked (a releasing holder unlinks it), else it tries again.
 - **Stale locks.** A lock file left by a process that died without releasing (SIGKILL, power loss) names a pid.
-  When that pid is dead on this host the lock is stale: it is taken over with a warning naming the old holder. A
-  holder on another host cannot be checked from here and is refused (delete the file once that run is gone).
+  When that pid is dead on this host the lock is stale: it is taken over with a warning naming the old holder (an
+  unreadable lock file whose flock is free is stale too). A holder on another host cannot be checked from here
+  and is refused (delete the file once that run is gone).
 - **Re-entrant.** The process that holds a folder's lock may take it again (the Hydra callback, then the run
   itself); it is released when the outermost holder releases it. DDP worker processes (``LOCAL_RANK`` or ``RANK``
   set and not 0, started by the rank-0 process that holds the lock) do not take it.
@@ -149,7 +150,7 @@ class RunLock:
             if holder is not None and not (holder.get("pid") == os.getpid() and holder.get("host") == _host()):
                 same_host = holder.get("host") == _host()
                 pid = holder.get("pid")
-                if not same_host:
+                if "host" in holder and not same_host:
                     raise self._refuse(
                         holder,
                         "a holder on another host cannot be checked from here; delete the lock file once "
