@@ -67,11 +67,15 @@ def hydra_console_script(
         if HydraConfig.initialized():
             with open_dict(cfg):
                 cfg.paths.run_dir = HydraConfig.get().runtime.output_dir
+        from tofdenoise.run_lock import release_all
+
         try:
             run(cfg)
         except errors as exc:
             print(f"{prog}: error: {exc}", file=sys.stderr)
             raise SystemExit(2) from None
+        finally:
+            release_all()  # the run folder's lock (taken by the Hydra callback): the run is over
 
     def main() -> None:
         hydra.main(version_base="1.3", config_path=str(config_dir()), config_name=config_name)(entry)()

@@ -169,8 +169,50 @@ def test_amplitude_folder_inside_the_input_folder_is_not_read_as_depth(frames_di
 def test_output_never_overwrites_the_input(frames_dir, restorer_ckpt, capsys):
     src, _ = frames_dir
     before = (src / "a.png").read_bytes()
-    assert main([str(src / "a.png"), "--ckpt", str(restorer_ckpt), "--out", str(src), "--quiet"]) == 0
-    assert "skipped" in capsys.readouterr().err and (src / "a.png").read_bytes() == before
+    assert main([str(src / "a.png"), "--ckpt", str(restorer_ckpt), "--out", str(src), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert f"--out {src / 'a.png'} would replace the input {src / 'a.png'}" in err
+    assert (src / "a.png").read_bytes() == before
+
+
+def test_npy_output_that_would_replace_the_npy_input_is_refused_before_any_write(frames_dir, restorer_ckpt, capsys):
+    """issue 23 case 1: --npy f/b.npy --out f wrote the restored map over the input frame, exit 0."""
+    src, _ = frames_dir
+    folder = src / "sub"
+    before = {p: p.read_bytes() for p in folder.iterdir()}
+    code = main([str(folder / "b.npy"), "--ckpt", str(restorer_ckpt), "--out", str(folder), "--npy", "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert len(err.strip().splitlines()) == 1 and "tofdenoise-denoise: error: --out" in err
+    assert str(folder / "b.npy") in err and "would replace the input" in err
+    assert {p: p.read_bytes() for p in folder.iterdir()} == before  # nothing written, nothing replaced
+
+
+def test_an_output_that_would_replace_another_frames_amplitude_is_refused(frames_dir, restorer_ckpt, tmp_path, capsys):
+    src, amp = frames_dir
+    before = (amp / "a.npy").read_bytes()
+    args = [str(src / "a.png"), "--ckpt", str(restorer_ckpt), "--out", str(amp), "--amplitude", str(amp), "--npy"]
+    assert main([*args, "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert f"would replace the input {amp / 'a.npy'}" in err and (amp / "a.npy").read_bytes() == before
+    assert not (amp / "a.png").exists()
+
+
+def test_a_float_frame_in_metres_is_refused_unless_the_scale_is_given(frames_dir, restorer_ckpt, tmp_path, capsys):
+    """issue 23 case 4: a float .npy in metres (a Kinect frame / 1000) was written as 0-2 "mm", exit 0."""
+    metres = tmp_path / "metres"
+    metres.mkdir()
+    np.save(metres / "k.npy", (frame(7) / 1000.0).astype(np.float32))
+    out = tmp_path / "out"
+    assert main([str(metres), "--ckpt", str(restorer_ckpt), "--out", str(out), "--quiet"]) == 1
+    err = capsys.readouterr().err
+    line = next(line for line in err.splitlines() if "FAILED" in line)
+    assert str(metres / "k.npy") in line and "--depth-scale-mm" in line and "implausible in millimetres" in line
+    assert not out.exists() or not list(out.rglob("*.png"))
+    args = [str(metres), "--ckpt", str(restorer_ckpt), "--out", str(out), "--depth-scale-mm", "1000", "--quiet"]
+    assert main(args) == 0
+    restored = read_depth_mm(out / "k.png")
+    assert np.median(restored[restored > 0]) > 500  # millimetres
 
 
 def test_a_failed_write_leaves_no_partial_file(frames_dir, restorer_ckpt, tmp_path, monkeypatch, capsys):
@@ -205,3 +247,45 @@ def test_time_per_frame_gives_the_first_frame_apart():
     assert timing_text([2.5]) == "2.500 s/frame (one frame, one-time set-up included)"
     # a 40 s first frame (a kernel built on first use) must not read as 14 s/frame
     assert timing_text([40.0, 0.25, 0.35]) == "0.300 s/frame after the first (40.000 s, one-time set-up included)"
+
+
+def test_ctrl_c_ends_with_a_summary_and_complete_outputs(frames_dir, restorer_ckpt, tmp_path, monkeypatch, capsys):
+    """Ctrl-C on the second frame: the first frame's outputs are complete, the summary says what was done and how
+    to go on, exit status 130 (128 + SIGINT), no traceback."""
+    import tofdenoise.inference.denoise as inference
+
+    src, amp = frames_dir
+    real = inference.restore_frame
+    calls = []
+
+    def interrupted_on_second(*a, **k):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(*a, **k)
+
+    monkeypatch.setattr(inference, "restore_frame", interrupted_on_second)
+    out = tmp_path / "out"
+    code = main([str(src), "--ckpt", str(restorer_ckpt), "--out", str(out), "--amplitude", str(amp), "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 130
+    assert "interrupted (Ctrl-C) after 1 of 3 frame(s): 1 frame(s) done, 0 skipped, 0 failed" in err
+    assert "run the same command again" in err and "Traceback" not in err
+    assert (out / "a.png").is_file() and not list(out.rglob(".*tmp*"))
+
+
+def test_a_short_write_names_the_output_folder_and_the_likely_cause(
+    frames_dir, restorer_ckpt, tmp_path, monkeypatch, capsys
+):
+    """numpy's 'N requested and M written' names no file: the failure line adds the output folder."""
+    import tofdenoise.inference.outputs as outputs
+
+    def short_write(*a, **k):
+        raise OSError("368640 requested and 55264 written")
+
+    monkeypatch.setattr(outputs, "write_frame_outputs", short_write)
+    src, _ = frames_dir
+    out = tmp_path / "out"
+    assert main([str(src / "a.png"), "--ckpt", str(restorer_ckpt), "--out", str(out), "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert f"could not write its outputs under {out}: 368640 requested and 55264 written (disk full?)" in err

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -63,7 +64,7 @@ def test_dry_run_of_a_qualitative_figure_lists_its_runs(tmp_path, capsys):
     assert not page.exists() and not results.exists()  # a dry run writes nothing
 
 
-def test_profiles_and_bad_arguments(tmp_path):
+def test_profiles_and_bad_arguments(tmp_path, capsys):
     assert profile_overrides("gpu", Path("/r"), ["data.root=/d"]) == [
         "experiment=paper",
         "logger=csv",
@@ -72,10 +73,11 @@ def test_profiles_and_bad_arguments(tmp_path):
         "data.root=/d",
     ]
     assert realset_command(Path("/r"), "gpu")[-6:] == ["--scenes", "200", "--height", "480", "--width", "640"]
-    with pytest.raises(SystemExit, match="give --table"):
-        main(["--results", str(tmp_path), "--page", str(tmp_path / "p.md")])
-    with pytest.raises(SystemExit, match="expected a .md file"):
-        main(["--page-only", "--page", str(tmp_path / "p.txt")])
+    # a usage error exits 2, as argparse's own do (it was 1)
+    assert main(["--results", str(tmp_path), "--page", str(tmp_path / "p.md")]) == 2
+    assert "error: give --table 1|2|3|dynrange" in capsys.readouterr().err
+    assert main(["--page-only", "--page", str(tmp_path / "p.txt")]) == 2
+    assert f"--page {tmp_path / 'p.txt'}: expected a .md file" in capsys.readouterr().err
 
 
 def test_records_of_finished_runs_only_and_the_page(tmp_path):
@@ -246,3 +248,98 @@ def test_gpu_profile_run_scaled_down_trains_and_tests_on_cpu(tmp_path, data_cach
         assert np.isfinite(metrics[test_set]["mae_mm"]) and metrics[test_set]["raw"]["mae_mm"] > 0
     config = (run_dir / "config.yaml").read_text()
     assert "lr: 0.0002" in config and "max_epochs: 1" in config and str(realset / "calibration.yaml") in config
+
+
+def _results_with_three_seeds(root: Path) -> Path:
+    """results/cpu with DVSS hetero and range, L1, seeds 0-2, and a hand-written discussion."""
+    results = root / "results"
+    for seed in range(3):
+        for noise, mae in (("hetero", 2.0), ("range", 2.5)):
+            d = results / "cpu" / f"dvss-{noise}-l1-s{seed}"
+            d.mkdir(parents=True)
+            entry = {"psnr_db": 40.0, "mae_mm": mae + 0.1 * seed, "mse_mm2": 9.0, "ssim": 0.99}
+            entry["raw"] = {"psnr_db": 30.0, "mae_mm": 7.0, "mse_mm2": 90.0, "ssim": 0.9}
+            (d / "metrics.json").write_text(json.dumps({"synthetic": entry}, indent=1))
+            (d / "run_info.json").write_text(json.dumps({"started": "2026-11-22T10:00:00+0000"}))
+    (results / "discussion.md").write_text("## Discussion\n\nWritten by hand.\n")
+    return results
+
+
+def _truncate(path: Path) -> None:
+    path.write_text(path.read_text()[:40])
+
+
+def _null_mae(path: Path) -> None:
+    data = json.loads(path.read_text())
+    data["synthetic"]["mae_mm"] = None
+    path.write_text(json.dumps(data))
+
+
+@pytest.mark.parametrize(
+    "file, damage, why",
+    [
+        ("metrics.json", _truncate, "cannot be read"),
+        ("run_info.json", lambda p: p.write_text("{broken"), "cannot be read"),
+        ("run_info.json", lambda p: p.write_text("[1, 2]"), "not a JSON object"),
+        ("metrics.json", _null_mae, "'synthetic.mae_mm' is null"),
+    ],
+)
+def test_a_record_that_cannot_be_read_is_an_error_naming_the_file(tmp_path, capsys, file, damage, why):
+    """issue 23 case 5: a truncated metrics.json, a broken run_info.json or a null metric made the run leave the
+    page silently (n=3 -> 2, orderings changed), exit 0."""
+    results = _results_with_three_seeds(tmp_path)
+    page = tmp_path / "results.md"
+    assert main(["--page-only", "--results", str(results), "--page", str(page)]) == 0
+    assert "| DVSS, hetero (proposed) | 40.37 / 40.00 ± 0.00 (n=3) |" in page.read_text()
+    before = page.read_bytes()
+    broken = results / "cpu" / "dvss-range-l1-s1" / file
+    damage(broken)
+    assert main(["--page-only", "--results", str(results), "--page", str(page)]) != 0
+    err = capsys.readouterr().err
+    assert f"tofdenoise-reproduce: error: {broken}" in err and why in err
+    assert page.read_bytes() == before  # the page is not rewritten without the run
+
+
+def test_a_run_without_a_record_is_listed_as_missing(tmp_path):
+    results = _results_with_three_seeds(tmp_path)
+    shutil.rmtree(results / "cpu" / "dvss-range-l1-s2")
+    (results / "cpu" / "dvss-range-l1-s1" / "run_info.json").unlink()  # an interrupted copy: no record yet
+    page = tmp_path / "results.md"
+    assert main(["--page-only", "--results", str(results), "--page", str(page)]) == 0
+    text = page.read_text()
+    assert "| DVSS, range-aware Gaussian | 39.89 / 40.00 (n=1) |" in text
+    assert "Missing runs (no record in `results/cpu/`): " in text
+    listed = next(line for line in text.splitlines() if line.startswith("Missing runs") and "range-l1" in line)
+    assert "dvss-range-l1-s1" in listed and "dvss-range-l1-s2" in listed
+
+
+@pytest.mark.parametrize("rel", ["discussion.md", "cpu/dvss-hetero-l1-s0/notes.md", "cpu"])
+def test_the_page_never_replaces_its_own_inputs(tmp_path, capsys, rel):
+    """issue 23 case 6: --page <results>/discussion.md overwrote the discussion, which grew on every re-run."""
+    results = _results_with_three_seeds(tmp_path)
+    (results / "cpu" / "dvss-hetero-l1-s0" / "notes.md").write_text("notes\n")
+    before = {p: p.read_bytes() for p in results.rglob("*") if p.is_file()}
+    target = results / rel
+    for _ in range(2):
+        assert main(["--page-only", "--results", str(results), "--page", str(target)]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and f"tofdenoise-reproduce: error: --page {target}" in err
+    assert {p: p.read_bytes() for p in results.rglob("*") if p.is_file()} == before
+
+
+def test_the_gpu_profile_says_what_it_needs_before_any_work(tmp_path, capsys):
+    """Without data.root (or without a GPU) --profile gpu stops at once with exit 2, in a dry run too, before the
+    stand-in real set (a 50-minute build at that profile) is started."""
+    from tofdenoise.cli.reproduce import profile_needs
+
+    out = tmp_path / "runs"
+    args = ["--table", "3", "--profile", "gpu", "--out", str(out), "--results", str(tmp_path / "r")]
+    args += ["--page", str(tmp_path / "p.md")]
+    for extra in ([], ["--dry-run"]):
+        assert main(args + extra) == 2
+        assert "--profile gpu needs the ToF-FlyingThings3D folder: --extra data.root=" in capsys.readouterr().err
+    assert not out.exists() and not (tmp_path / "p.md").exists()
+    assert "existing data.root" in profile_needs("gpu", [f"data.root={tmp_path / 'nope'}"], cuda_available=True)
+    assert "a CUDA GPU" in profile_needs("gpu", [f"++data.root={tmp_path}"], cuda_available=False)
+    assert profile_needs("gpu", [f"data.root={tmp_path}"], cuda_available=True) == ""
+    assert profile_needs("cpu", []) == ""

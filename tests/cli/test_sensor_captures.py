@@ -209,3 +209,22 @@ def test_mixed_pixels_bias_the_captured_depth_at_edges(tmp_path):
     assert run(_mixed_pixel_set_argv(out, 3)) == 0
     assert json.loads((out / "scene_0000" / "scene.json").read_text())["mixed_pixels"] == 3
     assert run(["simulate-captures", "--out", out, "--scenes", 1, "--frames", 2, "--mixed-pixels", 0]) == 2
+
+
+@pytest.mark.parametrize("command", ["simulate-calibration", "simulate-captures", "simulate-validation", "realset"])
+def test_simulations_refuse_an_output_folder_that_holds_their_camera_file(tmp_path, capsys, command):
+    from tofdenoise.physics.calibration import resolve_calibration, save_calibration
+
+    camera = save_calibration(resolve_calibration("cam75"), tmp_path / "out" / "calibration.yaml")
+    before = camera.read_bytes()
+    option = "--camera" if command == "realset" else "--sensor"
+    small = {  # tiny sizes: on a command without the guard the run must end soon (and fail the test)
+        "simulate-calibration": ["--sweep-steps", "2", "--sweep-frames", "2", "--dark-frames", "2", "--size", "2"],
+        "simulate-captures": ["--scenes", "1", "--frames", "2", "--height", "8", "--width", "8", "--quiet"],
+        "simulate-validation": ["--frames", "2", "--roi-px", "2"],
+        "realset": ["--scenes", "1", "--frames", "2", "--height", "8", "--width", "8"],
+    }[command]
+    assert main([command, option, str(camera), "--out", str(tmp_path / "out"), *small]) == 2
+    err = capsys.readouterr().err
+    assert f"holds the input {camera}" in err and camera.read_bytes() == before
+    assert [p.name for p in (tmp_path / "out").iterdir()] == ["calibration.yaml"]  # nothing written

@@ -177,3 +177,39 @@ def test_closed_stdout_pipe_ends_quietly(argv):
     finally:
         os.close(write_end)
     assert proc.returncode == 141 and proc.stderr == ""
+
+
+def _snapshot(folder) -> dict:
+    return {p: p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+@pytest.mark.parametrize("target", ["sweep/index.json", "dark/index.json", "sweep", "dist/index.json"])
+def test_calibrate_refuses_an_out_that_would_replace_its_captures(tmp_path, capsys, target):
+    """issue 23 case 2: `calibrate --sweep S --dark D --out S/index.json` overwrote the capture index, so the
+    capture set could no longer be calibrated."""
+    from tofdenoise.cli.sensor import main
+    from tofdenoise.physics.synthetic_captures import write_dark_folder, write_distances_folder, write_sweep_folder
+
+    true = default_calibration()
+    write_sweep_folder(true, tmp_path / "sweep", num_steps=8, num_frames=4)
+    write_dark_folder(true, tmp_path / "dark", num_frames=8)
+    write_distances_folder(true, tmp_path / "dist", [600.0, 900.0, 1200.0], num_frames=8)
+    before = _snapshot(tmp_path)
+    out = tmp_path / target
+    argv = ["calibrate", "--sweep", str(tmp_path / "sweep"), "--dark", str(tmp_path / "dark")]
+    assert main([*argv, "--distances", str(tmp_path / "dist"), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith("tofdenoise-sensor calibrate: error: --out")
+    assert str(out) in err and "would replace" in err
+    assert _snapshot(tmp_path) == before  # nothing written
+
+
+def test_validate_refuses_an_out_whose_files_would_replace_its_inputs(tmp_path, capsys):
+    from tofdenoise.cli.sensor import main
+
+    calib = save_calibration(default_calibration(), tmp_path / "validation.json")
+    before = calib.read_bytes()
+    assert main(["validate", "--out", str(tmp_path), "--calib", str(calib), "--quick", "--frames", "4"]) == 2
+    err = capsys.readouterr().err
+    assert f"would replace the input {calib}" in err and calib.read_bytes() == before
+    assert not (tmp_path / "validation.png").exists()

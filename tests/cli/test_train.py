@@ -201,6 +201,44 @@ def test_resume_after_sigkill_reaches_the_same_number_of_steps(tmp_path, data_ca
     assert rows_killed == log_rows(fresh)
 
 
+def test_a_second_training_of_the_same_run_folder_is_refused_before_it_touches_it(tmp_path, data_cache, tiny):
+    """issue 23 case 3: two trainings started with the same paths.run_dir both exited 0 and the folder ended
+    holding only the second. The second is refused (exit 2, one line naming the lock and its holder) before it
+    writes anything; the first finishes with its own records."""
+    run_dir = tmp_path / "run"
+    first_args = tiny(run_dir, data_cache, num_samples=40) + ["trainer.max_epochs=3", "logger=csv", "seed=0"]
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    first = subprocess.Popen(
+        [sys.executable, "-m", "tofdenoise.cli.train", *first_args],
+        cwd=REPO,
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        deadline = time.time() + 120
+        while not (run_dir / ".hydra" / "overrides.yaml").exists() and first.poll() is None:
+            assert time.time() < deadline, "the first training did not start"
+            time.sleep(0.05)
+        hydra_before = {p.name: p.read_bytes() for p in (run_dir / ".hydra").iterdir()}
+        second = _cli(tiny(run_dir, data_cache, num_samples=40) + ["trainer.max_epochs=1", "seed=1"])
+        still_running = first.poll() is None
+        assert second.returncode == 2, second.stderr[-2000:]
+        line = second.stderr.strip().splitlines()[-1]
+        assert line.startswith("tofdenoise-train: error: run folder") and str(run_dir / "run.lock") in line
+        assert f"pid {first.pid} " in line
+        if still_running:  # nothing of the second reached the first's folder
+            assert {p.name: p.read_bytes() for p in (run_dir / ".hydra").iterdir()} == hydra_before
+    finally:
+        _, err = first.communicate(timeout=300)
+    assert first.returncode == 0, err[-3000:]
+    assert "seed=0" in (run_dir / ".hydra" / "overrides.yaml").read_text()
+    assert json.loads((run_dir / "run_info.json").read_text())["global_step"] > 0
+    assert json.loads((run_dir / "run_info.json").read_text())["seed"] == 0
+    assert not (run_dir / "run.lock").exists()  # released at the end
+
+
 def _val_csv(run_dir: Path) -> list[tuple[int, float, float]]:
     with open(run_dir / "csv" / "metrics.csv") as fh:
         return [

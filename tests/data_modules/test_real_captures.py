@@ -137,16 +137,16 @@ def test_real_test_dataloader_on_simulated_set(tmp_path):
 def test_missing_real_dir_names_the_key(tmp_path):
     from tofdenoise.data_modules import ToFDataModule
 
-    dm = ToFDataModule(
-        num_samples=6,
-        height=32,
-        width=48,
-        crop_size=16,
-        cache_dir=str(tmp_path / "c"),
-        real_dir=str(tmp_path / "nowhere"),
-    )
+    # checked when the datamodule is built, before any trainer exists (it was found only in prepare_data)
     with pytest.raises(FileNotFoundError, match="data.real_dir"):
-        dm.prepare_data()
+        ToFDataModule(
+            num_samples=6,
+            height=32,
+            width=48,
+            crop_size=16,
+            cache_dir=str(tmp_path / "c"),
+            real_dir=str(tmp_path / "nowhere"),
+        )
 
 
 def test_scene_without_common_valid_region_is_skipped(tmp_path):

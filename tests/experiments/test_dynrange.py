@@ -8,6 +8,7 @@ import pytest
 
 from tofdenoise.experiments.dynrange import gain_figure_png, gains, gains_markdown
 from tofdenoise.experiments.tables import TABLES, table_specs
+from tofdenoise.training.results import read_metrics_json, set_entry, write_metrics_json
 
 
 def test_study_runs_share_the_physical_world_with_table_3_and_start_with_unet():
@@ -26,25 +27,32 @@ def test_study_runs_share_the_physical_world_with_table_3_and_start_with_unet():
     assert not any("signal" in o for o in by_name["dvss-hetero-l1-s0"].overrides)  # the default world
 
 
-def _metrics(syn: float, real: float | None = None) -> dict:
-    test = {"synthetic": {"mae_mm": syn}}
+def _write_record(folder, name: str, syn: float, real: float | None = None) -> None:
+    """A run's metrics.json in the real schema, through the project's own writer (what the study reads back)."""
+
+    def block(mae: float) -> dict:
+        return {"psnr_db": 40.0, "ssim": 0.99, "mse_mm2": mae * mae, "mae_mm": mae}
+
+    results = {"synthetic": set_entry(block(syn), raw=block(9.0))}
     if real is not None:
-        test["real"] = {"mae_mm": real}
-    return {"test": test}
+        results["real"] = set_entry(block(real), raw=block(12.0))
+    write_metrics_json(folder / name / "metrics.json", results)
 
 
-def test_gains_are_paired_by_seed_and_count_only_complete_seeds():
-    records = {
-        # seed 0 and 1 complete for U-Net at dr16; seed 2 lacks the range run
-        "unet-fixed-l1-dr16-s0": _metrics(5.0, 7.0),
-        "unet-range-l1-dr16-s0": _metrics(4.5, 6.5),
-        "unet-hetero-l1-dr16-s0": _metrics(4.0, 6.0),
-        "unet-fixed-l1-dr16-s1": _metrics(6.0, 7.5),
-        "unet-range-l1-dr16-s1": _metrics(4.0, 6.4),
-        "unet-hetero-l1-dr16-s1": _metrics(4.2, 6.2),
-        "unet-fixed-l1-dr16-s2": _metrics(9.0),
-        "unet-hetero-l1-dr16-s2": _metrics(1.0),
-    }
+def test_gains_are_paired_by_seed_and_count_only_complete_seeds(tmp_path):
+    for name, syn, real in [
+        # seeds 0 and 1 complete for U-Net at dr16; seed 2 lacks the range run
+        ("unet-fixed-l1-dr16-s0", 5.0, 7.0),
+        ("unet-range-l1-dr16-s0", 4.5, 6.5),
+        ("unet-hetero-l1-dr16-s0", 4.0, 6.0),
+        ("unet-fixed-l1-dr16-s1", 6.0, 7.5),
+        ("unet-range-l1-dr16-s1", 4.0, 6.4),
+        ("unet-hetero-l1-dr16-s1", 4.2, 6.2),
+        ("unet-fixed-l1-dr16-s2", 9.0, None),
+        ("unet-hetero-l1-dr16-s2", 1.0, None),
+    ]:
+        _write_record(tmp_path, name, syn, real)
+    records = {p.parent.name: read_metrics_json(p) for p in tmp_path.glob("*/metrics.json")}
     items = gains(records.get, [0, 1, 2])
     assert len(items) == 1
     g = items[0]

@@ -77,8 +77,14 @@ def test_cli_table_only_exit_status_and_markdown(tmp_path, capsys):
     assert main(args) == 0
     assert "| pass |" in md.read_text() and "| pass |" in capsys.readouterr().out
     assert main(args[:11] + ["--seeds", "0", "1", "--table-only"]) == 1  # seed 1 has not run: not all pass
-    with pytest.raises(SystemExit, match="expected a .md file"):
-        main(args[:-1] + [str(tmp_path / "t.html")])
+    capsys.readouterr()
+    assert main(args[:-1] + [str(tmp_path / "t.html")]) == 2
+    assert "--markdown" in capsys.readouterr().err
+    notes = tmp_path / specs[0].name / "notes.md"  # a file of a run the table is made from
+    notes.write_text("by hand\n")
+    assert main(args[:-1] + [str(notes)]) == 2
+    assert f"tofdenoise-grid: error: --markdown {notes} would replace notes.md" in capsys.readouterr().err
+    assert notes.read_text() == "by hand\n"
 
 
 @pytest.mark.slow

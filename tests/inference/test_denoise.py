@@ -84,3 +84,25 @@ def test_sigma_map_equals_sigma_depth_mm_with_the_training_signal_mapping():
     # brighter pixels are more certain at the same depth (paper Eq. 15)
     flat = sigma_map_mm(np.full((1, 2), 1000.0), np.ones((1, 2), bool), np.array([[100.0, 2000.0]]), calib)
     assert flat[0, 0] > flat[0, 1] > 0
+
+
+def test_a_file_that_is_not_a_checkpoint_never_gets_torchs_weights_only_false_advice(tmp_path):
+    """A pickled object (or a file that is not a zip of tensors) is refused in one line naming the file, and the
+    line never advises weights_only=False (loading so would run the file's pickled code)."""
+    import functools
+
+    import pytest
+    import torch
+
+    from tofdenoise.inference.denoise import CheckpointError, load_restorer
+
+    pickled = tmp_path / "pickled.ckpt"
+    torch.save({"state_dict": {}, "factory": functools.partial(max, 1)}, pickled)
+    garbage = tmp_path / "garbage.ckpt"
+    garbage.write_bytes(b"not a checkpoint at all")
+    for path, reason in ((pickled, "pickled Python objects"), (garbage, "")):
+        with pytest.raises(CheckpointError) as info:
+            load_restorer(path)
+        message = str(info.value)
+        assert str(path) in message and reason in message and "\n" not in message
+        assert "weights_only" not in message and "Re-running" not in message

@@ -59,3 +59,36 @@ def test_best_is_lowest_val_mae_and_last_is_last(tmp_path, tiny_data):
 def test_mode_is_validated():
     with pytest.raises(ValueError, match="mode must be 'min' or 'max'"):
         BestAndLastCheckpoint(mode="lowest")
+
+
+def test_a_checkpoint_write_that_fails_leaves_the_previous_one_intact_and_names_the_file(tmp_path):
+    """A full disk mid-write: the partial file is removed, best.ckpt keeps its previous bytes, and the error names
+    the checkpoint and the reason (Lightning's own path moved a temp file across file systems and left a
+    truncated best.ckpt)."""
+    import errno
+    from types import SimpleNamespace
+
+    from tofdenoise.callbacks.checkpointing import BestAndLastCheckpoint, CheckpointWriteError
+
+    best = tmp_path / "best.ckpt"
+    best.write_bytes(b"previous checkpoint")
+
+    def full_disk(path, weights_only=False):
+        with open(path, "wb") as fh:
+            fh.write(b"half of a checkp")
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    def fine(path, weights_only=False):
+        with open(path, "wb") as fh:
+            fh.write(b"new checkpoint")
+
+    cb = BestAndLastCheckpoint(dirpath=tmp_path)
+    trainer = SimpleNamespace(save_checkpoint=full_disk, is_global_zero=True, global_step=7, loggers=[])
+    with pytest.raises(CheckpointWriteError, match=r"could not write checkpoint .*best\.ckpt: No space left on device"):
+        cb._save_checkpoint(trainer, str(best))
+    assert best.read_bytes() == b"previous checkpoint"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["best.ckpt"]  # no temporary file left behind
+    trainer.save_checkpoint = fine
+    cb._save_checkpoint(trainer, str(best))
+    assert best.read_bytes() == b"new checkpoint" and cb._last_checkpoint_saved == str(best)
+    assert cb._last_global_step_saved == 7

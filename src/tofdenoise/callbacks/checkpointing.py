@@ -13,19 +13,26 @@ and, with ``every_n_train_steps``, every N optimiser steps from the first epoch 
 
 from __future__ import annotations
 
+import contextlib
+import os
 from datetime import timedelta
 from pathlib import Path
 from typing import Any
+from weakref import proxy
 
 import lightning.pytorch as pl
 from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.trainer.states import TrainerFn
 
-__all__ = ["BestAndLastCheckpoint", "BEST_NAME", "LAST_NAME", "MONITOR"]
+__all__ = ["BestAndLastCheckpoint", "BEST_NAME", "CheckpointWriteError", "LAST_NAME", "MONITOR"]
 
 BEST_NAME = "best"
 LAST_NAME = "last"
 MONITOR = "val/mae_mm"
+
+
+class CheckpointWriteError(OSError):
+    """A checkpoint could not be written (e.g. the disk is full): names the file; the previous one is intact."""
 
 
 class BestAndLastCheckpoint(ModelCheckpoint):
@@ -68,6 +75,33 @@ class BestAndLastCheckpoint(ModelCheckpoint):
             enable_version_counter=False,
         )
         self.CHECKPOINT_NAME_LAST = LAST_NAME
+
+    # ------------------------------------------------------------------ atomic writes
+    def _save_checkpoint(self, trainer: pl.Trainer, filepath: str) -> None:
+        """Write ``filepath`` as a whole or not at all. Lightning streams a checkpoint through an fsspec transaction
+        that moves a temporary file from the system's temp folder, a copy across file systems that a full disk
+        cuts short (a truncated ``best.ckpt``). Here the checkpoint goes to a temporary name next to
+        ``filepath`` and is renamed over it; on failure the temporary file is removed, the previous checkpoint
+        stays as it was and the error names the file."""
+        folder, name = os.path.split(filepath)
+        tmp = os.path.join(folder, f".{name}.tmp-{os.getpid()}")
+        try:
+            trainer.save_checkpoint(tmp, self.save_weights_only)
+            if trainer.is_global_zero:
+                os.replace(tmp, filepath)
+        except OSError as exc:
+            if trainer.is_global_zero:
+                with contextlib.suppress(OSError):
+                    os.remove(tmp)
+            reason = exc.strerror or str(exc)
+            raise CheckpointWriteError(
+                exc.errno, f"could not write checkpoint {filepath}: {reason}; the previous checkpoint is unchanged"
+            ) from None
+        self._last_global_step_saved = trainer.global_step
+        self._last_checkpoint_saved = filepath
+        if trainer.is_global_zero:
+            for logger in trainer.loggers:
+                logger.after_save_checkpoint(proxy(self))
 
     # ------------------------------------------------------------------ last.ckpt always up to date
     _phase: str = "train"

@@ -35,6 +35,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from tofdenoise.atomic import atomic_write_text
 from tofdenoise.cli.train import record_calibration, validate_config
 from tofdenoise.config import hydra_console_script
+from tofdenoise.run_lock import RunLock, RunLockedError
 from tofdenoise.training.results import RUN_INFO_NAME
 
 __all__ = ["main", "run", "grid_points", "tune", "select_best", "TUNING_NAME", "GRID_KEYS", "DEFAULT_BACKBONE"]
@@ -155,12 +156,7 @@ def _model_kwargs(cfg: DictConfig, backbone: str) -> dict[str, Any]:
 
 def run(cfg: DictConfig) -> dict[str, Any]:
     """Tune on validation, test the chosen parameters; returns ``{"run_dir", "best", "metrics", "tuning"}``."""
-    from hydra.utils import instantiate
-    from lightning.pytorch import seed_everything
-
-    from tofdenoise.callbacks.run_outputs import write_json_atomic, write_test_outputs
     from tofdenoise.models import available_backbones, is_trainable
-    from tofdenoise.training.module import DepthRestorer
 
     validate_config(cfg)
     if cfg.get("classical") is None:
@@ -175,6 +171,20 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     grid = OmegaConf.to_container(ccfg.grid, resolve=True) if ccfg.get("grid") is not None else {}
     points = grid_points(grid, {k: ccfg.get(k) for k in GRID_KEYS if k in ccfg})
     run_dir = Path(str(cfg.paths.run_dir)).expanduser().resolve()
+    with RunLock(run_dir):  # one writer per run folder (tofdenoise.run_lock)
+        return _tune_and_test(cfg, run_dir, backbone, grid, points)
+
+
+def _tune_and_test(
+    cfg: DictConfig, run_dir: Path, backbone: str, grid: dict[str, Any], points: list[dict[str, Any]]
+) -> dict[str, Any]:
+    from hydra.utils import instantiate
+    from lightning.pytorch import seed_everything
+
+    from tofdenoise.callbacks.run_outputs import write_json_atomic, write_test_outputs
+    from tofdenoise.training.module import DepthRestorer
+
+    ccfg = cfg.classical
     run_dir.mkdir(parents=True, exist_ok=True)
     with open_dict(cfg):
         cfg.paths.run_dir = str(run_dir)
@@ -259,7 +269,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
 
 
 #: console script ``tofdenoise-classic`` (Hydra command line, like ``tofdenoise-train``)
-main = hydra_console_script("classical", run, "tofdenoise-classic", (ValueError, FileNotFoundError))
+main = hydra_console_script("classical", run, "tofdenoise-classic", (ValueError, FileNotFoundError, RunLockedError))
 
 
 if __name__ == "__main__":

@@ -6,18 +6,25 @@
 INPUT: depth frames or folders of them (searched recursively): 16-bit PNG/TIFF in mm (0 = invalid), ``.npy``
 float mm (NaN/0/negative = invalid) or ``.exr``. Outputs mirror the input sub-folders under ``--out``
 (``tofdenoise.inference.outputs``). Frames are processed one at a time (memory bounded by one frame; large frames
-run tile by tile). A frame that fails (unreadable, 8-bit/colour, amplitude missing or of another shape ...) is
-reported and the others go on; the exit status is 1 when any frame failed, 2 for a bad command line,
-checkpoint or calibration, 0 otherwise. See docs/denoise.md.
+run tile by tile). A frame that fails (unreadable, 8-bit/colour, amplitude missing or of another shape, depths
+implausible in millimetres without ``--depth-scale-mm`` ...) is reported and the others go on; the exit status is
+1 when any frame failed, 2 for a bad command line, checkpoint or calibration, or an output that would replace an
+input (``tofdenoise.output_guard``: checked for every frame before anything is written), 0 otherwise. See
+docs/denoise.md.
 """
 
 from __future__ import annotations
 
 import argparse
+import errno
 import sys
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
+
+from tofdenoise.output_guard import OutputPathError, refuse_overwrite
 
 __all__ = ["build_parser", "main", "run", "timing_text"]
 
@@ -48,8 +55,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--depth-scale-mm",
         type=float,
-        default=1.0,
-        help="millimetres per stored depth unit (default 1; e.g. 0.25, or 1000 for metres)",
+        default=None,
+        help="millimetres per stored depth unit (default 1, and then a frame whose median valid depth is below "
+        "20 is refused as not in mm; e.g. 0.25, or 1000 for metres)",
     )
     p.add_argument("--fill-holes", action="store_true", help="give invalid input pixels a restored depth too")
     p.add_argument("--npy", action="store_true", help="also write the restored depth as float32 .npy (mm)")
@@ -79,11 +87,11 @@ def run(args: argparse.Namespace) -> int:
     """Run the command on parsed arguments; returns the exit status."""
     from tqdm.auto import tqdm
 
-    from tofdenoise.inference.denoise import CheckpointError, load_restorer, resolve_device, restore_frame
-    from tofdenoise.inference.frames import AmplitudeSource, FrameError, find_frames, load_frame
-    from tofdenoise.inference.outputs import OutputOptions, frame_sigma, output_paths, write_frame_outputs
+    from tofdenoise.inference.denoise import CheckpointError, load_restorer, resolve_device
+    from tofdenoise.inference.frames import AmplitudeSource, FrameError, find_frames
+    from tofdenoise.inference.outputs import OutputOptions
 
-    if not args.depth_scale_mm > 0:
+    if args.depth_scale_mm is not None and not args.depth_scale_mm > 0:
         return _fail(f"--depth-scale-mm must be > 0, got {args.depth_scale_mm}")
     if args.tile is not None and args.tile < 32:
         return _fail(f"--tile must be >= 32 pixels, got {args.tile}")
@@ -113,55 +121,140 @@ def run(args: argparse.Namespace) -> int:
         return _fail(f"no depth frame found in {', '.join(map(str, args.inputs))}")
 
     options = OutputOptions(npy=args.npy, previews=args.previews)
-    precision = "fp32" if args.fp32 else "bf16"
-    skipped: list[tuple[str, str]] = []
-    failed: list[tuple[str, str]] = []
-    claimed: dict[Path, Path] = {}
-    done = 0
-    seconds: list[float] = []
-    for frame in tqdm(frames, desc="denoise", unit="frame", disable=args.quiet or None, file=sys.stderr):
-        target = output_paths(args.out, frame.rel_stem.as_posix())["png"].resolve()
-        if target == frame.path.resolve():
-            skipped.append((str(frame.path), "its output would overwrite the input (choose another --out)"))
-            continue
-        if target in claimed:
-            skipped.append((str(frame.path), f"same output name as {claimed[target]}"))
-            continue
-        claimed[target] = frame.path
-        started = time.perf_counter()
-        try:
-            data = load_frame(frame, args.depth_scale_mm, amplitude)
-            if not data.valid.any():
-                skipped.append((str(frame.path), "no valid pixel"))
-                continue
-            restored = restore_frame(
-                model,
-                data.depth_mm,
-                data.valid,
-                data.amplitude,
-                fill_holes=args.fill_holes,
-                tile=args.tile,
-                precision=precision,
-            )
-            write_frame_outputs(
-                args.out, data.name, data.depth_mm, data.valid, restored, options, sigma_mm=frame_sigma(data, calib)
-            )
-        except (FrameError, ValueError, OSError, RuntimeError) as exc:
-            failed.append((str(frame.path), str(exc)))
-            continue
-        seconds.append(time.perf_counter() - started)
-        done += 1
-    per_frame = timing_text(seconds)
+    try:
+        _refuse_replacing_inputs(args, frames, amplitude, options, calib is not None)
+    except OutputPathError as exc:
+        return _fail(str(exc))
+    job = _Job(
+        args=args,
+        model=model,
+        amplitude=amplitude,
+        calib=calib,
+        options=options,
+        depth_scale_mm=1.0 if args.depth_scale_mm is None else args.depth_scale_mm,
+        precision="fp32" if args.fp32 else "bf16",
+    )
+    tally = _Tally()
+    interrupted = False
+    try:
+        for frame in tqdm(frames, desc="denoise", unit="frame", disable=args.quiet or None, file=sys.stderr):
+            _denoise_one(frame, job, tally)
+    except KeyboardInterrupt:  # Ctrl-C: every frame written so far is complete (atomic writes); say what was done
+        interrupted = True
+    seen = tally.done + len(tally.skipped) + len(tally.failed)
+    ended = f"interrupted (Ctrl-C) after {seen} of {len(frames)} frame(s): " if interrupted else ""
     print(
-        f"tofdenoise-denoise: {done} frame(s) done, {len(skipped)} skipped, {len(failed)} failed; {per_frame} on "
-        f"{device.type} -> {args.out}",
+        f"tofdenoise-denoise: {ended}{tally.done} frame(s) done, {len(tally.skipped)} skipped, "
+        f"{len(tally.failed)} failed; {timing_text(tally.seconds)} on {device.type} -> {args.out}",
         file=sys.stderr,
     )
-    for path, reason in skipped:
+    for path, reason in tally.skipped:
         print(f"  skipped {path}: {reason}", file=sys.stderr)
-    for path, reason in failed:
+    for path, reason in tally.failed:
         print(f"  FAILED {path}: {reason}", file=sys.stderr)
-    return 1 if failed else 0
+    if interrupted:
+        print("  the frames done are complete; run the same command again to do the rest", file=sys.stderr)
+        return 130
+    return 1 if tally.failed else 0
+
+
+@dataclass
+class _Job:
+    """What every frame of one command shares."""
+
+    args: argparse.Namespace
+    model: Any
+    amplitude: Any
+    calib: Any
+    options: Any
+    depth_scale_mm: float
+    precision: str
+
+
+@dataclass
+class _Tally:
+    """What happened to the frames so far (the summary)."""
+
+    done: int = 0
+    skipped: list[tuple[str, str]] = field(default_factory=list)
+    failed: list[tuple[str, str]] = field(default_factory=list)
+    seconds: list[float] = field(default_factory=list)
+    claimed: dict[Path, Path] = field(default_factory=dict)
+
+
+def _write_failure(exc: OSError, out: Path) -> str:
+    """An output write that failed, with the folder and the cause (numpy's short write names neither)."""
+    full = exc.errno == errno.ENOSPC or "requested and" in str(exc)
+    return f"could not write its outputs under {out}: {exc}" + (" (disk full?)" if full else "")
+
+
+def _denoise_one(frame: Any, job: _Job, tally: _Tally) -> None:
+    """Restore one frame and write its outputs, or record why it was skipped or failed."""
+    from tofdenoise.inference.denoise import restore_frame
+    from tofdenoise.inference.frames import FrameError, check_depth_units_mm, load_frame
+    from tofdenoise.inference.outputs import frame_sigma, output_paths, write_frame_outputs
+
+    args = job.args
+    target = output_paths(args.out, frame.rel_stem.as_posix())["png"].resolve()
+    if target in tally.claimed:
+        tally.skipped.append((str(frame.path), f"same output name as {tally.claimed[target]}"))
+        return
+    tally.claimed[target] = frame.path
+    started = time.perf_counter()
+    try:
+        data = load_frame(frame, job.depth_scale_mm, job.amplitude)
+        if not data.valid.any():
+            tally.skipped.append((str(frame.path), "no valid pixel"))
+            return
+        if args.depth_scale_mm is None:
+            check_depth_units_mm(data, frame.path)
+        restored = restore_frame(
+            job.model,
+            data.depth_mm,
+            data.valid,
+            data.amplitude,
+            fill_holes=args.fill_holes,
+            tile=args.tile,
+            precision=job.precision,
+        )
+    except (FrameError, ValueError, OSError, RuntimeError) as exc:
+        tally.failed.append((str(frame.path), str(exc)))
+        return
+    try:
+        write_frame_outputs(
+            args.out, data.name, data.depth_mm, data.valid, restored, job.options, sigma_mm=frame_sigma(data, job.calib)
+        )
+    except OSError as exc:
+        tally.failed.append((str(frame.path), _write_failure(exc, Path(args.out))))
+        return
+    tally.seconds.append(time.perf_counter() - started)
+    tally.done += 1
+
+
+def _refuse_replacing_inputs(args: argparse.Namespace, frames, amplitude, options, with_sigma: bool) -> None:
+    """Every output of every frame against every file the command reads (frames, their amplitude, checkpoint,
+    calibration), before the first write: ``OutputPathError`` names the output and the input."""
+    from tofdenoise.inference.frames import FrameError
+    from tofdenoise.inference.outputs import output_paths
+
+    inputs: list[Path] = [frame.path for frame in frames] + [Path(args.ckpt)]
+    if args.calib is not None and Path(args.calib).exists():
+        inputs.append(Path(args.calib))
+    if amplitude is not None:
+        for frame in frames:
+            try:
+                inputs.append(amplitude.find(frame))
+            except FrameError:  # reported for that frame when it is processed
+                pass
+    wanted = {"png"} | ({"npy"} if options.npy else set()) | ({"sigma"} if with_sigma else set())
+    wanted |= {"preview"} if options.previews else set()
+    outputs = [
+        path
+        for frame in frames
+        for key, path in output_paths(args.out, frame.rel_stem.as_posix()).items()
+        if key in wanted
+    ]
+    refuse_overwrite(outputs, inputs, "--out")
 
 
 def timing_text(seconds: Sequence[float]) -> str:

@@ -8,7 +8,7 @@ strict JSON; non-finite predicted pixels are reported with a warning on stderr.
 
 Errors (exit status 2) name the file: missing counterpart, shape mismatch, wrong dtype, unreadable file,
 empty or missing folder, two files with the same stem, and an ``--out`` that is a folder, is not ``.json``,
-or is one of the inputs (``tofdenoise.cli.output_guard``).
+or is one of the inputs (``tofdenoise.output_guard``).
 """
 
 from __future__ import annotations
@@ -20,8 +20,8 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from tofdenoise.atomic import atomic_write_text
-from tofdenoise.cli.output_guard import OutputPathError, check_output_file
 from tofdenoise.evaluation import EvalInputError, evaluate_dirs
+from tofdenoise.output_guard import OutputPathError, check_output_file
 from tofdenoise.training.metrics import D_MAX_MM
 
 __all__ = ["build_parser", "main"]

@@ -6,7 +6,8 @@
     tofdenoise-grid robustness --out runs/robustness --dry-run       # list what would run
 
 Finished runs are skipped, interrupted ones resume from their last checkpoint, a failing run does not stop the
-others (they are listed at the end). Exit status: 0 when every selected run finished and passes, 1 otherwise.
+others (they are listed at the end). Exit status: 0 when every selected run finished and passes, 1 otherwise, 2
+when ``--markdown`` is refused (not ``.md``, or it would replace a file of a run: ``tofdenoise.output_guard``).
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ import sys
 from pathlib import Path
 
 from tofdenoise.atomic import atomic_write_text
+from tofdenoise.output_guard import OutputPathError, check_output_file
 
 __all__ = ["main", "build_parser"]
 
@@ -55,9 +57,13 @@ def main(argv: list[str] | None = None) -> int:
     from tofdenoise.experiments.runner import run_all
 
     args = build_parser().parse_args(argv)
-    if args.markdown is not None and args.markdown.suffix.lower() != ".md":
-        raise SystemExit(f"tofdenoise-grid: --markdown {args.markdown}: expected a .md file")
     specs = robustness_specs(args.backbones, args.noises, args.losses, args.sensors, args.seeds, args.extra)
+    if args.markdown is not None:
+        try:  # the table never replaces a file of the runs it is made from
+            check_output_file(args.markdown, (".md",), [args.out / s.name for s in specs], "--markdown", shadow=False)
+        except OutputPathError as exc:
+            print(f"tofdenoise-grid: error: {exc}", file=sys.stderr)
+            return 2
     if not args.table_only:
         run_all(specs, args.out, dry_run=args.dry_run)
     if args.dry_run:

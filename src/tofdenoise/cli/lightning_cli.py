@@ -13,7 +13,8 @@ The run's records come from the ``RunOutputs`` callback of the configs (as in th
 ``test`` write ``run_info.json``, ``test`` also ``metrics.json`` and ``per_image/<set>.csv``, all into
 ``trainer.default_root_dir``; ``predict`` writes PNG/``.npy`` depth maps through ``DepthPredictionWriter``.
 wandb's environment (quiet, its files under ``trainer.default_root_dir``) and its ``wandb.finish()`` at the end
-come from ``tofdenoise.wandb_env``.
+come from ``tofdenoise.wandb_env``. ``trainer.default_root_dir`` has one writer at a time (``tofdenoise.run_lock``,
+taken before any class is instantiated): a second command on the same folder is refused, exit status 2.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from typing import Any
 
 from lightning.pytorch.cli import LightningCLI
 
+from tofdenoise.run_lock import RunLock, RunLockedError, is_worker_rank, release_all
 from tofdenoise.wandb_env import finish_wandb, quiet_wandb, setup_wandb_env
 
 __all__ = ["ToFLightningCLI", "main", "build_cli"]
@@ -39,6 +41,9 @@ class ToFLightningCLI(LightningCLI):
         root = cfg.get("trainer", {}).get("default_root_dir") if hasattr(cfg, "get") else None
         if root:
             root_path = Path(str(root)).expanduser().resolve()
+            # one writer per run folder, taken before anything is written there (released by main())
+            if not is_worker_rank():
+                RunLock(root_path).acquire()
             root_path.mkdir(parents=True, exist_ok=True)
             setup_wandb_env(root_path)
 
@@ -109,11 +114,12 @@ def main(args: list[str] | None = None) -> Any:
 
     try:
         build_cli(args)
-    except CheckpointFileError as exc:  # one line that says what to do, not a traceback
+    except (CheckpointFileError, RunLockedError) as exc:  # one line that says what to do, not a traceback
         print(f"tofdenoise: error: {exc}", file=sys.stderr)
         raise SystemExit(2) from None
     finally:
         finish_wandb()
+        release_all()
     return 0
 
 

@@ -26,7 +26,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from tofdenoise.atomic import atomic_write_text
-from tofdenoise.cli.output_guard import OutputPathError, check_output_file
+from tofdenoise.output_guard import OutputPathError, check_output_file
 from tofdenoise.reporting import Run, find_runs, load_run, render_html, results_table, table_markdown
 
 __all__ = ["main"]
@@ -34,17 +34,10 @@ __all__ = ["main"]
 
 def _check_out(out: Path, run_dirs: Sequence[Path]) -> None:
     """``--out`` must be a new or replaceable ``.html`` file, never a file a run records (``metrics.json``,
-    ``run_info.json``, a CSV log, a checkpoint: anything inside a run folder) or a name beside one."""
+    ``run_info.json``, a CSV log, a checkpoint: anything inside a run folder) or a name beside one
+    (``tofdenoise.output_guard``)."""
     inputs = [f for d in run_dirs for f in d.iterdir() if f.is_file()]
-    check_output_file(out, (".html", ".htm"), inputs)
-    if out.exists():
-        target = out.resolve()
-        for d in run_dirs:
-            if target.is_relative_to(d.resolve()):
-                raise OutputPathError(
-                    f"--out {out} is a file of the run {d}; write the report outside the run "
-                    f"folders or under a new name"
-                )
+    check_output_file(out, (".html", ".htm"), [*inputs, *run_dirs])
 
 
 def main(argv: Sequence[str] | None = None) -> int:

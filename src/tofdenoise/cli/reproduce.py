@@ -12,7 +12,10 @@ and ``tofdenoise-sensor calibrate`` estimates its calibration (``<out>/realset``
 (2) every run of the table, trained with that calibration and tested on the synthetic split and on that capture
 set (finished runs are skipped, interrupted ones resume, a failing run does not stop the others and is listed);
 (3) each finished run's ``metrics.json`` and ``run_info.json`` copied to ``docs/results/<profile>/<run>/``;
-(4) ``docs/results.md`` rebuilt from those records. Exit status 0 when every run of the table finished.
+(4) ``docs/results.md`` rebuilt from those records. Exit status 0 when every run of the table finished; 2 when
+``--page`` would replace what the page is built from (the discussion, a record: ``tofdenoise.output_guard``,
+checked before anything runs) or when a record cannot be used (``results_page.RecordError``, naming the file; a
+run without a record is listed on the page as missing).
 ``fig7`` / ``fig8`` (the qualitative figures) train the runs of their columns for the first seed when missing,
 then render the figure from those runs' best checkpoints (``tofdenoise.experiments.figures``), check it against
 the runs' per-image records and commit ``figure.png`` and ``figure.json`` to ``docs/results/<profile>/<fig>/``.
@@ -31,7 +34,7 @@ from tofdenoise.atomic import atomic_write_bytes, atomic_write_text
 from tofdenoise.paths import REPO_ROOT
 from tofdenoise.training.results import METRICS_NAME, PER_IMAGE_DIR, RUN_INFO_NAME
 
-__all__ = ["main", "build_parser", "PROFILES", "profile_overrides"]
+__all__ = ["main", "build_parser", "PROFILES", "profile_needs", "profile_overrides"]
 
 #: profile -> Hydra overrides shared by every training run of a table
 PROFILES: dict[str, tuple[str, ...]] = {
@@ -51,6 +54,23 @@ def profile_overrides(profile: str, realset_dir: Path, extra: list[str]) -> list
         f"++data.real_dir={realset_dir / 'captures'}",
         *extra,
     ]
+
+
+def profile_needs(profile: str, extra: list[str], cuda_available: bool | None = None) -> str:
+    """What ``profile`` needs that is missing ("" when nothing): the GPU profile trains on ToF-FlyingThings3D
+    (``--extra data.root=FOLDER``, an existing folder) on a CUDA GPU (``experiment=paper`` sets ``trainer=gpu``)."""
+    if profile != "gpu":
+        return ""
+    import torch
+
+    roots = [e.split("=", 1)[1] for e in extra if e.lstrip("+").startswith("data.root=")]
+    if not roots:
+        return "the ToF-FlyingThings3D folder: --extra data.root=/path/to/ToF-FlyingThings3D"
+    if not Path(roots[-1]).expanduser().is_dir():
+        return f"an existing data.root folder (ToF-FlyingThings3D), got {roots[-1]}"
+    if not (torch.cuda.is_available() if cuda_available is None else cuda_available):
+        return "a CUDA GPU (experiment=paper trains with trainer=gpu); torch.cuda.is_available() is False here"
+    return ""
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -232,17 +252,35 @@ def _qualitative(args: argparse.Namespace, realset_dir: Path, dest: Path, record
 
 
 def main(argv: list[str] | None = None) -> int:
+    from tofdenoise.experiments.results_page import RecordError, page_inputs
+    from tofdenoise.output_guard import OutputPathError, check_output_file
+
+    args = build_parser().parse_args(argv)
+    if not args.page_only and args.table is None:  # a usage error: exit 2, as argparse's own
+        print(
+            "tofdenoise-reproduce: error: give --table 1|2|3|dynrange|fig6|fig7|fig8 (or --page-only)", file=sys.stderr
+        )
+        return 2
+    try:
+        # the page is rebuilt from the discussion and the records: it may never replace one of them
+        check_output_file(args.page, (".md",), page_inputs(args.results), what="--page", shadow=False)
+        return _reproduce(args)
+    except (OutputPathError, RecordError) as exc:
+        print(f"tofdenoise-reproduce: error: {exc}", file=sys.stderr)
+        return 2
+
+
+def _reproduce(args: argparse.Namespace) -> int:
     from tofdenoise.experiments.results_page import results_markdown
     from tofdenoise.experiments.runner import run_all
     from tofdenoise.experiments.tables import table_specs
 
-    args = build_parser().parse_args(argv)
-    if args.page.suffix.lower() != ".md":
-        raise SystemExit(f"tofdenoise-reproduce: --page {args.page}: expected a .md file")
-    if not args.page_only and args.table is None:
-        raise SystemExit("tofdenoise-reproduce: give --table 1|2|3|dynrange|fig6|fig7|fig8 (or --page-only)")
     status = 0
     if not args.page_only:
+        missing = profile_needs(args.profile, args.extra)
+        if missing:  # before the real set is built or any run starts, in a dry run too
+            print(f"tofdenoise-reproduce: error: --profile {args.profile} needs {missing}", file=sys.stderr)
+            return 2
         args.out = (args.out or REPO_ROOT / "runs" / "reproduce" / args.profile).expanduser().resolve()
         realset_dir = args.out / "realset"
         dest = args.results / args.profile

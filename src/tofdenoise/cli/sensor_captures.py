@@ -11,6 +11,9 @@ import argparse
 import sys
 from pathlib import Path
 
+from tofdenoise.cli.sensor_physics import input_files
+from tofdenoise.output_guard import refuse_overwrite
+
 
 def _simulate(args: argparse.Namespace) -> int:
     from tofdenoise.data_modules.capture_simulation import simulate_capture_set
@@ -24,6 +27,7 @@ def _simulate(args: argparse.Namespace) -> int:
                 flush=True,
             )
 
+    refuse_overwrite([], input_files(args.sensor), output_folders=[args.out])
     summary = simulate_capture_set(
         args.out,
         scenes=args.scenes,
@@ -51,6 +55,7 @@ def _simulate_calibration(args: argparse.Namespace) -> int:
     from tofdenoise.physics.calibration import resolve_calibration
     from tofdenoise.physics.synthetic_captures import default_distances_mm, write_calibration_captures
 
+    refuse_overwrite([], input_files(args.sensor), output_folders=[args.out])
     calib = resolve_calibration(args.sensor)
     distances = args.distances_mm if args.distances_mm is not None else default_distances_mm(calib)
     too_far = [d for d in distances if not 0 < d < calib.unambiguous_range_mm]
@@ -96,6 +101,7 @@ def _simulate_validation(args: argparse.Namespace) -> int:
     for name, value in (("--frames", args.frames), ("--roi-px", args.roi_px)):
         if value < 2:
             raise ValueError(f"{name} must be >= 2, got {value}")
+    refuse_overwrite([], input_files(args.sensor), output_folders=[args.out])
     settings = ValidationSettings(num_frames=args.frames, roi_px=args.roi_px, seed=args.seed, fit_seed=args.seed + 1)
     folder = write_validation_captures(resolve_calibration(args.sensor), args.out, settings)
     print(f"wrote {folder} (validation)")
@@ -170,6 +176,7 @@ def _realset(args: argparse.Namespace) -> int:
     from tofdenoise.physics.calibration import resolve_calibration
 
     out = Path(args.out).expanduser()
+    refuse_overwrite([], input_files(args.camera), output_folders=[out])
     commands = realset_commands(
         out, args.camera, args.scenes, args.frames, args.height, args.width, args.seed, args.mixed_pixels
     )

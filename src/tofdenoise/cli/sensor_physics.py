@@ -109,8 +109,12 @@ def cmd_sigma(args: argparse.Namespace) -> int:
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
+    from tofdenoise.output_guard import refuse_overwrite
     from tofdenoise.physics.calibrate import calibrate_from_folders
     from tofdenoise.physics.calibration import save_calibration
+
+    # the calibration file may not replace a file of the capture folders it is computed from (their index.json)
+    refuse_overwrite([args.out], [f for f in (args.sweep, args.dark, args.distances) if f is not None])
 
     lo, hi = args.signal_percentiles
     report = calibrate_from_folders(
@@ -143,7 +147,13 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 
 def cmd_validate(args: argparse.Namespace) -> int:
-    from tofdenoise.physics.validation import ValidationSettings, run_validation, write_validation
+    from tofdenoise.output_guard import refuse_overwrite
+    from tofdenoise.physics.validation import VALIDATION_FILES, ValidationSettings, run_validation, write_validation
+
+    refuse_overwrite(
+        [Path(args.out) / name for name in VALIDATION_FILES],
+        [*input_files(args.calib), *([args.captures] if args.captures else [])],
+    )
 
     calib = _calib(args)
     settings = ValidationSettings.quick() if args.quick else ValidationSettings()
@@ -166,6 +176,12 @@ def cmd_validate(args: argparse.Namespace) -> int:
             print(f"{panel:<10}{model:<16}{m['mape_percent']:>9.2f}{m['r2']:>9.3f}{m['n']:>5d}")
     print(f"wrote {json_path} and {png}")
     return 0
+
+
+def input_files(spec: str | None) -> list[Path]:
+    """A calibration given as a file (not a preset name or the default) as the input it is: what no output of the
+    command may replace."""
+    return [Path(spec)] if spec is not None and Path(spec).expanduser().exists() else []
 
 
 def _float_list(name: str):

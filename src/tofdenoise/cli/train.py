@@ -3,7 +3,9 @@
 Flow: check the config (valid backbone / noise / loss names, dataset paths) -> ``seed_everything`` ->
 instantiate datamodule, model, callbacks, loggers and trainer (``_convert_="all"``: only plain values reach
 the classes) -> ``trainer.fit`` (``ckpt_path=last`` resumes ``<run_dir>/checkpoints/last.ckpt``) ->
-``trainer.test`` with the best checkpoint (lowest ``val/mae_mm``). The run's records (``run_info.json``,
+``trainer.test`` with the best checkpoint (lowest ``val/mae_mm``). The run folder has one writer at a time
+(``tofdenoise.run_lock``: a second run of the same folder is refused before it touches it, exit status 2).
+The run's records (``run_info.json``,
 ``config.yaml``, ``metrics.json``, ``per_image/<set>.csv``) are written by the ``RunOutputs`` callback
 (``tofdenoise.callbacks.run_outputs``, ``callbacks.run_outputs`` in the config); wandb's environment and its
 ``wandb.finish()`` at the end come from ``tofdenoise.wandb_env``.
@@ -25,9 +27,11 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf, open_dict
 
+from tofdenoise.callbacks.checkpointing import CheckpointWriteError
 from tofdenoise.cli.checkpoint_check import CheckpointFileError, check_checkpoint_file, resolve_ckpt_path
 from tofdenoise.config import ConfigError, hydra_console_script, instantiate_node
 from tofdenoise.registry import Registry
+from tofdenoise.run_lock import RunLock, RunLockedError
 from tofdenoise.wandb_env import finish_wandb, setup_wandb_env, wandb_run_id
 
 __all__ = ["main", "run", "validate_config"]
@@ -132,11 +136,16 @@ def record_calibration(cfg: DictConfig, calib: Any) -> None:
 
 def run(cfg: DictConfig) -> dict[str, Any]:
     """Train and/or test as configured; returns ``{"run_dir", "best_ckpt", "metrics"}``."""
+    validate_config(cfg)
+    run_dir = Path(str(cfg.paths.run_dir)).expanduser().resolve()
+    with RunLock(run_dir):  # one writer per run folder (held already when Hydra's callback took it)
+        return _run_locked(cfg, run_dir)
+
+
+def _run_locked(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     from hydra.utils import instantiate
     from lightning.pytorch import seed_everything
 
-    validate_config(cfg)
-    run_dir = Path(str(cfg.paths.run_dir)).expanduser().resolve()
     run_dir.mkdir(parents=True, exist_ok=True)
     with open_dict(cfg):
         cfg.paths.run_dir = str(run_dir)
@@ -201,7 +210,9 @@ def _test_checkpoint(cfg: DictConfig, trainer: Any, run_dir: Path) -> str | None
 
 
 #: console script ``tofdenoise-train`` (Hydra command line: overrides, ``--multirun``, ``--cfg job``)
-main = hydra_console_script("train", run, "tofdenoise-train", (CheckpointFileError, ConfigError))
+main = hydra_console_script(
+    "train", run, "tofdenoise-train", (CheckpointFileError, CheckpointWriteError, ConfigError, RunLockedError)
+)
 
 
 if __name__ == "__main__":

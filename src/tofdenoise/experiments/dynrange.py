@@ -16,7 +16,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from .tables import DYNAMIC_RANGES, DYNRANGE_BACKBONES, LONG_SCHEDULE, TABLES, dynrange_key, run_name
+from .tables import DYNAMIC_RANGES, DYNRANGE_BACKBONES, LONG_SCHEDULE, TABLES, dynrange_key, metric_value, run_name
 
 __all__ = ["Gain", "WORLDS", "gain_figure_png", "gains", "gains_markdown"]
 
@@ -49,11 +49,8 @@ def _mean_std(values: list[float]) -> tuple[float, float]:
 
 
 def _value(metrics: Mapping[str, Any] | None, test_set: str) -> float:
-    try:
-        v = float(metrics["test"][test_set]["mae_mm"])  # type: ignore[index]
-    except (KeyError, TypeError, ValueError):
-        return math.nan
-    return v
+    """The run's test MAE on ``test_set`` ("synthetic" | "real"), read as the tables read it (NaN when absent)."""
+    return metric_value(metrics, "mae_mm" if test_set == "synthetic" else "real_mae_mm")
 
 
 def gains(metrics_of: Callable[[str], Mapping[str, Any] | None], seeds: list[int]) -> list[Gain]:

@@ -6,7 +6,13 @@ hand-written discussion ``docs/results/discussion.md``), so the page can always 
 ``tofdenoise-reproduce --page-only`` rewrites it, and a test checks that the committed page equals the output.
 
 Per table: one line per row with the paper's number next to our mean ± standard deviation over the seeds that
-finished (``n``), then the paper's orderings with the seeds in which each holds.
+finished (``n``), the runs of the table that have no record yet (listed, never dropped silently), then the paper's
+orderings with the seeds in which each holds.
+
+A record that exists but cannot be used is a :class:`RecordError` naming the file, never a run that quietly
+leaves the page: a truncated or non-JSON ``metrics.json`` / ``run_info.json`` (or ``validation.json``,
+``figure.json``), one that breaks the ``metrics.json`` schema, or a ``null`` metric. ``page_inputs(results_dir)``
+names what the page is built from, so the page never replaces it (``tofdenoise.output_guard``).
 """
 
 from __future__ import annotations
@@ -20,7 +26,15 @@ from pathlib import Path
 from typing import Any
 
 from tofdenoise.reporting.table import LEARNED_FLAGS
-from tofdenoise.training.results import METRICS_NAME, RUN_INFO_NAME, learned_status, run_fields
+from tofdenoise.training.results import (
+    METRIC_KEYS,
+    METRICS_NAME,
+    RUN_INFO_NAME,
+    learned_status,
+    metric_sets,
+    read_metrics_json,
+    run_fields,
+)
 
 from .figures import FIGURES
 from .tables import (
@@ -34,9 +48,19 @@ from .tables import (
     claim_holds,
     claim_steps,
     row_values,
+    run_name,
 )
 
-__all__ = ["PROFILE_COMMANDS", "load_records", "results_markdown", "run_minutes", "seeds_present"]
+__all__ = [
+    "DISCUSSION_NAME",
+    "PROFILE_COMMANDS",
+    "RecordError",
+    "load_records",
+    "page_inputs",
+    "results_markdown",
+    "run_minutes",
+    "seeds_present",
+]
 
 #: how each profile's tables are produced (quoted on the page)
 PROFILE_COMMANDS = {
@@ -46,26 +70,62 @@ PROFILE_COMMANDS = {
 RUN_FILES = (METRICS_NAME, RUN_INFO_NAME)
 
 
+#: the hand-written discussion, read from the results folder and placed above the tables
+DISCUSSION_NAME = "discussion.md"
+
+
+class RecordError(ValueError):
+    """A record file exists but cannot be used; the message names the file."""
+
+
 def _read_json(path: Path) -> dict[str, Any] | None:
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, ValueError):
+    """The JSON object in ``path``; None when the file does not exist; RecordError when it cannot be read."""
+    if not path.exists():
         return None
-    return data if isinstance(data, dict) else None
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise RecordError(f"{path}: the record cannot be read ({exc})") from None
+    if not isinstance(data, dict):
+        raise RecordError(f"{path}: the record is not a JSON object (got {type(data).__name__})")
+    return data
+
+
+def _read_metrics(path: Path) -> dict[str, Any]:
+    """A run's ``metrics.json``, schema-checked, with no ``null`` metric (a value the tables cannot use)."""
+    try:
+        data = read_metrics_json(path)
+    except (OSError, ValueError) as exc:
+        raise RecordError(f"{path}: the record cannot be read ({exc})") from None
+    for set_name, entry in metric_sets(data).items():
+        for where, block in ((set_name, entry), (f"{set_name}.raw", entry.get("raw") or {})):
+            for key in METRIC_KEYS:
+                if key in block and block[key] is None:
+                    raise RecordError(f"{path}: '{where}.{key}' is null: the run has no value for it")
+    return data
 
 
 def load_records(profile_dir: Path | str) -> dict[str, dict[str, Any]]:
-    """``{run name: {"metrics": dict, "run_info": dict}}`` for every run folder holding both files."""
+    """``{run name: {"metrics": dict, "run_info": dict}}`` for every run folder holding both files. A folder
+    without both (an interrupted copy: ``metrics.json`` is copied first) is no record: its run is listed as missing
+    on the page. A file that is there but cannot be used is a RecordError naming it (module docstring)."""
     profile_dir = Path(profile_dir)
     records: dict[str, dict[str, Any]] = {}
     if not profile_dir.is_dir():
         return records
     for run_dir in sorted(p for p in profile_dir.iterdir() if p.is_dir()):
-        metrics = _read_json(run_dir / METRICS_NAME)
-        info = _read_json(run_dir / RUN_INFO_NAME)
-        if metrics is not None and info is not None:
-            records[run_dir.name] = {"metrics": metrics, "run_info": info}
+        metrics_path, info_path = run_dir / METRICS_NAME, run_dir / RUN_INFO_NAME
+        if not (metrics_path.exists() and info_path.exists()):
+            continue  # not a run (fig6/, fig7/, ...) or an incomplete copy: missing
+        info = _read_json(info_path)
+        records[run_dir.name] = {"metrics": _read_metrics(metrics_path), "run_info": info}
     return records
+
+
+def page_inputs(results_dir: Path | str) -> list[Path]:
+    """What :func:`results_markdown` reads: the discussion (whether it exists or not) and every profile folder."""
+    results_dir = Path(results_dir)
+    return [results_dir / DISCUSSION_NAME, *(results_dir / profile for profile in PROFILE_COMMANDS)]
 
 
 def seeds_present(records: dict[str, dict[str, Any]]) -> list[int]:
@@ -150,6 +210,9 @@ def _table_section(table: str, profile: str, records: dict[str, dict[str, Any]],
             ours = _row_cell(row, row_values(row, seeds, metrics_of, c), decimals)
             cells.append(f"{'-' if paper is None else format(paper, f'.{decimals}f')} / {ours}")
         lines.append("| " + " | ".join(cells) + " |")
+    missing = sorted({run_name(row, s) for row in TABLES[table] for s in seeds} - set(records))
+    if missing:
+        lines += ["", f"Missing runs (no record in `results/{profile}/`): {', '.join(missing)}."]
     claims = [c for c in CLAIMS if c.table == table]
     lines += [
         "",
@@ -344,7 +407,7 @@ def results_markdown(results_dir: Path | str) -> str:
         "deviation of that difference. A step within that spread is seed noise, whatever its sign.",
         "",
     ]
-    discussion = results_dir / "discussion.md"
+    discussion = results_dir / DISCUSSION_NAME
     if discussion.is_file():
         lines += [discussion.read_text().rstrip(), ""]
     for profile in PROFILE_COMMANDS:

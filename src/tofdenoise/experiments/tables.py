@@ -44,6 +44,7 @@ __all__ = [
     "table_rows",
     "table_specs",
     "METRIC_COLUMNS",
+    "metric_value",
 ]
 
 #: metric column key -> (metrics.json set, metric key, header, decimals)
@@ -427,7 +428,8 @@ def table_specs(
     return list(specs.values())
 
 
-def _value(metrics: Mapping[str, Any] | None, column: str, raw: bool = False) -> float:
+def metric_value(metrics: Mapping[str, Any] | None, column: str, raw: bool = False) -> float:
+    """One ``METRIC_COLUMNS`` value of a run's ``metrics.json`` (``raw``: the noisy input's); NaN when absent."""
     if not metrics:
         return math.nan
     set_name, key, _, _ = METRIC_COLUMNS[column]
@@ -447,8 +449,8 @@ def row_values(row: Row, seeds: Sequence[int], metrics_of: Any, column: str) -> 
     evaluated on identical inputs: ``data.eval_noise``).
     """
     if row.key == "raw":
-        return [_value(metrics_of(run_name(row, s)), column, raw=True) for s in seeds]
-    return [_value(metrics_of(run_name(row, s)), column) for s in seeds]
+        return [metric_value(metrics_of(run_name(row, s)), column, raw=True) for s in seeds]
+    return [metric_value(metrics_of(run_name(row, s)), column) for s in seeds]
 
 
 def chain_values(claim: Claim, seeds: Sequence[int], metrics_of: Any) -> list[list[float]]:

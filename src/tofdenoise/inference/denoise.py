@@ -36,6 +36,24 @@ def resolve_device(device: str | torch.device = "auto") -> torch.device:
     return dev
 
 
+def load_failure_reason(exc: BaseException) -> str:
+    """Why ``torch.load(weights_only=True)`` failed, in one line and without torch's advice to load with
+    ``weights_only=False`` (which would run whatever code the file pickles: never do that for a file you did not
+    write)."""
+    import pickle
+
+    text = str(exc)
+    if isinstance(exc, pickle.UnpicklingError) or "weights_only" in text:
+        found = [ln.strip() for ln in text.splitlines() if "Unsupported global" in ln or "Unsupported operand" in ln]
+        what = f": {found[0]}" if found else ""
+        return (
+            f"it holds pickled Python objects that a weights-only load refuses{what}; a tofdenoise checkpoint "
+            "holds plain values only"
+        )
+    first = text.strip().splitlines()[0] if text.strip() else type(exc).__name__
+    return first.split("  (Could this error message be improved?")[0].strip()
+
+
 def load_restorer(ckpt: str | Path, device: str | torch.device = "cpu"):
     """A ``DepthRestorer`` in eval mode from a checkpoint of ``tofdenoise-train`` / ``tofdenoise fit``; anything
     else is a ``CheckpointError`` naming the file and what was expected."""
@@ -49,7 +67,7 @@ def load_restorer(ckpt: str | Path, device: str | torch.device = "cpu"):
         content = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # not a torch file, truncated, pickled objects ...
         raise CheckpointError(
-            f"checkpoint {path} could not be read as a PyTorch checkpoint ({exc}); {expected}"
+            f"checkpoint {path} could not be read as a PyTorch checkpoint ({load_failure_reason(exc)}); {expected}"
         ) from exc
     hparams = content.get("hyper_parameters") if isinstance(content, dict) else None
     if (

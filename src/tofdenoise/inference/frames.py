@@ -3,7 +3,9 @@
 Depth formats (by suffix): 16-bit PNG/TIFF holding millimetres (0 = invalid), ``.npy`` float or integer maps in
 millimetres (NaN, inf, 0 and negative values = invalid), ``.exr`` (the depth-like channel, same validity). A
 ``depth_scale_mm`` other than 1 converts stored units to mm (e.g. 0.25 for a camera counting quarter millimetres,
-1000 for metres). An 8-bit or colour image is refused: it cannot hold depth in millimetres.
+1000 for metres). An 8-bit or colour image is refused: it cannot hold depth in millimetres. Without a depth scale,
+``check_depth_units_mm`` refuses a frame whose median valid depth is below ``MIN_MEDIAN_DEPTH_MM`` (20 mm): such a
+frame is almost surely in metres or centimetres (a Kinect frame / 1000), not a scene 2 cm from the camera.
 
 Amplitude frames are paired by the depth frame's stem (``pair_amplitude``): from a folder (the depth frame's
 sub-folder mirrored, then the folder itself), from a template with ``{stem}`` (e.g. ``amp/{stem}_amp.png``), or
@@ -30,10 +32,16 @@ __all__ = [
     "read_depth_frame",
     "load_frame",
     "FrameError",
+    "MIN_MEDIAN_DEPTH_MM",
+    "check_depth_units_mm",
 ]
 
 DEPTH_FRAME_SUFFIXES = (".png", ".tif", ".tiff", ".npy", ".exr")
 AMPLITUDE_SUFFIXES = (".png", ".tif", ".tiff", ".npy", ".exr")
+
+
+#: a frame whose median valid depth lies below this is refused as not in millimetres unless a depth scale is given
+MIN_MEDIAN_DEPTH_MM = 20.0
 
 
 class FrameError(ValueError):
@@ -209,3 +217,16 @@ def load_frame(frame: FrameInput, depth_scale_mm: float = 1.0, amplitude: Amplit
             )
         amp = np.where(np.isfinite(amp), amp, 0.0).astype(np.float32)
     return Frame(depth_mm=depth, valid=valid, amplitude=amp, name=frame.rel_stem.as_posix())
+
+
+def check_depth_units_mm(frame: Frame, path: str | Path) -> None:
+    """FrameError naming ``--depth-scale-mm`` when the median of the frame's valid depths is below
+    ``MIN_MEDIAN_DEPTH_MM``: implausible in millimetres (e.g. a depth map in metres written as float)."""
+    if not frame.valid.any():
+        return
+    median_mm = float(np.median(frame.depth_mm[frame.valid]))
+    if median_mm < MIN_MEDIAN_DEPTH_MM:
+        raise FrameError(
+            f"depth file {path}: median valid depth {median_mm:.4g} is implausible in millimetres (below "
+            f"{MIN_MEDIAN_DEPTH_MM:g}); give the file's units with --depth-scale-mm (e.g. 1000 for metres, 10 for cm)"
+        )

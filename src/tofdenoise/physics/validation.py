@@ -446,14 +446,18 @@ def plot_validation(result: ValidationResult, path: str | os.PathLike[str]) -> P
     return path
 
 
+#: the files ``write_validation`` writes into its folder
+VALIDATION_FILES = ("validation.json", "validation.png")
+
+
 def write_validation(
     result: ValidationResult, calib: SensorCalibration, out_dir: str | os.PathLike[str]
 ) -> tuple[Path, Path]:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    json_path = out / "validation.json"
+    json_path = out / VALIDATION_FILES[0]
     atomic_write_text(json_path, json.dumps(result.to_dict(calib), indent=2, allow_nan=True) + "\n")
-    png = plot_validation(result, out / "validation.png")
+    png = plot_validation(result, out / VALIDATION_FILES[1])
     return json_path, png
 
 
@@ -473,6 +477,7 @@ def calibrate_simulated_camera(calib: SensorCalibration, seed: int = 0, shape: t
 
 
 __all__ = [
+    "VALIDATION_FILES",
     "EXPOSURES",
     "calibrate_simulated_camera",
     "PLANAR_REFLECTANCE",

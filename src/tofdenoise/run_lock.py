@@ -1,0 +1,261 @@
+"""One writer per run folder: a lock file in the folder that names its holder.
+
+Two trainings started with the same ``paths.run_dir`` used to both run and exit 0, the second overwriting the
+first's checkpoints and records. :class:`RunLock` (``<run_dir>/run.lock``) lets one process write a run folder at a
+time; the entry points take it before they touch the folder (``tofdenoise-train`` and ``tofdenoise-classic``
+through a Hydra callback, :class:`HydraRunLock`, before Hydra writes ``.hydra/`` and its log; ``tofdenoise``
+(LightningCLI) before any class is instantiated) and release it on exit, exceptions included.
+
+- **Holder.** The lock file is JSON: ``pid``, ``host``, ``started`` (ISO time) and ``command`` (the command line),
+  so a refusal can say who writes the folder: one line naming the lock file and its holder
+  (:class:`RunLockedError`, a ``RuntimeError``; the commands print it and exit with status 2).
+- **Exclusion.** The holder keeps an exclusive ``fcntl.flock`` on the open lock file for as long as it runs. The
+  kernel drops it when the process ends in any way (exception, ``SIGKILL``, a crash), so a second writer on the
+  same machine can never take a lock that is held; after taking the flock a writer checks that the path still names
+  the file it locked (a releasing holder unlinks it), else it tries again.
+- **Stale locks.** A lock file left by a process that died without releasing (SIGKILL, power loss) names a pid.
+  When that pid is dead on this host the lock is stale: it is taken over with a warning naming the old holder (an
+  unreadable lock file whose flock is free is stale too). A holder on another host cannot be checked from here
+  and is refused (delete the file once that run is gone).
+- **Re-entrant.** The process that holds a folder's lock may take it again (the Hydra callback, then the run
+  itself); it is released when the outermost holder releases it. DDP worker processes (``LOCAL_RANK`` or ``RANK``
+  set and not 0, started by the rank-0 process that holds the lock) do not take it.
+
+Why not ``filelock`` (installed with torch): its ``FileLock`` excludes other processes the same way (``flock``)
+but records no holder, so a refusal could not say who holds the folder, and its ``SoftFileLock`` (a plain file)
+cannot tell a crashed holder's leftover lock from a live one. Both needs take a few lines on top of ``fcntl``, so
+this module uses ``fcntl`` directly rather than wrapping ``filelock`` and re-reading its file. POSIX only.
+"""
+
+from __future__ import annotations
+
+import atexit
+import fcntl
+import json
+import logging
+import os
+import shlex
+import socket
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+__all__ = ["LOCK_NAME", "HydraRunLock", "RunLock", "RunLockedError", "is_worker_rank", "release_all"]
+
+log = logging.getLogger("tofdenoise.run_lock")
+
+#: the lock file's name inside a run folder
+LOCK_NAME = "run.lock"
+#: locks held by this process, by resolved run folder (re-entrant)
+_HELD: dict[Path, RunLock] = {}
+_ATEXIT = False
+
+
+class RunLockedError(RuntimeError):
+    """The run folder is being written by another process (the message names the lock file and its holder)."""
+
+
+def is_worker_rank() -> bool:
+    """A DDP process other than rank 0: its launcher (rank 0) holds the run folder's lock."""
+    return any(os.environ.get(k, "0") not in ("", "0") for k in ("LOCAL_RANK", "RANK", "NODE_RANK"))
+
+
+def _host() -> str:
+    return socket.gethostname()
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # exists, owned by another user
+        return True
+    return True
+
+
+def _holder_text(holder: dict[str, Any]) -> str:
+    return (
+        f"pid {holder.get('pid', '?')} on {holder.get('host', '?')} since {holder.get('started', '?')} "
+        f"({holder.get('command', '?')})"
+    )
+
+
+class RunLock:
+    """The lock of ``run_dir`` (module docstring). ``acquire()`` / ``release()``, or use it as a context manager.
+
+    ``command``: what the holder runs, recorded in the lock file (default: this process's command line)."""
+
+    def __init__(self, run_dir: str | os.PathLike[str], command: str | None = None):
+        self.run_dir = Path(run_dir).expanduser().resolve()
+        self.path = self.run_dir / LOCK_NAME
+        self.command = command if command is not None else shlex.join([Path(sys.argv[0]).name, *sys.argv[1:]])
+        self._fd: int | None = None
+        self._depth = 0
+
+    # -------------------------------------------------------------- the lock file
+    def _read_holder(self, fd: int) -> dict[str, Any] | None:
+        os.lseek(fd, 0, os.SEEK_SET)
+        raw = b""
+        while chunk := os.read(fd, 65536):
+            raw += chunk
+        if not raw.strip():
+            return None
+        try:
+            holder = json.loads(raw.decode("utf-8"))
+        except (UnicodeDecodeError, ValueError):
+            return {"command": f"unreadable lock file ({len(raw)} bytes)"}
+        return holder if isinstance(holder, dict) else {"command": "unreadable lock file"}
+
+    def _refuse(self, holder: dict[str, Any] | None, why: str) -> RunLockedError:
+        who = _holder_text(holder) if holder else "another process"
+        return RunLockedError(f"run folder {self.run_dir} is locked by {who}: {why} (lock file {self.path})")
+
+    def _open_locked(self) -> int:
+        """An fd of the lock file with the flock held, the path still naming that file."""
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        while True:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                holder = self._read_holder(fd)
+                os.close(fd)
+                raise self._refuse(
+                    holder, "one writer per run folder; wait for it or choose another run folder"
+                ) from None
+            except BaseException:
+                os.close(fd)
+                raise
+            try:
+                same = os.fstat(fd).st_ino == os.stat(self.path).st_ino
+            except FileNotFoundError:
+                same = False
+            if same:
+                return fd
+            os.close(fd)  # the holder released (unlinked) it between our open and flock: try again
+
+    # -------------------------------------------------------------- public
+    def acquire(self) -> RunLock:
+        """Take the lock (or, in the process holding it already, count one more holder); RunLockedError when
+        another live process holds it."""
+        held = _HELD.get(self.run_dir)
+        if held is not None:
+            held._depth += 1
+            return held
+        fd = self._open_locked()
+        try:
+            holder = self._read_holder(fd)
+            if holder is not None and not (holder.get("pid") == os.getpid() and holder.get("host") == _host()):
+                same_host = holder.get("host") == _host()
+                pid = holder.get("pid")
+                if "host" in holder and not same_host:
+                    raise self._refuse(
+                        holder,
+                        "a holder on another host cannot be checked from here; delete the lock file once "
+                        "that run is gone",
+                    )
+                if isinstance(pid, int) and _pid_alive(pid) and pid != os.getpid():
+                    raise self._refuse(
+                        holder, "that process is alive; delete the lock file if it is not a tofdenoise run"
+                    )
+                log.warning("run folder %s: stale lock of %s taken over", self.run_dir, _holder_text(holder))
+                print(
+                    f"warning: taking over the stale lock {self.path}: {_holder_text(holder)} is no longer running",
+                    file=sys.stderr,
+                )
+            record = {
+                "pid": os.getpid(),
+                "host": _host(),
+                "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+                "command": self.command,
+            }
+            os.ftruncate(fd, 0)
+            os.lseek(fd, 0, os.SEEK_SET)
+            os.write(fd, (json.dumps(record) + "\n").encode("utf-8"))
+            os.fsync(fd)
+        except BaseException:
+            os.close(fd)
+            raise
+        self._fd, self._depth = fd, 1
+        global _ATEXIT
+        if not _ATEXIT:  # an interrupted run (KeyboardInterrupt) leaves no lock behind
+            _ATEXIT = atexit.register(release_all) is not None
+        _HELD[self.run_dir] = self
+        return self
+
+    def release(self) -> None:
+        """Drop one hold; the last one removes the lock file and the flock."""
+        held = _HELD.get(self.run_dir)
+        if held is None:
+            return
+        held._depth -= 1
+        if held._depth > 0:
+            return
+        del _HELD[self.run_dir]
+        fd, held._fd = held._fd, None
+        try:
+            self.path.unlink(missing_ok=True)
+        finally:
+            if fd is not None:
+                os.close(fd)
+
+    def __enter__(self) -> RunLock:
+        if not is_worker_rank():
+            self.acquire()
+            self._entered = True
+        else:
+            self._entered = False
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if getattr(self, "_entered", False):
+            self.release()
+
+
+def release_all() -> None:
+    """Release every run-folder lock this process holds (an entry point's last step)."""
+    for lock in list(_HELD.values()):
+        lock._depth = 1
+        lock.release()
+
+
+class HydraRunLock:
+    """Hydra callback (``hydra.callbacks.run_lock`` in ``configs/train.yaml``): takes the lock of ``hydra.run.dir``
+    before Hydra writes ``.hydra/`` and its log there, releases it at the end of the run. A refusal is one line on
+    stderr and exit status 2."""
+
+    def __init__(self, prog: str = "tofdenoise-train"):
+        self.prog = prog  # the command named in a refusal
+
+    def on_run_start(self, config: Any, **kwargs: Any) -> None:
+        from omegaconf import OmegaConf
+
+        if is_worker_rank():
+            return
+        run_dir = OmegaConf.select(config, "hydra.run.dir")
+        try:
+            RunLock(str(run_dir)).acquire()
+        except RunLockedError as exc:
+            print(f"{self.prog}: error: {exc}", file=sys.stderr)
+            raise SystemExit(2) from None
+
+    def on_run_end(self, config: Any, **kwargs: Any) -> None:
+        release_all()
+
+    # the remaining Hydra callback hooks (hydra.experimental.callback.Callback) do nothing
+    def on_multirun_start(self, config: Any, **kwargs: Any) -> None:
+        pass
+
+    def on_multirun_end(self, config: Any, **kwargs: Any) -> None:
+        pass
+
+    def on_job_start(self, config: Any, **kwargs: Any) -> None:
+        pass
+
+    def on_job_end(self, config: Any, job_return: Any, **kwargs: Any) -> None:
+        pass
+
+    def on_compute_sweep_start(self, config: Any, **kwargs: Any) -> None:
+        pass
