@@ -213,3 +213,21 @@ def test_validate_refuses_an_out_whose_files_would_replace_its_inputs(tmp_path, 
     err = capsys.readouterr().err
     assert f"would replace the input {calib}" in err and calib.read_bytes() == before
     assert not (tmp_path / "validation.png").exists()
+
+
+def test_calibrate_out_an_existing_folder_is_one_line_before_any_work(tmp_path, capsys):
+    """--out naming a folder (even one called *.yaml) was an IsADirectoryError traceback after the whole
+    calibration had run; now it is one line, exit 2, and the folder is untouched."""
+    from tofdenoise.cli.sensor import main
+    from tofdenoise.physics.synthetic_captures import write_dark_folder, write_sweep_folder
+
+    true = default_calibration()
+    sweep = write_sweep_folder(true, tmp_path / "sweep", num_steps=8, num_frames=2)
+    dark = write_dark_folder(true, tmp_path / "dark", num_frames=4)
+    for name in ("folder.yaml", "plain_folder"):
+        out = tmp_path / name
+        out.mkdir()
+        assert main(["calibrate", "--sweep", str(sweep), "--dark", str(dark), "--out", str(out)]) == 2
+        err = capsys.readouterr().err
+        assert f"{out} is a folder: give a calibration file name" in err and "Traceback" not in err
+        assert list(out.iterdir()) == []

@@ -111,10 +111,11 @@ def cmd_sigma(args: argparse.Namespace) -> int:
 def cmd_calibrate(args: argparse.Namespace) -> int:
     from tofdenoise.output_guard import refuse_overwrite
     from tofdenoise.physics.calibrate import calibrate_from_folders
-    from tofdenoise.physics.calibration import save_calibration
+    from tofdenoise.physics.calibration import check_calibration_out, save_calibration
 
     # the calibration file may not replace a file of the capture folders it is computed from (their index.json)
     refuse_overwrite([args.out], [f for f in (args.sweep, args.dark, args.distances) if f is not None])
+    check_calibration_out(args.out)  # a folder or a wrong suffix: said before the calibration is computed
 
     lo, hi = args.signal_percentiles
     report = calibrate_from_folders(

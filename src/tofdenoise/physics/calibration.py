@@ -551,9 +551,19 @@ def load_calibration(path: str | os.PathLike[str]) -> SensorCalibration:
     return SensorCalibration.from_dict(data, source=str(path))
 
 
+def check_calibration_out(path: str | os.PathLike[str]) -> Path:
+    """A path a calibration can be written to: a .yaml/.yml/.json file name, not an existing folder (checked
+    before the work that produces the calibration)."""
+    path = Path(path)
+    if path.is_dir():
+        raise CalibrationError(f"{path} is a folder: give a calibration file name, e.g. {path / 'calibration.yaml'}")
+    _suffix_kind(path)
+    return path
+
+
 def save_calibration(calib: SensorCalibration, path: str | os.PathLike[str], header: str | None = None) -> Path:
     """Write a calibration as YAML or JSON (by suffix), atomically. Returns the path."""
-    path = Path(path)
+    path = check_calibration_out(path)
     kind = _suffix_kind(path)
     d = calib.to_dict()
     if kind == "json":
@@ -606,6 +616,7 @@ __all__ = [
     "CalibrationError",
     "FIELDS",
     "FixedPatternNoise",
+    "check_calibration_out",
     "SensorCalibration",
     "TapResponse",
     "default_calibration",
