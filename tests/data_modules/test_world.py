@@ -82,3 +82,36 @@ def test_stand_in_capture_set_loses_pixels_like_a_real_camera(tmp_path):
     invalid = np.array([1.0 - i["input_valid_fraction"] for i in infos])
     assert len(invalid) == 16 and 0.03 <= invalid.mean() <= 0.25 and invalid.max() < 0.9
     assert all(i["reference_exposure"] >= 1.0 for i in infos)
+
+
+def test_physical_maps_hold_only_what_the_camera_can_measure():
+    """A pixel below the camera's threshold or saturated is a hole in every frame: it is not in the maps, so its
+    sigma_D (hundreds of mm) never enters the hetero mean variance the Gaussian baselines are matched to."""
+    from tofdenoise.data_modules.maps import compute_sample_maps
+    from tofdenoise.data_modules.sources.procedural import ProceduralSource
+    from tofdenoise.physics.calibration import resolve_calibration
+    from tofdenoise.physics.noise_models import FixedNoise, variance_matching_scale
+    from tofdenoise.physics.photometry import field_cosine, physical_signal_e, saturated
+    from tofdenoise.physics.simulator import default_min_amplitude_e
+
+    calib = resolve_calibration("default")
+    c1, thr = calib.tap_response.first_harmonic_amplitude, default_min_amplitude_e(calib)
+    src = ProceduralSource(num_samples=12, height=72, width=96, max_depth_mm=0.8 * calib.unambiguous_range_mm)
+    cos_field = field_cosine(72, 96, src.hfov_deg)
+    dropped = 0
+    samples = []
+    for sid in src.sample_ids():
+        raw = src.load(sid)
+        maps = compute_sample_maps(raw, calib, signal_route="physical", cos_field=cos_field)
+        m = maps.mask
+        assert (maps.signal_e[m] * c1 >= thr).all() and not saturated(maps.depth_mm[m], maps.signal_e[m], calib).any()
+        signal = physical_signal_e(raw.amplitude, calib, cos_field)
+        dropped += int((raw.valid & ~m).sum())
+        assert ((signal[raw.valid & ~m] * c1 < thr) | saturated(raw.depth_mm, signal, calib)[raw.valid & ~m]).all()
+        samples.append((maps.depth_mm, maps.sigma_mm, m))
+    assert dropped > 0  # the scenes do have unmeasurable surfaces
+    sigma_max = max(float(s[m].max()) for _, s, m in samples)
+    assert sigma_max < 200.0  # near the threshold sigma_D is ~100 mm; below it, it ran to thousands
+    fixed_std = variance_matching_scale(FixedNoise(), samples) * FixedNoise().sigma_mm  # scale x its 5 mm
+    rms = float(np.sqrt(np.mean(np.concatenate([(s[m] ** 2) for _, s, m in samples]))))
+    assert fixed_std == pytest.approx(rms, rel=1e-6)

@@ -304,6 +304,8 @@ class ToFDataModule(L.LightningDataModule):
             "calibration": self.calib.fingerprint(),
             "signal_percentiles": [hp.signal_lower_percentile, hp.signal_upper_percentile],
             "signal_route": self.signal_route,
+            # the physical route's maps hold only what the camera can measure (maps.measurable): version 2
+            **({"maps_version": 2} if self.signal_route == "physical" else {}),
         }
         cache = MapCache(base, key, enabled=hp.use_cache)
         provider = MapProvider(
