@@ -27,6 +27,10 @@ WORLDS: tuple[tuple[str, str], ...] = (
 )
 
 
+#: the figure's short x tick labels
+TICKS = {"dr16": "16", "dr64": "64", "dr256": "256", "": "physical", LONG_SCHEDULE[0]: "physical,\n4x steps"}
+
+
 @dataclass(frozen=True)
 class Gain:
     """Hetero's paired gains in one world for one backbone (mm; mean, std over seeds; n seeds)."""
@@ -140,7 +144,8 @@ def gain_figure_png(items: list[Gain]) -> bytes:
             ax.errorbar(x, y, yerr=e, marker="o", capsize=3, label=f"{DYNRANGE_BACKBONES[backbone]} (n per point: "
                         f"{'/'.join(str(g.n) for g in pts)})")  # fmt: skip
         ax.axhline(0.0, color="grey", lw=0.8)
-        ax.set_xticks(range(len(WORLDS)), [label.replace(", ", "\n") for _, label in WORLDS], fontsize=8)
+        ax.set_xticks(range(len(WORLDS)), [TICKS.get(tag, tag) for tag, _ in WORLDS], fontsize=8)
+        ax.set_xlabel("world: a_max / a_min of the linear route, or the physical route", fontsize=8)
         ax.set_title(title, fontsize=10)
         ax.grid(alpha=0.3)
     axes[0].set_ylabel("MAE(baseline) - MAE(hetero), mm\n(> 0: hetero better)")
