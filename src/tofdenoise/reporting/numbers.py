@@ -8,13 +8,15 @@ from a ``metrics.json``.
 - :func:`read_number`: a metric value as ``metrics.json`` stores it (a number, ``null``, or ``"inf"`` / ``"-inf"``,
   see ``training.results.json_number``) as a float, or None.
 
-Nothing here imports the rest of the package: the experiments and every renderer can use it.
+It imports only ``training.results`` (the schema): the experiments and every renderer can use it.
 """
 
 from __future__ import annotations
 
 import math
 from typing import Any, NamedTuple
+
+from tofdenoise.training.results import json_number
 
 __all__ = ["MetricColumn", "METRIC_COLUMNS", "METRICS_BY_KEY", "format_number", "read_number"]
 
@@ -40,15 +42,14 @@ METRICS_BY_KEY: dict[str, MetricColumn] = {c.key: c for c in METRIC_COLUMNS}
 
 
 def format_number(v: Any, decimals: int = 2, missing: str = "-") -> str:
-    """``v`` with ``decimals`` decimals; ``missing`` for None and NaN; ``inf`` / ``-inf`` for the infinities."""
-    if v is None:
+    """``v`` with ``decimals`` decimals; ``missing`` for None and NaN; ``inf`` / ``-inf`` for the infinities (what
+    ``metrics.json`` stores for them: ``training.results.json_number``)."""
+    stored = json_number(v)
+    if stored is None:
         return missing
-    v = float(v)
-    if math.isnan(v):
-        return missing
-    if math.isinf(v):
-        return "inf" if v > 0 else "-inf"
-    return f"{v:.{decimals}f}"
+    if isinstance(stored, str):
+        return stored
+    return f"{stored:.{decimals}f}"
 
 
 def read_number(v: Any) -> float | None:
