@@ -135,7 +135,7 @@ def bench_ss2d(quick: bool) -> list[dict[str, Any]]:
             rows.append(row)
         del block._spatial_scan  # back to the class's own dispatch
     # the fused scan alone: bytes it must move at least once, per second of its forward
-    from tofdenoise.models.scan_triton import ss2d_scan_triton
+    from tofdenoise.models.scan.triton import ss2d_scan_triton
 
     di, n, length = block.d_inner, block.d_state, size * size
     g = torch.Generator(device="cuda").manual_seed(0)

@@ -48,6 +48,29 @@ def _time(fn, reps: int = 1) -> float:
     return best
 
 
+def roofline_updates_per_s(seconds: float = 1.0) -> tuple[float, float]:
+    """Measured peak of the native kernel's exp + 3 multiply-add loop (the scan's floor per state update), using
+    torch's threads: (updates per second, seconds spent)."""
+    import torch
+
+    from tofdenoise.models.scan.cpu import load_extension
+
+    ext = load_extension()
+    if ext is None:
+        raise RuntimeError("roofline: the native CPU kernel is not available")
+    tasks = 8 * torch.get_num_threads()
+    repeats = 2000
+    ext.roofline_loop(tasks, 10)  # warm-up
+    while True:
+        t0 = time.perf_counter()
+        ext.roofline_loop(tasks, repeats)
+        dt = time.perf_counter() - t0
+        if dt > 0.2 * seconds or repeats > 10**8:
+            break
+        repeats *= 4
+    return tasks * 256 * repeats / dt, dt
+
+
 def scan_inputs(batch: int, groups: int, dg: int, length: int, n: int):
     import torch
 
@@ -66,7 +89,8 @@ def scan_inputs(batch: int, groups: int, dg: int, length: int, n: int):
 def bench_scan(args) -> None:
     import torch
 
-    from tofdenoise.models import scan_cpu, selective_scan
+    from tofdenoise.models import selective_scan
+    from tofdenoise.models.scan import cpu as scan_cpu
 
     batch, groups, dg, length, n = (4, 4, 64, 1024 if args.quick else 4096, 16)
     dim = groups * dg
@@ -113,7 +137,7 @@ def bench_scan(args) -> None:
             rows[f"{backend}_fb"].append(_time(run, 2 if backend == "cpu" else 1))
             cpu_s[f"{backend}_fb"].append(CPU_TIMES[id(run)])
         rows["ss2d_fb"].append(_time(ss2d_fwdbwd, 2))
-        rows["roof"].append(scan_cpu.roofline_updates_per_s(seconds=0.5)[0])
+        rows["roof"].append(roofline_updates_per_s(seconds=0.5)[0])
     med = {k: statistics.median(v) for k, v in rows.items()}
     roof = med["roof"]
     print("| route | forward (ms) | forward+backward (ms) | forward updates/s | fraction of roofline |")
@@ -236,7 +260,7 @@ def main(argv: list[str] | None = None) -> int:
     import torch
 
     torch.set_num_threads(args.threads)
-    from tofdenoise.models.scan_cpu import cpu_kernel_available
+    from tofdenoise.models.scan.cpu import cpu_kernel_available
 
     print(
         f"# bench_scan_cpu: torch {torch.__version__}, threads {torch.get_num_threads()}, cpu count "

@@ -64,7 +64,7 @@ def _ptxas_report(ptx: str, arch: int) -> tuple[int, int, int]:
 
 
 def resources(st, route: str, dtype: str, warps: int, block_d: int, arch: int = 90, d_state: int = 16) -> list[dict]:
-    """Compile the forward and backward kernels of module ``st`` (``tofdenoise.models.scan_triton``, imported
+    """Compile the forward and backward kernels of module ``st`` (``tofdenoise.models.scan.triton``, imported
     without the interpreter) for one setting; one row per kernel with the ptxas figures."""
     consts = dict(
         CHUNK_T=st.CHUNK,
@@ -103,7 +103,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--d-state", type=int, default=16)
     args = p.parse_args(argv)
     os.environ["TRITON_INTERPRET"] = "0"  # compile, do not interpret
-    from tofdenoise.models import scan_triton as st
+    from tofdenoise.models.scan import triton as st
 
     if st.triton is None:
         print("triton_resources: skipped (Triton is not installed)")

@@ -4,7 +4,7 @@ Usage: python benchmarks/tune_scan_triton.py [--length 102400] [--dim 256] [--ss
 
 For chunk x channels-per-program x warps, with float32 and bf16 inputs (u, delta, B, C), prints the forward and
 forward+backward milliseconds and the largest relative difference from the float32 PyTorch scan, at the size of
-DVSS's first stage on a 320x320 batch of 4 by default. Set the winners in ``tofdenoise.models.scan_triton``
+DVSS's first stage on a 320x320 batch of 4 by default. Set the winners in ``tofdenoise.models.scan.triton``
 (CHUNK, BLOCK_D_MAX, NUM_WARPS). The defaults were tuned on an H100 (docs/benchmarks.md).
 ``--ss2d`` tunes the SS2D route instead (channels-last, four directions read in place; ``SS2D_BLOCK_D_MAX``) at
 the same size: --dim is then 4 x d_inner and --length H x W of a square image.
@@ -35,8 +35,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.ss2d:
         return tune_ss2d(args)
 
-    from tofdenoise.models import scan_triton as st
     from tofdenoise.models.scan import selective_scan_chunked
+    from tofdenoise.models.scan import triton as st
 
     b, dim, length, groups, n = args.batch, args.dim, args.length, args.groups, args.d_state
     g = torch.Generator(device="cuda").manual_seed(0)
@@ -74,7 +74,7 @@ def _sweep(block_name: str, blocks, make_inputs, call, ref, dy, label: dict | No
     line per setting; the module's constants are restored afterwards."""
     from bench_gpu import time_cuda  # benchmarks/ is on sys.path when run as a script
 
-    from tofdenoise.models import scan_triton as st
+    from tofdenoise.models.scan import triton as st
 
     defaults = (st.CHUNK, getattr(st, block_name), st.NUM_WARPS)
     try:
@@ -103,8 +103,8 @@ def _sweep(block_name: str, blocks, make_inputs, call, ref, dy, label: dict | No
 
 
 def tune_ss2d(args) -> int:
-
-    from tofdenoise.models import scan_triton as st
+    from tofdenoise.models.scan import ss2d_scan_reference
+    from tofdenoise.models.scan import triton as st
 
     side = int(round(args.length**0.5))
     b, di, n, length = args.batch, args.dim // 4, args.d_state, side * side
@@ -122,7 +122,7 @@ def tune_ss2d(args) -> int:
         return fn(ins[0], ins[1], ins[2], xd[..., 2 : 2 + n], xd[..., 2 + n :], D, bias, side, side)
 
     ref_in = [t.clone().requires_grad_() for t in (x, dts, A, x_dbl)]
-    ref_y = call(st.ss2d_scan_reference, ref_in)
+    ref_y = call(ss2d_scan_reference, ref_in)
     ref = [ref_y.detach(), *torch.autograd.grad(ref_y, ref_in, dy)]
     _sweep(
         "SS2D_BLOCK_D_MAX",

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 # Without a GPU the Triton scan kernels are tested in Triton's interpreter (CPU tensors); the switch must be set
-# before tofdenoise.models.scan_triton is imported. With a GPU they are compiled and run on it.
+# before tofdenoise.models.scan.triton is imported. With a GPU they are compiled and run on it.
 if not torch.cuda.is_available():
     os.environ.setdefault("TRITON_INTERPRET", "1")
 

@@ -6,8 +6,9 @@ import math
 
 import pytest
 
-from tofdenoise.experiments.dynrange import gain_figure_png, gains, gains_markdown
+from tofdenoise.experiments.dynrange import gain_figure_png, gains
 from tofdenoise.experiments.tables import TABLES, table_specs
+from tofdenoise.reporting.results_page import gains_markdown
 from tofdenoise.training.results import read_metrics_json, set_entry, write_metrics_json
 
 

@@ -23,8 +23,8 @@ from tofdenoise.experiments.figures import (
     pick_indices,
     render_figure,
 )
-from tofdenoise.experiments.results_page import results_markdown
 from tofdenoise.experiments.tables import table_specs
+from tofdenoise.reporting.results_page import results_markdown
 
 
 def test_pick_indices_are_evenly_spaced_and_not_chosen_by_result():

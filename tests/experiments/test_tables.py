@@ -10,10 +10,10 @@ from pathlib import Path
 
 import pytest
 
-from tofdenoise.experiments.results_page import load_records, results_markdown, run_minutes, seeds_present
 from tofdenoise.experiments.runner import RunSpec
 from tofdenoise.experiments.tables import CLAIMS, TABLES, claim_holds, claim_steps, table_specs
 from tofdenoise.paths import REPO_ROOT
+from tofdenoise.reporting.results_page import load_records, results_markdown, run_minutes, seeds_present
 
 
 def test_specs_are_one_per_distinct_run_and_shared_across_tables():
@@ -188,7 +188,7 @@ def test_results_page_mean_std_over_seeds(tmp_path):
 
 
 def test_a_seed_independent_row_shows_one_value_unless_its_seeds_disagree():
-    from tofdenoise.experiments.results_page import _row_cell
+    from tofdenoise.reporting.results_page import _row_cell
 
     raw = TABLES["1"][0]
     dvss = next(r for r in TABLES["1"] if r.key == "dvss_l1")

@@ -170,7 +170,7 @@ def test_dvss_activation_checkpointing_gives_same_gradients():
 def test_dvss_native_cpu_scan_route_matches_pytorch_route():
     """DVSS with the native CPU scan (direction reading, no cross_scan copies) equals the pure-PyTorch route
     (cross_scan + chunked scan), forward and every parameter gradient."""
-    from tofdenoise.models.scan_cpu import cpu_kernel_available
+    from tofdenoise.models.scan.cpu import cpu_kernel_available
 
     if not cpu_kernel_available():
         pytest.skip("native CPU scan not built on this machine")

@@ -36,7 +36,7 @@ from tofdenoise.atomic import atomic_write_text
 from tofdenoise.cli.train import record_calibration, validate_config
 from tofdenoise.config import hydra_console_script
 from tofdenoise.run_lock import RunLock, RunLockedError
-from tofdenoise.training.results import RUN_INFO_NAME
+from tofdenoise.training.results import RUN_INFO_NAME, json_number
 
 __all__ = ["main", "run", "grid_points", "tune", "select_best", "TUNING_NAME", "GRID_KEYS", "DEFAULT_BACKBONE"]
 
@@ -127,12 +127,6 @@ def tune(
     return [values(m) for m in metrics], values(raw), raw.counts()["images"]
 
 
-def _json_value(v: float) -> float | str | None:
-    if math.isnan(v):
-        return None
-    return v if math.isfinite(v) else ("inf" if v > 0 else "-inf")
-
-
 def _device(choice: str, cfg: DictConfig) -> torch.device:
     choice = str(choice or "auto")
     if choice == "auto":
@@ -206,9 +200,9 @@ def _tune_and_test(
     best_params = dict(points[best_i])
     rows = [
         {
-            **{k: (_json_value(float(v)) if isinstance(v, float) else v) for k, v in p.items()},
+            **{k: (json_number(float(v)) if isinstance(v, float) else v) for k, v in p.items()},
             "radius_px_used": int(m.backbone.radius_px),
-            **{k: _json_value(v) for k, v in s.items()},
+            **{k: json_number(v) for k, v in s.items()},
         }
         for p, m, s in zip(points, models, scores)
     ]
@@ -224,7 +218,7 @@ def _tune_and_test(
         "points": rows,
         "best_index": best_i,
         "best": rows[best_i],
-        "raw": {k: _json_value(v) for k, v in raw.items()},
+        "raw": {k: json_number(v) for k, v in raw.items()},
     }
     atomic_write_text(run_dir / TUNING_NAME, json.dumps(tuning, indent=2, allow_nan=False) + "\n")
     log.info(

@@ -53,8 +53,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from tofdenoise.experiments.grids import robustness_rows, robustness_specs, robustness_table
+    from tofdenoise.experiments.grids import robustness_rows, robustness_specs
     from tofdenoise.experiments.runner import run_all
+    from tofdenoise.reporting.robustness import robustness_table
 
     args = build_parser().parse_args(argv)
     specs = robustness_specs(args.backbones, args.noises, args.losses, args.sensors, args.seeds, args.extra)

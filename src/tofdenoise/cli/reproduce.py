@@ -14,8 +14,8 @@ set (finished runs are skipped, interrupted ones resume, a failing run does not 
 (3) each finished run's ``metrics.json`` and ``run_info.json`` copied to ``docs/results/<profile>/<run>/``;
 (4) ``docs/results.md`` rebuilt from those records. Exit status 0 when every run of the table finished; 2 when
 ``--page`` would replace what the page is built from (the discussion, a record: ``tofdenoise.output_guard``,
-checked before anything runs) or when a record cannot be used (``results_page.RecordError``, naming the file; a
-run without a record is listed on the page as missing).
+checked before anything runs) or when a record cannot be used (``reporting.results_page.RecordError``, naming the
+file; a run without a record is listed on the page as missing).
 ``fig7`` / ``fig8`` (the qualitative figures) train the runs of their columns for the first seed when missing,
 then render the figure from those runs' best checkpoints (``tofdenoise.experiments.figures``), check it against
 the runs' per-image records and commit ``figure.png`` and ``figure.json`` to ``docs/results/<profile>/<fig>/``.
@@ -183,7 +183,7 @@ def write_report(dest: Path) -> None:
 def write_dynrange_figure(dest: Path, seeds: list[int]) -> None:
     """The dynamic-range study's gain figure from the committed records (``dest/dynrange/gains.png``)."""
     from tofdenoise.experiments.dynrange import gain_figure_png, gains
-    from tofdenoise.experiments.results_page import DYNRANGE_FIGURE, load_records
+    from tofdenoise.reporting.results_page import DYNRANGE_FIGURE, load_records
 
     records = load_records(dest)
     items = gains(lambda name: (records.get(name) or {}).get("metrics"), seeds)
@@ -252,8 +252,8 @@ def _qualitative(args: argparse.Namespace, realset_dir: Path, dest: Path, record
 
 
 def main(argv: list[str] | None = None) -> int:
-    from tofdenoise.experiments.results_page import RecordError, page_inputs
     from tofdenoise.output_guard import OutputPathError, check_output_file
+    from tofdenoise.reporting.results_page import RecordError, page_inputs
 
     args = build_parser().parse_args(argv)
     if not args.page_only and args.table is None:  # a usage error: exit 2, as argparse's own
@@ -271,9 +271,9 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _reproduce(args: argparse.Namespace) -> int:
-    from tofdenoise.experiments.results_page import results_markdown
     from tofdenoise.experiments.runner import run_all
     from tofdenoise.experiments.tables import table_specs
+    from tofdenoise.reporting.results_page import results_markdown
 
     status = 0
     if not args.page_only:

@@ -1,4 +1,5 @@
-"""Grids of training runs: the resumable runner and the named grids (robustness grid, paper tables)."""
+"""What runs: the resumable runner, the named grids (robustness grid, paper tables) and their rows; rendering is
+``tofdenoise.reporting``'s."""
 
 from .runner import RunOutcome, RunSpec, read_run, run_all, run_finished
 

@@ -18,7 +18,7 @@ from typing import Any
 
 from .tables import DYNAMIC_RANGES, DYNRANGE_BACKBONES, LONG_SCHEDULE, TABLES, dynrange_key, metric_value, run_name
 
-__all__ = ["Gain", "WORLDS", "gain_figure_png", "gains", "gains_markdown"]
+__all__ = ["Gain", "WORLDS", "gain_figure_png", "gains"]
 
 #: the worlds of the study in plot order: (tag, label); "" is the physical route
 WORLDS: tuple[tuple[str, str], ...] = (
@@ -93,30 +93,6 @@ def gains(metrics_of: Callable[[str], Mapping[str, Any] | None], seeds: list[int
                     )
                 )
     return out
-
-
-def _pm(ms: tuple[float, float]) -> str:
-    mean, std = ms
-    if not math.isfinite(mean):
-        return "-"
-    return f"{mean:+.3f}" + (f" ± {std:.3f}" if math.isfinite(std) else "")
-
-
-def gains_markdown(items: list[Gain]) -> list[str]:
-    """A Markdown table of the gains (one line per backbone and world)."""
-    if not items:
-        return ["No complete seed of any world yet.", ""]
-    lines = [
-        "| backbone | world | n | hetero MAE (mm) | gain over fixed (mm) | gain over range (mm) "
-        "| real: over fixed | real: over range |",
-        "|---|---|---:|---:|---:|---:|---:|---:|",
-    ]
-    for g in items:
-        lines.append(
-            f"| {DYNRANGE_BACKBONES[g.backbone]} | {g.label} | {g.n} | {g.hetero_mae:.3f} | {_pm(g.over_fixed)} "
-            f"| {_pm(g.over_range)} | {_pm(g.real_over_fixed)} | {_pm(g.real_over_range)} |"
-        )
-    return [*lines, ""]
 
 
 def gain_figure_png(items: list[Gain]) -> bytes:

@@ -1,4 +1,4 @@
-"""Named grids of runs and their tables.
+"""Named grids of runs and the rows of their tables (``tofdenoise.reporting.robustness`` renders them).
 
 ``robustness``: does the default recipe learn, whatever the backbone, noise model, loss, seed and camera?
 U-Net, Restormer and a small DVSS x hetero/range/fixed x L1/L_full x 3 seeds x 2 calibrations (the default
@@ -21,7 +21,6 @@ __all__ = [
     "ROBUSTNESS_MIN_REDUCTION",
     "robustness_specs",
     "robustness_rows",
-    "robustness_table",
 ]
 
 #: backbone -> extra overrides ("small DVSS": width 16, one block per level)
@@ -108,36 +107,3 @@ def robustness_rows(specs: Sequence[RunSpec], out_dir: Path | str) -> list[dict[
             }
         )
     return rows
-
-
-def _fmt(v: Any, spec: str = ".2f") -> str:
-    return "-" if v is None or (isinstance(v, float) and not math.isfinite(v)) else format(v, spec)
-
-
-def robustness_table(rows: Sequence[dict[str, Any]]) -> str:
-    """Markdown: one line per (backbone, sensor, noise, loss) with the per-seed reductions, then a summary."""
-    groups: dict[tuple, list[dict[str, Any]]] = {}
-    for r in rows:
-        groups.setdefault((r["backbone"], r["sensor"], r["noise"], r["loss"]), []).append(r)
-    lines = [
-        "| backbone | sensor | noise | loss | raw val MAE (mm) | best val MAE (mm) per seed | "
-        "reduction per seed | status |",
-        "|---|---|---|---|---|---|---|---|",
-    ]
-    for (b, s, n, loss), rs in groups.items():
-        raw = [r["raw_val_mae_mm"] for r in rs if math.isfinite(r["raw_val_mae_mm"])]
-        best = " / ".join(_fmt(r["best_val_mae_mm"]) for r in rs)
-        red = " / ".join(_fmt(100 * r["reduction"], ".0f") + ("%" if math.isfinite(r["reduction"]) else "") for r in rs)
-        statuses = {r["status"] for r in rs}
-        status = "FAIL" if "FAIL" in statuses else ("incomplete" if "missing" in statuses else "pass")
-        lines.append(f"| {b} | {s} | {n} | {loss} | {_fmt(raw[0]) if raw else '-'} | {best} | {red} | {status} |")
-    done = [r for r in rows if r["status"] != "missing"]
-    failed = [r for r in done if r["status"] == "FAIL"]
-    lines.append("")
-    lines.append(
-        f"{len(done)} of {len(rows)} runs finished; {len(done) - len(failed)} pass "
-        f"(>= {100 * ROBUSTNESS_MIN_REDUCTION:.0f} % below the raw validation MAE), {len(failed)} fail"
-        + (": " + ", ".join(r["name"] for r in failed) if failed else "")
-        + "."
-    )
-    return "\n".join(lines)

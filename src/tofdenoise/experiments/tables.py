@@ -31,6 +31,8 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from tofdenoise.reporting.numbers import METRICS_BY_KEY, MetricColumn, read_number
+
 from .runner import RunSpec
 
 __all__ = [
@@ -43,19 +45,28 @@ __all__ = [
     "row_spec",
     "table_rows",
     "table_specs",
-    "METRIC_COLUMNS",
+    "TABLE_COLUMNS",
+    "column_source",
+    "column_metric",
     "metric_value",
 ]
 
-#: metric column key -> (metrics.json set, metric key, header, decimals)
-METRIC_COLUMNS: dict[str, tuple[str, str, str, int]] = {
-    "psnr_db": ("synthetic", "psnr_db", "PSNR (dB)↑", 2),
-    "ssim": ("synthetic", "ssim", "SSIM↑", 4),
-    "mse_mm2": ("synthetic", "mse_mm2", "MSE (mm²)↓", 2),
-    "mae_mm": ("synthetic", "mae_mm", "MAE (mm)↓", 2),
-    "real_psnr_db": ("real", "psnr_db", "real PSNR (dB)↑", 2),
-    "real_mae_mm": ("real", "mae_mm", "real MAE (mm)↓", 2),
-}
+#: a table column is a metric of ``reporting.numbers.METRIC_COLUMNS`` on the synthetic test set (``mae_mm``) or,
+#: prefixed ``real_``, on the real set (``real_mae_mm``)
+REAL_PREFIX = "real_"
+
+
+def column_source(column: str) -> tuple[str, str]:
+    """(metrics.json set, metric key) of a table column; a KeyError for a column that names no metric."""
+    set_name, key = ("real", column[len(REAL_PREFIX) :]) if column.startswith(REAL_PREFIX) else ("synthetic", column)
+    if key not in METRICS_BY_KEY:
+        raise KeyError(column)
+    return set_name, key
+
+
+def column_metric(column: str) -> MetricColumn:
+    """The metric (header, decimals, direction) a table column shows."""
+    return METRICS_BY_KEY[column_source(column)[1]]
 
 
 @dataclass(frozen=True)
@@ -429,17 +440,16 @@ def table_specs(
 
 
 def metric_value(metrics: Mapping[str, Any] | None, column: str, raw: bool = False) -> float:
-    """One ``METRIC_COLUMNS`` value of a run's ``metrics.json`` (``raw``: the noisy input's); NaN when absent."""
+    """One table column's value (:func:`column_source`) of a run's ``metrics.json`` (``raw``: the noisy input's);
+    NaN when absent."""
     if not metrics:
         return math.nan
-    set_name, key, _, _ = METRIC_COLUMNS[column]
+    set_name, key = column_source(column)
     entry = metrics.get(set_name) or {}
     if raw:
         entry = entry.get("raw") or {}
-    v = entry.get(key)
-    if v == "inf":
-        return math.inf
-    return math.nan if v is None else float(v)
+    v = read_number(entry.get(key))
+    return math.nan if v is None else v
 
 
 def row_values(row: Row, seeds: Sequence[int], metrics_of: Any, column: str) -> list[float]:

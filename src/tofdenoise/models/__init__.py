@@ -9,7 +9,7 @@ from . import tofkpn as _tofkpn  # noqa: F401
 from . import unet as _unet  # noqa: F401
 from .common import count_parameters
 from .registry import available_backbones, build_backbone, is_trainable, register_backbone, trainable_backbones
-from .scan import available_scan_backends, selective_scan
+from .scan import available_scan_backends, resolve_scan_backend, selective_scan
 from .tiling import tiled_forward
 
 __all__ = [
@@ -20,6 +20,7 @@ __all__ = [
     "register_backbone",
     "trainable_backbones",
     "available_scan_backends",
+    "resolve_scan_backend",
     "selective_scan",
     "tiled_forward",
 ]

@@ -8,27 +8,9 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .scan import selective_scan
+from .scan import cross_merge, cross_scan, resolve_scan_backend, selective_scan
 
 __all__ = ["SS2D", "cross_scan", "cross_merge"]
-
-
-def cross_scan(x: torch.Tensor) -> torch.Tensor:
-    """(B, C, H, W) -> (B, 4, C, H*W): row-major, column-major, and both reversed."""
-    b, c, h, w = x.shape
-    rows = x.reshape(b, c, h * w)
-    cols = x.transpose(2, 3).reshape(b, c, h * w)
-    fwd = torch.stack([rows, cols], dim=1)
-    return torch.cat([fwd, fwd.flip(-1)], dim=1)
-
-
-def cross_merge(y: torch.Tensor, h: int, w: int) -> torch.Tensor:
-    """Inverse of :func:`cross_scan` summed over the 4 directions: (B, 4, C, L) -> (B, C, H, W)."""
-    b, _, c, _ = y.shape
-    y = y[:, :2] + y[:, 2:].flip(-1)
-    rows = y[:, 0].reshape(b, c, h, w)
-    cols = y[:, 1].reshape(b, c, w, h).transpose(2, 3)
-    return rows + cols
 
 
 class SS2D(nn.Module):
@@ -97,22 +79,14 @@ class SS2D(nn.Module):
         return self.out_proj(y)
 
     def _spatial_scan(self, x: torch.Tensor) -> str | None:
-        """The kernel that reads the four directions in place for this call, or None (the cross_scan route):
-        ``"triton"`` on CUDA (backend auto/triton, Triton verified on the device; any float dtype, so bf16
-        activations under autocast are read as they are), ``"cpu"`` for float32 CPU tensors (backend
-        auto/cpu, the native kernel built)."""
-        if x.is_cuda:
-            if self.scan_backend not in ("auto", "triton"):
-                return None
-            from .scan_triton import triton_available, triton_verified
-
-            index = x.device.index if x.device.index is not None else torch.cuda.current_device()
-            return "triton" if triton_available() and triton_verified(index) else None
-        if x.dtype != torch.float32 or self.scan_backend not in ("auto", "cpu"):
-            return None
-        from .scan_cpu import cpu_kernel_available
-
-        return "cpu" if cpu_kernel_available() else None
+        """The kernel that reads the four directions in place for this call, or None (the cross_scan route). The
+        route is :func:`~tofdenoise.models.scan.resolve_scan_backend`'s (``ss2d=True``): ``"triton"`` (any float
+        dtype, so bf16 activations under autocast are read as they are), or ``"cpu"`` for float32 tensors (the
+        native kernel's SS2D route is float32); any other route runs on the cross_scan copies."""
+        route = resolve_scan_backend(self.scan_backend, x, ss2d=True)
+        if route == "triton" or (route == "cpu" and x.dtype == torch.float32):
+            return route
+        return None
 
     def _scan_params(self):
         return (
@@ -141,7 +115,7 @@ class SS2D(nn.Module):
             D,
             delta_bias=bias,
             delta_softplus=True,
-            backend="torch" if self.scan_backend == "cpu" else self.scan_backend,
+            backend=self.scan_backend,
         ).view(b, k, di, length)
         return cross_merge(y, h, w).permute(0, 2, 3, 1)
 
@@ -160,9 +134,9 @@ class SS2D(nn.Module):
         dts = x_dbl[..., :r].reshape(b, length, k * r) @ dt_block  # (b, L, k di)
         A, D, bias = self._scan_params()
         if kernel == "triton":
-            from .scan_triton import ss2d_scan_triton as scan
+            from .scan.triton import ss2d_scan_triton as scan
         else:
-            from .scan_cpu import ss2d_scan_cpu as scan
+            from .scan.cpu import ss2d_scan_cpu as scan
 
         y = scan(xs, dts, A, x_dbl[..., r : r + n], x_dbl[..., r + n :], D, bias, h, w)
         return y.view(b, h, w, di)

@@ -12,17 +12,10 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from tofdenoise.reporting.numbers import METRIC_COLUMNS, format_number
 from tofdenoise.reporting.plots import comparison_png, learning_curves_png
 from tofdenoise.reporting.runs import Run
-from tofdenoise.reporting.table import (
-    FLAGGED,
-    METRIC_COLUMNS,
-    SET_LABELS,
-    best_value,
-    fmt_value,
-    learned_flag,
-    results_table,
-)
+from tofdenoise.reporting.table import FLAGGED, MISSING, SET_LABELS, best_value, learned_flag, results_table
 from tofdenoise.training.results import learned_status
 
 __all__ = ["render_html"]
@@ -60,7 +53,7 @@ def _table_html(sets: Sequence[str], rows: list[dict[str, Any]]) -> str:
         + "".join(f'<th class="set" colspan="{len(METRIC_COLUMNS)}">{e(SET_LABELS.get(s, s))}</th>' for s in sets)
         + "</tr>"
     )
-    head2 = "<tr>" + "".join(f"<th>{m[1]}</th>" for _ in sets for m in METRIC_COLUMNS) + "</tr>"
+    head2 = "<tr>" + "".join(f"<th>{m.html}</th>" for _ in sets for m in METRIC_COLUMNS) + "</tr>"
     body = []
     for row in rows:
         cells = [
@@ -72,7 +65,7 @@ def _table_html(sets: Sequence[str], rows: list[dict[str, Any]]) -> str:
         for s in sets:
             for key, _, _, dec, higher in METRIC_COLUMNS:
                 v = row.get((s, key))
-                text = e(fmt_value(v, dec))
+                text = e(format_number(v, dec, MISSING))
                 if (
                     v is not None
                     and row["kind"] == "run"

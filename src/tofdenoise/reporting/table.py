@@ -11,32 +11,27 @@ validation split, no training is expected; not flagged); ``?`` (a metrics.json w
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from typing import Any
 
+from tofdenoise.reporting.numbers import METRIC_COLUMNS, format_number, read_number
 from tofdenoise.reporting.runs import Run
 from tofdenoise.training.results import learned_status
 
 __all__ = [
-    "METRIC_COLUMNS",
     "SET_LABELS",
+    "MISSING",
     "LEARNED_FLAGS",
     "FLAGGED",
     "learned_flag",
     "results_table",
     "table_markdown",
     "best_value",
-    "fmt_value",
 ]
 
-METRIC_COLUMNS = (  # key, header, decimals, higher is better
-    ("psnr_db", "PSNR (dB)&uarr;", "PSNR (dB)↑", 2, True),
-    ("ssim", "SSIM&uarr;", "SSIM↑", 4, True),
-    ("mse_mm2", "MSE (mm&sup2;)&darr;", "MSE (mm²)↓", 2, False),
-    ("mae_mm", "MAE (mm)&darr;", "MAE (mm)↓", 2, False),
-)
 SET_LABELS = {"synthetic": "Synthetic", "real": "Real"}
+#: a cell without a value
+MISSING = "–"
 #: the Learned column per ``tofdenoise.training.results.learned_status``
 LEARNED_FLAGS = {
     "learned": "yes",
@@ -56,19 +51,6 @@ def learned_flag(run: Run) -> str:
     return LEARNED_FLAGS[learned_status(run.learned)]
 
 
-def _value(v: Any) -> float | None:
-    if v is None:
-        return None
-    if v == "inf":
-        return math.inf
-    if v == "-inf":
-        return -math.inf
-    try:
-        return float(v)
-    except (TypeError, ValueError):
-        return None
-
-
 def _same(a: float | None, b: float | None) -> bool:
     if a is None or b is None:
         return a is b
@@ -83,7 +65,7 @@ def results_table(runs: Sequence[Run]) -> tuple[list[str], list[dict[str, Any]]]
     raw_rows: list[dict[str, Any]] = []
     for r in runs:
         values = {
-            (s, k): _value(r.metrics[s]["raw"][k])
+            (s, k): read_number(r.metrics[s]["raw"][k])
             for s in sets
             if s in r.metrics and "raw" in r.metrics[s]
             for k, *_ in METRIC_COLUMNS
@@ -119,7 +101,7 @@ def results_table(runs: Sequence[Run]) -> tuple[list[str], list[dict[str, Any]]]
         }
         for s in sets:
             for k, *_ in METRIC_COLUMNS:
-                row[(s, k)] = _value(r.metrics.get(s, {}).get(k))
+                row[(s, k)] = read_number(r.metrics.get(s, {}).get(k))
         run_rows.append(row)
     return sets, raw_rows + run_rows
 
@@ -132,18 +114,10 @@ def best_value(rows: list[dict[str, Any]], col: tuple[str, str], higher: bool) -
     return max(vals) if higher else min(vals)
 
 
-def fmt_value(v: float | None, decimals: int) -> str:
-    if v is None:
-        return "–"
-    if math.isinf(v):
-        return "inf" if v > 0 else "-inf"
-    return f"{v:.{decimals}f}"
-
-
 def table_markdown(sets: Sequence[str], rows: list[dict[str, Any]]) -> str:
     """The comparison table as GitHub Markdown (best run value per column in bold)."""
     header = ["Method", "Noise", "Loss", "Learned"] + [
-        f"{SET_LABELS.get(s, s)} {m[2]}" for s in sets for m in METRIC_COLUMNS
+        f"{SET_LABELS.get(s, s)} {m.text}" for s in sets for m in METRIC_COLUMNS
     ]
     lines = ["| " + " | ".join(header) + " |", "|" + "|".join(["---"] * 4 + ["---:"] * (len(header) - 4)) + "|"]
     for row in rows:
@@ -151,7 +125,7 @@ def table_markdown(sets: Sequence[str], rows: list[dict[str, Any]]) -> str:
         for s in sets:
             for key, _, _, dec, higher in METRIC_COLUMNS:
                 v = row.get((s, key))
-                text = fmt_value(v, dec)
+                text = format_number(v, dec, MISSING)
                 if (
                     v is not None
                     and row["kind"] == "run"

@@ -10,8 +10,8 @@ import torch
 
 triton = pytest.importorskip("triton", reason="Triton is not installed (make venv installs it next to a CPU torch)")
 
-from tofdenoise.models import scan_triton as st  # noqa: E402
-from tofdenoise.models.scan import selective_scan_chunked  # noqa: E402
+from tofdenoise.models.scan import selective_scan_chunked, ss2d_scan_reference  # noqa: E402
+from tofdenoise.models.scan import triton as st  # noqa: E402
 from tofdenoise.models.ss2d import SS2D  # noqa: E402
 
 from .test_scan import _inputs, _rel  # noqa: E402
@@ -100,7 +100,7 @@ def test_ss2d_route_reads_the_four_directions_in_place(h, w, di, n, use_d_bias):
     if not use_d_bias:
         D = bias = None
     y, grads = _ss2d_grads(st.ss2d_scan_triton, x, delta, A, x_dbl, D, bias, h, w, n)
-    y_ref, grads_ref = _ss2d_grads(st.ss2d_scan_reference, x, delta, A, x_dbl, D, bias, h, w, n)
+    y_ref, grads_ref = _ss2d_grads(ss2d_scan_reference, x, delta, A, x_dbl, D, bias, h, w, n)
     assert y.shape == (2, h * w, di)
     assert _rel(y.detach(), y_ref.detach()) < 1e-5
     names = ["x", "delta", "A", "x_dbl", "D", "delta_bias"]
@@ -118,7 +118,7 @@ def test_ss2d_route_reads_bf16_inputs_as_they_are():
     y, grads = _ss2d_grads(st.ss2d_scan_triton, x, delta, A, x_dbl, D, bias, h, w, n)
     assert y.dtype == torch.bfloat16
     f32 = [t.float() for t in (x, delta, A, x_dbl)]
-    y_ref, grads_ref = _ss2d_grads(st.ss2d_scan_reference, *f32, D, bias, h, w, n)
+    y_ref, grads_ref = _ss2d_grads(ss2d_scan_reference, *f32, D, bias, h, w, n)
     assert _rel(y.detach().float(), y_ref.detach()) < 1e-2
     for i, (a, b) in enumerate(zip(grads, grads_ref)):
         assert a.dtype == (torch.bfloat16 if i in (0, 1, 3) else torch.float32), i
@@ -195,10 +195,10 @@ def test_kernels_compile_for_the_h100_without_spills():
     import sys
     from pathlib import Path
 
-    root = Path(__file__).resolve().parents[2]
+    root = Path(__file__).resolve().parents[3]
     code = (
         "import json, sys; sys.path.insert(0, 'benchmarks'); import triton_resources as tr; "
-        "from tofdenoise.models import scan_triton as st; "
+        "from tofdenoise.models.scan import triton as st; "
         "rows = tr.resources(st, 'SS2D', 'bf16', st.NUM_WARPS, st.SS2D_BLOCK_D_MAX) "
         "+ tr.resources(st, 'plain', 'fp32', st.NUM_WARPS, st.BLOCK_D_MAX); print(json.dumps(rows))"
     )

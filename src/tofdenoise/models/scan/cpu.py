@@ -1,6 +1,6 @@
 """Native CPU selective scan: a C++ kernel (``csrc/selective_scan_cpu.cpp``) built on first use.
 
-The kernel computes the recurrence of :mod:`tofdenoise.models.scan` in float32 with delta_bias, softplus and
+The kernel computes the recurrence of :mod:`tofdenoise.models.scan.reference` in float32 with delta_bias, softplus and
 the D skip term fused, forward and a recomputing backward (gradients for u, delta, A, B, C, D, delta_bias):
 
 * one task per (batch, block of 16 channels), run in parallel by ``at::parallel_for`` (torch's threads); the
@@ -38,8 +38,12 @@ from pathlib import Path
 
 import torch
 
+from .common import check_shapes
+from .reference import selective_scan_chunked
+
 __all__ = [
     "cpu_kernel_available",
+    "kernel_switched_off",
     "load_extension",
     "selective_scan_cpu",
     "ss2d_scan_cpu",
@@ -106,10 +110,15 @@ def stable_source(name: str) -> Path:
     return target
 
 
+def kernel_switched_off() -> bool:
+    """True when ``TOFDENOISE_SCAN_CPU`` (0/false/no/off) switches the kernel off: no build is attempted."""
+    return os.environ.get(ENV_SWITCH, "1").strip().lower() in ("0", "false", "no", "off")
+
+
 @functools.lru_cache(maxsize=1)
 def load_extension():
     """The compiled extension module, or None (with one warning) when it cannot be built or loaded."""
-    if os.environ.get(ENV_SWITCH, "1").strip().lower() in ("0", "false", "no", "off"):
+    if kernel_switched_off():
         return None
     try:
         from torch.utils import cpp_extension
@@ -137,8 +146,6 @@ def cpu_kernel_available() -> bool:
     ext = load_extension()
     if ext is None:
         return False
-    from .scan import selective_scan_chunked
-
     g = torch.Generator().manual_seed(0)
     u = torch.randn(2, 20, 37, generator=g)
     delta = 0.5 * torch.randn(2, 20, 37, generator=g)
@@ -221,12 +228,10 @@ def selective_scan_cpu(u, delta, A, B, C, D=None, delta_bias=None, delta_softplu
     and returned in theirs; callers route float64 to the PyTorch scan to keep float64 precision).
     u and delta are read in place through strides (no transposed copies; y and the gradients come back in
     the same (batch, dim, L) layout); B and C are transposed once to (batch, L, groups, N)."""
-    from .scan import _check_shapes
-
     ext = _ext if _ext is not None else load_extension()
     if ext is None:
         raise RuntimeError("selective_scan_cpu: the native CPU kernel is not available (see the build warning)")
-    B, C, _ = _check_shapes(u, delta, A, B, C, D, delta_bias)
+    B, C, _ = check_shapes(u, delta, A, B, C, D, delta_bias)
     if u.is_cuda:
         raise ValueError(f"selective_scan_cpu: CPU tensors expected, got device {u.device}")
     dtype = u.dtype
@@ -258,24 +263,3 @@ def ss2d_scan_cpu(x, delta, A, B, C, D, delta_bias, height: int, width: int) -> 
     if ext is None:
         raise RuntimeError("ss2d_scan_cpu: the native CPU kernel is not available (see the build warning)")
     return _CpuScanFn.apply(x, delta, A, B, C, D, delta_bias, True, True, int(height), int(width), ext)
-
-
-def roofline_updates_per_s(seconds: float = 1.0) -> tuple[float, float]:
-    """Measured peak of the kernel's exp + 3 multiply-add loop (the scan's floor per state update), using
-    torch's threads: (updates per second, seconds spent)."""
-    import time
-
-    ext = load_extension()
-    if ext is None:
-        raise RuntimeError("roofline: the native CPU kernel is not available")
-    tasks = 8 * torch.get_num_threads()
-    repeats = 2000
-    ext.roofline_loop(tasks, 10)  # warm-up
-    while True:
-        t0 = time.perf_counter()
-        ext.roofline_loop(tasks, repeats)
-        dt = time.perf_counter() - t0
-        if dt > 0.2 * seconds or repeats > 10**8:
-            break
-        repeats *= 4
-    return tasks * 256 * repeats / dt, dt

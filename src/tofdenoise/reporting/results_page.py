@@ -25,6 +25,24 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
+from tofdenoise.experiments.dynrange import Gain, gains
+from tofdenoise.experiments.figures import FIGURES
+from tofdenoise.experiments.tables import (
+    CLAIMS,
+    DYNRANGE_BACKBONES,
+    TABLE_COLUMNS,
+    TABLE_TITLES,
+    TABLES,
+    Claim,
+    Row,
+    claim_holds,
+    claim_steps,
+    column_metric,
+    column_source,
+    row_values,
+    run_name,
+)
+from tofdenoise.reporting.numbers import format_number
 from tofdenoise.reporting.table import LEARNED_FLAGS
 from tofdenoise.training.results import (
     METRIC_KEYS,
@@ -36,23 +54,9 @@ from tofdenoise.training.results import (
     run_fields,
 )
 
-from .figures import FIGURES
-from .tables import (
-    CLAIMS,
-    METRIC_COLUMNS,
-    TABLE_COLUMNS,
-    TABLE_TITLES,
-    TABLES,
-    Claim,
-    Row,
-    claim_holds,
-    claim_steps,
-    row_values,
-    run_name,
-)
-
 __all__ = [
     "DISCUSSION_NAME",
+    "gains_markdown",
     "PROFILE_COMMANDS",
     "RecordError",
     "load_records",
@@ -151,12 +155,6 @@ def run_minutes(run_info: dict[str, Any]) -> float:
     return (t1 - t0).total_seconds() / 60.0
 
 
-def _fmt(v: float, decimals: int) -> str:
-    if math.isinf(v):
-        return "inf"
-    return "-" if not math.isfinite(v) else f"{v:.{decimals}f}"
-
-
 def _row_cell(row: Row, values: Sequence[float], decimals: int) -> str:
     """A row's value: one number for a seed-independent row whose seeds agree (the same inputs or the same run,
     not n independent results), else the mean ± std over the seeds."""
@@ -188,6 +186,11 @@ def _steps_text(claim: Claim, seeds: list[int], metrics_of: Any, complete: int) 
     return ", ".join(f"{d:+.3f} ± {sd:.3f}" for d, sd in steps) + unit + f" (n={complete})"
 
 
+def _column_header(column: str) -> str:
+    """A table column's header: the metric's, prefixed ``real`` for the real set (``real MAE (mm)↓``)."""
+    return ("real " if column_source(column)[0] == "real" else "") + column_metric(column).text
+
+
 def _table_section(table: str, profile: str, records: dict[str, dict[str, Any]], seeds: list[int]) -> list[str]:
     def metrics_of(name: str) -> dict[str, Any] | None:
         rec = records.get(name)
@@ -200,12 +203,12 @@ def _table_section(table: str, profile: str, records: dict[str, dict[str, Any]],
         f"Command: `{PROFILE_COMMANDS[profile].format(table=table)}` (profile `{profile}`).",
         "",
     ]
-    head = ["method"] + [f"{METRIC_COLUMNS[c][2]} paper / ours" for c in cols]
+    head = ["method"] + [f"{_column_header(c)} paper / ours" for c in cols]
     lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for row in TABLES[table]:
         cells = [row.label]
         for c in cols:
-            decimals = METRIC_COLUMNS[c][3]
+            decimals = column_metric(c).decimals
             paper = row.paper.get(c)
             ours = _row_cell(row, row_values(row, seeds, metrics_of, c), decimals)
             cells.append(f"{'-' if paper is None else format(paper, f'.{decimals}f')} / {ours}")
@@ -243,7 +246,6 @@ DYNRANGE_FIGURE = "dynrange/gains.png"
 
 def _dynrange_section(profile_dir: Path, records: dict[str, dict[str, Any]], seeds: list[int]) -> list[str]:
     """The dynamic-range study's paired gains (``tofdenoise.experiments.dynrange``) and its figure."""
-    from tofdenoise.experiments.dynrange import gains, gains_markdown
 
     def metrics_of(name: str) -> dict[str, Any] | None:
         rec = records.get(name)
@@ -264,9 +266,28 @@ def _dynrange_section(profile_dir: Path, records: dict[str, dict[str, Any]], see
     return lines
 
 
-def _optional(v: Any, decimals: int = 1) -> str:
-    """A record field that older records lack (``None``): ``-``."""
-    return "-" if v is None else _fmt(float(v), decimals)
+def _pm(ms: tuple[float, float]) -> str:
+    mean, std = ms
+    if not math.isfinite(mean):
+        return "-"
+    return f"{mean:+.3f}" + (f" ± {std:.3f}" if math.isfinite(std) else "")
+
+
+def gains_markdown(items: list[Gain]) -> list[str]:
+    """A Markdown table of the dynamic-range study's gains (one line per backbone and world)."""
+    if not items:
+        return ["No complete seed of any world yet.", ""]
+    lines = [
+        "| backbone | world | n | hetero MAE (mm) | gain over fixed (mm) | gain over range (mm) "
+        "| real: over fixed | real: over range |",
+        "|---|---|---:|---:|---:|---:|---:|---:|",
+    ]
+    for g in items:
+        lines.append(
+            f"| {DYNRANGE_BACKBONES[g.backbone]} | {g.label} | {g.n} | {g.hetero_mae:.3f} | {_pm(g.over_fixed)} "
+            f"| {_pm(g.over_range)} | {_pm(g.real_over_fixed)} | {_pm(g.real_over_range)} |"
+        )
+    return [*lines, ""]
 
 
 def _runs_section(records: dict[str, dict[str, Any]]) -> list[str]:
@@ -290,16 +311,16 @@ def _runs_section(records: dict[str, dict[str, Any]]) -> list[str]:
         shown = f"{name} (resumed)" if info.get("resumed") else name
         train_s = info.get("train_seconds")
         memory = (
-            f"{_optional(info.get('peak_gpu_memory_gib'))} / {_optional(info.get('peak_rss_gib'))}"
+            f"{format_number(info.get('peak_gpu_memory_gib'), 1)} / {format_number(info.get('peak_rss_gib'), 1)}"
             if "peak_rss_gib" in info
             else "-"
         )
         lines.append(
             f"| {shown} | {'-' if status == 'unknown' else LEARNED_FLAGS[status]} | "
-            f"{m.get('trained_steps', '-')} | {_fmt(float(m.get('best_val_mae_mm') or math.nan), 2)} | "
-            f"{_fmt(float(m.get('raw_val_mae_mm') or math.nan), 2)} | {_fmt(run_minutes(info), 1)} | "
-            f"{_optional(None if train_s is None else float(train_s) / 60.0)} | "
-            f"{_optional(info.get('train_images_per_second'))} | {memory} |"
+            f"{m.get('trained_steps', '-')} | {format_number(m.get('best_val_mae_mm') or math.nan, 2)} | "
+            f"{format_number(m.get('raw_val_mae_mm') or math.nan, 2)} | {format_number(run_minutes(info), 1)} | "
+            f"{format_number(None if train_s is None else float(train_s) / 60.0, 1)} | "
+            f"{format_number(info.get('train_images_per_second'), 1)} | {memory} |"
         )
     lines.append("")
     return lines
@@ -323,15 +344,15 @@ def _fig6_section(profile_dir: Path) -> list[str]:
     for model in ("proposed", "range_gaussian"):
         p = pooled.get(model) or {}
         lines.append(
-            f"| pooled | {model} | {_fmt(float(p.get('mape_percent', math.nan)), 2)} | "
-            f"{_fmt(float(p.get('r2', math.nan)), 3)} | {p.get('n', '-')} |"
+            f"| pooled | {model} | {format_number(p.get('mape_percent'), 2)} | "
+            f"{format_number(p.get('r2'), 3)} | {p.get('n', '-')} |"
         )
     for panel, entry in (data.get("panels") or {}).items():
         for model in ("proposed", "range_gaussian"):
             p = (entry or {}).get(model) or {}
             lines.append(
-                f"| {panel} | {model} | {_fmt(float(p.get('mape_percent', math.nan)), 2)} | "
-                f"{_fmt(float(p.get('r2', math.nan)), 3)} | {p.get('n', '-')} |"
+                f"| {panel} | {model} | {format_number(p.get('mape_percent'), 2)} | "
+                f"{format_number(p.get('r2'), 3)} | {p.get('n', '-')} |"
             )
     if (profile_dir / "fig6" / "validation.png").is_file():
         lines += ["", f"![Fig. 6: {profile_dir.name} profile](results/{profile_dir.name}/fig6/validation.png)"]
@@ -360,7 +381,7 @@ def _qualitative_section(profile_dir: Path, key: str) -> list[str]:
         "|---|" + "---|" * len(columns),
     ]
     for scene in data["scenes"]:
-        values = " | ".join(_fmt(float(scene["mae_mm"][c]), 2) for c in columns)
+        values = " | ".join(format_number(scene["mae_mm"][c], 2) for c in columns)
         lines.append(f"| {scene['name']} (index {scene['index']}) | {values} |")
     if (profile_dir / key / "figure.png").is_file():
         lines += ["", f"![{data['title']}: {profile_dir.name} profile](results/{profile_dir.name}/{key}/figure.png)"]

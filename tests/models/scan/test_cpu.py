@@ -1,4 +1,4 @@
-"""Native CPU selective scan (scan_cpu): equality with the PyTorch scans (forward and every gradient),
+"""Native CPU selective scan (tofdenoise.models.scan.cpu): equality with the PyTorch scans (forward and every gradient),
 routing of dtypes and backends, the fallback when the build fails, and SS2D's direction-reading route."""
 
 from __future__ import annotations
@@ -10,7 +10,8 @@ import warnings
 import pytest
 import torch
 
-from tofdenoise.models import available_scan_backends, scan_cpu, selective_scan
+from tofdenoise.models import available_scan_backends, selective_scan
+from tofdenoise.models.scan import cpu as scan_cpu
 from tofdenoise.models.scan import (
     resolve_scan_backend,
     selective_scan_chunked,
@@ -173,6 +174,25 @@ def test_environment_switch_skips_the_build(fresh_loader, monkeypatch):
         assert not scan_cpu.cpu_kernel_available()
 
 
+def test_explicit_cpu_backend_switched_off_warns_once_naming_torch(fresh_loader, monkeypatch):
+    """One dispatcher (scan.dispatch.resolve_scan_backend) for selective_scan and SS2D: an explicit "cpu" that
+    cannot run says once what runs instead; "auto" chooses silently; an unknown name is an error in SS2D too."""
+    from tofdenoise.models.scan import dispatch
+
+    monkeypatch.setattr(dispatch, "_warned", set())
+    monkeypatch.setenv(scan_cpu.ENV_SWITCH, "0")
+    u = torch.randn(1, 4, 9)
+    with pytest.warns(RuntimeWarning, match="switched off.*using 'torch'"):
+        assert resolve_scan_backend("cpu", u) == "torch"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert resolve_scan_backend("cpu", u) == "torch"
+        assert resolve_scan_backend("auto", u) == "torch"
+        assert SS2D(8, d_state=4, scan_backend="cpu")._spatial_scan(torch.randn(1, 5, 6, 8)) is None
+    with pytest.raises(ValueError, match="unknown backend"):
+        SS2D(8, d_state=4, scan_backend="numba")(torch.randn(1, 5, 6, 8))
+
+
 def _ss2d_run(block, x, spatial: bool):
     block.zero_grad(set_to_none=True)
     x = x.detach().requires_grad_()
@@ -217,8 +237,14 @@ def test_kernel_tasks_run_on_torchs_threads(ext):
         torch.set_num_threads(old)
 
 
-def test_roofline_loop_runs(ext):
-    rate, seconds = scan_cpu.roofline_updates_per_s(seconds=0.05)
+def test_roofline_loop_runs(ext, monkeypatch):
+    """The roofline of benchmarks/bench_scan_cpu.py (benchmark-only code) runs the kernel's own loop."""
+    from pathlib import Path
+
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[3] / "benchmarks"))
+    import bench_scan_cpu
+
+    rate, seconds = bench_scan_cpu.roofline_updates_per_s(seconds=0.05)
     assert rate > 1e7 and seconds > 0
 
 

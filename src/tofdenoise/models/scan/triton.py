@@ -1,8 +1,9 @@
-"""Optional fused selective-scan paths for CUDA: a Triton kernel pair (forward + recomputing backward) and
-mamba-ssm's ``selective_scan_fn`` when its compiled extension imports. Both are chosen automatically by
-``tofdenoise.models.selective_scan`` on CUDA tensors, with the pure-PyTorch chunked scan as the fallback.
+"""The Triton selective-scan kernels for CUDA: a kernel pair (forward + recomputing backward), for the plain
+(batch, dim, L) route and for SS2D's four directions read in place. ``auto``
+(:func:`~tofdenoise.models.scan.dispatch.resolve_scan_backend`) chooses them on CUDA tensors once
+:func:`triton_verified` has passed, with the pure-PyTorch chunked scan as the fallback.
 
-Triton kernels (same recurrence as ``scan.py``: h_t = exp(delta_t A) h_{t-1} + delta_t u_t B_t,
+Triton kernels (same recurrence as ``reference.py``: h_t = exp(delta_t A) h_{t-1} + delta_t u_t B_t,
 y_t = C_t . h_t + D u_t, with delta_t = softplus(delta_raw_t + delta_bias) computed inside the kernels):
 - one program per (batch, block of BLOCK_D channels of one group) walks the sequence in chunks of CHUNK
   positions; each chunk is loaded as coalesced (BLOCK_D, CHUNK) / (N, CHUNK) tiles and its states are one
@@ -30,14 +31,14 @@ import warnings
 
 import torch
 
+from .common import check_shapes
+from .reference import selective_scan_chunked, ss2d_scan_reference
+
 __all__ = [
     "triton_available",
     "triton_verified",
-    "mamba_ssm_available",
     "selective_scan_triton",
-    "selective_scan_mamba",
     "ss2d_scan_triton",
-    "ss2d_scan_reference",
     "interpreting",
 ]
 
@@ -51,20 +52,6 @@ BLOCK_D_MAX = 2
 #: without register spills at 4 warps, fp32 and bf16 (``benchmarks/triton_resources.py``; 8 spills)
 SS2D_BLOCK_D_MAX = 4
 NUM_WARPS = 4
-
-
-@functools.lru_cache(maxsize=1)
-def _mamba_fn():
-    try:  # the compiled extension (selective_scan_cuda) can fail to import even when the package is there
-        from mamba_ssm.ops.selective_scan_interface import selective_scan_fn
-    except Exception:  # noqa: BLE001 - any import-time failure means "not available"
-        return None
-    return selective_scan_fn
-
-
-def mamba_ssm_available() -> bool:
-    """True when CUDA is available and mamba-ssm's compiled selective scan imports."""
-    return torch.cuda.is_available() and _mamba_fn() is not None
 
 
 try:  # kernels at module level: Triton resolves the names a kernel calls (_combine) from its module's globals
@@ -433,8 +420,6 @@ def _check_device(t: torch.Tensor, name: str) -> None:
 def _verify_case(dev: torch.device) -> None:
     """Raise when the kernels disagree with the PyTorch scan on a small random problem on ``dev``: the plain
     (batch, dim, L) route and the SS2D direction-reading route, forward and every gradient, 1e-3 relative."""
-    from .scan import selective_scan_chunked
-
     gen = torch.Generator(device="cpu").manual_seed(0)
     batch, dim, length, groups, n = 2, 8, 70, 2, 16  # 3 chunks, the last one partial
     shapes = [
@@ -625,12 +610,10 @@ class _TritonScanFn(torch.autograd.Function):
 def selective_scan_triton(u, delta, A, B, C, D=None, delta_bias=None, delta_softplus=False) -> torch.Tensor:
     """Triton selective scan (CUDA, float32 compute); same signature and result as ``selective_scan``. The
     result has u's dtype; bf16/fp16 u, delta, B, C are read as they are (no conversion copies)."""
-    from .scan import _check_shapes
-
     if not triton_available() and not interpreting():
         raise RuntimeError("selective_scan_triton: Triton with a CUDA device is not available")
     _check_device(u, "selective_scan_triton")
-    B, C, _ = _check_shapes(u, delta, A, B, C, D, delta_bias)
+    B, C, _ = check_shapes(u, delta, A, B, C, D, delta_bias)
     f32 = torch.float32
     return _TritonScanFn.apply(
         u.contiguous(),
@@ -699,7 +682,7 @@ class _TritonSS2DFn(torch.autograd.Function):
 
 def ss2d_scan_triton(x, delta, A, B, C, D, delta_bias, height: int, width: int) -> torch.Tensor:
     """The four-direction SS2D scan with softplus on the Triton kernels, reading the directions in place:
-    the same contract as :func:`tofdenoise.models.scan_cpu.ss2d_scan_cpu` -- x (b, H W, d) channels-last
+    the same contract as :func:`tofdenoise.models.scan.cpu.ss2d_scan_cpu` -- x (b, H W, d) channels-last
     (row-major positions), delta (b, H W, 4 d) raw steps, A (4 d, N), B / C (b, H W, 4, N) with any strides
     (SS2D passes views into its x_proj output), D and delta_bias (4 d,) or None. Direction k of channel c is
     channel k d + c; its step l reads position pi_k(l) (row-major, column-major, both reversed). Returns
@@ -735,33 +718,3 @@ def ss2d_scan_triton(x, delta, A, B, C, D, delta_bias, height: int, width: int) 
         int(height),
         int(width),
     )
-
-
-def ss2d_scan_reference(x, delta, A, B, C, D, delta_bias, height: int, width: int) -> torch.Tensor:
-    """:func:`ss2d_scan_triton`'s contract computed the plain way: ``cross_scan`` copies, the chunked PyTorch
-    scan over the 4 d channels, ``cross_merge``. The reference for the kernels' self-check and tests."""
-    from .scan import selective_scan_chunked
-    from .ss2d import cross_merge, cross_scan
-
-    batch, length, di = x.shape
-
-    def per_direction(t: torch.Tensor) -> torch.Tensor:
-        """(b, 4, c, H, W), block k for direction k -> (b, 4, c, L): block k read in direction k's order."""
-        t4 = cross_scan(t.flatten(0, 1)).view(batch, 4, 4, -1, length)
-        return t4[:, torch.arange(4), torch.arange(4)]
-
-    xs = cross_scan(x.transpose(1, 2).reshape(batch, di, height, width))  # (b, 4, d, L)
-    d4 = per_direction(delta.transpose(1, 2).reshape(batch, 4, di, height, width))
-    bc = [per_direction(t.permute(0, 2, 3, 1).reshape(batch, 4, -1, height, width)) for t in (B, C)]
-    y = selective_scan_chunked(
-        xs.reshape(batch, 4 * di, length), d4.reshape(batch, 4 * di, length), A, bc[0], bc[1], D, delta_bias, True
-    ).view(batch, 4, di, length)
-    return cross_merge(y, height, width).flatten(2).transpose(1, 2).to(x.dtype)
-
-
-def selective_scan_mamba(u, delta, A, B, C, D=None, delta_bias=None, delta_softplus=False) -> torch.Tensor:
-    """mamba-ssm's CUDA ``selective_scan_fn`` (raises RuntimeError when it cannot be imported)."""
-    fn = _mamba_fn()
-    if fn is None or not torch.cuda.is_available():
-        raise RuntimeError("selective_scan_mamba: mamba_ssm's compiled selective scan is not importable")
-    return fn(u, delta, A, B, C, D, z=None, delta_bias=delta_bias, delta_softplus=delta_softplus)

@@ -1,4 +1,4 @@
-"""Selective scan (Mamba S6 recurrence) in pure PyTorch.
+"""Selective scan (Mamba S6 recurrence) in pure PyTorch: the reference, the sequential baseline and the chunked scan.
 
 Recurrence, per batch b, channel d and state n (Gu & Dao, "Mamba", Alg. 2; shapes of mamba-ssm's
 ``selective_scan_fn``)::
@@ -27,106 +27,38 @@ Three implementations share the gradient formulas of :func:`_state_gradients`:
   and direction, and no (L, dim, N) tensor is ever held. No Python loop over L is recorded by autograd:
   the loops (T positions, chunks of a group) run inside a custom ``autograd.Function``.
 
-:func:`selective_scan` dispatches: on CUDA to mamba-ssm when importable, else to the Triton kernels
-(``scan_triton``, after an on-device self-check); on the CPU to the native C++ kernel (``scan_cpu``, built
-on first use, after a self-check); otherwise to the chunked PyTorch scan.
+:func:`ss2d_scan_reference` computes the kernels' four-direction SS2D contract the plain way (``cross_scan``,
+the chunked scan, ``cross_merge``): the reference of their self-checks and tests. The route a call takes is
+chosen by :mod:`~tofdenoise.models.scan.dispatch`, never here.
 """
 
 from __future__ import annotations
 
-import functools
 import math
-from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 
+from .common import Dims, add_skip, check_shapes, compute_inputs, cross_merge, cross_scan, effective_delta, no_autocast
+
 __all__ = [
-    "selective_scan",
     "selective_scan_ref",
     "selective_scan_sequential",
     "selective_scan_chunked",
-    "available_scan_backends",
-    "resolve_scan_backend",
+    "ss2d_scan_reference",
+    "DEFAULT_CHUNK_SIZE",
+    "DEFAULT_GROUP_ELEMS",
 ]
 
 DEFAULT_CHUNK_SIZE = 64
 DEFAULT_GROUP_ELEMS = 1 << 22
 
 
-# ----------------------------------------------------------------------------------------------- inputs
-@dataclass
-class _Dims:
-    batch: int
-    dim: int
-    length: int
-    groups: int
-    d_state: int
-
-    @property
-    def dim_per_group(self) -> int:
-        return self.dim // self.groups
-
-
-def _check_shapes(u, delta, A, B, C, D, delta_bias) -> tuple[torch.Tensor, torch.Tensor, _Dims]:
-    if u.dim() != 3:
-        raise ValueError(f"selective_scan: u must be (batch, dim, L), got shape {tuple(u.shape)}")
-    if delta.shape != u.shape:
-        raise ValueError(f"selective_scan: delta must have u's shape {tuple(u.shape)}, got {tuple(delta.shape)}")
-    batch, dim, length = u.shape
-    if A.dim() != 2 or A.shape[0] != dim:
-        raise ValueError(f"selective_scan: A must be (dim={dim}, N), got {tuple(A.shape)}")
-    n = A.shape[1]
-    if A.is_complex():
-        raise ValueError("selective_scan: complex A is not supported")
-    if B.dim() == 3:
-        B = B.unsqueeze(1)
-    if C.dim() == 3:
-        C = C.unsqueeze(1)
-    for name, t in (("B", B), ("C", C)):
-        if t.dim() != 4 or t.shape[0] != batch or t.shape[2] != n or t.shape[3] != length:
-            raise ValueError(
-                f"selective_scan: {name} must be (batch={batch}, groups, N={n}, L={length}) "
-                f"or (batch, N, L), got {tuple(t.shape)}"
-            )
-    if B.shape[1] != C.shape[1]:
-        raise ValueError(f"selective_scan: B and C need the same number of groups, got {B.shape[1]} and {C.shape[1]}")
-    groups = B.shape[1]
-    if dim % groups != 0:
-        raise ValueError(f"selective_scan: dim={dim} must be divisible by groups={groups}")
-    for name, t in (("D", D), ("delta_bias", delta_bias)):
-        if t is not None and tuple(t.shape) != (dim,):
-            raise ValueError(f"selective_scan: {name} must be (dim={dim},), got {tuple(t.shape)}")
-    return B, C, _Dims(batch, dim, length, groups, n)
-
-
-def _compute_inputs(u, delta, A, B, C, delta_bias, delta_softplus) -> tuple[torch.Tensor, ...]:
-    """``(u, delta, A, B, C)`` contiguous in the compute dtype (float64 for float64 input, else float32), with
-    ``delta`` already through the bias and softplus (:func:`_effective_delta`)."""
-    compute = torch.float64 if u.dtype == torch.float64 else torch.float32
-    delta = _effective_delta(delta.to(compute), None if delta_bias is None else delta_bias.to(compute), delta_softplus)
-    return tuple(t.to(compute).contiguous() for t in (u, delta, A, B, C))
-
-
-def _effective_delta(delta: torch.Tensor, delta_bias: torch.Tensor | None, delta_softplus: bool) -> torch.Tensor:
-    if delta_bias is not None:
-        delta = delta + delta_bias.to(delta.dtype)[None, :, None]
-    if delta_softplus:
-        delta = F.softplus(delta)
-    return delta
-
-
-def _finish(y: torch.Tensor, u: torch.Tensor, D: torch.Tensor | None) -> torch.Tensor:
-    if D is not None:
-        y = y + D.to(y.dtype)[None, :, None] * u
-    return y
-
-
 # --------------------------------------------------------------------------------------- reference
 def selective_scan_ref(u, delta, A, B, C, D=None, delta_bias=None, delta_softplus=False) -> torch.Tensor:
     """Straightforward sequential reference (autograd through a Python loop; small L only)."""
-    B, C, dims = _check_shapes(u, delta, A, B, C, D, delta_bias)
-    delta = _effective_delta(delta, delta_bias, delta_softplus)
+    B, C, dims = check_shapes(u, delta, A, B, C, D, delta_bias)
+    delta = effective_delta(delta, delta_bias, delta_softplus)
     rep = dims.dim_per_group
     Bx = B.repeat_interleave(rep, dim=1)  # (b, dim, N, L)
     Cx = C.repeat_interleave(rep, dim=1)
@@ -136,7 +68,7 @@ def selective_scan_ref(u, delta, A, B, C, D=None, delta_bias=None, delta_softplu
         a = torch.exp(delta[:, :, t, None] * A)
         h = a * h + delta[:, :, t, None] * u[:, :, t, None] * Bx[..., t]
         ys.append((h * Cx[..., t]).sum(-1))
-    return _finish(torch.stack(ys, dim=-1), u, D)
+    return add_skip(torch.stack(ys, dim=-1), u, D)
 
 
 # ------------------------------------------------------------------------------------- layouts
@@ -144,12 +76,12 @@ def selective_scan_ref(u, delta, A, B, C, D=None, delta_bias=None, delta_softplu
 # B/C are (T, b, G, K, N), states are (T, b, G, K, N, Dg) and A is (G, 1, N, Dg): time-major and contiguous
 # with the channel axis innermost, so elementwise products vectorise over Dg and the sums over the state
 # index n and over channels d are batched matrix-vector products.
-def _to_tk(x: torch.Tensor, dims: _Dims, T: int) -> torch.Tensor:
+def _to_tk(x: torch.Tensor, dims: Dims, T: int) -> torch.Tensor:
     b, _, lp = x.shape
     return x.view(b, dims.groups, dims.dim_per_group, lp // T, T).permute(4, 0, 1, 3, 2).contiguous()
 
 
-def _from_tk(x: torch.Tensor, dims: _Dims, length: int) -> torch.Tensor:
+def _from_tk(x: torch.Tensor, dims: Dims, length: int) -> torch.Tensor:
     T, b, g, k, dg = x.shape
     return x.permute(1, 2, 4, 3, 0).reshape(b, g * dg, k * T)[..., :length]
 
@@ -164,11 +96,11 @@ def _bc_from_tk(x: torch.Tensor, length: int) -> torch.Tensor:
     return x.permute(1, 2, 4, 3, 0).reshape(b, g, n, k * T)[..., :length]
 
 
-def _a_layout(A: torch.Tensor, dims: _Dims) -> torch.Tensor:
+def _a_layout(A: torch.Tensor, dims: Dims) -> torch.Tensor:
     return A.view(dims.groups, dims.dim_per_group, dims.d_state).transpose(1, 2).contiguous().unsqueeze(1)
 
 
-def _dA_from_layout(dA: torch.Tensor, dims: _Dims) -> torch.Tensor:
+def _dA_from_layout(dA: torch.Tensor, dims: Dims) -> torch.Tensor:
     return dA.transpose(1, 2).reshape(dims.dim, dims.d_state)
 
 
@@ -219,29 +151,16 @@ def _state_gradients(bb, H, Gm, A5, dl, ul, dul, dyl, Bl, Cl, tmp):
     return d_delta, d_u, dA, dB, dC
 
 
-def _no_autocast(fn):
-    """Run a custom Function's forward/backward in full precision even under autocast (the scan's
-    matrix products would otherwise run in bf16/fp16)."""
-
-    @functools.wraps(fn)
-    def wrapper(ctx, *args):
-        device = next((a.device.type for a in args if isinstance(a, torch.Tensor)), "cpu")
-        with torch.autocast(device_type=device, enabled=False):
-            return fn(ctx, *args)
-
-    return wrapper
-
-
 # --------------------------------------------------------------------------- sequential baseline
 class _SequentialScanFn(torch.autograd.Function):
     """Loop over L; forward stores exp(delta A), delta u B and every state; hand-written backward."""
 
     @staticmethod
-    @_no_autocast
+    @no_autocast
     def forward(ctx, u, delta, A, B, C):
         b, dim, length = u.shape
         g, n = B.shape[1], A.shape[1]
-        dims = _Dims(b, dim, length, g, n)
+        dims = Dims(b, dim, length, g, n)
         dl, ul = _to_tk(delta, dims, length), _to_tk(u, dims, length)  # (L, b, G, 1, Dg)
         dul = dl * ul
         Bl, Cl = _bc_to_tk(B, length), _bc_to_tk(C, length)  # (L, b, G, 1, N)
@@ -258,7 +177,7 @@ class _SequentialScanFn(torch.autograd.Function):
         return _from_tk(y, dims, length)
 
     @staticmethod
-    @_no_autocast
+    @no_autocast
     def backward(ctx, dy):
         if getattr(ctx, "consumed", False):
             raise RuntimeError(
@@ -284,10 +203,10 @@ class _SequentialScanFn(torch.autograd.Function):
 
 def selective_scan_sequential(u, delta, A, B, C, D=None, delta_bias=None, delta_softplus=False) -> torch.Tensor:
     """Sequential loop over L with a hand-written backward storing all states (benchmark baseline)."""
-    B, C, _ = _check_shapes(u, delta, A, B, C, D, delta_bias)
-    ins = _compute_inputs(u, delta, A, B, C, delta_bias, delta_softplus)
+    B, C, _ = check_shapes(u, delta, A, B, C, D, delta_bias)
+    ins = compute_inputs(u, delta, A, B, C, delta_bias, delta_softplus)
     y = _SequentialScanFn.apply(*ins)
-    return _finish(y, ins[0], None if D is None else D.to(ins[0].dtype)).to(u.dtype)
+    return add_skip(y, ins[0], None if D is None else D.to(ins[0].dtype)).to(u.dtype)
 
 
 # ------------------------------------------------------------------------------------ chunked scan
@@ -302,11 +221,11 @@ class _ChunkedScanFn(torch.autograd.Function):
     """
 
     @staticmethod
-    @_no_autocast
+    @no_autocast
     def forward(ctx, u, delta, A, B, C, chunk_size: int, group_elems: int):
         b, dim, length = u.shape
         g, n = B.shape[1], A.shape[1]
-        dims = _Dims(b, dim, length, g, n)
+        dims = Dims(b, dim, length, g, n)
         T = max(1, min(chunk_size, length))
         K = math.ceil(length / T)
         pad = K * T - length
@@ -339,7 +258,7 @@ class _ChunkedScanFn(torch.autograd.Function):
         return _from_tk(y, dims, length)
 
     @staticmethod
-    @_no_autocast
+    @no_autocast
     def backward(ctx, dy):
         u, delta, B, C, A5, Hin = ctx.saved_tensors
         dims, T, K = ctx.dims, ctx.T, ctx.K
@@ -385,7 +304,7 @@ class _ChunkedScanFn(torch.autograd.Function):
         )
 
 
-def _layouts(u, delta, B, C, dims: _Dims, T: int, pad: int):
+def _layouts(u, delta, B, C, dims: Dims, T: int, pad: int):
     """Internal layouts of delta, u (T, b, G, K, Dg) and B, C (T, b, G, K, N). Padded positions have
     delta = 0 (decay 1, no input) and C = 0: they change nothing."""
     return (
@@ -471,94 +390,32 @@ def selective_scan_chunked(
     ``chunk_size`` positions per chunk; the backward recomputes states for as many chunks at a time as
     fit in ``group_elems`` elements per (positions, batch, dim, N) tensor.
     """
-    B, C, _ = _check_shapes(u, delta, A, B, C, D, delta_bias)
+    B, C, _ = check_shapes(u, delta, A, B, C, D, delta_bias)
     if chunk_size < 1 or group_elems < 1:
         raise ValueError(
             f"selective_scan_chunked: chunk_size and group_elems must be >= 1, got {chunk_size}, {group_elems}"
         )
-    ins = _compute_inputs(u, delta, A, B, C, delta_bias, delta_softplus)
+    ins = compute_inputs(u, delta, A, B, C, delta_bias, delta_softplus)
     y = _ChunkedScanFn.apply(*ins, int(chunk_size), int(group_elems))
-    return _finish(y, ins[0], None if D is None else D.to(ins[0].dtype)).to(u.dtype)
+    return add_skip(y, ins[0], None if D is None else D.to(ins[0].dtype)).to(u.dtype)
 
 
-# ------------------------------------------------------------------------------------- dispatch
-def available_scan_backends(device: torch.device | str | None = None, verify: bool = False) -> list[str]:
-    """Backends usable on ``device`` (default: CUDA if available) in ``auto`` preference order; ``torch``
-    always last. On CUDA: ``mamba_ssm`` when its compiled extension imports, then ``triton`` when Triton
-    imports (with ``verify=True``: only if its kernels pass the on-device self-check). On the CPU: ``cpu``
-    (the native kernel of ``scan_cpu``) when it builds and passes its self-check (this builds it once)."""
-    dev = torch.device(device) if device is not None else torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    out: list[str] = []
-    if dev.type == "cuda":
-        from . import scan_triton
+def ss2d_scan_reference(x, delta, A, B, C, D, delta_bias, height: int, width: int) -> torch.Tensor:
+    """The four-direction SS2D contract of the kernels (:func:`~tofdenoise.models.scan.cpu.ss2d_scan_cpu`,
+    :func:`~tofdenoise.models.scan.triton.ss2d_scan_triton`) computed the plain way: ``cross_scan`` copies, the
+    chunked PyTorch scan over the 4 d channels, ``cross_merge``. The reference for the kernels' self-check and
+    tests."""
+    batch, length, di = x.shape
 
-        if scan_triton.mamba_ssm_available():
-            out.append("mamba_ssm")
-        index = dev.index if dev.index is not None else torch.cuda.current_device()
-        if scan_triton.triton_available() and (not verify or scan_triton.triton_verified(index)):
-            out.append("triton")
-    elif dev.type == "cpu":
-        from .scan_cpu import cpu_kernel_available
+    def per_direction(t: torch.Tensor) -> torch.Tensor:
+        """(b, 4, c, H, W), block k for direction k -> (b, 4, c, L): block k read in direction k's order."""
+        t4 = cross_scan(t.flatten(0, 1)).view(batch, 4, 4, -1, length)
+        return t4[:, torch.arange(4), torch.arange(4)]
 
-        if cpu_kernel_available():
-            out.append("cpu")
-    out.append("torch")
-    return out
-
-
-SCAN_BACKENDS = ("auto", "cpu", "torch", "sequential", "triton", "mamba_ssm")
-
-
-def resolve_scan_backend(backend: str, u: torch.Tensor) -> str:
-    """The route ``selective_scan`` takes for ``u``: ``auto`` -> the first of
-    :func:`available_scan_backends` (CUDA: mamba_ssm / triton / torch; CPU: cpu / torch); ``cpu`` -> the
-    native kernel for float32/bf16/fp16 CPU tensors, else (float64, or the kernel failed to build: one
-    warning at build time) the chunked ``torch`` scan."""
-    if backend not in SCAN_BACKENDS:
-        raise ValueError(f"selective_scan: unknown backend {backend!r}; valid: {', '.join(SCAN_BACKENDS)}")
-    if backend == "auto":
-        if u.is_cuda:
-            return available_scan_backends(u.device, verify=True)[0]
-        backend = "cpu"
-    if backend == "cpu":
-        if u.is_cuda:
-            raise ValueError(f"selective_scan: backend 'cpu' needs CPU tensors, got device {u.device}")
-        from .scan_cpu import cpu_kernel_available
-
-        return "cpu" if u.dtype != torch.float64 and cpu_kernel_available() else "torch"
-    return backend
-
-
-def selective_scan(
-    u,
-    delta,
-    A,
-    B,
-    C,
-    D=None,
-    delta_bias=None,
-    delta_softplus=False,
-    backend: str = "auto",
-) -> torch.Tensor:
-    """Selective scan with mamba-ssm's ``selective_scan_fn`` signature and shapes; returns (batch, dim, L).
-
-    ``backend``: ``"auto"`` (CUDA: mamba-ssm, else the self-checked Triton kernels, else PyTorch; CPU: the
-    native kernel when it builds, else PyTorch), ``"cpu"`` (native CPU kernel; float64 inputs and a failed
-    build fall back to the chunked scan), ``"torch"`` (chunked), ``"sequential"`` (stores all states),
-    ``"triton"``, ``"mamba_ssm"``. :func:`resolve_scan_backend` names the route a call takes.
-    """
-    backend = resolve_scan_backend(backend, u)
-    if backend == "cpu":
-        from .scan_cpu import selective_scan_cpu
-
-        return selective_scan_cpu(u, delta, A, B, C, D, delta_bias, delta_softplus)
-    if backend == "torch":
-        return selective_scan_chunked(u, delta, A, B, C, D, delta_bias, delta_softplus)
-    if backend == "sequential":
-        return selective_scan_sequential(u, delta, A, B, C, D, delta_bias, delta_softplus)
-    if not u.is_cuda:
-        raise ValueError(f"selective_scan: backend {backend!r} needs CUDA tensors, got device {u.device}")
-    from . import scan_triton
-
-    fn = scan_triton.selective_scan_triton if backend == "triton" else scan_triton.selective_scan_mamba
-    return fn(u, delta, A, B, C, D, delta_bias, delta_softplus)
+    xs = cross_scan(x.transpose(1, 2).reshape(batch, di, height, width))  # (b, 4, d, L)
+    d4 = per_direction(delta.transpose(1, 2).reshape(batch, 4, di, height, width))
+    bc = [per_direction(t.permute(0, 2, 3, 1).reshape(batch, 4, -1, height, width)) for t in (B, C)]
+    y = selective_scan_chunked(
+        xs.reshape(batch, 4 * di, length), d4.reshape(batch, 4 * di, length), A, bc[0], bc[1], D, delta_bias, True
+    ).view(batch, 4, di, length)
+    return cross_merge(y, height, width).flatten(2).transpose(1, 2).to(x.dtype)

@@ -1,0 +1,175 @@
+"""The package's import layering, read from the source (every ``import``, module-level or inside a function):
+
+- floors: physics -> data_modules -> models -> training -> callbacks -> front ends (cli, inference, experiments,
+  reporting, evaluation). A module imports its own floor, lower floors and the shared root helpers, never a higher
+  floor; the shared helpers (registry, config, atomic, paths, output_guard, run_lock, wandb_env, lazy, visualize)
+  import only each other.
+- the scan package (``models/scan/``): one dispatcher (``dispatch.py``). The kernel modules (common, reference,
+  cpu, triton, mamba) never import it, nor the package's ``__init__`` that re-exports it, nor anything of
+  ``models`` outside the scan package; ``common`` imports nothing of the package.
+- no module imports another that (directly or not) imports it back: the import graph of ``tofdenoise`` has no
+  cycle but the two listed in ``KNOWN_CYCLES`` (older than this test; a new one fails).
+
+Stdlib only (``ast``), so it runs wherever the tests run.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+SRC = Path(__file__).resolve().parents[1] / "src"
+PACKAGE = "tofdenoise"
+
+FRONT_ENDS = ("cli", "inference", "experiments", "reporting", "evaluation")
+FLOORS = {
+    "physics": 0,
+    "data_modules": 1,
+    "models": 2,
+    "training": 3,
+    "callbacks": 4,
+    **dict.fromkeys(FRONT_ENDS, 5),
+}
+SHARED = {"registry", "config", "atomic", "paths", "output_guard", "run_lock", "wandb_env", "lazy", "visualize"}
+SCAN = f"{PACKAGE}.models.scan"
+SCAN_DISPATCHER = {SCAN, f"{SCAN}.dispatch"}
+#: cycles older than this test, each through a function-level import; remove an entry when its cycle goes
+KNOWN_CYCLES = [
+    [f"{PACKAGE}.physics.uncertainty", f"{PACKAGE}.physics.uncertainty_numpy"],
+    [f"{PACKAGE}.cli.sensor", f"{PACKAGE}.cli.sensor_captures"],
+]
+
+
+def _modules() -> dict[str, Path]:
+    out = {}
+    for path in sorted((SRC / PACKAGE).rglob("*.py")):
+        parts = path.relative_to(SRC).with_suffix("").parts
+        name = ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+        out[name] = path
+    return out
+
+
+MODULES = _modules()
+
+
+def _imports(name: str, path: Path) -> set[str]:
+    """The ``tofdenoise`` modules ``name`` imports (``from pkg import sub`` counts as ``pkg.sub``)."""
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    found: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"), str(path))):
+        if isinstance(node, ast.Import):
+            found.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")[: len(package.split(".")) - node.level + 1]
+                target = ".".join(base + ([node.module] if node.module else []))
+            else:
+                target = node.module or ""
+            subs = [f"{target}.{a.name}" for a in node.names if f"{target}.{a.name}" in MODULES]
+            found.update(subs or [target])
+    return {t for t in found if t == PACKAGE or t.startswith(PACKAGE + ".")}
+
+
+GRAPH = {name: _imports(name, path) for name, path in MODULES.items()}
+
+
+def _part(module: str) -> str:
+    """The top-level part of the package a module belongs to (``models`` for ``tofdenoise.models.scan.cpu``)."""
+    return module.split(".")[1] if module != PACKAGE else ""
+
+
+def _floor(module: str) -> int | None:
+    part = _part(module)
+    if part in SHARED:
+        return -1
+    return FLOORS.get(part)
+
+
+def test_every_part_of_the_package_has_a_floor():
+    parts = {_part(m) for m in MODULES} - {""}
+    assert parts - set(FLOORS) - SHARED == set(), "give a new top-level module or package a floor in this test"
+
+
+def test_no_floor_imports_a_higher_floor():
+    bad = []
+    for module, targets in GRAPH.items():
+        if module == PACKAGE:
+            continue  # the package root's lazy ``tofdenoise.denoise``
+        floor = _floor(module)
+        for target in targets:
+            target_floor = _floor(target)
+            if target == PACKAGE or target_floor is None:
+                continue
+            if floor == -1 and target_floor != -1:
+                bad.append(f"{module} (shared helper) imports {target} (floor {_part(target)})")
+            elif floor != -1 and target_floor > floor:
+                bad.append(f"{module} (floor {_part(module)}) imports {target} (higher floor {_part(target)})")
+    assert not bad, "\n".join(sorted(bad))
+
+
+def test_scan_kernels_never_import_the_dispatcher():
+    kernels = [m for m in MODULES if m.startswith(SCAN + ".") and m not in SCAN_DISPATCHER]
+    assert {m.rpartition(".")[2] for m in kernels} >= {"common", "reference", "cpu", "triton", "mamba"}
+    bad = []
+    for module in kernels:
+        for target in GRAPH[module]:
+            if target in SCAN_DISPATCHER:
+                bad.append(f"{module} imports the dispatcher {target}")
+            elif target.startswith(f"{PACKAGE}.models") and not target.startswith(SCAN + "."):
+                bad.append(f"{module} imports {target} (outside the scan package)")
+    common_imports = {t for t in GRAPH[f"{SCAN}.common"] if t.startswith(SCAN)}
+    assert not common_imports, f"scan.common imports {common_imports}"
+    assert not bad, "\n".join(sorted(bad))
+
+
+def test_only_ss2d_and_the_package_use_the_scan_dispatcher():
+    users = {m for m, targets in GRAPH.items() if targets & SCAN_DISPATCHER} - SCAN_DISPATCHER
+    assert users <= {f"{PACKAGE}.models", f"{PACKAGE}.models.ss2d"}, users
+
+
+def _cycles() -> list[list[str]]:
+    """Strongly connected components with more than one module (Tarjan), package root left out."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    out: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in GRAPH.get(v, ()):
+            if w == PACKAGE or w not in GRAPH:
+                continue
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                out.append(sorted(comp))
+
+    for v in GRAPH:
+        if v != PACKAGE and v not in index:
+            visit(v)
+    return out
+
+
+def test_no_new_import_cycle():
+    assert [c for c in _cycles() if c not in KNOWN_CYCLES] == []
+
+
+def test_the_checks_see_imports_inside_functions(tmp_path):
+    """The reader counts a function-level relative import (how the old scan modules imported each other back)."""
+    path = tmp_path / "mod.py"
+    path.write_text("def f():\n    from .dispatch import selective_scan\n    from . import cpu\n")
+    assert _imports(f"{SCAN}.reference", path) == {f"{SCAN}.dispatch", f"{SCAN}.cpu"}
