@@ -506,7 +506,7 @@ def available_scan_backends(device: torch.device | str | None = None, verify: bo
     return out
 
 
-SCAN_BACKENDS = ("auto", "cpu", "torch", "sequential", "triton", "mamba_ssm")
+SCAN_BACKENDS = ("auto", "cpu", "torch", "sequential", "triton", "mamba_ssm", "export")
 
 
 def resolve_scan_backend(backend: str, u: torch.Tensor) -> str:
@@ -545,7 +545,8 @@ def selective_scan(
     ``backend``: ``"auto"`` (CUDA: mamba-ssm, else the self-checked Triton kernels, else PyTorch; CPU: the
     native kernel when it builds, else PyTorch), ``"cpu"`` (native CPU kernel; float64 inputs and a failed
     build fall back to the chunked scan), ``"torch"`` (chunked), ``"sequential"`` (stores all states),
-    ``"triton"``, ``"mamba_ssm"``. :func:`resolve_scan_backend` names the route a call takes.
+    ``"triton"``, ``"mamba_ssm"``, ``"export"`` (``scan_export``: a fixed number of tensor steps, for ONNX).
+    :func:`resolve_scan_backend` names the route a call takes.
     """
     backend = resolve_scan_backend(backend, u)
     if backend == "cpu":
@@ -556,6 +557,10 @@ def selective_scan(
         return selective_scan_chunked(u, delta, A, B, C, D, delta_bias, delta_softplus)
     if backend == "sequential":
         return selective_scan_sequential(u, delta, A, B, C, D, delta_bias, delta_softplus)
+    if backend == "export":  # plain tensor ops, no loop over L: the ONNX export (scan_export.py)
+        from .scan_export import selective_scan_export
+
+        return selective_scan_export(u, delta, A, B, C, D, delta_bias, delta_softplus)
     if not u.is_cuda:
         raise ValueError(f"selective_scan: backend {backend!r} needs CUDA tensors, got device {u.device}")
     from . import scan_triton
