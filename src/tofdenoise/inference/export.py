@@ -124,7 +124,13 @@ def export_graph(graph: RestoreGraph, path: str | os.PathLike[str], dynamo: bool
         common["dynamic_shapes"] = tuple({2: torch.export.Dim.DYNAMIC, 3: torch.export.Dim.DYNAMIC} for _ in inputs)
     else:  # the tracer: sizes recorded as graph operations, the axes named dynamic
         common["dynamic_axes"] = {n: {2: "height", 3: "width"} for n in [*names, "restored_mm"]}
-    with torch.no_grad():
+    import warnings
+
+    with torch.no_grad(), warnings.catch_warnings():
+        # expected: the shape checks the tracer keeps as constants (the general branch, _example) and the
+        # exporter's note that it does not fold strided slices
+        warnings.filterwarnings("ignore", category=torch.jit.TracerWarning)
+        warnings.filterwarnings("ignore", message="Constant folding")
         torch.onnx.export(graph, inputs, str(path), **common)
 
 
