@@ -18,6 +18,7 @@ from tofdenoise.cli.export_cli_config import main as export_main
 from tofdenoise.cli.lightning_cli import build_cli
 from tofdenoise.cli.lightning_cli import main as cli_main
 from tofdenoise.config import compose_config, config_dir
+from tofdenoise.training.module import DepthRestorer
 
 CLI_DIR = config_dir() / "cli"
 
@@ -191,3 +192,32 @@ def test_a_run_folder_written_by_another_process_is_refused_before_anything_is_w
         holder.wait(timeout=30)
     cli_main(["fit", *_smoke_args(tmp_path, data_cache), "--trainer.max_epochs=1"])  # free again once released
     assert (run_dir / "config.yaml").is_file() and not (run_dir / "run.lock").exists()
+
+
+def test_fit_from_init_weights(tmp_path, data_cache, monkeypatch, capsys):
+    """--model.init_args.init_weights: the LightningCLI face of ++model.init_weights (same module hook)."""
+    from tofdenoise.training.init_weights import file_sha256
+
+    monkeypatch.setattr(sys, "argv", ["tofdenoise"])
+    monkeypatch.chdir(tmp_path)
+    src = DepthRestorer(backbone="unet", backbone_kwargs={"width": 8, "stages": 2})
+    gen = torch.Generator().manual_seed(1)
+    src.backbone.load_state_dict(
+        {k: v + torch.randn(v.shape, generator=gen) for k, v in src.backbone.state_dict().items()}
+    )
+    weights = tmp_path / "start.pt"
+    torch.save(src.backbone.state_dict(), weights)
+    common = _smoke_args(tmp_path, data_cache)
+    cli_main(["fit", *common, "--trainer.max_epochs=1", f"--model.init_args.init_weights={weights}"])
+    info = json.loads((tmp_path / "run" / "run_info.json").read_text())
+    assert info["init_weights"] == {"path": str(weights.resolve()), "sha256": file_sha256(weights)}
+    saved = (tmp_path / "run" / "config.yaml").read_text()
+    assert f"init_weights: {weights}" in saved
+    # a file of another size: one line naming it, exit status 2
+    big = DepthRestorer(backbone="unet", backbone_kwargs={"width": 16, "stages": 2})
+    torch.save(big.state_dict(), tmp_path / "big.pt")
+    with pytest.raises(SystemExit) as exit_info:
+        cli_main(["fit", *common, "--trainer.max_epochs=1", f"--model.init_args.init_weights={tmp_path / 'big.pt'}"])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert err.startswith(f"tofdenoise: error: model.init_weights: {tmp_path / 'big.pt'} does not fit backbone 'unet'")

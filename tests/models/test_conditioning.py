@@ -115,3 +115,14 @@ def test_fill_works_on_a_single_row_and_column():
     assert (out > 0).all() and out[0, 0, 0, 1] == 100.0 and out[0, 0, 0, 4] == 300.0
     col = row.transpose(2, 3)
     torch.testing.assert_close(fill_invalid_mm(col).transpose(2, 3), out)
+
+
+@pytest.mark.parametrize("size", [(37, 53), (64, 64), (1, 7), (96, 130)])
+def test_fixed_level_fill_of_the_export_equals_the_early_stopping_fill(size):
+    """fill_invalid_mm(levels=16) (the ONNX graph: no data-dependent branch) gives the same values."""
+    gen = torch.Generator().manual_seed(0)
+    depth = 300.0 + 1000.0 * torch.rand(2, 1, *size, generator=gen)
+    depth[torch.rand(depth.shape, generator=gen) < 0.3] = 0.0
+    depth[1, :, : size[0] // 2] = float("nan")  # a large hole: many levels needed
+    assert torch.equal(fill_invalid_mm(depth), fill_invalid_mm(depth, levels=16))
+    assert torch.equal(fill_invalid_mm(torch.zeros(1, 1, 5, 6), levels=4), torch.zeros(1, 1, 5, 6))

@@ -139,6 +139,8 @@ class RunOutputs(Callback):
             "seed": int(seed) if seed not in (None, "") else None,
             "started": self.started,
             "prepared_data": summary() if callable(summary) else None,
+            # fine-tuning: the weights this run started from (model.init_weights), path and sha256
+            "init_weights": getattr(pl_module, "init_record", None),
         }
 
     def _write_records(self, trainer: pl.Trainer, pl_module: pl.LightningModule, resumed: bool) -> None:

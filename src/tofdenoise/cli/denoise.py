@@ -1,6 +1,7 @@
 """``tofdenoise-denoise``: denoise a camera's own depth frames with a trained checkpoint.
 
-    tofdenoise-denoise --ckpt best.ckpt INPUT [INPUT ...] --out DIR [--amplitude DIR_OR_PATTERN] [--calib FILE]
+    tofdenoise-denoise (--ckpt best.ckpt | --onnx model.onnx) INPUT [INPUT ...] --out DIR
+                       [--amplitude DIR_OR_PATTERN] [--calib FILE]
                        [--depth-scale-mm S] [--fill-holes] [--npy] [--previews] [--device auto|cpu|cuda]
 
 INPUT: depth frames or folders of them (searched recursively): 16-bit PNG/TIFF in mm (0 = invalid), ``.npy``
@@ -36,7 +37,14 @@ def build_parser() -> argparse.ArgumentParser:
         "invalid pixels stay invalid unless --fill-holes.",
     )
     p.add_argument("inputs", nargs="+", metavar="INPUT", help="depth frames or folders of them (recursive)")
-    p.add_argument("--ckpt", required=True, type=Path, help="DepthRestorer checkpoint (.ckpt)")
+    model = p.add_mutually_exclusive_group(required=True)
+    model.add_argument("--ckpt", type=Path, help="DepthRestorer checkpoint (.ckpt)")
+    model.add_argument(
+        "--onnx",
+        type=Path,
+        help="a restore graph of tofdenoise-export, run by onnxruntime on the CPU (no torch weights loaded; "
+        "whole frames, --device/--fp32/--tile do not apply)",
+    )
     p.add_argument("--out", required=True, type=Path, help="output folder (input sub-folders are mirrored)")
     p.add_argument(
         "--amplitude",
@@ -78,6 +86,13 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def torch_cpu():
+    """The device the summary names for an onnxruntime run (its CPU execution provider)."""
+    import torch
+
+    return torch.device("cpu")
+
+
 def _fail(message: str) -> int:
     print(f"tofdenoise-denoise: error: {message}", file=sys.stderr)
     return 2
@@ -109,13 +124,21 @@ def run(args: argparse.Namespace) -> int:
             from tofdenoise.physics.calibration import resolve_calibration
 
             calib = resolve_calibration(args.calib)
-        model = load_restorer(args.ckpt, device)
+        if args.onnx is not None:
+            from tofdenoise.inference.onnx_runner import OnnxRestorer
+
+            model = OnnxRestorer(args.onnx)
+            device, signal = torch_cpu(), model.use_signal_channel
+        else:
+            model = load_restorer(args.ckpt, device)
+            signal = bool(model.hparams.use_signal_channel)
     except (FrameError, CheckpointError, ValueError, OSError) as exc:
         return _fail(str(exc))
-    if model.hparams.use_signal_channel and amplitude is None:
+    if signal and amplitude is None:
         return _fail(
-            f"checkpoint {args.ckpt} uses the amplitude (signal) channel (use_signal_channel=true): give "
-            "the frames' amplitude with --amplitude DIR_OR_PATTERN"
+            f"{'ONNX model' if args.onnx is not None else 'checkpoint'} {args.onnx or args.ckpt} uses the "
+            "amplitude (signal) channel (use_signal_channel=true): give the frames' amplitude with "
+            "--amplitude DIR_OR_PATTERN"
         )
     if not frames:
         return _fail(f"no depth frame found in {', '.join(map(str, args.inputs))}")
@@ -208,15 +231,18 @@ def _denoise_one(frame: Any, job: _Job, tally: _Tally) -> None:
             return
         if args.depth_scale_mm is None:
             check_depth_units_mm(data, frame.path)
-        restored = restore_frame(
-            job.model,
-            data.depth_mm,
-            data.valid,
-            data.amplitude,
-            fill_holes=args.fill_holes,
-            tile=args.tile,
-            precision=job.precision,
-        )
+        if args.onnx is not None:  # onnxruntime: whole frame, the graph's own precision
+            restored = job.model.restore_frame(data.depth_mm, data.valid, data.amplitude, fill_holes=args.fill_holes)
+        else:
+            restored = restore_frame(
+                job.model,
+                data.depth_mm,
+                data.valid,
+                data.amplitude,
+                fill_holes=args.fill_holes,
+                tile=args.tile,
+                precision=job.precision,
+            )
     except (FrameError, ValueError, OSError, RuntimeError) as exc:
         tally.failed.append((str(frame.path), str(exc)))
         return
@@ -237,7 +263,7 @@ def _refuse_replacing_inputs(args: argparse.Namespace, frames, amplitude, option
     from tofdenoise.inference.frames import FrameError
     from tofdenoise.inference.outputs import output_paths
 
-    inputs: list[Path] = [frame.path for frame in frames] + [Path(args.ckpt)]
+    inputs: list[Path] = [frame.path for frame in frames] + [Path(args.onnx or args.ckpt)]
     if args.calib is not None and Path(args.calib).exists():
         inputs.append(Path(args.calib))
     if amplitude is not None:

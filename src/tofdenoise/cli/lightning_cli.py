@@ -111,10 +111,11 @@ def main(args: list[str] | None = None) -> Any:
     """Console script ``tofdenoise``."""
     quiet_wandb()
     from tofdenoise.cli.checkpoint_check import CheckpointFileError
+    from tofdenoise.training.init_weights import InitWeightsError
 
     try:
         build_cli(args)
-    except (CheckpointFileError, RunLockedError) as exc:  # one line that says what to do, not a traceback
+    except (CheckpointFileError, InitWeightsError, RunLockedError) as exc:  # one line, not a traceback
         print(f"tofdenoise: error: {exc}", file=sys.stderr)
         raise SystemExit(2) from None
     finally:

@@ -32,6 +32,7 @@ from tofdenoise.cli.checkpoint_check import CheckpointFileError, check_checkpoin
 from tofdenoise.config import ConfigError, hydra_console_script, instantiate_node
 from tofdenoise.registry import Registry
 from tofdenoise.run_lock import RunLock, RunLockedError
+from tofdenoise.training.init_weights import InitWeightsError
 from tofdenoise.wandb_env import finish_wandb, setup_wandb_env, wandb_run_id
 
 __all__ = ["main", "run", "validate_config"]
@@ -211,7 +212,10 @@ def _test_checkpoint(cfg: DictConfig, trainer: Any, run_dir: Path) -> str | None
 
 #: console script ``tofdenoise-train`` (Hydra command line: overrides, ``--multirun``, ``--cfg job``)
 main = hydra_console_script(
-    "train", run, "tofdenoise-train", (CheckpointFileError, CheckpointWriteError, ConfigError, RunLockedError)
+    "train",
+    run,
+    "tofdenoise-train",
+    (CheckpointFileError, CheckpointWriteError, ConfigError, InitWeightsError, RunLockedError),
 )
 
 

@@ -65,40 +65,50 @@ def _check_b1hw(x: Tensor, name: str) -> None:
 
 
 def _masked_half(values: Tensor, weight: Tensor) -> tuple[Tensor, Tensor]:
-    """One pull step: 2 x 2 block sums of ``values * weight`` and of ``weight`` (odd sides: partial blocks)."""
-    h, w = values.shape[-2:]
-    pad = (0, w % 2, 0, h % 2)
-    v = F.pad(values * weight, pad)
-    m = F.pad(weight, pad)
+    """One pull step: 2 x 2 block sums of ``values * weight`` and of ``weight`` (odd sides: partial blocks).
+
+    One zero row and column are always padded: the floor-mode pooling drops them on an even side and uses them
+    for the last partial block on an odd one (the same windows as padding ``side % 2``, with no shape-dependent
+    padding, so the exported graph takes any frame size)."""
+    v = F.pad(values * weight, (0, 1, 0, 1))
+    m = F.pad(weight, (0, 1, 0, 1))
     return F.avg_pool2d(v, 2) * 4.0, F.avg_pool2d(m, 2) * 4.0
 
 
-def fill_invalid_mm(depth_mm: Tensor, valid: Tensor | None = None) -> Tensor:
+def fill_invalid_mm(depth_mm: Tensor, valid: Tensor | None = None, levels: int | None = None) -> Tensor:
     """Depth (B, 1, H, W) with every invalid pixel filled by pull-push (valid pixels unchanged, float32).
 
     Pull: level k+1 holds, per 2 x 2 block of level k, the weighted mean of its valid values and the count of
     valid pixels behind it. Push: from the coarsest level down, a level's empty pixels take the bilinear
     interpolation of the filled level above. An image with no valid pixel is returned as zeros.
+
+    ``levels``: ``None`` stops pulling at the first complete level (or 1 x 1); a number runs exactly that many
+    pull steps with no data-dependent branch (the ONNX export, ``tofdenoise.inference.export``). Both give the
+    same values when ``2**levels`` >= the frame's longer side: past the first complete level every pixel keeps
+    its own value, and a 1 x 1 level stays 1 x 1.
     """
     _check_b1hw(depth_mm, "fill_invalid_mm(depth_mm)")
     valid = valid_input_mask(depth_mm) if valid is None else valid.bool()
     if valid.shape != depth_mm.shape:
         raise ValueError(f"fill_invalid_mm: valid shape {tuple(valid.shape)} != depth shape {tuple(depth_mm.shape)}")
     depth = torch.where(valid, depth_mm.float(), torch.zeros((), dtype=torch.float32, device=depth_mm.device))
-    if bool(valid.all()):
+    if levels is None and bool(valid.all()):
         return depth
     weight = valid.float()
-    levels: list[tuple[Tensor, Tensor]] = []
+    pyramid: list[tuple[Tensor, Tensor]] = []
     values = depth
     while True:
-        levels.append((values, weight))
-        if max(values.shape[-2:]) <= 1 or bool((weight > 0).all()):
+        pyramid.append((values, weight))
+        if levels is not None:
+            if len(pyramid) > levels:
+                break
+        elif max(values.shape[-2:]) <= 1 or bool((weight > 0).all()):
             break
         sums, counts = _masked_half(values, weight)
         values = sums / counts.clamp_min(1e-12)
         weight = counts
-    filled = levels[-1][0]  # coarsest level: complete unless a whole image is empty (then zeros stay)
-    for values, weight in reversed(levels[:-1]):
+    filled = pyramid[-1][0]  # coarsest level: complete unless a whole image is empty (then zeros stay)
+    for values, weight in reversed(pyramid[:-1]):
         up = F.interpolate(filled, size=values.shape[-2:], mode="bilinear", align_corners=False)
         filled = torch.where(weight > 0, values, up)
     return filled

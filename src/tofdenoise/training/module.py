@@ -114,6 +114,10 @@ class DepthRestorer(pl.LightningModule):
         tile_overlap: overlap of neighbouring tiles in pixels.
         learned_margin: the learned guard: a run counts as learned only when its best validation MAE is at
             most ``(1 - learned_margin)`` x the raw validation MAE (default 0.05: 5 % below raw).
+        init_weights: a checkpoint or state-dict file whose weights the network starts from when a fit begins
+            without ``ckpt_path`` (fine-tuning: optimiser, schedule and epoch start fresh;
+            ``tofdenoise.training.init_weights``). Any missing, unexpected or mis-shaped layer is an error;
+            the path and its sha256 go to ``run_info.json`` and the checkpoints.
     """
 
     def __init__(
@@ -138,6 +142,7 @@ class DepthRestorer(pl.LightningModule):
         eval_tile_size: int | None = None,
         tile_overlap: int = 32,
         learned_margin: float = 0.05,
+        init_weights: str | None = None,
     ) -> None:
         super().__init__()
         from tofdenoise.models import build_backbone
@@ -209,6 +214,8 @@ class DepthRestorer(pl.LightningModule):
         self._fit_in_process = False
         self._fit_record: dict[str, Any] | None = None
         self._loaded_record: dict[str, Any] | None = None
+        #: {"path", "sha256"} of the weights this run started from (``init_weights``), None for a fresh init
+        self.init_record: dict[str, str] | None = None
 
     # ------------------------------------------------------------------ networks
     @property
@@ -529,6 +536,13 @@ class DepthRestorer(pl.LightningModule):
     def on_fit_start(self) -> None:
         self._fit_in_process = True
         self._fit_record = None
+        resuming = self._trainer is not None and self.trainer.ckpt_path is not None
+        if self.hparams.get("init_weights") and not resuming:
+            # after the modules are set up, before the sanity check: the optimiser holds these same tensors
+            from tofdenoise.training.init_weights import load_init_weights
+
+            self.init_record = load_init_weights(self, str(self.hparams.init_weights))
+            log.info("network initialised from %s (sha256 %s)", self.init_record["path"], self.init_record["sha256"])
 
     def on_fit_end(self) -> None:
         self._fit_record = self._live_record()
@@ -538,11 +552,19 @@ class DepthRestorer(pl.LightningModule):
         """Keep the learned guard's inputs in the checkpoint (plain values: loads with weights_only=True)."""
         if self._trainer is not None:
             checkpoint[LEARNED_RECORD_KEY] = self._live_record()
+        if self.init_record is not None:
+            from tofdenoise.training.init_weights import INIT_RECORD_KEY
+
+            checkpoint[INIT_RECORD_KEY] = dict(self.init_record)
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         """Refuse a checkpoint written for another backbone/architecture with a readable message; restore the
         learned guard's record (validation MAEs continue across a resume)."""
         self._check_architecture(checkpoint)
+        from tofdenoise.training.init_weights import INIT_RECORD_KEY
+
+        init = checkpoint.get(INIT_RECORD_KEY)
+        self.init_record = dict(init) if isinstance(init, dict) else None
         rec = _record_from_checkpoint(checkpoint)
         self._loaded_record = rec
         if self._raw_val_mae_mm is None:

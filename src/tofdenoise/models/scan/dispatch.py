@@ -17,7 +17,7 @@ from .reference import selective_scan_chunked, selective_scan_sequential
 
 __all__ = ["SCAN_BACKENDS", "available_scan_backends", "resolve_scan_backend", "selective_scan"]
 
-SCAN_BACKENDS = ("auto", "cpu", "torch", "sequential", "triton", "mamba_ssm")
+SCAN_BACKENDS = ("auto", "cpu", "torch", "sequential", "triton", "mamba_ssm", "export")
 
 _warned: set[str] = set()
 
@@ -67,7 +67,8 @@ def resolve_scan_backend(backend: str, u: torch.Tensor, ss2d: bool = False) -> s
       keeps float64 precision; one warning says so) and when the kernel is not there: a failed build has already
       warned once, naming the PyTorch scan; a kernel switched off by ``TOFDENOISE_SCAN_CPU=0`` warns once here.
     - ``triton`` / ``mamba_ssm``: CUDA tensors only (a ValueError otherwise); a RuntimeError when the package does
-      not import. ``torch`` and ``sequential`` run anywhere.
+      not import. ``torch``, ``sequential`` and ``export`` (a fixed number of plain tensor steps, traceable for ONNX:
+      ``export.selective_scan_export``) run anywhere.
     - anything else: a ValueError naming the valid backends.
     """
     if backend not in SCAN_BACKENDS:
@@ -139,6 +140,8 @@ def selective_scan(
         fn = selective_scan_chunked
     elif route == "sequential":
         fn = selective_scan_sequential
+    elif route == "export":
+        from .export import selective_scan_export as fn
     elif route == "triton":
         from .triton import selective_scan_triton as fn
     else:

@@ -1,0 +1,85 @@
+"""The restore path through PyTorch and through onnxruntime, side by side (CPU, one 480 x 640 frame).
+
+    python benchmarks/bench_onnx.py [--quick] [--threads N] [--backbones unet,dvss]
+
+For each backbone (default kwargs, weights as initialised plus a small perturbation, so the network's output is
+not the zero-initialised residual): ``DepthRestorer.restore_mm`` in float32 (no tiling) against the exported
+graph (``tofdenoise.inference.export``, the whole path: hole fill, centring, network, offset) in onnxruntime's
+CPU provider, fp32 and fp16. Frames/s = 1 / median wall time of a frame with 10 % holes, after one warm-up;
+the max |difference| to PyTorch over valid pixels is printed with it. ``--quick``: 240 x 320 frames, U-Net only.
+DVSS is not in the default list: its export scan holds the whole state (batch, 4 x d_inner, N, H x W) at every
+doubling step, about 5 GiB per SS2D layer at 480 x 640 (docs/denoise.md, "ONNX export").
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import tempfile
+import time
+import warnings
+from pathlib import Path
+
+
+def _median_time(fn, repeats: int) -> float:
+    fn()  # warm-up
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--quick", action="store_true")
+    p.add_argument("--threads", type=int, default=None)
+    p.add_argument("--backbones", default="unet")
+    p.add_argument("--repeats", type=int, default=5)
+    args = p.parse_args()
+    warnings.filterwarnings("ignore")
+    import numpy as np
+    import onnxruntime as ort
+    import torch
+
+    from tofdenoise.inference.export import export_graph, restore_graph
+    from tofdenoise.training.module import DepthRestorer
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    threads = torch.get_num_threads()
+    h, w = (240, 320) if args.quick else (480, 640)
+    gen = torch.Generator().manual_seed(0)
+    depth = 800.0 + 600.0 * torch.rand(1, 1, h, w, generator=gen)
+    depth[torch.rand(depth.shape, generator=gen) < 0.1] = 0.0
+    valid = (depth > 0).numpy()
+    print(f"frame {h} x {w}, 10 % holes, torch threads {threads}, onnxruntime {ort.__version__} intra-op {threads}")
+    print("| backbone | route | frames/s | ms/frame | max abs diff vs PyTorch (mm) |")
+    print("|---|---|---:|---:|---:|")
+    for name in args.backbones.split(","):
+        torch.manual_seed(0)
+        model = DepthRestorer(backbone=name).eval()
+        with torch.no_grad():
+            for prm in model.backbone.parameters():
+                prm.add_(0.01 * torch.randn_like(prm))
+        with torch.no_grad():
+            ref = model.restore_mm({"noisy": depth}, tile=None).numpy()
+            t = _median_time(lambda: model.restore_mm({"noisy": depth}, tile=None), args.repeats)
+        print(f"| {name} | PyTorch fp32 | {1 / t:.2f} | {1000 * t:.0f} | 0 |", flush=True)
+        for precision in ("fp32", "fp16"):
+            with tempfile.TemporaryDirectory() as tmp:
+                path = Path(tmp) / "m.onnx"
+                export_graph(restore_graph(model, fp16=precision == "fp16"), path)
+                options = ort.SessionOptions()
+                options.intra_op_num_threads = threads
+                sess = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+                feeds = {"depth_mm": depth.numpy()}
+                out = sess.run(None, feeds)[0]
+                t = _median_time(lambda: sess.run(None, feeds), args.repeats)
+            diff = float(np.abs(out - ref)[valid].max())
+            print(f"| {name} | onnxruntime {precision} | {1 / t:.2f} | {1000 * t:.0f} | {diff:.4f} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,175 @@
+"""The whole restore path of a checkpoint as one ONNX graph (``tofdenoise-export CKPT --onnx model.onnx``).
+
+:class:`RestoreGraph` is ``DepthRestorer.restore_mm`` written for export: the hole fill (pull-push with a fixed
+number of levels, :func:`tofdenoise.models.conditioning.fill_invalid_mm`), the centring on the smooth local
+offset, the network, and the offset added back in float32. Inputs ``depth_mm`` (B, 1, H, W) float32 (0, negative,
+NaN = invalid) and, for a checkpoint with the signal channel, ``amplitude`` (B, 1, H, W); output ``restored_mm``
+(B, 1, H, W) at every pixel (the caller masks input holes, as ``tofdenoise-denoise`` does). Height and width are
+dynamic. ``fp16`` runs the network in float16 between the float32 conditioning and the float32 offset.
+
+Exporter: the TorchScript-based ``torch.onnx.export(..., dynamo=False)`` by default. Both were tried on the tiny
+U-Net (2-core CPU, shared): both give graphs that run at any size with onnxruntime within 2.5e-4 mm of PyTorch,
+but the dynamo exporter (``torch.export`` with ``Dim.DYNAMIC`` height and width) took 89 s against 5 s, its
+symbolic shape reasoning going through the 16 nested ``(side + 1) // 2`` of the hole fill's pyramid. The
+tracer records shape arithmetic (``x.shape``, the pads to whole blocks, the bilinear sizes) as graph
+operations, so the graph stays dynamic; what it cannot follow are Python branches on a shape, so the example
+frame has odd prime sides (:func:`_example`) and the code paths that branch on a size (a backbone padding to its
+stride) take the general branch. ``export_graph(..., dynamo=True)`` keeps the other route.
+
+The graph's metadata (``metadata_props``) names the backbone, ``use_signal_channel``, ``depth_scale_mm``, the
+fill levels, the precision and the checkpoint's sha256; ``tofdenoise-denoise --onnx`` reads them.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from tofdenoise.models.conditioning import fill_invalid_mm, local_offset_mm, valid_input_mask
+
+__all__ = ["RestoreGraph", "ExportError", "export_onnx", "FILL_LEVELS", "ONNX_OPSET"]
+
+#: pull-push levels of the exported hole fill: exact for frames up to 2**16 pixels a side
+FILL_LEVELS = 16
+ONNX_OPSET = 18
+
+
+class ExportError(ValueError):
+    """A checkpoint or setting that cannot be exported (the message names the file or the field)."""
+
+
+class RestoreGraph(nn.Module):
+    """``DepthRestorer.restore_mm`` without tiling, with no data-dependent branch: (depth[, amplitude]) -> mm."""
+
+    def __init__(
+        self,
+        net: nn.Module,
+        depth_scale_mm: float,
+        centering: str = "local",
+        block_px: int = 16,
+        use_signal_channel: bool = False,
+        fp16: bool = False,
+        levels: int = FILL_LEVELS,
+    ) -> None:
+        super().__init__()
+        if centering not in ("local", "none"):
+            raise ExportError(
+                f"input_centering {centering!r} cannot be exported (its per-image median has no ONNX operator); "
+                "export a checkpoint trained with input_centering 'local' or 'none'"
+            )
+        self.net = net.half() if fp16 else net
+        self.depth_scale_mm = float(depth_scale_mm)
+        self.centering, self.block_px, self.levels = centering, int(block_px), int(levels)
+        self.use_signal_channel, self.fp16 = bool(use_signal_channel), bool(fp16)
+
+    def forward(self, depth_mm: Tensor, amplitude: Tensor | None = None) -> Tensor:
+        from tofdenoise.training.module import final_prediction
+
+        valid = valid_input_mask(depth_mm)
+        filled = fill_invalid_mm(depth_mm.float(), valid, levels=self.levels)
+        if self.centering == "local":
+            offset = local_offset_mm(filled, self.block_px)
+        else:
+            offset = torch.zeros_like(filled)
+        x = (filled - offset) / self.depth_scale_mm
+        if self.use_signal_channel:
+            amp = amplitude.float() * valid  # the input's own validity, as DepthRestorer.condition
+            peak = amp.amax(dim=(1, 2, 3), keepdim=True).clamp_min(1e-12)
+            x = torch.cat([x, amp / peak], dim=1)
+        y = final_prediction(self.net(x.half() if self.fp16 else x))
+        return y.float() * self.depth_scale_mm + offset
+
+
+def restore_graph(model: Any, fp16: bool = False) -> RestoreGraph:
+    """The :class:`RestoreGraph` of a loaded ``DepthRestorer`` (its evaluation network: the EMA copy when on)."""
+    import copy
+
+    hp = model.hparams
+    net = copy.deepcopy(model.eval_net).eval()
+    for module in net.modules():
+        if hasattr(module, "scan_backend"):  # SS2D (DVSS): the scan written for export (models/scan/export.py)
+            module.scan_backend = "export"
+    return RestoreGraph(
+        net,
+        depth_scale_mm=float(hp.depth_scale_mm),
+        centering=str(hp.input_centering),
+        block_px=int(hp.centering_block_px),
+        use_signal_channel=bool(hp.use_signal_channel),
+        fp16=fp16,
+    ).eval()
+
+
+def _example(graph: RestoreGraph, height: int = 61, width: int = 83) -> tuple[Tensor, ...]:
+    """Example inputs of odd, prime sides: torch.export follows the branches this size takes (a backbone pads to a
+    multiple of its stride only when needed) and would specialise the graph to multiples of 2 or 4 otherwise."""
+    gen = torch.Generator().manual_seed(0)
+    depth = 500.0 + 1000.0 * torch.rand(1, 1, height, width, generator=gen)
+    depth[torch.rand(depth.shape, generator=gen) < 0.1] = 0.0
+    if graph.use_signal_channel:
+        return depth, torch.rand(1, 1, height, width, generator=gen) * 1000.0
+    return (depth,)
+
+
+def export_graph(graph: RestoreGraph, path: str | os.PathLike[str], dynamo: bool = False) -> None:
+    """Write ``graph`` as ONNX to ``path`` (not atomic: :func:`export_onnx` writes through a temporary file)."""
+    inputs = _example(graph)
+    names = ["depth_mm"] + (["amplitude"] if graph.use_signal_channel else [])
+    common = {"input_names": names, "output_names": ["restored_mm"], "opset_version": ONNX_OPSET, "dynamo": dynamo}
+    if dynamo:  # torch.export: symbolic height and width
+        common["dynamic_shapes"] = tuple({2: torch.export.Dim.DYNAMIC, 3: torch.export.Dim.DYNAMIC} for _ in inputs)
+    else:  # the tracer: sizes recorded as graph operations, the axes named dynamic
+        common["dynamic_axes"] = {n: {2: "height", 3: "width"} for n in [*names, "restored_mm"]}
+    import warnings
+
+    with torch.no_grad(), warnings.catch_warnings():
+        # expected: the shape checks the tracer keeps as constants (the general branch, _example) and the
+        # exporter's note that it does not fold strided slices
+        warnings.filterwarnings("ignore", category=torch.jit.TracerWarning)
+        warnings.filterwarnings("ignore", message="Constant folding")
+        torch.onnx.export(graph, inputs, str(path), **common)
+
+
+def export_onnx(ckpt: str | os.PathLike[str], out: str | os.PathLike[str], fp16: bool = False) -> dict[str, str]:
+    """Export checkpoint ``ckpt`` to ``out`` (atomically) and return the metadata written into the graph."""
+    import onnx
+
+    from tofdenoise.atomic import atomic_write
+    from tofdenoise.inference.denoise import load_restorer
+    from tofdenoise.training.init_weights import file_sha256
+
+    model = load_restorer(ckpt, torch.device("cpu"))
+    if not getattr(model, "trainable", True):
+        raise ExportError(f"checkpoint {ckpt}: backbone {model.hparams.backbone!r} is a classical filter, not exported")
+    graph = restore_graph(model, fp16=fp16)
+    meta = {
+        "tofdenoise_backbone": str(model.hparams.backbone),
+        "tofdenoise_backbone_kwargs": json.dumps(dict(model.hparams.backbone_kwargs or {}), sort_keys=True),
+        "tofdenoise_use_signal_channel": str(bool(model.hparams.use_signal_channel)).lower(),
+        "tofdenoise_depth_scale_mm": repr(float(model.hparams.depth_scale_mm)),
+        "tofdenoise_input_centering": str(model.hparams.input_centering),
+        "tofdenoise_fill_levels": str(FILL_LEVELS),
+        "tofdenoise_precision": "fp16" if fp16 else "fp32",
+        "tofdenoise_checkpoint": str(Path(ckpt).resolve()),
+        "tofdenoise_checkpoint_sha256": file_sha256(ckpt),
+    }
+
+    def write(tmp: Path) -> None:
+        raw = tmp.with_name(tmp.name + ".export.onnx")
+        try:
+            export_graph(graph, raw)
+            proto = onnx.load(str(raw))  # external data (if any) folded back: one self-contained file
+        finally:
+            for leftover in raw.parent.glob(raw.name + "*"):
+                leftover.unlink()
+        for key, value in meta.items():
+            entry = proto.metadata_props.add()
+            entry.key, entry.value = key, value
+        onnx.save(proto, str(tmp))
+
+    atomic_write(out, write, suffix=".onnx")
+    return meta

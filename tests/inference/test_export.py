@@ -1,0 +1,118 @@
+"""ONNX export of the restore path: onnxruntime equals PyTorch on frames with holes, at any size."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+pytest.importorskip("onnxruntime")
+
+from tofdenoise.inference.export import ExportError, export_graph, restore_graph  # noqa: E402
+from tofdenoise.inference.onnx_runner import OnnxModelError, OnnxRestorer  # noqa: E402
+from tofdenoise.training.module import DepthRestorer  # noqa: E402
+
+#: tiny networks (the sizes of tests/cli/conftest.py); DVSS's reference runs the PyTorch scan (no kernel build)
+TINY = {
+    "unet": {"width": 8, "stages": 2},
+    "deeptof": {"channels": [8, 8, 16, 16]},
+    "tofkpn": {"channels": [8, 8, 16, 16]},
+    "rcf": {"width": 8, "hidden": 8, "steps": 2, "global_levels": 2},
+    "restormer": {"width": 8, "blocks": [1, 1, 1, 1], "heads": [1, 1, 2, 2], "refinement_blocks": 1},
+    "dvss": {"width": 8, "enc_blocks": [1], "bottleneck_blocks": 1, "d_state": 4, "scan_backend": "torch"},
+}
+#: parity bound of the issue: onnxruntime vs PyTorch on valid pixels, fp32
+TOLERANCE_MM = 0.01
+
+
+def _model(name: str) -> DepthRestorer:
+    torch.manual_seed(0)
+    model = DepthRestorer(backbone=name, backbone_kwargs=TINY[name], use_signal_channel=name == "rcf").eval()
+    with torch.no_grad():  # away from the zero-initialised residual head: the network's output matters
+        for p in model.backbone.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    return model
+
+
+def _frame(h: int, w: int, seed: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
+    gen = torch.Generator().manual_seed(seed)
+    yy, xx = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
+    depth = (900.0 + 2.0 * xx + 1.5 * yy + 8.0 * torch.randn(h, w, generator=gen))[None, None]
+    depth[torch.rand(depth.shape, generator=gen) < 0.15] = 0.0  # scattered holes
+    depth[..., h // 3 : h // 3 + 6, w // 2 : w // 2 + 9] = float("nan")  # a hole blob
+    return depth, 1000.0 * torch.rand(1, 1, h, w, generator=gen)
+
+
+def _max_diff(model: DepthRestorer, runner: OnnxRestorer, h: int, w: int) -> float:
+    depth, amp = _frame(h, w)
+    with torch.no_grad():
+        ref = model.restore_mm({"noisy": depth, "amplitude": amp}, tile=None).numpy()
+    out = runner.restore_mm(depth.numpy(), amp.numpy())
+    valid = np.isfinite(depth.numpy()) & (depth.numpy() > 0)
+    return float(np.abs(out - ref)[valid].max())
+
+
+@pytest.mark.parametrize("backbone", list(TINY))
+def test_onnxruntime_equals_pytorch_on_frames_with_holes_at_several_sizes(backbone, tmp_path):
+    model = _model(backbone)
+    path = tmp_path / f"{backbone}.onnx"
+    export_graph(restore_graph(model), path)
+    runner = OnnxRestorer.__new__(OnnxRestorer)  # a bare graph (no metadata): the session only
+    import onnxruntime as ort
+
+    runner.session, runner.inputs = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]), None
+    runner.inputs = [i.name for i in runner.session.get_inputs()]
+    runner.path = path
+    for h, w in [(37, 53), (64, 80), (61, 83)]:  # odd, even and the example's own size: one graph for all
+        assert _max_diff(model, runner, h, w) <= TOLERANCE_MM, (backbone, h, w)
+
+
+def test_export_command_and_denoise_onnx_match_the_checkpoint(tmp_path):
+    from tofdenoise.cli.denoise import main as denoise_main
+    from tofdenoise.cli.export import main as export_main
+    from tofdenoise.data_modules.io import write_depth_png16
+
+    model = _model("unet")
+    ckpt = tmp_path / "m.ckpt"
+    import lightning
+
+    payload = {"state_dict": model.state_dict(), "hyper_parameters": dict(model.hparams)}
+    torch.save({**payload, "pytorch-lightning_version": lightning.__version__}, ckpt)
+    onnx_path = tmp_path / "m.onnx"
+    assert export_main([str(ckpt), "--onnx", str(onnx_path)]) == 0
+    runner = OnnxRestorer(onnx_path)
+    assert runner.backbone == "unet" and runner.metadata["tofdenoise_precision"] == "fp32"
+    frames = tmp_path / "frames"
+    depth, _ = _frame(48, 72)
+    write_depth_png16(frames / "a.png", torch.nan_to_num(depth[0, 0]).numpy())
+    assert denoise_main([str(frames), "--onnx", str(onnx_path), "--out", str(tmp_path / "o1"), "--npy", "--quiet"]) == 0
+    assert denoise_main([str(frames), "--ckpt", str(ckpt), "--out", str(tmp_path / "o2"), "--npy", "--quiet"]) == 0
+    a, b = np.load(tmp_path / "o1" / "a.npy"), np.load(tmp_path / "o2" / "a.npy")
+    assert ((a > 0) == (b > 0)).all() and (a[depth[0, 0].nan_to_num().numpy() == 0] == 0).all()
+    assert np.abs(a - b).max() <= TOLERANCE_MM
+    # the output never replaces the checkpoint
+    assert export_main([str(ckpt), "--onnx", str(ckpt)]) == 2
+
+
+def test_fp16_graph_runs_on_the_cpu(tmp_path):
+    model = _model("unet")
+    path = tmp_path / "h.onnx"
+    export_graph(restore_graph(model, fp16=True), path)
+    runner = OnnxRestorer.__new__(OnnxRestorer)
+    import onnxruntime as ort
+
+    runner.session, runner.path = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]), path
+    runner.inputs = ["depth_mm"]
+    # float16 network (11 significant bits on values of order 1 x 100 mm): within 1 mm of float32, not 0.01
+    assert _max_diff(model, runner, 45, 67) < 1.0
+
+
+def test_bad_files_and_settings_are_one_line_errors(tmp_path):
+    bad = tmp_path / "x.onnx"
+    bad.write_bytes(b"not onnx")
+    with pytest.raises(OnnxModelError, match=f"ONNX model {bad} could not be loaded"):
+        OnnxRestorer(bad)
+    with pytest.raises(OnnxModelError, match="does not exist"):
+        OnnxRestorer(tmp_path / "none.onnx")
+    with pytest.raises(ExportError, match="input_centering 'image'"):
+        restore_graph(DepthRestorer(backbone="unet", backbone_kwargs=TINY["unet"], input_centering="image"))
