@@ -146,3 +146,33 @@ def write_ft3d():
     """``write_ft3d(root, train_tokens, test_tokens, gt_dir=..., seed=...)``: a tiny ToF-FlyingThings3D in its
     published layout (.mat v5, PNG, list files) of ``FT3D_SHAPE`` images; returns {token: (gt, conf, amplitude)}."""
     return _write_ft3d
+
+
+@pytest.fixture
+def lock_holder():
+    """A context manager factory: ``with lock_holder(run_dir, "other fit") as pid:`` runs another process that
+    holds ``run_dir``'s run lock (``tofdenoise.run_lock``) until the block ends, then releases it."""
+    import contextlib
+    import subprocess
+    import sys
+
+    @contextlib.contextmanager
+    def hold(run_dir, command: str = "other"):
+        script = (
+            "import sys; from tofdenoise.run_lock import RunLock; RunLock(sys.argv[1], command=sys.argv[2]).acquire(); "
+            "print('ready', flush=True); sys.stdin.read()"
+        )
+        holder = subprocess.Popen(
+            [sys.executable, "-c", script, str(run_dir), command],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+        try:
+            assert holder.stdout.readline().strip() == "ready"
+            yield holder.pid
+        finally:
+            holder.stdin.close()
+            holder.wait(timeout=30)
+
+    return hold

@@ -155,22 +155,14 @@ def test_real_capture_set_is_tested_like_the_networks(tmp_path, data_cache, tiny
     assert [r["name"] for r in rows] == ["scene_0000", "scene_0001", "scene_0002"]
 
 
-def test_a_run_folder_written_by_another_process_is_refused(tmp_path):
+def test_a_run_folder_written_by_another_process_is_refused(tmp_path, lock_holder):
     """issue 23 case 3 for the classical row: one writer per run folder (tofdenoise.run_lock)."""
     import os
     import subprocess
     import sys
 
     run_dir = tmp_path / "bilateral"
-    hold = (
-        "import sys; from tofdenoise.run_lock import RunLock; RunLock(sys.argv[1], command='other').acquire(); "
-        "print('ready', flush=True); sys.stdin.read()"
-    )
-    holder = subprocess.Popen(
-        [sys.executable, "-c", hold, str(run_dir)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
-    )
-    try:
-        assert holder.stdout.readline().strip() == "ready"
+    with lock_holder(run_dir) as pid:
         proc = subprocess.run(
             [sys.executable, "-m", "tofdenoise.cli.classic", f"paths.run_dir={run_dir}", "experiment=smoke"],
             capture_output=True,
@@ -178,10 +170,7 @@ def test_a_run_folder_written_by_another_process_is_refused(tmp_path):
             env={**os.environ, "WANDB_MODE": "offline"},
             timeout=300,
         )
-    finally:
-        holder.stdin.close()
-        holder.wait(timeout=30)
     assert proc.returncode == 2, proc.stderr[-2000:]
     line = proc.stderr.strip().splitlines()[-1]
-    assert line.startswith(f"tofdenoise-classic: error: run folder {run_dir} is locked by pid {holder.pid} ")
+    assert line.startswith(f"tofdenoise-classic: error: run folder {run_dir} is locked by pid {pid} ")
     assert [p.name for p in run_dir.iterdir()] == []  # released by the holder; nothing of the refused run

@@ -162,34 +162,21 @@ def test_truncated_checkpoint_stops_before_config_yaml_is_rewritten(tmp_path, da
 
 
 def test_a_run_folder_written_by_another_process_is_refused_before_anything_is_written(
-    tmp_path, data_cache, monkeypatch, capsys
+    tmp_path, data_cache, monkeypatch, capsys, lock_holder
 ):
     """issue 23 case 3, LightningCLI front end: `tofdenoise fit` on a run folder another process writes is refused
     (exit 2, one line naming the lock file and its holder) before a class is built or a file written."""
-    import subprocess
-
     monkeypatch.setattr(sys, "argv", ["tofdenoise"])
     monkeypatch.chdir(tmp_path)
     run_dir = tmp_path / "run"
-    hold = (
-        "import sys; from tofdenoise.run_lock import RunLock; RunLock(sys.argv[1], command='other fit').acquire(); "
-        "print('ready', flush=True); sys.stdin.read()"
-    )
-    holder = subprocess.Popen(
-        [sys.executable, "-c", hold, str(run_dir)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
-    )
-    try:
-        assert holder.stdout.readline().strip() == "ready"
+    with lock_holder(run_dir, "other fit") as pid:
         with pytest.raises(SystemExit) as exit_info:
             cli_main(["fit", *_smoke_args(tmp_path, data_cache), "--trainer.max_epochs=1"])
         assert exit_info.value.code == 2
         err = capsys.readouterr().err.strip().splitlines()
-        assert err[-1].startswith(f"tofdenoise: error: run folder {run_dir} is locked by pid {holder.pid} ")
+        assert err[-1].startswith(f"tofdenoise: error: run folder {run_dir} is locked by pid {pid} ")
         assert "other fit" in err[-1] and str(run_dir / "run.lock") in err[-1]
         assert [p.name for p in run_dir.iterdir()] == ["run.lock"] and not (tmp_path / "outputs").exists()
-    finally:
-        holder.stdin.close()
-        holder.wait(timeout=30)
     cli_main(["fit", *_smoke_args(tmp_path, data_cache), "--trainer.max_epochs=1"])  # free again once released
     assert (run_dir / "config.yaml").is_file() and not (run_dir / "run.lock").exists()
 
