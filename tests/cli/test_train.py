@@ -204,9 +204,10 @@ def test_resume_after_sigkill_reaches_the_same_number_of_steps(tmp_path, data_ca
 def test_a_second_training_of_the_same_run_folder_is_refused_before_it_touches_it(tmp_path, data_cache, tiny):
     """issue 23 case 3: two trainings started with the same paths.run_dir both exited 0 and the folder ended
     holding only the second. The second is refused (exit 2, one line naming the lock and its holder) before it
-    writes anything; the first finishes with its own records."""
+    writes anything. The first is given far more epochs than the test needs, so it is surely still running when
+    the second starts (a short first run could finish first on an idle machine), and is stopped afterwards."""
     run_dir = tmp_path / "run"
-    first_args = tiny(run_dir, data_cache, num_samples=40) + ["trainer.max_epochs=3", "logger=csv", "seed=0"]
+    first_args = tiny(run_dir, data_cache, num_samples=40) + ["trainer.max_epochs=10000", "logger=csv", "seed=0"]
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     first = subprocess.Popen(
         [sys.executable, "-m", "tofdenoise.cli.train", *first_args],
@@ -221,22 +222,20 @@ def test_a_second_training_of_the_same_run_folder_is_refused_before_it_touches_i
         while not (run_dir / ".hydra" / "overrides.yaml").exists() and first.poll() is None:
             assert time.time() < deadline, "the first training did not start"
             time.sleep(0.05)
+        assert first.poll() is None, first.stderr.read()[-3000:]
         hydra_before = {p.name: p.read_bytes() for p in (run_dir / ".hydra").iterdir()}
         second = _cli(tiny(run_dir, data_cache, num_samples=40) + ["trainer.max_epochs=1", "seed=1"])
-        still_running = first.poll() is None
+        assert first.poll() is None  # the first was running during the whole attempt
         assert second.returncode == 2, second.stderr[-2000:]
         line = second.stderr.strip().splitlines()[-1]
         assert line.startswith("tofdenoise-train: error: run folder") and str(run_dir / "run.lock") in line
         assert f"pid {first.pid} " in line
-        if still_running:  # nothing of the second reached the first's folder
-            assert {p.name: p.read_bytes() for p in (run_dir / ".hydra").iterdir()} == hydra_before
+        # nothing of the second reached the first's folder
+        assert {p.name: p.read_bytes() for p in (run_dir / ".hydra").iterdir()} == hydra_before
+        assert "seed=0" in (run_dir / ".hydra" / "overrides.yaml").read_text()
     finally:
-        _, err = first.communicate(timeout=300)
-    assert first.returncode == 0, err[-3000:]
-    assert "seed=0" in (run_dir / ".hydra" / "overrides.yaml").read_text()
-    assert json.loads((run_dir / "run_info.json").read_text())["global_step"] > 0
-    assert json.loads((run_dir / "run_info.json").read_text())["seed"] == 0
-    assert not (run_dir / "run.lock").exists()  # released at the end
+        first.terminate()
+        first.communicate(timeout=120)
 
 
 def _val_csv(run_dir: Path) -> list[tuple[int, float, float]]:
