@@ -74,9 +74,9 @@ def safe_exposure(depth_mm: np.ndarray, signal_e: np.ndarray, calib: Any, reques
     responses, _ = tap_responses(depth_mm[ok].astype(np.float64), calib)
     peaks = (signal_e[ok][:, None] * np.asarray(responses)).max(axis=1)
     headroom = SATURATION_MARGIN * calib.full_well_e - calib.dark_mean_e - 6.0 * calib.dark_std_e
-    peaks = peaks[peaks < headroom]
-    if peaks.size == 0 or headroom <= 0:
-        return 1.0 if peaks.size == 0 else float(requested)
+    peaks = peaks[peaks < headroom]  # empty when headroom <= 0 (every peak is > 0)
+    if peaks.size == 0:
+        return 1.0
     peak = float(np.percentile(peaks, REFERENCE_PEAK_PERCENTILE))
     if peak <= 0:
         return float(requested)
