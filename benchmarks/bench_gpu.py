@@ -164,10 +164,10 @@ def bench_ss2d(quick: bool) -> list[dict[str, Any]]:
 
 def bench_sigma(quick: bool) -> dict[str, Any]:
     from bench_physics import generic_sigma  # benchmarks/ is on sys.path when run as a script
+    from sigma_compiled import sigma_depth_mm_compiled  # benchmarks/ is on sys.path when run as a script
 
     from tofdenoise.physics.calibration import default_calibration
     from tofdenoise.physics.uncertainty import sigma_depth_mm
-    from tofdenoise.physics.uncertainty_compiled import sigma_depth_mm_compiled
 
     calib = default_calibration()
     g = torch.Generator(device="cuda").manual_seed(0)

@@ -9,7 +9,7 @@ Usage: python benchmarks/bench_physics.py [--quick] [--threads N ...]
             vectorised sums (information_matrix), stacked to (H, W, 2, 2), inverted, entry [0, 0]
    JtWJ+inv the textbook route: J (H, W, N, 2), J^T Sigma^-1 J by batched matmul, torch.linalg.inv
    inv only torch.linalg.inv on the (H, W, 2, 2) stack alone (lower bound of any generic-inverse route)
-   fused    tofdenoise.physics.uncertainty_compiled.sigma_depth_mm_compiled (the closed form as one
+   fused    benchmarks/sigma_compiled.py: sigma_depth_mm_compiled (the closed form as one
             torch.compile kernel; compiled once before timing)
    Timings are medians of interleaved repeats; the ratios are generic / closed and generic / fused.
 2. simulate_frames: 100 frames of 640x480, 4 taps (default calibration), frames/s and total seconds.
@@ -24,11 +24,11 @@ import time
 
 import numpy as np
 import torch
+from sigma_compiled import sigma_depth_mm_compiled  # benchmarks/ is on sys.path when run as a script
 
 from tofdenoise.physics.calibration import default_calibration
 from tofdenoise.physics.simulator import simulate_frames
 from tofdenoise.physics.uncertainty import information_matrix, sigma_depth_mm, tap_jacobian, tap_variance_e2
-from tofdenoise.physics.uncertainty_compiled import sigma_depth_mm_compiled
 
 
 def jtwj_sigma(depth: torch.Tensor, signal: torch.Tensor, calib) -> torch.Tensor:

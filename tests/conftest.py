@@ -57,6 +57,7 @@ def save_restorer_checkpoint(path, **hparams):
     import lightning
     import torch
 
+    from tofdenoise.training.learned_guard import LEARNED_RECORD_KEY
     from tofdenoise.training.module import DepthRestorer
 
     kwargs = {"backbone": "unet", "backbone_kwargs": {"width": 8, "stages": 2}, **hparams}
@@ -69,6 +70,7 @@ def save_restorer_checkpoint(path, **hparams):
             "pytorch-lightning_version": lightning.__version__,
             "epoch": 0,
             "global_step": 0,
+            LEARNED_RECORD_KEY: {"trained_steps": 0, "best_val_mae_mm": None, "raw_val_mae_mm": None},
         },
         path,
     )

@@ -35,7 +35,6 @@ SCAN = f"{PACKAGE}.models.scan"
 SCAN_DISPATCHER = {SCAN, f"{SCAN}.dispatch"}
 #: cycles older than this test, each through a function-level import; remove an entry when its cycle goes
 KNOWN_CYCLES = [
-    [f"{PACKAGE}.physics.uncertainty", f"{PACKAGE}.physics.uncertainty_numpy"],
     [f"{PACKAGE}.cli.sensor", f"{PACKAGE}.cli.sensor_captures"],
 ]
 

@@ -13,7 +13,7 @@ import pytest
 
 from tofdenoise.cli.report import main
 from tofdenoise.reporting import find_runs, load_run, results_table, table_markdown
-from tofdenoise.training.results import set_entry, write_metrics_json
+from tofdenoise.training.results import learned_verdict, set_entry, write_metrics_json
 
 RAW = {"psnr_db": 31.68, "ssim": 0.95, "mse_mm2": 680.0, "mae_mm": 7.21}
 
@@ -47,6 +47,7 @@ def runs(tmp_path):
             "synthetic": set_entry(_m(40.85, 0.9987, 82.30, 2.54), RAW),
             "real": set_entry(_m(35.42, 0.99, 120.0, 4.87), _m(31.0, 0.97, 300.0, 7.0)),
         },
+        run=learned_verdict(1000, 2.6, 7.2),
     )
     (a / "run_info.json").write_text(
         json.dumps({"backbone": "dvss", "noise": "hetero", "loss": "full", "run_name": "dvss-hetero-full"})
@@ -56,7 +57,11 @@ def runs(tmp_path):
     latest = _panel(a / "panels" / "epoch_1000.png", 200)  # numeric, not name order
 
     b = root / "sweep" / "0_unet"
-    write_metrics_json(b / "metrics.json", {"synthetic": set_entry(_m(39.19, 0.9969, 120.52, 4.88), RAW)})
+    write_metrics_json(
+        b / "metrics.json",
+        {"synthetic": set_entry(_m(39.19, 0.9969, 120.52, 4.88), RAW)},
+        run=learned_verdict(1000, 4.9, 7.2),
+    )
     (b / ".hydra").mkdir(parents=True)
     (b / ".hydra" / "config.yaml").write_text(
         "backbone:\n  name: unet\n  kwargs: {}\nnoise:\n  name: range\nloss:\n  name: l1\n"
@@ -98,7 +103,7 @@ def test_table_has_one_raw_row_per_distinct_raw_result_and_bold_best(runs):
     assert "39.19" in unet and "**" not in unet
     assert unet.rstrip(" |").endswith("–")  # no real set for this run
     assert "| Raw input | hetero, range | – | – | 31.68 | 0.9500 | 680.00 | 7.21 | 31.00 |" in "\n".join(md)
-    assert "| dvss | hetero | full | ? | **40.85** |" in dvss  # metrics.json written before the learned guard
+    assert "| dvss | hetero | full | yes | **40.85** |" in dvss
     # a different raw result (other test data) gets its own raw row
     loaded[1].metrics["synthetic"]["raw"]["mae_mm"] = 9.0
     assert [r["kind"] for r in results_table(loaded)[1]] == ["raw", "raw", "run", "run"]
@@ -109,7 +114,7 @@ def test_report_html_is_self_contained(runs, tmp_path, capsys):
     out = tmp_path / "report" / "report.html"
     assert main([str(root), "--out", str(out), "--title", "My runs"]) == 0
     captured = capsys.readouterr()
-    assert "| dvss | hetero | full | ? | **40.85** |" in captured.out
+    assert "| dvss | hetero | full | yes | **40.85** |" in captured.out
     assert "broken" in captured.err and "left out" in captured.err
     page = out.read_text()
     assert page.startswith("<!DOCTYPE html>") and "<title>My runs</title>" in page

@@ -9,7 +9,7 @@ import pytest
 from tofdenoise.experiments.dynrange import gain_figure_png, gains
 from tofdenoise.experiments.tables import TABLES, table_specs
 from tofdenoise.reporting.results_page import gains_markdown
-from tofdenoise.training.results import read_metrics_json, set_entry, write_metrics_json
+from tofdenoise.training.results import learned_verdict, read_metrics_json, set_entry, write_metrics_json
 
 
 def test_study_runs_share_the_physical_world_with_table_3_and_start_with_unet():
@@ -37,7 +37,7 @@ def _write_record(folder, name: str, syn: float, real: float | None = None) -> N
     results = {"synthetic": set_entry(block(syn), raw=block(9.0))}
     if real is not None:
         results["real"] = set_entry(block(real), raw=block(12.0))
-    write_metrics_json(folder / name / "metrics.json", results)
+    write_metrics_json(folder / name / "metrics.json", results, run=learned_verdict(10, 1.0, 9.0))
 
 
 def test_gains_are_paired_by_seed_and_count_only_complete_seeds(tmp_path):

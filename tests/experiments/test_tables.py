@@ -14,6 +14,7 @@ from tofdenoise.experiments.runner import RunSpec
 from tofdenoise.experiments.tables import CLAIMS, TABLES, claim_holds, claim_steps, table_specs
 from tofdenoise.paths import REPO_ROOT
 from tofdenoise.reporting.results_page import load_records, results_markdown, run_minutes, seeds_present
+from tofdenoise.training.results import learned_verdict
 
 
 def test_specs_are_one_per_distinct_run_and_shared_across_tables():
@@ -62,7 +63,7 @@ def _metrics(mae: float, real_mae: float | None = None, raw_mae: float = 7.0) ->
         "ssim": 0.99,
         "raw": {"psnr_db": 35.0, "mae_mm": raw_mae, "mse_mm2": 70.0, "ssim": 0.9},
     }
-    out = {"synthetic": entry, "learned": True, "trained_steps": 10, "best_val_mae_mm": mae, "raw_val_mae_mm": raw_mae}
+    out = {"synthetic": entry, **learned_verdict(10, mae, raw_mae)}
     if real_mae is not None:
         out["real"] = {**entry, "mae_mm": real_mae, "raw": {**entry["raw"], "mae_mm": raw_mae + 1}}
     return out

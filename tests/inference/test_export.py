@@ -76,7 +76,13 @@ def test_export_command_and_denoise_onnx_match_the_checkpoint(tmp_path):
     ckpt = tmp_path / "m.ckpt"
     import lightning
 
-    payload = {"state_dict": model.state_dict(), "hyper_parameters": dict(model.hparams)}
+    from tofdenoise.training.learned_guard import LEARNED_RECORD_KEY
+
+    payload = {
+        "state_dict": model.state_dict(),
+        "hyper_parameters": dict(model.hparams),
+        LEARNED_RECORD_KEY: {"trained_steps": 0, "best_val_mae_mm": None, "raw_val_mae_mm": None},
+    }
     torch.save({**payload, "pytorch-lightning_version": lightning.__version__}, ckpt)
     onnx_path = tmp_path / "m.onnx"
     assert export_main([str(ckpt), "--onnx", str(onnx_path)]) == 0

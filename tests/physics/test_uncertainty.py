@@ -217,14 +217,14 @@ def test_large_map_blocks_threads_and_mixed_inputs():
 
 def test_torch_kernel_path_matches_numpy_kernel():
     """The torch kernel (used for CUDA tensors) gives the same numbers as the CPU numpy kernel."""
-    import tofdenoise.physics.uncertainty as U
+    from tofdenoise.physics.sigma_kernels import variance_two_pass
 
     calib = default_calibration().replace(tap_response=TapResponse(1.0, (0.45, 0.03, 0.01), (0.1, 0.0, -0.02)))
     rng = np.random.default_rng(5)
     d = rng.uniform(100, 2900, 3000)
     a = np.exp(rng.uniform(np.log(100), np.log(1e5), 3000))
     R, G, _, _ = calib.tap_response.tap_matrices(calib.num_taps)
-    torch_var = U._variance_block(torch.tensor(d), torch.tensor(a), calib, R, G)
+    torch_var = variance_two_pass(torch.tensor(d), torch.tensor(a), calib, R, G)
     np.testing.assert_allclose(torch_var.numpy(), depth_variance_mm2(d, a, calib), rtol=1e-9)
     np.testing.assert_allclose(np.sqrt(torch_var.numpy()), _generic_sigma(d, a, calib), rtol=1e-6)
 

@@ -235,16 +235,16 @@ def test_test_sets_are_namespaced_with_per_image_rows(tmp_path, tiny_data_cls):
 
 
 def test_predict_zeroes_invalid_and_tiles_large_frames(tmp_path, tiny_data, monkeypatch):
-    import tofdenoise.models as models
+    import tofdenoise.training.module as module
 
     calls = []
-    real = models.tiled_forward
+    real = module.tiled_forward
 
     def spy(net, x, tile, overlap):
         calls.append((tuple(x.shape), tile, overlap))
         return real(net, x, tile=tile, overlap=overlap)
 
-    monkeypatch.setattr(models, "tiled_forward", spy)
+    monkeypatch.setattr(module, "tiled_forward", spy)
     model = tiny_model(predict_tile_size=16, tile_overlap=4)
     preds = trainer(tmp_path).predict(model, datamodule=tiny_data)
     assert calls and calls[0][1:] == (16, 4)

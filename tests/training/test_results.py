@@ -35,7 +35,7 @@ def _metric(offset_mm: float) -> DepthMetrics:
 def test_metrics_json_schema_from_depth_metrics(tmp_path):
     restored, raw = _metric(1.0), _metric(10.0)
     entry = set_entry(restored.compute(), raw.compute(), counts=restored.counts())
-    path = write_metrics_json(tmp_path / "run" / "metrics.json", {"synthetic": entry})
+    path = write_metrics_json(tmp_path / "run" / "metrics.json", {"synthetic": entry}, run=learned_verdict(5, 1.5, 15))
     data = json.loads(path.read_text())
     syn = data["synthetic"]
     assert set(syn) >= {"psnr_db", "mae_mm", "mse_mm2", "ssim", "raw", "mae_mm_pooled", "images"}
@@ -52,7 +52,7 @@ def test_nan_and_inf_are_strict_json(tmp_path):
         {"psnr_db": math.inf, "mae_mm": 0.0, "mse_mm2": 0.0, "ssim": 1.0},
         {"psnr_db": float("nan"), "mae_mm": float("nan"), "mse_mm2": float("nan"), "ssim": None},
     )
-    path = write_metrics_json(tmp_path / "m.json", {"synthetic": entry})
+    path = write_metrics_json(tmp_path / "m.json", {"synthetic": entry}, run=learned_verdict(0, None, None))
     text = path.read_text()
     assert "NaN" not in text and "Infinity" not in text
     data = json.loads(text)
@@ -64,8 +64,13 @@ def test_bad_schema_is_rejected_with_the_key_named(tmp_path):
     with pytest.raises(KeyError, match="ssim"):
         set_entry({"psnr_db": 1.0, "mae_mm": 1.0, "mse_mm2": 1.0})
     bad = tmp_path / "bad.json"
-    bad.write_text(json.dumps({"synthetic": {"psnr_db": 1, "mae_mm": 1, "mse_mm2": "x", "ssim": 1}}))
+    fields = learned_verdict(5, 1.0, 2.0)
+    bad.write_text(json.dumps({"synthetic": {"psnr_db": 1, "mae_mm": 1, "mse_mm2": "x", "ssim": 1}, **fields}))
     with pytest.raises(ValueError, match=r"synthetic\.mse_mm2"):
+        read_metrics_json(bad)
+    # every record carries the learned guard's verdict: a file without it is refused, the fields named
+    bad.write_text(json.dumps({"synthetic": {"psnr_db": 1, "mae_mm": 1, "mse_mm2": 1, "ssim": 1}, "learned": True}))
+    with pytest.raises(ValueError, match=r"bad.json: lacks the run-level field\(s\) \['trained_steps'"):
         read_metrics_json(bad)
     bad.write_text("{not json")
     with pytest.raises(ValueError, match="bad.json"):

@@ -30,7 +30,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from tofdenoise.models.conditioning import fill_invalid_mm, local_offset_mm, valid_input_mask
+from tofdenoise.models.conditioning import condition_input
 
 __all__ = ["RestoreGraph", "ExportError", "export_onnx", "FILL_LEVELS", "ONNX_OPSET"]
 
@@ -70,17 +70,15 @@ class RestoreGraph(nn.Module):
     def forward(self, depth_mm: Tensor, amplitude: Tensor | None = None) -> Tensor:
         from tofdenoise.training.module import final_prediction
 
-        valid = valid_input_mask(depth_mm)
-        filled = fill_invalid_mm(depth_mm.float(), valid, levels=self.levels)
-        if self.centering == "local":
-            offset = local_offset_mm(filled, self.block_px)
-        else:
-            offset = torch.zeros_like(filled)
-        x = (filled - offset) / self.depth_scale_mm
-        if self.use_signal_channel:
-            amp = amplitude.float() * valid  # the input's own validity, as DepthRestorer.condition
-            peak = amp.amax(dim=(1, 2, 3), keepdim=True).clamp_min(1e-12)
-            x = torch.cat([x, amp / peak], dim=1)
+        x, offset = condition_input(
+            depth_mm,
+            amplitude,
+            centering=self.centering,
+            block_px=self.block_px,
+            depth_scale_mm=self.depth_scale_mm,
+            use_signal_channel=self.use_signal_channel,
+            fill_levels=self.levels,
+        )
         y = final_prediction(self.net(x.half() if self.fp16 else x))
         return y.float() * self.depth_scale_mm + offset
 

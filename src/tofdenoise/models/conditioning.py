@@ -44,6 +44,7 @@ __all__ = [
     "local_offset_mm",
     "image_offset_mm",
     "bf16_step_mm",
+    "condition_input",
     "DEFAULT_BLOCK_PX",
     "CENTERING_MODES",
 ]
@@ -150,3 +151,41 @@ def bf16_step_mm(value_mm: Tensor | float, depth_scale_mm: float) -> Tensor:
     v = torch.as_tensor(value_mm, dtype=torch.float64).abs() / depth_scale_mm
     exponent = torch.floor(torch.log2(v.clamp_min(torch.finfo(torch.float32).tiny)))
     return torch.pow(2.0, exponent - 7) * depth_scale_mm
+
+
+def condition_input(
+    noisy_mm: Tensor,
+    amplitude: Tensor | None = None,
+    *,
+    centering: str = "local",
+    block_px: int = DEFAULT_BLOCK_PX,
+    depth_scale_mm: float = 100.0,
+    use_signal_channel: bool = False,
+    fill_levels: int | None = None,
+) -> tuple[Tensor, Tensor]:
+    """The network input (B, C, H, W) and the offset (mm) to add back to ``depth_scale_mm`` x its output.
+
+    Channel 0: ``(filled - offset) / depth_scale_mm``: the noisy depth with its invalid pixels filled by pull-push
+    (:func:`fill_invalid_mm`, ``fill_levels`` levels; all needed when None) and centred on the smooth local offset
+    (``centering`` "local"), the image median ("image") or 0 ("none"). Channel 1 (``use_signal_channel``): the
+    amplitude divided by its per-image maximum over the valid *input* pixels (on a capture set the scoring mask
+    also depends on the reference; the input must not). Computed in float32 (callers disable autocast).
+    """
+    if centering not in CENTERING_MODES:
+        raise ValueError(f"input centering: unknown mode {centering!r}; valid: {', '.join(CENTERING_MODES)}")
+    valid = valid_input_mask(noisy_mm)
+    filled = fill_invalid_mm(noisy_mm.float(), valid, levels=fill_levels)
+    if centering == "local":
+        offset = local_offset_mm(filled, int(block_px))
+    elif centering == "image":
+        offset = image_offset_mm(filled, valid)
+    else:
+        offset = torch.zeros_like(filled[:, :, :1, :1])
+    x = (filled - offset) / depth_scale_mm
+    if use_signal_channel:
+        if amplitude is None:
+            raise KeyError("input conditioning with the signal channel needs the amplitude (batch['amplitude'])")
+        amp = amplitude.float() * valid  # the input's own validity, not the scoring mask
+        peak = amp.amax(dim=(1, 2, 3), keepdim=True).clamp_min(1e-12)
+        x = torch.cat([x, amp / peak], dim=1)
+    return x, offset

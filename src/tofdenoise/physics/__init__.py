@@ -20,7 +20,6 @@ from tofdenoise.physics.noise_models import (
     variance_matching_scale,
 )
 from tofdenoise.physics.uncertainty import amplitude_to_signal_e, depth_variance_mm2, sigma_depth_mm
-from tofdenoise.physics.uncertainty_compiled import sigma_depth_mm_compiled
 
 __all__ = [
     "CalibrationError",
@@ -36,6 +35,5 @@ __all__ = [
     "resolve_calibration",
     "save_calibration",
     "sigma_depth_mm",
-    "sigma_depth_mm_compiled",
     "variance_matching_scale",
 ]

@@ -13,27 +13,23 @@ sum_n w_n (g_n - beta r_n)^2 with beta = I_Da / I_aa (the depth sensitivity left
 signal-level direction): a sum of non-negative terms, so float32 does not suffer the cancellation of
 I_DD I_aa - I_Da^2. Everything is vectorised over pixels and the N taps; numpy or torch, any shape.
 
-The four sigma_D routes. They give the same numbers (tests/physics/test_uncertainty.py and
-test_uncertainty_compiled.py check each against route 1); their speeds are in docs/benchmarks.md ("Sensor physics").
+The three sigma_D routes. They give the same numbers (tests/physics/test_uncertainty.py checks each against
+route 1); their speeds are in docs/benchmarks.md ("Sensor physics").
 
-  route                                form; where it is the one to use              called by
-  1 information_matrix (here)          THE REFERENCE: Eq. 15 as written, from the    tests, benchmarks/bench_physics.py
-                                       (..., N) Jacobian; numpy or torch; slowest
-                                       (N-wide temporaries)
-  2 _variance_block (here)             two-pass residual form sum w (g - beta r)^2:  depth_variance_mm2 for tensors
-                                       no cancellation, stable in float32; the       off the CPU; route 3 (and 4,
-                                       route on a GPU                                through depth_variance_mm2) for
-                                                                                     pixels with rho^2 > 0.75
-  3 uncertainty_numpy.variance_block   single pass over the taps, tap pairs          depth_variance_mm2 /
-                                       (n, n + N/2) share their harmonics; numpy     sigma_depth_mm on the CPU:
-                                       arrays and CPU tensors (zero-copy), blocks    data_modules (maps, real_captures),
-                                       on threads; the fast CPU route                inference.denoise,
-                                                                                     physics.validation,
-                                                                                     cli.sensor_physics
-  4 uncertainty_compiled.              route 3's sums and the square root fused      exported by tofdenoise.physics; no
-    sigma_depth_mm_compiled            into one torch.compile kernel (CPU with a     package code calls it yet (tests,
-                                       C++ compiler, or GPU); fastest on large maps  benchmarks/bench_gpu.py)
-                                       once compiled (one compile per calibration)
+  route                                    form; where it is the one to use             called by
+  1 information_matrix (here)              THE REFERENCE: Eq. 15 as written, from the   tests, benchmarks
+                                           (..., N) Jacobian; numpy or torch; slowest
+  2 sigma_kernels.variance_two_pass        two-pass residual form sum w (g - beta r)^2: depth_variance_mm2 for
+                                           no cancellation, stable in float32; the      tensors off the CPU; route 3
+                                           route on a GPU                               for pixels with rho^2 > 0.75
+  3 uncertainty_numpy.variance_block       single pass over the taps, tap pairs         depth_variance_mm2 on the
+                                           (n, n + N/2) share their harmonics; numpy    CPU: data_modules, inference,
+                                           arrays and CPU tensors (zero-copy), blocks   physics.validation,
+                                           on threads; the fast CPU route               cli.sensor_physics
+
+A fourth form, the same sums fused into one ``torch.compile`` kernel, is benchmark code
+(``benchmarks/sigma_compiled.py``): faster once compiled, but no command computes enough maps per calibration
+to pay its compile time.
 
 The public ``depth_variance_mm2`` / ``sigma_depth_mm`` pick the route by where the data lives: route 3 on the
 CPU, route 2 on other devices.
@@ -49,6 +45,8 @@ import torch
 
 from tofdenoise.physics import _backend as arrays
 from tofdenoise.physics.calibration import SensorCalibration
+from tofdenoise.physics.sigma_kernels import harmonics, lincomb, variance_two_pass
+from tofdenoise.physics.uncertainty_numpy import depth_variance_numpy
 
 
 def _prepare(depth_mm: Any, signal_e: Any) -> tuple[Any, Any, Any, Any]:
@@ -72,45 +70,6 @@ def tap_phase_rad(depth_mm: Any, calib: SensorCalibration) -> Any:
     return depth_mm * calib.phase_per_mm
 
 
-def _harmonics(psi: Any, num_harmonics: int) -> list[Any]:
-    """[cos(psi) .. cos(K psi), sin(psi) .. sin(K psi)] by the Chebyshev recursion
-    cos(k psi) = 2 cos(psi) cos((k-1) psi) - cos((k-2) psi) (same for sin): only cos(psi), sin(psi) are
-    transcendental."""
-    xp = arrays.namespace(psi)
-    c1, s1 = xp.cos(psi), xp.sin(psi)
-    cos_list, sin_list = [c1], [s1]
-    if num_harmonics >= 2:
-        two_c = c1 * 2.0
-        cos_list.append(two_c * c1 - 1.0)
-        sin_list.append(two_c * s1)
-        for _ in range(2, num_harmonics):
-            cos_list.append(two_c * cos_list[-1] - cos_list[-2])
-            sin_list.append(two_c * sin_list[-1] - sin_list[-2])
-    return cos_list + sin_list
-
-
-def _axpy_(y: Any, x: Any, alpha: float) -> Any:
-    """y += alpha x in place (no temporary for torch)."""
-    if isinstance(y, torch.Tensor):
-        return y.add_(x, alpha=alpha)
-    y += alpha * x
-    return y
-
-
-def _lincomb(feats: list[Any], coefs: np.ndarray, const: float) -> Any:
-    """const + sum_j coefs[j] feats[j], skipping zero coefficients."""
-    out = None
-    for f, c in zip(feats, coefs):
-        if c == 0.0:
-            continue
-        out = f * float(c) if out is None else _axpy_(out, f, float(c))
-    if out is None:
-        return arrays.full_like(feats[0], const)
-    if const:
-        out += const
-    return out
-
-
 def tap_planes(depth_mm: Any, calib: SensorCalibration) -> tuple[list[Any], list[Any]]:
     """Per-tap arrays ([r_n], [c'(psi - theta_n)]), n = 0..N-1, each shaped like depth_mm (paper Eq. 3).
 
@@ -118,10 +77,10 @@ def tap_planes(depth_mm: Any, calib: SensorCalibration) -> tuple[list[Any], list
     so only cos(psi), sin(psi) are transcendental per pixel.
     """
     R, G, _, _ = calib.tap_response.tap_matrices(calib.num_taps)
-    feats = _harmonics(tap_phase_rad(depth_mm, calib), calib.tap_response.num_harmonics)
+    feats = harmonics(tap_phase_rad(depth_mm, calib), calib.tap_response.num_harmonics)
     c0 = calib.tap_response.c0
-    r_list = [_lincomb(feats, R[:, n], c0) for n in range(calib.num_taps)]
-    g_list = [_lincomb(feats, G[:, n], 0.0) for n in range(calib.num_taps)]
+    r_list = [lincomb(feats, R[:, n], c0) for n in range(calib.num_taps)]
+    g_list = [lincomb(feats, G[:, n], 0.0) for n in range(calib.num_taps)]
     return r_list, g_list
 
 
@@ -156,42 +115,6 @@ def information_matrix(depth_mm: Any, signal_e: Any, calib: SensorCalibration) -
     return (w * g * g).sum(-1), (w * g * r).sum(-1), (w * r * r).sum(-1)
 
 
-def _variance_block(d: Any, a: Any, calib: SensorCalibration, R: np.ndarray, G: np.ndarray) -> Any:
-    """sigma_D^2 for one block of valid (safe) pixels; see the module docstring for the stable form."""
-    feats = _harmonics(d * calib.phase_per_mm, calib.tap_response.num_harmonics)
-    c0 = calib.tap_response.c0
-    s2 = calib.dark_std_e**2
-    planes = []
-    s_rr = s_gr = None
-    for n in range(calib.num_taps):
-        r = _lincomb(feats, R[:, n], c0)  # r_n = c(psi - theta_n)
-        g = _lincomb(feats, G[:, n], 0.0)  # c'(psi - theta_n)
-        w = a * r
-        w += s2
-        w = 1.0 / w  # w_n = 1 / sigma_n^2 (paper Eq. 6)
-        wr = w * r
-        if s_rr is None:
-            s_rr, s_gr = wr * r, wr * g
-        else:
-            s_rr += wr * r
-            s_gr += wr * g
-        planes.append((r, g, w))
-    beta = s_gr / s_rr  # I_Da / I_aa (up to the common factor a k)
-    i_eff = None  # (I_DD - I_Da^2 / I_aa) / (a k)^2 = sum_n w_n (c'_n - beta r_n)^2 >= 0
-    for r, g, w in planes:
-        res = g - beta * r
-        res *= res
-        res *= w
-        if i_eff is None:
-            i_eff = res
-        else:
-            i_eff += res
-    k = calib.phase_per_mm
-    i_eff *= a * a
-    i_eff *= k * k
-    return 1.0 / i_eff
-
-
 def depth_variance_mm2(depth_mm: Any, signal_e: Any, calib: SensorCalibration) -> Any:
     """sigma_D^2 [mm^2] = e_D^T (J^T Sigma^-1 J)^-1 e_D (paper Eq. 16), closed form, NaN where invalid.
 
@@ -201,8 +124,6 @@ def depth_variance_mm2(depth_mm: Any, signal_e: Any, calib: SensorCalibration) -
     On the CPU the map is evaluated in blocks of BLOCK_PIXELS pixels (cache-sized temporaries, through
     numpy, zero-copy for torch tensors); on other devices in one pass with torch.
     """
-    from tofdenoise.physics.uncertainty_numpy import depth_variance_numpy  # it builds on this module
-
     is_t = isinstance(depth_mm, torch.Tensor) or isinstance(signal_e, torch.Tensor)
     device = None
     if is_t:
@@ -211,7 +132,7 @@ def depth_variance_mm2(depth_mm: Any, signal_e: Any, calib: SensorCalibration) -
     if is_t and device is not None and device.type != "cpu":
         xp, d, a, valid = _prepare(depth_mm, signal_e)
         R, G, _, _ = calib.tap_response.tap_matrices(calib.num_taps)
-        var = _variance_block(torch.where(valid, d, 1.0), torch.where(valid, a, 1.0), calib, R, G)
+        var = variance_two_pass(torch.where(valid, d, 1.0), torch.where(valid, a, 1.0), calib, R, G)
         return torch.where(valid, var, torch.full_like(var, math.nan))
     if is_t:
         dt = torch.as_tensor(depth_mm, device=device)

@@ -11,7 +11,7 @@ accumulated in ONE pass over the taps; for even N, tap n + N/2 is tap n shifted 
 costs one harmonic combination (even harmonics keep their sign, odd ones flip). The determinant
 S_gg S_rr - S_gr^2 loses about log2(1 / (1 - rho^2)) bits, rho^2 = S_gr^2 / (S_gg S_rr): pixels with
 rho^2 > RHO2_SINGLE_PASS_MAX are recomputed with the two-pass residual form
-(:func:`tofdenoise.physics.uncertainty._variance_block`). Maps are cut into blocks of BLOCK_PIXELS pixels so
+(:func:`tofdenoise.physics.sigma_kernels.variance_two_pass`). Maps are cut into blocks of BLOCK_PIXELS pixels so
 the ~20 temporaries of a block stay in cache; the blocks run on a per-process thread pool.
 """
 
@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from tofdenoise.physics.calibration import SensorCalibration
-from tofdenoise.physics.uncertainty import _axpy_, _harmonics, _variance_block
+from tofdenoise.physics.sigma_kernels import axpy_, harmonics, variance_two_pass
 
 __all__ = ["BLOCK_PIXELS", "RHO2_SINGLE_PASS_MAX", "depth_variance_numpy", "variance_block"]
 
@@ -68,7 +68,7 @@ def variance_block(d: np.ndarray, a: np.ndarray, calib: SensorCalibration) -> np
     """
     k_eff, plan = _numpy_plan(calib)
     K = calib.tap_response.num_harmonics
-    feats = _harmonics(d * calib.phase_per_mm, k_eff)
+    feats = harmonics(d * calib.phase_per_mm, k_eff)
     # pad to the 2K layout of tap_matrices (cos 1..K, sin 1..K)
     zeros = None
     if k_eff < K:
@@ -85,7 +85,7 @@ def variance_block(d: np.ndarray, a: np.ndarray, calib: SensorCalibration) -> np
         out = None
         for f, c in zip(feats, coefs):
             if c != 0.0:
-                out = f * float(c) if out is None else _axpy_(out, f, float(c))
+                out = f * float(c) if out is None else axpy_(out, f, float(c))
         return out
 
     def accumulate(r: np.ndarray, g: np.ndarray | None) -> None:
@@ -132,7 +132,7 @@ def variance_block(d: np.ndarray, a: np.ndarray, calib: SensorCalibration) -> np
     var = np.divide(s_rr, det, out=det)
     if ill.any():
         R, G, _, _ = calib.tap_response.tap_matrices(calib.num_taps)
-        var[ill] = _variance_block(d[ill], a[ill], calib, R, G)
+        var[ill] = variance_two_pass(d[ill], a[ill], calib, R, G)
     return var
 
 

@@ -91,8 +91,8 @@ def render_html(runs: Sequence[Run], title: str = "tofdenoise runs", skipped: Se
         "(PSNR with D<sub>max</sub> = 1000 mm). &ldquo;Raw input&rdquo; rows: the noisy input itself. "
         "Best run value per column in bold. &ldquo;Learned&rdquo;: NOT LEARNED = the best validation MAE was not "
         "below the raw one by the margin; NOT TRAINED = no optimiser step (the untrained network); unverified = "
-        "no validation result; classical = a non-learned filter, parameters tuned on validation; "
-        "? = written before this check existed. Flagged runs are red and never bold.</p>",
+        "no validation result; classical = a non-learned filter, parameters tuned on validation. "
+        "Flagged runs are red and never bold.</p>",
         "<h2>Results</h2>",
         _table_html(sets, rows),
     ]
@@ -112,9 +112,8 @@ def render_html(runs: Sequence[Run], title: str = "tofdenoise runs", skipped: Se
             f"method {e(r.method)} &middot; noise {e(r.noise)} &middot; loss {e(r.loss)}</p>"
         )
         status = learned_status(r.learned)
-        if status != "unknown":
-            css = "warn" if status in FLAGGED else "meta"
-            parts.append(f'<p class="{css}">{e(learned_flag(r))}: {e(str(r.learned.get("learned_reason", "")))}</p>')
+        css = "warn" if status in FLAGGED else "meta"
+        parts.append(f'<p class="{css}">{e(learned_flag(r))}: {e(str(r.learned["learned_reason"]))}</p>')
         curves = learning_curves_png(r)
         if curves:
             parts.append(f'<img alt="learning curves of {e(r.name)}" src="{_png_data_uri(curves)}">')

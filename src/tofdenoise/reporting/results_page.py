@@ -316,7 +316,7 @@ def _runs_section(records: dict[str, dict[str, Any]]) -> list[str]:
             else "-"
         )
         lines.append(
-            f"| {shown} | {'-' if status == 'unknown' else LEARNED_FLAGS[status]} | "
+            f"| {shown} | {LEARNED_FLAGS[status]} | "
             f"{m.get('trained_steps', '-')} | {format_number(m.get('best_val_mae_mm') or math.nan, 2)} | "
             f"{format_number(m.get('raw_val_mae_mm') or math.nan, 2)} | {format_number(run_minutes(info), 1)} | "
             f"{format_number(None if train_s is None else float(train_s) / 60.0, 1)} | "

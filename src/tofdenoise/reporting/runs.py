@@ -41,7 +41,7 @@ class Run:
     metrics: dict[str, Any]
     curves: list[dict[str, Any]] = field(default_factory=list)
     panel: Path | None = None
-    #: the learned guard's run-level fields of metrics.json (empty for files written before it existed)
+    #: the learned guard's run-level fields of metrics.json
     learned: dict[str, Any] = field(default_factory=dict)
 
 

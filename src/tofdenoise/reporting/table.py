@@ -6,7 +6,7 @@ The "Learned" column (:func:`learned_flag`) shows the learned guard of each run:
 best validation MAE was not ``learned_margin`` below the raw MAE); ``NOT TRAINED`` (0 optimiser steps, e.g.
 ``trainer.max_epochs=0``: the metrics are those of an untrained network); ``unverified`` (no validation
 result); ``classical`` (a non-learned method, ``method_kind`` "classical": its parameters were tuned on the
-validation split, no training is expected; not flagged); ``?`` (a metrics.json written before the guard existed).
+validation split, no training is expected; not flagged).
 """
 
 from __future__ import annotations
@@ -38,7 +38,6 @@ LEARNED_FLAGS = {
     "did not learn": "NOT LEARNED",
     "not trained": "NOT TRAINED",
     "not verified": "unverified",
-    "unknown": "?",
     "classical": "classical",
 }
 #: learned-guard statuses shown in red and never bold

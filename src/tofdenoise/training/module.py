@@ -1,41 +1,12 @@
 """``DepthRestorer``: one LightningModule for every registered restoration backbone.
 
-Training recipe of the paper (Sec. V-A): AdamW (lr 2e-4), cosine annealing of the learning rate to 1e-6 over
-the run, batch 4 of 320 x 320 crops, checkpoint with the lowest validation MAE. The network works in
-normalised units: its input channel 0 is ``(filled_mm - offset_mm) / depth_scale_mm`` -- input holes filled and
-the depth centred on a smooth local offset (``tofdenoise.models.conditioning``) -- (optional channel 1: the
-amplitude divided by its per-image maximum over valid pixels) and it predicts ``(depth_mm - offset_mm) /
-depth_scale_mm``; the offset is added back in float32 outside the network. Losses and metrics are computed in
-millimetres (the Charbonnier eps = 1e-3 mm of the paper, whatever the network's units).
-
-Every hyper-parameter is a plain value (backbone and loss chosen by registered name), so a checkpoint loads
-with ``torch.load(weights_only=True)`` and ``DepthRestorer.load_from_checkpoint(path)`` needs no argument.
-
-Design decisions:
-- Schedule: ``CosineAnnealingLR(T_max=trainer.estimated_stepping_batches, eta_min=lr_min)`` stepped every
-  optimiser step (``interval="step"``): the learning rate reaches ``lr_min`` exactly at the last step of the
-  run whatever the number of epochs, steps per epoch or gradient accumulation (per-step cosine equals the
-  per-epoch cosine of the paper up to the staircase).
-- Weight decay applies to weights with >= 2 dimensions only (not to biases and normalisation scales).
-- EMA (``ema_decay``): an exponential moving average of the backbone weights and buffers, updated after
-  every optimiser step; validation, test and predict use it; it is part of the state dict (saved in
-  checkpoints, restored on resume).
-- ``compile``: ``torch.compile`` of the backbone for the training forward/backward (validation and test
-  run the eager module: full-resolution frames vary in size).
-- Deep supervision (RCF): a backbone may return, in training mode, the list of its K step predictions (final
-  last); the training loss is then the ``step_loss_weights``-weighted mean of the K step losses
-  (:func:`step_predictions`, :func:`step_loss_weights`); validation, test and predict use the final one.
-- Validation/test also measure the raw noisy input against the reference (the "Raw" row of the paper).
-- Validation/test metrics are exact under DDP: every batch passes its images' dataset ``index`` to
-  ``DepthMetrics``, which counts the samples the ``DistributedSampler`` repeats (padding) once.
-- The learned guard (``learned_record()``): the run's optimiser steps, its lowest validation MAE and the raw
-  validation MAE, judged by ``tofdenoise.training.results.learned_verdict`` with ``learned_margin``;
-  written to ``metrics.json`` and checkpoints, and printed by ``RunSummary``.
-- A classical filter as the backbone (registered with ``trainable=False``: ``bilateral``): its class states
-  its input needs (``input_centering_modes``, ``needs_signal_channel``; checked here), it receives
-  ``depth_scale_mm`` when its signature names it, it is never fitted (``configure_optimizers`` refuses), and
-  ``learned_record`` gives ``classical_verdict`` with the validation MAEs of its grid search
-  (``record_tuning``, called by ``tofdenoise-classic``).
+The paper's recipe (Sec. V-A: AdamW 2e-4, per-step cosine to 1e-6, checkpoint at the lowest validation MAE) and
+every design decision of training (input conditioning, weight decay, EMA, compile, deep supervision, exact DDP
+metrics, the learned guard, classical filters) are described in docs/training.md. Where the pieces live:
+what the network sees, ``models/conditioning.py``; losses, ``losses.py``; per-image metrics, ``metrics.py``;
+the learned guard's inputs, ``learned_guard.py``; the records a run writes, ``results.py`` and
+``callbacks/run_outputs.py``. Every hyper-parameter is a plain value (backbone and loss by registered name), so a
+checkpoint loads with ``torch.load(weights_only=True)`` and ``DepthRestorer.load_from_checkpoint(path)``.
 """
 
 from __future__ import annotations
@@ -49,15 +20,14 @@ import lightning.pytorch as pl
 import torch
 from torch import Tensor, nn
 
-from tofdenoise.models.conditioning import (
-    CENTERING_MODES,
-    fill_invalid_mm,
-    image_offset_mm,
-    local_offset_mm,
-    valid_input_mask,
-)
+from tofdenoise.models import build_backbone, tiled_forward
+from tofdenoise.models.conditioning import CENTERING_MODES, condition_input
+from tofdenoise.models.registry import accepts_kwarg, backbone_factory, is_trainable
+from tofdenoise.training.init_weights import INIT_RECORD_KEY, load_init_weights
+from tofdenoise.training.learned_guard import LearnedGuard
 from tofdenoise.training.losses import DepthLoss, build_loss
-from tofdenoise.training.metrics import DepthMetrics, depth_metrics_per_image
+from tofdenoise.training.metrics import DepthMetrics, FixedBatchCache, depth_metrics_per_image
+from tofdenoise.training.results import set_entry
 
 __all__ = ["DepthRestorer", "CheckpointMismatchError", "step_predictions", "final_prediction", "step_loss_weights"]
 
@@ -75,8 +45,7 @@ def _architecture(hparams: dict[str, Any]) -> dict[str, Any]:
         "backbone_kwargs": dict(hparams.get("backbone_kwargs") or {}),
         "use_signal_channel": bool(hparams.get("use_signal_channel", False)),
         "ema": hparams.get("ema_decay") is not None,
-        # checkpoints written before input centring existed fed raw depth / depth_scale_mm
-        "input_centering": hparams.get("input_centering", "none"),
+        "input_centering": hparams.get("input_centering"),
     }
 
 
@@ -145,9 +114,6 @@ class DepthRestorer(pl.LightningModule):
         init_weights: str | None = None,
     ) -> None:
         super().__init__()
-        from tofdenoise.models import build_backbone
-        from tofdenoise.models.registry import accepts_kwarg, is_trainable
-
         backbone_kwargs = dict(backbone_kwargs or {})
         loss_kwargs = dict(loss_kwargs or {})
         if not depth_scale_mm > 0:
@@ -196,9 +162,9 @@ class DepthRestorer(pl.LightningModule):
 
         self.val_metrics = DepthMetrics(d_max_mm=d_max_mm)
         self.val_raw_metrics = DepthMetrics(d_max_mm=d_max_mm)
-        #: per-image Raw-row values of each validation batch with the batch's fingerprint: the validation noise
-        #: is fixed, so they are computed once and reused every epoch (recomputed if the batch ever differs)
-        self._raw_val_cache: dict[tuple[int, int], tuple[Tensor, dict[str, Tensor]]] = {}
+        #: per-image Raw-row values of each validation batch: the validation noise is fixed, so they are computed
+        #: once and reused every epoch (recomputed if the batch ever differs)
+        self._raw_val_cache = FixedBatchCache()
         self.test_metrics = nn.ModuleDict()
         self.test_raw_metrics = nn.ModuleDict()
         self._test_names: dict[str, dict[int, str]] = {}
@@ -207,13 +173,8 @@ class DepthRestorer(pl.LightningModule):
         self.test_results: dict[str, dict[str, Any]] = {}
         #: per-image rows per set: {set: {"rows", "raw_rows", "names"}} (``DepthMetrics.per_image_rows``)
         self.test_per_image: dict[str, dict[str, Any]] = {}
-        # learned guard: raw and lowest validation MAE of the fit (float64, not sanity checks), the record of a
-        # fit run in this process (frozen at its end) and the one of the last checkpoint loaded
-        self._raw_val_mae_mm: float | None = None
-        self._min_val_mae_mm: float | None = None
-        self._fit_in_process = False
-        self._fit_record: dict[str, Any] | None = None
-        self._loaded_record: dict[str, Any] | None = None
+        #: the learned guard's inputs (``training/learned_guard.py``)
+        self.guard = LearnedGuard()
         #: {"path", "sha256"} of the weights this run started from (``init_weights``), None for a fresh init
         self.init_record: dict[str, str] | None = None
 
@@ -234,33 +195,21 @@ class DepthRestorer(pl.LightningModule):
         return final_prediction(self.backbone(x))
 
     def condition(self, batch: dict[str, Any]) -> tuple[Tensor, Tensor]:
-        """Network input (B, C, H, W) and the offset (mm) to add back to ``depth_scale_mm`` x its output.
-
-        Channel 0: ``(filled - offset) / depth_scale_mm`` where ``filled`` is the noisy depth with its invalid
-        pixels (0, negative, NaN) filled by pull-push and ``offset`` the smooth local level (or the image
-        median, or 0; ``input_centering``); computed in float32 whatever the autocast setting. Channel 1
-        (optional): amplitude / its per-image maximum over the valid input pixels (those of ``noisy``, not
-        ``mask``: on a capture set the scoring mask also depends on the reference, the input must not).
-        """
+        """Network input (B, C, H, W) and the offset (mm) to add back to ``depth_scale_mm`` x its output
+        (:func:`tofdenoise.models.conditioning.condition_input`, in float32 whatever the autocast setting)."""
         noisy = batch["noisy"]
+        hp = self.hparams
+        if hp.use_signal_channel and "amplitude" not in batch:
+            raise KeyError("DepthRestorer(use_signal_channel=True) needs batch['amplitude']")
         with torch.autocast(device_type=noisy.device.type, enabled=False):
-            valid = valid_input_mask(noisy)
-            filled = fill_invalid_mm(noisy.float(), valid)
-            mode = self.hparams.input_centering
-            if mode == "local":
-                offset = local_offset_mm(filled, int(self.hparams.centering_block_px))
-            elif mode == "image":
-                offset = image_offset_mm(filled, valid)
-            else:
-                offset = torch.zeros_like(filled[:, :, :1, :1])
-            x = (filled - offset) / self.hparams.depth_scale_mm
-            if self.hparams.use_signal_channel:
-                if "amplitude" not in batch:
-                    raise KeyError("DepthRestorer(use_signal_channel=True) needs batch['amplitude']")
-                amp = batch["amplitude"].float() * valid  # the input's own validity, not the scoring mask
-                peak = amp.amax(dim=(1, 2, 3), keepdim=True).clamp_min(1e-12)
-                x = torch.cat([x, amp / peak], dim=1)
-        return x, offset
+            return condition_input(
+                noisy,
+                batch.get("amplitude"),
+                centering=hp.input_centering,
+                block_px=int(hp.centering_block_px),
+                depth_scale_mm=hp.depth_scale_mm,
+                use_signal_channel=hp.use_signal_channel,
+            )
 
     def network_input(self, batch: dict[str, Any]) -> Tensor:
         """The conditioned network input of :meth:`condition` (without the offset)."""
@@ -272,8 +221,6 @@ class DepthRestorer(pl.LightningModule):
         net = self.eval_net if net is None else net
         x, offset = self.condition(batch)
         if tile is not None and max(x.shape[-2:]) > tile:
-            from tofdenoise.models import tiled_forward
-
             y = tiled_forward(lambda t: final_prediction(net(t)), x, tile=tile, overlap=self.hparams.tile_overlap)
         else:
             y = final_prediction(net(x))
@@ -383,14 +330,11 @@ class DepthRestorer(pl.LightningModule):
     def _raw_val_per_image(self, batch: dict[str, Any], batch_idx: int, dataloader_idx: int) -> dict[str, Tensor]:
         """Raw-row per-image metrics of a validation batch (noisy input vs reference), from the cache when the
         batch is the one seen before at this position."""
-        key = (dataloader_idx, batch_idx)
-        fingerprint = _batch_fingerprint(batch)
-        hit = self._raw_val_cache.get(key)
-        if hit is not None and torch.equal(hit[0], fingerprint):
-            return hit[1]
-        per = depth_metrics_per_image(batch["noisy"], batch["clean"], batch["mask"], self.hparams.d_max_mm)
-        self._raw_val_cache[key] = (fingerprint, per)
-        return per
+        return self._raw_val_cache.get(
+            (dataloader_idx, batch_idx),
+            batch,
+            lambda: depth_metrics_per_image(batch["noisy"], batch["clean"], batch["mask"], self.hparams.d_max_mm),
+        )
 
     def on_validation_epoch_end(self) -> None:
         restored = self.val_metrics.compute()
@@ -398,7 +342,7 @@ class DepthRestorer(pl.LightningModule):
         values = {f"val/{k}": float(v) for k, v in restored.items()}
         values.update({f"val/raw/{k}": float(v) for k, v in raw.items()})
         if self._trainer is not None and self.trainer.state.fn == "fit" and not self.trainer.sanity_checking:
-            self._record_validation(values["val/mae_mm"], values["val/raw/mae_mm"])
+            self.guard.observe_validation(values["val/mae_mm"], values["val/raw/mae_mm"])
         # compute() gathered the rows of every process: each rank logs the same exact value (no sync_dist
         # reduction needed; the checkpoint callback of every rank sees the single-process value)
         self.log("val/mae_mm", values.pop("val/mae_mm"), prog_bar=True)
@@ -447,8 +391,6 @@ class DepthRestorer(pl.LightningModule):
         return {"pred_mm": pred_mm}
 
     def on_test_epoch_end(self) -> None:
-        from tofdenoise.training.results import set_entry
-
         for set_name in self.test_set_names():
             metric, raw_metric = self.test_metrics[set_name], self.test_raw_metrics[set_name]
             restored = {k: float(v) for k, v in metric.compute().items()}
@@ -477,50 +419,12 @@ class DepthRestorer(pl.LightningModule):
         return pred_mm
 
     # ------------------------------------------------------------------ learned guard
-    def _record_validation(self, val_mae_mm: float, raw_val_mae_mm: float) -> None:
-        if math.isfinite(raw_val_mae_mm):
-            self._raw_val_mae_mm = raw_val_mae_mm
-        if math.isfinite(val_mae_mm) and (self._min_val_mae_mm is None or val_mae_mm < self._min_val_mae_mm):
-            self._min_val_mae_mm = val_mae_mm
-
-    def _live_record(self) -> dict[str, Any]:
-        """Optimiser steps so far, lowest validation MAE (this module's float64 value, else the checkpoint
-        callback's ``best_model_score`` of ``val/mae_mm``) and raw validation MAE."""
-        best = self._min_val_mae_mm
-        if best is None:
-            cb = self.trainer.checkpoint_callback
-            score = getattr(cb, "best_model_score", None)
-            if score is not None and getattr(cb, "monitor", None) == "val/mae_mm":
-                best = float(score)
-        return {
-            "trained_steps": int(self.trainer.global_step),
-            "best_val_mae_mm": best,
-            "raw_val_mae_mm": self._raw_val_mae_mm,
-        }
-
     def learned_record(self) -> dict[str, Any]:
-        """The learned guard's verdict (``training.results.learned_verdict``: ``trained_steps``,
-        ``best_val_mae_mm``, ``raw_val_mae_mm``, ``learned_margin``, ``learned``, ``learned_reason``).
-
-        Its inputs: the fit of this process when there was one (its steps, lowest validation MAE, raw
-        validation MAE), else the record saved in the checkpoint last loaded (a test of a saved checkpoint:
-        the steps behind those weights), else 0 steps (an untrained network). A classical filter
-        (``trainable`` False) gets ``training.results.classical_verdict`` with the validation MAEs of its
-        tuning (:meth:`record_tuning`)."""
-        from tofdenoise.training.results import classical_verdict, learned_verdict
-
+        """The learned guard's verdict (``training.results.learned_verdict``, or ``classical_verdict`` for a
+        classical filter): ``trained_steps``, ``best_val_mae_mm``, ``raw_val_mae_mm``, ``learned_margin``,
+        ``learned``, ``learned_reason`` (inputs: ``training/learned_guard.py``)."""
         margin = float(self.hparams.get("learned_margin", 0.05))
-        if not self.trainable:
-            return classical_verdict(self._min_val_mae_mm, self._raw_val_mae_mm, margin=margin)
-        if self._fit_record is not None:
-            rec = self._fit_record
-        elif self._fit_in_process and self._trainer is not None:
-            rec = self._live_record()
-        elif self._loaded_record is not None:
-            rec = self._loaded_record
-        else:
-            rec = {"trained_steps": 0, "best_val_mae_mm": None, "raw_val_mae_mm": None}
-        return learned_verdict(rec["trained_steps"], rec["best_val_mae_mm"], rec["raw_val_mae_mm"], margin=margin)
+        return self.guard.verdict(self.trainable, margin, self._trainer)
 
     def record_tuning(self, best_val_mae_mm: float, raw_val_mae_mm: float) -> None:
         """The validation result of a classical filter's parameter search (its "fit"): the validation MAE of
@@ -530,47 +434,34 @@ class DepthRestorer(pl.LightningModule):
                 f"DepthRestorer.record_tuning: backbone {self.hparams.backbone!r} is a network; "
                 "its validation MAEs come from trainer.fit"
             )
-        self._min_val_mae_mm = float(best_val_mae_mm)
-        self._raw_val_mae_mm = float(raw_val_mae_mm)
+        self.guard.record_tuning(best_val_mae_mm, raw_val_mae_mm)
 
     def on_fit_start(self) -> None:
-        self._fit_in_process = True
-        self._fit_record = None
+        self.guard.start_fit()
         resuming = self._trainer is not None and self.trainer.ckpt_path is not None
         if self.hparams.get("init_weights") and not resuming:
             # after the modules are set up, before the sanity check: the optimiser holds these same tensors
-            from tofdenoise.training.init_weights import load_init_weights
-
             self.init_record = load_init_weights(self, str(self.hparams.init_weights))
             log.info("network initialised from %s (sha256 %s)", self.init_record["path"], self.init_record["sha256"])
 
     def on_fit_end(self) -> None:
-        self._fit_record = self._live_record()
+        self.guard.end_fit(self.trainer)
 
     # ------------------------------------------------------------------ checkpoints
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         """Keep the learned guard's inputs in the checkpoint (plain values: loads with weights_only=True)."""
         if self._trainer is not None:
-            checkpoint[LEARNED_RECORD_KEY] = self._live_record()
+            self.guard.save(checkpoint, self.trainer)
         if self.init_record is not None:
-            from tofdenoise.training.init_weights import INIT_RECORD_KEY
-
             checkpoint[INIT_RECORD_KEY] = dict(self.init_record)
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         """Refuse a checkpoint written for another backbone/architecture with a readable message; restore the
         learned guard's record (validation MAEs continue across a resume)."""
         self._check_architecture(checkpoint)
-        from tofdenoise.training.init_weights import INIT_RECORD_KEY
-
         init = checkpoint.get(INIT_RECORD_KEY)
         self.init_record = dict(init) if isinstance(init, dict) else None
-        rec = _record_from_checkpoint(checkpoint)
-        self._loaded_record = rec
-        if self._raw_val_mae_mm is None:
-            self._raw_val_mae_mm = rec["raw_val_mae_mm"]
-        if self._min_val_mae_mm is None:
-            self._min_val_mae_mm = rec["best_val_mae_mm"]
+        self.guard.load(checkpoint)
 
     def _check_architecture(self, checkpoint: dict[str, Any]) -> None:
         saved = checkpoint.get("hyper_parameters")
@@ -622,8 +513,6 @@ def step_loss_weights(backbone: nn.Module, steps: int) -> list[float]:
     return [w / total for w in raw]
 
 
-#: key of the learned guard's record inside a checkpoint
-LEARNED_RECORD_KEY = "tofdenoise_learned_record"
 #: image indices of validation loader k are offset by k x this, so that several loaders never share an index
 _LOADER_INDEX_STRIDE = 1 << 32
 
@@ -637,8 +526,6 @@ def _check_backbone_input(
 ) -> None:
     """A backbone's stated input needs (class attributes ``input_centering_modes``, ``needs_signal_channel``;
     a ``depth_scale_mm`` argument is DepthRestorer's own) against the DepthRestorer settings."""
-    from tofdenoise.models.registry import backbone_factory
-
     factory = backbone_factory(backbone)
     modes = tuple(getattr(factory, "input_centering_modes", CENTERING_MODES))
     if input_centering not in modes:
@@ -677,31 +564,3 @@ def _gather_names(names: dict[int, str]) -> dict[int, str]:
         for index, name in (part or {}).items():
             out.setdefault(int(index), name)
     return out
-
-
-def _record_from_checkpoint(checkpoint: dict[str, Any]) -> dict[str, Any]:
-    """The learned guard's inputs saved in a checkpoint; for checkpoints written before they were saved: its
-    ``global_step`` and the ``val/mae_mm`` checkpoint callback's best score (raw MAE unknown)."""
-    saved = checkpoint.get(LEARNED_RECORD_KEY)
-    if isinstance(saved, dict):
-        return {
-            "trained_steps": int(saved.get("trained_steps") or 0),
-            "best_val_mae_mm": saved.get("best_val_mae_mm"),
-            "raw_val_mae_mm": saved.get("raw_val_mae_mm"),
-        }
-    best = None
-    for state in (checkpoint.get("callbacks") or {}).values():
-        score = state.get("best_model_score") if isinstance(state, dict) else None
-        if score is not None and state.get("monitor") == "val/mae_mm":
-            best = float(score)
-    return {"trained_steps": int(checkpoint.get("global_step") or 0), "best_val_mae_mm": best, "raw_val_mae_mm": None}
-
-
-def _batch_fingerprint(batch: dict[str, Any]) -> Tensor:
-    """Shape, sums and sums of squares (float64, NaN as 0) of a batch's noisy input, reference and mask: any
-    change of the validation data or its noise changes it."""
-    parts = []
-    for name in ("noisy", "clean", "mask"):
-        x = batch[name].detach().to(torch.float64).nan_to_num(0.0, 0.0, 0.0)
-        parts += [torch.tensor(float(x.numel()), dtype=torch.float64, device=x.device), x.sum(), x.square().sum()]
-    return torch.stack(parts).cpu()

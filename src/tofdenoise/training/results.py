@@ -5,10 +5,11 @@ Functions for the LightningModule, the callbacks and the entry points (no Lightn
 - ``set_entry(restored, raw=None, counts=None) -> dict``: one test-set entry of ``metrics.json`` from
   ``DepthMetrics.compute()`` dicts (tensors or floats): ``{"psnr_db", "mae_mm", "mse_mm2", "ssim",
   ["mae_mm_pooled", "images", "skipped_images", "valid_px"], "raw": {same keys for the noisy input}}``.
-- ``write_metrics_json(path, results, run=None)``: writes ``{"synthetic": entry, "real": entry}`` (whatever
-  sets are given) atomically after validating the schema, plus the run-level fields ``run`` (below) at the top
-  level; ``read_metrics_json(path)`` reads and validates; ``metric_sets(data)`` keeps only the sets of a read
-  file, ``run_fields(data)`` only the run-level fields.
+- ``write_metrics_json(path, results, run)``: writes ``{"synthetic": entry, "real": entry}`` (whatever
+  sets are given) atomically after validating the schema, plus the run-level fields ``run`` (below, all of
+  ``RUN_KEYS``: every record carries the learned guard's verdict) at the top level; ``read_metrics_json(path)``
+  reads and validates; ``metric_sets(data)`` keeps only the sets of a read file, ``run_fields(data)`` only the
+  run-level fields.
 - ``learned_verdict(trained_steps, best_val_mae_mm, raw_val_mae_mm, margin=0.05) -> dict``: the guard against
   runs that learned nothing (the one place its rule lives). The dict holds the run-level fields of
   ``metrics.json`` (``RUN_KEYS``): ``method_kind`` ("network"), ``trained_steps``, ``best_val_mae_mm``,
@@ -190,12 +191,9 @@ def classical_verdict(
 def learned_status(fields: Mapping[str, Any]) -> str:
     """One word-group for a verdict (``learned_verdict``, ``classical_verdict`` or the run fields of a
     ``metrics.json``): ``"learned"``, ``"not trained"``, ``"did not learn"``, ``"not verified"``,
-    ``"classical"`` (a non-learned method: not a failure), or ``"unknown"`` for a file written before the guard
-    existed."""
+    or ``"classical"`` (a non-learned method: not a failure)."""
     if fields.get("method_kind") == "classical":
         return "classical"
-    if "learned" not in fields:
-        return "unknown"
     if int(fields.get("trained_steps") or 0) <= 0:
         return "not trained"
     if fields["learned"] is True:
@@ -211,7 +209,7 @@ def metric_sets(data: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def run_fields(data: Mapping[str, Any]) -> dict[str, Any]:
-    """The run-level fields (``RUN_KEYS``) of a ``metrics.json``; empty for files written before they existed."""
+    """The run-level fields (``RUN_KEYS``) of a ``metrics.json``."""
     return {k: data[k] for k in RUN_KEYS if k in data}
 
 
@@ -264,19 +262,23 @@ def _validate_run_fields(results: Mapping[str, Any], source: str) -> None:
         "learned_reason": (str,),
         "method_kind": (str,),
     }
+    missing = [key for key in types if key not in results]
+    if missing:
+        raise ValueError(
+            f"{source}: lacks the run-level field(s) {missing} (the learned guard's verdict; every metrics.json "
+            "written by RunOutputs carries all of them)"
+        )
     for key, allowed in types.items():
-        if key not in results:
-            continue
         v = results[key]
         if not isinstance(v, allowed) or (key != "learned" and isinstance(v, bool)):
             raise ValueError(f"{source}: '{key}' must be {' or '.join(t.__name__ for t in allowed)}, got {v!r}")
-    if "method_kind" in results and results["method_kind"] not in METHOD_KINDS:
+    if results["method_kind"] not in METHOD_KINDS:
         raise ValueError(f"{source}: 'method_kind' must be one of {list(METHOD_KINDS)}, got {results['method_kind']!r}")
 
 
 def validate_metrics_results(results: Mapping[str, Any], source: str = "metrics") -> None:
     """Raise ValueError naming ``source`` and the set/key when ``results`` does not follow the schema (test
-    sets ``{set: entry}`` plus the optional run-level fields ``RUN_KEYS``)."""
+    sets ``{set: entry}`` plus the run-level fields ``RUN_KEYS``)."""
     if not isinstance(results, Mapping) or not metric_sets(results):
         raise ValueError(f"{source}: expected a non-empty object {{set name: metrics}}, got {type(results).__name__}")
     _validate_run_fields(results, source)
@@ -310,12 +312,12 @@ def _normalise(results: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
     return out
 
 
-def write_metrics_json(path: str | Path, results: Mapping[str, Any], run: Mapping[str, Any] | None = None) -> Path:
+def write_metrics_json(path: str | Path, results: Mapping[str, Any], run: Mapping[str, Any]) -> Path:
     """Write ``{"synthetic": {...}, "real": {...}}`` to ``path`` atomically (strict JSON, sorted sets), with
-    the run-level fields of ``run`` (e.g. ``learned_verdict(...)``; keys outside ``RUN_KEYS`` are refused) or,
-    without ``run``, those already in ``results``."""
+    the run-level fields of ``run`` (``learned_verdict(...)`` or ``classical_verdict(...)``: all of ``RUN_KEYS``;
+    other keys are refused)."""
     data = _normalise(results)
-    fields = dict(run_fields(results) if run is None else run)
+    fields = dict(run)
     unknown = sorted(set(fields) - set(RUN_KEYS))
     if unknown:
         raise KeyError(f"{path}: unknown run-level field(s) {unknown}; expected some of {list(RUN_KEYS)}")

@@ -7,14 +7,18 @@ forms."""
 from __future__ import annotations
 
 import math
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
 from tofdenoise.physics import default_calibration, depth_variance_mm2, sigma_depth_mm
-from tofdenoise.physics import uncertainty_compiled as uc
 from tofdenoise.physics.calibration import TapResponse
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))  # benchmark code, not the package
+import sigma_compiled as uc  # noqa: E402
 
 
 @pytest.fixture(scope="module")

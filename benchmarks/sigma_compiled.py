@@ -1,4 +1,8 @@
-"""sigma_D as ONE fused per-pixel kernel (torch.compile / Inductor), for large maps on CPU or GPU.
+"""sigma_D as ONE fused per-pixel kernel (torch.compile / Inductor): benchmark code, not part of the package.
+
+No command computes enough sigma_D maps per calibration to pay its compile time (~20 s), so the package keeps the
+three routes it uses (:mod:`tofdenoise.physics.uncertainty`) and this kernel lives with the benchmarks that
+measure it (bench_physics.py, bench_gpu.py; tests/benchmarks/test_sigma_compiled.py keeps it equal to them).
 
 The same quantity as :func:`tofdenoise.physics.uncertainty.depth_variance_mm2` (paper Eqs. 13-17). Per pixel,
 with r_n = c(psi - theta_n), r'_n = c'(psi - theta_n), w_n = 1 / (a r_n + sigma_dark^2) and
@@ -20,8 +24,7 @@ loses more than two bits) are recomputed with the reference path, so the result 
 kernel reports whether there are any in the same pass. Compilation runs on the first call per calibration
 (its time and the kernel's speed: docs/benchmarks.md, "Sensor physics") and needs a C++ compiler on CPU; when
 compilation is not possible the reference path is used with a warning. Use :func:`sigma_depth_mm` for small
-inputs and numpy arrays. Where this route stands among the four sigma_D routes: the table in
-:mod:`tofdenoise.physics.uncertainty`.
+inputs and numpy arrays.
 """
 
 from __future__ import annotations
