@@ -196,7 +196,7 @@ def test_metrics_json_counts_the_scenes_the_datamodule_skipped(tmp_path):
     from types import SimpleNamespace
 
     from tofdenoise.callbacks.run_outputs import write_test_outputs
-    from tofdenoise.training.results import set_entry
+    from tofdenoise.training.results import learned_verdict, set_entry
 
     m = {"psnr_db": 40.0, "mae_mm": 2.0, "mse_mm2": 9.0, "ssim": 0.99}
     model = SimpleNamespace(
@@ -205,6 +205,7 @@ def test_metrics_json_counts_the_scenes_the_datamodule_skipped(tmp_path):
             "real": set_entry(m, m, {"images": 1, "skipped_images": 1, "valid_px": 5}),
         },
         test_per_image={},
+        learned_record=lambda: learned_verdict(10, 2.0, 9.0),
         _trainer=SimpleNamespace(
             datamodule=SimpleNamespace(skipped_samples={"real": ["scene_0001", "scene_0002"], "train": ["x"]})
         ),

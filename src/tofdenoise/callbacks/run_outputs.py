@@ -74,8 +74,7 @@ def write_test_outputs(model: Any, run_dir: Path) -> dict[str, Any]:
         write_per_image_csv(
             run_dir / PER_IMAGE_DIR / f"{set_name}.csv", per["rows"], per["raw_rows"], names=per["names"]
         )
-    learned = model.learned_record() if hasattr(model, "learned_record") else None
-    write_metrics_json(run_dir / METRICS_NAME, results, run=learned)
+    write_metrics_json(run_dir / METRICS_NAME, results, run=model.learned_record())
     return json.loads((run_dir / METRICS_NAME).read_text())
 
 

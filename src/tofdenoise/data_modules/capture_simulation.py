@@ -1,7 +1,7 @@
 """Simulated capture sets in the real capture format (see ``real_captures``), from built-in procedural scenes.
 
 Per scene: the clean depth and amplitude of procedural scene ``i`` (seed ``seed``) give the returned signal
-a(p) (``scene_signal_e``: the physical route when the camera has a photometric gain ``signal_at_1m_e``, so dark far
+a(p) (``maps.scene_signal_e``: the physical route when the camera has a photometric gain ``signal_at_1m_e``, so dark far
 surfaces and absorbers fall below the camera's threshold and specular highlights saturate; else the amplitude
 mapped to the calibration's signal interval); then the tap-level simulator
 (``tofdenoise.physics.simulator.simulate_frames``) produces
@@ -35,6 +35,7 @@ import torch
 from tofdenoise.atomic import atomic_write_text, save_npy_atomic
 from tofdenoise.data_modules.datasets import stable_seed
 from tofdenoise.data_modules.io import write_depth_png16, write_png_uint8, write_png_uint16
+from tofdenoise.data_modules.maps import scene_signal_e
 from tofdenoise.data_modules.real_captures import HIEXP_DIR, INPUT_AMPLITUDE, INPUT_DEPTH, build_reference
 from tofdenoise.data_modules.sources.procedural import ProceduralSource
 
@@ -81,20 +82,6 @@ def safe_exposure(depth_mm: np.ndarray, signal_e: np.ndarray, calib: Any, reques
     if peak <= 0:
         return float(requested)
     return float(max(min(requested, headroom / peak), min(requested, 1.0)))
-
-
-def scene_signal_e(raw: Any, calib: Any, hfov_deg: float) -> np.ndarray:
-    """The returned signal of a rendered scene as this camera collects it: the physical route (K t A V,
-    ``tofdenoise.physics.photometry``) when the camera has ``signal_at_1m_e``, else the paper's linear mapping into
-    its signal interval. 0 where the scene has no surface."""
-    if getattr(calib, "signal_at_1m_e", None) is not None:
-        from tofdenoise.physics.photometry import field_cosine, physical_signal_e
-
-        cos_field = field_cosine(*raw.depth_mm.shape, hfov_deg)
-        return np.where(raw.valid, physical_signal_e(raw.amplitude, calib, cos_field), 0.0).astype(np.float32)
-    from tofdenoise.physics.uncertainty import amplitude_to_signal_e
-
-    return np.asarray(amplitude_to_signal_e(raw.amplitude, calib, valid=raw.valid, fill_value=0.0), dtype=np.float32)
 
 
 def write_readme(out_dir: Path, params: dict[str, Any]) -> None:

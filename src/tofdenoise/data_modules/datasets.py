@@ -24,6 +24,7 @@ from torch.utils.data import Dataset
 from tofdenoise.data_modules.cache import MapCache, SampleMaps
 from tofdenoise.data_modules.maps import compute_sample_maps
 from tofdenoise.data_modules.transforms import random_crop_flip
+from tofdenoise.physics.photometry import field_cosine
 
 
 def stable_seed(*parts: Any) -> int:
@@ -47,8 +48,6 @@ class MapProvider:
         raw = self.source.load(sample_id)
         cos_field = None
         if self.signal_route == "physical":
-            from tofdenoise.physics.photometry import field_cosine
-
             cos_field = field_cosine(*raw.depth_mm.shape, self.source.hfov_deg)
         return compute_sample_maps(
             raw, self.calib, self.lower_percentile, self.upper_percentile, self.signal_route, cos_field
