@@ -23,6 +23,7 @@ import lightning.pytorch as pl
 import numpy as np
 from lightning.pytorch.callbacks import BasePredictionWriter
 
+from tofdenoise import visualize
 from tofdenoise.atomic import atomic_write_png, save_npy_atomic
 from tofdenoise.data_modules.io import write_depth_png16
 from tofdenoise.visualize import batch_plane
@@ -104,8 +105,6 @@ class DepthPredictionWriter(BasePredictionWriter):
 
     @staticmethod
     def _preview(batch: dict, depth_mm: np.ndarray, i: int) -> np.ndarray:
-        from tofdenoise import visualize
-
         maps: dict[str, np.ndarray] = {}
         if "noisy" in batch:
             maps["noisy"] = batch_plane(batch["noisy"], i)

@@ -10,6 +10,8 @@ from typing import Any
 import lightning.pytorch as pl
 from lightning.pytorch.callbacks import Callback
 
+from tofdenoise.training.results import learned_status
+
 __all__ = ["RunSummary", "format_fit_summary", "format_test_summary", "format_learned_warning"]
 
 log = logging.getLogger(__name__)
@@ -66,8 +68,6 @@ def format_test_summary(name: str, results: dict[str, dict[str, Any]], seconds: 
 def format_learned_warning(record: dict[str, Any] | None) -> str | None:
     """The learned guard in plain words (``None`` when the run learned): ``WARNING: the network did not learn:
     best val MAE 7.68 mm vs raw 7.79 mm (needs <= 7.40 mm, 5% below raw); treat this run as failed``."""
-    from tofdenoise.training.results import learned_status
-
     if not record:
         return None
     status = learned_status(record)

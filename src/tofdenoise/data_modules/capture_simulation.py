@@ -38,6 +38,10 @@ from tofdenoise.data_modules.io import write_depth_png16, write_png_uint8, write
 from tofdenoise.data_modules.maps import scene_signal_e
 from tofdenoise.data_modules.real_captures import HIEXP_DIR, INPUT_AMPLITUDE, INPUT_DEPTH, build_reference
 from tofdenoise.data_modules.sources.procedural import ProceduralSource
+from tofdenoise.physics.calibration import resolve_calibration, save_calibration
+from tofdenoise.physics.mixed_pixels import footprint_tap_means_e, mixed_pixel_map
+from tofdenoise.physics.simulator import simulate_frames, simulate_tap_mean_frames
+from tofdenoise.physics.uncertainty import tap_responses
 
 SCENE_DONE = "scene.json"
 GROUND_TRUTH = "ground_truth_depth_mm.npy"
@@ -67,8 +71,6 @@ def safe_exposure(depth_mm: np.ndarray, signal_e: np.ndarray, calib: Any, reques
     kept out of saturation by any exposure above it, and a few bright ones should not hold the whole frame at the
     standard exposure: the exposure is chosen for the REFERENCE_PEAK_PERCENTILE-th percentile of the others' peaks
     (never below 1). Pixels that saturate are flagged in the high-exposure frames and left out of the reference."""
-    from tofdenoise.physics.uncertainty import tap_responses
-
     ok = (depth_mm > 0) & np.isfinite(signal_e) & (signal_e > 0)
     if not ok.any():
         return float(requested)
@@ -138,8 +140,6 @@ def simulate_scene(
     min_count: int | None = None,
     mixed_pixels: int = 1,
 ) -> dict[str, Any]:
-    from tofdenoise.physics.mixed_pixels import footprint_tap_means_e, mixed_pixel_map
-    from tofdenoise.physics.simulator import simulate_frames, simulate_tap_mean_frames
 
     sample_id = f"scene_{index:06d}"
     raw = source.load(sample_id)
@@ -225,8 +225,6 @@ def simulate_capture_set(
 ) -> SimulationSummary:
     """Write ``scenes`` simulated scenes (``scene_0000`` ...) with ``frames`` high-exposure frames each;
     ``mixed_pixels`` = s > 1 integrates s x s samples per pixel (mixed pixels at depth edges)."""
-    from tofdenoise.physics.calibration import resolve_calibration
-
     if scenes < 1 or frames < 1:
         raise ValueError(f"--scenes and --frames must be >= 1, got {scenes} and {frames}")
     if hi_exposure <= 0:
@@ -258,7 +256,6 @@ def simulate_capture_set(
         "mixed_pixels": mixed_pixels,
     }
     write_readme(out, params)
-    from tofdenoise.physics.calibration import save_calibration
 
     save_calibration(
         calib,

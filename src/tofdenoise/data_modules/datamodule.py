@@ -17,9 +17,13 @@ from torch.utils.data import DataLoader, Dataset
 from tofdenoise.atomic import atomic_write_text
 from tofdenoise.data_modules.cache import MapCache, canonical_digest
 from tofdenoise.data_modules.datasets import MapProvider, RealCaptures, SyntheticPairs
+from tofdenoise.data_modules.holes import HoleModel
+from tofdenoise.data_modules.maps import check_signal_route
 from tofdenoise.data_modules.real_captures import build_reference, list_scenes, load_real_scene
 from tofdenoise.data_modules.sources import build_source
 from tofdenoise.data_modules.splits import SPLIT_NAMES, ids_digest, load_or_make_split
+from tofdenoise.physics.calibration import SensorCalibration, resolve_calibration
+from tofdenoise.physics.noise_models import available_noise_models, build_noise_model, variance_matching_scale
 
 log = logging.getLogger(__name__)
 
@@ -136,7 +140,6 @@ class ToFDataModule(L.LightningDataModule):
         holes_kwargs: dict[str, Any] | None = None,
     ):
         super().__init__()
-        from tofdenoise.physics.calibration import SensorCalibration, resolve_calibration
 
         if isinstance(sensor, SensorCalibration):
             sensor = sensor.to_dict()
@@ -154,13 +157,11 @@ class ToFDataModule(L.LightningDataModule):
             self.calib = self.calib.replace(signal_min_e=self.calib.signal_max_e / float(signal_dynamic_range))
         self.noise_name = str(noise).lower()
         self.noise_kwargs = noise_kwargs
-        from tofdenoise.physics.noise_models import available_noise_models
 
         self.eval_noise_name = str(eval_noise).lower()
         if self.eval_noise_name not in available_noise_models():
             raise ValueError(f"unknown data.eval_noise {eval_noise!r}; valid: {', '.join(available_noise_models())}")
         self.crop = _crop_pair(crop_size)
-        from tofdenoise.data_modules.holes import HoleModel
 
         try:
             self.hole_model = HoleModel(**dict(holes_kwargs or {})) if holes else None
@@ -185,7 +186,6 @@ class ToFDataModule(L.LightningDataModule):
         self.test_set_names: list[str] = ["synthetic", "real"] if real_dir else ["synthetic"]
         self._prepared: PreparedData | None = None
         self.datasets: dict[str, Any] = {}
-        from tofdenoise.data_modules.maps import check_signal_route
 
         # fail fast: unknown source, missing data.root, bad sizes / depth range, a signal route that cannot apply
         self.signal_route = check_signal_route(signal_route, self.make_source(), self.calib)
@@ -346,8 +346,6 @@ class ToFDataModule(L.LightningDataModule):
     def _noise(self, name: str, kwargs: dict[str, Any], provider: MapProvider, cache: MapCache, train_ids: list[str]):
         """A noise model and its variance-scale record: a Gaussian baseline is variance-matched over the
         training split (``match_variance``; the record stored next to the maps), any other model has none."""
-        from tofdenoise.physics.noise_models import build_noise_model
-
         noise_model = build_noise_model(name, self.calib, **kwargs)
         if name in GAUSSIAN_BASELINES and self.hparams.match_variance:
             return self._match_variance(name, kwargs, noise_model, provider, cache, train_ids)
@@ -375,8 +373,6 @@ class ToFDataModule(L.LightningDataModule):
         cache: MapCache,
         train_ids: list[str],
     ):
-        from tofdenoise.physics.noise_models import variance_matching_scale
-
         key = {
             "noise": noise_name,
             "noise_kwargs": noise_kwargs,

@@ -22,6 +22,7 @@ import torch
 from torch.utils.data import Dataset
 
 from tofdenoise.data_modules.cache import MapCache, SampleMaps
+from tofdenoise.data_modules.holes import apply_holes
 from tofdenoise.data_modules.maps import compute_sample_maps
 from tofdenoise.data_modules.transforms import random_crop_flip
 from tofdenoise.physics.photometry import field_cosine
@@ -135,8 +136,6 @@ class SyntheticPairs(Dataset):
         noisy = torch.where(valid, noisy.to(torch.float32), torch.zeros((), dtype=torch.float32))
         tensors = {"noisy": noisy, **tensors}
         if self.holes is not None:
-            from tofdenoise.data_modules.holes import apply_holes
-
             signal = tensors.pop("signal")
             hole_generator = (
                 generator

@@ -40,6 +40,9 @@ from typing import Any
 
 import torch
 
+from tofdenoise.physics.photometry import saturated
+from tofdenoise.physics.simulator import default_min_amplitude_e
+
 __all__ = [
     "HoleModel",
     "apply_holes",
@@ -62,8 +65,6 @@ def measured_amplitude_below_threshold(
 ) -> torch.Tensor:
     """Pixels whose measured amplitude |s a |C1| + n| falls below the simulator's validity threshold, n complex
     Gaussian noise of per-quadrature std sqrt(2/N (s a c0 + sigma_dark^2)) (the N-phase DFT of the taps)."""
-    from tofdenoise.physics.simulator import default_min_amplitude_e
-
     c1 = calib.tap_response.first_harmonic_amplitude
     thr = default_min_amplitude_e(calib)
     a = signal_e.double().clamp_min(0.0) * scale
@@ -75,8 +76,6 @@ def measured_amplitude_below_threshold(
 
 def saturation_holes(depth_mm: torch.Tensor, signal_e: torch.Tensor, valid: torch.Tensor, calib: Any) -> torch.Tensor:
     """Pixels whose brightest expected tap a max_n r_n(D) + mu_dark reaches the full well (paper Eq. 4)."""
-    from tofdenoise.physics.photometry import saturated
-
     sat = saturated(depth_mm.double().numpy(), signal_e.double().numpy(), calib)
     return valid.bool() & torch.from_numpy(sat)
 
@@ -90,8 +89,6 @@ def low_signal_holes(
     the valid pixels whose *expected* amplitude is below the threshold (the noisy decision makes the actual
     share scatter around f). Returns a bool (H, W) hole mask (False outside ``valid``); f <= 0 gives none.
     """
-    from tofdenoise.physics.simulator import default_min_amplitude_e
-
     if not 0.0 <= fraction < 1.0:
         raise ValueError(f"low_signal_holes: fraction must be in [0, 1), got {fraction}")
     valid = valid.bool()

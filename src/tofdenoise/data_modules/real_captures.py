@@ -30,6 +30,7 @@ import numpy as np
 
 from tofdenoise.atomic import atomic_write_text, save_npy_atomic
 from tofdenoise.data_modules.io import DataFileError, check_same_shape, read_image, read_png_uint16
+from tofdenoise.physics.uncertainty import amplitude_to_signal_e, sigma_depth_mm
 
 INPUT_DEPTH = "input_depth_mm.png"
 INPUT_AMPLITUDE = "input_amplitude.png"
@@ -194,8 +195,6 @@ def load_real_scene(scene_dir: str | Path, calib: Any, min_count: int | None = N
     the common valid region of input and reference (paper Sec. V-D applies this ROI to the metrics only);
     ``clean`` = reference and ``sigma`` = WLS sigma_D of the input (amplitude mapped to the calibration's
     signal interval) inside it, 0 outside."""
-    from tofdenoise.physics.uncertainty import amplitude_to_signal_e, sigma_depth_mm
-
     scene = Path(scene_dir)
     depth_path, amp_path = scene / INPUT_DEPTH, scene / INPUT_AMPLITUDE
     depth = read_png_uint16(depth_path, what="input depth").astype(np.float32)

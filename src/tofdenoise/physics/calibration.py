@@ -24,6 +24,7 @@ import numpy as np
 import yaml
 
 from tofdenoise.atomic import atomic_write_text
+from tofdenoise.paths import CONFIG_DIR
 from tofdenoise.physics import _backend as arrays
 
 C_LIGHT_M_PER_S: float = 299_792_458.0
@@ -578,8 +579,6 @@ def save_calibration(calib: SensorCalibration, path: str | os.PathLike[str], hea
 
 def default_calibration() -> SensorCalibration:
     """The shipped default calibration, `configs/sensor/default.yaml` (via tofdenoise.paths.CONFIG_DIR)."""
-    from tofdenoise.paths import CONFIG_DIR
-
     return load_calibration(CONFIG_DIR / "sensor" / "default.yaml")
 
 
@@ -595,8 +594,6 @@ def resolve_calibration(spec: Any = None) -> SensorCalibration:
     if isinstance(spec, (str, os.PathLike)):
         p = Path(spec)
         if not p.suffix and not p.exists():
-            from tofdenoise.paths import CONFIG_DIR
-
             preset = CONFIG_DIR / "sensor" / f"{spec}.yaml"
             if preset.is_file():
                 return load_calibration(preset)

@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from tofdenoise.physics.calibration import SensorCalibration
+from tofdenoise.physics.fixed_pattern import camera_pattern, column_phase_depth_mm
 from tofdenoise.physics.uncertainty import tap_responses
 
 
@@ -70,7 +71,6 @@ def footprint_tap_means_e(depth_mm: Any, signal_e: Any, calib: SensorCalibration
             f"sides divisible by factor {s}"
         )
     h, w = d.shape[0] // s, d.shape[1] // s
-    from tofdenoise.physics.fixed_pattern import camera_pattern, column_phase_depth_mm
 
     pattern = camera_pattern(calib, h, w)
     if pattern is not None:  # the camera's column phase offsets (its fixed pattern) shift psi of every sub-pixel

@@ -26,6 +26,8 @@ from typing import Any
 
 import numpy as np
 
+from tofdenoise.physics.uncertainty import tap_responses
+
 REFERENCE_RANGE_MM: float = 1000.0
 
 
@@ -85,8 +87,6 @@ def physical_signal_e(
 
 def peak_tap_e(depth_mm: Any, signal_e: Any, calib: Any) -> np.ndarray:
     """Expected charge of the brightest tap, max_n a r_n(D) + mu_dark [e-] (paper Eq. 4); NaN where invalid."""
-    from tofdenoise.physics.uncertainty import tap_responses
-
     d = np.asarray(depth_mm, dtype=np.float64)
     a = np.asarray(signal_e, dtype=np.float64)
     ok = np.isfinite(d) & (d > 0) & np.isfinite(a) & (a >= 0)

@@ -34,6 +34,7 @@ import numpy as np
 import torch
 
 from tofdenoise.physics.calibration import SensorCalibration
+from tofdenoise.physics.fixed_pattern import camera_pattern, column_phase_depth_mm
 from tofdenoise.physics.uncertainty import tap_responses
 
 LUT_SIZE = 8192
@@ -212,8 +213,6 @@ def _to_tensor(x: Any, name: str) -> torch.Tensor:
 
 def _pattern(calib: SensorCalibration, shape: tuple[int, ...]) -> Any:
     """The camera's fixed pattern for frames whose last two axes are (H, W), or None."""
-    from tofdenoise.physics.fixed_pattern import camera_pattern
-
     if len(shape) < 2:
         return None
     return camera_pattern(calib, int(shape[-2]), int(shape[-1]))
@@ -283,8 +282,6 @@ def simulate_frames(
     a_eff = torch.where(in_valid, a * float(exposure), torch.zeros_like(a))
     pattern = _pattern(calib, tuple(d.shape))
     if pattern is not None:  # the column phase offsets shift psi (the clean depth stays the truth)
-        from tofdenoise.physics.fixed_pattern import column_phase_depth_mm
-
         d_safe = d_safe + torch.from_numpy(column_phase_depth_mm(pattern, calib)).to(d_safe.device)
     r, _ = tap_responses(d_safe, calib)  # (..., N)
     mean_signal = (a_eff.unsqueeze(-1) * r).clamp_min(0.0).movedim(-1, 0).contiguous()  # (N, ...)

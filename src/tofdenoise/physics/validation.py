@@ -23,6 +23,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import tempfile
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -31,11 +32,11 @@ import numpy as np
 import torch
 
 from tofdenoise.atomic import atomic_write, atomic_write_text
-from tofdenoise.physics.calibrate import fit_range_sigma, temporal_std_roi_mm
+from tofdenoise.physics.calibrate import calibrate_from_folders, fit_range_sigma, temporal_std_roi_mm
 from tofdenoise.physics.calibration import SensorCalibration
-from tofdenoise.physics.capture_io import load_stack, read_index
+from tofdenoise.physics.capture_io import load_stack, read_index, write_capture_folder
 from tofdenoise.physics.simulator import demodulate, signal_from_taps_e, simulate_frames
-from tofdenoise.physics.synthetic_captures import planar_signal_e
+from tofdenoise.physics.synthetic_captures import planar_signal_e, write_calibration_captures
 from tofdenoise.physics.uncertainty import sigma_depth_mm
 
 RANGE_DISTANCES_MM: tuple[float, ...] = tuple(float(d) for d in range(500, 1501, 100))
@@ -217,8 +218,6 @@ def write_validation_captures(
     "validation", format ``capture_io``): what ``run_validation(captures_dir=...)`` reads. With a simulated camera
     unlike the calibration used for the prediction (e.g. one estimated by ``calibrate`` from that camera's own
     captures), the comparison tests the model and the calibration, not the simulator against itself."""
-    from tofdenoise.physics.capture_io import write_capture_folder
-
     settings = settings or ValidationSettings()
     streams = _streams(settings)
     stacks = []
@@ -466,10 +465,6 @@ def calibrate_simulated_camera(calib: SensorCalibration, seed: int = 0, shape: t
     simulated captures: the phase sweep, 100 dark frames and the distance sequence (``write_calibration_captures``:
     a grey chart across the working range for a camera with a photometric gain). Returns the ``CalibrationReport``;
     the presets' ``signal_min_e``/``signal_max_e`` and ``range_sigma_mm`` are measured with it (docs/physics.md)."""
-    import tempfile
-
-    from tofdenoise.physics.calibrate import calibrate_from_folders
-    from tofdenoise.physics.synthetic_captures import write_calibration_captures
 
     with tempfile.TemporaryDirectory(prefix="tofdenoise-calib-") as tmp:
         folders = write_calibration_captures(calib, tmp, shape=shape, seed=seed)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
@@ -70,8 +71,6 @@ def depth_validity(depth_mm: np.ndarray, min_depth_mm: float = 0.0, max_depth_mm
 
 def read_list_file(path, *, what: str = "list file") -> list[str]:
     """Non-empty, non-comment lines of a text list file (stripped)."""
-    from pathlib import Path
-
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{what} not found: {path}")

@@ -38,6 +38,8 @@ from pathlib import Path
 
 import torch
 
+from tofdenoise.atomic import atomic_write_bytes
+
 from .common import check_shapes
 from .reference import selective_scan_chunked
 
@@ -99,8 +101,6 @@ def stable_source(name: str) -> Path:
     changes, so building from each checkout's own file rebuilt the kernel (about a minute) whenever another
     clone or worktree had built it last; every checkout with the same source now shares one build."""
     from torch.utils.cpp_extension import get_default_build_root
-
-    from tofdenoise.atomic import atomic_write_bytes
 
     root = os.environ.get("TORCH_EXTENSIONS_DIR") or get_default_build_root()  # torch's own rule
     target = Path(root) / "tofdenoise_sources" / f"{name}.cpp"
