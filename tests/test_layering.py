@@ -172,3 +172,30 @@ def test_the_checks_see_imports_inside_functions(tmp_path):
     path = tmp_path / "mod.py"
     path.write_text("def f():\n    from .dispatch import selective_scan\n    from . import cpu\n")
     assert _imports(f"{SCAN}.reference", path) == {f"{SCAN}.dispatch", f"{SCAN}.cpu"}
+
+
+#: lower floors whose imports stay at the top of the file; inside a function only these (optional or heavy:
+#: kernels that need a GPU or a compiler, the package's lazy ``__getattr__``, OpenEXR)
+LAZY_ALLOWED = {
+    f"{PACKAGE}.models.scan.dispatch",
+    f"{PACKAGE}.models.ss2d",
+    f"{PACKAGE}.data_modules",
+}
+LAZY_ALLOWED_TARGETS = {f"{PACKAGE}.data_modules.exr", f"{PACKAGE}.atomic"}
+
+
+def test_lower_floors_import_the_package_at_the_top():
+    """physics .. callbacks: a ``tofdenoise`` import inside a function hides a dependency (issue 24, point 8)."""
+    bad = []
+    for module, path in MODULES.items():
+        floor = _floor(module)
+        if floor is None or floor < 0 or floor > FLOORS["callbacks"] or module in LAZY_ALLOWED:
+            continue
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"), str(path))):
+            if not isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                continue
+            for sub in ast.walk(node):
+                if isinstance(sub, ast.ImportFrom) and not sub.level and (sub.module or "").startswith(PACKAGE):
+                    if sub.module not in LAZY_ALLOWED_TARGETS:
+                        bad.append(f"{path.relative_to(SRC)}:{sub.lineno} imports {sub.module} inside {node.name}")
+    assert not bad, "\n".join(bad)
