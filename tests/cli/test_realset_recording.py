@@ -10,7 +10,7 @@ import pytest
 
 from tofdenoise.cli.sensor import main
 from tofdenoise.data_modules.io import read_png_uint16
-from tofdenoise.data_modules.real_captures import list_scenes, load_real_scene
+from tofdenoise.data_modules.real_captures import build_reference, list_scenes, load_real_scene
 from tofdenoise.physics.calibration import resolve_calibration
 
 H, W = 10, 14
@@ -36,9 +36,9 @@ def test_static_bag_becomes_a_scene_with_the_hand_computed_reference(tmp_path, r
     d, ir = static_frames()
     bag = recording_files.write_bag(tmp_path / "desk.bag", 1, d, amplitude=ir)
     out = tmp_path / "set"
-    assert run("--from-recording", str(bag), "--out", str(out), "--min-count", "3") == 0
+    assert run("--from-recording", str(bag), "--out", str(out), "--min-count", "4") == 0
     printed = capsys.readouterr().out
-    assert f"scene {out / 'desk'}" in printed and f"++data.real_dir={out}" in printed
+    assert f"scene {out / 'desk'}" in printed and f"++data.real_dir={out} ++data.real_min_count=4" in printed
     scene = out / "desk"
     assert np.array_equal(read_png_uint16(scene / "input_depth_mm.png"), d[0])
     assert np.array_equal(read_png_uint16(scene / "input_amplitude.png"), ir[0])
@@ -47,26 +47,27 @@ def test_static_bag_becomes_a_scene_with_the_hand_computed_reference(tmp_path, r
     )
     reference = np.load(scene / "reference_depth_mm.npy")
     assert reference[0, 0] == pytest.approx((1001 + 1003 + 1010 + 1006) / 4)  # frame 3 invalid there, input left out
-    # every pixel: the mean over the valid ones of frames 1..5, NaN with fewer than 3 valid
+    # every pixel: the mean over the valid ones of frames 1..5, NaN with fewer than 4 valid
     refs = d[1:].astype(np.float64)
     count = (refs > 0).sum(axis=0)
-    mean = np.where(count >= 3, refs.sum(axis=0) / np.maximum(count, 1), np.nan)
+    mean = np.where(count >= 4, refs.sum(axis=0) / np.maximum(count, 1), np.nan)
     np.testing.assert_allclose(reference, mean.astype(np.float32), rtol=0, atol=0, equal_nan=True)
     assert np.isnan(reference[7:9, 10:13]).all()
     assert np.array_equal(np.load(scene / "reference_count.npy"), count)
     meta = json.loads((scene / "recording.json").read_text())
-    assert meta["input_frame"] == 0 and meta["reference_frames"] == [1, 2, 3, 4, 5] and meta["min_count"] == 3
+    assert meta["input_frame"] == 0 and meta["reference_frames"] == [1, 2, 3, 4, 5] and meta["min_count"] == 4
     assert meta["recording"] == str(bag) and meta["depth_stream"] == "/camera/depth/image_raw"
     # the existing real-capture reader loads it: the scoring mask is input valid and reference valid
     assert list_scenes(out) == [scene]
-    sample = load_real_scene(scene, resolve_calibration(None), min_count=3)
+    assert build_reference(scene, min_count=4).rebuilt is False  # read as written, not rebuilt
+    sample = load_real_scene(scene, resolve_calibration(None), min_count=4)
     expected_mask = (d[0] > 0) & np.isfinite(mean)
     assert np.array_equal(sample["mask"] > 0, expected_mask)
     assert np.array_equal(sample["noisy"], d[0].astype(np.float32))
     np.testing.assert_array_equal(sample["clean"][expected_mask], mean[expected_mask].astype(np.float32))
 
 
-def test_default_reference_is_the_common_valid_region(tmp_path, recording_files, capsys):
+def test_default_reference_is_what_data_real_dir_loads(tmp_path, recording_files, capsys):
     d, ir = static_frames()
     mkv = recording_files.write_kinect_mkv(tmp_path / "wall.mkv", d, ir)
     out = tmp_path / "set"
@@ -75,10 +76,11 @@ def test_default_reference_is_the_common_valid_region(tmp_path, recording_files,
     assert np.array_equal(read_png_uint16(scene / "input_depth_mm.png"), d[1])
     reference = np.load(scene / "reference_depth_mm.npy")
     others = d[[0, 2, 3, 4, 5]].astype(np.float64)
-    common = (others > 0).all(axis=0)
-    assert np.array_equal(np.isfinite(reference), common)  # (0, 0) and (5, 5) each miss one frame: left out
-    assert not common[0, 0] and not common[5, 5]
-    np.testing.assert_array_equal(reference[common], others.mean(axis=0)[common].astype(np.float32))
+    count = (others > 0).sum(axis=0)
+    assert np.array_equal(np.isfinite(reference), count >= 3)  # half of the 5 reference frames, rounded up
+    assert reference[0, 0] == pytest.approx((1000 + 1003 + 1010 + 1006) / 4)  # frame 3 invalid there
+    np.testing.assert_array_equal(reference[count == 5], others.mean(axis=0)[count == 5].astype(np.float32))
+    assert build_reference(scene).rebuilt is False  # the datamodule's default (data.real_min_count: null)
     capsys.readouterr()
     # an existing scene is not replaced without --force; with it, it is
     assert run("--from-recording", str(mkv), "--out", str(out)) == 2

@@ -192,6 +192,7 @@ def _realset_from_recording(args: argparse.Namespace) -> int:
         f"{summary.reference_valid_fraction:.3f}; frames agree (at most {100 * summary.disagreeing_fraction_max:.1f} "
         f"% of a frame's pixels off the median)\n"
         f"test on it: tofdenoise-train ++data.sensor=YOUR_CALIBRATION.yaml ++data.real_dir={out}"
+        + (f" ++data.real_min_count={args.min_count}" if args.min_count is not None else "")
     )
     return 0
 
@@ -389,7 +390,8 @@ def add_commands(subparsers) -> None:
         "--min-count",
         type=int,
         default=None,
-        help="valid frames a reference pixel needs (default: all reference frames, the common valid region)",
+        help="valid frames a reference pixel needs (default: half of the reference frames, as data.real_min_count; "
+        "train with ++data.real_min_count=N when you change it)",
     )
     rec.add_argument(
         "--motion-tolerance-mm",

@@ -9,9 +9,10 @@ one scene of the capture-set format of ``data_modules.real_captures`` (docs/data
   independent of the input's), with an all-zero ``hiexp/saturated_NNN.png`` each (a depth camera's recording marks
   saturated pixels invalid, 0, itself);
 - ``reference_depth_mm.npy`` / ``reference_count.npy`` / ``reference.json``: ``real_captures.build_reference``,
-  the per-pixel mean over the frames where the pixel is valid; a pixel needs ``min_count`` valid frames, by
-  default all of them: the common valid region of the frames (flickering pixels at edges and on dark surfaces are
-  left out of the scores);
+  the per-pixel mean over the frames where the pixel is valid; a pixel needs ``min_count`` valid frames (default:
+  half of them, the capture-set default, so that ``data.real_dir`` loads the reference as written; a stricter
+  ``min_count`` needs the same ``data.real_min_count``, or the datamodule rebuilds the reference with its own).
+  The scores are computed over the common valid region of input and reference (``load_real_scene``'s mask);
 - ``recording.json``: where the scene came from (recording, streams, frames, the motion check).
 
 The frames are same-exposure frames, not the paper's high-exposure ones: the reference averages N frames of the
@@ -41,7 +42,13 @@ import numpy as np
 
 from tofdenoise.atomic import atomic_write_text
 from tofdenoise.data_modules.io import depth_mm_to_png16, write_png_uint8, write_png_uint16
-from tofdenoise.data_modules.real_captures import HIEXP_DIR, INPUT_AMPLITUDE, INPUT_DEPTH, build_reference
+from tofdenoise.data_modules.real_captures import (
+    HIEXP_DIR,
+    INPUT_AMPLITUDE,
+    INPUT_DEPTH,
+    build_reference,
+    default_min_count,
+)
 from tofdenoise.inference.recordings import RecordingError, RecordingFrame, open_recording
 
 __all__ = ["SceneMotionError", "SceneSummary", "moving_frames", "scene_from_frames", "scene_from_recording"]
@@ -123,7 +130,7 @@ def scene_from_frames(
             "(name the IR / amplitude stream with --amplitude-stream)"
         )
     others = [f for i, f in enumerate(frames) if i != input_frame]
-    needed = len(others) if min_count is None else int(min_count)
+    needed = default_min_count(len(others)) if min_count is None else int(min_count)
     if not 1 <= needed <= len(others):
         raise RecordingError(f"{where}: --min-count {needed} must lie in 1 .. {len(others)} (the reference frames)")
     moving, fractions = moving_frames(
