@@ -181,5 +181,5 @@ def test_frames_datamodule_refuses_a_damaged_recording_before_predicting(tmp_pat
     full = recording_files.write_kinect_mkv(tmp_path / "full.mkv", depth_stack(8))
     cut = tmp_path / "cut.mkv"
     cut.write_bytes(full.read_bytes()[: int(full.stat().st_size * 0.6)])
-    with pytest.raises(RecordingError, match="cut.mkv is truncated"):
+    with pytest.raises(RecordingError, match="cut.mkv is truncated: its Matroska segment declares"):
         FramesDataModule(inputs=[str(cut)])

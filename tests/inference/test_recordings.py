@@ -11,7 +11,7 @@ import pytest
 
 from tofdenoise.inference.camera import kinect_depth_intrinsics
 from tofdenoise.inference.frames import find_frames
-from tofdenoise.inference.recordings import RecordingError, find_recordings, open_recording
+from tofdenoise.inference.recordings import RecordingError, find_recordings, matroska_missing_bytes, open_recording
 
 H, W = 12, 16
 K = [500.0, 0.0, 7.5, 0.0, 502.0, 5.5, 0.0, 0.0, 1.0]
@@ -172,11 +172,23 @@ def test_a_truncated_mkv_is_an_error_not_a_shorter_recording(tmp_path, recording
     d = depth_stack_mm(10)
     path = recording_files.write_kinect_mkv(tmp_path / "full.mkv", d, ir_stack(10))
     data = path.read_bytes()
+    assert matroska_missing_bytes(path) == 0 and open_recording(path).scan() == 10
     cut = tmp_path / "cut.mkv"
     cut.write_bytes(data[: int(len(data) * 0.6)])
-    rec = open_recording(cut)
+    assert matroska_missing_bytes(cut) == len(data) - cut.stat().st_size
+    with pytest.raises(
+        RecordingError,
+        match=rf"cut\.mkv is truncated: its Matroska segment declares {len(data) - cut.stat().st_size} more bytes",
+    ):
+        open_recording(cut).scan()
+    # a segment of unknown size (a recorder that never closed the file): the depth track ends before the duration
+    segment = data.index(bytes([0x18, 0x53, 0x80, 0x67]))
+    assert data[segment + 4] == 0x01  # an 8-byte size
+    unknown = data[: segment + 4] + bytes([0x01] + [0xFF] * 7) + data[segment + 12 :]
+    cut.write_bytes(unknown[: int(len(unknown) * 0.6)])
+    assert matroska_missing_bytes(cut) == 0
     with pytest.raises(RecordingError, match=r"cut\.mkv is truncated: track DEPTH ends at .* of its recorded"):
-        rec.scan()
+        open_recording(cut).scan()
     header_only = tmp_path / "head.mkv"
     header_only.write_bytes(data[:600])
     with pytest.raises(RecordingError, match=r"head\.mkv"):

@@ -371,7 +371,7 @@ def _denoise_recording(recording: Any, job: _Job, tally: _Tally) -> None:
             started = time.perf_counter()
             try:
                 item = next(frames, None)
-            except RecordingError as exc:
+            except (ValueError, OSError) as exc:  # RecordingError, or a read error past the scan
                 tally.failed.append((str(recording.path), str(exc)))
                 return
             if item is None:

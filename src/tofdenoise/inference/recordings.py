@@ -16,8 +16,9 @@ depth stream is the Kinect's ``DEPTH`` track or the first image topic (sorted by
 and the amplitude the ``IR`` track or the first image topic named like ``ir`` / ``amplitude`` / ``intensity``.
 A stream asked for (or expected) and absent is a ``RecordingError`` listing the streams the recording has.
 
-``Recording.scan()`` reads the whole recording once without keeping frames and checks it (every packet complete,
-the last frame at the recorded duration: a truncated ``.mkv`` otherwise just ends early; a damaged bag index):
+``Recording.scan()`` reads the whole recording once without keeping frames and checks it (the Matroska segment
+as long as its declared size and the last frame at the recorded duration: FFmpeg reads a truncated ``.mkv`` to its
+end without an error; every packet complete; a damaged bag index or database; every message decodable):
 the commands call it before they write anything for a recording, so a bad recording writes nothing.
 
 PyAV and rosbags are the optional extra ``recordings`` (``pip install 'tofdenoise[recordings]'``); without them a
@@ -187,6 +188,39 @@ def _choose(names: Sequence[str], asked: str | None, default: str | None, what: 
 
 
 # ----------------------------------------------------------------------------------------------- Azure Kinect .mkv
+def _ebml_vint(data: bytes, pos: int, keep_marker: bool) -> tuple[int | None, int]:
+    """(value, next position) of the EBML variable-length integer at ``pos``; value None for an unknown size
+    (all value bits set) or when ``data`` ends inside it."""
+    if pos >= len(data) or data[pos] == 0:
+        return None, len(data)
+    length = 8 - data[pos].bit_length() + 1
+    if pos + length > len(data):
+        return None, len(data)
+    value = int.from_bytes(data[pos : pos + length], "big")
+    if keep_marker:
+        return value, pos + length
+    value &= (1 << (7 * length)) - 1
+    return (None if value == (1 << (7 * length)) - 1 else value), pos + length
+
+
+def matroska_missing_bytes(path: str | Path) -> int:
+    """How many bytes the Matroska Segment of ``path`` declares beyond the end of the file (0 when complete, or
+    when the size is unknown, as a live recording leaves it): a recorder writes the size when it closes the file,
+    so a copy cut short misses them. FFmpeg's demuxer reads such a file to its end without an error."""
+    path = Path(path)
+    with open(path, "rb") as fh:
+        head = fh.read(4096)
+    pos = 0
+    for expected in (0x1A45DFA3, 0x18538067):  # EBML header, then Segment
+        element, pos = _ebml_vint(head, pos, keep_marker=True)
+        size, pos = _ebml_vint(head, pos, keep_marker=False)
+        if element != expected or size is None:
+            return 0
+        if expected == 0x1A45DFA3:
+            pos += size
+    return max(0, pos + size - path.stat().st_size)
+
+
 def _track_name(stream: Any) -> str:
     meta = {k.upper(): v for k, v in dict(stream.metadata).items()}
     if "K4A_DEPTH_TRACK" in meta:
@@ -279,7 +313,13 @@ class KinectRecording(Recording):
         return np.frombuffer(payload, dtype=dtype).reshape(height, width).astype(np.uint16)
 
     def scan(self) -> int:
-        count, last_end = 0, 0
+        missing = matroska_missing_bytes(self.path)
+        if missing:
+            raise RecordingError(
+                f"recording {self.path} is truncated: its Matroska segment declares {missing} more bytes than the "
+                "file holds"
+            )
+        count, last_end, duration = 0, 0, 0
         with self._open() as container:
             for stamp, payload, duration in self._packets(container, self.depth_name):
                 self._array(self.depth_name, payload, count)
@@ -287,9 +327,9 @@ class KinectRecording(Recording):
                 last_end = stamp + duration
         if count == 0:
             raise RecordingError(f"recording {self.path}: track {self.depth_name} holds no frame (empty or truncated)")
-        if self._duration:  # container duration [us], written when the recorder closed the file
+        if self._duration:  # container duration [us], written when the recorder closed the file (all tracks)
             total_ns = int(self._duration) * 1000
-            if last_end < total_ns - max(duration, 1_000_000):
+            if last_end < total_ns - 2 * max(duration, 1_000_000) - 10_000_000:
                 raise RecordingError(
                     f"recording {self.path} is truncated: track {self.depth_name} ends at {last_end / 1e9:.3f} s of "
                     f"its recorded {total_ns / 1e9:.3f} s ({count} complete frames)"
