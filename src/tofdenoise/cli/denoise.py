@@ -36,10 +36,17 @@ __all__ = ["build_parser", "main", "run", "timing_text"]
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="tofdenoise-denoise",
-        description="Denoise iToF depth frames (16-bit PNG mm, .npy, .exr) with a trained tofdenoise checkpoint; "
-        "invalid pixels stay invalid unless --fill-holes.",
+        description="Denoise iToF depth frames (16-bit PNG mm, .npy, .exr) or recordings (Azure Kinect .mkv, ROS 1 "
+        ".bag, ROS 2 bag folders) with a trained tofdenoise checkpoint; invalid pixels stay invalid unless "
+        "--fill-holes.",
     )
-    p.add_argument("inputs", nargs="+", metavar="INPUT", help="depth frames or folders of them (recursive)")
+    p.add_argument(
+        "inputs",
+        nargs="+",
+        metavar="INPUT",
+        help="depth frames, recordings, or folders of them (recursive); a recording's frames go to "
+        "OUT/<recording>/frame_NNNNNN.*",
+    )
     model = p.add_mutually_exclusive_group(required=True)
     model.add_argument("--ckpt", type=Path, help="DepthRestorer checkpoint (.ckpt)")
     model.add_argument(

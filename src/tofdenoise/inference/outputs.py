@@ -81,7 +81,7 @@ def write_ply_points(path: str | Path, points: np.ndarray, comment: str = "") ->
     lines = ["ply", "format binary_little_endian 1.0"]
     lines += [f"comment {line}" for line in comment.splitlines() if line]
     lines += [f"element vertex {len(pts)}", "property float x", "property float y", "property float z", "end_header"]
-    header = ("\n".join(lines) + "\n").encode("ascii")
+    header = ("\n".join(lines) + "\n").encode("ascii", errors="replace")
 
     def write(tmp: Path) -> None:
         with open(tmp, "wb") as fh:

@@ -28,6 +28,7 @@ recording is refused with an error naming the extra.
 from __future__ import annotations
 
 import re
+from abc import ABC, abstractmethod
 from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -144,7 +145,7 @@ def _import(module: str, path: Path) -> Any:
         ) from exc
 
 
-class Recording:
+class Recording(ABC):
     """A recording opened for reading (``open_recording``): ``depth_name``, ``amplitude_name`` (or None),
     ``intrinsics`` (or None), ``scan()`` -> frame count, ``frames()`` -> ``RecordingFrame`` in order."""
 
@@ -153,11 +154,13 @@ class Recording:
     amplitude_name: str | None
     intrinsics: Intrinsics | None
 
+    @abstractmethod
     def scan(self) -> int:
-        raise NotImplementedError
+        """Read the whole recording once without keeping frames; the depth frame count, or ``RecordingError``."""
 
+    @abstractmethod
     def frames(self) -> Iterator[RecordingFrame]:
-        raise NotImplementedError
+        """The depth frames (with their amplitude when there is one of the same timestamp)."""
 
     def describe(self) -> str:
         amp = self.amplitude_name or "none"
