@@ -178,3 +178,18 @@ def lock_holder():
             holder.wait(timeout=30)
 
     return hold
+
+
+@pytest.fixture(scope="session")
+def recording_files():
+    """The recording writers of tests/inference/recording_files.py (``write_kinect_mkv``, ``write_bag``,
+    ``kinect_calibration_json``); skips when the ``recordings`` extra (PyAV, rosbags) is not installed."""
+    import importlib.util
+
+    pytest.importorskip("av")
+    pytest.importorskip("rosbags")
+    path = Path(__file__).parent / "inference" / "recording_files.py"
+    spec = importlib.util.spec_from_file_location("_recording_files", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module

@@ -3,9 +3,12 @@
     tofdenoise-denoise (--ckpt best.ckpt | --onnx model.onnx) INPUT [INPUT ...] --out DIR
                        [--amplitude DIR_OR_PATTERN] [--calib FILE]
                        [--depth-scale-mm S] [--fill-holes] [--npy] [--previews] [--device auto|cpu|cuda]
+                       [--depth-m] [--ply --intrinsics FILE] [--depth-stream NAME] [--amplitude-stream NAME]
 
 INPUT: depth frames or folders of them (searched recursively): 16-bit PNG/TIFF in mm (0 = invalid), ``.npy``
-float mm (NaN/0/negative = invalid) or ``.exr``. Outputs mirror the input sub-folders under ``--out``
+float mm (NaN/0/negative = invalid) or ``.exr``; or recordings (``tofdenoise.inference.recordings``): Azure Kinect
+``.mkv``, ROS 1 ``.bag``, ROS 2 bag folders, whose frames go to ``OUT/<recording>/frame_NNNNNN.*`` (a recording is
+checked whole before its first frame is written). Outputs mirror the input sub-folders under ``--out``
 (``tofdenoise.inference.outputs``). Frames are processed one at a time (memory bounded by one frame; large frames
 run tile by tile). A frame that fails (unreadable, 8-bit/colour, amplitude missing or of another shape, depths
 implausible in millimetres without ``--depth-scale-mm`` ...) is reported and the others go on; the exit status is
@@ -33,10 +36,17 @@ __all__ = ["build_parser", "main", "run", "timing_text"]
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="tofdenoise-denoise",
-        description="Denoise iToF depth frames (16-bit PNG mm, .npy, .exr) with a trained tofdenoise checkpoint; "
-        "invalid pixels stay invalid unless --fill-holes.",
+        description="Denoise iToF depth frames (16-bit PNG mm, .npy, .exr) or recordings (Azure Kinect .mkv, ROS 1 "
+        ".bag, ROS 2 bag folders) with a trained tofdenoise checkpoint; invalid pixels stay invalid unless "
+        "--fill-holes.",
     )
-    p.add_argument("inputs", nargs="+", metavar="INPUT", help="depth frames or folders of them (recursive)")
+    p.add_argument(
+        "inputs",
+        nargs="+",
+        metavar="INPUT",
+        help="depth frames, recordings, or folders of them (recursive); a recording's frames go to "
+        "OUT/<recording>/frame_NNNNNN.*",
+    )
     model = p.add_mutually_exclusive_group(required=True)
     model.add_argument("--ckpt", type=Path, help="DepthRestorer checkpoint (.ckpt)")
     model.add_argument(
@@ -74,6 +84,39 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="write <stem>_preview.png: input | restored | |difference| (| sigma_D) with colour bars",
     )
+    p.add_argument(
+        "--depth-m",
+        action="store_true",
+        help="also write <stem>_depth_m.tiff: restored depth as 32-bit float metres, NaN = invalid (ROS REP 118)",
+    )
+    p.add_argument(
+        "--ply",
+        action="store_true",
+        help="also write <stem>.ply: the restored valid pixels as a point cloud [m] (needs the intrinsics: "
+        "--intrinsics, a Kinect recording's calibration or a bag's CameraInfo)",
+    )
+    p.add_argument(
+        "--intrinsics",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="camera intrinsics YAML/JSON (fx, fy, cx, cy, width, height, or a ROS camera_info YAML); overrides "
+        "those of a recording",
+    )
+    p.add_argument(
+        "--depth-stream",
+        default=None,
+        metavar="NAME",
+        help="recordings: the depth topic of a bag or track of a .mkv (default: the Kinect's DEPTH track, or "
+        "the first image topic named like depth)",
+    )
+    p.add_argument(
+        "--amplitude-stream",
+        default=None,
+        metavar="NAME",
+        help="recordings: the amplitude / IR topic or track (default: the Kinect's IR track, or the first image "
+        "topic named like ir / amplitude / intensity)",
+    )
     p.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"), help="default: CUDA when available")
     p.add_argument("--fp32", action="store_true", help="no bf16 autocast on CUDA")
     p.add_argument(
@@ -102,23 +145,24 @@ def run(args: argparse.Namespace) -> int:
     """Run the command on parsed arguments; returns the exit status."""
     from tqdm.auto import tqdm
 
+    from tofdenoise.inference.camera import IntrinsicsError, load_intrinsics
     from tofdenoise.inference.denoise import CheckpointError, load_restorer, resolve_device
     from tofdenoise.inference.frames import AmplitudeSource, FrameError, find_frames
     from tofdenoise.inference.outputs import OutputOptions
+    from tofdenoise.inference.recordings import find_recordings
 
     if args.depth_scale_mm is not None and not args.depth_scale_mm > 0:
         return _fail(f"--depth-scale-mm must be > 0, got {args.depth_scale_mm}")
     if args.tile is not None and args.tile < 32:
         return _fail(f"--tile must be >= 32 pixels, got {args.tile}")
-    if args.calib is not None and args.amplitude is None:
-        return _fail("--calib needs --amplitude: the sigma_D map is computed from the input's amplitude")
     try:
         device = resolve_device(args.device)
         amplitude = AmplitudeSource(args.amplitude) if args.amplitude is not None else None
         # an amplitude folder inside an input folder holds no depth frames
-        frames = find_frames(
-            args.inputs, exclude=[args.out] + ([amplitude.folder] if amplitude and amplitude.folder else [])
-        )
+        skip = [args.out] + ([amplitude.folder] if amplitude and amplitude.folder else [])
+        frames = find_frames(args.inputs, exclude=skip)
+        recordings = find_recordings(args.inputs, exclude=skip)
+        intrinsics = load_intrinsics(args.intrinsics) if args.intrinsics is not None else None
         calib = None
         if args.calib is not None:
             from tofdenoise.physics.calibration import resolve_calibration
@@ -132,20 +176,27 @@ def run(args: argparse.Namespace) -> int:
         else:
             model = load_restorer(args.ckpt, device)
             signal = bool(model.hparams.use_signal_channel)
-    except (FrameError, CheckpointError, ValueError, OSError) as exc:
+    except (FrameError, CheckpointError, IntrinsicsError, ValueError, OSError) as exc:
         return _fail(str(exc))
-    if signal and amplitude is None:
+    if args.calib is not None and args.amplitude is None and frames:
+        return _fail("--calib needs --amplitude: the sigma_D map is computed from the input's amplitude")
+    if args.ply and intrinsics is None and frames:
+        return _fail(
+            "--ply needs the camera intrinsics of the depth frames: give --intrinsics FILE (fx, fy, cx, cy, "
+            "width, height)"
+        )
+    if signal and amplitude is None and frames:
         return _fail(
             f"{'ONNX model' if args.onnx is not None else 'checkpoint'} {args.onnx or args.ckpt} uses the "
             "amplitude (signal) channel (use_signal_channel=true): give the frames' amplitude with "
             "--amplitude DIR_OR_PATTERN"
         )
-    if not frames:
-        return _fail(f"no depth frame found in {', '.join(map(str, args.inputs))}")
+    if not frames and not recordings:
+        return _fail(f"no depth frame or recording found in {', '.join(map(str, args.inputs))}")
 
-    options = OutputOptions(npy=args.npy, previews=args.previews)
+    options = OutputOptions(npy=args.npy, previews=args.previews, depth_m=args.depth_m, ply=args.ply)
     try:
-        _refuse_replacing_inputs(args, frames, amplitude, options, calib is not None)
+        _refuse_replacing_inputs(args, frames, recordings, amplitude, options, calib is not None)
     except OutputPathError as exc:
         return _fail(str(exc))
     job = _Job(
@@ -156,16 +207,21 @@ def run(args: argparse.Namespace) -> int:
         options=options,
         depth_scale_mm=1.0 if args.depth_scale_mm is None else args.depth_scale_mm,
         precision="fp32" if args.fp32 else "bf16",
+        intrinsics=intrinsics,
+        signal=signal,
     )
     tally = _Tally()
     interrupted = False
     try:
         for frame in tqdm(frames, desc="denoise", unit="frame", disable=args.quiet or None, file=sys.stderr):
             _denoise_one(frame, job, tally)
+        for recording in recordings:
+            _denoise_recording(recording, job, tally)
     except KeyboardInterrupt:  # Ctrl-C: every frame written so far is complete (atomic writes); say what was done
         interrupted = True
     seen = tally.done + len(tally.skipped) + len(tally.failed)
-    ended = f"interrupted (Ctrl-C) after {seen} of {len(frames)} frame(s): " if interrupted else ""
+    total = f"{len(frames)} frame(s)" + (f" and {len(recordings)} recording(s)" if recordings else "")
+    ended = f"interrupted (Ctrl-C) after {seen} of {total}: " if interrupted else ""
     print(
         f"tofdenoise-denoise: {ended}{tally.done} frame(s) done, {len(tally.skipped)} skipped, "
         f"{len(tally.failed)} failed; {timing_text(tally.seconds)} on {device.type} -> {args.out}",
@@ -192,6 +248,8 @@ class _Job:
     options: Any
     depth_scale_mm: float
     precision: str
+    intrinsics: Any = None
+    signal: bool = False
 
 
 @dataclass
@@ -212,25 +270,48 @@ def _write_failure(exc: OSError, out: Path) -> str:
 
 
 def _denoise_one(frame: Any, job: _Job, tally: _Tally) -> None:
-    """Restore one frame and write its outputs, or record why it was skipped or failed."""
-    from tofdenoise.inference.denoise import restore_frame
+    """Restore one frame file and write its outputs, or record why it was skipped or failed."""
     from tofdenoise.inference.frames import FrameError, check_depth_units_mm, load_frame
-    from tofdenoise.inference.outputs import frame_sigma, output_paths, write_frame_outputs
 
-    args = job.args
-    target = output_paths(args.out, frame.rel_stem.as_posix())["png"].resolve()
-    if target in tally.claimed:
-        tally.skipped.append((str(frame.path), f"same output name as {tally.claimed[target]}"))
+    if not _claim(frame.rel_stem.as_posix(), frame.path, job, tally):
         return
-    tally.claimed[target] = frame.path
     started = time.perf_counter()
     try:
         data = load_frame(frame, job.depth_scale_mm, job.amplitude)
-        if not data.valid.any():
-            tally.skipped.append((str(frame.path), "no valid pixel"))
-            return
-        if args.depth_scale_mm is None:
+        if data.valid.any() and job.args.depth_scale_mm is None:
             check_depth_units_mm(data, frame.path)
+    except (FrameError, ValueError, OSError) as exc:
+        tally.failed.append((str(frame.path), str(exc)))
+        return
+    _restore_and_write(data, str(frame.path), job.intrinsics, job, tally, started)
+
+
+def _claim(name: str, source: Any, job: _Job, tally: _Tally) -> bool:
+    """False (and the frame skipped) when an earlier input already maps to the same output name."""
+    from tofdenoise.inference.outputs import output_paths
+
+    target = output_paths(job.args.out, name)["png"].resolve()
+    if target in tally.claimed:
+        tally.skipped.append((str(source), f"same output name as {tally.claimed[target]}"))
+        return False
+    tally.claimed[target] = source
+    return True
+
+
+def _restore_and_write(data: Any, label: str, intrinsics: Any, job: _Job, tally: _Tally, started: float) -> None:
+    """Restore a frame read into memory (``frames.Frame``) and write its outputs, or record why not."""
+    from tofdenoise.inference.camera import IntrinsicsError
+    from tofdenoise.inference.denoise import restore_frame
+    from tofdenoise.inference.frames import FrameError
+    from tofdenoise.inference.outputs import frame_sigma, write_frame_outputs
+
+    args = job.args
+    if not data.valid.any():
+        tally.skipped.append((label, "no valid pixel"))
+        return
+    try:
+        if job.options.ply:
+            intrinsics.check_shape(data.depth_mm.shape, label)
         if args.onnx is not None:  # onnxruntime: whole frame, the graph's own precision
             restored = job.model.restore_frame(data.depth_mm, data.valid, data.amplitude, fill_holes=args.fill_holes)
         else:
@@ -243,44 +324,108 @@ def _denoise_one(frame: Any, job: _Job, tally: _Tally) -> None:
                 tile=args.tile,
                 precision=job.precision,
             )
-    except (FrameError, ValueError, OSError, RuntimeError) as exc:
-        tally.failed.append((str(frame.path), str(exc)))
+    except (FrameError, IntrinsicsError, ValueError, OSError, RuntimeError) as exc:
+        tally.failed.append((label, str(exc)))
         return
     try:
         write_frame_outputs(
-            args.out, data.name, data.depth_mm, data.valid, restored, job.options, sigma_mm=frame_sigma(data, job.calib)
+            args.out,
+            data.name,
+            data.depth_mm,
+            data.valid,
+            restored,
+            job.options,
+            sigma_mm=frame_sigma(data, job.calib),
+            intrinsics=intrinsics,
         )
     except OSError as exc:
-        tally.failed.append((str(frame.path), _write_failure(exc, Path(args.out))))
+        tally.failed.append((label, _write_failure(exc, Path(args.out))))
         return
     tally.seconds.append(time.perf_counter() - started)
     tally.done += 1
 
 
-def _refuse_replacing_inputs(args: argparse.Namespace, frames, amplitude, options, with_sigma: bool) -> None:
-    """Every output of every frame against every file the command reads (frames, their amplitude, checkpoint,
-    calibration), before the first write: ``OutputPathError`` names the output and the input."""
-    from tofdenoise.inference.frames import FrameError
-    from tofdenoise.inference.outputs import output_paths
+def _denoise_recording(recording: Any, job: _Job, tally: _Tally) -> None:
+    """Check a whole recording (``Recording.scan``), then restore and write its frames one by one; a recording that
+    cannot be read is one failure and writes nothing."""
+    from tqdm.auto import tqdm
 
-    inputs: list[Path] = [frame.path for frame in frames] + [Path(args.onnx or args.ckpt)]
+    from tofdenoise.inference.frames import Frame
+    from tofdenoise.inference.recordings import RecordingError, open_recording
+
+    args = job.args
+    try:
+        rec = open_recording(recording.path, args.depth_stream, args.amplitude_stream)
+        count = rec.scan()
+        intrinsics = job.intrinsics or rec.intrinsics
+        if job.options.ply and intrinsics is None:
+            raise RecordingError(
+                f"recording {recording.path} has no camera intrinsics (no Kinect calibration.json, no CameraInfo "
+                "topic): --ply needs --intrinsics FILE"
+            )
+        if job.signal and rec.amplitude_name is None:
+            raise RecordingError(
+                f"recording {recording.path}: the model uses the amplitude (signal) channel and the recording has no "
+                "amplitude / IR stream; name it with --amplitude-stream"
+            )
+    except RecordingError as exc:
+        tally.failed.append((str(recording.path), str(exc)))
+        return
+    frames = rec.frames()
+    bar = tqdm(total=count, desc=recording.rel.as_posix(), unit="frame", disable=args.quiet or None, file=sys.stderr)
+    with bar:
+        while True:
+            started = time.perf_counter()
+            try:
+                item = next(frames, None)
+            except (ValueError, OSError) as exc:  # RecordingError, or a read error past the scan
+                tally.failed.append((str(recording.path), str(exc)))
+                return
+            if item is None:
+                return
+            bar.update(1)
+            name = f"{recording.rel_stem.as_posix()}/frame_{item.index:06d}"
+            label = f"{recording.path} frame {item.index}"
+            if not _claim(name, label, job, tally):
+                continue
+            if (job.signal or job.calib is not None) and item.amplitude is None:
+                tally.failed.append((label, f"no amplitude frame of the same timestamp in {rec.amplitude_name}"))
+                continue
+            data = Frame(depth_mm=item.depth_mm, valid=item.valid, amplitude=item.amplitude, name=name)
+            _restore_and_write(data, label, intrinsics, job, tally, started)
+
+
+def _refuse_replacing_inputs(
+    args: argparse.Namespace, frames, recordings, amplitude, options, with_sigma: bool
+) -> None:
+    """Every output of every frame against every file the command reads (frames, their amplitude, recordings,
+    checkpoint, calibration, intrinsics), before the first write: ``OutputPathError`` names the output and the
+    input. A recording's frames go to a folder of their own, which must hold no input."""
+    from tofdenoise.inference.frames import FrameError
+    from tofdenoise.inference.outputs import output_paths, wanted_outputs
+
+    inputs: list[Path] = (
+        [frame.path for frame in frames] + [r.path for r in recordings] + [Path(args.onnx or args.ckpt)]
+    )
     if args.calib is not None and Path(args.calib).exists():
         inputs.append(Path(args.calib))
+    if args.intrinsics is not None:
+        inputs.append(Path(args.intrinsics))
     if amplitude is not None:
         for frame in frames:
             try:
                 inputs.append(amplitude.find(frame))
             except FrameError:  # reported for that frame when it is processed
                 pass
-    wanted = {"png"} | ({"npy"} if options.npy else set()) | ({"sigma"} if with_sigma else set())
-    wanted |= {"preview"} if options.previews else set()
+    wanted = wanted_outputs(options, with_sigma)
     outputs = [
         path
         for frame in frames
         for key, path in output_paths(args.out, frame.rel_stem.as_posix()).items()
         if key in wanted
     ]
-    refuse_overwrite(outputs, inputs, "--out")
+    folders = [Path(args.out) / r.rel_stem for r in recordings]
+    refuse_overwrite(outputs, inputs, "--out", output_folders=folders)
 
 
 def timing_text(seconds: Sequence[float]) -> str:

@@ -167,9 +167,42 @@ def realset_commands(
     ]
 
 
+def _realset_from_recording(args: argparse.Namespace) -> int:
+    """``realset --from-recording REC``: a static recording -> one capture-set scene in ``--out``."""
+    from tofdenoise.inference.recording_realset import scene_from_recording
+
+    rec = Path(args.from_recording).expanduser()
+    out = Path(args.out).expanduser()
+    name = args.scene or (rec.stem if rec.is_file() else rec.name)
+    refuse_overwrite([], [rec], output_folders=[out / name])
+    summary = scene_from_recording(
+        rec,
+        out,
+        scene=name,
+        depth_stream=args.depth_stream,
+        amplitude_stream=args.amplitude_stream,
+        input_frame=args.input_frame,
+        min_count=args.min_count,
+        motion_tolerance_mm=args.motion_tolerance_mm,
+        force=args.force,
+    )
+    print(
+        f"scene {summary.scene_dir}: input frame {summary.input_frame}, reference = mean of "
+        f"{summary.reference_frames} frames (a pixel needs {summary.min_count} valid), valid reference pixels "
+        f"{summary.reference_valid_fraction:.3f}; frames agree (at most {100 * summary.disagreeing_fraction_max:.1f} "
+        f"% of a frame's pixels off the median)\n"
+        f"test on it: tofdenoise-train ++data.sensor=YOUR_CALIBRATION.yaml ++data.real_dir={out}"
+        + (f" ++data.real_min_count={args.min_count}" if args.min_count is not None else "")
+    )
+    return 0
+
+
 def _realset(args: argparse.Namespace) -> int:
     import json
     import shlex
+
+    if args.from_recording is not None:
+        return _realset_from_recording(args)
 
     from tofdenoise.atomic import atomic_write_text
     from tofdenoise.cli.sensor import main
@@ -335,7 +368,42 @@ def add_commands(subparsers) -> None:
         metavar="S",
         help="samples per pixel side (default 3: mixed pixels at depth edges)",
     )
-    real.add_argument("--force", action="store_true", help="redo the calibration captures and the calibration")
+    real.add_argument(
+        "--force",
+        action="store_true",
+        help="redo the calibration captures and the calibration (--from-recording: replace the scene)",
+    )
+    rec = real.add_argument_group(
+        "your own scene from a static recording (docs/camera-tutorial.md, step 6; the simulation options above do "
+        "not apply)"
+    )
+    rec.add_argument(
+        "--from-recording",
+        default=None,
+        metavar="REC",
+        help="an Azure Kinect .mkv, ROS 1 .bag or ROS 2 bag folder of a static scene: writes the capture-set scene "
+        "OUT/<scene> (input = one frame, reference = mean of the other frames' valid depths)",
+    )
+    rec.add_argument("--scene", default=None, help="scene folder name (default: the recording's name)")
+    rec.add_argument("--input-frame", type=int, default=0, help="the frame used as the noisy input (default 0)")
+    rec.add_argument(
+        "--min-count",
+        type=int,
+        default=None,
+        help="valid frames a reference pixel needs (default: half of the reference frames, as data.real_min_count; "
+        "train with ++data.real_min_count=N when you change it)",
+    )
+    rec.add_argument(
+        "--motion-tolerance-mm",
+        type=float,
+        default=20.0,
+        help="a pixel farther than max(this, 1%% of its depth) from the frames' median disagrees; more than 5%% "
+        "disagreeing pixels in a frame = the scene moved (an error; default 20)",
+    )
+    rec.add_argument("--depth-stream", default=None, metavar="NAME", help="depth topic / track of the recording")
+    rec.add_argument(
+        "--amplitude-stream", default=None, metavar="NAME", help="amplitude / IR topic / track of the recording"
+    )
     real.set_defaults(func=_realset)
 
     val = subparsers.add_parser(

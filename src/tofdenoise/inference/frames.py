@@ -37,6 +37,8 @@ __all__ = [
 ]
 
 DEPTH_FRAME_SUFFIXES = (".png", ".tif", ".tiff", ".npy", ".exr")
+#: recordings (``inference.recordings``): files ``find_frames`` leaves to ``find_recordings``
+RECORDING_SUFFIXES = (".mkv", ".bag")
 AMPLITUDE_SUFFIXES = (".png", ".tif", ".tiff", ".npy", ".exr")
 
 
@@ -98,10 +100,13 @@ def find_frames(inputs: Sequence[str | Path], exclude: Iterable[str | Path] = ()
             )
             frames += [FrameInput(p, p.relative_to(root)) for p in found]
         elif root.is_file():
+            if root.suffix.lower() in RECORDING_SUFFIXES:
+                continue  # a recording: inference.recordings.find_recordings
             if root.suffix.lower() not in DEPTH_FRAME_SUFFIXES:
                 raise FrameError(
                     f"input file {root} has suffix {root.suffix!r}; expected a depth frame "
-                    f"({', '.join(DEPTH_FRAME_SUFFIXES)})"
+                    f"({', '.join(DEPTH_FRAME_SUFFIXES)}) or a recording ({', '.join(RECORDING_SUFFIXES)}, a ROS 2 "
+                    "bag folder)"
                 )
             frames.append(FrameInput(root, Path(root.name)))
         else:

@@ -6,6 +6,14 @@ For a frame named ``<rel>/<stem>`` (its path relative to the input folder, witho
     out/<rel>/<stem>.npy              restored depth, float32 mm (0 = invalid)                   [npy]
     out/<rel>/<stem>_sigma_mm.npy     sigma_D of the input [mm], float32, NaN = invalid             [calib + amplitude]
     out/<rel>/<stem>_preview.png      input | restored | |restored - input| (| sigma_D) with colour bars  [previews]
+    out/<rel>/<stem>_depth_m.tiff     restored depth, 32-bit float TIFF in metres, NaN = invalid (ROS REP 118) [depth_m]
+    out/<rel>/<stem>.ply              restored valid pixels as points [m] in the camera's optical frame   [ply]
+
+The metres map is the 32FC1 image of REP 118 (what a ROS depth topic in metres carries, NaN where no depth) as a
+single-channel float32 TIFF: OpenCV (``cv2.imread(path, cv2.IMREAD_UNCHANGED)``), tifffile, ImageJ/Fiji and MATLAB
+read it back bit for bit, NaN included, without any tofdenoise code. The point cloud is a binary little-endian PLY
+(``float x, y, z`` per vertex, valid pixels only, row by row) from the camera intrinsics (``camera.points_m``),
+which Open3D, PCL, MeshLab and CloudCompare read.
 """
 
 from __future__ import annotations
@@ -16,13 +24,23 @@ from typing import Any
 
 import numpy as np
 
-from tofdenoise.atomic import atomic_write_png, save_npy_atomic
+from tofdenoise.atomic import atomic_write, atomic_write_bytes, atomic_write_png, save_npy_atomic
 from tofdenoise.data_modules.io import write_depth_png16
+from tofdenoise.inference.camera import Intrinsics, points_m
 
-__all__ = ["OutputOptions", "output_paths", "preview_panel", "write_frame_outputs"]
+__all__ = [
+    "OutputOptions",
+    "depth_mm_to_m",
+    "output_paths",
+    "preview_panel",
+    "write_depth_m_tiff",
+    "write_frame_outputs",
+    "write_ply_points",
+]
 
 SIGMA_SUFFIX = "_sigma_mm.npy"
 PREVIEW_SUFFIX = "_preview.png"
+DEPTH_M_SUFFIX = "_depth_m.tiff"
 
 
 @dataclass(frozen=True)
@@ -30,6 +48,47 @@ class OutputOptions:
     npy: bool = False
     previews: bool = False
     preview_max_tile: int | None = 480
+    depth_m: bool = False
+    ply: bool = False
+
+
+def depth_mm_to_m(depth_mm: np.ndarray) -> np.ndarray:
+    """float32 metres of a depth map in mm, NaN where the depth is not finite and > 0 (REP 118's 32FC1)."""
+    depth = np.asarray(depth_mm, dtype=np.float64)
+    with np.errstate(invalid="ignore"):
+        valid = np.isfinite(depth) & (depth > 0)
+    return np.where(valid, depth / 1000.0, np.nan).astype(np.float32)
+
+
+def write_depth_m_tiff(path: str | Path, depth_mm: np.ndarray) -> Path:
+    """Write a depth map [mm] as a single-channel float32 TIFF in metres, NaN = invalid, atomically."""
+    import cv2
+
+    depth_m = depth_mm_to_m(depth_mm)
+    if depth_m.ndim != 2:
+        raise ValueError(f"{path}: expected a (H, W) depth map, got shape {depth_m.shape}")
+    ok, buf = cv2.imencode(".tiff", depth_m)
+    if not ok:
+        raise OSError(f"{path}: OpenCV could not encode a float32 {depth_m.shape} map as TIFF")
+    return atomic_write_bytes(path, buf.tobytes())
+
+
+def write_ply_points(path: str | Path, points: np.ndarray, comment: str = "") -> Path:
+    """Write (N, 3) points as a binary little-endian PLY (``float x, y, z``), atomically."""
+    pts = np.ascontiguousarray(points, dtype="<f4")
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ValueError(f"{path}: expected (N, 3) points, got shape {pts.shape}")
+    lines = ["ply", "format binary_little_endian 1.0"]
+    lines += [f"comment {line}" for line in comment.splitlines() if line]
+    lines += [f"element vertex {len(pts)}", "property float x", "property float y", "property float z", "end_header"]
+    header = ("\n".join(lines) + "\n").encode("ascii", errors="replace")
+
+    def write(tmp: Path) -> None:
+        with open(tmp, "wb") as fh:
+            fh.write(header)
+            fh.write(pts.tobytes())
+
+    return atomic_write(path, write)
 
 
 def output_paths(out: Path, name: str) -> dict[str, Path]:
@@ -39,7 +98,17 @@ def output_paths(out: Path, name: str) -> dict[str, Path]:
         "npy": base.with_name(base.name + ".npy"),
         "sigma": base.with_name(base.name + SIGMA_SUFFIX),
         "preview": base.with_name(base.name + PREVIEW_SUFFIX),
+        "depth_m": base.with_name(base.name + DEPTH_M_SUFFIX),
+        "ply": base.with_name(base.name + ".ply"),
     }
+
+
+def wanted_outputs(options: OutputOptions, with_sigma: bool) -> set[str]:
+    """The keys of ``output_paths`` that a run with ``options`` writes."""
+    keys = {"png"} | ({"npy"} if options.npy else set()) | ({"sigma"} if with_sigma else set())
+    keys |= {"preview"} if options.previews else set()
+    keys |= {"depth_m"} if options.depth_m else set()
+    return keys | ({"ply"} if options.ply else set())
 
 
 def preview_panel(
@@ -93,11 +162,18 @@ def write_frame_outputs(
     restored_mm: np.ndarray,
     options: OutputOptions = OutputOptions(),
     sigma_mm: np.ndarray | None = None,
+    intrinsics: Intrinsics | None = None,
 ) -> list[Path]:
-    """Write the outputs of one frame (module docstring); returns the written paths."""
+    """Write the outputs of one frame (module docstring); returns the written paths. ``options.ply`` needs the
+    ``intrinsics`` of the frame (checked before anything of the frame is written)."""
     import cv2
 
     paths = output_paths(Path(out), name)
+    points = None
+    if options.ply:
+        if intrinsics is None:
+            raise ValueError(f"frame {name}: a point cloud (PLY) needs the camera intrinsics (--intrinsics FILE)")
+        points = points_m(depth_mm_to_m(restored_mm), intrinsics, name)
     written = [write_depth_png16(paths["png"], restored_mm)]
     if options.npy:
         written.append(save_npy_atomic(paths["npy"], np.asarray(restored_mm, dtype=np.float32)))
@@ -106,6 +182,15 @@ def write_frame_outputs(
     if options.previews:
         rgb = preview_panel(input_mm, valid, restored_mm, sigma_mm, options.preview_max_tile, title=name)
         written.append(atomic_write_png(paths["preview"], cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)))
+    if options.depth_m:
+        written.append(write_depth_m_tiff(paths["depth_m"], restored_mm))
+    if points is not None:
+        assert intrinsics is not None
+        comment = f"tofdenoise restored depth {name}; metres, camera optical frame (x right, y down, z forward)\n"
+        comment += (
+            f"intrinsics fx {intrinsics.fx:.6g} fy {intrinsics.fy:.6g} cx {intrinsics.cx:.6g} cy {intrinsics.cy:.6g}"
+        )
+        written.append(write_ply_points(paths["ply"], points, comment))
     return written
 
 

@@ -9,6 +9,12 @@ frames as ``tofdenoise-denoise`` does and ``FramesPredictionWriter`` writes the 
 ``--ckpt_path``; the trainer defaults to no logger and the CPU/GPU Lightning picks. ``DepthRestorer.predict_step``
 restores every frame (invalid input pixels back to 0; ``--fill-holes`` is the command's only), one frame per
 batch.
+
+Recordings among ``--data.inputs`` (Azure Kinect ``.mkv``, ROS bags; ``inference.recordings``) are read whole once
+when the datamodule is built (a damaged one stops the run before any write) and their frames streamed after the
+frame files, named ``<recording>/frame_NNNNNN`` as ``tofdenoise-denoise`` names them; ``--data.depth_stream`` /
+``--data.amplitude_stream`` choose their topics or tracks. The writer's ``depth_m`` and ``ply`` options add the
+metres map and the point cloud (``ply`` takes a recording's own intrinsics, or those of ``intrinsics``).
 """
 
 from __future__ import annotations
@@ -21,12 +27,34 @@ import lightning as L
 import numpy as np
 import torch
 from lightning.pytorch.callbacks import BasePredictionWriter
-from torch.utils.data import DataLoader, Dataset
+from torch.utils.data import DataLoader, Dataset, IterableDataset
 
-from tofdenoise.inference.frames import AmplitudeSource, FrameInput, find_frames, load_frame
+from tofdenoise.inference.camera import Intrinsics, load_intrinsics
+from tofdenoise.inference.frames import AmplitudeSource, Frame, FrameInput, find_frames, load_frame
 from tofdenoise.inference.outputs import OutputOptions, frame_sigma, write_frame_outputs
+from tofdenoise.inference.recordings import Recording, find_recordings, open_recording
 
-__all__ = ["FramesDataModule", "FramesDataset", "FramesPredictionWriter", "main"]
+__all__ = ["FramesDataModule", "FramesDataset", "FramesPredictionWriter", "FramesStream", "main"]
+
+
+def _item(frame: Frame, index: int, calib: Any, intrinsics: Intrinsics | None = None) -> dict[str, Any]:
+    item: dict[str, Any] = {
+        "noisy": torch.from_numpy(frame.depth_mm)[None],
+        "mask": torch.from_numpy(frame.valid.astype(np.float32))[None],
+        "index": index,
+        "name": frame.name,
+    }
+    if frame.amplitude is not None:
+        item["amplitude"] = torch.from_numpy(frame.amplitude)[None]
+    sigma = frame_sigma(frame, calib)
+    if sigma is not None:
+        item["sigma"] = torch.from_numpy(sigma)[None]
+    if intrinsics is not None:
+        item["intrinsics"] = torch.tensor(
+            [intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy, intrinsics.width, intrinsics.height],
+            dtype=torch.float64,
+        )
+    return item
 
 
 class FramesDataset(Dataset):
@@ -50,18 +78,28 @@ class FramesDataset(Dataset):
 
     def __getitem__(self, index: int) -> dict[str, Any]:
         frame = load_frame(self.frames[index], self.depth_scale_mm, self.amplitude)
-        item: dict[str, Any] = {
-            "noisy": torch.from_numpy(frame.depth_mm)[None],
-            "mask": torch.from_numpy(frame.valid.astype(np.float32))[None],
-            "index": index,
-            "name": frame.name,
-        }
-        if frame.amplitude is not None:
-            item["amplitude"] = torch.from_numpy(frame.amplitude)[None]
-        sigma = frame_sigma(frame, self.calib)
-        if sigma is not None:
-            item["sigma"] = torch.from_numpy(sigma)[None]
-        return item
+        return _item(frame, index, self.calib)
+
+
+class FramesStream(IterableDataset):
+    """The frame files (``FramesDataset``), then every frame of each recording (``(RecordingInput, Recording)``
+    pairs, opened and checked), as the same items; a recording frame carries its recording's ``intrinsics``."""
+
+    def __init__(self, files: FramesDataset, recordings: Sequence[tuple[Any, Recording]], calib: Any = None):
+        self.files = files
+        self.recordings = list(recordings)
+        self.calib = calib
+
+    def __iter__(self):
+        for index in range(len(self.files)):
+            yield self.files[index]
+        index = len(self.files)
+        for source, recording in self.recordings:
+            for item in recording.frames():
+                name = f"{source.rel_stem.as_posix()}/frame_{item.index:06d}"
+                frame = Frame(depth_mm=item.depth_mm, valid=item.valid, amplitude=item.amplitude, name=name)
+                yield _item(frame, index, self.calib, recording.intrinsics)
+                index += 1
 
 
 class FramesDataModule(L.LightningDataModule):
@@ -75,6 +113,10 @@ class FramesDataModule(L.LightningDataModule):
         calib: calibration file / preset for the sigma_D map of the input (needs ``amplitude``).
         exclude: folders whose files are not inputs (e.g. the output folder; an amplitude folder is excluded).
         num_workers: DataLoader workers.
+        depth_stream: recordings: the depth topic / track (default: the Kinect's DEPTH track, the first image topic
+            named like depth).
+        amplitude_stream: recordings: the amplitude / IR topic / track (default: the Kinect's IR track, the first
+            image topic named like ir / amplitude / intensity).
     """
 
     test_set_names = ["frames"]
@@ -87,6 +129,8 @@ class FramesDataModule(L.LightningDataModule):
         calib: str | None = None,
         exclude: list[str] | None = None,
         num_workers: int = 0,
+        depth_stream: str | None = None,
+        amplitude_stream: str | None = None,
     ):
         super().__init__()
         self.save_hyperparameters()
@@ -97,8 +141,13 @@ class FramesDataModule(L.LightningDataModule):
         self.amplitude = AmplitudeSource(amplitude) if amplitude is not None else None
         skip = list(exclude or []) + ([self.amplitude.folder] if self.amplitude and self.amplitude.folder else [])
         self.frames = find_frames(inputs, exclude=skip)
-        if not self.frames:
-            raise ValueError(f"FramesDataModule: no depth frame found in {', '.join(map(str, inputs))}")
+        self.recordings = []
+        for source in find_recordings(inputs, exclude=skip):
+            recording = open_recording(source.path, depth_stream, amplitude_stream)
+            recording.scan()  # the whole recording is checked before anything is predicted or written
+            self.recordings.append((source, recording))
+        if not self.frames and not self.recordings:
+            raise ValueError(f"FramesDataModule: no depth frame or recording found in {', '.join(map(str, inputs))}")
         self.calib = None
         if calib is not None:
             from tofdenoise.physics.calibration import resolve_calibration
@@ -107,16 +156,29 @@ class FramesDataModule(L.LightningDataModule):
 
     def predict_dataloader(self) -> DataLoader:
         dataset = FramesDataset(self.frames, self.hparams.depth_scale_mm, self.amplitude, self.calib)
+        if self.recordings:  # streamed: a recording is read in order, not indexed
+            stream = FramesStream(dataset, self.recordings, self.calib)
+            return DataLoader(stream, batch_size=1, num_workers=0)
         return DataLoader(dataset, batch_size=1, shuffle=False, num_workers=int(self.hparams.num_workers))
 
 
 class FramesPredictionWriter(BasePredictionWriter):
-    """Writes each predicted frame as ``tofdenoise-denoise`` does (``tofdenoise.inference.outputs``)."""
+    """Writes each predicted frame as ``tofdenoise-denoise`` does (``tofdenoise.inference.outputs``); ``depth_m``
+    adds the metres TIFF, ``ply`` the point cloud (intrinsics: the frame's recording, else the ``intrinsics`` file)."""
 
-    def __init__(self, out_dir: str, npy: bool = False, previews: bool = False) -> None:
+    def __init__(
+        self,
+        out_dir: str,
+        npy: bool = False,
+        previews: bool = False,
+        depth_m: bool = False,
+        ply: bool = False,
+        intrinsics: str | None = None,
+    ) -> None:
         super().__init__(write_interval="batch")
         self.out_dir = Path(out_dir)
-        self.options = OutputOptions(npy=npy, previews=previews)
+        self.options = OutputOptions(npy=npy, previews=previews, depth_m=depth_m, ply=ply)
+        self.intrinsics = load_intrinsics(intrinsics) if intrinsics is not None else None
         self.written: list[Path] = []
 
     def write_on_batch_end(
@@ -132,6 +194,10 @@ class FramesPredictionWriter(BasePredictionWriter):
         pred = prediction["pred_mm"] if isinstance(prediction, dict) else prediction
         for i in range(pred.shape[0]):
             sigma = batch["sigma"][i, 0].cpu().numpy() if "sigma" in batch else None
+            intrinsics = self.intrinsics
+            if intrinsics is None and "intrinsics" in batch:
+                fx, fy, cx, cy, w, h = (float(v) for v in batch["intrinsics"][i])
+                intrinsics = Intrinsics(fx, fy, cx, cy, int(w), int(h), source="the recording")
             self.written += write_frame_outputs(
                 self.out_dir,
                 str(batch["name"][i]),
@@ -140,6 +206,7 @@ class FramesPredictionWriter(BasePredictionWriter):
                 pred[i, 0].float().cpu().numpy(),
                 self.options,
                 sigma,
+                intrinsics,
             )
 
 

@@ -1,0 +1,219 @@
+"""A real test scene from a static recording: ``tofdenoise-sensor realset --from-recording REC``.
+
+A camera engineer records a static scene (camera on a tripod, nothing moving) for a few seconds. Its frames become
+one scene of the capture-set format of ``data_modules.real_captures`` (docs/data.md), ready for ``data.real_dir``:
+
+- ``input_depth_mm.png`` / ``input_amplitude.png``: one frame as captured (``input_frame``, default the first), the
+  noisy input;
+- ``hiexp/depth_mm_NNN.png``: every other frame (the input frame is left out, so the reference's noise is
+  independent of the input's), with an all-zero ``hiexp/saturated_NNN.png`` each (a depth camera's recording marks
+  saturated pixels invalid, 0, itself);
+- ``reference_depth_mm.npy`` / ``reference_count.npy`` / ``reference.json``: ``real_captures.build_reference``,
+  the per-pixel mean over the frames where the pixel is valid; a pixel needs ``min_count`` valid frames (default:
+  half of them, the capture-set default, so that ``data.real_dir`` loads the reference as written; a stricter
+  ``min_count`` needs the same ``data.real_min_count``, or the datamodule rebuilds the reference with its own).
+  The scores are computed over the common valid region of input and reference (``load_real_scene``'s mask);
+- ``recording.json``: where the scene came from (recording, streams, frames, the motion check).
+
+The frames are same-exposure frames, not the paper's high-exposure ones: the reference averages N frames of the
+input's own noise (its noise std is about 1/sqrt(N) of the input's), not a brighter capture.
+
+**A moving scene is refused** (``SceneMotionError``), not warned about: the mean of frames of a scene that moved is
+no reference for any of them, and a test set built from it would score models against a blur. Every frame is
+compared with the per-pixel median of all frames; a pixel disagrees when it is more than
+``max(motion_tolerance_mm, 1 % of its depth)`` away, and a frame in which more than ``max_moving_fraction`` (5 %)
+of the valid pixels disagree is a moving frame. Any moving frame stops the command with a line listing them (the
+tolerance is an option: a camera noisier than 20 mm at its range needs a larger one).
+
+Nothing is half-written: the recording is read and checked whole first, and the scene is written into a hidden
+temporary folder next to its destination and renamed into place at the end.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import tempfile
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from tofdenoise.atomic import atomic_write_text
+from tofdenoise.data_modules.io import depth_mm_to_png16, write_png_uint8, write_png_uint16
+from tofdenoise.data_modules.real_captures import (
+    HIEXP_DIR,
+    INPUT_AMPLITUDE,
+    INPUT_DEPTH,
+    build_reference,
+    default_min_count,
+)
+from tofdenoise.inference.recordings import RecordingError, RecordingFrame, open_recording
+
+__all__ = ["SceneMotionError", "SceneSummary", "moving_frames", "scene_from_frames", "scene_from_recording"]
+
+RECORDING_META = "recording.json"
+
+
+class SceneMotionError(ValueError):
+    """The frames of a recording disagree: the scene (or the camera) moved."""
+
+
+@dataclass
+class SceneSummary:
+    scene_dir: Path
+    input_frame: int
+    reference_frames: int
+    min_count: int
+    reference_valid_fraction: float
+    disagreeing_fraction_max: float
+
+
+def moving_frames(
+    depth_mm: Sequence[np.ndarray],
+    valid: Sequence[np.ndarray],
+    motion_tolerance_mm: float = 20.0,
+    max_moving_fraction: float = 0.05,
+) -> tuple[list[tuple[int, float]], np.ndarray]:
+    """((frame, fraction of its valid pixels that disagree) for each moving frame, the fraction of every frame):
+    a pixel disagrees when it is more than ``max(motion_tolerance_mm, 1 % of the depth)`` from the per-pixel median
+    of the frames (module docstring)."""
+    stack = np.stack([np.where(v, d, np.nan) for d, v in zip(depth_mm, valid)]).astype(np.float32)
+    with np.errstate(all="ignore"):
+        import warnings
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN pixels: no frame sees them
+            median = np.nanmedian(stack, axis=0)
+        tolerance = np.maximum(float(motion_tolerance_mm), 0.01 * median)
+        disagree = np.abs(stack - median[None]) > tolerance[None]
+    counts = np.isfinite(stack).reshape(len(stack), -1).sum(axis=1)
+    fractions = disagree.reshape(len(stack), -1).sum(axis=1) / np.maximum(counts, 1)
+    moving = [(i, float(f)) for i, f in enumerate(fractions) if f > max_moving_fraction]
+    return moving, fractions
+
+
+def _amplitude_u16(amplitude: np.ndarray, where: str) -> np.ndarray:
+    amp = np.asarray(amplitude, dtype=np.float64)
+    amp = np.where(np.isfinite(amp), amp, 0.0)
+    if amp.min() < 0 or amp.max() > 65535:
+        raise RecordingError(f"{where}: amplitude values span [{amp.min():g}, {amp.max():g}]; expected 0..65535")
+    return np.rint(amp).astype(np.uint16)
+
+
+def scene_from_frames(
+    frames: Sequence[RecordingFrame],
+    scene_dir: str | Path,
+    input_frame: int = 0,
+    min_count: int | None = None,
+    motion_tolerance_mm: float = 20.0,
+    max_moving_fraction: float = 0.05,
+    force: bool = False,
+    source: dict | None = None,
+    where: str = "recording",
+) -> SceneSummary:
+    """Write one capture-set scene from the frames of a static recording (module docstring)."""
+    scene_dir = Path(scene_dir).expanduser()
+    if len(frames) < 3:
+        raise RecordingError(f"{where}: {len(frames)} frame(s); a scene needs an input frame and >= 2 others")
+    if not 0 <= input_frame < len(frames):
+        raise RecordingError(f"{where}: --input-frame {input_frame} is not a frame (0 .. {len(frames) - 1})")
+    shape = frames[0].depth_mm.shape
+    for f in frames:
+        if f.depth_mm.shape != shape:
+            raise RecordingError(f"{where}: frame {f.index} is {f.depth_mm.shape}; expected {shape} like frame 0")
+    chosen = frames[input_frame]
+    if chosen.amplitude is None:
+        raise RecordingError(
+            f"{where}: frame {chosen.index} has no amplitude; a capture-set scene needs the input's amplitude "
+            "(name the IR / amplitude stream with --amplitude-stream)"
+        )
+    others = [f for i, f in enumerate(frames) if i != input_frame]
+    needed = default_min_count(len(others)) if min_count is None else int(min_count)
+    if not 1 <= needed <= len(others):
+        raise RecordingError(f"{where}: --min-count {needed} must lie in 1 .. {len(others)} (the reference frames)")
+    moving, fractions = moving_frames(
+        [f.depth_mm for f in frames], [f.valid for f in frames], motion_tolerance_mm, max_moving_fraction
+    )
+    if moving:
+        listed = ", ".join(f"{frames[i].index} ({100 * frac:.0f} %)" for i, frac in moving[:8])
+        raise SceneMotionError(
+            f"{where}: the scene moved: in {len(moving)} of {len(frames)} frames more than "
+            f"{100 * max_moving_fraction:g} % of the valid pixels are farther than max({motion_tolerance_mm:g} mm, "
+            f"1 % of the depth) from the per-pixel median of the frames: frames {listed}"
+            f"{' ...' if len(moving) > 8 else ''}; record a static scene (or raise --motion-tolerance-mm for a "
+            "noisier camera)"
+        )
+    if scene_dir.exists() and not force:
+        raise ValueError(f"scene folder {scene_dir} exists; --force replaces it")
+    amplitude = _amplitude_u16(chosen.amplitude, f"{where} frame {chosen.index}")
+
+    scene_dir.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{scene_dir.name}.", suffix=".partial", dir=scene_dir.parent))
+    try:
+        write_png_uint16(tmp / INPUT_DEPTH, depth_mm_to_png16(np.where(chosen.valid, chosen.depth_mm, 0.0)))
+        write_png_uint16(tmp / INPUT_AMPLITUDE, amplitude)
+        zeros = np.zeros(shape, dtype=np.uint8)
+        for k, f in enumerate(others):
+            depth = depth_mm_to_png16(np.where(f.valid, f.depth_mm, 0.0))
+            write_png_uint16(tmp / HIEXP_DIR / f"depth_mm_{k:03d}.png", depth)
+            write_png_uint8(tmp / HIEXP_DIR / f"saturated_{k:03d}.png", zeros)
+        reference = build_reference(tmp, min_count=needed, force=True)
+        meta = {
+            **(source or {}),
+            "input_frame": chosen.index,
+            "reference_frames": [f.index for f in others],
+            "min_count": needed,
+            "motion_check": {
+                "tolerance_mm": motion_tolerance_mm,
+                "tolerance_relative": 0.01,
+                "max_moving_fraction": max_moving_fraction,
+                "disagreeing_fraction_max": float(fractions.max()),
+            },
+            "note": "static recording: input = one frame as captured; reference = mean of the other frames' valid "
+            "depths where at least min_count are valid (same exposure as the input)",
+        }
+        atomic_write_text(tmp / RECORDING_META, json.dumps(meta, indent=1) + "\n")
+        if scene_dir.exists():  # --force: the old scene goes only once the new one is complete
+            old = Path(tempfile.mkdtemp(prefix=f".{scene_dir.name}.", suffix=".old", dir=scene_dir.parent))
+            scene_dir.rename(old / scene_dir.name)
+            tmp.rename(scene_dir)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            tmp.rename(scene_dir)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return SceneSummary(
+        scene_dir=scene_dir,
+        input_frame=chosen.index,
+        reference_frames=len(others),
+        min_count=needed,
+        reference_valid_fraction=float(np.isfinite(reference.depth_mm).mean()),
+        disagreeing_fraction_max=float(fractions.max()),
+    )
+
+
+def scene_from_recording(
+    recording: str | Path,
+    out: str | Path,
+    scene: str | None = None,
+    depth_stream: str | None = None,
+    amplitude_stream: str | None = None,
+    **options,
+) -> SceneSummary:
+    """Read a static recording whole (``recordings.open_recording``) and write it as the scene ``OUT/<scene>``
+    (default: the recording's name without suffix); ``options`` go to ``scene_from_frames``."""
+    path = Path(recording).expanduser()
+    rec = open_recording(path, depth_stream, amplitude_stream)
+    rec.scan()
+    frames = list(rec.frames())
+    name = scene or (path.stem if path.is_file() else path.name)
+    source = {
+        "recording": str(path),
+        "depth_stream": rec.depth_name,
+        "amplitude_stream": rec.amplitude_name,
+        "frames": len(frames),
+    }
+    return scene_from_frames(frames, Path(out).expanduser() / name, source=source, where=f"recording {path}", **options)
