@@ -127,7 +127,7 @@ def test_each_finished_run_is_recorded_at_once(tmp_path, monkeypatch):
         }
     }
 
-    def fake_run_all(specs, out_dir, dry_run=False, after_each=None):
+    def fake_run_all(specs, out_dir, dry_run=False, after_each=None, executor=None):
         first = out_dir / specs[0].name
         first.mkdir(parents=True)
         (first / "metrics.json").write_text(json.dumps(metrics))
@@ -159,7 +159,7 @@ def test_a_figure_that_fails_its_check_is_not_written_and_fails_the_command(tmp_
     monkeypatch.setattr(reproduce, "ensure_realset", lambda *a, **k: None)
     monkeypatch.setattr(
         "tofdenoise.experiments.runner.run_all",
-        lambda specs, out_dir, dry_run=False, after_each=None: [
+        lambda specs, out_dir, dry_run=False, after_each=None, executor=None: [
             RunOutcome(s, out_dir / s.name, "skipped") for s in specs
         ],
     )
