@@ -200,3 +200,44 @@ def test_submitit_array_task_preempted_is_requeued_and_resumes_from_last_ckpt(tm
         (out / "unet-s1" / "run_info.json").read_text()
     )
     assert list((out / "slurm").glob("*/*_log.out"))  # submitit's logs under <out>/slurm
+
+
+def test_the_sbatch_script_of_a_table_array(tmp_path, monkeypatch):
+    """The options reach sbatch: the script submitit writes for a 21-run array (submitit only checks that
+    ``srun`` exists; nothing is submitted). Without SLURM's tools the command refuses before any work."""
+    pytest.importorskip("submitit")
+    options = SlurmOptions(
+        partition="gpu",
+        time_min=600,
+        cpus_per_task=6,
+        mem="48G",
+        array_parallelism=8,
+        extra={"account": "lab", "constraint": "a100"},
+        setup=("module load cuda/12.4",),
+    )
+    monkeypatch.setenv("PATH", str(tmp_path))
+    with pytest.raises(RuntimeError, match="sbatch and srun is not on PATH here: run the command on the cluster"):
+        make_executor("slurm", slurm=options, check_cluster=True)
+    assert isinstance(make_executor("slurm", slurm=options), SlurmExecutor)  # a dry run needs no cluster
+    for tool in ("sbatch", "srun"):
+        (tmp_path / tool).write_text("#!/bin/sh\nexit 1\n")
+        (tmp_path / tool).chmod(0o755)
+    executor = make_executor("slurm", slurm=options, check_cluster=True)
+    inner = executor.make_submitit_executor(tmp_path / "runs")._executor
+    inner.parameters["map_count"] = 21  # what submit_array sets for 21 tasks
+    script = inner._make_submission_file_text("python -u -m submitit.core._submit x", "uid")
+    for line in (
+        "#SBATCH --partition=gpu",
+        "#SBATCH --time=600",
+        "#SBATCH --gpus-per-task=1",
+        "#SBATCH --cpus-per-task=6",
+        "#SBATCH --mem=48G",
+        "#SBATCH --array=0-20%8",
+        "#SBATCH --signal=USR2@120",
+        "#SBATCH --account=lab",
+        "#SBATCH --constraint=a100",
+        "#SBATCH --nodes=1",
+        "module load cuda/12.4",
+    ):
+        assert line in script.splitlines(), line
+    assert f"#SBATCH --output={tmp_path / 'runs' / 'slurm'}/%A_%a/%A_%a_0_log.out" in script.splitlines()

@@ -93,4 +93,4 @@ def executor_from_args(args: argparse.Namespace) -> Any:
             folder=args.slurm_folder,
             poll_s=args.slurm_poll_s,
         )
-    return make_executor(args.executor, args.workers, slurm)
+    return make_executor(args.executor, args.workers, slurm, check_cluster=not args.dry_run)

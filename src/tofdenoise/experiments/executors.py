@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -388,8 +389,11 @@ class SlurmExecutor:
         return RunOutcome(job.spec, job.run_dir, outcome.status, outcome.seconds, outcome.returncode, outcome.log_tail)
 
 
-def make_executor(name: str, workers: int | None = None, slurm: SlurmOptions | None = None) -> Any:
-    """The executor called ``name`` (``EXECUTORS``); a clear error for a bad name or option."""
+def make_executor(
+    name: str, workers: int | None = None, slurm: SlurmOptions | None = None, check_cluster: bool = False
+) -> Any:
+    """The executor called ``name`` (``EXECUTORS``); a clear error for a bad name or option. ``check_cluster``:
+    also refuse ``slurm`` where SLURM's ``sbatch`` and ``srun`` are not on PATH (a dry run needs neither)."""
     if name == "sequential":
         if workers not in (None, 1):
             raise ValueError(f"--workers {workers} needs --executor local (sequential runs one at a time)")
@@ -400,5 +404,12 @@ def make_executor(name: str, workers: int | None = None, slurm: SlurmOptions | N
         if workers is not None:
             raise ValueError("--workers is for --executor local; a SLURM array's width is --slurm-array-parallelism")
         _import_submitit()  # fail before anything runs
-        return SlurmExecutor(slurm)
+        options = slurm or SlurmOptions()
+        missing = [tool for tool in ("sbatch", "srun") if shutil.which(tool) is None]
+        if check_cluster and options.cluster == "slurm" and missing:
+            raise RuntimeError(
+                f"--executor slurm submits with SLURM's sbatch, and {' and '.join(missing)} is not on PATH here: "
+                "run the command on the cluster's login node (--dry-run works anywhere)"
+            )
+        return SlurmExecutor(options)
     raise ValueError(f"--executor must be one of {', '.join(EXECUTORS)}, got {name!r}")
