@@ -7,6 +7,8 @@ from __future__ import annotations
 import json
 import os
 import signal
+import socket
+import subprocess
 import sys
 import threading
 import time
@@ -14,6 +16,7 @@ from pathlib import Path
 
 import pytest
 
+from tofdenoise.experiments import executors
 from tofdenoise.experiments.executors import (
     LocalExecutor,
     SlurmExecutor,
@@ -241,3 +244,30 @@ def test_the_sbatch_script_of_a_table_array(tmp_path, monkeypatch):
     ):
         assert line in script.splitlines(), line
     assert f"#SBATCH --output={tmp_path / 'runs' / 'slurm'}/%A_%a/%A_%a_0_log.out" in script.splitlines()
+
+
+def test_a_training_that_ignores_sigterm_is_killed_after_the_grace_and_its_lock_cleared(tmp_path):
+    """RunTask.stop_training (what a requeue does first): SIGTERM, SIGKILL after ``grace_s``, and the run.lock the
+    killed process leaves (it names that pid on this host) is removed, so the requeued task, maybe on another
+    node, is not refused. A lock of another process is left alone."""
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    stubborn = (
+        "import signal, time; signal.signal(signal.SIGTERM, signal.SIG_IGN); print('up', flush=True); time.sleep(60)"
+    )
+    proc = subprocess.Popen([sys.executable, "-c", stubborn], stdout=subprocess.PIPE, text=True)
+    assert proc.stdout.readline().strip() == "up"  # its SIGTERM handler is in place
+
+    (run_dir / "run.lock").write_text(json.dumps({"pid": proc.pid, "host": socket.gethostname()}))
+    task = executors.RunTask(RunSpec("run", ()), run_dir, sys.executable, grace_s=1)
+    executors._ACTIVE["run"] = proc
+    try:
+        t0 = time.monotonic()
+        assert task.stop_training() == -signal.SIGKILL
+        assert 1.0 <= time.monotonic() - t0 < 10
+    finally:
+        executors._ACTIVE.pop("run", None)
+        proc.stdout.close()
+    assert not (run_dir / "run.lock").exists()
+    (run_dir / "run.lock").write_text(json.dumps({"pid": proc.pid + 1, "host": socket.gethostname()}))
+    assert not executors._clear_stale_lock(run_dir, proc.pid) and (run_dir / "run.lock").exists()
