@@ -47,7 +47,7 @@ $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet "$(TORCH)"
-	$(PY) -m pip install --quiet -e ".[dev,onnx,recordings]"
+	$(PY) -m pip install --quiet -e ".[dev,onnx,recordings,cluster]"
 	@if $(PY) -c "import platform, sys, torch; sys.exit(not (torch.version.cuda is None and sys.platform == 'linux' and platform.machine() == 'x86_64'))"; then \
 		$(PY) -m pip install --quiet "$(TRITON)"; fi
 	@touch $(STAMP)

@@ -5,13 +5,20 @@ the permissions of a normal new file (0666 minus the umask, not ``mkstemp``'s pr
 destination with ``os.replace``. Readers therefore see either the old file or the complete new one, never a
 partial write; concurrent writers of the same path are safe (the last rename wins); a failed write leaves the old
 file untouched and no temporary file behind.
+
+An atomic write keeps each file whole, but a file rebuilt from others (a page from the records) can still lose an
+update when two processes rebuild it at once: each reads, the slower one writes what it read before the other's
+input existed. :func:`exclusive_lock` makes such a read-then-write one at a time (an ``fcntl.flock`` on a lock file
+next to it; the kernel drops it when its holder ends in any way).
 """
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import os
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +29,7 @@ __all__ = [
     "atomic_write_text",
     "atomic_write_png",
     "current_umask",
+    "exclusive_lock",
     "save_npy_atomic",
 ]
 
@@ -91,3 +99,18 @@ def atomic_write_png(path: str | os.PathLike[str], image: np.ndarray) -> Path:
     if not ok:
         raise OSError(f"{path}: OpenCV could not encode a {image.dtype} {image.shape} image as PNG")
     return atomic_write_bytes(path, buf.tobytes())
+
+
+@contextlib.contextmanager
+def exclusive_lock(path: str | os.PathLike[str]) -> Iterator[Path]:
+    """Hold an exclusive lock for ``path`` (blocking until it is free): the lock file ``.<name>.lock`` next to it,
+    which stays in place (removing a lock file others may be waiting on would let two holders in). POSIX only."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    lock_path = path.parent / f".{path.name}.lock"
+    fd = os.open(lock_path, os.O_RDWR | os.O_CREAT, 0o666)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield lock_path
+    finally:
+        os.close(fd)  # closing drops the flock

@@ -127,7 +127,7 @@ def test_each_finished_run_is_recorded_at_once(tmp_path, monkeypatch):
         }
     }
 
-    def fake_run_all(specs, out_dir, dry_run=False, after_each=None):
+    def fake_run_all(specs, out_dir, dry_run=False, after_each=None, executor=None):
         first = out_dir / specs[0].name
         first.mkdir(parents=True)
         (first / "metrics.json").write_text(json.dumps(metrics))
@@ -159,7 +159,7 @@ def test_a_figure_that_fails_its_check_is_not_written_and_fails_the_command(tmp_
     monkeypatch.setattr(reproduce, "ensure_realset", lambda *a, **k: None)
     monkeypatch.setattr(
         "tofdenoise.experiments.runner.run_all",
-        lambda specs, out_dir, dry_run=False, after_each=None: [
+        lambda specs, out_dir, dry_run=False, after_each=None, executor=None: [
             RunOutcome(s, out_dir / s.name, "skipped") for s in specs
         ],
     )
@@ -343,3 +343,17 @@ def test_the_gpu_profile_says_what_it_needs_before_any_work(tmp_path, capsys):
     assert "a CUDA GPU" in profile_needs("gpu", [f"++data.root={tmp_path}"], cuda_available=False)
     assert profile_needs("gpu", [f"data.root={tmp_path}"], cuda_available=True) == ""
     assert profile_needs("cpu", []) == ""
+
+
+def test_dry_run_names_the_executor_and_bad_executor_options_exit_2(tmp_path, capsys):
+    out, results, page = tmp_path / "runs", tmp_path / "results", tmp_path / "results.md"
+    argv = ["--table", "3", "--seeds", "0", "--out", str(out), "--results", str(results), "--page", str(page)]
+    assert main([*argv, "--dry-run", "--executor", "local", "--workers", "3"]) == 0
+    printed = capsys.readouterr().out
+    assert "executor: local (3 workers, each run in its own process)" in printed
+    assert len([line for line in printed.splitlines() if ": would run: " in line]) == 7
+    assert main([*argv, "--dry-run", "--executor", "local", "--workers", "0"]) == 2
+    assert "tofdenoise-reproduce: error: --workers must be a whole number >= 1, got 0" in capsys.readouterr().err
+    assert main([*argv, "--dry-run", "--executor", "slurm", "--slurm-extra", "account"]) == 2
+    assert "--slurm-extra expects KEY=VALUE" in capsys.readouterr().err
+    assert not page.exists() and not results.exists()

@@ -98,3 +98,16 @@ def test_robustness_grid_every_run_cuts_the_raw_validation_mae_by_30_percent():
     rows = robustness_rows(specs, out)
     print(robustness_table(rows))
     assert all(r["status"] == "pass" for r in rows), [r["name"] for r in rows if r["status"] != "pass"]
+
+
+def test_grid_dry_run_names_the_executor(tmp_path, capsys):
+    from tofdenoise.cli.grid import main
+
+    argv = ["robustness", "--out", str(tmp_path / "r"), "--backbones", "unet", "--sensors", "default"]
+    argv += ["--noises", "hetero", "--losses", "l1", "--seeds", "0", "1", "--dry-run"]
+    assert main([*argv, "--executor", "local", "--workers", "2"]) == 0
+    printed = capsys.readouterr().out
+    assert "executor: local (2 workers" in printed and printed.count(": would run: ") == 2
+    assert main([*argv, "--workers", "2"]) == 2
+    assert "--workers 2 needs --executor local" in capsys.readouterr().err
+    assert not (tmp_path / "r").exists()

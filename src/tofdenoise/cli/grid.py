@@ -4,6 +4,8 @@
     tofdenoise-grid robustness --out runs/robustness --backbones unet --seeds 0 1 2
     tofdenoise-grid robustness --out runs/robustness --table-only --markdown docs/robustness.md
     tofdenoise-grid robustness --out runs/robustness --dry-run       # list what would run
+    tofdenoise-grid robustness --out runs/robustness --executor local --workers 2
+    tofdenoise-grid robustness --out runs/robustness --executor slurm --slurm-partition gpu   # docs/cluster.md
 
 Finished runs are skipped, interrupted ones resume from their last checkpoint, a failing run does not stop the
 others (they are listed at the end). Exit status: 0 when every selected run finished and passes, 1 otherwise, 2
@@ -17,6 +19,7 @@ import sys
 from pathlib import Path
 
 from tofdenoise.atomic import atomic_write_text
+from tofdenoise.cli.executor_args import add_executor_arguments, executor_from_args
 from tofdenoise.output_guard import OutputPathError, check_output_file
 
 __all__ = ["main", "build_parser"]
@@ -49,6 +52,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--dry-run", action="store_true", help="print what would run, run nothing")
     p.add_argument("--table-only", action="store_true", help="print the table of what has finished, run nothing")
     p.add_argument("--markdown", type=Path, default=None, help="also write the table to this Markdown file")
+    add_executor_arguments(p)
     return p
 
 
@@ -58,6 +62,11 @@ def main(argv: list[str] | None = None) -> int:
     from tofdenoise.reporting.robustness import robustness_table
 
     args = build_parser().parse_args(argv)
+    try:
+        executor = executor_from_args(args)
+    except (ValueError, RuntimeError) as exc:
+        print(f"tofdenoise-grid: error: {exc}", file=sys.stderr)
+        return 2
     specs = robustness_specs(args.backbones, args.noises, args.losses, args.sensors, args.seeds, args.extra)
     if args.markdown is not None:
         try:  # the table never replaces a file of the runs it is made from
@@ -66,7 +75,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"tofdenoise-grid: error: {exc}", file=sys.stderr)
             return 2
     if not args.table_only:
-        run_all(specs, args.out, dry_run=args.dry_run)
+        run_all(specs, args.out, dry_run=args.dry_run, executor=executor)
     if args.dry_run:
         return 0
     rows = robustness_rows(specs, args.out)

@@ -5,6 +5,9 @@
     tofdenoise-reproduce --table fig7                                # qualitative figures (fig7 synthetic, fig8 real)
     tofdenoise-reproduce --table 1 --dry-run                         # list what would run
     tofdenoise-reproduce --page-only                                 # rebuild docs/results.md from docs/results/
+    tofdenoise-reproduce --table 3 --executor local --workers 2      # two runs at a time on this machine
+    tofdenoise-reproduce --table 3 --profile gpu --executor slurm --slurm-partition gpu --extra data.root=...
+                                                                     # a SLURM job array (docs/cluster.md)
 
 Steps: (1) the stand-in real set, once per profile: a second simulated camera (other frequency, contrast,
 harmonics, dark level, gain, mixed pixels at depth edges) writes its calibration captures and its capture set,
@@ -12,7 +15,11 @@ and ``tofdenoise-sensor calibrate`` estimates its calibration (``<out>/realset``
 (2) every run of the table, trained with that calibration and tested on the synthetic split and on that capture
 set (finished runs are skipped, interrupted ones resume, a failing run does not stop the others and is listed);
 (3) each finished run's ``metrics.json`` and ``run_info.json`` copied to ``docs/results/<profile>/<run>/``;
-(4) ``docs/results.md`` rebuilt from those records. Exit status 0 when every run of the table finished; 2 when
+(4) ``docs/results.md`` rebuilt from those records. Where the runs of step (2) go is ``--executor`` (sequential, local
+workers, a SLURM array: ``tofdenoise.experiments.executors``); the records and the page are the same whichever ran
+them, and each run is committed by this command as it ends. The page is rebuilt under a lock
+(``atomic.exclusive_lock``), so two commands committing runs at once cannot drop one's run from it.
+Exit status 0 when every run of the table finished; 2 when
 ``--page`` would replace what the page is built from (the discussion, a record: ``tofdenoise.output_guard``,
 checked before anything runs) or when a record cannot be used (``reporting.results_page.RecordError``, naming the
 file; a run without a record is listed on the page as missing).
@@ -30,7 +37,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from tofdenoise.atomic import atomic_write_bytes, atomic_write_text
+from tofdenoise.atomic import atomic_write_bytes, atomic_write_text, exclusive_lock
+from tofdenoise.cli.executor_args import add_executor_arguments, executor_from_args
 from tofdenoise.paths import REPO_ROOT
 from tofdenoise.training.results import METRICS_NAME, PER_IMAGE_DIR, RUN_INFO_NAME
 
@@ -98,6 +106,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--extra", nargs="*", default=[], help="extra Hydra overrides for every run (e.g. data.root=...)")
     p.add_argument("--dry-run", action="store_true", help="print what would run, run nothing")
     p.add_argument("--page-only", action="store_true", help="only rebuild the results page from the records")
+    add_executor_arguments(p)
     return p
 
 
@@ -213,6 +222,19 @@ def _fig6(args: argparse.Namespace, realset_dir: Path, dest: Path) -> int:
     return 0
 
 
+def write_page(results: Path, page: Path, before: Any = None) -> str:
+    """Rebuild ``page`` from the records under ``results`` under the page's lock (``before()`` first, inside it):
+    a rebuild reads every record, so two commands committing runs at once must not interleave."""
+    from tofdenoise.reporting.results_page import results_markdown
+
+    with exclusive_lock(page):
+        if before is not None:
+            before()
+        text = results_markdown(results)
+        atomic_write_text(page, text)
+    return text
+
+
 def _qualitative(args: argparse.Namespace, realset_dir: Path, dest: Path, record: Any) -> int:
     """Fig. 7 / Fig. 8: the columns' runs for the first seed (trained when missing), then the rendered figure."""
     from tofdenoise.experiments.figures import (
@@ -229,7 +251,9 @@ def _qualitative(args: argparse.Namespace, realset_dir: Path, dest: Path, record
 
     spec, seed = FIGURES[args.table], args.seeds[0]
     specs = figure_specs(spec, seed, profile_overrides(args.profile, realset_dir, args.extra))
-    outcomes = run_all(specs, args.out, dry_run=args.dry_run, after_each=None if args.dry_run else record)
+    outcomes = run_all(
+        specs, args.out, dry_run=args.dry_run, after_each=None if args.dry_run else record, executor=args.executor_obj
+    )
     if args.dry_run:
         print(f"[reproduce] would render {spec.key} from {', '.join(s.name for s in specs)}")
         return 0
@@ -262,6 +286,11 @@ def main(argv: list[str] | None = None) -> int:
         )
         return 2
     try:
+        args.executor_obj = executor_from_args(args)
+    except (ValueError, RuntimeError) as exc:
+        print(f"tofdenoise-reproduce: error: {exc}", file=sys.stderr)
+        return 2
+    try:
         # the page is rebuilt from the discussion and the records: it may never replace one of them
         check_output_file(args.page, (".md",), page_inputs(args.results), what="--page", shadow=False)
         return _reproduce(args)
@@ -273,11 +302,11 @@ def main(argv: list[str] | None = None) -> int:
 def _reproduce(args: argparse.Namespace) -> int:
     from tofdenoise.experiments.runner import run_all
     from tofdenoise.experiments.tables import table_specs
-    from tofdenoise.reporting.results_page import results_markdown
 
     status = 0
     if not args.page_only:
-        missing = profile_needs(args.profile, args.extra)
+        # a SLURM array trains on the cluster's GPUs: the submitting machine needs none
+        missing = profile_needs(args.profile, args.extra, cuda_available=True if args.executor == "slurm" else None)
         if missing:  # before the real set is built or any run starts, in a dry run too
             print(f"tofdenoise-reproduce: error: --profile {args.profile} needs {missing}", file=sys.stderr)
             return 2
@@ -288,9 +317,8 @@ def _reproduce(args: argparse.Namespace) -> int:
 
         def record(outcome) -> None:  # commit each finished run at once: an interrupted table keeps it
             if copy_records([outcome.run_dir], dest):
-                if args.table == "dynrange":
-                    write_dynrange_figure(dest, args.seeds)
-                atomic_write_text(args.page, results_markdown(args.results))
+                figure = (lambda: write_dynrange_figure(dest, args.seeds)) if args.table == "dynrange" else None
+                write_page(args.results, args.page, before=figure)
 
         if args.table == "fig6":
             status = _fig6(args, realset_dir, dest)
@@ -298,14 +326,19 @@ def _reproduce(args: argparse.Namespace) -> int:
             status = _qualitative(args, realset_dir, dest, record)
         else:
             specs = table_specs(args.table, args.seeds, profile_overrides(args.profile, realset_dir, args.extra))
-            outcomes = run_all(specs, args.out, dry_run=args.dry_run, after_each=None if args.dry_run else record)
+            outcomes = run_all(
+                specs,
+                args.out,
+                dry_run=args.dry_run,
+                after_each=None if args.dry_run else record,
+                executor=args.executor_obj,
+            )
             if not args.dry_run:
                 write_report(dest)
             status = 0 if all(o.status in ("done", "skipped", "planned") for o in outcomes) else 1
         if args.dry_run:  # a dry run writes nothing
             return status
-    page = results_markdown(args.results)
-    atomic_write_text(args.page, page)
+    write_page(args.results, args.page)
     print(f"[reproduce] wrote {args.page}", flush=True)
     return status
 

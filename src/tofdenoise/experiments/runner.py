@@ -11,6 +11,10 @@ folder ``<out>/<name>`` and
 and goes on after a failing run. The result lists every spec with its status (``done``, ``skipped``, ``failed``)
 and the failed ones with the last lines of their log, so a grid of many runs can be completed over several
 sittings and a failure is never silent.
+
+By default the runs go one after another in the listed order. ``run_all(..., executor=...)`` hands the unfinished
+ones to an executor of :mod:`tofdenoise.experiments.executors` instead (N local workers, a SLURM job array); each run
+is still the same process writing the same folder, so its records do not depend on the executor.
 """
 
 from __future__ import annotations
@@ -19,6 +23,7 @@ import json
 import os
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -27,7 +32,17 @@ from typing import Any
 
 from tofdenoise.training.results import METRICS_NAME, RUN_INFO_NAME
 
-__all__ = ["RunSpec", "RunOutcome", "run_finished", "run_all", "read_run", "ENTRY_MODULES"]
+__all__ = [
+    "RunSpec",
+    "RunOutcome",
+    "PendingRun",
+    "run_finished",
+    "run_command",
+    "run_one",
+    "run_all",
+    "read_run",
+    "ENTRY_MODULES",
+]
 
 LOG_NAME = "train.log"
 #: RunSpec.entry -> the module run as ``python -m <module> <overrides> paths.run_dir=<folder>``
@@ -90,6 +105,77 @@ def _tail(path: Path, lines: int = 40) -> str:
         return ""
 
 
+@dataclass(frozen=True)
+class PendingRun:
+    """A run that an executor has to train: its place in the grid (``index``, 0-based), its spec and folder."""
+
+    index: int
+    total: int
+    spec: RunSpec
+    run_dir: Path
+
+    @property
+    def head(self) -> str:
+        return f"[{self.index + 1}/{self.total}] {self.spec.name}"
+
+
+def run_command(spec: RunSpec, run_dir: Path, python: str | None = None) -> tuple[list[str], bool]:
+    """The command that trains ``spec`` in ``run_dir`` and whether it resumes (``checkpoints/last.ckpt`` exists
+    now: decided when the run starts, so a run requeued after a preemption resumes)."""
+    resume = (run_dir / "checkpoints" / "last.ckpt").is_file()
+    cmd = [python or sys.executable, "-m", ENTRY_MODULES[spec.entry], *spec.overrides, f"paths.run_dir={run_dir}"]
+    if resume:
+        cmd.append("ckpt_path=last")
+    return cmd, resume
+
+
+def run_one(
+    spec: RunSpec,
+    run_dir: Path,
+    python: str | None = None,
+    env: dict[str, str] | None = None,
+    on_start: Callable[[subprocess.Popen], None] | None = None,
+    preexec_fn: Callable[[], None] | None = None,
+) -> RunOutcome:
+    """Train one run in a fresh process (output appended to ``<run_dir>/train.log``) and return its outcome:
+    ``done`` when the process exits 0 and the folder holds a finished run, else ``failed`` with the log's tail.
+
+    ``on_start(process)`` is called once the process has started (an executor that must stop it on a
+    preemption keeps it); ``preexec_fn`` runs in the child before it starts (``subprocess.Popen``). An exception in
+    the caller (Ctrl-C, a preemption handler's exit) kills the process and propagates."""
+    cmd, _ = run_command(spec, run_dir, python)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    with open(run_dir / LOG_NAME, "a") as log:
+        log.write(f"\n# {time.strftime('%Y-%m-%dT%H:%M:%S')} {' '.join(cmd)}\n")
+        log.flush()
+        with subprocess.Popen(
+            cmd, stdout=log, stderr=subprocess.STDOUT, env={**os.environ, **(env or {})}, preexec_fn=preexec_fn
+        ) as proc:
+            try:
+                if on_start is not None:
+                    on_start(proc)
+                # polled, not proc.wait(): a signal handler (a SLURM task's preemption) may then wait for the
+                # process itself without meeting the wait lock held by this frame
+                while (returncode := proc.poll()) is None:
+                    time.sleep(0.2)
+            except BaseException:
+                proc.kill()
+                raise
+    seconds = time.perf_counter() - t0
+    ok = returncode == 0 and run_finished(run_dir)
+    return RunOutcome(
+        spec, run_dir, "done" if ok else "failed", seconds, returncode, "" if ok else _tail(run_dir / LOG_NAME)
+    )
+
+
+def _ended_line(head: str, outcome: RunOutcome) -> str:
+    ok = outcome.status == "done"
+    return f"{head}: {outcome.status} in {outcome.seconds / 60:.1f} min" + (
+        "" if ok else f" (exit {outcome.returncode}; log: {outcome.run_dir / LOG_NAME})"
+    )
+
+
 def run_all(
     specs: Sequence[RunSpec],
     out_dir: Path | str,
@@ -98,61 +184,28 @@ def run_all(
     env: dict[str, str] | None = None,
     echo: bool = True,
     after_each: Callable[[RunOutcome], None] | None = None,
+    executor: Any = None,
 ) -> list[RunOutcome]:
     """Run every spec not finished yet (see the module docstring); returns one outcome per spec, in order.
 
-    ``after_each(outcome)`` is called after every spec (run, skipped or failed; not in a dry run), e.g. to commit
-    a finished run's records at once, so that a grid interrupted later keeps what it has finished."""
+    ``after_each(outcome)`` is called after every spec (run, skipped or failed; not in a dry run), in this process,
+    e.g. to commit a finished run's records at once, so that a grid interrupted later keeps what it has finished.
+
+    ``executor``: where the runs go (``tofdenoise.experiments.executors``): None (or the sequential executor) runs
+    them one after another, as listed; a parallel executor gets every unfinished run at once and
+    ``after_each`` is called as each ends (finished runs first, then in the order they end)."""
     out_dir = Path(out_dir).expanduser().resolve()
     names = [s.name for s in specs]
     dupes = sorted({n for n in names if names.count(n) > 1})
     if dupes:
         raise ValueError(f"run_all: run names must be unique, repeated: {', '.join(dupes)}")
     python = python or sys.executable
-    outcomes: list[RunOutcome] = []
-    for i, spec in enumerate(specs, 1):
-        run_dir = out_dir / spec.name
-        head = f"[{i}/{len(specs)}] {spec.name}"
-        if run_finished(run_dir):
-            outcomes.append(RunOutcome(spec, run_dir, "skipped"))
-            if echo:
-                print(f"{head}: finished before, skipped", flush=True)
-            if after_each is not None:
-                after_each(outcomes[-1])
-            continue
-        resume = (run_dir / "checkpoints" / "last.ckpt").is_file()
-        cmd = [python, "-m", ENTRY_MODULES[spec.entry], *spec.overrides, f"paths.run_dir={run_dir}"]
-        if resume:
-            cmd.append("ckpt_path=last")
-        if dry_run:
-            outcomes.append(RunOutcome(spec, run_dir, "planned"))
-            if echo:
-                print(f"{head}: would run{' (resume)' if resume else ''}: {' '.join(cmd[1:])}", flush=True)
-            continue
-        run_dir.mkdir(parents=True, exist_ok=True)
-        if echo:
-            print(f"{head}: {'resuming' if resume else 'running'} -> {run_dir}", flush=True)
-        t0 = time.perf_counter()
-        with open(run_dir / LOG_NAME, "a") as log:
-            log.write(f"\n# {time.strftime('%Y-%m-%dT%H:%M:%S')} {' '.join(cmd)}\n")
-            log.flush()
-            proc = subprocess.run(
-                cmd, stdout=log, stderr=subprocess.STDOUT, env={**os.environ, **(env or {})}, check=False
-            )
-        seconds = time.perf_counter() - t0
-        ok = proc.returncode == 0 and run_finished(run_dir)
-        outcome = RunOutcome(
-            spec, run_dir, "done" if ok else "failed", seconds, proc.returncode, "" if ok else _tail(run_dir / LOG_NAME)
-        )
-        outcomes.append(outcome)
-        if echo:
-            print(
-                f"{head}: {outcome.status} in {seconds / 60:.1f} min"
-                + ("" if ok else f" (exit {proc.returncode}; log: {run_dir / LOG_NAME})"),
-                flush=True,
-            )
-        if after_each is not None:
-            after_each(outcome)
+    if executor is not None and getattr(executor, "name", "") != "sequential":
+        outcomes = _run_parallel(specs, out_dir, dry_run, python, env, echo, after_each, executor)
+    else:
+        if echo and dry_run:
+            print("executor: sequential (one run after another, each in its own process)", flush=True)
+        outcomes = _run_sequential(specs, out_dir, dry_run, python, env, echo, after_each)
     failed = [o for o in outcomes if o.status == "failed"]
     if echo and failed:
         print(f"{len(failed)} run(s) failed:", flush=True)
@@ -163,3 +216,94 @@ def run_all(
                 flush=True,
             )
     return outcomes
+
+
+def _run_sequential(
+    specs: Sequence[RunSpec],
+    out_dir: Path,
+    dry_run: bool,
+    python: str,
+    env: dict[str, str] | None,
+    echo: bool,
+    after_each: Callable[[RunOutcome], None] | None,
+) -> list[RunOutcome]:
+    outcomes: list[RunOutcome] = []
+    for i, spec in enumerate(specs):
+        job = PendingRun(i, len(specs), spec, out_dir / spec.name)
+        if run_finished(job.run_dir):
+            outcomes.append(RunOutcome(spec, job.run_dir, "skipped"))
+            if echo:
+                print(f"{job.head}: finished before, skipped", flush=True)
+            if after_each is not None:
+                after_each(outcomes[-1])
+            continue
+        cmd, resume = run_command(spec, job.run_dir, python)
+        if dry_run:
+            outcomes.append(RunOutcome(spec, job.run_dir, "planned"))
+            if echo:
+                print(f"{job.head}: would run{' (resume)' if resume else ''}: {' '.join(cmd[1:])}", flush=True)
+            continue
+        if echo:
+            print(f"{job.head}: {'resuming' if resume else 'running'} -> {job.run_dir}", flush=True)
+        outcome = run_one(spec, job.run_dir, python, env)
+        outcomes.append(outcome)
+        if echo:
+            print(_ended_line(job.head, outcome), flush=True)
+        if after_each is not None:
+            after_each(outcome)
+    return outcomes
+
+
+def _run_parallel(
+    specs: Sequence[RunSpec],
+    out_dir: Path,
+    dry_run: bool,
+    python: str,
+    env: dict[str, str] | None,
+    echo: bool,
+    after_each: Callable[[RunOutcome], None] | None,
+    executor: Any,
+) -> list[RunOutcome]:
+    """Finished runs are skipped here; every other run goes to ``executor.run`` at once. ``after_each`` and the
+    printing happen in this thread only (the executor calls back from the thread that called it)."""
+    if echo:
+        print(f"executor: {executor.describe()}", flush=True)
+    outcomes: list[RunOutcome | None] = [None] * len(specs)
+    pending: list[PendingRun] = []
+    for i, spec in enumerate(specs):
+        job = PendingRun(i, len(specs), spec, out_dir / spec.name)
+        if run_finished(job.run_dir):
+            outcomes[i] = RunOutcome(spec, job.run_dir, "skipped")
+            if echo:
+                print(f"{job.head}: finished before, skipped", flush=True)
+            if after_each is not None:
+                after_each(outcomes[i])
+        elif dry_run:
+            cmd, resume = run_command(spec, job.run_dir, python)
+            outcomes[i] = RunOutcome(spec, job.run_dir, "planned")
+            if echo:
+                print(f"{job.head}: would run{' (resume)' if resume else ''}: {' '.join(cmd[1:])}", flush=True)
+        else:
+            pending.append(job)
+
+    lock = threading.Lock()  # a local executor reports a start from its worker threads
+
+    def started(job: PendingRun, where: str) -> None:
+        if echo:
+            with lock:
+                print(f"{job.head}: {where} -> {job.run_dir}", flush=True)
+
+    def finished(job: PendingRun, outcome: RunOutcome) -> None:
+        outcomes[job.index] = outcome
+        if echo:
+            with lock:
+                print(_ended_line(job.head, outcome), flush=True)
+        if after_each is not None:
+            after_each(outcome)
+
+    if pending:
+        executor.run(pending, python=python, env=env, started=started, finished=finished)
+    missing = [specs[i].name for i, o in enumerate(outcomes) if o is None]
+    if missing:  # an executor that lost a run: never silent
+        raise RuntimeError(f"executor {executor.name} returned no outcome for: {', '.join(missing)}")
+    return [o for o in outcomes if o is not None]
