@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from tofdenoise.cli.reproduce import copy_records, main, profile_overrides, realset_command
+from tofdenoise.training.results import learned_verdict
 
 
 def test_dry_run_lists_the_realset_and_every_run(tmp_path, capsys):
@@ -95,7 +96,8 @@ def test_records_of_finished_runs_only_and_the_page(tmp_path):
             "mse_mm2": 9.0,
             "ssim": 0.99,
             "raw": {"psnr_db": 30.0, "mae_mm": 7.0, "mse_mm2": 90.0, "ssim": 0.9},
-        }
+        },
+        **learned_verdict(100, 2.5, 7.0),
     }
     (done / "metrics.json").write_text(json.dumps(metrics))
     (done / "run_info.json").write_text(json.dumps({"finished": "2026-11-22T10:00:00+0000"}))
@@ -124,7 +126,8 @@ def test_each_finished_run_is_recorded_at_once(tmp_path, monkeypatch):
             "mse_mm2": 8.0,
             "ssim": 0.99,
             "raw": {"psnr_db": 30.0, "mae_mm": 7.0, "mse_mm2": 90.0, "ssim": 0.9},
-        }
+        },
+        **learned_verdict(100, 2.5, 7.0),
     }
 
     def fake_run_all(specs, out_dir, dry_run=False, after_each=None, executor=None):
@@ -259,7 +262,9 @@ def _results_with_three_seeds(root: Path) -> Path:
             d.mkdir(parents=True)
             entry = {"psnr_db": 40.0, "mae_mm": mae + 0.1 * seed, "mse_mm2": 9.0, "ssim": 0.99}
             entry["raw"] = {"psnr_db": 30.0, "mae_mm": 7.0, "mse_mm2": 90.0, "ssim": 0.9}
-            (d / "metrics.json").write_text(json.dumps({"synthetic": entry}, indent=1))
+            (d / "metrics.json").write_text(
+                json.dumps({"synthetic": entry, **learned_verdict(100, mae, 7.0)}, indent=1)
+            )
             (d / "run_info.json").write_text(json.dumps({"started": "2026-11-22T10:00:00+0000"}))
     (results / "discussion.md").write_text("## Discussion\n\nWritten by hand.\n")
     return results
