@@ -5,10 +5,11 @@
 * **returns the records of a finished run** when ``train`` and ``reuse_finished`` are on (the defaults) and the
   folder holds one (``tofdenoise.training.results.run_finished``, the rule the grids' runner skips runs by): nothing
   is trained or rewritten, and the result is read from its ``metrics.json``. ``reuse_finished=false`` trains it again
-  from ``ckpt_path`` (``last``: continue it, e.g. with more epochs; ``null``: start over). The folder's ``config.yaml`` must describe the
-  same run (every setting but where files go, the loggers and callbacks, ``train``/``test``/``ckpt_path``/
-  ``reuse_finished``, the progress bar, the model summary and ``data.cache_dir``); another run's folder is refused
-  (:class:`RunConfigMismatchError`, naming the settings that differ), never passed off as this run's result;
+  from ``ckpt_path`` (``last``: continue it, e.g. with more epochs; ``null``: start over). The folder's
+  ``config.yaml`` must describe the same run (every setting but where files go, the loggers and callbacks,
+  ``train``/``test``/``ckpt_path``/``reuse_finished``, the progress bar, the model summary and ``data.cache_dir``);
+  another run's folder is refused (:class:`RunConfigMismatchError`, naming the settings that differ), never passed
+  off as this run's result;
 * **resumes an interrupted run** from ``<run_dir>/checkpoints/last.ckpt`` (``ckpt_path: last``, the default; a
   fresh run when there is none yet);
 * otherwise checks the config (valid backbone / noise / loss names, dataset paths), seeds, instantiates the
