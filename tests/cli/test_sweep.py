@@ -14,9 +14,9 @@ import pytest
 from omegaconf import OmegaConf
 
 from tofdenoise.cli.train import main
-from tofdenoise.config import compose_config
+from tofdenoise.config import ConfigError, compose_config
 from tofdenoise.experiments.runner import RunSpec, run_all
-from tofdenoise.experiments.train_job import RunConfigMismatchError, run
+from tofdenoise.experiments.train_job import RunConfigMismatchError, run, validate_config
 from tofdenoise.training.results import read_metrics_json
 
 REPO = Path(__file__).resolve().parents[2]
@@ -183,3 +183,7 @@ def test_trainer_ddp_takes_nodes_and_tasks_from_the_config_or_the_slurm_job(tmp_
     assert is_worker_rank()  # task 5 writes into the folder task 0 holds the lock of
     monkeypatch.setenv("SLURM_PROCID", "0")
     assert not is_worker_rank()
+    validate_config(cfg)
+    # a config that contradicts the job (8 tasks) is refused before anything starts, naming the settings
+    with pytest.raises(ConfigError, match=r"trainer\.num_nodes x trainer\.devices = 3 x 4 = 12 .* 8 tasks"):
+        validate_config(compose_config([*overrides, "trainer.num_nodes=3"]))

@@ -28,13 +28,14 @@ environment and its ``wandb.finish()`` at the end come from ``tofdenoise.wandb_e
 from __future__ import annotations
 
 import logging
+import os
 from pathlib import Path
 from typing import Any
 
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from tofdenoise.cli.checkpoint_check import check_checkpoint_file, resolve_ckpt_path
-from tofdenoise.config import instantiate_node
+from tofdenoise.config import ConfigError, instantiate_node
 from tofdenoise.registry import Registry
 from tofdenoise.run_lock import RunLock
 from tofdenoise.training.results import METRICS_NAME, RUN_INFO_NAME, read_metrics_json, read_run, run_finished
@@ -43,6 +44,7 @@ from tofdenoise.wandb_env import finish_wandb, setup_wandb_env, wandb_run_id
 __all__ = [
     "RunConfigMismatchError",
     "check_same_run",
+    "check_slurm_shape",
     "SAME_RUN_IGNORES",
     "record_calibration",
     "run",
@@ -121,6 +123,7 @@ def validate_config(cfg: DictConfig) -> None:
             f"config data.real_dir: real capture folder {data.real_dir} does not exist "
             "(set data.real_dir=null to skip the real test set)"
         )
+    check_slurm_shape(cfg.trainer)
     for name, node in (cfg.get("logger") or {}).items():
         target = str((node or {}).get("_target_", ""))
         if target.endswith("TensorBoardLogger"):
@@ -134,6 +137,24 @@ def validate_config(cfg: DictConfig) -> None:
                         f"config logger.{name}: the TensorBoard logger needs the `tensorboard` "
                         "package (pip install tensorboard), or use logger=wandb_offline / csv"
                     ) from exc
+
+
+def check_slurm_shape(trainer: DictConfig) -> None:
+    """A DDP run started by SLURM (``srun``, one task per device) needs ``trainer.num_nodes x trainer.devices`` to be
+    the job's task count, else its processes wait for ranks that never come; Lightning checks this only for the
+    processes it launches itself. ``ConfigError`` naming both settings and the job's ``SLURM_NTASKS`` otherwise."""
+    tasks = os.environ.get("SLURM_NTASKS", "")
+    if not tasks.isdigit() or int(tasks) <= 1 or os.environ.get("SLURM_JOB_NAME") in ("bash", "interactive"):
+        return  # not a multi-task SLURM step (Lightning's own rule for its SLURM environment)
+    if not str(trainer.get("strategy") or "").startswith("ddp"):
+        return
+    nodes, devices = trainer.get("num_nodes", 1), trainer.get("devices", 1)
+    if isinstance(nodes, int) and isinstance(devices, int) and nodes * devices != int(tasks):
+        raise ConfigError(
+            f"trainer.num_nodes x trainer.devices = {nodes} x {devices} = {nodes * devices} processes, but this SLURM "
+            f"job started {tasks} tasks (SLURM_NTASKS; --nodes x --ntasks-per-node): one task per device; leave "
+            "both settings to trainer=ddp's defaults (the job's SLURM_NNODES and SLURM_NTASKS_PER_NODE) or match them"
+        )
 
 
 def _instantiate_group(node: DictConfig | None) -> list[Any]:
