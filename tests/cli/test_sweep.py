@@ -187,3 +187,14 @@ def test_trainer_ddp_takes_nodes_and_tasks_from_the_config_or_the_slurm_job(tmp_
     # a config that contradicts the job (8 tasks) is refused before anything starts, naming the settings
     with pytest.raises(ConfigError, match=r"trainer\.num_nodes x trainer\.devices = 3 x 4 = 12 .* 8 tasks"):
         validate_config(compose_config([*overrides, "trainer.num_nodes=3"]))
+
+
+def test_a_ddp_job_lightning_would_launch_inside_a_multirun_is_refused(tmp_path, data_cache, tiny, monkeypatch):
+    """Lightning starts a DDP run's rank 1 by running the command line again: in a multirun, the whole sweep."""
+    _clear_dist_env(monkeypatch)
+    sweep = tmp_path / "sweep"
+    proc = _train_cli(["-m", *_sweep_args(tiny, sweep, data_cache), *DDP_ON_CPU, "trainer.devices=2", "seed=0"])
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    line = proc.stderr.strip().splitlines()[-1]
+    assert line.startswith("tofdenoise-train: error: trainer.strategy: a DDP run of several processes cannot be")
+    assert not list(sweep.glob("*/checkpoints"))

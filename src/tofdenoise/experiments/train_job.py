@@ -43,6 +43,7 @@ from tofdenoise.wandb_env import finish_wandb, setup_wandb_env, wandb_run_id
 
 __all__ = [
     "RunConfigMismatchError",
+    "check_ddp_in_sweep",
     "check_same_run",
     "check_slurm_shape",
     "SAME_RUN_IGNORES",
@@ -124,6 +125,7 @@ def validate_config(cfg: DictConfig) -> None:
             "(set data.real_dir=null to skip the real test set)"
         )
     check_slurm_shape(cfg.trainer)
+    check_ddp_in_sweep(cfg.trainer)
     for name, node in (cfg.get("logger") or {}).items():
         target = str((node or {}).get("_target_", ""))
         if target.endswith("TensorBoardLogger"):
@@ -139,17 +141,44 @@ def validate_config(cfg: DictConfig) -> None:
                     ) from exc
 
 
+def _slurm_tasks() -> int:
+    """The task count of a multi-task SLURM step Lightning takes as its environment, else 1."""
+    tasks = os.environ.get("SLURM_NTASKS", "")
+    if not tasks.isdigit() or os.environ.get("SLURM_JOB_NAME") in ("bash", "interactive"):
+        return 1  # Lightning's own rule for its SLURM environment
+    return int(tasks)
+
+
+def _is_ddp(trainer: DictConfig) -> bool:
+    return str(trainer.get("strategy") or "").startswith("ddp")
+
+
+def check_ddp_in_sweep(trainer: DictConfig) -> None:
+    """``ConfigError`` for a DDP run of several processes inside a Hydra multirun (``-m``) that Lightning would
+    launch itself: it starts the other processes by running the command line again, which here is the whole sweep
+    (every job of it, once per rank). Under SLURM (``srun`` starts every process) a sweep's DDP job is fine."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    if not HydraConfig.initialized() or HydraConfig.get().mode != RunMode.MULTIRUN:
+        return
+    if _is_ddp(trainer) and trainer.get("devices", 1) != 1 and _slurm_tasks() <= 1:
+        raise ConfigError(
+            "trainer.strategy: a DDP run of several processes cannot be a job of a multirun (-m): Lightning starts "
+            "its other processes by running the command line again, here the whole sweep; run DDP jobs one at a "
+            "time (without -m), or under SLURM with one task per device (docs/cluster.md)"
+        )
+
+
 def check_slurm_shape(trainer: DictConfig) -> None:
     """A DDP run started by SLURM (``srun``, one task per device) needs ``trainer.num_nodes x trainer.devices`` to be
     the job's task count, else its processes wait for ranks that never come; Lightning checks this only for the
     processes it launches itself. ``ConfigError`` naming both settings and the job's ``SLURM_NTASKS`` otherwise."""
-    tasks = os.environ.get("SLURM_NTASKS", "")
-    if not tasks.isdigit() or int(tasks) <= 1 or os.environ.get("SLURM_JOB_NAME") in ("bash", "interactive"):
-        return  # not a multi-task SLURM step (Lightning's own rule for its SLURM environment)
-    if not str(trainer.get("strategy") or "").startswith("ddp"):
+    tasks = _slurm_tasks()
+    if tasks <= 1 or not _is_ddp(trainer):
         return
     nodes, devices = trainer.get("num_nodes", 1), trainer.get("devices", 1)
-    if isinstance(nodes, int) and isinstance(devices, int) and nodes * devices != int(tasks):
+    if isinstance(nodes, int) and isinstance(devices, int) and nodes * devices != tasks:
         raise ConfigError(
             f"trainer.num_nodes x trainer.devices = {nodes} x {devices} = {nodes * devices} processes, but this SLURM "
             f"job started {tasks} tasks (SLURM_NTASKS; --nodes x --ntasks-per-node): one task per device; leave "
