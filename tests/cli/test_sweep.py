@@ -152,8 +152,17 @@ DDP_ON_CPU = ["trainer=ddp", "trainer.accelerator=cpu", "trainer.precision=32-tr
 
 
 def _clear_dist_env(monkeypatch):
-    for key in [k for k in os.environ if k.startswith("SLURM_")] + ["MASTER_ADDR", "MASTER_PORT", "RANK", "LOCAL_RANK"]:
-        monkeypatch.delenv(key, raising=False)
+    """No SLURM or DDP variables; the process-wide rank Lightning sets when a DDP trainer is built (its
+    rank_zero_only.rank: else every later test of this process would log as rank 5) is restored afterwards."""
+    from lightning.pytorch.utilities.rank_zero import rank_zero_only
+    from lightning_utilities.core.rank_zero import rank_zero_only as utils_rank_zero_only
+
+    dist = ["MASTER_ADDR", "MASTER_PORT", "RANK", "LOCAL_RANK", "NODE_RANK", "WORLD_SIZE"]
+    for key in [k for k in os.environ if k.startswith("SLURM_")] + dist:
+        monkeypatch.setenv(key, "")  # recorded (set or not) so that what Lightning sets later is undone
+        monkeypatch.delenv(key)
+    for holder in (rank_zero_only, utils_rank_zero_only):
+        monkeypatch.setattr(holder, "rank", getattr(holder, "rank", 0))
 
 
 def test_trainer_ddp_takes_nodes_and_tasks_from_the_config_or_the_slurm_job(tmp_path, monkeypatch):
