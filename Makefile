@@ -3,12 +3,20 @@
 SHELL := /bin/bash
 PYTHON ?= python3
 VENV ?= .venv
+# Reproducible installs: LOCK holds the exact version of every package of the venv (torch and its neighbours: the
+# numbers of `make reproduce` depend on them), made by `make lock`; `make venv` installs through it (pip's constraints,
+# PIP_CONSTRAINT). torch and triton are pinned there too but installed as TORCH / TRITON (default: the lock's), so a
+# GPU user chooses another build; CONSTRAINTS= (empty) installs without pins, e.g. next to a CUDA torch whose own
+# dependency pins differ from the lock's.
+LOCK := requirements/constraints-cpu.txt
+CONSTRAINTS ?= $(LOCK)
+locked = $(shell sed -n 's/^$(1)==//p' $(LOCK))
 # CPU build by default (no multi-GB CUDA download). GPU users: make TORCH="torch==2.11.0" ... or
 # TORCH="torch --index-url <your CUDA wheel index>".
-TORCH ?= torch==2.13.0
+TORCH ?= torch==$(call locked,torch)
 # Triton for the selective-scan kernels' tests in Triton's interpreter (TRITON_INTERPRET=1, CPU tensors); installed
 # only next to a CPU torch on Linux x86-64 (a CUDA torch brings its own Triton).
-TRITON ?= triton==3.6.0
+TRITON ?= triton==$(call locked,triton)
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.tofdenoise-installed
 
@@ -24,7 +32,7 @@ BENCH_ARGS ?=
 
 export PYTHONUNBUFFERED := 1
 
-.PHONY: help venv train test test-slow lint format bench robustness realset reproduce cli-configs clean
+.PHONY: help venv lock train test test-slow lint format bench robustness realset reproduce cli-configs clean
 
 help:
 	@echo "make train   - small default training on built-in procedural scenes (CPU)"
@@ -40,17 +48,36 @@ help:
 	@echo "               records in docs/results/, page docs/results.md; REPRO_ARGS='--extra data.root=...')"
 	@echo "make cli-configs - regenerate the LightningCLI YAMLs (configs/cli/) after editing configs/"
 	@echo "make venv    - only create/refresh .venv (TORCH='torch==X' to choose the torch build)"
+	@echo "make lock    - refresh $(LOCK) (exact versions make venv installs) from a fresh venv"
 
 venv: $(STAMP)
 
-$(STAMP): pyproject.toml
+# every pip install of the venv goes through the lock (less the torch and triton lines: TORCH / TRITON choose those)
+$(STAMP): export PIP_CONSTRAINT = $(abspath $(VENV))/constraints.txt
+$(STAMP): pyproject.toml $(CONSTRAINTS)
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	@if [ -n "$(CONSTRAINTS)" ]; then grep -v -E '^(torch|triton)==' "$(CONSTRAINTS)"; fi > $(VENV)/constraints.txt
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet "$(TORCH)"
 	$(PY) -m pip install --quiet -e ".[dev,onnx,recordings,cluster]"
+	$(PY) -m pip install --quiet -e ".[sweep]"
 	@if $(PY) -c "import platform, sys, torch; sys.exit(not (torch.version.cuda is None and sys.platform == 'linux' and platform.machine() == 'x86_64'))"; then \
 		$(PY) -m pip install --quiet "$(TRITON)"; fi
 	@touch $(STAMP)
+
+# The lock, refreshed: a throw-away venv built by `make venv` without pins (the newest versions pyproject.toml allows;
+# torch and triton: TORCH / TRITON, default the lock's own, e.g. make lock TORCH=torch==2.14.0), frozen into $(LOCK).
+# Python 3.11 on Linux x86-64, as the CI; review the diff, run make test, commit the file.
+LOCK_VENV ?= .venv-lock
+lock:
+	rm -rf $(LOCK_VENV)
+	$(MAKE) --no-print-directory venv VENV=$(LOCK_VENV) CONSTRAINTS= TORCH="$(TORCH)" TRITON="$(TRITON)"
+	@mkdir -p $(dir $(LOCK))
+	{ echo "# Exact versions of the venv \`make venv\` builds (it installs through this file); refresh: make lock."; \
+	  echo "# Made $$(date -u +%Y-%m-%d) by make lock: $$($(LOCK_VENV)/bin/python -V), $$(uname -sm), $(TORCH)."; \
+	  $(LOCK_VENV)/bin/python -m pip freeze --exclude-editable | sed -E 's/^(torch==[^+]*)\+.*/\1/'; } > $(LOCK).tmp
+	mv $(LOCK).tmp $(LOCK)
+	rm -rf $(LOCK_VENV)
 
 train: $(STAMP)
 	$(VENV)/bin/tofdenoise-train \
@@ -108,4 +135,4 @@ cli-configs: $(STAMP)
 	$(PY) -m tofdenoise.cli.export_cli_config
 
 clean:
-	rm -rf $(VENV) .pytest_cache build *.egg-info src/*.egg-info
+	rm -rf $(VENV) $(LOCK_VENV) .pytest_cache build *.egg-info src/*.egg-info

@@ -92,3 +92,21 @@ def test_a_holder_on_another_host_is_refused(tmp_path):
     (run_dir / LOCK_NAME).write_text(json.dumps(record))
     with pytest.raises(RunLockedError, match="pid 1 on elsewhere.example .* another host"):
         RunLock(run_dir).acquire()
+
+
+def test_slurm_tasks_other_than_0_of_a_multi_task_job_are_worker_ranks(monkeypatch):
+    """A run across nodes (srun, one task per device): task 0 takes the run folder's lock, the others write into
+    it as its workers; a one-task job (an array task) always takes it."""
+    from tofdenoise.run_lock import is_worker_rank
+
+    for key in ("LOCAL_RANK", "RANK", "NODE_RANK", "SLURM_NTASKS", "SLURM_PROCID"):
+        monkeypatch.delenv(key, raising=False)
+    assert not is_worker_rank()
+    monkeypatch.setenv("SLURM_NTASKS", "8")
+    monkeypatch.setenv("SLURM_PROCID", "3")
+    assert is_worker_rank()
+    monkeypatch.setenv("SLURM_PROCID", "0")
+    assert not is_worker_rank()
+    monkeypatch.setenv("SLURM_NTASKS", "1")  # a job array task or a plain job: SLURM_PROCID 0 anyway
+    monkeypatch.setenv("SLURM_PROCID", "0")
+    assert not is_worker_rank()

@@ -56,11 +56,13 @@ def hydra_console_script(
     config_name: str, run: Callable[[DictConfig], object], prog: str, errors: tuple[type[BaseException], ...]
 ) -> Callable[[], None]:
     """The ``main()`` of a Hydra console script: compose ``configs/<config_name>.yaml`` with the command line, set
-    ``paths.run_dir`` to the folder Hydra created (it may contain ``${now:...}``: resolved once), call ``run`` and
-    turn the ``errors`` into one ``<prog>: error: ...`` line and exit status 2 instead of a traceback."""
+    ``paths.run_dir`` to the folder Hydra created (it may contain ``${now:...}``: resolved once; in a multirun the
+    job's folder), call ``run`` and turn the ``errors`` into one ``<prog>: error: ...`` line and exit status 2
+    instead of a traceback. The function Hydra calls (``main.entry``) returns what ``run`` returns: the value a
+    Hydra sweeper optimises (``tofdenoise-train``: the run's lowest validation MAE)."""
     import hydra
 
-    def entry(cfg: DictConfig) -> None:
+    def entry(cfg: DictConfig) -> object:
         from hydra.core.hydra_config import HydraConfig
         from omegaconf import open_dict
 
@@ -70,7 +72,7 @@ def hydra_console_script(
         from tofdenoise.run_lock import release_all
 
         try:
-            run(cfg)
+            return run(cfg)
         except errors as exc:
             print(f"{prog}: error: {exc}", file=sys.stderr)
             raise SystemExit(2) from None
@@ -80,4 +82,5 @@ def hydra_console_script(
     def main() -> None:
         hydra.main(version_base="1.3", config_path=str(config_dir()), config_name=config_name)(entry)()
 
+    main.entry = entry  # type: ignore[attr-defined]
     return main

@@ -19,7 +19,8 @@ through a Hydra callback, :class:`HydraRunLock`, before Hydra writes ``.hydra/``
   and is refused (delete the file once that run is gone).
 - **Re-entrant.** The process that holds a folder's lock may take it again (the Hydra callback, then the run
   itself); it is released when the outermost holder releases it. DDP worker processes (``LOCAL_RANK`` or ``RANK``
-  set and not 0, started by the rank-0 process that holds the lock) do not take it.
+  set and not 0, started by the rank-0 process that holds the lock; under SLURM the tasks of a multi-task job with
+  ``SLURM_PROCID`` not 0, which write to the folder rank 0 holds) do not take it.
 
 Why not ``filelock`` (installed with torch): its ``FileLock`` excludes other processes the same way (``flock``)
 but records no holder, so a refusal could not say who holds the folder, and its ``SoftFileLock`` (a plain file)
@@ -57,8 +58,16 @@ class RunLockedError(RuntimeError):
 
 
 def is_worker_rank() -> bool:
-    """A DDP process other than rank 0: its launcher (rank 0) holds the run folder's lock."""
-    return any(os.environ.get(k, "0") not in ("", "0") for k in ("LOCAL_RANK", "RANK", "NODE_RANK"))
+    """A DDP process other than rank 0: its launcher (rank 0) holds the run folder's lock. Under SLURM (a run across
+    nodes: one task per device, ``srun``) every task is started by SLURM and rank 0 is the task with
+    ``SLURM_PROCID`` 0; a job of one task (``SLURM_NTASKS`` 1: a job array task, a plain job) is always rank 0."""
+    if any(os.environ.get(k, "0") not in ("", "0") for k in ("LOCAL_RANK", "RANK", "NODE_RANK")):
+        return True
+    try:
+        tasks = int(os.environ.get("SLURM_NTASKS", "1") or 1)
+    except ValueError:
+        tasks = 1
+    return tasks > 1 and os.environ.get("SLURM_PROCID", "0") not in ("", "0")
 
 
 def _host() -> str:

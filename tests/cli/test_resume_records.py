@@ -46,7 +46,10 @@ def test_truncated_last_ckpt_is_named_and_the_finished_run_is_untouched(finished
     last = run_dir / "checkpoints" / "last.ckpt"
     os.truncate(last, last.stat().st_size // 2)
     before = _snapshot(run_dir)
-    cfg = compose_config(tiny(run_dir, finished_run[1]) + ["trainer.max_epochs=2", "logger=csv", "ckpt_path=last"])
+    cfg = compose_config(
+        tiny(run_dir, finished_run[1])
+        + ["trainer.max_epochs=2", "logger=csv", "ckpt_path=last", "reuse_finished=false"]
+    )
     with pytest.raises(CheckpointFileError) as err:
         run(cfg)
     msg = str(err.value)
@@ -61,6 +64,7 @@ def test_truncated_last_ckpt_is_named_and_the_finished_run_is_untouched(finished
             *tiny(run_dir, finished_run[1]),
             "logger=csv",
             "ckpt_path=last",
+            "reuse_finished=false",
         ],
         cwd=REPO,
         capture_output=True,
@@ -81,7 +85,7 @@ def test_checkpoint_that_does_not_fit_the_model_leaves_the_records(finished_run,
     before = _snapshot(run_dir)
     cfg = compose_config(
         tiny(run_dir, finished_run[1])
-        + ["trainer.max_epochs=2", "logger=csv", "ckpt_path=last", "backbone.kwargs.width=16"]
+        + ["trainer.max_epochs=2", "logger=csv", "ckpt_path=last", "reuse_finished=false", "backbone.kwargs.width=16"]
     )
     with pytest.raises(Exception, match="another architecture"):
         run(cfg)
@@ -112,7 +116,10 @@ def test_test_only_run_that_cannot_load_leaves_the_records(finished_run, tmp_pat
 def test_resumed_run_rewrites_its_records_after_loading(finished_run, tmp_path, tiny):
     run_dir = _copy_run(finished_run[0], tmp_path / "run")
     old = json.loads((run_dir / "run_info.json").read_text())
-    cfg = compose_config(tiny(run_dir, finished_run[1]) + ["trainer.max_epochs=2", "logger=csv", "ckpt_path=last"])
+    cfg = compose_config(
+        tiny(run_dir, finished_run[1])
+        + ["trainer.max_epochs=2", "logger=csv", "ckpt_path=last", "reuse_finished=false"]
+    )
     run(cfg)
     info = json.loads((run_dir / "run_info.json").read_text())
     assert info["started"] == old["started"] and "resumed" in info and "finished" in info

@@ -116,8 +116,8 @@ def test_command_line_rejects_unknown_names_with_the_valid_ones(tmp_path):
 
 
 def test_resume_after_sigkill_reaches_the_same_number_of_steps(tmp_path, data_cache, tiny):
-    """Kill a run mid-epoch once last.ckpt exists, resume with ckpt_path=last: same optimiser steps as an
-    uninterrupted run of the same config."""
+    """Kill a run mid-epoch once last.ckpt exists, run the same command again (ckpt_path=last is the default: an
+    interrupted run resumes from last.ckpt): same optimiser steps as an uninterrupted run of the same config."""
     steps_per_epoch, epochs = 12, 2  # 40 scenes -> 24 training samples, batch 2
     common = tiny("RUN", data_cache, num_samples=40) + [
         f"trainer.max_epochs={epochs}",
@@ -160,7 +160,7 @@ def test_resume_after_sigkill_reaches_the_same_number_of_steps(tmp_path, data_ca
     assert 0 < at_kill["global_step"] < steps_per_epoch * epochs
     assert not (killed / "metrics.json").exists()
 
-    resumed = _cli(args(killed, ["ckpt_path=last"]))
+    resumed = _cli(args(killed))  # the same command line
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     assert "Restoring states from the checkpoint path" in resumed.stderr + resumed.stdout
 

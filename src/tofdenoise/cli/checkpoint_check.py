@@ -86,7 +86,7 @@ def resolve_ckpt_path(ckpt_path: str | None, run_dir: Path) -> str | None:
         if last.is_file():
             log.info("resuming from %s", last)
             return str(last)
-        log.warning("ckpt_path=last: %s does not exist yet, starting a fresh run", last)
+        log.info("ckpt_path=last: %s does not exist yet, starting a fresh run", last)
         return None
     path = Path(str(ckpt_path)).expanduser()
     if not path.is_file():

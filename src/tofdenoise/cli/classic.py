@@ -33,8 +33,8 @@ import torch
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from tofdenoise.atomic import atomic_write_text
-from tofdenoise.cli.train import record_calibration, validate_config
 from tofdenoise.config import hydra_console_script
+from tofdenoise.experiments.train_job import record_calibration, validate_config
 from tofdenoise.run_lock import RunLock, RunLockedError
 from tofdenoise.training.results import RUN_INFO_NAME, json_number
 

@@ -1,14 +1,11 @@
-"""``tofdenoise-train``: the Hydra entry point (``make train``).
+"""``tofdenoise-train``: the Hydra entry point (``make train``): composes ``configs/train.yaml`` with the command line
+and calls the training job, ``tofdenoise.experiments.train_job``.
 
-Flow: check the config (valid backbone / noise / loss names, dataset paths) -> ``seed_everything`` ->
-instantiate datamodule, model, callbacks, loggers and trainer (``_convert_="all"``: only plain values reach
-the classes) -> ``trainer.fit`` (``ckpt_path=last`` resumes ``<run_dir>/checkpoints/last.ckpt``) ->
-``trainer.test`` with the best checkpoint (lowest ``val/mae_mm``). The run folder has one writer at a time
-(``tofdenoise.run_lock``: a second run of the same folder is refused before it touches it, exit status 2).
-The run's records (``run_info.json``,
-``config.yaml``, ``metrics.json``, ``per_image/<set>.csv``) are written by the ``RunOutputs`` callback
-(``tofdenoise.callbacks.run_outputs``, ``callbacks.run_outputs`` in the config); wandb's environment and its
-``wandb.finish()`` at the end come from ``tofdenoise.wandb_env``.
+The job is safe to run again: a folder that holds a finished run returns its recorded metrics without training, an
+interrupted run resumes from ``<run_dir>/checkpoints/last.ckpt``; the run folder has one writer at a time
+(``tofdenoise.run_lock``: a second run of the same folder is refused before it touches it, exit status 2). The
+entry function returns the run's lowest validation MAE (``val/mae_mm``), what a Hydra sweeper optimises
+(``hparams_search=recipe``: Optuna; needs ``pip install -e '.[sweep]'``, installed by ``make venv``).
 
 Examples::
 
@@ -16,207 +13,70 @@ Examples::
     tofdenoise-train experiment=smoke                  # < 2 minutes
     tofdenoise-train backbone=unet noise=range loss=l1 trainer.max_epochs=5
     tofdenoise-train experiment=paper data.root=/data/ToF-FlyingThings3D
-    tofdenoise-train paths.run_dir=runs/a ckpt_path=last   # resume a killed run
+    tofdenoise-train paths.run_dir=runs/a          # again: finished -> its metrics, killed -> resumes
+    tofdenoise-train -m seed=0,1,2 paths.sweep_dir=runs/sweep      # runs/sweep/unet-hetero-full-s{0,1,2}
+    tofdenoise-train -m hparams_search=recipe experiment=smoke     # Optuna search of lr, warm-up, decay
 """
 
 from __future__ import annotations
 
-import logging
-from pathlib import Path
-from typing import Any
-
-from omegaconf import DictConfig, OmegaConf, open_dict
+import importlib.util
+import sys
 
 from tofdenoise.callbacks.checkpointing import CheckpointWriteError
-from tofdenoise.cli.checkpoint_check import CheckpointFileError, check_checkpoint_file, resolve_ckpt_path
-from tofdenoise.config import ConfigError, hydra_console_script, instantiate_node
-from tofdenoise.registry import Registry
-from tofdenoise.run_lock import RunLock, RunLockedError
-from tofdenoise.training.init_weights import InitWeightsError
-from tofdenoise.wandb_env import finish_wandb, setup_wandb_env, wandb_run_id
-
-__all__ = ["main", "run", "validate_config"]
-
-log = logging.getLogger("tofdenoise.train")
-
-
-def _names_or_error(key: str, value: str, registry: Registry) -> None:
-    if value not in registry:
-        raise ValueError(
-            f"config {key}: unknown {registry.kind} {value!r}; valid names: "
-            f"{', '.join(sorted(registry.names()))} (choose with `{key.split('.')[0]}=<name>`)"
-        )
-
-
-def validate_config(cfg: DictConfig) -> None:
-    """Fail early (before any data or model is built) on unknown names or missing dataset paths."""
-    from tofdenoise.models.registry import BACKBONES, is_trainable
-    from tofdenoise.physics.noise_models import NOISE_MODELS
-    from tofdenoise.training.losses import LOSSES
-
-    for group in ("backbone", "noise", "loss", "data", "model", "trainer"):
-        if group not in cfg or cfg[group] is None:
-            raise ValueError(f"config: group {group!r} is missing (configs/train.yaml defaults list)")
-    _names_or_error("backbone.name", cfg.backbone.name, BACKBONES)
-    if not is_trainable(cfg.backbone.name):
-        raise ValueError(
-            f"config backbone.name: {cfg.backbone.name!r} is a classical filter without trainable "
-            "parameters: nothing to train; tune and evaluate it with `tofdenoise-classic` "
-            "(docs/models.md#classical-row-joint-bilateral-filter)"
-        )
-    _names_or_error("noise.name", cfg.noise.name, NOISE_MODELS)
-    _names_or_error("loss.name", cfg.loss.name, LOSSES)
-    data = cfg.data
-    source = data.get("source", "procedural")
-    if source not in (None, "procedural"):
-        root = data.get("root")
-        if root in (None, "", "???"):
-            raise ValueError(
-                f"config data.root: data source {source!r} needs its dataset folder; set "
-                f"data.root=/path/to/dataset (e.g. `make train DATA={source} "
-                f"ARGS='data.root=/data/...'`)"
-            )
-        if not Path(str(root)).expanduser().exists():
-            raise FileNotFoundError(
-                f"config data.root: dataset folder {root} (data source {source!r}) does not "
-                f"exist; set data.root to the dataset folder"
-            )
-    if data.get("real_dir") not in (None, "") and not Path(str(data.real_dir)).expanduser().exists():
-        raise FileNotFoundError(
-            f"config data.real_dir: real capture folder {data.real_dir} does not exist "
-            "(set data.real_dir=null to skip the real test set)"
-        )
-    for name, node in (cfg.get("logger") or {}).items():
-        target = str((node or {}).get("_target_", ""))
-        if target.endswith("TensorBoardLogger"):
-            try:
-                import tensorboard  # noqa: F401
-            except ImportError:
-                try:
-                    import tensorboardX  # noqa: F401
-                except ImportError as exc:
-                    raise ImportError(
-                        f"config logger.{name}: the TensorBoard logger needs the `tensorboard` "
-                        "package (pip install tensorboard), or use logger=wandb_offline / csv"
-                    ) from exc
-
-
-def _instantiate_group(node: DictConfig | None) -> list[Any]:
-    from hydra.utils import instantiate
-
-    out = []
-    for _, sub in (node or {}).items():
-        if isinstance(sub, DictConfig) and "_target_" in sub:
-            out.append(instantiate(sub, _convert_="all"))
-    return out
-
-
-def _run_outputs(callbacks: list[Any]) -> Any:
-    """The run's ``RunOutputs`` callback (its records are what a finished run is made of)."""
-    from tofdenoise.callbacks.run_outputs import RunOutputs
-
-    found = [cb for cb in callbacks if isinstance(cb, RunOutputs)]
-    if len(found) != 1:
-        raise ValueError(
-            f"config callbacks: expected one tofdenoise.callbacks.run_outputs.RunOutputs (it writes "
-            f"run_info.json, config.yaml and metrics.json), found {len(found)}; keep "
-            "callbacks.run_outputs of configs/callbacks/default.yaml"
-        )
-    return found[0]
-
-
-def record_calibration(cfg: DictConfig, calib: Any) -> None:
-    """Set ``cfg.sensor`` to the calibration the data module resolved, before the config is saved.
-
-    ``data.sensor`` may name a calibration file or a preset (``++data.sensor=mycam/calibration.yaml``) and so
-    override the ``sensor`` group. Without this, the saved ``config.yaml`` would show that group's camera, which
-    the run never used."""
-    with open_dict(cfg):
-        cfg.sensor = calib.to_dict()
-
-
-def run(cfg: DictConfig) -> dict[str, Any]:
-    """Train and/or test as configured; returns ``{"run_dir", "best_ckpt", "metrics"}``."""
-    validate_config(cfg)
-    run_dir = Path(str(cfg.paths.run_dir)).expanduser().resolve()
-    with RunLock(run_dir):  # one writer per run folder (held already when Hydra's callback took it)
-        return _run_locked(cfg, run_dir)
-
-
-def _run_locked(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
-    from hydra.utils import instantiate
-    from lightning.pytorch import seed_everything
-
-    run_dir.mkdir(parents=True, exist_ok=True)
-    with open_dict(cfg):
-        cfg.paths.run_dir = str(run_dir)
-    setup_wandb_env(run_dir)
-    if cfg.get("logger") and cfg.logger.get("wandb") is not None and cfg.logger.wandb.get("id") is None:
-        with open_dict(cfg):
-            cfg.logger.wandb.id = wandb_run_id(run_dir)
-
-    # the checkpoint to resume from (or to test) is checked before anything of the run is written
-    resume_ckpt = resolve_ckpt_path(cfg.get("ckpt_path"), run_dir) if cfg.get("train", True) else None
-    if resume_ckpt is not None:
-        check_checkpoint_file(resume_ckpt)
-    elif cfg.get("test", True) and not cfg.get("train", True):
-        _test_checkpoint(cfg, None, run_dir)
-
-    seed_everything(int(cfg.seed), workers=True)
-    datamodule = instantiate_node(cfg.data, "data")
-    record_calibration(cfg, datamodule.calib)
-    model = instantiate(cfg.model, _convert_="all")
-    callbacks = _instantiate_group(cfg.get("callbacks"))
-    # run_info.json, config.yaml (written once the checkpoint is restored), metrics.json and the CSVs
-    outputs = _run_outputs(callbacks)
-    outputs.config_text = OmegaConf.to_yaml(cfg, resolve=True)
-    loggers = _instantiate_group(cfg.get("logger"))
-    trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False, _convert_="all")
-    for lg in trainer.loggers:
-        lg.log_hyperparams({"config": OmegaConf.to_container(cfg, resolve=True)})
-
-    result: dict[str, Any] = {"run_dir": str(run_dir), "best_ckpt": None, "metrics": None}
-    try:
-        if cfg.get("train", True):
-            trainer.fit(model, datamodule=datamodule, ckpt_path=resume_ckpt)
-        if cfg.get("test", True):
-            ckpt = _test_checkpoint(cfg, trainer, run_dir)
-            result["best_ckpt"] = ckpt
-            trainer.test(model, datamodule=datamodule, ckpt_path=ckpt, weights_only=True)
-            result["metrics"] = outputs.metrics
-    finally:
-        finish_wandb()
-    return result
-
-
-def _test_checkpoint(cfg: DictConfig, trainer: Any, run_dir: Path) -> str | None:
-    """Best checkpoint of this fit; when not training, ``ckpt_path`` or ``<run_dir>/checkpoints/best.ckpt``."""
-    if cfg.get("train", True):
-        cb = trainer.checkpoint_callback
-        best = getattr(cb, "best_model_path", "") if cb is not None else ""
-        if best:
-            return best
-        # fast_dev_run (checkpointing disabled) or no validation: test the weights in memory
-        log.warning("no best checkpoint was written (fast_dev_run or no validation): testing current weights")
-        return None
-    given = cfg.get("ckpt_path")
-    if given not in (None, "", "last"):
-        return str(check_checkpoint_file(resolve_ckpt_path(given, run_dir)))
-    best = run_dir / "checkpoints" / "best.ckpt"
-    if not best.is_file():
-        raise FileNotFoundError(
-            f"train=false: no checkpoint to test; {best} does not exist (set ckpt_path=/path/to/model.ckpt)"
-        )
-    return str(check_checkpoint_file(best))
-
-
-#: console script ``tofdenoise-train`` (Hydra command line: overrides, ``--multirun``, ``--cfg job``)
-main = hydra_console_script(
-    "train",
+from tofdenoise.cli.checkpoint_check import CheckpointFileError
+from tofdenoise.config import ConfigError, hydra_console_script
+from tofdenoise.experiments.train_job import (
+    RunConfigMismatchError,
+    record_calibration,
     run,
-    "tofdenoise-train",
-    (CheckpointFileError, CheckpointWriteError, ConfigError, InitWeightsError, RunLockedError),
+    validate_config,
+    validation_objective,
 )
+from tofdenoise.run_lock import RunLockedError
+from tofdenoise.training.init_weights import InitWeightsError
+
+__all__ = ["main", "run", "validate_config", "record_calibration"]
+
+PROG = "tofdenoise-train"
+#: errors printed as one ``tofdenoise-train: error: ...`` line with exit status 2
+ERRORS = (
+    CheckpointFileError,
+    CheckpointWriteError,
+    ConfigError,
+    InitWeightsError,
+    RunConfigMismatchError,
+    RunLockedError,
+)
+#: the Hydra sweeper plug-in of ``hparams_search`` (the ``sweep`` extra)
+SWEEPER_MODULE = "hydra_plugins.hydra_optuna_sweeper"
+
+_hydra_main = hydra_console_script("train", validation_objective, PROG, ERRORS)
+
+
+def _needs_sweeper(argv: list[str]) -> str | None:
+    """The ``hparams_search=...`` option of the command line when its sweeper plug-in is not installed."""
+    for arg in argv:
+        if arg.lstrip("+").startswith("hparams_search=") and importlib.util.find_spec(SWEEPER_MODULE) is None:
+            return arg
+    return None
+
+
+def main() -> None:
+    """Console script ``tofdenoise-train`` (Hydra command line: overrides, ``--multirun``, ``--cfg job``)."""
+    missing = _needs_sweeper(sys.argv[1:])
+    if missing is not None:
+        print(
+            f"{PROG}: error: {missing} needs the Optuna sweeper (hydra-optuna-sweeper), which is not installed; "
+            "install the sweep extra: pip install -e '.[sweep]' (make venv installs it)",
+            file=sys.stderr,
+        )
+        raise SystemExit(2)
+    _hydra_main()
+
+
+#: the function Hydra calls for every job (it returns the job's lowest validation MAE)
+main.entry = _hydra_main.entry  # type: ignore[attr-defined]
 
 
 if __name__ == "__main__":

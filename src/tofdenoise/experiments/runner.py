@@ -19,7 +19,6 @@ is still the same process writing the same folder, so its records do not depend 
 
 from __future__ import annotations
 
-import json
 import os
 import subprocess
 import sys
@@ -30,7 +29,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from tofdenoise.training.results import METRICS_NAME, RUN_INFO_NAME
+# the one rule of a finished run, shared with the training job (tofdenoise.experiments.train_job)
+from tofdenoise.training.results import read_run, run_finished
 
 __all__ = [
     "RunSpec",
@@ -77,23 +77,6 @@ class RunOutcome:
     seconds: float = 0.0
     returncode: int | None = None
     log_tail: str = ""
-
-
-def read_run(run_dir: Path) -> tuple[dict[str, Any] | None, dict[str, Any] | None]:
-    """``(run_info, metrics)`` of a run folder; ``None`` for a file that is missing or does not parse."""
-    out: list[dict[str, Any] | None] = []
-    for name in (RUN_INFO_NAME, METRICS_NAME):
-        try:
-            out.append(json.loads((run_dir / name).read_text()))
-        except (OSError, ValueError):
-            out.append(None)
-    return out[0], out[1]
-
-
-def run_finished(run_dir: Path) -> bool:
-    """True when the run folder holds a finished run: ``run_info.json`` with ``finished`` and a ``metrics.json``."""
-    info, metrics = read_run(run_dir)
-    return bool(info and info.get("finished")) and metrics is not None
 
 
 def _tail(path: Path, lines: int = 40) -> str:

@@ -15,6 +15,9 @@ Functions for the LightningModule, the callbacks and the entry points (no Lightn
   ``metrics.json`` (``RUN_KEYS``): ``method_kind`` ("network"), ``trained_steps``, ``best_val_mae_mm``,
   ``raw_val_mae_mm``, ``learned_margin``, ``learned`` (bool) and ``learned_reason`` (plain words);
   ``classical_verdict(best_val_mae_mm, raw_val_mae_mm, margin)`` the same fields for a classical method.
+- ``run_finished(run_dir)``: does a run folder hold a finished run (the one rule, used by the training job to
+  return a finished run's records instead of training again and by the grids' runner to skip it);
+  ``read_run(run_dir)`` gives its ``(run_info, metrics)``.
 - ``write_per_image_csv(path, rows, raw_rows=None, names=None)``: rows from
   ``DepthMetrics.per_image_rows()``; columns ``index, name, valid_px, psnr_db, mae_mm, mse_mm2, ssim`` and,
   with ``raw_rows`` (matched by index), ``raw_psnr_db, raw_mae_mm, raw_mse_mm2, raw_ssim``. ``names`` maps an
@@ -76,6 +79,8 @@ __all__ = [
     "METRICS_NAME",
     "RUN_INFO_NAME",
     "PER_IMAGE_DIR",
+    "read_run",
+    "run_finished",
 ]
 
 EXTRA_KEYS = ("mae_mm_pooled", "images", "skipped_images", "valid_px")
@@ -340,6 +345,24 @@ def read_metrics_json(path: str | Path) -> dict[str, Any]:
         raise ValueError(f"{path}: not valid JSON ({exc})") from None
     validate_metrics_results(data, str(path))
     return data
+
+
+def read_run(run_dir: str | Path) -> tuple[dict[str, Any] | None, dict[str, Any] | None]:
+    """``(run_info, metrics)`` of a run folder; ``None`` for a file that is missing or does not parse."""
+    out: list[dict[str, Any] | None] = []
+    for name in (RUN_INFO_NAME, METRICS_NAME):
+        try:
+            out.append(json.loads((Path(run_dir) / name).read_text()))
+        except (OSError, ValueError):
+            out.append(None)
+    return out[0], out[1]
+
+
+def run_finished(run_dir: str | Path) -> bool:
+    """True when the run folder holds a finished run: ``run_info.json`` with ``finished`` and a ``metrics.json``
+    (``finished`` is written after ``metrics.json``, at the end of the test)."""
+    info, metrics = read_run(run_dir)
+    return bool(info and info.get("finished")) and metrics is not None
 
 
 def _name_for(names: Mapping[int, str] | Sequence[str] | None, index: int | None) -> str:

@@ -1,0 +1,369 @@
+"""One training job of ``tofdenoise-train``, safe to run again: the workflow behind the Hydra entry point.
+
+:func:`run` (``cfg`` composed from ``configs/train.yaml``) takes the run folder's lock (``tofdenoise.run_lock``) and
+
+* **returns the records of a finished run** when ``train`` and ``reuse_finished`` are on (the defaults) and the
+  folder holds one (``tofdenoise.training.results.run_finished``, the rule the grids' runner skips runs by): nothing
+  is trained or rewritten, and the result is read from its ``metrics.json``. ``reuse_finished=false`` trains it again
+  from ``ckpt_path`` (``last``: continue it, e.g. with more epochs; ``null``: start over). The folder's
+  ``config.yaml`` must describe the same run (every setting but where files go, the loggers and callbacks,
+  ``train``/``test``/``ckpt_path``/``reuse_finished``, the progress bar, the model summary and ``data.cache_dir``);
+  another run's folder is refused (:class:`RunConfigMismatchError`, naming the settings that differ), never passed
+  off as this run's result;
+* **resumes an interrupted run** from ``<run_dir>/checkpoints/last.ckpt`` (``ckpt_path: last``, the default; a
+  fresh run when there is none yet);
+* otherwise checks the config (valid backbone / noise / loss names, dataset paths), seeds, instantiates the
+  datamodule, model, callbacks, loggers and trainer (``_convert_="all"``: only plain values reach the classes),
+  fits and tests the best checkpoint (lowest ``val/mae_mm``).
+
+Its result holds ``val_mae_mm``: the lowest validation MAE of the run (``val/mae_mm``, what ``best.ckpt`` is chosen
+by; ``best_val_mae_mm`` of ``metrics.json``). :func:`validation_objective` returns it alone: the value the Hydra
+entry point returns to a sweeper (``hparams_search=recipe``, the Optuna sweeper minimises it).
+
+The run's records (``run_info.json``, ``config.yaml``, ``metrics.json``, ``per_image/<set>.csv``) are written by the
+``RunOutputs`` callback (``tofdenoise.callbacks.run_outputs``, ``callbacks.run_outputs`` in the config); wandb's
+environment and its ``wandb.finish()`` at the end come from ``tofdenoise.wandb_env``.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from pathlib import Path
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf, open_dict
+
+from tofdenoise.cli.checkpoint_check import check_checkpoint_file, resolve_ckpt_path
+from tofdenoise.config import ConfigError, instantiate_node
+from tofdenoise.registry import Registry
+from tofdenoise.run_lock import RunLock
+from tofdenoise.training.results import METRICS_NAME, RUN_INFO_NAME, read_metrics_json, read_run, run_finished
+from tofdenoise.wandb_env import finish_wandb, setup_wandb_env, wandb_run_id
+
+__all__ = [
+    "RunConfigMismatchError",
+    "check_ddp_in_sweep",
+    "check_same_run",
+    "check_slurm_shape",
+    "SAME_RUN_IGNORES",
+    "record_calibration",
+    "run",
+    "validate_config",
+    "validation_objective",
+]
+
+log = logging.getLogger("tofdenoise.train")
+
+#: the saved config file of a run (written by RunOutputs next to run_info.json)
+CONFIG_NAME = "config.yaml"
+#: settings that may differ between two attempts of the same run: where files go, what is logged, which steps
+#: run (``train``/``test``/``ckpt_path``/``reuse_finished``), console output and the location of the data cache
+SAME_RUN_IGNORES = (
+    "paths",
+    "ckpt_path",
+    "reuse_finished",
+    "train",
+    "test",
+    "logger",
+    "callbacks",
+    "trainer.default_root_dir",
+    "trainer.enable_progress_bar",
+    "trainer.enable_model_summary",
+    "data.cache_dir",
+)
+
+
+class RunConfigMismatchError(ValueError):
+    """The run folder holds a finished run of another config (the message names the settings that differ)."""
+
+
+def _names_or_error(key: str, value: str, registry: Registry) -> None:
+    if value not in registry:
+        raise ValueError(
+            f"config {key}: unknown {registry.kind} {value!r}; valid names: "
+            f"{', '.join(sorted(registry.names()))} (choose with `{key.split('.')[0]}=<name>`)"
+        )
+
+
+def validate_config(cfg: DictConfig) -> None:
+    """Fail early (before any data or model is built) on unknown names or missing dataset paths."""
+    from tofdenoise.models.registry import BACKBONES, is_trainable
+    from tofdenoise.physics.noise_models import NOISE_MODELS
+    from tofdenoise.training.losses import LOSSES
+
+    for group in ("backbone", "noise", "loss", "data", "model", "trainer"):
+        if group not in cfg or cfg[group] is None:
+            raise ValueError(f"config: group {group!r} is missing (configs/train.yaml defaults list)")
+    _names_or_error("backbone.name", cfg.backbone.name, BACKBONES)
+    if not is_trainable(cfg.backbone.name):
+        raise ValueError(
+            f"config backbone.name: {cfg.backbone.name!r} is a classical filter without trainable "
+            "parameters: nothing to train; tune and evaluate it with `tofdenoise-classic` "
+            "(docs/models.md#classical-row-joint-bilateral-filter)"
+        )
+    _names_or_error("noise.name", cfg.noise.name, NOISE_MODELS)
+    _names_or_error("loss.name", cfg.loss.name, LOSSES)
+    data = cfg.data
+    source = data.get("source", "procedural")
+    if source not in (None, "procedural"):
+        root = data.get("root")
+        if root in (None, "", "???"):
+            raise ValueError(
+                f"config data.root: data source {source!r} needs its dataset folder; set "
+                f"data.root=/path/to/dataset (e.g. `make train DATA={source} "
+                f"ARGS='data.root=/data/...'`)"
+            )
+        if not Path(str(root)).expanduser().exists():
+            raise FileNotFoundError(
+                f"config data.root: dataset folder {root} (data source {source!r}) does not "
+                f"exist; set data.root to the dataset folder"
+            )
+    if data.get("real_dir") not in (None, "") and not Path(str(data.real_dir)).expanduser().exists():
+        raise FileNotFoundError(
+            f"config data.real_dir: real capture folder {data.real_dir} does not exist "
+            "(set data.real_dir=null to skip the real test set)"
+        )
+    check_slurm_shape(cfg.trainer)
+    check_ddp_in_sweep(cfg.trainer)
+    for name, node in (cfg.get("logger") or {}).items():
+        target = str((node or {}).get("_target_", ""))
+        if target.endswith("TensorBoardLogger"):
+            try:
+                import tensorboard  # noqa: F401
+            except ImportError:
+                try:
+                    import tensorboardX  # noqa: F401
+                except ImportError as exc:
+                    raise ImportError(
+                        f"config logger.{name}: the TensorBoard logger needs the `tensorboard` "
+                        "package (pip install tensorboard), or use logger=wandb_offline / csv"
+                    ) from exc
+
+
+def _slurm_tasks() -> int:
+    """The task count of a multi-task SLURM step Lightning takes as its environment, else 1."""
+    tasks = os.environ.get("SLURM_NTASKS", "")
+    if not tasks.isdigit() or os.environ.get("SLURM_JOB_NAME") in ("bash", "interactive"):
+        return 1  # Lightning's own rule for its SLURM environment
+    return int(tasks)
+
+
+def _is_ddp(trainer: DictConfig) -> bool:
+    return str(trainer.get("strategy") or "").startswith("ddp")
+
+
+def check_ddp_in_sweep(trainer: DictConfig) -> None:
+    """``ConfigError`` for a DDP run of several processes inside a Hydra multirun (``-m``) that Lightning would
+    launch itself: it starts the other processes by running the command line again, which here is the whole sweep
+    (every job of it, once per rank). Under SLURM (``srun`` starts every process) a sweep's DDP job is fine."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    if not HydraConfig.initialized() or HydraConfig.get().mode != RunMode.MULTIRUN:
+        return
+    if _is_ddp(trainer) and trainer.get("devices", 1) != 1 and _slurm_tasks() <= 1:
+        raise ConfigError(
+            "trainer.strategy: a DDP run of several processes cannot be a job of a multirun (-m): Lightning starts "
+            "its other processes by running the command line again, here the whole sweep; run DDP jobs one at a "
+            "time (without -m), or under SLURM with one task per device (docs/cluster.md)"
+        )
+
+
+def check_slurm_shape(trainer: DictConfig) -> None:
+    """A DDP run started by SLURM (``srun``, one task per device) needs ``trainer.num_nodes x trainer.devices`` to be
+    the job's task count, else its processes wait for ranks that never come; Lightning checks this only for the
+    processes it launches itself. ``ConfigError`` naming both settings and the job's ``SLURM_NTASKS`` otherwise."""
+    tasks = _slurm_tasks()
+    if tasks <= 1 or not _is_ddp(trainer):
+        return
+    nodes, devices = trainer.get("num_nodes", 1), trainer.get("devices", 1)
+    if isinstance(nodes, int) and isinstance(devices, int) and nodes * devices != tasks:
+        raise ConfigError(
+            f"trainer.num_nodes x trainer.devices = {nodes} x {devices} = {nodes * devices} processes, but this SLURM "
+            f"job started {tasks} tasks (SLURM_NTASKS; --nodes x --ntasks-per-node): one task per device; leave "
+            "both settings to trainer=ddp's defaults (the job's SLURM_NNODES and SLURM_NTASKS_PER_NODE) or match them"
+        )
+
+
+def _instantiate_group(node: DictConfig | None) -> list[Any]:
+    from hydra.utils import instantiate
+
+    out = []
+    for _, sub in (node or {}).items():
+        if isinstance(sub, DictConfig) and "_target_" in sub:
+            out.append(instantiate(sub, _convert_="all"))
+    return out
+
+
+def _run_outputs(callbacks: list[Any]) -> Any:
+    """The run's ``RunOutputs`` callback (its records are what a finished run is made of)."""
+    from tofdenoise.callbacks.run_outputs import RunOutputs
+
+    found = [cb for cb in callbacks if isinstance(cb, RunOutputs)]
+    if len(found) != 1:
+        raise ValueError(
+            f"config callbacks: expected one tofdenoise.callbacks.run_outputs.RunOutputs (it writes "
+            f"run_info.json, config.yaml and metrics.json), found {len(found)}; keep "
+            "callbacks.run_outputs of configs/callbacks/default.yaml"
+        )
+    return found[0]
+
+
+def record_calibration(cfg: DictConfig, calib: Any) -> None:
+    """Set ``cfg.sensor`` to the calibration the data module resolved, before the config is saved.
+
+    ``data.sensor`` may name a calibration file or a preset (``++data.sensor=mycam/calibration.yaml``) and so
+    override the ``sensor`` group. Without this, the saved ``config.yaml`` would show that group's camera, which
+    the run never used."""
+    with open_dict(cfg):
+        cfg.sensor = calib.to_dict()
+
+
+def run(cfg: DictConfig) -> dict[str, Any]:
+    """Train and/or test as configured, or return the records of the finished run in the folder (module
+    docstring); returns ``{"run_dir", "best_ckpt", "metrics", "val_mae_mm", "reused"}`` (``reused``: True when
+    the folder's finished run was returned and nothing ran)."""
+    validate_config(cfg)
+    run_dir = Path(str(cfg.paths.run_dir)).expanduser().resolve()
+    with RunLock(run_dir):  # one writer per run folder (held already when Hydra's callback took it)
+        return _run_locked(cfg, run_dir)
+
+
+def _run_locked(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
+    from hydra.utils import instantiate
+    from lightning.pytorch import seed_everything
+
+    run_dir.mkdir(parents=True, exist_ok=True)
+    with open_dict(cfg):
+        cfg.paths.run_dir = str(run_dir)
+    finished = cfg.get("train", True) and cfg.get("reuse_finished", True) and run_finished(run_dir)
+    setup_wandb_env(run_dir)
+    if cfg.get("logger") and cfg.logger.get("wandb") is not None and cfg.logger.wandb.get("id") is None:
+        with open_dict(cfg):
+            cfg.logger.wandb.id = wandb_run_id(run_dir)
+
+    # the checkpoint to resume from (or to test) is checked before anything of the run is written
+    resume_ckpt = None
+    if cfg.get("train", True) and not finished:
+        resume_ckpt = resolve_ckpt_path(cfg.get("ckpt_path"), run_dir)
+        if resume_ckpt is not None:
+            check_checkpoint_file(resume_ckpt)
+    elif not cfg.get("train", True) and cfg.get("test", True):
+        _test_checkpoint(cfg, None, run_dir)
+
+    seed_everything(int(cfg.seed), workers=True)
+    datamodule = instantiate_node(cfg.data, "data")
+    record_calibration(cfg, datamodule.calib)
+    if finished:
+        return _recorded_result(cfg, run_dir)
+    model = instantiate(cfg.model, _convert_="all")
+    callbacks = _instantiate_group(cfg.get("callbacks"))
+    # run_info.json, config.yaml (written once the checkpoint is restored), metrics.json and the CSVs
+    outputs = _run_outputs(callbacks)
+    outputs.config_text = OmegaConf.to_yaml(cfg, resolve=True)
+    loggers = _instantiate_group(cfg.get("logger"))
+    trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False, _convert_="all")
+    for lg in trainer.loggers:
+        lg.log_hyperparams({"config": OmegaConf.to_container(cfg, resolve=True)})
+
+    result: dict[str, Any] = {"run_dir": str(run_dir), "best_ckpt": None, "metrics": None, "reused": False}
+    try:
+        if cfg.get("train", True):
+            trainer.fit(model, datamodule=datamodule, ckpt_path=resume_ckpt)
+        if cfg.get("test", True):
+            ckpt = _test_checkpoint(cfg, trainer, run_dir)
+            result["best_ckpt"] = ckpt
+            trainer.test(model, datamodule=datamodule, ckpt_path=ckpt, weights_only=True)
+            result["metrics"] = outputs.metrics
+    finally:
+        finish_wandb()
+    result["val_mae_mm"] = model.learned_record().get("best_val_mae_mm")
+    return result
+
+
+def _comparable(cfg_yaml: str) -> dict[str, Any]:
+    """The settings of a resolved config (its YAML text) that decide a run's result: ``SAME_RUN_IGNORES`` left
+    out, flattened to ``{"model.lr": 0.001, ...}``."""
+    flat: dict[str, Any] = {}
+
+    def walk(node: Any, prefix: str) -> None:
+        if prefix in SAME_RUN_IGNORES:
+            return
+        if isinstance(node, dict) and node:
+            for key, value in node.items():
+                walk(value, f"{prefix}.{key}" if prefix else str(key))
+        else:
+            flat[prefix] = node
+
+    walk(OmegaConf.to_container(OmegaConf.create(cfg_yaml), resolve=False), "")
+    return flat
+
+
+def check_same_run(cfg: DictConfig, run_dir: Path) -> None:
+    """Raise :class:`RunConfigMismatchError` when ``<run_dir>/config.yaml`` (the config of the run recorded there)
+    differs from ``cfg`` in a setting outside ``SAME_RUN_IGNORES``; a folder without ``config.yaml`` passes."""
+    saved_path = run_dir / CONFIG_NAME
+    try:
+        saved_text = saved_path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        return
+    saved, now = _comparable(saved_text), _comparable(OmegaConf.to_yaml(cfg, resolve=True))
+    differ = sorted(k for k in saved.keys() | now.keys() if saved.get(k, "<unset>") != now.get(k, "<unset>"))
+    if differ:
+        shown = "; ".join(f"{k}: {saved.get(k, '<unset>')!r} there, {now.get(k, '<unset>')!r} now" for k in differ[:6])
+        more = f" (and {len(differ) - 6} more)" if len(differ) > 6 else ""
+        raise RunConfigMismatchError(
+            f"run folder {run_dir} holds a finished run of another config ({saved_path}): {shown}{more}; "
+            "choose another folder (paths.run_dir, or in a sweep run_name=... / hydra.sweep.subdir=... so that "
+            "each job gets its own), or set reuse_finished=false to train that run again with this config"
+        )
+
+
+def _recorded_result(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
+    """The result of the finished run in ``run_dir`` (same config, checked), read from its records."""
+    check_same_run(cfg, run_dir)
+    info, _ = read_run(run_dir)
+    metrics = read_metrics_json(run_dir / METRICS_NAME)
+    best = metrics.get("best_val_mae_mm")
+    val = None if best is None else float(best)
+    print(
+        f"[{cfg.get('run_name', run_dir.name)}] finished before ({RUN_INFO_NAME} finished {info.get('finished')}): "
+        f"nothing trained, recorded metrics from {run_dir / METRICS_NAME} | best val/mae_mm "
+        + ("n/a" if val is None else f"{val:.3f}"),
+        flush=True,
+    )
+    return {
+        "run_dir": str(run_dir),
+        "best_ckpt": info.get("best_ckpt"),
+        "metrics": metrics,
+        "val_mae_mm": val,
+        "reused": True,
+    }
+
+
+def _test_checkpoint(cfg: DictConfig, trainer: Any, run_dir: Path) -> str | None:
+    """Best checkpoint of this fit; when not training, ``ckpt_path`` or ``<run_dir>/checkpoints/best.ckpt``."""
+    if cfg.get("train", True):
+        cb = trainer.checkpoint_callback
+        best = getattr(cb, "best_model_path", "") if cb is not None else ""
+        if best:
+            return best
+        # fast_dev_run (checkpointing disabled) or no validation: test the weights in memory
+        log.warning("no best checkpoint was written (fast_dev_run or no validation): testing current weights")
+        return None
+    given = cfg.get("ckpt_path")
+    if given not in (None, "", "last"):
+        return str(check_checkpoint_file(resolve_ckpt_path(given, run_dir)))
+    best = run_dir / "checkpoints" / "best.ckpt"
+    if not best.is_file():
+        raise FileNotFoundError(
+            f"train=false: no checkpoint to test; {best} does not exist (set ckpt_path=/path/to/model.ckpt)"
+        )
+    return str(check_checkpoint_file(best))
+
+
+def validation_objective(cfg: DictConfig) -> float | None:
+    """:func:`run`, returning the run's lowest validation MAE in mm (``val/mae_mm``, the monitored metric) as a
+    float: what the Hydra entry point gives a sweeper to minimise; ``None`` when no validation ran."""
+    return run(cfg)["val_mae_mm"]
