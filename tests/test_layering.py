@@ -30,7 +30,18 @@ FLOORS = {
     "callbacks": 4,
     **dict.fromkeys(FRONT_ENDS, 5),
 }
-SHARED = {"registry", "config", "atomic", "paths", "output_guard", "run_lock", "wandb_env", "lazy", "visualize"}
+SHARED = {
+    "records",
+    "registry",
+    "config",
+    "atomic",
+    "paths",
+    "output_guard",
+    "run_lock",
+    "wandb_env",
+    "lazy",
+    "visualize",
+}
 SCAN = f"{PACKAGE}.models.scan"
 SCAN_DISPATCHER = {SCAN, f"{SCAN}.dispatch"}
 #: cycles older than this test, each through a function-level import; remove an entry when its cycle goes

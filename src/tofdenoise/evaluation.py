@@ -33,8 +33,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from tofdenoise.records import json_number
 from tofdenoise.training.metrics import D_MAX_MM, METRIC_KEYS, DepthMetrics
-from tofdenoise.training.results import json_number
 
 __all__ = ["DEPTH_SUFFIXES", "EvalInputError", "list_maps", "evaluate_dirs"]
 

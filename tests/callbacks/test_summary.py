@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from tofdenoise.callbacks.summary import format_learned_warning
-from tofdenoise.training.results import learned_verdict
+from tofdenoise.records import learned_verdict
 
 
 def test_warning_in_plain_words_for_a_run_that_did_not_learn():

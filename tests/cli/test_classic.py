@@ -13,7 +13,7 @@ from tofdenoise.cli.classic import grid_points, run, select_best
 from tofdenoise.cli.train import validate_config
 from tofdenoise.config import compose_config
 from tofdenoise.physics.calibration import SensorCalibration
-from tofdenoise.training.results import RUN_KEYS, learned_status, metric_sets, read_metrics_json, read_per_image_csv
+from tofdenoise.records import RUN_KEYS, learned_status, metric_sets, read_metrics_json, read_per_image_csv
 
 
 def classic_overrides(tiny, run_dir, cache, grid: dict) -> list[str]:

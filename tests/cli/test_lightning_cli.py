@@ -103,7 +103,7 @@ def test_fit_test_predict_from_the_smoke_config(tmp_path, data_cache, monkeypatc
     }.items() <= info.items()
     assert "finished" in info and "started" in info
     # the learned guard's fields come from the tested checkpoint (6 training scenes, batch 2: 3 steps)
-    from tofdenoise.training.results import learned_status, learned_verdict
+    from tofdenoise.records import learned_status, learned_verdict
 
     ckpt = torch.load(best, weights_only=True)
     assert metrics["trained_steps"] == ckpt["global_step"] == 3

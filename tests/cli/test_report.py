@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from tofdenoise.cli.report import main
+from tofdenoise.records import learned_verdict, set_entry, write_metrics_json
 from tofdenoise.reporting import find_runs, load_run, results_table, table_markdown
-from tofdenoise.training.results import learned_verdict, set_entry, write_metrics_json
 
 RAW = {"psnr_db": 31.68, "ssim": 0.95, "mse_mm2": 680.0, "mae_mm": 7.21}
 
@@ -141,7 +141,7 @@ def test_no_runs_is_an_error(tmp_path, capsys):
 
 def _guarded_run(root: Path, name: str, mae: float, steps: int, best, raw=7.5) -> Path:
     """A run folder whose metrics.json carries the learned guard's fields, as the training writes them."""
-    from tofdenoise.training.results import learned_verdict
+    from tofdenoise.records import learned_verdict
 
     d = root / name
     write_metrics_json(
@@ -190,7 +190,7 @@ def test_report_flags_runs_that_did_not_learn_or_were_not_trained(tmp_path, caps
 def test_classical_row_is_listed_as_classical_and_can_be_best(tmp_path, capsys):
     """A classical filter's metrics.json (0 steps, learned False, method_kind classical) is a plain row of the
     table: "classical" in the Learned column, not red, and bold where it is best."""
-    from tofdenoise.training.results import classical_verdict
+    from tofdenoise.records import classical_verdict
 
     root = tmp_path / "runs"
     _guarded_run(root, "net", 3.0, 900, 2.9)

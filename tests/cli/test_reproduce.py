@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from tofdenoise.cli.reproduce import copy_records, main, profile_overrides, realset_command
-from tofdenoise.training.results import learned_verdict
+from tofdenoise.records import learned_verdict
 
 
 def test_dry_run_lists_the_realset_and_every_run(tmp_path, capsys):

@@ -17,7 +17,7 @@ from tofdenoise.cli.train import main
 from tofdenoise.config import ConfigError, compose_config
 from tofdenoise.experiments.runner import RunSpec, run_all
 from tofdenoise.experiments.train_job import RunConfigMismatchError, run, validate_config
-from tofdenoise.training.results import read_metrics_json
+from tofdenoise.records import read_metrics_json
 
 REPO = Path(__file__).resolve().parents[2]
 

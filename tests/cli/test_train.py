@@ -19,14 +19,14 @@ from tofdenoise.cli.train import run
 from tofdenoise.config import compose_config
 from tofdenoise.models import trainable_backbones
 from tofdenoise.physics.calibration import SensorCalibration
-from tofdenoise.training.metrics import METRIC_KEYS
-from tofdenoise.training.results import (
+from tofdenoise.records import (
     RUN_KEYS,
     learned_status,
     metric_sets,
     read_metrics_json,
     read_per_image_csv,
 )
+from tofdenoise.training.metrics import METRIC_KEYS
 
 REPO = Path(__file__).resolve().parents[2]
 

@@ -196,7 +196,7 @@ def test_metrics_json_counts_the_scenes_the_datamodule_skipped(tmp_path):
     from types import SimpleNamespace
 
     from tofdenoise.callbacks.run_outputs import write_test_outputs
-    from tofdenoise.training.results import learned_verdict, set_entry
+    from tofdenoise.records import learned_verdict, set_entry
 
     m = {"psnr_db": 40.0, "mae_mm": 2.0, "mse_mm2": 9.0, "ssim": 0.99}
     model = SimpleNamespace(

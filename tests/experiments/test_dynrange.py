@@ -8,8 +8,8 @@ import pytest
 
 from tofdenoise.experiments.dynrange import gain_figure_png, gains
 from tofdenoise.experiments.tables import TABLES, table_specs
+from tofdenoise.records import learned_verdict, read_metrics_json, set_entry, write_metrics_json
 from tofdenoise.reporting.results_page import gains_markdown
-from tofdenoise.training.results import learned_verdict, read_metrics_json, set_entry, write_metrics_json
 
 
 def test_study_runs_share_the_physical_world_with_table_3_and_start_with_unet():

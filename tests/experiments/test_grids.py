@@ -12,8 +12,8 @@ import pytest
 from tofdenoise.cli.grid import main
 from tofdenoise.experiments.grids import robustness_rows, robustness_specs
 from tofdenoise.experiments.runner import run_all
+from tofdenoise.records import learned_verdict, set_entry, write_metrics_json
 from tofdenoise.reporting.robustness import robustness_table
-from tofdenoise.training.results import learned_verdict, set_entry, write_metrics_json
 
 REPO = Path(__file__).resolve().parents[2]
 

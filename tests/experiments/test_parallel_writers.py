@@ -13,7 +13,7 @@ import numpy as np
 
 from tofdenoise.data_modules.cache import MapCache, SampleMaps
 from tofdenoise.data_modules.splits import load_or_make_split, load_split, make_split
-from tofdenoise.training.results import learned_verdict
+from tofdenoise.records import learned_verdict
 
 PROCESSES = 4
 ROUNDS = 15

@@ -13,8 +13,8 @@ import pytest
 from tofdenoise.experiments.runner import RunSpec
 from tofdenoise.experiments.tables import CLAIMS, TABLES, claim_holds, claim_steps, table_specs
 from tofdenoise.paths import REPO_ROOT
+from tofdenoise.records import learned_verdict
 from tofdenoise.reporting.results_page import load_records, results_markdown, run_minutes, seeds_present
-from tofdenoise.training.results import learned_verdict
 
 
 def test_specs_are_one_per_distinct_run_and_shared_across_tables():

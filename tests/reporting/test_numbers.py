@@ -6,8 +6,8 @@ from __future__ import annotations
 import math
 
 from tofdenoise.experiments.tables import TABLE_COLUMNS, column_metric, column_source, metric_value
+from tofdenoise.records import METRIC_KEYS, json_number
 from tofdenoise.reporting.numbers import METRIC_COLUMNS, format_number, read_number
-from tofdenoise.training.results import METRIC_KEYS, json_number
 
 
 def test_metric_columns_are_the_schema_metrics():

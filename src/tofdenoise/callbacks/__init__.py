@@ -13,7 +13,7 @@
 - :class:`~tofdenoise.callbacks.image_panels.ImagePanelLogger`: a fixed panel of validation samples per epoch.
 
 The run-results schema and its writers (``metrics.json``, per-image CSVs, the file names) live in
-:mod:`tofdenoise.training.results`.
+:mod:`tofdenoise.records`.
 The classes are imported lazily, so that importing this package does not pay for importing Lightning.
 """
 

@@ -1,7 +1,7 @@
 """The records of a run folder, the same for both front ends (``tofdenoise-train`` and ``tofdenoise fit|test``).
 
 :class:`RunOutputs` writes into ``dirpath`` (default: ``trainer.default_root_dir``), every file atomically, on
-the global-zero process only (file names in :mod:`tofdenoise.training.results`):
+the global-zero process only (file names in :mod:`tofdenoise.records`):
 
 - ``run_info.json``: ``{"backbone", "noise", "loss", "run_name", "data", "seed", "started"}`` once Lightning has
   restored the checkpoint it was given (train start of ``fit``, test start of ``test``), so an attempt that fails
@@ -36,15 +36,16 @@ from lightning.pytorch.callbacks import Callback
 
 from tofdenoise.atomic import atomic_write_text
 from tofdenoise.callbacks.training_cost import TrainingCost
-from tofdenoise.training.results import (
+from tofdenoise.records import (
     METRICS_NAME,
     PER_IMAGE_DIR,
     RUN_INFO_NAME,
     write_metrics_json,
     write_per_image_csv,
+    write_run_info,
 )
 
-__all__ = ["RunOutputs", "write_test_outputs", "write_json_atomic"]
+__all__ = ["RunOutputs", "write_test_outputs"]
 
 #: test set name -> the datamodule's ``skipped_samples`` key of the samples it left out before testing
 _SKIP_KEYS = {"synthetic": "test", "real": "real"}
@@ -53,11 +54,6 @@ CONFIG_NAME = "config.yaml"
 
 def _now() -> str:
     return time.strftime("%Y-%m-%dT%H:%M:%S%z")
-
-
-def write_json_atomic(path: Path, payload: Any) -> None:
-    """JSON with sorted keys, written atomically."""
-    atomic_write_text(path, json.dumps(payload, indent=2, sort_keys=True, allow_nan=True) + "\n")
 
 
 def write_test_outputs(model: Any, run_dir: Path) -> dict[str, Any]:
@@ -157,7 +153,7 @@ class RunOutputs(Callback):
             if started:
                 self.run_info["resumed"] = _now()
                 self.run_info["started"] = started
-        write_json_atomic(path, self.run_info)
+        write_run_info(run_dir, self.run_info)
         if self.config_text is not None:
             atomic_write_text(run_dir / CONFIG_NAME, self.config_text)
         self.pending = False
@@ -165,7 +161,7 @@ class RunOutputs(Callback):
     def _update(self, trainer: pl.Trainer, **fields: Any) -> None:
         if trainer.is_global_zero:
             self.run_info.update(fields)
-            write_json_atomic(self.run_dir(trainer) / RUN_INFO_NAME, self.run_info)
+            write_run_info(self.run_dir(trainer), self.run_info)
 
     def on_train_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
         self._write_records(trainer, pl_module, resumed=trainer.ckpt_path is not None)

@@ -10,7 +10,7 @@ from typing import Any
 import lightning.pytorch as pl
 from lightning.pytorch.callbacks import Callback
 
-from tofdenoise.training.results import learned_status
+from tofdenoise.records import learned_status
 
 __all__ = ["RunSummary", "format_fit_summary", "format_test_summary", "format_learned_warning"]
 

@@ -35,8 +35,8 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from tofdenoise.atomic import atomic_write_text
 from tofdenoise.config import hydra_console_script
 from tofdenoise.experiments.train_job import record_calibration, validate_config
+from tofdenoise.records import json_number, write_run_info
 from tofdenoise.run_lock import RunLock, RunLockedError
-from tofdenoise.training.results import RUN_INFO_NAME, json_number
 
 __all__ = ["main", "run", "grid_points", "tune", "select_best", "TUNING_NAME", "GRID_KEYS", "DEFAULT_BACKBONE"]
 
@@ -175,7 +175,7 @@ def _tune_and_test(
     from hydra.utils import instantiate
     from lightning.pytorch import seed_everything
 
-    from tofdenoise.callbacks.run_outputs import write_json_atomic, write_test_outputs
+    from tofdenoise.callbacks.run_outputs import write_test_outputs
     from tofdenoise.training.module import DepthRestorer
 
     ccfg = cfg.classical
@@ -258,7 +258,7 @@ def _tune_and_test(
         "tuning": TUNING_NAME,
     }
     if trainer.is_global_zero:
-        write_json_atomic(run_dir / RUN_INFO_NAME, run_info)
+        write_run_info(run_dir, run_info)
     return {"run_dir": str(run_dir), "best": best_params, "metrics": metrics, "tuning": tuning}
 
 

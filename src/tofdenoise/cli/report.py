@@ -3,7 +3,7 @@
     tofdenoise-report RUNS_DIR [RUNS_DIR ...] --out report.html [--title TEXT]
 
 A run is any folder (searched recursively under each RUNS_DIR, which may itself be a run) that holds a
-``metrics.json`` (written by the training, schema in ``tofdenoise.training.results``). The page has a table
+``metrics.json`` (written by the training, schema in ``tofdenoise.records``). The page has a table
 like the paper's (a "Raw input" row per distinct raw result, then one row per run: method, noise model, loss,
 the "Learned" flag, PSNR/SSIM/MSE/MAE on synthetic and, when any run has it, real data; the best value of each
 column in bold), a plot of validation MAE of all runs, and per run its learning curves and latest sample

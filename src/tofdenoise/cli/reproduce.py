@@ -40,7 +40,7 @@ from typing import Any
 from tofdenoise.atomic import atomic_write_bytes, atomic_write_text, exclusive_lock
 from tofdenoise.cli.executor_args import add_executor_arguments, executor_from_args
 from tofdenoise.paths import REPO_ROOT
-from tofdenoise.training.results import METRICS_NAME, PER_IMAGE_DIR, RUN_INFO_NAME
+from tofdenoise.records import METRICS_NAME, PER_IMAGE_DIR, RUN_INFO_NAME
 
 __all__ = ["main", "build_parser", "PROFILES", "profile_needs", "profile_overrides"]
 

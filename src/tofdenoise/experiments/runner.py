@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any
 
 # the one rule of a finished run, shared with the training job (tofdenoise.experiments.train_job)
-from tofdenoise.training.results import read_run, run_finished
+from tofdenoise.records import read_run, run_finished
 
 __all__ = [
     "RunSpec",

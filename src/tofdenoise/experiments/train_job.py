@@ -3,7 +3,7 @@
 :func:`run` (``cfg`` composed from ``configs/train.yaml``) takes the run folder's lock (``tofdenoise.run_lock``) and
 
 * **returns the records of a finished run** when ``train`` and ``reuse_finished`` are on (the defaults) and the
-  folder holds one (``tofdenoise.training.results.run_finished``, the rule the grids' runner skips runs by): nothing
+  folder holds one (``tofdenoise.records.run_finished``, the rule the grids' runner skips runs by): nothing
   is trained or rewritten, and the result is read from its ``metrics.json``. ``reuse_finished=false`` trains it again
   from ``ckpt_path`` (``last``: continue it, e.g. with more epochs; ``null``: start over). The folder's
   ``config.yaml`` must describe the same run (every setting but where files go, the loggers and callbacks,
@@ -36,9 +36,9 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 
 from tofdenoise.cli.checkpoint_check import check_checkpoint_file, resolve_ckpt_path
 from tofdenoise.config import ConfigError, instantiate_node
+from tofdenoise.records import METRICS_NAME, RUN_INFO_NAME, read_metrics_json, read_run, run_finished
 from tofdenoise.registry import Registry
 from tofdenoise.run_lock import RunLock
-from tofdenoise.training.results import METRICS_NAME, RUN_INFO_NAME, read_metrics_json, read_run, run_finished
 from tofdenoise.wandb_env import finish_wandb, setup_wandb_env, wandb_run_id
 
 __all__ = [

@@ -16,7 +16,7 @@ from __future__ import annotations
 import math
 from typing import Any, NamedTuple
 
-from tofdenoise.training.results import json_number
+from tofdenoise.records import json_number
 
 __all__ = ["MetricColumn", "METRIC_COLUMNS", "METRICS_BY_KEY", "format_number", "read_number"]
 

@@ -12,11 +12,11 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from tofdenoise.records import learned_status
 from tofdenoise.reporting.numbers import METRIC_COLUMNS, format_number
 from tofdenoise.reporting.plots import comparison_png, learning_curves_png
 from tofdenoise.reporting.runs import Run
 from tofdenoise.reporting.table import FLAGGED, MISSING, SET_LABELS, best_value, learned_flag, results_table
-from tofdenoise.training.results import learned_status
 
 __all__ = ["render_html"]
 

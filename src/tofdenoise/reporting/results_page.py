@@ -42,9 +42,7 @@ from tofdenoise.experiments.tables import (
     row_values,
     run_name,
 )
-from tofdenoise.reporting.numbers import format_number
-from tofdenoise.reporting.table import LEARNED_FLAGS
-from tofdenoise.training.results import (
+from tofdenoise.records import (
     METRIC_KEYS,
     METRICS_NAME,
     RUN_INFO_NAME,
@@ -53,6 +51,8 @@ from tofdenoise.training.results import (
     read_metrics_json,
     run_fields,
 )
+from tofdenoise.reporting.numbers import format_number
+from tofdenoise.reporting.table import LEARNED_FLAGS
 
 __all__ = [
     "DISCUSSION_NAME",

@@ -1,6 +1,6 @@
 """Run folders for the report: which folders are runs, and what the report reads from one.
 
-A run is any folder (searched recursively) that holds a ``metrics.json`` (``tofdenoise.training.results``).
+A run is any folder (searched recursively) that holds a ``metrics.json`` (``tofdenoise.records``).
 :func:`load_run` reads from it:
 
 - ``metrics.json``: final test metrics per set (``synthetic``, ``real``) with the ``raw`` (noisy input) block,
@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from tofdenoise.training.results import METRICS_NAME, RUN_INFO_NAME, metric_sets, read_metrics_json, run_fields
+from tofdenoise.records import METRICS_NAME, RUN_INFO_NAME, metric_sets, read_metrics_json, run_fields
 
 __all__ = ["Run", "find_runs", "load_run"]
 

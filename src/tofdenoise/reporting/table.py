@@ -14,9 +14,9 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
+from tofdenoise.records import learned_status
 from tofdenoise.reporting.numbers import METRIC_COLUMNS, format_number, read_number
 from tofdenoise.reporting.runs import Run
-from tofdenoise.training.results import learned_status
 
 __all__ = [
     "SET_LABELS",
@@ -32,7 +32,7 @@ __all__ = [
 SET_LABELS = {"synthetic": "Synthetic", "real": "Real"}
 #: a cell without a value
 MISSING = "–"
-#: the Learned column per ``tofdenoise.training.results.learned_status``
+#: the Learned column per ``tofdenoise.records.learned_status``
 LEARNED_FLAGS = {
     "learned": "yes",
     "did not learn": "NOT LEARNED",

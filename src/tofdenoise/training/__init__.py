@@ -1,14 +1,12 @@
-"""Training: the LightningModule, the losses, the metrics and the run-results schema.
+"""Training: the LightningModule, the losses and the metrics (a run's records: ``tofdenoise.records``).
 
 - :mod:`~tofdenoise.training.module`: :class:`DepthRestorer`, the one LightningModule (conditioning, loss,
   validation/test metrics, the learned guard).
 - :mod:`~tofdenoise.training.losses`: L1, L_nar (uncertainty-weighted Charbonnier) and L_full (+ gradient term),
   averaged over the valid pixels, in millimetres.
 - :mod:`~tofdenoise.training.metrics`: PSNR (fixed D_max), MAE, MSE and SSIM per image over valid pixels.
-- :mod:`~tofdenoise.training.results`: the ``metrics.json`` / per-image CSV schema and its atomic writers.
 
-Names are imported lazily, so that light users of the schema (``tofdenoise-eval``, ``tofdenoise-report``) do not
-pay for importing Lightning.
+Names are imported lazily, so that importing a sub-module does not import Lightning.
 """
 
 from __future__ import annotations

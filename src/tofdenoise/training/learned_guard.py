@@ -1,6 +1,6 @@
 """The learned guard's inputs during a run: which steps, validation MAE and raw MAE a verdict is judged on.
 
-The rule itself (when a run counts as learned) lives in :func:`tofdenoise.training.results.learned_verdict`;
+The rule itself (when a run counts as learned) lives in :func:`tofdenoise.records.learned_verdict`;
 this module only keeps its inputs for ``DepthRestorer``:
 
 - the lowest validation MAE and the raw validation MAE seen by a fit (sanity checks excluded), float64;
@@ -9,7 +9,7 @@ this module only keeps its inputs for ``DepthRestorer``:
   behind those weights), else nothing (0 steps: an untrained network);
 - the record saved in and restored from a checkpoint (plain values: checkpoints load with weights_only=True).
 
-A classical filter (no trainable parameters) gets :func:`~tofdenoise.training.results.classical_verdict` with
+A classical filter (no trainable parameters) gets :func:`~tofdenoise.records.classical_verdict` with
 the validation MAEs of its parameter search (:meth:`LearnedGuard.record_tuning`).
 """
 
@@ -18,7 +18,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from tofdenoise.training.results import classical_verdict, learned_verdict
+from tofdenoise.records import classical_verdict, learned_verdict
 
 __all__ = ["LEARNED_RECORD_KEY", "LearnedGuard", "MissingGuardRecordError"]
 

@@ -44,6 +44,8 @@ from torch import Tensor
 from torchmetrics import Metric
 from torchmetrics.utilities.data import dim_zero_cat
 
+from tofdenoise.records.metrics_json import METRIC_KEYS
+
 __all__ = [
     "FixedBatchCache",
     "METRIC_KEYS",
@@ -60,7 +62,7 @@ __all__ = [
     "ROW_COLUMNS",
 ]
 
-METRIC_KEYS: tuple[str, str, str, str] = ("psnr_db", "mae_mm", "mse_mm2", "ssim")
+
 D_MAX_MM: float = 1000.0
 SSIM_SIGMA: float = 1.5
 SSIM_K1: float = 0.01

@@ -23,11 +23,11 @@ from torch import Tensor, nn
 from tofdenoise.models import build_backbone, tiled_forward
 from tofdenoise.models.conditioning import CENTERING_MODES, condition_input
 from tofdenoise.models.registry import accepts_kwarg, backbone_factory, is_trainable
+from tofdenoise.records import set_entry
 from tofdenoise.training.init_weights import INIT_RECORD_KEY, load_init_weights
 from tofdenoise.training.learned_guard import LearnedGuard
 from tofdenoise.training.losses import DepthLoss, build_loss
 from tofdenoise.training.metrics import DepthMetrics, FixedBatchCache, depth_metrics_per_image
-from tofdenoise.training.results import set_entry
 
 __all__ = ["DepthRestorer", "CheckpointMismatchError", "step_predictions", "final_prediction", "step_loss_weights"]
 

@@ -8,8 +8,7 @@ import math
 import pytest
 import torch
 
-from tofdenoise.training.metrics import DepthMetrics
-from tofdenoise.training.results import (
+from tofdenoise.records import (
     RUN_KEYS,
     classical_verdict,
     learned_status,
@@ -22,6 +21,7 @@ from tofdenoise.training.results import (
     write_metrics_json,
     write_per_image_csv,
 )
+from tofdenoise.training.metrics import DepthMetrics
 
 
 def _metric(offset_mm: float) -> DepthMetrics:

@@ -1,0 +1,67 @@
+"""A run's records: what a training or evaluation run leaves in its folder, in one package.
+
+- :mod:`~tofdenoise.records.metrics_json`: ``metrics.json`` (test results per set, restored and raw, plus the
+  run-level fields ``RUN_KEYS``): ``set_entry``, ``write_metrics_json``, ``read_metrics_json``, ``metric_sets``,
+  ``run_fields``, ``json_number`` (strict JSON numbers);
+- :mod:`~tofdenoise.records.verdict`: the learned guard, ``learned_verdict`` / ``classical_verdict`` /
+  ``learned_status`` (the one place its rule lives);
+- :mod:`~tofdenoise.records.per_image`: ``per_image/<set>.csv``;
+- :mod:`~tofdenoise.records.run_folder`: the file names of a run folder, ``read_run``, ``run_finished`` (the one
+  rule of a finished run) and ``write_run_info``.
+
+Writers: ``tofdenoise.callbacks.run_outputs.RunOutputs`` (every trained run), the classical row; readers: the
+training job and the grids' runner (skip or return finished runs), ``tofdenoise.reporting`` (report, results page,
+grid table). Every file is written through :mod:`tofdenoise.atomic`. This package imports only ``atomic``.
+"""
+
+from tofdenoise.records.metrics_json import (
+    CSV_COLUMNS,
+    EXTRA_KEYS,
+    METHOD_KINDS,
+    METRIC_KEYS,
+    RUN_KEYS,
+    json_number,
+    metric_sets,
+    read_metrics_json,
+    run_fields,
+    set_entry,
+    validate_metrics_results,
+    write_metrics_json,
+)
+from tofdenoise.records.per_image import read_per_image_csv, write_per_image_csv
+from tofdenoise.records.run_folder import (
+    METRICS_NAME,
+    PER_IMAGE_DIR,
+    RUN_INFO_NAME,
+    read_run,
+    run_finished,
+    write_run_info,
+)
+from tofdenoise.records.verdict import DEFAULT_LEARNED_MARGIN, classical_verdict, learned_status, learned_verdict
+
+__all__ = [
+    "CSV_COLUMNS",
+    "DEFAULT_LEARNED_MARGIN",
+    "EXTRA_KEYS",
+    "METHOD_KINDS",
+    "METRICS_NAME",
+    "METRIC_KEYS",
+    "PER_IMAGE_DIR",
+    "RUN_INFO_NAME",
+    "RUN_KEYS",
+    "classical_verdict",
+    "json_number",
+    "learned_status",
+    "learned_verdict",
+    "metric_sets",
+    "read_metrics_json",
+    "read_per_image_csv",
+    "read_run",
+    "run_fields",
+    "run_finished",
+    "set_entry",
+    "validate_metrics_results",
+    "write_metrics_json",
+    "write_per_image_csv",
+    "write_run_info",
+]
