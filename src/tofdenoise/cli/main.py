@@ -25,7 +25,7 @@ __all__ = ["VERBS", "main"]
 class Verb:
     module: str  # ``tofdenoise.cli.<module>`` with a ``main``
     summary: str
-    grammar: str  # "hydra" (sys.argv), "lightning" (its own argument list, verb included) or "options"
+    grammar: str  # "hydra" or "lightning" (both read sys.argv), or "options" (``main(argv)``)
 
 
 VERBS: dict[str, Verb] = {
@@ -56,7 +56,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Console script ``tofdenoise``: ``tofdenoise <verb> ...`` runs that verb's ``main``."""
     args = list(sys.argv[1:] if argv is None else argv)
     if not args or args[0] in ("-h", "--help"):
-        print(usage(), file=sys.stdout if args else sys.stderr)
+        try:
+            print(usage(), file=sys.stdout if args else sys.stderr, flush=True)
+        except BrokenPipeError:  # `tofdenoise --help | head`: the reader went away
+            sys.stdout = None
         return 0 if args else 2
     name, rest = args[0], args[1:]
     verb = VERBS.get(name)
@@ -64,17 +67,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"tofdenoise: error: unknown verb {name!r}; valid: {', '.join(VERBS)}", file=sys.stderr)
         return 2
     run = importlib.import_module(f"tofdenoise.cli.{verb.module}").main
-    if verb.grammar == "hydra":  # Hydra reads sys.argv itself
+    if verb.grammar == "options":
+        status = run(rest)
+    else:  # Hydra and LightningCLI read sys.argv themselves (LightningCLI with its subcommand)
         saved = sys.argv
-        sys.argv = [f"tofdenoise {name}", *rest]
+        sys.argv = [f"tofdenoise {name}", *rest] if verb.grammar == "hydra" else ["tofdenoise", name, *rest]
         try:
             status = run()
         finally:
             sys.argv = saved
-    elif verb.grammar == "lightning":
-        status = run([name, *rest])
-    else:
-        status = run(rest)
     return int(status or 0) if isinstance(status, (int, type(None))) else 0
 
 
