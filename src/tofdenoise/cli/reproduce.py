@@ -30,7 +30,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from tofdenoise.atomic import atomic_write_bytes, atomic_write_text
+from tofdenoise.atomic import WriteError, atomic_write_bytes, atomic_write_text
 from tofdenoise.paths import REPO_ROOT
 from tofdenoise.training.results import METRICS_NAME, PER_IMAGE_DIR, RUN_INFO_NAME
 
@@ -265,7 +265,7 @@ def main(argv: list[str] | None = None) -> int:
         # the page is rebuilt from the discussion and the records: it may never replace one of them
         check_output_file(args.page, (".md",), page_inputs(args.results), what="--page", shadow=False)
         return _reproduce(args)
-    except (OutputPathError, RecordError) as exc:
+    except (OutputPathError, RecordError, WriteError) as exc:
         print(f"tofdenoise-reproduce: error: {exc}", file=sys.stderr)
         return 2
 

@@ -27,9 +27,11 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf, open_dict
 
+from tofdenoise.atomic import WriteError
 from tofdenoise.callbacks.checkpointing import CheckpointWriteError
 from tofdenoise.cli.checkpoint_check import CheckpointFileError, check_checkpoint_file, resolve_ckpt_path
 from tofdenoise.config import ConfigError, hydra_console_script, instantiate_node
+from tofdenoise.output_guard import OutputPathError, refuse_overwrite
 from tofdenoise.registry import Registry
 from tofdenoise.run_lock import RunLock, RunLockedError
 from tofdenoise.training.init_weights import InitWeightsError
@@ -140,7 +142,17 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     validate_config(cfg)
     run_dir = Path(str(cfg.paths.run_dir)).expanduser().resolve()
     with RunLock(run_dir):  # one writer per run folder (held already when Hydra's callback took it)
+        refuse_replacing_inputs(cfg, run_dir)
         return _run_locked(cfg, run_dir)
+
+
+def refuse_replacing_inputs(cfg: DictConfig, run_dir: Path) -> None:
+    """The run's checkpoints never replace the weights it starts from: ``model.init_weights`` inside
+    ``<run_dir>/checkpoints`` (fine-tuning from the folder's own ``best.ckpt``) was overwritten by the run's first
+    checkpoint (``OutputPathError``, before anything is written)."""
+    init = (cfg.get("model") or {}).get("init_weights")
+    if init not in (None, ""):
+        refuse_overwrite([], [Path(str(init)).expanduser()], "paths.run_dir", output_folders=[run_dir / "checkpoints"])
 
 
 def _run_locked(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
@@ -215,7 +227,15 @@ main = hydra_console_script(
     "train",
     run,
     "tofdenoise-train",
-    (CheckpointFileError, CheckpointWriteError, ConfigError, InitWeightsError, RunLockedError),
+    (
+        CheckpointFileError,
+        CheckpointWriteError,
+        ConfigError,
+        InitWeightsError,
+        OutputPathError,
+        RunLockedError,
+        WriteError,
+    ),
 )
 
 

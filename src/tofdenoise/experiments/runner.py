@@ -75,6 +75,25 @@ def read_run(run_dir: Path) -> tuple[dict[str, Any] | None, dict[str, Any] | Non
     return out[0], out[1]
 
 
+def unreadable_records(run_dirs: Sequence[Path]) -> list[str]:
+    """``"<file>: <why>"`` for each record (``run_info.json``, ``metrics.json``) of the run folders that exists but
+    is not a JSON object: a finished run whose record broke must not pass for an unfinished one in a table."""
+    bad = []
+    for run_dir in run_dirs:
+        for name in (RUN_INFO_NAME, METRICS_NAME):
+            path = Path(run_dir) / name
+            if not path.is_file():
+                continue
+            try:
+                data = json.loads(path.read_text(encoding="utf-8"))
+            except (OSError, ValueError) as exc:
+                bad.append(f"{path}: the record cannot be read ({exc})")
+                continue
+            if not isinstance(data, dict):
+                bad.append(f"{path}: not a JSON object")
+    return bad
+
+
 def run_finished(run_dir: Path) -> bool:
     """True when the run folder holds a finished run: ``run_info.json`` with ``finished`` and a ``metrics.json``."""
     info, metrics = read_run(run_dir)
