@@ -531,6 +531,7 @@ PROBES += [
     P("tofdenoise-denoise", "signals", "sigint-over-many-frames", lambda w: [], runner="signal", status=130),
     P("tofdenoise-denoise", "signals", "sigkill-over-many-frames", lambda w: [], runner="signal", status=-9, slow=True),
     P("tofdenoise-denoise", "concurrent", "two-writers-one-out", lambda w: [], runner="signal", status=0, slow=True),
+    P("tofdenoise-train", "signals", "sigint-mid-training", lambda w: [], runner="signal", status=130, slow=True),
 ]
 
 # ------------------------------------------------------------------------------------------------ exemptions
@@ -569,9 +570,6 @@ EXEMPT: dict[str, dict[str, str]] = {
         "bad_frames": "reads the training data through data sources (tests/data_modules)",
         "full_disk": "a checkpoint write that fails: tests/training/test_checkpointing.py (not probed end to end "
         "on a full file system yet)",
-        "signals": "SIGKILL mid-epoch and the resume: tests/cli/test_train.py::"
-        "test_resume_after_sigkill_reaches_the_same_number_of_steps and tests/training/test_mid_epoch_resume.py "
-        "(Ctrl-C: not probed yet)",
     },
     "tofdenoise-classic": {
         "bad_frames": "reads the training data through data sources (tests/data_modules)",

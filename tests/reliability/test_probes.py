@@ -143,3 +143,47 @@ def test_the_table_is_not_empty_where_it_matters():
     families = {(p.command, p.family) for p in probes.PROBES}
     for command in ("tofdenoise-denoise", "tofdenoise-eval", "tofdenoise-report", "tofdenoise-sensor calibrate"):
         assert (command, "misuse_outputs") in families and (command, "full_disk") in families
+
+
+# ----------------------------------------------------------------------------- a real full disk (slow, needs root)
+
+
+def _full_disk_rows():
+    return [
+        pytest.param(p, id=p.id, marks=[pytest.mark.slow])
+        for p in probes.PROBES
+        if p.family == "full_disk"
+        and p.runner == "call"
+        and all(a.startswith("out") for a in p.may_change)
+        and p.may_change
+    ]
+
+
+@pytest.mark.parametrize("probe", _full_disk_rows())
+def test_probe_on_a_real_full_file_system(probe, world, call):
+    """The full_disk rows once more, on a real 64 KiB tmpfs mounted at the world's ``out/`` and filled up before the
+    command runs: the writes fail with ENOSPC (the fast rows simulate it with RLIMIT_FSIZE, EFBIG)."""
+    import errno
+    import subprocess
+
+    mount = world / "out"
+    done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs", str(mount)], capture_output=True)
+    if done.returncode != 0:
+        pytest.skip(f"mount -t tmpfs needs root (CAP_SYS_ADMIN): {done.stderr.decode().strip()[:200]}")
+    try:
+        try:
+            with open(mount / "filler", "wb") as fh:
+                while True:
+                    fh.write(b"\0" * 4096)
+                    fh.flush()
+        except OSError as exc:
+            assert exc.errno == errno.ENOSPC
+        if probe.damage is not None:
+            probe.damage(world)
+        before = world.snapshot()
+        script, prefix = probes.COMMANDS[probe.command]
+        outcome = call(script, [*prefix, *probe.argv(world)])
+        assert_outcome(probe, world, before, outcome)
+        assert "No space left on device" in outcome.err
+    finally:
+        subprocess.run(["umount", str(mount)], check=True)

@@ -131,3 +131,40 @@ def test_two_writers_of_one_output_folder_leave_complete_identical_frames(world)
     assert a.wait(timeout=300) == 0 and b.wait(timeout=300) == _row("two-writers-one-out").status
     assert len(_complete_outputs(out, expected)) == 40
     assert not [p for p in out.iterdir() if p.name.startswith(".")]
+
+
+@pytest.mark.slow
+def test_ctrl_c_mid_training_is_one_line_and_leaves_a_resumable_unfinished_run(world, tmp_path):
+    """SIGINT during tofdenoise-train: Lightning shuts down; the run is not tested and writes no metrics.json (it
+    never passes for a finished run), last.ckpt is whole, the lock is released, and one line says how to resume.
+    SIGKILL and the resume: tests/cli/test_train.py::test_resume_after_sigkill_reaches_the_same_number_of_steps and
+    tests/training/test_mid_epoch_resume.py."""
+    import json
+
+    import torch
+
+    row = [p for p in probes.PROBES if p.command == "tofdenoise-train" and p.family == "signals"][0]
+    run_dir = world / "out/run"
+    args = probes.train_args(world, "trainer.max_epochs=500", "callbacks.model_checkpoint.every_n_train_steps=2")
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", "WANDB_MODE": "offline"}
+    env.pop("HYDRA_FULL_ERROR", None)
+    proc = subprocess.Popen(
+        [_script("tofdenoise-train"), *map(str, args)], env=env, cwd=tmp_path, stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    last = run_dir / "checkpoints" / "last.ckpt"
+    deadline = time.time() + 300
+    while not last.exists() and proc.poll() is None and time.time() < deadline:
+        time.sleep(0.1)
+    assert proc.poll() is None, proc.communicate()[1][-3000:]
+    time.sleep(1.0)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=300)
+    assert proc.returncode == row.status, err[-3000:]
+    assert "Traceback" not in err, err[-3000:]
+    (line,) = [x for x in err.splitlines() if x.startswith("tofdenoise-train: interrupted (Ctrl-C) at step")]
+    assert "ckpt_path=last" in line and str(last) in line
+    assert not (run_dir / "metrics.json").exists()
+    assert not json.loads((run_dir / "run_info.json").read_text()).get("finished")
+    assert torch.load(last, weights_only=True)["global_step"] > 0
+    assert not (run_dir / "run.lock").exists()  # released on the way out

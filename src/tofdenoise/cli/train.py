@@ -190,7 +190,13 @@ def _run_locked(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     result: dict[str, Any] = {"run_dir": str(run_dir), "best_ckpt": None, "metrics": None}
     try:
         if cfg.get("train", True):
-            trainer.fit(model, datamodule=datamodule, ckpt_path=resume_ckpt)
+            try:
+                trainer.fit(model, datamodule=datamodule, ckpt_path=resume_ckpt)
+            except SystemExit:
+                if trainer.interrupted:  # Lightning's Ctrl-C: it shut down and called sys.exit(1) without a word
+                    _say_interrupted(trainer, run_dir)
+                    raise SystemExit(EXIT_INTERRUPTED) from None
+                raise
         if cfg.get("test", True):
             ckpt = _test_checkpoint(cfg, trainer, run_dir)
             result["best_ckpt"] = ckpt
@@ -199,6 +205,29 @@ def _run_locked(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     finally:
         finish_wandb()
     return result
+
+
+#: exit status of a training stopped by Ctrl-C (128 + SIGINT, as a shell reports it; tofdenoise-denoise's too)
+EXIT_INTERRUPTED = 130
+
+
+def _say_interrupted(trainer: Any, run_dir: Path) -> None:
+    """The one line after Ctrl-C: where the run stopped, and how to go on (Lightning says only that it shuts down;
+    the run is not tested and writes no metrics.json, so it never passes for a finished run)."""
+    import sys
+
+    cb = trainer.checkpoint_callback
+    last = Path(str(cb.dirpath)) / "last.ckpt" if cb is not None and getattr(cb, "dirpath", None) else None
+    resume = (
+        f"{last} is kept: resume with `tofdenoise-train <the same overrides> paths.run_dir={run_dir} ckpt_path=last`"
+        if last is not None and last.is_file()
+        else "no checkpoint was written yet: start it again"
+    )
+    print(
+        f"tofdenoise-train: interrupted (Ctrl-C) at step {trainer.global_step}, epoch {trainer.current_epoch}; "
+        f"not tested, no metrics.json; {resume}",
+        file=sys.stderr,
+    )
 
 
 def _test_checkpoint(cfg: DictConfig, trainer: Any, run_dir: Path) -> str | None:
