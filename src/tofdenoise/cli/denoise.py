@@ -112,10 +112,6 @@ def run(args: argparse.Namespace) -> int:
         return _fail(f"--tile must be >= 32 pixels, got {args.tile}")
     if args.calib is not None and args.amplitude is None:
         return _fail("--calib needs --amplitude: the sigma_D map is computed from the input's amplitude")
-    try:  # an output folder that holds an input: its frames would be skipped as outputs, or replaced
-        refuse_overwrite([], args.inputs, "--out", output_folders=[args.out])
-    except OutputPathError as exc:
-        return _fail(str(exc))
     try:
         device = resolve_device(args.device)
         amplitude = AmplitudeSource(args.amplitude) if args.amplitude is not None else None
@@ -145,6 +141,10 @@ def run(args: argparse.Namespace) -> int:
             "--amplitude DIR_OR_PATTERN"
         )
     if not frames:
+        try:  # an input folder inside --out: its frames were skipped as outputs ("no depth frame found" misled)
+            refuse_overwrite([], args.inputs, "--out", output_folders=[args.out])
+        except OutputPathError as exc:
+            return _fail(str(exc))
         return _fail(f"no depth frame found in {', '.join(map(str, args.inputs))}")
 
     options = OutputOptions(npy=args.npy, previews=args.previews)
