@@ -32,13 +32,15 @@ BENCH_ARGS ?=
 
 export PYTHONUNBUFFERED := 1
 
-.PHONY: help venv lock train test test-slow lint format bench robustness realset reproduce cli-configs clean
+.PHONY: help venv lock train test test-slow probe lint format bench robustness realset reproduce cli-configs clean
 
 help:
 	@echo "make train   - small default training on built-in procedural scenes (CPU)"
 	@echo "               BACKBONE=dvss NOISE=hetero LOSS=full DATA=procedural RUN_DIR=path ARGS='hydra overrides'"
 	@echo "make test    - run the test suite (slow experiments excluded)"
 	@echo "make test-slow - run the slow experiments too"
+	@echo "make probe   - the reliability probes: every family of fault against every command, slow cases included"
+	@echo "               (signals, a real full tmpfs where root allows it; docs/reliability.md)"
 	@echo "make lint    - ruff lint + format check (CI runs it before the tests); make format applies both"
 	@echo "make bench   - side-by-side performance measurements (see docs/benchmarks.md); BENCH_ARGS=--quick"
 	@echo "make robustness - the robustness grid (108 small runs, resumable; GRID_DIR=runs/robustness GRID_ARGS=...)"
@@ -93,6 +95,11 @@ test: $(STAMP)
 
 test-slow: $(STAMP)
 	$(PY) -m pytest -m "slow" $(PYTEST_ARGS)
+
+# The reliability probes (tests/reliability, docs/reliability.md) with their slow cases, and the mid-epoch resume pin;
+# `make test` runs the fast ones
+probe: $(STAMP)
+	$(PY) -m pytest tests/reliability tests/training/test_mid_epoch_resume.py -m "not gpu" $(PYTEST_ARGS)
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check src tests benchmarks

@@ -76,6 +76,9 @@ def hydra_console_script(
         except errors as exc:
             print(f"{prog}: error: {exc}", file=sys.stderr)
             raise SystemExit(2) from None
+        except KeyboardInterrupt:  # Ctrl-C before the trainer's own handler (Lightning's, during fit) is in place
+            print(f"{prog}: interrupted (Ctrl-C) before training started", file=sys.stderr)
+            raise SystemExit(130) from None
         finally:
             release_all()  # the run folder's lock (taken by the Hydra callback): the run is over
 

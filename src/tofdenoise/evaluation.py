@@ -66,11 +66,21 @@ def list_maps(folder: str | Path, what: str) -> dict[str, Path]:
 
 def _read_depth(path: Path, what: str) -> np.ndarray:
     from tofdenoise.data_modules.io import read_depth_mm
+    from tofdenoise.inference.frames import MIN_MEDIAN_DEPTH_MM
 
     try:
-        return read_depth_mm(path, what=what).astype(np.float64)
+        depth = read_depth_mm(path, what=what).astype(np.float64)
     except (OSError, ValueError) as exc:
         raise EvalInputError(str(exc)) from exc
+    with np.errstate(invalid="ignore"):
+        valid = depth[np.isfinite(depth) & (depth > 0)]
+    # a map in metres (a float .npy of depth / 1000) scored as millimetres gave MAE values 1000x too small, exit 0
+    if valid.size and float(np.median(valid)) < MIN_MEDIAN_DEPTH_MM:
+        raise EvalInputError(
+            f"{what} file {path}: median valid depth {float(np.median(valid)):.4g} is implausible in millimetres "
+            f"(below {MIN_MEDIAN_DEPTH_MM:g}); tofdenoise-eval reads depth in mm (a map in metres: multiply by 1000)"
+        )
+    return depth
 
 
 def _read_mask(path: Path) -> np.ndarray:

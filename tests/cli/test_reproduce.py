@@ -11,7 +11,13 @@ import numpy as np
 import pytest
 
 from tofdenoise.cli.reproduce import copy_records, main, profile_overrides, realset_command
-from tofdenoise.records import learned_verdict
+from tofdenoise.records import learned_verdict, write_metrics_json
+
+
+def _write_metrics(path: Path, results: dict) -> None:
+    """A complete metrics.json (with the learned guard's run-level fields, which the page requires since 2623e28)."""
+    entry = results["synthetic"]
+    write_metrics_json(path, results, run=learned_verdict(1000, entry["mae_mm"], entry["raw"]["mae_mm"]))
 
 
 def test_dry_run_lists_the_realset_and_every_run(tmp_path, capsys):
@@ -99,7 +105,7 @@ def test_records_of_finished_runs_only_and_the_page(tmp_path):
         },
         **learned_verdict(100, 2.5, 7.0),
     }
-    (done / "metrics.json").write_text(json.dumps(metrics))
+    _write_metrics(done / "metrics.json", metrics)
     (done / "run_info.json").write_text(json.dumps({"finished": "2026-11-22T10:00:00+0000"}))
     (unfinished / "run_info.json").write_text(json.dumps({"started": "2026-11-22T10:00:00+0000"}))
     assert copy_records([done, unfinished], dest) == ["dvss-hetero-l1-s0"]
@@ -133,7 +139,7 @@ def test_each_finished_run_is_recorded_at_once(tmp_path, monkeypatch):
     def fake_run_all(specs, out_dir, dry_run=False, after_each=None, executor=None):
         first = out_dir / specs[0].name
         first.mkdir(parents=True)
-        (first / "metrics.json").write_text(json.dumps(metrics))
+        _write_metrics(first / "metrics.json", metrics)
         (first / "run_info.json").write_text(json.dumps({"finished": "2026-11-22T10:00:00+0000"}))
         after_each(RunOutcome(specs[0], first, "done"))
         assert (results / "cpu" / specs[0].name / "metrics.json").is_file()  # recorded before the next run
@@ -262,9 +268,7 @@ def _results_with_three_seeds(root: Path) -> Path:
             d.mkdir(parents=True)
             entry = {"psnr_db": 40.0, "mae_mm": mae + 0.1 * seed, "mse_mm2": 9.0, "ssim": 0.99}
             entry["raw"] = {"psnr_db": 30.0, "mae_mm": 7.0, "mse_mm2": 90.0, "ssim": 0.9}
-            (d / "metrics.json").write_text(
-                json.dumps({"synthetic": entry, **learned_verdict(100, mae, 7.0)}, indent=1)
-            )
+            _write_metrics(d / "metrics.json", {"synthetic": entry})
             (d / "run_info.json").write_text(json.dumps({"started": "2026-11-22T10:00:00+0000"}))
     (results / "discussion.md").write_text("## Discussion\n\nWritten by hand.\n")
     return results

@@ -32,8 +32,8 @@ from typing import Any
 import torch
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from tofdenoise.atomic import atomic_write_text
-from tofdenoise.config import hydra_console_script
+from tofdenoise.atomic import WriteError, atomic_write_text
+from tofdenoise.config import hydra_console_script, instantiate_node
 from tofdenoise.experiments.train_job import record_calibration, validate_config
 from tofdenoise.records import json_number, write_run_info
 from tofdenoise.run_lock import RunLock, RunLockedError
@@ -188,7 +188,7 @@ def _tune_and_test(
 
     base = _model_kwargs(cfg, backbone)
     models = [DepthRestorer(**base, backbone_kwargs=dict(p)) for p in points]  # bad parameters fail here
-    datamodule = instantiate(cfg.data, _convert_="all")
+    datamodule = instantiate_node(cfg.data, "data")  # a bad data setting: one line naming the key
     record_calibration(cfg, datamodule.calib)
     atomic_write_text(run_dir / "config.yaml", OmegaConf.to_yaml(cfg, resolve=True))
     datamodule.prepare_data()
@@ -263,7 +263,9 @@ def _tune_and_test(
 
 
 #: console script ``tofdenoise-classic`` (Hydra command line, like ``tofdenoise-train``)
-main = hydra_console_script("classical", run, "tofdenoise-classic", (ValueError, FileNotFoundError, RunLockedError))
+main = hydra_console_script(
+    "classical", run, "tofdenoise-classic", (ValueError, FileNotFoundError, RunLockedError, WriteError)
+)
 
 
 if __name__ == "__main__":

@@ -192,6 +192,10 @@ def run(args: argparse.Namespace) -> int:
             "--amplitude DIR_OR_PATTERN"
         )
     if not frames and not recordings:
+        try:  # an input folder inside --out: its frames were skipped as outputs ("no depth frame found" misled)
+            refuse_overwrite([], args.inputs, "--out", output_folders=[args.out])
+        except OutputPathError as exc:
+            return _fail(str(exc))
         return _fail(f"no depth frame or recording found in {', '.join(map(str, args.inputs))}")
 
     options = OutputOptions(npy=args.npy, previews=args.previews, depth_m=args.depth_m, ply=args.ply)

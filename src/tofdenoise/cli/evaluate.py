@@ -19,7 +19,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from tofdenoise.atomic import atomic_write_text
+from tofdenoise.atomic import WriteError, atomic_write_text
 from tofdenoise.evaluation import EvalInputError, evaluate_dirs
 from tofdenoise.output_guard import OutputPathError, check_output_file
 from tofdenoise.training.metrics import D_MAX_MM
@@ -71,7 +71,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             f"failures, left out of the metrics and counted in nan_px{failed}",
             file=sys.stderr,
         )
-    atomic_write_text(args.out, json.dumps(result, indent=2, allow_nan=False) + "\n")
+    try:
+        atomic_write_text(args.out, json.dumps(result, indent=2, allow_nan=False) + "\n")
+    except WriteError as exc:  # a full disk: one line naming the file, nothing half-written
+        print(f"tofdenoise-eval: error: {exc}", file=sys.stderr)
+        return 2
     m = result["mean"]
 
     def f(v, d):

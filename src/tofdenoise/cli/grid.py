@@ -18,7 +18,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from tofdenoise.atomic import atomic_write_text
+from tofdenoise.atomic import WriteError, atomic_write_text
 from tofdenoise.cli.executor_args import add_executor_arguments, executor_from_args
 from tofdenoise.output_guard import OutputPathError, check_output_file
 
@@ -59,6 +59,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     from tofdenoise.experiments.grids import robustness_rows, robustness_specs
     from tofdenoise.experiments.runner import run_all
+    from tofdenoise.records import unreadable_records
     from tofdenoise.reporting.robustness import robustness_table
 
     args = build_parser().parse_args(argv)
@@ -78,11 +79,22 @@ def main(argv: list[str] | None = None) -> int:
         run_all(specs, args.out, dry_run=args.dry_run, executor=executor)
     if args.dry_run:
         return 0
+    broken = unreadable_records([args.out / s.name for s in specs])
+    if broken:  # a table with that run as "incomplete" would hide a finished run's broken record
+        print(
+            f"tofdenoise-grid: error: {broken[0]}" + (f" (and {len(broken) - 1} more)" if len(broken) > 1 else ""),
+            file=sys.stderr,
+        )
+        return 2
     rows = robustness_rows(specs, args.out)
     table = robustness_table(rows)
     print(table)
     if args.markdown is not None:
-        atomic_write_text(args.markdown, table + "\n")
+        try:
+            atomic_write_text(args.markdown, table + "\n")
+        except WriteError as exc:  # a full disk: one line naming the file, nothing half-written
+            print(f"tofdenoise-grid: error: {exc}", file=sys.stderr)
+            return 2
     return 0 if all(r["status"] == "pass" for r in rows) else 1
 
 

@@ -25,6 +25,8 @@ from typing import Any
 
 from lightning.pytorch.cli import LightningCLI
 
+from tofdenoise.config import ConfigError
+from tofdenoise.output_guard import OutputPathError, refuse_overwrite
 from tofdenoise.run_lock import RunLock, RunLockedError, is_worker_rank, release_all
 from tofdenoise.wandb_env import finish_wandb, quiet_wandb, setup_wandb_env
 
@@ -44,8 +46,28 @@ class ToFLightningCLI(LightningCLI):
             # one writer per run folder, taken before anything is written there (released by main())
             if not is_worker_rank():
                 RunLock(root_path).acquire()
+            model = cfg.get("model") if hasattr(cfg, "get") else None
+            init = (model.get("init_args") or {}).get("init_weights") if hasattr(model, "get") else None
+            if init not in (None, ""):  # the run's checkpoints never replace the weights it starts from
+                refuse_overwrite(
+                    [],
+                    [Path(str(init)).expanduser()],
+                    "--trainer.default_root_dir",
+                    output_folders=[root_path / "checkpoints"],
+                )
             root_path.mkdir(parents=True, exist_ok=True)
             setup_wandb_env(root_path)
+
+    def instantiate_classes(self) -> None:
+        """A class that refuses its arguments (a bad data setting, a calibration file that cannot be read) is one
+        ``ConfigError`` line naming the cause, not jsonargparse's chain of Union errors and tracebacks."""
+        try:
+            super().instantiate_classes()
+        except (ValueError, TypeError, OSError) as exc:
+            cause: BaseException = exc
+            while cause.__cause__ is not None:
+                cause = cause.__cause__
+            raise ConfigError(str(cause).strip().splitlines()[0] if str(cause).strip() else repr(cause)) from exc
 
     def _check_ckpt_path(self) -> None:
         """Check ``--ckpt_path`` before the trainer writes anything (SaveConfigCallback's config.yaml)."""
@@ -107,15 +129,48 @@ def build_cli(args: list[str] | None = None, run: bool = True) -> ToFLightningCL
     )
 
 
+def _check_config_files(args: list[str]) -> None:
+    """Every ``--config FILE`` is UTF-8 YAML (jsonargparse's UnicodeDecodeError traceback and its YAML error name no
+    file): ``ConfigError`` naming the file."""
+    import yaml
+
+    for i, arg in enumerate(args):
+        path = args[i + 1] if arg == "--config" and i + 1 < len(args) else None
+        path = arg.split("=", 1)[1] if arg.startswith("--config=") else path
+        if path is None or not Path(path).is_file():
+            continue
+        try:
+            yaml.safe_load(Path(path).read_bytes().decode("utf-8"))
+        except UnicodeDecodeError as exc:
+            raise ConfigError(
+                f"--config {path}: not UTF-8 text (byte 0x{exc.object[exc.start]:02x} at offset {exc.start}); save "
+                "the file as UTF-8"
+            ) from None
+        except yaml.YAMLError as exc:
+            where = getattr(exc, "problem_mark", None)
+            at = f" at line {where.line + 1}, column {where.column + 1}" if where is not None else ""
+            problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+            raise ConfigError(f"--config {path}: not valid YAML{at}: {problem}") from None
+
+
 def main(args: list[str] | None = None) -> Any:
     """Console script ``tofdenoise``."""
     quiet_wandb()
+    from tofdenoise.atomic import WriteError
     from tofdenoise.cli.checkpoint_check import CheckpointFileError
     from tofdenoise.training.init_weights import InitWeightsError
 
     try:
+        _check_config_files(sys.argv[1:] if args is None else args)
         build_cli(args)
-    except (CheckpointFileError, InitWeightsError, RunLockedError) as exc:  # one line, not a traceback
+    except (
+        CheckpointFileError,
+        ConfigError,
+        InitWeightsError,
+        OutputPathError,
+        RunLockedError,
+        WriteError,
+    ) as exc:  # one line, not a traceback
         print(f"tofdenoise: error: {exc}", file=sys.stderr)
         raise SystemExit(2) from None
     finally:

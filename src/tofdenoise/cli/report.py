@@ -25,7 +25,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from tofdenoise.atomic import atomic_write_text
+from tofdenoise.atomic import WriteError, atomic_write_text
 from tofdenoise.output_guard import OutputPathError, check_output_file
 from tofdenoise.reporting import Run, find_runs, load_run, render_html, results_table, table_markdown
 
@@ -69,7 +69,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"tofdenoise-report: error: no run with a valid metrics.json found under {where}", file=sys.stderr)
         return 2
     runs.sort(key=lambda r: r.name)
-    atomic_write_text(args.out, render_html(runs, args.title, skipped))
+    try:
+        atomic_write_text(args.out, render_html(runs, args.title, skipped))
+    except WriteError as exc:  # a full disk: one line naming the file, nothing half-written
+        print(f"tofdenoise-report: error: {exc}", file=sys.stderr)
+        return 2
     sets, rows = results_table(runs)
     print(table_markdown(sets, rows))
     print(f"\nreport: {args.out} ({len(runs)} run(s))", file=sys.stderr)

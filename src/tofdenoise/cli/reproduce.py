@@ -37,7 +37,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from tofdenoise.atomic import atomic_write_bytes, atomic_write_text, exclusive_lock
+from tofdenoise.atomic import WriteError, atomic_write_bytes, atomic_write_text, exclusive_lock
 from tofdenoise.cli.executor_args import add_executor_arguments, executor_from_args
 from tofdenoise.paths import REPO_ROOT
 from tofdenoise.records import METRICS_NAME, PER_IMAGE_DIR, RUN_INFO_NAME
@@ -158,7 +158,7 @@ RECORD_FILES = (
 
 def copy_records(run_dirs: list[Path], dest: Path) -> list[str]:
     """Copy each finished run's records (``RECORD_FILES`` that exist) to ``dest/<run>/`` atomically; the names."""
-    from tofdenoise.experiments.runner import run_finished
+    from tofdenoise.records import run_finished
 
     copied = []
     for run_dir in run_dirs:
@@ -294,7 +294,7 @@ def main(argv: list[str] | None = None) -> int:
         # the page is rebuilt from the discussion and the records: it may never replace one of them
         check_output_file(args.page, (".md",), page_inputs(args.results), what="--page", shadow=False)
         return _reproduce(args)
-    except (OutputPathError, RecordError) as exc:
+    except (OutputPathError, RecordError, WriteError) as exc:
         print(f"tofdenoise-reproduce: error: {exc}", file=sys.stderr)
         return 2
 

@@ -32,6 +32,8 @@ EXIT_BROKEN_PIPE = 141
 
 
 def main(argv: list[str] | None = None) -> int:
+    from tofdenoise.atomic import WriteError
+
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
@@ -45,7 +47,7 @@ def main(argv: list[str] | None = None) -> int:
         os.dup2(devnull, sys.stdout.fileno())
         os.close(devnull)
         return EXIT_BROKEN_PIPE
-    except (FileNotFoundError, ValueError, KeyError) as exc:
+    except (FileNotFoundError, ValueError, KeyError, WriteError) as exc:
         print(f"tofdenoise-sensor {args.command}: error: {exc}", file=sys.stderr)
         return 2
 

@@ -23,6 +23,7 @@ from __future__ import annotations
 import importlib.util
 import sys
 
+from tofdenoise.atomic import WriteError
 from tofdenoise.callbacks.checkpointing import CheckpointWriteError
 from tofdenoise.cli.checkpoint_check import CheckpointFileError
 from tofdenoise.config import ConfigError, hydra_console_script
@@ -33,6 +34,7 @@ from tofdenoise.experiments.train_job import (
     validate_config,
     validation_objective,
 )
+from tofdenoise.output_guard import OutputPathError
 from tofdenoise.run_lock import RunLockedError
 from tofdenoise.training.init_weights import InitWeightsError
 
@@ -45,8 +47,10 @@ ERRORS = (
     CheckpointWriteError,
     ConfigError,
     InitWeightsError,
+    OutputPathError,
     RunConfigMismatchError,
     RunLockedError,
+    WriteError,
 )
 #: the Hydra sweeper plug-in of ``hparams_search`` (the ``sweep`` extra)
 SWEEPER_MODULE = "hydra_plugins.hydra_optuna_sweeper"

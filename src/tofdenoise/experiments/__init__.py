@@ -1,6 +1,6 @@
 """What runs: the resumable runner, the named grids (robustness grid, paper tables) and their rows; rendering is
 ``tofdenoise.reporting``'s."""
 
-from .runner import RunOutcome, RunSpec, read_run, run_all, run_finished
+from .runner import RunOutcome, RunSpec, run_all
 
-__all__ = ["RunOutcome", "RunSpec", "read_run", "run_all", "run_finished"]
+__all__ = ["RunOutcome", "RunSpec", "run_all"]

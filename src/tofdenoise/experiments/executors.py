@@ -42,9 +42,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from tofdenoise.records import run_finished
 from tofdenoise.run_lock import LOCK_NAME
 
-from .runner import LOG_NAME, PendingRun, RunOutcome, RunSpec, _tail, run_finished, run_one
+from .runner import LOG_NAME, PendingRun, RunOutcome, RunSpec, _tail, run_one
 
 __all__ = [
     "EXECUTORS",

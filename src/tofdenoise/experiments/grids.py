@@ -14,7 +14,9 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from .runner import RunSpec, read_run
+from tofdenoise.records import read_run, run_finished
+
+from .runner import RunSpec
 
 __all__ = [
     "ROBUSTNESS_BACKBONES",
@@ -85,11 +87,12 @@ def robustness_rows(specs: Sequence[RunSpec], out_dir: Path | str) -> list[dict[
     """One row per spec: its meta, best and raw validation MAE, reduction, test MAE, pass/fail/missing."""
     rows = []
     for spec in specs:
-        info, metrics = read_run(Path(out_dir) / spec.name)
+        run_dir = Path(out_dir) / spec.name
+        _, metrics = read_run(run_dir)
         best, raw = _val_maes(metrics)
         reduction = 1.0 - best / raw if raw and math.isfinite(best) and math.isfinite(raw) else math.nan
         synthetic = (metrics or {}).get("synthetic") or {}
-        finished = bool(info and info.get("finished")) and metrics is not None
+        finished = run_finished(run_dir)
         passed = (
             math.isfinite(best) and math.isfinite(raw) and best <= (1.0 - ROBUSTNESS_MIN_REDUCTION) * raw * (1 + 1e-12)
         )

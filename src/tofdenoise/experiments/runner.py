@@ -30,17 +30,15 @@ from pathlib import Path
 from typing import Any
 
 # the one rule of a finished run, shared with the training job (tofdenoise.experiments.train_job)
-from tofdenoise.records import read_run, run_finished
+from tofdenoise.records import run_finished
 
 __all__ = [
     "RunSpec",
     "RunOutcome",
     "PendingRun",
-    "run_finished",
     "run_command",
     "run_one",
     "run_all",
-    "read_run",
     "ENTRY_MODULES",
 ]
 

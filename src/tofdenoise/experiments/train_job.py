@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import logging
 import os
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -36,6 +37,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 
 from tofdenoise.cli.checkpoint_check import check_checkpoint_file, resolve_ckpt_path
 from tofdenoise.config import ConfigError, instantiate_node
+from tofdenoise.output_guard import refuse_overwrite
 from tofdenoise.records import METRICS_NAME, RUN_INFO_NAME, read_metrics_json, read_run, run_finished
 from tofdenoise.registry import Registry
 from tofdenoise.run_lock import RunLock
@@ -227,7 +229,17 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     validate_config(cfg)
     run_dir = Path(str(cfg.paths.run_dir)).expanduser().resolve()
     with RunLock(run_dir):  # one writer per run folder (held already when Hydra's callback took it)
+        refuse_replacing_inputs(cfg, run_dir)
         return _run_locked(cfg, run_dir)
+
+
+def refuse_replacing_inputs(cfg: DictConfig, run_dir: Path) -> None:
+    """The run's checkpoints never replace the weights it starts from: ``model.init_weights`` inside
+    ``<run_dir>/checkpoints`` (fine-tuning from the folder's own ``best.ckpt``) was overwritten by the run's first
+    checkpoint (``OutputPathError``, before anything is written)."""
+    init = (cfg.get("model") or {}).get("init_weights")
+    if init not in (None, ""):
+        refuse_overwrite([], [Path(str(init)).expanduser()], "paths.run_dir", output_folders=[run_dir / "checkpoints"])
 
 
 def _run_locked(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
@@ -270,7 +282,13 @@ def _run_locked(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     result: dict[str, Any] = {"run_dir": str(run_dir), "best_ckpt": None, "metrics": None, "reused": False}
     try:
         if cfg.get("train", True):
-            trainer.fit(model, datamodule=datamodule, ckpt_path=resume_ckpt)
+            try:
+                trainer.fit(model, datamodule=datamodule, ckpt_path=resume_ckpt)
+            except SystemExit:
+                if trainer.interrupted:  # Lightning's Ctrl-C: it shut down and called sys.exit(1) without a word
+                    _say_interrupted(trainer, run_dir)
+                    raise SystemExit(EXIT_INTERRUPTED) from None
+                raise
         if cfg.get("test", True):
             ckpt = _test_checkpoint(cfg, trainer, run_dir)
             result["best_ckpt"] = ckpt
@@ -280,6 +298,27 @@ def _run_locked(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         finish_wandb()
     result["val_mae_mm"] = model.learned_record().get("best_val_mae_mm")
     return result
+
+
+#: exit status of a training stopped by Ctrl-C (128 + SIGINT, as a shell reports it; tofdenoise-denoise's too)
+EXIT_INTERRUPTED = 130
+
+
+def _say_interrupted(trainer: Any, run_dir: Path) -> None:
+    """The one line after Ctrl-C: where the run stopped, and how to go on (Lightning says only that it shuts down;
+    the run is not tested and writes no metrics.json, so it never passes for a finished run)."""
+    cb = trainer.checkpoint_callback
+    last = Path(str(cb.dirpath)) / "last.ckpt" if cb is not None and getattr(cb, "dirpath", None) else None
+    resume = (
+        f"{last} is kept: run the same command again to resume (ckpt_path=last is the default)"
+        if last is not None and last.is_file()
+        else "no checkpoint was written yet: start it again"
+    )
+    print(
+        f"tofdenoise-train: interrupted (Ctrl-C) at step {trainer.global_step}, epoch {trainer.current_epoch}; "
+        f"not tested, no metrics.json; {resume}",
+        file=sys.stderr,
+    )
 
 
 def _comparable(cfg_yaml: str) -> dict[str, Any]:

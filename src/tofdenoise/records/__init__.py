@@ -35,6 +35,7 @@ from tofdenoise.records.run_folder import (
     RUN_INFO_NAME,
     read_run,
     run_finished,
+    unreadable_records,
     write_run_info,
 )
 from tofdenoise.records.verdict import DEFAULT_LEARNED_MARGIN, classical_verdict, learned_status, learned_verdict
@@ -60,6 +61,7 @@ __all__ = [
     "run_fields",
     "run_finished",
     "set_entry",
+    "unreadable_records",
     "validate_metrics_results",
     "write_metrics_json",
     "write_per_image_csv",

@@ -8,13 +8,21 @@ page, the report); ``tofdenoise.callbacks.run_outputs.RunOutputs`` writes the re
 from __future__ import annotations
 
 import json
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 from tofdenoise.atomic import atomic_write_text
 
-__all__ = ["METRICS_NAME", "PER_IMAGE_DIR", "RUN_INFO_NAME", "read_run", "run_finished", "write_run_info"]
+__all__ = [
+    "METRICS_NAME",
+    "PER_IMAGE_DIR",
+    "RUN_INFO_NAME",
+    "read_run",
+    "run_finished",
+    "unreadable_records",
+    "write_run_info",
+]
 
 #: the records of a run folder (written by ``tofdenoise.callbacks.run_outputs.RunOutputs``): the test metrics,
 #: the run's description (``backbone``, ``noise``, ``loss``, ``run_name``, ``started``, ``finished``, ...) and the
@@ -40,6 +48,25 @@ def run_finished(run_dir: str | Path) -> bool:
     (``finished`` is written after ``metrics.json``, at the end of the test)."""
     info, metrics = read_run(run_dir)
     return bool(info and info.get("finished")) and metrics is not None
+
+
+def unreadable_records(run_dirs: Sequence[str | Path]) -> list[str]:
+    """``"<file>: <why>"`` for each record (``run_info.json``, ``metrics.json``) of the run folders that exists but
+    is not a JSON object: a finished run whose record broke must not pass for an unfinished one in a table."""
+    bad = []
+    for run_dir in run_dirs:
+        for name in (RUN_INFO_NAME, METRICS_NAME):
+            path = Path(run_dir) / name
+            if not path.is_file():
+                continue
+            try:
+                data = json.loads(path.read_text(encoding="utf-8"))
+            except (OSError, ValueError) as exc:
+                bad.append(f"{path}: the record cannot be read ({exc})")
+                continue
+            if not isinstance(data, dict):
+                bad.append(f"{path}: not a JSON object")
+    return bad
 
 
 def write_run_info(run_dir: str | Path, info: Mapping[str, Any]) -> Path:

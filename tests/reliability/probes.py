@@ -1,0 +1,670 @@
+"""The probe table: every command that reads or writes user files, and the faults each is probed with.
+
+``COMMANDS`` maps a command as a user types it to its console script and the arguments that select it. A renamed
+command surface (``tofdenoise <verb>``) is one edit there: the rows name commands by these keys.
+
+``PROBES`` holds one row per (command, family, case). A row gives the arguments (``argv(world)``), what is done to
+the inputs first (``damage(world)``), the exit status a user must get, what one line of stderr must name, and which
+paths of the world may change (by default nothing may: inputs unchanged, nothing written). ``EXEMPT`` says, with a
+reason, which families do not apply to a command. ``test_every_command_has_a_row_in_every_family`` fails when a
+command of ``pyproject.toml`` (or a sub-command of ``tofdenoise-sensor`` / ``tofdenoise``) has neither.
+
+Families: ``bad_frames``, ``bad_captures``, ``bad_yaml``, ``misuse_outputs``, ``concurrent``, ``corrupt_records``,
+``full_disk``, ``signals``. How to add a command: docs/reliability.md.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import yaml
+
+#: command as typed -> (console script, the arguments that select the command)
+COMMANDS: dict[str, tuple[str, tuple[str, ...]]] = {
+    "tofdenoise fit": ("tofdenoise", ("fit",)),
+    "tofdenoise validate": ("tofdenoise", ("validate",)),
+    "tofdenoise test": ("tofdenoise", ("test",)),
+    "tofdenoise predict": ("tofdenoise", ("predict",)),
+    "tofdenoise-train": ("tofdenoise-train", ()),
+    "tofdenoise-classic": ("tofdenoise-classic", ()),
+    "tofdenoise-sensor show-calib": ("tofdenoise-sensor", ("show-calib",)),
+    "tofdenoise-sensor sigma": ("tofdenoise-sensor", ("sigma",)),
+    "tofdenoise-sensor calibrate": ("tofdenoise-sensor", ("calibrate",)),
+    "tofdenoise-sensor validate": ("tofdenoise-sensor", ("validate",)),
+    "tofdenoise-sensor simulate-captures": ("tofdenoise-sensor", ("simulate-captures",)),
+    "tofdenoise-sensor simulate-calibration": ("tofdenoise-sensor", ("simulate-calibration",)),
+    "tofdenoise-sensor simulate-validation": ("tofdenoise-sensor", ("simulate-validation",)),
+    "tofdenoise-sensor realset": ("tofdenoise-sensor", ("realset",)),
+    "tofdenoise-sensor build-reference": ("tofdenoise-sensor", ("build-reference",)),
+    "tofdenoise-eval": ("tofdenoise-eval", ()),
+    "tofdenoise-report": ("tofdenoise-report", ()),
+    "tofdenoise-grid": ("tofdenoise-grid", ()),
+    "tofdenoise-denoise": ("tofdenoise-denoise", ()),
+    "tofdenoise-reproduce": ("tofdenoise-reproduce", ()),
+    "tofdenoise-export": ("tofdenoise-export", ()),
+}
+
+FAMILIES = (
+    "bad_frames",
+    "bad_captures",
+    "bad_yaml",
+    "misuse_outputs",
+    "concurrent",
+    "corrupt_records",
+    "full_disk",
+    "signals",
+)
+
+W = Any  # the test's World (tests/reliability/conftest.py): ``w / "frames"`` is a path in it
+
+
+@dataclass(frozen=True)
+class Probe:
+    command: str
+    family: str
+    case: str
+    argv: Callable[[W], list[Any]]
+    damage: Callable[[W], None] | None = None
+    status: int = 2
+    #: strings one line of stderr must hold together (the file or field the error is about)
+    names: Callable[[W], list[str]] = lambda w: []
+    #: world paths (relative, prefixes) that may be written or changed; nothing else may
+    may_change: tuple[str, ...] = ()
+    #: how the row runs: "call" (the entry point in this process), "locked" (another process holds the run lock of
+    #: ``lock_dir``), "signal" (a separate process, see test_signals.py)
+    runner: str = "call"
+    lock_dir: Callable[[W], Path] | None = None
+    slow: bool = False
+    #: extra checks of the outcome: ``check(world, outcome)``
+    check: Callable[[W, Any], None] | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def id(self) -> str:
+        return f"{self.command.replace(' ', ':')}-{self.family}-{self.case}"
+
+
+# ---------------------------------------------------------------------------------------------------- damage
+
+
+def truncate(rel: str, keep: int = 60) -> Callable[[W], None]:
+    def damage(w: W) -> None:
+        p = w / rel
+        p.write_bytes(p.read_bytes()[:keep])
+
+    return damage
+
+
+def write_png8(rel: str) -> Callable[[W], None]:
+    def damage(w: W) -> None:
+        img = cv2.imread(str(w / rel), cv2.IMREAD_UNCHANGED)
+        assert cv2.imwrite(str(w / rel), (img // 8).astype(np.uint8))
+
+    return damage
+
+
+def npy_in_metres(*rels: str) -> Callable[[W], None]:
+    def damage(w: W) -> None:
+        for rel in rels:
+            p = w / rel
+            if p.suffix == ".npy":
+                np.save(p, np.load(p).astype(np.float32) / 1000.0)
+            else:  # a PNG in metres: stored as float .npy beside it, the PNG removed
+                img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED).astype(np.float32) / 1000.0
+                p.unlink()
+                np.save(p.with_suffix(".npy"), img)
+
+    return damage
+
+
+def npy_dtype(rel: str, dtype: str) -> Callable[[W], None]:
+    def damage(w: W) -> None:
+        np.save(w / rel, np.load(w / rel).astype(dtype))
+
+    return damage
+
+
+def remove(rel: str) -> Callable[[W], None]:
+    def damage(w: W) -> None:
+        p = w / rel
+        if p.is_dir():
+            import shutil
+
+            shutil.rmtree(p)
+        else:
+            p.unlink()
+
+    return damage
+
+
+def first_stack(w: W, folder: str) -> str:
+    """The first stack file of a capture folder (from its index.json), relative to the world."""
+    index = json.loads((w / folder / "index.json").read_text())
+    return f"{folder}/{index['stacks'][0]['file']}"
+
+
+def mixed_sizes(folder: str) -> Callable[[W], None]:
+    def damage(w: W) -> None:
+        rel = first_stack(w, folder)
+        stack = np.load(w / rel)
+        np.save(w / rel, np.concatenate([stack, stack], axis=-1))  # (F, N, H, 2W)
+
+    return damage
+
+
+def truncate_stack(folder: str) -> Callable[[W], None]:
+    def damage(w: W) -> None:
+        truncate(first_stack(w, folder), 200)(w)
+
+    return damage
+
+
+#: a calibration YAML broken four ways (the bad_yaml family): name -> (damage of calib.yaml, what the error names)
+def _yaml_syntax(w: W) -> None:
+    (w / "calib.yaml").write_text((w / "calib.yaml").read_text() + "dark_std_e: [1, 2\n")
+
+
+def _yaml_latin1(w: W) -> None:
+    (w / "calib.yaml").write_bytes("# caméra du labo\n".encode("latin-1") + (w / "calib.yaml").read_bytes())
+
+
+def _yaml_field(key: str, value: Any) -> Callable[[W], None]:
+    def damage(w: W) -> None:
+        data = yaml.safe_load((w / "calib.yaml").read_text())
+        data[key] = value
+        (w / "calib.yaml").write_text(yaml.safe_dump(data))
+
+    return damage
+
+
+CALIB_DAMAGE: dict[str, tuple[Callable[[W], None], list[str]]] = {
+    "syntax-error": (_yaml_syntax, ["calib.yaml"]),
+    "latin1": (_yaml_latin1, ["calib.yaml", "UTF-8"]),
+    "unknown-field": (_yaml_field("dark_stdev_e", 40.0), ["calib.yaml", "dark_stdev_e"]),
+    "out-of-range": (_yaml_field("range_sigma_mm", [-3.0, 0.0, 0.0]), ["calib.yaml", "range_sigma_mm"]),
+}
+
+#: a LightningCLI config broken four ways: name -> (text of the file, what the error names)
+LIGHTNING_CONFIG_DAMAGE: dict[str, tuple[bytes, list[str]]] = {
+    "syntax-error": (b"trainer:\n  max_epochs: [1, 2\n", ["bad.yaml"]),
+    "latin1": ("# réglages\ntrainer:\n  max_epochs: 1\n".encode("latin-1"), ["bad.yaml"]),
+    "unknown-field": (b"trainer:\n  max_epochz: 1\n", ["max_epochz"]),
+    "out-of-range": (b"data:\n  init_args:\n    batch_size: -4\n", ["batch_size"]),
+}
+
+
+# ------------------------------------------------------------------------------------------------- arguments
+
+
+def denoise_args(w: W, *extra: Any, out: str = "out/d") -> list[Any]:
+    return [w / "frames", "--ckpt", w / "model.ckpt", "--out", w / out, "--device", "cpu", "--quiet", *extra]
+
+
+def eval_args(w: W, out: str = "out/m.json") -> list[Any]:
+    return ["--pred", w / "pred", "--ref", w / "ref", "--out", w / out]
+
+
+def calibrate_args(w: W, out: str = "out/c.yaml") -> list[Any]:
+    c = w / "captures"
+    return ["--sweep", c / "sweep", "--dark", c / "dark", "--distances", c / "distances", "--out", w / out]
+
+
+def page_args(w: W, page: str = "out/results.md") -> list[Any]:
+    return ["--page-only", "--results", w / "results", "--page", w / page]
+
+
+def grid_args(w: W, *extra: Any) -> list[Any]:
+    return ["robustness", "--out", w / "grid", *_grid_select(), "--table-only", *extra]
+
+
+def _grid_select() -> list[str]:
+    return ["--backbones", "unet", "--noises", "hetero", "--losses", "l1", "--sensors", "default", "--seeds", "0"]
+
+
+GRID_RUN = "unet-default-hetero-l1-s0"
+
+SIM_SMALL: dict[str, list[str]] = {
+    "tofdenoise-sensor simulate-calibration": [
+        "--sweep-steps", "4", "--sweep-frames", "2", "--dark-frames", "2", "--distance-frames", "2", "--size", "2",
+    ],
+    "tofdenoise-sensor simulate-captures": ["--scenes", "1", "--frames", "2", "--height", "16", "--width", "16"],
+    "tofdenoise-sensor simulate-validation": ["--frames", "2", "--roi-px", "2"],
+    "tofdenoise-sensor realset": ["--scenes", "1", "--frames", "2", "--height", "16", "--width", "16"],
+}  # fmt: skip
+SENSOR_OPTION = {
+    "tofdenoise-sensor simulate-calibration": "--sensor",
+    "tofdenoise-sensor simulate-captures": "--sensor",
+    "tofdenoise-sensor simulate-validation": "--sensor",
+    "tofdenoise-sensor realset": "--camera",
+}
+
+
+def train_args(w: W, *extra: str, run: str = "out/run") -> list[str]:
+    return [*_tiny_overrides()(w / run, w / "cache"), "logger=csv", *extra]
+
+
+def _tiny_overrides():
+    """``tiny_overrides`` of tests/cli/conftest.py: the tiny Hydra run settings of the entry-point tests."""
+    import importlib.util
+    import sys
+
+    name = "_cli_conftest_for_probes"
+    if name not in sys.modules:
+        spec = importlib.util.spec_from_file_location(name, Path(__file__).parents[1] / "cli" / "conftest.py")
+        sys.modules[name] = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(sys.modules[name])
+    return sys.modules[name].tiny_overrides
+
+
+def lightning_args(w: W, *extra: Any, root: str = "out/cli") -> list[Any]:
+    from tofdenoise.paths import CONFIG_DIR
+
+    return [
+        "--config",
+        Path(CONFIG_DIR) / "cli" / "smoke.yaml",
+        "--trainer.default_root_dir",
+        w / root,
+        "--trainer.enable_progress_bar",
+        "false",
+        *extra,
+    ]
+
+
+# ------------------------------------------------------------------------------------------------------ rows
+
+P = Probe
+PROBES: list[Probe] = []
+#: what Hydra writes into a run folder before the run code starts (its config and its log): a refused run leaves
+#: only these (and no checkpoint, record or lock)
+_HYDRA_RUN = ("out/run/.hydra", "out/run/config.log", "out/run/train.log", "out/run/classic.log")
+
+# bad frames: a truncated PNG, an 8-bit PNG, a frame of another dtype, depths in metres instead of millimetres.
+# tofdenoise-denoise goes on with the other frames and lists the bad one as FAILED (exit 1); nothing is written
+# for the bad frame.
+_DENOISE_OTHER = {"a": ("out/d/sub/b.png",), "b": ("out/d/a.png",)}
+PROBES += [
+    P("tofdenoise-denoise", "bad_frames", "truncated-png", denoise_args, truncate("frames/a.png", 100), 1,
+      lambda w: ["FAILED", str(w / "frames/a.png")], _DENOISE_OTHER["a"]),
+    P("tofdenoise-denoise", "bad_frames", "png-8bit", denoise_args, write_png8("frames/a.png"), 1,
+      lambda w: ["FAILED", str(w / "frames/a.png")], _DENOISE_OTHER["a"]),
+    P("tofdenoise-denoise", "bad_frames", "npy-complex", denoise_args, npy_dtype("frames/sub/b.npy", "complex64"), 1,
+      lambda w: ["FAILED", str(w / "frames/sub/b.npy")], _DENOISE_OTHER["b"]),
+    P("tofdenoise-denoise", "bad_frames", "metres", denoise_args, npy_in_metres("frames/sub/b.npy"), 1,
+      lambda w: ["FAILED", str(w / "frames/sub/b.npy"), "--depth-scale-mm"], _DENOISE_OTHER["b"]),
+    P("tofdenoise-eval", "bad_frames", "truncated-png", eval_args, truncate("pred/s0.png", 100), 2,
+      lambda w: ["error", "s0.png"]),
+    P("tofdenoise-eval", "bad_frames", "png-8bit", eval_args, write_png8("pred/s0.png"), 2,
+      lambda w: ["error", "s0.png"]),
+    P("tofdenoise-eval", "bad_frames", "metres", eval_args, npy_in_metres("pred/s0.png", "ref/s0.png"), 2,
+      lambda w: ["error", "s0.npy", "mm"]),
+    P("tofdenoise-sensor build-reference", "bad_frames", "truncated-png",
+      lambda w: [w / "scenes", "--force", "--quiet"], truncate("scenes/scene_0000/hiexp/depth_mm_000.png", 100), 2,
+      lambda w: ["error", "depth_mm_000.png"]),
+]  # fmt: skip
+
+# bad calibration captures: a missing index.json, stacks of mixed sizes, a truncated stack
+PROBES += [
+    P("tofdenoise-sensor calibrate", "bad_captures", "missing-index", calibrate_args,
+      remove("captures/sweep/index.json"),
+      2, lambda w: ["error", "index.json", "sweep"]),
+    P("tofdenoise-sensor calibrate", "bad_captures", "mixed-sizes", calibrate_args, mixed_sizes("captures/sweep"), 2,
+      lambda w: ["error", str(w / "captures/sweep/step_"), "px"]),
+    P("tofdenoise-sensor calibrate", "bad_captures", "truncated-stack", calibrate_args,
+      truncate_stack("captures/sweep"),
+      2, lambda w: ["error", first_stack(w, "captures/sweep").split("/")[-1]]),
+    P("tofdenoise-sensor validate", "bad_captures", "missing-index",
+      lambda w: ["--out", w / "out/v", "--captures", w / "frames", "--quick"], None, 2,
+      lambda w: ["error", "index.json"]),
+    P("tofdenoise-sensor build-reference", "bad_captures", "no-hiexp", lambda w: [w / "scenes/scene_0000", "--quiet"],
+      remove("scenes/scene_0000/hiexp"), 2, lambda w: ["error", "scene_0000"]),
+    P("tofdenoise-train", "bad_captures", "empty-real-dir",
+      lambda w: train_args(w, f"++data.real_dir={w / 'frames/sub'}"), None, 2, lambda w: ["error", "data"],
+      _HYDRA_RUN),
+    P("tofdenoise-classic", "bad_captures", "empty-real-dir",
+      lambda w: train_args(w, f"++data.real_dir={w / 'frames/sub'}"), None, 2, lambda w: ["error", "data"],
+      _HYDRA_RUN),
+    P("tofdenoise fit", "bad_captures", "empty-real-dir",
+      lambda w: lightning_args(w, "--data.init_args.real_dir", w / "frames/sub"), None, 2,
+      lambda w: ["error", "real_dir"]),
+]  # fmt: skip
+
+# bad YAML: the calibration file (every reader) and the LightningCLI config
+_CALIB_READERS: dict[str, Callable[[W], list[Any]]] = {
+    "tofdenoise-sensor show-calib": lambda w: ["--calib", w / "calib.yaml"],
+    "tofdenoise-sensor sigma": lambda w: ["--depth-mm", "1000", "--signal-e", "5000", "--calib", w / "calib.yaml"],
+    "tofdenoise-sensor validate": lambda w: ["--out", w / "out/v", "--calib", w / "calib.yaml", "--quick"],
+    "tofdenoise-denoise": lambda w: denoise_args(w, "--amplitude", w / "amp", "--calib", w / "calib.yaml"),
+    **{
+        cmd: (lambda c: lambda w: ["--out", w / "out/sim", SENSOR_OPTION[c], w / "calib.yaml", *SIM_SMALL[c]])(cmd)
+        for cmd in SENSOR_OPTION
+    },
+    "tofdenoise-train": lambda w: train_args(w, f"++data.sensor={w / 'calib.yaml'}"),
+    "tofdenoise-classic": lambda w: train_args(w, f"++data.sensor={w / 'calib.yaml'}"),
+}
+for _cmd, _argv in _CALIB_READERS.items():
+    for _case, (_damage, _names) in CALIB_DAMAGE.items():
+        PROBES.append(
+            P(_cmd, "bad_yaml", _case, _argv, _damage, 2, (lambda n: lambda w: ["error", *n])(_names),
+              _HYDRA_RUN if _cmd in ("tofdenoise-train", "tofdenoise-classic") else ())
+        )  # fmt: skip
+
+
+def _lightning_config(text: bytes) -> Callable[[W], None]:
+    def damage(w: W) -> None:
+        (w / "bad.yaml").write_bytes(text)
+
+    return damage
+
+
+for _case, (_text, _names) in LIGHTNING_CONFIG_DAMAGE.items():
+    PROBES.append(
+        P("tofdenoise fit", "bad_yaml", _case, lambda w: lightning_args(w, "--config", w / "bad.yaml"),
+          _lightning_config(_text), 2, (lambda n: lambda w: ["error", *n])(_names))
+    )  # fmt: skip
+
+# misuse of outputs: an output that is an input, or that lies where it would replace one
+PROBES += [
+    P("tofdenoise-denoise", "misuse_outputs", "out-is-the-input-folder", lambda w: denoise_args(w, out="frames"),
+      None, 2, lambda w: ["error", "--out", "holds the input", str(w / "frames")]),
+    P("tofdenoise-denoise", "misuse_outputs", "npy-replaces-the-amplitude",
+      lambda w: denoise_args(w, "--amplitude", w / "amp", "--npy", out="amp"), None, 2,
+      lambda w: ["error", "--out", "amp"]),
+    P("tofdenoise-eval", "misuse_outputs", "out-is-an-input", lambda w: eval_args(w, "pred/s0.png"), None, 2,
+      lambda w: ["error", "--out", "s0.png"]),
+    P("tofdenoise-eval", "misuse_outputs", "out-beside-an-input", lambda w: eval_args(w, "pred/s0.json"), None, 2,
+      lambda w: ["error", "--out", "s0"]),
+    P("tofdenoise-report", "misuse_outputs", "out-is-a-record",
+      lambda w: [w / "runs", "--out", w / "runs/r1/metrics.html"], None, 2, lambda w: ["error", "--out", "metrics"]),
+    P("tofdenoise-grid", "misuse_outputs", "markdown-replaces-a-file-of-a-run",
+      lambda w: grid_args(w, "--markdown", w / "grid" / GRID_RUN / "notes.md"),
+      lambda w: (w / "grid" / GRID_RUN / "notes.md").write_text("my notes\n"), 2,
+      lambda w: ["error", "--markdown", "notes.md"]),
+    P("tofdenoise-reproduce", "misuse_outputs", "page-is-the-discussion",
+      lambda w: page_args(w, "results/discussion.md"),
+      None, 2, lambda w: ["error", "--page", "discussion.md"]),
+    P("tofdenoise-sensor calibrate", "misuse_outputs", "out-is-the-capture-index",
+      lambda w: calibrate_args(w, "captures/sweep/index.json"), None, 2, lambda w: ["error", "index.json"]),
+    P("tofdenoise-sensor calibrate", "misuse_outputs", "out-is-a-capture-folder",
+      lambda w: calibrate_args(w, "captures/dark"), None, 2, lambda w: ["error", "dark"]),
+    P("tofdenoise-sensor validate", "misuse_outputs", "out-replaces-the-calibration",
+      lambda w: ["--out", w / "out/v", "--calib", w / "out/v/validation.json", "--quick"],
+      lambda w: ((w / "out/v").mkdir(), (w / "out/v/validation.json").write_text(
+          json.dumps(yaml.safe_load((w / "calib.yaml").read_text())))),
+      2, lambda w: ["error", "validation.json"]),
+    P("tofdenoise-export", "misuse_outputs", "onnx-is-the-checkpoint",
+      lambda w: [w / "model.ckpt", "--onnx", w / "model.ckpt", "--no-check"], None, 2,
+      lambda w: ["error", "model.ckpt"]),
+    P("tofdenoise-train", "misuse_outputs", "init-weights-inside-the-run",
+      lambda w: train_args(w, f"++model.init_weights={w / 'out/run/checkpoints/best.ckpt'}"),
+      lambda w: ((w / "out/run/checkpoints").mkdir(parents=True),
+                 (w / "out/run/checkpoints/best.ckpt").write_bytes((w / "model.ckpt").read_bytes())),
+      2, lambda w: ["error", "holds the input", "best.ckpt"], _HYDRA_RUN),
+    P("tofdenoise fit", "misuse_outputs", "init-weights-inside-the-run",
+      lambda w: lightning_args(w, "--model.init_args.init_weights", w / "out/cli/checkpoints/best.ckpt"),
+      lambda w: ((w / "out/cli/checkpoints").mkdir(parents=True),
+                 (w / "out/cli/checkpoints/best.ckpt").write_bytes((w / "model.ckpt").read_bytes())),
+      2, lambda w: ["error", "holds the input", "best.ckpt"]),
+]  # fmt: skip
+for _cmd, _opt in SENSOR_OPTION.items():
+    PROBES.append(
+        P(_cmd, "misuse_outputs", "out-holds-the-camera-file",
+          (lambda c, o: lambda w: ["--out", w.root, o, w / "calib.yaml", *SIM_SMALL[c]])(_cmd, _opt), None, 2,
+          lambda w: ["error", "calib.yaml"])
+    )  # fmt: skip
+
+# concurrent writers: another process holds the run folder's lock
+PROBES += [
+    P("tofdenoise-train", "concurrent", "run-folder-locked", train_args, None, 2,
+      lambda w: ["error", str(w / "out/run/run.lock")], runner="locked", lock_dir=lambda w: w / "out/run"),
+    P("tofdenoise-classic", "concurrent", "run-folder-locked", train_args, None, 2,
+      lambda w: ["error", str(w / "out/run/run.lock")], runner="locked", lock_dir=lambda w: w / "out/run"),
+    P("tofdenoise fit", "concurrent", "run-folder-locked", lightning_args, None, 2,
+      lambda w: ["error", str(w / "out/cli/run.lock")], runner="locked", lock_dir=lambda w: w / "out/cli"),
+]  # fmt: skip
+
+
+# corrupt records: run records and checkpoints that cannot be used
+def _null_metric(rel: str) -> Callable[[W], None]:
+    def damage(w: W) -> None:
+        data = json.loads((w / rel).read_text())
+        data["synthetic"]["mae_mm"] = None
+        (w / rel).write_text(json.dumps(data))
+
+    return damage
+
+
+def _text_metric(rel: str) -> Callable[[W], None]:
+    def damage(w: W) -> None:
+        data = json.loads((w / rel).read_text())
+        data["synthetic"]["mae_mm"] = "abc"
+        (w / rel).write_text(json.dumps(data))
+
+    return damage
+
+
+def _write(rel: str, text: str) -> Callable[[W], None]:
+    def damage(w: W) -> None:
+        (w / rel).write_text(text)
+
+    return damage
+
+
+_REC = "results/cpu/dvss-range-l1-s1"
+_GRID_REC = f"grid/{GRID_RUN}"
+PROBES += [
+    P("tofdenoise-reproduce", "corrupt_records", "truncated-metrics", page_args,
+      truncate(f"{_REC}/metrics.json", 40), 2,
+      lambda w: ["error", f"{_REC}/metrics.json"]),
+    P("tofdenoise-reproduce", "corrupt_records", "null-metric", page_args, _null_metric(f"{_REC}/metrics.json"), 2,
+      lambda w: ["error", f"{_REC}/metrics.json", "mae_mm"]),
+    P("tofdenoise-reproduce", "corrupt_records", "text-metric", page_args, _text_metric(f"{_REC}/metrics.json"), 2,
+      lambda w: ["error", f"{_REC}/metrics.json", "mae_mm"]),
+    P("tofdenoise-reproduce", "corrupt_records", "run-info-not-json", page_args, _write(f"{_REC}/run_info.json", "{x"),
+      2, lambda w: ["error", f"{_REC}/run_info.json"]),
+    P("tofdenoise-report", "corrupt_records", "truncated-metrics", lambda w: [w / "runs", "--out", w / "out/r.html"],
+      truncate("runs/r1/metrics.json", 40), 2, lambda w: ["runs/r1", "metrics.json"]),
+    P("tofdenoise-report", "corrupt_records", "text-metric", lambda w: [w / "runs", "--out", w / "out/r.html"],
+      _text_metric("runs/r1/metrics.json"), 2, lambda w: ["runs/r1", "mae_mm"]),
+    P("tofdenoise-grid", "corrupt_records", "truncated-metrics", grid_args,
+      truncate(f"{_GRID_REC}/metrics.json", 40), 2,
+      lambda w: ["error", f"{_GRID_REC}/metrics.json"]),
+    P("tofdenoise-grid", "corrupt_records", "run-info-not-json", grid_args, _write(f"{_GRID_REC}/run_info.json", "{x"),
+      2, lambda w: ["error", f"{_GRID_REC}/run_info.json"]),
+    P("tofdenoise-denoise", "corrupt_records", "truncated-checkpoint", denoise_args, truncate("model.ckpt", 4000), 2,
+      lambda w: ["error", "model.ckpt"]),
+    P("tofdenoise-export", "corrupt_records", "truncated-checkpoint",
+      lambda w: [w / "model.ckpt", "--onnx", w / "out/m.onnx"], truncate("model.ckpt", 4000), 2,
+      lambda w: ["error", "model.ckpt"]),
+    P("tofdenoise-train", "corrupt_records", "truncated-checkpoint-to-test",
+      lambda w: train_args(w, "train=false", f"ckpt_path={w / 'model.ckpt'}"), truncate("model.ckpt", 4000), 2,
+      lambda w: ["error", "model.ckpt"], _HYDRA_RUN),
+    P("tofdenoise fit", "corrupt_records", "truncated-checkpoint-to-resume",
+      lambda w: lightning_args(w, "--ckpt_path", w / "model.ckpt"), truncate("model.ckpt", 4000), 2,
+      lambda w: ["error", "model.ckpt"]),
+    P("tofdenoise test", "corrupt_records", "truncated-checkpoint",
+      lambda w: lightning_args(w, "--ckpt_path", w / "model.ckpt"), truncate("model.ckpt", 4000), 2,
+      lambda w: ["error", "model.ckpt"]),
+    P("tofdenoise validate", "corrupt_records", "truncated-checkpoint",
+      lambda w: lightning_args(w, "--ckpt_path", w / "model.ckpt"), truncate("model.ckpt", 4000), 2,
+      lambda w: ["error", "model.ckpt"]),
+    P("tofdenoise predict", "corrupt_records", "truncated-checkpoint",
+      lambda w: lightning_args(w, "--ckpt_path", w / "model.ckpt"), truncate("model.ckpt", 4000), 2,
+      lambda w: ["error", "model.ckpt"]),
+]  # fmt: skip
+
+# full disk: every write fails (ENOSPC on a real small file system, EFBIG under RLIMIT_FSIZE here); one line naming
+# the output, exit status 2 (1 for a frame of tofdenoise-denoise, listed as FAILED), no partial file
+PROBES += [
+    P("tofdenoise-denoise", "full_disk", "every-frame", lambda w: denoise_args(w, "--npy"), None, 1,
+      lambda w: ["FAILED", str(w / "out/d"), "could not write"], ("out/d",)),
+    P("tofdenoise-eval", "full_disk", "json", eval_args, None, 2, lambda w: ["error", "m.json"], ("out",)),
+    P("tofdenoise-report", "full_disk", "html", lambda w: [w / "runs", "--out", w / "out/r.html"], None, 2,
+      lambda w: ["error", "r.html"], ("out",)),
+    P("tofdenoise-grid", "full_disk", "markdown", lambda w: grid_args(w, "--markdown", w / "out/t.md"), None, 2,
+      lambda w: ["error", "t.md"], ("out",)),
+    P("tofdenoise-reproduce", "full_disk", "page", page_args, None, 2, lambda w: ["error", "results.md"], ("out",)),
+    P("tofdenoise-sensor calibrate", "full_disk", "calibration", calibrate_args, None, 2,
+      lambda w: ["error", "c.yaml"], ("out",)),
+    P("tofdenoise-sensor validate", "full_disk", "validation",
+      lambda w: ["--out", w / "out/v", "--quick", "--frames", "4", "--roi-px", "4"], None, 2,
+      lambda w: ["error", "out/v"], ("out",)),
+    P("tofdenoise-sensor build-reference", "full_disk", "reference", lambda w: [w / "scenes", "--force", "--quiet"],
+      None, 2, lambda w: ["error", "scene_0000"]),
+    P("tofdenoise-export", "full_disk", "onnx", lambda w: [w / "model.ckpt", "--onnx", w / "out/m.onnx", "--no-check"],
+      None, 2, lambda w: ["error", "m.onnx"], ("out",)),
+]  # fmt: skip
+for _cmd in ("tofdenoise-sensor simulate-calibration", "tofdenoise-sensor simulate-captures",
+             "tofdenoise-sensor simulate-validation"):  # fmt: skip
+    PROBES.append(
+        P(_cmd, "full_disk", "captures", (lambda c: lambda w: ["--out", w / "out/sim", *SIM_SMALL[c]])(_cmd), None, 2,
+          lambda w: ["error", "out/sim"], ("out",))
+    )  # fmt: skip
+
+# signals: a separate process (tests/reliability/test_signals.py runs these rows)
+PROBES += [
+    P("tofdenoise-denoise", "signals", "sigint-over-many-frames", lambda w: [], runner="signal", status=130),
+    P("tofdenoise-denoise", "signals", "sigkill-over-many-frames", lambda w: [], runner="signal", status=-9, slow=True),
+    P("tofdenoise-denoise", "concurrent", "two-writers-one-out", lambda w: [], runner="signal", status=0, slow=True),
+    P("tofdenoise-train", "signals", "sigint-mid-training", lambda w: [], runner="signal", status=130, slow=True),
+]
+
+# ------------------------------------------------------------------------------------------------ exemptions
+
+_NO_FRAMES = "reads no depth frames"
+_NO_CAPTURES = "reads no calibration captures or capture sets"
+_NO_YAML = "reads no calibration or config YAML file"
+_NO_OUTPUT = "writes no file (prints to stdout)"
+_NO_RUN = "writes no run folder, and its outputs are written by atomic rename (two writers: the last complete file)"
+_NO_RECORDS = "reads no run record or checkpoint"
+_SHORT = "finishes in seconds and writes every file by atomic rename: a signal leaves the old file or the new one"
+_HYDRA_SAME = "the same Hydra entry code as tofdenoise-train (config.hydra_console_script): see its rows"
+_LCLI_SAME = "the same LightningCLI front end as `tofdenoise fit` (lightning_cli.ToFLightningCLI): see its rows"
+_CHILDREN = "runs each training as a tofdenoise-train process: the train rows cover it"
+_REALSET = "runs simulate-calibration, calibrate, simulate-captures and simulate-validation in this process: their rows"
+
+EXEMPT: dict[str, dict[str, str]] = {
+    "tofdenoise fit": {
+        "bad_frames": "reads the training data through data sources (tests/data_modules)",
+        "full_disk": "checkpoints are written by the same CheckpointWriter as tofdenoise-train (its tmpfs row)",
+        "signals": "Lightning's own KeyboardInterrupt handling, as in tofdenoise-train (its row)",
+    },
+    **{
+        f"tofdenoise {verb}": {
+            "bad_frames": _LCLI_SAME,
+            "bad_captures": _LCLI_SAME,
+            "bad_yaml": _LCLI_SAME,
+            "misuse_outputs": _LCLI_SAME,
+            "concurrent": _LCLI_SAME,
+            "full_disk": _LCLI_SAME,
+            "signals": _LCLI_SAME,
+        }
+        for verb in ("validate", "test", "predict")
+    },
+    "tofdenoise-train": {
+        "bad_frames": "reads the training data through data sources (tests/data_modules)",
+        "full_disk": "a checkpoint write that fails: tests/training/test_checkpointing.py (not probed end to end "
+        "on a full file system yet)",
+    },
+    "tofdenoise-classic": {
+        "bad_frames": "reads the training data through data sources (tests/data_modules)",
+        "misuse_outputs": "reads no file that its run folder's records could replace (only a calibration: its "
+        "bad_yaml rows)",
+        "corrupt_records": _NO_RECORDS,
+        "full_disk": _HYDRA_SAME,
+        "signals": _HYDRA_SAME,
+    },
+    "tofdenoise-sensor show-calib": {
+        "bad_frames": _NO_FRAMES,
+        "bad_captures": _NO_CAPTURES,
+        "misuse_outputs": _NO_OUTPUT,
+        "concurrent": _NO_OUTPUT,
+        "corrupt_records": _NO_RECORDS,
+        "full_disk": _NO_OUTPUT,
+        "signals": _NO_OUTPUT,
+    },
+    "tofdenoise-sensor calibrate": {
+        "bad_frames": "reads capture stacks, not depth frames: its bad_captures rows",
+        "bad_yaml": "reads no YAML (index.json is JSON: its missing-index row)",
+        "concurrent": _NO_RUN,
+        "corrupt_records": _NO_RECORDS,
+        "signals": _SHORT,
+    },
+    "tofdenoise-sensor validate": {
+        "bad_frames": "reads capture stacks, not depth frames: its bad_captures rows",
+        "concurrent": _NO_RUN,
+        "corrupt_records": _NO_RECORDS,
+        "signals": _SHORT,
+    },
+    "tofdenoise-sensor build-reference": {
+        "bad_yaml": _NO_YAML,
+        "misuse_outputs": "writes each scene's reference into that scene's folder by design (docs/reliability.md, "
+        "Not covered)",
+        "concurrent": _NO_RUN,
+        "corrupt_records": _NO_RECORDS,
+        "signals": _SHORT,
+    },
+    "tofdenoise-sensor realset": {
+        "bad_frames": _NO_FRAMES,
+        "bad_captures": _REALSET,
+        "concurrent": _REALSET,
+        "corrupt_records": "realset.json is rewritten when it does not parse (the steps are redone)",
+        "full_disk": _REALSET,
+        "signals": "resumable: finished steps and complete scenes are skipped on the next run",
+    },
+    "tofdenoise-eval": {
+        "bad_captures": _NO_CAPTURES,
+        "bad_yaml": _NO_YAML,
+        "concurrent": _NO_RUN,
+        "corrupt_records": _NO_RECORDS,
+        "signals": _SHORT,
+    },
+    "tofdenoise-report": {
+        "bad_frames": _NO_FRAMES,
+        "bad_captures": _NO_CAPTURES,
+        "bad_yaml": "a run's Hydra config.yaml is read only for labels (tests/cli/test_report.py)",
+        "concurrent": _NO_RUN,
+        "signals": _SHORT,
+    },
+    "tofdenoise-grid": {
+        "bad_frames": _NO_FRAMES,
+        "bad_captures": _CHILDREN,
+        "bad_yaml": _CHILDREN,
+        "concurrent": _CHILDREN,
+        "signals": _CHILDREN,
+    },
+    "tofdenoise-denoise": {"bad_captures": _NO_CAPTURES},
+    "tofdenoise-reproduce": {
+        "bad_frames": _NO_FRAMES,
+        "bad_captures": _CHILDREN,
+        "bad_yaml": _CHILDREN,
+        "concurrent": _CHILDREN,
+        "signals": _CHILDREN,
+    },
+    "tofdenoise-export": {
+        "bad_frames": _NO_FRAMES,
+        "bad_captures": _NO_CAPTURES,
+        "bad_yaml": _NO_YAML,
+        "concurrent": _NO_RUN,
+        "signals": _SHORT,
+    },
+}
+for _cmd in ("tofdenoise-sensor sigma",):
+    EXEMPT[_cmd] = EXEMPT["tofdenoise-sensor show-calib"]
+for _cmd in SENSOR_OPTION:
+    EXEMPT.setdefault(_cmd, {})
+    EXEMPT[_cmd].update(
+        {
+            "bad_frames": _NO_FRAMES,
+            "concurrent": _NO_RUN,
+            "corrupt_records": _NO_RECORDS,
+            "signals": EXEMPT["tofdenoise-sensor realset"]["signals"],
+        }
+    )
+    if _cmd != "tofdenoise-sensor realset":
+        EXEMPT[_cmd]["bad_captures"] = "reads no captures: it writes them"

@@ -1,0 +1,189 @@
+"""Every family of fault against every command that reads or writes user files (the table: probes.py).
+
+Each row runs the command's real entry point and asserts what a user gets: the exit status, one line of stderr
+naming the file or field (never a traceback), and the world's files: inputs unchanged (sha256 before and after),
+nothing written but what the row allows, and no temporary file left behind.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import pytest
+
+_spec = importlib.util.spec_from_file_location("_reliability_probes", Path(__file__).with_name("probes.py"))
+probes = importlib.util.module_from_spec(_spec)
+sys.modules[_spec.name] = probes
+_spec.loader.exec_module(probes)
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def console_scripts() -> dict[str, str]:
+    """``[project.scripts]`` of pyproject.toml (tomllib from Python 3.11; the plain ``name = "module:func"`` lines
+    of that table on 3.10)."""
+    text = (REPO / "pyproject.toml").read_text(encoding="utf-8")
+    try:
+        import tomllib
+    except ModuleNotFoundError:  # Python 3.10
+        import re
+
+        table = text.split("[project.scripts]", 1)[1].split("\n[", 1)[0]
+        return dict(re.findall(r'^([A-Za-z0-9_-]+)\s*=\s*"([^"]+)"', table, flags=re.M))
+    return tomllib.loads(text)["project"]["scripts"]
+
+
+def _params(runner: str):
+    return [
+        pytest.param(p, id=p.id, marks=[pytest.mark.slow] if p.slow else [])
+        for p in probes.PROBES
+        if p.runner == runner
+    ]
+
+
+def assert_outcome(probe, world, before: dict[str, str], outcome) -> None:
+    """The generic checks of a row (module docstring)."""
+    shown = f"\nstatus {outcome.status}\nstdout:\n{outcome.out[-2000:]}\nstderr:\n{outcome.err[-3000:]}"
+    assert outcome.escaped is None, f"a traceback reached the user:\n{outcome.escaped}{shown}"
+    assert "Traceback (most recent call last)" not in outcome.err, shown
+    assert outcome.status == probe.status, shown
+    names = [str(n) for n in probe.names(world)]
+    if names:
+        lines = [line for line in outcome.err.splitlines() if all(n in line for n in names)]
+        assert lines, f"no line of stderr names {names}{shown}"
+    after = world.snapshot()
+    allowed = tuple(probe.may_change)
+
+    def free(rel: str) -> bool:
+        return any(rel == a or rel.startswith(a.rstrip("/") + "/") for a in allowed)
+
+    changed = sorted(r for r in set(before) | set(after) if before.get(r) != after.get(r) and not free(r))
+    assert not changed, f"files written, changed or removed: {changed}{shown}"
+    temporary = [r for r in after if Path(r).name.startswith(".") and ".tmp" in Path(r).name]
+    assert not temporary, f"temporary files left behind: {temporary}"
+    if probe.check is not None:
+        probe.check(world, outcome)
+
+
+@pytest.mark.parametrize("probe", _params("call"))
+def test_probe(probe, world, call):
+    if probe.damage is not None:
+        probe.damage(world)
+    before = world.snapshot()
+    script, prefix = probes.COMMANDS[probe.command]
+    outcome = call(script, [*prefix, *probe.argv(world)], full_disk=probe.family == "full_disk")
+    assert_outcome(probe, world, before, outcome)
+
+
+@pytest.mark.parametrize("probe", _params("locked"))
+def test_probe_with_the_run_folder_locked_by_another_process(probe, world, call, lock_holder):
+    if probe.damage is not None:
+        probe.damage(world)
+    run_dir = probe.lock_dir(world)
+    with lock_holder(run_dir, "the other writer") as pid:
+        before = world.snapshot()
+        script, prefix = probes.COMMANDS[probe.command]
+        outcome = call(script, [*prefix, *probe.argv(world)])
+        assert_outcome(probe, world, before, outcome)
+        assert f"pid {pid}" in outcome.err
+
+
+# ----------------------------------------------------------------------------------- the table covers every command
+
+
+def _commands_of_the_package() -> set[str]:
+    """Every console script of pyproject.toml, with the sub-commands of those that have them."""
+    from lightning.pytorch.cli import LightningCLI
+
+    from tofdenoise.cli.sensor import build_parser
+
+    scripts = console_scripts()
+    commands = set()
+    for script in scripts:
+        if script == "tofdenoise-sensor":
+            parser = build_parser()
+            (sub,) = [a for a in parser._actions if a.dest == "command"]
+            commands |= {f"{script} {name}" for name in sub.choices}
+        elif script == "tofdenoise":
+            commands |= {f"{script} {name}" for name in LightningCLI.subcommands()}
+        else:
+            commands.add(script)
+    return commands
+
+
+def test_every_command_has_a_row_in_every_family():
+    """A new console script or sub-command fails here until it has a row (or a reasoned exemption) per family."""
+    package = _commands_of_the_package()
+    assert package == set(probes.COMMANDS), (
+        f"commands without an entry in probes.COMMANDS: {sorted(package - set(probes.COMMANDS))}; "
+        f"entries that are no command: {sorted(set(probes.COMMANDS) - package)}"
+    )
+    rows = {(p.command, p.family) for p in probes.PROBES}
+    assert {p.family for p in probes.PROBES} <= set(probes.FAMILIES)
+    missing = []
+    for command in probes.COMMANDS:
+        for family in probes.FAMILIES:
+            exempt = probes.EXEMPT.get(command, {}).get(family)
+            has_row = (command, family) in rows
+            if not has_row and not exempt:
+                missing.append(f"{command} / {family}")
+            assert not (has_row and exempt), f"{command} / {family} has rows and an exemption: keep one"
+            assert exempt is None or len(exempt) > 15, f"{command} / {family}: say why it is exempt"
+    assert not missing, "no probe row and no exemption: " + ", ".join(missing)
+    assert len({p.id for p in probes.PROBES}) == len(probes.PROBES), "two rows with one id"
+
+
+def test_the_table_is_not_empty_where_it_matters():
+    """Every writing command is probed for misuse of its outputs and a full disk, and the probes call real entry
+    points: every row's command is one of pyproject.toml's scripts."""
+    scripts = console_scripts()
+    assert {probes.COMMANDS[p.command][0] for p in probes.PROBES} <= set(scripts)
+    families = {(p.command, p.family) for p in probes.PROBES}
+    for command in ("tofdenoise-denoise", "tofdenoise-eval", "tofdenoise-report", "tofdenoise-sensor calibrate"):
+        assert (command, "misuse_outputs") in families and (command, "full_disk") in families
+
+
+# ----------------------------------------------------------------------------- a real full disk (slow, needs root)
+
+
+def _full_disk_rows():
+    return [
+        pytest.param(p, id=p.id, marks=[pytest.mark.slow])
+        for p in probes.PROBES
+        if p.family == "full_disk"
+        and p.runner == "call"
+        and all(a.startswith("out") for a in p.may_change)
+        and p.may_change
+    ]
+
+
+@pytest.mark.parametrize("probe", _full_disk_rows())
+def test_probe_on_a_real_full_file_system(probe, world, call):
+    """The full_disk rows once more, on a real 64 KiB tmpfs mounted at the world's ``out/`` and filled up before the
+    command runs: the writes fail with ENOSPC (the fast rows simulate it with RLIMIT_FSIZE, EFBIG)."""
+    import errno
+    import subprocess
+
+    mount = world / "out"
+    done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs", str(mount)], capture_output=True)
+    if done.returncode != 0:
+        pytest.skip(f"mount -t tmpfs needs root (CAP_SYS_ADMIN): {done.stderr.decode().strip()[:200]}")
+    try:
+        try:
+            with open(mount / "filler", "wb") as fh:
+                while True:
+                    fh.write(b"\0" * 4096)
+                    fh.flush()
+        except OSError as exc:
+            assert exc.errno == errno.ENOSPC
+        if probe.damage is not None:
+            probe.damage(world)
+        before = world.snapshot()
+        script, prefix = probes.COMMANDS[probe.command]
+        outcome = call(script, [*prefix, *probe.argv(world)])
+        assert_outcome(probe, world, before, outcome)
+        assert "No space left on device" in outcome.err
+    finally:
+        subprocess.run(["umount", str(mount)], check=True)

@@ -1,0 +1,170 @@
+"""The probe rows that need a separate process (``runner="signal"`` in probes.py): Ctrl-C and SIGKILL of a long
+``tofdenoise-denoise``, two of them writing one output folder. Run through ``.venv/bin/tofdenoise-denoise``."""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+_spec = importlib.util.spec_from_file_location("_reliability_probes", Path(__file__).with_name("probes.py"))
+probes = sys.modules.get(_spec.name) or importlib.util.module_from_spec(_spec)
+if _spec.name not in sys.modules:
+    sys.modules[_spec.name] = probes
+    _spec.loader.exec_module(probes)
+
+FRAMES = 300
+
+
+def _script(name: str) -> str:
+    path = Path(sys.executable).parent / name
+    return str(path) if path.exists() else shutil.which(name) or name
+
+
+def _many_frames(world) -> Path:
+    """FRAMES copies of the world's 16-bit frame: a command that runs for a while."""
+    folder = world / "many"
+    folder.mkdir()
+    data = (world / "frames/a.png").read_bytes()
+    for i in range(FRAMES):
+        (folder / f"f{i:03d}.png").write_bytes(data)
+    return folder
+
+
+def _start(world, frames: Path, out: Path) -> subprocess.Popen:
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    return subprocess.Popen(
+        [_script("tofdenoise-denoise"), str(frames), "--ckpt", str(world / "model.ckpt"), "--out", str(out),
+         "--device", "cpu", "--quiet"],
+        env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+
+
+def _wait_for_outputs(proc: subprocess.Popen, out: Path, count: int, timeout: float = 120) -> None:
+    deadline = time.time() + timeout
+    while time.time() < deadline and proc.poll() is None:
+        if out.is_dir() and len(list(out.glob("*.png"))) >= count:
+            return
+        time.sleep(0.05)
+    proc.kill()
+    raise AssertionError(f"no {count} outputs in {out} (exit {proc.poll()}): {proc.communicate()[1][-2000:]}")
+
+
+def _complete_outputs(out: Path, expected: np.ndarray | None = None) -> list[Path]:
+    """Every visible output decodes as a whole 16-bit frame of the input's size (equal to ``expected`` if given)."""
+    files = sorted(out.glob("*.png"))
+    for f in files:
+        img = cv2.imread(str(f), cv2.IMREAD_UNCHANGED)
+        assert img is not None and img.dtype == np.uint16 and img.shape == (36, 48), f
+        if expected is not None:
+            np.testing.assert_array_equal(img, expected)
+    return files
+
+
+def _row(case: str):
+    (row,) = [p for p in probes.PROBES if p.command == "tofdenoise-denoise" and p.case == case]
+    return row
+
+
+def test_ctrl_c_over_many_frames(world):
+    """SIGINT mid-way: exit 130, the summary names how far it got, no traceback, every written frame complete,
+    the inputs unchanged."""
+    row = _row("sigint-over-many-frames")
+    frames = _many_frames(world)
+    before = world.snapshot()
+    out = world / "out/d"
+    proc = _start(world, frames, out)
+    _wait_for_outputs(proc, out, 3)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == row.status, err[-3000:]
+    assert "Traceback" not in err, err[-3000:]
+    summary = [line for line in err.splitlines() if "interrupted (Ctrl-C) after" in line]
+    assert len(summary) == 1 and f"of {FRAMES} frame(s)" in summary[0], err[-2000:]
+    done = _complete_outputs(out)
+    assert 3 <= len(done) < FRAMES
+    assert f"{len(done)} frame(s) done" in summary[0]
+    after = world.snapshot()
+    assert {k: v for k, v in after.items() if not k.startswith("out/")} == before
+    assert not [p for p in out.iterdir() if p.name.startswith(".")], "temporary files left behind"
+
+
+@pytest.mark.slow
+def test_sigkill_over_many_frames_leaves_only_complete_frames(world):
+    """SIGKILL cannot be handled: what is left are complete frames (atomic renames) and at most the one temporary
+    file being written at that moment, never a partial frame under an output's name; a second run redoes it all."""
+    frames = _many_frames(world)
+    out = world / "out/d"
+    proc = _start(world, frames, out)
+    _wait_for_outputs(proc, out, 3)
+    proc.kill()
+    proc.communicate(timeout=60)
+    assert proc.returncode == _row("sigkill-over-many-frames").status
+    done = _complete_outputs(out)
+    assert 3 <= len(done) < FRAMES
+    assert len([p for p in out.iterdir() if p.name.startswith(".")]) <= 1
+
+
+@pytest.mark.slow
+def test_two_writers_of_one_output_folder_leave_complete_identical_frames(world):
+    """Two tofdenoise-denoise processes on the same --out (no lock: writes are atomic renames): both exit 0 and
+    every frame is complete and equal to the frame a single run writes."""
+    frames = world / "many"
+    frames.mkdir()
+    for i in range(40):
+        shutil.copy(world / "frames/a.png", frames / f"f{i:03d}.png")
+    single = world / "out/single"
+    ref = _start(world, frames, single)
+    assert ref.wait(timeout=300) == 0, ref.communicate()[1][-2000:]
+    expected = cv2.imread(str(single / "f000.png"), cv2.IMREAD_UNCHANGED)
+    out = world / "out/d"
+    a, b = _start(world, frames, out), _start(world, frames, out)
+    assert a.wait(timeout=300) == 0 and b.wait(timeout=300) == _row("two-writers-one-out").status
+    assert len(_complete_outputs(out, expected)) == 40
+    assert not [p for p in out.iterdir() if p.name.startswith(".")]
+
+
+@pytest.mark.slow
+def test_ctrl_c_mid_training_is_one_line_and_leaves_a_resumable_unfinished_run(world, tmp_path):
+    """SIGINT during tofdenoise-train: Lightning shuts down; the run is not tested and writes no metrics.json (it
+    never passes for a finished run), last.ckpt is whole, the lock is released, and one line says how to resume.
+    SIGKILL and the resume: tests/cli/test_train.py::test_resume_after_sigkill_reaches_the_same_number_of_steps and
+    tests/training/test_mid_epoch_resume.py."""
+    import json
+
+    import torch
+
+    row = [p for p in probes.PROBES if p.command == "tofdenoise-train" and p.family == "signals"][0]
+    run_dir = world / "out/run"
+    args = probes.train_args(world, "trainer.max_epochs=500", "callbacks.model_checkpoint.every_n_train_steps=2")
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", "WANDB_MODE": "offline"}
+    env.pop("HYDRA_FULL_ERROR", None)
+    proc = subprocess.Popen(
+        [_script("tofdenoise-train"), *map(str, args)], env=env, cwd=tmp_path, stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    last = run_dir / "checkpoints" / "last.ckpt"
+    deadline = time.time() + 300
+    while not last.exists() and proc.poll() is None and time.time() < deadline:
+        time.sleep(0.1)
+    assert proc.poll() is None, proc.communicate()[1][-3000:]
+    time.sleep(1.0)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=300)
+    assert proc.returncode == row.status, err[-3000:]
+    assert "Traceback" not in err, err[-3000:]
+    (line,) = [x for x in err.splitlines() if x.startswith("tofdenoise-train: interrupted (Ctrl-C) at step")]
+    assert "ckpt_path=last" in line and str(last) in line
+    assert not (run_dir / "metrics.json").exists()
+    assert not json.loads((run_dir / "run_info.json").read_text()).get("finished")
+    assert torch.load(last, weights_only=True)["global_step"] > 0
+    assert not (run_dir / "run.lock").exists()  # released on the way out
