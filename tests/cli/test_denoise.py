@@ -50,7 +50,7 @@ def test_png_npy_exr_frames_equal_the_python_api(frames_dir, restorer_ckpt, tmp_
             str(out),
             "--amplitude",
             str(amp),
-            "--calib",
+            "--sensor",
             str(calib_file),
             "--npy",
             "--previews",
@@ -147,8 +147,8 @@ def test_startup_errors_exit_2(frames_dir, restorer_ckpt, tmp_path, capsys, make
     assert "--amplitude" in capsys.readouterr().err
     assert main([str(tmp_path / "nope"), "--ckpt", str(restorer_ckpt), "--out", str(tmp_path / "o")]) == 2
     assert "input not found" in capsys.readouterr().err
-    assert main([str(src), "--ckpt", str(restorer_ckpt), "--out", str(tmp_path / "o"), "--calib", "default"]) == 2
-    assert "--calib needs --amplitude" in capsys.readouterr().err
+    assert main([str(src), "--ckpt", str(restorer_ckpt), "--out", str(tmp_path / "o"), "--sensor", "default"]) == 2
+    assert "--sensor needs --amplitude" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
 
 

@@ -217,7 +217,7 @@ def test_simulations_refuse_an_output_folder_that_holds_their_camera_file(tmp_pa
 
     camera = save_calibration(resolve_calibration("cam75"), tmp_path / "out" / "calibration.yaml")
     before = camera.read_bytes()
-    option = "--camera" if command == "realset" else "--sensor"
+    option = "--sensor"
     small = {  # tiny sizes: on a command without the guard the run must end soon (and fail the test)
         "simulate-calibration": ["--sweep-steps", "2", "--sweep-frames", "2", "--dark-frames", "2", "--size", "2"],
         "simulate-captures": ["--scenes", "1", "--frames", "2", "--height", "8", "--width", "8", "--quiet"],

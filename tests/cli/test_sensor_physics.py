@@ -44,10 +44,10 @@ def test_show_calib_json_field_names(capsys):
 
 def test_show_calib_file_and_text(tmp_path, capsys):
     p = save_calibration(default_calibration().replace(num_taps=6, range_sigma_mm=None), tmp_path / "c.json")
-    assert run(["show-calib", "--calib", str(p), "--json"]) == 0
+    assert run(["show-calib", "--sensor", str(p), "--json"]) == 0
     data = json.loads(capsys.readouterr().out)
     assert data["num_taps"] == 6 and data["range_sigma_mm"] is None
-    assert run(["show-calib", "--calib", str(p)]) == 0
+    assert run(["show-calib", "--sensor", str(p)]) == 0
     assert "unambiguous range" in capsys.readouterr().out
 
 
@@ -77,7 +77,7 @@ def test_sensor_dispatcher_reports_errors(capsys):
 
     assert main(["sigma", "--depth-mm", "1", "2", "--signal-e", "1", "2", "3"]) == 2
     assert "give the same number" in capsys.readouterr().err
-    assert main(["show-calib", "--calib", "/nonexistent/calib.yaml"]) == 2
+    assert main(["show-calib", "--sensor", "/nonexistent/calib.yaml"]) == 2
     assert "not found" in capsys.readouterr().err
 
 
@@ -146,10 +146,10 @@ def test_sigma_prints_strict_json_and_refuses_meaningless_depths(capsys):
 def test_unknown_preset_lists_the_presets(capsys):
     from tofdenoise.cli.sensor import main
 
-    assert main(["show-calib", "--calib", "defualt"]) == 2
+    assert main(["show-calib", "--sensor", "defualt"]) == 2
     err = capsys.readouterr().err
     assert "'defualt': no such file and no preset of that name; presets: cam75, default" in err
-    assert main(["show-calib", "--calib", "default"]) == 0
+    assert main(["show-calib", "--sensor", "default"]) == 0
 
 
 @pytest.mark.parametrize(
@@ -209,7 +209,7 @@ def test_validate_refuses_an_out_whose_files_would_replace_its_inputs(tmp_path, 
 
     calib = save_calibration(default_calibration(), tmp_path / "validation.json")
     before = calib.read_bytes()
-    assert main(["validate", "--out", str(tmp_path), "--calib", str(calib), "--quick", "--frames", "4"]) == 2
+    assert main(["validate", "--out", str(tmp_path), "--sensor", str(calib), "--quick", "--frames", "4"]) == 2
     err = capsys.readouterr().err
     assert f"would replace the input {calib}" in err and calib.read_bytes() == before
     assert not (tmp_path / "validation.png").exists()

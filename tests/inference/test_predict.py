@@ -37,7 +37,7 @@ def test_lightningcli_predict_equals_the_command(tmp_path, restorer_ckpt):
                 "--quiet",
                 "--amplitude",
                 str(amp),
-                "--calib",
+                "--sensor",
                 "default",
             ]
         )

@@ -241,7 +241,7 @@ SENSOR_OPTION = {
     "tofdenoise-sensor simulate-calibration": "--sensor",
     "tofdenoise-sensor simulate-captures": "--sensor",
     "tofdenoise-sensor simulate-validation": "--sensor",
-    "tofdenoise-sensor realset": "--camera",
+    "tofdenoise-sensor realset": "--sensor",
 }
 
 
@@ -336,10 +336,10 @@ PROBES += [
 
 # bad YAML: the calibration file (every reader) and the LightningCLI config
 _CALIB_READERS: dict[str, Callable[[W], list[Any]]] = {
-    "tofdenoise-sensor show-calib": lambda w: ["--calib", w / "calib.yaml"],
-    "tofdenoise-sensor sigma": lambda w: ["--depth-mm", "1000", "--signal-e", "5000", "--calib", w / "calib.yaml"],
-    "tofdenoise-sensor validate": lambda w: ["--out", w / "out/v", "--calib", w / "calib.yaml", "--quick"],
-    "tofdenoise-denoise": lambda w: denoise_args(w, "--amplitude", w / "amp", "--calib", w / "calib.yaml"),
+    "tofdenoise-sensor show-calib": lambda w: ["--sensor", w / "calib.yaml"],
+    "tofdenoise-sensor sigma": lambda w: ["--depth-mm", "1000", "--signal-e", "5000", "--sensor", w / "calib.yaml"],
+    "tofdenoise-sensor validate": lambda w: ["--out", w / "out/v", "--sensor", w / "calib.yaml", "--quick"],
+    "tofdenoise-denoise": lambda w: denoise_args(w, "--amplitude", w / "amp", "--sensor", w / "calib.yaml"),
     **{
         cmd: (lambda c: lambda w: ["--out", w / "out/sim", SENSOR_OPTION[c], w / "calib.yaml", *SIM_SMALL[c]])(cmd)
         for cmd in SENSOR_OPTION
@@ -393,7 +393,7 @@ PROBES += [
     P("tofdenoise-sensor calibrate", "misuse_outputs", "out-is-a-capture-folder",
       lambda w: calibrate_args(w, "captures/dark"), None, 2, lambda w: ["error", "dark"]),
     P("tofdenoise-sensor validate", "misuse_outputs", "out-replaces-the-calibration",
-      lambda w: ["--out", w / "out/v", "--calib", w / "out/v/validation.json", "--quick"],
+      lambda w: ["--out", w / "out/v", "--sensor", w / "out/v/validation.json", "--quick"],
       lambda w: ((w / "out/v").mkdir(), (w / "out/v/validation.json").write_text(
           json.dumps(yaml.safe_load((w / "calib.yaml").read_text())))),
       2, lambda w: ["error", "validation.json"]),

@@ -1,7 +1,7 @@
 """``tofdenoise-denoise``: denoise a camera's own depth frames with a trained checkpoint.
 
     tofdenoise-denoise (--ckpt best.ckpt | --onnx model.onnx) INPUT [INPUT ...] --out DIR
-                       [--amplitude DIR_OR_PATTERN] [--calib FILE]
+                       [--amplitude DIR_OR_PATTERN] [--sensor FILE]
                        [--depth-scale-mm S] [--fill-holes] [--npy] [--previews] [--device auto|cpu|cuda]
                        [--depth-m] [--ply --intrinsics FILE] [--depth-stream NAME] [--amplitude-stream NAME]
 
@@ -64,7 +64,7 @@ def build_parser() -> argparse.ArgumentParser:
         "glob (amp/*.png); required by checkpoints that use the signal channel",
     )
     p.add_argument(
-        "--calib",
+        "--sensor",
         default=None,
         metavar="FILE",
         help="sensor calibration (YAML/JSON, or a preset name): with --amplitude, write the per-pixel "
@@ -164,10 +164,10 @@ def run(args: argparse.Namespace) -> int:
         recordings = find_recordings(args.inputs, exclude=skip)
         intrinsics = load_intrinsics(args.intrinsics) if args.intrinsics is not None else None
         calib = None
-        if args.calib is not None:
+        if args.sensor is not None:
             from tofdenoise.physics.calibration import resolve_calibration
 
-            calib = resolve_calibration(args.calib)
+            calib = resolve_calibration(args.sensor)
         if args.onnx is not None:
             from tofdenoise.inference.onnx_runner import OnnxRestorer
 
@@ -178,8 +178,8 @@ def run(args: argparse.Namespace) -> int:
             signal = bool(model.hparams.use_signal_channel)
     except (FrameError, CheckpointError, IntrinsicsError, ValueError, OSError) as exc:
         return _fail(str(exc))
-    if args.calib is not None and args.amplitude is None and frames:
-        return _fail("--calib needs --amplitude: the sigma_D map is computed from the input's amplitude")
+    if args.sensor is not None and args.amplitude is None and frames:
+        return _fail("--sensor needs --amplitude: the sigma_D map is computed from the input's amplitude")
     if args.ply and intrinsics is None and frames:
         return _fail(
             "--ply needs the camera intrinsics of the depth frames: give --intrinsics FILE (fx, fy, cx, cy, "
@@ -411,8 +411,8 @@ def _refuse_replacing_inputs(
     inputs: list[Path] = (
         [frame.path for frame in frames] + [r.path for r in recordings] + [Path(args.onnx or args.ckpt)]
     )
-    if args.calib is not None and Path(args.calib).exists():
-        inputs.append(Path(args.calib))
+    if args.sensor is not None and Path(args.sensor).exists():
+        inputs.append(Path(args.sensor))
     if args.intrinsics is not None:
         inputs.append(Path(args.intrinsics))
     if amplitude is not None:

@@ -208,7 +208,7 @@ def _fig6(args: argparse.Namespace, realset_dir: Path, dest: Path) -> int:
         "validate",
         "--out",
         str(args.out / "fig6"),
-        "--calib",
+        "--sensor",
         str(realset_dir / "calibration.yaml"),
         "--captures",
         str(realset_dir / "validation"),

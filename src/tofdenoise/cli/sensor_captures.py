@@ -105,7 +105,7 @@ def _simulate_validation(args: argparse.Namespace) -> int:
     settings = ValidationSettings(num_frames=args.frames, roi_px=args.roi_px, seed=args.seed, fit_seed=args.seed + 1)
     folder = write_validation_captures(resolve_calibration(args.sensor), args.out, settings)
     print(f"wrote {folder} (validation)")
-    print(f"next: tofdenoise-sensor validate --captures {folder} --calib CALIBRATION.yaml --out DIR")
+    print(f"next: tofdenoise-sensor validate --captures {folder} --sensor CALIBRATION.yaml --out DIR")
     return 0
 
 
@@ -209,13 +209,13 @@ def _realset(args: argparse.Namespace) -> int:
     from tofdenoise.physics.calibration import resolve_calibration
 
     out = Path(args.out).expanduser()
-    refuse_overwrite([], input_files(args.camera), output_folders=[out])
+    refuse_overwrite([], input_files(args.sensor), output_folders=[out])
     commands = realset_commands(
-        out, args.camera, args.scenes, args.frames, args.height, args.width, args.seed, args.mixed_pixels
+        out, args.sensor, args.scenes, args.frames, args.height, args.width, args.seed, args.mixed_pixels
     )
     record = {
-        "camera": str(args.camera),
-        "camera_fingerprint": resolve_calibration(args.camera).fingerprint(),
+        "camera": str(args.sensor),
+        "camera_fingerprint": resolve_calibration(args.sensor).fingerprint(),
         "seed": args.seed,
     }
     done = out / "realset.json"
@@ -347,7 +347,7 @@ def add_commands(subparsers) -> None:
     )
     real.add_argument("--out", required=True, help="output folder")
     real.add_argument(
-        "--camera",
+        "--sensor",
         default=REALSET_CAMERA,
         help=f"the simulated camera: preset or calibration file (default {REALSET_CAMERA})",
     )
@@ -412,7 +412,7 @@ def add_commands(subparsers) -> None:
         description="Planar targets at 500..1500 mm every 100 mm, black/gray/white surfaces at 1500 mm under "
         "exposures 1-4, and an independent 550..1450 mm sequence for the range-aware fit, as tap "
         "stacks of the camera --sensor (kind validation, format tofdenoise-captures-v1). "
-        "`tofdenoise-sensor validate --captures OUT --calib C` then compares the measured temporal "
+        "`tofdenoise-sensor validate --captures OUT --sensor C` then compares the measured temporal "
         "noise with the prediction of the calibration C (e.g. the one `calibrate` estimated).",
     )
     val.add_argument("--out", required=True, help="output folder")

@@ -24,10 +24,10 @@ def _presets() -> list[str]:
 def _calib(args: argparse.Namespace) -> Any:
     from tofdenoise.physics.calibration import resolve_calibration
 
-    spec = getattr(args, "calib", None)
+    spec = getattr(args, "sensor", None)
     if spec is not None and not Path(spec).suffix and not Path(spec).exists() and spec not in _presets():
         raise ValueError(
-            f"--calib {spec!r}: no such file and no preset of that name; presets: "
+            f"--sensor {spec!r}: no such file and no preset of that name; presets: "
             f"{', '.join(_presets())} (configs/sensor/), or give a .yaml/.json calibration file"
         )
     return resolve_calibration(spec)
@@ -45,7 +45,7 @@ def cmd_show_calib(args: argparse.Namespace) -> int:
         print(json.dumps(calib.to_dict(), indent=2))
         return 0
     tr = calib.tap_response
-    print(f"calibration: {args.calib or 'default (configs/sensor/default.yaml)'}")
+    print(f"calibration: {args.sensor or 'default (configs/sensor/default.yaml)'}")
     print(f"  fingerprint            {calib.fingerprint()[:16]}")
     print(f"  taps N                 {calib.num_taps}")
     print(
@@ -153,7 +153,7 @@ def cmd_validate(args: argparse.Namespace) -> int:
 
     refuse_overwrite(
         [Path(args.out) / name for name in VALIDATION_FILES],
-        [*input_files(args.calib), *([args.captures] if args.captures else [])],
+        [*input_files(args.sensor), *([args.captures] if args.captures else [])],
     )
 
     calib = _calib(args)
@@ -205,7 +205,7 @@ def add_commands(subparsers: Any) -> None:
         help="print the sensor calibration",
         description="Print the sensor calibration (as JSON with --json).",
     )
-    p.add_argument("--calib", default=None, help=calib_help)
+    p.add_argument("--sensor", default=None, help=calib_help)
     p.add_argument("--json", action="store_true", help="print JSON with the calibration's field names")
     p.set_defaults(func=cmd_show_calib)
 
@@ -219,7 +219,7 @@ def add_commands(subparsers: Any) -> None:
     )
     p.add_argument("--depth-mm", nargs="+", type=_float_list("--depth-mm"), required=True, metavar="D")
     p.add_argument("--signal-e", nargs="+", type=_float_list("--signal-e"), required=True, metavar="A")
-    p.add_argument("--calib", default=None, help=calib_help)
+    p.add_argument("--sensor", default=None, help=calib_help)
     p.set_defaults(func=cmd_sigma)
 
     p = subparsers.add_parser(
@@ -253,7 +253,7 @@ def add_commands(subparsers: Any) -> None:
         "proposed WLS model vs range-aware Gaussian; writes validation.json and validation.png.",
     )
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--calib", default=None, help=calib_help)
+    p.add_argument("--sensor", default=None, help=calib_help)
     p.add_argument(
         "--captures", default=None, help="real capture folder (index.json kind 'validation'); default: simulate"
     )
