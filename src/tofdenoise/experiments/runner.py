@@ -199,6 +199,30 @@ def run_all(
     return outcomes
 
 
+def _skipped_or_planned(
+    job: PendingRun,
+    python: str,
+    dry_run: bool,
+    echo: bool,
+    after_each: Callable[[RunOutcome], None] | None,
+) -> RunOutcome | None:
+    """The outcome of a run that needs no process: ``skipped`` (finished before; ``after_each`` is called for it)
+    or, in a dry run, ``planned``; None for a run that must run."""
+    if run_finished(job.run_dir):
+        outcome = RunOutcome(job.spec, job.run_dir, "skipped")
+        if echo:
+            print(f"{job.head}: finished before, skipped", flush=True)
+        if after_each is not None:
+            after_each(outcome)
+        return outcome
+    if not dry_run:
+        return None
+    cmd, resume = run_command(job.spec, job.run_dir, python)
+    if echo:
+        print(f"{job.head}: would run{' (resume)' if resume else ''}: {' '.join(cmd[1:])}", flush=True)
+    return RunOutcome(job.spec, job.run_dir, "planned")
+
+
 def _run_sequential(
     specs: Sequence[RunSpec],
     out_dir: Path,
@@ -211,19 +235,11 @@ def _run_sequential(
     outcomes: list[RunOutcome] = []
     for i, spec in enumerate(specs):
         job = PendingRun(i, len(specs), spec, out_dir / spec.name)
-        if run_finished(job.run_dir):
-            outcomes.append(RunOutcome(spec, job.run_dir, "skipped"))
-            if echo:
-                print(f"{job.head}: finished before, skipped", flush=True)
-            if after_each is not None:
-                after_each(outcomes[-1])
+        settled = _skipped_or_planned(job, python, dry_run, echo, after_each)
+        if settled is not None:
+            outcomes.append(settled)
             continue
-        cmd, resume = run_command(spec, job.run_dir, python)
-        if dry_run:
-            outcomes.append(RunOutcome(spec, job.run_dir, "planned"))
-            if echo:
-                print(f"{job.head}: would run{' (resume)' if resume else ''}: {' '.join(cmd[1:])}", flush=True)
-            continue
+        _, resume = run_command(spec, job.run_dir, python)
         if echo:
             print(f"{job.head}: {'resuming' if resume else 'running'} -> {job.run_dir}", flush=True)
         outcome = run_one(spec, job.run_dir, python, env)
@@ -253,18 +269,8 @@ def _run_parallel(
     pending: list[PendingRun] = []
     for i, spec in enumerate(specs):
         job = PendingRun(i, len(specs), spec, out_dir / spec.name)
-        if run_finished(job.run_dir):
-            outcomes[i] = RunOutcome(spec, job.run_dir, "skipped")
-            if echo:
-                print(f"{job.head}: finished before, skipped", flush=True)
-            if after_each is not None:
-                after_each(outcomes[i])
-        elif dry_run:
-            cmd, resume = run_command(spec, job.run_dir, python)
-            outcomes[i] = RunOutcome(spec, job.run_dir, "planned")
-            if echo:
-                print(f"{job.head}: would run{' (resume)' if resume else ''}: {' '.join(cmd[1:])}", flush=True)
-        else:
+        outcomes[i] = _skipped_or_planned(job, python, dry_run, echo, after_each)
+        if outcomes[i] is None:
             pending.append(job)
 
     lock = threading.Lock()  # a local executor reports a start from its worker threads
