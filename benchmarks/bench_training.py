@@ -81,7 +81,9 @@ def bench_backbone(name: str, dm, steps: int) -> tuple[float, float, int]:
 
     # the amplitude channel when the backbone's config asks for it (rcf), as configs/model/default.yaml does
     signal = bool(backbone_config(name).get("use_signal_channel", False))
-    model = DepthRestorer(backbone=name, backbone_kwargs=backbone_kwargs(name), loss="full", use_signal_channel=signal)
+    model = DepthRestorer(
+        backbone=name, backbone_kwargs=backbone_kwargs(name), loss="full", conditioning={"use_signal_channel": signal}
+    )
     model.train()
     optimizer = torch.optim.AdamW(model.backbone.parameters(), lr=2e-4)
     loader = dm.train_dataloader()

@@ -16,6 +16,7 @@ Stdlib only (``ast``), so it runs wherever the tests run.
 from __future__ import annotations
 
 import ast
+import sys
 from pathlib import Path
 
 SRC = Path(__file__).resolve().parents[1] / "src"
@@ -209,4 +210,34 @@ def test_lower_floors_import_the_package_at_the_top():
                 if isinstance(sub, ast.ImportFrom) and not sub.level and (sub.module or "").startswith(PACKAGE):
                     if sub.module not in LAZY_ALLOWED_TARGETS:
                         bad.append(f"{path.relative_to(SRC)}:{sub.lineno} imports {sub.module} inside {node.name}")
+    assert not bad, "\n".join(bad)
+
+
+#: front ends still importing the standard library inside functions (remove a package when it is clean)
+STDLIB_LAZY_PENDING = {"cli"}
+
+
+def test_no_module_imports_the_standard_library_inside_a_function():
+    """A standard-library import costs nothing at the top, so inside a function it only hides a dependency; the
+    exceptions the package allows are third-party imports that are optional (an extra) or heavy (torch, lightning,
+    matplotlib kept out of a page renderer or a ``--help``)."""
+    stdlib = set(sys.stdlib_module_names)
+    bad = []
+    for module, path in MODULES.items():
+        if _part(module) in STDLIB_LAZY_PENDING:
+            continue
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"), str(path))):
+            if not isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                continue
+            for sub in ast.walk(node):
+                names = []
+                if isinstance(sub, ast.Import):
+                    names = [alias.name for alias in sub.names]
+                elif isinstance(sub, ast.ImportFrom) and not sub.level:
+                    names = [sub.module or ""]
+                bad += [
+                    f"{path.relative_to(SRC)}:{sub.lineno} imports {name} inside {node.name}"
+                    for name in names
+                    if name.partition(".")[0] in stdlib
+                ]
     assert not bad, "\n".join(bad)

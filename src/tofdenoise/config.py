@@ -7,15 +7,18 @@ notebooks); the folder is ``tofdenoise.paths.CONFIG_DIR``.
 from __future__ import annotations
 
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
+from dataclasses import fields
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from omegaconf import DictConfig
 
 from tofdenoise.paths import CONFIG_DIR
 
-__all__ = ["config_dir", "compose_config"]
+T = TypeVar("T")
+
+__all__ = ["config_dir", "compose_config", "ConfigError", "instantiate_node", "settings_group"]
 
 
 def config_dir() -> Path:
@@ -35,6 +38,23 @@ def compose_config(overrides: list[str] | None = None, config_name: str = "train
 
 class ConfigError(ValueError):
     """A config node that cannot be built: the key and the reason, in one line."""
+
+
+def settings_group(cls: type[T], values: Any, where: str) -> T:
+    """A group of settings (a dataclass ``cls``) from the plain mapping a config or a checkpoint holds:
+    ``None`` = every default, an instance is returned as it is. A key the group does not have is a
+    ``ConfigError`` naming ``<where>.<key>`` and the valid keys; a bad value is the class's own ``ValueError``."""
+    if values is None:
+        return cls()
+    if isinstance(values, cls):
+        return values
+    if not isinstance(values, Mapping):
+        raise ConfigError(f"{where}: expected a mapping of {cls.__name__} settings, got {type(values).__name__}")
+    valid = [f.name for f in fields(cls)]  # type: ignore[arg-type]
+    unknown = sorted(str(k) for k in values if k not in valid)
+    if unknown:
+        raise ConfigError(f"{where}.{unknown[0]}: unknown setting; valid: {', '.join(valid)}")
+    return cls(**{str(k): v for k, v in values.items()})
 
 
 def instantiate_node(node: Any, key: str, **kwargs: Any) -> Any:

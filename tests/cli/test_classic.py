@@ -97,7 +97,9 @@ def test_tune_on_validation_then_test_through_the_network_path(tmp_path, data_ca
     dm.prepare_data()
     dm.setup("validate")
     model = DepthRestorer(
-        backbone="bilateral", backbone_kwargs=result["best"], use_signal_channel=True, input_centering="none"
+        backbone="bilateral",
+        backbone_kwargs=result["best"],
+        conditioning={"use_signal_channel": True, "centering": "none"},
     )
     metric = DepthMetrics()
     for batch in dm.val_dataloader():

@@ -142,7 +142,7 @@ def test_startup_errors_exit_2(frames_dir, restorer_ckpt, tmp_path, capsys, make
     junk.write_bytes(b"zzz")
     assert main([str(src), "--ckpt", str(junk), "--out", str(tmp_path / "o")]) == 2
     assert "junk.ckpt" in capsys.readouterr().err
-    signal_ckpt = make_restorer_ckpt(tmp_path / "sig.ckpt", use_signal_channel=True)
+    signal_ckpt = make_restorer_ckpt(tmp_path / "sig.ckpt", conditioning={"use_signal_channel": True})
     assert main([str(src), "--ckpt", str(signal_ckpt), "--out", str(tmp_path / "o")]) == 2
     assert "--amplitude" in capsys.readouterr().err
     assert main([str(tmp_path / "nope"), "--ckpt", str(restorer_ckpt), "--out", str(tmp_path / "o")]) == 2

@@ -120,7 +120,7 @@ def test_recording_start_up_errors_exit_2_and_the_recording_folder_guard(
     assert main([str(bag), "--ckpt", str(restorer_ckpt), "--out", str(tmp_path / "o"), "--ply", "--quiet"]) == 1
     assert "has no camera intrinsics" in capsys.readouterr().err and not (tmp_path / "o").exists()
     # a signal-channel model and a recording without amplitude stream
-    signal_ckpt = make_restorer_ckpt(tmp_path / "sig.ckpt", use_signal_channel=True)
+    signal_ckpt = make_restorer_ckpt(tmp_path / "sig.ckpt", conditioning={"use_signal_channel": True})
     assert main([str(bag), "--ckpt", str(signal_ckpt), "--out", str(tmp_path / "o2"), "--quiet"]) == 1
     assert "has no amplitude / IR stream" in capsys.readouterr().err and not (tmp_path / "o2").exists()
     # --intrinsics of another size: every frame fails, nothing written

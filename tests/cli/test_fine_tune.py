@@ -30,7 +30,7 @@ def _val_mae(model, datamodule) -> float:
 
 def test_a_run_starts_from_the_weights_of_another_on_a_new_camera(tmp_path, data_cache, tiny, own_camera_file):
     base = tmp_path / "base"
-    run(compose_config(tiny(base, data_cache) + ["trainer.max_epochs=6", "model.lr=3e-3", "logger=csv"]))
+    run(compose_config(tiny(base, data_cache) + ["trainer.max_epochs=6", "model.optim.lr=3e-3", "logger=csv"]))
     best = base / "checkpoints" / "best.ckpt"
     _, calib_file = own_camera_file(tmp_path)
     # a near-zero rate: the first validation (after one epoch) shows the network the run started from
@@ -40,8 +40,8 @@ def test_a_run_starts_from_the_weights_of_another_on_a_new_camera(tmp_path, data
         "logger=csv",
         f"++data.sensor={calib_file}",
         f"++model.init_weights={best}",
-        "model.lr=1e-12",
-        "++model.lr_min=0",
+        "model.optim.lr=1e-12",
+        "++model.optim.lr_min=0",
     ]
     cfg = compose_config(overrides)
     run(cfg)

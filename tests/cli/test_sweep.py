@@ -66,8 +66,8 @@ def test_a_finished_run_returns_its_recorded_val_mae_and_trains_nothing(tmp_path
     assert _stamps(tmp_path / "run") == before  # no checkpoint or record written again
 
     # the same folder with another setting is another run: refused, naming the setting, nothing written
-    with pytest.raises(RunConfigMismatchError, match=r"model\.lr: 0\.0002 there, 0\.001 now"):
-        run(compose_config(args + ["model.lr=1e-3"]))
+    with pytest.raises(RunConfigMismatchError, match=r"model\.optim\.lr: 0\.0002 there, 0\.001 now"):
+        run(compose_config(args + ["model.optim.lr=1e-3"]))
     assert _stamps(tmp_path / "run") == before
     # where files go, the loggers and the progress bar are not part of a run's identity
     again = run(compose_config(args + ["trainer.enable_progress_bar=true", "logger=none"]))
@@ -115,10 +115,11 @@ def test_an_optuna_search_of_the_recipe_returns_its_best_validation_mae(tmp_path
     best = result["best_params"]
     best_dir = min(values, key=values.get)
     assert best_dir == (
-        f"unet-hetero-full-lr{best['model.lr']}-wu{best['model.warmup_steps']}-wd{best['++model.weight_decay']}-s0"
+        f"unet-hetero-full-lr{best['model.optim.lr']}-wu{best['model.optim.warmup_steps']}-wd{best['++model.optim.weight_decay']}-s0"
     )
     saved = OmegaConf.load(sweep / best_dir / "config.yaml")
-    assert saved.model.lr == best["model.lr"] and saved.model.weight_decay == best["++model.weight_decay"]
+    assert saved.model.optim.lr == best["model.optim.lr"]
+    assert saved.model.optim.weight_decay == best["++model.optim.weight_decay"]
 
 
 def test_hparams_search_without_the_sweeper_installed_is_one_line_naming_the_extra(monkeypatch, capsys):

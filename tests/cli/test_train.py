@@ -341,7 +341,13 @@ def test_a_run_that_does_not_learn_is_flagged_and_a_test_of_its_checkpoint_too(t
     run(
         compose_config(
             tiny(run_dir, data_cache)
-            + ["trainer.max_epochs=1", "logger=csv", "++model.lr=1e-12", "++model.lr_min=0", "++model.warmup_steps=0"]
+            + [
+                "trainer.max_epochs=1",
+                "logger=csv",
+                "++model.optim.lr=1e-12",
+                "++model.optim.lr_min=0",
+                "++model.optim.warmup_steps=0",
+            ]
         )
     )
     data = _check_metrics_json(run_dir / "metrics.json")
@@ -378,18 +384,21 @@ def test_a_run_that_does_not_learn_is_flagged_and_a_test_of_its_checkpoint_too(t
 
 @pytest.mark.parametrize("backbone", ["unet", "tofkpn"])
 def test_signal_channel_from_the_config_alone(backbone, tmp_path, data_cache, tiny):
-    """`model.use_signal_channel=true` is the only switch: the backbone configs leave in_channels to the module."""
+    """`model.conditioning.use_signal_channel=true` is the only switch: the backbone configs leave in_channels to
+    the module."""
     from tofdenoise.training.module import DepthRestorer
 
     cfg = compose_config(
         tiny(tmp_path, data_cache, backbone)
-        + ["+trainer.fast_dev_run=true", "logger=csv", "++model.use_signal_channel=true"]
+        + ["+trainer.fast_dev_run=true", "logger=csv", "++model.conditioning.use_signal_channel=true"]
     )
     assert "in_channels" not in cfg.backbone.kwargs
     run(cfg)
     data = _check_metrics_json(tmp_path / "metrics.json")
     assert data["synthetic"]["images"] == 1
-    module = DepthRestorer(backbone=backbone, backbone_kwargs=dict(cfg.backbone.kwargs), use_signal_channel=True)
+    module = DepthRestorer(
+        backbone=backbone, backbone_kwargs=dict(cfg.backbone.kwargs), conditioning={"use_signal_channel": True}
+    )
     first_conv = next(m for m in module.backbone.modules() if isinstance(m, torch.nn.Conv2d))
     assert first_conv.in_channels == 2
 

@@ -249,5 +249,7 @@ def test_reference_validity_changes_only_the_scoring_mask(tmp_path):
     def batch(item):
         return {k: torch.from_numpy(item[k])[None, None] for k in ("noisy", "clean", "sigma", "mask", "amplitude")}
 
-    model = DepthRestorer(backbone="unet", backbone_kwargs={"width": 4, "stages": 2}, use_signal_channel=True)
+    model = DepthRestorer(
+        backbone="unet", backbone_kwargs={"width": 4, "stages": 2}, conditioning={"use_signal_channel": True}
+    )
     torch.testing.assert_close(model.network_input(batch(after)), model.network_input(batch(before)), rtol=0, atol=0)

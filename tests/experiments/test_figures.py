@@ -24,6 +24,7 @@ from tofdenoise.experiments.figures import (
     render_figure,
 )
 from tofdenoise.experiments.tables import table_specs
+from tofdenoise.models.tiling import TilingSettings
 from tofdenoise.reporting.results_page import results_markdown
 
 
@@ -65,7 +66,8 @@ class _Offset:
 
     def __init__(self, offset_mm: float):
         self.offset_mm = offset_mm
-        self.hparams = type("H", (), {"eval_tile_size": 512, "d_max_mm": 1000.0})()
+        self.hparams = type("H", (), {"d_max_mm": 1000.0})()
+        self.tiling = TilingSettings(eval_tile_px=512)
         self.device = torch.device("cpu")
 
     def restore_mm(self, batch, tile=None):

@@ -32,7 +32,7 @@ def test_denoise_matches_restore_mm_and_masks_holes(restorer_ckpt):
         "mask": torch.from_numpy(valid.astype(np.float32))[None, None],
     }
     with torch.no_grad():
-        expected = model.restore_mm(batch, tile=model.hparams.predict_tile_size)[0, 0].numpy()
+        expected = model.restore_mm(batch, tile=model.tiling.predict_tile_px)[0, 0].numpy()
     np.testing.assert_array_equal(out[valid], expected[valid])
     assert np.all(out[~valid] == 0)
     filled = tofdenoise.denoise(torch.from_numpy(d), str(restorer_ckpt), fill_holes=True, device="cpu")
@@ -43,7 +43,7 @@ def test_denoise_matches_restore_mm_and_masks_holes(restorer_ckpt):
 
 
 def test_signal_channel_model_needs_amplitude(tmp_path, make_restorer_ckpt):
-    ckpt = make_restorer_ckpt(tmp_path / "sig.ckpt", use_signal_channel=True)
+    ckpt = make_restorer_ckpt(tmp_path / "sig.ckpt", conditioning={"use_signal_channel": True})
     model = load_restorer(ckpt)
     d = frame()
     with pytest.raises(ValueError, match="amplitude"):

@@ -27,7 +27,9 @@ TOLERANCE_MM = 0.01
 
 def _model(name: str) -> DepthRestorer:
     torch.manual_seed(0)
-    model = DepthRestorer(backbone=name, backbone_kwargs=TINY[name], use_signal_channel=name == "rcf").eval()
+    model = DepthRestorer(
+        backbone=name, backbone_kwargs=TINY[name], conditioning={"use_signal_channel": name == "rcf"}
+    ).eval()
     with torch.no_grad():  # away from the zero-initialised residual head: the network's output matters
         for p in model.backbone.parameters():
             p.add_(0.05 * torch.randn_like(p))
@@ -121,4 +123,4 @@ def test_bad_files_and_settings_are_one_line_errors(tmp_path):
     with pytest.raises(OnnxModelError, match="does not exist"):
         OnnxRestorer(tmp_path / "none.onnx")
     with pytest.raises(ExportError, match="input_centering 'image'"):
-        restore_graph(DepthRestorer(backbone="unet", backbone_kwargs=TINY["unet"], input_centering="image"))
+        restore_graph(DepthRestorer(backbone="unet", backbone_kwargs=TINY["unet"], conditioning={"centering": "image"}))

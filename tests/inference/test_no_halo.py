@@ -110,8 +110,7 @@ def test_no_halo_with_a_unet_trained_with_holes(tmp_path):
     model = DepthRestorer(
         backbone="unet",
         backbone_kwargs={"width": 32, "stages": 4, "norm": False, "residual": True},
-        lr=1e-3,
-        warmup_steps=100,
+        optim={"lr": 1e-3, "warmup_steps": 100},
     )
     L.Trainer(
         max_steps=720,

@@ -100,11 +100,11 @@ def test_centred_input_resolves_half_a_millimetre_in_bf16(depth_mm, slope_mm_per
     noisy[..., 40:50, 60:75] = 0.0
     model = DepthRestorer(backbone="unet", backbone_kwargs={"width": 4, "stages": 2})
     x, offset = model.condition({"noisy": noisy, "mask": torch.ones_like(noisy)})
-    err_mm = (x[:, :1].to(torch.bfloat16).float() - x[:, :1]).abs() * model.hparams.depth_scale_mm
+    err_mm = (x[:, :1].to(torch.bfloat16).float() - x[:, :1]).abs() * model.conditioning.depth_scale_mm
     assert err_mm.max().item() <= 0.25  # rounding error <= half the step: step <= 0.5 mm
-    raw = DepthRestorer(backbone="unet", backbone_kwargs={"width": 4, "stages": 2}, input_centering="none")
+    raw = DepthRestorer(backbone="unet", backbone_kwargs={"width": 4, "stages": 2}, conditioning={"centering": "none"})
     x_raw, _ = raw.condition({"noisy": noisy, "mask": torch.ones_like(noisy)})
-    raw_err = (x_raw.to(torch.bfloat16).float() - x_raw).abs() * raw.hparams.depth_scale_mm
+    raw_err = (x_raw.to(torch.bfloat16).float() - x_raw).abs() * raw.conditioning.depth_scale_mm
     if depth_mm >= 600:
         assert raw_err.max().item() > 1.0  # what the issue measured: the raw input is rounded to mm steps
 

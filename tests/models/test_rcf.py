@@ -120,7 +120,7 @@ def test_neighbour_differences_by_hand():
 
 
 def test_needs_depth_and_amplitude_and_checks_its_arguments():
-    with pytest.raises(ValueError, match="in_channels must be 2.*use_signal_channel=true"):
+    with pytest.raises(ValueError, match="in_channels must be 2.*conditioning.use_signal_channel=true"):
         build_backbone("rcf", in_channels=1)
     with pytest.raises(ValueError, match="steps must be >= 1"):
         build_backbone("rcf", steps=0)
@@ -143,7 +143,7 @@ def test_depth_restorer_trains_rcf_on_every_step_and_evaluates_the_last():
     the step losses computed by hand), and restore_mm returns the final step."""
     from tofdenoise.training.module import DepthRestorer
 
-    model = DepthRestorer(backbone="rcf", backbone_kwargs=TINY, loss="l1", use_signal_channel=True)
+    model = DepthRestorer(backbone="rcf", backbone_kwargs=TINY, loss="l1", conditioning={"use_signal_channel": True})
     _randomise_head(model.backbone)
     g = torch.Generator().manual_seed(3)
     clean = 800.0 + 50.0 * torch.rand(2, 1, 20, 20, generator=g)

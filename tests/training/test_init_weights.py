@@ -81,10 +81,20 @@ def test_missing_layers_are_named(tmp_path):
 
 
 def test_a_checkpoint_of_another_network_input_is_refused(tmp_path):
-    src = _model(input_centering="image")
+    src = _model(conditioning={"centering": "image"})
     path = tmp_path / "image.ckpt"
     torch.save({"state_dict": src.state_dict(), "hyper_parameters": dict(src.hparams)}, path)
-    with pytest.raises(InitWeightsError, match="input_centering: file 'image' vs this model 'local'"):
+    with pytest.raises(InitWeightsError, match="conditioning.centering: file 'image' vs this model 'local'"):
+        load_init_weights(_model(), path)
+
+
+def test_a_checkpoint_without_the_conditioning_group_is_refused(tmp_path):
+    """No fallback: hyper-parameters that do not say what the network saw are not guessed."""
+    src = _model()
+    hparams = {k: v for k, v in dict(src.hparams).items() if k != "conditioning"}
+    path = tmp_path / "old.ckpt"
+    torch.save({"state_dict": src.state_dict(), "hyper_parameters": hparams}, path)
+    with pytest.raises(InitWeightsError, match="no 'conditioning' group"):
         load_init_weights(_model(), path)
 
 

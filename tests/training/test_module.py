@@ -3,6 +3,7 @@ prediction, checkpoint compatibility."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import lightning.pytorch as pl
@@ -12,6 +13,7 @@ from lightning.pytorch.callbacks import Callback
 
 from tofdenoise.training.metrics import depth_metrics_per_image
 from tofdenoise.training.module import CheckpointMismatchError, DepthRestorer
+from tofdenoise.training.optim import parameter_groups
 
 TINY = {"width": 4, "stages": 2}
 
@@ -63,17 +65,62 @@ def test_hparams_are_plain_values():
         return isinstance(v, allowed)
 
     assert plain(dict(model.hparams)), dict(model.hparams)
-    assert model.hparams.backbone == "unet" and model.hparams.lr == 2e-4 and model.hparams.lr_min == 1e-6
+    assert model.hparams.backbone == "unet" and model.hparams.optim["lr"] == 2e-4
+    # every group complete, with the defaults of its settings class (one source of truth per setting)
+    assert model.hparams.optim == {
+        "lr": 2e-4,
+        "weight_decay": 1e-2,
+        "betas": [0.9, 0.999],
+        "lr_min": 1e-6,
+        "warmup_steps": 0,
+    }
+    assert model.hparams.conditioning == {
+        "depth_scale_mm": 100.0,
+        "centering": "local",
+        "block_px": 16,
+        "use_signal_channel": False,
+    }
+    assert model.hparams.tiling == {"predict_tile_px": 512, "eval_tile_px": None, "overlap_px": 32}
+
+
+def test_settings_groups_name_a_bad_key_and_value():
+    with pytest.raises(ValueError, match=r"model\.optim\.learning_rate: unknown setting; valid: lr, weight_decay"):
+        tiny_model(optim={"learning_rate": 1e-3})
+    with pytest.raises(
+        ValueError, match=r"model\.conditioning\.input_centering: unknown setting; valid: depth_scale_mm"
+    ):
+        tiny_model(conditioning={"input_centering": "none"})
+    with pytest.raises(ValueError, match=r"model\.tiling: expected a mapping of TilingSettings settings, got int"):
+        tiny_model(tiling=512)
+    with pytest.raises(ValueError, match=r"optim: need lr > 0 and 0 <= lr_min <= lr, got lr=1e-05, lr_min=0.001"):
+        tiny_model(optim={"lr": 1e-5, "lr_min": 1e-3})
+    with pytest.raises(ValueError, match=r"conditioning.centering: unknown mode 'median'; valid: local, image, none"):
+        tiny_model(conditioning={"centering": "median"})
+    with pytest.raises(ValueError, match=r"tiling.predict_tile_px must exceed tiling.overlap_px \(32\), got 16"):
+        tiny_model(tiling={"predict_tile_px": 16})
+
+
+def test_a_checkpoint_rebuilds_the_same_groups(tmp_path, make_restorer_ckpt):
+    path = make_restorer_ckpt(
+        tmp_path / "m.ckpt",
+        optim={"lr": 5e-4, "betas": (0.8, 0.99)},
+        conditioning={"block_px": 8},
+        tiling={"eval_tile_px": 64, "overlap_px": 8},
+    )
+    torch.load(path, weights_only=True)  # plain values only
+    again = DepthRestorer.load_from_checkpoint(path)
+    assert again.optim.lr == 5e-4 and again.optim.betas == (0.8, 0.99)
+    assert again.conditioning.block_px == 8 and again.tiling.eval_tile_px == 64 and again.tiling.overlap_px == 8
 
 
 def test_signal_channel_input(tiny_data):
-    model = tiny_model(use_signal_channel=True)
+    model = tiny_model(conditioning={"use_signal_channel": True})
     batch = next(iter(tiny_data.val_dataloader()))
     x, offset = model.condition(batch)
     assert x.shape[1] == 2
     # channel 0: the depth centred on the local offset (no input holes here: noisy > 0 wherever mask is 1)
     valid = batch["noisy"] > 0
-    torch.testing.assert_close((x[:, :1] * model.hparams.depth_scale_mm + offset)[valid], batch["noisy"][valid])
+    torch.testing.assert_close((x[:, :1] * model.conditioning.depth_scale_mm + offset)[valid], batch["noisy"][valid])
     amp = batch["amplitude"] * batch["mask"]
     assert torch.allclose(x[:, 1:].amax(dim=(1, 2, 3)), torch.ones(x.shape[0]))
     torch.testing.assert_close(x[0, 1], amp[0, 0] / amp[0].max())
@@ -87,7 +134,7 @@ def test_cosine_schedule_per_step_reaches_lr_min(tmp_path, tiny_data):
         def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
             lrs.append(trainer.optimizers[0].param_groups[0]["lr"])
 
-    model = tiny_model(lr=1e-3, lr_min=1e-5)
+    model = tiny_model(optim={"lr": 1e-3, "lr_min": 1e-5})
     t = trainer(tmp_path, max_epochs=3, limit_val_batches=0, callbacks=[Rec()])
     t.fit(model, datamodule=tiny_data)
     total = 3 * 2  # 8 samples / batch 4 = 2 steps per epoch
@@ -108,7 +155,7 @@ def test_linear_warmup_then_cosine(tmp_path, tiny_data):
         def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
             lrs.append(trainer.optimizers[0].param_groups[0]["lr"])
 
-    model = tiny_model(lr=1e-3, lr_min=1e-5, warmup_steps=2)
+    model = tiny_model(optim={"lr": 1e-3, "lr_min": 1e-5, "warmup_steps": 2})
     trainer(tmp_path, max_epochs=4, limit_val_batches=0, callbacks=[Rec()]).fit(model, datamodule=tiny_data)
     total, warm = 8, 2
     expected = [1e-3 * (1 / warm + (1 - 1 / warm) * s / warm) for s in range(warm)]  # 5e-4, 7.5e-4
@@ -245,7 +292,7 @@ def test_predict_zeroes_invalid_and_tiles_large_frames(tmp_path, tiny_data, monk
         return real(net, x, tile=tile, overlap=overlap)
 
     monkeypatch.setattr(module, "tiled_forward", spy)
-    model = tiny_model(predict_tile_size=16, tile_overlap=4)
+    model = tiny_model(tiling={"predict_tile_px": 16, "overlap_px": 4})
     preds = trainer(tmp_path).predict(model, datamodule=tiny_data)
     assert calls and calls[0][1:] == (16, 4)
     pred = preds[0]  # one loader: a list of batch outputs
@@ -254,7 +301,7 @@ def test_predict_zeroes_invalid_and_tiles_large_frames(tmp_path, tiny_data, monk
     assert torch.all(pred[batch["mask"] == 0] == 0)
     assert torch.all(torch.isfinite(pred))
     calls.clear()
-    model.hparams.predict_tile_size = None
+    model.tiling = dataclasses.replace(model.tiling, predict_tile_px=None)
     trainer(tmp_path).predict(model, datamodule=tiny_data)
     assert not calls
 
@@ -294,7 +341,7 @@ def test_ss2d_state_parameters_are_not_weight_decayed():
     )
     flagged = {id(p) for p in module.backbone.parameters() if getattr(p, "_no_weight_decay", False)}
     assert flagged, "the DVSS backbone should flag its A_log / D parameters"
-    groups = module.parameter_groups()
+    groups = parameter_groups(module.backbone, module.optim.weight_decay)
     for group in groups:
         ids = {id(p) for p in group["params"]}
         if group["weight_decay"] > 0:
@@ -311,21 +358,20 @@ def bilateral_model(**kw) -> DepthRestorer:
     args = {
         "backbone": "bilateral",
         "backbone_kwargs": dict(BILATERAL),
-        "use_signal_channel": True,
-        "input_centering": "none",
+        "conditioning": {"use_signal_channel": True, "centering": "none"},
     }
     args.update(kw)
     return DepthRestorer(**args)
 
 
 def test_classical_backbone_input_requirements_are_checked():
-    with pytest.raises(ValueError, match=r"backbone 'bilateral' needs input_centering in \['none', 'image'\]"):
-        bilateral_model(input_centering="local")
-    with pytest.raises(ValueError, match="needs the amplitude channel: set use_signal_channel=true"):
-        bilateral_model(use_signal_channel=False)
-    with pytest.raises(ValueError, match="depth_scale_mm=50.0 contradicts depth_scale_mm=100.0"):
+    with pytest.raises(ValueError, match=r"backbone 'bilateral' needs conditioning.centering in \['none', 'image'\]"):
+        bilateral_model(conditioning={"use_signal_channel": True, "centering": "local"})
+    with pytest.raises(ValueError, match="needs the amplitude channel: set conditioning.use_signal_channel=true"):
+        bilateral_model(conditioning={"use_signal_channel": False, "centering": "none"})
+    with pytest.raises(ValueError, match="depth_scale_mm=50.0 contradicts conditioning.depth_scale_mm=100.0"):
         bilateral_model(backbone_kwargs={**BILATERAL, "depth_scale_mm": 50.0})
-    model = bilateral_model(depth_scale_mm=250.0, input_centering="image")
+    model = bilateral_model(conditioning={"use_signal_channel": True, "centering": "image", "depth_scale_mm": 250.0})
     assert model.backbone.depth_scale_mm == 250.0 and not model.trainable and tiny_model().trainable
 
 
@@ -336,7 +382,7 @@ def test_classical_restore_mm_is_the_filter_of_the_input_in_mm(tiny_data, center
     from tofdenoise.models.bilateral import joint_bilateral_filter
 
     batch = next(iter(tiny_data.val_dataloader()))
-    model = bilateral_model(input_centering=centering)
+    model = bilateral_model(conditioning={"use_signal_channel": True, "centering": centering})
     got = model.restore_mm(batch)
     valid = batch["mask"] > 0
     want = joint_bilateral_filter(batch["noisy"], batch["amplitude"], valid, radius_px=3, **BILATERAL)
@@ -348,7 +394,7 @@ def test_classical_restore_mm_is_the_filter_of_the_input_in_mm(tiny_data, center
 
 def test_classical_backbone_cannot_be_fitted_and_reports_its_tuning(tmp_path, tiny_data):
     model = bilateral_model()
-    with pytest.raises(ValueError, match="classical filter without trainable parameters.*tofdenoise-classic"):
+    with pytest.raises(ValueError, match="classical filter without trainable parameters.*tofdenoise classic"):
         trainer(tmp_path, max_epochs=1).fit(model, datamodule=tiny_data)
     rec = model.learned_record()
     assert rec["method_kind"] == "classical" and rec["trained_steps"] == 0 and rec["best_val_mae_mm"] is None

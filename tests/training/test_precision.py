@@ -9,6 +9,7 @@ import torch
 
 from tofdenoise.training.metrics import depth_metrics_per_image
 from tofdenoise.training.module import DepthRestorer
+from tofdenoise.training.optim import parameter_groups
 
 from .conftest import TinyDepthData
 
@@ -17,9 +18,9 @@ def _train(centering: str, steps: int = 150) -> tuple[DepthRestorer, TinyDepthDa
     torch.manual_seed(0)
     data = TinyDepthData(n_train=16, n_val=8)
     model = DepthRestorer(
-        backbone="unet", backbone_kwargs={"width": 8, "stages": 2}, loss="l1", input_centering=centering
+        backbone="unet", backbone_kwargs={"width": 8, "stages": 2}, loss="l1", conditioning={"centering": centering}
     )
-    opt = torch.optim.AdamW(model.parameter_groups(), lr=2e-3)
+    opt = torch.optim.AdamW(parameter_groups(model.backbone, model.optim.weight_decay), lr=2e-3)
     model.train()
     step = 0
     while step < steps:

@@ -15,6 +15,7 @@ from tofdenoise.config import compose_config
 from tofdenoise.models import trainable_backbones
 from tofdenoise.training.metrics import depth_metrics_per_image
 from tofdenoise.training.module import DepthRestorer
+from tofdenoise.training.optim import parameter_groups
 
 from .conftest import TinyDepthData
 
@@ -53,8 +54,10 @@ def train_tiny(backbone: str, seed: int, steps: int = 150) -> tuple[float, float
     data = TinyDepthData(n_train=16, n_val=8)
     # the amplitude channel when the backbone's config asks for it (rcf), as configs/model/default.yaml does
     signal = bool(backbone_config(backbone).get("use_signal_channel", False))
-    model = DepthRestorer(backbone=backbone, backbone_kwargs=TINY[backbone], loss="l1", use_signal_channel=signal)
-    opt = torch.optim.AdamW(model.parameter_groups(), lr=r["lr"])
+    model = DepthRestorer(
+        backbone=backbone, backbone_kwargs=TINY[backbone], loss="l1", conditioning={"use_signal_channel": signal}
+    )
+    opt = torch.optim.AdamW(parameter_groups(model.backbone, model.optim.weight_decay), lr=r["lr"])
     warm = max(1, int(r["warmup_steps"]))
     sched = torch.optim.lr_scheduler.LinearLR(opt, start_factor=1.0 / warm, total_iters=warm)
     best, raw, step = float("inf"), float("nan"), 0

@@ -123,7 +123,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--tile",
         type=int,
         default=None,
-        help="tile side in pixels for large frames (default: the checkpoint's predict_tile_size)",
+        help="tile side in pixels for large frames (default: the checkpoint's tiling.predict_tile_px)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
@@ -175,7 +175,7 @@ def run(args: argparse.Namespace) -> int:
             device, signal = torch_cpu(), model.use_signal_channel
         else:
             model = load_restorer(args.ckpt, device)
-            signal = bool(model.hparams.use_signal_channel)
+            signal = model.conditioning.use_signal_channel
     except (FrameError, CheckpointError, IntrinsicsError, ValueError, OSError) as exc:
         return _fail(str(exc))
     if args.sensor is not None and args.amplitude is None and frames:

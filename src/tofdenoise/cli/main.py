@@ -6,7 +6,7 @@ takes follows what it does:
 - verbs that **train** (``train``, ``classic``) compose the Hydra configs: ``key=value`` overrides
   (``tofdenoise train experiment=smoke backbone=unet``), multirun with ``-m``;
 - ``fit``, ``validate``, ``test``, ``predict`` are Lightning's own CLI (``--config configs/cli/default.yaml``,
-  ``--model.lr 1e-4``) for users who know it;
+  ``--model.optim.lr 1e-4``) for users who know it;
 - every other verb works on files and takes ``--options`` (argparse); a camera's calibration (a file or a preset
   name) is ``--sensor`` in every one of them, as it is ``data.sensor`` in the configs.
 """

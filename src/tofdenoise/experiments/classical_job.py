@@ -24,13 +24,19 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from hydra.utils import instantiate
+from lightning.pytorch import seed_everything
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from tofdenoise.atomic import atomic_write_text
+from tofdenoise.callbacks.run_outputs import write_test_outputs
 from tofdenoise.config import instantiate_node
 from tofdenoise.experiments.train_job import record_calibration, validate_config
+from tofdenoise.models import available_backbones, is_trainable
 from tofdenoise.records import json_number, write_run_info
 from tofdenoise.run_lock import RunLock
+from tofdenoise.training.metrics import DepthMetrics
+from tofdenoise.training.module import DepthRestorer
 
 __all__ = ["run", "grid_points", "tune", "select_best", "TUNING_NAME", "GRID_KEYS", "DEFAULT_BACKBONE"]
 
@@ -41,7 +47,8 @@ DEFAULT_BACKBONE = "bilateral"
 #: the parameters a grid may search (``JointBilateral`` arguments)
 GRID_KEYS = ("sigma_spatial_px", "sigma_depth_mm", "amplitude_power", "radius_px")
 #: DepthRestorer settings taken from the composed ``model`` config when present (the evaluation protocol)
-_MODEL_KEYS = ("depth_scale_mm", "d_max_mm", "eval_tile_size", "predict_tile_size", "tile_overlap", "learned_margin")
+#: the DepthRestorer settings of the composed ``model`` config a classical filter keeps (it has no optimiser)
+_MODEL_KEYS = ("conditioning", "tiling", "d_max_mm", "learned_margin")
 
 
 def grid_points(grid: Mapping[str, Any], fixed: Mapping[str, Any] | None = None) -> list[dict[str, Any]]:
@@ -99,7 +106,6 @@ def tune(
     the raw input's in the same layout, number of images): the validation metrics of the networks
     (``DepthMetrics`` per image then averaged, each image once).
     """
-    from tofdenoise.training.metrics import DepthMetrics
 
     device = torch.device(device)
     metrics = [DepthMetrics(d_max_mm=d_max_mm).to(device) for _ in models]
@@ -111,7 +117,7 @@ def tune(
             batch = _to_device(batch, device)
             index = batch.get("index")
             for model, metric in zip(models, metrics):
-                pred = model.restore_mm(batch, tile=model.hparams.eval_tile_size)
+                pred = model.restore_mm(batch, tile=model.tiling.eval_tile_px)
                 metric.update(pred, batch["clean"], batch["mask"], index=index)
             raw.update(batch["noisy"], batch["clean"], batch["mask"], index=index)
 
@@ -136,15 +142,15 @@ def _device(choice: str, cfg: DictConfig) -> torch.device:
 def _model_kwargs(cfg: DictConfig, backbone: str) -> dict[str, Any]:
     model_cfg = OmegaConf.to_container(cfg.model, resolve=True) if cfg.get("model") is not None else {}
     kwargs = {k: model_cfg[k] for k in _MODEL_KEYS if k in model_cfg}
-    kwargs.update(
-        backbone=backbone, use_signal_channel=True, input_centering=str(cfg.classical.get("input_centering", "none"))
-    )
+    # the filter reads depth and amplitude, centred as classical.input_centering says
+    conditioning = dict(kwargs.get("conditioning") or {})
+    conditioning.update(use_signal_channel=True, centering=str(cfg.classical.input_centering))
+    kwargs.update(backbone=backbone, conditioning=conditioning)
     return kwargs
 
 
 def run(cfg: DictConfig) -> dict[str, Any]:
     """Tune on validation, test the chosen parameters; returns ``{"run_dir", "best", "metrics", "tuning"}``."""
-    from tofdenoise.models import available_backbones, is_trainable
 
     validate_config(cfg)
     if cfg.get("classical") is None:
@@ -166,11 +172,6 @@ def run(cfg: DictConfig) -> dict[str, Any]:
 def _tune_and_test(
     cfg: DictConfig, run_dir: Path, backbone: str, grid: dict[str, Any], points: list[dict[str, Any]]
 ) -> dict[str, Any]:
-    from hydra.utils import instantiate
-    from lightning.pytorch import seed_everything
-
-    from tofdenoise.callbacks.run_outputs import write_test_outputs
-    from tofdenoise.training.module import DepthRestorer
 
     ccfg = cfg.classical
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -205,7 +206,7 @@ def _tune_and_test(
         "selection": "lowest validation MAE (val_mae_mm: per image, then averaged)",
         "grid": grid,
         "fixed": {k: ccfg.get(k) for k in GRID_KEYS if ccfg.get(k) is not None},
-        "input_centering": base["input_centering"],
+        "input_centering": base["conditioning"]["centering"],
         "val_images": n_images,
         "device": str(device),
         "seconds": round(tune_s, 3),

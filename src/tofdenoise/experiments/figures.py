@@ -20,13 +20,18 @@ reference. "Proposed" is DVSS trained on the hetero synthesis with L_full (the p
 from __future__ import annotations
 
 import csv
+import io
 import math
 from collections.abc import Mapping, Sequence
+from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from PIL import Image
+
+from tofdenoise.config import compose_config
 
 from .runner import RunSpec
 from .tables import Row, row_spec, table_rows
@@ -141,7 +146,7 @@ def render_figure(
 
     ``models``: label -> ``DepthRestorer`` in eval mode (the columns, in order); ``dataset``: the test set's
     dataset (items with ``noisy``, ``clean``, ``mask``, ``amplitude``, ``name``). Predictions run on each model's
-    device through ``restore_mm`` with its ``eval_tile_size``; MAE is ``depth_metrics_per_image`` over the scoring
+    device through ``restore_mm`` with its ``tiling.eval_tile_px``; MAE is ``depth_metrics_per_image`` over the scoring
     mask (the test metrics' function).
     """
     import torch
@@ -163,7 +168,7 @@ def render_figure(
         for label, model in models.items():
             on_device = {k: v.to(model.device) if isinstance(v, torch.Tensor) else v for k, v in batch.items()}
             with torch.no_grad():
-                pred = model.restore_mm(on_device, tile=model.hparams.eval_tile_size).float().cpu()
+                pred = model.restore_mm(on_device, tile=model.tiling.eval_tile_px).float().cpu()
             mae[label] = float(depth_metrics_per_image(pred, clean, mask, d_max)["mae_mm"][0])
             maps[label] = pred[0, 0].numpy()
         maps[spec.reference_label] = clean[0, 0].numpy()
@@ -195,9 +200,6 @@ def render_figure(
 def encode_png_palette(image_rgb: np.ndarray, colors: int = 256) -> bytes:
     """A uint8 RGB image as an 8-bit palette PNG (median-cut palette, no dithering): about a third of the RGB
     file for colour-mapped panels, whose colours come from two 256-entry colour maps, greys and text."""
-    import io
-
-    from PIL import Image
 
     if image_rgb.dtype != np.uint8 or image_rgb.ndim != 3 or image_rgb.shape[2] != 3:
         raise ValueError(f"encode_png_palette: expected uint8 (H, W, 3), got {image_rgb.dtype} {image_rgb.shape}")
@@ -246,12 +248,10 @@ def build_figure(
     and evaluation noise; the check against each run's raw MAE confirms it). On CUDA the networks run under bf16
     autocast when the runs' trainer did (``trainer.precision``), as their test did.
     """
-    from contextlib import nullcontext
 
     import torch
     from hydra.utils import instantiate
 
-    from tofdenoise.config import compose_config
     from tofdenoise.inference.denoise import load_restorer, resolve_device
 
     labels = [label for label, _ in figure_rows(spec)]

@@ -33,14 +33,22 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
+from hydra.utils import instantiate
+from lightning.pytorch import seed_everything
 from omegaconf import DictConfig, OmegaConf, open_dict
 
+from tofdenoise.callbacks.run_outputs import RunOutputs
 from tofdenoise.cli.checkpoint_check import check_checkpoint_file, resolve_ckpt_path
 from tofdenoise.config import ConfigError, instantiate_node
+from tofdenoise.models.registry import BACKBONES, is_trainable
 from tofdenoise.output_guard import refuse_overwrite
+from tofdenoise.physics.noise_models import NOISE_MODELS
 from tofdenoise.records import METRICS_NAME, RUN_INFO_NAME, read_metrics_json, read_run, run_finished
 from tofdenoise.registry import Registry
 from tofdenoise.run_lock import RunLock
+from tofdenoise.training.losses import LOSSES
 from tofdenoise.wandb_env import finish_wandb, setup_wandb_env, wandb_run_id
 
 __all__ = [
@@ -90,9 +98,6 @@ def _names_or_error(key: str, value: str, registry: Registry) -> None:
 
 def validate_config(cfg: DictConfig) -> None:
     """Fail early (before any data or model is built) on unknown names or missing dataset paths."""
-    from tofdenoise.models.registry import BACKBONES, is_trainable
-    from tofdenoise.physics.noise_models import NOISE_MODELS
-    from tofdenoise.training.losses import LOSSES
 
     for group in ("backbone", "noise", "loss", "data", "model", "trainer"):
         if group not in cfg or cfg[group] is None:
@@ -159,8 +164,6 @@ def check_ddp_in_sweep(trainer: DictConfig) -> None:
     """``ConfigError`` for a DDP run of several processes inside a Hydra multirun (``-m``) that Lightning would
     launch itself: it starts the other processes by running the command line again, which here is the whole sweep
     (every job of it, once per rank). Under SLURM (``srun`` starts every process) a sweep's DDP job is fine."""
-    from hydra.core.hydra_config import HydraConfig
-    from hydra.types import RunMode
 
     if not HydraConfig.initialized() or HydraConfig.get().mode != RunMode.MULTIRUN:
         return
@@ -189,7 +192,6 @@ def check_slurm_shape(trainer: DictConfig) -> None:
 
 
 def _instantiate_group(node: DictConfig | None) -> list[Any]:
-    from hydra.utils import instantiate
 
     out = []
     for _, sub in (node or {}).items():
@@ -200,7 +202,6 @@ def _instantiate_group(node: DictConfig | None) -> list[Any]:
 
 def _run_outputs(callbacks: list[Any]) -> Any:
     """The run's ``RunOutputs`` callback (its records are what a finished run is made of)."""
-    from tofdenoise.callbacks.run_outputs import RunOutputs
 
     found = [cb for cb in callbacks if isinstance(cb, RunOutputs)]
     if len(found) != 1:
@@ -243,8 +244,6 @@ def refuse_replacing_inputs(cfg: DictConfig, run_dir: Path) -> None:
 
 
 def _run_locked(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
-    from hydra.utils import instantiate
-    from lightning.pytorch import seed_everything
 
     run_dir.mkdir(parents=True, exist_ok=True)
     with open_dict(cfg):
@@ -323,7 +322,7 @@ def _say_interrupted(trainer: Any, run_dir: Path) -> None:
 
 def _comparable(cfg_yaml: str) -> dict[str, Any]:
     """The settings of a resolved config (its YAML text) that decide a run's result: ``SAME_RUN_IGNORES`` left
-    out, flattened to ``{"model.lr": 0.001, ...}``."""
+    out, flattened to ``{"model.optim.lr": 0.001, ...}``."""
     flat: dict[str, Any] = {}
 
     def walk(node: Any, prefix: str) -> None:

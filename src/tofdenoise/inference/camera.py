@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import yaml
 
 __all__ = [
     "Intrinsics",
@@ -95,7 +96,6 @@ def _number(data: dict[str, Any], key: str, source: str) -> float:
 
 def load_intrinsics(path: str | Path) -> Intrinsics:
     """Intrinsics from a YAML/JSON file with fx, fy, cx, cy, width, height (or a ROS camera_info YAML)."""
-    import yaml
 
     path = Path(path).expanduser()
     if not path.is_file():

@@ -9,12 +9,16 @@ On CUDA the network runs under bf16 autocast (``precision="bf16"``; ``"fp32"`` t
 
 from __future__ import annotations
 
+import pickle
 from contextlib import nullcontext
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
+
+from tofdenoise.physics.uncertainty import amplitude_to_signal_e, sigma_depth_mm
+from tofdenoise.training.module import DepthRestorer
 
 __all__ = ["CheckpointError", "denoise", "load_restorer", "resolve_device", "restore_frame", "sigma_map_mm"]
 
@@ -40,7 +44,6 @@ def load_failure_reason(exc: BaseException) -> str:
     """Why ``torch.load(weights_only=True)`` failed, in one line and without torch's advice to load with
     ``weights_only=False`` (which would run whatever code the file pickles: never do that for a file you did not
     write)."""
-    import pickle
 
     text = str(exc)
     if isinstance(exc, pickle.UnpicklingError) or "weights_only" in text:
@@ -57,7 +60,6 @@ def load_failure_reason(exc: BaseException) -> str:
 def load_restorer(ckpt: str | Path, device: str | torch.device = "cpu"):
     """A ``DepthRestorer`` in eval mode from a checkpoint of ``tofdenoise-train`` / ``tofdenoise fit``; anything
     else is a ``CheckpointError`` naming the file and what was expected."""
-    from tofdenoise.training.module import DepthRestorer
 
     path = Path(ckpt).expanduser()
     expected = "expected a DepthRestorer checkpoint (.ckpt written by tofdenoise-train or tofdenoise fit)"
@@ -89,7 +91,6 @@ def load_restorer(ckpt: str | Path, device: str | torch.device = "cpu"):
 
 
 def _as_model(model_or_ckpt: Any, device: str | torch.device):
-    from tofdenoise.training.module import DepthRestorer
 
     if isinstance(model_or_ckpt, DepthRestorer):
         return model_or_ckpt.eval()
@@ -120,9 +121,9 @@ def restore_frame(
 
     ``depth_mm``: float (H, W), any value at invalid pixels (set to 0 here); ``valid``: bool (H, W);
     ``amplitude``: (H, W) or None (required when the model uses the signal channel); ``tile``: tile side
-    (default: the model's ``predict_tile_size``). The model's device is used.
+    (default: the model's ``tiling.predict_tile_px``). The model's device is used.
     """
-    if model.hparams.use_signal_channel and amplitude is None:
+    if model.conditioning.use_signal_channel and amplitude is None:
         raise ValueError(
             "this checkpoint uses the amplitude (signal) channel: give the frame's amplitude "
             "(tofdenoise-denoise --amplitude DIR_OR_PATTERN)"
@@ -131,9 +132,9 @@ def restore_frame(
     valid_t = torch.from_numpy(np.ascontiguousarray(valid, dtype=np.float32))[None, None].to(device)
     depth = np.where(valid, depth_mm, 0.0).astype(np.float32)
     batch: dict[str, torch.Tensor] = {"noisy": torch.from_numpy(depth)[None, None].to(device), "mask": valid_t}
-    if model.hparams.use_signal_channel:
+    if model.conditioning.use_signal_channel:
         batch["amplitude"] = torch.from_numpy(np.ascontiguousarray(amplitude, dtype=np.float32))[None, None].to(device)
-    tile = model.hparams.predict_tile_size if tile is None else int(tile)
+    tile = model.tiling.predict_tile_px if tile is None else int(tile)
     with _autocast(device, precision):
         pred = model.restore_mm(batch, tile=tile)
     pred = pred.float()
@@ -184,7 +185,6 @@ def sigma_map_mm(depth_mm: np.ndarray, valid: np.ndarray, amplitude: np.ndarray,
     percentiles of the valid amplitudes mapped to the calibration's signal interval, paper Sec. III-A);
     sigma_D from ``sigma_depth_mm`` at the measured depth.
     """
-    from tofdenoise.physics.uncertainty import amplitude_to_signal_e, sigma_depth_mm
 
     amp = np.asarray(amplitude, dtype=np.float32)
     ok = np.asarray(valid, dtype=bool) & np.isfinite(amp) & (amp >= 0)

@@ -22,15 +22,21 @@ fill levels, the precision and the checkpoint's sha256; ``tofdenoise-denoise --o
 
 from __future__ import annotations
 
+import copy
 import json
 import os
+import warnings
 from pathlib import Path
 from typing import Any
 
 import torch
 from torch import Tensor, nn
 
+from tofdenoise.atomic import atomic_write
+from tofdenoise.inference.denoise import load_restorer
 from tofdenoise.models.conditioning import condition_input
+from tofdenoise.training.init_weights import file_sha256
+from tofdenoise.training.module import final_prediction
 
 __all__ = ["RestoreGraph", "ExportError", "export_onnx", "FILL_LEVELS", "ONNX_OPSET"]
 
@@ -68,7 +74,6 @@ class RestoreGraph(nn.Module):
         self.use_signal_channel, self.fp16 = bool(use_signal_channel), bool(fp16)
 
     def forward(self, depth_mm: Tensor, amplitude: Tensor | None = None) -> Tensor:
-        from tofdenoise.training.module import final_prediction
 
         x, offset = condition_input(
             depth_mm,
@@ -85,19 +90,18 @@ class RestoreGraph(nn.Module):
 
 def restore_graph(model: Any, fp16: bool = False) -> RestoreGraph:
     """The :class:`RestoreGraph` of a loaded ``DepthRestorer`` (its evaluation network: the EMA copy when on)."""
-    import copy
 
-    hp = model.hparams
+    conditioning = model.conditioning
     net = copy.deepcopy(model.eval_net).eval()
     for module in net.modules():
         if hasattr(module, "scan_backend"):  # SS2D (DVSS): the scan written for export (models/scan/export.py)
             module.scan_backend = "export"
     return RestoreGraph(
         net,
-        depth_scale_mm=float(hp.depth_scale_mm),
-        centering=str(hp.input_centering),
-        block_px=int(hp.centering_block_px),
-        use_signal_channel=bool(hp.use_signal_channel),
+        depth_scale_mm=conditioning.depth_scale_mm,
+        centering=conditioning.centering,
+        block_px=conditioning.block_px,
+        use_signal_channel=conditioning.use_signal_channel,
         fp16=fp16,
     ).eval()
 
@@ -122,7 +126,6 @@ def export_graph(graph: RestoreGraph, path: str | os.PathLike[str], dynamo: bool
         common["dynamic_shapes"] = tuple({2: torch.export.Dim.DYNAMIC, 3: torch.export.Dim.DYNAMIC} for _ in inputs)
     else:  # the tracer: sizes recorded as graph operations, the axes named dynamic
         common["dynamic_axes"] = {n: {2: "height", 3: "width"} for n in [*names, "restored_mm"]}
-    import warnings
 
     with torch.no_grad(), warnings.catch_warnings():
         # expected: the shape checks the tracer keeps as constants (the general branch, _example) and the
@@ -136,10 +139,6 @@ def export_onnx(ckpt: str | os.PathLike[str], out: str | os.PathLike[str], fp16:
     """Export checkpoint ``ckpt`` to ``out`` (atomically) and return the metadata written into the graph."""
     import onnx
 
-    from tofdenoise.atomic import atomic_write
-    from tofdenoise.inference.denoise import load_restorer
-    from tofdenoise.training.init_weights import file_sha256
-
     model = load_restorer(ckpt, torch.device("cpu"))
     if not getattr(model, "trainable", True):
         raise ExportError(f"checkpoint {ckpt}: backbone {model.hparams.backbone!r} is a classical filter, not exported")
@@ -147,9 +146,9 @@ def export_onnx(ckpt: str | os.PathLike[str], out: str | os.PathLike[str], fp16:
     meta = {
         "tofdenoise_backbone": str(model.hparams.backbone),
         "tofdenoise_backbone_kwargs": json.dumps(dict(model.hparams.backbone_kwargs or {}), sort_keys=True),
-        "tofdenoise_use_signal_channel": str(bool(model.hparams.use_signal_channel)).lower(),
-        "tofdenoise_depth_scale_mm": repr(float(model.hparams.depth_scale_mm)),
-        "tofdenoise_input_centering": str(model.hparams.input_centering),
+        "tofdenoise_use_signal_channel": str(model.conditioning.use_signal_channel).lower(),
+        "tofdenoise_depth_scale_mm": repr(model.conditioning.depth_scale_mm),
+        "tofdenoise_input_centering": model.conditioning.centering,
         "tofdenoise_fill_levels": str(FILL_LEVELS),
         "tofdenoise_precision": "fp16" if fp16 else "fp32",
         "tofdenoise_checkpoint": str(Path(ckpt).resolve()),

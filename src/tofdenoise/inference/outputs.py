@@ -22,8 +22,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
+from tofdenoise import visualize as vis
 from tofdenoise.atomic import atomic_write, atomic_write_bytes, atomic_write_png, save_npy_atomic
 from tofdenoise.data_modules.io import write_depth_png16
 from tofdenoise.inference.camera import Intrinsics, points_m
@@ -62,7 +64,6 @@ def depth_mm_to_m(depth_mm: np.ndarray) -> np.ndarray:
 
 def write_depth_m_tiff(path: str | Path, depth_mm: np.ndarray) -> Path:
     """Write a depth map [mm] as a single-channel float32 TIFF in metres, NaN = invalid, atomically."""
-    import cv2
 
     depth_m = depth_mm_to_m(depth_mm)
     if depth_m.ndim != 2:
@@ -122,7 +123,6 @@ def preview_panel(
     """One-row panel (uint8 RGB): input | restored on a shared depth scale (1st..99th percentile of the valid
     input) with its colour bar, then |restored - input| over valid input pixels (and sigma_D of the input) on a
     shared millimetre scale with its colour bar. Invalid pixels are grey."""
-    from tofdenoise import visualize as vis
 
     valid = np.asarray(valid, dtype=bool)
     out_valid = np.isfinite(restored_mm) & (restored_mm > 0)
@@ -166,7 +166,6 @@ def write_frame_outputs(
 ) -> list[Path]:
     """Write the outputs of one frame (module docstring); returns the written paths. ``options.ply`` needs the
     ``intrinsics`` of the frame (checked before anything of the frame is written)."""
-    import cv2
 
     paths = output_paths(Path(out), name)
     points = None

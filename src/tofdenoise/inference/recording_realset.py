@@ -34,6 +34,7 @@ from __future__ import annotations
 import json
 import shutil
 import tempfile
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -81,8 +82,6 @@ def moving_frames(
     of the frames (module docstring)."""
     stack = np.stack([np.where(v, d, np.nan) for d, v in zip(depth_mm, valid)]).astype(np.float32)
     with np.errstate(all="ignore"):
-        import warnings
-
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN pixels: no frame sees them
             median = np.nanmedian(stack, axis=0)

@@ -27,6 +27,7 @@ recording is refused with an error naming the extra.
 
 from __future__ import annotations
 
+import importlib
 import re
 from abc import ABC, abstractmethod
 from collections.abc import Iterable, Iterator, Sequence
@@ -38,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from tofdenoise.inference.camera import Intrinsics, IntrinsicsError, kinect_depth_intrinsics
+from tofdenoise.inference.camera import KINECT_DEPTH_MODES, Intrinsics, IntrinsicsError, kinect_depth_intrinsics
 from tofdenoise.inference.frames import RECORDING_SUFFIXES, FrameError
 
 __all__ = [
@@ -135,7 +136,6 @@ def find_recordings(inputs: Sequence[str | Path], exclude: Iterable[str | Path] 
 
 
 def _import(module: str, path: Path) -> Any:
-    import importlib
 
     try:
         return importlib.import_module(module)
@@ -274,7 +274,6 @@ class KinectRecording(Recording):
 
     @staticmethod
     def _mode_from_size(width: int, height: int) -> str | None:
-        from tofdenoise.inference.camera import KINECT_DEPTH_MODES
 
         for mode, (_, _, size) in KINECT_DEPTH_MODES.items():
             if size == (width, height) and mode != "PASSIVE_IR":

@@ -153,7 +153,7 @@ class JointBilateral(nn.Module):
     change the depth differences the range term compares.
     """
 
-    #: the ``DepthRestorer.input_centering`` modes under which channel 0 differences are depth differences
+    #: the ``model.conditioning.centering`` modes under which channel 0 differences are depth differences
     input_centering_modes = ("none", "image")
     #: the filter needs the amplitude channel (and reads invalid pixels from its zeros)
     needs_signal_channel = True

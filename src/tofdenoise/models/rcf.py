@@ -112,7 +112,7 @@ class RCF(nn.Module):
 
     Args:
         in_channels: must be 2 (channel 0 the normalised depth, channel 1 the normalised amplitude; in training
-            ``model.use_signal_channel=true``, which ``configs/backbone/rcf.yaml`` sets).
+            ``model.conditioning.use_signal_channel=true``, which ``configs/backbone/rcf.yaml`` sets).
         width: feature width C of the encoders, the fusion and the global restoration module.
         hidden: hidden-state width of the ConvGRU.
         steps: number of recurrent refinement steps K (one prediction each).
@@ -137,7 +137,8 @@ class RCF(nn.Module):
         if in_channels != 2:
             raise ValueError(
                 f"RCF: fuses depth and amplitude, so in_channels must be 2 (channel 0 depth, channel 1 amplitude), "
-                f"got {in_channels}; train it with model.use_signal_channel=true (configs/backbone/rcf.yaml sets it)"
+                f"got {in_channels}; train it with model.conditioning.use_signal_channel=true "
+                "(configs/backbone/rcf.yaml sets it)"
             )
         if width < 1 or hidden < 1:
             raise ValueError(f"RCF: width and hidden must be >= 1, got width={width}, hidden={hidden}")

@@ -17,11 +17,43 @@ equal to whole-image inference.
 from __future__ import annotations
 
 import math
+from dataclasses import asdict, dataclass
+from typing import Any
 
 import torch
 from torch import nn
 
-__all__ = ["tiled_forward", "tile_starts", "blend_window_1d"]
+__all__ = ["tiled_forward", "tile_starts", "blend_window_1d", "TilingSettings"]
+
+
+@dataclass(frozen=True)
+class TilingSettings:
+    """When a restorer runs a frame tile by tile (``model.tiling`` in the configs).
+
+    Args:
+        predict_tile_px: ``predict`` and ``tofdenoise denoise`` run frames larger than this (either side) tile by
+            tile; ``None`` = never tile.
+        eval_tile_px: the same for validation and test (``None`` = whole frames, the paper's protocol).
+        overlap_px: overlap of neighbouring tiles in pixels.
+    """
+
+    predict_tile_px: int | None = 512
+    eval_tile_px: int | None = None
+    overlap_px: int = 32
+
+    def __post_init__(self) -> None:
+        for name in ("predict_tile_px", "eval_tile_px"):
+            value = getattr(self, name)
+            if value is not None:
+                if int(value) <= int(self.overlap_px):
+                    raise ValueError(f"tiling.{name} must exceed tiling.overlap_px ({self.overlap_px}), got {value}")
+                object.__setattr__(self, name, int(value))
+        if int(self.overlap_px) < 0:
+            raise ValueError(f"tiling.overlap_px must be >= 0, got {self.overlap_px}")
+        object.__setattr__(self, "overlap_px", int(self.overlap_px))
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
 
 
 def tile_starts(size: int, tile: int, overlap: int) -> list[int]:

@@ -6,8 +6,9 @@
 - :mod:`~tofdenoise.records.verdict`: the learned guard, ``learned_verdict`` / ``classical_verdict`` /
   ``learned_status`` (the one place its rule lives);
 - :mod:`~tofdenoise.records.per_image`: ``per_image/<set>.csv``;
-- :mod:`~tofdenoise.records.run_folder`: the file names of a run folder, ``read_run``, ``run_finished`` (the one
-  rule of a finished run) and ``write_run_info``.
+- :mod:`~tofdenoise.records.run_folder`: the file names of a run folder, ``read_record`` / ``load_metrics`` (strict:
+  a ``RecordError`` names the file), ``read_run`` (lenient), ``run_finished`` (the one rule of a finished run),
+  ``unreadable_records`` and ``write_run_info``.
 
 Writers: ``tofdenoise.callbacks.run_outputs.RunOutputs`` (every trained run), the classical row; readers: the
 training job and the grids' runner (skip or return finished runs), ``tofdenoise.reporting`` (report, results page,
@@ -33,6 +34,9 @@ from tofdenoise.records.run_folder import (
     METRICS_NAME,
     PER_IMAGE_DIR,
     RUN_INFO_NAME,
+    RecordError,
+    load_metrics,
+    read_record,
     read_run,
     run_finished,
     unreadable_records,
@@ -50,13 +54,16 @@ __all__ = [
     "PER_IMAGE_DIR",
     "RUN_INFO_NAME",
     "RUN_KEYS",
+    "RecordError",
     "classical_verdict",
     "json_number",
     "learned_status",
     "learned_verdict",
+    "load_metrics",
     "metric_sets",
     "read_metrics_json",
     "read_per_image_csv",
+    "read_record",
     "read_run",
     "run_fields",
     "run_finished",

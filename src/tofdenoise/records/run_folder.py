@@ -13,11 +13,15 @@ from pathlib import Path
 from typing import Any
 
 from tofdenoise.atomic import atomic_write_text
+from tofdenoise.records.metrics_json import read_metrics_json
 
 __all__ = [
     "METRICS_NAME",
     "PER_IMAGE_DIR",
     "RUN_INFO_NAME",
+    "RecordError",
+    "read_record",
+    "load_metrics",
     "read_run",
     "run_finished",
     "unreadable_records",
@@ -32,13 +36,42 @@ RUN_INFO_NAME = "run_info.json"
 PER_IMAGE_DIR = "per_image"
 
 
+class RecordError(ValueError):
+    """A record file exists but cannot be used; the message names the file."""
+
+
+def read_record(path: str | Path) -> dict[str, Any] | None:
+    """The JSON object of a record file (``run_info.json``, ``metrics.json``, a figure's JSON); ``None`` when the file
+    does not exist; :class:`RecordError` naming the file when it cannot be read or holds no JSON object."""
+    path = Path(path)
+    if not path.exists():
+        return None
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise RecordError(f"{path}: the record cannot be read ({exc})") from None
+    if not isinstance(data, dict):
+        raise RecordError(f"{path}: the record is not a JSON object (got {type(data).__name__})")
+    return data
+
+
+def load_metrics(path: str | Path) -> dict[str, Any]:
+    """A ``metrics.json`` read and checked against its schema (``read_metrics_json``); :class:`RecordError` naming
+    the file when it is missing, unreadable or off the schema."""
+    try:
+        return read_metrics_json(path)
+    except (OSError, ValueError) as exc:
+        raise RecordError(f"{path}: the record cannot be read ({exc})") from None
+
+
 def read_run(run_dir: str | Path) -> tuple[dict[str, Any] | None, dict[str, Any] | None]:
-    """``(run_info, metrics)`` of a run folder; ``None`` for a file that is missing or does not parse."""
+    """``(run_info, metrics)`` of a run folder; ``None`` for a file that is missing or unusable (a runner deciding
+    what to run; :func:`unreadable_records` says which existing files are broken)."""
     out: list[dict[str, Any] | None] = []
     for name in (RUN_INFO_NAME, METRICS_NAME):
         try:
-            out.append(json.loads((Path(run_dir) / name).read_text()))
-        except (OSError, ValueError):
+            out.append(read_record(Path(run_dir) / name))
+        except RecordError:
             out.append(None)
     return out[0], out[1]
 
@@ -56,16 +89,10 @@ def unreadable_records(run_dirs: Sequence[str | Path]) -> list[str]:
     bad = []
     for run_dir in run_dirs:
         for name in (RUN_INFO_NAME, METRICS_NAME):
-            path = Path(run_dir) / name
-            if not path.is_file():
-                continue
             try:
-                data = json.loads(path.read_text(encoding="utf-8"))
-            except (OSError, ValueError) as exc:
-                bad.append(f"{path}: the record cannot be read ({exc})")
-                continue
-            if not isinstance(data, dict):
-                bad.append(f"{path}: not a JSON object")
+                read_record(Path(run_dir) / name)
+            except RecordError as exc:
+                bad.append(str(exc))
     return bad
 
 

@@ -17,7 +17,6 @@ names what the page is built from, so the page never replaces it (``tofdenoise.o
 
 from __future__ import annotations
 
-import json
 import math
 import statistics
 from collections.abc import Sequence
@@ -46,9 +45,11 @@ from tofdenoise.records import (
     METRIC_KEYS,
     METRICS_NAME,
     RUN_INFO_NAME,
+    RecordError,
     learned_status,
+    load_metrics,
     metric_sets,
-    read_metrics_json,
+    read_record,
     run_fields,
 )
 from tofdenoise.reporting.numbers import format_number
@@ -78,29 +79,9 @@ RUN_FILES = (METRICS_NAME, RUN_INFO_NAME)
 DISCUSSION_NAME = "discussion.md"
 
 
-class RecordError(ValueError):
-    """A record file exists but cannot be used; the message names the file."""
-
-
-def _read_json(path: Path) -> dict[str, Any] | None:
-    """The JSON object in ``path``; None when the file does not exist; RecordError when it cannot be read."""
-    if not path.exists():
-        return None
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError) as exc:
-        raise RecordError(f"{path}: the record cannot be read ({exc})") from None
-    if not isinstance(data, dict):
-        raise RecordError(f"{path}: the record is not a JSON object (got {type(data).__name__})")
-    return data
-
-
 def _read_metrics(path: Path) -> dict[str, Any]:
     """A run's ``metrics.json``, schema-checked, with no ``null`` metric (a value the tables cannot use)."""
-    try:
-        data = read_metrics_json(path)
-    except (OSError, ValueError) as exc:
-        raise RecordError(f"{path}: the record cannot be read ({exc})") from None
+    data = load_metrics(path)
     for set_name, entry in metric_sets(data).items():
         for where, block in ((set_name, entry), (f"{set_name}.raw", entry.get("raw") or {})):
             for key in METRIC_KEYS:
@@ -121,7 +102,7 @@ def load_records(profile_dir: Path | str) -> dict[str, dict[str, Any]]:
         metrics_path, info_path = run_dir / METRICS_NAME, run_dir / RUN_INFO_NAME
         if not (metrics_path.exists() and info_path.exists()):
             continue  # not a run (fig6/, fig7/, ...) or an incomplete copy: missing
-        info = _read_json(info_path)
+        info = read_record(info_path)
         records[run_dir.name] = {"metrics": _read_metrics(metrics_path), "run_info": info}
     return records
 
@@ -327,7 +308,7 @@ def _runs_section(records: dict[str, dict[str, Any]]) -> list[str]:
 
 
 def _fig6_section(profile_dir: Path) -> list[str]:
-    data = _read_json(profile_dir / "fig6" / "validation.json")
+    data = read_record(profile_dir / "fig6" / "validation.json")
     lines = ["## Fig. 6: noise-model validation on the second camera", ""]
     if data is None:
         return lines + ["Not run yet (`make reproduce TABLE=fig6`).", ""]
@@ -362,7 +343,7 @@ def _fig6_section(profile_dir: Path) -> list[str]:
 
 def _qualitative_section(profile_dir: Path, key: str) -> list[str]:
     """A qualitative figure (``tofdenoise.experiments.figures``): its per-scene MAE table and the image."""
-    data = _read_json(profile_dir / key / "figure.json")
+    data = read_record(profile_dir / key / "figure.json")
     if data is None:
         return [f"## {FIGURES[key].title}", "", f"Not run yet (`make reproduce TABLE={key}`).", ""]
     columns = [data["input"], *data["columns"]]

@@ -14,14 +14,15 @@ A run is any folder (searched recursively) that holds a ``metrics.json`` (``tofd
 from __future__ import annotations
 
 import csv
-import json
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from tofdenoise.records import METRICS_NAME, RUN_INFO_NAME, metric_sets, read_metrics_json, run_fields
+from omegaconf import OmegaConf
+
+from tofdenoise.records import METRICS_NAME, RUN_INFO_NAME, metric_sets, read_metrics_json, read_record, run_fields
 
 __all__ = ["Run", "find_runs", "load_run"]
 
@@ -62,7 +63,6 @@ def find_runs(roots: Sequence[str | Path]) -> list[Path]:
 
 def _hydra_info(path: Path) -> dict[str, Any]:
     """backbone/noise/loss names and run_name from a saved Hydra config (interpolations resolved if possible)."""
-    from omegaconf import OmegaConf
 
     try:
         cfg = OmegaConf.load(path)
@@ -85,14 +85,9 @@ def _hydra_info(path: Path) -> dict[str, Any]:
 
 
 def _read_info(run_dir: Path) -> dict[str, str]:
-    info: dict[str, Any] = {}
-    path = run_dir / RUN_INFO_NAME
-    if path.is_file():
-        try:
-            info = json.loads(path.read_text(encoding="utf-8"))
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-            raise ValueError(f"{path}: not valid JSON ({exc})") from None
-    else:
+    info: dict[str, Any] | None = read_record(run_dir / RUN_INFO_NAME)
+    if info is None:
+        info = {}
         hydra_cfg = run_dir / ".hydra" / "config.yaml"
         if hydra_cfg.is_file():
             info = _hydra_info(hydra_cfg)

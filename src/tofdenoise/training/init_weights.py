@@ -12,7 +12,7 @@ callbacks' state start fresh (``ckpt_path`` restores all of them). :func:`load_i
 Every weight of the new model's backbone must come from the file with its shape, and the file may hold no other
 network weight: a missing key, an unexpected key or a shape mismatch is one :class:`InitWeightsError` that names
 the file and the first few layers of each kind with their counts. Nothing is loaded then (no partial load).
-A checkpoint whose input conditioning differs (``input_centering``, ``centering_block_px``, ``depth_scale_mm``)
+A checkpoint whose input conditioning differs (``conditioning``: ``centering``, ``block_px``, ``depth_scale_mm``)
 is refused the same way: its weights expect another input.
 
 :func:`file_sha256` gives the digest recorded in ``run_info.json`` (``init_weights``: path and sha256).
@@ -33,8 +33,9 @@ __all__ = ["InitWeightsError", "load_init_weights", "read_init_state", "file_sha
 
 #: checkpoint key of the init record ({"path", "sha256"}), so a resumed run still says where it started from
 INIT_RECORD_KEY = "tofdenoise_init_weights"
-#: hyper-parameters that define what the network's input means: weights trained on another input are refused
-_INPUT_HPARAMS = {"input_centering": "local", "centering_block_px": 16, "depth_scale_mm": 100.0}
+#: the conditioning settings that define what the network's input means: weights trained on another input are
+#: refused (``use_signal_channel`` changes the first layer's shape, reported as a shape mismatch)
+_INPUT_SETTINGS = ("centering", "block_px", "depth_scale_mm")
 _SHOW = 3
 
 
@@ -103,14 +104,19 @@ def _listed(names: list[str], what: str) -> str:
 
 
 def _check_input_hparams(path: Path, saved: dict[str, Any], model_hparams: Mapping[str, Any]) -> None:
-    diffs = []
-    for key, default in _INPUT_HPARAMS.items():
-        if key in saved or key == "input_centering":
-            theirs = saved.get(key, "none" if key == "input_centering" else default)
-            mine = model_hparams.get(key, default)
-            if theirs != mine:
-                diffs.append(f"{key}: file {theirs!r} vs this model {mine!r}")
-    if saved and diffs:
+    theirs, mine = saved.get("conditioning"), dict(model_hparams.get("conditioning") or {})
+    if not isinstance(theirs, Mapping):
+        raise InitWeightsError(
+            f"model.init_weights: {path} is a checkpoint whose hyper_parameters have no 'conditioning' group, so "
+            "what its network was trained to see is unknown; give its state dict instead (torch.save of "
+            "model.state_dict()) if you know it matches"
+        )
+    diffs = [
+        f"conditioning.{key}: file {theirs.get(key)!r} vs this model {mine.get(key)!r}"
+        for key in _INPUT_SETTINGS
+        if theirs.get(key) != mine.get(key)
+    ]
+    if diffs:
         raise InitWeightsError(
             f"model.init_weights: {path} was trained on another network input ({'; '.join(diffs)}); "
             "set the same values for this run"

@@ -3,16 +3,16 @@
 The paper's recipe (Sec. V-A: AdamW 2e-4, per-step cosine to 1e-6, checkpoint at the lowest validation MAE) and
 every design decision of training (input conditioning, weight decay, EMA, compile, deep supervision, exact DDP
 metrics, the learned guard, classical filters) are described in docs/training.md. Where the pieces live:
-what the network sees, ``models/conditioning.py``; losses, ``losses.py``; per-image metrics, ``metrics.py``;
-the learned guard's inputs, ``learned_guard.py``; the records a run writes, ``results.py`` and
-``callbacks/run_outputs.py``. Every hyper-parameter is a plain value (backbone and loss by registered name), so a
-checkpoint loads with ``torch.load(weights_only=True)`` and ``DepthRestorer.load_from_checkpoint(path)``.
+what the network sees, ``models/conditioning.py``; tiles, ``models/tiling.py``; the optimiser and schedule,
+``optim.py``; losses, ``losses.py``; per-image metrics, ``metrics.py``; the learned guard's inputs,
+``learned_guard.py``; the records a run writes, ``tofdenoise.records`` and ``callbacks/run_outputs.py``. Every
+hyper-parameter is a plain value (backbone and loss by registered name, the groups as mappings), so a checkpoint
+loads with ``torch.load(weights_only=True)`` and ``DepthRestorer.load_from_checkpoint(path)``.
 """
 
 from __future__ import annotations
 
 import logging
-import math
 from collections.abc import Sequence
 from typing import Any
 
@@ -20,14 +20,17 @@ import lightning.pytorch as pl
 import torch
 from torch import Tensor, nn
 
+from tofdenoise.config import settings_group
 from tofdenoise.models import build_backbone, tiled_forward
-from tofdenoise.models.conditioning import CENTERING_MODES, condition_input
+from tofdenoise.models.conditioning import CENTERING_MODES, InputConditioning
 from tofdenoise.models.registry import accepts_kwarg, backbone_factory, is_trainable
+from tofdenoise.models.tiling import TilingSettings
 from tofdenoise.records import set_entry
 from tofdenoise.training.init_weights import INIT_RECORD_KEY, load_init_weights
 from tofdenoise.training.learned_guard import LearnedGuard
 from tofdenoise.training.losses import DepthLoss, build_loss
 from tofdenoise.training.metrics import DepthMetrics, FixedBatchCache, depth_metrics_per_image
+from tofdenoise.training.optim import OptimSettings
 
 __all__ = ["DepthRestorer", "CheckpointMismatchError", "step_predictions", "final_prediction", "step_loss_weights"]
 
@@ -39,54 +42,35 @@ class CheckpointMismatchError(ValueError):
 
 
 def _architecture(hparams: dict[str, Any]) -> dict[str, Any]:
-    """What defines the network's parameters, from a hyper-parameter dict: a checkpoint must agree on all of it."""
+    """What defines the network and what it was trained to see, from a hyper-parameter dict: a checkpoint must
+    agree on all of it."""
+    conditioning = dict(hparams.get("conditioning") or {})
     return {
         "backbone": hparams.get("backbone"),
         "backbone_kwargs": dict(hparams.get("backbone_kwargs") or {}),
-        "use_signal_channel": bool(hparams.get("use_signal_channel", False)),
+        "use_signal_channel": conditioning.get("use_signal_channel"),
         "ema": hparams.get("ema_decay") is not None,
-        "input_centering": hparams.get("input_centering"),
+        "input_centering": conditioning.get("centering"),
     }
 
 
 class DepthRestorer(pl.LightningModule):
     """Depth restoration with any backbone of :func:`tofdenoise.models.build_backbone`.
 
-    Args:
-        backbone: registered backbone name (``tofdenoise.models.available_backbones()``).
-        backbone_kwargs: constructor keyword arguments of the backbone (plain values; ``in_channels`` is set
-            from ``use_signal_channel``).
-        loss: registered loss name (``tofdenoise.training.losses.available_losses()``: ``l1``, ``nar``, ``full``).
-        loss_kwargs: keyword arguments of the loss (e.g. ``beta``, ``lambda_g``).
-        depth_scale_mm: fixed divisor turning (centred) millimetres into network units. 100 mm puts the noise
-            (3-12 mm) at 0.03-0.12 and surface detail near 1: inputs of unit order, which Adam's first steps
-            cannot swamp (docs/training.md#what-the-network-sees-input-conditioning).
-        input_centering: ``local`` (default: depth minus a smooth local offset, see
-            ``tofdenoise.models.conditioning``), ``image`` (minus the per-image valid median) or ``none``
-            (raw depth / depth_scale_mm, checkpoints written before centring).
-        centering_block_px: block size of the ``local`` offset in pixels.
-        use_signal_channel: feed the normalised amplitude as a second input channel.
-        lr: AdamW initial learning rate (paper: 2e-4).
-        weight_decay: AdamW weight decay on >= 2-D weights not flagged `_no_weight_decay` (AdamW's default 1e-2;
-            the paper does not state it).
-        betas: AdamW betas.
-        lr_min: learning rate at the end of the cosine schedule (paper: 1e-6).
-        warmup_steps: linear warm-up from lr / warmup_steps to lr over this many optimiser steps before the
-            cosine (0 = none, the paper's schedule). Protects a zero-initialised residual head from Adam's
-            large first steps at high learning rates.
+    Args (plain values, so a checkpoint loads with ``weights_only=True``):
+        backbone, backbone_kwargs: registered backbone name (``tofdenoise.models.available_backbones()``) and its
+            constructor arguments (``in_channels`` comes from ``conditioning``).
+        loss, loss_kwargs: registered loss name (``l1``, ``nar``, ``full``) and its arguments.
+        conditioning: what the network sees (:class:`~tofdenoise.models.conditioning.InputConditioning`).
+        optim: AdamW and its schedule (:class:`~tofdenoise.training.optim.OptimSettings`).
+        tiling: tile-by-tile inference (:class:`~tofdenoise.models.tiling.TilingSettings`).
         ema_decay: decay of the EMA of the weights (e.g. 0.999); ``None`` = no EMA.
         compile: ``torch.compile`` the backbone for training.
         d_max_mm: fixed PSNR/SSIM peak (paper: 1000 mm).
-        predict_tile_size: ``predict`` runs frames larger than this (either side) tile by tile
-            (``tofdenoise.models.tiled_forward``); ``None`` = never tile.
-        eval_tile_size: the same for validation and test (``None`` = whole frames, the paper's protocol).
-        tile_overlap: overlap of neighbouring tiles in pixels.
-        learned_margin: the learned guard: a run counts as learned only when its best validation MAE is at
-            most ``(1 - learned_margin)`` x the raw validation MAE (default 0.05: 5 % below raw).
-        init_weights: a checkpoint or state-dict file whose weights the network starts from when a fit begins
-            without ``ckpt_path`` (fine-tuning: optimiser, schedule and epoch start fresh;
-            ``tofdenoise.training.init_weights``). Any missing, unexpected or mis-shaped layer is an error;
-            the path and its sha256 go to ``run_info.json`` and the checkpoints.
+        learned_margin: a run counts as learned only when its best validation MAE is at most
+            ``(1 - learned_margin)`` x the raw validation MAE (``training/learned_guard.py``).
+        init_weights: weights file the network starts from when a fit begins without ``ckpt_path`` (fine-tuning;
+            ``training/init_weights.py``).
     """
 
     def __init__(
@@ -95,60 +79,43 @@ class DepthRestorer(pl.LightningModule):
         backbone_kwargs: dict[str, Any] | None = None,
         loss: str = "full",
         loss_kwargs: dict[str, Any] | None = None,
-        depth_scale_mm: float = 100.0,
-        input_centering: str = "local",
-        centering_block_px: int = 16,
-        use_signal_channel: bool = False,
-        lr: float = 2e-4,
-        weight_decay: float = 1e-2,
-        betas: tuple[float, float] = (0.9, 0.999),
-        lr_min: float = 1e-6,
-        warmup_steps: int = 0,
+        conditioning: dict[str, Any] | None = None,
+        optim: dict[str, Any] | None = None,
+        tiling: dict[str, Any] | None = None,
         ema_decay: float | None = None,
         compile: bool = False,
         d_max_mm: float = 1000.0,
-        predict_tile_size: int | None = 512,
-        eval_tile_size: int | None = None,
-        tile_overlap: int = 32,
         learned_margin: float = 0.05,
         init_weights: str | None = None,
     ) -> None:
         super().__init__()
         backbone_kwargs = dict(backbone_kwargs or {})
         loss_kwargs = dict(loss_kwargs or {})
-        if not depth_scale_mm > 0:
-            raise ValueError(f"DepthRestorer.depth_scale_mm must be > 0, got {depth_scale_mm}")
-        if input_centering not in CENTERING_MODES:
-            raise ValueError(
-                f"DepthRestorer.input_centering: unknown mode {input_centering!r}; valid: {', '.join(CENTERING_MODES)}"
-            )
-        if int(centering_block_px) < 1:
-            raise ValueError(f"DepthRestorer.centering_block_px must be >= 1, got {centering_block_px}")
-        if not (lr > 0 and 0 <= lr_min <= lr):
-            raise ValueError(f"DepthRestorer: need lr > 0 and 0 <= lr_min <= lr, got lr={lr}, lr_min={lr_min}")
-        if warmup_steps < 0:
-            raise ValueError(f"DepthRestorer.warmup_steps must be >= 0, got {warmup_steps}")
+        self.conditioning = settings_group(InputConditioning, conditioning, "model.conditioning")
+        self.optim = settings_group(OptimSettings, optim, "model.optim")
+        self.tiling = settings_group(TilingSettings, tiling, "model.tiling")
         if ema_decay is not None and not 0.0 < ema_decay < 1.0:
             raise ValueError(f"DepthRestorer.ema_decay must be in (0, 1) or null, got {ema_decay}")
         if not 0.0 <= learned_margin < 1.0:
             raise ValueError(f"DepthRestorer.learned_margin must be in [0, 1), got {learned_margin}")
-        if len(betas) != 2:
-            raise ValueError(f"DepthRestorer.betas needs two values, got {betas}")
-        betas = (float(betas[0]), float(betas[1]))  # a tuple whichever front end passed a list
-        in_channels = 2 if use_signal_channel else 1
+        in_channels = self.conditioning.in_channels
         if backbone_kwargs.get("in_channels", in_channels) != in_channels:
             raise ValueError(
                 f"DepthRestorer: backbone_kwargs.in_channels={backbone_kwargs['in_channels']} contradicts "
-                f"use_signal_channel={use_signal_channel} (needs {in_channels}); leave in_channels out"
+                f"conditioning.use_signal_channel={self.conditioning.use_signal_channel} (needs {in_channels}); "
+                "leave in_channels out"
             )
-        _check_backbone_input(backbone, backbone_kwargs, input_centering, use_signal_channel, depth_scale_mm)
-        # plain values only: checkpoints load with weights_only=True
+        _check_backbone_input(backbone, backbone_kwargs, self.conditioning)
+        # plain values only (a checkpoint loads with weights_only=True); each group complete, with its defaults
         self.save_hyperparameters()
+        self.hparams.update(
+            conditioning=self.conditioning.to_dict(), optim=self.optim.to_dict(), tiling=self.tiling.to_dict()
+        )
 
         net_kwargs = {k: v for k, v in backbone_kwargs.items() if k != "in_channels"}
         if accepts_kwarg(backbone, "depth_scale_mm"):  # a filter comparing depth differences in mm
-            net_kwargs["depth_scale_mm"] = float(depth_scale_mm)
-        #: False for a classical filter without trainable parameters (``tofdenoise-classic``): never fitted
+            net_kwargs["depth_scale_mm"] = self.conditioning.depth_scale_mm
+        #: False for a classical filter without trainable parameters (``tofdenoise classic``): never fitted
         self.trainable = is_trainable(backbone)
         self.backbone: nn.Module = build_backbone(backbone, in_channels=in_channels, **net_kwargs)
         self.criterion: DepthLoss = build_loss(loss, **loss_kwargs)
@@ -160,8 +127,8 @@ class DepthRestorer(pl.LightningModule):
             self.ema.requires_grad_(False)
         self._compiled: Any = None
 
-        self.val_metrics = DepthMetrics(d_max_mm=d_max_mm)
-        self.val_raw_metrics = DepthMetrics(d_max_mm=d_max_mm)
+        self.val_metrics = DepthMetrics(d_max_mm=float(d_max_mm))
+        self.val_raw_metrics = DepthMetrics(d_max_mm=float(d_max_mm))
         #: per-image Raw-row values of each validation batch: the validation noise is fixed, so they are computed
         #: once and reused every epoch (recomputed if the batch ever differs)
         self._raw_val_cache = FixedBatchCache()
@@ -196,20 +163,12 @@ class DepthRestorer(pl.LightningModule):
 
     def condition(self, batch: dict[str, Any]) -> tuple[Tensor, Tensor]:
         """Network input (B, C, H, W) and the offset (mm) to add back to ``depth_scale_mm`` x its output
-        (:func:`tofdenoise.models.conditioning.condition_input`, in float32 whatever the autocast setting)."""
+        (:class:`~tofdenoise.models.conditioning.InputConditioning`, in float32 whatever the autocast setting)."""
         noisy = batch["noisy"]
-        hp = self.hparams
-        if hp.use_signal_channel and "amplitude" not in batch:
-            raise KeyError("DepthRestorer(use_signal_channel=True) needs batch['amplitude']")
+        if self.conditioning.use_signal_channel and "amplitude" not in batch:
+            raise KeyError("DepthRestorer(conditioning.use_signal_channel=True) needs batch['amplitude']")
         with torch.autocast(device_type=noisy.device.type, enabled=False):
-            return condition_input(
-                noisy,
-                batch.get("amplitude"),
-                centering=hp.input_centering,
-                block_px=int(hp.centering_block_px),
-                depth_scale_mm=hp.depth_scale_mm,
-                use_signal_channel=hp.use_signal_channel,
-            )
+            return self.conditioning(noisy, batch.get("amplitude"))
 
     def network_input(self, batch: dict[str, Any]) -> Tensor:
         """The conditioned network input of :meth:`condition` (without the offset)."""
@@ -221,49 +180,20 @@ class DepthRestorer(pl.LightningModule):
         net = self.eval_net if net is None else net
         x, offset = self.condition(batch)
         if tile is not None and max(x.shape[-2:]) > tile:
-            y = tiled_forward(lambda t: final_prediction(net(t)), x, tile=tile, overlap=self.hparams.tile_overlap)
+            y = tiled_forward(lambda t: final_prediction(net(t)), x, tile=tile, overlap=self.tiling.overlap_px)
         else:
             y = final_prediction(net(x))
-        return y.float() * self.hparams.depth_scale_mm + offset
+        return y.float() * self.conditioning.depth_scale_mm + offset
 
     # ------------------------------------------------------------------ optimisation
-    def parameter_groups(self) -> list[dict[str, Any]]:
-        """AdamW groups: decay on >= 2-D weights; biases, norms and parameters flagged ``_no_weight_decay``
-        (SS2D's A_log and D, as in VMamba/MambaIR) are not decayed."""
-        decay, no_decay = [], []
-        for p in self.backbone.parameters():
-            if p.requires_grad:
-                wants_decay = p.ndim >= 2 and not getattr(p, "_no_weight_decay", False)
-                (decay if wants_decay else no_decay).append(p)
-        groups = [
-            {"params": decay, "weight_decay": self.hparams.weight_decay},
-            {"params": no_decay, "weight_decay": 0.0},
-        ]
-        return [g for g in groups if g["params"]]
-
     def configure_optimizers(self) -> dict[str, Any]:
         if not self.trainable:
             raise ValueError(
                 f"DepthRestorer: backbone {self.hparams.backbone!r} is a classical filter without "
                 "trainable parameters: there is nothing to fit; tune and test it with "
-                "`tofdenoise-classic` (docs/models.md#classical-row-joint-bilateral-filter)"
+                "`tofdenoise classic` (docs/models.md#classical-row-joint-bilateral-filter)"
             )
-        opt = torch.optim.AdamW(self.parameter_groups(), lr=self.hparams.lr, betas=tuple(self.hparams.betas))
-        total = self.trainer.estimated_stepping_batches
-        if not math.isfinite(total) or total < 1:
-            raise ValueError(
-                "DepthRestorer: the cosine schedule runs over the whole run; set trainer.max_epochs "
-                f"or trainer.max_steps (estimated optimiser steps: {total})"
-            )
-        total = int(total)
-        warm = min(int(self.hparams.warmup_steps), total - 1)
-        sched: torch.optim.lr_scheduler.LRScheduler = torch.optim.lr_scheduler.CosineAnnealingLR(
-            opt, T_max=total - warm, eta_min=self.hparams.lr_min
-        )
-        if warm > 0:
-            ramp = torch.optim.lr_scheduler.LinearLR(opt, start_factor=1.0 / warm, end_factor=1.0, total_iters=warm)
-            sched = torch.optim.lr_scheduler.SequentialLR(opt, [ramp, sched], milestones=[warm])
-        return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step", "frequency": 1}}
+        return self.optim.build(self.backbone, self.trainer.estimated_stepping_batches)
 
     def training_terms(self, batch: dict[str, Any], net: nn.Module | None = None) -> dict[str, Tensor]:
         """The loss of one training batch through ``net`` (default: the training network) with its parts:
@@ -280,7 +210,7 @@ class DepthRestorer(pl.LightningModule):
         # the loss in millimetres relative to the offset (differences are those of the restored depth in mm)
         target_mm = batch["clean"].float() - offset
         terms = [
-            self.criterion.terms(p.float() * self.hparams.depth_scale_mm, target_mm, batch["sigma"], batch["mask"])
+            self.criterion.terms(p.float() * self.conditioning.depth_scale_mm, target_mm, batch["sigma"], batch["mask"])
             for p in preds
         ]
         if len(terms) == 1:
@@ -313,7 +243,7 @@ class DepthRestorer(pl.LightningModule):
 
     # ------------------------------------------------------------------ validation
     def validation_step(self, batch: dict[str, Any], batch_idx: int, dataloader_idx: int = 0) -> dict[str, Tensor]:
-        pred_mm = self.restore_mm(batch, tile=self.hparams.eval_tile_size)
+        pred_mm = self.restore_mm(batch, tile=self.tiling.eval_tile_px)
         loss = self.criterion(pred_mm, batch["clean"], batch["sigma"], batch["mask"])
         self.log("val/loss", loss, on_step=False, on_epoch=True, batch_size=pred_mm.shape[0], sync_dist=True)
         index = _loader_index(batch.get("index"), dataloader_idx)
@@ -376,7 +306,7 @@ class DepthRestorer(pl.LightningModule):
         if dataloader_idx >= len(names):
             raise IndexError(f"test loader {dataloader_idx} has no name in datamodule.test_set_names={names}")
         set_name = names[dataloader_idx]
-        pred_mm = self.restore_mm(batch, tile=self.hparams.eval_tile_size)
+        pred_mm = self.restore_mm(batch, tile=self.tiling.eval_tile_px)
         index = batch.get("index")
         if index is None and self.trainer.world_size == 1:
             # one process: the position in the loader identifies the image (under DDP DepthMetrics refuses
@@ -413,7 +343,7 @@ class DepthRestorer(pl.LightningModule):
     # ------------------------------------------------------------------ predict
     def predict_step(self, batch: dict[str, Any], batch_idx: int, dataloader_idx: int = 0) -> Tensor:
         """Restored depth in mm (B, 1, H, W); pixels invalid in the input (``mask == 0``) are set to 0."""
-        pred_mm = self.restore_mm(batch, tile=self.hparams.predict_tile_size)
+        pred_mm = self.restore_mm(batch, tile=self.tiling.predict_tile_px)
         if "mask" in batch:
             pred_mm = torch.where(batch["mask"] > 0, pred_mm, torch.zeros_like(pred_mm))
         return pred_mm
@@ -423,7 +353,7 @@ class DepthRestorer(pl.LightningModule):
         """The learned guard's verdict (``training.results.learned_verdict``, or ``classical_verdict`` for a
         classical filter): ``trained_steps``, ``best_val_mae_mm``, ``raw_val_mae_mm``, ``learned_margin``,
         ``learned``, ``learned_reason`` (inputs: ``training/learned_guard.py``)."""
-        margin = float(self.hparams.get("learned_margin", 0.05))
+        margin = float(self.hparams.learned_margin)
         return self.guard.verdict(self.trainable, margin, self._trainer)
 
     def record_tuning(self, best_val_mae_mm: float, raw_val_mae_mm: float) -> None:
@@ -439,7 +369,7 @@ class DepthRestorer(pl.LightningModule):
     def on_fit_start(self) -> None:
         self.guard.start_fit()
         resuming = self._trainer is not None and self.trainer.ckpt_path is not None
-        if self.hparams.get("init_weights") and not resuming:
+        if self.hparams.init_weights and not resuming:
             # after the modules are set up, before the sanity check: the optimiser holds these same tensors
             self.init_record = load_init_weights(self, str(self.hparams.init_weights))
             log.info("network initialised from %s (sha256 %s)", self.init_record["path"], self.init_record["sha256"])
@@ -517,31 +447,26 @@ def step_loss_weights(backbone: nn.Module, steps: int) -> list[float]:
 _LOADER_INDEX_STRIDE = 1 << 32
 
 
-def _check_backbone_input(
-    backbone: str,
-    backbone_kwargs: dict[str, Any],
-    input_centering: str,
-    use_signal_channel: bool,
-    depth_scale_mm: float,
-) -> None:
+def _check_backbone_input(backbone: str, backbone_kwargs: dict[str, Any], conditioning: InputConditioning) -> None:
     """A backbone's stated input needs (class attributes ``input_centering_modes``, ``needs_signal_channel``;
-    a ``depth_scale_mm`` argument is DepthRestorer's own) against the DepthRestorer settings."""
+    a ``depth_scale_mm`` argument is DepthRestorer's own) against the conditioning settings."""
     factory = backbone_factory(backbone)
     modes = tuple(getattr(factory, "input_centering_modes", CENTERING_MODES))
-    if input_centering not in modes:
+    if conditioning.centering not in modes:
         raise ValueError(
-            f"DepthRestorer: backbone {backbone!r} needs input_centering in {list(modes)}, got "
-            f"{input_centering!r} (a local offset changes the depth differences it compares)"
+            f"DepthRestorer: backbone {backbone!r} needs conditioning.centering in {list(modes)}, got "
+            f"{conditioning.centering!r} (a local offset changes the depth differences it compares)"
         )
-    if getattr(factory, "needs_signal_channel", False) and not use_signal_channel:
+    if getattr(factory, "needs_signal_channel", False) and not conditioning.use_signal_channel:
         raise ValueError(
-            f"DepthRestorer: backbone {backbone!r} needs the amplitude channel: set use_signal_channel=true"
+            f"DepthRestorer: backbone {backbone!r} needs the amplitude channel: set "
+            "conditioning.use_signal_channel=true"
         )
-    given = backbone_kwargs.get("depth_scale_mm", depth_scale_mm)
-    if given != depth_scale_mm:
+    given = backbone_kwargs.get("depth_scale_mm", conditioning.depth_scale_mm)
+    if given != conditioning.depth_scale_mm:
         raise ValueError(
-            f"DepthRestorer: backbone_kwargs.depth_scale_mm={given} contradicts depth_scale_mm="
-            f"{depth_scale_mm}; leave it out of backbone_kwargs (DepthRestorer passes its own)"
+            f"DepthRestorer: backbone_kwargs.depth_scale_mm={given} contradicts conditioning.depth_scale_mm="
+            f"{conditioning.depth_scale_mm}; leave it out of backbone_kwargs (DepthRestorer passes its own)"
         )
 
 
