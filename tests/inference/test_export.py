@@ -122,5 +122,5 @@ def test_bad_files_and_settings_are_one_line_errors(tmp_path):
         OnnxRestorer(bad)
     with pytest.raises(OnnxModelError, match="does not exist"):
         OnnxRestorer(tmp_path / "none.onnx")
-    with pytest.raises(ExportError, match="input_centering 'image'"):
+    with pytest.raises(ExportError, match="conditioning.centering 'image' cannot be exported"):
         restore_graph(DepthRestorer(backbone="unet", backbone_kwargs=TINY["unet"], conditioning={"centering": "image"}))

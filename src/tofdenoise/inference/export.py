@@ -34,7 +34,7 @@ from torch import Tensor, nn
 
 from tofdenoise.atomic import atomic_write
 from tofdenoise.inference.denoise import load_restorer
-from tofdenoise.models.conditioning import condition_input
+from tofdenoise.models.conditioning import InputConditioning
 from tofdenoise.training.init_weights import file_sha256
 from tofdenoise.training.module import final_prediction
 
@@ -53,57 +53,35 @@ class RestoreGraph(nn.Module):
     """``DepthRestorer.restore_mm`` without tiling, with no data-dependent branch: (depth[, amplitude]) -> mm."""
 
     def __init__(
-        self,
-        net: nn.Module,
-        depth_scale_mm: float,
-        centering: str = "local",
-        block_px: int = 16,
-        use_signal_channel: bool = False,
-        fp16: bool = False,
-        levels: int = FILL_LEVELS,
+        self, net: nn.Module, conditioning: InputConditioning, fp16: bool = False, levels: int = FILL_LEVELS
     ) -> None:
         super().__init__()
-        if centering not in ("local", "none"):
+        if conditioning.centering not in ("local", "none"):
             raise ExportError(
-                f"input_centering {centering!r} cannot be exported (its per-image median has no ONNX operator); "
-                "export a checkpoint trained with input_centering 'local' or 'none'"
+                f"conditioning.centering {conditioning.centering!r} cannot be exported (its per-image median has no "
+                "ONNX operator); export a checkpoint trained with centering 'local' or 'none'"
             )
         self.net = net.half() if fp16 else net
-        self.depth_scale_mm = float(depth_scale_mm)
-        self.centering, self.block_px, self.levels = centering, int(block_px), int(levels)
-        self.use_signal_channel, self.fp16 = bool(use_signal_channel), bool(fp16)
+        self.conditioning, self.fp16, self.levels = conditioning, bool(fp16), int(levels)
+
+    @property
+    def use_signal_channel(self) -> bool:
+        return self.conditioning.use_signal_channel
 
     def forward(self, depth_mm: Tensor, amplitude: Tensor | None = None) -> Tensor:
-
-        x, offset = condition_input(
-            depth_mm,
-            amplitude,
-            centering=self.centering,
-            block_px=self.block_px,
-            depth_scale_mm=self.depth_scale_mm,
-            use_signal_channel=self.use_signal_channel,
-            fill_levels=self.levels,
-        )
+        x, offset = self.conditioning(depth_mm, amplitude, fill_levels=self.levels)
         y = final_prediction(self.net(x.half() if self.fp16 else x))
-        return y.float() * self.depth_scale_mm + offset
+        return y.float() * self.conditioning.depth_scale_mm + offset
 
 
 def restore_graph(model: Any, fp16: bool = False) -> RestoreGraph:
     """The :class:`RestoreGraph` of a loaded ``DepthRestorer`` (its evaluation network: the EMA copy when on)."""
 
-    conditioning = model.conditioning
     net = copy.deepcopy(model.eval_net).eval()
     for module in net.modules():
         if hasattr(module, "scan_backend"):  # SS2D (DVSS): the scan written for export (models/scan/export.py)
             module.scan_backend = "export"
-    return RestoreGraph(
-        net,
-        depth_scale_mm=conditioning.depth_scale_mm,
-        centering=conditioning.centering,
-        block_px=conditioning.block_px,
-        use_signal_channel=conditioning.use_signal_channel,
-        fp16=fp16,
-    ).eval()
+    return RestoreGraph(net, model.conditioning, fp16=fp16).eval()
 
 
 def _example(graph: RestoreGraph, height: int = 61, width: int = 83) -> tuple[Tensor, ...]:
