@@ -119,25 +119,46 @@ def test_unknown_names_inside_a_node_fail_at_config_time(tmp_path):
 
 
 def test_missing_dataset_path_names_the_key(tmp_path, monkeypatch):
+    """The source checks its own dataset folder when the datamodule is built (one line naming the key)."""
+    from tofdenoise.config import ConfigError, instantiate_node
+
     monkeypatch.delenv("TOF_FLYINGTHINGS3D_ROOT", raising=False)
     cfg = compose_config(["data=flyingthings3d", f"paths.run_dir={tmp_path}"])
-    with pytest.raises(ValueError, match=r"data\.root.*set data\.root="):
-        validate_config(cfg)
-    cfg = compose_config(["data=flyingthings3d", f"paths.run_dir={tmp_path}", f"data.root={tmp_path}/absent"])
-    with pytest.raises(FileNotFoundError, match=r"data\.root.*absent.*does not exist"):
-        validate_config(cfg)
+    validate_config(cfg)
+    with pytest.raises(ConfigError, match=r"^data: the flyingthings3d source needs .*set data\.source_kwargs\.root="):
+        instantiate_node(cfg.data, "data")
+    cfg = compose_config(["data=flyingthings3d", f"paths.run_dir={tmp_path}", f"data.source_kwargs.root={tmp_path}/no"])
+    with pytest.raises(ConfigError, match=r"^data: .*root not found: .*/no \(set data\.source_kwargs\.root"):
+        instantiate_node(cfg.data, "data")
     cfg = compose_config([f"paths.run_dir={tmp_path}", f"++data.real_dir={tmp_path}/none"])
     with pytest.raises(FileNotFoundError, match=r"data\.real_dir"):
         validate_config(cfg)
 
 
+def test_source_settings_are_checked_at_config_time_and_the_former_place_says_where_they_go(tmp_path):
+    base = [f"paths.run_dir={tmp_path}"]
+    with pytest.raises(ValueError, match=r"config data\.source: unknown data source 'kinect'; valid names: "):
+        validate_config(compose_config([*base, "data.source=kinect"]))
+    with pytest.raises(
+        ValueError, match=r"config data\.source_kwargs\.colour: not a setting of the procedural source; valid keys: "
+    ):
+        validate_config(compose_config([*base, "++data.source_kwargs.colour=1"]))
+    with pytest.raises(
+        ValueError,
+        match=r"config data\.num_samples: a setting of the procedural source, set it as data\.source_kwargs\.num_",
+    ):
+        validate_config(compose_config([*base, "++data.num_samples=10"]))
+    with pytest.raises(ValueError, match=r"config data\.source_kwargs\.num_samples: not a setting of the folder"):
+        validate_config(compose_config([*base, "data=folder", "++data.source_kwargs.num_samples=10"]))
+
+
 def test_paper_experiment_is_the_paper_configuration(tmp_path):
-    cfg = compose_config(["experiment=paper", f"paths.run_dir={tmp_path}", f"data.root={tmp_path}"])
+    cfg = compose_config(["experiment=paper", f"paths.run_dir={tmp_path}", f"data.source_kwargs.root={tmp_path}"])
     validate_config(cfg)
     c = OmegaConf.to_container(cfg, resolve=True)
     assert c["model"]["backbone"] == "dvss" and c["model"]["loss"] == "full" and c["data"]["noise"] == "hetero"
     assert c["model"]["lr"] == 2e-4 and c["model"]["lr_min"] == 1e-6
-    assert c["data"]["source"] == "flyingthings3d"
+    assert c["data"]["source"] == "flyingthings3d" and c["data"]["source_kwargs"] == {"root": str(tmp_path)}
     assert c["data"]["batch_size"] == 4 and c["data"]["crop_size"] == 320
     assert c["trainer"]["max_epochs"] == 300 and c["trainer"]["accelerator"] == "gpu"
     assert c["loss"]["kwargs"]["lambda_g"] == 0.1 and c["loss"]["kwargs"]["beta"] == 0.5
@@ -146,7 +167,8 @@ def test_paper_experiment_is_the_paper_configuration(tmp_path):
 
 
 # What `make train` ran before the CPU recipe moved from experiment/default.yaml into train.yaml (resolved
-# `tofdenoise-train --cfg job`, data.sensor aside): the move must not change it.
+# `tofdenoise-train --cfg job`, data.sensor aside): the move must not change it. The scene sizes are the procedural
+# source's own settings, in configs/data/procedural.yaml.
 MAKE_TRAIN = {
     "model": {
         "_target_": "tofdenoise.training.module.DepthRestorer",
@@ -163,16 +185,15 @@ MAKE_TRAIN = {
         "_target_": "tofdenoise.data_modules.ToFDataModule",
         "batch_size": 4,
         "crop_size": 64,
-        "height": 144,
         "eval_noise": "hetero",
         "noise": "hetero",
         "noise_kwargs": {},
-        "num_samples": 300,
         "num_workers": 0,
         "real_dir": None,
         "signal_route": "physical",
         "source": "procedural",
-        "width": 192,
+        # the procedural source's own settings (data.num_samples / height / width before issue 24 point 6)
+        "source_kwargs": {"num_samples": 300, "height": 144, "width": 192},
     },
     "trainer": {
         "_target_": "lightning.pytorch.Trainer",
@@ -210,6 +231,8 @@ def test_make_train_runs_the_cpu_recipe_written_in_train_yaml(tmp_path):
         for key in own[group]:
             if not OmegaConf.is_interpolation(own[group], key):
                 assert c[group][key] == own[group][key], f"{group}.{key}"
+    procedural = OmegaConf.load(CONFIGS / "data" / "procedural.yaml")
+    assert c["data"]["source_kwargs"] == OmegaConf.to_container(procedural.source_kwargs)
     assert OmegaConf.is_interpolation(own.model, "lr") and own.model._get_node("lr")._value() == "${backbone.recipe.lr}"
 
 
@@ -232,8 +255,8 @@ def test_dvss_ablation_configs_differ_from_dvss_only_in_name(tmp_path):
 def test_experiments_override_the_base_recipe_where_it_does_not_apply(tmp_path):
     smoke = _resolved(["experiment=smoke"], tmp_path)
     assert smoke["model"]["lr"] == 2e-4 and smoke["model"]["warmup_steps"] == 0  # the DepthRestorer defaults
-    assert smoke["trainer"]["check_val_every_n_epoch"] == 1 and smoke["data"]["num_samples"] == 10
-    paper = _resolved(["experiment=paper", f"data.root={tmp_path}"], tmp_path)
+    assert smoke["trainer"]["check_val_every_n_epoch"] == 1 and smoke["data"]["source_kwargs"]["num_samples"] == 10
+    paper = _resolved(["experiment=paper", f"data.source_kwargs.root={tmp_path}"], tmp_path)
     assert paper["model"]["warmup_steps"] == 0 and paper["data"]["num_workers"] == 4
     grid = _resolved(["experiment=grid", "backbone=dvss"], tmp_path)
     assert grid["model"]["lr"] == 5e-4 and grid["trainer"]["max_epochs"] == 15
@@ -257,3 +280,39 @@ def test_ckpt_path_resolution(tmp_path):
     assert resolve_ckpt_path("last", tmp_path) == str(last)
     with pytest.raises(FileNotFoundError, match="ckpt_path"):
         resolve_ckpt_path(str(tmp_path / "missing.ckpt"), tmp_path)
+
+
+def _former_layout(cfg) -> str:
+    """The YAML a run recorded before data.source_kwargs existed: the source's settings at the top of data."""
+    c = OmegaConf.to_container(cfg, resolve=True)
+    c["data"].update(c["data"].pop("source_kwargs"))
+    return OmegaConf.to_yaml(OmegaConf.create(c))
+
+
+def test_a_run_recorded_before_source_kwargs_is_still_the_same_run(tmp_path):
+    """check_same_run reads a config.yaml of the former layout (data.num_samples, data.root, ...) as if written
+    now: the same run compares equal, another size is another run, and the procedural sizes a flyingthings3d run
+    carried then (ignored by the datamodule) are no difference."""
+    from tofdenoise.experiments.train_job import RunConfigMismatchError, _comparable, check_same_run
+
+    cfg = compose_config([f"paths.run_dir={tmp_path}", "experiment=grid"])
+    (tmp_path / "config.yaml").write_text(_former_layout(cfg))
+    check_same_run(cfg, tmp_path)
+    bigger = compose_config([f"paths.run_dir={tmp_path}", "experiment=grid", "data.source_kwargs.num_samples=121"])
+    with pytest.raises(RunConfigMismatchError, match=r"data\.source_kwargs\.num_samples: 120 there, 121 now"):
+        check_same_run(bigger, tmp_path)
+    paper = compose_config([f"paths.run_dir={tmp_path}", "experiment=paper", f"data.source_kwargs.root={tmp_path}"])
+    c = OmegaConf.to_container(paper, resolve=True)
+    c["data"].update({"num_samples": 300, "height": 144, "width": 192}, root=c["data"].pop("source_kwargs")["root"])
+    (tmp_path / "config.yaml").write_text(OmegaConf.to_yaml(OmegaConf.create(c)))
+    check_same_run(paper, tmp_path)
+    # a record of the committed results (docs/results/), written in the former layout
+    recorded = (CONFIGS.parent / "docs/results/cpu/unet-fixed-l1-s0/config.yaml").read_text()
+    assert "  num_samples: 240\n" in recorded
+    flat = _comparable(recorded)
+    assert {k: flat[k] for k in flat if k.startswith("data.source_kwargs")} == {
+        "data.source_kwargs.num_samples": 240,
+        "data.source_kwargs.height": 128,
+        "data.source_kwargs.width": 160,
+    }
+    assert "data.num_samples" not in flat
