@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import inspect
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -45,6 +45,10 @@ class SourceContext:
 
     seed: int  # data.seed (the procedural scenes' seed)
     calibration: SensorCalibration  # data.sensor, resolved (the procedural depth range's default)
+
+
+#: the datamodule's setting behind each ``SourceContext`` field (named when one is written in data.source_kwargs)
+CONTEXT_SETTINGS = {"seed": "data.seed", "calibration": "data.sensor"}
 
 
 class DataSource(Protocol):
@@ -87,12 +91,6 @@ def available_sources() -> list[str]:
     return sorted(DATA_SOURCES.names())
 
 
-def build_source(name: str, **kwargs: Any) -> DataSource:
-    """Build the data source registered as ``name``; ValueError for an unknown name or keyword (listing the valid
-    ones)."""
-    return DATA_SOURCES.build(name, **kwargs)
-
-
 def init_keywords(cls: type, *, leave_out: tuple[str, ...] = ()) -> list[str]:
     """The keyword parameters of ``cls.__init__`` but ``leave_out``, in signature order: the usual
     ``config_keys()`` of a source (``leave_out`` = the arguments its ``from_config`` takes from the context)."""
@@ -118,17 +116,13 @@ def check_source_kwargs(name: str, settings: Mapping[str, Any] | None) -> dict[s
             f"valid keys: {', '.join(factory.config_keys())}"
         )
     valid = factory.config_keys()
-    for key in settings:
-        if key not in valid:
-            supplied = [f.name for f in fields(SourceContext)]
-            note = (
-                f" ({key} comes from the datamodule: data.{'sensor' if key == 'calibration' else key})"
-                if key in supplied
-                else ""
-            )
-            raise ValueError(
-                f"data.source_kwargs.{key}: not a setting of the {source} source{note}; valid keys: {', '.join(valid)}"
-            )
+    unknown = [key for key in settings if key not in valid]
+    if unknown:
+        key = unknown[0]
+        note = f" ({key} comes from the datamodule: {CONTEXT_SETTINGS[key]})" if key in CONTEXT_SETTINGS else ""
+        raise ValueError(
+            f"data.source_kwargs.{key}: not a setting of the {source} source{note}; valid keys: {', '.join(valid)}"
+        )
     return dict(settings)
 
 
