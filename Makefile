@@ -47,7 +47,7 @@ help:
 	@echo "make realset - the stand-in real set: a second simulated camera, calibrated from its own captures"
 	@echo "               (REALSET_DIR=runs/realset REALSET_ARGS='--scenes 40 ...'; docs/camera-tutorial.md)"
 	@echo "make reproduce TABLE=1|2|3|dynrange|fig6|fig7|fig8 [PROFILE=cpu|gpu] [SEEDS=0,1,2] - a paper table or figure (resumable;"
-	@echo "               records in docs/results/, page docs/results.md; REPRO_ARGS='--extra data.root=...')"
+	@echo "               records in docs/results/, page docs/results.md; REPRO_ARGS='--extra data.source_kwargs.root=...')"
 	@echo "make cli-configs - regenerate the LightningCLI YAMLs (configs/cli/) after editing configs/"
 	@echo "make venv    - only create/refresh .venv (TORCH='torch==X' to choose the torch build)"
 	@echo "make lock    - refresh $(LOCK) (exact versions make venv installs) from a fresh venv"

@@ -29,7 +29,7 @@ def loader_throughput(use_cache: bool, cache_dir: Path, num_samples: int, batche
     from tofdenoise.data_modules import ToFDataModule
 
     dm = ToFDataModule(
-        num_samples=num_samples,
+        source_kwargs={"num_samples": num_samples},
         cache_dir=str(cache_dir),
         use_cache=use_cache,
         crop_size=320,
@@ -123,7 +123,8 @@ def main(argv: list[str]) -> int:
         t0 = time.perf_counter()
         from tofdenoise.data_modules import ToFDataModule
 
-        ToFDataModule(num_samples=num_samples, cache_dir=str(cache_dir)).prepare_data()  # fills the cache
+        # fills the cache
+        ToFDataModule(source_kwargs={"num_samples": num_samples}, cache_dir=str(cache_dir)).prepare_data()
         fill = time.perf_counter() - t0
         print(
             f"procedural 640x480 scenes: {num_samples}; crops 320x320, batch 4, {args.workers} workers, "

@@ -49,9 +49,7 @@ def make_data(crop: int, batch: int, workers: int, cache: str):
     height, width = max(480, crop), max(640, crop)
     dm = ToFDataModule(
         source="procedural",
-        num_samples=20,
-        height=height,
-        width=width,
+        source_kwargs={"num_samples": 20, "height": height, "width": width},
         crop_size=crop,
         batch_size=batch,
         num_workers=workers,

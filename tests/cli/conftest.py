@@ -32,8 +32,11 @@ for _variant in ("dvss_no_local", "dvss_no_dwconv", "dvss_se"):
     TINY_BACKBONE_KWARGS[_variant] = TINY_BACKBONE_KWARGS["dvss"]
 
 
-def tiny_overrides(run_dir, cache_dir, backbone: str = "unet", **data) -> list[str]:
-    sizes = {"num_samples": 10, "height": 32, "width": 48, "crop_size": 32, "batch_size": 2, **data}
+def tiny_overrides(run_dir, cache_dir, backbone: str = "unet", num_samples: int = 10, **data) -> list[str]:
+    """Overrides of a tiny smoke run: ``num_samples`` procedural scenes of 32 x 48 (``data.source_kwargs``, the
+    source's own settings); ``data`` updates the other ``data.<key>``."""
+    scenes = {"num_samples": num_samples, "height": 32, "width": 48}
+    sizes = {"crop_size": 32, "batch_size": 2, **data}
     return (
         [
             f"backbone={backbone}",
@@ -43,6 +46,7 @@ def tiny_overrides(run_dir, cache_dir, backbone: str = "unet", **data) -> list[s
             "trainer.enable_progress_bar=false",
             "trainer.enable_model_summary=false",
         ]
+        + [f"data.source_kwargs.{k}={v}" for k, v in scenes.items()]
         + [f"data.{k}={v}" for k, v in sizes.items()]
         + TINY_BACKBONE_KWARGS[backbone]
     )

@@ -78,7 +78,7 @@ def test_realset_command_writes_calibration_and_captures(tmp_path, capsys, data_
     cfg = compose_config(tiny(tmp_path / "run", data_cache) + realset_overrides(out))
     dm = instantiate(cfg.data, _convert_="all")
     assert dm.calib.fingerprint() == calib.fingerprint()
-    assert dm.max_depth_mm == 0.8 * calib.unambiguous_range_mm  # the second camera's range
+    assert dm.make_source().max_depth_mm == 0.8 * calib.unambiguous_range_mm  # the second camera's range
     dm.prepare_data()
     dm.setup("test")
     assert dm.test_set_names == ["synthetic", "real"] and len(dm.datasets["real"]) == 2

@@ -72,12 +72,12 @@ def test_dry_run_of_a_qualitative_figure_lists_its_runs(tmp_path, capsys):
 
 
 def test_profiles_and_bad_arguments(tmp_path, capsys):
-    assert profile_overrides("gpu", Path("/r"), ["data.root=/d"]) == [
+    assert profile_overrides("gpu", Path("/r"), ["data.source_kwargs.root=/d"]) == [
         "experiment=paper",
         "logger=csv",
         "++data.sensor=/r/calibration.yaml",
         "++data.real_dir=/r/captures",
-        "data.root=/d",
+        "data.source_kwargs.root=/d",
     ]
     assert realset_command(Path("/r"), "gpu")[-6:] == ["--scenes", "200", "--height", "480", "--width", "640"]
     # a usage error exits 2, as argparse's own do (it was 1)
@@ -234,7 +234,7 @@ def test_gpu_profile_run_scaled_down_trains_and_tests_on_cpu(tmp_path, data_cach
     )
     tiny_dvss = [o for o in tiny(tmp_path, data_cache, backbone="dvss") if o.startswith("backbone.kwargs")]
     scaled_down = [
-        f"data.root={ft3d}",
+        f"data.source_kwargs.root={ft3d}",
         f"++data.cache_dir={data_cache}",
         "trainer.accelerator=cpu",
         "trainer.precision=32-true",
@@ -337,8 +337,8 @@ def test_the_page_never_replaces_its_own_inputs(tmp_path, capsys, rel):
 
 
 def test_the_gpu_profile_says_what_it_needs_before_any_work(tmp_path, capsys):
-    """Without data.root (or without a GPU) --profile gpu stops at once with exit 2, in a dry run too, before the
-    stand-in real set (a 50-minute build at that profile) is started."""
+    """Without data.source_kwargs.root (or without a GPU) --profile gpu stops at once with exit 2, in a dry run too,
+    before the stand-in real set (a 50-minute build at that profile) is started."""
     from tofdenoise.cli.reproduce import profile_needs
 
     out = tmp_path / "runs"
@@ -346,11 +346,13 @@ def test_the_gpu_profile_says_what_it_needs_before_any_work(tmp_path, capsys):
     args += ["--page", str(tmp_path / "p.md")]
     for extra in ([], ["--dry-run"]):
         assert main(args + extra) == 2
-        assert "--profile gpu needs the ToF-FlyingThings3D folder: --extra data.root=" in capsys.readouterr().err
+        err = capsys.readouterr().err
+        assert "--profile gpu needs the ToF-FlyingThings3D folder: --extra data.source_kwargs.root=" in err
     assert not out.exists() and not (tmp_path / "p.md").exists()
-    assert "existing data.root" in profile_needs("gpu", [f"data.root={tmp_path / 'nope'}"], cuda_available=True)
-    assert "a CUDA GPU" in profile_needs("gpu", [f"++data.root={tmp_path}"], cuda_available=False)
-    assert profile_needs("gpu", [f"data.root={tmp_path}"], cuda_available=True) == ""
+    nowhere = [f"data.source_kwargs.root={tmp_path / 'nope'}"]
+    assert "existing data.source_kwargs.root" in profile_needs("gpu", nowhere, cuda_available=True)
+    assert "a CUDA GPU" in profile_needs("gpu", [f"++data.source_kwargs.root={tmp_path}"], cuda_available=False)
+    assert profile_needs("gpu", [f"data.source_kwargs.root={tmp_path}"], cuda_available=True) == ""
     assert profile_needs("cpu", []) == ""
 
 

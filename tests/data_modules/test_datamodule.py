@@ -10,11 +10,13 @@ import torch
 
 from tofdenoise.data_modules import ToFDataModule
 
-SMALL = dict(num_samples=10, height=48, width=64, crop_size=16, batch_size=2)
+SCENES = dict(num_samples=10, height=48, width=64)  # data.source_kwargs of the procedural source
+SMALL = dict(source_kwargs=SCENES, crop_size=16, batch_size=2)
 
 
-def make_dm(tmp_path, **kw):
-    args = {**SMALL, "cache_dir": str(tmp_path / "cache"), **kw}
+def make_dm(tmp_path, scenes=None, **kw):
+    """A prepared datamodule of SMALL procedural scenes; ``scenes`` updates their source_kwargs."""
+    args = {**SMALL, "source_kwargs": {**SCENES, **(scenes or {})}, "cache_dir": str(tmp_path / "cache"), **kw}
     dm = ToFDataModule(**args)
     dm.prepare_data()
     dm.setup("fit")
@@ -101,7 +103,7 @@ def test_crops_keep_maps_aligned(tmp_path):
 
 
 def test_hetero_noise_std_matches_sigma_map(tmp_path):
-    dm = make_dm(tmp_path, num_samples=20, height=64, width=96, holes=False)
+    dm = make_dm(tmp_path, scenes=dict(num_samples=20, height=64, width=96), holes=False)
     z = torch.cat([((b["noisy"] - b["clean"]) / b["sigma"])[b["mask"] > 0] for b in dm.val_dataloader()])
     assert z.numel() > 20000
     assert float(z.mean()) == pytest.approx(0.0, abs=0.03)

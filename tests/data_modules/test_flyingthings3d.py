@@ -45,7 +45,12 @@ def test_missing_listed_file_fails_before_training(tmp_path, write_ft3d):
         FlyingThings3DSource(tmp_path).check()
     from tofdenoise.data_modules import ToFDataModule
 
-    dm = ToFDataModule(source="flyingthings3d", root=str(tmp_path), cache_dir=str(tmp_path / "cache"), crop_size=16)
+    dm = ToFDataModule(
+        source="flyingthings3d",
+        source_kwargs={"root": str(tmp_path)},
+        cache_dir=str(tmp_path / "cache"),
+        crop_size=16,
+    )
     with pytest.raises(FileNotFoundError, match="1 listed file"):
         dm.prepare_data()
 
@@ -53,10 +58,12 @@ def test_missing_listed_file_fails_before_training(tmp_path, write_ft3d):
 def test_missing_root_says_which_key_to_set(tmp_path):
     from tofdenoise.data_modules import ToFDataModule
 
-    with pytest.raises(ValueError, match="data.root"):
-        ToFDataModule(source="flyingthings3d", root=None)
-    with pytest.raises(FileNotFoundError, match="data.root"):
-        ToFDataModule(source="flyingthings3d", root=str(tmp_path / "absent"))
+    with pytest.raises(ValueError, match=r"set data\.source_kwargs\.root="):
+        ToFDataModule(source="flyingthings3d")
+    with pytest.raises(ValueError, match=r"set data\.source_kwargs\.root="):
+        ToFDataModule(source="flyingthings3d", source_kwargs={"root": None})
+    with pytest.raises(FileNotFoundError, match=r"absent \(set data\.source_kwargs\.root"):
+        ToFDataModule(source="flyingthings3d", source_kwargs={"root": str(tmp_path / "absent")})
 
 
 def test_shape_mismatch_names_both_files(tmp_path, write_ft3d):
@@ -71,7 +78,11 @@ def test_datamodule_on_fixture(tmp_path, write_ft3d):
 
     write_ft3d(tmp_path, [f"t{i:03d}" for i in range(7)], [f"v{i:03d}" for i in range(3)])
     dm = ToFDataModule(
-        source="flyingthings3d", root=str(tmp_path), cache_dir=str(tmp_path / "cache"), crop_size=16, batch_size=2
+        source="flyingthings3d",
+        source_kwargs={"root": str(tmp_path)},
+        cache_dir=str(tmp_path / "cache"),
+        crop_size=16,
+        batch_size=2,
     )
     dm.prepare_data()
     dm.setup("fit")

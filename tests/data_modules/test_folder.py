@@ -59,7 +59,9 @@ def test_missing_sample_is_an_error_at_prepare_time(tmp_path):
     write_folder(tmp_path)
     with open(tmp_path / "list.txt", "a") as handle:
         handle.write("depth/ghost.png amp/ghost.npy\n")
-    dm = ToFDataModule(source="folder", root=str(tmp_path), cache_dir=str(tmp_path / "c"), crop_size=8)
+    dm = ToFDataModule(
+        source="folder", source_kwargs={"root": str(tmp_path)}, cache_dir=str(tmp_path / "c"), crop_size=8
+    )
     with pytest.raises(FileNotFoundError, match=r"2 listed file\(s\) missing(.|\n)*ghost.png"):
         dm.prepare_data()
 
@@ -79,7 +81,9 @@ def test_sample_without_valid_pixel_is_skipped_with_warning(tmp_path):
 
     write_folder(tmp_path, n=10)
     np.save(tmp_path / "depth" / "d4.npy", np.full((H, W), np.nan, np.float32))
-    dm = ToFDataModule(source="folder", root=str(tmp_path), cache_dir=str(tmp_path / "c"), crop_size=8, seed=0)
+    dm = ToFDataModule(
+        source="folder", source_kwargs={"root": str(tmp_path)}, cache_dir=str(tmp_path / "c"), crop_size=8, seed=0
+    )
     with pytest.warns(UserWarning, match="1 sample\\(s\\) with no valid pixel skipped: depth/d4"):
         dm.prepare_data()
     skipped_split = next(iter(dm.skipped_samples))

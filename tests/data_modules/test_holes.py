@@ -106,7 +106,7 @@ def test_hole_model_is_seeded_and_stays_inside_valid():
             HoleModel(**bad)
 
 
-SMALL = dict(num_samples=10, height=48, width=64, crop_size=32, batch_size=2)
+SMALL = dict(source_kwargs=dict(num_samples=10, height=48, width=64), crop_size=32, batch_size=2)
 
 
 def test_datamodule_holes_fixed_in_eval_random_in_training(tmp_path):

@@ -114,7 +114,10 @@ def test_real_test_dataloader_on_simulated_set(tmp_path):
 
     simulate_capture_set(tmp_path / "set", scenes=3, frames=4, height=32, width=48, seed=1)
     dm = ToFDataModule(
-        num_samples=6, height=32, width=48, crop_size=16, cache_dir=str(tmp_path / "c"), real_dir=str(tmp_path / "set")
+        source_kwargs=dict(num_samples=6, height=32, width=48),
+        crop_size=16,
+        cache_dir=str(tmp_path / "c"),
+        real_dir=str(tmp_path / "set"),
     )
     dm.prepare_data()
     dm.setup("test")
@@ -140,9 +143,7 @@ def test_missing_real_dir_names_the_key(tmp_path):
     # checked when the datamodule is built, before any trainer exists (it was found only in prepare_data)
     with pytest.raises(FileNotFoundError, match="data.real_dir"):
         ToFDataModule(
-            num_samples=6,
-            height=32,
-            width=48,
+            source_kwargs=dict(num_samples=6, height=32, width=48),
             crop_size=16,
             cache_dir=str(tmp_path / "c"),
             real_dir=str(tmp_path / "nowhere"),
@@ -156,7 +157,10 @@ def test_scene_without_common_valid_region_is_skipped(tmp_path):
     simulate_capture_set(tmp_path / "set", scenes=2, frames=2, height=16, width=24, seed=2)
     cv2.imwrite(str(tmp_path / "set" / "scene_0001" / "input_depth_mm.png"), np.zeros((16, 24), np.uint16))
     dm = ToFDataModule(
-        num_samples=6, height=16, width=24, crop_size=8, cache_dir=str(tmp_path / "c"), real_dir=str(tmp_path / "set")
+        source_kwargs=dict(num_samples=6, height=16, width=24),
+        crop_size=8,
+        cache_dir=str(tmp_path / "c"),
+        real_dir=str(tmp_path / "set"),
     )
     with pytest.warns(UserWarning, match="1 scene\\(s\\) with no common valid pixel skipped: scene_0001"):
         dm.prepare_data()
@@ -182,7 +186,10 @@ def test_scene_without_input_frame_is_warned_and_counted(tmp_path):
     # an empty-mask scene and the incomplete one are both counted as skipped by the datamodule
     cv2.imwrite(str(tmp_path / "set" / "scene_0002" / "input_depth_mm.png"), np.zeros((16, 24), np.uint16))
     dm = ToFDataModule(
-        num_samples=6, height=16, width=24, crop_size=8, cache_dir=str(tmp_path / "c"), real_dir=str(tmp_path / "set")
+        source_kwargs=dict(num_samples=6, height=16, width=24),
+        crop_size=8,
+        cache_dir=str(tmp_path / "c"),
+        real_dir=str(tmp_path / "set"),
     )
     with pytest.warns(UserWarning, match="hiexp/ but no input_depth_mm.png"):
         dm.prepare_data()

@@ -55,7 +55,9 @@ def test_signal_route_is_checked_before_any_work(tmp_path):
 def test_physical_route_refuses_a_source_without_radiometric_amplitude(tmp_path):
     (tmp_path / "list.txt").write_text("a\n")
     with pytest.raises(ValueError, match="radiometric amplitude"):
-        ToFDataModule(source="folder", root=str(tmp_path), signal_route="physical", cache_dir=str(tmp_path))
+        ToFDataModule(
+            source="folder", source_kwargs={"root": str(tmp_path)}, signal_route="physical", cache_dir=str(tmp_path)
+        )
 
 
 def _default_dict() -> dict:

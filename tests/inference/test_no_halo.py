@@ -25,7 +25,7 @@ from tofdenoise.data_modules.holes import HoleModel, apply_holes
 from tofdenoise.training.module import DepthRestorer
 
 NEAR_PX = 3
-SCENES = dict(num_samples=24, height=64, width=64, seed=3, crop_size=32)
+SCENES = dict(num_samples=24, height=64, width=64)  # data.source_kwargs of the procedural source
 
 
 class MedianDenoiser(nn.Module):
@@ -44,7 +44,7 @@ class MedianDenoiser(nn.Module):
 
 def eval_frames(cache_dir, **scenes) -> list[dict[str, torch.Tensor]]:
     """The val/test scenes (never trained on) without training holes, plus dropout blobs."""
-    dm = ToFDataModule(**{**SCENES, **scenes}, cache_dir=str(cache_dir), holes=False)
+    dm = ToFDataModule(source_kwargs={**SCENES, **scenes}, seed=3, crop_size=32, cache_dir=str(cache_dir), holes=False)
     dm.prepare_data()
     dm.setup("test")
     blobs = HoleModel(max_low_signal_fraction=0.0, edge_prob=0.0, blob_density=8.0, blob_radius_px=(2.0, 6.0))
@@ -105,8 +105,8 @@ def test_no_halo_with_a_unet_trained_with_holes(tmp_path):
     100 warm-up steps, 720 steps), on scenes of 64 x 64 with the default holes. Passed in 35 min on 2 CPU cores shared
     with other jobs."""
     torch.manual_seed(0)
-    scenes = {"num_samples": 60, "crop_size": 64}
-    dm = ToFDataModule(**{**SCENES, **scenes}, batch_size=4, cache_dir=str(tmp_path / "cache"))
+    scenes = {**SCENES, "num_samples": 60}
+    dm = ToFDataModule(source_kwargs=scenes, seed=3, crop_size=64, batch_size=4, cache_dir=str(tmp_path / "cache"))
     model = DepthRestorer(
         backbone="unet",
         backbone_kwargs={"width": 32, "stages": 4, "norm": False, "residual": True},

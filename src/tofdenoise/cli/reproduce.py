@@ -6,8 +6,8 @@
     tofdenoise-reproduce --table 1 --dry-run                         # list what would run
     tofdenoise-reproduce --page-only                                 # rebuild docs/results.md from docs/results/
     tofdenoise-reproduce --table 3 --executor local --workers 2      # two runs at a time on this machine
-    tofdenoise-reproduce --table 3 --profile gpu --executor slurm --slurm-partition gpu --extra data.root=...
-                                                                     # a SLURM job array (docs/cluster.md)
+    tofdenoise-reproduce --table 3 --profile gpu --executor slurm --slurm-partition gpu \
+        --extra data.source_kwargs.root=...                          # a SLURM job array (docs/cluster.md)
 
 Steps: (1) the stand-in real set, once per profile: a second simulated camera (other frequency, contrast,
 harmonics, dark level, gain, mixed pixels at depth edges) writes its calibration captures and its capture set,
@@ -47,7 +47,8 @@ __all__ = ["main", "build_parser", "PROFILES", "profile_needs", "profile_overrid
 #: profile -> Hydra overrides shared by every training run of a table
 PROFILES: dict[str, tuple[str, ...]] = {
     "cpu": ("experiment=reproduce_cpu",),
-    # the paper's settings (Sec. V-A): ToF-FlyingThings3D (data.root=...), 320 crops, batch 4, 300 epochs, one GPU
+    # the paper's settings (Sec. V-A): ToF-FlyingThings3D (data.source_kwargs.root=...), 320 crops, batch 4, 300
+    # epochs, one GPU
     "gpu": ("experiment=paper", "logger=csv"),
 }
 #: the stand-in real set of each profile: capture-set size (scenes, height, width)
@@ -66,16 +67,17 @@ def profile_overrides(profile: str, realset_dir: Path, extra: list[str]) -> list
 
 def profile_needs(profile: str, extra: list[str], cuda_available: bool | None = None) -> str:
     """What ``profile`` needs that is missing ("" when nothing): the GPU profile trains on ToF-FlyingThings3D
-    (``--extra data.root=FOLDER``, an existing folder) on a CUDA GPU (``experiment=paper`` sets ``trainer=gpu``)."""
+    (``--extra data.source_kwargs.root=FOLDER``, an existing folder) on a CUDA GPU (``experiment=paper`` sets
+    ``trainer=gpu``)."""
     if profile != "gpu":
         return ""
     import torch
 
-    roots = [e.split("=", 1)[1] for e in extra if e.lstrip("+").startswith("data.root=")]
+    roots = [e.split("=", 1)[1] for e in extra if e.lstrip("+").startswith("data.source_kwargs.root=")]
     if not roots:
-        return "the ToF-FlyingThings3D folder: --extra data.root=/path/to/ToF-FlyingThings3D"
+        return "the ToF-FlyingThings3D folder: --extra data.source_kwargs.root=/path/to/ToF-FlyingThings3D"
     if not Path(roots[-1]).expanduser().is_dir():
-        return f"an existing data.root folder (ToF-FlyingThings3D), got {roots[-1]}"
+        return f"an existing data.source_kwargs.root folder (ToF-FlyingThings3D), got {roots[-1]}"
     if not (torch.cuda.is_available() if cuda_available is None else cuda_available):
         return "a CUDA GPU (experiment=paper trains with trainer=gpu); torch.cuda.is_available() is False here"
     return ""
@@ -103,7 +105,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="where the run records are committed (default docs/results)",
     )
     p.add_argument("--page", type=Path, default=REPO_ROOT / "docs" / "results.md", help="the results page")
-    p.add_argument("--extra", nargs="*", default=[], help="extra Hydra overrides for every run (e.g. data.root=...)")
+    p.add_argument(
+        "--extra", nargs="*", default=[], help="extra Hydra overrides for every run (e.g. data.source_kwargs.root=...)"
+    )
     p.add_argument("--dry-run", action="store_true", help="print what would run, run nothing")
     p.add_argument("--page-only", action="store_true", help="only rebuild the results page from the records")
     add_executor_arguments(p)

@@ -12,7 +12,8 @@ Examples::
     tofdenoise-train                                   # default small CPU run on built-in scenes
     tofdenoise-train experiment=smoke                  # < 2 minutes
     tofdenoise-train backbone=unet noise=range loss=l1 trainer.max_epochs=5
-    tofdenoise-train experiment=paper data.root=/data/ToF-FlyingThings3D
+    tofdenoise-train data.source_kwargs.num_samples=100 ++data.source_kwargs.hfov_deg=70   # the source's settings
+    tofdenoise-train experiment=paper data.source_kwargs.root=/data/ToF-FlyingThings3D
     tofdenoise-train paths.run_dir=runs/a          # again: finished -> its metrics, killed -> resumes
     tofdenoise-train -m seed=0,1,2 paths.sweep_dir=runs/sweep      # runs/sweep/unet-hetero-full-s{0,1,2}
     tofdenoise-train -m hparams_search=recipe experiment=smoke     # Optuna search of lr, warm-up, decay

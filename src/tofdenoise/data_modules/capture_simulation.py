@@ -37,7 +37,8 @@ from tofdenoise.data_modules.datasets import stable_seed
 from tofdenoise.data_modules.io import write_depth_png16, write_png_uint8, write_png_uint16
 from tofdenoise.data_modules.maps import scene_signal_e
 from tofdenoise.data_modules.real_captures import HIEXP_DIR, INPUT_AMPLITUDE, INPUT_DEPTH, build_reference
-from tofdenoise.data_modules.sources.procedural import ProceduralSource
+from tofdenoise.data_modules.sources.base import SourceContext
+from tofdenoise.data_modules.sources.procedural import DEFAULT_MAX_DEPTH_FRACTION, ProceduralSource
 from tofdenoise.physics.calibration import resolve_calibration, save_calibration
 from tofdenoise.physics.mixed_pixels import footprint_tap_means_e, mixed_pixel_map
 from tofdenoise.physics.simulator import simulate_frames, simulate_tap_mean_frames
@@ -216,7 +217,7 @@ def simulate_capture_set(
     calib: Any = None,
     hi_exposure: float = 4.0,
     min_depth_mm: float = 300.0,
-    max_depth_fraction: float = 0.8,
+    max_depth_fraction: float = DEFAULT_MAX_DEPTH_FRACTION,
     write_taps: bool = False,
     force: bool = False,
     min_count: int | None = None,
@@ -235,13 +236,10 @@ def simulate_capture_set(
     calib = resolve_calibration(calib)
     out = Path(out_dir).expanduser()
     out.mkdir(parents=True, exist_ok=True)
-    source = ProceduralSource(
-        num_samples=scenes,
-        height=height,
-        width=width,
-        seed=seed,
-        min_depth_mm=min_depth_mm,
-        max_depth_mm=max_depth_fraction * calib.unambiguous_range_mm,
+    # the training scenes' source as the datamodule builds it (data.source_kwargs + the seed and this camera)
+    settings = {"num_samples": scenes, "height": height, "width": width, "min_depth_mm": min_depth_mm}
+    source = ProceduralSource.from_config(
+        {**settings, "max_depth_fraction": max_depth_fraction}, SourceContext(seed=seed, calibration=calib)
     )
     params = {
         "scenes": scenes,

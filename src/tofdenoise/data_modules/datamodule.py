@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import logging
 import warnings
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -20,7 +20,7 @@ from tofdenoise.data_modules.datasets import MapProvider, RealCaptures, Syntheti
 from tofdenoise.data_modules.holes import HoleModel
 from tofdenoise.data_modules.maps import check_signal_route
 from tofdenoise.data_modules.real_captures import build_reference, list_scenes, load_real_scene
-from tofdenoise.data_modules.sources import build_source
+from tofdenoise.data_modules.sources import SourceContext, source_from_config
 from tofdenoise.data_modules.splits import SPLIT_NAMES, ids_digest, load_or_make_split
 from tofdenoise.physics.calibration import SensorCalibration, resolve_calibration
 from tofdenoise.physics.noise_models import available_noise_models, build_noise_model, variance_matching_scale
@@ -65,21 +65,23 @@ class ToFDataModule(L.LightningDataModule):
     """Clean depth + signal + sigma_D maps from a source, noisy depth synthesised by a physics noise model.
 
     Args (all plain values; the Hydra configs in ``configs/data`` and ``configs/noise`` set them):
-        source: "procedural" (built-in scenes, default), "flyingthings3d" or "folder".
+        source: the data source by name (``DATA_SOURCES``): "procedural" (built-in scenes, default),
+            "flyingthings3d" or "folder". source_kwargs: that source's own settings (its ``config_keys()``: e.g.
+            procedural num_samples, height, width, min_depth_mm, max_depth_mm, max_depth_fraction, hfov_deg; folder
+            root, list_file, depth_unit_mm; flyingthings3d root, list_files), passed to its ``from_config`` with
+            what this datamodule supplies (``SourceContext``: ``seed`` and the calibration). An unknown key is an
+            error naming ``data.source_kwargs.<key>`` and the valid ones.
         noise: training noise model ("hetero", "range", "fixed", "none"); noise_kwargs its kwargs.
         eval_noise: the noise model that synthesises the validation, test and predict inputs (default "hetero",
             the physics-faithful synthesis; its default kwargs, a Gaussian baseline variance-matched like the
             training noise), whatever ``noise`` is: runs trained with different noise models are validated and
             tested on identical inputs (the same fixed per-sample seed).
         sensor: calibration (None = default, a path, a preset name, or a mapping in ``to_dict()`` layout).
-        root: dataset folder (flyingthings3d / folder). list_file: folder list (default ``root/list.txt``).
-        list_files: flyingthings3d list files (default: train_list.txt and test_list.txt, merged then re-split).
         real_dir: a capture set (see ``real_captures``); adds the "real" test loader.
         cache_dir: where splits, per-sample maps and records live. use_cache: store/read the maps there.
-        num_samples, height, width, min_depth_mm, max_depth_mm (None: max_depth_fraction x unambiguous range),
-        hfov_deg: procedural scenes.
         crop_size: training crop (int, [h, w] or None for full images). flips: random h/v flips in training.
-        seed: split permutation, procedural scenes and evaluation noise. split_ratios: train:val:test.
+        seed: split permutation, evaluation noise, and the source's seed (``SourceContext``: procedural scenes).
+        split_ratios: train:val:test.
         match_variance: rescale the Gaussian baselines (range/fixed) to the hetero mean variance over the
             training split (paper Sec. V-A), computed once and stored next to the cache.
         signal_route: how the source's amplitude becomes the returned signal a(p) [e-]: "linear" (the paper's
@@ -92,7 +94,6 @@ class ToFDataModule(L.LightningDataModule):
             None: the calibration's own interval.
         signal_lower_percentile / signal_upper_percentile: amplitude normalisation (None: physics defaults).
         real_min_count: valid high-exposure frames a reference pixel needs (None: half of the frames).
-        depth_unit_mm, min_valid_mm, max_valid_mm: folder / flyingthings3d reading options.
         holes: give synthetic inputs realistic invalid regions (low signal, depth edges, dropout blobs;
             ``tofdenoise.data_modules.holes``), zero there and out of ``mask``: random in training, fixed per
             sample (seeded) in validation/test/predict. holes_kwargs: ``HoleModel`` settings.
@@ -101,23 +102,14 @@ class ToFDataModule(L.LightningDataModule):
     def __init__(
         self,
         source: str = "procedural",
+        source_kwargs: dict[str, Any] | None = None,
         noise: str = "hetero",
         noise_kwargs: dict[str, Any] | None = None,
         eval_noise: str = "hetero",
         sensor: dict[str, Any] | str | None = None,
-        root: str | None = None,
-        list_file: str | None = None,
-        list_files: list[str] | None = None,
         real_dir: str | None = None,
         cache_dir: str = ".cache/tofdenoise/data",
         use_cache: bool = True,
-        num_samples: int = 48,
-        height: int = 480,
-        width: int = 640,
-        min_depth_mm: float = 300.0,
-        max_depth_mm: float | None = None,
-        max_depth_fraction: float = 0.8,
-        hfov_deg: float = 63.5,
         crop_size: int | list[int] | None = 320,
         flips: bool = True,
         batch_size: int = 4,
@@ -133,9 +125,6 @@ class ToFDataModule(L.LightningDataModule):
         signal_route: str = "linear",
         signal_dynamic_range: float | None = None,
         real_min_count: int | None = None,
-        depth_unit_mm: float = 1.0,
-        min_valid_mm: float | None = None,
-        max_valid_mm: float | None = None,
         holes: bool = True,
         holes_kwargs: dict[str, Any] | None = None,
     ):
@@ -144,6 +133,8 @@ class ToFDataModule(L.LightningDataModule):
         if isinstance(sensor, SensorCalibration):
             sensor = sensor.to_dict()
         noise_kwargs = dict(noise_kwargs or {})
+        if source_kwargs is None or isinstance(source_kwargs, Mapping):  # anything else: an error in make_source
+            source_kwargs = dict(source_kwargs or {})
         split_ratios = [float(r) for r in split_ratios]
         self.save_hyperparameters()
         self.source_name = source
@@ -172,13 +163,6 @@ class ToFDataModule(L.LightningDataModule):
             ) from None
         if batch_size < 1 or eval_batch_size < 1:
             raise ValueError("data.batch_size and data.eval_batch_size must be >= 1")
-        if not 0 < max_depth_fraction <= 1:
-            raise ValueError(f"data.max_depth_fraction must be in (0, 1], got {max_depth_fraction}")
-        self.max_depth_mm = (
-            float(max_depth_mm)
-            if max_depth_mm is not None
-            else max_depth_fraction * float(self.calib.unambiguous_range_mm)
-        )
         self.cache_root = Path(cache_dir).expanduser()
         self.real_dir = real_dir
         if real_dir:  # fail before any training: a missing or empty capture set is a config error
@@ -187,32 +171,19 @@ class ToFDataModule(L.LightningDataModule):
         self._prepared: PreparedData | None = None
         self.datasets: dict[str, Any] = {}
 
-        # fail fast: unknown source, missing data.root, bad sizes / depth range, a signal route that cannot apply
+        # fail fast: unknown source or source setting, a missing dataset folder, bad sizes / depth range, a signal
+        # route that cannot apply
         self.signal_route = check_signal_route(signal_route, self.make_source(), self.calib)
         if self.hole_model is not None and self.signal_route == "physical":
             self.hole_model = replace(self.hole_model, physical_signal=True)
 
     # ------------------------------------------------------------------ pieces
     def make_source(self):
-        """The data source ``data.source`` names, built from this datamodule's settings for that source."""
+        """The data source ``data.source`` names, built by its class from ``data.source_kwargs`` and what this
+        datamodule supplies to every source (``SourceContext``: the seed and the calibration)."""
         hp = self.hparams
-        valid_kwargs = {
-            k: v for k, v in (("min_valid_mm", hp.min_valid_mm), ("max_valid_mm", hp.max_valid_mm)) if v is not None
-        }
-        source_kwargs = {
-            "procedural": dict(
-                num_samples=hp.num_samples,
-                height=hp.height,
-                width=hp.width,
-                seed=hp.seed,
-                min_depth_mm=hp.min_depth_mm,
-                max_depth_mm=self.max_depth_mm,
-                hfov_deg=hp.hfov_deg,
-            ),
-            "flyingthings3d": dict(root=hp.root, list_files=hp.list_files, **valid_kwargs),
-            "folder": dict(root=hp.root, list_file=hp.list_file, depth_unit_mm=hp.depth_unit_mm, **valid_kwargs),
-        }
-        return build_source(self.source_name, **source_kwargs.get(str(self.source_name).lower(), {}))
+        context = SourceContext(seed=int(hp.seed), calibration=self.calib)
+        return source_from_config(self.source_name, hp.source_kwargs, context)
 
     @property
     def split_path(self) -> Path:
@@ -498,7 +469,8 @@ class ToFDataModule(L.LightningDataModule):
             "skipped": {k: len(v) for k, v in state.skipped.items()},
             "variance_scale": None if state.variance_scale is None else state.variance_scale["scale"],
             "real_scenes": len(state.real_scenes),
-            "max_depth_mm": self.max_depth_mm,
+            # what the source is (its description, part of the cache key): e.g. the procedural max_depth_mm
+            "source_settings": state.source.describe(),
             "holes": None if self.hole_model is None else self.hole_model.to_dict(),
             "calibration": self.calib.fingerprint()[:16],
         }

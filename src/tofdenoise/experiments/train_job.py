@@ -12,7 +12,8 @@
   off as this run's result;
 * **resumes an interrupted run** from ``<run_dir>/checkpoints/last.ckpt`` (``ckpt_path: last``, the default; a
   fresh run when there is none yet);
-* otherwise checks the config (valid backbone / noise / loss names, dataset paths), seeds, instantiates the
+* otherwise checks the config (valid backbone / noise / loss / data source names, the source's settings), seeds,
+  instantiates the
   datamodule, model, callbacks, loggers and trainer (``_convert_="all"``: only plain values reach the classes),
   fits and tests the best checkpoint (lowest ``val/mae_mm``).
 
@@ -56,6 +57,7 @@ __all__ = [
     "check_ddp_in_sweep",
     "check_same_run",
     "check_slurm_shape",
+    "check_source_config",
     "SAME_RUN_IGNORES",
     "record_calibration",
     "run",
@@ -81,6 +83,26 @@ SAME_RUN_IGNORES = (
     "trainer.enable_progress_bar",
     "trainer.enable_model_summary",
     "data.cache_dir",
+)
+
+
+#: the data source settings that were ToFDataModule arguments (``data.num_samples``, ``data.root``, ...) before they
+#: moved into ``data.source_kwargs`` (issue 24): an override of the former place is refused with the new one named.
+#: Historical: a new source adds nothing here.
+FORMER_SOURCE_KEYS = (
+    "num_samples",
+    "height",
+    "width",
+    "min_depth_mm",
+    "max_depth_mm",
+    "max_depth_fraction",
+    "hfov_deg",
+    "root",
+    "list_file",
+    "list_files",
+    "depth_unit_mm",
+    "min_valid_mm",
+    "max_valid_mm",
 )
 
 
@@ -112,20 +134,7 @@ def validate_config(cfg: DictConfig) -> None:
     _names_or_error("noise.name", cfg.noise.name, NOISE_MODELS)
     _names_or_error("loss.name", cfg.loss.name, LOSSES)
     data = cfg.data
-    source = data.get("source", "procedural")
-    if source not in (None, "procedural"):
-        root = data.get("root")
-        if root in (None, "", "???"):
-            raise ValueError(
-                f"config data.root: data source {source!r} needs its dataset folder; set "
-                f"data.root=/path/to/dataset (e.g. `make train DATA={source} "
-                f"ARGS='data.root=/data/...'`)"
-            )
-        if not Path(str(root)).expanduser().exists():
-            raise FileNotFoundError(
-                f"config data.root: dataset folder {root} (data source {source!r}) does not "
-                f"exist; set data.root to the dataset folder"
-            )
+    check_source_config(data)
     if data.get("real_dir") not in (None, "") and not Path(str(data.real_dir)).expanduser().exists():
         raise FileNotFoundError(
             f"config data.real_dir: real capture folder {data.real_dir} does not exist "
@@ -320,9 +329,32 @@ def _say_interrupted(trainer: Any, run_dir: Path) -> None:
     )
 
 
+def check_source_config(data: DictConfig) -> None:
+    """``data.source`` names a registered source and ``data.source_kwargs`` holds only its settings (the source's
+    ``config_keys()``; a dataset folder is checked by the source itself when the datamodule is built). A source
+    setting at the top of ``data`` (``++data.num_samples=10``, the former place) is an error saying where it goes."""
+    from tofdenoise.data_modules.sources import DATA_SOURCES, check_source_kwargs
+
+    source = data.get("source", "procedural")
+    _names_or_error("data.source", source, DATA_SOURCES)
+    settings = data.get("source_kwargs")
+    try:
+        check_source_kwargs(source, OmegaConf.to_container(settings, resolve=True) if settings is not None else None)
+    except ValueError as exc:
+        raise ValueError(f"config {exc}") from None
+    for key in DATA_SOURCES.get(source).config_keys():
+        if key in data:
+            raise ValueError(
+                f"config data.{key}: a setting of the {source} source, set it as data.source_kwargs.{key} "
+                "(e.g. `make train ARGS='data.source_kwargs.num_samples=100'`; docs/data.md)"
+            )
+
+
 def _comparable(cfg_yaml: str) -> dict[str, Any]:
     """The settings of a resolved config (its YAML text) that decide a run's result: ``SAME_RUN_IGNORES`` left
-    out, flattened to ``{"model.optim.lr": 0.001, ...}``."""
+    out, flattened to ``{"model.optim.lr": 0.001, ...}``. A config recorded before the settings groups
+    (``data.source_kwargs``, ``model.optim``, ...) is another config: its records stay readable, but its folder is not
+    continued by this code."""
     flat: dict[str, Any] = {}
 
     def walk(node: Any, prefix: str) -> None:

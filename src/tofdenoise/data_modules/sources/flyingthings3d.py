@@ -14,6 +14,9 @@ Depth: ``gt_depth * 2`` is the radial distance in ~mm; it is converted to z-dept
 63.5 deg horizontal field of view at 640 px (the focal length scales with the width):
 z = r / sqrt(x^2 + y^2 + 1), x = (u - W/2) / f, y = (v - H/2) / f.
 Valid pixels: finite, gt > 0, conf > 0 and min_valid_mm < r < max_valid_mm (10 and 4095 by default).
+
+Settings (``data.source_kwargs``): every ``__init__`` argument, e.g.
+``data=flyingthings3d data.source_kwargs.root=/data/ToF-FlyingThings3D``.
 """
 
 from __future__ import annotations
@@ -25,7 +28,14 @@ from typing import Any
 import numpy as np
 
 from tofdenoise.data_modules.io import DataFileError, check_same_shape, read_amplitude, read_mat
-from tofdenoise.data_modules.sources.base import RawSample, raise_if_missing, read_list_file, register_source
+from tofdenoise.data_modules.sources.base import (
+    RawSample,
+    SourceContext,
+    init_keywords,
+    raise_if_missing,
+    read_list_file,
+    register_source,
+)
 
 GT_DIRS = ("gt_depth_rgb", "gt_depth_rgb_small_pt")
 DEFAULT_LISTS = ("train_list.txt", "test_list.txt")
@@ -51,7 +61,7 @@ class FlyingThings3DSource:
 
     def __init__(
         self,
-        root: str | Path | None,
+        root: str | Path | None = None,
         list_files: list[str] | tuple[str, ...] | None = None,
         hfov_deg: float = HFOV_DEG,
         min_valid_mm: float = 10.0,
@@ -59,18 +69,29 @@ class FlyingThings3DSource:
     ):
         if root is None or str(root) == "":
             raise ValueError(
-                "the flyingthings3d source needs its dataset folder: set data.root=/path/to/ToF-FlyingThings3D"
+                "the flyingthings3d source needs its dataset folder: "
+                "set data.source_kwargs.root=/path/to/ToF-FlyingThings3D"
             )
         self.root = Path(root).expanduser()
         if not self.root.is_dir():
             raise FileNotFoundError(
-                f"ToF-FlyingThings3D root not found: {self.root} (set data.root to the dataset folder)"
+                f"ToF-FlyingThings3D root not found: {self.root} (set data.source_kwargs.root to the dataset folder)"
             )
         self.list_files = tuple(list_files) if list_files else None
         self.hfov_deg = float(hfov_deg)
         self.min_valid_mm, self.max_valid_mm = float(min_valid_mm), float(max_valid_mm)
         self._ids: list[str] | None = None
         self._gt_dir: Path | None = None
+
+    @classmethod
+    def config_keys(cls) -> list[str]:
+        """``data.source_kwargs``: every ``__init__`` argument."""
+        return init_keywords(cls)
+
+    @classmethod
+    def from_config(cls, settings: dict[str, Any], context: SourceContext) -> FlyingThings3DSource:
+        """The datamodule supplies nothing the dataset needs: ``settings`` are the ``__init__`` arguments."""
+        return cls(**settings)
 
     # ------------------------------------------------------------------ listing
     def _list_paths(self) -> list[Path]:
@@ -79,7 +100,8 @@ class FlyingThings3DSource:
         found = [self.root / name for name in DEFAULT_LISTS if (self.root / name).is_file()]
         if not found:
             raise FileNotFoundError(
-                f"no list file in {self.root}: expected {' or '.join(DEFAULT_LISTS)} (or set data.list_files)"
+                f"no list file in {self.root}: expected {' or '.join(DEFAULT_LISTS)} "
+                "(or set data.source_kwargs.list_files)"
             )
         return found
 

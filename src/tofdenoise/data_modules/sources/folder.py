@@ -1,6 +1,6 @@
 """A user's own clean depth + amplitude, listed in a text file.
 
-``root/list.txt`` (or ``data.list_file``) holds one sample per line: ``<depth path> <amplitude path>
+``root/list.txt`` (or ``list_file``) holds one sample per line: ``<depth path> <amplitude path>
 [<mask path>]``, paths relative to ``root`` (blank lines and ``#`` comments are skipped).
 
 - depth: 16-bit PNG in mm (0 = invalid), ``.npy``/``.npz`` float in mm, or ``.exr`` float in mm
@@ -9,6 +9,9 @@
 - optional mask: nonzero = valid.
 
 NaN, inf, zero and negative depths are invalid pixels. Depths beyond ``max_valid_mm`` are invalid too.
+
+Settings (``data.source_kwargs``): every ``__init__`` argument, e.g.
+``data.source=folder data.source_kwargs.root=/data/mine ++data.source_kwargs.list_file=list.txt``.
 """
 
 from __future__ import annotations
@@ -21,7 +24,9 @@ import numpy as np
 from tofdenoise.data_modules.io import DataFileError, check_same_shape, read_amplitude, read_array, read_depth_mm
 from tofdenoise.data_modules.sources.base import (
     RawSample,
+    SourceContext,
     depth_validity,
+    init_keywords,
     raise_if_missing,
     read_list_file,
     register_source,
@@ -34,22 +39,32 @@ class FolderSource:
 
     def __init__(
         self,
-        root: str | Path | None,
+        root: str | Path | None = None,
         list_file: str | Path | None = None,
         depth_unit_mm: float = 1.0,
         min_valid_mm: float = 0.0,
         max_valid_mm: float = float("inf"),
     ):
         if root is None or str(root) == "":
-            raise ValueError("the folder source needs its dataset folder: set data.root=/path/to/folder")
+            raise ValueError("the folder source needs its dataset folder: set data.source_kwargs.root=/path/to/folder")
         self.root = Path(root).expanduser()
         if not self.root.is_dir():
-            raise FileNotFoundError(f"folder dataset root not found: {self.root} (set data.root)")
+            raise FileNotFoundError(f"folder dataset root not found: {self.root} (set data.source_kwargs.root)")
         list_path = Path(list_file) if list_file else Path("list.txt")
         self.list_path = list_path if list_path.is_absolute() else self.root / list_path
         self.depth_unit_mm = float(depth_unit_mm)
         self.min_valid_mm, self.max_valid_mm = float(min_valid_mm), float(max_valid_mm)
         self._entries: dict[str, tuple[Path, Path, Path | None]] | None = None
+
+    @classmethod
+    def config_keys(cls) -> list[str]:
+        """``data.source_kwargs``: every ``__init__`` argument."""
+        return init_keywords(cls)
+
+    @classmethod
+    def from_config(cls, settings: dict[str, Any], context: SourceContext) -> FolderSource:
+        """The datamodule supplies nothing a folder of files needs: ``settings`` are the ``__init__`` arguments."""
+        return cls(**settings)
 
     def entries(self) -> dict[str, tuple[Path, Path, Path | None]]:
         if self._entries is None:

@@ -20,8 +20,9 @@ come from a second random stream ``default_rng([s, i, 2])``):
 - an opening in the back wall on some scenes (a window or a door to a far room): no ground truth there.
 Which of them become holes is decided by the camera (signal threshold, full well), not here.
 
-Depths stay inside [min_depth_mm, max_depth_mm]; the datamodule sets ``max_depth_mm`` to 80 % of the
-calibration's unambiguous range by default so that no scene would wrap in phase.
+Depths stay inside [min_depth_mm, max_depth_mm]. Configured through the datamodule (``data.source_kwargs``,
+``ProceduralSource.from_config``), ``max_depth_mm`` defaults to ``max_depth_fraction`` (80 %) of the
+calibration's unambiguous range so that no scene would wrap in phase, and the seed is ``data.seed``.
 """
 
 from __future__ import annotations
@@ -32,9 +33,17 @@ from typing import Any
 
 import numpy as np
 
-from tofdenoise.data_modules.sources.base import RawSample, depth_validity, register_source
+from tofdenoise.data_modules.sources.base import (
+    RawSample,
+    SourceContext,
+    depth_validity,
+    init_keywords,
+    register_source,
+)
 
 DEFAULT_HFOV_DEG = 63.5
+#: the deepest scene depth as a fraction of the calibration's unambiguous range (``max_depth_fraction``)
+DEFAULT_MAX_DEPTH_FRACTION = 0.8
 
 
 def focal_length_px(width: int, hfov_deg: float = DEFAULT_HFOV_DEG) -> float:
@@ -522,15 +531,35 @@ class ProceduralSource:
         hfov_deg: float = DEFAULT_HFOV_DEG,
     ):
         if num_samples < 1:
-            raise ValueError(f"data.num_samples must be >= 1 for the procedural source, got {num_samples}")
+            raise ValueError(
+                f"data.source_kwargs.num_samples must be >= 1 for the procedural source, got {num_samples}"
+            )
         if height < 8 or width < 8:
-            raise ValueError(f"data.height/data.width must be >= 8, got {height}x{width}")
+            raise ValueError(f"data.source_kwargs.height/width must be >= 8, got {height}x{width}")
         self.num_samples = int(num_samples)
         self.height, self.width = int(height), int(width)
         self.seed = int(seed)
         self.min_depth_mm, self.max_depth_mm = float(min_depth_mm), float(max_depth_mm)
         self.hfov_deg = float(hfov_deg)
         generate_scene(self.seed, 0, 8, 8, self.min_depth_mm, self.max_depth_mm)  # validates the depth range
+
+    @classmethod
+    def config_keys(cls) -> list[str]:
+        """``data.source_kwargs``: the ``__init__`` arguments but ``seed`` (``data.seed``), and
+        ``max_depth_fraction``."""
+        return [*init_keywords(cls, leave_out=("seed",)), "max_depth_fraction"]
+
+    @classmethod
+    def from_config(cls, settings: dict[str, Any], context: SourceContext) -> ProceduralSource:
+        """Scenes of seed ``data.seed``; ``max_depth_mm`` unset (or null) = ``max_depth_fraction`` (default
+        ``DEFAULT_MAX_DEPTH_FRACTION``) x the unambiguous range of the calibration (no scene wraps in phase)."""
+        settings = dict(settings)
+        fraction = settings.pop("max_depth_fraction", DEFAULT_MAX_DEPTH_FRACTION)
+        if not 0 < float(fraction) <= 1:
+            raise ValueError(f"data.source_kwargs.max_depth_fraction must be in (0, 1], got {fraction}")
+        if settings.get("max_depth_mm") is None:
+            settings["max_depth_mm"] = float(fraction) * float(context.calibration.unambiguous_range_mm)
+        return cls(**settings, seed=context.seed)
 
     def sample_ids(self) -> list[str]:
         return [f"scene_{i:06d}" for i in range(self.num_samples)]
