@@ -107,7 +107,7 @@ def test_calibrate_command_round_trip(tmp_path, capsys):
     )
     assert "wrote" in capsys.readouterr().out
     got = load_calibration(out)
-    assert out.read_text().startswith("# Calibrated by tofdenoise-sensor calibrate")
+    assert out.read_text().startswith("# Calibrated by tofdenoise sensor calibrate")
     np.testing.assert_allclose(got.tap_response.cos, true.tap_response.cos, atol=3e-3)
     assert got.dark_std_e == pytest.approx(true.dark_std_e, rel=0.03)
     assert got.range_sigma_mm is not None

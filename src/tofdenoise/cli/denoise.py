@@ -28,6 +28,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from tqdm.auto import tqdm
+
+from tofdenoise.inference.camera import IntrinsicsError, load_intrinsics
 from tofdenoise.output_guard import OutputPathError, refuse_overwrite
 
 __all__ = ["build_parser", "main", "run", "timing_text"]
@@ -143,9 +146,6 @@ def _fail(message: str) -> int:
 
 def run(args: argparse.Namespace) -> int:
     """Run the command on parsed arguments; returns the exit status."""
-    from tqdm.auto import tqdm
-
-    from tofdenoise.inference.camera import IntrinsicsError, load_intrinsics
     from tofdenoise.inference.denoise import CheckpointError, load_restorer, resolve_device
     from tofdenoise.inference.frames import AmplitudeSource, FrameError, find_frames
     from tofdenoise.inference.outputs import OutputOptions
@@ -304,7 +304,6 @@ def _claim(name: str, source: Any, job: _Job, tally: _Tally) -> bool:
 
 def _restore_and_write(data: Any, label: str, intrinsics: Any, job: _Job, tally: _Tally, started: float) -> None:
     """Restore a frame read into memory (``frames.Frame``) and write its outputs, or record why not."""
-    from tofdenoise.inference.camera import IntrinsicsError
     from tofdenoise.inference.denoise import restore_frame
     from tofdenoise.inference.frames import FrameError
     from tofdenoise.inference.outputs import frame_sigma, write_frame_outputs
@@ -352,8 +351,6 @@ def _restore_and_write(data: Any, label: str, intrinsics: Any, job: _Job, tally:
 def _denoise_recording(recording: Any, job: _Job, tally: _Tally) -> None:
     """Check a whole recording (``Recording.scan``), then restore and write its frames one by one; a recording that
     cannot be read is one failure and writes nothing."""
-    from tqdm.auto import tqdm
-
     from tofdenoise.inference.frames import Frame
     from tofdenoise.inference.recordings import RecordingError, open_recording
 

@@ -15,6 +15,10 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+import numpy as np
+
+from tofdenoise.output_guard import OutputPathError, refuse_overwrite
+
 __all__ = ["build_parser", "main", "parity_check"]
 
 
@@ -33,7 +37,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 def parity_check(ckpt: Path, onnx_path: Path, height: int = 45, width: int = 67) -> float:
     """Max |onnxruntime - PyTorch| in mm over the valid pixels of a procedural frame with 10 % holes."""
-    import numpy as np
     import torch
 
     from tofdenoise.inference.denoise import load_restorer
@@ -55,7 +58,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Console script ``tofdenoise-export``."""
     from tofdenoise.inference.denoise import CheckpointError
     from tofdenoise.inference.export import ExportError, export_onnx
-    from tofdenoise.output_guard import OutputPathError, refuse_overwrite
 
     args = build_parser().parse_args(argv)
     try:

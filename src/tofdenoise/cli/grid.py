@@ -20,20 +20,24 @@ from pathlib import Path
 
 from tofdenoise.atomic import WriteError, atomic_write_text
 from tofdenoise.cli.executor_args import add_executor_arguments, executor_from_args
+from tofdenoise.experiments.grids import (
+    ROBUSTNESS_BACKBONES,
+    ROBUSTNESS_LOSSES,
+    ROBUSTNESS_NOISES,
+    ROBUSTNESS_SEEDS,
+    ROBUSTNESS_SENSORS,
+    robustness_rows,
+    robustness_specs,
+)
+from tofdenoise.experiments.runner import run_all
 from tofdenoise.output_guard import OutputPathError, check_output_file
+from tofdenoise.records import unreadable_records
+from tofdenoise.reporting.robustness import robustness_table
 
 __all__ = ["main", "build_parser"]
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from tofdenoise.experiments.grids import (
-        ROBUSTNESS_BACKBONES,
-        ROBUSTNESS_LOSSES,
-        ROBUSTNESS_NOISES,
-        ROBUSTNESS_SEEDS,
-        ROBUSTNESS_SENSORS,
-    )
-
     p = argparse.ArgumentParser(
         prog="tofdenoise-grid",
         description=__doc__.split("\n\n")[0],
@@ -57,11 +61,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from tofdenoise.experiments.grids import robustness_rows, robustness_specs
-    from tofdenoise.experiments.runner import run_all
-    from tofdenoise.records import unreadable_records
-    from tofdenoise.reporting.robustness import robustness_table
-
     args = build_parser().parse_args(argv)
     try:
         executor = executor_from_args(args)

@@ -27,7 +27,7 @@ from pathlib import Path
 
 from tofdenoise.atomic import WriteError, atomic_write_text
 from tofdenoise.output_guard import OutputPathError, check_output_file
-from tofdenoise.reporting import Run, find_runs, load_run, render_html, results_table, table_markdown
+from tofdenoise.reporting import find_runs, load_runs, render_html, results_table, table_markdown
 
 __all__ = ["main"]
 
@@ -56,19 +56,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (FileNotFoundError, OutputPathError) as exc:
         print(f"tofdenoise-report: error: {exc}", file=sys.stderr)
         return 2
-    runs: list[Run] = []
-    skipped: list[tuple[Path, str]] = []
-    for d in dirs:
-        try:
-            runs.append(load_run(d))
-        except (OSError, ValueError) as exc:
-            skipped.append((d, str(exc)))
-            print(f"tofdenoise-report: warning: run {d} left out: {exc}", file=sys.stderr)
+    runs, skipped = load_runs(dirs)
+    for d, why in skipped:
+        print(f"tofdenoise report: warning: run {d} left out: {why}", file=sys.stderr)
     if not runs:
         where = ", ".join(str(d) for d in args.runs_dir)
         print(f"tofdenoise-report: error: no run with a valid metrics.json found under {where}", file=sys.stderr)
         return 2
-    runs.sort(key=lambda r: r.name)
     try:
         atomic_write_text(args.out, render_html(runs, args.title, skipped))
     except WriteError as exc:  # a full disk: one line naming the file, nothing half-written

@@ -12,10 +12,11 @@ import argparse
 import os
 import sys
 
+from tofdenoise.atomic import WriteError
+from tofdenoise.cli import sensor_captures, sensor_physics
+
 
 def build_parser() -> argparse.ArgumentParser:
-    from tofdenoise.cli import sensor_captures, sensor_physics
-
     parser = argparse.ArgumentParser(
         prog="tofdenoise-sensor",
         description="iToF sensor tools: calibration, per-pixel depth uncertainty, capture sets.",
@@ -32,8 +33,6 @@ EXIT_BROKEN_PIPE = 141
 
 
 def main(argv: list[str] | None = None) -> int:
-    from tofdenoise.atomic import WriteError
-
     parser = build_parser()
     args = parser.parse_args(argv)
     try:

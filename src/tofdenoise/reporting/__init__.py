@@ -20,13 +20,14 @@ from __future__ import annotations
 
 from tofdenoise.reporting.page import render_html
 from tofdenoise.reporting.plots import comparison_png, learning_curves_png
-from tofdenoise.reporting.runs import Run, find_runs, load_run
+from tofdenoise.reporting.runs import Run, find_runs, load_run, load_runs
 from tofdenoise.reporting.table import learned_flag, results_table, table_markdown
 
 __all__ = [
     "Run",
     "find_runs",
     "load_run",
+    "load_runs",
     "results_table",
     "table_markdown",
     "learned_flag",

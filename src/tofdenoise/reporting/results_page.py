@@ -42,6 +42,7 @@ from tofdenoise.experiments.tables import (
     row_values,
     run_name,
 )
+from tofdenoise.experiments.targets import target_of_key
 from tofdenoise.records import (
     METRIC_KEYS,
     METRICS_NAME,
@@ -57,7 +58,7 @@ from tofdenoise.reporting.table import LEARNED_FLAGS
 __all__ = [
     "DISCUSSION_NAME",
     "gains_markdown",
-    "PROFILE_COMMANDS",
+    "PROFILE_SEEDS",
     "RecordError",
     "load_records",
     "page_inputs",
@@ -66,11 +67,8 @@ __all__ = [
     "seeds_present",
 ]
 
-#: how each profile's tables are produced (quoted on the page)
-PROFILE_COMMANDS = {
-    "cpu": "make reproduce TABLE={table} PROFILE=cpu SEEDS=0,1,2",
-    "gpu": "make reproduce TABLE={table} PROFILE=gpu SEEDS=0,1,2",
-}
+#: the seeds each profile's tables are produced with (quoted on the page: ``Target.make_command``)
+PROFILE_SEEDS = {"cpu": "0,1,2", "gpu": "0,1,2"}
 RUN_FILES = (METRICS_NAME, RUN_INFO_NAME)
 
 
@@ -129,7 +127,7 @@ def load_records(profile_dir: Path | str) -> dict[str, dict[str, Any]]:
 def page_inputs(results_dir: Path | str) -> list[Path]:
     """What :func:`results_markdown` reads: the discussion (whether it exists or not) and every profile folder."""
     results_dir = Path(results_dir)
-    return [results_dir / DISCUSSION_NAME, *(results_dir / profile for profile in PROFILE_COMMANDS)]
+    return [results_dir / DISCUSSION_NAME, *(results_dir / profile for profile in PROFILE_SEEDS)]
 
 
 def seeds_present(records: dict[str, dict[str, Any]]) -> list[int]:
@@ -200,7 +198,7 @@ def _table_section(table: str, profile: str, records: dict[str, dict[str, Any]],
     lines = [
         f"## {TABLE_TITLES[table]}",
         "",
-        f"Command: `{PROFILE_COMMANDS[profile].format(table=table)}` (profile `{profile}`).",
+        f"Command: `{target_of_key(table).make_command(profile, PROFILE_SEEDS[profile])}` (profile `{profile}`).",
         "",
     ]
     head = ["method"] + [f"{_column_header(c)} paper / ours" for c in cols]
@@ -330,7 +328,7 @@ def _fig6_section(profile_dir: Path) -> list[str]:
     data = _read_json(profile_dir / "fig6" / "validation.json")
     lines = ["## Fig. 6: noise-model validation on the second camera", ""]
     if data is None:
-        return lines + ["Not run yet (`make reproduce TABLE=fig6`).", ""]
+        return lines + [f"Not run yet (`{target_of_key('fig6').make_command()}`).", ""]
     lines += [
         "Measured: the second camera's validation captures (`tofdenoise-sensor simulate-validation --sensor "
         "cam75`); predicted: the calibration `tofdenoise-sensor calibrate` estimated from that camera's own "
@@ -364,7 +362,7 @@ def _qualitative_section(profile_dir: Path, key: str) -> list[str]:
     """A qualitative figure (``tofdenoise.experiments.figures``): its per-scene MAE table and the image."""
     data = _read_json(profile_dir / key / "figure.json")
     if data is None:
-        return [f"## {FIGURES[key].title}", "", f"Not run yet (`make reproduce TABLE={key}`).", ""]
+        return [f"## {FIGURES[key].title}", "", f"Not run yet (`{target_of_key(key).make_command()}`).", ""]
     columns = [data["input"], *data["columns"]]
     runs = ", ".join(f"{label} = `{name}`" for label, name in data["runs"].items())
     lines = [
@@ -431,7 +429,7 @@ def results_markdown(results_dir: Path | str) -> str:
     discussion = results_dir / DISCUSSION_NAME
     if discussion.is_file():
         lines += [discussion.read_text().rstrip(), ""]
-    for profile in PROFILE_COMMANDS:
+    for profile in PROFILE_SEEDS:
         records = load_records(results_dir / profile)
         if profile == "cpu" or records:
             lines += _profile_sections(results_dir / profile, records)
