@@ -83,7 +83,7 @@ lock:
 	rm -rf $(LOCK_VENV)
 
 train: $(STAMP)
-	$(VENV)/bin/tofdenoise-train \
+	$(VENV)/bin/tofdenoise train \
 		$(if $(BACKBONE),backbone=$(BACKBONE)) \
 		$(if $(NOISE),noise=$(NOISE)) \
 		$(if $(LOSS),loss=$(LOSS)) \
@@ -118,11 +118,11 @@ bench: $(STAMP)
 GRID_DIR ?= runs/robustness
 GRID_ARGS ?=
 robustness: $(STAMP)
-	$(VENV)/bin/tofdenoise-grid robustness --out $(GRID_DIR) --markdown $(GRID_DIR)/robustness.md $(GRID_ARGS)
+	$(VENV)/bin/tofdenoise grid robustness --out $(GRID_DIR) --markdown $(GRID_DIR)/robustness.md $(GRID_ARGS)
 
 # The stand-in real set (docs/camera-tutorial.md): camera cam75's calibration captures -> calibrate ->
 # $(REALSET_DIR)/calibration.yaml, and its capture set with mixed pixels -> $(REALSET_DIR)/captures. Then:
-#   tofdenoise-train ++data.sensor=$(REALSET_DIR)/calibration.yaml ++data.real_dir=$(REALSET_DIR)/captures
+#   tofdenoise train ++data.sensor=$(REALSET_DIR)/calibration.yaml ++data.real_dir=$(REALSET_DIR)/captures
 REALSET_DIR ?= runs/realset
 REALSET_ARGS ?=
 realset: $(STAMP)

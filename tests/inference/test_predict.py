@@ -1,4 +1,4 @@
-"""LightningCLI predict on a folder of frames (no noise synthesis) writes what tofdenoise-denoise writes."""
+"""LightningCLI predict on a folder of frames (no noise synthesis) writes what tofdenoise denoise writes."""
 
 from __future__ import annotations
 

@@ -348,7 +348,7 @@ def test_classical_restore_mm_is_the_filter_of_the_input_in_mm(tiny_data, center
 
 def test_classical_backbone_cannot_be_fitted_and_reports_its_tuning(tmp_path, tiny_data):
     model = bilateral_model()
-    with pytest.raises(ValueError, match="classical filter without trainable parameters.*tofdenoise-classic"):
+    with pytest.raises(ValueError, match="classical filter without trainable parameters.*tofdenoise classic"):
         trainer(tmp_path, max_epochs=1).fit(model, datamodule=tiny_data)
     rec = model.learned_record()
     assert rec["method_kind"] == "classical" and rec["trained_steps"] == 0 and rec["best_val_mae_mm"] is None

@@ -1,6 +1,6 @@
-"""``tofdenoise-denoise``: denoise a camera's own depth frames with a trained checkpoint.
+"""``tofdenoise denoise``: denoise a camera's own depth frames with a trained checkpoint.
 
-    tofdenoise-denoise (--ckpt best.ckpt | --onnx model.onnx) INPUT [INPUT ...] --out DIR
+    tofdenoise denoise (--ckpt best.ckpt | --onnx model.onnx) INPUT [INPUT ...] --out DIR
                        [--amplitude DIR_OR_PATTERN] [--sensor FILE]
                        [--depth-scale-mm S] [--fill-holes] [--npy] [--previews] [--device auto|cpu|cuda]
                        [--depth-m] [--ply --intrinsics FILE] [--depth-stream NAME] [--amplitude-stream NAME]
@@ -38,7 +38,7 @@ __all__ = ["build_parser", "main", "run", "timing_text"]
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
-        prog="tofdenoise-denoise",
+        prog="tofdenoise denoise",
         description="Denoise iToF depth frames (16-bit PNG mm, .npy, .exr) or recordings (Azure Kinect .mkv, ROS 1 "
         ".bag, ROS 2 bag folders) with a trained tofdenoise checkpoint; invalid pixels stay invalid unless "
         "--fill-holes.",
@@ -55,7 +55,7 @@ def build_parser() -> argparse.ArgumentParser:
     model.add_argument(
         "--onnx",
         type=Path,
-        help="a restore graph of tofdenoise-export, run by onnxruntime on the CPU (no torch weights loaded; "
+        help="a restore graph of tofdenoise export, run by onnxruntime on the CPU (no torch weights loaded; "
         "whole frames, --device/--fp32/--tile do not apply)",
     )
     p.add_argument("--out", required=True, type=Path, help="output folder (input sub-folders are mirrored)")
@@ -140,7 +140,7 @@ def torch_cpu():
 
 
 def _fail(message: str) -> int:
-    print(f"tofdenoise-denoise: error: {message}", file=sys.stderr)
+    print(f"tofdenoise denoise: error: {message}", file=sys.stderr)
     return 2
 
 
@@ -227,7 +227,7 @@ def run(args: argparse.Namespace) -> int:
     total = f"{len(frames)} frame(s)" + (f" and {len(recordings)} recording(s)" if recordings else "")
     ended = f"interrupted (Ctrl-C) after {seen} of {total}: " if interrupted else ""
     print(
-        f"tofdenoise-denoise: {ended}{tally.done} frame(s) done, {len(tally.skipped)} skipped, "
+        f"tofdenoise denoise: {ended}{tally.done} frame(s) done, {len(tally.skipped)} skipped, "
         f"{len(tally.failed)} failed; {timing_text(tally.seconds)} on {device.type} -> {args.out}",
         file=sys.stderr,
     )
@@ -441,7 +441,7 @@ def timing_text(seconds: Sequence[float]) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Console script ``tofdenoise-denoise``."""
+    """Console script ``tofdenoise denoise``."""
     return run(build_parser().parse_args(argv))
 
 

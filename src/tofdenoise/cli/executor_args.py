@@ -1,4 +1,4 @@
-"""The executor options shared by ``tofdenoise-reproduce`` and ``tofdenoise-grid`` (where a grid's runs go)."""
+"""The executor options shared by ``tofdenoise reproduce`` and ``tofdenoise grid`` (where a grid's runs go)."""
 
 from __future__ import annotations
 

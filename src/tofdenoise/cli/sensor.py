@@ -1,4 +1,4 @@
-"""`tofdenoise-sensor`: sensor calibration, depth uncertainty, simulated and real capture sets.
+"""`tofdenoise sensor`: sensor calibration, depth uncertainty, simulated and real capture sets.
 
 Sub-commands are contributed by small modules, each with one job:
 - `tofdenoise.cli.sensor_physics`: show-calib, sigma, calibrate, validate
@@ -18,7 +18,7 @@ from tofdenoise.cli import sensor_captures, sensor_physics
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="tofdenoise-sensor",
+        prog="tofdenoise sensor",
         description="iToF sensor tools: calibration, per-pixel depth uncertainty, capture sets.",
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -27,7 +27,7 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-#: exit status when the reader of stdout went away (`tofdenoise-sensor show-calib | head`): 128 + SIGPIPE,
+#: exit status when the reader of stdout went away (`tofdenoise sensor show-calib | head`): 128 + SIGPIPE,
 #: what a shell reports for a process killed by a broken pipe
 EXIT_BROKEN_PIPE = 141
 
@@ -47,7 +47,7 @@ def main(argv: list[str] | None = None) -> int:
         os.close(devnull)
         return EXIT_BROKEN_PIPE
     except (FileNotFoundError, ValueError, KeyError, WriteError) as exc:
-        print(f"tofdenoise-sensor {args.command}: error: {exc}", file=sys.stderr)
+        print(f"tofdenoise sensor {args.command}: error: {exc}", file=sys.stderr)
         return 2
 
 

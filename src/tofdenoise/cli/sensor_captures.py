@@ -1,4 +1,4 @@
-"""`tofdenoise-sensor simulate-calibration`, `simulate-captures` and `build-reference` (a simulated camera's
+"""`tofdenoise sensor simulate-calibration`, `simulate-captures` and `build-reference` (a simulated camera's
 calibration captures and capture sets).
 
 Formats: calibration captures `tofdenoise.physics.capture_io` (docs/physics.md), capture sets
@@ -90,7 +90,7 @@ def _simulate_calibration(args: argparse.Namespace) -> int:
     for name, folder in folders.items():
         print(f"wrote {folder} ({name})")
     print(
-        f"next: tofdenoise-sensor calibrate --sweep {out}/sweep --dark {out}/dark --distances {out}/distances "
+        f"next: tofdenoise sensor calibrate --sweep {out}/sweep --dark {out}/dark --distances {out}/distances "
         "--out CALIBRATION.yaml"
     )
     return 0
@@ -107,7 +107,7 @@ def _simulate_validation(args: argparse.Namespace) -> int:
     settings = ValidationSettings(num_frames=args.frames, roi_px=args.roi_px, seed=args.seed, fit_seed=args.seed + 1)
     folder = write_validation_captures(resolve_calibration(args.sensor), args.out, settings)
     print(f"wrote {folder} (validation)")
-    print(f"next: tofdenoise-sensor validate --captures {folder} --sensor CALIBRATION.yaml --out DIR")
+    print(f"next: tofdenoise sensor validate --captures {folder} --sensor CALIBRATION.yaml --out DIR")
     return 0
 
 
@@ -135,7 +135,7 @@ def _realset_from_recording(args: argparse.Namespace) -> int:
         f"{summary.reference_frames} frames (a pixel needs {summary.min_count} valid), valid reference pixels "
         f"{summary.reference_valid_fraction:.3f}; frames agree (at most {100 * summary.disagreeing_fraction_max:.1f} "
         f"% of a frame's pixels off the median)\n"
-        f"test on it: tofdenoise-train ++data.sensor=YOUR_CALIBRATION.yaml ++data.real_dir={out}"
+        f"test on it: tofdenoise train ++data.sensor=YOUR_CALIBRATION.yaml ++data.real_dir={out}"
         + (f" ++data.real_min_count={args.min_count}" if args.min_count is not None else "")
     )
     return 0
@@ -228,7 +228,7 @@ def add_commands(subparsers) -> None:
     cal = subparsers.add_parser(
         "simulate-calibration",
         help="write a simulated camera's calibration captures (phase sweep, dark frames, distance sequence)",
-        description="Write the three capture folders `tofdenoise-sensor calibrate` reads (format "
+        description="Write the three capture folders `tofdenoise sensor calibrate` reads (format "
         "tofdenoise-captures-v1, docs/physics.md) as the camera --sensor records them through the "
         "tap-level simulator: OUT/sweep (a planar target at --sweep-steps phases), OUT/dark "
         "(--dark-frames emitter-off frames, in DN when the camera has an ADC gain) and OUT/distances "
@@ -334,7 +334,7 @@ def add_commands(subparsers) -> None:
         description="Planar targets at 500..1500 mm every 100 mm, black/gray/white surfaces at 1500 mm under "
         "exposures 1-4, and an independent 550..1450 mm sequence for the range-aware fit, as tap "
         "stacks of the camera --sensor (kind validation, format tofdenoise-captures-v1). "
-        "`tofdenoise-sensor validate --captures OUT --sensor C` then compares the measured temporal "
+        "`tofdenoise sensor validate --captures OUT --sensor C` then compares the measured temporal "
         "noise with the prediction of the calibration C (e.g. the one `calibrate` estimated).",
     )
     val.add_argument("--out", required=True, help="output folder")

@@ -1,4 +1,4 @@
-"""`tofdenoise-sensor` physics sub-commands: show-calib, sigma, calibrate, validate (docs/physics.md)."""
+"""`tofdenoise sensor` physics sub-commands: show-calib, sigma, calibrate, validate (docs/physics.md)."""
 
 from __future__ import annotations
 

@@ -79,7 +79,7 @@ class Row:
     noise: str = "hetero"
     loss: str = "l1"
     paper: Mapping[str, float] = field(default_factory=dict, compare=False, hash=False)
-    #: "train": a ``tofdenoise-train`` run; "classical": the tuned, parameter-free filter (``tofdenoise.cli.classic``)
+    #: "train": a ``tofdenoise train`` run; "classical": the tuned, parameter-free filter (``tofdenoise.cli.classic``)
     kind: str = "train"
     #: a variant of the (backbone, noise, loss) run: its folder gets ``-<tag>`` and its ``overrides`` are applied
     tag: str = ""

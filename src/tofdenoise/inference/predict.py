@@ -1,5 +1,5 @@
 """LightningCLI ``predict`` on a folder of camera frames, with no noise synthesis: ``FramesDataModule`` reads the
-frames as ``tofdenoise-denoise`` does and ``FramesPredictionWriter`` writes the same per-frame outputs::
+frames as ``tofdenoise denoise`` does and ``FramesPredictionWriter`` writes the same per-frame outputs::
 
     python -m tofdenoise.inference.predict predict --ckpt_path best.ckpt --data.inputs '[frames/]' \\
         --trainer.callbacks tofdenoise.inference.FramesPredictionWriter --trainer.callbacks.out_dir restored/
@@ -12,7 +12,7 @@ batch.
 
 Recordings among ``--data.inputs`` (Azure Kinect ``.mkv``, ROS bags; ``inference.recordings``) are read whole once
 when the datamodule is built (a damaged one stops the run before any write) and their frames streamed after the
-frame files, named ``<recording>/frame_NNNNNN`` as ``tofdenoise-denoise`` names them; ``--data.depth_stream`` /
+frame files, named ``<recording>/frame_NNNNNN`` as ``tofdenoise denoise`` names them; ``--data.depth_stream`` /
 ``--data.amplitude_stream`` choose their topics or tracks. The writer's ``depth_m`` and ``ply`` options add the
 metres map and the point cloud (``ply`` takes a recording's own intrinsics, or those of ``intrinsics``).
 """
@@ -106,7 +106,7 @@ class FramesDataModule(L.LightningDataModule):
     """Predict-only datamodule over camera frames (no noise synthesis, no reference).
 
     Args:
-        inputs: depth frames or folders of them (recursive), as ``tofdenoise-denoise``.
+        inputs: depth frames or folders of them (recursive), as ``tofdenoise denoise``.
         amplitude: amplitude frames paired by stem (folder, ``{stem}`` template or glob); needed by checkpoints
             that use the signal channel.
         depth_scale_mm: millimetres per stored depth unit.
@@ -164,7 +164,7 @@ class FramesDataModule(L.LightningDataModule):
 
 
 class FramesPredictionWriter(BasePredictionWriter):
-    """Writes each predicted frame as ``tofdenoise-denoise`` does (``tofdenoise.inference.outputs``); ``depth_m``
+    """Writes each predicted frame as ``tofdenoise denoise`` does (``tofdenoise.inference.outputs``); ``depth_m``
     adds the metres TIFF, ``ply`` the point cloud (intrinsics: the frame's recording, else the ``intrinsics`` file)."""
 
     def __init__(

@@ -475,7 +475,7 @@ def validate_to_folder(
 
 
 def calibrate_simulated_camera(calib: SensorCalibration, seed: int = 0, shape: tuple[int, int] = (16, 16)) -> Any:
-    """Calibrate a camera the way a user calibrates theirs (``tofdenoise-sensor calibrate``), from its own
+    """Calibrate a camera the way a user calibrates theirs (``tofdenoise sensor calibrate``), from its own
     simulated captures: the phase sweep, 100 dark frames and the distance sequence (``write_calibration_captures``:
     a grey chart across the working range for a camera with a photometric gain). Returns the ``CalibrationReport``;
     the presets' ``signal_min_e``/``signal_max_e`` and ``range_sigma_mm`` are measured with it (docs/physics.md)."""

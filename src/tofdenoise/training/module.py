@@ -148,7 +148,7 @@ class DepthRestorer(pl.LightningModule):
         net_kwargs = {k: v for k, v in backbone_kwargs.items() if k != "in_channels"}
         if accepts_kwarg(backbone, "depth_scale_mm"):  # a filter comparing depth differences in mm
             net_kwargs["depth_scale_mm"] = float(depth_scale_mm)
-        #: False for a classical filter without trainable parameters (``tofdenoise-classic``): never fitted
+        #: False for a classical filter without trainable parameters (``tofdenoise classic``): never fitted
         self.trainable = is_trainable(backbone)
         self.backbone: nn.Module = build_backbone(backbone, in_channels=in_channels, **net_kwargs)
         self.criterion: DepthLoss = build_loss(loss, **loss_kwargs)
@@ -246,7 +246,7 @@ class DepthRestorer(pl.LightningModule):
             raise ValueError(
                 f"DepthRestorer: backbone {self.hparams.backbone!r} is a classical filter without "
                 "trainable parameters: there is nothing to fit; tune and test it with "
-                "`tofdenoise-classic` (docs/models.md#classical-row-joint-bilateral-filter)"
+                "`tofdenoise classic` (docs/models.md#classical-row-joint-bilateral-filter)"
             )
         opt = torch.optim.AdamW(self.parameter_groups(), lr=self.hparams.lr, betas=tuple(self.hparams.betas))
         total = self.trainer.estimated_stepping_batches
