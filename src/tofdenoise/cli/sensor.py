@@ -2,7 +2,8 @@
 
 Sub-commands are contributed by small modules, each with one job:
 - `tofdenoise.cli.sensor_physics`: show-calib, sigma, calibrate, validate
-- `tofdenoise.cli.sensor_captures`: simulate-calibration, simulate-captures, build-reference
+- `tofdenoise.cli.sensor_captures`: simulate-calibration, simulate-captures, simulate-validation, realset
+  (`tofdenoise.data_modules.realset`), build-reference
 Each module exposes `add_commands(subparsers)`; every sub-parser sets `func(args) -> int`.
 """
 

@@ -1,5 +1,6 @@
-"""`tofdenoise sensor simulate-calibration`, `simulate-captures` and `build-reference` (a simulated camera's
-calibration captures and capture sets).
+"""`tofdenoise sensor simulate-calibration`, `simulate-captures`, `simulate-validation`, `realset` and
+`build-reference` (a simulated camera's calibration captures and capture sets; the stand-in real set, all its steps
+at once: `tofdenoise.data_modules.realset`).
 
 Formats: calibration captures `tofdenoise.physics.capture_io` (docs/physics.md), capture sets
 `tofdenoise.data_modules.real_captures` (docs/data.md); the whole flow: docs/camera-tutorial.md.
