@@ -46,8 +46,9 @@ help:
 	@echo "make robustness - the robustness grid (108 small runs, resumable; GRID_DIR=runs/robustness GRID_ARGS=...)"
 	@echo "make realset - the stand-in real set: a second simulated camera, calibrated from its own captures"
 	@echo "               (REALSET_DIR=runs/realset REALSET_ARGS='--scenes 40 ...'; docs/camera-tutorial.md)"
-	@echo "make reproduce TABLE=1|2|3|dynrange|fig6|fig7|fig8 [PROFILE=cpu|gpu] [SEEDS=0,1,2] - a paper table or figure (resumable;"
-	@echo "               records in docs/results/, page docs/results.md; REPRO_ARGS='--extra data.source_kwargs.root=...')"
+	@echo "make reproduce TABLE=1|2|3 | FIGURE=6|7|8 | STUDY=dynrange [PROFILE=cpu|gpu] [SEEDS=0,1,2] - a paper table,"
+	@echo "               figure or study (resumable; records in docs/results/, page docs/results.md;"
+	@echo "               REPRO_ARGS='--extra data.source_kwargs.root=...')"
 	@echo "make cli-configs - regenerate the LightningCLI YAMLs (configs/cli/) after editing configs/"
 	@echo "make venv    - only create/refresh .venv (TORCH='torch==X' to choose the torch build)"
 	@echo "make lock    - refresh $(LOCK) (exact versions make venv installs) from a fresh venv"
@@ -82,7 +83,7 @@ lock:
 	rm -rf $(LOCK_VENV)
 
 train: $(STAMP)
-	$(VENV)/bin/tofdenoise-train \
+	$(VENV)/bin/tofdenoise train \
 		$(if $(BACKBONE),backbone=$(BACKBONE)) \
 		$(if $(NOISE),noise=$(NOISE)) \
 		$(if $(LOSS),loss=$(LOSS)) \
@@ -117,25 +118,29 @@ bench: $(STAMP)
 GRID_DIR ?= runs/robustness
 GRID_ARGS ?=
 robustness: $(STAMP)
-	$(VENV)/bin/tofdenoise-grid robustness --out $(GRID_DIR) --markdown $(GRID_DIR)/robustness.md $(GRID_ARGS)
+	$(VENV)/bin/tofdenoise grid robustness --out $(GRID_DIR) --markdown $(GRID_DIR)/robustness.md $(GRID_ARGS)
 
 # The stand-in real set (docs/camera-tutorial.md): camera cam75's calibration captures -> calibrate ->
 # $(REALSET_DIR)/calibration.yaml, and its capture set with mixed pixels -> $(REALSET_DIR)/captures. Then:
-#   tofdenoise-train ++data.sensor=$(REALSET_DIR)/calibration.yaml ++data.real_dir=$(REALSET_DIR)/captures
+#   tofdenoise train ++data.sensor=$(REALSET_DIR)/calibration.yaml ++data.real_dir=$(REALSET_DIR)/captures
 REALSET_DIR ?= runs/realset
 REALSET_ARGS ?=
 realset: $(STAMP)
-	$(VENV)/bin/tofdenoise-sensor realset --out $(REALSET_DIR) $(REALSET_ARGS)
+	$(VENV)/bin/tofdenoise sensor realset --out $(REALSET_DIR) $(REALSET_ARGS)
 
-# The paper's tables (docs/results.md): finished runs are skipped, interrupted ones resume, failures are listed.
+# The paper's tables and figures and the studies beyond it (docs/results.md): one of TABLE=1|2|3, FIGURE=6|7|8 or
+# STUDY=dynrange. Finished runs are skipped, interrupted ones resume, failures are listed.
 TABLE ?=
+FIGURE ?=
+STUDY ?=
 PROFILE ?= cpu
 SEEDS ?= 0,1,2
 REPRO_ARGS ?=
 comma := ,
+repro_target = $(if $(TABLE),--table $(TABLE)) $(if $(FIGURE),--figure $(FIGURE)) $(if $(STUDY),--study $(STUDY))
 reproduce: $(STAMP)
-	@test -n "$(TABLE)" || { echo "make reproduce: set TABLE=1, 2, 3, dynrange, fig6, fig7 or fig8 (e.g. make reproduce TABLE=3)"; exit 2; }
-	$(VENV)/bin/tofdenoise-reproduce --table $(TABLE) --profile $(PROFILE) --seeds $(subst $(comma), ,$(SEEDS)) $(REPRO_ARGS)
+	@test $(words $(repro_target)) -eq 2 || { echo "make reproduce: set one of TABLE=1|2|3, FIGURE=6|7|8 or STUDY=dynrange (e.g. make reproduce TABLE=3)"; exit 2; }
+	$(VENV)/bin/tofdenoise reproduce $(repro_target) --profile $(PROFILE) --seeds $(subst $(comma), ,$(SEEDS)) $(REPRO_ARGS)
 
 # configs/cli/*.yaml are generated from the Hydra configs (one source of truth); a test fails when they are stale
 cli-configs: $(STAMP)

@@ -8,7 +8,8 @@
   cpu, triton, mamba) never import it, nor the package's ``__init__`` that re-exports it, nor anything of
   ``models`` outside the scan package; ``common`` imports nothing of the package.
 - no module imports another that (directly or not) imports it back: the import graph of ``tofdenoise`` has no
-  cycle but the two listed in ``KNOWN_CYCLES`` (older than this test; a new one fails).
+  cycle (``KNOWN_CYCLES`` is empty since the stand-in real set's steps moved to ``data_modules.realset``; a new
+  cycle fails).
 
 Stdlib only (``ast``), so it runs wherever the tests run.
 """
@@ -45,10 +46,8 @@ SHARED = {
 }
 SCAN = f"{PACKAGE}.models.scan"
 SCAN_DISPATCHER = {SCAN, f"{SCAN}.dispatch"}
-#: cycles older than this test, each through a function-level import; remove an entry when its cycle goes
-KNOWN_CYCLES = [
-    [f"{PACKAGE}.cli.sensor", f"{PACKAGE}.cli.sensor_captures"],
-]
+#: cycles older than this test (none left: the last, cli.sensor <-> cli.sensor_captures, went with issue 24 point 3)
+KNOWN_CYCLES: list[list[str]] = []
 
 
 def _modules() -> dict[str, Path]:
@@ -213,19 +212,13 @@ def test_lower_floors_import_the_package_at_the_top():
     assert not bad, "\n".join(bad)
 
 
-#: front ends still importing the standard library inside functions (remove a package when it is clean)
-STDLIB_LAZY_PENDING = {"cli"}
-
-
 def test_no_module_imports_the_standard_library_inside_a_function():
     """A standard-library import costs nothing at the top, so inside a function it only hides a dependency; the
     exceptions the package allows are third-party imports that are optional (an extra) or heavy (torch, lightning,
     matplotlib kept out of a page renderer or a ``--help``)."""
     stdlib = set(sys.stdlib_module_names)
     bad = []
-    for module, path in MODULES.items():
-        if _part(module) in STDLIB_LAZY_PENDING:
-            continue
+    for path in MODULES.values():
         for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"), str(path))):
             if not isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
                 continue
@@ -241,3 +234,51 @@ def test_no_module_imports_the_standard_library_inside_a_function():
                     if name.partition(".")[0] in stdlib
                 ]
     assert not bad, "\n".join(bad)
+
+
+def _verb_modules() -> set[str]:
+    """The modules ``tofdenoise <verb>`` routes to: the first argument of every ``Verb(...)`` in ``cli/main.py``."""
+    tree = ast.parse(MODULES[f"{PACKAGE}.cli.main"].read_text(encoding="utf-8"))
+    return {
+        f"{PACKAGE}.cli.{node.args[0].value}"
+        for node in ast.walk(tree)
+        if isinstance(node, ast.Call) and getattr(node.func, "id", None) == "Verb" and node.args
+    }
+
+
+def _cli_runs_another_verb(graph: dict[str, set[str]], stdlib_imports: dict[str, set[str]]) -> list[str]:
+    verbs = _verb_modules()
+    bad = []
+    for module, targets in graph.items():
+        if not module.startswith(f"{PACKAGE}.cli.") or module == f"{PACKAGE}.cli.main":
+            continue
+        bad += [f"{module} imports the verb {t}" for t in sorted(targets & verbs - {module})]
+        bad += [f"{module} imports {m}" for m in sorted(stdlib_imports.get(module, set()) & {"subprocess"})]
+    return bad
+
+
+def _top_level_imports(path: Path) -> set[str]:
+    found: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"), str(path))):
+        if isinstance(node, ast.Import):
+            found.update(a.name.split(".")[0] for a in node.names)
+        elif isinstance(node, ast.ImportFrom) and not node.level and node.module:
+            found.add(node.module.split(".")[0])
+    return found
+
+
+def test_no_verb_runs_another_verb():
+    """A verb's module parses and calls the library (docs/architecture.md, "The command line"): it never imports
+    another verb's module nor starts a sub-process (the training runs of grid and reproduce are started by
+    ``experiments/runner.py``, one process per run). Issue 24 point 3: ``sensor realset`` ran ``cli.sensor.main`` per
+    step and ``reproduce`` ran ``tofdenoise sensor`` as sub-processes."""
+    verbs = _verb_modules()
+    assert {f"{PACKAGE}.cli.{m}" for m in ("train", "sensor", "reproduce", "lightning_cli")} <= verbs
+    stdlib = {m: _top_level_imports(p) for m, p in MODULES.items() if m.startswith(f"{PACKAGE}.cli.")}
+    assert _cli_runs_another_verb(GRAPH, stdlib) == []
+    # the check sees both: a verb importing another, a verb starting a process
+    graph = {**GRAPH, f"{PACKAGE}.cli.grid": GRAPH[f"{PACKAGE}.cli.grid"] | {f"{PACKAGE}.cli.sensor"}}
+    assert _cli_runs_another_verb(graph, {**stdlib, f"{PACKAGE}.cli.report": {"subprocess"}}) == [
+        f"{PACKAGE}.cli.grid imports the verb {PACKAGE}.cli.sensor",
+        f"{PACKAGE}.cli.report imports subprocess",
+    ]

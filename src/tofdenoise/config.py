@@ -1,6 +1,6 @@
 """The repository's Hydra configs (``configs/``): their folder and a composed config without running it.
 
-``compose_config(overrides)`` gives what ``tofdenoise-train <overrides>`` runs (tests, ``export_cli_config``,
+``compose_config(overrides)`` gives what ``tofdenoise train <overrides>`` runs (tests, ``export_cli_config``,
 notebooks); the folder is ``tofdenoise.paths.CONFIG_DIR``.
 """
 
@@ -79,7 +79,7 @@ def hydra_console_script(
     ``paths.run_dir`` to the folder Hydra created (it may contain ``${now:...}``: resolved once; in a multirun the
     job's folder), call ``run`` and turn the ``errors`` into one ``<prog>: error: ...`` line and exit status 2
     instead of a traceback. The function Hydra calls (``main.entry``) returns what ``run`` returns: the value a
-    Hydra sweeper optimises (``tofdenoise-train``: the run's lowest validation MAE)."""
+    Hydra sweeper optimises (``tofdenoise train``: the run's lowest validation MAE)."""
     import hydra
 
     def entry(cfg: DictConfig) -> object:

@@ -1,4 +1,4 @@
-"""The unified depth metrics of folders of depth maps produced by any method (what ``tofdenoise-eval`` writes).
+"""The unified depth metrics of folders of depth maps produced by any method (what ``tofdenoise evaluate`` writes).
 
 Files are matched by stem (``scene_001.png`` <-> ``scene_001.npy`` is fine). Depth files: single-channel
 16-bit PNG/TIFF holding millimetres (0 = invalid), or ``.npy``/``.npz`` (single array)/``.exr`` float maps in
@@ -14,7 +14,7 @@ as ``nan_px`` (per image and in total); an image whose every such pixel is non-f
 metrics, listed in ``failed``, left out of the mean). A result with ``nan_px > 0`` is therefore not comparable
 with one without: its mean covers fewer pixels.
 
-:func:`evaluate_dirs` returns (``tofdenoise-eval`` writes it as strict JSON)::
+:func:`evaluate_dirs` returns (``tofdenoise evaluate`` writes it as strict JSON)::
 
     {"mean": {"psnr_db", "mae_mm", "mse_mm2", "ssim"},
      "images": {"<stem>": {"psnr_db", "mae_mm", "mse_mm2", "ssim", "valid_px", "nan_px"}},
@@ -78,7 +78,8 @@ def _read_depth(path: Path, what: str) -> np.ndarray:
     if valid.size and float(np.median(valid)) < MIN_MEDIAN_DEPTH_MM:
         raise EvalInputError(
             f"{what} file {path}: median valid depth {float(np.median(valid)):.4g} is implausible in millimetres "
-            f"(below {MIN_MEDIAN_DEPTH_MM:g}); tofdenoise-eval reads depth in mm (a map in metres: multiply by 1000)"
+            f"(below {MIN_MEDIAN_DEPTH_MM:g}); tofdenoise evaluate reads depth in mm "
+            "(a map in metres: multiply by 1000)"
         )
     return depth
 
@@ -109,7 +110,7 @@ def _match(ref: dict[str, Path], other: dict[str, Path], what: str, folder: Path
 def evaluate_dirs(
     pred_dir: str | Path, ref_dir: str | Path, mask_dir: str | Path | None = None, d_max_mm: float = D_MAX_MM
 ) -> dict:
-    """Compute the result object written by ``tofdenoise-eval`` (see the module docstring)."""
+    """Compute the result object written by ``tofdenoise evaluate`` (see the module docstring)."""
     pred_dir, ref_dir = Path(pred_dir), Path(ref_dir)
     refs = list_maps(ref_dir, "reference")
     preds = list_maps(pred_dir, "prediction")

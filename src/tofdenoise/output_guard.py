@@ -1,8 +1,8 @@
 """The one guard every writing command runs before it writes: an output never replaces one of its inputs.
 
-``tofdenoise-eval --out pred/s0.png`` once replaced a prediction with JSON, ``tofdenoise-denoise --npy f/b.npy
---out f`` a frame with its own output, ``tofdenoise-sensor calibrate --out SWEEP/index.json`` the capture index and
-``tofdenoise-reproduce --page docs/results/discussion.md`` the discussion it reads. :func:`refuse_overwrite`
+``tofdenoise evaluate --out pred/s0.png`` once replaced a prediction with JSON, ``tofdenoise denoise --npy f/b.npy
+--out f`` a frame with its own output, ``tofdenoise sensor calibrate --out SWEEP/index.json`` the capture index and
+``tofdenoise reproduce --page docs/results/discussion.md`` the discussion it reads. :func:`refuse_overwrite`
 checks every output path of a command against every input it reads, before anything is written, and refuses
 
 - an output that is an input (the same path after symlinks, or the same file through a hard link);

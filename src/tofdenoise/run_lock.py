@@ -2,7 +2,7 @@
 
 Two trainings started with the same ``paths.run_dir`` used to both run and exit 0, the second overwriting the
 first's checkpoints and records. :class:`RunLock` (``<run_dir>/run.lock``) lets one process write a run folder at a
-time; the entry points take it before they touch the folder (``tofdenoise-train`` and ``tofdenoise-classic``
+time; the entry points take it before they touch the folder (``tofdenoise train`` and ``tofdenoise classic``
 through a Hydra callback, :class:`HydraRunLock`, before Hydra writes ``.hydra/`` and its log; ``tofdenoise``
 (LightningCLI) before any class is instantiated) and release it on exit, exceptions included.
 
@@ -235,7 +235,7 @@ class HydraRunLock:
     before Hydra writes ``.hydra/`` and its log there, releases it at the end of the run. A refusal is one line on
     stderr and exit status 2."""
 
-    def __init__(self, prog: str = "tofdenoise-train"):
+    def __init__(self, prog: str = "tofdenoise train"):
         self.prog = prog  # the command named in a refusal
 
     def on_run_start(self, config: Any, **kwargs: Any) -> None:

@@ -1,6 +1,6 @@
 """wandb's environment for a run, in one place: quiet, files under the run folder, one run id, always finished.
 
-Both front ends (``tofdenoise-train``, ``tofdenoise fit|test|...``) and the test suite use it:
+Both front ends (``tofdenoise train``, ``tofdenoise fit|test|...``) and the test suite use it:
 
 - ``quiet_wandb()``: ``WANDB_SILENT=true`` and ``WANDB_ERROR_REPORTING=false`` unless already set (no banner,
   no crash reports sent anywhere). ``quiet_wandb(offline=True)`` also sets ``WANDB_MODE=offline`` (the tests).

@@ -1,5 +1,5 @@
-"""tofdenoise-classic: grid search of the joint bilateral filter on validation, test through DepthRestorer's
-test step, the same metrics.json / per-image CSV schema as the networks, listed by tofdenoise-report."""
+"""tofdenoise classic: grid search of the joint bilateral filter on validation, test through DepthRestorer's
+test step, the same metrics.json / per-image CSV schema as the networks, listed by tofdenoise report."""
 
 from __future__ import annotations
 
@@ -67,7 +67,7 @@ def test_bad_configuration_fails_before_any_data(tmp_path, tiny):
     assert not (tmp_path / "never").exists()
     # the training entry point refuses the filter with the command to use
     cfg = compose_config(tiny(tmp_path, tmp_path / "never") + ["backbone.name=bilateral"])
-    with pytest.raises(ValueError, match="classical filter without trainable parameters.*tofdenoise-classic"):
+    with pytest.raises(ValueError, match="classical filter without trainable parameters.*tofdenoise classic"):
         validate_config(cfg)
 
 
@@ -174,5 +174,5 @@ def test_a_run_folder_written_by_another_process_is_refused(tmp_path, lock_holde
         )
     assert proc.returncode == 2, proc.stderr[-2000:]
     line = proc.stderr.strip().splitlines()[-1]
-    assert line.startswith(f"tofdenoise-classic: error: run folder {run_dir} is locked by pid {pid} ")
+    assert line.startswith(f"tofdenoise classic: error: run folder {run_dir} is locked by pid {pid} ")
     assert [p.name for p in run_dir.iterdir()] == []  # released by the holder; nothing of the refused run

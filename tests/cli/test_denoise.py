@@ -1,4 +1,4 @@
-"""tofdenoise-denoise: formats, outputs (PNG16 / npy / sigma / preview), bad inputs, exit codes, atomic writes."""
+"""tofdenoise denoise: formats, outputs (PNG16 / npy / sigma / preview), bad inputs, exit codes, atomic writes."""
 
 from __future__ import annotations
 
@@ -183,7 +183,7 @@ def test_npy_output_that_would_replace_the_npy_input_is_refused_before_any_write
     code = main([str(folder / "b.npy"), "--ckpt", str(restorer_ckpt), "--out", str(folder), "--npy", "--quiet"])
     err = capsys.readouterr().err
     assert code == 2
-    assert len(err.strip().splitlines()) == 1 and "tofdenoise-denoise: error: --out" in err
+    assert len(err.strip().splitlines()) == 1 and "tofdenoise denoise: error: --out" in err
     assert str(folder / "b.npy") in err and "would replace the input" in err
     assert {p: p.read_bytes() for p in folder.iterdir()} == before  # nothing written, nothing replaced
 
@@ -233,11 +233,10 @@ def test_a_failed_write_leaves_no_partial_file(frames_dir, restorer_ckpt, tmp_pa
     assert not (out / "a_preview.png").exists() and not list(out.glob(".*tmp*"))
 
 
-def test_console_script_points_at_main():
-    tomllib = pytest.importorskip("tomllib")  # Python >= 3.11
-    pyproject = Path(__file__).resolve().parents[2] / "pyproject.toml"
-    scripts = tomllib.loads(pyproject.read_text())["project"]["scripts"]
-    assert scripts["tofdenoise-denoise"] == "tofdenoise.cli.denoise:main" and callable(main)
+def test_the_denoise_verb_runs_this_main():
+    from tofdenoise.cli.main import VERBS
+
+    assert VERBS["denoise"].module == "denoise" and VERBS["denoise"].grammar == "options" and callable(main)
 
 
 def test_time_per_frame_gives_the_first_frame_apart():

@@ -1,4 +1,4 @@
-"""tofdenoise-denoise and LightningCLI predict on recordings (Kinect .mkv, ROS 1 / ROS 2 bags): the same restored
+"""tofdenoise denoise and LightningCLI predict on recordings (Kinect .mkv, ROS 1 / ROS 2 bags): the same restored
 depth as the Python API, metres TIFF and PLY outputs, damaged recordings and missing topics write nothing."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""tofdenoise-eval: hand-computed metrics from files, validity rules, and errors that name the file."""
+"""tofdenoise evaluate: hand-computed metrics from files, validity rules, and errors that name the file."""
 
 from __future__ import annotations
 
@@ -114,24 +114,15 @@ def test_boolean_npy_is_a_dtype_error(dirs, capsys):
     assert "a.npy is boolean" in _err(dirs, capsys)
 
 
-def test_console_scripts_point_at_main():
-    """Every [project.scripts] entry of pyproject.toml names a module that imports and a callable in it."""
-    import importlib
+def test_the_evaluate_verb_runs_this_main(capsys):
+    """``tofdenoise evaluate`` is this module's ``main`` (tests/cli/test_main.py checks every verb)."""
+    from tofdenoise.cli.main import VERBS
+    from tofdenoise.cli.main import main as tofdenoise
 
-    try:
-        import tomllib
-    except ModuleNotFoundError:  # Python 3.10: pytest itself depends on tomli there
-        import tomli as tomllib
-
-    pyproject = Path(__file__).resolve().parents[2] / "pyproject.toml"
-    scripts = tomllib.loads(pyproject.read_text())["project"]["scripts"]
-    assert {"tofdenoise", "tofdenoise-train", "tofdenoise-eval", "tofdenoise-report"} <= set(scripts)
-    assert scripts["tofdenoise-eval"] == "tofdenoise.cli.evaluate:main"
-    assert scripts["tofdenoise-report"] == "tofdenoise.cli.report:main"
-    for name, target in scripts.items():
-        module_name, _, attr = target.partition(":")
-        module = importlib.import_module(module_name)
-        assert callable(getattr(module, attr, None)), f"{name} = {target!r}: {attr!r} is not a callable of the module"
+    assert VERBS["evaluate"].module == "evaluate" and VERBS["report"].module == "report"
+    with pytest.raises(SystemExit) as exc:
+        tofdenoise(["evaluate", "--help"])
+    assert exc.value.code == 0 and "usage: tofdenoise evaluate" in capsys.readouterr().out
 
 
 @pytest.mark.parametrize("out", ["pred/b.png", "pred/b.json", "ref/a.png", "result.png", "pred"])
@@ -139,7 +130,7 @@ def test_out_that_would_replace_an_input_is_refused(dirs, capsys, out):
     before = {p: p.read_bytes() for p in dirs.rglob("*") if p.is_file()}
     assert main(["--pred", str(dirs / "pred"), "--ref", str(dirs / "ref"), "--out", str(dirs / out)]) == 2
     err = capsys.readouterr().err
-    assert "tofdenoise-eval: error: --out" in err and str(dirs / out) in err and "Traceback" not in err
+    assert "tofdenoise evaluate: error: --out" in err and str(dirs / out) in err and "Traceback" not in err
     assert {p: p.read_bytes() for p in dirs.rglob("*") if p.is_file()} == before
 
 

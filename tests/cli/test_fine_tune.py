@@ -92,5 +92,5 @@ def test_a_corrupt_init_file_through_the_command_line_is_one_line(tmp_path, data
     )
     assert proc.returncode == 2, proc.stderr[-2000:]
     last = proc.stderr.strip().splitlines()[-1]
-    assert last.startswith(f"tofdenoise-train: error: model.init_weights: {broken} is not loadable by torch.load")
+    assert last.startswith(f"tofdenoise train: error: model.init_weights: {broken} is not loadable by torch.load")
     assert "Traceback" not in proc.stderr

@@ -11,14 +11,26 @@ from tofdenoise.cli.main import VERBS, main
 from tofdenoise.paths import REPO_ROOT
 
 
-def test_the_console_script_is_the_dispatcher_and_every_command_is_a_verb():
+def test_the_one_console_script_is_the_dispatcher_and_every_command_is_a_verb():
+    """One grammar for the user (issue 24 point 4): ``tofdenoise`` is the only console script; every command is one
+    of its verbs, each a module of ``tofdenoise.cli`` with a ``main``."""
     scripts = tomllib.loads((REPO_ROOT / "pyproject.toml").read_text())["project"]["scripts"]
-    assert scripts["tofdenoise"] == "tofdenoise.cli.main:main"
-    modules = {f"tofdenoise.cli.{v.module}:main" for v in VERBS.values()}
-    # every other console script (kept until the docs move to the verbs) runs a verb's module
-    assert {target for name, target in scripts.items() if name != "tofdenoise"} <= modules
+    assert scripts == {"tofdenoise": "tofdenoise.cli.main:main"}
     for verb in VERBS.values():
         assert callable(importlib.import_module(f"tofdenoise.cli.{verb.module}").main)
+        assert verb.grammar in ("hydra", "lightning", "options")
+
+
+def test_every_options_verb_names_itself_as_the_user_types_it(capsys):
+    """``tofdenoise <verb> --help`` shows ``usage: tofdenoise <verb>`` (argparse's ``prog``), never a former
+    ``tofdenoise-<name>`` script."""
+    for name, verb in VERBS.items():
+        if verb.grammar != "options":
+            continue
+        with pytest.raises(SystemExit) as exc:
+            main([name, "--help"])
+        assert exc.value.code == 0
+        assert capsys.readouterr().out.startswith(f"usage: tofdenoise {name} "), name
 
 
 def test_usage_lists_the_verbs_and_a_wrong_verb_is_a_usage_error(capsys):

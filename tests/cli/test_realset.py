@@ -1,6 +1,6 @@
 """The stand-in real set (docs/camera-tutorial.md): a second simulated camera, calibrated from its own captures;
-training with that calibration and testing on that camera's capture set (`tofdenoise-sensor realset`,
-`make realset`)."""
+training with that calibration and testing on that camera's capture set (`tofdenoise.data_modules.realset`, run by
+`tofdenoise sensor realset`, `make realset` and `tofdenoise reproduce`)."""
 
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tofdenoise.cli.sensor import main
-from tofdenoise.cli.sensor_captures import REALSET_CAMERA, REALSET_SEED, realset_commands
+from tofdenoise.cli.sensor import build_parser, main
+from tofdenoise.data_modules.realset import REALSET_CAMERA, REALSET_SEED, build_realset
 from tofdenoise.physics.calibration import default_calibration, load_calibration, resolve_calibration
 
 REPO = Path(__file__).resolve().parents[2]
@@ -35,7 +35,11 @@ def test_the_realset_camera_is_not_the_training_camera():
     # `make realset` runs this command
     makefile = (REPO / "Makefile").read_text()
     recipe = re.search(r"^realset:.*\n((?:\t.*\n)+)", makefile, re.M)
-    assert recipe and "tofdenoise-sensor realset --out $(REALSET_DIR)" in recipe.group(1)
+    assert recipe and "tofdenoise sensor realset --out $(REALSET_DIR)" in recipe.group(1)
+    # the command's defaults are the library's (said in its help)
+    (sub,) = [a for a in build_parser()._actions if a.dest == "command"]
+    realset_help = sub.choices["realset"].format_help()
+    assert f"preset {REALSET_CAMERA}" in realset_help and f"default {REALSET_SEED}" in realset_help
 
 
 def make_realset(out: Path) -> None:
@@ -57,8 +61,8 @@ def test_realset_command_writes_calibration_and_captures(tmp_path, capsys, data_
     out = tmp_path / "realset"
     make_realset(out)
     printed = capsys.readouterr().out
-    for argv in realset_commands(out, scenes=2, frames=4, height=32, width=48):
-        assert f"$ tofdenoise-sensor {argv[0]}" in printed
+    for step in ("a) calibration captures", "b) calibration from", "c) capture set", "d) noise-validation captures"):
+        assert step in printed  # each step is announced before it runs
     calib = load_calibration(out / "calibration.yaml")
     true = resolve_calibration(REALSET_CAMERA)
     assert calib.modulation_frequency_hz == true.modulation_frequency_hz
@@ -67,13 +71,18 @@ def test_realset_command_writes_calibration_and_captures(tmp_path, capsys, data_
     scenes = sorted(p.name for p in (out / "captures").iterdir() if p.is_dir())
     assert scenes == ["scene_0000", "scene_0001"]
     assert json.loads((out / "captures" / "scene_0000" / "scene.json").read_text())["mixed_pixels"] == 3
-    # the Fig. 6 conditions as that camera records them (tofdenoise-sensor validate --captures)
+    # the Fig. 6 conditions as that camera records them (tofdenoise sensor validate --captures)
     assert json.loads((out / "validation" / "index.json").read_text())["kind"] == "validation"
     # resumable: the calibration is kept, the completed scenes are skipped
     make_realset(out)
     again = capsys.readouterr().out
     assert "steps a) and b) skipped" in again and "0 scene(s) written, 2 already complete" in again
-    assert "$ tofdenoise-sensor simulate-validation" not in again
+    assert "d) noise-validation" not in again
+    # the library function the command calls: the same resumption, the steps it ran
+    logged = []
+    summary = build_realset(out, scenes=2, frames=4, height=32, width=48, log=logged.append)
+    assert summary.steps == ("c",) and summary.capture_set.scenes_skipped == 2
+    assert summary.calibration == out / "calibration.yaml" and any("steps a) and b) skipped" in x for x in logged)
     # step d)'s configuration: the datamodule synthesises training data with that calibration and adds the real set
     cfg = compose_config(tiny(tmp_path / "run", data_cache) + realset_overrides(out))
     dm = instantiate(cfg.data, _convert_="all")

@@ -1,4 +1,4 @@
-"""tofdenoise-sensor realset --from-recording: a static recording -> one capture-set scene (input frame, reference =
+"""tofdenoise sensor realset --from-recording: a static recording -> one capture-set scene (input frame, reference =
 mean of the other frames' valid depths) that the real-capture reader loads; a moving scene is refused."""
 
 from __future__ import annotations

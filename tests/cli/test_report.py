@@ -1,4 +1,4 @@
-"""tofdenoise-report on run folders fabricated in the documented layout."""
+"""tofdenoise report on run folders fabricated in the documented layout."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""`tofdenoise-reproduce`: the plan of a table, the records it commits, and the page it rebuilds."""
+"""`tofdenoise reproduce`: the plan of a table, figure or study, the records it commits, and the page it rebuilds
+(the command: ``tofdenoise.cli.reproduce``; the workflow: ``tofdenoise.experiments.reproduce``)."""
 
 from __future__ import annotations
 
@@ -10,7 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tofdenoise.cli.reproduce import copy_records, main, profile_overrides, realset_command
+from tofdenoise.cli.reproduce import main
+from tofdenoise.experiments.reproduce import copy_records, profile_overrides
+from tofdenoise.experiments.targets import KINDS, Target, target_of_key
 from tofdenoise.records import learned_verdict, write_metrics_json
 
 
@@ -42,7 +45,7 @@ def test_dry_run_lists_the_realset_and_every_run(tmp_path, capsys):
         == 0
     )
     printed = capsys.readouterr().out
-    assert f"realset --out {out / 'realset'} --scenes 24 --height 128 --width 160" in printed
+    assert f"would build the stand-in real set (second camera): {out / 'realset'}, 24 scenes of 128 x 160" in printed
     planned = [line for line in printed.splitlines() if ": would run" in line]
     assert len(planned) == 2 * 6
     first = planned[0]
@@ -62,7 +65,7 @@ def test_dry_run_lists_the_realset_and_every_run(tmp_path, capsys):
 
 def test_dry_run_of_a_qualitative_figure_lists_its_runs(tmp_path, capsys):
     out, results, page = tmp_path / "runs", tmp_path / "results", tmp_path / "results.md"
-    argv = ["--table", "fig8", "--seeds", "2", "1", "--out", str(out), "--results", str(results), "--page", str(page)]
+    argv = ["--figure", "8", "--seeds", "2", "1", "--out", str(out), "--results", str(results), "--page", str(page)]
     assert main([*argv, "--dry-run"]) == 0
     printed = capsys.readouterr().out
     planned = [line.split(":")[0].split()[-1] for line in printed.splitlines() if ": would run" in line]
@@ -79,10 +82,14 @@ def test_profiles_and_bad_arguments(tmp_path, capsys):
         "++data.real_dir=/r/captures",
         "data.source_kwargs.root=/d",
     ]
-    assert realset_command(Path("/r"), "gpu")[-6:] == ["--scenes", "200", "--height", "480", "--width", "640"]
     # a usage error exits 2, as argparse's own do (it was 1)
     assert main(["--results", str(tmp_path), "--page", str(tmp_path / "p.md")]) == 2
-    assert "error: give --table 1|2|3|dynrange" in capsys.readouterr().err
+    assert "error: give --table 1|2|3, --figure 6|7|8 or --study dynrange" in capsys.readouterr().err
+    # one target at a time, each kind with its own names (a figure is no table)
+    for argv in (["--table", "3", "--study", "dynrange"], ["--table", "fig6"], ["--figure", "3"]):
+        with pytest.raises(SystemExit) as exc:
+            main(argv)
+        assert exc.value.code == 2
     assert main(["--page-only", "--page", str(tmp_path / "p.txt")]) == 2
     assert f"--page {tmp_path / 'p.txt'}: expected a .md file" in capsys.readouterr().err
 
@@ -122,6 +129,7 @@ def test_records_of_finished_runs_only_and_the_page(tmp_path):
 def test_each_finished_run_is_recorded_at_once(tmp_path, monkeypatch):
     """A table interrupted after its first run keeps that run's records and an updated page."""
     import tofdenoise.cli.reproduce as reproduce
+    import tofdenoise.experiments.reproduce as workflow
     from tofdenoise.experiments.runner import RunOutcome
 
     out, results, page = tmp_path / "runs", tmp_path / "results", tmp_path / "results.md"
@@ -146,8 +154,8 @@ def test_each_finished_run_is_recorded_at_once(tmp_path, monkeypatch):
         assert "| DVSS, fixed Gaussian | 39.40 / 41.00 (n=1) | 3.42 / 2.00 (n=1) |" in page.read_text()
         raise KeyboardInterrupt  # the sitting ends here
 
-    monkeypatch.setattr(reproduce, "ensure_realset", lambda *a, **k: None)
-    monkeypatch.setattr("tofdenoise.experiments.runner.run_all", fake_run_all)
+    monkeypatch.setattr(workflow, "ensure_realset", lambda *a, **k: None)
+    monkeypatch.setattr(workflow, "run_all", fake_run_all)
     with pytest.raises(KeyboardInterrupt):
         reproduce.main(
             ["--table", "3", "--seeds", "0", "--out", str(out), "--results", str(results), "--page", str(page)]
@@ -157,6 +165,7 @@ def test_each_finished_run_is_recorded_at_once(tmp_path, monkeypatch):
 
 def test_a_figure_that_fails_its_check_is_not_written_and_fails_the_command(tmp_path, monkeypatch, capsys):
     import tofdenoise.cli.reproduce as reproduce
+    import tofdenoise.experiments.reproduce as workflow
     from tofdenoise.experiments.figures import FigureMismatch
     from tofdenoise.experiments.runner import RunOutcome
 
@@ -165,19 +174,20 @@ def test_a_figure_that_fails_its_check_is_not_written_and_fails_the_command(tmp_
     def refuse(*args, **kwargs):
         raise FigureMismatch("runs/x/per_image/real.csv: scene 'scene_0000': the figure's input has MAE 1.0 mm")
 
-    monkeypatch.setattr(reproduce, "ensure_realset", lambda *a, **k: None)
+    monkeypatch.setattr(workflow, "ensure_realset", lambda *a, **k: None)
     monkeypatch.setattr(
-        "tofdenoise.experiments.runner.run_all",
+        workflow,
+        "run_all",
         lambda specs, out_dir, dry_run=False, after_each=None, executor=None: [
             RunOutcome(s, out_dir / s.name, "skipped") for s in specs
         ],
     )
-    monkeypatch.setattr("tofdenoise.experiments.figures.build_figure", refuse)
-    argv = ["--table", "fig8", "--seeds", "0", "--out", str(out), "--results", str(results), "--page", str(page)]
+    monkeypatch.setattr(workflow, "build_figure", refuse)
+    argv = ["--figure", "8", "--seeds", "0", "--out", str(out), "--results", str(results), "--page", str(page)]
     assert reproduce.main(argv) == 1
     assert "fig8 not rendered: runs/x/per_image/real.csv: scene 'scene_0000'" in capsys.readouterr().out
     assert not (results / "cpu" / "fig8").exists() and not (out / "fig8").exists()
-    assert "Not run yet (`make reproduce TABLE=fig8`)" in page.read_text()
+    assert "Not run yet (`make reproduce FIGURE=8`)" in page.read_text()
 
 
 def test_figure_of_a_trained_run_matches_its_test_and_a_changed_checkpoint_is_refused(tmp_path, data_cache, tiny):
@@ -305,7 +315,7 @@ def test_a_record_that_cannot_be_read_is_an_error_naming_the_file(tmp_path, caps
     damage(broken)
     assert main(["--page-only", "--results", str(results), "--page", str(page)]) != 0
     err = capsys.readouterr().err
-    assert f"tofdenoise-reproduce: error: {broken}" in err and why in err
+    assert f"tofdenoise reproduce: error: {broken}" in err and why in err
     assert page.read_bytes() == before  # the page is not rewritten without the run
 
 
@@ -332,14 +342,14 @@ def test_the_page_never_replaces_its_own_inputs(tmp_path, capsys, rel):
     for _ in range(2):
         assert main(["--page-only", "--results", str(results), "--page", str(target)]) == 2
         err = capsys.readouterr().err.strip()
-        assert len(err.splitlines()) == 1 and f"tofdenoise-reproduce: error: --page {target}" in err
+        assert len(err.splitlines()) == 1 and f"tofdenoise reproduce: error: --page {target}" in err
     assert {p: p.read_bytes() for p in results.rglob("*") if p.is_file()} == before
 
 
 def test_the_gpu_profile_says_what_it_needs_before_any_work(tmp_path, capsys):
     """Without data.source_kwargs.root (or without a GPU) --profile gpu stops at once with exit 2, in a dry run too,
     before the stand-in real set (a 50-minute build at that profile) is started."""
-    from tofdenoise.cli.reproduce import profile_needs
+    from tofdenoise.experiments.reproduce import profile_needs
 
     out = tmp_path / "runs"
     args = ["--table", "3", "--profile", "gpu", "--out", str(out), "--results", str(tmp_path / "r")]
@@ -364,7 +374,49 @@ def test_dry_run_names_the_executor_and_bad_executor_options_exit_2(tmp_path, ca
     assert "executor: local (3 workers, each run in its own process)" in printed
     assert len([line for line in printed.splitlines() if ": would run: " in line]) == 7
     assert main([*argv, "--dry-run", "--executor", "local", "--workers", "0"]) == 2
-    assert "tofdenoise-reproduce: error: --workers must be a whole number >= 1, got 0" in capsys.readouterr().err
+    assert "tofdenoise reproduce: error: --workers must be a whole number >= 1, got 0" in capsys.readouterr().err
     assert main([*argv, "--dry-run", "--executor", "slurm", "--slurm-extra", "account"]) == 2
     assert "--slurm-extra expects KEY=VALUE" in capsys.readouterr().err
     assert not page.exists() and not results.exists()
+
+
+def test_every_target_has_its_records_and_its_make_command():
+    """Tables 1-3 and the study are the tables' keys, figures 7 and 8 the qualitative figures (6: the validation);
+    each target's key names it back, and the Makefile has the variable of each kind."""
+    from tofdenoise.experiments.figures import FIGURES
+    from tofdenoise.experiments.tables import TABLES
+
+    targets = [Target(kind, name) for kind, names in KINDS.items() for name in names]
+    assert {t.key for t in targets if t.kind != "figure"} == set(TABLES)
+    assert {t.key for t in targets if t.kind == "figure"} == {"fig6", *FIGURES}
+    assert all(target_of_key(t.key) == t for t in targets)
+    assert Target("study", "dynrange").make_command("cpu", "0,1,2") == (
+        "make reproduce STUDY=dynrange PROFILE=cpu SEEDS=0,1,2"
+    )
+    assert Target("figure", "6").option == "--figure 6"
+    with pytest.raises(ValueError, match="no figure '3'"):
+        Target("figure", "3")
+    makefile = (Path(__file__).resolve().parents[2] / "Makefile").read_text()
+    for variable, kind in (("TABLE", "table"), ("FIGURE", "figure"), ("STUDY", "study")):
+        assert f"$(if $({variable}),--{kind} $({variable}))" in makefile
+
+
+def test_figure_6_validates_the_noise_model_on_the_second_camera_in_this_process(tmp_path):
+    """Figure 6 of a (tiny) stand-in real set: its validation captures against the calibration estimated from its
+    own calibration captures, committed and on the page; no sub-process (issue 24 point 3: it was one)."""
+    from tofdenoise.data_modules.realset import build_realset
+    from tofdenoise.experiments.reproduce import Reproduction, validation_figure
+    from tofdenoise.reporting.results_page import results_markdown
+
+    build_realset(tmp_path / "realset", scenes=1, frames=2, height=16, width=16, log=lambda line: None)
+    results = tmp_path / "results"
+    job = Reproduction(Target("figure", "6"), results=results, page=tmp_path / "results.md", out=tmp_path)
+    logged: list[str] = []
+    assert validation_figure(job, log=logged.append) == 0
+    data = json.loads((results / "cpu" / "fig6" / "validation.json").read_text())
+    assert data["source"] == f"captures: {tmp_path / 'realset' / 'validation'}"  # measured, not simulated
+    assert np.isfinite(data["pooled"]["proposed"]["mape_percent"]) and data["pooled"]["proposed"]["n"] > 10
+    committed, made = results / "cpu" / "fig6" / "validation.png", tmp_path / "fig6" / "validation.png"
+    assert committed.read_bytes() == made.read_bytes()
+    assert any("proposed pooled MAPE" in line for line in logged)
+    assert "| pooled | proposed |" in results_markdown(results)

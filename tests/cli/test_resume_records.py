@@ -74,7 +74,7 @@ def test_truncated_last_ckpt_is_named_and_the_finished_run_is_untouched(finished
     )
     assert proc.returncode == 2, proc.stderr[-2000:]
     errors = [line for line in proc.stderr.splitlines() if "error" in line.lower()]
-    assert len(errors) == 1 and errors[0].startswith("tofdenoise-train: error: checkpoint ")
+    assert len(errors) == 1 and errors[0].startswith("tofdenoise train: error: checkpoint ")
     assert "Traceback" not in proc.stderr
     assert _snapshot(run_dir) == before
 

@@ -1,4 +1,4 @@
-"""`tofdenoise-sensor simulate-captures` / `build-reference` end to end on tiny sizes."""
+"""`tofdenoise sensor simulate-captures` / `build-reference` end to end on tiny sizes."""
 
 from __future__ import annotations
 
@@ -109,7 +109,7 @@ def test_simulate_calibration_then_calibrate_recovers_the_camera(tmp_path, capsy
         )
         == 0
     )
-    assert "next: tofdenoise-sensor calibrate" in capsys.readouterr().out
+    assert "next: tofdenoise sensor calibrate" in capsys.readouterr().out
     assert read_index(caps / "sweep", "sweep").modulation_frequency_hz == 75e6
     dark = read_index(caps / "dark", "dark")
     assert dark.units == "dn" and dark.adc_gain_e_per_dn == 4.0

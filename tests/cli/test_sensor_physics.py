@@ -1,4 +1,4 @@
-"""`tofdenoise-sensor` physics sub-commands: show-calib, sigma, calibrate, validate."""
+"""`tofdenoise sensor` physics sub-commands: show-calib, sigma, calibrate, validate."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from tofdenoise.physics.uncertainty import sigma_depth_mm
 
 
 def run(argv: list[str]) -> int:
-    parser = argparse.ArgumentParser(prog="tofdenoise-sensor")
+    parser = argparse.ArgumentParser(prog="tofdenoise sensor")
     sensor_physics.add_commands(parser.add_subparsers(dest="command", required=True))
     args = parser.parse_args(argv)
     return args.func(args)
@@ -107,7 +107,7 @@ def test_calibrate_command_round_trip(tmp_path, capsys):
     )
     assert "wrote" in capsys.readouterr().out
     got = load_calibration(out)
-    assert out.read_text().startswith("# Calibrated by tofdenoise-sensor calibrate")
+    assert out.read_text().startswith("# Calibrated by tofdenoise sensor calibrate")
     np.testing.assert_allclose(got.tap_response.cos, true.tap_response.cos, atol=3e-3)
     assert got.dark_std_e == pytest.approx(true.dark_std_e, rel=0.03)
     assert got.range_sigma_mm is not None
@@ -156,7 +156,7 @@ def test_unknown_preset_lists_the_presets(capsys):
     "argv", [["show-calib"], ["show-calib", "--json"], ["sigma", "--depth-mm", "1000", "--signal-e", "10000"]]
 )
 def test_closed_stdout_pipe_ends_quietly(argv):
-    """`tofdenoise-sensor show-calib | head`: the reader is gone before anything is written."""
+    """`tofdenoise sensor show-calib | head`: the reader is gone before anything is written."""
     import os
     import subprocess
     import sys
@@ -199,7 +199,7 @@ def test_calibrate_refuses_an_out_that_would_replace_its_captures(tmp_path, caps
     argv = ["calibrate", "--sweep", str(tmp_path / "sweep"), "--dark", str(tmp_path / "dark")]
     assert main([*argv, "--distances", str(tmp_path / "dist"), "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and err.startswith("tofdenoise-sensor calibrate: error: --out")
+    assert len(err.splitlines()) == 1 and err.startswith("tofdenoise sensor calibrate: error: --out")
     assert str(out) in err and "would replace" in err
     assert _snapshot(tmp_path) == before  # nothing written
 

@@ -93,7 +93,7 @@ def test_a_multirun_twice_trains_each_run_once_in_folders_the_runner_shares(tmp_
     assert {n: _stamps(sweep / n) for n in names} == before  # nothing trained, tested or rewritten
     assert {n: (sweep / n / "metrics.json").read_bytes() for n in names} == metrics
 
-    # the grids' runner (tofdenoise-reproduce, tofdenoise-grid) names its runs the same way: it skips them
+    # the grids' runner (tofdenoise reproduce, tofdenoise grid) names its runs the same way: it skips them
     specs = [RunSpec(n, ("backbone=unet", f"seed={n[-1]}")) for n in names]
     outcomes = run_all(specs, sweep, echo=False)
     assert [o.status for o in outcomes] == ["skipped", "skipped"]
@@ -129,12 +129,12 @@ def test_hparams_search_without_the_sweeper_installed_is_one_line_naming_the_ext
     monkeypatch.setattr(
         importlib.util, "find_spec", lambda name, *a: None if name.endswith("hydra_optuna_sweeper") else real(name, *a)
     )
-    monkeypatch.setattr(sys, "argv", ["tofdenoise-train", "-m", "hparams_search=recipe"])
+    monkeypatch.setattr(sys, "argv", ["tofdenoise train", "-m", "hparams_search=recipe"])
     with pytest.raises(SystemExit) as exc:
         main()
     assert exc.value.code == 2
     err = capsys.readouterr().err.strip()
-    assert err.startswith("tofdenoise-train: error: hparams_search=recipe needs the Optuna sweeper")
+    assert err.startswith("tofdenoise train: error: hparams_search=recipe needs the Optuna sweeper")
     assert ".[sweep]" in err
 
 
@@ -206,5 +206,5 @@ def test_a_ddp_job_lightning_would_launch_inside_a_multirun_is_refused(tmp_path,
     proc = _train_cli(["-m", *_sweep_args(tiny, sweep, data_cache), *DDP_ON_CPU, "trainer.devices=2", "seed=0"])
     assert proc.returncode == 2, proc.stderr[-2000:]
     line = proc.stderr.strip().splitlines()[-1]
-    assert line.startswith("tofdenoise-train: error: trainer.strategy: a DDP run of several processes cannot be")
+    assert line.startswith("tofdenoise train: error: trainer.strategy: a DDP run of several processes cannot be")
     assert not list(sweep.glob("*/checkpoints"))

@@ -1,4 +1,4 @@
-"""tofdenoise-train (Hydra): fit + test end to end, outputs of a run, bad input, resume after SIGKILL."""
+"""tofdenoise train (Hydra): fit + test end to end, outputs of a run, bad input, resume after SIGKILL."""
 
 from __future__ import annotations
 
@@ -228,7 +228,7 @@ def test_a_second_training_of_the_same_run_folder_is_refused_before_it_touches_i
         assert first.poll() is None  # the first was running during the whole attempt
         assert second.returncode == 2, second.stderr[-2000:]
         line = second.stderr.strip().splitlines()[-1]
-        assert line.startswith("tofdenoise-train: error: run folder") and str(run_dir / "run.lock") in line
+        assert line.startswith("tofdenoise train: error: run folder") and str(run_dir / "run.lock") in line
         assert f"pid {first.pid} " in line
         # nothing of the second reached the first's folder
         assert {p.name: p.read_bytes() for p in (run_dir / ".hydra").iterdir()} == hydra_before
@@ -432,7 +432,7 @@ def test_a_bad_data_setting_is_one_line_naming_the_key_before_any_training(tmp_p
     proc = _cli([f"++data.real_dir={empty}", f"paths.run_dir={run_dir}", "logger=csv"])
     assert proc.returncode == 2, proc.stderr[-2000:]
     lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
-    assert lines[-1].startswith("tofdenoise-train: error: data: capture set ") and "data.real_dir" in lines[-1]
+    assert lines[-1].startswith("tofdenoise train: error: data: capture set ") and "data.real_dir" in lines[-1]
     assert "Traceback" not in proc.stderr
     assert not (run_dir / "checkpoints").exists() and not (run_dir / "run_info.json").exists()
     proc = _cli(["++data.signal_route=photons", f"paths.run_dir={run_dir}", "logger=csv"])

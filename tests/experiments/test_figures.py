@@ -174,7 +174,7 @@ def test_page_section_from_a_figure_record(tmp_path):
     assert "| scene_0003 (index 3) | 5.00 | 1.50 | 1.25 |" in page
     assert "RCF = `rcf-hetero-l1-s0`, Ours = `dvss-hetero-full-s0`" in page and "A note." in page
     assert "results/cpu/fig8/figure.png" not in page  # no image written
-    assert "Not run yet (`make reproduce TABLE=fig7`)" in page
+    assert "Not run yet (`make reproduce FIGURE=7`)" in page
 
 
 def test_committed_figures_show_the_committed_records():

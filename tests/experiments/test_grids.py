@@ -84,7 +84,7 @@ def test_cli_table_only_exit_status_and_markdown(tmp_path, capsys):
     notes = tmp_path / specs[0].name / "notes.md"  # a file of a run the table is made from
     notes.write_text("by hand\n")
     assert main(args[:-1] + [str(notes)]) == 2
-    assert f"tofdenoise-grid: error: --markdown {notes} would replace notes.md" in capsys.readouterr().err
+    assert f"tofdenoise grid: error: --markdown {notes} would replace notes.md" in capsys.readouterr().err
     assert notes.read_text() == "by hand\n"
 
 

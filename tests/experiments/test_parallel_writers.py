@@ -100,7 +100,7 @@ def _commit(results: str, page: str, seed: int, start: float) -> None:
     """What a reproduce command does when a run ends: its record lands in the results, then the page is rebuilt.
     The rebuild is slowed down (0.3 s between reading the records and writing the page) so that commits overlap."""
     import tofdenoise.reporting.results_page as results_page
-    from tofdenoise.cli.reproduce import write_page
+    from tofdenoise.experiments.reproduce import write_page
 
     build = results_page.results_markdown
 

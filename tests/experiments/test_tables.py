@@ -206,8 +206,8 @@ def test_run_minutes():
 
 
 def test_committed_results_page_matches_the_records():
-    """docs/results.md is exactly what `tofdenoise-reproduce --page-only` prints from docs/results/."""
+    """docs/results.md is exactly what `tofdenoise reproduce --page-only` prints from docs/results/."""
     page = REPO_ROOT / "docs" / "results.md"
     assert page.read_text() == results_markdown(REPO_ROOT / "docs" / "results"), (
-        "docs/results.md is stale: run `tofdenoise-reproduce --page-only`"
+        "docs/results.md is stale: run `tofdenoise reproduce --page-only`"
     )

@@ -1,4 +1,4 @@
-"""LightningCLI predict on a folder of frames (no noise synthesis) writes what tofdenoise-denoise writes."""
+"""LightningCLI predict on a folder of frames (no noise synthesis) writes what tofdenoise denoise writes."""
 
 from __future__ import annotations
 
@@ -52,7 +52,7 @@ def test_lightningcli_predict_equals_the_command(tmp_path, restorer_ckpt):
             f"[{src}]",
             "--data.amplitude",
             str(amp),
-            "--data.calib",
+            "--data.sensor",
             "default",
             "--trainer.callbacks",
             "tofdenoise.inference.FramesPredictionWriter",
@@ -94,5 +94,7 @@ def test_lightningcli_predict_equals_the_command(tmp_path, restorer_ckpt):
 def test_frames_datamodule_errors(tmp_path):
     with pytest.raises(ValueError, match="no depth frame"):
         FramesDataModule(inputs=[str(tmp_path)])
-    with pytest.raises(ValueError, match="calib needs amplitude"):
+    with pytest.raises(ValueError, match="sensor needs amplitude"):
+        FramesDataModule(inputs=[str(tmp_path)], sensor="default")
+    with pytest.raises(TypeError, match="calib"):  # the calibration is ``sensor`` in every command (issue 24)
         FramesDataModule(inputs=[str(tmp_path)], calib="default")

@@ -7,7 +7,7 @@ each case, and the runner that calls a command's real entry point and records wh
 - ``model.ckpt`` (a tiny untrained DepthRestorer checkpoint) and ``calib.yaml`` (the default calibration);
 - ``captures/sweep``, ``captures/dark``, ``captures/distances`` (tiny calibration captures, capture format v1);
 - ``scenes/scene_000`` (a tiny capture set of one scene, reference built);
-- ``pred/``, ``ref/`` (two 16-bit depth maps each, for ``tofdenoise-eval``);
+- ``pred/``, ``ref/`` (two 16-bit depth maps each, for ``tofdenoise evaluate``);
 - ``runs/r1`` (a finished run's records), ``results/`` (``docs/results`` in small: three seeds of two rows and a
   hand-written discussion), ``grid/<run>`` (one finished robustness-grid run);
 - ``out/``: where the probes write (empty).
@@ -82,7 +82,7 @@ def _records(root: Path) -> None:
             )
             (d / "run_info.json").write_text(json.dumps({"started": "2026-11-22T10:00:00+0000"}))
     (results / "discussion.md").write_text("## Discussion\n\nWritten by hand.\n")
-    # one finished run of the robustness grid (tofdenoise-grid --table-only reads it)
+    # one finished run of the robustness grid (tofdenoise grid --table-only reads it)
     grid = root / "grid" / GRID_RUN
     write_metrics_json(
         grid / "metrics.json",
@@ -186,8 +186,9 @@ def file_size_limit(limit: int):
 
 
 def call_entry(script: str, argv: list[str], monkeypatch, full_disk: bool = False) -> Outcome:
-    """Run console script ``script`` in this process through its ``main`` (as ``pyproject.toml`` names it) with
-    ``argv``; Hydra scripts read ``sys.argv``. HYDRA_FULL_ERROR is unset, as for a user."""
+    """Run console script ``script`` (``tofdenoise``, the only one) in this process through its installed entry point
+    with ``argv`` (``<verb> ...``; the dispatcher hands the Hydra and LightningCLI verbs their ``sys.argv``).
+    HYDRA_FULL_ERROR is unset, as for a user."""
     from importlib import import_module
     from importlib.metadata import entry_points
 
@@ -202,7 +203,7 @@ def call_entry(script: str, argv: list[str], monkeypatch, full_disk: bool = Fals
     with redirect_stdout(out), redirect_stderr(err):
         try:
             with limit:
-                result = main(argv) if script not in HYDRA_SCRIPTS else main()
+                result = main(argv)
             status = 0 if result is None else int(result)
         except SystemExit as exc:
             status = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
@@ -223,10 +224,6 @@ def _release_locks() -> None:
     from tofdenoise.run_lock import release_all
 
     release_all()
-
-
-#: console scripts built by ``hydra.main`` (they read ``sys.argv``, no ``argv`` parameter)
-HYDRA_SCRIPTS = ("tofdenoise-train", "tofdenoise-classic")
 
 
 @pytest.fixture

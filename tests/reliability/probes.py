@@ -1,13 +1,13 @@
 """The probe table: every command that reads or writes user files, and the faults each is probed with.
 
-``COMMANDS`` maps a command as a user types it to its console script and the arguments that select it. A renamed
-command surface (``tofdenoise <verb>``) is one edit there: the rows name commands by these keys.
+``COMMANDS`` maps a command as a user types it (``tofdenoise <verb>``, ``tofdenoise sensor <subcommand>``) to the
+console script and the arguments that select it; the rows name commands by these keys.
 
 ``PROBES`` holds one row per (command, family, case). A row gives the arguments (``argv(world)``), what is done to
 the inputs first (``damage(world)``), the exit status a user must get, what one line of stderr must name, and which
 paths of the world may change (by default nothing may: inputs unchanged, nothing written). ``EXEMPT`` says, with a
 reason, which families do not apply to a command. ``test_every_command_has_a_row_in_every_family`` fails when a
-command of ``pyproject.toml`` (or a sub-command of ``tofdenoise-sensor`` / ``tofdenoise``) has neither.
+verb of ``tofdenoise.cli.main.VERBS`` (or a sub-command of ``tofdenoise sensor``) has neither.
 
 Families: ``bad_frames``, ``bad_captures``, ``bad_yaml``, ``misuse_outputs``, ``concurrent``, ``corrupt_records``,
 ``full_disk``, ``signals``. How to add a command: docs/reliability.md.
@@ -25,29 +25,34 @@ import cv2
 import numpy as np
 import yaml
 
+#: every command a user types: ``tofdenoise <verb>`` for each verb of ``tofdenoise.cli.main.VERBS`` and
+#: ``tofdenoise sensor <subcommand>`` for each sub-command of ``sensor`` (test_probes.py checks both ways)
+COMMAND_NAMES = (
+    "tofdenoise train",
+    "tofdenoise classic",
+    "tofdenoise fit",
+    "tofdenoise validate",
+    "tofdenoise test",
+    "tofdenoise predict",
+    "tofdenoise denoise",
+    "tofdenoise export",
+    "tofdenoise evaluate",
+    "tofdenoise report",
+    "tofdenoise grid",
+    "tofdenoise reproduce",
+    "tofdenoise sensor show-calib",
+    "tofdenoise sensor sigma",
+    "tofdenoise sensor calibrate",
+    "tofdenoise sensor validate",
+    "tofdenoise sensor simulate-captures",
+    "tofdenoise sensor simulate-calibration",
+    "tofdenoise sensor simulate-validation",
+    "tofdenoise sensor realset",
+    "tofdenoise sensor build-reference",
+)
 #: command as typed -> (console script, the arguments that select the command)
 COMMANDS: dict[str, tuple[str, tuple[str, ...]]] = {
-    "tofdenoise fit": ("tofdenoise", ("fit",)),
-    "tofdenoise validate": ("tofdenoise", ("validate",)),
-    "tofdenoise test": ("tofdenoise", ("test",)),
-    "tofdenoise predict": ("tofdenoise", ("predict",)),
-    "tofdenoise-train": ("tofdenoise-train", ()),
-    "tofdenoise-classic": ("tofdenoise-classic", ()),
-    "tofdenoise-sensor show-calib": ("tofdenoise-sensor", ("show-calib",)),
-    "tofdenoise-sensor sigma": ("tofdenoise-sensor", ("sigma",)),
-    "tofdenoise-sensor calibrate": ("tofdenoise-sensor", ("calibrate",)),
-    "tofdenoise-sensor validate": ("tofdenoise-sensor", ("validate",)),
-    "tofdenoise-sensor simulate-captures": ("tofdenoise-sensor", ("simulate-captures",)),
-    "tofdenoise-sensor simulate-calibration": ("tofdenoise-sensor", ("simulate-calibration",)),
-    "tofdenoise-sensor simulate-validation": ("tofdenoise-sensor", ("simulate-validation",)),
-    "tofdenoise-sensor realset": ("tofdenoise-sensor", ("realset",)),
-    "tofdenoise-sensor build-reference": ("tofdenoise-sensor", ("build-reference",)),
-    "tofdenoise-eval": ("tofdenoise-eval", ()),
-    "tofdenoise-report": ("tofdenoise-report", ()),
-    "tofdenoise-grid": ("tofdenoise-grid", ()),
-    "tofdenoise-denoise": ("tofdenoise-denoise", ()),
-    "tofdenoise-reproduce": ("tofdenoise-reproduce", ()),
-    "tofdenoise-export": ("tofdenoise-export", ()),
+    name: (name.split()[0], tuple(name.split()[1:])) for name in COMMAND_NAMES
 }
 
 FAMILIES = (
@@ -230,18 +235,18 @@ def _grid_select() -> list[str]:
 GRID_RUN = "unet-default-hetero-l1-s0"
 
 SIM_SMALL: dict[str, list[str]] = {
-    "tofdenoise-sensor simulate-calibration": [
+    "tofdenoise sensor simulate-calibration": [
         "--sweep-steps", "4", "--sweep-frames", "2", "--dark-frames", "2", "--distance-frames", "2", "--size", "2",
     ],
-    "tofdenoise-sensor simulate-captures": ["--scenes", "1", "--frames", "2", "--height", "16", "--width", "16"],
-    "tofdenoise-sensor simulate-validation": ["--frames", "2", "--roi-px", "2"],
-    "tofdenoise-sensor realset": ["--scenes", "1", "--frames", "2", "--height", "16", "--width", "16"],
+    "tofdenoise sensor simulate-captures": ["--scenes", "1", "--frames", "2", "--height", "16", "--width", "16"],
+    "tofdenoise sensor simulate-validation": ["--frames", "2", "--roi-px", "2"],
+    "tofdenoise sensor realset": ["--scenes", "1", "--frames", "2", "--height", "16", "--width", "16"],
 }  # fmt: skip
 SENSOR_OPTION = {
-    "tofdenoise-sensor simulate-calibration": "--sensor",
-    "tofdenoise-sensor simulate-captures": "--sensor",
-    "tofdenoise-sensor simulate-validation": "--sensor",
-    "tofdenoise-sensor realset": "--sensor",
+    "tofdenoise sensor simulate-calibration": "--sensor",
+    "tofdenoise sensor simulate-captures": "--sensor",
+    "tofdenoise sensor simulate-validation": "--sensor",
+    "tofdenoise sensor realset": "--sensor",
 }
 
 
@@ -285,48 +290,48 @@ PROBES: list[Probe] = []
 _HYDRA_RUN = ("out/run/.hydra", "out/run/config.log", "out/run/train.log", "out/run/classic.log")
 
 # bad frames: a truncated PNG, an 8-bit PNG, a frame of another dtype, depths in metres instead of millimetres.
-# tofdenoise-denoise goes on with the other frames and lists the bad one as FAILED (exit 1); nothing is written
+# tofdenoise denoise goes on with the other frames and lists the bad one as FAILED (exit 1); nothing is written
 # for the bad frame.
 _DENOISE_OTHER = {"a": ("out/d/sub/b.png",), "b": ("out/d/a.png",)}
 PROBES += [
-    P("tofdenoise-denoise", "bad_frames", "truncated-png", denoise_args, truncate("frames/a.png", 100), 1,
+    P("tofdenoise denoise", "bad_frames", "truncated-png", denoise_args, truncate("frames/a.png", 100), 1,
       lambda w: ["FAILED", str(w / "frames/a.png")], _DENOISE_OTHER["a"]),
-    P("tofdenoise-denoise", "bad_frames", "png-8bit", denoise_args, write_png8("frames/a.png"), 1,
+    P("tofdenoise denoise", "bad_frames", "png-8bit", denoise_args, write_png8("frames/a.png"), 1,
       lambda w: ["FAILED", str(w / "frames/a.png")], _DENOISE_OTHER["a"]),
-    P("tofdenoise-denoise", "bad_frames", "npy-complex", denoise_args, npy_dtype("frames/sub/b.npy", "complex64"), 1,
+    P("tofdenoise denoise", "bad_frames", "npy-complex", denoise_args, npy_dtype("frames/sub/b.npy", "complex64"), 1,
       lambda w: ["FAILED", str(w / "frames/sub/b.npy")], _DENOISE_OTHER["b"]),
-    P("tofdenoise-denoise", "bad_frames", "metres", denoise_args, npy_in_metres("frames/sub/b.npy"), 1,
+    P("tofdenoise denoise", "bad_frames", "metres", denoise_args, npy_in_metres("frames/sub/b.npy"), 1,
       lambda w: ["FAILED", str(w / "frames/sub/b.npy"), "--depth-scale-mm"], _DENOISE_OTHER["b"]),
-    P("tofdenoise-eval", "bad_frames", "truncated-png", eval_args, truncate("pred/s0.png", 100), 2,
+    P("tofdenoise evaluate", "bad_frames", "truncated-png", eval_args, truncate("pred/s0.png", 100), 2,
       lambda w: ["error", "s0.png"]),
-    P("tofdenoise-eval", "bad_frames", "png-8bit", eval_args, write_png8("pred/s0.png"), 2,
+    P("tofdenoise evaluate", "bad_frames", "png-8bit", eval_args, write_png8("pred/s0.png"), 2,
       lambda w: ["error", "s0.png"]),
-    P("tofdenoise-eval", "bad_frames", "metres", eval_args, npy_in_metres("pred/s0.png", "ref/s0.png"), 2,
+    P("tofdenoise evaluate", "bad_frames", "metres", eval_args, npy_in_metres("pred/s0.png", "ref/s0.png"), 2,
       lambda w: ["error", "s0.npy", "mm"]),
-    P("tofdenoise-sensor build-reference", "bad_frames", "truncated-png",
+    P("tofdenoise sensor build-reference", "bad_frames", "truncated-png",
       lambda w: [w / "scenes", "--force", "--quiet"], truncate("scenes/scene_0000/hiexp/depth_mm_000.png", 100), 2,
       lambda w: ["error", "depth_mm_000.png"]),
 ]  # fmt: skip
 
 # bad calibration captures: a missing index.json, stacks of mixed sizes, a truncated stack
 PROBES += [
-    P("tofdenoise-sensor calibrate", "bad_captures", "missing-index", calibrate_args,
+    P("tofdenoise sensor calibrate", "bad_captures", "missing-index", calibrate_args,
       remove("captures/sweep/index.json"),
       2, lambda w: ["error", "index.json", "sweep"]),
-    P("tofdenoise-sensor calibrate", "bad_captures", "mixed-sizes", calibrate_args, mixed_sizes("captures/sweep"), 2,
+    P("tofdenoise sensor calibrate", "bad_captures", "mixed-sizes", calibrate_args, mixed_sizes("captures/sweep"), 2,
       lambda w: ["error", str(w / "captures/sweep/step_"), "px"]),
-    P("tofdenoise-sensor calibrate", "bad_captures", "truncated-stack", calibrate_args,
+    P("tofdenoise sensor calibrate", "bad_captures", "truncated-stack", calibrate_args,
       truncate_stack("captures/sweep"),
       2, lambda w: ["error", first_stack(w, "captures/sweep").split("/")[-1]]),
-    P("tofdenoise-sensor validate", "bad_captures", "missing-index",
+    P("tofdenoise sensor validate", "bad_captures", "missing-index",
       lambda w: ["--out", w / "out/v", "--captures", w / "frames", "--quick"], None, 2,
       lambda w: ["error", "index.json"]),
-    P("tofdenoise-sensor build-reference", "bad_captures", "no-hiexp", lambda w: [w / "scenes/scene_0000", "--quiet"],
+    P("tofdenoise sensor build-reference", "bad_captures", "no-hiexp", lambda w: [w / "scenes/scene_0000", "--quiet"],
       remove("scenes/scene_0000/hiexp"), 2, lambda w: ["error", "scene_0000"]),
-    P("tofdenoise-train", "bad_captures", "empty-real-dir",
+    P("tofdenoise train", "bad_captures", "empty-real-dir",
       lambda w: train_args(w, f"++data.real_dir={w / 'frames/sub'}"), None, 2, lambda w: ["error", "data"],
       _HYDRA_RUN),
-    P("tofdenoise-classic", "bad_captures", "empty-real-dir",
+    P("tofdenoise classic", "bad_captures", "empty-real-dir",
       lambda w: train_args(w, f"++data.real_dir={w / 'frames/sub'}"), None, 2, lambda w: ["error", "data"],
       _HYDRA_RUN),
     P("tofdenoise fit", "bad_captures", "empty-real-dir",
@@ -336,22 +341,22 @@ PROBES += [
 
 # bad YAML: the calibration file (every reader) and the LightningCLI config
 _CALIB_READERS: dict[str, Callable[[W], list[Any]]] = {
-    "tofdenoise-sensor show-calib": lambda w: ["--sensor", w / "calib.yaml"],
-    "tofdenoise-sensor sigma": lambda w: ["--depth-mm", "1000", "--signal-e", "5000", "--sensor", w / "calib.yaml"],
-    "tofdenoise-sensor validate": lambda w: ["--out", w / "out/v", "--sensor", w / "calib.yaml", "--quick"],
-    "tofdenoise-denoise": lambda w: denoise_args(w, "--amplitude", w / "amp", "--sensor", w / "calib.yaml"),
+    "tofdenoise sensor show-calib": lambda w: ["--sensor", w / "calib.yaml"],
+    "tofdenoise sensor sigma": lambda w: ["--depth-mm", "1000", "--signal-e", "5000", "--sensor", w / "calib.yaml"],
+    "tofdenoise sensor validate": lambda w: ["--out", w / "out/v", "--sensor", w / "calib.yaml", "--quick"],
+    "tofdenoise denoise": lambda w: denoise_args(w, "--amplitude", w / "amp", "--sensor", w / "calib.yaml"),
     **{
         cmd: (lambda c: lambda w: ["--out", w / "out/sim", SENSOR_OPTION[c], w / "calib.yaml", *SIM_SMALL[c]])(cmd)
         for cmd in SENSOR_OPTION
     },
-    "tofdenoise-train": lambda w: train_args(w, f"++data.sensor={w / 'calib.yaml'}"),
-    "tofdenoise-classic": lambda w: train_args(w, f"++data.sensor={w / 'calib.yaml'}"),
+    "tofdenoise train": lambda w: train_args(w, f"++data.sensor={w / 'calib.yaml'}"),
+    "tofdenoise classic": lambda w: train_args(w, f"++data.sensor={w / 'calib.yaml'}"),
 }
 for _cmd, _argv in _CALIB_READERS.items():
     for _case, (_damage, _names) in CALIB_DAMAGE.items():
         PROBES.append(
             P(_cmd, "bad_yaml", _case, _argv, _damage, 2, (lambda n: lambda w: ["error", *n])(_names),
-              _HYDRA_RUN if _cmd in ("tofdenoise-train", "tofdenoise-classic") else ())
+              _HYDRA_RUN if _cmd in ("tofdenoise train", "tofdenoise classic") else ())
         )  # fmt: skip
 
 
@@ -370,37 +375,37 @@ for _case, (_text, _names) in LIGHTNING_CONFIG_DAMAGE.items():
 
 # misuse of outputs: an output that is an input, or that lies where it would replace one
 PROBES += [
-    P("tofdenoise-denoise", "misuse_outputs", "out-is-the-input-folder", lambda w: denoise_args(w, out="frames"),
+    P("tofdenoise denoise", "misuse_outputs", "out-is-the-input-folder", lambda w: denoise_args(w, out="frames"),
       None, 2, lambda w: ["error", "--out", "holds the input", str(w / "frames")]),
-    P("tofdenoise-denoise", "misuse_outputs", "npy-replaces-the-amplitude",
+    P("tofdenoise denoise", "misuse_outputs", "npy-replaces-the-amplitude",
       lambda w: denoise_args(w, "--amplitude", w / "amp", "--npy", out="amp"), None, 2,
       lambda w: ["error", "--out", "amp"]),
-    P("tofdenoise-eval", "misuse_outputs", "out-is-an-input", lambda w: eval_args(w, "pred/s0.png"), None, 2,
+    P("tofdenoise evaluate", "misuse_outputs", "out-is-an-input", lambda w: eval_args(w, "pred/s0.png"), None, 2,
       lambda w: ["error", "--out", "s0.png"]),
-    P("tofdenoise-eval", "misuse_outputs", "out-beside-an-input", lambda w: eval_args(w, "pred/s0.json"), None, 2,
+    P("tofdenoise evaluate", "misuse_outputs", "out-beside-an-input", lambda w: eval_args(w, "pred/s0.json"), None, 2,
       lambda w: ["error", "--out", "s0"]),
-    P("tofdenoise-report", "misuse_outputs", "out-is-a-record",
+    P("tofdenoise report", "misuse_outputs", "out-is-a-record",
       lambda w: [w / "runs", "--out", w / "runs/r1/metrics.html"], None, 2, lambda w: ["error", "--out", "metrics"]),
-    P("tofdenoise-grid", "misuse_outputs", "markdown-replaces-a-file-of-a-run",
+    P("tofdenoise grid", "misuse_outputs", "markdown-replaces-a-file-of-a-run",
       lambda w: grid_args(w, "--markdown", w / "grid" / GRID_RUN / "notes.md"),
       lambda w: (w / "grid" / GRID_RUN / "notes.md").write_text("my notes\n"), 2,
       lambda w: ["error", "--markdown", "notes.md"]),
-    P("tofdenoise-reproduce", "misuse_outputs", "page-is-the-discussion",
+    P("tofdenoise reproduce", "misuse_outputs", "page-is-the-discussion",
       lambda w: page_args(w, "results/discussion.md"),
       None, 2, lambda w: ["error", "--page", "discussion.md"]),
-    P("tofdenoise-sensor calibrate", "misuse_outputs", "out-is-the-capture-index",
+    P("tofdenoise sensor calibrate", "misuse_outputs", "out-is-the-capture-index",
       lambda w: calibrate_args(w, "captures/sweep/index.json"), None, 2, lambda w: ["error", "index.json"]),
-    P("tofdenoise-sensor calibrate", "misuse_outputs", "out-is-a-capture-folder",
+    P("tofdenoise sensor calibrate", "misuse_outputs", "out-is-a-capture-folder",
       lambda w: calibrate_args(w, "captures/dark"), None, 2, lambda w: ["error", "dark"]),
-    P("tofdenoise-sensor validate", "misuse_outputs", "out-replaces-the-calibration",
+    P("tofdenoise sensor validate", "misuse_outputs", "out-replaces-the-calibration",
       lambda w: ["--out", w / "out/v", "--sensor", w / "out/v/validation.json", "--quick"],
       lambda w: ((w / "out/v").mkdir(), (w / "out/v/validation.json").write_text(
           json.dumps(yaml.safe_load((w / "calib.yaml").read_text())))),
       2, lambda w: ["error", "validation.json"]),
-    P("tofdenoise-export", "misuse_outputs", "onnx-is-the-checkpoint",
+    P("tofdenoise export", "misuse_outputs", "onnx-is-the-checkpoint",
       lambda w: [w / "model.ckpt", "--onnx", w / "model.ckpt", "--no-check"], None, 2,
       lambda w: ["error", "model.ckpt"]),
-    P("tofdenoise-train", "misuse_outputs", "init-weights-inside-the-run",
+    P("tofdenoise train", "misuse_outputs", "init-weights-inside-the-run",
       lambda w: train_args(w, f"++model.init_weights={w / 'out/run/checkpoints/best.ckpt'}"),
       lambda w: ((w / "out/run/checkpoints").mkdir(parents=True),
                  (w / "out/run/checkpoints/best.ckpt").write_bytes((w / "model.ckpt").read_bytes())),
@@ -420,9 +425,9 @@ for _cmd, _opt in SENSOR_OPTION.items():
 
 # concurrent writers: another process holds the run folder's lock
 PROBES += [
-    P("tofdenoise-train", "concurrent", "run-folder-locked", train_args, None, 2,
+    P("tofdenoise train", "concurrent", "run-folder-locked", train_args, None, 2,
       lambda w: ["error", str(w / "out/run/run.lock")], runner="locked", lock_dir=lambda w: w / "out/run"),
-    P("tofdenoise-classic", "concurrent", "run-folder-locked", train_args, None, 2,
+    P("tofdenoise classic", "concurrent", "run-folder-locked", train_args, None, 2,
       lambda w: ["error", str(w / "out/run/run.lock")], runner="locked", lock_dir=lambda w: w / "out/run"),
     P("tofdenoise fit", "concurrent", "run-folder-locked", lightning_args, None, 2,
       lambda w: ["error", str(w / "out/cli/run.lock")], runner="locked", lock_dir=lambda w: w / "out/cli"),
@@ -458,30 +463,30 @@ def _write(rel: str, text: str) -> Callable[[W], None]:
 _REC = "results/cpu/dvss-range-l1-s1"
 _GRID_REC = f"grid/{GRID_RUN}"
 PROBES += [
-    P("tofdenoise-reproduce", "corrupt_records", "truncated-metrics", page_args,
+    P("tofdenoise reproduce", "corrupt_records", "truncated-metrics", page_args,
       truncate(f"{_REC}/metrics.json", 40), 2,
       lambda w: ["error", f"{_REC}/metrics.json"]),
-    P("tofdenoise-reproduce", "corrupt_records", "null-metric", page_args, _null_metric(f"{_REC}/metrics.json"), 2,
+    P("tofdenoise reproduce", "corrupt_records", "null-metric", page_args, _null_metric(f"{_REC}/metrics.json"), 2,
       lambda w: ["error", f"{_REC}/metrics.json", "mae_mm"]),
-    P("tofdenoise-reproduce", "corrupt_records", "text-metric", page_args, _text_metric(f"{_REC}/metrics.json"), 2,
+    P("tofdenoise reproduce", "corrupt_records", "text-metric", page_args, _text_metric(f"{_REC}/metrics.json"), 2,
       lambda w: ["error", f"{_REC}/metrics.json", "mae_mm"]),
-    P("tofdenoise-reproduce", "corrupt_records", "run-info-not-json", page_args, _write(f"{_REC}/run_info.json", "{x"),
+    P("tofdenoise reproduce", "corrupt_records", "run-info-not-json", page_args, _write(f"{_REC}/run_info.json", "{x"),
       2, lambda w: ["error", f"{_REC}/run_info.json"]),
-    P("tofdenoise-report", "corrupt_records", "truncated-metrics", lambda w: [w / "runs", "--out", w / "out/r.html"],
+    P("tofdenoise report", "corrupt_records", "truncated-metrics", lambda w: [w / "runs", "--out", w / "out/r.html"],
       truncate("runs/r1/metrics.json", 40), 2, lambda w: ["runs/r1", "metrics.json"]),
-    P("tofdenoise-report", "corrupt_records", "text-metric", lambda w: [w / "runs", "--out", w / "out/r.html"],
+    P("tofdenoise report", "corrupt_records", "text-metric", lambda w: [w / "runs", "--out", w / "out/r.html"],
       _text_metric("runs/r1/metrics.json"), 2, lambda w: ["runs/r1", "mae_mm"]),
-    P("tofdenoise-grid", "corrupt_records", "truncated-metrics", grid_args,
+    P("tofdenoise grid", "corrupt_records", "truncated-metrics", grid_args,
       truncate(f"{_GRID_REC}/metrics.json", 40), 2,
       lambda w: ["error", f"{_GRID_REC}/metrics.json"]),
-    P("tofdenoise-grid", "corrupt_records", "run-info-not-json", grid_args, _write(f"{_GRID_REC}/run_info.json", "{x"),
+    P("tofdenoise grid", "corrupt_records", "run-info-not-json", grid_args, _write(f"{_GRID_REC}/run_info.json", "{x"),
       2, lambda w: ["error", f"{_GRID_REC}/run_info.json"]),
-    P("tofdenoise-denoise", "corrupt_records", "truncated-checkpoint", denoise_args, truncate("model.ckpt", 4000), 2,
+    P("tofdenoise denoise", "corrupt_records", "truncated-checkpoint", denoise_args, truncate("model.ckpt", 4000), 2,
       lambda w: ["error", "model.ckpt"]),
-    P("tofdenoise-export", "corrupt_records", "truncated-checkpoint",
+    P("tofdenoise export", "corrupt_records", "truncated-checkpoint",
       lambda w: [w / "model.ckpt", "--onnx", w / "out/m.onnx"], truncate("model.ckpt", 4000), 2,
       lambda w: ["error", "model.ckpt"]),
-    P("tofdenoise-train", "corrupt_records", "truncated-checkpoint-to-test",
+    P("tofdenoise train", "corrupt_records", "truncated-checkpoint-to-test",
       lambda w: train_args(w, "train=false", f"ckpt_path={w / 'model.ckpt'}"), truncate("model.ckpt", 4000), 2,
       lambda w: ["error", "model.ckpt"], _HYDRA_RUN),
     P("tofdenoise fit", "corrupt_records", "truncated-checkpoint-to-resume",
@@ -499,28 +504,28 @@ PROBES += [
 ]  # fmt: skip
 
 # full disk: every write fails (ENOSPC on a real small file system, EFBIG under RLIMIT_FSIZE here); one line naming
-# the output, exit status 2 (1 for a frame of tofdenoise-denoise, listed as FAILED), no partial file
+# the output, exit status 2 (1 for a frame of tofdenoise denoise, listed as FAILED), no partial file
 PROBES += [
-    P("tofdenoise-denoise", "full_disk", "every-frame", lambda w: denoise_args(w, "--npy"), None, 1,
+    P("tofdenoise denoise", "full_disk", "every-frame", lambda w: denoise_args(w, "--npy"), None, 1,
       lambda w: ["FAILED", str(w / "out/d"), "could not write"], ("out/d",)),
-    P("tofdenoise-eval", "full_disk", "json", eval_args, None, 2, lambda w: ["error", "m.json"], ("out",)),
-    P("tofdenoise-report", "full_disk", "html", lambda w: [w / "runs", "--out", w / "out/r.html"], None, 2,
+    P("tofdenoise evaluate", "full_disk", "json", eval_args, None, 2, lambda w: ["error", "m.json"], ("out",)),
+    P("tofdenoise report", "full_disk", "html", lambda w: [w / "runs", "--out", w / "out/r.html"], None, 2,
       lambda w: ["error", "r.html"], ("out",)),
-    P("tofdenoise-grid", "full_disk", "markdown", lambda w: grid_args(w, "--markdown", w / "out/t.md"), None, 2,
+    P("tofdenoise grid", "full_disk", "markdown", lambda w: grid_args(w, "--markdown", w / "out/t.md"), None, 2,
       lambda w: ["error", "t.md"], ("out",)),
-    P("tofdenoise-reproduce", "full_disk", "page", page_args, None, 2, lambda w: ["error", "results.md"], ("out",)),
-    P("tofdenoise-sensor calibrate", "full_disk", "calibration", calibrate_args, None, 2,
+    P("tofdenoise reproduce", "full_disk", "page", page_args, None, 2, lambda w: ["error", "results.md"], ("out",)),
+    P("tofdenoise sensor calibrate", "full_disk", "calibration", calibrate_args, None, 2,
       lambda w: ["error", "c.yaml"], ("out",)),
-    P("tofdenoise-sensor validate", "full_disk", "validation",
+    P("tofdenoise sensor validate", "full_disk", "validation",
       lambda w: ["--out", w / "out/v", "--quick", "--frames", "4", "--roi-px", "4"], None, 2,
       lambda w: ["error", "out/v"], ("out",)),
-    P("tofdenoise-sensor build-reference", "full_disk", "reference", lambda w: [w / "scenes", "--force", "--quiet"],
+    P("tofdenoise sensor build-reference", "full_disk", "reference", lambda w: [w / "scenes", "--force", "--quiet"],
       None, 2, lambda w: ["error", "scene_0000"]),
-    P("tofdenoise-export", "full_disk", "onnx", lambda w: [w / "model.ckpt", "--onnx", w / "out/m.onnx", "--no-check"],
+    P("tofdenoise export", "full_disk", "onnx", lambda w: [w / "model.ckpt", "--onnx", w / "out/m.onnx", "--no-check"],
       None, 2, lambda w: ["error", "m.onnx"], ("out",)),
 ]  # fmt: skip
-for _cmd in ("tofdenoise-sensor simulate-calibration", "tofdenoise-sensor simulate-captures",
-             "tofdenoise-sensor simulate-validation"):  # fmt: skip
+for _cmd in ("tofdenoise sensor simulate-calibration", "tofdenoise sensor simulate-captures",
+             "tofdenoise sensor simulate-validation"):  # fmt: skip
     PROBES.append(
         P(_cmd, "full_disk", "captures", (lambda c: lambda w: ["--out", w / "out/sim", *SIM_SMALL[c]])(_cmd), None, 2,
           lambda w: ["error", "out/sim"], ("out",))
@@ -528,10 +533,10 @@ for _cmd in ("tofdenoise-sensor simulate-calibration", "tofdenoise-sensor simula
 
 # signals: a separate process (tests/reliability/test_signals.py runs these rows)
 PROBES += [
-    P("tofdenoise-denoise", "signals", "sigint-over-many-frames", lambda w: [], runner="signal", status=130),
-    P("tofdenoise-denoise", "signals", "sigkill-over-many-frames", lambda w: [], runner="signal", status=-9, slow=True),
-    P("tofdenoise-denoise", "concurrent", "two-writers-one-out", lambda w: [], runner="signal", status=0, slow=True),
-    P("tofdenoise-train", "signals", "sigint-mid-training", lambda w: [], runner="signal", status=130, slow=True),
+    P("tofdenoise denoise", "signals", "sigint-over-many-frames", lambda w: [], runner="signal", status=130),
+    P("tofdenoise denoise", "signals", "sigkill-over-many-frames", lambda w: [], runner="signal", status=-9, slow=True),
+    P("tofdenoise denoise", "concurrent", "two-writers-one-out", lambda w: [], runner="signal", status=0, slow=True),
+    P("tofdenoise train", "signals", "sigint-mid-training", lambda w: [], runner="signal", status=130, slow=True),
 ]
 
 # ------------------------------------------------------------------------------------------------ exemptions
@@ -543,16 +548,16 @@ _NO_OUTPUT = "writes no file (prints to stdout)"
 _NO_RUN = "writes no run folder, and its outputs are written by atomic rename (two writers: the last complete file)"
 _NO_RECORDS = "reads no run record or checkpoint"
 _SHORT = "finishes in seconds and writes every file by atomic rename: a signal leaves the old file or the new one"
-_HYDRA_SAME = "the same Hydra entry code as tofdenoise-train (config.hydra_console_script): see its rows"
+_HYDRA_SAME = "the same Hydra entry code as tofdenoise train (config.hydra_console_script): see its rows"
 _LCLI_SAME = "the same LightningCLI front end as `tofdenoise fit` (lightning_cli.ToFLightningCLI): see its rows"
-_CHILDREN = "runs each training as a tofdenoise-train process: the train rows cover it"
+_CHILDREN = "runs each training as a tofdenoise train process: the train rows cover it"
 _REALSET = "runs simulate-calibration, calibrate, simulate-captures and simulate-validation in this process: their rows"
 
 EXEMPT: dict[str, dict[str, str]] = {
     "tofdenoise fit": {
         "bad_frames": "reads the training data through data sources (tests/data_modules)",
-        "full_disk": "checkpoints are written by the same CheckpointWriter as tofdenoise-train (its tmpfs row)",
-        "signals": "Lightning's own KeyboardInterrupt handling, as in tofdenoise-train (its row)",
+        "full_disk": "checkpoints are written by the same CheckpointWriter as tofdenoise train (its tmpfs row)",
+        "signals": "Lightning's own KeyboardInterrupt handling, as in tofdenoise train (its row)",
     },
     **{
         f"tofdenoise {verb}": {
@@ -566,12 +571,12 @@ EXEMPT: dict[str, dict[str, str]] = {
         }
         for verb in ("validate", "test", "predict")
     },
-    "tofdenoise-train": {
+    "tofdenoise train": {
         "bad_frames": "reads the training data through data sources (tests/data_modules)",
         "full_disk": "a checkpoint write that fails: tests/training/test_checkpointing.py (not probed end to end "
         "on a full file system yet)",
     },
-    "tofdenoise-classic": {
+    "tofdenoise classic": {
         "bad_frames": "reads the training data through data sources (tests/data_modules)",
         "misuse_outputs": "reads no file that its run folder's records could replace (only a calibration: its "
         "bad_yaml rows)",
@@ -579,7 +584,7 @@ EXEMPT: dict[str, dict[str, str]] = {
         "full_disk": _HYDRA_SAME,
         "signals": _HYDRA_SAME,
     },
-    "tofdenoise-sensor show-calib": {
+    "tofdenoise sensor show-calib": {
         "bad_frames": _NO_FRAMES,
         "bad_captures": _NO_CAPTURES,
         "misuse_outputs": _NO_OUTPUT,
@@ -588,20 +593,20 @@ EXEMPT: dict[str, dict[str, str]] = {
         "full_disk": _NO_OUTPUT,
         "signals": _NO_OUTPUT,
     },
-    "tofdenoise-sensor calibrate": {
+    "tofdenoise sensor calibrate": {
         "bad_frames": "reads capture stacks, not depth frames: its bad_captures rows",
         "bad_yaml": "reads no YAML (index.json is JSON: its missing-index row)",
         "concurrent": _NO_RUN,
         "corrupt_records": _NO_RECORDS,
         "signals": _SHORT,
     },
-    "tofdenoise-sensor validate": {
+    "tofdenoise sensor validate": {
         "bad_frames": "reads capture stacks, not depth frames: its bad_captures rows",
         "concurrent": _NO_RUN,
         "corrupt_records": _NO_RECORDS,
         "signals": _SHORT,
     },
-    "tofdenoise-sensor build-reference": {
+    "tofdenoise sensor build-reference": {
         "bad_yaml": _NO_YAML,
         "misuse_outputs": "writes each scene's reference into that scene's folder by design (docs/reliability.md, "
         "Not covered)",
@@ -609,7 +614,7 @@ EXEMPT: dict[str, dict[str, str]] = {
         "corrupt_records": _NO_RECORDS,
         "signals": _SHORT,
     },
-    "tofdenoise-sensor realset": {
+    "tofdenoise sensor realset": {
         "bad_frames": _NO_FRAMES,
         "bad_captures": _REALSET,
         "concurrent": _REALSET,
@@ -617,36 +622,36 @@ EXEMPT: dict[str, dict[str, str]] = {
         "full_disk": _REALSET,
         "signals": "resumable: finished steps and complete scenes are skipped on the next run",
     },
-    "tofdenoise-eval": {
+    "tofdenoise evaluate": {
         "bad_captures": _NO_CAPTURES,
         "bad_yaml": _NO_YAML,
         "concurrent": _NO_RUN,
         "corrupt_records": _NO_RECORDS,
         "signals": _SHORT,
     },
-    "tofdenoise-report": {
+    "tofdenoise report": {
         "bad_frames": _NO_FRAMES,
         "bad_captures": _NO_CAPTURES,
         "bad_yaml": "a run's Hydra config.yaml is read only for labels (tests/cli/test_report.py)",
         "concurrent": _NO_RUN,
         "signals": _SHORT,
     },
-    "tofdenoise-grid": {
+    "tofdenoise grid": {
         "bad_frames": _NO_FRAMES,
         "bad_captures": _CHILDREN,
         "bad_yaml": _CHILDREN,
         "concurrent": _CHILDREN,
         "signals": _CHILDREN,
     },
-    "tofdenoise-denoise": {"bad_captures": _NO_CAPTURES},
-    "tofdenoise-reproduce": {
+    "tofdenoise denoise": {"bad_captures": _NO_CAPTURES},
+    "tofdenoise reproduce": {
         "bad_frames": _NO_FRAMES,
         "bad_captures": _CHILDREN,
         "bad_yaml": _CHILDREN,
         "concurrent": _CHILDREN,
         "signals": _CHILDREN,
     },
-    "tofdenoise-export": {
+    "tofdenoise export": {
         "bad_frames": _NO_FRAMES,
         "bad_captures": _NO_CAPTURES,
         "bad_yaml": _NO_YAML,
@@ -654,8 +659,8 @@ EXEMPT: dict[str, dict[str, str]] = {
         "signals": _SHORT,
     },
 }
-for _cmd in ("tofdenoise-sensor sigma",):
-    EXEMPT[_cmd] = EXEMPT["tofdenoise-sensor show-calib"]
+for _cmd in ("tofdenoise sensor sigma",):
+    EXEMPT[_cmd] = EXEMPT["tofdenoise sensor show-calib"]
 for _cmd in SENSOR_OPTION:
     EXEMPT.setdefault(_cmd, {})
     EXEMPT[_cmd].update(
@@ -663,8 +668,8 @@ for _cmd in SENSOR_OPTION:
             "bad_frames": _NO_FRAMES,
             "concurrent": _NO_RUN,
             "corrupt_records": _NO_RECORDS,
-            "signals": EXEMPT["tofdenoise-sensor realset"]["signals"],
+            "signals": EXEMPT["tofdenoise sensor realset"]["signals"],
         }
     )
-    if _cmd != "tofdenoise-sensor realset":
+    if _cmd != "tofdenoise sensor realset":
         EXEMPT[_cmd]["bad_captures"] = "reads no captures: it writes them"

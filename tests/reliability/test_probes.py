@@ -19,24 +19,9 @@ probes = importlib.util.module_from_spec(_spec)
 sys.modules[_spec.name] = probes
 _spec.loader.exec_module(probes)
 
-REPO = Path(__file__).resolve().parents[2]
 
 #: sha256 of an empty file
 EMPTY_SHA256 = hashlib.sha256(b"").hexdigest()
-
-
-def console_scripts() -> dict[str, str]:
-    """``[project.scripts]`` of pyproject.toml (tomllib from Python 3.11; the plain ``name = "module:func"`` lines
-    of that table on 3.10)."""
-    text = (REPO / "pyproject.toml").read_text(encoding="utf-8")
-    try:
-        import tomllib
-    except ModuleNotFoundError:  # Python 3.10
-        import re
-
-        table = text.split("[project.scripts]", 1)[1].split("\n[", 1)[0]
-        return dict(re.findall(r'^([A-Za-z0-9_-]+)\s*=\s*"([^"]+)"', table, flags=re.M))
-    return tomllib.loads(text)["project"]["scripts"]
 
 
 def _params(runner: str):
@@ -102,28 +87,59 @@ def test_probe_with_the_run_folder_locked_by_another_process(probe, world, call,
 # ----------------------------------------------------------------------------------- the table covers every command
 
 
-def _commands_of_the_package() -> set[str]:
-    """Every console script of pyproject.toml, with the sub-commands of those that have them."""
-    from lightning.pytorch.cli import LightningCLI
-
+def _sensor_subcommands() -> set[str]:
     from tofdenoise.cli.sensor import build_parser
 
-    scripts = console_scripts()
+    (sub,) = [a for a in build_parser()._actions if a.dest == "command"]
+    return set(sub.choices)
+
+
+def _commands_of_the_package(verbs=None, sensor_subcommands=None) -> set[str]:
+    """Every command a user types: ``tofdenoise <verb>`` for each verb of ``tofdenoise.cli.main.VERBS``, and for
+    ``sensor`` one command per sub-command."""
+    from tofdenoise.cli.main import VERBS
+
     commands = set()
-    for script in scripts:
-        if script == "tofdenoise-sensor":
-            parser = build_parser()
-            (sub,) = [a for a in parser._actions if a.dest == "command"]
-            commands |= {f"{script} {name}" for name in sub.choices}
-        elif script == "tofdenoise":
-            commands |= {f"{script} {name}" for name in LightningCLI.subcommands()}
+    for verb in VERBS if verbs is None else verbs:
+        if verb == "sensor":
+            subs = _sensor_subcommands() if sensor_subcommands is None else sensor_subcommands
+            commands |= {f"tofdenoise sensor {name}" for name in subs}
         else:
-            commands.add(script)
+            commands.add(f"tofdenoise {verb}")
     return commands
 
 
+def _uncovered(commands: set[str]) -> list[str]:
+    """(command / family) pairs with neither a probe row nor an exemption."""
+    rows = {(p.command, p.family) for p in probes.PROBES}
+    return [
+        f"{command} / {family}"
+        for command in sorted(commands)
+        for family in probes.FAMILIES
+        if (command, family) not in rows and not probes.EXEMPT.get(command, {}).get(family)
+    ]
+
+
+def test_a_verb_without_rows_fails_the_coverage_check():
+    """The check can fail: a new verb (or sensor sub-command) with no probe row and no exemption is reported."""
+    from tofdenoise.cli.main import VERBS
+
+    new = _commands_of_the_package([*VERBS, "calibrate-all"], [*_sensor_subcommands(), "flash"])
+    assert new - set(probes.COMMANDS) == {"tofdenoise calibrate-all", "tofdenoise sensor flash"}
+    missing = _uncovered(new)
+    assert f"tofdenoise calibrate-all / {probes.FAMILIES[0]}" in missing
+    assert f"tofdenoise sensor flash / {probes.FAMILIES[-1]}" in missing
+    assert not _uncovered(set(probes.COMMANDS))
+
+
 def test_every_command_has_a_row_in_every_family():
-    """A new console script or sub-command fails here until it has a row (or a reasoned exemption) per family."""
+    """A new verb or sensor sub-command fails here until it has a row (or a reasoned exemption) per family."""
+    from lightning.pytorch.cli import LightningCLI
+
+    from tofdenoise.cli.main import VERBS
+
+    lightning = {name for name, verb in VERBS.items() if verb.grammar == "lightning"}
+    assert lightning == set(LightningCLI.subcommands())  # every Lightning subcommand is a verb
     package = _commands_of_the_package()
     assert package == set(probes.COMMANDS), (
         f"commands without an entry in probes.COMMANDS: {sorted(package - set(probes.COMMANDS))}; "
@@ -146,11 +162,17 @@ def test_every_command_has_a_row_in_every_family():
 
 def test_the_table_is_not_empty_where_it_matters():
     """Every writing command is probed for misuse of its outputs and a full disk, and the probes call real entry
-    points: every row's command is one of pyproject.toml's scripts."""
-    scripts = console_scripts()
-    assert {probes.COMMANDS[p.command][0] for p in probes.PROBES} <= set(scripts)
+    points: every row runs the one console script, ``tofdenoise``, with its verb."""
+    from importlib.metadata import entry_points
+
+    from tofdenoise.cli.main import VERBS
+
+    scripts = {e.name for e in entry_points(group="console_scripts") if e.value.startswith("tofdenoise.")}
+    assert scripts == {"tofdenoise"}
+    assert {probes.COMMANDS[p.command][0] for p in probes.PROBES} == {"tofdenoise"}
+    assert {probes.COMMANDS[p.command][1][0] for p in probes.PROBES} <= set(VERBS)
     families = {(p.command, p.family) for p in probes.PROBES}
-    for command in ("tofdenoise-denoise", "tofdenoise-eval", "tofdenoise-report", "tofdenoise-sensor calibrate"):
+    for command in ("tofdenoise denoise", "tofdenoise evaluate", "tofdenoise report", "tofdenoise sensor calibrate"):
         assert (command, "misuse_outputs") in families and (command, "full_disk") in families
 
 

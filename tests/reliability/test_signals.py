@@ -1,5 +1,5 @@
 """The probe rows that need a separate process (``runner="signal"`` in probes.py): Ctrl-C and SIGKILL of a long
-``tofdenoise-denoise``, two of them writing one output folder. Run through ``.venv/bin/tofdenoise-denoise``."""
+``tofdenoise denoise``, two of them writing one output folder. Run through ``.venv/bin/tofdenoise denoise``."""
 
 from __future__ import annotations
 
@@ -25,9 +25,10 @@ if _spec.name not in sys.modules:
 FRAMES = 300
 
 
-def _script(name: str) -> str:
-    path = Path(sys.executable).parent / name
-    return str(path) if path.exists() else shutil.which(name) or name
+def _command(verb: str) -> list[str]:
+    """``tofdenoise <verb>`` as a user runs it: the console script next to this interpreter (else on PATH)."""
+    path = Path(sys.executable).parent / "tofdenoise"
+    return [str(path) if path.exists() else shutil.which("tofdenoise") or "tofdenoise", verb]
 
 
 def _many_frames(world) -> Path:
@@ -43,7 +44,7 @@ def _many_frames(world) -> Path:
 def _start(world, frames: Path, out: Path) -> subprocess.Popen:
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     return subprocess.Popen(
-        [_script("tofdenoise-denoise"), str(frames), "--ckpt", str(world / "model.ckpt"), "--out", str(out),
+        [*_command("denoise"), str(frames), "--ckpt", str(world / "model.ckpt"), "--out", str(out),
          "--device", "cpu", "--quiet"],
         env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
@@ -71,7 +72,7 @@ def _complete_outputs(out: Path, expected: np.ndarray | None = None) -> list[Pat
 
 
 def _row(case: str):
-    (row,) = [p for p in probes.PROBES if p.command == "tofdenoise-denoise" and p.case == case]
+    (row,) = [p for p in probes.PROBES if p.command == "tofdenoise denoise" and p.case == case]
     return row
 
 
@@ -116,7 +117,7 @@ def test_sigkill_over_many_frames_leaves_only_complete_frames(world):
 
 @pytest.mark.slow
 def test_two_writers_of_one_output_folder_leave_complete_identical_frames(world):
-    """Two tofdenoise-denoise processes on the same --out (no lock: writes are atomic renames): both exit 0 and
+    """Two tofdenoise denoise processes on the same --out (no lock: writes are atomic renames): both exit 0 and
     every frame is complete and equal to the frame a single run writes."""
     frames = world / "many"
     frames.mkdir()
@@ -135,7 +136,7 @@ def test_two_writers_of_one_output_folder_leave_complete_identical_frames(world)
 
 @pytest.mark.slow
 def test_ctrl_c_mid_training_is_one_line_and_leaves_a_resumable_unfinished_run(world, tmp_path):
-    """SIGINT during tofdenoise-train: Lightning shuts down; the run is not tested and writes no metrics.json (it
+    """SIGINT during tofdenoise train: Lightning shuts down; the run is not tested and writes no metrics.json (it
     never passes for a finished run), last.ckpt is whole, the lock is released, and one line says how to resume.
     SIGKILL and the resume: tests/cli/test_train.py::test_resume_after_sigkill_reaches_the_same_number_of_steps and
     tests/training/test_mid_epoch_resume.py."""
@@ -143,13 +144,13 @@ def test_ctrl_c_mid_training_is_one_line_and_leaves_a_resumable_unfinished_run(w
 
     import torch
 
-    row = [p for p in probes.PROBES if p.command == "tofdenoise-train" and p.family == "signals"][0]
+    row = [p for p in probes.PROBES if p.command == "tofdenoise train" and p.family == "signals"][0]
     run_dir = world / "out/run"
     args = probes.train_args(world, "trainer.max_epochs=500", "callbacks.model_checkpoint.every_n_train_steps=2")
     env = {**os.environ, "PYTHONUNBUFFERED": "1", "WANDB_MODE": "offline"}
     env.pop("HYDRA_FULL_ERROR", None)
     proc = subprocess.Popen(
-        [_script("tofdenoise-train"), *map(str, args)], env=env, cwd=tmp_path, stdout=subprocess.PIPE,
+        [*_command("train"), *map(str, args)], env=env, cwd=tmp_path, stdout=subprocess.PIPE,
         stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
     last = run_dir / "checkpoints" / "last.ckpt"
@@ -162,7 +163,7 @@ def test_ctrl_c_mid_training_is_one_line_and_leaves_a_resumable_unfinished_run(w
     _, err = proc.communicate(timeout=300)
     assert proc.returncode == row.status, err[-3000:]
     assert "Traceback" not in err, err[-3000:]
-    (line,) = [x for x in err.splitlines() if x.startswith("tofdenoise-train: interrupted (Ctrl-C) at step")]
+    (line,) = [x for x in err.splitlines() if x.startswith("tofdenoise train: interrupted (Ctrl-C) at step")]
     assert "ckpt_path=last" in line and str(last) in line
     assert not (run_dir / "metrics.json").exists()
     assert not json.loads((run_dir / "run_info.json").read_text()).get("finished")

@@ -1,5 +1,5 @@
 """One set of metric columns, one number formatter and one reader of stored numbers (reporting.numbers), shared by
-tofdenoise-report's table, the results page, the robustness table and the paper's tables."""
+tofdenoise report's table, the results page, the robustness table and the paper's tables."""
 
 from __future__ import annotations
 

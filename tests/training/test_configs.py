@@ -167,7 +167,7 @@ def test_paper_experiment_is_the_paper_configuration(tmp_path):
 
 
 # What `make train` ran before the CPU recipe moved from experiment/default.yaml into train.yaml (resolved
-# `tofdenoise-train --cfg job`, data.sensor aside): the move must not change it. The scene sizes are the procedural
+# `tofdenoise train --cfg job`, data.sensor aside): the move must not change it. The scene sizes are the procedural
 # source's own settings, in configs/data/procedural.yaml.
 MAKE_TRAIN = {
     "model": {
@@ -237,7 +237,7 @@ def test_make_train_runs_the_cpu_recipe_written_in_train_yaml(tmp_path):
 
 @pytest.mark.parametrize("backbone, lr", [("dvss", 5e-4), ("dvss_se", 5e-4), ("restormer", 5e-4), ("deeptof", 1e-3)])
 def test_make_train_backbone_keeps_the_recipe_with_its_own_rate(tmp_path, backbone, lr):
-    """`make train BACKBONE=dvss` (= `tofdenoise-train backbone=dvss`): the backbone's recipe rate, the rest as is."""
+    """`make train BACKBONE=dvss` (= `tofdenoise train backbone=dvss`): the backbone's recipe rate, the rest as is."""
     c = _resolved([f"backbone={backbone}"], tmp_path)
     assert c["model"]["backbone"] == backbone and c["model"]["optim"] == {"lr": lr, "warmup_steps": 100}
     assert c["data"] == MAKE_TRAIN["data"] and c["trainer"] == MAKE_TRAIN["trainer"]

@@ -84,7 +84,7 @@ def _fit(cfg, recorder: Recorder, ckpt_path: Path | None = None):
 
     from tofdenoise.config import instantiate_node
 
-    seed_everything(int(cfg.seed), workers=True)  # as tofdenoise-train does, on a fresh start and on a resume
+    seed_everything(int(cfg.seed), workers=True)  # as tofdenoise train does, on a fresh start and on a resume
     datamodule = instantiate_node(cfg.data, "data")
     model = instantiate(cfg.model, _convert_="all")
     trainer = Trainer(

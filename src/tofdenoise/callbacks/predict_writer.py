@@ -6,10 +6,10 @@ Layout under ``output_dir`` (one folder per prediction set, named after ``datamo
     <set>/npy/<name>.npy            restored depth, float32 millimetres (NaN = invalid)
     <set>/sigma_npy/<name>.npy      sigma_D map in mm of the input (write_sigma)
     <set>/preview/<name>.png        colourised noisy | restored | sigma_D | |error| panel (write_previews)
-    <set>/reference_png/<name>.png  clean reference, uint16 mm (write_reference; ready for tofdenoise-eval)
+    <set>/reference_png/<name>.png  clean reference, uint16 mm (write_reference; ready for tofdenoise evaluate)
     <set>/noisy_png/<name>.png      the network input, uint16 mm (write_reference)
 
-All files are written atomically (``tofdenoise.atomic``). ``tofdenoise-eval --pred <set>/png
+All files are written atomically (``tofdenoise.atomic``). ``tofdenoise evaluate --pred <set>/png
 --ref <set>/reference_png`` then computes the unified metrics of the written maps.
 """
 

@@ -1,4 +1,4 @@
-"""The records of a run folder, the same for both front ends (``tofdenoise-train`` and ``tofdenoise fit|test``).
+"""The records of a run folder, the same for both front ends (``tofdenoise train`` and ``tofdenoise fit|test``).
 
 :class:`RunOutputs` writes into ``dirpath`` (default: ``trainer.default_root_dir``), every file atomically, on
 the global-zero process only (file names in :mod:`tofdenoise.records`):

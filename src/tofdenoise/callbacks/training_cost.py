@@ -14,7 +14,7 @@
   loader workers are separate processes and are not included).
 
 :class:`tofdenoise.callbacks.run_outputs.RunOutputs` writes :meth:`TrainingCost.summary` into ``run_info.json``
-at fit end; the results page and ``tofdenoise-report`` read it from there.
+at fit end; the results page and ``tofdenoise report`` read it from there.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
-"""``tofdenoise-denoise``: denoise a camera's own depth frames with a trained checkpoint.
+"""``tofdenoise denoise``: denoise a camera's own depth frames with a trained checkpoint.
 
-    tofdenoise-denoise (--ckpt best.ckpt | --onnx model.onnx) INPUT [INPUT ...] --out DIR
+    tofdenoise denoise (--ckpt best.ckpt | --onnx model.onnx) INPUT [INPUT ...] --out DIR
                        [--amplitude DIR_OR_PATTERN] [--sensor FILE]
                        [--depth-scale-mm S] [--fill-holes] [--npy] [--previews] [--device auto|cpu|cuda]
                        [--depth-m] [--ply --intrinsics FILE] [--depth-stream NAME] [--amplitude-stream NAME]
@@ -28,6 +28,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from tqdm.auto import tqdm
+
+from tofdenoise.inference.camera import IntrinsicsError, load_intrinsics
 from tofdenoise.output_guard import OutputPathError, refuse_overwrite
 
 __all__ = ["build_parser", "main", "run", "timing_text"]
@@ -35,7 +38,7 @@ __all__ = ["build_parser", "main", "run", "timing_text"]
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
-        prog="tofdenoise-denoise",
+        prog="tofdenoise denoise",
         description="Denoise iToF depth frames (16-bit PNG mm, .npy, .exr) or recordings (Azure Kinect .mkv, ROS 1 "
         ".bag, ROS 2 bag folders) with a trained tofdenoise checkpoint; invalid pixels stay invalid unless "
         "--fill-holes.",
@@ -52,7 +55,7 @@ def build_parser() -> argparse.ArgumentParser:
     model.add_argument(
         "--onnx",
         type=Path,
-        help="a restore graph of tofdenoise-export, run by onnxruntime on the CPU (no torch weights loaded; "
+        help="a restore graph of tofdenoise export, run by onnxruntime on the CPU (no torch weights loaded; "
         "whole frames, --device/--fp32/--tile do not apply)",
     )
     p.add_argument("--out", required=True, type=Path, help="output folder (input sub-folders are mirrored)")
@@ -137,15 +140,12 @@ def torch_cpu():
 
 
 def _fail(message: str) -> int:
-    print(f"tofdenoise-denoise: error: {message}", file=sys.stderr)
+    print(f"tofdenoise denoise: error: {message}", file=sys.stderr)
     return 2
 
 
 def run(args: argparse.Namespace) -> int:
     """Run the command on parsed arguments; returns the exit status."""
-    from tqdm.auto import tqdm
-
-    from tofdenoise.inference.camera import IntrinsicsError, load_intrinsics
     from tofdenoise.inference.denoise import CheckpointError, load_restorer, resolve_device
     from tofdenoise.inference.frames import AmplitudeSource, FrameError, find_frames
     from tofdenoise.inference.outputs import OutputOptions
@@ -227,7 +227,7 @@ def run(args: argparse.Namespace) -> int:
     total = f"{len(frames)} frame(s)" + (f" and {len(recordings)} recording(s)" if recordings else "")
     ended = f"interrupted (Ctrl-C) after {seen} of {total}: " if interrupted else ""
     print(
-        f"tofdenoise-denoise: {ended}{tally.done} frame(s) done, {len(tally.skipped)} skipped, "
+        f"tofdenoise denoise: {ended}{tally.done} frame(s) done, {len(tally.skipped)} skipped, "
         f"{len(tally.failed)} failed; {timing_text(tally.seconds)} on {device.type} -> {args.out}",
         file=sys.stderr,
     )
@@ -304,7 +304,6 @@ def _claim(name: str, source: Any, job: _Job, tally: _Tally) -> bool:
 
 def _restore_and_write(data: Any, label: str, intrinsics: Any, job: _Job, tally: _Tally, started: float) -> None:
     """Restore a frame read into memory (``frames.Frame``) and write its outputs, or record why not."""
-    from tofdenoise.inference.camera import IntrinsicsError
     from tofdenoise.inference.denoise import restore_frame
     from tofdenoise.inference.frames import FrameError
     from tofdenoise.inference.outputs import frame_sigma, write_frame_outputs
@@ -352,8 +351,6 @@ def _restore_and_write(data: Any, label: str, intrinsics: Any, job: _Job, tally:
 def _denoise_recording(recording: Any, job: _Job, tally: _Tally) -> None:
     """Check a whole recording (``Recording.scan``), then restore and write its frames one by one; a recording that
     cannot be read is one failure and writes nothing."""
-    from tqdm.auto import tqdm
-
     from tofdenoise.inference.frames import Frame
     from tofdenoise.inference.recordings import RecordingError, open_recording
 
@@ -444,7 +441,7 @@ def timing_text(seconds: Sequence[float]) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Console script ``tofdenoise-denoise``."""
+    """Console script ``tofdenoise denoise``."""
     return run(build_parser().parse_args(argv))
 
 

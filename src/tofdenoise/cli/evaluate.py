@@ -1,6 +1,6 @@
-"""``tofdenoise-eval``: the unified depth metrics for depth maps produced by any method.
+"""``tofdenoise evaluate``: the unified depth metrics for depth maps produced by any method.
 
-    tofdenoise-eval --pred DIR --ref DIR [--mask DIR] --out FILE.json [--d-max-mm 1000]
+    tofdenoise evaluate --pred DIR --ref DIR [--mask DIR] --out FILE.json [--d-max-mm 1000]
 
 Files are matched by stem; which files count, which pixels count, how non-finite predictions are counted and
 the result's layout: :mod:`tofdenoise.evaluation` (``evaluate_dirs``). The result is written atomically as
@@ -38,7 +38,7 @@ def _input_files(*folders: Path | None) -> list[Path]:
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
-        prog="tofdenoise-eval",
+        prog="tofdenoise evaluate",
         description="Unified depth metrics (PSNR with D_max, SSIM, MSE, MAE over valid pixels, per image then "
         "averaged) of predicted depth maps against references; files matched by name.",
     )
@@ -58,7 +58,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         check_output_file(args.out, (".json",), _input_files(args.pred, args.ref, args.mask))
         result = evaluate_dirs(args.pred, args.ref, args.mask, args.d_max_mm)
     except (EvalInputError, OutputPathError) as exc:
-        print(f"tofdenoise-eval: error: {exc}", file=sys.stderr)
+        print(f"tofdenoise evaluate: error: {exc}", file=sys.stderr)
         return 2
     if result["nan_px"]:
         bad = [stem for stem, row in result["images"].items() if row["nan_px"]]
@@ -66,7 +66,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             f"; {len(result['failed'])} image(s) with no finite prediction at all (failed)" if result["failed"] else ""
         )
         print(
-            f"tofdenoise-eval: warning: {result['nan_px']} pixel(s) to evaluate hold a non-finite prediction "
+            f"tofdenoise evaluate: warning: {result['nan_px']} pixel(s) to evaluate hold a non-finite prediction "
             f"(NaN/inf) in {len(bad)} image(s) ({', '.join(bad[:5])}{' ...' if len(bad) > 5 else ''}): "
             f"failures, left out of the metrics and counted in nan_px{failed}",
             file=sys.stderr,
@@ -74,7 +74,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         atomic_write_text(args.out, json.dumps(result, indent=2, allow_nan=False) + "\n")
     except WriteError as exc:  # a full disk: one line naming the file, nothing half-written
-        print(f"tofdenoise-eval: error: {exc}", file=sys.stderr)
+        print(f"tofdenoise evaluate: error: {exc}", file=sys.stderr)
         return 2
     m = result["mean"]
 

@@ -1,4 +1,4 @@
-"""The executor options shared by ``tofdenoise-reproduce`` and ``tofdenoise-grid`` (where a grid's runs go)."""
+"""The executor options shared by ``tofdenoise reproduce`` and ``tofdenoise grid`` (where a grid's runs go)."""
 
 from __future__ import annotations
 
@@ -6,12 +6,12 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from tofdenoise.experiments.executors import EXECUTORS, SlurmOptions, make_executor, parse_sbatch_extra
+
 __all__ = ["add_executor_arguments", "executor_from_args"]
 
 
 def add_executor_arguments(parser: argparse.ArgumentParser) -> None:
-    from tofdenoise.experiments.executors import EXECUTORS, SlurmOptions
-
     d = SlurmOptions()
     g = parser.add_argument_group("where the runs go (docs/cluster.md)")
     g.add_argument(
@@ -75,8 +75,6 @@ def add_executor_arguments(parser: argparse.ArgumentParser) -> None:
 def executor_from_args(args: argparse.Namespace) -> Any:
     """The executor the options name; ValueError / RuntimeError (submitit missing) with a message naming the
     option."""
-    from tofdenoise.experiments.executors import SlurmOptions, make_executor, parse_sbatch_extra
-
     slurm = None
     if args.executor == "slurm":
         slurm = SlurmOptions(

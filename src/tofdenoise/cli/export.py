@@ -1,6 +1,6 @@
-"""``tofdenoise-export``: a checkpoint's whole restore path as one ONNX graph (``tofdenoise.inference.export``).
+"""``tofdenoise export``: a checkpoint's whole restore path as one ONNX graph (``tofdenoise.inference.export``).
 
-    tofdenoise-export CKPT --onnx model.onnx [--fp16] [--no-check]
+    tofdenoise export CKPT --onnx model.onnx [--fp16] [--no-check]
 
 The graph takes ``depth_mm`` (1, 1, H, W) float32 (0/NaN = invalid; any H, W) and, for a checkpoint with the
 signal channel, ``amplitude``; it returns ``restored_mm``. After writing, the graph is run with onnxruntime on a
@@ -15,16 +15,20 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+import numpy as np
+
+from tofdenoise.output_guard import OutputPathError, refuse_overwrite
+
 __all__ = ["build_parser", "main", "parity_check"]
 
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
-        prog="tofdenoise-export",
+        prog="tofdenoise export",
         description="Export a DepthRestorer checkpoint's restore path (hole fill, centring, network, offset) "
         "to ONNX with dynamic height and width.",
     )
-    p.add_argument("ckpt", type=Path, metavar="CKPT", help="checkpoint of tofdenoise-train / tofdenoise fit")
+    p.add_argument("ckpt", type=Path, metavar="CKPT", help="checkpoint of tofdenoise train / tofdenoise fit")
     p.add_argument("--onnx", required=True, type=Path, help="output .onnx file (written atomically)")
     p.add_argument("--fp16", action="store_true", help="the network in float16 (conditioning and offset stay fp32)")
     p.add_argument("--no-check", action="store_true", help="skip the onnxruntime vs PyTorch check")
@@ -33,7 +37,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 def parity_check(ckpt: Path, onnx_path: Path, height: int = 45, width: int = 67) -> float:
     """Max |onnxruntime - PyTorch| in mm over the valid pixels of a procedural frame with 10 % holes."""
-    import numpy as np
     import torch
 
     from tofdenoise.inference.denoise import load_restorer
@@ -52,19 +55,18 @@ def parity_check(ckpt: Path, onnx_path: Path, height: int = 45, width: int = 67)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Console script ``tofdenoise-export``."""
+    """Console script ``tofdenoise export``."""
     from tofdenoise.inference.denoise import CheckpointError
     from tofdenoise.inference.export import ExportError, export_onnx
-    from tofdenoise.output_guard import OutputPathError, refuse_overwrite
 
     args = build_parser().parse_args(argv)
     try:
         refuse_overwrite([args.onnx], [args.ckpt], "--onnx")
         meta = export_onnx(args.ckpt, args.onnx, fp16=args.fp16)
     except (CheckpointError, ExportError, OutputPathError, OSError) as exc:
-        print(f"tofdenoise-export: error: {exc}", file=sys.stderr)
+        print(f"tofdenoise export: error: {exc}", file=sys.stderr)
         return 2
-    line = f"tofdenoise-export: {meta['tofdenoise_backbone']} ({meta['tofdenoise_precision']}) -> {args.onnx}"
+    line = f"tofdenoise export: {meta['tofdenoise_backbone']} ({meta['tofdenoise_precision']}) -> {args.onnx}"
     if not args.no_check:
         line += f"; onnxruntime vs PyTorch max |diff| {parity_check(args.ckpt, args.onnx):.4g} mm on valid pixels"
     print(line, file=sys.stderr)

@@ -22,6 +22,9 @@ from typing import Any
 import yaml
 from omegaconf import DictConfig, OmegaConf
 
+from tofdenoise.atomic import atomic_write_text
+from tofdenoise.config import compose_config, config_dir
+
 __all__ = ["PRESETS", "hydra_to_cli", "export_preset", "render_yaml", "main"]
 
 #: file name under configs/cli -> Hydra overrides
@@ -78,16 +81,12 @@ def render_yaml(cli_cfg: dict[str, Any], name: str, overrides: list[str], run_di
 
 def export_preset(name: str, overrides: list[str]) -> str:
     """YAML text of one preset (the run folder is ``outputs/cli/<name>``)."""
-    from tofdenoise.config import compose_config
-
     run_dir = f"outputs/cli/{name}"
     cfg = compose_config([*overrides, f"paths.run_dir={run_dir}"])
     return render_yaml(hydra_to_cli(cfg), name, overrides, run_dir)
 
 
 def main(argv: list[str] | None = None) -> int:
-    from tofdenoise.config import config_dir
-
     ap = argparse.ArgumentParser(
         prog="python -m tofdenoise.cli.export_cli_config",
         description=__doc__,
@@ -108,8 +107,6 @@ def main(argv: list[str] | None = None) -> int:
             if not path.is_file() or path.read_text() != text:
                 stale.append(str(path))
             continue
-        from tofdenoise.atomic import atomic_write_text
-
         atomic_write_text(path, text)
         print(f"wrote {path}")
     if stale:

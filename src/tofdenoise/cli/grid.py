@@ -1,11 +1,11 @@
-"""``tofdenoise-grid``: run a named grid of training runs (resumable) and print its table.
+"""``tofdenoise grid``: run a named grid of training runs (resumable) and print its table.
 
-    tofdenoise-grid robustness --out runs/robustness                 # all 108 runs (hours on 2 CPU cores)
-    tofdenoise-grid robustness --out runs/robustness --backbones unet --seeds 0 1 2
-    tofdenoise-grid robustness --out runs/robustness --table-only --markdown docs/robustness.md
-    tofdenoise-grid robustness --out runs/robustness --dry-run       # list what would run
-    tofdenoise-grid robustness --out runs/robustness --executor local --workers 2
-    tofdenoise-grid robustness --out runs/robustness --executor slurm --slurm-partition gpu   # docs/cluster.md
+    tofdenoise grid robustness --out runs/robustness                 # all 108 runs (hours on 2 CPU cores)
+    tofdenoise grid robustness --out runs/robustness --backbones unet --seeds 0 1 2
+    tofdenoise grid robustness --out runs/robustness --table-only --markdown docs/robustness.md
+    tofdenoise grid robustness --out runs/robustness --dry-run       # list what would run
+    tofdenoise grid robustness --out runs/robustness --executor local --workers 2
+    tofdenoise grid robustness --out runs/robustness --executor slurm --slurm-partition gpu   # docs/cluster.md
 
 Finished runs are skipped, interrupted ones resume from their last checkpoint, a failing run does not stop the
 others (they are listed at the end). Exit status: 0 when every selected run finished and passes, 1 otherwise, 2
@@ -20,22 +20,26 @@ from pathlib import Path
 
 from tofdenoise.atomic import WriteError, atomic_write_text
 from tofdenoise.cli.executor_args import add_executor_arguments, executor_from_args
+from tofdenoise.experiments.grids import (
+    ROBUSTNESS_BACKBONES,
+    ROBUSTNESS_LOSSES,
+    ROBUSTNESS_NOISES,
+    ROBUSTNESS_SEEDS,
+    ROBUSTNESS_SENSORS,
+    robustness_rows,
+    robustness_specs,
+)
+from tofdenoise.experiments.runner import run_all
 from tofdenoise.output_guard import OutputPathError, check_output_file
+from tofdenoise.records import unreadable_records
+from tofdenoise.reporting.robustness import robustness_table
 
 __all__ = ["main", "build_parser"]
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from tofdenoise.experiments.grids import (
-        ROBUSTNESS_BACKBONES,
-        ROBUSTNESS_LOSSES,
-        ROBUSTNESS_NOISES,
-        ROBUSTNESS_SEEDS,
-        ROBUSTNESS_SENSORS,
-    )
-
     p = argparse.ArgumentParser(
-        prog="tofdenoise-grid",
+        prog="tofdenoise grid",
         description=__doc__.split("\n\n")[0],
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -57,23 +61,18 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from tofdenoise.experiments.grids import robustness_rows, robustness_specs
-    from tofdenoise.experiments.runner import run_all
-    from tofdenoise.records import unreadable_records
-    from tofdenoise.reporting.robustness import robustness_table
-
     args = build_parser().parse_args(argv)
     try:
         executor = executor_from_args(args)
     except (ValueError, RuntimeError) as exc:
-        print(f"tofdenoise-grid: error: {exc}", file=sys.stderr)
+        print(f"tofdenoise grid: error: {exc}", file=sys.stderr)
         return 2
     specs = robustness_specs(args.backbones, args.noises, args.losses, args.sensors, args.seeds, args.extra)
     if args.markdown is not None:
         try:  # the table never replaces a file of the runs it is made from
             check_output_file(args.markdown, (".md",), [args.out / s.name for s in specs], "--markdown", shadow=False)
         except OutputPathError as exc:
-            print(f"tofdenoise-grid: error: {exc}", file=sys.stderr)
+            print(f"tofdenoise grid: error: {exc}", file=sys.stderr)
             return 2
     if not args.table_only:
         run_all(specs, args.out, dry_run=args.dry_run, executor=executor)
@@ -82,7 +81,7 @@ def main(argv: list[str] | None = None) -> int:
     broken = unreadable_records([args.out / s.name for s in specs])
     if broken:  # a table with that run as "incomplete" would hide a finished run's broken record
         print(
-            f"tofdenoise-grid: error: {broken[0]}" + (f" (and {len(broken) - 1} more)" if len(broken) > 1 else ""),
+            f"tofdenoise grid: error: {broken[0]}" + (f" (and {len(broken) - 1} more)" if len(broken) > 1 else ""),
             file=sys.stderr,
         )
         return 2
@@ -93,7 +92,7 @@ def main(argv: list[str] | None = None) -> int:
         try:
             atomic_write_text(args.markdown, table + "\n")
         except WriteError as exc:  # a full disk: one line naming the file, nothing half-written
-            print(f"tofdenoise-grid: error: {exc}", file=sys.stderr)
+            print(f"tofdenoise grid: error: {exc}", file=sys.stderr)
             return 2
     return 0 if all(r["status"] == "pass" for r in rows) else 1
 

@@ -23,8 +23,11 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import yaml
 from lightning.pytorch.cli import LightningCLI
 
+from tofdenoise.atomic import WriteError
+from tofdenoise.cli.checkpoint_check import CheckpointFileError, check_checkpoint_file
 from tofdenoise.config import ConfigError
 from tofdenoise.output_guard import OutputPathError, refuse_overwrite
 from tofdenoise.run_lock import RunLock, RunLockedError, is_worker_rank, release_all
@@ -71,8 +74,6 @@ class ToFLightningCLI(LightningCLI):
 
     def _check_ckpt_path(self) -> None:
         """Check ``--ckpt_path`` before the trainer writes anything (SaveConfigCallback's config.yaml)."""
-        from tofdenoise.cli.checkpoint_check import check_checkpoint_file
-
         sub = self.config.get("subcommand") if hasattr(self.config, "get") else None
         cfg = self.config[sub] if sub else self.config
         ckpt = cfg.get("ckpt_path") if hasattr(cfg, "get") else None
@@ -92,8 +93,6 @@ class ToFLightningCLI(LightningCLI):
         sub = self.config.get("subcommand") if hasattr(self.config, "get") else None
         ckpt = self.config[sub].get("ckpt_path") if sub else None
         if ckpt not in (None, "", "last", "best", "hpc") and not str(ckpt).startswith("registry"):
-            from tofdenoise.cli.checkpoint_check import check_checkpoint_file
-
             check_checkpoint_file(ckpt, option="--ckpt_path")
         parse = getattr(super(), "_parse_ckpt_path", None)
         if parse is not None:
@@ -114,6 +113,7 @@ class ToFLightningCLI(LightningCLI):
 
 def build_cli(args: list[str] | None = None, run: bool = True) -> ToFLightningCLI:
     """The CLI object (``run=False``: parse the config and instantiate model/data/trainer without running)."""
+    # the model and the data (heavy: models, kernels) load once wandb is quieted (``main``)
     from tofdenoise.data_modules import ToFDataModule
     from tofdenoise.training.module import DepthRestorer
 
@@ -132,8 +132,6 @@ def build_cli(args: list[str] | None = None, run: bool = True) -> ToFLightningCL
 def _check_config_files(args: list[str]) -> None:
     """Every ``--config FILE`` is UTF-8 YAML (jsonargparse's UnicodeDecodeError traceback and its YAML error name no
     file): ``ConfigError`` naming the file."""
-    import yaml
-
     for i, arg in enumerate(args):
         path = args[i + 1] if arg == "--config" and i + 1 < len(args) else None
         path = arg.split("=", 1)[1] if arg.startswith("--config=") else path
@@ -156,9 +154,7 @@ def _check_config_files(args: list[str]) -> None:
 def main(args: list[str] | None = None) -> Any:
     """Console script ``tofdenoise``."""
     quiet_wandb()
-    from tofdenoise.atomic import WriteError
-    from tofdenoise.cli.checkpoint_check import CheckpointFileError
-    from tofdenoise.training.init_weights import InitWeightsError
+    from tofdenoise.training.init_weights import InitWeightsError  # heavy (torch), after wandb is quieted
 
     try:
         _check_config_files(sys.argv[1:] if args is None else args)

@@ -1,6 +1,6 @@
-"""``tofdenoise-report``: one self-contained offline HTML page comparing training runs.
+"""``tofdenoise report``: one self-contained offline HTML page comparing training runs.
 
-    tofdenoise-report RUNS_DIR [RUNS_DIR ...] --out report.html [--title TEXT]
+    tofdenoise report RUNS_DIR [RUNS_DIR ...] --out report.html [--title TEXT]
 
 A run is any folder (searched recursively under each RUNS_DIR, which may itself be a run) that holds a
 ``metrics.json`` (written by the training, schema in ``tofdenoise.records``). The page has a table
@@ -27,7 +27,7 @@ from pathlib import Path
 
 from tofdenoise.atomic import WriteError, atomic_write_text
 from tofdenoise.output_guard import OutputPathError, check_output_file
-from tofdenoise.reporting import Run, find_runs, load_run, render_html, results_table, table_markdown
+from tofdenoise.reporting import find_runs, load_runs, render_html, results_table, table_markdown
 
 __all__ = ["main"]
 
@@ -42,7 +42,7 @@ def _check_out(out: Path, run_dirs: Sequence[Path]) -> None:
 
 def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(
-        prog="tofdenoise-report",
+        prog="tofdenoise report",
         description="Self-contained offline HTML report comparing tofdenoise runs; "
         "prints the results table as Markdown.",
     )
@@ -54,25 +54,19 @@ def main(argv: Sequence[str] | None = None) -> int:
         dirs = find_runs(args.runs_dir)
         _check_out(args.out, dirs)
     except (FileNotFoundError, OutputPathError) as exc:
-        print(f"tofdenoise-report: error: {exc}", file=sys.stderr)
+        print(f"tofdenoise report: error: {exc}", file=sys.stderr)
         return 2
-    runs: list[Run] = []
-    skipped: list[tuple[Path, str]] = []
-    for d in dirs:
-        try:
-            runs.append(load_run(d))
-        except (OSError, ValueError) as exc:
-            skipped.append((d, str(exc)))
-            print(f"tofdenoise-report: warning: run {d} left out: {exc}", file=sys.stderr)
+    runs, skipped = load_runs(dirs)
+    for d, why in skipped:
+        print(f"tofdenoise report: warning: run {d} left out: {why}", file=sys.stderr)
     if not runs:
         where = ", ".join(str(d) for d in args.runs_dir)
-        print(f"tofdenoise-report: error: no run with a valid metrics.json found under {where}", file=sys.stderr)
+        print(f"tofdenoise report: error: no run with a valid metrics.json found under {where}", file=sys.stderr)
         return 2
-    runs.sort(key=lambda r: r.name)
     try:
         atomic_write_text(args.out, render_html(runs, args.title, skipped))
     except WriteError as exc:  # a full disk: one line naming the file, nothing half-written
-        print(f"tofdenoise-report: error: {exc}", file=sys.stderr)
+        print(f"tofdenoise report: error: {exc}", file=sys.stderr)
         return 2
     sets, rows = results_table(runs)
     print(table_markdown(sets, rows))

@@ -1,8 +1,9 @@
-"""`tofdenoise-sensor`: sensor calibration, depth uncertainty, simulated and real capture sets.
+"""`tofdenoise sensor`: sensor calibration, depth uncertainty, simulated and real capture sets.
 
 Sub-commands are contributed by small modules, each with one job:
 - `tofdenoise.cli.sensor_physics`: show-calib, sigma, calibrate, validate
-- `tofdenoise.cli.sensor_captures`: simulate-calibration, simulate-captures, build-reference
+- `tofdenoise.cli.sensor_captures`: simulate-calibration, simulate-captures, simulate-validation, realset
+  (`tofdenoise.data_modules.realset`), build-reference
 Each module exposes `add_commands(subparsers)`; every sub-parser sets `func(args) -> int`.
 """
 
@@ -12,12 +13,13 @@ import argparse
 import os
 import sys
 
+from tofdenoise.atomic import WriteError
+from tofdenoise.cli import sensor_captures, sensor_physics
+
 
 def build_parser() -> argparse.ArgumentParser:
-    from tofdenoise.cli import sensor_captures, sensor_physics
-
     parser = argparse.ArgumentParser(
-        prog="tofdenoise-sensor",
+        prog="tofdenoise sensor",
         description="iToF sensor tools: calibration, per-pixel depth uncertainty, capture sets.",
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -26,14 +28,12 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-#: exit status when the reader of stdout went away (`tofdenoise-sensor show-calib | head`): 128 + SIGPIPE,
+#: exit status when the reader of stdout went away (`tofdenoise sensor show-calib | head`): 128 + SIGPIPE,
 #: what a shell reports for a process killed by a broken pipe
 EXIT_BROKEN_PIPE = 141
 
 
 def main(argv: list[str] | None = None) -> int:
-    from tofdenoise.atomic import WriteError
-
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
@@ -48,7 +48,7 @@ def main(argv: list[str] | None = None) -> int:
         os.close(devnull)
         return EXIT_BROKEN_PIPE
     except (FileNotFoundError, ValueError, KeyError, WriteError) as exc:
-        print(f"tofdenoise-sensor {args.command}: error: {exc}", file=sys.stderr)
+        print(f"tofdenoise sensor {args.command}: error: {exc}", file=sys.stderr)
         return 2
 
 

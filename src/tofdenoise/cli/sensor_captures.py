@@ -1,5 +1,6 @@
-"""`tofdenoise-sensor simulate-calibration`, `simulate-captures` and `build-reference` (a simulated camera's
-calibration captures and capture sets).
+"""`tofdenoise sensor simulate-calibration`, `simulate-captures`, `simulate-validation`, `realset` and
+`build-reference` (a simulated camera's calibration captures and capture sets; the stand-in real set, all its steps
+at once: `tofdenoise.data_modules.realset`).
 
 Formats: calibration captures `tofdenoise.physics.capture_io` (docs/physics.md), capture sets
 `tofdenoise.data_modules.real_captures` (docs/data.md); the whole flow: docs/camera-tutorial.md.
@@ -10,6 +11,8 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+
+import numpy as np
 
 from tofdenoise.cli.sensor_physics import input_files
 from tofdenoise.output_guard import refuse_overwrite
@@ -88,7 +91,7 @@ def _simulate_calibration(args: argparse.Namespace) -> int:
     for name, folder in folders.items():
         print(f"wrote {folder} ({name})")
     print(
-        f"next: tofdenoise-sensor calibrate --sweep {out}/sweep --dark {out}/dark --distances {out}/distances "
+        f"next: tofdenoise sensor calibrate --sweep {out}/sweep --dark {out}/dark --distances {out}/distances "
         "--out CALIBRATION.yaml"
     )
     return 0
@@ -105,66 +108,8 @@ def _simulate_validation(args: argparse.Namespace) -> int:
     settings = ValidationSettings(num_frames=args.frames, roi_px=args.roi_px, seed=args.seed, fit_seed=args.seed + 1)
     folder = write_validation_captures(resolve_calibration(args.sensor), args.out, settings)
     print(f"wrote {folder} (validation)")
-    print(f"next: tofdenoise-sensor validate --captures {folder} --sensor CALIBRATION.yaml --out DIR")
+    print(f"next: tofdenoise sensor validate --captures {folder} --sensor CALIBRATION.yaml --out DIR")
     return 0
-
-
-#: the stand-in real set's camera: differs from configs/sensor/default.yaml in modulation frequency (75 vs 50 MHz),
-#: contrast (0.54 vs 0.50), harmonics (a 2nd harmonic with a sine part vs a 3rd), dark level (800 vs 2000 e-)
-#: and ADC gain (4 vs 25 e-/DN); tests/cli/test_sensor_captures.py checks each difference
-REALSET_CAMERA = "cam75"
-#: procedural scene seed of the stand-in real set: not a training seed (the training scenes use data.seed)
-REALSET_SEED = 1000
-
-
-def realset_commands(
-    out: Path,
-    camera: str = REALSET_CAMERA,
-    scenes: int = 40,
-    frames: int = 100,
-    height: int = 144,
-    width: int = 192,
-    seed: int = REALSET_SEED,
-    mixed_pixels: int = 3,
-) -> list[list[str]]:
-    """The camera engineer's flow (docs/camera-tutorial.md) for a simulated second camera, as
-    ``tofdenoise-sensor`` argument lists: a) its calibration captures, b) calibrate them, c) its capture set,
-    d) its noise-validation captures (Fig. 6: ``tofdenoise-sensor validate --captures OUT/validation``)."""
-    caps = out / "calibration-captures"
-    return [
-        ["simulate-calibration", "--sensor", camera, "--out", str(caps), "--seed", str(seed)],
-        [
-            "calibrate",
-            "--sweep",
-            str(caps / "sweep"),
-            "--dark",
-            str(caps / "dark"),
-            "--distances",
-            str(caps / "distances"),
-            "--out",
-            str(out / "calibration.yaml"),
-        ],
-        [
-            "simulate-captures",
-            "--sensor",
-            camera,
-            "--out",
-            str(out / "captures"),
-            "--scenes",
-            str(scenes),
-            "--frames",
-            str(frames),
-            "--height",
-            str(height),
-            "--width",
-            str(width),
-            "--seed",
-            str(seed),
-            "--mixed-pixels",
-            str(mixed_pixels),
-        ],
-        ["simulate-validation", "--sensor", camera, "--out", str(out / "validation"), "--seed", str(seed)],
-    ]
 
 
 def _realset_from_recording(args: argparse.Namespace) -> int:
@@ -191,53 +136,32 @@ def _realset_from_recording(args: argparse.Namespace) -> int:
         f"{summary.reference_frames} frames (a pixel needs {summary.min_count} valid), valid reference pixels "
         f"{summary.reference_valid_fraction:.3f}; frames agree (at most {100 * summary.disagreeing_fraction_max:.1f} "
         f"% of a frame's pixels off the median)\n"
-        f"test on it: tofdenoise-train ++data.sensor=YOUR_CALIBRATION.yaml ++data.real_dir={out}"
+        f"test on it: tofdenoise train ++data.sensor=YOUR_CALIBRATION.yaml ++data.real_dir={out}"
         + (f" ++data.real_min_count={args.min_count}" if args.min_count is not None else "")
     )
     return 0
 
 
 def _realset(args: argparse.Namespace) -> int:
-    import json
-    import shlex
-
     if args.from_recording is not None:
         return _realset_from_recording(args)
+    from tofdenoise.data_modules.realset import build_realset
 
-    from tofdenoise.atomic import atomic_write_text
-    from tofdenoise.cli.sensor import main
-    from tofdenoise.physics.calibration import resolve_calibration
-
-    out = Path(args.out).expanduser()
-    refuse_overwrite([], input_files(args.sensor), output_folders=[out])
-    commands = realset_commands(
-        out, args.sensor, args.scenes, args.frames, args.height, args.width, args.seed, args.mixed_pixels
+    summary = build_realset(
+        args.out,
+        args.sensor,
+        scenes=args.scenes,
+        frames=args.frames,
+        height=args.height,
+        width=args.width,
+        seed=args.seed,
+        mixed_pixels=args.mixed_pixels,
+        force=args.force,
+        log=lambda line: print(line, flush=True),
     )
-    record = {
-        "camera": str(args.sensor),
-        "camera_fingerprint": resolve_calibration(args.sensor).fingerprint(),
-        "seed": args.seed,
-    }
-    done = out / "realset.json"
-    try:
-        calibrated = json.loads(done.read_text(encoding="utf-8")) == record and (out / "calibration.yaml").is_file()
-    except (OSError, json.JSONDecodeError):
-        calibrated = False
-    if calibrated and not args.force:
-        print(f"{out / 'calibration.yaml'} is up to date: steps a) and b) skipped (--force redoes them)")
-        commands = commands[2:]
-    if (out / "validation" / "index.json").is_file() and not args.force:
-        commands = [c for c in commands if c[0] != "simulate-validation"]
-    for argv in commands:
-        print("$ tofdenoise-sensor " + shlex.join(argv), flush=True)
-        status = main(argv)
-        if status:
-            return status
-        if argv[0] == "calibrate":
-            atomic_write_text(done, json.dumps(record, indent=1) + "\n")
     print(
         f"stand-in real set ready: train with its calibration and test on its captures:\n"
-        f"  tofdenoise-train ++data.sensor={out / 'calibration.yaml'} ++data.real_dir={out / 'captures'}"
+        f"  tofdenoise train ++data.sensor={summary.calibration} ++data.real_dir={summary.captures}"
     )
     return 0
 
@@ -256,8 +180,6 @@ def _build_reference(args: argparse.Namespace) -> int:
         rebuilt += int(ref.rebuilt)
         if not args.quiet:
             valid = float((ref.count > 0).mean()) if ref.count.size else 0.0
-            import numpy as np
-
             print(
                 f"{scene.name}: {'rebuilt' if ref.rebuilt else 'up to date'}; valid reference pixels "
                 f"{float(np.isfinite(ref.depth_mm).mean()):.3f} (any frame {valid:.3f}); frames per pixel "
@@ -307,7 +229,7 @@ def add_commands(subparsers) -> None:
     cal = subparsers.add_parser(
         "simulate-calibration",
         help="write a simulated camera's calibration captures (phase sweep, dark frames, distance sequence)",
-        description="Write the three capture folders `tofdenoise-sensor calibrate` reads (format "
+        description="Write the three capture folders `tofdenoise sensor calibrate` reads (format "
         "tofdenoise-captures-v1, docs/physics.md) as the camera --sensor records them through the "
         "tap-level simulator: OUT/sweep (a planar target at --sweep-steps phases), OUT/dark "
         "(--dark-frames emitter-off frames, in DN when the camera has an ADC gain) and OUT/distances "
@@ -341,15 +263,16 @@ def add_commands(subparsers) -> None:
         description="Run the camera tutorial's steps for a simulated camera unlike the training default "
         "(docs/camera-tutorial.md): simulate-calibration -> OUT/calibration-captures, calibrate -> "
         "OUT/calibration.yaml, simulate-captures (mixed pixels at depth edges) -> OUT/captures, "
-        "simulate-validation -> OUT/validation (the Fig. 6 conditions). Each "
-        "command is printed before it runs. Resumable: an existing OUT/calibration.yaml is kept "
-        "(--force redoes it) and completed scenes are skipped.",
+        "simulate-validation -> OUT/validation (the Fig. 6 conditions), in this process "
+        "(tofdenoise.data_modules.realset). Each step is printed before it runs. Resumable: an existing "
+        "OUT/calibration.yaml is kept (--force redoes it) and completed scenes are skipped.",
     )
     real.add_argument("--out", required=True, help="output folder")
     real.add_argument(
         "--sensor",
-        default=REALSET_CAMERA,
-        help=f"the simulated camera: preset or calibration file (default {REALSET_CAMERA})",
+        default=None,
+        help="the simulated camera: preset or calibration file (default: the stand-in camera, preset cam75; "
+        "tofdenoise.data_modules.realset.REALSET_CAMERA)",
     )
     real.add_argument("--scenes", type=int, default=40, help="static scenes (default 40; the paper has 200)")
     real.add_argument("--frames", type=int, default=100, help="high-exposure frames per scene (default 100)")
@@ -358,8 +281,8 @@ def add_commands(subparsers) -> None:
     real.add_argument(
         "--seed",
         type=int,
-        default=REALSET_SEED,
-        help=f"scene and noise seed (default {REALSET_SEED}; not a training data.seed)",
+        default=None,
+        help="scene and noise seed (default 1000, REALSET_SEED; not a training data.seed)",
     )
     real.add_argument(
         "--mixed-pixels",
@@ -412,7 +335,7 @@ def add_commands(subparsers) -> None:
         description="Planar targets at 500..1500 mm every 100 mm, black/gray/white surfaces at 1500 mm under "
         "exposures 1-4, and an independent 550..1450 mm sequence for the range-aware fit, as tap "
         "stacks of the camera --sensor (kind validation, format tofdenoise-captures-v1). "
-        "`tofdenoise-sensor validate --captures OUT --sensor C` then compares the measured temporal "
+        "`tofdenoise sensor validate --captures OUT --sensor C` then compares the measured temporal "
         "noise with the prediction of the calibration C (e.g. the one `calibrate` estimated).",
     )
     val.add_argument("--out", required=True, help="output folder")

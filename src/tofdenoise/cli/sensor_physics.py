@@ -1,4 +1,4 @@
-"""`tofdenoise-sensor` physics sub-commands: show-calib, sigma, calibrate, validate (docs/physics.md)."""
+"""`tofdenoise sensor` physics sub-commands: show-calib, sigma, calibrate, validate (docs/physics.md)."""
 
 from __future__ import annotations
 
@@ -9,6 +9,11 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
+from tofdenoise.output_guard import refuse_overwrite
+from tofdenoise.paths import CONFIG_DIR
+
 #: depths beyond this many unambiguous ranges are refused by `sigma`: the phase 4 pi f D / c of such a depth
 #: is a huge float whose fractional part (all an iToF camera measures) is no longer meaningful (float32
 #: resolves it to ~2 mm at 1e4 ranges, float64 keeps digits only by accident), and no camera sees that far
@@ -16,8 +21,6 @@ MAX_UNAMBIGUOUS_RANGES: float = 1e6
 
 
 def _presets() -> list[str]:
-    from tofdenoise.paths import CONFIG_DIR
-
     return sorted(p.stem for p in (Path(CONFIG_DIR) / "sensor").glob("*.yaml"))
 
 
@@ -83,8 +86,6 @@ def pair_lists(depth_mm: list[float], signal_e: list[float]) -> list[tuple[float
 
 
 def cmd_sigma(args: argparse.Namespace) -> int:
-    import numpy as np
-
     from tofdenoise.physics.uncertainty import sigma_depth_mm
 
     calib = _calib(args)
@@ -109,47 +110,37 @@ def cmd_sigma(args: argparse.Namespace) -> int:
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
-    from tofdenoise.output_guard import refuse_overwrite
-    from tofdenoise.physics.calibrate import calibrate_from_folders
-    from tofdenoise.physics.calibration import check_calibration_out, save_calibration
+    from tofdenoise.physics.calibrate import calibrate_to_file
 
     # the calibration file may not replace a file of the capture folders it is computed from (their index.json)
     refuse_overwrite([args.out], [f for f in (args.sweep, args.dark, args.distances) if f is not None])
-    check_calibration_out(args.out)  # a folder or a wrong suffix: said before the calibration is computed
-
     lo, hi = args.signal_percentiles
-    report = calibrate_from_folders(
+    report, path = calibrate_to_file(
         args.sweep,
         args.dark,
         args.distances,
+        args.out,
         num_harmonics=args.harmonics,
         full_well_e=args.full_well_e,
         lower_percentile=lo,
         upper_percentile=hi,
     )
-    header = (
-        f"Calibrated by tofdenoise-sensor calibrate\nsweep: {args.sweep} ({report.sweep_points} steps)\n"
-        f"dark: {args.dark} ({report.dark_frames} frames)\ndistances: {args.distances or '-'}\n"
-        f"clipping: {report.clipping_summary()}" + "".join(f"\nwarning: {w}" for w in report.warnings)
-    )
-    path = save_calibration(report.calibration, args.out, header=header)
     if report.clipped_samples:
         worst = sorted(report.clipped_by_file.items(), key=lambda kv: -kv[1])[:3]
         print(
-            f"tofdenoise-sensor calibrate: warning: {report.clipping_summary()} (most in "
+            f"tofdenoise sensor calibrate: warning: {report.clipping_summary()} (most in "
             f"{', '.join(f'{f} ({n})' for f, n in worst)})",
             file=sys.stderr,
         )
     for warning in report.warnings:
-        print(f"tofdenoise-sensor calibrate: warning: {warning}", file=sys.stderr)
+        print(f"tofdenoise sensor calibrate: warning: {warning}", file=sys.stderr)
     print(f"wrote {path} (dark: {report.dark_frames} frames, sweep: {report.sweep_points} steps)")
     print(json.dumps(report.calibration.to_dict(), indent=2))
     return 0
 
 
 def cmd_validate(args: argparse.Namespace) -> int:
-    from tofdenoise.output_guard import refuse_overwrite
-    from tofdenoise.physics.validation import VALIDATION_FILES, ValidationSettings, run_validation, write_validation
+    from tofdenoise.physics.validation import VALIDATION_FILES, ValidationSettings, validate_to_folder
 
     refuse_overwrite(
         [Path(args.out) / name for name in VALIDATION_FILES],
@@ -164,8 +155,7 @@ def cmd_validate(args: argparse.Namespace) -> int:
         settings.roi_px = args.roi_px
     if args.seed is not None:
         settings.seed = args.seed
-    result = run_validation(calib, settings, captures_dir=args.captures)
-    json_path, png = write_validation(result, calib, args.out)
+    result, json_path, png = validate_to_folder(calib, args.out, settings, captures_dir=args.captures)
     print(f"source: {result.source}")
     print(
         f"range-aware baseline: sigma(D) = {result.range_sigma_mm[0]:.4g} + {result.range_sigma_mm[1]:.4g} D "

@@ -1,4 +1,4 @@
-"""``tofdenoise-train``: the Hydra entry point (``make train``): composes ``configs/train.yaml`` with the command line
+"""``tofdenoise train``: the Hydra entry point (``make train``): composes ``configs/train.yaml`` with the command line
 and calls the training job, ``tofdenoise.experiments.train_job``.
 
 The job is safe to run again: a folder that holds a finished run returns its recorded metrics without training, an
@@ -9,14 +9,14 @@ entry function returns the run's lowest validation MAE (``val/mae_mm``), what a 
 
 Examples::
 
-    tofdenoise-train                                   # default small CPU run on built-in scenes
-    tofdenoise-train experiment=smoke                  # < 2 minutes
-    tofdenoise-train backbone=unet noise=range loss=l1 trainer.max_epochs=5
-    tofdenoise-train data.source_kwargs.num_samples=100 ++data.source_kwargs.hfov_deg=70   # the source's settings
-    tofdenoise-train experiment=paper data.source_kwargs.root=/data/ToF-FlyingThings3D
-    tofdenoise-train paths.run_dir=runs/a          # again: finished -> its metrics, killed -> resumes
-    tofdenoise-train -m seed=0,1,2 paths.sweep_dir=runs/sweep      # runs/sweep/unet-hetero-full-s{0,1,2}
-    tofdenoise-train -m hparams_search=recipe experiment=smoke     # Optuna search of lr, warm-up, decay
+    tofdenoise train                                   # default small CPU run on built-in scenes
+    tofdenoise train experiment=smoke                  # < 2 minutes
+    tofdenoise train backbone=unet noise=range loss=l1 trainer.max_epochs=5
+    tofdenoise train data.source_kwargs.num_samples=100 ++data.source_kwargs.hfov_deg=70   # the source's settings
+    tofdenoise train experiment=paper data.source_kwargs.root=/data/ToF-FlyingThings3D
+    tofdenoise train paths.run_dir=runs/a          # again: finished -> its metrics, killed -> resumes
+    tofdenoise train -m seed=0,1,2 paths.sweep_dir=runs/sweep      # runs/sweep/unet-hetero-full-s{0,1,2}
+    tofdenoise train -m hparams_search=recipe experiment=smoke     # Optuna search of lr, warm-up, decay
 """
 
 from __future__ import annotations
@@ -41,8 +41,8 @@ from tofdenoise.training.init_weights import InitWeightsError
 
 __all__ = ["main", "run", "validate_config", "record_calibration"]
 
-PROG = "tofdenoise-train"
-#: errors printed as one ``tofdenoise-train: error: ...`` line with exit status 2
+PROG = "tofdenoise train"
+#: errors printed as one ``tofdenoise train: error: ...`` line with exit status 2
 ERRORS = (
     CheckpointFileError,
     CheckpointWriteError,
@@ -68,7 +68,7 @@ def _needs_sweeper(argv: list[str]) -> str | None:
 
 
 def main() -> None:
-    """Console script ``tofdenoise-train`` (Hydra command line: overrides, ``--multirun``, ``--cfg job``)."""
+    """Console script ``tofdenoise train`` (Hydra command line: overrides, ``--multirun``, ``--cfg job``)."""
     missing = _needs_sweeper(sys.argv[1:])
     if missing is not None:
         print(

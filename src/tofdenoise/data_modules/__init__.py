@@ -1,7 +1,7 @@
 """Data: sources (procedural / ToF-FlyingThings3D / folder), seeded splits, cached sigma_D maps, capture sets.
 
 ``ToFDataModule`` is imported lazily so that the light parts (readers, capture sets, the
-``tofdenoise-sensor`` commands) do not pay for importing Lightning.
+``tofdenoise sensor`` commands) do not pay for importing Lightning.
 """
 
 from __future__ import annotations

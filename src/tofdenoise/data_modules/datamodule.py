@@ -90,7 +90,7 @@ class ToFDataModule(L.LightningDataModule):
             calibration's ``signal_at_1m_e``). With "physical" the low-signal and saturation holes come from the
             camera's own threshold and full well (``HoleModel.physical_signal``).
         signal_dynamic_range: with the linear route, map into [a_max / r, a_max] instead of the calibration's
-            interval (a_max = its ``signal_max_e``): the dynamic-range study (``make reproduce TABLE=dynrange``).
+            interval (a_max = its ``signal_max_e``): the dynamic-range study (``make reproduce STUDY=dynrange``).
             None: the calibration's own interval.
         signal_lower_percentile / signal_upper_percentile: amplitude normalisation (None: physics defaults).
         real_min_count: valid high-exposure frames a reference pixel needs (None: half of the frames).

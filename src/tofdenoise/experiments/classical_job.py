@@ -1,7 +1,7 @@
-"""The classical row's job (``tofdenoise-classic``): tune a joint bilateral filter on validation, test it.
+"""The classical row's job (``tofdenoise classic``): tune a joint bilateral filter on validation, test it.
 
 Flow: compose ``configs/classical.yaml`` (it includes ``train.yaml``: the same data, noise, sensor, experiment
-and paths overrides as ``tofdenoise-train``, hence the same validation and test images) -> build the
+and paths overrides as ``tofdenoise train``, hence the same validation and test images) -> build the
 datamodule -> **tune**: every point of ``classical.grid`` (the product of its lists) restores every validation
 image through ``DepthRestorer.restore_mm`` with backbone ``bilateral`` and is scored by ``DepthMetrics``
 (the validation metrics of the networks); the lowest validation MAE wins (ties: the first point in grid order)

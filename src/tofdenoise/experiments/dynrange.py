@@ -5,6 +5,9 @@ route at 4x the steps for U-Net), the gain of hetero training over fixed and ove
 per-seed difference of test MAE, ``MAE(fixed) - MAE(hetero)`` and ``MAE(range) - MAE(hetero)`` (positive: hetero
 is better), paired by seed: the runs of one seed share the data order and the initial weights, so the spread of
 the difference is the noise a gain must clear. Only seeds in which all three runs finished count.
+
+Its runs are the rows ``tables.TABLES["dynrange"]``; ``tofdenoise reproduce --study dynrange`` (``make reproduce
+STUDY=dynrange``) runs them and draws the gains (``experiments.reproduce``).
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Run a list of training runs, each in its own process and folder: resumable, skipped when finished, failures listed.
 
-A *run spec* is a name plus the Hydra overrides of ``tofdenoise-train``. :func:`run_all` gives every spec the
+A *run spec* is a name plus the Hydra overrides of ``tofdenoise train``. :func:`run_all` gives every spec the
 folder ``<out>/<name>`` and
 
 * skips it when it has finished (``run_info.json`` has ``finished`` and ``metrics.json`` exists),
@@ -49,12 +49,12 @@ ENTRY_MODULES = {"train": "tofdenoise.cli.train", "classical": "tofdenoise.cli.c
 
 @dataclass(frozen=True)
 class RunSpec:
-    """One training run: a folder name (unique in its grid) and the ``tofdenoise-train`` overrides."""
+    """One training run: a folder name (unique in its grid) and the ``tofdenoise train`` overrides."""
 
     name: str
     overrides: tuple[str, ...]
     meta: dict[str, Any] = field(default_factory=dict, compare=False, hash=False)
-    #: which command runs it: a key of ``ENTRY_MODULES`` ("train": ``tofdenoise-train``)
+    #: which command runs it: a key of ``ENTRY_MODULES`` ("train": ``tofdenoise train``)
     entry: str = "train"
 
     def __post_init__(self) -> None:

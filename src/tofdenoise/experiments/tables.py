@@ -21,6 +21,8 @@ Tables (``../shared/seeds`` paper, Sec. V):
   a_max / a_min = 16, 64, 256 (``data.signal_dynamic_range``, rows tagged ``dr16`` ...) and the physical route
   (the default world: these rows are Table III's runs), plus U-Net at 4x the steps on the physical route
   (``x4``) to separate the world from a short schedule. ``tofdenoise.experiments.dynrange`` computes the gains.
+  A study, not a table, for the user: ``tofdenoise reproduce --study dynrange`` (``targets``); its runs are kept
+  here because they are rows like the tables' rows (shared runs, records, claims).
 """
 
 from __future__ import annotations
@@ -79,7 +81,7 @@ class Row:
     noise: str = "hetero"
     loss: str = "l1"
     paper: Mapping[str, float] = field(default_factory=dict, compare=False, hash=False)
-    #: "train": a ``tofdenoise-train`` run; "classical": the tuned, parameter-free filter (``tofdenoise.cli.classic``)
+    #: "train": a ``tofdenoise train`` run; "classical": the tuned, parameter-free filter (``tofdenoise.cli.classic``)
     kind: str = "train"
     #: a variant of the (backbone, noise, loss) run: its folder gets ``-<tag>`` and its ``overrides`` are applied
     tag: str = ""

@@ -1,4 +1,4 @@
-"""One training job of ``tofdenoise-train``, safe to run again: the workflow behind the Hydra entry point.
+"""One training job of ``tofdenoise train``, safe to run again: the workflow behind the Hydra entry point.
 
 :func:`run` (``cfg`` composed from ``configs/train.yaml``) takes the run folder's lock (``tofdenoise.run_lock``) and
 
@@ -128,7 +128,7 @@ def validate_config(cfg: DictConfig) -> None:
     if not is_trainable(cfg.backbone.name):
         raise ValueError(
             f"config backbone.name: {cfg.backbone.name!r} is a classical filter without trainable "
-            "parameters: nothing to train; tune and evaluate it with `tofdenoise-classic` "
+            "parameters: nothing to train; tune and evaluate it with `tofdenoise classic` "
             "(docs/models.md#classical-row-joint-bilateral-filter)"
         )
     _names_or_error("noise.name", cfg.noise.name, NOISE_MODELS)
@@ -308,7 +308,7 @@ def _run_locked(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     return result
 
 
-#: exit status of a training stopped by Ctrl-C (128 + SIGINT, as a shell reports it; tofdenoise-denoise's too)
+#: exit status of a training stopped by Ctrl-C (128 + SIGINT, as a shell reports it; tofdenoise denoise's too)
 EXIT_INTERRUPTED = 130
 
 
@@ -323,7 +323,7 @@ def _say_interrupted(trainer: Any, run_dir: Path) -> None:
         else "no checkpoint was written yet: start it again"
     )
     print(
-        f"tofdenoise-train: interrupted (Ctrl-C) at step {trainer.global_step}, epoch {trainer.current_epoch}; "
+        f"tofdenoise train: interrupted (Ctrl-C) at step {trainer.global_step}, epoch {trainer.current_epoch}; "
         f"not tested, no metrics.json; {resume}",
         file=sys.stderr,
     )

@@ -1,4 +1,4 @@
-"""Inference on camera frames: ``denoise`` (arrays), ``tofdenoise-denoise`` (files), LightningCLI ``predict``
+"""Inference on camera frames: ``denoise`` (arrays), ``tofdenoise denoise`` (files), LightningCLI ``predict``
 (``FramesDataModule`` + ``FramesPredictionWriter``), sharing one restoration path (``denoise.restore_frame``).
 
 Names are imported lazily so that ``import tofdenoise`` stays light.

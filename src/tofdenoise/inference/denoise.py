@@ -1,4 +1,4 @@
-"""Denoise camera frames with a trained ``DepthRestorer``: the one restoration path of ``tofdenoise-denoise``, the
+"""Denoise camera frames with a trained ``DepthRestorer``: the one restoration path of ``tofdenoise denoise``, the
 Python API ``tofdenoise.denoise`` and LightningCLI ``predict`` on a folder of frames.
 
 A frame is restored as ``DepthRestorer.predict_step`` does: ``model.restore_mm({"noisy", "mask"[, "amplitude"]},
@@ -58,11 +58,11 @@ def load_failure_reason(exc: BaseException) -> str:
 
 
 def load_restorer(ckpt: str | Path, device: str | torch.device = "cpu"):
-    """A ``DepthRestorer`` in eval mode from a checkpoint of ``tofdenoise-train`` / ``tofdenoise fit``; anything
+    """A ``DepthRestorer`` in eval mode from a checkpoint of ``tofdenoise train`` / ``tofdenoise fit``; anything
     else is a ``CheckpointError`` naming the file and what was expected."""
 
     path = Path(ckpt).expanduser()
-    expected = "expected a DepthRestorer checkpoint (.ckpt written by tofdenoise-train or tofdenoise fit)"
+    expected = "expected a DepthRestorer checkpoint (.ckpt written by tofdenoise train or tofdenoise fit)"
     if not path.is_file():
         raise CheckpointError(f"checkpoint file not found: {path}")
     try:
@@ -126,7 +126,7 @@ def restore_frame(
     if model.conditioning.use_signal_channel and amplitude is None:
         raise ValueError(
             "this checkpoint uses the amplitude (signal) channel: give the frame's amplitude "
-            "(tofdenoise-denoise --amplitude DIR_OR_PATTERN)"
+            "(tofdenoise denoise --amplitude DIR_OR_PATTERN)"
         )
     device = model.device
     valid_t = torch.from_numpy(np.ascontiguousarray(valid, dtype=np.float32))[None, None].to(device)
@@ -158,7 +158,7 @@ def denoise(
     pixels. ``model_or_ckpt``: a ``DepthRestorer`` (used on its device) or a checkpoint path (loaded on
     ``device``; load once with ``load_restorer`` for many frames). ``amplitude``: (H, W), required by models
     that use the signal channel. Returns float32 (H, W) restored depth [mm], 0 at invalid input pixels unless
-    ``fill_holes`` (then every pixel gets a depth). Same result as ``tofdenoise-denoise`` on the same frame.
+    ``fill_holes`` (then every pixel gets a depth). Same result as ``tofdenoise denoise`` on the same frame.
     """
     model = _as_model(model_or_ckpt, device)
     depth = depth_mm.detach().cpu().numpy() if isinstance(depth_mm, torch.Tensor) else np.asarray(depth_mm)

@@ -1,10 +1,10 @@
-"""The whole restore path of a checkpoint as one ONNX graph (``tofdenoise-export CKPT --onnx model.onnx``).
+"""The whole restore path of a checkpoint as one ONNX graph (``tofdenoise export CKPT --onnx model.onnx``).
 
 :class:`RestoreGraph` is ``DepthRestorer.restore_mm`` written for export: the hole fill (pull-push with a fixed
 number of levels, :func:`tofdenoise.models.conditioning.fill_invalid_mm`), the centring on the smooth local
 offset, the network, and the offset added back in float32. Inputs ``depth_mm`` (B, 1, H, W) float32 (0, negative,
 NaN = invalid) and, for a checkpoint with the signal channel, ``amplitude`` (B, 1, H, W); output ``restored_mm``
-(B, 1, H, W) at every pixel (the caller masks input holes, as ``tofdenoise-denoise`` does). Height and width are
+(B, 1, H, W) at every pixel (the caller masks input holes, as ``tofdenoise denoise`` does). Height and width are
 dynamic. ``fp16`` runs the network in float16 between the float32 conditioning and the float32 offset.
 
 Exporter: the TorchScript-based ``torch.onnx.export(..., dynamo=False)`` by default. Both were tried on the tiny
@@ -17,7 +17,7 @@ frame has odd prime sides (:func:`_example`) and the code paths that branch on a
 stride) take the general branch. ``export_graph(..., dynamo=True)`` keeps the other route.
 
 The graph's metadata (``metadata_props``) names the backbone, ``use_signal_channel``, ``depth_scale_mm``, the
-fill levels, the precision and the checkpoint's sha256; ``tofdenoise-denoise --onnx`` reads them.
+fill levels, the precision and the checkpoint's sha256; ``tofdenoise denoise --onnx`` reads them.
 """
 
 from __future__ import annotations

@@ -1,8 +1,8 @@
-"""Run an exported restore graph (``tofdenoise-export``) with onnxruntime: no torch weights are loaded.
+"""Run an exported restore graph (``tofdenoise export``) with onnxruntime: no torch weights are loaded.
 
 :class:`OnnxRestorer` reads the graph's metadata (``tofdenoise.inference.export``: backbone, signal channel,
 precision, source checkpoint) and restores one frame as ``restore_frame`` does for a checkpoint: invalid input
-pixels are 0 in the output unless ``fill_holes``. Used by ``tofdenoise-denoise --onnx``.
+pixels are 0 in the output unless ``fill_holes``. Used by ``tofdenoise denoise --onnx``.
 """
 
 from __future__ import annotations
@@ -43,7 +43,7 @@ class OnnxRestorer:
         if "tofdenoise_backbone" not in self.metadata:
             raise OnnxModelError(
                 f"ONNX model {self.path} is not a tofdenoise restore graph (no tofdenoise_* metadata); "
-                "write one with tofdenoise-export CKPT --onnx FILE"
+                "write one with tofdenoise export CKPT --onnx FILE"
             )
         self.inputs = [i.name for i in self.session.get_inputs()]
         self.use_signal_channel = self.metadata.get("tofdenoise_use_signal_channel") == "true"
@@ -56,7 +56,7 @@ class OnnxRestorer:
             if amplitude is None:
                 raise ValueError(
                     f"ONNX model {self.path} uses the amplitude (signal) channel: give the frame's amplitude "
-                    "(tofdenoise-denoise --amplitude DIR_OR_PATTERN)"
+                    "(tofdenoise denoise --amplitude DIR_OR_PATTERN)"
                 )
             feeds["amplitude"] = np.ascontiguousarray(amplitude, dtype=np.float32)
         return self.session.run(["restored_mm"], feeds)[0]

@@ -1,4 +1,4 @@
-"""Per-frame outputs of ``tofdenoise-denoise`` (and of LightningCLI ``predict`` on frames), all written atomically.
+"""Per-frame outputs of ``tofdenoise denoise`` (and of LightningCLI ``predict`` on frames), all written atomically.
 
 For a frame named ``<rel>/<stem>`` (its path relative to the input folder, without suffix) under ``out``::
 

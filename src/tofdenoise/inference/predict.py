@@ -1,5 +1,5 @@
 """LightningCLI ``predict`` on a folder of camera frames, with no noise synthesis: ``FramesDataModule`` reads the
-frames as ``tofdenoise-denoise`` does and ``FramesPredictionWriter`` writes the same per-frame outputs::
+frames as ``tofdenoise denoise`` does and ``FramesPredictionWriter`` writes the same per-frame outputs::
 
     python -m tofdenoise.inference.predict predict --ckpt_path best.ckpt --data.inputs '[frames/]' \\
         --trainer.callbacks tofdenoise.inference.FramesPredictionWriter --trainer.callbacks.out_dir restored/
@@ -12,7 +12,7 @@ batch.
 
 Recordings among ``--data.inputs`` (Azure Kinect ``.mkv``, ROS bags; ``inference.recordings``) are read whole once
 when the datamodule is built (a damaged one stops the run before any write) and their frames streamed after the
-frame files, named ``<recording>/frame_NNNNNN`` as ``tofdenoise-denoise`` names them; ``--data.depth_stream`` /
+frame files, named ``<recording>/frame_NNNNNN`` as ``tofdenoise denoise`` names them; ``--data.depth_stream`` /
 ``--data.amplitude_stream`` choose their topics or tracks. The writer's ``depth_m`` and ``ply`` options add the
 metres map and the point cloud (``ply`` takes a recording's own intrinsics, or those of ``intrinsics``).
 """
@@ -106,11 +106,12 @@ class FramesDataModule(L.LightningDataModule):
     """Predict-only datamodule over camera frames (no noise synthesis, no reference).
 
     Args:
-        inputs: depth frames or folders of them (recursive), as ``tofdenoise-denoise``.
+        inputs: depth frames or folders of them (recursive), as ``tofdenoise denoise``.
         amplitude: amplitude frames paired by stem (folder, ``{stem}`` template or glob); needed by checkpoints
             that use the signal channel.
         depth_scale_mm: millimetres per stored depth unit.
-        calib: calibration file / preset for the sigma_D map of the input (needs ``amplitude``).
+        sensor: the camera's calibration (file or preset) for the sigma_D map of the input (needs ``amplitude``;
+            ``--data.sensor``, as ``data.sensor`` of the training configs and ``--sensor`` of the other verbs).
         exclude: folders whose files are not inputs (e.g. the output folder; an amplitude folder is excluded).
         num_workers: DataLoader workers.
         depth_stream: recordings: the depth topic / track (default: the Kinect's DEPTH track, the first image topic
@@ -126,7 +127,7 @@ class FramesDataModule(L.LightningDataModule):
         inputs: list[str],
         amplitude: str | None = None,
         depth_scale_mm: float = 1.0,
-        calib: str | None = None,
+        sensor: str | None = None,
         exclude: list[str] | None = None,
         num_workers: int = 0,
         depth_stream: str | None = None,
@@ -136,8 +137,8 @@ class FramesDataModule(L.LightningDataModule):
         self.save_hyperparameters()
         if not depth_scale_mm > 0:
             raise ValueError(f"FramesDataModule.depth_scale_mm must be > 0, got {depth_scale_mm}")
-        if calib is not None and amplitude is None:
-            raise ValueError("FramesDataModule: calib needs amplitude (the sigma_D map comes from the amplitude)")
+        if sensor is not None and amplitude is None:
+            raise ValueError("FramesDataModule: sensor needs amplitude (the sigma_D map comes from the amplitude)")
         self.amplitude = AmplitudeSource(amplitude) if amplitude is not None else None
         skip = list(exclude or []) + ([self.amplitude.folder] if self.amplitude and self.amplitude.folder else [])
         self.frames = find_frames(inputs, exclude=skip)
@@ -149,10 +150,10 @@ class FramesDataModule(L.LightningDataModule):
         if not self.frames and not self.recordings:
             raise ValueError(f"FramesDataModule: no depth frame or recording found in {', '.join(map(str, inputs))}")
         self.calib = None
-        if calib is not None:
+        if sensor is not None:
             from tofdenoise.physics.calibration import resolve_calibration
 
-            self.calib = resolve_calibration(calib)
+            self.calib = resolve_calibration(sensor)
 
     def predict_dataloader(self) -> DataLoader:
         dataset = FramesDataset(self.frames, self.hparams.depth_scale_mm, self.amplitude, self.calib)
@@ -163,7 +164,7 @@ class FramesDataModule(L.LightningDataModule):
 
 
 class FramesPredictionWriter(BasePredictionWriter):
-    """Writes each predicted frame as ``tofdenoise-denoise`` does (``tofdenoise.inference.outputs``); ``depth_m``
+    """Writes each predicted frame as ``tofdenoise denoise`` does (``tofdenoise.inference.outputs``); ``depth_m``
     adds the metres TIFF, ``ply`` the point cloud (intrinsics: the frame's recording, else the ``intrinsics`` file)."""
 
     def __init__(

@@ -1,4 +1,4 @@
-"""A real test scene from a static recording: ``tofdenoise-sensor realset --from-recording REC``.
+"""A real test scene from a static recording: ``tofdenoise sensor realset --from-recording REC``.
 
 A camera engineer records a static scene (camera on a tripod, nothing moving) for a few seconds. Its frames become
 one scene of the capture-set format of ``data_modules.real_captures`` (docs/data.md), ready for ``data.real_dir``:

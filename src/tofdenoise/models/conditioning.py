@@ -1,7 +1,7 @@
 """What the network sees: invalid pixels filled, depth centred on a local offset and scaled (pure functions).
 
 Every backbone receives the same conditioned input, in training, validation, test, predict and
-``tofdenoise-denoise`` (one implementation, called by ``DepthRestorer.condition``):
+``tofdenoise denoise`` (one implementation, called by ``DepthRestorer.condition``):
 
 1. **Holes filled** (:func:`fill_invalid_mm`). Input pixels that are not valid (0, negative, NaN or inf:
    the camera's "no measurement") get the *pull-push* value: the masked mean of the pixel's 2^k x 2^k block at
@@ -9,7 +9,7 @@ Every backbone receives the same conditioned input, in training, validation, tes
    multi-scale normalised convolution with box kernels). Valid pixels keep their exact value, so no noise is
    smoothed away before the network; holes get a smooth surface continuing their surroundings instead of a 0
    that a network reads as a 1 m cliff. The restored depth at input-invalid pixels is masked again afterwards
-   (``DepthRestorer.predict_step``, ``tofdenoise-denoise`` without ``--fill-holes``).
+   (``DepthRestorer.predict_step``, ``tofdenoise denoise`` without ``--fill-holes``).
 2. **Centred on a local offset** (:func:`local_offset_mm`): the filled depth averaged over blocks of
    ``block_px`` x ``block_px`` pixels and bilinearly interpolated back to full size, a smooth surface that
    follows the scene. The network's depth channel is ``(filled - offset) / depth_scale_mm``: zero-mean noise and

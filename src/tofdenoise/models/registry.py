@@ -1,7 +1,7 @@
 """Backbone registry: backbones are chosen by name and built from plain keyword arguments.
 
-A backbone is registered as trainable (a network, trained by ``tofdenoise-train``) or not (a classical filter
-without parameters, such as ``bilateral``: tuned and evaluated by ``tofdenoise-classic``)."""
+A backbone is registered as trainable (a network, trained by ``tofdenoise train``) or not (a classical filter
+without parameters, such as ``bilateral``: tuned and evaluated by ``tofdenoise classic``)."""
 
 from __future__ import annotations
 
@@ -50,7 +50,7 @@ def available_backbones() -> list[str]:
 
 
 def trainable_backbones() -> list[str]:
-    """Registered backbones with trainable parameters (the networks ``tofdenoise-train`` trains), sorted."""
+    """Registered backbones with trainable parameters (the networks ``tofdenoise train`` trains), sorted."""
     return sorted(n for n in BACKBONES.names() if n not in _NOT_TRAINABLE)
 
 

@@ -30,7 +30,13 @@ from typing import Any
 import numpy as np
 import torch
 
-from tofdenoise.physics.calibration import C_LIGHT_MM_PER_S, SensorCalibration, TapResponse
+from tofdenoise.physics.calibration import (
+    C_LIGHT_MM_PER_S,
+    SensorCalibration,
+    TapResponse,
+    check_calibration_out,
+    save_calibration,
+)
 from tofdenoise.physics.capture_io import INDEX_NAME, CaptureFormatError, clipped_samples, load_stack, read_index
 from tofdenoise.physics.simulator import default_min_amplitude_e, demodulate
 
@@ -481,6 +487,26 @@ def calibrate_from_folders(
     )
 
 
+def calibrate_to_file(
+    sweep_dir: str | os.PathLike[str],
+    dark_dir: str | os.PathLike[str],
+    distances_dir: str | os.PathLike[str] | None,
+    out: str | os.PathLike[str],
+    **kwargs: Any,
+) -> tuple[CalibrationReport, Path]:
+    """``tofdenoise sensor calibrate``'s job: ``calibrate_from_folders`` (``kwargs``: its settings) written to ``out``
+    (.yaml or .json) with a header naming the capture folders, the clipping and the warnings. ``out`` is checked
+    (a file name, not a folder) before the calibration is computed. Returns the report and the written path."""
+    check_calibration_out(out)
+    report = calibrate_from_folders(sweep_dir, dark_dir, distances_dir, **kwargs)
+    header = (
+        f"Calibrated by tofdenoise sensor calibrate\nsweep: {sweep_dir} ({report.sweep_points} steps)\n"
+        f"dark: {dark_dir} ({report.dark_frames} frames)\ndistances: {distances_dir or '-'}\n"
+        f"clipping: {report.clipping_summary()}" + "".join(f"\nwarning: {w}" for w in report.warnings)
+    )
+    return report, save_calibration(report.calibration, out, header=header)
+
+
 __all__ = [
     "MIN_DARK_FRAMES",
     "MAX_CLIPPED_TAP_FRACTION",
@@ -488,6 +514,7 @@ __all__ = [
     "MIN_UNCLIPPED_FRACTION",
     "CalibrationReport",
     "calibrate_from_folders",
+    "calibrate_to_file",
     "estimate_dark",
     "fit_range_sigma",
     "fit_tap_response",

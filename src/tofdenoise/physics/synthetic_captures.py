@@ -184,7 +184,7 @@ def write_calibration_captures(
     signal_spread: tuple[float, float] = (0.3, 1.0),
     seed: int = 0,
 ) -> dict[str, Path]:
-    """The three capture folders ``tofdenoise-sensor calibrate`` reads, as a camera with ``calib`` records them:
+    """The three capture folders ``tofdenoise sensor calibrate`` reads, as a camera with ``calib`` records them:
     ``out_dir/sweep`` (phase sweep), ``out_dir/dark`` (emitter-off frames) and ``out_dir/distances`` (planar
     target at ``distances_mm``, default ``default_distances_mm``). The target is a grey chart ``GREY_CHART`` lit
     by the camera's own photometric gain when it has one (the paper's signal-interval sequence: dark and bright

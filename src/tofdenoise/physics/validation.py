@@ -460,8 +460,22 @@ def write_validation(
     return json_path, png
 
 
+def validate_to_folder(
+    calib: SensorCalibration,
+    out_dir: str | os.PathLike[str],
+    settings: ValidationSettings | None = None,
+    captures_dir: str | os.PathLike[str] | None = None,
+) -> tuple[ValidationResult, Path, Path]:
+    """The validation of Fig. 6 (``tofdenoise sensor validate``, ``tofdenoise reproduce --figure 6``): the camera's
+    measured temporal noise (``captures_dir``, else the tap-level simulator) against ``calib``'s prediction,
+    written to ``out_dir`` (``VALIDATION_FILES``). Returns the result and the two files."""
+    result = run_validation(calib, settings or ValidationSettings(), captures_dir=captures_dir)
+    json_path, png = write_validation(result, calib, out_dir)
+    return result, json_path, png
+
+
 def calibrate_simulated_camera(calib: SensorCalibration, seed: int = 0, shape: tuple[int, int] = (16, 16)) -> Any:
-    """Calibrate a camera the way a user calibrates theirs (``tofdenoise-sensor calibrate``), from its own
+    """Calibrate a camera the way a user calibrates theirs (``tofdenoise sensor calibrate``), from its own
     simulated captures: the phase sweep, 100 dark frames and the distance sequence (``write_calibration_captures``:
     a grey chart across the working range for a camera with a photometric gain). Returns the ``CalibrationReport``;
     the presets' ``signal_min_e``/``signal_max_e`` and ``range_sigma_mm`` are measured with it (docs/physics.md)."""
@@ -489,5 +503,7 @@ __all__ = [
     "r2_score",
     "run_validation",
     "simulated_conditions",
+    "validate_to_folder",
     "write_validation",
+    "write_validation_captures",
 ]

@@ -8,7 +8,7 @@ result cannot be verified and is not learned either ("not verified"). The margin
 ``DepthRestorer(learned_margin=...)`` setting.
 
 ``method_kind`` tells the two kinds of rows apart: ``"network"`` (the rule above) or ``"classical"`` (a filter
-without trainable parameters, ``tofdenoise-classic``; ``classical_verdict``): 0 steps and ``learned`` False by
+without trainable parameters, ``tofdenoise classic``; ``classical_verdict``): 0 steps and ``learned`` False by
 construction, reported as "classical", never as a failed run; its ``best_val_mae_mm`` is the validation MAE of
 the parameters its grid search chose. A file without ``method_kind`` was written by a network run.
 """

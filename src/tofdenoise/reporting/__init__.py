@@ -10,23 +10,24 @@ and the grids' tables.
 - :mod:`~tofdenoise.reporting.numbers`: the metric columns, the number formatter and the reader of stored numbers
   that every table here (and ``experiments.tables``) shares.
 - :mod:`~tofdenoise.reporting.results_page`: ``docs/results.md`` from the paper's run records
-  (``tofdenoise-reproduce``); :mod:`~tofdenoise.reporting.robustness`: the robustness grid's table
-  (``tofdenoise-grid``). What runs is defined in ``tofdenoise.experiments``; everything rendered lives here.
+  (``tofdenoise reproduce``); :mod:`~tofdenoise.reporting.robustness`: the robustness grid's table
+  (``tofdenoise grid``). What runs is defined in ``tofdenoise.experiments``; everything rendered lives here.
 
-The command line is ``tofdenoise-report`` (``tofdenoise.cli.report``).
+The command line is ``tofdenoise report`` (``tofdenoise.cli.report``).
 """
 
 from __future__ import annotations
 
 from tofdenoise.reporting.page import render_html
 from tofdenoise.reporting.plots import comparison_png, learning_curves_png
-from tofdenoise.reporting.runs import Run, find_runs, load_run
+from tofdenoise.reporting.runs import Run, find_runs, load_run, load_runs
 from tofdenoise.reporting.table import learned_flag, results_table, table_markdown
 
 __all__ = [
     "Run",
     "find_runs",
     "load_run",
+    "load_runs",
     "results_table",
     "table_markdown",
     "learned_flag",

@@ -2,7 +2,7 @@
 from a ``metrics.json``.
 
 - :data:`METRIC_COLUMNS`: the four metrics of a test set (``training.results.METRIC_KEYS``), each with its HTML and
-  text header, its decimals and whether higher is better. ``tofdenoise-report``'s table and page, the results page
+  text header, its decimals and whether higher is better. ``tofdenoise report``'s table and page, the results page
   (``docs/results.md``) and the paper's tables (``experiments.tables``) all take them from here.
 - :func:`format_number`: one number as text (missing -> a dash, infinities written out).
 - :func:`read_number`: a metric value as ``metrics.json`` stores it (a number, ``null``, or ``"inf"`` / ``"-inf"``,

@@ -1,4 +1,4 @@
-"""The robustness grid's table (``tofdenoise-grid``): rows from ``tofdenoise.experiments.grids.robustness_rows``."""
+"""The robustness grid's table (``tofdenoise grid``): rows from ``tofdenoise.experiments.grids.robustness_rows``."""
 
 from __future__ import annotations
 

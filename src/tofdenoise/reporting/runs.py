@@ -24,7 +24,7 @@ from omegaconf import OmegaConf
 
 from tofdenoise.records import METRICS_NAME, RUN_INFO_NAME, metric_sets, read_metrics_json, read_record, run_fields
 
-__all__ = ["Run", "find_runs", "load_run"]
+__all__ = ["Run", "find_runs", "load_run", "load_runs"]
 
 #: folders of a run that hold no run of their own
 _SKIP_DIRS = {"wandb", "checkpoints", "panels", ".hydra", "csv", "tensorboard", "predictions", "__pycache__"}
@@ -139,3 +139,16 @@ def load_run(run_dir: str | Path) -> Run:
         panel=panels[-1] if panels else None,
         learned=learned,
     )
+
+
+def load_runs(run_dirs: Sequence[str | Path]) -> tuple[list[Run], list[tuple[Path, str]]]:
+    """Every run of ``run_dirs`` that can be read, sorted by name, and the others with the reason (what the report
+    lists instead of stopping)."""
+    runs: list[Run] = []
+    skipped: list[tuple[Path, str]] = []
+    for d in run_dirs:
+        try:
+            runs.append(load_run(d))
+        except (OSError, ValueError) as exc:
+            skipped.append((Path(d), str(exc)))
+    return sorted(runs, key=lambda r: r.name), skipped

@@ -4,7 +4,7 @@ Fine-tuning, not resuming: the optimiser, the learning-rate schedule, the epoch 
 callbacks' state start fresh (``ckpt_path`` restores all of them). :func:`load_init_weights` reads the file with
 ``torch.load(weights_only=True)`` and accepts
 
-- a Lightning checkpoint of ``tofdenoise-train`` / ``tofdenoise fit`` (its ``state_dict``; with an EMA, the
+- a Lightning checkpoint of ``tofdenoise train`` / ``tofdenoise fit`` (its ``state_dict``; with an EMA, the
   EMA weights, the network its validation MAE was measured with), or
 - a plain state dict: ``DepthRestorer.state_dict()`` (keys ``backbone.*``) or the backbone's own
   (``build_backbone(...).state_dict()``, keys without prefix).
@@ -66,7 +66,7 @@ def read_init_state(path: str | os.PathLike[str]) -> tuple[dict[str, torch.Tenso
     except Exception as exc:  # noqa: BLE001 - any unpickling/zip error: the file is not usable weights
         raise InitWeightsError(
             f"model.init_weights: {path} is not loadable by torch.load(weights_only=True) ({_first_line(exc)}); "
-            "give a checkpoint of tofdenoise-train / tofdenoise fit or a state-dict file saved with torch.save"
+            "give a checkpoint of tofdenoise train / tofdenoise fit or a state-dict file saved with torch.save"
         ) from None
     hparams: dict[str, Any] = {}
     if isinstance(payload, Mapping) and isinstance(payload.get("state_dict"), Mapping):

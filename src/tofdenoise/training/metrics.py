@@ -1,6 +1,6 @@
 """Depth restoration metrics over valid pixels (paper Sec. V-A): PSNR, MAE, MSE, SSIM.
 
-Public API (used by the LightningModule, the callbacks and ``tofdenoise-eval``):
+Public API (used by the LightningModule, the callbacks and ``tofdenoise evaluate``):
 
 - ``METRIC_KEYS = ("psnr_db", "mae_mm", "mse_mm2", "ssim")``
 - ``valid_pixel_mask(ref_mm, mask=None, pred_mm=None) -> BoolTensor``

@@ -1,0 +1,278 @@
+"""``tofdenoise reproduce``'s workflow: one of the paper's tables or figures, or a study (``targets``), resumable, and
+``docs/results.md`` rebuilt from the committed records.
+
+Steps: (1) the stand-in real set, once per profile (``data_modules.realset.build_realset``: a second simulated camera
+with another frequency, contrast, harmonics, dark level and gain, mixed pixels at depth edges writes its calibration
+captures and its capture set, and its calibration is estimated from them; ``<out>/realset``,
+docs/camera-tutorial.md); (2) every run of the target, trained with that calibration and tested on the synthetic
+split and on that capture set, each run a process of its own (``runner.run_all`` through ``executor``: sequential,
+local workers, a SLURM array); finished runs are skipped, interrupted ones resume, a failing run does not stop the
+others and is listed; (3) each finished run's records copied to ``<results>/<profile>/<run>/`` as it ends; (4) the
+page rebuilt from those records under its lock (``atomic.exclusive_lock``), so two commands committing runs at once
+cannot drop one's run from it.
+
+Figure 6 validates the noise model on the stand-in camera (``physics.validation.validate_to_folder``: its
+validation captures against the calibration estimated from its own calibration captures). Figures 7 and 8 train
+the runs of their columns for the first seed when missing, then render the figure from those runs' best checkpoints
+(``figures``), check it against the runs' per-image records and commit ``figure.png`` and ``figure.json``.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from tofdenoise.atomic import atomic_write_bytes, atomic_write_text, exclusive_lock
+from tofdenoise.experiments.dynrange import gain_figure_png, gains
+from tofdenoise.experiments.figures import (
+    FIGURE_JSON,
+    FIGURE_PNG,
+    FIGURES,
+    FigureMismatch,
+    build_figure,
+    encode_png_palette,
+    figure_specs,
+)
+from tofdenoise.experiments.runner import run_all
+from tofdenoise.experiments.tables import table_specs
+from tofdenoise.experiments.targets import Target
+from tofdenoise.records import METRICS_NAME, PER_IMAGE_DIR, RUN_INFO_NAME, run_finished
+from tofdenoise.reporting import find_runs, load_runs, render_html
+from tofdenoise.reporting.results_page import DYNRANGE_FIGURE, load_records, results_markdown
+
+__all__ = [
+    "PROFILES",
+    "REALSET_SIZES",
+    "RECORD_FILES",
+    "Reproduction",
+    "copy_records",
+    "ensure_realset",
+    "profile_needs",
+    "profile_overrides",
+    "reproduce",
+    "write_page",
+]
+
+#: profile -> Hydra overrides shared by every training run of a target
+PROFILES: dict[str, tuple[str, ...]] = {
+    "cpu": ("experiment=reproduce_cpu",),
+    # the paper's settings (Sec. V-A): ToF-FlyingThings3D (data.source_kwargs.root=...), 320 crops, batch 4, 300
+    # epochs, one GPU
+    "gpu": ("experiment=paper", "logger=csv"),
+}
+#: the stand-in real set of each profile: capture-set size (scenes, height, width)
+REALSET_SIZES: dict[str, tuple[int, int, int]] = {"cpu": (24, 128, 160), "gpu": (200, 480, 640)}
+#: what a finished run leaves in docs/results/<profile>/<run>/ (small files; checkpoints and panels stay in runs/)
+RECORD_FILES = (
+    METRICS_NAME,
+    RUN_INFO_NAME,
+    "config.yaml",
+    "csv/metrics.csv",
+    f"{PER_IMAGE_DIR}/synthetic.csv",
+    f"{PER_IMAGE_DIR}/real.csv",
+)
+
+Log = Callable[[str], None]
+
+
+def _print(line: str) -> None:
+    print(line, flush=True)
+
+
+def profile_overrides(profile: str, realset_dir: Path, extra: list[str]) -> list[str]:
+    """The overrides of every run: the profile's experiment, the second camera's calibration and capture set."""
+    return [
+        *PROFILES[profile],
+        f"++data.sensor={realset_dir / 'calibration.yaml'}",
+        f"++data.real_dir={realset_dir / 'captures'}",
+        *extra,
+    ]
+
+
+def profile_needs(profile: str, extra: list[str], cuda_available: bool | None = None) -> str:
+    """What ``profile`` needs that is missing ("" when nothing): the GPU profile trains on ToF-FlyingThings3D
+    (``--extra data.source_kwargs.root=FOLDER``, an existing folder) on a CUDA GPU (``experiment=paper`` sets
+    ``trainer=gpu``)."""
+    if profile != "gpu":
+        return ""
+    roots = [e.split("=", 1)[1] for e in extra if e.lstrip("+").startswith("data.source_kwargs.root=")]
+    if not roots:
+        return "the ToF-FlyingThings3D folder: --extra data.source_kwargs.root=/path/to/ToF-FlyingThings3D"
+    if not Path(roots[-1]).expanduser().is_dir():
+        return f"an existing data.source_kwargs.root folder (ToF-FlyingThings3D), got {roots[-1]}"
+    if cuda_available is None:
+        import torch  # heavy: only for the GPU profile
+
+        cuda_available = torch.cuda.is_available()
+    if not cuda_available:
+        return "a CUDA GPU (experiment=paper trains with trainer=gpu); torch.cuda.is_available() is False here"
+    return ""
+
+
+def ensure_realset(realset_dir: Path, profile: str, dry_run: bool = False, log: Log = _print) -> None:
+    """The profile's stand-in real set (``REALSET_SIZES``); finished steps and complete scenes are skipped, so it is
+    cheap to repeat. A dry run only says what it would build."""
+    scenes, height, width = REALSET_SIZES[profile]
+    what = f"the stand-in real set (second camera): {realset_dir}, {scenes} scenes of {height} x {width}"
+    if dry_run:
+        log(f"[reproduce] would build {what}")
+        return
+    from tofdenoise.data_modules.realset import build_realset  # heavy (torch): not for a dry run or the page
+
+    log(f"[reproduce] {what}")
+    build_realset(realset_dir, scenes=scenes, height=height, width=width, log=log)
+
+
+def copy_records(run_dirs: list[Path], dest: Path) -> list[str]:
+    """Copy each finished run's records (``RECORD_FILES`` that exist) to ``dest/<run>/`` atomically; the names."""
+    copied = []
+    for run_dir in run_dirs:
+        if not run_finished(run_dir):
+            continue
+        for name in RECORD_FILES:
+            if (run_dir / name).is_file():
+                atomic_write_bytes(dest / run_dir.name / name, (run_dir / name).read_bytes())
+        copied.append(run_dir.name)
+    return copied
+
+
+def write_report(dest: Path) -> None:
+    """The offline HTML report of the recorded runs (``dest/report.html``), when there are any."""
+    if not any(dest.glob(f"*/{METRICS_NAME}")):
+        return
+    runs, skipped = load_runs(find_runs([dest]))
+    if runs:
+        title = f"tofdenoise: paper tables, {dest.name} profile"
+        atomic_write_text(dest / "report.html", render_html(runs, title, skipped))
+
+
+def write_dynrange_figure(dest: Path, seeds: list[int]) -> None:
+    """The dynamic-range study's gain figure from the committed records (``dest/dynrange/gains.png``)."""
+    records = load_records(dest)
+    items = gains(lambda name: (records.get(name) or {}).get("metrics"), seeds)
+    if items:
+        atomic_write_bytes(dest / DYNRANGE_FIGURE, gain_figure_png(items))
+
+
+def write_page(results: Path, page: Path, before: Any = None) -> str:
+    """Rebuild ``page`` from the records under ``results`` under the page's lock (``before()`` first, inside it):
+    a rebuild reads every record, so two commands committing runs at once must not interleave."""
+    with exclusive_lock(page):
+        if before is not None:
+            before()
+        text = results_markdown(results)
+        atomic_write_text(page, text)
+    return text
+
+
+@dataclass
+class Reproduction:
+    """What to reproduce and where (``tofdenoise reproduce``'s options)."""
+
+    target: Target | None  # None: only rebuild the page
+    results: Path
+    page: Path
+    profile: str = "cpu"
+    seeds: list[int] = field(default_factory=lambda: [0, 1, 2])
+    out: Path | None = None  # run folders (default runs/reproduce/<profile>, set by the caller)
+    extra: list[str] = field(default_factory=list)
+    dry_run: bool = False
+    executor: Any = None  # an executor of ``experiments.executors`` (None: sequential)
+
+    @property
+    def realset_dir(self) -> Path:
+        return Path(self.out) / "realset"
+
+    @property
+    def dest(self) -> Path:
+        return self.results / self.profile
+
+    def overrides(self) -> list[str]:
+        return profile_overrides(self.profile, self.realset_dir, self.extra)
+
+
+def validation_figure(job: Reproduction, log: Log = _print) -> int:
+    """Figure 6: the noise model validated on the second camera (its validation captures against the calibration
+    estimated from its own calibration captures), committed to ``<results>/<profile>/fig6/``."""
+    folder, captures = Path(job.out) / "fig6", job.realset_dir / "validation"
+    calibration = job.realset_dir / "calibration.yaml"
+    if job.dry_run:
+        log(f"[reproduce] would validate the noise model: {calibration} against {captures} -> {folder}")
+        return 0
+    from tofdenoise.physics.calibration import resolve_calibration  # heavy (torch): not for a dry run
+    from tofdenoise.physics.validation import VALIDATION_FILES, validate_to_folder
+
+    log(f"[reproduce] figure 6 (noise-model validation on the second camera) -> {folder}")
+    result, _, _ = validate_to_folder(resolve_calibration(calibration), folder, captures_dir=captures)
+    pooled = result.pooled.get("proposed", {})
+    log(f"[reproduce] figure 6: proposed pooled MAPE {pooled.get('mape_percent', float('nan')):.2f} %")
+    for name in VALIDATION_FILES:
+        atomic_write_bytes(job.dest / "fig6" / name, (folder / name).read_bytes())
+    return 0
+
+
+def qualitative_figure(job: Reproduction, record: Any, log: Log = _print) -> int:
+    """Figures 7 / 8: the columns' runs for the first seed (trained when missing), then the rendered figure."""
+    from tofdenoise.inference.denoise import CheckpointError  # heavy (torch)
+
+    spec, seed = FIGURES[job.target.key], job.seeds[0]
+    specs = figure_specs(spec, seed, job.overrides())
+    outcomes = run_all(
+        specs, job.out, dry_run=job.dry_run, after_each=None if job.dry_run else record, executor=job.executor
+    )
+    if job.dry_run:
+        log(f"[reproduce] would render {spec.key} from {', '.join(s.name for s in specs)}")
+        return 0
+    unfinished = [o.spec.name for o in outcomes if o.status not in ("done", "skipped")]
+    if unfinished:
+        log(f"[reproduce] {spec.key} not rendered: run(s) {', '.join(unfinished)} did not finish")
+        return 1
+    try:
+        image, fig_record = build_figure(spec, seed, specs, job.out)
+    except (FigureMismatch, CheckpointError) as exc:  # a figure that would not show what the tables scored
+        log(f"[reproduce] {spec.key} not rendered: {exc}")
+        return 1
+    fig_record["profile"] = job.profile
+    png, text = encode_png_palette(image), json.dumps(fig_record, indent=1) + "\n"
+    for folder in (Path(job.out) / spec.key, job.dest / spec.key):
+        atomic_write_bytes(folder / FIGURE_PNG, png)
+        atomic_write_text(folder / FIGURE_JSON, text)
+    log(f"[reproduce] {spec.key}: {job.dest / spec.key / FIGURE_PNG} ({len(png) // 1024} KiB)")
+    return 0
+
+
+def reproduce(job: Reproduction, log: Log = _print) -> int:
+    """The steps of the module docstring for ``job``; 0 when every run of the target finished (1 otherwise). A dry
+    run lists what would run and writes nothing. Errors: ``RecordError`` (a record that cannot be used),
+    ``WriteError``, ``OutputPathError``, and the real set's ``ValueError``."""
+    status = 0
+    target = job.target
+    if target is not None:
+        ensure_realset(job.realset_dir, job.profile, dry_run=job.dry_run, log=log)
+
+        def record(outcome) -> None:  # commit each finished run at once: an interrupted target keeps it
+            if copy_records([outcome.run_dir], job.dest):
+                study = target.kind == "study" and target.name == "dynrange"
+                figure = (lambda: write_dynrange_figure(job.dest, job.seeds)) if study else None
+                write_page(job.results, job.page, before=figure)
+
+        if target.key == "fig6":
+            status = validation_figure(job, log)
+        elif target.kind == "figure":
+            status = qualitative_figure(job, record, log)
+        else:
+            specs = table_specs(target.key, job.seeds, job.overrides())
+            outcomes = run_all(
+                specs, job.out, dry_run=job.dry_run, after_each=None if job.dry_run else record, executor=job.executor
+            )
+            if not job.dry_run:
+                write_report(job.dest)
+            status = 0 if all(o.status in ("done", "skipped", "planned") for o in outcomes) else 1
+        if job.dry_run:  # a dry run writes nothing
+            return status
+    write_page(job.results, job.page)
+    log(f"[reproduce] wrote {job.page}")
+    return status

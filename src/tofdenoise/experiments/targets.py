@@ -1,0 +1,62 @@
+"""What ``tofdenoise reproduce`` makes, each by its kind and its own name, and the command that makes it.
+
+- tables: the paper's ``1``, ``2``, ``3`` (``--table 3``, ``make reproduce TABLE=3``; rows in ``tables.TABLES``);
+- figures: the paper's ``6`` (the noise-model validation), ``7`` and ``8`` (qualitative: ``figures.FIGURES``)
+  (``--figure 6``, ``make reproduce FIGURE=6``);
+- studies beyond the paper: ``dynrange``, where the noise model pays across the dynamic range
+  (``--study dynrange``, ``make reproduce STUDY=dynrange``; its runs are rows of ``tables.TABLES["dynrange"]``,
+  its gains ``dynrange``).
+
+A target's ``key`` names its records: the runs' table (``tables.TABLES`` key) and the folder of its files under
+``docs/results/<profile>/`` (``fig6/``, ``fig7/``, ``dynrange/``). The results page, the command line and the Makefile
+all name targets through this module.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+__all__ = ["KINDS", "MAKE_VARIABLES", "Target", "target_of_key"]
+
+#: kind -> the names a user gives (``--<kind> NAME``)
+KINDS: dict[str, tuple[str, ...]] = {"table": ("1", "2", "3"), "figure": ("6", "7", "8"), "study": ("dynrange",)}
+#: kind -> the Makefile variable of ``make reproduce``
+MAKE_VARIABLES: dict[str, str] = {"table": "TABLE", "figure": "FIGURE", "study": "STUDY"}
+
+
+@dataclass(frozen=True)
+class Target:
+    kind: str  # "table", "figure" or "study"
+    name: str  # as the user gives it: "3", "6", "dynrange"
+
+    def __post_init__(self) -> None:
+        if self.kind not in KINDS:
+            raise ValueError(f"unknown kind {self.kind!r}; valid: {', '.join(KINDS)}")
+        if self.name not in KINDS[self.kind]:
+            raise ValueError(f"no {self.kind} {self.name!r}; valid: {', '.join(KINDS[self.kind])}")
+
+    @property
+    def key(self) -> str:
+        """The records' name: the table's key in ``tables.TABLES`` (``3``, ``dynrange``) or the figure's folder."""
+        return f"fig{self.name}" if self.kind == "figure" else self.name
+
+    @property
+    def option(self) -> str:
+        """``--figure 6``: how ``tofdenoise reproduce`` selects it."""
+        return f"--{self.kind} {self.name}"
+
+    def make_command(self, profile: str | None = None, seeds: str | None = None) -> str:
+        """``make reproduce FIGURE=6 [PROFILE=cpu] [SEEDS=0,1,2]``."""
+        words = ["make reproduce", f"{MAKE_VARIABLES[self.kind]}={self.name}"]
+        words += [f"PROFILE={profile}"] if profile else []
+        words += [f"SEEDS={seeds}"] if seeds else []
+        return " ".join(words)
+
+
+def target_of_key(key: str) -> Target:
+    """The target whose records are named ``key`` (``fig6``: figure 6, ``dynrange``: the study, ``3``: table 3)."""
+    for kind, names in KINDS.items():
+        for name in names:
+            if Target(kind, name).key == key:
+                return Target(kind, name)
+    raise ValueError(f"no target has the records {key!r}")
