@@ -130,6 +130,20 @@ def export_graph(graph: RestoreGraph, path: str | os.PathLike[str], dynamo: bool
         warnings.filterwarnings("ignore", category=torch.jit.TracerWarning)
         warnings.filterwarnings("ignore", message="Constant folding")
         torch.onnx.export(graph, inputs, str(path), **common)
+    if not dynamo:
+        _loops_with_scan_outputs(path)
+
+
+def _loops_with_scan_outputs(path: str | os.PathLike[str]) -> None:
+    """The per-step outputs of the export scan's loops (DVSS) as ``Loop`` scan outputs, not ONNX sequences
+    (:mod:`tofdenoise.inference.onnx_loops`); a graph without such loops is left as written."""
+    import onnx
+
+    from tofdenoise.inference.onnx_loops import sequences_to_scan_outputs
+
+    proto = onnx.load(str(path))
+    if sequences_to_scan_outputs(proto.graph):
+        onnx.save(proto, str(path))
 
 
 def export_onnx(ckpt: str | os.PathLike[str], out: str | os.PathLike[str], fp16: bool = False) -> dict[str, str]:
