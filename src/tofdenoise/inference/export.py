@@ -16,6 +16,10 @@ operations, so the graph stays dynamic; what it cannot follow are Python branche
 frame has odd prime sides (:func:`_example`) and the code paths that branch on a size (a backbone padding to its
 stride) take the general branch. ``export_graph(..., dynamo=True)`` keeps the other route.
 
+DVSS's scans go through ``models/scan/export.py``: ``torch.jit.script`` loops that this exporter keeps as ONNX
+``Loop`` nodes (dynamic trip count, memory bounded in the sequence length); after export their per-step outputs are
+rewritten from ONNX sequences into the loops' scan outputs (:mod:`tofdenoise.inference.onnx_loops`).
+
 The graph's metadata (``metadata_props``) names the backbone, ``use_signal_channel``, ``depth_scale_mm``, the
 fill levels, the precision and the checkpoint's sha256; ``tofdenoise-denoise --onnx`` reads them.
 """
