@@ -45,6 +45,18 @@ def _rss_mib(field: str) -> float:
     return float("nan")
 
 
+def _release_memory() -> None:
+    """Collect garbage and hand freed heap pages back to the system (glibc), so that a route's RSS at start is
+    not what an earlier route left behind."""
+    gc.collect()
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
+
+
 def _memory(start_mib: float) -> str:
     return f"{_rss_mib('VmHWM'):.0f} | {start_mib:.0f}"
 
@@ -94,13 +106,13 @@ def main() -> None:
                 prm.add_(0.01 * torch.randn_like(prm))
         with torch.no_grad():  # a small frame first: DVSS builds its native scan kernel outside the measurement
             model.restore_mm({"noisy": depth[..., :32, :32]}, tile=None)
-        gc.collect()
+        _release_memory()
         start = _rss_mib("VmRSS")
         _reset_peak_rss()
         with torch.no_grad():
             ref = model.restore_mm({"noisy": depth}, tile=None).numpy()
             t = _median_time(lambda: model.restore_mm({"noisy": depth}, tile=None), args.repeats)
-        print(f"| {name} | PyTorch fp32 | {1 / t:.2f} | {1000 * t:.0f} | 0 | {_memory(start)} |", flush=True)
+        print(f"| {name} | PyTorch fp32 | {1 / t:.3g} | {1000 * t:.0f} | 0 | {_memory(start)} |", flush=True)
         for precision in args.precisions.split(","):
             with tempfile.TemporaryDirectory() as tmp:
                 path = Path(tmp) / "m.onnx"
@@ -109,7 +121,7 @@ def main() -> None:
                 options.intra_op_num_threads = threads
                 sess = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
                 feeds = {"depth_mm": depth.numpy()}
-                gc.collect()
+                _release_memory()
                 start = _rss_mib("VmRSS")
                 _reset_peak_rss()
                 out = sess.run(None, feeds)[0]
@@ -118,7 +130,7 @@ def main() -> None:
                 sess = None  # the session's memory goes before the next route
             diff = float(np.abs(out - ref)[valid].max())
             print(
-                f"| {name} | onnxruntime {precision} | {1 / t:.2f} | {1000 * t:.0f} | {diff:.4f} | {memory} |",
+                f"| {name} | onnxruntime {precision} | {1 / t:.3g} | {1000 * t:.0f} | {diff:.4f} | {memory} |",
                 flush=True,
             )
 
