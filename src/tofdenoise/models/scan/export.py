@@ -1,8 +1,9 @@
 """Selective scan written for ONNX export: two loops over the positions of a lane, memory bounded in L.
 
 ``selective_scan_export`` computes what :func:`tofdenoise.models.scan.selective_scan_ref` computes (same
-arguments) with plain tensor operations whose largest intermediate has at most ``state_elems`` elements, whatever
-the sequence length L:
+arguments) with plain tensor operations whose state tensors have at most ``state_elems`` elements (or one lane's,
+if that is more), whatever the sequence length L; every other tensor has the size of an input, (batch, dim, L) or
+(batch, groups, N, L):
 
 1. The sequence is cut into K consecutive *lanes* of T = ceil(L / K) positions, K = ``state_elems`` // (batch x dim
    x N) (at most L), padded at the end with steps delta = 0 (decay 1, no input). Every step of the loops below
@@ -13,9 +14,13 @@ the sequence length L:
    (batch, dim, N, K) tensors, gives the state entering each lane.
 4. Second loop, over t again, from the entry states: the same recurrence, emitting y_t = sum_n C_t h_t per step.
 
-Work: every position's state is formed twice (steps 2 and 4), plus the small carry; the former export scan (a
-Hillis-Steele scan over the whole sequence, 20 doubling steps over the full (batch, dim, N, L) state) did 20
-passes and held the whole state. Only decays in (0, 1] are multiplied, as in the sequential scan.
+Work: every position's state is formed twice (steps 2 and 4), plus the small carry: 12 elementwise operators per
+position over the lane state (5 in the first loop: delta x A, exp, decay x state, delta u x B, add; 7 in the second:
+the same, C x state, the sum over N). The former export scan (a Hillis-Steele scan over the whole sequence) made 20
+doubling steps of about 5 operators over the full (batch, dim, N, L) state and held it whole. Only decays in (0, 1]
+are multiplied, as in the sequential scan. Speed: ONNX has no fused recurrence, so each of those operators reads and
+writes the lane state in memory, where the native CPU kernel forms each state element once in registers; in
+onnxruntime this scan costs about 7-9x the native kernel per state element (docs/benchmarks.md).
 
 In the exported graph the loops are ONNX ``Loop`` nodes with a dynamic trip count T: :func:`_lane_scan` is a
 ``torch.jit.script`` function, which the TorchScript-based exporter (``torch.onnx.export(..., dynamo=False)``, the
