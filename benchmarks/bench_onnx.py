@@ -1,24 +1,64 @@
 """The restore path through PyTorch and through onnxruntime, side by side (CPU, one 480 x 640 frame).
 
-    python benchmarks/bench_onnx.py [--quick] [--threads N] [--backbones unet,dvss]
+    python benchmarks/bench_onnx.py [--quick] [--threads N] [--backbones unet,dvss] [--repeats 5]
+        [--precisions fp32,fp16]
 
 For each backbone (default kwargs, weights as initialised plus a small perturbation, so the network's output is
-not the zero-initialised residual): ``DepthRestorer.restore_mm`` in float32 (no tiling) against the exported
-graph (``tofdenoise.inference.export``, the whole path: hole fill, centring, network, offset) in onnxruntime's
-CPU provider, fp32 and fp16. Frames/s = 1 / median wall time of a frame with 10 % holes, after one warm-up;
-the max |difference| to PyTorch over valid pixels is printed with it. ``--quick``: 240 x 320 frames, U-Net only.
-DVSS is not in the default list: its export scan holds the whole state (batch, 4 x d_inner, N, H x W) at every
-doubling step, about 5 GiB per SS2D layer at 480 x 640 (docs/denoise.md, "ONNX export").
+not the zero-initialised residual): ``DepthRestorer.restore_mm`` in float32 (no tiling; DVSS on its native CPU scan
+kernel) against the exported graph (``tofdenoise.inference.export``, the whole path: hole fill, centring, network,
+offset; DVSS through the export scan of ``models/scan/export.py``) in onnxruntime's CPU provider, fp32 and fp16.
+Frames/s = 1 / median wall time of a frame with 10 % holes, after one warm-up; the max |difference| to PyTorch
+over valid pixels is printed with it, and the peak resident memory of the process while the route ran (Linux:
+the high-water mark ``VmHWM``, reset before each route through ``/proc/self/clear_refs``; it includes what the
+process already held, printed as the RSS at the start). ``--quick``: 240 x 320 frames. The default list is the
+U-Net only: DVSS takes minutes per frame through onnxruntime on a 2-core CPU (docs/benchmarks.md); name it with
+``--backbones unet,dvss``.
 """
 
 from __future__ import annotations
 
 import argparse
+import gc
 import statistics
 import tempfile
 import time
 import warnings
 from pathlib import Path
+
+
+def _reset_peak_rss() -> None:
+    """Reset the process's resident-memory high-water mark to its current RSS (Linux >= 4.0; else a no-op)."""
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+    except OSError:
+        pass
+
+
+def _rss_mib(field: str) -> float:
+    """``VmRSS`` (now) or ``VmHWM`` (peak since the last reset) of this process in MiB; NaN off Linux."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith(field + ":"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return float("nan")
+
+
+def _release_memory() -> None:
+    """Collect garbage and hand freed heap pages back to the system (glibc), so that a route's RSS at start is
+    not what an earlier route left behind."""
+    gc.collect()
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
+
+
+def _memory(start_mib: float) -> str:
+    return f"{_rss_mib('VmHWM'):.0f} | {start_mib:.0f}"
 
 
 def _median_time(fn, repeats: int) -> float:
@@ -37,6 +77,7 @@ def main() -> None:
     p.add_argument("--threads", type=int, default=None)
     p.add_argument("--backbones", default="unet")
     p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--precisions", default="fp32,fp16", help="onnxruntime routes to run (fp32, fp16 or both)")
     args = p.parse_args()
     warnings.filterwarnings("ignore")
     import numpy as np
@@ -55,19 +96,24 @@ def main() -> None:
     depth[torch.rand(depth.shape, generator=gen) < 0.1] = 0.0
     valid = (depth > 0).numpy()
     print(f"frame {h} x {w}, 10 % holes, torch threads {threads}, onnxruntime {ort.__version__} intra-op {threads}")
-    print("| backbone | route | frames/s | ms/frame | max abs diff vs PyTorch (mm) |")
-    print("|---|---|---:|---:|---:|")
+    print("| backbone | route | frames/s | ms/frame | max abs diff vs PyTorch (mm) | peak RSS (MiB) | RSS at start |")
+    print("|---|---|---:|---:|---:|---:|---:|")
     for name in args.backbones.split(","):
         torch.manual_seed(0)
         model = DepthRestorer(backbone=name).eval()
         with torch.no_grad():
             for prm in model.backbone.parameters():
                 prm.add_(0.01 * torch.randn_like(prm))
+        with torch.no_grad():  # a small frame first: DVSS builds its native scan kernel outside the measurement
+            model.restore_mm({"noisy": depth[..., :32, :32]}, tile=None)
+        _release_memory()
+        start = _rss_mib("VmRSS")
+        _reset_peak_rss()
         with torch.no_grad():
             ref = model.restore_mm({"noisy": depth}, tile=None).numpy()
             t = _median_time(lambda: model.restore_mm({"noisy": depth}, tile=None), args.repeats)
-        print(f"| {name} | PyTorch fp32 | {1 / t:.2f} | {1000 * t:.0f} | 0 |", flush=True)
-        for precision in ("fp32", "fp16"):
+        print(f"| {name} | PyTorch fp32 | {1 / t:.3g} | {1000 * t:.0f} | 0 | {_memory(start)} |", flush=True)
+        for precision in args.precisions.split(","):
             with tempfile.TemporaryDirectory() as tmp:
                 path = Path(tmp) / "m.onnx"
                 export_graph(restore_graph(model, fp16=precision == "fp16"), path)
@@ -75,10 +121,18 @@ def main() -> None:
                 options.intra_op_num_threads = threads
                 sess = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
                 feeds = {"depth_mm": depth.numpy()}
+                _release_memory()
+                start = _rss_mib("VmRSS")
+                _reset_peak_rss()
                 out = sess.run(None, feeds)[0]
                 t = _median_time(lambda: sess.run(None, feeds), args.repeats)
+                memory = _memory(start)
+                sess = None  # the session's memory goes before the next route
             diff = float(np.abs(out - ref)[valid].max())
-            print(f"| {name} | onnxruntime {precision} | {1 / t:.2f} | {1000 * t:.0f} | {diff:.4f} |", flush=True)
+            print(
+                f"| {name} | onnxruntime {precision} | {1 / t:.3g} | {1000 * t:.0f} | {diff:.4f} | {memory} |",
+                flush=True,
+            )
 
 
 if __name__ == "__main__":

@@ -124,3 +124,18 @@ def test_bad_files_and_settings_are_one_line_errors(tmp_path):
         OnnxRestorer(tmp_path / "none.onnx")
     with pytest.raises(ExportError, match="conditioning.centering 'image' cannot be exported"):
         restore_graph(DepthRestorer(backbone="unet", backbone_kwargs=TINY["unet"], conditioning={"centering": "image"}))
+
+
+def test_dvss_graph_scans_in_loops_with_scan_outputs_not_sequences(tmp_path):
+    import onnx
+
+    model = _model("dvss")
+    path = tmp_path / "dvss.onnx"
+    export_graph(restore_graph(model), path)
+    graph = onnx.load(str(path)).graph
+    layers = sum(type(m).__name__ == "SS2D" for m in model.backbone.modules())
+    nested = [n.op_type for node in graph.node for a in node.attribute if a.type == a.GRAPH for n in a.g.node]
+    ops = [node.op_type for node in graph.node] + nested
+    # per SS2D layer: two loops over the positions of a lane and one carry across lanes (models/scan/export.py)
+    assert layers == 3 and ops.count("Loop") == 3 * layers
+    assert not {"SequenceEmpty", "SequenceInsert", "ConcatFromSequence"} & set(ops)

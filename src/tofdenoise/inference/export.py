@@ -16,6 +16,10 @@ operations, so the graph stays dynamic; what it cannot follow are Python branche
 frame has odd prime sides (:func:`_example`) and the code paths that branch on a size (a backbone padding to its
 stride) take the general branch. ``export_graph(..., dynamo=True)`` keeps the other route.
 
+DVSS's scans go through ``models/scan/export.py``: ``torch.jit.script`` loops that this exporter keeps as ONNX
+``Loop`` nodes (dynamic trip count, memory bounded in the sequence length); after export their per-step outputs are
+rewritten from ONNX sequences into the loops' scan outputs (:mod:`tofdenoise.inference.onnx_loops`).
+
 The graph's metadata (``metadata_props``) names the backbone, ``use_signal_channel``, ``depth_scale_mm``, the
 fill levels, the precision and the checkpoint's sha256; ``tofdenoise denoise --onnx`` reads them.
 """
@@ -111,6 +115,20 @@ def export_graph(graph: RestoreGraph, path: str | os.PathLike[str], dynamo: bool
         warnings.filterwarnings("ignore", category=torch.jit.TracerWarning)
         warnings.filterwarnings("ignore", message="Constant folding")
         torch.onnx.export(graph, inputs, str(path), **common)
+    if not dynamo:
+        _loops_with_scan_outputs(path)
+
+
+def _loops_with_scan_outputs(path: str | os.PathLike[str]) -> None:
+    """The per-step outputs of the export scan's loops (DVSS) as ``Loop`` scan outputs, not ONNX sequences
+    (:mod:`tofdenoise.inference.onnx_loops`); a graph without such loops is left as written."""
+    import onnx
+
+    from tofdenoise.inference.onnx_loops import sequences_to_scan_outputs
+
+    proto = onnx.load(str(path))
+    if sequences_to_scan_outputs(proto.graph):
+        onnx.save(proto, str(path))
 
 
 def export_onnx(ckpt: str | os.PathLike[str], out: str | os.PathLike[str], fp16: bool = False) -> dict[str, str]:

@@ -1,41 +1,99 @@
-"""The export scan (plain tensor steps) equals the sequential selective scan."""
+"""The export scan (two loops over lanes of the sequence) equals the sequential selective scan, in PyTorch and as
+an ONNX graph in onnxruntime, at lengths that are not a multiple of the lane count."""
 
 from __future__ import annotations
 
+import warnings
+
+import numpy as np
 import pytest
 import torch
 
 from tofdenoise.models.scan import selective_scan, selective_scan_ref
-from tofdenoise.models.scan.export import selective_scan_export
+from tofdenoise.models.scan.export import export_scan_lanes, selective_scan_export
+
+BATCH, DIM, N = 2, 6, 4
+LANE_ELEMS = BATCH * DIM * N  # state elements of one lane
 
 
 def _inputs(length: int, groups: int = 2, seed: int = 0):
     g = torch.Generator().manual_seed(seed)
-    b, d, n = 2, 6, 4
     return (
-        torch.randn(b, d, length, generator=g),
-        torch.randn(b, d, length, generator=g),
-        -3.0 * torch.rand(d, n, generator=g),
-        torch.randn(b, groups, n, length, generator=g),
-        torch.randn(b, groups, n, length, generator=g),
-        torch.randn(d, generator=g),
-        torch.randn(d, generator=g),
+        torch.randn(BATCH, DIM, length, generator=g),
+        torch.randn(BATCH, DIM, length, generator=g),
+        -3.0 * torch.rand(DIM, N, generator=g),
+        torch.randn(BATCH, groups, N, length, generator=g),
+        torch.randn(BATCH, groups, N, length, generator=g),
+        torch.randn(DIM, generator=g),
+        torch.randn(DIM, generator=g),
     )
 
 
-@pytest.mark.parametrize("length", [1, 7, 64, 301])
-def test_export_scan_equals_the_reference(length):
+@pytest.mark.parametrize(
+    ("length", "lanes"),
+    [(1, 1), (7, 3), (64, 5), (64, 64), (301, 1), (301, 7), (301, 16), (40, 100)],
+)
+def test_export_scan_equals_the_reference(length, lanes):
     u, delta, A, B, C, D, bias = _inputs(length)
     ref = selective_scan_ref(u, delta, A, B, C, D, bias, True)
-    out = selective_scan_export(u, delta, A, B, C, D, bias, True)
-    assert torch.allclose(out, ref, atol=1e-4, rtol=1e-4)
-    assert torch.allclose(selective_scan(u, delta, A, B, C, D, bias, True, backend="export"), ref, atol=1e-4)
+    out = selective_scan_export(u, delta, A, B, C, D, bias, True, state_elems=lanes * LANE_ELEMS)
+    assert out.shape == ref.shape
+    assert torch.allclose(out, ref, atol=1e-4, rtol=1e-4), (out - ref).abs().max()
 
 
-def test_too_few_doubling_steps_are_wrong_beyond_their_length():
-    u, delta, A, B, C, D, bias = _inputs(40, groups=1)
+def test_the_dispatcher_route_and_one_group_of_b_and_c():
+    u, delta, A, B, C, D, bias = _inputs(45, groups=1)
     ref = selective_scan_ref(u, delta, A, B[:, 0], C[:, 0], D, bias, True)
-    assert torch.allclose(selective_scan_export(u, delta, A, B[:, 0], C[:, 0], D, bias, True, steps=6), ref, atol=1e-4)
-    short = selective_scan_export(u, delta, A, B[:, 0], C[:, 0], D, bias, True, steps=5)
-    assert torch.allclose(short[..., :32], ref[..., :32], atol=1e-4)
-    assert not torch.allclose(short[..., 32:], ref[..., 32:])
+    routed = selective_scan(u, delta, A, B[:, 0], C[:, 0], D, bias, True, backend="export")
+    assert torch.allclose(routed, ref, atol=1e-4)
+    no_skip = selective_scan_export(u, delta.abs(), A, B, C)  # no D, no bias, no softplus
+    assert torch.allclose(no_skip, selective_scan_ref(u, delta.abs(), A, B, C), atol=1e-4)
+
+
+def test_lanes_grow_with_the_length_only_up_to_the_state_budget():
+    assert export_scan_lanes(4096, 307200, 1 << 18) == 64  # DVSS's first level at 480 x 640: 64 lanes
+    assert export_scan_lanes(4096, 4800, 1 << 18) == 64
+    assert export_scan_lanes(4096, 10, 1 << 18) == 10  # shorter than the budget: one position per lane
+    assert export_scan_lanes(1 << 20, 307200, 1 << 18) == 1  # a lane larger than the budget: one lane
+    with pytest.raises(ValueError, match="state_elems must be >= 1"):
+        selective_scan_export(*_inputs(5)[:5], state_elems=0)
+
+
+def test_onnxruntime_runs_the_scan_at_any_length_with_loops_and_scan_outputs(tmp_path):
+    ort = pytest.importorskip("onnxruntime")
+    import onnx
+
+    from tofdenoise.inference.onnx_loops import sequences_to_scan_outputs
+
+    u, delta, A, B, C, D, bias = _inputs(37)
+    lanes = 5
+
+    class Scan(torch.nn.Module):
+        def forward(self, u, delta, B, C):
+            return selective_scan_export(u, delta, A, B, C, D, bias, True, state_elems=lanes * LANE_ELEMS)
+
+    names = ["u", "delta", "B", "C"]
+    path = tmp_path / "scan.onnx"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        torch.onnx.export(
+            Scan(),
+            (u, delta, B, C),
+            str(path),
+            dynamo=False,
+            input_names=names,
+            output_names=["y"],
+            dynamic_axes={"u": {2: "L"}, "delta": {2: "L"}, "B": {3: "L"}, "C": {3: "L"}},
+            opset_version=18,
+        )
+    proto = onnx.load(str(path))
+    assert sequences_to_scan_outputs(proto.graph) == 1  # the emitting loop's per-step outputs
+    ops = [node.op_type for node in proto.graph.node]
+    body_ops = [n.op_type for node in proto.graph.node for a in node.attribute if a.type == a.GRAPH for n in a.g.node]
+    assert ops.count("Loop") == 3 and "SequenceInsert" not in body_ops  # two position loops, one carry
+    session = ort.InferenceSession(proto.SerializeToString(), providers=["CPUExecutionProvider"])
+    for length in (1, 4, 5, 37, 64, 301):  # fewer positions than lanes, multiples of 5 and not
+        u, delta, _, B, C, _, _ = _inputs(length, seed=length)
+        ref = selective_scan_ref(u, delta, A, B, C, D, bias, True).numpy()
+        out = session.run(None, dict(zip(names, (t.numpy() for t in (u, delta, B, C)))))[0]
+        assert out.shape == ref.shape and np.abs(out - ref).max() <= 1e-4, length

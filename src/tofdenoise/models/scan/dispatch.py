@@ -67,8 +67,9 @@ def resolve_scan_backend(backend: str, u: torch.Tensor, ss2d: bool = False) -> s
       keeps float64 precision; one warning says so) and when the kernel is not there: a failed build has already
       warned once, naming the PyTorch scan; a kernel switched off by ``TOFDENOISE_SCAN_CPU=0`` warns once here.
     - ``triton`` / ``mamba_ssm``: CUDA tensors only (a ValueError otherwise); a RuntimeError when the package does
-      not import. ``torch``, ``sequential`` and ``export`` (a fixed number of plain tensor steps, traceable for ONNX:
-      ``export.selective_scan_export``) run anywhere.
+      not import. ``torch``, ``sequential`` and ``export`` (two loops over lanes of the
+      sequence with memory bounded in L, exported to ONNX as ``Loop`` nodes: ``export.selective_scan_export``) run
+      anywhere.
     - anything else: a ValueError naming the valid backends.
     """
     if backend not in SCAN_BACKENDS:

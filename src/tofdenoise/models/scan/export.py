@@ -1,34 +1,120 @@
-"""Selective scan written for ONNX export: plain tensor operations, no loop over the sequence.
+"""Selective scan written for ONNX export: two loops over the positions of a lane, memory bounded in L.
 
 ``selective_scan_export`` computes what :func:`tofdenoise.models.scan.selective_scan_ref` computes (same
-arguments) with a Hillis-Steele parallel scan of the linear recurrence h_t = a_t h_{t-1} + b_t: step s combines
-every position with the one 2**s before it, ``(a, b) <- (a * a_prev, a * b_prev + b)``, with identity elements
-(a = 1, b = 0) shifted in at the start. After ``steps`` steps every position holds the scan over up to
-2**steps positions, so the result is exact (up to the order of float additions) for sequences up to
-``2**steps`` long; the loop is over the fixed ``steps`` (unrolled in the exported graph), the length stays
-symbolic. Only decays in (0, 1] are multiplied, as in the sequential scan.
+arguments) with plain tensor operations whose state tensors have at most ``state_elems`` elements (or one lane's,
+if that is more), whatever the sequence length L; every other tensor has the size of an input, (batch, dim, L) or
+(batch, groups, N, L):
 
-Cost: every step reads and writes the whole state (batch, dim, N, L), so memory is that of the full state
-(no chunking, unlike the training scan) and work is ``steps`` x L dim N: fine for small frames, heavy for large
-ones (docs/denoise.md, "ONNX export").
+1. The sequence is cut into K consecutive *lanes* of T = ceil(L / K) positions, K = ``state_elems`` // (batch x dim
+   x N) (at most L), padded at the end with steps delta = 0 (decay 1, no input). Every step of the loops below
+   handles position t of all K lanes at once: a state of (batch, dim, N, K) elements.
+2. First loop, over t = 0..T-1, from a zero state: h <- exp(delta_t A) h + delta_t u_t B_t. It leaves each lane's
+   local end state; the lane's whole decay is exp(A sum_t delta_t).
+3. Carry across lanes: a Hillis-Steele scan over the K lanes of (decay, end state), ceil(log2 K) doubling steps on
+   (batch, dim, N, K) tensors, gives the state entering each lane.
+4. Second loop, over t again, from the entry states: the same recurrence, emitting y_t = sum_n C_t h_t per step.
+
+Work: every position's state is formed twice (steps 2 and 4), plus the small carry: 12 elementwise operators per
+position over the lane state (5 in the first loop: delta x A, exp, decay x state, delta u x B, add; 7 in the second:
+the same, C x state, the sum over N). The former export scan (a Hillis-Steele scan over the whole sequence) made 20
+doubling steps of about 5 operators over the full (batch, dim, N, L) state and held it whole. Only decays in (0, 1]
+are multiplied, as in the sequential scan. Speed: ONNX has no fused recurrence, so each of those operators reads and
+writes the lane state in memory, where the native CPU kernel forms each state element once in registers; in
+onnxruntime this scan costs about 7-9x the native kernel per state element (docs/benchmarks.md).
+
+In the exported graph the loops are ONNX ``Loop`` nodes with a dynamic trip count T: :func:`_lane_scan` is a
+``torch.jit.script`` function, which the TorchScript-based exporter (``torch.onnx.export(..., dynamo=False)``, the
+route of :mod:`tofdenoise.inference.export`) keeps as loops when it traces the network around it. Every size is
+read from the tensors inside the scripted function (a Python ``int`` handed to it from the traced code would be
+frozen to the example's value), so height and width stay dynamic. The per-step outputs leave the loop as an ONNX
+sequence; :func:`tofdenoise.inference.onnx_loops.sequences_to_scan_outputs` turns them into the ``Loop``'s scan
+outputs after export. ``state_elems`` (:data:`EXPORT_SCAN_STATE_ELEMS`) was chosen by measurement
+(docs/benchmarks.md, "ONNX export (issue 26)").
 """
 
 from __future__ import annotations
 
+import warnings
+
 import torch
 import torch.nn.functional as F
 
-__all__ = ["selective_scan_export", "EXPORT_SCAN_STEPS"]
+__all__ = ["selective_scan_export", "export_scan_lanes", "EXPORT_SCAN_STATE_ELEMS"]
 
-#: doubling steps of the export scan: exact for sequences up to 2**20 positions (a 1024 x 1024 frame)
-EXPORT_SCAN_STEPS = 20
+#: elements of the scan state handled per loop step (batch x dim x N x lanes): 2**18 float32 = 1 MiB per
+#: tensor (64 lanes of the default DVSS's first level)
+EXPORT_SCAN_STATE_ELEMS = 1 << 18
+
+
+def export_scan_lanes(lane_elems: int, length: int, state_elems: int) -> int:
+    """Lanes K of a scan whose state has ``lane_elems`` (batch x dim x N) elements per lane: as many as
+    ``state_elems`` allows, at least 1, at most ``length`` (so K depends on L only while L is below that)."""
+    return max(1, min(length, state_elems // max(1, lane_elems)))
+
+
+def _lanes_layout(x: torch.Tensor, groups: int, lanes: int, steps: int, pad: int) -> torch.Tensor:
+    """(b, c, L) -> (T, b, groups, c / groups, K): position k T + t of the padded sequence at [t, ..., k]."""
+    b, c = x.size(0), x.size(1)
+    x = F.pad(x, [0, pad]).reshape(b, groups, c // groups, lanes, steps)
+    return x.permute(4, 0, 1, 2, 3)
+
+
+def _lane_scan(
+    u: torch.Tensor, delta: torch.Tensor, A: torch.Tensor, B: torch.Tensor, C: torch.Tensor, state_elems: int
+) -> torch.Tensor:
+    """y = sum_n C h of the recurrence h_t = exp(delta_t A) h_{t-1} + delta_t u_t B_t (no skip term).
+
+    u, delta (b, dim, L) float32 (delta already through bias and softplus); A (dim, N); B, C (b, g, N, L).
+    Layouts: a lane's index is the innermost axis; states are (b, g, dim/g, N, K)."""
+    b, dim, length = u.size(0), u.size(1), u.size(2)
+    g, n = B.size(1), A.size(1)
+    dg = dim // g
+    lanes = export_scan_lanes(b * dim * n, length, state_elems)
+    steps = (length + lanes - 1) // lanes
+    pad = steps * lanes - length
+
+    dl = _lanes_layout(delta, g, lanes, steps, pad).unsqueeze(4)  # (T, b, g, dg, 1, K)
+    wl = _lanes_layout(delta * u, g, lanes, steps, pad).unsqueeze(4)
+    Bl = _lanes_layout(B.reshape(b, g * n, length), g, lanes, steps, pad).unsqueeze(3)  # (T, b, g, 1, N, K)
+    Cl = _lanes_layout(C.reshape(b, g * n, length), g, lanes, steps, pad).unsqueeze(3)
+    A5 = A.reshape(1, g, dg, n, 1)
+
+    h = torch.zeros([b, g, dg, n, lanes], dtype=u.dtype, device=u.device)
+    for t in range(steps):
+        h = torch.exp(dl[t] * A5) * h + wl[t] * Bl[t]
+    decay = torch.exp(dl.sum(0) * A5)  # a lane's whole decay
+
+    # inclusive Hillis-Steele scan over the lanes (last axis) of (decay, end state), then shifted by one lane
+    off = 1
+    while off < lanes:
+        h_prev = F.pad(h, [off, 0])[..., :lanes]
+        decay_prev = F.pad(decay, [off, 0], value=1.0)[..., :lanes]
+        h = decay * h_prev + h
+        decay = decay * decay_prev
+        off = off * 2
+    h = F.pad(h, [1, 0])[..., :lanes]  # the state entering each lane
+
+    ys: list[torch.Tensor] = []
+    for t in range(steps):
+        h = torch.exp(dl[t] * A5) * h + wl[t] * Bl[t]
+        ys.append((h * Cl[t]).sum(3))  # (b, g, dg, K)
+    y = torch.stack(ys, 0)  # (T, b, g, dg, K)
+    return y.permute(1, 2, 3, 4, 0).reshape(b, dim, lanes * steps)[..., :length]
+
+
+with warnings.catch_warnings():  # the TorchScript exporter is this module's route: its scripting is wanted here
+    warnings.filterwarnings("ignore", message=r".*torch\.jit\.script. is deprecated", category=DeprecationWarning)
+    _lane_scan = torch.jit.script(_lane_scan)  # compiles the two helpers it calls as well
 
 
 def selective_scan_export(
-    u, delta, A, B, C, D=None, delta_bias=None, delta_softplus=False, steps: int = EXPORT_SCAN_STEPS
+    u, delta, A, B, C, D=None, delta_bias=None, delta_softplus=False, state_elems: int = EXPORT_SCAN_STATE_ELEMS
 ) -> torch.Tensor:
     """mamba-ssm ``selective_scan_fn`` semantics (u, delta (b, dim, L); A (dim, N); B, C (b, groups, N, L) or
-    (b, N, L); D, delta_bias (dim,)) as a fixed number of tensor steps; returns (b, dim, L) in u's dtype."""
+    (b, N, L); D, delta_bias (dim,)) as two loops over lanes of the sequence; returns (b, dim, L) in u's dtype.
+    ``state_elems``: the most elements of a state tensor (at least one lane of b x dim x N is always used)."""
+    if state_elems < 1:
+        raise ValueError(f"selective_scan_export: state_elems must be >= 1, got {state_elems}")
     dtype = u.dtype
     u, delta, A = u.float(), delta.float(), A.float()
     if delta_bias is not None:
@@ -37,19 +123,7 @@ def selective_scan_export(
         delta = F.softplus(delta)
     if B.dim() == 3:
         B, C = B.unsqueeze(1), C.unsqueeze(1)
-    rep = u.shape[1] // B.shape[1]
-    Bx = B.float().repeat_interleave(rep, dim=1)  # (b, dim, N, L)
-    Cx = C.float().repeat_interleave(rep, dim=1)
-    a = torch.exp(delta.unsqueeze(2) * A[None, :, :, None])  # (b, dim, N, L)
-    h = (delta * u).unsqueeze(2) * Bx
-    length = u.shape[-1]
-    for s in range(steps):
-        off = 1 << s
-        a_prev = F.pad(a, (off, 0), value=1.0)[..., :length]
-        h_prev = F.pad(h, (off, 0), value=0.0)[..., :length]
-        h = a * h_prev + h
-        a = a * a_prev
-    y = (h * Cx).sum(dim=2)
+    y = _lane_scan(u, delta, A, B.float(), C.float(), int(state_elems))
     if D is not None:
         y = y + D.float()[None, :, None] * u
     return y.to(dtype)
