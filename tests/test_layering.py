@@ -117,6 +117,20 @@ def test_no_floor_imports_a_higher_floor():
     assert not bad, "\n".join(sorted(bad))
 
 
+def test_only_the_command_line_imports_the_command_line():
+    """``cli/`` is the top: the library (experiments, inference, reporting, ...) never imports a verb's package, so
+    every workflow runs without the command line (issue 24, points 3 and 4)."""
+    cli = f"{PACKAGE}.cli"
+    bad = [
+        f"{module} imports {target}"
+        for module, targets in GRAPH.items()
+        if _part(module) != "cli"
+        for target in targets
+        if target == cli or target.startswith(cli + ".")
+    ]
+    assert not bad, "\n".join(sorted(bad))
+
+
 def test_scan_kernels_never_import_the_dispatcher():
     kernels = [m for m in MODULES if m.startswith(SCAN + ".") and m not in SCAN_DISPATCHER]
     assert {m.rpartition(".")[2] for m in kernels} >= {"common", "reference", "cpu", "triton", "mamba"}

@@ -12,9 +12,9 @@ from pathlib import Path
 import pytest
 import torch
 
-from tofdenoise.cli.checkpoint_check import CheckpointFileError, check_checkpoint_file
 from tofdenoise.cli.train import run
 from tofdenoise.config import compose_config
+from tofdenoise.training.checkpoint_file import CheckpointFileError, check_checkpoint_file
 
 REPO = Path(__file__).resolve().parents[2]
 RECORDS = ("run_info.json", "config.yaml", "metrics.json")

@@ -8,11 +8,11 @@ from hydra.errors import ConfigCompositionException
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from tofdenoise.cli.checkpoint_check import resolve_ckpt_path
 from tofdenoise.cli.train import validate_config
 from tofdenoise.config import compose_config, config_dir
 from tofdenoise.models import trainable_backbones
 from tofdenoise.physics.noise_models import available_noise_models
+from tofdenoise.training.checkpoint_file import resolve_ckpt_path
 from tofdenoise.training.losses import available_losses
 
 CONFIGS = config_dir()

@@ -27,10 +27,10 @@ import yaml
 from lightning.pytorch.cli import LightningCLI
 
 from tofdenoise.atomic import WriteError
-from tofdenoise.cli.checkpoint_check import CheckpointFileError, check_checkpoint_file
 from tofdenoise.config import ConfigError
 from tofdenoise.output_guard import OutputPathError, refuse_overwrite
 from tofdenoise.run_lock import RunLock, RunLockedError, is_worker_rank, release_all
+from tofdenoise.training.checkpoint_file import CheckpointFileError, check_checkpoint_file
 from tofdenoise.wandb_env import finish_wandb, quiet_wandb, setup_wandb_env
 
 __all__ = ["ToFLightningCLI", "main", "build_cli"]

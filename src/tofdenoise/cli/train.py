@@ -26,7 +26,6 @@ import sys
 
 from tofdenoise.atomic import WriteError
 from tofdenoise.callbacks.checkpointing import CheckpointWriteError
-from tofdenoise.cli.checkpoint_check import CheckpointFileError
 from tofdenoise.config import ConfigError, hydra_console_script
 from tofdenoise.experiments.train_job import (
     RunConfigMismatchError,
@@ -37,6 +36,7 @@ from tofdenoise.experiments.train_job import (
 )
 from tofdenoise.output_guard import OutputPathError
 from tofdenoise.run_lock import RunLockedError
+from tofdenoise.training.checkpoint_file import CheckpointFileError
 from tofdenoise.training.init_weights import InitWeightsError
 
 __all__ = ["main", "run", "validate_config", "record_calibration"]

@@ -41,7 +41,7 @@ from lightning.pytorch import seed_everything
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from tofdenoise.callbacks.run_outputs import RunOutputs
-from tofdenoise.cli.checkpoint_check import check_checkpoint_file, resolve_ckpt_path
+from tofdenoise.training.checkpoint_file import check_checkpoint_file, resolve_ckpt_path
 from tofdenoise.config import ConfigError, instantiate_node
 from tofdenoise.models.registry import BACKBONES, is_trainable
 from tofdenoise.output_guard import refuse_overwrite
