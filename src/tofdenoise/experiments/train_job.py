@@ -41,7 +41,6 @@ from lightning.pytorch import seed_everything
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from tofdenoise.callbacks.run_outputs import RunOutputs
-from tofdenoise.training.checkpoint_file import check_checkpoint_file, resolve_ckpt_path
 from tofdenoise.config import ConfigError, instantiate_node
 from tofdenoise.models.registry import BACKBONES, is_trainable
 from tofdenoise.output_guard import refuse_overwrite
@@ -49,6 +48,7 @@ from tofdenoise.physics.noise_models import NOISE_MODELS
 from tofdenoise.records import METRICS_NAME, RUN_INFO_NAME, read_metrics_json, read_run, run_finished
 from tofdenoise.registry import Registry
 from tofdenoise.run_lock import RunLock
+from tofdenoise.training.checkpoint_file import check_checkpoint_file, resolve_ckpt_path
 from tofdenoise.training.losses import LOSSES
 from tofdenoise.wandb_env import finish_wandb, setup_wandb_env, wandb_run_id
 
