@@ -72,8 +72,8 @@ def test_stand_in_capture_set_loses_pixels_like_a_real_camera(tmp_path):
     (threshold, full well, mixed pixels), never all of a frame."""
     import json
 
-    from tofdenoise.data_modules.realset import REALSET_CAMERA, REALSET_SEED
     from tofdenoise.data_modules.capture_simulation import simulate_capture_set
+    from tofdenoise.data_modules.realset import REALSET_CAMERA, REALSET_SEED
     from tofdenoise.physics.calibration import resolve_calibration
 
     simulate_capture_set(
