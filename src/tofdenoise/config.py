@@ -68,7 +68,8 @@ def instantiate_node(node: Any, key: str, **kwargs: Any) -> Any:
     except InstantiationException as exc:
         cause = exc.__cause__
         if isinstance(cause, (ValueError, FileNotFoundError, TypeError)):
-            raise ConfigError(f"{key}: {cause}") from None
+            message = str(cause)  # a settings group names its own key (model.optim.lr): not said twice
+            raise ConfigError(message if message.startswith(f"{key}.") else f"{key}: {message}") from None
         raise
 
 

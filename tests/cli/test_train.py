@@ -437,3 +437,25 @@ def test_a_bad_data_setting_is_one_line_naming_the_key_before_any_training(tmp_p
     assert not (run_dir / "checkpoints").exists() and not (run_dir / "run_info.json").exists()
     proc = _cli(["++data.signal_route=photons", f"paths.run_dir={run_dir}", "logger=csv"])
     assert proc.returncode == 2 and "error: data: unknown data.signal_route 'photons'" in proc.stderr
+
+
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        # validate_config: a name or a folder (was a traceback with exit 1)
+        ("++backbone.name=nope", "config backbone.name: unknown backbone 'nope'; valid names: "),
+        ("++data.source_kwargs.colour=1", "config data.source_kwargs.colour: not a setting of the procedural source"),
+        ("++data.real_dir=/nonexistent/captures", "config data.real_dir: real capture folder /nonexistent/captures"),
+        # a settings group of the model (was Hydra's wrapped error with exit 1)
+        ("++model.optim.learning_rate=1", "model.optim.learning_rate: unknown setting; valid: lr, weight_decay"),
+        ("++model.conditioning.centering=median", "model: conditioning.centering: unknown mode 'median'"),
+    ],
+)
+def test_a_bad_setting_is_one_line_with_exit_2(tmp_path, override, message):
+    run_dir = tmp_path / "run"
+    proc = _cli([override, f"paths.run_dir={run_dir}", "logger=csv"])
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert lines[-1].startswith(f"tofdenoise train: error: {message}"), lines[-1]
+    assert "Traceback" not in proc.stderr
+    assert not (run_dir / "checkpoints").exists()

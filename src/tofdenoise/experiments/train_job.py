@@ -235,8 +235,11 @@ def record_calibration(cfg: DictConfig, calib: Any) -> None:
 def run(cfg: DictConfig) -> dict[str, Any]:
     """Train and/or test as configured, or return the records of the finished run in the folder (module
     docstring); returns ``{"run_dir", "best_ckpt", "metrics", "val_mae_mm", "reused"}`` (``reused``: True when
-    the folder's finished run was returned and nothing ran)."""
-    validate_config(cfg)
+    the folder's finished run was returned and nothing ran). A bad config is one ``ConfigError`` naming the key."""
+    try:
+        validate_config(cfg)
+    except (ValueError, FileNotFoundError, ImportError) as exc:
+        raise ConfigError(str(exc)) from None
     run_dir = Path(str(cfg.paths.run_dir)).expanduser().resolve()
     with RunLock(run_dir):  # one writer per run folder (held already when Hydra's callback took it)
         refuse_replacing_inputs(cfg, run_dir)
@@ -277,7 +280,7 @@ def _run_locked(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     record_calibration(cfg, datamodule.calib)
     if finished:
         return _recorded_result(cfg, run_dir)
-    model = instantiate(cfg.model, _convert_="all")
+    model = instantiate_node(cfg.model, "model")
     callbacks = _instantiate_group(cfg.get("callbacks"))
     # run_info.json, config.yaml (written once the checkpoint is restored), metrics.json and the CSVs
     outputs = _run_outputs(callbacks)
