@@ -209,6 +209,20 @@ LAZY_ALLOWED = {
 LAZY_ALLOWED_TARGETS = {f"{PACKAGE}.data_modules.exr", f"{PACKAGE}.atomic"}
 
 
+def _imports_inside_functions(path: Path) -> list[tuple[str, int, str]]:
+    """``(function, line, module)`` of every absolute import inside a function body of ``path``."""
+    found = []
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"), str(path))):
+        if not isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            continue
+        for sub in ast.walk(node):
+            if isinstance(sub, ast.Import):
+                found += [(node.name, sub.lineno, alias.name) for alias in sub.names]
+            elif isinstance(sub, ast.ImportFrom) and not sub.level:
+                found.append((node.name, sub.lineno, sub.module or ""))
+    return found
+
+
 def test_lower_floors_import_the_package_at_the_top():
     """physics .. callbacks: a ``tofdenoise`` import inside a function hides a dependency (issue 24, point 8)."""
     bad = []
@@ -216,13 +230,11 @@ def test_lower_floors_import_the_package_at_the_top():
         floor = _floor(module)
         if floor is None or floor < 0 or floor > FLOORS["callbacks"] or module in LAZY_ALLOWED:
             continue
-        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"), str(path))):
-            if not isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
-                continue
-            for sub in ast.walk(node):
-                if isinstance(sub, ast.ImportFrom) and not sub.level and (sub.module or "").startswith(PACKAGE):
-                    if sub.module not in LAZY_ALLOWED_TARGETS:
-                        bad.append(f"{path.relative_to(SRC)}:{sub.lineno} imports {sub.module} inside {node.name}")
+        bad += [
+            f"{path.relative_to(SRC)}:{line} imports {name} inside {function}"
+            for function, line, name in _imports_inside_functions(path)
+            if name.startswith(PACKAGE) and name not in LAZY_ALLOWED_TARGETS
+        ]
     assert not bad, "\n".join(bad)
 
 
@@ -231,22 +243,12 @@ def test_no_module_imports_the_standard_library_inside_a_function():
     exceptions the package allows are third-party imports that are optional (an extra) or heavy (torch, lightning,
     matplotlib kept out of a page renderer or a ``--help``)."""
     stdlib = set(sys.stdlib_module_names)
-    bad = []
-    for path in MODULES.values():
-        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"), str(path))):
-            if not isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
-                continue
-            for sub in ast.walk(node):
-                names = []
-                if isinstance(sub, ast.Import):
-                    names = [alias.name for alias in sub.names]
-                elif isinstance(sub, ast.ImportFrom) and not sub.level:
-                    names = [sub.module or ""]
-                bad += [
-                    f"{path.relative_to(SRC)}:{sub.lineno} imports {name} inside {node.name}"
-                    for name in names
-                    if name.partition(".")[0] in stdlib
-                ]
+    bad = [
+        f"{path.relative_to(SRC)}:{line} imports {name} inside {function}"
+        for path in MODULES.values()
+        for function, line, name in _imports_inside_functions(path)
+        if name.partition(".")[0] in stdlib
+    ]
     assert not bad, "\n".join(bad)
 
 

@@ -255,13 +255,13 @@ def train_args(w: W, *extra: str, run: str = "out/run") -> list[str]:
 
 
 def _tiny_overrides():
-    """``tiny_overrides`` of tests/cli/conftest.py: the tiny Hydra run settings of the entry-point tests."""
+    """``tiny_overrides`` of tests/conftest.py: the tiny Hydra run settings of the entry-point tests."""
     import importlib.util
     import sys
 
-    name = "_cli_conftest_for_probes"
+    name = "_tests_conftest_for_probes"
     if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(name, Path(__file__).parents[1] / "cli" / "conftest.py")
+        spec = importlib.util.spec_from_file_location(name, Path(__file__).parents[1] / "conftest.py")
         sys.modules[name] = importlib.util.module_from_spec(spec)
         spec.loader.exec_module(sys.modules[name])
     return sys.modules[name].tiny_overrides

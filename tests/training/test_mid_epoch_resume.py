@@ -17,8 +17,6 @@ as it is on purpose (running experiments depend on it); what would make it exact
 from __future__ import annotations
 
 import copy
-import importlib.util
-import sys
 from pathlib import Path
 
 import pytest
@@ -28,15 +26,6 @@ from lightning.pytorch import Callback, Trainer, seed_everything
 STEPS_PER_EPOCH = 6  # 20 scenes -> 12 training samples, batch 2
 EPOCHS = 3
 SAVE_AFTER_STEP = 9  # epoch 1, 3 of its 6 batches done
-
-
-def _tiny_overrides():
-    name = "_cli_conftest_for_resume"
-    if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(name, Path(__file__).parents[1] / "cli" / "conftest.py")
-        sys.modules[name] = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(sys.modules[name])
-    return sys.modules[name].tiny_overrides
 
 
 def _state(trainer: Trainer, module) -> dict:
@@ -117,11 +106,11 @@ def _assert_equal_state(a: dict, b: dict) -> None:
 
 
 @pytest.fixture(scope="module")
-def runs(tmp_path_factory):
+def runs(tmp_path_factory, tiny):
     from tofdenoise.config import compose_config
 
     tmp = tmp_path_factory.mktemp("mid-epoch-resume")
-    cfg = compose_config(_tiny_overrides()(tmp / "run", tmp / "cache", num_samples=20))
+    cfg = compose_config(tiny(tmp / "run", tmp / "cache", num_samples=20))
     ckpt = tmp / "mid-epoch.ckpt"
     straight = Recorder(SAVE_AFTER_STEP, ckpt)
     _, straight_model = _fit(cfg, straight)
