@@ -14,7 +14,7 @@ This module parses the options and calls ``tofdenoise.experiments.reproduce.repr
 real set, the runs, their records, the page; the targets: ``tofdenoise.experiments.targets``). Exit status 0 when
 every run of the target finished, 1 when one did not; 2 for a usage error, for ``--page`` that would replace what
 the page is built from (the discussion, a record: ``tofdenoise.output_guard``, checked before anything runs) and
-for a record that cannot be used (``reporting.results_page.RecordError``, naming the file; a run without a record
+for a record that cannot be used (``records.RecordError``, naming the file; a run without a record
 is listed on the page as missing).
 """
 
@@ -30,7 +30,8 @@ from tofdenoise.experiments.reproduce import PROFILES, Reproduction, profile_nee
 from tofdenoise.experiments.targets import KINDS, Target
 from tofdenoise.output_guard import OutputPathError, check_output_file
 from tofdenoise.paths import REPO_ROOT
-from tofdenoise.reporting.results_page import RecordError, page_inputs
+from tofdenoise.records import RecordError
+from tofdenoise.reporting.results_page import page_inputs
 
 __all__ = ["build_parser", "main"]
 

@@ -60,7 +60,6 @@ __all__ = [
     "DISCUSSION_NAME",
     "gains_markdown",
     "PROFILE_SEEDS",
-    "RecordError",
     "load_records",
     "page_inputs",
     "results_markdown",
