@@ -1,5 +1,6 @@
 """Recordings as frame sources: Azure-Kinect-like .mkv (big-endian b16g tracks, calibration.json) and ROS 1 / ROS 2
-bags (16UC1 mm, 32FC1 m), written by the tests themselves; exact pixel round trips, stream choice, damaged files."""
+bags (16UC1 mm, 32FC1 m; raw and image_transport's compressedDepth / compressed), written by the tests themselves;
+exact pixel round trips, stream choice, damaged files."""
 
 from __future__ import annotations
 
@@ -160,12 +161,74 @@ def test_streams_are_chosen_by_name_and_a_missing_one_lists_what_there_is(tmp_pa
     rec = open_recording(path, depth="/tof/range")
     assert rec.amplitude_name == "/tof/amplitude"
     assert np.array_equal(next(rec.frames()).depth_mm, d[0].astype(np.float32))
-    with pytest.raises(RecordingError, match=r"no amplitude \(sensor_msgs/Image\) stream '/tof/ir'.*/tof/range"):
+    with pytest.raises(
+        RecordingError, match=r"no amplitude \(sensor_msgs/Image or CompressedImage\) stream '/tof/ir'.*/tof/range"
+    ):
         open_recording(path, depth="/tof/range", amplitude="/tof/ir")
     mkv = recording_files.write_kinect_mkv(tmp_path / "k.mkv", d)
     with pytest.raises(RecordingError, match=r"no depth stream 'RANGE'.*it has: DEPTH"):
         open_recording(mkv, depth="RANGE")
     assert open_recording(mkv).amplitude_name is None
+
+
+@pytest.mark.parametrize("version", [1, 2])
+@pytest.mark.parametrize("codec", ["png", "rvl"])
+def test_compressed_depth_bags_read_exactly_with_a_png_amplitude(tmp_path, recording_files, version, codec):
+    d, ir = depth_stack_mm(3), ir_stack(3)
+    path = recording_files.write_compressed_bag(
+        tmp_path / ("c.bag" if version == 1 else "c"), version, d, "16UC1", codec, amplitude=ir
+    )
+    rec = open_recording(path)
+    assert rec.depth_name == "/camera/depth/image_raw/compressedDepth"
+    assert rec.amplitude_name == "/camera/ir/image_raw/compressed"
+    assert rec.scan() == 3
+    frames = sorted(rec.frames(), key=lambda f: f.index)
+    assert [f.index for f in frames] == [0, 1, 2]
+    for f in frames:
+        assert np.array_equal(f.depth_mm, d[f.index].astype(np.float32)) and np.array_equal(f.valid, d[f.index] > 0)
+        assert np.array_equal(f.amplitude, ir[f.index].astype(np.float32))
+
+
+def test_compressed_depth_32fc1_becomes_mm_and_a_jpeg_amplitude_is_read(tmp_path, recording_files):
+    rng = np.random.default_rng(5)
+    m = rng.uniform(0.3, 8.0, (2, H, W)).astype(np.float32)
+    m[:, 0, :3] = np.nan
+    amp = rng.integers(20, 235, (2, H, W)).astype(np.uint8)
+    path = recording_files.write_compressed_bag(
+        tmp_path / "f", 2, m, "32FC1", "rvl", amplitude=amp, amplitude_codec="jpeg"
+    )
+    rec = open_recording(path)
+    for f in rec.frames():
+        q, a, b = recording_files.quantise_inverse_depth(m[f.index])
+        ok = q > 0
+        assert np.array_equal(f.valid, ok) and not ok[0, :3].any()
+        metres = (np.float32(a) / (q.astype(np.float32) - np.float32(b))).astype(np.float64)
+        assert np.array_equal(f.depth_mm, np.where(ok, metres * 1000.0, 0.0).astype(np.float32))
+        assert np.abs(f.depth_mm - m[f.index] * 1000)[ok].max() <= 1000 * 8.0**2 / a  # one step of 1/z
+        assert f.amplitude.shape == (H, W) and np.abs(f.amplitude - amp[f.index]).mean() < 8  # JPEG: lossy
+
+
+def test_a_damaged_compressed_message_fails_the_scan_naming_topic_and_stamp(tmp_path, recording_files):
+    d = depth_stack_mm(3)
+    good = [recording_files.compressed_depth_payload(x, "16UC1", "png") for x in d]
+    path = recording_files.write_compressed_bag(tmp_path / "bad.bag", 1, d, payloads=[good[0], good[1][:40], good[2]])
+    rec = open_recording(path)
+    with pytest.raises(
+        RecordingError, match=r"bad\.bag topic /camera/depth/image_raw/compressedDepth .*does not decode"
+    ):
+        rec.scan()
+    # a colour JPEG stream named like depth is refused by its format, before decoding
+    from rosbags.rosbag1 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS1_NOETIC)
+    jpeg = tmp_path / "colour.bag"
+    with Writer(jpeg) as w:
+        c = w.add_connection("/camera/depth_registered/color", "sensor_msgs/msg/CompressedImage", typestore=ts)
+        msg = recording_files._compressed(ts, 10, "bgr8; jpeg compressed bgr8", recording_files.png_bytes(d[0]))
+        w.write(c, 10, ts.serialize_ros1(msg, "sensor_msgs/msg/CompressedImage"))
+    with pytest.raises(RecordingError, match=r"depth encoding 'bgr8'; expected 16UC1"):
+        open_recording(jpeg).scan()
 
 
 def test_a_truncated_mkv_is_an_error_not_a_shorter_recording(tmp_path, recording_files):

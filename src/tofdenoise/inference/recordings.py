@@ -41,6 +41,7 @@ import numpy as np
 
 from tofdenoise.inference.camera import KINECT_DEPTH_MODES, Intrinsics, IntrinsicsError, kinect_depth_intrinsics
 from tofdenoise.inference.frames import RECORDING_SUFFIXES, FrameError
+from tofdenoise.inference.ros_codecs import CompressedImageError, decode_compressed_image, parse_compressed_format
 
 __all__ = [
     "RECORDING_SUFFIXES",
@@ -57,6 +58,7 @@ __all__ = [
 EXTRA_HINT = "pip install 'tofdenoise[recordings]' (make venv installs it)"
 
 _AMPLITUDE_NAME = re.compile(r"(^|[/_.\-])(ir|amplitude|intensity|ab|active_brightness)([/_.\-]|$)", re.IGNORECASE)
+_TRANSPORT_SUFFIX = re.compile(r"/(compressed|compressedDepth)$")  # image_transport's topic of a compressed form
 _DEPTH_ENCODINGS = {"16UC1": "mm", "mono16": "mm", "32FC1": "m"}
 _IMAGE_DTYPES = {
     "16UC1": np.uint16,
@@ -366,8 +368,32 @@ class KinectRecording(Recording):
 
 
 # ------------------------------------------------------------------------------------------------ ROS 1 / 2 bags
+def _is_compressed(msg: Any) -> bool:
+    return hasattr(msg, "format") and not hasattr(msg, "encoding")
+
+
+def _message_pixels(msg: Any, where: str) -> tuple[np.ndarray, str]:
+    """(pixels, encoding) of a ``sensor_msgs/Image`` or ``sensor_msgs/CompressedImage`` (``ros_codecs``)."""
+    if not _is_compressed(msg):
+        return image_message_to_array(msg, where), str(msg.encoding)
+    try:
+        pixels, encoding = decode_compressed_image(msg.data, msg.format, where)
+    except CompressedImageError as exc:
+        raise RecordingError(str(exc)) from None
+    expected = _IMAGE_DTYPES.get(encoding)
+    if expected is None or (encoding != "32FC1" and pixels.dtype != np.dtype(expected)):
+        raise RecordingError(
+            f"{where}: compressed image of format {str(msg.format)!r} decodes to {pixels.dtype} pixels; expected a "
+            f"one-channel image in one of {', '.join(_IMAGE_DTYPES)} matching its encoding"
+        )
+    return pixels, encoding
+
+
 def image_message_to_array(msg: Any, where: str) -> np.ndarray:
-    """The pixels of a ``sensor_msgs/Image`` (one channel; ``step`` padding and ``is_bigendian`` honoured)."""
+    """The pixels of a ``sensor_msgs/Image`` (one channel; ``step`` padding and ``is_bigendian`` honoured) or of a
+    ``sensor_msgs/CompressedImage`` (``ros_codecs``)."""
+    if _is_compressed(msg):
+        return _message_pixels(msg, where)[0]
     encoding = str(msg.encoding)
     if encoding not in _IMAGE_DTYPES:
         raise RecordingError(
@@ -387,14 +413,11 @@ def image_message_to_array(msg: Any, where: str) -> np.ndarray:
 
 
 def depth_message_to_mm(msg: Any, where: str) -> tuple[np.ndarray, np.ndarray]:
-    """(depth_mm float32, 0 at invalid pixels; valid) of a depth image: 16UC1/mono16 in mm, 32FC1 in metres."""
-    encoding = str(msg.encoding)
-    if encoding not in _DEPTH_ENCODINGS:
-        raise RecordingError(
-            f"{where}: depth encoding {encoding!r}; expected 16UC1 or mono16 (mm, 0 = invalid) or 32FC1 (metres, "
-            "NaN = invalid; ROS REP 118)"
-        )
-    pixels = image_message_to_array(msg, where)
+    """(depth_mm float32, 0 at invalid pixels; valid) of a depth image: 16UC1/mono16 in mm, 32FC1 in metres; a
+    ``sensor_msgs/Image`` or a ``CompressedImage`` (compressedDepth PNG/RVL, or PNG of a 16-bit depth)."""
+    _check_depth_encoding(_source_encoding(msg), where)
+    pixels, encoding = _message_pixels(msg, where)
+    _check_depth_encoding(encoding, where)
     if _DEPTH_ENCODINGS[encoding] == "mm":
         valid = pixels > 0
         return pixels.astype(np.float32), valid
@@ -402,6 +425,23 @@ def depth_message_to_mm(msg: Any, where: str) -> tuple[np.ndarray, np.ndarray]:
     with np.errstate(invalid="ignore"):
         valid = np.isfinite(depth_mm) & (depth_mm > 0)
     return np.where(valid, depth_mm, 0.0).astype(np.float32), valid
+
+
+def _check_depth_encoding(encoding: str, where: str) -> None:
+    if encoding not in _DEPTH_ENCODINGS:
+        raise RecordingError(
+            f"{where}: depth encoding {encoding!r}; expected 16UC1 or mono16 (mm, 0 = invalid) or 32FC1 (metres, "
+            "NaN = invalid; ROS REP 118), as a sensor_msgs/Image or a compressedDepth / PNG CompressedImage"
+        )
+
+
+def _source_encoding(msg: Any) -> str:
+    if not _is_compressed(msg):
+        return str(msg.encoding)
+    try:
+        return parse_compressed_format(msg.format)[0] or "mono16"  # a bare "png": its bit depth decides, later
+    except CompressedImageError:
+        return str(msg.format)
 
 
 def _stamp_ns(msg: Any) -> int:
@@ -412,25 +452,34 @@ class BagRecording(Recording):
     """A ROS 1 ``.bag`` or ROS 2 bag folder (module docstring)."""
 
     IMAGE = "sensor_msgs/msg/Image"
+    COMPRESSED = "sensor_msgs/msg/CompressedImage"
     CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 
     def __init__(self, path: Path, depth: str | None = None, amplitude: str | None = None):
         self.path = path
         self._highlevel = _import("rosbags.highlevel", path)
         with self._reader() as reader:
-            images = sorted({c.topic for c in reader.connections if c.msgtype == self.IMAGE})
+            images = sorted({c.topic for c in reader.connections if c.msgtype in (self.IMAGE, self.COMPRESSED)})
             depth_like = [t for t in images if "depth" in t.lower()]
             default = depth_like[0] if depth_like else None
             if default is None and depth is None:
                 topics = ", ".join(f"{c.topic} ({c.msgtype})" for c in reader.connections) or "none"
                 raise RecordingError(
-                    f"recording {path}: no sensor_msgs/Image topic with 'depth' in its name; it has: {topics}; "
+                    f"recording {path}: no sensor_msgs/Image or CompressedImage topic with 'depth' in its name; it "
+                    f"has: {topics}; "
                     "choose the depth topic with --depth-stream"
                 )
-            self.depth_name = _choose(images, depth, default, "depth (sensor_msgs/Image)", "--depth-stream", path)
+            self.depth_name = _choose(
+                images, depth, default, "depth (sensor_msgs/Image or CompressedImage)", "--depth-stream", path
+            )
             if amplitude is not None:
                 self.amplitude_name = _choose(
-                    images, amplitude, None, "amplitude (sensor_msgs/Image)", "--amplitude-stream", path
+                    images,
+                    amplitude,
+                    None,
+                    "amplitude (sensor_msgs/Image or CompressedImage)",
+                    "--amplitude-stream",
+                    path,
                 )
             else:
                 named = [t for t in images if t != self.depth_name and _AMPLITUDE_NAME.search(t)]
@@ -451,7 +500,7 @@ class BagRecording(Recording):
 
     def _camera_info(self, reader: Any) -> Intrinsics | None:
         infos = [c for c in reader.connections if c.msgtype == self.CAMERA_INFO]
-        parent = self.depth_name.rsplit("/", 1)[0]
+        parent = _TRANSPORT_SUFFIX.sub("", self.depth_name).rsplit("/", 1)[0]
         infos.sort(key=lambda c: (c.topic.rsplit("/", 1)[0] != parent, c.topic))
         for conn in infos[:1]:
             for _, _, raw in reader.messages(connections=[conn]):
