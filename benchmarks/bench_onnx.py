@@ -1,7 +1,7 @@
 """The restore path through PyTorch and through onnxruntime, side by side (CPU, one 480 x 640 frame).
 
     python benchmarks/bench_onnx.py [--quick] [--threads N] [--backbones unet,dvss] [--repeats 5]
-        [--precisions fp32,fp16]
+        [--precisions fp32,fp16] [--exporters torchscript,dynamo]
 
 For each backbone (default kwargs, weights as initialised plus a small perturbation, so the network's output is
 not the zero-initialised residual): ``DepthRestorer.restore_mm`` in float32 (no tiling; DVSS on its native CPU scan
@@ -12,7 +12,8 @@ over valid pixels is printed with it, and the peak resident memory of the proces
 the high-water mark ``VmHWM``, reset before each route through ``/proc/self/clear_refs``; it includes what the
 process already held, printed as the RSS at the start). ``--quick``: 240 x 320 frames. The default list is the
 U-Net only: DVSS takes minutes per frame through onnxruntime on a 2-core CPU (docs/benchmarks.md); name it with
-``--backbones unet,dvss``.
+``--backbones unet,dvss``. ``--exporters`` picks the ``torch.onnx.export`` routes (default: the TorchScript one;
+``dynamo`` exports DVSS's scans as ONNX ``Scan`` nodes instead of ``Loop`` nodes).
 """
 
 from __future__ import annotations
@@ -78,6 +79,7 @@ def main() -> None:
     p.add_argument("--backbones", default="unet")
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--precisions", default="fp32,fp16", help="onnxruntime routes to run (fp32, fp16 or both)")
+    p.add_argument("--exporters", default="torchscript", help="export routes: torchscript, dynamo or both")
     args = p.parse_args()
     warnings.filterwarnings("ignore")
     import numpy as np
@@ -113,10 +115,13 @@ def main() -> None:
             ref = model.restore_mm({"noisy": depth}, tile=None).numpy()
             t = _median_time(lambda: model.restore_mm({"noisy": depth}, tile=None), args.repeats)
         print(f"| {name} | PyTorch fp32 | {1 / t:.3g} | {1000 * t:.0f} | 0 | {_memory(start)} |", flush=True)
-        for precision in args.precisions.split(","):
+        routes = [(p, e) for e in args.exporters.split(",") for p in args.precisions.split(",")]
+        for precision, exporter in routes:
             with tempfile.TemporaryDirectory() as tmp:
                 path = Path(tmp) / "m.onnx"
-                export_graph(restore_graph(model, fp16=precision == "fp16"), path)
+                t0 = time.perf_counter()
+                export_graph(restore_graph(model, fp16=precision == "fp16"), path, dynamo=exporter == "dynamo")
+                export_s = time.perf_counter() - t0
                 options = ort.SessionOptions()
                 options.intra_op_num_threads = threads
                 sess = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
@@ -129,10 +134,10 @@ def main() -> None:
                 memory = _memory(start)
                 sess = None  # the session's memory goes before the next route
             diff = float(np.abs(out - ref)[valid].max())
-            print(
-                f"| {name} | onnxruntime {precision} | {1 / t:.3g} | {1000 * t:.0f} | {diff:.4f} | {memory} |",
-                flush=True,
+            route = f"onnxruntime {precision}" + (
+                f" ({exporter}, export {export_s:.0f} s)" if exporter != "torchscript" else ""
             )
+            print(f"| {name} | {route} | {1 / t:.3g} | {1000 * t:.0f} | {diff:.4f} | {memory} |", flush=True)
 
 
 if __name__ == "__main__":

@@ -139,3 +139,36 @@ def test_dvss_graph_scans_in_loops_with_scan_outputs_not_sequences(tmp_path):
     # per SS2D layer: two loops over the positions of a lane and one carry across lanes (models/scan/export.py)
     assert layers == 3 and ops.count("Loop") == 3 * layers
     assert not {"SequenceEmpty", "SequenceInsert", "ConcatFromSequence"} & set(ops)
+
+
+def test_the_dynamo_exporter_route_gives_a_dvss_graph_that_runs_at_any_size(tmp_path, capsys):
+    """``--exporter dynamo`` (torch.export): DVSS's scans become ONNX ``Scan`` nodes, not loops unrolled at the
+    example's size, and the graph equals PyTorch at sizes other than the example's."""
+    import lightning
+    import onnx
+
+    from tofdenoise.cli.export import main as export_main
+    from tofdenoise.training.learned_guard import LEARNED_RECORD_KEY
+
+    model = _model("dvss")
+    ckpt = tmp_path / "d.ckpt"
+    payload = {
+        "state_dict": model.state_dict(),
+        "hyper_parameters": dict(model.hparams),
+        LEARNED_RECORD_KEY: {"trained_steps": 0, "best_val_mae_mm": None, "raw_val_mae_mm": None},
+        "pytorch-lightning_version": lightning.__version__,
+    }
+    torch.save(payload, ckpt)
+    path = tmp_path / "d.onnx"
+    assert export_main([str(ckpt), "--onnx", str(path), "--exporter", "dynamo"]) == 0
+    assert "dynamo exporter" in capsys.readouterr().err
+    graph = onnx.load(str(path)).graph
+    ops = [node.op_type for node in graph.node]
+    layers = sum(type(m).__name__ == "SS2D" for m in model.backbone.modules())
+    assert ops.count("Scan") == 2 * layers and "Loop" not in ops
+    runner = OnnxRestorer(path)
+    assert runner.metadata["tofdenoise_exporter"] == "dynamo"
+    for h, w in [(37, 53), (64, 80)]:
+        assert _max_diff(model, runner, h, w) <= TOLERANCE_MM, (h, w)
+    assert export_main([str(ckpt), "--onnx", str(tmp_path / "x.onnx"), "--exporter", "jit"]) == 2
+    assert "exporter 'jit'; expected one of torchscript, dynamo" in capsys.readouterr().err

@@ -1,6 +1,6 @@
 """``tofdenoise export``: a checkpoint's whole restore path as one ONNX graph (``tofdenoise.inference.export``).
 
-    tofdenoise export CKPT --onnx model.onnx [--fp16] [--no-check]
+    tofdenoise export CKPT --onnx model.onnx [--fp16] [--exporter torchscript|dynamo] [--no-check]
 
 The graph takes ``depth_mm`` (1, 1, H, W) float32 (0/NaN = invalid; any H, W) and, for a checkpoint with the
 signal channel, ``amplitude``; it returns ``restored_mm``. After writing, the graph is run with onnxruntime on a
@@ -31,6 +31,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("ckpt", type=Path, metavar="CKPT", help="checkpoint of tofdenoise train / tofdenoise fit")
     p.add_argument("--onnx", required=True, type=Path, help="output .onnx file (written atomically)")
     p.add_argument("--fp16", action="store_true", help="the network in float16 (conditioning and offset stay fp32)")
+    p.add_argument(
+        "--exporter",
+        default="torchscript",
+        help="torch.onnx.export route: the TorchScript tracer (default; fast, deprecated in torch 2.13) or "
+        "torch.export (dynamo; slower to export, the same graph's numbers)",
+    )
     p.add_argument("--no-check", action="store_true", help="skip the onnxruntime vs PyTorch check")
     return p
 
@@ -62,11 +68,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         refuse_overwrite([args.onnx], [args.ckpt], "--onnx")
-        meta = export_onnx(args.ckpt, args.onnx, fp16=args.fp16)
+        meta = export_onnx(args.ckpt, args.onnx, fp16=args.fp16, exporter=args.exporter)
     except (CheckpointError, ExportError, OutputPathError, OSError) as exc:
         print(f"tofdenoise export: error: {exc}", file=sys.stderr)
         return 2
-    line = f"tofdenoise export: {meta['tofdenoise_backbone']} ({meta['tofdenoise_precision']}) -> {args.onnx}"
+    line = (
+        f"tofdenoise export: {meta['tofdenoise_backbone']} ({meta['tofdenoise_precision']}, "
+        f"{meta['tofdenoise_exporter']} exporter) -> {args.onnx}"
+    )
     if not args.no_check:
         line += f"; onnxruntime vs PyTorch max |diff| {parity_check(args.ckpt, args.onnx):.4g} mm on valid pixels"
     print(line, file=sys.stderr)

@@ -97,3 +97,38 @@ def test_onnxruntime_runs_the_scan_at_any_length_with_loops_and_scan_outputs(tmp
         ref = selective_scan_ref(u, delta, A, B, C, D, bias, True).numpy()
         out = session.run(None, dict(zip(names, (t.numpy() for t in (u, delta, B, C)))))[0]
         assert out.shape == ref.shape and np.abs(out - ref).max() <= 1e-4, length
+
+
+def test_the_dynamo_exporter_gets_scan_operators_that_run_at_any_length(tmp_path):
+    """torch.export would unroll the scripted loops at the example's length; under it the scan takes the ``scan``
+    operator route (ONNX ``Scan``, K lanes whatever L), equal to the reference at every length."""
+    ort = pytest.importorskip("onnxruntime")
+
+    u, delta, A, B, C, D, bias = _inputs(37)
+    lanes = 5
+
+    class Scan(torch.nn.Module):
+        def forward(self, u, delta, B, C):
+            return selective_scan_export(u, delta, A, B, C, D, bias, True, state_elems=lanes * LANE_ELEMS)
+
+    length = torch.export.Dim("L")
+    with warnings.catch_warnings(), torch.no_grad():
+        warnings.simplefilter("ignore")
+        program = torch.onnx.export(
+            Scan().eval(),
+            (u, delta, B, C),
+            dynamo=True,
+            dynamic_shapes=({2: length}, {2: length}, {3: length}, {3: length}),
+            opset_version=18,
+            verbose=False,
+        )
+    proto = program.model_proto
+    ops = [node.op_type for node in proto.graph.node]
+    assert ops.count("Scan") == 2 and "Loop" not in ops  # the two position loops, not unrolled
+    session = ort.InferenceSession(proto.SerializeToString(), providers=["CPUExecutionProvider"])
+    names = [i.name for i in session.get_inputs()]
+    for n in (1, 4, 5, 37, 64, 301):  # fewer positions than lanes (padded to K), multiples of 5 and not
+        u, delta, _, B, C, _, _ = _inputs(n, seed=n)
+        ref = selective_scan_ref(u, delta, A, B, C, D, bias, True).numpy()
+        out = session.run(None, dict(zip(names, (t.numpy() for t in (u, delta, B, C)))))[0]
+        assert out.shape == ref.shape and np.abs(out - ref).max() <= 1e-4, n

@@ -30,6 +30,14 @@ frozen to the example's value), so height and width stay dynamic. The per-step o
 sequence; :func:`tofdenoise.inference.onnx_loops.sequences_to_scan_outputs` turns them into the ``Loop``'s scan
 outputs after export. ``state_elems`` (:data:`EXPORT_SCAN_STATE_ELEMS`) was chosen by measurement
 (docs/benchmarks.md, "ONNX export (issue 26)").
+
+The dynamo exporter (``torch.onnx.export(..., dynamo=True)``, ``tofdenoise export --exporter dynamo``) does not
+keep scripted loops: ``torch.export`` runs them with the example's sizes and unrolls them, so the graph would only
+run at the example's size. Under ``torch.export`` (:func:`torch.compiler.is_exporting`) the same two loops are
+therefore written with the ``scan`` higher-order operator (:func:`_lane_scan_exporting`), which becomes ONNX
+``Scan`` nodes with a dynamic trip count. That route takes K = ``state_elems`` // (batch x dim x N) lanes whatever
+L (a symbolic ``min`` with L would make ``torch.export`` specialise on the size), padding a short sequence to K.
+The two routes give the same numbers; tests/models/test_scan_export.py checks both against the reference scan.
 """
 
 from __future__ import annotations
@@ -59,6 +67,19 @@ def _lanes_layout(x: torch.Tensor, groups: int, lanes: int, steps: int, pad: int
     return x.permute(4, 0, 1, 2, 3)
 
 
+def _entry_states(h: torch.Tensor, decay: torch.Tensor, lanes: int) -> torch.Tensor:
+    """The state entering each lane (last axis) from each lane's local end state ``h`` and whole ``decay``: an
+    inclusive Hillis-Steele scan of (decay, end state) over the lanes, shifted by one lane."""
+    off = 1
+    while off < lanes:
+        h_prev = F.pad(h, [off, 0])[..., :lanes]
+        decay_prev = F.pad(decay, [off, 0], value=1.0)[..., :lanes]
+        h = decay * h_prev + h
+        decay = decay * decay_prev
+        off = off * 2
+    return F.pad(h, [1, 0])[..., :lanes]
+
+
 def _lane_scan(
     u: torch.Tensor, delta: torch.Tensor, A: torch.Tensor, B: torch.Tensor, C: torch.Tensor, state_elems: int
 ) -> torch.Tensor:
@@ -84,21 +105,49 @@ def _lane_scan(
         h = torch.exp(dl[t] * A5) * h + wl[t] * Bl[t]
     decay = torch.exp(dl.sum(0) * A5)  # a lane's whole decay
 
-    # inclusive Hillis-Steele scan over the lanes (last axis) of (decay, end state), then shifted by one lane
-    off = 1
-    while off < lanes:
-        h_prev = F.pad(h, [off, 0])[..., :lanes]
-        decay_prev = F.pad(decay, [off, 0], value=1.0)[..., :lanes]
-        h = decay * h_prev + h
-        decay = decay * decay_prev
-        off = off * 2
-    h = F.pad(h, [1, 0])[..., :lanes]  # the state entering each lane
+    h = _entry_states(h, decay, lanes)
 
     ys: list[torch.Tensor] = []
     for t in range(steps):
         h = torch.exp(dl[t] * A5) * h + wl[t] * Bl[t]
         ys.append((h * Cl[t]).sum(3))  # (b, g, dg, K)
     y = torch.stack(ys, 0)  # (T, b, g, dg, K)
+    return y.permute(1, 2, 3, 4, 0).reshape(b, dim, lanes * steps)[..., :length]
+
+
+def _lane_scan_exporting(
+    u: torch.Tensor, delta: torch.Tensor, A: torch.Tensor, B: torch.Tensor, C: torch.Tensor, state_elems: int
+) -> torch.Tensor:
+    """:func:`_lane_scan` for ``torch.export`` (the dynamo exporter): its two loops as ``scan`` operators (ONNX
+    ``Scan``), K = ``state_elems`` // (b x dim x N) lanes whatever L (module docstring)."""
+    from torch._higher_order_ops.scan import scan  # torch.export's loop operator; the ONNX exporter lowers it
+
+    b, dim, length = u.size(0), u.size(1), u.size(2)
+    g, n = B.size(1), A.size(1)
+    dg = dim // g
+    lanes = max(1, state_elems // (b * dim * n))
+    steps = (length + lanes - 1) // lanes
+    pad = steps * lanes - length
+    # contiguous: scan requires its carry to keep the initial state's strides
+    dl = _lanes_layout(delta, g, lanes, steps, pad).unsqueeze(4).contiguous()
+    wl = _lanes_layout(delta * u, g, lanes, steps, pad).unsqueeze(4).contiguous()
+    Bl = _lanes_layout(B.reshape(b, g * n, length), g, lanes, steps, pad).unsqueeze(3).contiguous()
+    Cl = _lanes_layout(C.reshape(b, g * n, length), g, lanes, steps, pad).unsqueeze(3).contiguous()
+    A5 = A.reshape(1, g, dg, n, 1)
+
+    def local_end(h: torch.Tensor, xs: tuple[torch.Tensor, ...]) -> tuple[torch.Tensor, torch.Tensor]:
+        d, w, bb = xs
+        return torch.exp(d * A5) * h + w * bb, d.new_zeros(1)
+
+    def emit(h: torch.Tensor, xs: tuple[torch.Tensor, ...]) -> tuple[torch.Tensor, torch.Tensor]:
+        d, w, bb, cc = xs
+        h = torch.exp(d * A5) * h + w * bb
+        return h, (h * cc).sum(3)
+
+    h0 = torch.zeros([b, g, dg, n, lanes], dtype=u.dtype, device=u.device)
+    h, _ = scan(local_end, h0, (dl, wl, Bl))
+    h = _entry_states(h, torch.exp(dl.sum(0) * A5), lanes).contiguous()
+    _, y = scan(emit, h, (dl, wl, Bl, Cl))  # (T, b, g, dg, K)
     return y.permute(1, 2, 3, 4, 0).reshape(b, dim, lanes * steps)[..., :length]
 
 
@@ -123,7 +172,8 @@ def selective_scan_export(
         delta = F.softplus(delta)
     if B.dim() == 3:
         B, C = B.unsqueeze(1), C.unsqueeze(1)
-    y = _lane_scan(u, delta, A, B.float(), C.float(), int(state_elems))
+    lane_scan = _lane_scan_exporting if torch.compiler.is_exporting() else _lane_scan
+    y = lane_scan(u, delta, A, B.float(), C.float(), int(state_elems))
     if D is not None:
         y = y + D.float()[None, :, None] * u
     return y.to(dtype)
