@@ -29,6 +29,8 @@ from typing import Any
 import torch
 from torch import nn
 
+from tofdenoise.training.legacy_hparams import upgrade_hparams
+
 __all__ = ["InitWeightsError", "load_init_weights", "read_init_state", "file_sha256", "INIT_RECORD_KEY"]
 
 #: checkpoint key of the init record ({"path", "sha256"}), so a resumed run still says where it started from
@@ -70,7 +72,7 @@ def read_init_state(path: str | os.PathLike[str]) -> tuple[dict[str, torch.Tenso
         ) from None
     hparams: dict[str, Any] = {}
     if isinstance(payload, Mapping) and isinstance(payload.get("state_dict"), Mapping):
-        hparams = dict(payload.get("hyper_parameters") or {})
+        hparams = upgrade_hparams(payload.get("hyper_parameters") or {})  # an old flat layout: today's groups
         state = payload["state_dict"]
     elif isinstance(payload, Mapping):
         state = payload

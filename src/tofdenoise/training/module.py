@@ -13,6 +13,7 @@ loads with ``torch.load(weights_only=True)`` and ``DepthRestorer.load_from_check
 from __future__ import annotations
 
 import logging
+import os
 from collections.abc import Sequence
 from typing import Any
 
@@ -28,6 +29,7 @@ from tofdenoise.models.tiling import TilingSettings
 from tofdenoise.records import set_entry
 from tofdenoise.training.init_weights import INIT_RECORD_KEY, load_init_weights
 from tofdenoise.training.learned_guard import LearnedGuard
+from tofdenoise.training.legacy_hparams import is_legacy, upgrade_hparams
 from tofdenoise.training.losses import DepthLoss, build_loss
 from tofdenoise.training.metrics import DepthMetrics, FixedBatchCache, depth_metrics_per_image
 from tofdenoise.training.optim import OptimSettings
@@ -378,6 +380,16 @@ class DepthRestorer(pl.LightningModule):
         self.guard.end_fit(self.trainer)
 
     # ------------------------------------------------------------------ checkpoints
+    @classmethod
+    def load_from_checkpoint(cls, checkpoint_path: Any, *args: Any, **kwargs: Any) -> DepthRestorer:  # type: ignore[override]
+        """Lightning's ``load_from_checkpoint``; a checkpoint of the old flat layout is rebuilt with its own
+        settings, moved into today's groups (``training/legacy_hparams.py``). ``kwargs`` still override."""
+        saved = _saved_hparams(checkpoint_path)
+        if saved is not None and is_legacy(saved):
+            upgraded = upgrade_hparams(saved)
+            kwargs = {**{g: upgraded[g] for g in ("conditioning", "optim", "tiling") if g in upgraded}, **kwargs}
+        return super().load_from_checkpoint(checkpoint_path, *args, **kwargs)
+
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         """Keep the learned guard's inputs in the checkpoint (plain values: loads with weights_only=True)."""
         if self._trainer is not None:
@@ -397,7 +409,7 @@ class DepthRestorer(pl.LightningModule):
         saved = checkpoint.get("hyper_parameters")
         if not saved:
             return
-        mine, theirs = _architecture(dict(self.hparams)), _architecture(dict(saved))
+        mine, theirs = _architecture(dict(self.hparams)), _architecture(upgrade_hparams(saved))
         diff = {k: (theirs[k], mine[k]) for k in mine if mine[k] != theirs[k]}
         if diff:
             lines = "; ".join(f"{k}: checkpoint {a!r} vs this model {b!r}" for k, (a, b) in diff.items())
@@ -406,6 +418,19 @@ class DepthRestorer(pl.LightningModule):
                 f"Load it with DepthRestorer.load_from_checkpoint(path) (it rebuilds the saved backbone), "
                 f"or select backbone={theirs['backbone']!r} with the same backbone_kwargs"
             )
+
+
+def _saved_hparams(checkpoint_path: Any) -> dict[str, Any] | None:
+    """The hyper-parameters stored in a checkpoint file (memory-mapped read), or None for anything else (a stream,
+    a URL, a file without them: Lightning then reports what it finds)."""
+    if not isinstance(checkpoint_path, (str, os.PathLike)) or not os.path.isfile(checkpoint_path):
+        return None
+    try:
+        content = torch.load(checkpoint_path, map_location="cpu", weights_only=True, mmap=True)
+    except Exception:  # noqa: BLE001 - Lightning's own load gives the error for a file it cannot read
+        return None
+    saved = content.get("hyper_parameters") if isinstance(content, dict) else None
+    return dict(saved) if isinstance(saved, dict) else None
 
 
 def step_predictions(out: Tensor | Sequence[Tensor]) -> list[Tensor]:
