@@ -98,18 +98,37 @@ def write_kinect_mkv(
     return path
 
 
-def _image(typestore, stamp_ns: int, array: np.ndarray, encoding: str, bigendian: bool = False, pad: int = 0):
-    Image = typestore.types["sensor_msgs/msg/Image"]
+def _bag_writer(path: Path, version: int):
+    """(writer, typestore, serialize) of rosbags for a ROS ``version`` 1 ``.bag`` file or a ROS 2 bag folder."""
+    from rosbags.typesys import Stores, get_typestore
+
+    if version == 1:
+        from rosbags.rosbag1 import Writer
+
+        typestore = get_typestore(Stores.ROS1_NOETIC)
+        return Writer(path), typestore, typestore.serialize_ros1
+    from rosbags.rosbag2 import Writer
+
+    typestore = get_typestore(Stores.ROS2_HUMBLE)
+    return Writer(path, version=9), typestore, typestore.serialize_cdr
+
+
+def _header(typestore, stamp_ns: int):
     Header = typestore.types["std_msgs/msg/Header"]
     Time = typestore.types["builtin_interfaces/msg/Time"]
     head = {"stamp": Time(sec=stamp_ns // 1_000_000_000, nanosec=stamp_ns % 1_000_000_000), "frame_id": "depth"}
     if "seq" in Header.__dataclass_fields__:
         head["seq"] = 0
+    return Header(**head)
+
+
+def _image(typestore, stamp_ns: int, array: np.ndarray, encoding: str, bigendian: bool = False, pad: int = 0):
+    Image = typestore.types["sensor_msgs/msg/Image"]
     array = np.asarray(array)
     rows = array.astype(array.dtype.newbyteorder(">" if bigendian else "<")).view(np.uint8).reshape(array.shape[0], -1)
     rows = np.concatenate([rows, np.zeros((rows.shape[0], pad), np.uint8)], axis=1)  # step padding
     return Image(
-        header=Header(**head),
+        header=_header(typestore, stamp_ns),
         height=array.shape[0],
         width=array.shape[1],
         encoding=encoding,
@@ -122,14 +141,9 @@ def _image(typestore, stamp_ns: int, array: np.ndarray, encoding: str, bigendian
 def _camera_info(typestore, stamp_ns: int, k, width: int, height: int):
     Info = typestore.types["sensor_msgs/msg/CameraInfo"]
     fields = Info.__dataclass_fields__
-    Header = typestore.types["std_msgs/msg/Header"]
-    Time = typestore.types["builtin_interfaces/msg/Time"]
-    head = {"stamp": Time(sec=stamp_ns // 1_000_000_000, nanosec=stamp_ns % 1_000_000_000), "frame_id": "depth"}
-    if "seq" in Header.__dataclass_fields__:
-        head["seq"] = 0
     RoI = typestore.types["sensor_msgs/msg/RegionOfInterest"]
     values = {
-        "header": Header(**head),
+        "header": _header(typestore, stamp_ns),
         "height": height,
         "width": width,
         "distortion_model": "plumb_bob",
@@ -160,23 +174,12 @@ def write_bag(
 ) -> Path:
     """A ROS ``version`` 1 (``.bag`` file) or 2 (bag folder) bag: ``depth`` (T, H, W) in the encoding's units,
     ``amplitude`` (T, H, W) uint16 (mono16) or None, ``camera_info`` = (k 9 values, width, height) or None."""
-    from rosbags.typesys import Stores, get_typestore
-
     path = Path(path)
     depth = np.asarray(depth)
     stamps = (
         stamps_ns if stamps_ns is not None else [1_700_000_000_000_000_000 + i * 33_333_333 for i in range(len(depth))]
     )
-    if version == 1:
-        from rosbags.rosbag1 import Writer
-
-        typestore = get_typestore(Stores.ROS1_NOETIC)
-        writer, serialize = Writer(path), typestore.serialize_ros1
-    else:
-        from rosbags.rosbag2 import Writer
-
-        typestore = get_typestore(Stores.ROS2_HUMBLE)
-        writer, serialize = Writer(path, version=9), typestore.serialize_cdr
+    writer, typestore, serialize = _bag_writer(path, version)
     image, info = "sensor_msgs/msg/Image", "sensor_msgs/msg/CameraInfo"
     with writer:
         c_depth = writer.add_connection(depth_topic, image, typestore=typestore)
@@ -259,12 +262,7 @@ def compressed_depth_payload(depth, encoding: str, codec: str) -> bytes:
 
 def _compressed(typestore, stamp_ns: int, fmt: str, data: bytes):
     Msg = typestore.types["sensor_msgs/msg/CompressedImage"]
-    Header = typestore.types["std_msgs/msg/Header"]
-    Time = typestore.types["builtin_interfaces/msg/Time"]
-    head = {"stamp": Time(sec=stamp_ns // 1_000_000_000, nanosec=stamp_ns % 1_000_000_000), "frame_id": "depth"}
-    if "seq" in Header.__dataclass_fields__:
-        head["seq"] = 0
-    return Msg(header=Header(**head), format=fmt, data=np.frombuffer(data, np.uint8).copy())
+    return Msg(header=_header(typestore, stamp_ns), format=fmt, data=np.frombuffer(data, np.uint8).copy())
 
 
 def write_compressed_bag(
@@ -282,21 +280,10 @@ def write_compressed_bag(
     """A bag of ``sensor_msgs/CompressedImage`` topics: depth as compressedDepth (``codec`` png / rvl), amplitude
     as ``compressed`` (``amplitude_codec`` png for mono16, jpeg for mono8). ``payloads`` (a list of bytes per
     frame) replaces the depth messages' data, for damaged messages."""
-    from rosbags.typesys import Stores, get_typestore
-
     path = Path(path)
     depth = np.asarray(depth)
     stamps = [1_700_000_000_000_000_000 + i * 33_333_333 for i in range(len(depth))]
-    if version == 1:
-        from rosbags.rosbag1 import Writer
-
-        typestore = get_typestore(Stores.ROS1_NOETIC)
-        writer, serialize = Writer(path), typestore.serialize_ros1
-    else:
-        from rosbags.rosbag2 import Writer
-
-        typestore = get_typestore(Stores.ROS2_HUMBLE)
-        writer, serialize = Writer(path, version=9), typestore.serialize_cdr
+    writer, typestore, serialize = _bag_writer(path, version)
     kind = "sensor_msgs/msg/CompressedImage"
     with writer:
         c_depth = writer.add_connection(depth_topic, kind, typestore=typestore)

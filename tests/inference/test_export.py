@@ -36,6 +36,22 @@ def _model(name: str) -> DepthRestorer:
     return model
 
 
+def _save_checkpoint(model: DepthRestorer, path):
+    """``model`` as a checkpoint file of ``tofdenoise train`` (weights, hyper-parameters, the learned record)."""
+    import lightning
+
+    from tofdenoise.training.learned_guard import LEARNED_RECORD_KEY
+
+    payload = {
+        "state_dict": model.state_dict(),
+        "hyper_parameters": dict(model.hparams),
+        LEARNED_RECORD_KEY: {"trained_steps": 0, "best_val_mae_mm": None, "raw_val_mae_mm": None},
+        "pytorch-lightning_version": lightning.__version__,
+    }
+    torch.save(payload, path)
+    return path
+
+
 def _frame(h: int, w: int, seed: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
     gen = torch.Generator().manual_seed(seed)
     yy, xx = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
@@ -75,17 +91,7 @@ def test_export_command_and_denoise_onnx_match_the_checkpoint(tmp_path):
     from tofdenoise.data_modules.io import write_depth_png16
 
     model = _model("unet")
-    ckpt = tmp_path / "m.ckpt"
-    import lightning
-
-    from tofdenoise.training.learned_guard import LEARNED_RECORD_KEY
-
-    payload = {
-        "state_dict": model.state_dict(),
-        "hyper_parameters": dict(model.hparams),
-        LEARNED_RECORD_KEY: {"trained_steps": 0, "best_val_mae_mm": None, "raw_val_mae_mm": None},
-    }
-    torch.save({**payload, "pytorch-lightning_version": lightning.__version__}, ckpt)
+    ckpt = _save_checkpoint(model, tmp_path / "m.ckpt")
     onnx_path = tmp_path / "m.onnx"
     assert export_main([str(ckpt), "--onnx", str(onnx_path)]) == 0
     runner = OnnxRestorer(onnx_path)
@@ -144,21 +150,12 @@ def test_dvss_graph_scans_in_loops_with_scan_outputs_not_sequences(tmp_path):
 def test_the_dynamo_exporter_route_gives_a_dvss_graph_that_runs_at_any_size(tmp_path, capsys):
     """``--exporter dynamo`` (torch.export): DVSS's scans become ONNX ``Scan`` nodes, not loops unrolled at the
     example's size, and the graph equals PyTorch at sizes other than the example's."""
-    import lightning
     import onnx
 
     from tofdenoise.cli.export import main as export_main
-    from tofdenoise.training.learned_guard import LEARNED_RECORD_KEY
 
     model = _model("dvss")
-    ckpt = tmp_path / "d.ckpt"
-    payload = {
-        "state_dict": model.state_dict(),
-        "hyper_parameters": dict(model.hparams),
-        LEARNED_RECORD_KEY: {"trained_steps": 0, "best_val_mae_mm": None, "raw_val_mae_mm": None},
-        "pytorch-lightning_version": lightning.__version__,
-    }
-    torch.save(payload, ckpt)
+    ckpt = _save_checkpoint(model, tmp_path / "d.ckpt")
     path = tmp_path / "d.onnx"
     assert export_main([str(ckpt), "--onnx", str(path), "--exporter", "dynamo"]) == 0
     assert "dynamo exporter" in capsys.readouterr().err

@@ -65,6 +65,17 @@ def test_kinect_calibration_gives_the_sdk_mode_intrinsics(tmp_path, recording_fi
     assert (binned.width, binned.height) == (320, 288)
 
 
+def assert_frames_exact(rec, depth_mm: np.ndarray, amplitude: np.ndarray) -> None:
+    """The recording's frames, in order, are ``depth_mm`` (0 = invalid) and ``amplitude`` bit for bit."""
+    assert rec.scan() == len(depth_mm)
+    frames = sorted(rec.frames(), key=lambda f: f.index)
+    assert [f.index for f in frames] == list(range(len(depth_mm)))
+    for f in frames:
+        d = depth_mm[f.index]
+        assert np.array_equal(f.depth_mm, d.astype(np.float32)) and np.array_equal(f.valid, d > 0)
+        assert np.array_equal(f.amplitude, amplitude[f.index].astype(np.float32))
+
+
 @pytest.mark.parametrize("version", [1, 2])
 @pytest.mark.parametrize("bigendian,pad", [(False, 0), (True, 6)])
 def test_bag_16uc1_mm_round_trips_exactly_with_amplitude_and_camera_info(
@@ -84,12 +95,7 @@ def test_bag_16uc1_mm_round_trips_exactly_with_amplitude_and_camera_info(
     rec = open_recording(path)
     assert (rec.depth_name, rec.amplitude_name) == ("/camera/depth/image_raw", "/camera/ir/image_raw")
     assert (rec.intrinsics.fx, rec.intrinsics.fy, rec.intrinsics.cx, rec.intrinsics.cy) == (500.0, 502.0, 7.5, 5.5)
-    assert rec.scan() == 3
-    frames = sorted(rec.frames(), key=lambda f: f.index)
-    assert [f.index for f in frames] == [0, 1, 2]
-    for f in frames:
-        assert np.array_equal(f.depth_mm, d[f.index].astype(np.float32)) and np.array_equal(f.valid, d[f.index] > 0)
-        assert np.array_equal(f.amplitude, ir[f.index].astype(np.float32))
+    assert_frames_exact(rec, d, ir)
 
 
 @pytest.mark.parametrize("version", [1, 2])
@@ -181,12 +187,7 @@ def test_compressed_depth_bags_read_exactly_with_a_png_amplitude(tmp_path, recor
     rec = open_recording(path)
     assert rec.depth_name == "/camera/depth/image_raw/compressedDepth"
     assert rec.amplitude_name == "/camera/ir/image_raw/compressed"
-    assert rec.scan() == 3
-    frames = sorted(rec.frames(), key=lambda f: f.index)
-    assert [f.index for f in frames] == [0, 1, 2]
-    for f in frames:
-        assert np.array_equal(f.depth_mm, d[f.index].astype(np.float32)) and np.array_equal(f.valid, d[f.index] > 0)
-        assert np.array_equal(f.amplitude, ir[f.index].astype(np.float32))
+    assert_frames_exact(rec, d, ir)
 
 
 def test_compressed_depth_32fc1_becomes_mm_and_a_jpeg_amplitude_is_read(tmp_path, recording_files):

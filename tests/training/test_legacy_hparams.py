@@ -8,8 +8,8 @@ import torch
 
 from tofdenoise.inference.denoise import load_restorer
 from tofdenoise.training.init_weights import load_init_weights
-from tofdenoise.training.legacy_hparams import LEGACY_KEYS, is_legacy, upgrade_hparams
 from tofdenoise.training.learned_guard import LEARNED_RECORD_KEY
+from tofdenoise.training.legacy_hparams import LEGACY_KEYS, is_legacy, upgrade_hparams
 from tofdenoise.training.module import DepthRestorer
 
 TINY_UNET = {"width": 8, "stages": 2}

@@ -59,25 +59,46 @@ def test_lanes_grow_with_the_length_only_up_to_the_state_budget():
         selective_scan_export(*_inputs(5)[:5], state_elems=0)
 
 
+class _ScanModule(torch.nn.Module):
+    """The export scan of the tests' A, D and bias over 5 lanes, as a module of (u, delta, B, C) to export."""
+
+    def __init__(self, A, D, bias):
+        super().__init__()
+        self.A, self.D, self.bias = A, D, bias
+
+    def forward(self, u, delta, B, C):
+        return selective_scan_export(u, delta, self.A, B, C, self.D, self.bias, True, state_elems=5 * LANE_ELEMS)
+
+
+def _assert_equal_to_the_reference_at_any_length(proto, A, D, bias) -> None:
+    """The scan graph ``proto`` (inputs u, delta, B, C in that order) in onnxruntime equals the reference scan
+    within 1e-4 at lengths below, at and around multiples of the 5 lanes of the tests."""
+    import onnxruntime as ort
+
+    session = ort.InferenceSession(proto.SerializeToString(), providers=["CPUExecutionProvider"])
+    names = [i.name for i in session.get_inputs()]
+    for length in (1, 4, 5, 37, 64, 301):  # fewer positions than lanes, multiples of 5 and not
+        u, delta, _, B, C, _, _ = _inputs(length, seed=length)
+        ref = selective_scan_ref(u, delta, A, B, C, D, bias, True).numpy()
+        out = session.run(None, dict(zip(names, (t.numpy() for t in (u, delta, B, C)))))[0]
+        assert out.shape == ref.shape and np.abs(out - ref).max() <= 1e-4, length
+
+
 def test_onnxruntime_runs_the_scan_at_any_length_with_loops_and_scan_outputs(tmp_path):
-    ort = pytest.importorskip("onnxruntime")
+    pytest.importorskip("onnxruntime")
     import onnx
 
     from tofdenoise.inference.onnx_loops import sequences_to_scan_outputs
 
     u, delta, A, B, C, D, bias = _inputs(37)
-    lanes = 5
-
-    class Scan(torch.nn.Module):
-        def forward(self, u, delta, B, C):
-            return selective_scan_export(u, delta, A, B, C, D, bias, True, state_elems=lanes * LANE_ELEMS)
+    scan = _ScanModule(A, D, bias)
 
     names = ["u", "delta", "B", "C"]
     path = tmp_path / "scan.onnx"
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         torch.onnx.export(
-            Scan(),
+            scan,
             (u, delta, B, C),
             str(path),
             dynamo=False,
@@ -91,31 +112,22 @@ def test_onnxruntime_runs_the_scan_at_any_length_with_loops_and_scan_outputs(tmp
     ops = [node.op_type for node in proto.graph.node]
     body_ops = [n.op_type for node in proto.graph.node for a in node.attribute if a.type == a.GRAPH for n in a.g.node]
     assert ops.count("Loop") == 3 and "SequenceInsert" not in body_ops  # two position loops, one carry
-    session = ort.InferenceSession(proto.SerializeToString(), providers=["CPUExecutionProvider"])
-    for length in (1, 4, 5, 37, 64, 301):  # fewer positions than lanes, multiples of 5 and not
-        u, delta, _, B, C, _, _ = _inputs(length, seed=length)
-        ref = selective_scan_ref(u, delta, A, B, C, D, bias, True).numpy()
-        out = session.run(None, dict(zip(names, (t.numpy() for t in (u, delta, B, C)))))[0]
-        assert out.shape == ref.shape and np.abs(out - ref).max() <= 1e-4, length
+    _assert_equal_to_the_reference_at_any_length(proto, A, D, bias)
 
 
 def test_the_dynamo_exporter_gets_scan_operators_that_run_at_any_length(tmp_path):
     """torch.export would unroll the scripted loops at the example's length; under it the scan takes the ``scan``
     operator route (ONNX ``Scan``, K lanes whatever L), equal to the reference at every length."""
-    ort = pytest.importorskip("onnxruntime")
+    pytest.importorskip("onnxruntime")
 
     u, delta, A, B, C, D, bias = _inputs(37)
-    lanes = 5
-
-    class Scan(torch.nn.Module):
-        def forward(self, u, delta, B, C):
-            return selective_scan_export(u, delta, A, B, C, D, bias, True, state_elems=lanes * LANE_ELEMS)
+    scan = _ScanModule(A, D, bias)
 
     length = torch.export.Dim("L")
     with warnings.catch_warnings(), torch.no_grad():
         warnings.simplefilter("ignore")
         program = torch.onnx.export(
-            Scan().eval(),
+            scan.eval(),
             (u, delta, B, C),
             dynamo=True,
             dynamic_shapes=({2: length}, {2: length}, {3: length}, {3: length}),
@@ -125,10 +137,4 @@ def test_the_dynamo_exporter_gets_scan_operators_that_run_at_any_length(tmp_path
     proto = program.model_proto
     ops = [node.op_type for node in proto.graph.node]
     assert ops.count("Scan") == 2 and "Loop" not in ops  # the two position loops, not unrolled
-    session = ort.InferenceSession(proto.SerializeToString(), providers=["CPUExecutionProvider"])
-    names = [i.name for i in session.get_inputs()]
-    for n in (1, 4, 5, 37, 64, 301):  # fewer positions than lanes (padded to K), multiples of 5 and not
-        u, delta, _, B, C, _, _ = _inputs(n, seed=n)
-        ref = selective_scan_ref(u, delta, A, B, C, D, bias, True).numpy()
-        out = session.run(None, dict(zip(names, (t.numpy() for t in (u, delta, B, C)))))[0]
-        assert out.shape == ref.shape and np.abs(out - ref).max() <= 1e-4, n
+    _assert_equal_to_the_reference_at_any_length(proto, A, D, bias)
