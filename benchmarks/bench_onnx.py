@@ -12,8 +12,9 @@ over valid pixels is printed with it, and the peak resident memory of the proces
 the high-water mark ``VmHWM``, reset before each route through ``/proc/self/clear_refs``; it includes what the
 process already held, printed as the RSS at the start). ``--quick``: 240 x 320 frames. The default list is the
 U-Net and DVSS, the pair the issue asks for (DVSS takes about 25 s per 480 x 640 frame through onnxruntime on a
-2-core CPU, so ``make bench`` spends a few minutes here; ``--backbones unet`` skips it). ``--exporters`` picks the ``torch.onnx.export`` routes (default: the TorchScript one;
-``dynamo`` exports DVSS's scans as ONNX ``Scan`` nodes instead of ``Loop`` nodes).
+2-core CPU, so ``make bench`` spends a few minutes here; ``--backbones unet`` skips it). ``--exporters`` picks the
+``torch.onnx.export`` routes (default: the TorchScript one; ``dynamo`` exports DVSS's scans as ONNX ``Scan`` nodes
+instead of ``Loop`` nodes).
 """
 
 from __future__ import annotations
