@@ -110,3 +110,9 @@ def test_a_plain_png_compressed_16_bit_depth_is_exact_and_an_8_bit_one_says_so(r
     assert enc == "16UC1" and pixels.dtype == np.uint16 and np.array_equal(pixels, mm)
     grey, enc = decode_compressed_image(recording_files.png_bytes(mm.astype(np.uint8)), "png", "here")
     assert enc == "mono8" and grey.dtype == np.uint8
+
+
+def test_a_stream_of_endless_integers_is_not_rvl():
+    # every nibble has its "more follows" bit: no integer ends within 32 bits
+    with pytest.raises(CompressedImageError, match="frame 9: RVL stream has an integer of more than 32 bits"):
+        rvl_decode(struct.pack("<II", 0x88888888, 0x88888880), 10, "frame 9")

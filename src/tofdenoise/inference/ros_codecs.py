@@ -72,7 +72,7 @@ def parse_compressed_format(fmt: str) -> tuple[str, str]:
     )
 
 
-def _vle_values(words: np.ndarray) -> np.ndarray:
+def _vle_values(words: np.ndarray, where: str) -> np.ndarray:
     """Every complete variable-length integer of an RVL stream, in order (int64)."""
     nibbles = ((words[:, None] >> _NIBBLE_SHIFTS[None, :]) & 0xF).astype(np.int64).ravel()
     ends = (nibbles & 0x8) == 0
@@ -83,7 +83,7 @@ def _vle_values(words: np.ndarray) -> np.ndarray:
     starts = np.flatnonzero(np.concatenate(([True], ends[:-1])))
     place = np.arange(nibbles.size) - starts[group]  # 3-bit group k of its value, lowest first
     if place.max(initial=0) > 10:
-        raise CompressedImageError("RVL stream has an integer of more than 32 bits")
+        raise CompressedImageError(f"{where}: RVL stream has an integer of more than 32 bits (not an RVL stream)")
     contributions = (nibbles & 0x7) << (3 * place)
     # each contribution < 2^33: exact in float64, and bincount is much faster than np.add.at
     return np.bincount(group, weights=contributions.astype(np.float64), minlength=starts.size).astype(np.int64)
@@ -92,7 +92,7 @@ def _vle_values(words: np.ndarray) -> np.ndarray:
 def rvl_decode(stream: bytes, num_pixels: int, where: str = "RVL stream") -> np.ndarray:
     """The ``num_pixels`` uint16 samples of an RVL stream (the bytes after the width and height)."""
     whole = len(stream) // 4 * 4
-    values = _vle_values(np.frombuffer(stream[:whole], dtype="<u4").astype(np.uint32))
+    values = _vle_values(np.frombuffer(stream[:whole], dtype="<u4").astype(np.uint32), where)
     lengths: list[int] = []  # zeros, values, zeros, values ... in pixels
     counts: list[int] = []  # where in ``values`` the run lengths are (the rest up to the end are deltas)
     pixel, i, total = 0, 0, values.size
