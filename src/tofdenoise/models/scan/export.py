@@ -37,7 +37,7 @@ run at the example's size. Under ``torch.export`` (:func:`torch.compiler.is_expo
 therefore written with the ``scan`` higher-order operator (:func:`_lane_scan_exporting`), which becomes ONNX
 ``Scan`` nodes with a dynamic trip count. That route takes K = ``state_elems`` // (batch x dim x N) lanes whatever
 L (a symbolic ``min`` with L would make ``torch.export`` specialise on the size), padding a short sequence to K.
-The two routes give the same numbers; tests/models/test_scan_export.py checks both against the reference scan.
+The two routes give the same numbers; tests/models/scan/test_export.py checks both against the reference scan.
 """
 
 from __future__ import annotations
@@ -67,6 +67,29 @@ def _lanes_layout(x: torch.Tensor, groups: int, lanes: int, steps: int, pad: int
     return x.permute(4, 0, 1, 2, 3)
 
 
+def _lane_inputs(
+    u: torch.Tensor, delta: torch.Tensor, A: torch.Tensor, B: torch.Tensor, C: torch.Tensor, lanes: int
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The scan's inputs cut into ``lanes`` lanes of T = ceil(L / K) positions: delta and delta u as
+    (T, b, g, dg, 1, K), B and C as (T, b, g, 1, N, K), and A as (1, g, dg, N, 1), so that each broadcasts against
+    a state (b, g, dg, N, K)."""
+    b, dim, length = u.size(0), u.size(1), u.size(2)
+    g, n = B.size(1), A.size(1)
+    steps = (length + lanes - 1) // lanes
+    pad = steps * lanes - length
+    dl = _lanes_layout(delta, g, lanes, steps, pad).unsqueeze(4)
+    wl = _lanes_layout(delta * u, g, lanes, steps, pad).unsqueeze(4)
+    Bl = _lanes_layout(B.reshape(b, g * n, length), g, lanes, steps, pad).unsqueeze(3)
+    Cl = _lanes_layout(C.reshape(b, g * n, length), g, lanes, steps, pad).unsqueeze(3)
+    return dl, wl, Bl, Cl, A.reshape(1, g, dim // g, n, 1)
+
+
+def _from_lanes(y: torch.Tensor, length: int) -> torch.Tensor:
+    """Per-position outputs (T, b, g, dg, K) back to the sequence (b, dim, L): the inverse of :func:`_lanes_layout`,
+    padding dropped."""
+    return y.permute(1, 2, 3, 4, 0).reshape(y.size(1), y.size(2) * y.size(3), -1)[..., :length]
+
+
 def _entry_states(h: torch.Tensor, decay: torch.Tensor, lanes: int) -> torch.Tensor:
     """The state entering each lane (last axis) from each lane's local end state ``h`` and whole ``decay``: an
     inclusive Hillis-Steele scan of (decay, end state) over the lanes, shifted by one lane."""
@@ -87,32 +110,20 @@ def _lane_scan(
 
     u, delta (b, dim, L) float32 (delta already through bias and softplus); A (dim, N); B, C (b, g, N, L).
     Layouts: a lane's index is the innermost axis; states are (b, g, dim/g, N, K)."""
-    b, dim, length = u.size(0), u.size(1), u.size(2)
-    g, n = B.size(1), A.size(1)
-    dg = dim // g
-    lanes = export_scan_lanes(b * dim * n, length, state_elems)
-    steps = (length + lanes - 1) // lanes
-    pad = steps * lanes - length
-
-    dl = _lanes_layout(delta, g, lanes, steps, pad).unsqueeze(4)  # (T, b, g, dg, 1, K)
-    wl = _lanes_layout(delta * u, g, lanes, steps, pad).unsqueeze(4)
-    Bl = _lanes_layout(B.reshape(b, g * n, length), g, lanes, steps, pad).unsqueeze(3)  # (T, b, g, 1, N, K)
-    Cl = _lanes_layout(C.reshape(b, g * n, length), g, lanes, steps, pad).unsqueeze(3)
-    A5 = A.reshape(1, g, dg, n, 1)
-
-    h = torch.zeros([b, g, dg, n, lanes], dtype=u.dtype, device=u.device)
-    for t in range(steps):
+    lanes = export_scan_lanes(u.size(0) * u.size(1) * A.size(1), u.size(2), state_elems)
+    dl, wl, Bl, Cl, A5 = _lane_inputs(u, delta, A, B, C, lanes)
+    h = torch.zeros([dl.size(1), dl.size(2), dl.size(3), A5.size(3), lanes], dtype=u.dtype, device=u.device)
+    for t in range(dl.size(0)):
         h = torch.exp(dl[t] * A5) * h + wl[t] * Bl[t]
     decay = torch.exp(dl.sum(0) * A5)  # a lane's whole decay
 
     h = _entry_states(h, decay, lanes)
 
     ys: list[torch.Tensor] = []
-    for t in range(steps):
+    for t in range(dl.size(0)):
         h = torch.exp(dl[t] * A5) * h + wl[t] * Bl[t]
         ys.append((h * Cl[t]).sum(3))  # (b, g, dg, K)
-    y = torch.stack(ys, 0)  # (T, b, g, dg, K)
-    return y.permute(1, 2, 3, 4, 0).reshape(b, dim, lanes * steps)[..., :length]
+    return _from_lanes(torch.stack(ys, 0), u.size(2))
 
 
 def _lane_scan_exporting(
@@ -122,18 +133,9 @@ def _lane_scan_exporting(
     ``Scan``), K = ``state_elems`` // (b x dim x N) lanes whatever L (module docstring)."""
     from torch._higher_order_ops.scan import scan  # torch.export's loop operator; the ONNX exporter lowers it
 
-    b, dim, length = u.size(0), u.size(1), u.size(2)
-    g, n = B.size(1), A.size(1)
-    dg = dim // g
-    lanes = max(1, state_elems // (b * dim * n))
-    steps = (length + lanes - 1) // lanes
-    pad = steps * lanes - length
+    lanes = max(1, state_elems // (u.size(0) * u.size(1) * A.size(1)))
     # contiguous: scan requires its carry to keep the initial state's strides
-    dl = _lanes_layout(delta, g, lanes, steps, pad).unsqueeze(4).contiguous()
-    wl = _lanes_layout(delta * u, g, lanes, steps, pad).unsqueeze(4).contiguous()
-    Bl = _lanes_layout(B.reshape(b, g * n, length), g, lanes, steps, pad).unsqueeze(3).contiguous()
-    Cl = _lanes_layout(C.reshape(b, g * n, length), g, lanes, steps, pad).unsqueeze(3).contiguous()
-    A5 = A.reshape(1, g, dg, n, 1)
+    dl, wl, Bl, Cl, A5 = (x.contiguous() for x in _lane_inputs(u, delta, A, B, C, lanes))
 
     def local_end(h: torch.Tensor, xs: tuple[torch.Tensor, ...]) -> tuple[torch.Tensor, torch.Tensor]:
         d, w, bb = xs
@@ -144,16 +146,16 @@ def _lane_scan_exporting(
         h = torch.exp(d * A5) * h + w * bb
         return h, (h * cc).sum(3)
 
-    h0 = torch.zeros([b, g, dg, n, lanes], dtype=u.dtype, device=u.device)
+    h0 = torch.zeros([dl.size(1), dl.size(2), dl.size(3), A5.size(3), lanes], dtype=u.dtype, device=u.device)
     h, _ = scan(local_end, h0, (dl, wl, Bl))
     h = _entry_states(h, torch.exp(dl.sum(0) * A5), lanes).contiguous()
     _, y = scan(emit, h, (dl, wl, Bl, Cl))  # (T, b, g, dg, K)
-    return y.permute(1, 2, 3, 4, 0).reshape(b, dim, lanes * steps)[..., :length]
+    return _from_lanes(y, u.size(2))
 
 
 with warnings.catch_warnings():  # the TorchScript exporter is this module's route: its scripting is wanted here
     warnings.filterwarnings("ignore", message=r".*torch\.jit\.script. is deprecated", category=DeprecationWarning)
-    _lane_scan = torch.jit.script(_lane_scan)  # compiles the two helpers it calls as well
+    _lane_scan = torch.jit.script(_lane_scan)  # compiles the helpers it calls as well
 
 
 def selective_scan_export(
