@@ -78,7 +78,8 @@ def _vle_values(words: np.ndarray, where: str) -> np.ndarray:
     ends = (nibbles & 0x8) == 0
     if not ends.any():
         return np.zeros(0, np.int64)
-    nibbles, ends = nibbles[: np.flatnonzero(ends)[-1] + 1], ends[: np.flatnonzero(ends)[-1] + 1]
+    complete = np.flatnonzero(ends)[-1] + 1  # nibbles up to the end of the last whole integer
+    nibbles, ends = nibbles[:complete], ends[:complete]
     group = np.cumsum(ends) - ends  # the value each nibble belongs to
     starts = np.flatnonzero(np.concatenate(([True], ends[:-1])))
     place = np.arange(nibbles.size) - starts[group]  # 3-bit group k of its value, lowest first
@@ -135,9 +136,7 @@ def _decode_file(payload: bytes, where: str, what: str) -> np.ndarray:
         raise CompressedImageError(f"{where}: {what} payload of {len(payload)} bytes does not decode: {exc}") from exc
     if pixels.ndim != 2:
         raise CompressedImageError(f"{where}: {what} image has mode {mode} ({pixels.shape}); expected one channel")
-    if mode.startswith("I;16"):
-        return pixels.astype(np.uint16)
-    if mode == "I":  # Pillow opens some 16-bit PNGs as 32-bit integers
+    if mode.startswith("I;16") or mode == "I":  # Pillow opens some 16-bit PNGs as 32-bit integers ("I")
         return pixels.astype(np.uint16)
     return pixels
 
