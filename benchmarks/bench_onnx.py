@@ -1,7 +1,7 @@
-"""The restore path through PyTorch and through onnxruntime, side by side (CPU, one 480 x 640 frame).
+"""The restore path through PyTorch and through onnxruntime, side by side (one 480 x 640 frame).
 
     python benchmarks/bench_onnx.py [--quick] [--threads N] [--backbones unet,dvss] [--repeats 5]
-        [--precisions fp32,fp16] [--exporters torchscript,dynamo]
+        [--precisions fp32,fp16] [--exporters torchscript,dynamo] [--device cpu|cuda|tensorrt]
 
 For each backbone (default kwargs, weights as initialised plus a small perturbation, so the network's output is
 not the zero-initialised residual): ``DepthRestorer.restore_mm`` in float32 (no tiling; DVSS on its native CPU scan
@@ -14,7 +14,9 @@ process already held, printed as the RSS at the start). ``--quick``: 240 x 320 f
 U-Net and DVSS, the pair the issue asks for (DVSS takes about 25 s per 480 x 640 frame through onnxruntime on a
 2-core CPU, so ``make bench`` spends a few minutes here; ``--backbones unet`` skips it). ``--exporters`` picks the
 ``torch.onnx.export`` routes (default: the TorchScript one; ``dynamo`` exports DVSS's scans as ONNX ``Scan`` nodes
-instead of ``Loop`` nodes).
+instead of ``Loop`` nodes). ``--device cuda``: PyTorch on the GPU (DVSS on its Triton scan) against onnxruntime's
+CUDA execution provider (``tensorrt``: its TensorRT provider); both routes take the frame from host memory and
+give it back there, so a frame's time includes the two copies.
 """
 
 from __future__ import annotations
@@ -81,6 +83,7 @@ def main() -> None:
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--precisions", default="fp32,fp16", help="onnxruntime routes to run (fp32, fp16 or both)")
     p.add_argument("--exporters", default="torchscript", help="export routes: torchscript, dynamo or both")
+    p.add_argument("--device", default="cpu", choices=("cpu", "cuda", "tensorrt"), help="where both routes run")
     args = p.parse_args()
     warnings.filterwarnings("ignore")
     import numpy as np
@@ -88,7 +91,13 @@ def main() -> None:
     import torch
 
     from tofdenoise.inference.export import export_graph, restore_graph
+    from tofdenoise.inference.onnx_runner import execution_providers
     from tofdenoise.training.module import DepthRestorer
+
+    providers = execution_providers(args.device, ort.get_available_providers())
+    if args.device != "cpu" and hasattr(ort, "preload_dlls"):
+        ort.preload_dlls()
+    dev = torch.device("cpu" if args.device == "cpu" else "cuda")
 
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -98,34 +107,46 @@ def main() -> None:
     depth = 800.0 + 600.0 * torch.rand(1, 1, h, w, generator=gen)
     depth[torch.rand(depth.shape, generator=gen) < 0.1] = 0.0
     valid = (depth > 0).numpy()
-    print(f"frame {h} x {w}, 10 % holes, torch threads {threads}, onnxruntime {ort.__version__} intra-op {threads}")
+    where = torch.cuda.get_device_name() if dev.type == "cuda" else "CPU"
+    print(
+        f"frame {h} x {w}, 10 % holes, {where}, torch {torch.__version__} threads {threads}, "
+        f"onnxruntime {ort.__version__} ({providers[0]}) intra-op {threads}"
+    )
     print("| backbone | route | frames/s | ms/frame | max abs diff vs PyTorch (mm) | peak RSS (MiB) | RSS at start |")
     print("|---|---|---:|---:|---:|---:|---:|")
     for name in args.backbones.split(","):
         torch.manual_seed(0)
-        model = DepthRestorer(backbone=name).eval()
+        model = DepthRestorer(backbone=name).eval().to(dev)
         with torch.no_grad():
             for prm in model.backbone.parameters():
                 prm.add_(0.01 * torch.randn_like(prm))
+
+        def torch_frame(frame=depth):  # host -> device -> restored -> host, as onnxruntime's session.run does
+            return model.restore_mm({"noisy": frame.to(dev)}, tile=None).cpu()
+
         with torch.no_grad():  # a small frame first: DVSS builds its native scan kernel outside the measurement
-            model.restore_mm({"noisy": depth[..., :32, :32]}, tile=None)
+            torch_frame(depth[..., :32, :32])
         _release_memory()
         start = _rss_mib("VmRSS")
         _reset_peak_rss()
         with torch.no_grad():
-            ref = model.restore_mm({"noisy": depth}, tile=None).numpy()
-            t = _median_time(lambda: model.restore_mm({"noisy": depth}, tile=None), args.repeats)
-        print(f"| {name} | PyTorch fp32 | {1 / t:.3g} | {1000 * t:.0f} | 0 | {_memory(start)} |", flush=True)
+            ref = torch_frame().numpy()
+            t = _median_time(torch_frame, args.repeats)
+        row = f"| {name} | PyTorch fp32 ({dev.type}) | {1 / t:.3g} | {1000 * t:.0f} | 0 | {_memory(start)} |"
+        print(row, flush=True)
         routes = [(p, e) for e in args.exporters.split(",") for p in args.precisions.split(",")]
         for precision, exporter in routes:
             with tempfile.TemporaryDirectory() as tmp:
                 path = Path(tmp) / "m.onnx"
                 t0 = time.perf_counter()
-                export_graph(restore_graph(model, fp16=precision == "fp16"), path, dynamo=exporter == "dynamo")
+                export_graph(restore_graph(model.cpu(), fp16=precision == "fp16"), path, dynamo=exporter == "dynamo")
+                model.to(dev)
                 export_s = time.perf_counter() - t0
                 options = ort.SessionOptions()
                 options.intra_op_num_threads = threads
-                sess = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+                sess = ort.InferenceSession(str(path), options, providers=providers)
+                if sess.get_providers()[0] != providers[0]:
+                    raise SystemExit(f"onnxruntime fell back from {providers[0]} to {sess.get_providers()[0]}")
                 feeds = {"depth_mm": depth.numpy()}
                 _release_memory()
                 start = _rss_mib("VmRSS")

@@ -9,7 +9,7 @@ import torch
 pytest.importorskip("onnxruntime")
 
 from tofdenoise.inference.export import ExportError, export_graph, restore_graph  # noqa: E402
-from tofdenoise.inference.onnx_runner import OnnxModelError, OnnxRestorer  # noqa: E402
+from tofdenoise.inference.onnx_runner import OnnxModelError, OnnxRestorer, execution_providers  # noqa: E402
 from tofdenoise.training.module import DepthRestorer  # noqa: E402
 
 #: tiny networks (the sizes of tests/cli/conftest.py); DVSS's reference runs the PyTorch scan (no kernel build)
@@ -106,6 +106,60 @@ def test_export_command_and_denoise_onnx_match_the_checkpoint(tmp_path):
     assert np.abs(a - b).max() <= TOLERANCE_MM
     # the output never replaces the checkpoint
     assert export_main([str(ckpt), "--onnx", str(ckpt)]) == 2
+
+
+def test_execution_providers_follow_the_device_and_what_onnxruntime_has():
+    cpu_only = ["AzureExecutionProvider", "CPUExecutionProvider"]
+    gpu = ["TensorrtExecutionProvider", "CUDAExecutionProvider", "CPUExecutionProvider"]
+    assert execution_providers("auto", cpu_only) == ["CPUExecutionProvider"]
+    assert execution_providers("auto", gpu) == ["CUDAExecutionProvider", "CPUExecutionProvider"]
+    assert execution_providers("cpu", gpu) == ["CPUExecutionProvider"]
+    assert execution_providers("tensorrt", gpu) == gpu
+    # TensorRT falls back to CUDA, then to the CPU, node by node: only what is installed is asked for
+    assert execution_providers("tensorrt", ["TensorrtExecutionProvider", "CPUExecutionProvider"]) == [
+        "TensorrtExecutionProvider",
+        "CPUExecutionProvider",
+    ]
+    with pytest.raises(ValueError, match="no CUDAExecutionProvider .*install onnxruntime-gpu"):
+        execution_providers("cuda", cpu_only)
+    with pytest.raises(ValueError, match="auto, cpu, cuda or tensorrt, got 'npu'"):
+        execution_providers("npu", gpu)
+
+
+def test_denoise_onnx_on_a_device_the_installed_onnxruntime_lacks_is_an_error(tmp_path, capsys):
+    import onnxruntime as ort
+
+    from tofdenoise.cli.denoise import main as denoise_main
+    from tofdenoise.data_modules.io import write_depth_png16
+
+    if "CUDAExecutionProvider" in ort.get_available_providers():
+        pytest.skip("this onnxruntime has the CUDA provider")
+    path = tmp_path / "m.onnx"
+    export_graph(restore_graph(_model("unet")), path)
+    frames = tmp_path / "frames"
+    write_depth_png16(frames / "a.png", torch.nan_to_num(_frame(16, 16)[0][0, 0]).numpy())
+    out = tmp_path / "o"
+    assert denoise_main([str(frames), "--onnx", str(path), "--device", "cuda", "--out", str(out), "--quiet"]) == 2
+    assert "no CUDAExecutionProvider" in capsys.readouterr().err and not out.exists()
+
+
+@pytest.mark.gpu
+def test_onnxruntime_cuda_provider_equals_pytorch(tmp_path):
+    import onnxruntime as ort
+
+    if "CUDAExecutionProvider" not in ort.get_available_providers():
+        pytest.skip("needs onnxruntime-gpu (onnxruntime's CUDA execution provider)")
+    model = _model("unet")
+    path = tmp_path / "m.onnx"
+    export_graph(restore_graph(model), path)
+    runner = OnnxRestorer.__new__(OnnxRestorer)
+    ort.preload_dlls()
+    runner.session = ort.InferenceSession(
+        str(path), providers=execution_providers("cuda", ort.get_available_providers())
+    )
+    runner.path, runner.inputs = path, ["depth_mm"]
+    assert runner.session.get_providers()[0] == "CUDAExecutionProvider"
+    assert _max_diff(model, runner, 45, 67) <= TOLERANCE_MM
 
 
 def test_fp16_graph_runs_on_the_cpu(tmp_path):

@@ -55,8 +55,8 @@ def build_parser() -> argparse.ArgumentParser:
     model.add_argument(
         "--onnx",
         type=Path,
-        help="a restore graph of tofdenoise export, run by onnxruntime on the CPU (no torch weights loaded; "
-        "whole frames, --device/--fp32/--tile do not apply)",
+        help="a restore graph of tofdenoise export, run by onnxruntime (no torch weights loaded; whole frames, "
+        "--fp32/--tile do not apply; --device picks the execution provider: CUDA needs onnxruntime-gpu)",
     )
     p.add_argument("--out", required=True, type=Path, help="output folder (input sub-folders are mirrored)")
     p.add_argument(
@@ -132,11 +132,11 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def torch_cpu():
-    """The device the summary names for an onnxruntime run (its CPU execution provider)."""
+def onnx_device(name: str):
+    """The device the summary names for an onnxruntime run (that of its execution provider)."""
     import torch
 
-    return torch.device("cpu")
+    return torch.device(name)
 
 
 def _fail(message: str) -> int:
@@ -156,7 +156,7 @@ def run(args: argparse.Namespace) -> int:
     if args.tile is not None and args.tile < 32:
         return _fail(f"--tile must be >= 32 pixels, got {args.tile}")
     try:
-        device = resolve_device(args.device)
+        device = resolve_device("cpu" if args.onnx is not None else args.device)
         amplitude = AmplitudeSource(args.amplitude) if args.amplitude is not None else None
         # an amplitude folder inside an input folder holds no depth frames
         skip = [args.out] + ([amplitude.folder] if amplitude and amplitude.folder else [])
@@ -171,8 +171,8 @@ def run(args: argparse.Namespace) -> int:
         if args.onnx is not None:
             from tofdenoise.inference.onnx_runner import OnnxRestorer
 
-            model = OnnxRestorer(args.onnx)
-            device, signal = torch_cpu(), model.use_signal_channel
+            model = OnnxRestorer(args.onnx, device=args.device)
+            device, signal = onnx_device(model.device), model.use_signal_channel
         else:
             model = load_restorer(args.ckpt, device)
             signal = model.conditioning.use_signal_channel

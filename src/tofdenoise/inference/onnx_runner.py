@@ -2,27 +2,56 @@
 
 :class:`OnnxRestorer` reads the graph's metadata (``tofdenoise.inference.export``: backbone, signal channel,
 precision, source checkpoint) and restores one frame as ``restore_frame`` does for a checkpoint: invalid input
-pixels are 0 in the output unless ``fill_holes``. Used by ``tofdenoise denoise --onnx``.
+pixels are 0 in the output unless ``fill_holes``. Used by ``tofdenoise denoise --onnx`` and
+``benchmarks/bench_onnx.py``. The session runs on onnxruntime's CPU execution provider, or on its CUDA (or
+TensorRT) provider when the installed onnxruntime has one (the ``onnxruntime-gpu`` package):
+:func:`execution_providers` maps ``--device`` to the providers' list.
 """
 
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["OnnxRestorer", "OnnxModelError"]
+__all__ = ["OnnxRestorer", "OnnxModelError", "execution_providers"]
+
+# what each device asks onnxruntime for, best first; onnxruntime falls back along the list node by node
+_PROVIDERS = {
+    "cpu": ["CPUExecutionProvider"],
+    "cuda": ["CUDAExecutionProvider", "CPUExecutionProvider"],
+    "tensorrt": ["TensorrtExecutionProvider", "CUDAExecutionProvider", "CPUExecutionProvider"],
+}
 
 
 class OnnxModelError(ValueError):
     """The ``--onnx`` file is missing, unreadable or not a tofdenoise restore graph (the message names it)."""
 
 
-class OnnxRestorer:
-    """An onnxruntime session over a restore graph; ``restore_frame(depth_mm, valid, amplitude, fill_holes)``."""
+def execution_providers(device: str, available: Sequence[str]) -> list[str]:
+    """onnxruntime's providers for ``device`` (``auto``, ``cpu``, ``cuda`` or ``tensorrt``), given the providers
+    the installed onnxruntime ``available`` has: ``auto`` is CUDA when it has it, else the CPU; a device whose
+    provider it lacks is a ``ValueError`` naming the package that has it."""
+    if device == "auto":
+        device = "cuda" if "CUDAExecutionProvider" in available else "cpu"
+    if device not in _PROVIDERS:
+        raise ValueError(f"onnxruntime device must be auto, cpu, cuda or tensorrt, got {device!r}")
+    wanted = _PROVIDERS[device]
+    if wanted[0] not in available:
+        raise ValueError(
+            f"--device {device}: the installed onnxruntime has no {wanted[0]} (it has {', '.join(available)}); "
+            "install onnxruntime-gpu for CUDA and TensorRT"
+        )
+    return [name for name in wanted if name in available]
 
-    def __init__(self, path: str | os.PathLike[str], threads: int | None = None) -> None:
+
+class OnnxRestorer:
+    """An onnxruntime session over a restore graph; ``restore_frame(depth_mm, valid, amplitude, fill_holes)``.
+    ``device``: see :func:`execution_providers`; ``self.device`` is the one the session runs on."""
+
+    def __init__(self, path: str | os.PathLike[str], threads: int | None = None, device: str = "cpu") -> None:
         self.path = Path(path).expanduser()
         if not self.path.is_file():
             raise OnnxModelError(f"ONNX model {self.path} does not exist")
@@ -34,11 +63,21 @@ class OnnxRestorer:
         if threads:
             options.intra_op_num_threads = int(threads)
         options.log_severity_level = 3
+        providers = execution_providers(device, ort.get_available_providers())
+        if providers[0] != "CPUExecutionProvider" and hasattr(ort, "preload_dlls"):
+            ort.preload_dlls()  # CUDA and cuDNN from the nvidia-* wheels (the ones torch brings), onnxruntime >= 1.21
         try:
-            self.session = ort.InferenceSession(str(self.path), options, providers=["CPUExecutionProvider"])
+            self.session = ort.InferenceSession(str(self.path), options, providers=providers)
         except Exception as exc:  # noqa: BLE001 - onnxruntime raises its own types for any unreadable file
             first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
             raise OnnxModelError(f"ONNX model {self.path} could not be loaded by onnxruntime ({first})") from None
+        if self.session.get_providers()[0] != providers[0]:  # onnxruntime falls back to the CPU with a log line
+            raise OnnxModelError(
+                f"ONNX model {self.path}: onnxruntime could not start its {providers[0]} (its CUDA or cuDNN "
+                f"libraries did not load) and fell back to {self.session.get_providers()[0]}; run with --device cpu "
+                "or fix the CUDA install"
+            )
+        self.device = "cpu" if providers[0] == "CPUExecutionProvider" else "cuda"
         self.metadata = dict(self.session.get_modelmeta().custom_metadata_map)
         if "tofdenoise_backbone" not in self.metadata:
             raise OnnxModelError(
