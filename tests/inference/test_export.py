@@ -9,7 +9,12 @@ import torch
 pytest.importorskip("onnxruntime")
 
 from tofdenoise.inference.export import ExportError, export_graph, restore_graph  # noqa: E402
-from tofdenoise.inference.onnx_runner import OnnxModelError, OnnxRestorer, execution_providers  # noqa: E402
+from tofdenoise.inference.onnx_runner import (  # noqa: E402
+    OnnxModelError,
+    OnnxRestorer,
+    execution_providers,
+    session_providers,
+)
 from tofdenoise.training.module import DepthRestorer  # noqa: E402
 
 #: tiny networks (the sizes of tests/cli/conftest.py); DVSS's reference runs the PyTorch scan (no kernel build)
@@ -124,6 +129,9 @@ def test_execution_providers_follow_the_device_and_what_onnxruntime_has():
         execution_providers("cuda", cpu_only)
     with pytest.raises(ValueError, match="auto, cpu, cuda or tensorrt, got 'npu'"):
         execution_providers("npu", gpu)
+    # float32 graphs compute in float32 on the GPU too: TF32 off
+    assert session_providers("cuda", gpu) == [("CUDAExecutionProvider", {"use_tf32": "0"}), "CPUExecutionProvider"]
+    assert session_providers("cpu", gpu) == ["CPUExecutionProvider"]
 
 
 def test_denoise_onnx_on_a_device_the_installed_onnxruntime_lacks_is_an_error(tmp_path, capsys):
@@ -173,6 +181,42 @@ def test_fp16_graph_runs_on_the_cpu(tmp_path):
     runner.inputs = ["depth_mm"]
     # float16 network (11 significant bits on values of order 1 x 100 mm): within 1 mm of float32, not 0.01
     assert _max_diff(model, runner, 45, 67) < 1.0
+
+
+#: reductions that add their inputs up (ReduceMax/Min cannot overflow)
+_SUMMING = {"ReduceMean", "ReduceSum", "ReduceL1", "ReduceL2", "ReduceSumSquare", "ReduceLogSumExp"}
+
+
+def _fp16_spatial_sums(path) -> list[str]:
+    """Summing reductions of a float16 tensor over a spatial axis (2 or 3 of a rank-4 tensor) in the graph at
+    ``path``: their sum over a frame's pixels overflows float16 (65504) on onnxruntime's CUDA provider at full size
+    (measured: DVSS's channel attention at 480 x 640 gave NaN, docs/benchmarks.md)."""
+    import onnx
+    from onnx import TensorProto, numpy_helper, shape_inference
+
+    graph = shape_inference.infer_shapes(onnx.load(str(path))).graph
+    info = {v.name: v.type.tensor_type for v in [*graph.value_info, *graph.input, *graph.output]}
+    consts = {n.output[0]: numpy_helper.to_array(n.attribute[0].t) for n in graph.node if n.op_type == "Constant"}
+    found = []
+    for node in graph.node:
+        if node.op_type not in _SUMMING:
+            continue
+        tensor = info.get(node.input[0])
+        if tensor is None or tensor.elem_type != TensorProto.FLOAT16:
+            continue
+        rank = len(tensor.shape.dim)
+        axes = [a.ints for a in node.attribute if a.name == "axes"]
+        axes = list(axes[0]) if axes else (consts[node.input[1]].tolist() if len(node.input) > 1 else range(rank))
+        if rank == 4 and {int(a) % rank for a in axes} & {2, 3}:
+            found.append(f"{node.op_type} {node.name}")
+    return found
+
+
+@pytest.mark.parametrize("backbone", list(TINY))
+def test_fp16_graph_sums_over_pixels_in_float32(backbone, tmp_path):
+    path = tmp_path / "h.onnx"
+    export_graph(restore_graph(_model(backbone), fp16=True), path)
+    assert _fp16_spatial_sums(path) == []
 
 
 def test_bad_files_and_settings_are_one_line_errors(tmp_path):

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["OnnxRestorer", "OnnxModelError", "execution_providers"]
+__all__ = ["OnnxRestorer", "OnnxModelError", "execution_providers", "session_providers"]
 
 # what each device asks onnxruntime for, best first; onnxruntime falls back along the list node by node
 _PROVIDERS = {
@@ -47,6 +47,17 @@ def execution_providers(device: str, available: Sequence[str]) -> list[str]:
     return [name for name in wanted if name in available]
 
 
+def session_providers(device: str, available: Sequence[str]) -> list[str | tuple[str, dict[str, str]]]:
+    """:func:`execution_providers` with their options, as ``onnxruntime.InferenceSession(providers=...)`` takes
+    them: the CUDA provider without TF32 (``use_tf32 0``), so that a float32 graph computes in float32 as PyTorch
+    does (with TF32, DVSS at 480 x 640 differed from PyTorch by 0.020 mm, without it by 0.0001 mm; measured on an
+    H200, docs/benchmarks.md)."""
+    return [
+        (name, {"use_tf32": "0"}) if name == "CUDAExecutionProvider" else name
+        for name in execution_providers(device, available)
+    ]
+
+
 class OnnxRestorer:
     """An onnxruntime session over a restore graph; ``restore_frame(depth_mm, valid, amplitude, fill_holes)``.
     ``device``: see :func:`execution_providers`; ``self.device`` is the one the session runs on."""
@@ -67,7 +78,9 @@ class OnnxRestorer:
         if providers[0] != "CPUExecutionProvider" and hasattr(ort, "preload_dlls"):
             ort.preload_dlls()  # CUDA and cuDNN from the nvidia-* wheels (the ones torch brings), onnxruntime >= 1.21
         try:
-            self.session = ort.InferenceSession(str(self.path), options, providers=providers)
+            self.session = ort.InferenceSession(
+                str(self.path), options, providers=session_providers(device, ort.get_available_providers())
+            )
         except Exception as exc:  # noqa: BLE001 - onnxruntime raises its own types for any unreadable file
             first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
             raise OnnxModelError(f"ONNX model {self.path} could not be loaded by onnxruntime ({first})") from None

@@ -1,5 +1,5 @@
 """Shared building blocks for the backbones: size padding, channels-first LayerNorm, pixel-(un)shuffle
-down/up-sampling, parameter count."""
+down/up-sampling, float32 sums over pixels, parameter count."""
 
 from __future__ import annotations
 
@@ -15,7 +15,24 @@ __all__ = [
     "pad_to_multiple",
     "crop_to",
     "check_input",
+    "mean_hw",
+    "normalize_fp32",
 ]
+
+
+def mean_hw(x: torch.Tensor, keepdim: bool = True) -> torch.Tensor:
+    """Mean of a (B, C, H, W) tensor over its pixels, summed in float32 and returned in ``x``'s dtype.
+
+    A whole frame's sum leaves float16's range (65504) at 480 x 640 (307,200 pixels): onnxruntime's CUDA provider
+    sums a float16 ``ReduceMean`` in float16, and DVSS's channel attention gave NaN there (docs/benchmarks.md,
+    "ONNX on the GPU"). Exact for float32 inputs."""
+    return x.float().mean(dim=(2, 3), keepdim=keepdim).to(x.dtype)
+
+
+def normalize_fp32(x: torch.Tensor, dim: int = -1) -> torch.Tensor:
+    """``F.normalize(x, dim)`` with the sum of squares in float32 (see :func:`mean_hw`: a sum over a frame's
+    pixels overflows float16); returned in ``x``'s dtype."""
+    return F.normalize(x.float(), dim=dim).to(x.dtype)
 
 
 def count_parameters(module: nn.Module, trainable_only: bool = True) -> int:

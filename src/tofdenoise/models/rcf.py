@@ -32,7 +32,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .common import check_input, crop_to, pad_to_multiple
+from .common import check_input, crop_to, mean_hw, pad_to_multiple
 from .registry import register_backbone
 
 __all__ = ["RCF", "ConvGRU", "GlobalRestoration", "neighbour_differences", "NEIGHBOURS", "DILATIONS"]
@@ -99,7 +99,7 @@ class GlobalRestoration(nn.Module):
         for stage in self.stages:
             c = stage(c)
             feats.append(c)
-        pooled = torch.cat([c.mean(dim=(2, 3)), c.amax(dim=(2, 3))], dim=1)
+        pooled = torch.cat([mean_hw(c, keepdim=False), c.amax(dim=(2, 3))], dim=1)
         u = feats[-1] * torch.sigmoid(self.attention(pooled))[:, :, None, None]
         for finer in reversed([f, *feats[:-1]]):
             u = finer + F.interpolate(u, size=finer.shape[-2:], mode="bilinear", align_corners=False)

@@ -9,7 +9,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .common import Downsample, LayerNorm2d, Upsample, check_input, crop_to, pad_to_multiple
+from .common import Downsample, LayerNorm2d, Upsample, check_input, crop_to, normalize_fp32, pad_to_multiple
 from .registry import register_backbone
 
 __all__ = ["Restormer", "MDTA", "GDFN", "TransformerBlock"]
@@ -33,8 +33,7 @@ class MDTA(nn.Module):
         b, c, h, w = x.shape
         q, k, v = self.qkv_dw(self.qkv(x)).chunk(3, dim=1)
         q, k, v = (t.reshape(b, self.heads, c // self.heads, h * w) for t in (q, k, v))
-        q = F.normalize(q, dim=-1)
-        k = F.normalize(k, dim=-1)
+        q, k = normalize_fp32(q), normalize_fp32(k)  # sums over h x w pixels: float32 (mean_hw)
         attn = (q @ k.transpose(-2, -1)) * self.temperature
         out = attn.softmax(dim=-1) @ v
         return self.project_out(out.reshape(b, c, h, w))

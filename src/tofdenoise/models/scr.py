@@ -21,6 +21,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from .common import mean_hw
+
 __all__ = ["SCR", "SqueezeExcitation"]
 
 
@@ -34,7 +36,7 @@ class SqueezeExcitation(nn.Module):
         self.fc2 = nn.Conv2d(hidden, channels, 1)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        g = torch.sigmoid(self.fc2(F.relu(self.fc1(x.mean(dim=(2, 3), keepdim=True)))))
+        g = torch.sigmoid(self.fc2(F.relu(self.fc1(mean_hw(x)))))
         return x * g
 
 
@@ -50,7 +52,7 @@ class SCR(nn.Module):
         self.local_pw = nn.Conv2d(channels, channels, 1)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        pooled = torch.cat([x.mean(dim=(2, 3), keepdim=True), x.amax(dim=(2, 3), keepdim=True)], dim=1)
+        pooled = torch.cat([mean_hw(x), x.amax(dim=(2, 3), keepdim=True)], dim=1)
         g = torch.sigmoid(self.fc2(F.gelu(self.fc1(pooled))))
         xc = x * g
         s = torch.sigmoid(self.local_pw(F.gelu(self.local_dw(xc))))
