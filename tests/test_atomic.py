@@ -69,3 +69,59 @@ def test_failed_rename_keeps_old_file(tmp_path, monkeypatch):
         atomic_write_text(p, "new")
     assert p.read_text() == "old"
     assert sorted(f.name for f in tmp_path.iterdir()) == ["a.txt"]
+
+
+def _interrupt_self() -> None:
+    """Send SIGINT to this process and give Python a moment to run the handler."""
+    import os
+    import signal
+    import time
+
+    os.kill(os.getpid(), signal.SIGINT)
+    for _ in range(100):
+        time.sleep(0.001)
+
+
+def test_sigint_deferred_finishes_the_block_then_interrupts():
+    import signal
+
+    from tofdenoise.atomic import sigint_deferred
+
+    steps = []
+    with pytest.raises(KeyboardInterrupt):
+        with sigint_deferred():
+            _interrupt_self()
+            steps.append("after the first")
+            _interrupt_self()  # two signals: one KeyboardInterrupt
+            steps.append("after the second")
+    assert steps == ["after the first", "after the second"]
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    with sigint_deferred():  # nothing received: nothing raised
+        steps.append("quiet")
+    assert steps[-1] == "quiet"
+    # outside the block Ctrl-C interrupts at once
+    with pytest.raises(KeyboardInterrupt):
+        _interrupt_self()
+        steps.append("never")
+    assert steps[-1] == "quiet"
+
+
+def test_sigint_deferred_lets_the_blocks_own_error_through_and_runs_off_the_main_thread():
+    import threading
+
+    from tofdenoise.atomic import sigint_deferred
+
+    with pytest.raises(ValueError, match="disk"):
+        with sigint_deferred():
+            _interrupt_self()
+            raise ValueError("disk")
+    ran = []
+
+    def worker():
+        with sigint_deferred():  # signal handlers can only be set on the main thread: the block just runs
+            ran.append(True)
+
+    t = threading.Thread(target=worker)
+    t.start()
+    t.join()
+    assert ran == [True]

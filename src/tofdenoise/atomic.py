@@ -11,6 +11,10 @@ An atomic write keeps each file whole, but a file rebuilt from others (a page fr
 update when two processes rebuild it at once: each reads, the slower one writes what it read before the other's
 input existed. :func:`exclusive_lock` makes such a read-then-write one at a time (an ``fcntl.flock`` on a lock file
 next to it; the kernel drops it when its holder ends in any way).
+
+A unit of several writes and its bookkeeping (a frame's outputs and the count of frames done) is whole with respect
+to Ctrl-C inside :func:`sigint_deferred`: a SIGINT that arrives there is raised as ``KeyboardInterrupt`` when the
+unit ends, so a summary never counts fewer frames than are on disk.
 """
 
 from __future__ import annotations
@@ -20,7 +24,9 @@ import errno
 import fcntl
 import io
 import os
+import signal
 import tempfile
+import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -35,6 +41,7 @@ __all__ = [
     "current_umask",
     "exclusive_lock",
     "save_npy_atomic",
+    "sigint_deferred",
 ]
 
 
@@ -141,3 +148,24 @@ def exclusive_lock(path: str | os.PathLike[str]) -> Iterator[Path]:
         yield lock_path
     finally:
         os.close(fd)  # closing drops the flock
+
+
+@contextlib.contextmanager
+def sigint_deferred() -> Iterator[None]:
+    """Run the block without being cut by Ctrl-C: a SIGINT received inside it raises ``KeyboardInterrupt`` as the
+    block ends (once, however many arrived), so that the block's writes and the record of them stay together. Off
+    the main thread, or when SIGINT is not Python's default handler (someone else handles it), the block runs
+    unchanged. An exception of the block itself wins over a deferred SIGINT."""
+    if threading.current_thread() is not threading.main_thread() or (
+        signal.getsignal(signal.SIGINT) is not signal.default_int_handler
+    ):
+        yield
+        return
+    received: list[int] = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: received.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if received:
+        raise KeyboardInterrupt

@@ -30,6 +30,7 @@ from typing import Any
 
 from tqdm.auto import tqdm
 
+from tofdenoise.atomic import sigint_deferred
 from tofdenoise.inference.camera import IntrinsicsError, load_intrinsics
 from tofdenoise.output_guard import OutputPathError, refuse_overwrite
 
@@ -330,22 +331,25 @@ def _restore_and_write(data: Any, label: str, intrinsics: Any, job: _Job, tally:
     except (FrameError, IntrinsicsError, ValueError, OSError, RuntimeError) as exc:
         tally.failed.append((label, str(exc)))
         return
-    try:
-        write_frame_outputs(
-            args.out,
-            data.name,
-            data.depth_mm,
-            data.valid,
-            restored,
-            job.options,
-            sigma_mm=frame_sigma(data, job.calib),
-            intrinsics=intrinsics,
-        )
-    except OSError as exc:
-        tally.failed.append((label, _write_failure(exc, Path(args.out))))
-        return
-    tally.seconds.append(time.perf_counter() - started)
-    tally.done += 1
+    sigma_mm = frame_sigma(data, job.calib)
+    # a Ctrl-C while the outputs are written lands after the frame is counted: the summary counts what is on disk
+    with sigint_deferred():
+        try:
+            write_frame_outputs(
+                args.out,
+                data.name,
+                data.depth_mm,
+                data.valid,
+                restored,
+                job.options,
+                sigma_mm=sigma_mm,
+                intrinsics=intrinsics,
+            )
+        except OSError as exc:
+            tally.failed.append((label, _write_failure(exc, Path(args.out))))
+            return
+        tally.seconds.append(time.perf_counter() - started)
+        tally.done += 1
 
 
 def _denoise_recording(recording: Any, job: _Job, tally: _Tally) -> None:
