@@ -13,13 +13,16 @@ Usage: python benchmarks/bench_gpu.py [--quick] [--json FILE]
    fused forward's effective bandwidth (bytes of x, delta, B, C read once and y written once, per second)
    against the H100's 3.35 TB/s.
 4. Training steps (forward+backward+AdamW) of every paper backbone at batch 4, 320x320: float32 vs bf16 autocast,
-   ms per step and peak memory; full-resolution 480x640 inference (batch 1, bf16 autocast) ms per frame.
+   ms per step and peak memory; full-resolution 480x640 inference (batch 1, bf16 autocast) ms per frame. DVSS
+   twice: on its default SS2D route (the fused kernels) and on the cross_scan route, side by side (the H200 of
+   session 13 showed the fused block slower under bf16: docs/benchmarks.md).
 Timings: CUDA events around warm, synchronised repeats; medians.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import statistics
 import sys
@@ -202,6 +205,23 @@ def bench_sigma(quick: bool) -> dict[str, Any]:
     return out
 
 
+@contextlib.contextmanager
+def ss2d_route(route: str):
+    """DVSS's SS2D layers on ``route``: "fused" (the default: the kernels read the four directions in place) or
+    "cross" (cross_scan copies, then the plain scan; the same numbers)."""
+    from tofdenoise.models.ss2d import SS2D
+
+    if route not in ("fused", "cross"):
+        raise ValueError(f"ss2d_route: fused or cross, got {route!r}")
+    original = SS2D._spatial_scan
+    if route == "cross":
+        SS2D._spatial_scan = lambda self, x: None
+    try:
+        yield
+    finally:
+        SS2D._spatial_scan = original
+
+
 def _bench_backbone(name: str, kwargs: dict[str, Any], size: int, quick: bool) -> dict[str, Any]:
     from tofdenoise.models.registry import build_backbone
 
@@ -233,13 +253,16 @@ def _bench_backbone(name: str, kwargs: dict[str, Any], size: int, quick: bool) -
 def bench_backbones(quick: bool) -> list[dict[str, Any]]:
     size = 128 if quick else 320
     rows = []
-    for name, kwargs in (
-        ("unet", {}),
-        ("restormer", {}),
-        ("dvss", {"width": 32, "enc_blocks": [1, 1, 2], "bottleneck_blocks": 2}),
+    dvss = {"width": 32, "enc_blocks": [1, 1, 2], "bottleneck_blocks": 2}  # configs/backbone/dvss.yaml
+    for name, kwargs, route in (
+        ("unet", {}, None),
+        ("restormer", {}, None),
+        ("dvss", dvss, "fused"),
+        ("dvss", dvss, "cross"),
     ):
         try:
-            rows.append(_bench_backbone(name, kwargs, size, quick))
+            with ss2d_route(route or "fused"):
+                rows.append({**_bench_backbone(name, kwargs, size, quick), **({"ss2d_route": route} if route else {})})
         except Exception as exc:  # report and go on with the next backbone
             rows.append({"backbone": name, "crop": size, "error": f"{type(exc).__name__}: {exc}"})
             traceback.print_exc()
