@@ -294,3 +294,18 @@ def test_the_kernel_builds_from_a_copy_shared_by_every_checkout(tmp_path, monkey
     assert scan_cpu.stable_source(name) == copy and copy.stat().st_mtime_ns == stamp  # not rewritten
     copy.write_text("// damaged")
     assert scan_cpu.stable_source(name).read_bytes() == scan_cpu.SOURCE.read_bytes()
+
+
+def test_a_stale_build_lock_is_removed_and_a_fresh_one_is_waited_for(tmp_path):
+    """torch waits without limit on ``<build dir>/lock``; a lock older than STALE_LOCK_S was left by a killed build."""
+    lock = tmp_path / "lock"
+    assert scan_cpu.clear_stale_build_lock(tmp_path) is False  # no lock: nothing to say
+    lock.write_text("")
+    with pytest.warns(RuntimeWarning, match=f"another process is building .*{lock}"):
+        assert scan_cpu.clear_stale_build_lock(tmp_path) is False
+    assert lock.exists()
+    old = lock.stat().st_mtime - scan_cpu.STALE_LOCK_S - 5
+    os.utime(lock, (old, old))
+    with pytest.warns(RuntimeWarning, match=f"removed a stale build lock .*{lock}.*killed"):
+        assert scan_cpu.clear_stale_build_lock(tmp_path) is True
+    assert not lock.exists()

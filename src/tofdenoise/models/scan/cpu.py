@@ -23,6 +23,10 @@ source share the build instead of rebuilding it in turn.
 Any failure (no compiler, no ninja, a compile error, a failed self-check against the PyTorch scan) gives one
 warning and :func:`cpu_kernel_available` returns False: callers then use the chunked PyTorch scan.
 ``TOFDENOISE_SCAN_CPU=0`` in the environment disables the kernel without trying to build it.
+torch holds a ``lock`` file in the build folder while it builds and makes every other process wait for it, silently
+and without limit; a build killed on the way (SIGKILL, out of memory, a stopped process) leaves the file behind.
+:func:`clear_stale_build_lock` removes a lock older than :data:`STALE_LOCK_S` with a warning naming it, and names a
+younger one that the process is about to wait on.
 """
 
 from __future__ import annotations
@@ -61,6 +65,8 @@ SOURCE = Path(__file__).resolve().parent / "csrc" / "selective_scan_cpu.cpp"
 CFLAGS = ["-O3", "-march=native", "-ffp-contract=fast", "-fno-math-errno", "-fno-trapping-math", "-fopenmp"]
 LDFLAGS = ["-fopenmp"]
 ENV_SWITCH = "TOFDENOISE_SCAN_CPU"
+#: a build takes about a minute on 2 cores: a build lock older than this was left by a build that never finished
+STALE_LOCK_S = 600.0
 
 
 def _cpu_signature() -> str:
@@ -115,6 +121,38 @@ def kernel_switched_off() -> bool:
     return os.environ.get(ENV_SWITCH, "1").strip().lower() in ("0", "false", "no", "off")
 
 
+def clear_stale_build_lock(build_dir: str | os.PathLike[str], max_age_s: float = STALE_LOCK_S) -> bool:
+    """Remove torch's build lock ``<build_dir>/lock`` when it is older than ``max_age_s`` seconds (a build killed on
+    the way left it; torch would wait for it forever), with a warning naming it; warn that the process will wait when
+    a younger one is there (another process is building). Returns True when a lock was removed."""
+    import time
+
+    lock = Path(build_dir) / "lock"
+    try:
+        age_s = time.time() - lock.stat().st_mtime
+    except FileNotFoundError:
+        return False
+    if age_s <= max_age_s:
+        warnings.warn(
+            f"tofdenoise: another process is building the native CPU selective scan (lock file {lock}, "
+            f"{age_s:.0f} s old); waiting for it",
+            RuntimeWarning,
+            stacklevel=2,
+        )
+        return False
+    try:
+        lock.unlink()
+    except FileNotFoundError:  # its builder finished meanwhile
+        return False
+    warnings.warn(
+        f"tofdenoise: removed a stale build lock of the native CPU selective scan ({lock}, {age_s / 60:.0f} min "
+        "old): a build was killed before it finished",
+        RuntimeWarning,
+        stacklevel=2,
+    )
+    return True
+
+
 @functools.lru_cache(maxsize=1)
 def load_extension():
     """The compiled extension module, or None (with one warning) when it cannot be built or loaded."""
@@ -125,6 +163,7 @@ def load_extension():
 
         _ninja_on_path()
         name = _build_name()
+        clear_stale_build_lock(cpp_extension._get_build_directory(name, verbose=False))
         return cpp_extension.load(
             name=name, sources=[str(stable_source(name))], extra_cflags=CFLAGS, extra_ldflags=LDFLAGS, verbose=False
         )
