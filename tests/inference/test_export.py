@@ -151,6 +151,31 @@ def test_denoise_onnx_on_a_device_the_installed_onnxruntime_lacks_is_an_error(tm
     assert "no CUDAExecutionProvider" in capsys.readouterr().err and not out.exists()
 
 
+def test_a_cuda_provider_that_does_not_start_is_an_error_unless_auto(tmp_path, monkeypatch):
+    """onnxruntime-gpu whose CUDA libraries do not load falls back to the CPU with a log line only: --device cuda
+    says so in one line, auto runs on the CPU with a warning."""
+    import onnxruntime as ort
+
+    from tofdenoise.inference.export import export_onnx
+
+    path = tmp_path / "m.onnx"
+    export_onnx(_save_checkpoint(_model("unet"), tmp_path / "m.ckpt"), path)
+    real_session = ort.InferenceSession
+
+    def session_without_cuda(model_path, options=None, providers=None):  # what a failed CUDA start leaves
+        assert providers[0] == ("CUDAExecutionProvider", {"use_tf32": "0"})
+        return real_session(model_path, options, providers=["CPUExecutionProvider"])
+
+    monkeypatch.setattr(ort, "get_available_providers", lambda: ["CUDAExecutionProvider", "CPUExecutionProvider"])
+    monkeypatch.setattr(ort, "preload_dlls", lambda *a, **k: None, raising=False)
+    monkeypatch.setattr(ort, "InferenceSession", session_without_cuda)
+    with pytest.raises(OnnxModelError, match="could not start its CUDAExecutionProvider .*--device cpu"):
+        OnnxRestorer(path, device="cuda")
+    with pytest.warns(RuntimeWarning, match="running on CPUExecutionProvider"):
+        runner = OnnxRestorer(path, device="auto")
+    assert runner.device == "cpu" and runner.backbone == "unet"
+
+
 @pytest.mark.gpu
 def test_onnxruntime_cuda_provider_equals_pytorch(tmp_path):
     import onnxruntime as ort

@@ -11,6 +11,7 @@ TensorRT) provider when the installed onnxruntime has one (the ``onnxruntime-gpu
 from __future__ import annotations
 
 import os
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -84,13 +85,16 @@ class OnnxRestorer:
         except Exception as exc:  # noqa: BLE001 - onnxruntime raises its own types for any unreadable file
             first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
             raise OnnxModelError(f"ONNX model {self.path} could not be loaded by onnxruntime ({first})") from None
-        if self.session.get_providers()[0] != providers[0]:  # onnxruntime falls back to the CPU with a log line
-            raise OnnxModelError(
-                f"ONNX model {self.path}: onnxruntime could not start its {providers[0]} (its CUDA or cuDNN "
-                f"libraries did not load) and fell back to {self.session.get_providers()[0]}; run with --device cpu "
-                "or fix the CUDA install"
-            )
-        self.device = "cpu" if providers[0] == "CPUExecutionProvider" else "cuda"
+        running = self.session.get_providers()[0]
+        if running != providers[0]:  # onnxruntime falls back to the CPU with a log line
+            why = f"onnxruntime could not start its {providers[0]} (its CUDA or cuDNN libraries did not load)"
+            if device != "auto":
+                raise OnnxModelError(
+                    f"ONNX model {self.path}: {why} and fell back to {running}; run with --device cpu or fix the "
+                    "CUDA install"
+                )
+            warnings.warn(f"ONNX model {self.path}: {why}; running on {running}", RuntimeWarning, stacklevel=2)
+        self.device = "cpu" if running == "CPUExecutionProvider" else "cuda"
         self.metadata = dict(self.session.get_modelmeta().custom_metadata_map)
         if "tofdenoise_backbone" not in self.metadata:
             raise OnnxModelError(
