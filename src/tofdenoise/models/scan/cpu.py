@@ -37,6 +37,7 @@ import os
 import platform
 import shutil
 import sys
+import time
 import warnings
 from pathlib import Path
 
@@ -125,8 +126,6 @@ def clear_stale_build_lock(build_dir: str | os.PathLike[str], max_age_s: float =
     """Remove torch's build lock ``<build_dir>/lock`` when it is older than ``max_age_s`` seconds (a build killed on
     the way left it; torch would wait for it forever), with a warning naming it; warn that the process will wait when
     a younger one is there (another process is building). Returns True when a lock was removed."""
-    import time
-
     lock = Path(build_dir) / "lock"
     try:
         age_s = time.time() - lock.stat().st_mtime
