@@ -91,14 +91,12 @@ def main() -> None:
     import torch
 
     from tofdenoise.inference.export import export_graph, restore_graph
-    from tofdenoise.inference.onnx_runner import execution_providers, session_providers
+    from tofdenoise.inference.onnx_runner import execution_providers, open_session
     from tofdenoise.training.module import DepthRestorer
 
-    providers = execution_providers(args.device, ort.get_available_providers())
-    if args.device != "cpu" and hasattr(ort, "preload_dlls"):
-        ort.preload_dlls()
+    providers = execution_providers(args.device, ort.get_available_providers())  # a missing provider: an error here
     dev = torch.device("cpu" if args.device == "cpu" else "cuda")
-    torch.backends.cudnn.allow_tf32 = False  # float32 convolutions in float32, as onnxruntime's (session_providers)
+    torch.backends.cudnn.allow_tf32 = False  # float32 convolutions in float32, as onnxruntime's (open_session)
 
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -145,9 +143,7 @@ def main() -> None:
                 export_s = time.perf_counter() - t0
                 options = ort.SessionOptions()
                 options.intra_op_num_threads = threads
-                sess = ort.InferenceSession(str(path), options, providers=session_providers(args.device, providers))
-                if sess.get_providers()[0] != providers[0]:
-                    raise SystemExit(f"onnxruntime fell back from {providers[0]} to {sess.get_providers()[0]}")
+                sess = open_session(path, options, args.device)  # an error if the provider does not start
                 feeds = {"depth_mm": depth.numpy()}
                 _release_memory()
                 start = _rss_mib("VmRSS")

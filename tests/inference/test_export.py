@@ -13,6 +13,7 @@ from tofdenoise.inference.onnx_runner import (  # noqa: E402
     OnnxModelError,
     OnnxRestorer,
     execution_providers,
+    open_session,
     session_providers,
 )
 from tofdenoise.training.module import DepthRestorer  # noqa: E402
@@ -130,8 +131,11 @@ def test_execution_providers_follow_the_device_and_what_onnxruntime_has():
     with pytest.raises(ValueError, match="auto, cpu, cuda or tensorrt, got 'npu'"):
         execution_providers("npu", gpu)
     # float32 graphs compute in float32 on the GPU too: TF32 off
-    assert session_providers("cuda", gpu) == [("CUDAExecutionProvider", {"use_tf32": "0"}), "CPUExecutionProvider"]
-    assert session_providers("cpu", gpu) == ["CPUExecutionProvider"]
+    assert session_providers(execution_providers("cuda", gpu)) == [
+        ("CUDAExecutionProvider", {"use_tf32": "0"}),
+        "CPUExecutionProvider",
+    ]
+    assert session_providers(execution_providers("cpu", gpu)) == ["CPUExecutionProvider"]
 
 
 def test_denoise_onnx_on_a_device_the_installed_onnxruntime_lacks_is_an_error(tmp_path, capsys):
@@ -186,11 +190,7 @@ def test_onnxruntime_cuda_provider_equals_pytorch(tmp_path):
     path = tmp_path / "m.onnx"
     export_graph(restore_graph(model), path)
     runner = OnnxRestorer.__new__(OnnxRestorer)
-    ort.preload_dlls()
-    runner.session = ort.InferenceSession(
-        str(path), providers=execution_providers("cuda", ort.get_available_providers())
-    )
-    runner.path, runner.inputs = path, ["depth_mm"]
+    runner.session, runner.path, runner.inputs = open_session(path, None, "cuda"), path, ["depth_mm"]
     assert runner.session.get_providers()[0] == "CUDAExecutionProvider"
     assert _max_diff(model, runner, 45, 67) <= TOLERANCE_MM
 

@@ -5,7 +5,8 @@ precision, source checkpoint) and restores one frame as ``restore_frame`` does f
 pixels are 0 in the output unless ``fill_holes``. Used by ``tofdenoise denoise --onnx`` and
 ``benchmarks/bench_onnx.py``. The session runs on onnxruntime's CPU execution provider, or on its CUDA (or
 TensorRT) provider when the installed onnxruntime has one (the ``onnxruntime-gpu`` package):
-:func:`execution_providers` maps ``--device`` to the providers' list.
+:func:`execution_providers` maps ``--device`` to the providers' list, and :func:`open_session` starts a session
+on them (used by :class:`OnnxRestorer` and the benchmark alike).
 """
 
 from __future__ import annotations
@@ -14,10 +15,11 @@ import os
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-__all__ = ["OnnxRestorer", "OnnxModelError", "execution_providers", "session_providers"]
+__all__ = ["OnnxRestorer", "OnnxModelError", "execution_providers", "open_session", "session_providers"]
 
 # what each device asks onnxruntime for, best first; onnxruntime falls back along the list node by node
 _PROVIDERS = {
@@ -48,15 +50,34 @@ def execution_providers(device: str, available: Sequence[str]) -> list[str]:
     return [name for name in wanted if name in available]
 
 
-def session_providers(device: str, available: Sequence[str]) -> list[str | tuple[str, dict[str, str]]]:
-    """:func:`execution_providers` with their options, as ``onnxruntime.InferenceSession(providers=...)`` takes
-    them: the CUDA provider without TF32 (``use_tf32 0``), so that a float32 graph computes in float32 as PyTorch
-    does (with TF32, DVSS at 480 x 640 differed from PyTorch by 0.020 mm, without it by 0.0001 mm; measured on an
-    H200, docs/benchmarks.md)."""
-    return [
-        (name, {"use_tf32": "0"}) if name == "CUDAExecutionProvider" else name
-        for name in execution_providers(device, available)
-    ]
+def session_providers(providers: Sequence[str]) -> list[str | tuple[str, dict[str, str]]]:
+    """``providers`` (from :func:`execution_providers`) with their options, as ``onnxruntime.InferenceSession(
+    providers=...)`` takes them: the CUDA provider without TF32 (``use_tf32 0``), so that a float32 graph computes in
+    float32 as PyTorch does (with TF32, DVSS at 480 x 640 differed from PyTorch by 0.020 mm, without it by 0.0001 mm;
+    measured on an H200, docs/benchmarks.md)."""
+    return [(name, {"use_tf32": "0"}) if name == "CUDAExecutionProvider" else name for name in providers]
+
+
+def open_session(path: str | os.PathLike[str], options: Any, device: str) -> Any:
+    """An ``onnxruntime.InferenceSession`` of the graph at ``path`` on ``device``'s providers (CUDA and cuDNN loaded
+    from the nvidia-* wheels first, onnxruntime >= 1.21). onnxruntime falls back to the CPU with only a log line
+    when the CUDA provider does not start: that is an :class:`OnnxModelError` for an explicit device, a warning for
+    ``auto``. onnxruntime's own errors (an unreadable file) pass through."""
+    import onnxruntime as ort
+
+    providers = execution_providers(device, ort.get_available_providers())
+    if providers[0] != "CPUExecutionProvider" and hasattr(ort, "preload_dlls"):
+        ort.preload_dlls()
+    session = ort.InferenceSession(str(path), options, providers=session_providers(providers))
+    running = session.get_providers()[0]
+    if running != providers[0]:
+        why = f"onnxruntime could not start its {providers[0]} (its CUDA or cuDNN libraries did not load)"
+        if device != "auto":
+            raise OnnxModelError(
+                f"ONNX model {path}: {why} and fell back to {running}; run with --device cpu or fix the CUDA install"
+            )
+        warnings.warn(f"ONNX model {path}: {why}; running on {running}", RuntimeWarning, stacklevel=2)
+    return session
 
 
 class OnnxRestorer:
@@ -75,26 +96,14 @@ class OnnxRestorer:
         if threads:
             options.intra_op_num_threads = int(threads)
         options.log_severity_level = 3
-        providers = execution_providers(device, ort.get_available_providers())
-        if providers[0] != "CPUExecutionProvider" and hasattr(ort, "preload_dlls"):
-            ort.preload_dlls()  # CUDA and cuDNN from the nvidia-* wheels (the ones torch brings), onnxruntime >= 1.21
         try:
-            self.session = ort.InferenceSession(
-                str(self.path), options, providers=session_providers(device, ort.get_available_providers())
-            )
+            self.session = open_session(self.path, options, device)
+        except (OnnxModelError, ValueError):  # a provider that did not start, a device without one
+            raise
         except Exception as exc:  # noqa: BLE001 - onnxruntime raises its own types for any unreadable file
             first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
             raise OnnxModelError(f"ONNX model {self.path} could not be loaded by onnxruntime ({first})") from None
-        running = self.session.get_providers()[0]
-        if running != providers[0]:  # onnxruntime falls back to the CPU with a log line
-            why = f"onnxruntime could not start its {providers[0]} (its CUDA or cuDNN libraries did not load)"
-            if device != "auto":
-                raise OnnxModelError(
-                    f"ONNX model {self.path}: {why} and fell back to {running}; run with --device cpu or fix the "
-                    "CUDA install"
-                )
-            warnings.warn(f"ONNX model {self.path}: {why}; running on {running}", RuntimeWarning, stacklevel=2)
-        self.device = "cpu" if running == "CPUExecutionProvider" else "cuda"
+        self.device = "cpu" if self.session.get_providers()[0] == "CPUExecutionProvider" else "cuda"
         self.metadata = dict(self.session.get_modelmeta().custom_metadata_map)
         if "tofdenoise_backbone" not in self.metadata:
             raise OnnxModelError(
