@@ -269,6 +269,57 @@ def test_gpu_profile_run_scaled_down_trains_and_tests_on_cpu(tmp_path, data_cach
     assert "lr: 0.0002" in config and "max_epochs: 1" in config and str(realset / "calibration.yaml") in config
 
 
+def test_gpu_short_profile_run_scaled_down_trains_and_tests_on_cpu(tmp_path, data_cache, tiny):
+    """The ``gpu-short`` profile (the paper's recipe per step on the procedural world, for a lent GPU's minutes)
+    first runs here, not on the GPU machine: its overrides compose (experiment=paper's optimiser, crops and bf16
+    trainer, the procedural source at 480 x 640, 10 epochs), and a Table III run with them, scaled down (CPU, one
+    epoch, tiny scenes and DVSS), trains and tests end to end on both test sets."""
+    from tofdenoise.cli.sensor import main as sensor_main
+    from tofdenoise.cli.train import run
+    from tofdenoise.config import compose_config
+    from tofdenoise.experiments.tables import table_specs
+
+    realset = tmp_path / "realset"
+    specs = {s.name: s for s in table_specs("3", [0], profile_overrides("gpu-short", realset, []))}
+    cfg = compose_config(specs["dvss-fixed-l1-s0"].overrides)
+    assert cfg.data.source == "procedural" and cfg.data.crop_size == 320 and cfg.data.batch_size == 4
+    assert dict(cfg.data.source_kwargs) == {"num_samples": 300, "height": 480, "width": 640}
+    assert cfg.trainer.precision == "bf16-mixed" and cfg.trainer.max_epochs == 10
+    assert cfg.model.optim.lr == 2e-4 and cfg.model.optim.lr_min == 1e-6 and cfg.model.optim.warmup_steps == 0
+    assert (cfg.backbone.name, cfg.noise.name, cfg.loss.name) == ("dvss", "fixed", "l1")
+
+    args = ["realset", "--out", str(realset), "--scenes", "2", "--frames", "4", "--height", "24", "--width", "32"]
+    assert sensor_main(args) == 0
+    tiny_dvss = [o for o in tiny(tmp_path, data_cache, backbone="dvss") if o.startswith("backbone.kwargs")]
+    scaled_down = [
+        "data.source_kwargs.num_samples=10",
+        "data.source_kwargs.height=24",
+        "data.source_kwargs.width=32",
+        f"++data.cache_dir={data_cache}",
+        "trainer.accelerator=cpu",
+        "trainer.precision=32-true",
+        "trainer.max_epochs=1",
+        "trainer.check_val_every_n_epoch=1",
+        "trainer.enable_progress_bar=false",
+        "data.crop_size=16",
+        "data.batch_size=2",
+        "data.num_workers=0",
+        *tiny_dvss,
+    ]
+    spec = {s.name: s for s in table_specs("3", [0], profile_overrides("gpu-short", realset, scaled_down))}[
+        "dvss-hetero-l1-s0"
+    ]
+    run_dir = tmp_path / spec.name
+    run(compose_config([*spec.overrides, f"paths.run_dir={run_dir}"]))
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    info = json.loads((run_dir / "run_info.json").read_text())
+    assert info["data"] == "procedural" and info["noise"] == "hetero" and info["loss"] == "l1"
+    assert metrics["synthetic"]["images"] == 2 and metrics["real"]["images"] == 2
+    for test_set in ("synthetic", "real"):
+        assert np.isfinite(metrics[test_set]["mae_mm"]) and metrics[test_set]["raw"]["mae_mm"] > 0
+    assert info["train_images_per_second"] > 0 and info["peak_rss_gib"] > 0  # what the GPU sitting records
+
+
 def _results_with_three_seeds(root: Path) -> Path:
     """results/cpu with DVSS hetero and range, L1, seeds 0-2, and a hand-written discussion."""
     results = root / "results"
@@ -364,6 +415,9 @@ def test_the_gpu_profile_says_what_it_needs_before_any_work(tmp_path, capsys):
     assert "a CUDA GPU" in profile_needs("gpu", [f"++data.source_kwargs.root={tmp_path}"], cuda_available=False)
     assert profile_needs("gpu", [f"data.source_kwargs.root={tmp_path}"], cuda_available=True) == ""
     assert profile_needs("cpu", []) == ""
+    # gpu-short trains on the built-in scenes: it needs a GPU, no data folder
+    assert "a CUDA GPU" in profile_needs("gpu-short", [], cuda_available=False)
+    assert profile_needs("gpu-short", [], cuda_available=True) == ""
 
 
 def test_dry_run_names_the_executor_and_bad_executor_options_exit_2(tmp_path, capsys):

@@ -7,6 +7,7 @@
     tofdenoise reproduce --table 1 --dry-run                        # list what would run
     tofdenoise reproduce --page-only                                # rebuild docs/results.md from docs/results/
     tofdenoise reproduce --table 3 --executor local --workers 2     # two runs at a time on this machine
+    tofdenoise reproduce --table 3 --profile gpu-short --seeds 0  # the paper's recipe on the procedural world, one GPU
     tofdenoise reproduce --table 3 --profile gpu --executor slurm --slurm-partition gpu \
         --extra data.source_kwargs.root=...                          # a SLURM job array (docs/cluster.md)
 

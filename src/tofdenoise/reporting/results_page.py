@@ -68,7 +68,7 @@ __all__ = [
 ]
 
 #: the seeds each profile's tables are produced with (quoted on the page: ``Target.make_command``)
-PROFILE_SEEDS = {"cpu": "0,1,2", "gpu": "0,1,2"}
+PROFILE_SEEDS = {"cpu": "0,1,2", "gpu": "0,1,2", "gpu-short": "0"}
 RUN_FILES = (METRICS_NAME, RUN_INFO_NAME)
 
 
