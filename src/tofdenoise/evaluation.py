@@ -36,7 +36,7 @@ import torch
 from tofdenoise.records import json_number
 from tofdenoise.training.metrics import D_MAX_MM, METRIC_KEYS, DepthMetrics
 
-__all__ = ["DEPTH_SUFFIXES", "EvalInputError", "list_maps", "evaluate_dirs"]
+__all__ = ["DEPTH_SUFFIXES", "EvalInputError", "MapScorer", "list_maps", "evaluate_dirs"]
 
 DEPTH_SUFFIXES = (".png", ".tif", ".tiff", ".npy", ".npz", ".exr")
 
@@ -107,6 +107,49 @@ def _match(ref: dict[str, Path], other: dict[str, Path], what: str, folder: Path
         )
 
 
+class MapScorer:
+    """Per-image metrics of (prediction, reference, mask) maps, one image at a time, and the result object of the
+    module docstring (``evaluate_dirs`` and ``inference.capture_eval`` both build it this way)."""
+
+    def __init__(self, d_max_mm: float = D_MAX_MM) -> None:
+        self.d_max_mm = float(d_max_mm)
+        self._metric = DepthMetrics(d_max_mm=d_max_mm)
+        self._stems: list[str] = []
+        self._nan_px: dict[str, int] = {}
+
+    def add(self, stem: str, pred: np.ndarray, ref: np.ndarray, mask: np.ndarray | None = None) -> None:
+        """Score one image: pixels where ``ref`` is finite and > 0, ``mask`` (bool) is true and ``pred`` finite."""
+        self._nan_px[stem] = _nonfinite_px(pred, ref, mask)
+        index = torch.tensor([len(self._stems)])
+        self._stems.append(stem)
+        self._metric.update(
+            torch.from_numpy(pred), torch.from_numpy(ref), None if mask is None else torch.from_numpy(mask), index=index
+        )
+
+    def result(self) -> dict:
+        mean = self._metric.compute()
+        images: dict[str, dict] = {}
+        skipped: list[str] = []
+        failed: list[str] = []
+        for row in self._metric.per_image_rows():
+            stem = self._stems[int(row["index"])]
+            images[stem] = {k: json_number(row[k]) for k in METRIC_KEYS}
+            images[stem]["valid_px"] = row["valid_px"]
+            images[stem]["nan_px"] = self._nan_px[stem]
+            if row["valid_px"] == 0:
+                (failed if self._nan_px[stem] > 0 else skipped).append(stem)
+        return {
+            "mean": {k: json_number(mean[k]) for k in METRIC_KEYS},
+            "images": images,
+            "mae_mm_pooled": json_number(mean["mae_mm_pooled"]),
+            "num_images": self._metric.counts()["images"],
+            "skipped": skipped,
+            "nan_px": int(sum(self._nan_px.values())),
+            "failed": failed,
+            "d_max_mm": self.d_max_mm,
+        }
+
+
 def evaluate_dirs(
     pred_dir: str | Path, ref_dir: str | Path, mask_dir: str | Path | None = None, d_max_mm: float = D_MAX_MM
 ) -> dict:
@@ -119,10 +162,8 @@ def evaluate_dirs(
     if mask_dir is not None:
         masks = list_maps(mask_dir, "mask")
         _match(refs, masks, "mask", Path(mask_dir))
-    metric = DepthMetrics(d_max_mm=d_max_mm)
-    stems = sorted(refs)
-    nan_px: dict[str, int] = {}
-    for i, stem in enumerate(stems):
+    scorer = MapScorer(d_max_mm)
+    for stem in sorted(refs):
         ref = _read_depth(refs[stem], "reference depth")
         pred = _read_depth(preds[stem], "predicted depth")
         if pred.shape != ref.shape:
@@ -131,35 +172,13 @@ def evaluate_dirs(
             )
         mask = None
         if masks:
-            m = _read_mask(masks[stem])
-            if m.shape != ref.shape:
+            mask = _read_mask(masks[stem])
+            if mask.shape != ref.shape:
                 raise EvalInputError(
-                    f"mask file {masks[stem]} has shape {m.shape}; expected {ref.shape} like {refs[stem]}"
+                    f"mask file {masks[stem]} has shape {mask.shape}; expected {ref.shape} like {refs[stem]}"
                 )
-            mask = torch.from_numpy(m)
-        nan_px[stem] = _nonfinite_px(pred, ref, None if mask is None else m)
-        metric.update(torch.from_numpy(pred), torch.from_numpy(ref), mask, index=torch.tensor([i]))
-    mean = metric.compute()
-    images: dict[str, dict] = {}
-    skipped: list[str] = []
-    failed: list[str] = []
-    for row in metric.per_image_rows():
-        stem = stems[int(row["index"])]
-        images[stem] = {k: json_number(row[k]) for k in METRIC_KEYS}
-        images[stem]["valid_px"] = row["valid_px"]
-        images[stem]["nan_px"] = nan_px[stem]
-        if row["valid_px"] == 0:
-            (failed if nan_px[stem] > 0 else skipped).append(stem)
-    return {
-        "mean": {k: json_number(mean[k]) for k in METRIC_KEYS},
-        "images": images,
-        "mae_mm_pooled": json_number(mean["mae_mm_pooled"]),
-        "num_images": metric.counts()["images"],
-        "skipped": skipped,
-        "nan_px": int(sum(nan_px.values())),
-        "failed": failed,
-        "d_max_mm": float(d_max_mm),
-    }
+        scorer.add(stem, pred, ref, mask)
+    return scorer.result()
 
 
 def _nonfinite_px(pred: np.ndarray, ref: np.ndarray, mask: np.ndarray | None) -> int:

@@ -163,3 +163,80 @@ def test_nan_predictions_are_counted_as_failures_not_rewards(tmp_path, capsys):
     assert res["failed"] == ["s1"] and res["skipped"] == []
     assert res["images"]["s1"]["nan_px"] == 100 and res["images"]["s1"]["mae_mm"] is None
     assert res["num_images"] == 1
+
+
+def test_a_checkpoint_on_a_capture_set_scores_the_reference_as_its_run_did_and_the_truth(
+    tmp_path, capsys, data_cache, tiny
+):
+    """``--ckpt --captures --sensor``: against the references it gives the run's own ``real`` test numbers exactly;
+    against the simulated set's rendered truth, the per-image MAE computed here by hand from the public
+    ``denoise`` API. A set whose scenes lack the truth gives ``truth: null``; a set with it in some scenes only, or
+    a wrong combination of options, exits 2 naming what is wrong."""
+    from tofdenoise.cli.sensor import main as sensor_main
+    from tofdenoise.cli.train import run
+    from tofdenoise.config import compose_config
+    from tofdenoise.data_modules.real_captures import load_real_scene
+    from tofdenoise.inference.denoise import denoise, load_restorer
+    from tofdenoise.physics.calibration import load_calibration
+
+    realset, run_dir = tmp_path / "realset", tmp_path / "run"
+    args = ["realset", "--out", str(realset), "--scenes", "2", "--frames", "4", "--height", "32", "--width", "48"]
+    assert sensor_main(args) == 0
+    captures, sensor = realset / "captures", realset / "calibration.yaml"
+    overrides = [f"++data.sensor={sensor}", f"++data.real_dir={captures}", "trainer.max_epochs=1", "logger=csv"]
+    run(compose_config(tiny(run_dir, data_cache) + overrides))
+    recorded = json.loads((run_dir / "metrics.json").read_text())["real"]
+    ckpt, out = run_dir / "checkpoints" / "best.ckpt", tmp_path / "eval.json"
+    capsys.readouterr()
+
+    assert main(["--ckpt", str(ckpt), "--captures", str(captures), "--sensor", str(sensor), "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "2 images (0 without valid pixels) against the references" in printed
+    assert "2 images against the rendered truth (a simulated set)" in printed
+    result = json.loads(out.read_text())
+    assert result["scenes"] == 2 and result["checkpoint"] == str(ckpt)
+    for key in ("psnr_db", "mae_mm", "mse_mm2", "ssim"):
+        assert result["reference"]["mean"][key] == pytest.approx(recorded[key], rel=1e-9, abs=1e-9)
+    model, calib = load_restorer(ckpt, "cpu"), load_calibration(sensor)
+    for scene in sorted(p for p in captures.iterdir() if p.is_dir()):
+        sample = load_real_scene(scene, calib)
+        pred = denoise(sample["noisy"], model, amplitude=sample["amplitude"], device="cpu")
+        truth = np.load(scene / "ground_truth_depth_mm.npy")
+        scored = (sample["mask"] > 0) & np.isfinite(truth) & (truth > 0)
+        row = result["truth"]["images"][scene.name]
+        assert row["valid_px"] == int(scored.sum()) > 0
+        assert row["mae_mm"] == pytest.approx(float(np.abs(pred[scored] - truth[scored]).mean()), rel=1e-5)
+        # the references and the input frames against the same truth pixels
+        ref_row = result["reference_vs_truth"]["images"][scene.name]
+        ref_mae = float(np.abs(sample["clean"][scored] - truth[scored]).mean())
+        assert ref_row["valid_px"] == row["valid_px"] and ref_row["mae_mm"] == pytest.approx(ref_mae, rel=1e-6)
+        in_mae = float(np.abs(sample["noisy"][scored] - truth[scored]).mean())
+        assert result["input"]["truth"]["images"][scene.name]["mae_mm"] == pytest.approx(in_mae, rel=1e-6)
+    # the input against the references: the run's raw numbers
+    assert result["input"]["reference"]["mean"]["mae_mm"] == pytest.approx(recorded["raw"]["mae_mm"], rel=1e-9)
+    assert result["truth"]["mean"]["mae_mm"] > 0
+
+    # the truth in one scene only: an error naming the scenes without it, nothing written
+    (captures / "scene_0001" / "ground_truth_depth_mm.npy").unlink()
+    out2 = tmp_path / "eval2.json"
+    assert main(["--ckpt", str(ckpt), "--captures", str(captures), "--sensor", str(sensor), "--out", str(out2)]) == 2
+    err = capsys.readouterr().err
+    assert "1 of 2 scene(s) have no ground_truth_depth_mm.npy (scene_0001)" in err and not out2.exists()
+    # no truth at all (a real camera's set): the reference score only
+    (captures / "scene_0000" / "ground_truth_depth_mm.npy").unlink()
+    assert main(["--ckpt", str(ckpt), "--captures", str(captures), "--sensor", str(sensor), "--out", str(out2)]) == 0
+    no_truth = json.loads(out2.read_text())
+    assert no_truth["truth"] is None and no_truth["reference_vs_truth"] is None and no_truth["input"]["truth"] is None
+    assert "rendered truth" not in capsys.readouterr().out
+
+    for argv, message in (
+        (["--ckpt", str(ckpt), "--captures", str(captures)], "missing --sensor"),
+        (
+            ["--ckpt", str(ckpt), "--captures", str(captures), "--sensor", str(sensor), "--pred", str(tmp_path)],
+            "not both",
+        ),
+        ([], "give --pred DIR --ref DIR"),
+        (["--ckpt", str(tmp_path / "nope.ckpt"), "--captures", str(captures), "--sensor", str(sensor)], "not found"),
+    ):
+        assert main([*argv, "--out", str(tmp_path / "x.json")]) == 2
+        assert message in capsys.readouterr().err

@@ -1,6 +1,13 @@
 """``tofdenoise evaluate``: the unified depth metrics for depth maps produced by any method.
 
     tofdenoise evaluate --pred DIR --ref DIR [--mask DIR] --out FILE.json [--d-max-mm 1000]
+    tofdenoise evaluate --ckpt best.ckpt --captures SCENES_DIR --sensor CALIBRATION --out FILE.json
+
+The second form restores every scene of a capture set with a checkpoint and scores it against each scene's
+reference, as a run's ``real`` test set does, and, for a simulated set (``tofdenoise sensor realset``), against its
+rendered truth too (``tofdenoise.inference.capture_eval``). Its JSON: ``{"checkpoint", "captures", "sensor",
+"scenes", "reference": RESULT, "truth": RESULT or null, "input": {"reference", "truth"}, "reference_vs_truth"}``
+(the input frames scored the same way, and the references against the truth).
 
 Files are matched by stem; which files count, which pixels count, how non-finite predictions are counted and
 the result's layout: :mod:`tofdenoise.evaluation` (``evaluate_dirs``). The result is written atomically as
@@ -42,21 +49,63 @@ def build_parser() -> argparse.ArgumentParser:
         description="Unified depth metrics (PSNR with D_max, SSIM, MSE, MAE over valid pixels, per image then "
         "averaged) of predicted depth maps against references; files matched by name.",
     )
-    p.add_argument("--pred", required=True, type=Path, help="folder of predicted depth maps (16-bit PNG mm or .npy)")
-    p.add_argument("--ref", required=True, type=Path, help="folder of reference depth maps (same stems)")
+    p.add_argument("--pred", type=Path, default=None, help="folder of predicted depth maps (16-bit PNG mm or .npy)")
+    p.add_argument("--ref", type=Path, default=None, help="folder of reference depth maps (same stems)")
     p.add_argument("--mask", type=Path, default=None, help="optional folder of masks (nonzero = evaluate)")
+    p.add_argument("--ckpt", type=Path, default=None, help="a checkpoint to restore a capture set with (--captures)")
+    p.add_argument("--captures", type=Path, default=None, help="a capture set (scene folders, docs/camera-tutorial.md)")
+    p.add_argument("--sensor", default=None, help="the calibration of the camera that recorded --captures")
+    p.add_argument("--device", default="auto", help="auto | cpu | cuda (with --ckpt)")
     p.add_argument("--out", required=True, type=Path, help="output JSON file")
     p.add_argument("--d-max-mm", type=float, default=D_MAX_MM, help="PSNR peak depth in mm (default 1000)")
     return p
 
 
+def _usage_error(args: argparse.Namespace) -> str:
+    """What is wrong with the combination of options ("" when nothing): --pred/--ref or --ckpt/--captures/--sensor."""
+    folders = {"--pred": args.pred, "--ref": args.ref, "--mask": args.mask}
+    restore = {"--ckpt": args.ckpt, "--captures": args.captures, "--sensor": args.sensor}
+    given = [k for k, v in {**folders, **restore}.items() if v is not None]
+    if any(restore.values()):
+        if any(folders.values()):
+            return f"give --pred/--ref or --ckpt/--captures/--sensor, not both (got {' '.join(given)})"
+        missing = [k for k, v in restore.items() if v is None]
+        return f"--ckpt, --captures and --sensor go together; missing {', '.join(missing)}" if missing else ""
+    if args.pred is None or args.ref is None:
+        return "give --pred DIR --ref DIR (maps to score) or --ckpt FILE --captures DIR --sensor CALIBRATION"
+    return ""
+
+
+def _evaluate_checkpoint(args: argparse.Namespace) -> dict:
+    """The second form: a checkpoint restored on a capture set and scored (``inference.capture_eval``)."""
+    from tofdenoise.inference.capture_eval import evaluate_on_captures  # heavy (torch, the model)
+    from tofdenoise.inference.denoise import CheckpointError, load_restorer
+    from tofdenoise.physics.calibration import resolve_calibration
+
+    try:
+        calib = resolve_calibration(args.sensor)
+        model = load_restorer(args.ckpt, args.device)
+        result = evaluate_on_captures(model, args.captures, calib, args.d_max_mm)
+    except (CheckpointError, FileNotFoundError, ValueError) as exc:
+        raise EvalInputError(str(exc)) from exc
+    return {"checkpoint": str(args.ckpt), "captures": str(args.captures), "sensor": str(args.sensor), **result}
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
+        usage = _usage_error(args)
+        if usage:
+            raise EvalInputError(usage)
         if not args.d_max_mm > 0:
             raise EvalInputError(f"--d-max-mm must be > 0, got {args.d_max_mm}")
-        check_output_file(args.out, (".json",), _input_files(args.pred, args.ref, args.mask))
-        result = evaluate_dirs(args.pred, args.ref, args.mask, args.d_max_mm)
+        if args.ckpt is not None:
+            check_output_file(args.out, (".json",), [args.ckpt, *_input_files(args.captures)])
+            captures = _evaluate_checkpoint(args)
+            result = captures["reference"]
+        else:
+            check_output_file(args.out, (".json",), _input_files(args.pred, args.ref, args.mask))
+            captures, result = None, evaluate_dirs(args.pred, args.ref, args.mask, args.d_max_mm)
     except (EvalInputError, OutputPathError) as exc:
         print(f"tofdenoise evaluate: error: {exc}", file=sys.stderr)
         return 2
@@ -72,7 +121,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             file=sys.stderr,
         )
     try:
-        atomic_write_text(args.out, json.dumps(result, indent=2, allow_nan=False) + "\n")
+        atomic_write_text(args.out, json.dumps(captures or result, indent=2, allow_nan=False) + "\n")
     except WriteError as exc:  # a full disk: one line naming the file, nothing half-written
         print(f"tofdenoise evaluate: error: {exc}", file=sys.stderr)
         return 2
@@ -82,11 +131,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         return "n/a" if v is None else (v if isinstance(v, str) else f"{v:.{d}f}")
 
     nan_note = f", {result['nan_px']} non-finite predicted px" if result["nan_px"] else ""
+    against = " against the references" if captures else ""
     print(
-        f"{result['num_images']} images ({len(result['skipped'])} without valid pixels{nan_note}): "
+        f"{result['num_images']} images ({len(result['skipped'])} without valid pixels{nan_note}){against}: "
         f"PSNR {f(m['psnr_db'], 2)} dB, SSIM {f(m['ssim'], 4)}, MSE {f(m['mse_mm2'], 2)} mm^2, "
         f"MAE {f(m['mae_mm'], 3)} mm -> {args.out}"
     )
+    if captures and captures["truth"] is not None:
+        t = captures["truth"]["mean"]
+        print(
+            f"{captures['truth']['num_images']} images against the rendered truth (a simulated set): "
+            f"PSNR {f(t['psnr_db'], 2)} dB, SSIM {f(t['ssim'], 4)}, MSE {f(t['mse_mm2'], 2)} mm^2, "
+            f"MAE {f(t['mae_mm'], 3)} mm (the references themselves: "
+            f"MAE {f(captures['reference_vs_truth']['mean']['mae_mm'], 3)} mm)"
+        )
     return 0
 
 

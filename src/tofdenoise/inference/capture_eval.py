@@ -1,0 +1,105 @@
+"""A checkpoint scored on a capture set (``data_modules.real_captures`` layout): against each scene's reference, as
+a run's ``real`` test set scores it (the paper's protocol), and, for a simulated capture set, against the rendered
+truth on the same pixels (``tofdenoise evaluate --ckpt ... --captures ...``).
+
+Why both: a real camera's reference is the mean of its high-exposure frames. It keeps every static error of the
+camera (column fixed-pattern noise, per-pixel offsets, a calibration's systematic phase error), so a denoiser that
+removes one of them from the input moves *away* from the reference. A simulated capture set
+(``tofdenoise sensor realset``) also stores each scene's rendered depth (``ground_truth_depth_mm.npy``): scored
+against it, the same prediction says how close it came to the scene. Every scene must hold that file for a truth
+score (a set with some scenes lacking it is an error, not a silently smaller mean).
+
+Pixels scored, per scene: the run's scoring region (``load_real_scene``'s ``mask``: input and reference valid,
+sigma_D finite), and for the truth score also where the truth is finite and > 0. Metrics per image, then averaged
+(``evaluation.MapScorer``: the same numbers and layout as ``tofdenoise evaluate --pred``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from tofdenoise.data_modules.capture_simulation import GROUND_TRUTH
+from tofdenoise.data_modules.io import read_array
+from tofdenoise.data_modules.real_captures import list_scenes, load_real_scene
+from tofdenoise.evaluation import EvalInputError, MapScorer
+from tofdenoise.inference.denoise import restore_frame
+from tofdenoise.training.metrics import D_MAX_MM
+
+__all__ = ["evaluate_on_captures", "read_truth"]
+
+
+def read_truth(scene: Path, shape: tuple[int, ...]) -> np.ndarray:
+    """A scene's rendered depth [mm] (float64), checked against the input's ``shape``; errors name the file."""
+    path = scene / GROUND_TRUTH
+    try:
+        truth = read_array(path, what="ground-truth depth").astype(np.float64)
+    except (OSError, ValueError) as exc:
+        raise EvalInputError(f"{path}: {exc}") from exc
+    if truth.shape != tuple(shape):
+        raise EvalInputError(f"ground-truth depth file {path} has shape {truth.shape}; expected {tuple(shape)}")
+    return truth
+
+
+def evaluate_on_captures(
+    model: Any,
+    captures_dir: str | Path,
+    calib: Any,
+    d_max_mm: float = D_MAX_MM,
+    min_count: int | None = None,
+    precision: str = "bf16",
+    log: Callable[[str], None] | None = None,
+) -> dict[str, Any]:
+    """Restore every scene of ``captures_dir`` with ``model`` (a ``DepthRestorer``; ``calib``: the calibration of
+    the camera that recorded the set) and score it. Returns ``{"scenes", "reference": R, "truth": R or None,
+    "input": {"reference": R, "truth": R or None}, "reference_vs_truth": R or None}``, each ``R`` as
+    ``evaluation.MapScorer.result``: the restored maps against the references and the truth, the input frames
+    against both (what the restoration starts from), and the references against the truth on the same pixels
+    (how far the protocol's reference is from the scene). The ``truth`` entries are None when no scene holds a
+    truth map. Errors: ``EvalInputError`` (no scene, truth in some scenes only, an unreadable or misshapen truth
+    map)."""
+    scenes = list_scenes(captures_dir, config_key="--captures")
+    if not scenes:
+        raise EvalInputError(f"capture set {captures_dir} holds no scene folder (with input_depth_mm.png)")
+    with_truth = [s.name for s in scenes if (s / GROUND_TRUTH).is_file()]
+    if with_truth and len(with_truth) != len(scenes):
+        lacking = [s.name for s in scenes if s.name not in with_truth]
+        raise EvalInputError(
+            f"capture set {captures_dir}: {len(lacking)} of {len(scenes)} scene(s) have no {GROUND_TRUTH} "
+            f"({', '.join(lacking[:5])}): a truth score needs it in every scene"
+        )
+    to_reference, to_truth = MapScorer(d_max_mm), MapScorer(d_max_mm)
+    input_to_reference, input_to_truth, reference_to_truth = (
+        MapScorer(d_max_mm),
+        MapScorer(d_max_mm),
+        MapScorer(d_max_mm),
+    )
+    signal = bool(model.conditioning.use_signal_channel)
+    for i, scene in enumerate(scenes):
+        sample = load_real_scene(scene, calib, min_count)
+        depth, mask = sample["noisy"].astype(np.float64), sample["mask"] > 0
+        pred = restore_frame(model, depth, depth > 0, sample["amplitude"] if signal else None, precision=precision)
+        pred = pred.astype(np.float64)
+        reference = sample["clean"].astype(np.float64)
+        to_reference.add(scene.name, pred, reference, mask)
+        input_to_reference.add(scene.name, depth, reference, mask)
+        if with_truth:
+            truth = read_truth(scene, depth.shape)
+            to_truth.add(scene.name, pred, truth, mask)
+            input_to_truth.add(scene.name, depth, truth, mask)
+            reference_to_truth.add(scene.name, reference, truth, mask)
+        if log is not None:
+            log(f"[{i + 1}/{len(scenes)}] {scene.name}")
+    return {
+        "scenes": len(scenes),
+        "reference": to_reference.result(),
+        "truth": to_truth.result() if with_truth else None,
+        "input": {
+            "reference": input_to_reference.result(),
+            "truth": input_to_truth.result() if with_truth else None,
+        },
+        "reference_vs_truth": reference_to_truth.result() if with_truth else None,
+    }
