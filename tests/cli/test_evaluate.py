@@ -229,6 +229,11 @@ def test_a_checkpoint_on_a_capture_set_scores_the_reference_as_its_run_did_and_t
     assert no_truth["truth"] is None and no_truth["reference_vs_truth"] is None and no_truth["input"]["truth"] is None
     assert "rendered truth" not in capsys.readouterr().out
 
+    # an --out that would replace a scene's reference cache is refused before anything is restored
+    cache = captures / "scene_0000" / "reference.json"
+    before = cache.read_bytes()
+    assert main(["--ckpt", str(ckpt), "--captures", str(captures), "--sensor", str(sensor), "--out", str(cache)]) == 2
+    assert "reference.json" in capsys.readouterr().err and cache.read_bytes() == before
     for argv, message in (
         (["--ckpt", str(ckpt), "--captures", str(captures)], "missing --sensor"),
         (

@@ -100,7 +100,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         if not args.d_max_mm > 0:
             raise EvalInputError(f"--d-max-mm must be > 0, got {args.d_max_mm}")
         if args.ckpt is not None:
-            check_output_file(args.out, (".json",), [args.ckpt, *_input_files(args.captures)])
+            scene_dirs = [p for p in Path(args.captures).glob("*") if p.is_dir()] if args.captures.is_dir() else []
+            inputs = [args.ckpt, Path(args.sensor), *_input_files(args.captures, *scene_dirs)]
+            check_output_file(args.out, (".json",), inputs)
             captures = _evaluate_checkpoint(args)
             result = captures["reference"]
         else:
