@@ -370,6 +370,40 @@ def test_a_record_that_cannot_be_read_is_an_error_naming_the_file(tmp_path, caps
     assert page.read_bytes() == before  # the page is not rewritten without the run
 
 
+def _truth_record(path: Path, mae_mm: float, raw_mae_mm: float) -> None:
+    """A run's real_vs_truth.json as tofdenoise evaluate --ckpt writes it (only what the page reads)."""
+    mean = {"psnr_db": 30.0, "mae_mm": mae_mm, "mse_mm2": 50.0, "ssim": 0.9}
+    raw = {**mean, "mae_mm": raw_mae_mm}
+    path.write_text(json.dumps({"truth": {"mean": mean}, "input": {"truth": {"mean": raw}}}))
+
+
+def test_truth_columns_read_each_runs_real_vs_truth_record(tmp_path, capsys):
+    """Table III's "real vs truth MAE" column and its ordering come from each run's real_vs_truth.json (the real-set
+    predictions against the stand-in's rendered truth): mean over the seeds that have one; a run without it is '-',
+    and a record without the truth scores is an error naming it."""
+    results = _results_with_three_seeds(tmp_path)
+    for seed in range(3):
+        _truth_record(results / "cpu" / f"dvss-hetero-l1-s{seed}" / "real_vs_truth.json", 5.0 + 0.1 * seed, 12.0)
+        if seed < 2:
+            _truth_record(results / "cpu" / f"dvss-range-l1-s{seed}" / "real_vs_truth.json", 5.3, 12.0)
+    page = tmp_path / "results.md"
+    assert main(["--page-only", "--results", str(results), "--page", str(page)]) == 0
+    text = page.read_text()
+    header = next(line for line in text.splitlines() if line.startswith("| method | PSNR (dB)↑ paper / ours | MAE"))
+    assert header.endswith("| real vs truth MAE (mm)↓ paper / ours |")
+    hetero = next(line for line in text.splitlines() if line.startswith("| DVSS, hetero (proposed) |"))
+    assert hetero.endswith("| - / 5.10 ± 0.10 (n=3) |")
+    fixed = next(line for line in text.splitlines() if line.startswith("| DVSS, fixed Gaussian |"))
+    assert fixed.endswith("| - / - |")
+    claim = next(line for line in text.splitlines() if "hetero < range < fixed (real vs truth MAE)" in line)
+    assert "0: yes" not in claim  # no fixed-noise run: the ordering cannot be checked
+    broken = results / "cpu" / "dvss-range-l1-s0" / "real_vs_truth.json"
+    broken.write_text(json.dumps({"reference": {}}))
+    assert main(["--page-only", "--results", str(results), "--page", str(page)]) == 2
+    err = capsys.readouterr().err
+    assert f"tofdenoise reproduce: error: {broken}: expected the truth scores" in err
+
+
 def test_a_run_without_a_record_is_listed_as_missing(tmp_path):
     results = _results_with_three_seeds(tmp_path)
     shutil.rmtree(results / "cpu" / "dvss-range-l1-s2")

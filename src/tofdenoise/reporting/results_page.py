@@ -32,6 +32,7 @@ from tofdenoise.experiments.tables import (
     TABLE_COLUMNS,
     TABLE_TITLES,
     TABLES,
+    TRUTH_SET,
     Claim,
     Row,
     claim_holds,
@@ -74,6 +75,25 @@ RUN_FILES = (METRICS_NAME, RUN_INFO_NAME)
 
 #: the hand-written discussion, read from the results folder and placed above the tables
 DISCUSSION_NAME = "discussion.md"
+#: a run's real-set predictions scored against the stand-in's rendered truth (``tofdenoise evaluate --ckpt``), when
+#: measured: the tables' ``truth_`` columns
+TRUTH_RECORD = "real_vs_truth.json"
+
+
+def _truth_set(path: Path) -> dict[str, Any] | None:
+    """The ``truth_`` columns' metric set from a run's ``real_vs_truth.json`` (None without the file): the restored
+    maps' mean against the truth, ``raw`` the input frames'. A file without them is a RecordError naming it."""
+    data = read_record(path)
+    if data is None:
+        return None
+    try:
+        truth, raw = data["truth"]["mean"], data["input"]["truth"]["mean"]
+        return {**{k: truth[k] for k in METRIC_KEYS}, "raw": {k: raw[k] for k in METRIC_KEYS}}
+    except (KeyError, TypeError) as exc:
+        raise RecordError(
+            f"{path}: expected the truth scores of tofdenoise evaluate --ckpt on a simulated capture set "
+            f"('truth.mean' and 'input.truth.mean' with {', '.join(METRIC_KEYS)}); missing {exc}"
+        ) from None
 
 
 def _read_metrics(path: Path) -> dict[str, Any]:
@@ -100,7 +120,11 @@ def load_records(profile_dir: Path | str) -> dict[str, dict[str, Any]]:
         if not (metrics_path.exists() and info_path.exists()):
             continue  # not a run (fig6/, fig7/, ...) or an incomplete copy: missing
         info = read_record(info_path)
-        records[run_dir.name] = {"metrics": _read_metrics(metrics_path), "run_info": info}
+        metrics = _read_metrics(metrics_path)
+        truth = _truth_set(run_dir / TRUTH_RECORD)
+        if truth is not None:
+            metrics[TRUTH_SET] = truth
+        records[run_dir.name] = {"metrics": metrics, "run_info": info}
     return records
 
 
@@ -165,8 +189,10 @@ def _steps_text(claim: Claim, seeds: list[int], metrics_of: Any, complete: int) 
 
 
 def _column_header(column: str) -> str:
-    """A table column's header: the metric's, prefixed ``real`` for the real set (``real MAE (mm)↓``)."""
-    return ("real " if column_source(column)[0] == "real" else "") + column_metric(column).text
+    """A table column's header: the metric's, prefixed ``real`` for the real set (``real MAE (mm)↓``) and ``real
+    vs truth`` for the real set scored against its rendered truth."""
+    prefix = {"real": "real ", TRUTH_SET: "real vs truth "}.get(column_source(column)[0], "")
+    return prefix + column_metric(column).text
 
 
 def _table_section(table: str, profile: str, records: dict[str, dict[str, Any]], seeds: list[int]) -> list[str]:
@@ -403,7 +429,11 @@ def results_markdown(results_dir: Path | str) -> str:
         "filter: one run) show one value, marked seed-independent. Below each table, every ordering the paper "
         "reports is checked per seed. Its steps are paired by seed: the mean over the seeds of the per-seed "
         "difference from one row of the ordering to the next (positive = that step holds), ± the standard "
-        "deviation of that difference. A step within that spread is seed noise, whatever its sign.",
+        'deviation of that difference. A step within that spread is seed noise, whatever its sign. "real vs '
+        "truth\": the same real-set predictions scored against the stand-in camera's rendered truth instead of "
+        "its reference (the mean of its high-exposure frames, which keeps the camera's static errors), on the same "
+        "pixels (`tofdenoise evaluate --ckpt ... --captures ...`, each run's `real_vs_truth.json`; "
+        "docs/evaluation.md); a real camera's set has no truth.",
         "",
     ]
     discussion = results_dir / DISCUSSION_NAME
