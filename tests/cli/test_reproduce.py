@@ -224,15 +224,29 @@ def test_figure_of_a_trained_run_matches_its_test_and_a_changed_checkpoint_is_re
         build_figure(spec, 0, specs, out)
 
 
+def _train_table3_row(tmp_path: Path, profile: str, realset: Path, scaled_down: list[str], name: str):
+    """Train and test Table III's run ``name`` with ``profile``'s overrides and ``scaled_down`` ones; both test sets
+    must be scored (two images each, finite). Returns the run folder and its run_info.json."""
+    from tofdenoise.cli.train import run
+    from tofdenoise.config import compose_config
+    from tofdenoise.experiments.tables import table_specs
+
+    spec = {s.name: s for s in table_specs("3", [0], profile_overrides(profile, realset, scaled_down))}[name]
+    run_dir = tmp_path / spec.name
+    run(compose_config([*spec.overrides, f"paths.run_dir={run_dir}"]))
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    assert metrics["synthetic"]["images"] == 2 and metrics["real"]["images"] == 2
+    for test_set in ("synthetic", "real"):
+        assert np.isfinite(metrics[test_set]["mae_mm"]) and metrics[test_set]["raw"]["mae_mm"] > 0
+    return run_dir, json.loads((run_dir / "run_info.json").read_text())
+
+
 def test_gpu_profile_run_scaled_down_trains_and_tests_on_cpu(tmp_path, data_cache, tiny, write_ft3d):
     """The GPU profile's first execution must not be on the GPU machine: a Table III run with the profile's
     overrides (``experiment=paper``: ToF-FlyingThings3D, the row's backbone, noise and loss, the second camera's
     calibration and capture set) trains and tests end to end, scaled down (fixture dataset, CPU, one epoch, tiny
     DVSS). About 15 s."""
     from tofdenoise.cli.sensor import main as sensor_main
-    from tofdenoise.cli.train import run
-    from tofdenoise.config import compose_config
-    from tofdenoise.experiments.tables import table_specs
 
     ft3d, realset = tmp_path / "ft3d", tmp_path / "realset"
     write_ft3d(ft3d, [f"t{i:03d}" for i in range(8)], [f"v{i:03d}" for i in range(2)])
@@ -255,16 +269,8 @@ def test_gpu_profile_run_scaled_down_trains_and_tests_on_cpu(tmp_path, data_cach
         "data.num_workers=0",
         *tiny_dvss,
     ]
-    specs = {s.name: s for s in table_specs("3", [0], profile_overrides("gpu", realset, scaled_down))}
-    spec = specs["dvss-range-l1-s0"]
-    run_dir = tmp_path / spec.name
-    run(compose_config([*spec.overrides, f"paths.run_dir={run_dir}"]))
-    metrics = json.loads((run_dir / "metrics.json").read_text())
-    info = json.loads((run_dir / "run_info.json").read_text())
+    run_dir, info = _train_table3_row(tmp_path, "gpu", realset, scaled_down, "dvss-range-l1-s0")
     assert info["data"] == "flyingthings3d" and info["noise"] == "range" and info["loss"] == "l1"
-    assert metrics["synthetic"]["images"] == 2 and metrics["real"]["images"] == 2
-    for test_set in ("synthetic", "real"):
-        assert np.isfinite(metrics[test_set]["mae_mm"]) and metrics[test_set]["raw"]["mae_mm"] > 0
     config = (run_dir / "config.yaml").read_text()
     assert "lr: 0.0002" in config and "max_epochs: 1" in config and str(realset / "calibration.yaml") in config
 
@@ -275,7 +281,6 @@ def test_gpu_short_profile_run_scaled_down_trains_and_tests_on_cpu(tmp_path, dat
     trainer, the procedural source at 480 x 640, 10 epochs), and a Table III run with them, scaled down (CPU, one
     epoch, tiny scenes and DVSS), trains and tests end to end on both test sets."""
     from tofdenoise.cli.sensor import main as sensor_main
-    from tofdenoise.cli.train import run
     from tofdenoise.config import compose_config
     from tofdenoise.experiments.tables import table_specs
 
@@ -306,17 +311,8 @@ def test_gpu_short_profile_run_scaled_down_trains_and_tests_on_cpu(tmp_path, dat
         "data.num_workers=0",
         *tiny_dvss,
     ]
-    spec = {s.name: s for s in table_specs("3", [0], profile_overrides("gpu-short", realset, scaled_down))}[
-        "dvss-hetero-l1-s0"
-    ]
-    run_dir = tmp_path / spec.name
-    run(compose_config([*spec.overrides, f"paths.run_dir={run_dir}"]))
-    metrics = json.loads((run_dir / "metrics.json").read_text())
-    info = json.loads((run_dir / "run_info.json").read_text())
+    _, info = _train_table3_row(tmp_path, "gpu-short", realset, scaled_down, "dvss-hetero-l1-s0")
     assert info["data"] == "procedural" and info["noise"] == "hetero" and info["loss"] == "l1"
-    assert metrics["synthetic"]["images"] == 2 and metrics["real"]["images"] == 2
-    for test_set in ("synthetic", "real"):
-        assert np.isfinite(metrics[test_set]["mae_mm"]) and metrics[test_set]["raw"]["mae_mm"] > 0
     assert info["train_images_per_second"] > 0 and info["peak_rss_gib"] > 0  # what the GPU sitting records
 
 
