@@ -224,6 +224,19 @@ def test_figure_of_a_trained_run_matches_its_test_and_a_changed_checkpoint_is_re
         build_figure(spec, 0, specs, out)
 
 
+#: a GPU profile's run scaled down to the CPU: fp32, one epoch validated, tiny crops and batches
+CPU_SCALE_DOWN = [
+    "trainer.accelerator=cpu",
+    "trainer.precision=32-true",
+    "trainer.max_epochs=1",
+    "trainer.check_val_every_n_epoch=1",
+    "trainer.enable_progress_bar=false",
+    "data.crop_size=16",
+    "data.batch_size=2",
+    "data.num_workers=0",
+]
+
+
 def _train_table3_row(tmp_path: Path, profile: str, realset: Path, scaled_down: list[str], name: str):
     """Train and test Table III's run ``name`` with ``profile``'s overrides and ``scaled_down`` ones; both test sets
     must be scored (two images each, finite). Returns the run folder and its run_info.json."""
@@ -260,13 +273,7 @@ def test_gpu_profile_run_scaled_down_trains_and_tests_on_cpu(tmp_path, data_cach
     scaled_down = [
         f"data.source_kwargs.root={ft3d}",
         f"++data.cache_dir={data_cache}",
-        "trainer.accelerator=cpu",
-        "trainer.precision=32-true",
-        "trainer.max_epochs=1",
-        "trainer.enable_progress_bar=false",
-        "data.crop_size=16",
-        "data.batch_size=2",
-        "data.num_workers=0",
+        *CPU_SCALE_DOWN,
         *tiny_dvss,
     ]
     run_dir, info = _train_table3_row(tmp_path, "gpu", realset, scaled_down, "dvss-range-l1-s0")
@@ -301,14 +308,7 @@ def test_gpu_short_profile_run_scaled_down_trains_and_tests_on_cpu(tmp_path, dat
         "data.source_kwargs.height=24",
         "data.source_kwargs.width=32",
         f"++data.cache_dir={data_cache}",
-        "trainer.accelerator=cpu",
-        "trainer.precision=32-true",
-        "trainer.max_epochs=1",
-        "trainer.check_val_every_n_epoch=1",
-        "trainer.enable_progress_bar=false",
-        "data.crop_size=16",
-        "data.batch_size=2",
-        "data.num_workers=0",
+        *CPU_SCALE_DOWN,
         *tiny_dvss,
     ]
     _, info = _train_table3_row(tmp_path, "gpu-short", realset, scaled_down, "dvss-hetero-l1-s0")
