@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from tofdenoise.atomic import atomic_write_text
 from tofdenoise.data_modules.cache import MapCache, SampleMaps
 from tofdenoise.data_modules.splits import load_or_make_split, load_split, make_split
 from tofdenoise.records import learned_verdict
@@ -114,9 +115,10 @@ def _commit(results: str, page: str, seed: int, start: float) -> None:
         time.sleep(0.001)
     run = Path(results) / "cpu" / f"dvss-hetero-l1-s{seed}"
     entry = {**RECORD, "mae_mm": 2.0 + 0.1 * seed, "raw": {**RECORD["raw"], "ssim": 0.9}}
-    run.mkdir(parents=True)
-    (run / "metrics.json").write_text(json.dumps({"synthetic": entry, **learned_verdict(100, 2.0, 7.0)}))
-    (run / "run_info.json").write_text(json.dumps({"finished": "2026-11-25T10:00:00+0000"}))
+    # atomically, as copy_records writes them: another process's rebuild must never read a half-written record
+    # (a plain write_text here made this test fail now and then on a busy machine: run_info.json read empty)
+    atomic_write_text(run / "metrics.json", json.dumps({"synthetic": entry, **learned_verdict(100, 2.0, 7.0)}))
+    atomic_write_text(run / "run_info.json", json.dumps({"finished": "2026-11-25T10:00:00+0000"}))
     write_page(Path(results), Path(page))
 
 
