@@ -237,6 +237,62 @@ CPU_SCALE_DOWN = [
 ]
 
 
+def test_a_finished_runs_record_gains_its_score_against_the_stand_ins_truth(tmp_path, monkeypatch, data_cache, tiny):
+    """``reproduce`` scores each finished learned run against the simulated capture set's truth as it commits it:
+    the committed ``real_vs_truth.json`` gives the run's own real-set numbers against the references (to 1e-9) and
+    fills the page's "real vs truth" column; a repeated sitting does not score it again, and a capture set without
+    truth (a real camera's) or a run without a checkpoint (the classical filter) gets no such file."""
+    import tofdenoise.experiments.reproduce as workflow
+    from tofdenoise.cli.sensor import main as sensor_main
+    from tofdenoise.cli.train import run
+    from tofdenoise.config import compose_config
+    from tofdenoise.experiments.runner import RunOutcome
+
+    out, results, page = tmp_path / "runs", tmp_path / "results", tmp_path / "results.md"
+    realset = out / "realset"
+    args = ["realset", "--out", str(realset), "--scenes", "2", "--frames", "4", "--height", "32", "--width", "48"]
+    assert sensor_main(args) == 0
+    run_dir = out / "dvss-fixed-l1-s0"
+    overrides = [f"++data.sensor={realset / 'calibration.yaml'}", f"++data.real_dir={realset / 'captures'}"]
+    run(compose_config([*tiny(run_dir, data_cache), *overrides, "trainer.max_epochs=1", "logger=csv"]))
+    bilateral = out / "bilateral-s0"  # a finished run without a checkpoint
+    bilateral.mkdir()
+    for name in ("metrics.json", "run_info.json"):
+        shutil.copy(run_dir / name, bilateral / name)
+
+    def fake_run_all(specs, out_dir, dry_run=False, after_each=None, executor=None):
+        for folder in (run_dir, bilateral):
+            after_each(RunOutcome(specs[0], folder, "skipped"))
+        return []
+
+    monkeypatch.setattr(workflow, "ensure_realset", lambda *a, **k: None)
+    monkeypatch.setattr(workflow, "run_all", fake_run_all)
+    argv = ["--table", "3", "--seeds", "0", "--out", str(out), "--results", str(results), "--page", str(page)]
+    assert main(argv) == 0
+    record = results / "cpu" / run_dir.name / "real_vs_truth.json"
+    truth = json.loads(record.read_text())
+    recorded = json.loads((run_dir / "metrics.json").read_text())["real"]
+    for key in ("psnr_db", "mae_mm", "mse_mm2", "ssim"):
+        assert truth["reference"]["mean"][key] == pytest.approx(recorded[key], rel=1e-9, abs=1e-9)
+    assert truth["scenes"] == 2 and truth["truth"]["num_images"] == 2 and truth["truth"]["mean"]["mae_mm"] > 0
+    assert truth["checkpoint"] == str(run_dir / "checkpoints" / "best.ckpt")
+    assert not (results / "cpu" / bilateral.name / "real_vs_truth.json").exists()
+    row = next(line for line in page.read_text().splitlines() if line.startswith("| DVSS, fixed Gaussian |"))
+    assert f"{truth['truth']['mean']['mae_mm']:.2f} (n=1)" in row
+
+    # a second sitting: the record is newer than the checkpoint, so it is kept as it is
+    stamp = (run_dir / "real_vs_truth.json").stat().st_mtime_ns
+    assert main(argv) == 0
+    assert (run_dir / "real_vs_truth.json").stat().st_mtime_ns == stamp
+    # a capture set without truth: no record for a run that has none yet
+    (run_dir / "real_vs_truth.json").unlink()
+    record.unlink()
+    for truth_map in (realset / "captures").glob("*/ground_truth_depth_mm.npy"):
+        truth_map.unlink()
+    assert main(argv) == 0
+    assert not (run_dir / "real_vs_truth.json").exists() and not record.exists()
+
+
 def _train_table3_row(tmp_path: Path, profile: str, realset: Path, scaled_down: list[str], name: str):
     """Train and test Table III's run ``name`` with ``profile``'s overrides and ``scaled_down`` ones; both test sets
     must be scored (two images each, finite). Returns the run folder and its run_info.json."""

@@ -78,17 +78,12 @@ def _usage_error(args: argparse.Namespace) -> str:
 
 def _evaluate_checkpoint(args: argparse.Namespace) -> dict:
     """The second form: a checkpoint restored on a capture set and scored (``inference.capture_eval``)."""
-    from tofdenoise.inference.capture_eval import evaluate_on_captures  # heavy (torch, the model)
-    from tofdenoise.inference.denoise import CheckpointError, load_restorer
-    from tofdenoise.physics.calibration import resolve_calibration
+    from tofdenoise.inference.capture_eval import evaluate_checkpoint  # heavy (torch, the model)
 
     try:
-        calib = resolve_calibration(args.sensor)
-        model = load_restorer(args.ckpt, args.device)
-        result = evaluate_on_captures(model, args.captures, calib, args.d_max_mm)
-    except (CheckpointError, FileNotFoundError, ValueError) as exc:
+        return evaluate_checkpoint(args.ckpt, args.captures, args.sensor, args.device, args.d_max_mm)
+    except (FileNotFoundError, ValueError) as exc:  # CheckpointError and EvalInputError are ValueErrors
         raise EvalInputError(str(exc)) from exc
-    return {"checkpoint": str(args.ckpt), "captures": str(args.captures), "sensor": str(args.sensor), **result}
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -7,7 +7,9 @@ captures and its capture set, and its calibration is estimated from them; ``<out
 docs/camera-tutorial.md); (2) every run of the target, trained with that calibration and tested on the synthetic
 split and on that capture set, each run a process of its own (``runner.run_all`` through ``executor``: sequential,
 local workers, a SLURM array); finished runs are skipped, interrupted ones resume, a failing run does not stop the
-others and is listed; (3) each finished run's records copied to ``<results>/<profile>/<run>/`` as it ends; (4) the
+others and is listed; (3) each finished run's records copied to ``<results>/<profile>/<run>/`` as it ends, with,
+for a learned run, its real-set predictions scored against the stand-in's rendered truth (``write_truth_record``:
+``real_vs_truth.json``, the page's "real vs truth" columns); (4) the
 page rebuilt from those records under its lock (``atomic.exclusive_lock``), so two commands committing runs at once
 cannot drop one's run from it.
 
@@ -39,7 +41,7 @@ from tofdenoise.experiments.figures import (
 from tofdenoise.experiments.runner import run_all
 from tofdenoise.experiments.tables import table_specs
 from tofdenoise.experiments.targets import Target
-from tofdenoise.records import METRICS_NAME, PER_IMAGE_DIR, RUN_INFO_NAME, run_finished
+from tofdenoise.records import METRICS_NAME, PER_IMAGE_DIR, RUN_INFO_NAME, TRUTH_NAME, run_finished
 from tofdenoise.reporting import find_runs, load_runs, render_html
 from tofdenoise.reporting.results_page import DYNRANGE_FIGURE, load_records, results_markdown
 
@@ -50,6 +52,7 @@ __all__ = [
     "Reproduction",
     "copy_records",
     "ensure_realset",
+    "write_truth_record",
     "profile_needs",
     "profile_overrides",
     "reproduce",
@@ -81,6 +84,7 @@ RECORD_FILES = (
     "csv/metrics.csv",
     f"{PER_IMAGE_DIR}/synthetic.csv",
     f"{PER_IMAGE_DIR}/real.csv",
+    TRUTH_NAME,
 )
 
 Log = Callable[[str], None]
@@ -133,6 +137,33 @@ def ensure_realset(realset_dir: Path, profile: str, dry_run: bool = False, log: 
 
     log(f"[reproduce] {what}")
     build_realset(realset_dir, scenes=scenes, height=height, width=width, log=log)
+
+
+def write_truth_record(run_dir: Path, realset_dir: Path, device: str = "auto", log: Log = _print) -> bool:
+    """Score a finished run's best checkpoint on the stand-in capture set against its rendered truth and write
+    ``<run_dir>/real_vs_truth.json`` atomically (``inference.capture_eval.evaluate_checkpoint``); True when written.
+
+    Nothing is done for a run that has not finished or has no ``checkpoints/best.ckpt`` (the classical filter), for
+    a capture set without truth (a real camera's), or when the record is newer than the checkpoint (a repeated
+    ``reproduce`` skips it). A checkpoint or capture set that cannot be scored is logged with its reason and
+    leaves no file: the run's other records are still committed, its truth columns stay empty."""
+    ckpt, captures = run_dir / "checkpoints" / "best.ckpt", realset_dir / "captures"
+    out = run_dir / TRUTH_NAME
+    if not (run_finished(run_dir) and ckpt.is_file()):
+        return False
+    from tofdenoise.inference.capture_eval import evaluate_checkpoint, has_truth  # heavy (torch): not for the page
+
+    if not has_truth(captures) or (out.is_file() and out.stat().st_mtime >= ckpt.stat().st_mtime):
+        return False
+    try:
+        result = evaluate_checkpoint(ckpt, captures, realset_dir / "calibration.yaml", device)
+    except (FileNotFoundError, ValueError) as exc:
+        log(f"[reproduce] {run_dir.name}: not scored against the stand-in's truth: {exc}")
+        return False
+    atomic_write_text(out, json.dumps(result, indent=2, allow_nan=False) + "\n")
+    mae = result["truth"]["mean"]["mae_mm"]
+    log(f"[reproduce] {run_dir.name}: real set against the truth, MAE {mae:.3f} mm -> {out}")
+    return True
 
 
 def copy_records(run_dirs: list[Path], dest: Path) -> list[str]:
@@ -263,6 +294,7 @@ def reproduce(job: Reproduction, log: Log = _print) -> int:
         ensure_realset(job.realset_dir, job.profile, dry_run=job.dry_run, log=log)
 
         def record(outcome) -> None:  # commit each finished run at once: an interrupted target keeps it
+            write_truth_record(outcome.run_dir, job.realset_dir, log=log)
             if copy_records([outcome.run_dir], job.dest):
                 study = target.kind == "study" and target.name == "dynrange"
                 figure = (lambda: write_dynrange_figure(job.dest, job.seeds)) if study else None

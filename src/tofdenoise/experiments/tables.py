@@ -55,7 +55,8 @@ __all__ = [
 
 #: a table column is a metric of ``reporting.numbers.METRIC_COLUMNS`` on the synthetic test set (``mae_mm``),
 #: prefixed ``real_``, on the real set (``real_mae_mm``), or, prefixed ``truth_``, on the real set scored against
-#: its rendered truth (a simulated set only: ``real_vs_truth.json``, written by ``tofdenoise evaluate --ckpt``;
+#: its rendered truth (a simulated set only: ``real_vs_truth.json``, written by ``tofdenoise reproduce`` for each
+#: finished learned run, or by ``tofdenoise evaluate --ckpt``;
 #: the records' set ``TRUTH_SET``)
 REAL_PREFIX = "real_"
 TRUTH_PREFIX = "truth_"

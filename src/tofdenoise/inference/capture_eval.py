@@ -26,10 +26,18 @@ from tofdenoise.data_modules.capture_simulation import GROUND_TRUTH
 from tofdenoise.data_modules.io import read_array
 from tofdenoise.data_modules.real_captures import list_scenes, load_real_scene
 from tofdenoise.evaluation import EvalInputError, MapScorer
-from tofdenoise.inference.denoise import restore_frame
+from tofdenoise.inference.denoise import load_restorer, restore_frame
+from tofdenoise.physics.calibration import resolve_calibration
 from tofdenoise.training.metrics import D_MAX_MM
 
-__all__ = ["evaluate_on_captures", "read_truth"]
+__all__ = ["evaluate_checkpoint", "evaluate_on_captures", "has_truth", "read_truth"]
+
+
+def has_truth(captures_dir: str | Path) -> bool:
+    """Whether any scene of the capture set ``captures_dir`` holds a rendered truth map (a simulated set); False for
+    a folder that does not exist or holds no scene."""
+    folder = Path(captures_dir)
+    return folder.is_dir() and any((p / GROUND_TRUTH).is_file() for p in folder.iterdir() if p.is_dir())
 
 
 def read_truth(scene: Path, shape: tuple[int, ...]) -> np.ndarray:
@@ -103,3 +111,22 @@ def evaluate_on_captures(
         },
         "reference_vs_truth": reference_to_truth.result() if with_truth else None,
     }
+
+
+def evaluate_checkpoint(
+    ckpt: str | Path,
+    captures_dir: str | Path,
+    sensor: str | Path,
+    device: str = "auto",
+    d_max_mm: float = D_MAX_MM,
+    log: Callable[[str], None] | None = None,
+) -> dict[str, Any]:
+    """The checkpoint ``ckpt`` loaded on ``device`` (auto | cpu | cuda) and scored on the capture set
+    ``captures_dir`` recorded by the camera calibrated in ``sensor`` (a preset name or a calibration file):
+    ``{"checkpoint", "captures", "sensor", **evaluate_on_captures(...)}``, the JSON of ``tofdenoise evaluate --ckpt``
+    and of a run's ``real_vs_truth.json``. Errors: ``CheckpointError``, ``FileNotFoundError`` and the other
+    ``ValueError``s of the calibration and the capture set (``EvalInputError``), each naming the file."""
+    calib = resolve_calibration(str(sensor))
+    model = load_restorer(ckpt, device)
+    result = evaluate_on_captures(model, captures_dir, calib, d_max_mm, log=log)
+    return {"checkpoint": str(ckpt), "captures": str(captures_dir), "sensor": str(sensor), **result}

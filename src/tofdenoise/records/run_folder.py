@@ -19,6 +19,7 @@ __all__ = [
     "METRICS_NAME",
     "PER_IMAGE_DIR",
     "RUN_INFO_NAME",
+    "TRUTH_NAME",
     "RecordError",
     "read_record",
     "load_metrics",
@@ -34,6 +35,10 @@ __all__ = [
 METRICS_NAME = "metrics.json"
 RUN_INFO_NAME = "run_info.json"
 PER_IMAGE_DIR = "per_image"
+#: a run's real-set predictions scored against a simulated capture set's rendered truth, when the set has one
+#: (``tofdenoise.inference.capture_eval.evaluate_checkpoint``'s JSON; written by ``tofdenoise reproduce`` for each
+#: finished run, or by hand with ``tofdenoise evaluate --ckpt``): the results page's ``truth_`` columns
+TRUTH_NAME = "real_vs_truth.json"
 
 
 class RecordError(ValueError):

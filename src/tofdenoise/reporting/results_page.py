@@ -47,6 +47,7 @@ from tofdenoise.records import (
     METRIC_KEYS,
     METRICS_NAME,
     RUN_INFO_NAME,
+    TRUTH_NAME,
     RecordError,
     learned_status,
     load_metrics,
@@ -75,9 +76,6 @@ RUN_FILES = (METRICS_NAME, RUN_INFO_NAME)
 
 #: the hand-written discussion, read from the results folder and placed above the tables
 DISCUSSION_NAME = "discussion.md"
-#: a run's real-set predictions scored against the stand-in's rendered truth (``tofdenoise evaluate --ckpt``), when
-#: measured: the tables' ``truth_`` columns
-TRUTH_RECORD = "real_vs_truth.json"
 
 
 def _truth_set(path: Path) -> dict[str, Any] | None:
@@ -121,7 +119,7 @@ def load_records(profile_dir: Path | str) -> dict[str, dict[str, Any]]:
             continue  # not a run (fig6/, fig7/, ...) or an incomplete copy: missing
         info = read_record(info_path)
         metrics = _read_metrics(metrics_path)
-        truth = _truth_set(run_dir / TRUTH_RECORD)
+        truth = _truth_set(run_dir / TRUTH_NAME)
         if truth is not None:
             metrics[TRUTH_SET] = truth
         records[run_dir.name] = {"metrics": metrics, "run_info": info}
@@ -432,7 +430,8 @@ def results_markdown(results_dir: Path | str) -> str:
         'deviation of that difference. A step within that spread is seed noise, whatever its sign. "real vs '
         "truth\": the same real-set predictions scored against the stand-in camera's rendered truth instead of "
         "its reference (the mean of its high-exposure frames, which keeps the camera's static errors), on the same "
-        "pixels (`tofdenoise evaluate --ckpt ... --captures ...`, each run's `real_vs_truth.json`; "
+        "pixels (each learned run's `real_vs_truth.json`, written by `tofdenoise reproduce` as it commits the run, "
+        "the same as `tofdenoise evaluate --ckpt ... --captures ...`; "
         "docs/evaluation.md); a real camera's set has no truth.",
         "",
     ]
