@@ -25,9 +25,13 @@ class ScriptedRestorer(DepthRestorer):
         self.log("val/mae_mm", self.scores[self.current_epoch])
 
 
-def test_best_is_lowest_val_mae_and_last_is_last(tmp_path, tiny_data):
+@pytest.mark.parametrize("every_n_train_steps", [None, 3, 100])
+def test_best_is_lowest_val_mae_and_last_is_last(tmp_path, tiny_data, every_n_train_steps):
+    """Whatever refreshes last.ckpt: with a step mark (3: at steps 3 and 6, between validations) Lightning's own
+    trigger would have stored step 3's weights under epoch 1's score as "best", and with a mark beyond the run
+    (100: experiment=paper's 500 on a 450-step run) no best.ckpt at all."""
     model = ScriptedRestorer(backbone="unet", backbone_kwargs={"width": 4, "stages": 2}, loss="l1")
-    ckpt = BestAndLastCheckpoint(dirpath=tmp_path / "checkpoints")
+    ckpt = BestAndLastCheckpoint(dirpath=tmp_path / "checkpoints", every_n_train_steps=every_n_train_steps)
     trainer = pl.Trainer(
         default_root_dir=tmp_path,
         max_epochs=len(SCORES),
@@ -56,9 +60,11 @@ def test_best_is_lowest_val_mae_and_last_is_last(tmp_path, tiny_data):
     assert all(torch.equal(last["state_dict"][k], final[k]) for k in final)
 
 
-def test_mode_is_validated():
+def test_mode_and_step_mark_are_validated():
     with pytest.raises(ValueError, match="mode must be 'min' or 'max'"):
         BestAndLastCheckpoint(mode="lowest")
+    with pytest.raises(ValueError, match="every_n_train_steps must be >= 0, got -1"):
+        BestAndLastCheckpoint(every_n_train_steps=-1)
 
 
 def test_a_checkpoint_write_that_fails_leaves_the_previous_one_intact_and_names_the_file(tmp_path):

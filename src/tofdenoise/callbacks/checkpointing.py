@@ -5,16 +5,23 @@ callback"), so both files come from this one instance. The metric name contains 
 would create sub-folders inside a filename template: the filename is fixed to ``best`` and
 ``auto_insert_metric_name`` is off.
 
-Lightning 2.6 refreshes ``last.ckpt`` only when a top-k checkpoint was written at the same step, and it
-defers step-triggered saves until the monitored metric exists (after the first validation). A run must be
-resumable from its newest state, so this class also writes ``last.ckpt`` after every validation/epoch end
-and, with ``every_n_train_steps``, every N optimiser steps from the first epoch on.
+``best.ckpt`` is chosen at validation ends only, so its weights are the ones that scored its metric. Lightning's
+own step and time triggers (``every_n_train_steps``, ``train_time_interval``) exclude the per-validation one, and at
+a step mark they compare the *last* validation's metric with the weights of *that* step: a run with
+``every_n_train_steps=500`` kept the weights of step 500, 1000, ... under the score of an earlier validation, and a
+run shorter than 500 steps wrote no ``best.ckpt`` at all (it then tested its final weights). Here those two
+options refresh ``last.ckpt`` only; Lightning's trigger stays per validation (``every_n_epochs``, default 1).
+
+Lightning 2.6 refreshes ``last.ckpt`` only when a top-k checkpoint was written at the same step. A run must be
+resumable from its newest state, so this class also writes ``last.ckpt`` after every validation/epoch end and, with
+``every_n_train_steps`` / ``train_time_interval``, every N optimiser steps / that much time, from the first epoch on.
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
+import time
 from datetime import timedelta
 from pathlib import Path
 from typing import Any
@@ -42,10 +49,10 @@ class BestAndLastCheckpoint(ModelCheckpoint):
         dirpath: folder of the two files (the Hydra config uses ``<run_dir>/checkpoints``).
         monitor: logged metric that selects the best checkpoint (default ``val/mae_mm``, lower is better).
         mode: ``"min"`` or ``"max"``.
-        every_n_train_steps: also refresh ``last.ckpt`` (and re-check ``best``) every N optimiser steps, so a
-            run killed mid-epoch loses at most N steps; ``None``/0 = only at validation/epoch end.
+        every_n_train_steps: also refresh ``last.ckpt`` every N optimiser steps, so a run killed mid-epoch loses
+            at most N steps; ``None``/0 = only at validation/epoch end. ``best.ckpt`` is not touched there.
         train_time_interval: the same by wall-clock time.
-        every_n_epochs: check every N epochs (default 1).
+        every_n_epochs: check ``best`` at every N-th validation's end (default 1).
     """
 
     def __init__(
@@ -60,6 +67,8 @@ class BestAndLastCheckpoint(ModelCheckpoint):
     ) -> None:
         if mode not in ("min", "max"):
             raise ValueError(f"BestAndLastCheckpoint.mode must be 'min' or 'max', got {mode!r}")
+        if every_n_train_steps is not None and every_n_train_steps < 0:
+            raise ValueError(f"BestAndLastCheckpoint.every_n_train_steps must be >= 0, got {every_n_train_steps}")
         super().__init__(
             dirpath=dirpath,
             filename=BEST_NAME,
@@ -68,13 +77,15 @@ class BestAndLastCheckpoint(ModelCheckpoint):
             save_top_k=1,
             save_last=True,
             auto_insert_metric_name=False,
-            every_n_train_steps=every_n_train_steps or None,
-            train_time_interval=train_time_interval,
             every_n_epochs=every_n_epochs,
             verbose=verbose,
             enable_version_counter=False,
         )
         self.CHECKPOINT_NAME_LAST = LAST_NAME
+        #: the refresh triggers of last.ckpt (Lightning's own step/time triggers stay off: module docstring)
+        self.last_every_n_train_steps = every_n_train_steps or 0
+        self.last_train_time_interval = train_time_interval
+        self._last_refresh_time = time.monotonic()
 
     # ------------------------------------------------------------------ atomic writes
     def _save_checkpoint(self, trainer: pl.Trainer, filepath: str) -> None:
@@ -118,14 +129,26 @@ class BestAndLastCheckpoint(ModelCheckpoint):
     def _ensure_last(self, trainer: pl.Trainer) -> None:
         if self.save_last and self._may_save(trainer) and self._last_saved_marker != (self._phase, trainer.global_step):
             self._save_last_checkpoint(trainer, self._monitor_candidates(trainer))
+            self._last_refresh_time = time.monotonic()
+
+    def _refresh_due(self, trainer: pl.Trainer) -> bool:
+        """Whether ``last.ckpt`` is due after this optimiser step (step mark or time interval; the time decision is
+        rank 0's, broadcast, so that every rank saves or none does)."""
+        n = self.last_every_n_train_steps
+        if n >= 1 and trainer.global_step % n == 0:
+            return True
+        if self.last_train_time_interval is None:
+            return False
+        elapsed = time.monotonic() - self._last_refresh_time
+        due = elapsed >= self.last_train_time_interval.total_seconds()
+        return bool(trainer.strategy.broadcast(due))
 
     def on_train_batch_end(
         self, trainer: pl.Trainer, pl_module: pl.LightningModule, outputs: Any, batch: Any, batch_idx: int
     ) -> None:
         self._phase = "train"
         super().on_train_batch_end(trainer, pl_module, outputs, batch, batch_idx)
-        n = self._every_n_train_steps
-        if n >= 1 and trainer.global_step % n == 0:
+        if self._refresh_due(trainer):
             self._ensure_last(trainer)
 
     def on_train_epoch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
