@@ -506,6 +506,21 @@ def test_the_gpu_profile_says_what_it_needs_before_any_work(tmp_path, capsys):
     assert profile_needs("gpu-short", [], cuda_available=True) == ""
 
 
+def test_the_gpu_profiles_are_those_whose_runs_train_on_a_gpu(tmp_path):
+    """``GPU_PROFILES`` (what ``profile_needs`` asks a CUDA GPU for) is exactly the set of profiles whose composed
+    Table III run trains with ``trainer.accelerator=gpu``."""
+    from tofdenoise.config import compose_config
+    from tofdenoise.experiments.reproduce import GPU_PROFILES, PROFILES
+    from tofdenoise.experiments.tables import table_specs
+
+    on_gpu = set()
+    for profile in PROFILES:
+        spec = table_specs("3", [0], profile_overrides(profile, tmp_path, []))[0]
+        if compose_config(list(spec.overrides)).trainer.accelerator == "gpu":
+            on_gpu.add(profile)
+    assert on_gpu == set(GPU_PROFILES) == {"gpu", "gpu-short"}
+
+
 def test_dry_run_names_the_executor_and_bad_executor_options_exit_2(tmp_path, capsys):
     out, results, page = tmp_path / "runs", tmp_path / "results", tmp_path / "results.md"
     argv = ["--table", "3", "--seeds", "0", "--out", str(out), "--results", str(results), "--page", str(page)]

@@ -46,6 +46,7 @@ from tofdenoise.reporting import find_runs, load_runs, render_html
 from tofdenoise.reporting.results_page import DYNRANGE_FIGURE, load_records, results_markdown
 
 __all__ = [
+    "GPU_PROFILES",
     "PROFILES",
     "REALSET_SIZES",
     "RECORD_FILES",
@@ -70,6 +71,8 @@ PROFILES: dict[str, tuple[str, ...]] = {
     # second sitting goes on from the first
     "gpu-short": ("experiment=paper_short", "logger=csv"),
 }
+#: the profiles whose experiment trains on a CUDA GPU (``trainer=gpu``; a test checks it against the composed configs)
+GPU_PROFILES = frozenset({"gpu", "gpu-short"})
 #: the stand-in real set of each profile: capture-set size (scenes, height, width)
 REALSET_SIZES: dict[str, tuple[int, int, int]] = {
     "cpu": (24, 128, 160),
@@ -108,7 +111,7 @@ def profile_needs(profile: str, extra: list[str], cuda_available: bool | None = 
     """What ``profile`` needs that is missing ("" when nothing): the GPU profiles train on a CUDA GPU
     (``experiment=paper`` sets ``trainer=gpu``); ``gpu`` on ToF-FlyingThings3D (``--extra
     data.source_kwargs.root=FOLDER``, an existing folder), ``gpu-short`` on the built-in procedural scenes."""
-    if profile not in ("gpu", "gpu-short"):
+    if profile not in GPU_PROFILES:
         return ""
     if profile == "gpu":
         roots = [e.split("=", 1)[1] for e in extra if e.lstrip("+").startswith("data.source_kwargs.root=")]

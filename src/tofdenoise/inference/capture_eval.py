@@ -46,7 +46,8 @@ def read_truth(scene: Path, shape: tuple[int, ...]) -> np.ndarray:
     try:
         truth = read_array(path, what="ground-truth depth").astype(np.float64)
     except (OSError, ValueError) as exc:
-        raise EvalInputError(f"{path}: {exc}") from exc
+        message = str(exc)
+        raise EvalInputError(message if str(path) in message else f"{path}: {message}") from exc
     if truth.shape != tuple(shape):
         raise EvalInputError(f"ground-truth depth file {path} has shape {truth.shape}; expected {tuple(shape)}")
     return truth
