@@ -13,7 +13,7 @@ import sys
 import time
 from pathlib import Path
 
-ORDER = ["physics", "metrics", "models", "scan_cpu", "onnx", "export_scan", "data", "training", "gpu"]
+ORDER = ["physics", "metrics", "models", "scan_cpu", "onnx", "export_scan", "data", "captures", "training", "gpu"]
 
 
 def main(argv: list[str]) -> int:

@@ -60,6 +60,14 @@ def test_simulate_captures_writes_the_documented_format(tmp_path, capsys):
     again = tmp_path / "again"
     run(simulate_args(again, scenes=1))
     np.testing.assert_array_equal(cv2.imread(str(again / "scene_0000" / "input_depth_mm.png"), -1), depth)
+    # --workers: the same scenes from two processes; a count below 1 exits 2 naming the option
+    parallel = tmp_path / "parallel"
+    assert run([*simulate_args(parallel, scenes=2), "--workers", 2]) == 0
+    assert "2 scene(s) written" in capsys.readouterr().out
+    for name in ("scene_0000", "scene_0001"):
+        assert (parallel / name / "input_depth_mm.png").read_bytes() == (out / name / "input_depth_mm.png").read_bytes()
+    assert run([*simulate_args(tmp_path / "bad", scenes=1), "--workers", 0]) == 2
+    assert "--workers must be an integer >= 1, got 0" in capsys.readouterr().err
 
 
 def test_build_reference_command(tmp_path, capsys):

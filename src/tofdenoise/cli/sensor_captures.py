@@ -45,6 +45,7 @@ def _simulate(args: argparse.Namespace) -> int:
         min_count=args.min_count,
         mixed_pixels=args.mixed_pixels,
         progress=progress,
+        workers=args.workers,
     )
     per_scene = summary.seconds / max(summary.scenes_written, 1)
     print(
@@ -158,6 +159,7 @@ def _realset(args: argparse.Namespace) -> int:
         mixed_pixels=args.mixed_pixels,
         force=args.force,
         log=lambda line: print(line, flush=True),
+        workers=args.workers,
     )
     print(
         f"stand-in real set ready: train with its calibration and test on its captures:\n"
@@ -187,6 +189,12 @@ def _build_reference(args: argparse.Namespace) -> int:
             )
     print(f"{len(scenes)} scene(s): {rebuilt} reference(s) rebuilt, {len(scenes) - rebuilt} up to date")
     return 0
+
+
+WORKERS_HELP = (
+    "scenes simulated at a time, each in its own process (default 1; e.g. the number of CPU cores). The files are "
+    "the same whatever the number"
+)
 
 
 def add_commands(subparsers) -> None:
@@ -221,6 +229,7 @@ def add_commands(subparsers) -> None:
         help="integrate S x S samples per pixel, so pixels at depth edges mix the returns of both "
         "surfaces (default 1: one surface per pixel)",
     )
+    sim.add_argument("--workers", type=int, default=1, help=WORKERS_HELP)
     sim.add_argument("--taps", action="store_true", help="also write raw tap stacks (.npy)")
     sim.add_argument("--force", action="store_true", help="rewrite scenes that are already complete")
     sim.add_argument("--quiet", action="store_true")
@@ -291,6 +300,7 @@ def add_commands(subparsers) -> None:
         metavar="S",
         help="samples per pixel side (default 3: mixed pixels at depth edges)",
     )
+    real.add_argument("--workers", type=int, default=1, help=WORKERS_HELP)
     real.add_argument(
         "--force",
         action="store_true",

@@ -18,13 +18,20 @@ flying pixel between them (in the input and in the high-exposure frames, as in a
 truth is the 1x render (the ray through the pixel centre). Frames are generated and written in chunks,
 one scene at a time, so memory does not grow with the number of frames or scenes; a scene whose ``scene.json``
 exists is complete and is skipped when the command is re-run (resume).
+
+``workers`` > 1 simulates that many scenes at a time, each in a process of its own (spawned, with the CPU's
+threads shared among them). Every scene draws its noise from its own generator (seed, scene index), so the files
+are the same, byte for byte, whatever the number of workers and the order in which scenes finish.
 """
 
 from __future__ import annotations
 
 import json
+import multiprocessing
+import os
 import time
 from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -207,6 +214,54 @@ def simulate_scene(
     return info
 
 
+def _scene_name(index: int, digits: int) -> str:
+    return f"scene_{index:0{digits}d}"
+
+
+def _scene_complete(scene_dir: Path, params: dict[str, Any]) -> bool:
+    """Whether ``scene_dir`` holds a finished scene (``scene.json``) of these settings: it is skipped (resume)."""
+    try:
+        info = json.loads((scene_dir / SCENE_DONE).read_text(encoding="utf-8"))
+    except (OSError, json.JSONDecodeError):
+        return False
+    return (
+        info.get("frames") == params["frames"]
+        and info.get("calibration_fingerprint") == params["calibration_fingerprint"]
+        and info.get("seed") == params["seed"]
+        and info.get("height") == params["height"]
+        and info.get("width") == params["width"]
+        and info.get("mixed_pixels", 1) == params["mixed_pixels"]
+    )
+
+
+def _simulate_one(job: tuple, index: int, source: ProceduralSource | None = None, threads: int | None = None) -> dict:
+    """One scene of ``simulate_capture_set`` (in this process, or in a worker: ``threads`` torch threads, the
+    scene source rebuilt from its settings)."""
+    out, digits, source_config, seed, calib, frames, hi_exposure, write_taps, min_count, mixed_pixels = job
+    if threads is not None:
+        torch.set_num_threads(threads)
+    if source is None:
+        source = ProceduralSource.from_config(source_config, SourceContext(seed=seed, calibration=calib))
+    scene_dir = Path(out) / _scene_name(index, digits)
+    try:
+        scene_dir.mkdir(parents=True, exist_ok=True)
+        return simulate_scene(
+            scene_dir,
+            source,
+            index,
+            calib,
+            frames,
+            hi_exposure,
+            seed,
+            write_taps=write_taps,
+            min_count=min_count,
+            mixed_pixels=mixed_pixels,
+        )
+    except Exception as exc:
+        exc.add_note(f"while simulating scene {scene_dir}")
+        raise
+
+
 def simulate_capture_set(
     out_dir: str | Path,
     scenes: int,
@@ -223,13 +278,17 @@ def simulate_capture_set(
     min_count: int | None = None,
     mixed_pixels: int = 1,
     progress: Callable[[int, int, dict], None] | None = None,
+    workers: int = 1,
 ) -> SimulationSummary:
     """Write ``scenes`` simulated scenes (``scene_0000`` ...) with ``frames`` high-exposure frames each;
-    ``mixed_pixels`` = s > 1 integrates s x s samples per pixel (mixed pixels at depth edges)."""
+    ``mixed_pixels`` = s > 1 integrates s x s samples per pixel (mixed pixels at depth edges); ``workers`` scenes
+    at a time (module docstring). ``progress(index, scenes, info)`` is called as each scene is written."""
     if scenes < 1 or frames < 1:
         raise ValueError(f"--scenes and --frames must be >= 1, got {scenes} and {frames}")
     if hi_exposure <= 0:
         raise ValueError(f"--hi-exposure must be > 0, got {hi_exposure}")
+    if int(workers) != workers or workers < 1:
+        raise ValueError(f"--workers must be an integer >= 1, got {workers}")
     if int(mixed_pixels) != mixed_pixels or mixed_pixels < 1:
         raise ValueError(f"--mixed-pixels must be an integer >= 1 (samples per pixel side), got {mixed_pixels}")
     mixed_pixels = int(mixed_pixels)
@@ -238,9 +297,8 @@ def simulate_capture_set(
     out.mkdir(parents=True, exist_ok=True)
     # the training scenes' source as the datamodule builds it (data.source_kwargs + the seed and this camera)
     settings = {"num_samples": scenes, "height": height, "width": width, "min_depth_mm": min_depth_mm}
-    source = ProceduralSource.from_config(
-        {**settings, "max_depth_fraction": max_depth_fraction}, SourceContext(seed=seed, calibration=calib)
-    )
+    source_config = {**settings, "max_depth_fraction": max_depth_fraction}
+    source = ProceduralSource.from_config(source_config, SourceContext(seed=seed, calibration=calib))
     params = {
         "scenes": scenes,
         "frames": frames,
@@ -265,40 +323,26 @@ def simulate_capture_set(
         ),
     )
     started = time.perf_counter()
-    written = skipped = 0
     digits = max(4, len(str(scenes - 1)))
-    for index in range(scenes):
-        scene_dir = out / f"scene_{index:0{digits}d}"
-        done = scene_dir / SCENE_DONE
-        if done.is_file() and not force:
-            try:
-                info = json.loads(done.read_text(encoding="utf-8"))
-            except (OSError, json.JSONDecodeError):
-                info = {}
-            if (
-                info.get("frames") == frames
-                and info.get("calibration_fingerprint") == calib.fingerprint()
-                and info.get("seed") == seed
-                and info.get("height") == height
-                and info.get("width") == width
-                and info.get("mixed_pixels", 1) == mixed_pixels
-            ):
-                skipped += 1
-                continue
-        scene_dir.mkdir(parents=True, exist_ok=True)
-        info = simulate_scene(
-            scene_dir,
-            source,
-            index,
-            calib,
-            frames,
-            hi_exposure,
-            seed,
-            write_taps=write_taps,
-            min_count=min_count,
-            mixed_pixels=mixed_pixels,
-        )
-        written += 1
-        if progress is not None:
-            progress(index, scenes, info)
+    todo = [index for index in range(scenes) if force or not _scene_complete(out / _scene_name(index, digits), params)]
+    skipped = scenes - len(todo)
+    job = (str(out), digits, source_config, seed, calib, frames, hi_exposure, write_taps, min_count, mixed_pixels)
+    workers = max(1, min(int(workers), len(todo)))
+    if workers == 1:
+        for index in todo:
+            info = _simulate_one(job, index, source=source)
+            if progress is not None:
+                progress(index, scenes, info)
+    else:
+        threads = max(1, (os.cpu_count() or 1) // workers)
+        pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"))
+        try:
+            futures = {pool.submit(_simulate_one, job, index, threads=threads): index for index in todo}
+            for future in as_completed(futures):
+                info = future.result()  # a worker's error is raised here, with a note naming its scene
+                if progress is not None:
+                    progress(futures[future], scenes, info)
+        finally:
+            pool.shutdown(wait=True, cancel_futures=True)
+    written = len(todo)
     return SimulationSummary(out, written, skipped, time.perf_counter() - started)

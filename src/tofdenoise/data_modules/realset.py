@@ -80,11 +80,13 @@ def build_realset(
     mixed_pixels: int = 3,
     force: bool = False,
     log: Callable[[str], None] = print,
+    workers: int = 1,
 ) -> RealsetSummary:
     """Steps a)-d) of the module docstring for ``camera`` (a preset name or a calibration file; default
     ``REALSET_CAMERA``) and the scene and noise ``seed`` (default ``REALSET_SEED``) into ``out``; each step is
-    announced through ``log`` before it runs. Errors: ``ValueError`` (a bad setting, an unknown camera),
-    ``OutputPathError`` (``out`` would replace the camera's file), ``CaptureFormatError``, ``WriteError``."""
+    announced through ``log`` before it runs; ``workers`` scenes of the capture set are simulated at a time
+    (``capture_simulation``: the same files whatever the number). Errors: ``ValueError`` (a bad setting, an unknown
+    camera), ``OutputPathError`` (``out`` would replace the camera's file), ``CaptureFormatError``, ``WriteError``."""
     camera = REALSET_CAMERA if camera is None else camera
     seed = REALSET_SEED if seed is None else seed
     out = Path(out).expanduser()
@@ -130,6 +132,7 @@ def build_realset(
         force=force,
         mixed_pixels=mixed_pixels,
         progress=progress,
+        workers=workers,
     )
     log(
         f"capture set in {capture_set.out_dir}: {capture_set.scenes_written} scene(s) written, "

@@ -22,6 +22,7 @@ the runs of their columns for the first seed when missing, then render the figur
 from __future__ import annotations
 
 import json
+import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -129,8 +130,8 @@ def profile_needs(profile: str, extra: list[str], cuda_available: bool | None = 
 
 
 def ensure_realset(realset_dir: Path, profile: str, dry_run: bool = False, log: Log = _print) -> None:
-    """The profile's stand-in real set (``REALSET_SIZES``); finished steps and complete scenes are skipped, so it is
-    cheap to repeat. A dry run only says what it would build."""
+    """The profile's stand-in real set (``REALSET_SIZES``), one scene per CPU core at a time; finished steps and
+    complete scenes are skipped, so it is cheap to repeat. A dry run only says what it would build."""
     scenes, height, width = REALSET_SIZES[profile]
     what = f"the stand-in real set (second camera): {realset_dir}, {scenes} scenes of {height} x {width}"
     if dry_run:
@@ -139,7 +140,7 @@ def ensure_realset(realset_dir: Path, profile: str, dry_run: bool = False, log: 
     from tofdenoise.data_modules.realset import build_realset  # heavy (torch): not for a dry run or the page
 
     log(f"[reproduce] {what}")
-    build_realset(realset_dir, scenes=scenes, height=height, width=width, log=log)
+    build_realset(realset_dir, scenes=scenes, height=height, width=width, log=log, workers=os.cpu_count() or 1)
 
 
 def write_truth_record(run_dir: Path, realset_dir: Path, device: str = "auto", log: Log = _print) -> bool:
