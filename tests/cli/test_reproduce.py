@@ -237,6 +237,37 @@ CPU_SCALE_DOWN = [
 ]
 
 
+def test_skip_recorded_runs_only_what_has_no_committed_record(tmp_path, monkeypatch, capsys):
+    """``--skip-recorded`` (a second sitting on a fresh machine) leaves out the runs whose metrics.json and
+    run_info.json are committed; a run with metrics.json only is run again; without the option every run of the
+    target runs. A figure needs its runs' checkpoints: the option is refused there (exit 2)."""
+    import tofdenoise.experiments.reproduce as workflow
+
+    out, results, page = tmp_path / "runs", tmp_path / "results", tmp_path / "results.md"
+    committed = {"dvss-fixed-l1-s0": ("metrics.json", "run_info.json"), "dvss-range-l1-s0": ("metrics.json",)}
+    for name, files in committed.items():
+        for file in files:
+            (results / "cpu" / name).mkdir(parents=True, exist_ok=True)
+            (results / "cpu" / name / file).write_text("{}")
+    asked = []
+
+    def fake_run_all(specs, out_dir, dry_run=False, after_each=None, executor=None):
+        asked.append([s.name for s in specs])
+        return []
+
+    monkeypatch.setattr(workflow, "ensure_realset", lambda *a, **k: None)
+    monkeypatch.setattr(workflow, "run_all", fake_run_all)
+    monkeypatch.setattr(workflow, "write_page", lambda *a, **k: "")
+    argv = ["--table", "3", "--seeds", "0", "--out", str(out), "--results", str(results), "--page", str(page)]
+    assert main([*argv, "--skip-recorded"]) == 0
+    assert main(argv) == 0
+    assert "dvss-fixed-l1-s0" not in asked[0] and "dvss-range-l1-s0" in asked[0] and len(asked[0]) == 6
+    assert len(asked[1]) == 7 and "dvss-fixed-l1-s0" in asked[1]
+    assert "--skip-recorded: 1 run(s) committed" in capsys.readouterr().out
+    assert main(["--figure", "7", "--skip-recorded", "--out", str(out), "--results", str(results)]) == 2
+    assert "--skip-recorded applies to --table and --study" in capsys.readouterr().err
+
+
 def test_a_finished_runs_record_gains_its_score_against_the_stand_ins_truth(tmp_path, monkeypatch, data_cache, tiny):
     """``reproduce`` scores each finished learned run against the simulated capture set's truth as it commits it:
     the committed ``real_vs_truth.json`` gives the run's own real-set numbers against the references (to 1e-9) and

@@ -8,6 +8,7 @@
     tofdenoise reproduce --page-only                                # rebuild docs/results.md from docs/results/
     tofdenoise reproduce --table 3 --executor local --workers 2     # two runs at a time on this machine
     tofdenoise reproduce --table 3 --profile gpu-short --seeds 0  # the paper's recipe on the procedural world, one GPU
+    tofdenoise reproduce --table 3 --profile gpu-short --seeds 0 --skip-recorded   # a fresh machine: the rest only
     tofdenoise reproduce --table 3 --profile gpu --executor slurm --slurm-partition gpu \
         --extra data.source_kwargs.root=...                          # a SLURM job array (docs/cluster.md)
 
@@ -68,6 +69,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--extra", nargs="*", default=[], help="extra Hydra overrides for every run (e.g. data.source_kwargs.root=...)"
     )
+    p.add_argument(
+        "--skip-recorded",
+        action="store_true",
+        help="do not run again a run whose records are committed in <results>/<profile>/ (for a machine without "
+        "its run folder: a second sitting on a fresh GPU machine); tables and studies only",
+    )
     p.add_argument("--dry-run", action="store_true", help="print what would run, run nothing")
     p.add_argument("--page-only", action="store_true", help="only rebuild the results page from the records")
     add_executor_arguments(p)
@@ -90,6 +97,12 @@ def main(argv: list[str] | None = None) -> int:
             f"{PROG}: error: give --table 1|2|3, --figure 6|7|8 or --study dynrange (or --page-only)", file=sys.stderr
         )
         return 2
+    if args.skip_recorded and (target is None or target.kind == "figure"):
+        print(
+            f"{PROG}: error: --skip-recorded applies to --table and --study (a figure needs its runs' checkpoints)",
+            file=sys.stderr,
+        )
+        return 2
     try:
         executor = executor_from_args(args)
     except (ValueError, RuntimeError) as exc:
@@ -104,6 +117,7 @@ def main(argv: list[str] | None = None) -> int:
         extra=args.extra,
         dry_run=args.dry_run,
         executor=executor,
+        skip_recorded=args.skip_recorded,
     )
     try:
         # the page is rebuilt from the discussion and the records: it may never replace one of them

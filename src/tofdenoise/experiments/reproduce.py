@@ -54,6 +54,7 @@ __all__ = [
     "Reproduction",
     "copy_records",
     "ensure_realset",
+    "without_recorded",
     "write_truth_record",
     "profile_needs",
     "profile_overrides",
@@ -183,6 +184,16 @@ def copy_records(run_dirs: list[Path], dest: Path) -> list[str]:
     return copied
 
 
+def without_recorded(specs: list[Any], dest: Path, log: Log = _print) -> list[Any]:
+    """``specs`` less the runs whose records (``metrics.json`` and ``run_info.json``) are committed in ``dest``: what
+    ``--skip-recorded`` runs on a machine that does not hold their run folders. The runs left out are logged."""
+    files = (METRICS_NAME, RUN_INFO_NAME)
+    recorded = [s.name for s in specs if all((dest / s.name / name).is_file() for name in files)]
+    if recorded:
+        log(f"[reproduce] --skip-recorded: {len(recorded)} run(s) committed in {dest}, not run: {', '.join(recorded)}")
+    return [s for s in specs if s.name not in recorded]
+
+
 def write_report(dest: Path) -> None:
     """The offline HTML report of the recorded runs (``dest/report.html``), when there are any."""
     if not any(dest.glob(f"*/{METRICS_NAME}")):
@@ -225,6 +236,7 @@ class Reproduction:
     extra: list[str] = field(default_factory=list)
     dry_run: bool = False
     executor: Any = None  # an executor of ``experiments.executors`` (None: sequential)
+    skip_recorded: bool = False  # leave out the runs whose records are committed in ``dest`` (tables, studies)
 
     @property
     def realset_dir(self) -> Path:
@@ -310,6 +322,8 @@ def reproduce(job: Reproduction, log: Log = _print) -> int:
             status = qualitative_figure(job, record, log)
         else:
             specs = table_specs(target.key, job.seeds, job.overrides())
+            if job.skip_recorded:
+                specs = without_recorded(specs, job.dest, log)
             outcomes = run_all(
                 specs, job.out, dry_run=job.dry_run, after_each=None if job.dry_run else record, executor=job.executor
             )
