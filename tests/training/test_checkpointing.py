@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from datetime import timedelta
+
 import lightning.pytorch as pl
 import pytest
 import torch
@@ -25,13 +27,25 @@ class ScriptedRestorer(DepthRestorer):
         self.log("val/mae_mm", self.scores[self.current_epoch])
 
 
-@pytest.mark.parametrize("every_n_train_steps", [None, 3, 100])
-def test_best_is_lowest_val_mae_and_last_is_last(tmp_path, tiny_data, every_n_train_steps):
+@pytest.mark.parametrize(
+    "refresh",
+    [
+        {},
+        {"every_n_train_steps": 3},
+        {"every_n_train_steps": 4},
+        {"every_n_train_steps": 100},
+        {"train_time_interval": timedelta(0)},
+    ],
+    ids=["per-validation", "step-mark-3", "step-mark-on-the-best-epoch", "step-mark-100", "every-step-by-time"],
+)
+def test_best_is_lowest_val_mae_and_last_is_last(tmp_path, tiny_data, refresh):
     """Whatever refreshes last.ckpt: with a step mark (3: at steps 3 and 6, between validations) Lightning's own
-    trigger would have stored step 3's weights under epoch 1's score as "best", and with a mark beyond the run
-    (100: experiment=paper's 500 on a 450-step run) no best.ckpt at all."""
+    trigger would have stored step 3's weights under epoch 1's score as "best", with a mark beyond the run
+    (100: experiment=paper's 500 on a 450-step run) no best.ckpt at all. A refresh at the last step of an epoch (4:
+    the best epoch's; a time interval that has always passed: every epoch's) must not keep that epoch's validation
+    from choosing best.ckpt."""
     model = ScriptedRestorer(backbone="unet", backbone_kwargs={"width": 4, "stages": 2}, loss="l1")
-    ckpt = BestAndLastCheckpoint(dirpath=tmp_path / "checkpoints", every_n_train_steps=every_n_train_steps)
+    ckpt = BestAndLastCheckpoint(dirpath=tmp_path / "checkpoints", **refresh)
     trainer = pl.Trainer(
         default_root_dir=tmp_path,
         max_epochs=len(SCORES),

@@ -128,7 +128,11 @@ class BestAndLastCheckpoint(ModelCheckpoint):
 
     def _ensure_last(self, trainer: pl.Trainer) -> None:
         if self.save_last and self._may_save(trainer) and self._last_saved_marker != (self._phase, trainer.global_step):
+            # Lightning skips every save at a step that has one already (``_last_global_step_saved``): a refresh of
+            # last.ckpt at an epoch's last step would then stop that epoch's validation from choosing best.ckpt
+            saved_step = self._last_global_step_saved
             self._save_last_checkpoint(trainer, self._monitor_candidates(trainer))
+            self._last_global_step_saved = saved_step
             self._last_refresh_time = time.monotonic()
 
     def _refresh_due(self, trainer: pl.Trainer) -> bool:
