@@ -42,7 +42,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from tofdenoise.records import run_finished
+from tofdenoise.records import LAST_CHECKPOINT, run_finished
 from tofdenoise.run_lock import LOCK_NAME
 
 from .runner import LOG_NAME, PendingRun, RunOutcome, RunSpec, _tail, run_one
@@ -108,7 +108,7 @@ class LocalExecutor:
         def work(job: PendingRun) -> RunOutcome | None:
             if stop.is_set():
                 return None
-            started(job, "resuming" if (job.run_dir / "checkpoints" / "last.ckpt").is_file() else "running")
+            started(job, "resuming" if (job.run_dir / LAST_CHECKPOINT).is_file() else "running")
             return run_one(job.spec, job.run_dir, python, env, on_start=keep)
 
         pool = ThreadPoolExecutor(max_workers=self.workers, thread_name_prefix="tofdenoise-run")

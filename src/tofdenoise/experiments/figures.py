@@ -32,6 +32,7 @@ import numpy as np
 from PIL import Image
 
 from tofdenoise.config import compose_config
+from tofdenoise.records import BEST_CHECKPOINT
 
 from .runner import RunSpec
 from .tables import Row, row_spec, table_rows
@@ -267,7 +268,7 @@ def build_figure(
         raise ValueError(f"{spec.key}: the runs' data has no {spec.test_set} test set (set data.real_dir)")
     dataset = datamodule.datasets[key]
     dev = resolve_device(device)
-    models = {label: load_restorer(d / "checkpoints" / "best.ckpt", dev) for label, d in run_dirs.items()}
+    models = {label: load_restorer(d / BEST_CHECKPOINT, dev) for label, d in run_dirs.items()}
     bf16 = dev.type == "cuda" and "bf16" in str(cfg.trainer.get("precision", ""))
     with torch.autocast("cuda", dtype=torch.bfloat16) if bf16 else nullcontext():
         image, record = render_figure(spec, models, dataset, pick_indices(len(dataset), spec.scenes))

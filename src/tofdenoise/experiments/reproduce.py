@@ -42,9 +42,9 @@ from tofdenoise.experiments.figures import (
 from tofdenoise.experiments.runner import run_all
 from tofdenoise.experiments.tables import table_specs
 from tofdenoise.experiments.targets import Target
-from tofdenoise.records import METRICS_NAME, PER_IMAGE_DIR, RUN_INFO_NAME, TRUTH_NAME, run_finished
+from tofdenoise.records import BEST_CHECKPOINT, METRICS_NAME, PER_IMAGE_DIR, RUN_INFO_NAME, TRUTH_NAME, run_finished
 from tofdenoise.reporting import find_runs, load_runs, render_html
-from tofdenoise.reporting.results_page import DYNRANGE_FIGURE, load_records, results_markdown
+from tofdenoise.reporting.results_page import DYNRANGE_FIGURE, RUN_FILES, load_records, results_markdown
 
 __all__ = [
     "GPU_PROFILES",
@@ -152,7 +152,7 @@ def write_truth_record(run_dir: Path, realset_dir: Path, device: str = "auto", l
     a capture set without truth (a real camera's), or when the record is newer than the checkpoint (a repeated
     ``reproduce`` skips it). A checkpoint or capture set that cannot be scored is logged with its reason and
     leaves no file: the run's other records are still committed, its truth columns stay empty."""
-    ckpt, captures = run_dir / "checkpoints" / "best.ckpt", realset_dir / "captures"
+    ckpt, captures = run_dir / BEST_CHECKPOINT, realset_dir / "captures"
     out = run_dir / TRUTH_NAME
     if not (run_finished(run_dir) and ckpt.is_file()):
         return False
@@ -187,8 +187,7 @@ def copy_records(run_dirs: list[Path], dest: Path) -> list[str]:
 def without_recorded(specs: list[Any], dest: Path, log: Log = _print) -> list[Any]:
     """``specs`` less the runs whose records (``metrics.json`` and ``run_info.json``) are committed in ``dest``: what
     ``--skip-recorded`` runs on a machine that does not hold their run folders. The runs left out are logged."""
-    files = (METRICS_NAME, RUN_INFO_NAME)
-    recorded = [s.name for s in specs if all((dest / s.name / name).is_file() for name in files)]
+    recorded = [s.name for s in specs if all((dest / s.name / name).is_file() for name in RUN_FILES)]
     if recorded:
         log(f"[reproduce] --skip-recorded: {len(recorded)} run(s) committed in {dest}, not run: {', '.join(recorded)}")
     return [s for s in specs if s.name not in recorded]

@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any
 
 # the one rule of a finished run, shared with the training job (tofdenoise.experiments.train_job)
-from tofdenoise.records import run_finished
+from tofdenoise.records import LAST_CHECKPOINT, run_finished
 
 __all__ = [
     "RunSpec",
@@ -103,7 +103,7 @@ class PendingRun:
 def run_command(spec: RunSpec, run_dir: Path, python: str | None = None) -> tuple[list[str], bool]:
     """The command that trains ``spec`` in ``run_dir`` and whether it resumes (``checkpoints/last.ckpt`` exists
     now: decided when the run starts, so a run requeued after a preemption resumes)."""
-    resume = (run_dir / "checkpoints" / "last.ckpt").is_file()
+    resume = (run_dir / LAST_CHECKPOINT).is_file()
     cmd = [python or sys.executable, "-m", ENTRY_MODULES[spec.entry], *spec.overrides, f"paths.run_dir={run_dir}"]
     if resume:
         cmd.append("ckpt_path=last")

@@ -45,7 +45,7 @@ from tofdenoise.config import ConfigError, instantiate_node
 from tofdenoise.models.registry import BACKBONES, is_trainable
 from tofdenoise.output_guard import refuse_overwrite
 from tofdenoise.physics.noise_models import NOISE_MODELS
-from tofdenoise.records import METRICS_NAME, RUN_INFO_NAME, read_metrics_json, read_run, run_finished
+from tofdenoise.records import BEST_CHECKPOINT, METRICS_NAME, RUN_INFO_NAME, read_metrics_json, read_run, run_finished
 from tofdenoise.registry import Registry
 from tofdenoise.run_lock import RunLock
 from tofdenoise.training.checkpoint_file import check_checkpoint_file, resolve_ckpt_path
@@ -428,7 +428,7 @@ def _test_checkpoint(cfg: DictConfig, trainer: Any, run_dir: Path) -> str | None
     given = cfg.get("ckpt_path")
     if given not in (None, "", "last"):
         return str(check_checkpoint_file(resolve_ckpt_path(given, run_dir)))
-    best = run_dir / "checkpoints" / "best.ckpt"
+    best = run_dir / BEST_CHECKPOINT
     if not best.is_file():
         raise FileNotFoundError(
             f"train=false: no checkpoint to test; {best} does not exist (set ckpt_path=/path/to/model.ckpt)"

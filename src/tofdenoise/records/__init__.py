@@ -31,6 +31,8 @@ from tofdenoise.records.metrics_json import (
 )
 from tofdenoise.records.per_image import read_per_image_csv, write_per_image_csv
 from tofdenoise.records.run_folder import (
+    BEST_CHECKPOINT,
+    LAST_CHECKPOINT,
     METRICS_NAME,
     PER_IMAGE_DIR,
     RUN_INFO_NAME,
@@ -46,9 +48,11 @@ from tofdenoise.records.run_folder import (
 from tofdenoise.records.verdict import DEFAULT_LEARNED_MARGIN, classical_verdict, learned_status, learned_verdict
 
 __all__ = [
+    "BEST_CHECKPOINT",
     "CSV_COLUMNS",
     "DEFAULT_LEARNED_MARGIN",
     "EXTRA_KEYS",
+    "LAST_CHECKPOINT",
     "METHOD_KINDS",
     "METRICS_NAME",
     "METRIC_KEYS",

@@ -16,6 +16,8 @@ from tofdenoise.atomic import atomic_write_text
 from tofdenoise.records.metrics_json import read_metrics_json
 
 __all__ = [
+    "BEST_CHECKPOINT",
+    "LAST_CHECKPOINT",
     "METRICS_NAME",
     "PER_IMAGE_DIR",
     "RUN_INFO_NAME",
@@ -35,6 +37,10 @@ __all__ = [
 METRICS_NAME = "metrics.json"
 RUN_INFO_NAME = "run_info.json"
 PER_IMAGE_DIR = "per_image"
+#: where a Hydra run's checkpoint callback (``callbacks.checkpointing.BestAndLastCheckpoint``, ``paths.checkpoint_dir``
+#: = ``<run_dir>/checkpoints``) writes the lowest-validation-MAE and the newest checkpoint, relative to the run folder
+BEST_CHECKPOINT = "checkpoints/best.ckpt"
+LAST_CHECKPOINT = "checkpoints/last.ckpt"
 #: a run's real-set predictions scored against a simulated capture set's rendered truth, when the set has one
 #: (``tofdenoise.inference.capture_eval.evaluate_checkpoint``'s JSON; written by ``tofdenoise reproduce`` for each
 #: finished run, or by hand with ``tofdenoise evaluate --ckpt``): the results page's ``truth_`` columns

@@ -19,6 +19,8 @@ import os
 import zipfile
 from pathlib import Path
 
+from tofdenoise.records import LAST_CHECKPOINT
+
 __all__ = ["CheckpointFileError", "check_checkpoint_file", "resolve_ckpt_path"]
 
 log = logging.getLogger("tofdenoise.train")
@@ -82,7 +84,7 @@ def resolve_ckpt_path(ckpt_path: str | None, run_dir: Path) -> str | None:
     if ckpt_path in (None, "", "null"):
         return None
     if ckpt_path == "last":
-        last = run_dir / "checkpoints" / "last.ckpt"
+        last = run_dir / LAST_CHECKPOINT
         if last.is_file():
             log.info("resuming from %s", last)
             return str(last)
