@@ -33,6 +33,7 @@ import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -234,10 +235,24 @@ def _scene_complete(scene_dir: Path, params: dict[str, Any]) -> bool:
     )
 
 
-def _simulate_one(job: tuple, index: int, source: ProceduralSource | None = None, threads: int | None = None) -> dict:
-    """One scene of ``simulate_capture_set`` (in this process, or in a worker: ``threads`` torch threads, the
-    scene source rebuilt from its settings)."""
-    out, digits, source_config, seed, calib, frames, hi_exposure, write_taps, min_count, mixed_pixels = job
+def _simulate_one(
+    index: int,
+    *,
+    out: str,
+    digits: int,
+    source_config: dict[str, Any],
+    seed: int,
+    calib: Any,
+    frames: int,
+    hi_exposure: float,
+    write_taps: bool,
+    min_count: int | None,
+    mixed_pixels: int,
+    source: ProceduralSource | None = None,
+    threads: int | None = None,
+) -> dict:
+    """Scene ``index`` of ``simulate_capture_set`` (in this process, or in a worker: ``threads`` torch threads, the
+    scene source rebuilt from ``source_config``)."""
     if threads is not None:
         torch.set_num_threads(threads)
     if source is None:
@@ -326,18 +341,30 @@ def simulate_capture_set(
     digits = max(4, len(str(scenes - 1)))
     todo = [index for index in range(scenes) if force or not _scene_complete(out / _scene_name(index, digits), params)]
     skipped = scenes - len(todo)
-    job = (str(out), digits, source_config, seed, calib, frames, hi_exposure, write_taps, min_count, mixed_pixels)
+    simulate = partial(
+        _simulate_one,
+        out=str(out),
+        digits=digits,
+        source_config=source_config,
+        seed=seed,
+        calib=calib,
+        frames=frames,
+        hi_exposure=hi_exposure,
+        write_taps=write_taps,
+        min_count=min_count,
+        mixed_pixels=mixed_pixels,
+    )
     workers = max(1, min(int(workers), len(todo)))
     if workers == 1:
         for index in todo:
-            info = _simulate_one(job, index, source=source)
+            info = simulate(index, source=source)
             if progress is not None:
                 progress(index, scenes, info)
     else:
         threads = max(1, (os.cpu_count() or 1) // workers)
         pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"))
         try:
-            futures = {pool.submit(_simulate_one, job, index, threads=threads): index for index in todo}
+            futures = {pool.submit(simulate, index, threads=threads): index for index in todo}
             for future in as_completed(futures):
                 info = future.result()  # a worker's error is raised here, with a note naming its scene
                 if progress is not None:
