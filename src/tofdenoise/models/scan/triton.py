@@ -40,6 +40,11 @@ __all__ = [
     "selective_scan_triton",
     "ss2d_scan_triton",
     "interpreting",
+    "ckpt_shape",
+    "scan_forward",
+    "scan_backward",
+    "ss2d_forward",
+    "ss2d_backward",
 ]
 
 #: positions per chunk (one associative scan over a (BLOCK_D, N, CHUNK) tile; a state checkpoint per chunk)
@@ -579,32 +584,57 @@ def _opt_grad(grad: torch.Tensor, like: torch.Tensor | None) -> torch.Tensor | N
     return None if like is None else grad.to(like.dtype)
 
 
+def ckpt_shape(batch: int, dim: int, length: int, n: int) -> tuple[int, int, int, int]:
+    """Shape of the float32 state checkpoints the forward saves for the backward: (batch, dim, chunks, states
+    padded to a power of two); ``dim`` is 4 d for the SS2D route."""
+    return (batch, dim, -(-length // CHUNK), 1 << max(n - 1, 0).bit_length())
+
+
+def _plain_layout(u, delta, A, B):
+    batch, dim, length = u.shape
+    su = u.stride()  # y and du: u's layout, no group offset
+    out = (su[0], 0, su[1], su[2])
+    return _Layout(batch, dim, B.shape[1], A.shape[1], length, su, delta.stride(), B.stride(), out, B.stride())
+
+
+def scan_forward(u, delta, A, B, C, D, bias, softplus: bool):
+    """The plain route's forward on prepared tensors (u, delta (b, dim, L) contiguous in their float dtype; A
+    float32 (dim, N); B / C (b, G, N, L) contiguous; D / bias float32 (dim,) or None): ``(y, ckpt)``, y in u's
+    dtype, ckpt float32 of :func:`ckpt_shape`."""
+    y = torch.empty(u.shape, device=u.device, dtype=u.dtype)
+    ckpt = _scan_forward(_plain_layout(u, delta, A, B), u, delta, A, B, C, D, bias, softplus, y)
+    return y, ckpt
+
+
+def scan_backward(u, delta, A, B, C, D, bias, softplus: bool, ckpt, dy):
+    """The plain route's backward: ``(du, ddelta, dA, dB, dC, dD, dbias)`` with du / ddelta / dB / dC in the dtypes
+    of u / delta / B / C, dA float32, dD / dbias float32 or None (when D / bias is None)."""
+    layout = _plain_layout(u, delta, A, B)
+    dy = dy.contiguous()
+    du = torch.empty_like(u)
+    dB = torch.zeros(B.shape, device=B.device, dtype=torch.float32)  # atomics accumulate in float32
+    dC = torch.zeros(C.shape, device=C.device, dtype=torch.float32)
+    saved = (u, delta, A, B, C, D, bias, ckpt)
+    ddelta, dA, dD, dbias = _scan_backward(layout, saved, softplus, dy, dy.stride(), du, dB, dC)
+    return du, ddelta, dA, dB.to(B.dtype), dC.to(C.dtype), _opt_grad(dD, D), _opt_grad(dbias, bias)
+
+
 class _TritonScanFn(torch.autograd.Function):
     """u, delta, B, C in their own float dtype (bf16 under autocast: no conversion copies), A / D / delta_bias
     float32; bias, softplus and the D skip term are applied inside the kernels. Computation in float32."""
 
     @staticmethod
     def forward(ctx, u, delta, A, B, C, D, delta_bias, delta_softplus):
-        batch, dim, length = u.shape
-        groups, n = B.shape[1], A.shape[1]
-        y = torch.empty(u.shape, device=u.device, dtype=u.dtype)
-        su = u.stride()  # y and du: u's layout, no group offset
-        out = (su[0], 0, su[1], su[2])
-        layout = _Layout(batch, dim, groups, n, length, su, delta.stride(), B.stride(), out, B.stride())
-        ckpt = _scan_forward(layout, u, delta, A, B, C, D, delta_bias, delta_softplus, y)
+        y, ckpt = scan_forward(u, delta, A, B, C, D, delta_bias, bool(delta_softplus))
         ctx.save_for_backward(u, delta, A, B, C, D, delta_bias, ckpt)
-        ctx.layout, ctx.softplus = layout, bool(delta_softplus)
+        ctx.softplus = bool(delta_softplus)
         return y
 
     @staticmethod
     def backward(ctx, dy):
-        u, _, _, B, C, D, delta_bias, _ = saved = ctx.saved_tensors
-        dy = dy.contiguous()
-        du = torch.empty_like(u)
-        dB = torch.zeros(B.shape, device=B.device, dtype=torch.float32)  # atomics accumulate in float32
-        dC = torch.zeros(C.shape, device=C.device, dtype=torch.float32)
-        ddelta, dA, dD, dbias = _scan_backward(ctx.layout, saved, ctx.softplus, dy, dy.stride(), du, dB, dC)
-        return du, ddelta, dA, dB.to(B.dtype), dC.to(C.dtype), _opt_grad(dD, D), _opt_grad(dbias, delta_bias), None
+        u, delta, A, B, C, D, bias, ckpt = ctx.saved_tensors
+        grads = scan_backward(u, delta, A, B, C, D, bias, ctx.softplus, ckpt, dy)
+        return (*grads, None)
 
 
 def selective_scan_triton(u, delta, A, B, C, D=None, delta_bias=None, delta_softplus=False) -> torch.Tensor:
@@ -627,57 +657,75 @@ def selective_scan_triton(u, delta, A, B, C, D=None, delta_bias=None, delta_soft
     )
 
 
+def _ss2d_layout(x, delta, A, B, out_strides, height, width):
+    batch, length, di = x.shape
+    n = A.shape[1]
+    return _Layout(
+        batch,
+        4 * di,
+        4,
+        n,
+        length,
+        _channels_last_strides(x),
+        _channels_last_strides(delta),
+        _channels_last_strides(B),
+        out_strides,
+        (length * 8 * n, 2 * n, 1, 8 * n),  # dB / dC: halves of a contiguous (b, L, 4, 2N) buffer
+        height,
+        width,
+    )
+
+
+def ss2d_forward(x, delta, A, B, C, D, bias, height: int, width: int):
+    """The SS2D route's forward on prepared tensors (see :func:`ss2d_scan_triton`: x (b, L, d) and delta
+    (b, L, 4 d) contiguous in their float dtype, A float32 (4 d, N), B / C (b, L, 4, N) with equal strides, D / bias
+    float32 (4 d,) or None): ``(y, ckpt)``, y (b, L, d) in x's dtype, ckpt float32 of :func:`ckpt_shape`."""
+    batch, length, di = x.shape
+    y4 = torch.empty(batch, 4, length, di, device=x.device, dtype=torch.float32)
+    s = y4.stride()
+    layout = _ss2d_layout(x, delta, A, B, (s[0], s[1], s[3], s[2]), height, width)
+    ckpt = _scan_forward(layout, x, delta, A, B, C, D, bias, True, y4)
+    return y4.sum(dim=1).to(x.dtype), ckpt
+
+
+def ss2d_backward(x, delta, A, B, C, D, bias, ckpt, dy, height: int, width: int):
+    """The SS2D route's backward: ``(dx, ddelta, dA, dB, dC, dD, dbias)``; dx / ddelta / dB / dC in the dtypes of
+    x / delta / B / C, dA float32, dD / dbias float32 or None (when D / bias is None)."""
+    batch, length, di = x.shape
+    n = B.shape[-1]
+    du4 = torch.empty(batch, 4, length, di, device=x.device, dtype=torch.float32)
+    s = du4.stride()
+    layout = _ss2d_layout(x, delta, A, B, (s[0], s[1], s[3], s[2]), height, width)
+    dBC = torch.zeros(batch, length, 4, 2 * n, device=x.device, dtype=torch.float32)
+    dB, dC = dBC[..., :n], dBC[..., n:]
+    saved = (x, delta, A, B, C, D, bias, ckpt)
+    ddelta, dA, dD, dbias = _scan_backward(layout, saved, True, dy, _channels_last_strides(dy), du4, dB, dC)
+    return (
+        du4.sum(dim=1).to(x.dtype),
+        ddelta,
+        dA,
+        dB.to(B.dtype),
+        dC.to(C.dtype),
+        _opt_grad(dD, D),
+        _opt_grad(dbias, bias),
+    )
+
+
 class _TritonSS2DFn(torch.autograd.Function):
-    """The four-direction SS2D scan on channels-last tensors read in place (see :func:`ss2d_scan_triton`).
-    The four directions' outputs (and u-gradients) land in a float32 (b, 4, L, d) buffer at their memory
-    positions and are summed in a fixed order (deterministic, no atomics); dB / dC are accumulated in a float32
-    (b, L, 4, 2N) buffer with atomics over the channel blocks."""
+    """The four-direction SS2D scan on channels-last tensors read in place (see :func:`ss2d_scan_triton`)."""
 
     @staticmethod
     def forward(ctx, x, delta, A, B, C, D, bias, height, width):
-        batch, length, di = x.shape
-        n = A.shape[1]
-        y4 = torch.empty(batch, 4, length, di, device=x.device, dtype=torch.float32)
-        s = y4.stride()
-        layout = _Layout(
-            batch,
-            4 * di,
-            4,
-            n,
-            length,
-            _channels_last_strides(x),
-            _channels_last_strides(delta),
-            _channels_last_strides(B),
-            (s[0], s[1], s[3], s[2]),
-            (length * 8 * n, 2 * n, 1, 8 * n),  # dB / dC: halves of a contiguous (b, L, 4, 2N) buffer
-            height,
-            width,
-        )
-        ckpt = _scan_forward(layout, x, delta, A, B, C, D, bias, True, y4)
+        y, ckpt = ss2d_forward(x, delta, A, B, C, D, bias, height, width)
         ctx.save_for_backward(x, delta, A, B, C, D, bias, ckpt)
-        ctx.layout = layout
-        return y4.sum(dim=1).to(x.dtype)
+        ctx.hw = (height, width)
+        return y
 
     @staticmethod
     def backward(ctx, dy):
-        x, _, _, B, C, D, bias, _ = saved = ctx.saved_tensors
-        batch, length, di = x.shape
-        n = B.shape[-1]
-        du4 = torch.empty(batch, 4, length, di, device=x.device, dtype=torch.float32)
-        dBC = torch.zeros(batch, length, 4, 2 * n, device=x.device, dtype=torch.float32)
-        dB, dC = dBC[..., :n], dBC[..., n:]
-        ddelta, dA, dD, dbias = _scan_backward(ctx.layout, saved, True, dy, _channels_last_strides(dy), du4, dB, dC)
-        return (
-            du4.sum(dim=1).to(x.dtype),
-            ddelta,
-            dA,
-            dB.to(B.dtype),
-            dC.to(C.dtype),
-            _opt_grad(dD, D),
-            _opt_grad(dbias, bias),
-            None,
-            None,
-        )
+        x, delta, A, B, C, D, bias, ckpt = ctx.saved_tensors
+        grads = ss2d_backward(x, delta, A, B, C, D, bias, ckpt, dy, *ctx.hw)
+        return (*grads, None, None)
 
 
 def ss2d_scan_triton(x, delta, A, B, C, D, delta_bias, height: int, width: int) -> torch.Tensor:
