@@ -64,7 +64,7 @@ def _ptxas_report(ptx: str, arch: int) -> tuple[int, int, int]:
 
 
 def resources(st, route: str, dtype: str, warps: int, block_d: int, arch: int = 90, d_state: int = 16) -> list[dict]:
-    """Compile the forward and backward kernels of module ``st`` (``tofdenoise.models.scan.triton``, imported
+    """Compile the forward and backward kernels (each segment pass and main pass) of module ``st`` (``tofdenoise.models.scan.triton``, imported
     without the interpreter) for one setting; one row per kernel with the ptxas figures."""
     consts = dict(
         CHUNK_T=st.CHUNK,
@@ -76,8 +76,15 @@ def resources(st, route: str, dtype: str, warps: int, block_d: int, arch: int = 
         SS2D=route == "SS2D",
     )
     rows = []
-    for name, kernel in (("fwd", st.fwd_kernel), ("bwd", st.bwd_kernel)):
-        compiled = _compile(kernel, dtype, consts, arch, warps)
+    kernels = (
+        ("seg_fwd", st.seg_fwd_kernel),
+        ("fwd", st.fwd_kernel),
+        ("seg_bwd", st.seg_bwd_kernel),
+        ("bwd", st.bwd_kernel),
+    )
+    for name, kernel in kernels:
+        kconsts = {k: v for k, v in consts.items() if k in kernel.arg_names}
+        compiled = _compile(kernel, dtype, kconsts, arch, warps)
         regs, spill_st, spill_ld = _ptxas_report(compiled.asm["ptx"], arch)
         rows.append(
             {

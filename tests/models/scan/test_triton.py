@@ -109,6 +109,60 @@ def test_ss2d_route_reads_the_four_directions_in_place(h, w, di, n, use_d_bias):
 
 
 @needs_kernels
+@pytest.mark.parametrize("segment_chunks", [1, 2, 3, 100])
+def test_ss2d_route_split_into_segments_equals_the_reference(monkeypatch, segment_chunks):
+    """The sequence split into segments of 1, 2 or 3 chunks run side by side (a first pass for each segment's end
+    state and adjoint, the carry over the segments, a second pass from the true entry values), and unsplit: every
+    split gives the reference's output and gradients (slow decays, so that what crosses a segment boundary counts). 9 x 13 = 117 positions: 4 chunks, the last one partial; the
+    column-major directions cross the rows inside a chunk."""
+    monkeypatch.setattr(st, "SEGMENT_CHUNKS", segment_chunks)
+    h, w, di, n = 9, 13, 4, 5
+    x, delta, A, x_dbl, D, bias = _ss2d_inputs(1, h, w, di, n, seed=2)
+    A = 0.01 * A  # slow decays: a state (and an adjoint) lives on across several segments
+    y, grads = _ss2d_grads(st.ss2d_scan_triton, x, delta, A, x_dbl, D, bias, h, w, n)
+    y_ref, grads_ref = _ss2d_grads(ss2d_scan_reference, x, delta, A, x_dbl, D, bias, h, w, n)
+    assert _rel(y.detach(), y_ref.detach()) < 1e-5
+    for name, a, b in zip(["x", "delta", "A", "x_dbl", "D", "delta_bias"], grads, grads_ref):
+        assert _rel(a, b) < 1e-4, name
+
+
+@needs_kernels
+@pytest.mark.parametrize("segment_chunks", [1, 3])
+def test_plain_route_split_into_segments_equals_the_chunked_scan(monkeypatch, segment_chunks):
+    """The plain route with 7 chunks (the last partial) in segments of 1 and 3 chunks."""
+    monkeypatch.setattr(st, "SEGMENT_CHUNKS", segment_chunks)
+    u, delta, A, B, C, D, bias = (t.detach() for t in _inputs(1, 4, 200, 2, 4))
+    A = 0.01 * A  # slow decays: a state (and an adjoint) lives on across several segments
+    weight = torch.linspace(-1.0, 1.0, u.numel()).view_as(u)
+
+    def run(fn):
+        return _grads(lambda *t: fn(*t, True), [u, delta, A, B, C, D, bias], weight)
+
+    y, grads = run(st.selective_scan_triton)
+    y_ref, grads_ref = run(selective_scan_chunked)
+    assert _rel(y.detach(), y_ref.detach()) < 1e-5
+    for i, (a, b) in enumerate(zip(grads, grads_ref)):
+        assert _rel(a, b) < 1e-4, i
+
+
+def test_segment_split_fills_the_gpu_and_keeps_segments_long():
+    """The automatic split: about SEGMENT_PROGRAMS_PER_SM programs per multiprocessor, no segment under
+    MIN_SEGMENT_CHUNKS chunks, one segment when the channels alone fill the GPU; the override wins."""
+    from unittest import mock
+
+    with mock.patch.object(st, "_multiprocessors", return_value=132), mock.patch.object(st, "SEGMENT_CHUNKS", None):
+        cuda = torch.device("cuda", 0)
+        # DVSS level 0 at 320 x 320, batch 4: 4 x 256 / 4 = 256 programs, 3200 chunks -> 5 segments of 640 chunks
+        assert st.segment_chunks(3200, 256, cuda) == 640
+        assert st.segment_chunks(3200, 8 * 132, cuda) == 3200  # filled already: one segment
+        assert st.segment_chunks(10, 1, cuda) == st.MIN_SEGMENT_CHUNKS  # short: segments of the minimum
+        assert st.segment_chunks(2, 1, cuda) == 2
+    with mock.patch.object(st, "SEGMENT_CHUNKS", 3):
+        assert st.segment_chunks(10, 1, torch.device("cuda", 0)) == 3
+        assert st.segment_chunks(2, 1, torch.device("cuda", 0)) == 2
+
+
+@needs_kernels
 def test_ss2d_route_reads_bf16_inputs_as_they_are():
     """bf16 x, delta, B, C (SS2D under autocast) are read without conversion copies; the result (bf16) equals
     the float32 reference of the same bf16-rounded values up to bf16 rounding, gradients come back in bf16."""
@@ -206,12 +260,8 @@ def test_kernels_compile_for_the_h100_without_spills():
     out = subprocess.run([sys.executable, "-c", code], cwd=root, env=env, capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
     rows = json.loads(out.stdout.strip().splitlines()[-1])
-    assert [(r["route"], r["kernel"]) for r in rows] == [
-        ("SS2D", "fwd"),
-        ("SS2D", "bwd"),
-        ("plain", "fwd"),
-        ("plain", "bwd"),
-    ]
+    kernels = ["seg_fwd", "fwd", "seg_bwd", "bwd"]
+    assert [(r["route"], r["kernel"]) for r in rows] == [("SS2D", k) for k in kernels] + [("plain", k) for k in kernels]
     for r in rows:
         assert 0 < r["registers"] <= 255, r
         assert r["spill_store_bytes"] == 0 and r["spill_load_bytes"] == 0, r

@@ -4,16 +4,26 @@
 :func:`triton_verified` has passed, with the pure-PyTorch chunked scan as the fallback.
 
 Triton kernels (same recurrence as ``reference.py``: h_t = exp(delta_t A) h_{t-1} + delta_t u_t B_t,
-y_t = C_t . h_t + D u_t, with delta_t = softplus(delta_raw_t + delta_bias) computed inside the kernels):
-- one program per (batch, block of BLOCK_D channels of one group) walks the sequence in chunks of CHUNK
-  positions; each chunk is loaded as coalesced (BLOCK_D, CHUNK) / (N, CHUNK) tiles and its states are one
-  ``tl.associative_scan`` of the affine maps h -> a h + b over a (BLOCK_D, N, CHUNK) tile, continued from the
-  state carried in from the previous chunk. The forward writes y and the state entering every chunk
-  (memory L * dim * N / CHUNK);
-- the backward walks the chunks in reverse: it recomputes the chunk's states from its checkpoint, gets the
-  adjoint g_t = dy_t C_t + a_{t+1} g_{t+1} by a reverse associative scan seeded with the next chunk's adjoint,
-  and uses a_t h_{t-1} = h_t - b_t, so no shifted state is needed. dB and dC (shared by the channels of a
-  group) are accumulated with atomic adds; dA is summed over the batch with atomic adds.
+y_t = C_t . h_t + D u_t, with delta_t = softplus(delta_raw_t + delta_bias) computed inside the kernels; the decays
+are exp2(delta_t A log2 e)):
+- the grid is (batch, block of BLOCK_D channels of one group, segment of the sequence). Each program walks its
+  segment in chunks of CHUNK positions; each chunk is loaded as (BLOCK_D, CHUNK) / (N, CHUNK) tiles and its states
+  are one ``tl.associative_scan`` of the affine maps h -> a h + b over a (BLOCK_D, N, CHUNK) tile, continued from
+  the state carried in from the previous chunk;
+- the sequence is cut into segments so that the GPU is filled even when batch x channels is small (DVSS's first
+  level at 320 x 320, batch 4, has 256 channel blocks): the forward's first pass (``seg_fwd_kernel``) scans each
+  segment from a zero state and keeps its end state and summed delta (its whole decay is exp(A sum delta)); the
+  second pass (``fwd_kernel``) carries those over the segments before its own (a short loop), runs its segment
+  from that true entry state, writes y and the state entering every chunk (memory L * dim * N / CHUNK);
+- the backward's first pass (``seg_bwd_kernel``) gets each segment's adjoints from a zero adjoint after its end;
+  the second (``bwd_kernel``) carries the adjoint back over the segments after its own, walks its chunks in
+  reverse, recomputes a chunk's states from its checkpoint, gets the adjoint g_t = dy_t C_t + a_{t+1} g_{t+1} by a
+  reverse associative scan seeded with the next chunk's adjoint, and uses a_t h_{t-1} = h_t - b_t, so no shifted
+  state is needed. dB and dC (shared by the channels of a group) are summed over the program's channels, then
+  added with atomics; dA, dD and d(delta_bias) are summed over the program's steps, then added with atomics;
+- SS2D's four directions add their outputs (and u-gradients) into one float32 buffer with atomics, so no
+  (b, 4, L, d) buffer is written and summed afterwards. Float32 atomic adds make the last bits of y and of
+  the gradients depend on the order in which programs finish.
 
 delta_bias, softplus and the D skip term are applied inside the kernels (their gradients too), and bf16/fp16
 u, delta, B, C are read as they are, so SS2D under autocast pays for no conversion copies; everything is
@@ -57,6 +67,15 @@ BLOCK_D_MAX = 2
 #: without register spills at 4 warps, fp32 and bf16 (``benchmarks/triton_resources.py``; 8 spills)
 SS2D_BLOCK_D_MAX = 4
 NUM_WARPS = 4
+#: the scan is split along the sequence into segments run side by side (a first pass gives each segment's end state
+#: and summed step, a short carry over the segments gives each one's true entry state, a second pass runs each
+#: segment from it): as many segments as give about this many programs per multiprocessor
+SEGMENT_PROGRAMS_PER_SM = 8
+#: no segment shorter than this many chunks (a shorter one costs more in its carry than it gives)
+MIN_SEGMENT_CHUNKS = 4
+#: chunks per segment for every launch, or None: chosen per launch by :func:`segment_chunks` (the tests and
+#: ``benchmarks/tune_scan_triton.py`` set it)
+SEGMENT_CHUNKS: int | None = None
 
 
 try:  # kernels at module level: Triton resolves the names a kernel calls (_combine) from its module's globals
@@ -79,7 +98,8 @@ if triton is not None:
 
     @triton.jit
     def _delta_eff(raw_ptr, bias_ptr, offs, d, mask, HAS_BIAS: tl.constexpr, SOFTPLUS: tl.constexpr):
-        """(delta after bias and softplus, the pre-softplus value) of a (BLOCK_D, T) tile, in float32."""
+        """(delta after bias and softplus, the pre-softplus value) of a (BLOCK_D, T) tile, in float32; delta is 0
+        where ``mask`` is off (a masked step is the identity: decay 1, no input)."""
         x = tl.load(raw_ptr + offs, mask=mask, other=0.0).to(tl.float32)
         if HAS_BIAS:
             x = x + tl.load(bias_ptr + d).to(tl.float32)[:, None]
@@ -87,7 +107,7 @@ if triton is not None:
             dt = _softplus(x)
         else:
             dt = x
-        return dt, x
+        return tl.where(mask, dt, 0.0), x
 
     @triton.jit
     def _positions(t, grp, L, H, W, SS2D: tl.constexpr):
@@ -121,8 +141,9 @@ if triton is not None:
         SS2D: tl.constexpr,
     ):
         """This program's channels d (of delta, A, D, bias), their u/y channel uc (SS2D: the channel within
-        its direction), states n (and mask), chunk steps tt, group grp (SS2D: the direction), its A block,
-        the base offsets of its u and delta channels and of its group's B/C rows, and its checkpoint rows."""
+        its direction), states n (and mask), chunk steps tt, group grp (SS2D: the direction), its A block
+        (times log2 e: the decays are exp2(delta A log2 e)), the base offsets of its u and delta channels and of
+        its group's B/C rows, its checkpoint rows and the rows of its segment carries (``seg_row`` + segment)."""
         pid_b = tl.program_id(0).to(tl.int64)  # 64-bit offsets: batch * dim * L can exceed 2**31
         pid_d = tl.program_id(1)
         DIM = tl.num_programs(1) * BLOCK_D
@@ -140,7 +161,14 @@ if triton is not None:
         d_row = pid_b * sd_b + d * sd_c  # (D,)
         bc = pid_b * sB_b + grp * sB_g + n * sB_n  # (N,)
         ck = (pid_b * DIM + d)[:, None] * (NCHUNK * BLOCK_N) + n[None, :]
-        return pid_b, d, uc, grp, n, tt, nmask, A, u_row, d_row, bc, ck
+        seg_row = (pid_b * DIM + d) * tl.num_programs(2)
+        return pid_b, d, uc, grp, n, tt, nmask, A, A * 1.4426950408889634, u_row, d_row, bc, ck, seg_row
+
+    @triton.jit
+    def _segment_span(NCHUNK, SEG_CHUNKS):
+        """The chunks [c0, c1) of this program's segment (axis 2 of the grid)."""
+        c0 = tl.program_id(2) * SEG_CHUNKS
+        return c0, tl.minimum(c0 + SEG_CHUNKS, NCHUNK)
 
     @triton.jit
     def _chunk_states(
@@ -149,7 +177,7 @@ if triton is not None:
         bias_ptr,
         B_ptr,
         C_ptr,
-        A,
+        A2,
         h0,
         d,
         u_offs,
@@ -162,16 +190,112 @@ if triton is not None:
     ):
         """Load one chunk's tiles (at the given offsets) and scan it from the entering state h0: (delta,
         pre-softplus delta, u, B, C, b = delta u B, states h_t), all float32; the states are
-        (BLOCK_D, BLOCK_N, CHUNK_T)."""
+        (BLOCK_D, BLOCK_N, CHUNK_T). Masked steps leave the state as it is."""
         bmask = nmask[:, None] & tmask[None, :]
         dt, x = _delta_eff(delta_ptr, bias_ptr, d_offs, d, tmask[None, :], HAS_BIAS, SOFTPLUS)  # (D, T)
         ut = tl.load(u_ptr + u_offs, mask=tmask[None, :], other=0.0).to(tl.float32)
         Bt = tl.load(B_ptr + bc_offs, mask=bmask, other=0.0).to(tl.float32)  # (N, T)
         Ct = tl.load(C_ptr + bc_offs, mask=bmask, other=0.0).to(tl.float32)
-        a = tl.exp(dt[:, None, :] * A[:, :, None])  # (D, N, T)
+        a = tl.exp2(dt[:, None, :] * A2[:, :, None])  # (D, N, T)
         b = (dt * ut)[:, None, :] * Bt[None, :, :]
         a_acc, b_acc = tl.associative_scan((a, b), axis=2, combine_fn=_combine)
         return dt, x, ut, Bt, Ct, b, a_acc * h0[:, :, None] + b_acc
+
+    @triton.jit
+    def _chunk_adjoints(
+        delta_ptr,
+        bias_ptr,
+        C_ptr,
+        dy_ptr,
+        A2,
+        g_next,
+        d,
+        d1_offs,
+        bc_offs,
+        dy_offs,
+        tmask,
+        t1mask,
+        nmask,
+        HAS_BIAS: tl.constexpr,
+        SOFTPLUS: tl.constexpr,
+    ):
+        """The adjoints g_t = dy_t C_t + a_{t+1} g_{t+1} of one chunk, a reverse scan seeded with ``g_next`` (the
+        adjoint of the next chunk's first step): (g, dy, C, delta at t + 1)."""
+        dt1, _ = _delta_eff(delta_ptr, bias_ptr, d1_offs, d, t1mask[None, :], HAS_BIAS, SOFTPLUS)
+        dyt = tl.load(dy_ptr + dy_offs, mask=tmask[None, :], other=0.0).to(tl.float32)
+        Ct = tl.load(C_ptr + bc_offs, mask=nmask[:, None] & tmask[None, :], other=0.0).to(tl.float32)
+        a1 = tl.where(t1mask[None, None, :], tl.exp2(dt1[:, None, :] * A2[:, :, None]), 0.0)
+        src = dyt[:, None, :] * Ct[None, :, :]
+        ga, gb = tl.associative_scan((a1, src), axis=2, combine_fn=_combine, reverse=True)
+        return gb + ga * g_next[:, :, None], dyt, Ct, dt1
+
+    @triton.jit
+    def seg_fwd_kernel(
+        u_ptr,
+        delta_ptr,
+        A_ptr,
+        B_ptr,
+        bias_ptr,
+        hend_ptr,
+        dsum_ptr,
+        L,
+        N,
+        DIM_PER_GROUP,
+        NCHUNK,
+        SEG_CHUNKS,
+        H,
+        W,
+        su_b,
+        su_c,
+        su_l,
+        sd_b,
+        sd_c,
+        sd_l,
+        sB_b,
+        sB_g,
+        sB_n,
+        sB_l,
+        CHUNK_T: tl.constexpr,
+        BLOCK_D: tl.constexpr,
+        BLOCK_N: tl.constexpr,
+        HAS_BIAS: tl.constexpr,
+        SOFTPLUS: tl.constexpr,
+        SS2D: tl.constexpr,
+    ):
+        """Forward, first pass: each segment scanned from a zero state; its end state and its summed delta (the
+        segment's whole decay is exp(A sum delta))."""
+        pid_b, d, uc, grp, n, tt, nmask, A, A2, u_row, d_row, bc, ck, seg_row = _program_tiles(
+            A_ptr, N, DIM_PER_GROUP, NCHUNK, su_b, su_c, sd_b, sd_c, sB_b, sB_g, sB_n, CHUNK_T, BLOCK_D, BLOCK_N, SS2D
+        )
+        c0, c1 = _segment_span(NCHUNK, SEG_CHUNKS)
+        h = tl.zeros((BLOCK_D, BLOCK_N), dtype=tl.float32)
+        dsum = tl.zeros((BLOCK_D,), dtype=tl.float32)
+        for c in range(c0, c1):
+            t = c * CHUNK_T + tt
+            tmask = t < L
+            p = _positions(t, grp, L, H, W, SS2D)
+            dt, _, _, _, _, _, hs = _chunk_states(
+                u_ptr,
+                delta_ptr,
+                bias_ptr,
+                B_ptr,
+                B_ptr,
+                A2,
+                h,
+                d,
+                u_row[:, None] + p[None, :] * su_l,
+                d_row[:, None] + p[None, :] * sd_l,
+                bc[:, None] + p[None, :] * sB_l,
+                tmask,
+                nmask,
+                HAS_BIAS,
+                SOFTPLUS,
+            )
+            dsum += tl.sum(dt, axis=1)
+            h = tl.sum(tl.where((tt == CHUNK_T - 1)[None, None, :], hs, 0.0), axis=2)
+        seg = seg_row + tl.program_id(2)
+        tl.store(hend_ptr + seg[:, None] * BLOCK_N + n[None, :], h)
+        tl.store(dsum_ptr + seg, dsum)
 
     @triton.jit
     def fwd_kernel(
@@ -182,12 +306,15 @@ if triton is not None:
         C_ptr,
         D_ptr,
         bias_ptr,
+        hend_ptr,
+        dsum_ptr,
         y_ptr,
         ckpt_ptr,
         L,
         N,
         DIM_PER_GROUP,
         NCHUNK,
+        SEG_CHUNKS,
         H,
         W,
         su_b,
@@ -212,14 +339,21 @@ if triton is not None:
         SOFTPLUS: tl.constexpr,
         SS2D: tl.constexpr,
     ):
-        pid_b, d, uc, grp, n, tt, nmask, A, u_row, d_row, bc, ck = _program_tiles(
+        """Forward, second pass: each segment from its true entry state (the first pass's end states carried
+        over the segments before it), writing y (SS2D: the four directions added into one float32 buffer) and
+        the state entering every chunk."""
+        pid_b, d, uc, grp, n, tt, nmask, A, A2, u_row, d_row, bc, ck, seg_row = _program_tiles(
             A_ptr, N, DIM_PER_GROUP, NCHUNK, su_b, su_c, sd_b, sd_c, sB_b, sB_g, sB_n, CHUNK_T, BLOCK_D, BLOCK_N, SS2D
         )
+        c0, c1 = _segment_span(NCHUNK, SEG_CHUNKS)
         o_row = pid_b * so_b + grp * so_g + uc * so_c
         if HAS_D:
             Dv = tl.load(D_ptr + d).to(tl.float32)
         h = tl.zeros((BLOCK_D, BLOCK_N), dtype=tl.float32)
-        for c in range(0, NCHUNK):
+        for s in range(0, tl.program_id(2)):  # the carry: h <- exp(A sum delta_s) h + end state of segment s
+            dec = tl.exp2(A2 * tl.load(dsum_ptr + seg_row + s)[:, None])
+            h = dec * h + tl.load(hend_ptr + (seg_row + s)[:, None] * BLOCK_N + n[None, :])
+        for c in range(c0, c1):
             tl.store(ckpt_ptr + ck + c * BLOCK_N, h)  # the state entering chunk c
             t = c * CHUNK_T + tt
             tmask = t < L
@@ -230,7 +364,7 @@ if triton is not None:
                 bias_ptr,
                 B_ptr,
                 C_ptr,
-                A,
+                A2,
                 h,
                 d,
                 u_row[:, None] + p[None, :] * su_l,
@@ -244,8 +378,84 @@ if triton is not None:
             yt = tl.sum(hs * Ct[None, :, :], axis=1)
             if HAS_D:
                 yt += Dv[:, None] * ut
-            tl.store(y_ptr + o_row[:, None] + p[None, :] * so_l, yt, mask=tmask[None, :])
+            if SS2D:
+                tl.atomic_add(y_ptr + o_row[:, None] + p[None, :] * so_l, yt, mask=tmask[None, :], sem="relaxed")
+            else:
+                tl.store(y_ptr + o_row[:, None] + p[None, :] * so_l, yt, mask=tmask[None, :])
             h = tl.sum(tl.where((tt == CHUNK_T - 1)[None, None, :], hs, 0.0), axis=2)  # state after the chunk
+
+    @triton.jit
+    def seg_bwd_kernel(
+        delta_ptr,
+        A_ptr,
+        C_ptr,
+        bias_ptr,
+        dy_ptr,
+        gstart_ptr,
+        dsum_ptr,
+        L,
+        N,
+        DIM_PER_GROUP,
+        NCHUNK,
+        SEG_CHUNKS,
+        H,
+        W,
+        sd_b,
+        sd_c,
+        sd_l,
+        sB_b,
+        sB_g,
+        sB_n,
+        sB_l,
+        sdy_b,
+        sdy_c,
+        sdy_l,
+        CHUNK_T: tl.constexpr,
+        BLOCK_D: tl.constexpr,
+        BLOCK_N: tl.constexpr,
+        HAS_BIAS: tl.constexpr,
+        SOFTPLUS: tl.constexpr,
+        SS2D: tl.constexpr,
+    ):
+        """Backward, first pass: each segment's adjoints from a zero adjoint after its end; the adjoint of its
+        first step and the delta summed over its steps t0 + 1 .. t1 (the decay from the next segment's first step
+        back to its own)."""
+        pid_b, d, uc, grp, n, tt, nmask, A, A2, u_row, d_row, bc, ck, seg_row = _program_tiles(
+            A_ptr, N, DIM_PER_GROUP, NCHUNK, 0, 0, sd_b, sd_c, sB_b, sB_g, sB_n, CHUNK_T, BLOCK_D, BLOCK_N, SS2D
+        )
+        c0, c1 = _segment_span(NCHUNK, SEG_CHUNKS)
+        dy_row = pid_b * sdy_b + uc * sdy_c
+        g = tl.zeros((BLOCK_D, BLOCK_N), dtype=tl.float32)
+        dsum = tl.zeros((BLOCK_D,), dtype=tl.float32)
+        for ci in range(0, c1 - c0):
+            c = c1 - 1 - ci
+            t = c * CHUNK_T + tt
+            tmask = t < L
+            t1mask = (t + 1) < L
+            p = _positions(t, grp, L, H, W, SS2D)
+            p1 = _positions(t + 1, grp, L, H, W, SS2D)
+            gs, _, _, dt1 = _chunk_adjoints(
+                delta_ptr,
+                bias_ptr,
+                C_ptr,
+                dy_ptr,
+                A2,
+                g,
+                d,
+                d_row[:, None] + p1[None, :] * sd_l,
+                bc[:, None] + p[None, :] * sB_l,
+                dy_row[:, None] + p[None, :] * sdy_l,
+                tmask,
+                t1mask,
+                nmask,
+                HAS_BIAS,
+                SOFTPLUS,
+            )
+            dsum += tl.sum(dt1, axis=1)
+            g = tl.sum(tl.where((tt == 0)[None, None, :], gs, 0.0), axis=2)
+        seg = seg_row + tl.program_id(2)
+        tl.store(gstart_ptr + seg[:, None] * BLOCK_N + n[None, :], g)
+        tl.store(dsum_ptr + seg, dsum)
 
     @triton.jit
     def bwd_kernel(
@@ -258,6 +468,8 @@ if triton is not None:
         bias_ptr,
         dy_ptr,
         ckpt_ptr,
+        gstart_ptr,
+        dsum_ptr,
         du_ptr,
         ddelta_ptr,
         dA_ptr,
@@ -269,6 +481,7 @@ if triton is not None:
         N,
         DIM_PER_GROUP,
         NCHUNK,
+        SEG_CHUNKS,
         H,
         W,
         su_b,
@@ -300,20 +513,31 @@ if triton is not None:
         SOFTPLUS: tl.constexpr,
         SS2D: tl.constexpr,
     ):
-        pid_b, d, uc, grp, n, tt, nmask, A, u_row, d_row, bc, ck = _program_tiles(
+        """Backward, second pass: each segment's chunks in reverse from the true adjoint after its end (the first
+        pass's adjoints carried back over the segments after it); a chunk's states are recomputed from its
+        checkpoint. Every gradient: du (SS2D: the four directions added into one float32 buffer), ddelta, and
+        dB / dC / dA / dD / dbias summed over this program's channels before their atomic adds."""
+        pid_b, d, uc, grp, n, tt, nmask, A, A2, u_row, d_row, bc, ck, seg_row = _program_tiles(
             A_ptr, N, DIM_PER_GROUP, NCHUNK, su_b, su_c, sd_b, sd_c, sB_b, sB_g, sB_n, CHUNK_T, BLOCK_D, BLOCK_N, SS2D
         )
+        c0, c1 = _segment_span(NCHUNK, SEG_CHUNKS)
         o_row = pid_b * so_b + grp * so_g + uc * so_c  # du: laid out like y
         dy_row = pid_b * sdy_b + uc * sdy_c  # SS2D: every direction reads the merged output's gradient
         dbc = pid_b * sdB_b + grp * sdB_g + n * sdB_n
         if HAS_D:
             Dv = tl.load(D_ptr + d).to(tl.float32)
-        g_next = tl.zeros((BLOCK_D, BLOCK_N), dtype=tl.float32)  # adjoint of the state after the chunk
+        # the carry: the adjoint of the next segment's first step, from the segments after this one
+        g_next = tl.zeros((BLOCK_D, BLOCK_N), dtype=tl.float32)
+        nseg = tl.num_programs(2)
+        for i in range(0, nseg - 1 - tl.program_id(2)):
+            s = nseg - 1 - i
+            dec = tl.exp2(A2 * tl.load(dsum_ptr + seg_row + s)[:, None])
+            g_next = tl.load(gstart_ptr + (seg_row + s)[:, None] * BLOCK_N + n[None, :]) + dec * g_next
         dA_acc = tl.zeros((BLOCK_D, BLOCK_N), dtype=tl.float32)
         dD_acc = tl.zeros((BLOCK_D,), dtype=tl.float32)
         dbias_acc = tl.zeros((BLOCK_D,), dtype=tl.float32)
-        for ci in range(0, NCHUNK):
-            c = NCHUNK - 1 - ci
+        for ci in range(0, c1 - c0):
+            c = c1 - 1 - ci
             h0 = tl.load(ckpt_ptr + ck + c * BLOCK_N)
             t = c * CHUNK_T + tt
             tmask = t < L
@@ -322,6 +546,7 @@ if triton is not None:
             p = _positions(t, grp, L, H, W, SS2D)
             p1 = _positions(t + 1, grp, L, H, W, SS2D)
             d_offs = d_row[:, None] + p[None, :] * sd_l
+            bc_offs = bc[:, None] + p[None, :] * sB_l
             # recompute the chunk's states from its checkpoint
             dt, x, ut, Bt, Ct, b, hs = _chunk_states(
                 u_ptr,
@@ -329,32 +554,40 @@ if triton is not None:
                 bias_ptr,
                 B_ptr,
                 C_ptr,
-                A,
+                A2,
                 h0,
                 d,
                 u_row[:, None] + p[None, :] * su_l,
                 d_offs,
-                bc[:, None] + p[None, :] * sB_l,
+                bc_offs,
                 tmask,
                 nmask,
                 HAS_BIAS,
                 SOFTPLUS,
             )
-            dt1, _ = _delta_eff(
-                delta_ptr, bias_ptr, d_row[:, None] + p1[None, :] * sd_l, d, t1mask[None, :], HAS_BIAS, SOFTPLUS
+            gs, dyt, _, _ = _chunk_adjoints(
+                delta_ptr,
+                bias_ptr,
+                C_ptr,
+                dy_ptr,
+                A2,
+                g_next,
+                d,
+                d_row[:, None] + p1[None, :] * sd_l,
+                bc_offs,
+                dy_row[:, None] + p[None, :] * sdy_l,
+                tmask,
+                t1mask,
+                nmask,
+                HAS_BIAS,
+                SOFTPLUS,
             )
-            dyt = tl.load(dy_ptr + dy_row[:, None] + p[None, :] * sdy_l, mask=tmask[None, :], other=0.0).to(tl.float32)
-            # adjoint g_t = dy_t C_t + a_{t+1} g_{t+1}: a reverse scan, seeded with the next chunk's g
-            a1 = tl.where(t1mask[None, None, :], tl.exp(dt1[:, None, :] * A[:, :, None]), 0.0)
-            src = dyt[:, None, :] * Ct[None, :, :]
-            ga, gb = tl.associative_scan((a1, src), axis=2, combine_fn=_combine, reverse=True)
-            gs = gb + ga * g_next[:, :, None]
             # a_t h_{t-1} = h_t - b_t (no division, no shifted state)
             q = gs * (hs - b)
             sr = tl.sum(gs * Bt[None, :, :], axis=1)  # (D, T)
             dbc_offs = dbc[:, None] + p[None, :] * sdB_l
-            tl.atomic_add(dC_ptr + dbc_offs, tl.sum(dyt[:, None, :] * hs, axis=0), mask=bmask)
-            tl.atomic_add(dB_ptr + dbc_offs, tl.sum(gs * (dt * ut)[:, None, :], axis=0), mask=bmask)
+            tl.atomic_add(dC_ptr + dbc_offs, tl.sum(dyt[:, None, :] * hs, axis=0), mask=bmask, sem="relaxed")
+            tl.atomic_add(dB_ptr + dbc_offs, tl.sum(gs * (dt * ut)[:, None, :], axis=0), mask=bmask, sem="relaxed")
             g_dt = tl.sum(q * A[:, :, None], axis=1) + ut * sr  # d loss / d delta (after softplus)
             if SOFTPLUS:
                 g_dt = g_dt / (1.0 + tl.exp(-x))  # softplus' = sigmoid
@@ -364,15 +597,18 @@ if triton is not None:
             if HAS_D:
                 du += Dv[:, None] * dyt
                 dD_acc += tl.sum(dyt * ut, axis=1)
-            tl.store(du_ptr + o_row[:, None] + p[None, :] * so_l, du, mask=tmask[None, :])
+            if SS2D:
+                tl.atomic_add(du_ptr + o_row[:, None] + p[None, :] * so_l, du, mask=tmask[None, :], sem="relaxed")
+            else:
+                tl.store(du_ptr + o_row[:, None] + p[None, :] * so_l, du, mask=tmask[None, :])
             dbias_acc += tl.sum(g_dt, axis=1)
             dA_acc += tl.sum(q * dt[:, None, :], axis=2)
             g_next = tl.sum(tl.where((tt == 0)[None, None, :], gs, 0.0), axis=2)
-        tl.atomic_add(dA_ptr + d[:, None] * N + n[None, :], dA_acc, mask=nmask[None, :])
+        tl.atomic_add(dA_ptr + d[:, None] * N + n[None, :], dA_acc, mask=nmask[None, :], sem="relaxed")
         if HAS_D:
-            tl.atomic_add(dD_ptr + d, dD_acc)
+            tl.atomic_add(dD_ptr + d, dD_acc, sem="relaxed")
         if HAS_BIAS:
-            tl.atomic_add(dbias_ptr + d, dbias_acc)
+            tl.atomic_add(dbias_ptr + d, dbias_acc, sem="relaxed")
 
 
 def _triton_kernels():
@@ -484,23 +720,45 @@ def _block_d(dim_per_group: int, block_max: int = BLOCK_D_MAX) -> int:
     return b
 
 
+@functools.cache
+def _multiprocessors(device_index: int) -> int:
+    return torch.cuda.get_device_properties(device_index).multi_processor_count
+
+
+def segment_chunks(nchunk: int, programs: int, device: torch.device) -> int:
+    """Chunks per segment for a scan of ``nchunk`` chunks over ``programs`` (batch x channel block) programs: enough
+    segments for about :data:`SEGMENT_PROGRAMS_PER_SM` programs per multiprocessor, none shorter than
+    :data:`MIN_SEGMENT_CHUNKS` chunks. :data:`SEGMENT_CHUNKS` (when set) overrides the choice; Triton's interpreter
+    takes 2, so the tests run the carry between segments."""
+    if SEGMENT_CHUNKS is not None:
+        return max(1, min(int(SEGMENT_CHUNKS), nchunk))
+    if device.type != "cuda":
+        return min(2, nchunk)
+    index = device.index if device.index is not None else torch.cuda.current_device()
+    segments = max(1, -(-SEGMENT_PROGRAMS_PER_SM * _multiprocessors(index) // programs))
+    return max(min(MIN_SEGMENT_CHUNKS, nchunk), -(-nchunk // segments))
+
+
 class _Layout:
     """How the kernels address one call's tensors: the (batch, channel, position) strides of u and of delta,
     the (batch, group, state, position) strides of B and C (which share them) and of dB / dC, the
-    (batch, group, channel, position) strides of the output y and du, the grid, and the SS2D image size
-    (height 0: the plain (batch, dim, L) route)."""
+    (batch, group, channel, position) strides of the output y and du, the grid (batch, channel blocks,
+    segments), and the SS2D image size (height 0: the plain (batch, dim, L) route)."""
 
-    def __init__(self, batch, dim, groups, n, length, u_s, delta_s, bc_s, out_s, dbc_s, height=0, width=0):
+    def __init__(self, device, batch, dim, groups, n, length, u_s, delta_s, bc_s, out_s, dbc_s, height=0, width=0):
         dpg = dim // groups
         self.block_d = _block_d(dpg, SS2D_BLOCK_D_MAX if height else BLOCK_D_MAX)
         self.block_n = triton.next_power_of_2(n)
         self.nchunk = triton.cdiv(length, CHUNK)
-        self.grid = (batch, dim // self.block_d)
-        self.sizes = (length, n, dpg, self.nchunk, height, width)
-        self.strides = (*u_s, *delta_s, *bc_s, *out_s)
+        programs = batch * (dim // self.block_d)
+        self.seg_chunks = segment_chunks(self.nchunk, programs, torch.device(device))
+        self.nseg = triton.cdiv(self.nchunk, self.seg_chunks)
+        self.grid = (batch, dim // self.block_d, self.nseg)
+        self.sizes = (length, n, dpg, self.nchunk, self.seg_chunks, height, width)
+        self.u_strides, self.delta_strides, self.bc_strides, self.out_strides = u_s, delta_s, bc_s, out_s
         self.dbc_strides = dbc_s
         self.ss2d = bool(height)
-        self.dim = dim
+        self.batch, self.dim = batch, dim
 
     def constants(self, D, bias, softplus: bool) -> dict:
         return dict(
@@ -514,6 +772,12 @@ class _Layout:
             num_warps=NUM_WARPS,
         )
 
+    def carries(self, device) -> tuple[torch.Tensor, torch.Tensor]:
+        """Empty float32 (batch, dim, segments, states) and (batch, dim, segments) buffers for the first pass."""
+        shape = (self.batch, self.dim, self.nseg)
+        f32 = torch.float32
+        return torch.empty(*shape, self.block_n, device=device, dtype=f32), torch.empty(shape, device=device, dtype=f32)
+
 
 def _channels_last_strides(t: torch.Tensor) -> tuple[int, ...]:
     """(batch, channel, position) strides of a (batch, L, C) tensor; (batch, group, state, position) strides
@@ -523,12 +787,29 @@ def _channels_last_strides(t: torch.Tensor) -> tuple[int, ...]:
 
 
 def _scan_forward(layout: _Layout, u, delta, A, B, C, D, bias, softplus, y):
-    """Run the forward kernel; returns the state checkpoints."""
-    _, fwd, _ = _triton_kernels()
-    batch = u.shape[0]
-    ckpt = torch.empty(batch, layout.dim, layout.nchunk, layout.block_n, device=u.device, dtype=torch.float32)
-    dummy = A  # any float32 tensor: never read when HAS_D / HAS_BIAS is off
-    fwd[layout.grid](
+    """Run the forward passes into ``y`` (SS2D: a zeroed float32 buffer the directions are added into); returns
+    the state checkpoints."""
+    ckpt = torch.empty(layout.batch, layout.dim, layout.nchunk, layout.block_n, device=u.device, dtype=torch.float32)
+    dummy = A  # any float32 tensor: never read when HAS_D / HAS_BIAS is off, or with one segment
+    consts = layout.constants(D, bias, softplus)
+    hend, dsum = layout.carries(u.device) if layout.nseg > 1 else (dummy, dummy)
+    if layout.nseg > 1:
+        seg_consts = {k: v for k, v in consts.items() if k != "HAS_D"}
+        seg_fwd_kernel[layout.grid](
+            u,
+            delta,
+            A,
+            B,
+            dummy if bias is None else bias,
+            hend,
+            dsum,
+            *layout.sizes,
+            *layout.u_strides,
+            *layout.delta_strides,
+            *layout.bc_strides,
+            **seg_consts,
+        )
+    fwd_kernel[layout.grid](
         u,
         delta,
         A,
@@ -536,25 +817,48 @@ def _scan_forward(layout: _Layout, u, delta, A, B, C, D, bias, softplus, y):
         C,
         dummy if D is None else D,
         dummy if bias is None else bias,
+        hend,
+        dsum,
         y,
         ckpt,
         *layout.sizes,
-        *layout.strides,
-        **layout.constants(D, bias, softplus),
+        *layout.u_strides,
+        *layout.delta_strides,
+        *layout.bc_strides,
+        *layout.out_strides,
+        **consts,
     )
     return ckpt
 
 
 def _scan_backward(layout: _Layout, saved, softplus, dy, dy_strides, du, dB, dC):
-    """Run the backward kernel into du / dB / dC (given) and new ddelta, dA, dD, dbias; returns those four."""
-    _, _, bwd = _triton_kernels()
+    """Run the backward passes into du (SS2D: a zeroed float32 buffer) / dB / dC (zeroed float32, given) and new
+    ddelta, dA, dD, dbias; returns those four."""
     u, delta, A, B, C, D, bias, ckpt = saved
     ddelta = torch.empty_like(delta)
     dA = torch.zeros_like(A)
     dD = torch.zeros(layout.dim, device=u.device, dtype=torch.float32)
     dbias = torch.zeros(layout.dim, device=u.device, dtype=torch.float32)
     dummy = A
-    bwd[layout.grid](
+    consts = layout.constants(D, bias, softplus)
+    gstart, dsum = layout.carries(u.device) if layout.nseg > 1 else (dummy, dummy)
+    if layout.nseg > 1:
+        seg_consts = {k: v for k, v in consts.items() if k != "HAS_D"}
+        seg_bwd_kernel[layout.grid](
+            delta,
+            A,
+            C,
+            dummy if bias is None else bias,
+            dy,
+            gstart,
+            dsum,
+            *layout.sizes,
+            *layout.delta_strides,
+            *layout.bc_strides,
+            *dy_strides,
+            **seg_consts,
+        )
+    bwd_kernel[layout.grid](
         u,
         delta,
         A,
@@ -564,6 +868,8 @@ def _scan_backward(layout: _Layout, saved, softplus, dy, dy_strides, du, dB, dC)
         dummy if bias is None else bias,
         dy,
         ckpt,
+        gstart,
+        dsum,
         du,
         ddelta,
         dA,
@@ -572,10 +878,13 @@ def _scan_backward(layout: _Layout, saved, softplus, dy, dy_strides, du, dB, dC)
         dD,
         dbias,
         *layout.sizes,
-        *layout.strides,
+        *layout.u_strides,
+        *layout.delta_strides,
+        *layout.bc_strides,
+        *layout.out_strides,
         *dy_strides,
         *layout.dbc_strides,
-        **layout.constants(D, bias, softplus),
+        **consts,
     )
     return ddelta, dA, dD, dbias
 
@@ -594,7 +903,9 @@ def _plain_layout(u, delta, A, B):
     batch, dim, length = u.shape
     su = u.stride()  # y and du: u's layout, no group offset
     out = (su[0], 0, su[1], su[2])
-    return _Layout(batch, dim, B.shape[1], A.shape[1], length, su, delta.stride(), B.stride(), out, B.stride())
+    return _Layout(
+        u.device, batch, dim, B.shape[1], A.shape[1], length, su, delta.stride(), B.stride(), out, B.stride()
+    )
 
 
 def scan_forward(u, delta, A, B, C, D, bias, softplus: bool):
@@ -661,6 +972,7 @@ def _ss2d_layout(x, delta, A, B, out_strides, height, width):
     batch, length, di = x.shape
     n = A.shape[1]
     return _Layout(
+        x.device,
         batch,
         4 * di,
         4,
@@ -681,11 +993,11 @@ def ss2d_forward(x, delta, A, B, C, D, bias, height: int, width: int):
     (b, L, 4 d) contiguous in their float dtype, A float32 (4 d, N), B / C (b, L, 4, N) with equal strides, D / bias
     float32 (4 d,) or None): ``(y, ckpt)``, y (b, L, d) in x's dtype, ckpt float32 of :func:`ckpt_shape`."""
     batch, length, di = x.shape
-    y4 = torch.empty(batch, 4, length, di, device=x.device, dtype=torch.float32)
-    s = y4.stride()
-    layout = _ss2d_layout(x, delta, A, B, (s[0], s[1], s[3], s[2]), height, width)
-    ckpt = _scan_forward(layout, x, delta, A, B, C, D, bias, True, y4)
-    return y4.sum(dim=1).to(x.dtype), ckpt
+    y = torch.zeros(batch, length, di, device=x.device, dtype=torch.float32)  # the four directions add into it
+    s = y.stride()
+    layout = _ss2d_layout(x, delta, A, B, (s[0], 0, s[2], s[1]), height, width)
+    ckpt = _scan_forward(layout, x, delta, A, B, C, D, bias, True, y)
+    return y.to(x.dtype), ckpt
 
 
 def ss2d_backward(x, delta, A, B, C, D, bias, ckpt, dy, height: int, width: int):
@@ -693,15 +1005,15 @@ def ss2d_backward(x, delta, A, B, C, D, bias, ckpt, dy, height: int, width: int)
     x / delta / B / C, dA float32, dD / dbias float32 or None (when D / bias is None)."""
     batch, length, di = x.shape
     n = B.shape[-1]
-    du4 = torch.empty(batch, 4, length, di, device=x.device, dtype=torch.float32)
-    s = du4.stride()
-    layout = _ss2d_layout(x, delta, A, B, (s[0], s[1], s[3], s[2]), height, width)
+    dx = torch.zeros(batch, length, di, device=x.device, dtype=torch.float32)  # the four directions add into it
+    s = dx.stride()
+    layout = _ss2d_layout(x, delta, A, B, (s[0], 0, s[2], s[1]), height, width)
     dBC = torch.zeros(batch, length, 4, 2 * n, device=x.device, dtype=torch.float32)
     dB, dC = dBC[..., :n], dBC[..., n:]
     saved = (x, delta, A, B, C, D, bias, ckpt)
-    ddelta, dA, dD, dbias = _scan_backward(layout, saved, True, dy, _channels_last_strides(dy), du4, dB, dC)
+    ddelta, dA, dD, dbias = _scan_backward(layout, saved, True, dy, _channels_last_strides(dy), dx, dB, dC)
     return (
-        du4.sum(dim=1).to(x.dtype),
+        dx.to(x.dtype),
         ddelta,
         dA,
         dB.to(B.dtype),
