@@ -64,7 +64,8 @@ def _ptxas_report(ptx: str, arch: int) -> tuple[int, int, int]:
 
 
 def resources(st, route: str, dtype: str, warps: int, block_d: int, arch: int = 90, d_state: int = 16) -> list[dict]:
-    """Compile the forward and backward kernels (each segment pass and main pass) of module ``st`` (``tofdenoise.models.scan.triton``, imported
+    """Compile the forward and backward kernels (each one's segment pass and main pass) of module ``st``
+    (``tofdenoise.models.scan.triton``, imported
     without the interpreter) for one setting; one row per kernel with the ptxas figures."""
     consts = dict(
         CHUNK_T=st.CHUNK,

@@ -113,8 +113,9 @@ def test_ss2d_route_reads_the_four_directions_in_place(h, w, di, n, use_d_bias):
 def test_ss2d_route_split_into_segments_equals_the_reference(monkeypatch, segment_chunks):
     """The sequence split into segments of 1, 2 or 3 chunks run side by side (a first pass for each segment's end
     state and adjoint, the carry over the segments, a second pass from the true entry values), and unsplit: every
-    split gives the reference's output and gradients (slow decays, so that what crosses a segment boundary counts). 9 x 13 = 117 positions: 4 chunks, the last one partial; the
-    column-major directions cross the rows inside a chunk."""
+    split gives the reference's output and gradients (slow decays, so that what crosses a segment boundary
+    counts). 9 x 13 = 117 positions: 4 chunks, the last one partial; the column-major directions cross the rows
+    inside a chunk."""
     monkeypatch.setattr(st, "SEGMENT_CHUNKS", segment_chunks)
     h, w, di, n = 9, 13, 4, 5
     x, delta, A, x_dbl, D, bias = _ss2d_inputs(1, h, w, di, n, seed=2)
