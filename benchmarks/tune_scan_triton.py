@@ -2,10 +2,11 @@
 
 Usage: python benchmarks/tune_scan_triton.py [--length 102400] [--dim 256] [--ss2d]
 
-For chunk x channels-per-program x warps, with float32 and bf16 inputs (u, delta, B, C), prints the forward and
+For settings of chunk x channels-per-program x warps x programs per multiprocessor (the sequence split into
+segments, ``SEGMENT_PROGRAMS_PER_SM``), with float32 and bf16 inputs (u, delta, B, C), prints the forward and
 forward+backward milliseconds and the largest relative difference from the float32 PyTorch scan, at the size of
 DVSS's first stage on a 320x320 batch of 4 by default. Set the winners in ``tofdenoise.models.scan.triton``
-(CHUNK, BLOCK_D_MAX, NUM_WARPS). The defaults were tuned on an H100 (docs/benchmarks.md).
+(CHUNK, BLOCK_D_MAX / SS2D_BLOCK_D_MAX, NUM_WARPS, SEGMENT_PROGRAMS_PER_SM); docs/benchmarks.md has the sweeps.
 ``--ss2d`` tunes the SS2D route instead (channels-last, four directions read in place; ``SS2D_BLOCK_D_MAX``) at
 the same size: --dim is then 4 x d_inner and --length H x W of a square image.
 """
@@ -13,7 +14,6 @@ the same size: --dim is then 4 x d_inner and --length H x W of a square image.
 from __future__ import annotations
 
 import argparse
-import itertools
 import json
 import sys
 
@@ -28,12 +28,18 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--groups", type=int, default=4)
     p.add_argument("--d-state", type=int, default=16)
     p.add_argument("--ss2d", action="store_true", help="tune the SS2D route (SS2D_BLOCK_D_MAX) instead")
+    p.add_argument(
+        "--settings",
+        default=None,
+        help="space-separated chunk,block_d,warps,programs_per_sm settings (default: SETTINGS)",
+    )
     args = p.parse_args(argv)
     if not torch.cuda.is_available():
         print("tune_scan_triton: skipped (no CUDA device)")
         return 0
     if args.ss2d:
-        return tune_ss2d(args)
+        tune_ss2d(args)
+        return 0
 
     from tofdenoise.models.scan import selective_scan_chunked
     from tofdenoise.models.scan import triton as st
@@ -59,7 +65,7 @@ def main(argv: list[str] | None = None) -> int:
     ref = [ref_y.detach(), *torch.autograd.grad(ref_y, ref_in, dy)]
     _sweep(
         "BLOCK_D_MAX",
-        (1, 2, 4),
+        [(c, b, w, p) for c, b, w, p in parse_settings(args.settings) if b <= 4],
         lambda dtype: [(t.to(dtype) if i in (0, 1, 3, 4) else t).clone().requires_grad_() for i, t in enumerate(base)],
         lambda ins: st.selective_scan_triton(*ins, delta_softplus=True),
         ref,
@@ -68,41 +74,75 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def _sweep(block_name: str, blocks, make_inputs, call, ref, dy, label: dict | None = None) -> None:
-    """Time ``call(ins)`` forward and forward+backward for chunk x channels-per-program (the module constant
-    ``block_name``) x warps, float32 and bf16 inputs, with the largest relative difference from ``ref``; one JSON
-    line per setting; the module's constants are restored afterwards."""
+#: (positions per chunk, channels per program, warps, programs per multiprocessor) tried by default
+SETTINGS = (
+    (32, 4, 4, 8),
+    (32, 4, 4, 2),
+    (32, 4, 4, 32),
+    (16, 4, 4, 8),
+    (16, 8, 4, 8),
+    (32, 2, 4, 8),
+    (32, 8, 8, 8),
+    (32, 4, 8, 8),
+    (64, 4, 8, 8),
+    (16, 4, 2, 16),
+)
+
+
+def parse_settings(text: str | None) -> tuple[tuple[int, int, int, int], ...]:
+    """``"32,4,4,8 16,4,4,8"`` -> settings (chunk, channels per program, warps, programs per multiprocessor)."""
+    if not text:
+        return SETTINGS
+    out = []
+    for item in text.split():
+        parts = tuple(int(v) for v in item.split(","))
+        if len(parts) != 4:
+            raise SystemExit(f"tune_scan_triton: --settings item {item!r} is not chunk,block_d,warps,programs_per_sm")
+        out.append(parts)
+    return tuple(out)
+
+
+def _sweep(block_name: str, settings, make_inputs, call, ref, dy, label=None, dtypes=None) -> list[dict]:
+    """Time ``call(ins)`` forward and forward+backward for each setting (chunk, channels per program -- the module
+    constant ``block_name`` --, warps, programs per multiprocessor), float32 and bf16 inputs (or ``dtypes``), with
+    the largest relative difference from ``ref``; one JSON line per setting, returned as rows; the module's
+    constants are restored afterwards."""
     from bench_gpu import time_cuda  # benchmarks/ is on sys.path when run as a script
 
     from tofdenoise.models.scan import triton as st
 
-    defaults = (st.CHUNK, getattr(st, block_name), st.NUM_WARPS)
+    names = ("CHUNK", block_name, "NUM_WARPS", "SEGMENT_PROGRAMS_PER_SM")
+    defaults = {name: getattr(st, name) for name in names}
+    rows = []
     try:
-        for dtype in (torch.float32, torch.bfloat16):
+        for dtype in dtypes or (torch.float32, torch.bfloat16):
             ins = make_inputs(dtype)
-            for chunk, block_d, warps in itertools.product((32, 64), blocks, (2, 4, 8)):
-                st.CHUNK, st.NUM_WARPS = chunk, warps
-                setattr(st, block_name, block_d)
+            for setting in settings:
+                for name, value in zip(names, setting):
+                    setattr(st, name, value)
                 y = call(ins)
                 got = [y, *torch.autograd.grad(y, ins, dy.to(dtype))]
                 err = max(float(((a.float() - r).abs().max() / r.abs().max()).item()) for a, r in zip(got, ref))
                 row = {
                     **(label or {}),
                     "dtype": str(dtype).replace("torch.", ""),
-                    "chunk": chunk,
-                    "block_d": block_d,
-                    "warps": warps,
+                    "chunk": setting[0],
+                    "block_d": setting[1],
+                    "warps": setting[2],
+                    "programs_per_sm": setting[3],
                     "fwd_ms": round(time_cuda(lambda: call(ins), 5), 3),
                     "fwd_bwd_ms": round(time_cuda(lambda: torch.autograd.grad(call(ins), ins, dy.to(dtype)), 5), 3),
                     "max_rel_err": err,
                 }
+                rows.append(row)
                 print(json.dumps(row), flush=True)
     finally:
-        st.CHUNK, st.NUM_WARPS = defaults[0], defaults[2]
-        setattr(st, block_name, defaults[1])
+        for name, value in defaults.items():
+            setattr(st, name, value)
+    return rows
 
 
-def tune_ss2d(args) -> int:
+def tune_ss2d(args, dtypes=None) -> list[dict]:
     from tofdenoise.models.scan import ss2d_scan_reference
     from tofdenoise.models.scan import triton as st
 
@@ -124,9 +164,9 @@ def tune_ss2d(args) -> int:
     ref_in = [t.clone().requires_grad_() for t in (x, dts, A, x_dbl)]
     ref_y = call(ss2d_scan_reference, ref_in)
     ref = [ref_y.detach(), *torch.autograd.grad(ref_y, ref_in, dy)]
-    _sweep(
+    return _sweep(
         "SS2D_BLOCK_D_MAX",
-        (2, 4, 8, 16, 32),
+        parse_settings(args.settings),
         lambda dtype: [
             (t.to(dtype) if i != 2 else t).clone().requires_grad_() for i, t in enumerate((x, dts, A, x_dbl))
         ],
@@ -134,8 +174,8 @@ def tune_ss2d(args) -> int:
         ref,
         dy,
         {"route": "ss2d"},
+        dtypes,
     )
-    return 0
 
 
 if __name__ == "__main__":
