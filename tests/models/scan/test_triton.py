@@ -109,14 +109,16 @@ def test_ss2d_route_reads_the_four_directions_in_place(h, w, di, n, use_d_bias):
 
 
 @needs_kernels
+@pytest.mark.parametrize("forward", ["chunked", "sequential"])
 @pytest.mark.parametrize("segment_chunks", [1, 2, 3, 100])
-def test_ss2d_route_split_into_segments_equals_the_reference(monkeypatch, segment_chunks):
+def test_ss2d_route_split_into_segments_equals_the_reference(monkeypatch, segment_chunks, forward):
     """The sequence split into segments of 1, 2 or 3 chunks run side by side (a first pass for each segment's end
     state and adjoint, the carry over the segments, a second pass from the true entry values), and unsplit: every
     split gives the reference's output and gradients (slow decays, so that what crosses a segment boundary
     counts). 9 x 13 = 117 positions: 4 chunks, the last one partial; the column-major directions cross the rows
     inside a chunk."""
     monkeypatch.setattr(st, "SEGMENT_CHUNKS", segment_chunks)
+    monkeypatch.setattr(st, "FORWARD", forward)
     h, w, di, n = 9, 13, 4, 5
     x, delta, A, x_dbl, D, bias = _ss2d_inputs(1, h, w, di, n, seed=2)
     A = 0.01 * A  # slow decays: a state (and an adjoint) lives on across several segments
@@ -128,10 +130,12 @@ def test_ss2d_route_split_into_segments_equals_the_reference(monkeypatch, segmen
 
 
 @needs_kernels
+@pytest.mark.parametrize("forward", ["chunked", "sequential"])
 @pytest.mark.parametrize("segment_chunks", [1, 3])
-def test_plain_route_split_into_segments_equals_the_chunked_scan(monkeypatch, segment_chunks):
-    """The plain route with 7 chunks (the last partial) in segments of 1 and 3 chunks."""
+def test_plain_route_split_into_segments_equals_the_chunked_scan(monkeypatch, segment_chunks, forward):
+    """The plain route with 7 chunks (the last partial) in segments of 1 and 3 chunks, on either forward."""
     monkeypatch.setattr(st, "SEGMENT_CHUNKS", segment_chunks)
+    monkeypatch.setattr(st, "FORWARD", forward)
     u, delta, A, B, C, D, bias = (t.detach() for t in _inputs(1, 4, 200, 2, 4))
     A = 0.01 * A  # slow decays: a state (and an adjoint) lives on across several segments
     weight = torch.linspace(-1.0, 1.0, u.numel()).view_as(u)
@@ -220,7 +224,7 @@ def test_self_check_covers_both_routes():
 
 
 def test_ss2d_route_names_bad_shapes():
-    x, delta, A, x_dbl, D, bias = _ss2d_inputs(1, 3, 4, 2, 3)
+    x, delta, A, x_dbl, D, bias = (t.to(DEVICE) for t in _ss2d_inputs(1, 3, 4, 2, 3))
     B, C = x_dbl[..., 3:6], x_dbl[..., 6:]
     if not (st.interpreting() or st.triton_available()):
         with pytest.raises(RuntimeError, match="not available"):

@@ -76,6 +76,14 @@ MIN_SEGMENT_CHUNKS = 4
 #: chunks per segment for every launch, or None: chosen per launch by :func:`segment_chunks` (the tests and
 #: ``benchmarks/tune_scan_triton.py`` set it)
 SEGMENT_CHUNKS: int | None = None
+#: the forward's kernels: "chunked" (``seg_fwd_kernel`` + ``fwd_kernel``: associative scans over (channels, states,
+#: chunk) tiles) or "sequential" (``seq_fwd_kernel``: each thread walks its channels' states one step at a time)
+FORWARD = "chunked"
+#: channels per program and warps of the sequential forward
+SEQ_BLOCK_D_MAX = 64
+SEQ_NUM_WARPS = 2
+#: software-pipelining stages of the sequential forward's step loop
+SEQ_STAGES = 3
 
 
 try:  # kernels at module level: Triton resolves the names a kernel calls (_combine) from its module's globals
@@ -143,7 +151,7 @@ if triton is not None:
         """This program's channels d (of delta, A, D, bias), their u/y channel uc (SS2D: the channel within
         its direction), states n (and mask), chunk steps tt, group grp (SS2D: the direction), its A block
         (times log2 e: the decays are exp2(delta A log2 e)), the base offsets of its u and delta channels and of
-        its group's B/C rows, its checkpoint rows and the rows of its segment carries (``seg_row`` + segment)."""
+        its group's B/C rows, the offsets of its checkpoints and segment carries, and the channel count."""
         pid_b = tl.program_id(0).to(tl.int64)  # 64-bit offsets: batch * dim * L can exceed 2**31
         pid_d = tl.program_id(1)
         DIM = tl.num_programs(1) * BLOCK_D
@@ -160,9 +168,12 @@ if triton is not None:
         u_row = pid_b * su_b + uc * su_c  # (D,)
         d_row = pid_b * sd_b + d * sd_c  # (D,)
         bc = pid_b * sB_b + grp * sB_g + n * sB_n  # (N,)
-        ck = (pid_b * DIM + d)[:, None] * (NCHUNK * BLOCK_N) + n[None, :]
-        seg_row = (pid_b * DIM + d) * tl.num_programs(2)
-        return pid_b, d, uc, grp, n, tt, nmask, A, A * 1.4426950408889634, u_row, d_row, bc, ck, seg_row
+        # checkpoints (batch, chunk, state, channel) and carries (batch, segment, state, channel) /
+        # (batch, segment, channel): channels fastest, so that the sequential forward stores whole rows
+        ck = pid_b * (NCHUNK * BLOCK_N * DIM) + n[None, :] * DIM + d[:, None]  # chunk c: + c * BLOCK_N * DIM
+        cs = pid_b * (tl.num_programs(2) * BLOCK_N * DIM) + n[None, :] * DIM + d[:, None]  # segment s: + s BLOCK_N DIM
+        cd = pid_b * (tl.num_programs(2) * DIM) + d  # segment s: + s * DIM
+        return pid_b, d, uc, grp, n, tt, nmask, A, A * 1.4426950408889634, u_row, d_row, bc, ck, cs, cd, DIM
 
     @triton.jit
     def _segment_span(NCHUNK, SEG_CHUNKS):
@@ -264,7 +275,7 @@ if triton is not None:
     ):
         """Forward, first pass: each segment scanned from a zero state; its end state and its summed delta (the
         segment's whole decay is exp(A sum delta))."""
-        pid_b, d, uc, grp, n, tt, nmask, A, A2, u_row, d_row, bc, ck, seg_row = _program_tiles(
+        pid_b, d, uc, grp, n, tt, nmask, A, A2, u_row, d_row, bc, ck, cs, cd, DIM = _program_tiles(
             A_ptr, N, DIM_PER_GROUP, NCHUNK, su_b, su_c, sd_b, sd_c, sB_b, sB_g, sB_n, CHUNK_T, BLOCK_D, BLOCK_N, SS2D
         )
         c0, c1 = _segment_span(NCHUNK, SEG_CHUNKS)
@@ -293,9 +304,8 @@ if triton is not None:
             )
             dsum += tl.sum(dt, axis=1)
             h = tl.sum(tl.where((tt == CHUNK_T - 1)[None, None, :], hs, 0.0), axis=2)
-        seg = seg_row + tl.program_id(2)
-        tl.store(hend_ptr + seg[:, None] * BLOCK_N + n[None, :], h)
-        tl.store(dsum_ptr + seg, dsum)
+        tl.store(hend_ptr + cs + tl.program_id(2) * BLOCK_N * DIM, h)
+        tl.store(dsum_ptr + cd + tl.program_id(2) * DIM, dsum)
 
     @triton.jit
     def fwd_kernel(
@@ -342,7 +352,7 @@ if triton is not None:
         """Forward, second pass: each segment from its true entry state (the first pass's end states carried
         over the segments before it), writing y (SS2D: the four directions added into one float32 buffer) and
         the state entering every chunk."""
-        pid_b, d, uc, grp, n, tt, nmask, A, A2, u_row, d_row, bc, ck, seg_row = _program_tiles(
+        pid_b, d, uc, grp, n, tt, nmask, A, A2, u_row, d_row, bc, ck, cs, cd, DIM = _program_tiles(
             A_ptr, N, DIM_PER_GROUP, NCHUNK, su_b, su_c, sd_b, sd_c, sB_b, sB_g, sB_n, CHUNK_T, BLOCK_D, BLOCK_N, SS2D
         )
         c0, c1 = _segment_span(NCHUNK, SEG_CHUNKS)
@@ -351,10 +361,10 @@ if triton is not None:
             Dv = tl.load(D_ptr + d).to(tl.float32)
         h = tl.zeros((BLOCK_D, BLOCK_N), dtype=tl.float32)
         for s in range(0, tl.program_id(2)):  # the carry: h <- exp(A sum delta_s) h + end state of segment s
-            dec = tl.exp2(A2 * tl.load(dsum_ptr + seg_row + s)[:, None])
-            h = dec * h + tl.load(hend_ptr + (seg_row + s)[:, None] * BLOCK_N + n[None, :])
+            dec = tl.exp2(A2 * tl.load(dsum_ptr + cd + s * DIM)[:, None])
+            h = dec * h + tl.load(hend_ptr + cs + s * BLOCK_N * DIM)
         for c in range(c0, c1):
-            tl.store(ckpt_ptr + ck + c * BLOCK_N, h)  # the state entering chunk c
+            tl.store(ckpt_ptr + ck + c * BLOCK_N * DIM, h)  # the state entering chunk c
             t = c * CHUNK_T + tt
             tmask = t < L
             p = _positions(t, grp, L, H, W, SS2D)
@@ -383,6 +393,112 @@ if triton is not None:
             else:
                 tl.store(y_ptr + o_row[:, None] + p[None, :] * so_l, yt, mask=tmask[None, :])
             h = tl.sum(tl.where((tt == CHUNK_T - 1)[None, None, :], hs, 0.0), axis=2)  # state after the chunk
+
+    @triton.jit
+    def seq_fwd_kernel(
+        u_ptr,
+        delta_ptr,
+        A_ptr,
+        AT_ptr,
+        B_ptr,
+        C_ptr,
+        D_ptr,
+        bias_ptr,
+        hend_ptr,
+        dsum_ptr,
+        y_ptr,
+        ckpt_ptr,
+        L,
+        N,
+        DIM_PER_GROUP,
+        NCHUNK,
+        SEG_CHUNKS,
+        H,
+        W,
+        su_b,
+        su_c,
+        su_l,
+        sd_b,
+        sd_c,
+        sd_l,
+        sB_b,
+        sB_g,
+        sB_n,
+        sB_l,
+        so_b,
+        so_g,
+        so_c,
+        so_l,
+        CHUNK_T: tl.constexpr,
+        BLOCK_D: tl.constexpr,
+        BLOCK_N: tl.constexpr,
+        HAS_D: tl.constexpr,
+        HAS_BIAS: tl.constexpr,
+        SOFTPLUS: tl.constexpr,
+        SS2D: tl.constexpr,
+        FIRST_PASS: tl.constexpr,
+        STAGES: tl.constexpr,
+    ):
+        """The forward walked one step at a time: each thread holds its channels' N states in registers and each
+        step reads one position's channels (adjacent in memory on the SS2D route) and B / C row, so no scan over a
+        tile is needed; the sequence's segments give the parallelism. ``FIRST_PASS``: from a zero state, keep
+        each segment's end state and summed delta (as ``seg_fwd_kernel``); else from the carried entry state,
+        write y and the state entering every chunk (as ``fwd_kernel``). The states are held as an (N, BLOCK_D)
+        tile, channels fastest: Triton then lays a channel's N states in one thread, so the sum over the states is
+        a sum within a thread and a step's channel vectors need no change of layout."""
+        pid_b, d, uc, grp, n, tt, nmask, _, _, u_row, d_row, bc, ck, cs, cd, DIM = _program_tiles(
+            A_ptr, N, DIM_PER_GROUP, NCHUNK, su_b, su_c, sd_b, sd_c, sB_b, sB_g, sB_n, CHUNK_T, BLOCK_D, BLOCK_N, SS2D
+        )
+        # A transposed (N, dim) by the caller: channels fastest in memory, as in the state tile
+        A2 = tl.load(AT_ptr + n[:, None] * DIM + d[None, :], mask=nmask[:, None], other=0.0) * 1.4426950408889634
+        ck = tl.trans(ck)  # (N, D) offsets
+        cs = tl.trans(cs)
+        c0, c1 = _segment_span(NCHUNK, SEG_CHUNKS)
+        o_row = pid_b * so_b + grp * so_g + uc * so_c
+        if HAS_BIAS:
+            bias = tl.load(bias_ptr + d).to(tl.float32)
+        if HAS_D:
+            Dv = tl.load(D_ptr + d).to(tl.float32)
+        h = tl.zeros((BLOCK_N, BLOCK_D), dtype=tl.float32)
+        dsum = tl.zeros((BLOCK_D,), dtype=tl.float32)
+        if not FIRST_PASS:
+            for s in range(0, tl.program_id(2)):  # the carry, as in fwd_kernel
+                dec = tl.exp2(A2 * tl.load(dsum_ptr + cd + s * DIM)[None, :])
+                h = dec * h + tl.load(hend_ptr + cs + s * BLOCK_N * DIM)
+        zero_d = tl.zeros((BLOCK_D,), dtype=tl.int32)
+        for c in range(c0, c1):
+            if not FIRST_PASS:
+                tl.store(ckpt_ptr + ck + c * BLOCK_N * DIM, h)  # the state entering chunk c
+            for i in tl.range(0, CHUNK_T, num_stages=STAGES):  # loads of later steps issued early
+                t = c * CHUNK_T + i
+                valid = (zero_d + t) < L
+                p = _positions(t, grp, L, H, W, SS2D)
+                x = tl.load(delta_ptr + d_row + p * sd_l, mask=valid, other=0.0).to(tl.float32)
+                if HAS_BIAS:
+                    x = x + bias
+                if SOFTPLUS:
+                    dt = _softplus(x)
+                else:
+                    dt = x
+                dt = tl.where(valid, dt, 0.0)
+                ut = tl.load(u_ptr + u_row + p * su_l, mask=valid, other=0.0).to(tl.float32)
+                nvalid = nmask & (t < L)
+                Bt = tl.load(B_ptr + bc + p * sB_l, mask=nvalid, other=0.0).to(tl.float32)
+                h = tl.exp2(dt[None, :] * A2) * h + Bt[:, None] * (dt * ut)[None, :]
+                if FIRST_PASS:
+                    dsum += dt
+                else:
+                    Ct = tl.load(C_ptr + bc + p * sB_l, mask=nvalid, other=0.0).to(tl.float32)
+                    yt = tl.sum(h * Ct[:, None], axis=0)
+                    if HAS_D:
+                        yt += Dv * ut
+                    if SS2D:
+                        tl.atomic_add(y_ptr + o_row + p * so_l, yt, mask=valid, sem="relaxed")
+                    else:
+                        tl.store(y_ptr + o_row + p * so_l, yt, mask=valid)
+        if FIRST_PASS:
+            tl.store(hend_ptr + cs + tl.program_id(2) * BLOCK_N * DIM, h)
+            tl.store(dsum_ptr + cd + tl.program_id(2) * DIM, dsum)
 
     @triton.jit
     def seg_bwd_kernel(
@@ -420,7 +536,7 @@ if triton is not None:
         """Backward, first pass: each segment's adjoints from a zero adjoint after its end; the adjoint of its
         first step and the delta summed over its steps t0 + 1 .. t1 (the decay from the next segment's first step
         back to its own)."""
-        pid_b, d, uc, grp, n, tt, nmask, A, A2, u_row, d_row, bc, ck, seg_row = _program_tiles(
+        pid_b, d, uc, grp, n, tt, nmask, A, A2, u_row, d_row, bc, ck, cs, cd, DIM = _program_tiles(
             A_ptr, N, DIM_PER_GROUP, NCHUNK, 0, 0, sd_b, sd_c, sB_b, sB_g, sB_n, CHUNK_T, BLOCK_D, BLOCK_N, SS2D
         )
         c0, c1 = _segment_span(NCHUNK, SEG_CHUNKS)
@@ -453,9 +569,8 @@ if triton is not None:
             )
             dsum += tl.sum(dt1, axis=1)
             g = tl.sum(tl.where((tt == 0)[None, None, :], gs, 0.0), axis=2)
-        seg = seg_row + tl.program_id(2)
-        tl.store(gstart_ptr + seg[:, None] * BLOCK_N + n[None, :], g)
-        tl.store(dsum_ptr + seg, dsum)
+        tl.store(gstart_ptr + cs + tl.program_id(2) * BLOCK_N * DIM, g)
+        tl.store(dsum_ptr + cd + tl.program_id(2) * DIM, dsum)
 
     @triton.jit
     def bwd_kernel(
@@ -517,7 +632,7 @@ if triton is not None:
         pass's adjoints carried back over the segments after it); a chunk's states are recomputed from its
         checkpoint. Every gradient: du (SS2D: the four directions added into one float32 buffer), ddelta, and
         dB / dC / dA / dD / dbias summed over this program's channels before their atomic adds."""
-        pid_b, d, uc, grp, n, tt, nmask, A, A2, u_row, d_row, bc, ck, seg_row = _program_tiles(
+        pid_b, d, uc, grp, n, tt, nmask, A, A2, u_row, d_row, bc, ck, cs, cd, DIM = _program_tiles(
             A_ptr, N, DIM_PER_GROUP, NCHUNK, su_b, su_c, sd_b, sd_c, sB_b, sB_g, sB_n, CHUNK_T, BLOCK_D, BLOCK_N, SS2D
         )
         c0, c1 = _segment_span(NCHUNK, SEG_CHUNKS)
@@ -531,14 +646,14 @@ if triton is not None:
         nseg = tl.num_programs(2)
         for i in range(0, nseg - 1 - tl.program_id(2)):
             s = nseg - 1 - i
-            dec = tl.exp2(A2 * tl.load(dsum_ptr + seg_row + s)[:, None])
-            g_next = tl.load(gstart_ptr + (seg_row + s)[:, None] * BLOCK_N + n[None, :]) + dec * g_next
+            dec = tl.exp2(A2 * tl.load(dsum_ptr + cd + s * DIM)[:, None])
+            g_next = tl.load(gstart_ptr + cs + s * BLOCK_N * DIM) + dec * g_next
         dA_acc = tl.zeros((BLOCK_D, BLOCK_N), dtype=tl.float32)
         dD_acc = tl.zeros((BLOCK_D,), dtype=tl.float32)
         dbias_acc = tl.zeros((BLOCK_D,), dtype=tl.float32)
         for ci in range(0, c1 - c0):
             c = c1 - 1 - ci
-            h0 = tl.load(ckpt_ptr + ck + c * BLOCK_N)
+            h0 = tl.load(ckpt_ptr + ck + c * BLOCK_N * DIM)
             t = c * CHUNK_T + tt
             tmask = t < L
             t1mask = (t + 1) < L
@@ -745,9 +860,14 @@ class _Layout:
     (batch, group, channel, position) strides of the output y and du, the grid (batch, channel blocks,
     segments), and the SS2D image size (height 0: the plain (batch, dim, L) route)."""
 
-    def __init__(self, device, batch, dim, groups, n, length, u_s, delta_s, bc_s, out_s, dbc_s, height=0, width=0):
+    def __init__(
+        self, device, batch, dim, groups, n, length, u_s, delta_s, bc_s, out_s, dbc_s, height=0, width=0, block_max=None
+    ):
+        self._args = (device, batch, dim, groups, n, length, u_s, delta_s, bc_s, out_s, dbc_s, height, width)
         dpg = dim // groups
-        self.block_d = _block_d(dpg, SS2D_BLOCK_D_MAX if height else BLOCK_D_MAX)
+        if block_max is None:
+            block_max = SS2D_BLOCK_D_MAX if height else BLOCK_D_MAX
+        self.block_d = _block_d(dpg, block_max)
         self.block_n = triton.next_power_of_2(n)
         self.nchunk = triton.cdiv(length, CHUNK)
         programs = batch * (dim // self.block_d)
@@ -759,6 +879,11 @@ class _Layout:
         self.dbc_strides = dbc_s
         self.ss2d = bool(height)
         self.batch, self.dim = batch, dim
+
+    def sequential(self) -> _Layout:
+        """The same call laid out for the sequential forward (``SEQ_BLOCK_D_MAX`` channels per program, and the
+        segments that this program count asks for)."""
+        return _Layout(*self._args, block_max=SEQ_BLOCK_D_MAX)
 
     def constants(self, D, bias, softplus: bool) -> dict:
         return dict(
@@ -773,10 +898,10 @@ class _Layout:
         )
 
     def carries(self, device) -> tuple[torch.Tensor, torch.Tensor]:
-        """Empty float32 (batch, dim, segments, states) and (batch, dim, segments) buffers for the first pass."""
-        shape = (self.batch, self.dim, self.nseg)
+        """Empty float32 (batch, segments, states, dim) and (batch, segments, dim) buffers for the first pass."""
         f32 = torch.float32
-        return torch.empty(*shape, self.block_n, device=device, dtype=f32), torch.empty(shape, device=device, dtype=f32)
+        states = torch.empty(self.batch, self.nseg, self.block_n, self.dim, device=device, dtype=f32)
+        return states, torch.empty(self.batch, self.nseg, self.dim, device=device, dtype=f32)
 
 
 def _channels_last_strides(t: torch.Tensor) -> tuple[int, ...]:
@@ -787,47 +912,45 @@ def _channels_last_strides(t: torch.Tensor) -> tuple[int, ...]:
 
 
 def _scan_forward(layout: _Layout, u, delta, A, B, C, D, bias, softplus, y):
-    """Run the forward passes into ``y`` (SS2D: a zeroed float32 buffer the directions are added into); returns
-    the state checkpoints."""
-    ckpt = torch.empty(layout.batch, layout.dim, layout.nchunk, layout.block_n, device=u.device, dtype=torch.float32)
+    """Run the forward passes (:data:`FORWARD` chooses the kernels) into ``y`` (SS2D: a zeroed float32 buffer the
+    directions are added into); returns the state checkpoints."""
+    ckpt = torch.empty(layout.batch, layout.nchunk, layout.block_n, layout.dim, device=u.device, dtype=torch.float32)
     dummy = A  # any float32 tensor: never read when HAS_D / HAS_BIAS is off, or with one segment
+    sequential = FORWARD == "sequential"
+    if sequential:
+        layout = layout.sequential()
     consts = layout.constants(D, bias, softplus)
+    if sequential:
+        consts.update(num_warps=SEQ_NUM_WARPS, STAGES=SEQ_STAGES)
     hend, dsum = layout.carries(u.device) if layout.nseg > 1 else (dummy, dummy)
+    ins = (u, delta, A, B)
+    opt = (dummy if D is None else D, dummy if bias is None else bias)
+    shape = (*layout.sizes, *layout.u_strides, *layout.delta_strides, *layout.bc_strides)
+    if sequential:
+        At = A.t().contiguous()
+        for first in (True, False) if layout.nseg > 1 else (False,):
+            seq_fwd_kernel[layout.grid](
+                u,
+                delta,
+                A,
+                At,
+                B,
+                C,
+                *opt,
+                hend,
+                dsum,
+                y,
+                ckpt,
+                *shape,
+                *layout.out_strides,
+                **consts,
+                FIRST_PASS=first,
+            )
+        return ckpt
     if layout.nseg > 1:
         seg_consts = {k: v for k, v in consts.items() if k != "HAS_D"}
-        seg_fwd_kernel[layout.grid](
-            u,
-            delta,
-            A,
-            B,
-            dummy if bias is None else bias,
-            hend,
-            dsum,
-            *layout.sizes,
-            *layout.u_strides,
-            *layout.delta_strides,
-            *layout.bc_strides,
-            **seg_consts,
-        )
-    fwd_kernel[layout.grid](
-        u,
-        delta,
-        A,
-        B,
-        C,
-        dummy if D is None else D,
-        dummy if bias is None else bias,
-        hend,
-        dsum,
-        y,
-        ckpt,
-        *layout.sizes,
-        *layout.u_strides,
-        *layout.delta_strides,
-        *layout.bc_strides,
-        *layout.out_strides,
-        **consts,
-    )
+        seg_fwd_kernel[layout.grid](*ins, opt[1], hend, dsum, *shape, **seg_consts)
+    fwd_kernel[layout.grid](*ins, C, *opt, hend, dsum, y, ckpt, *shape, *layout.out_strides, **consts)
     return ckpt
 
 
@@ -894,9 +1017,9 @@ def _opt_grad(grad: torch.Tensor, like: torch.Tensor | None) -> torch.Tensor | N
 
 
 def ckpt_shape(batch: int, dim: int, length: int, n: int) -> tuple[int, int, int, int]:
-    """Shape of the float32 state checkpoints the forward saves for the backward: (batch, dim, chunks, states
-    padded to a power of two); ``dim`` is 4 d for the SS2D route."""
-    return (batch, dim, -(-length // CHUNK), 1 << max(n - 1, 0).bit_length())
+    """Shape of the float32 state checkpoints the forward saves for the backward: (batch, chunks, states padded to
+    a power of two, dim); ``dim`` is 4 d for the SS2D route."""
+    return (batch, -(-length // CHUNK), 1 << max(n - 1, 0).bit_length(), dim)
 
 
 def _plain_layout(u, delta, A, B):
