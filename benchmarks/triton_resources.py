@@ -64,9 +64,9 @@ def _ptxas_report(ptx: str, arch: int) -> tuple[int, int, int]:
 
 
 def resources(st, route: str, dtype: str, warps: int, block_d: int, arch: int = 90, d_state: int = 16) -> list[dict]:
-    """Compile the forward and backward kernels (each one's segment pass and main pass) of module ``st``
-    (``tofdenoise.models.scan.triton``, imported
-    without the interpreter) for one setting; one row per kernel with the ptxas figures."""
+    """Compile the forward and backward kernels (each one's segment pass and main pass, and the sequential kernels at
+    their own channels per program and warps) of module ``st`` (``tofdenoise.models.scan.triton``, imported without
+    the interpreter) for one setting; one row per kernel with the ptxas figures."""
     consts = dict(
         CHUNK_T=st.CHUNK,
         BLOCK_D=block_d,
@@ -77,15 +77,19 @@ def resources(st, route: str, dtype: str, warps: int, block_d: int, arch: int = 
         SS2D=route == "SS2D",
     )
     rows = []
+    seq = dict(BLOCK_D=st.SEQ_BLOCK_D_MAX, STAGES=st.SEQ_STAGES)
     kernels = (
-        ("seg_fwd", st.seg_fwd_kernel),
-        ("fwd", st.fwd_kernel),
-        ("seg_bwd", st.seg_bwd_kernel),
-        ("bwd", st.bwd_kernel),
+        ("seg_fwd", st.seg_fwd_kernel, None),
+        ("fwd", st.fwd_kernel, None),
+        ("seg_bwd", st.seg_bwd_kernel, None),
+        ("bwd", st.bwd_kernel, None),
+        ("seq_fwd_first", st.seq_fwd_kernel, dict(seq, FIRST_PASS=True)),
+        ("seq_fwd", st.seq_fwd_kernel, dict(seq, FIRST_PASS=False)),
+        ("seq_adjoint", st.seq_adjoint_kernel, seq),
     )
-    for name, kernel in kernels:
-        kconsts = {k: v for k, v in consts.items() if k in kernel.arg_names}
-        compiled = _compile(kernel, dtype, kconsts, arch, warps)
+    for name, kernel, extra in kernels:
+        kconsts = {k: v for k, v in {**consts, **(extra or {})}.items() if k in kernel.arg_names}
+        compiled = _compile(kernel, dtype, kconsts, arch, st.SEQ_NUM_WARPS if extra else warps)
         regs, spill_st, spill_ld = _ptxas_report(compiled.asm["ptx"], arch)
         rows.append(
             {
@@ -93,7 +97,7 @@ def resources(st, route: str, dtype: str, warps: int, block_d: int, arch: int = 
                 "kernel": name,
                 "dtype": dtype,
                 "warps": warps,
-                "block_d": block_d,
+                "block_d": kconsts["BLOCK_D"],
                 "registers": regs,
                 "spill_store_bytes": spill_st,
                 "spill_load_bytes": spill_ld,

@@ -130,6 +130,29 @@ def test_ss2d_route_split_into_segments_equals_the_reference(monkeypatch, segmen
 
 
 @needs_kernels
+@pytest.mark.parametrize("fine,coarse", [(1, 3), (2, 2), (1, 100)])
+def test_sequential_adjoint_pass_on_a_finer_split_equals_the_reference(monkeypatch, fine, coarse):
+    """The backward's first pass walked one step at a time on its own, finer split of the sequence (segments of
+    ``fine`` chunks, 4 channels a program) under a backward of ``coarse``-chunk segments (2 channels a program): the
+    carry crosses several fine segments per coarse one, and the gradients equal the reference's."""
+    monkeypatch.setattr(st, "ADJOINT", "sequential")
+    monkeypatch.setattr(st, "FORWARD", "sequential")
+    monkeypatch.setattr(st, "SS2D_BLOCK_D_MAX", 2)
+    programs_fine = 1 * (4 * 4) // 4
+    monkeypatch.setattr(
+        st, "segment_chunks", lambda nchunk, programs, device: fine if programs == programs_fine else coarse
+    )
+    h, w, di, n = 9, 13, 4, 5
+    x, delta, A, x_dbl, D, bias = _ss2d_inputs(1, h, w, di, n, seed=3)
+    A = 0.01 * A
+    y, grads = _ss2d_grads(st.ss2d_scan_triton, x, delta, A, x_dbl, D, bias, h, w, n)
+    y_ref, grads_ref = _ss2d_grads(ss2d_scan_reference, x, delta, A, x_dbl, D, bias, h, w, n)
+    assert _rel(y.detach(), y_ref.detach()) < 1e-5
+    for name, a, b in zip(["x", "delta", "A", "x_dbl", "D", "delta_bias"], grads, grads_ref):
+        assert _rel(a, b) < 1e-4, name
+
+
+@needs_kernels
 @pytest.mark.parametrize("forward", ["chunked", "sequential"])
 @pytest.mark.parametrize("segment_chunks", [1, 3])
 def test_plain_route_split_into_segments_equals_the_chunked_scan(monkeypatch, segment_chunks, forward):
@@ -265,7 +288,7 @@ def test_kernels_compile_for_the_h100_without_spills():
     out = subprocess.run([sys.executable, "-c", code], cwd=root, env=env, capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
     rows = json.loads(out.stdout.strip().splitlines()[-1])
-    kernels = ["seg_fwd", "fwd", "seg_bwd", "bwd"]
+    kernels = ["seg_fwd", "fwd", "seg_bwd", "bwd", "seq_fwd_first", "seq_fwd", "seq_adjoint"]
     assert [(r["route"], r["kernel"]) for r in rows] == [("SS2D", k) for k in kernels] + [("plain", k) for k in kernels]
     for r in rows:
         assert 0 < r["registers"] <= 255, r

@@ -79,6 +79,9 @@ SEGMENT_CHUNKS: int | None = None
 #: the forward's kernels: "chunked" (``seg_fwd_kernel`` + ``fwd_kernel``: associative scans over (channels, states,
 #: chunk) tiles) or "sequential" (``seq_fwd_kernel``: each thread walks its channels' states one step at a time)
 FORWARD = "chunked"
+#: the backward's first pass: "chunked" (``seg_bwd_kernel``) or "sequential" (``seq_adjoint_kernel``, one step at a
+#: time; it runs on the backward's own grid)
+ADJOINT = "chunked"
 #: channels per program and warps of the sequential forward
 SEQ_BLOCK_D_MAX = 64
 SEQ_NUM_WARPS = 2
@@ -573,6 +576,90 @@ if triton is not None:
         tl.store(dsum_ptr + cd + tl.program_id(2) * DIM, dsum)
 
     @triton.jit
+    def seq_adjoint_kernel(
+        delta_ptr,
+        A_ptr,
+        AT_ptr,
+        C_ptr,
+        bias_ptr,
+        dy_ptr,
+        gstart_ptr,
+        dsum_ptr,
+        L,
+        N,
+        DIM_PER_GROUP,
+        NCHUNK,
+        SEG_CHUNKS,
+        H,
+        W,
+        sd_b,
+        sd_c,
+        sd_l,
+        sB_b,
+        sB_g,
+        sB_n,
+        sB_l,
+        sdy_b,
+        sdy_c,
+        sdy_l,
+        CHUNK_T: tl.constexpr,
+        BLOCK_D: tl.constexpr,
+        BLOCK_N: tl.constexpr,
+        HAS_BIAS: tl.constexpr,
+        SOFTPLUS: tl.constexpr,
+        SS2D: tl.constexpr,
+    ):
+        """The backward's first pass walked one step at a time (what ``seg_bwd_kernel`` computes): each segment's
+        adjoints g_t = dy_t C_t + a_{t+1} g_{t+1} from a zero adjoint after its end, a thread per channel holding its
+        N adjoints; the adjoint of the segment's first step and the delta summed over its steps t0 + 1 .. t1."""
+        pid_b, d, uc, grp, n, tt, nmask, _, _, u_row, d_row, bc, ck, cs, cd, DIM = _program_tiles(
+            A_ptr, N, DIM_PER_GROUP, NCHUNK, 0, 0, sd_b, sd_c, sB_b, sB_g, sB_n, CHUNK_T, BLOCK_D, BLOCK_N, SS2D
+        )
+        A2 = tl.load(AT_ptr + n[:, None] * DIM + d[None, :], mask=nmask[:, None], other=0.0) * 1.4426950408889634
+        cs = tl.trans(cs)
+        c0, c1 = _segment_span(NCHUNK, SEG_CHUNKS)
+        t0 = c0 * CHUNK_T
+        t1 = c1 * CHUNK_T
+        dy_row = pid_b * sdy_b + uc * sdy_c
+        if HAS_BIAS:
+            bias = tl.load(bias_ptr + d).to(tl.float32)
+        zero_d = tl.zeros((BLOCK_D,), dtype=tl.int32)
+        g = tl.zeros((BLOCK_N, BLOCK_D), dtype=tl.float32)
+        a1 = tl.zeros((BLOCK_N, BLOCK_D), dtype=tl.float32)  # the decay of step t + 1 (g is 0 until it is used)
+        dsum = tl.zeros((BLOCK_D,), dtype=tl.float32)
+        for i in range(0, t1 - t0):
+            t = t1 - 1 - i
+            valid = (zero_d + t) < L
+            p = _positions(t, grp, L, H, W, SS2D)
+            nvalid = nmask & (t < L)
+            Ct = tl.load(C_ptr + bc + p * sB_l, mask=nvalid, other=0.0).to(tl.float32)
+            dyt = tl.load(dy_ptr + dy_row + p * sdy_l, mask=valid, other=0.0).to(tl.float32)
+            g = a1 * g + Ct[:, None] * dyt[None, :]
+            x = tl.load(delta_ptr + d_row + p * sd_l, mask=valid, other=0.0).to(tl.float32)
+            if HAS_BIAS:
+                x = x + bias
+            if SOFTPLUS:
+                dt = _softplus(x)
+            else:
+                dt = x
+            dt = tl.where(valid, dt, 0.0)
+            a1 = tl.exp2(dt[None, :] * A2)
+            dsum += tl.where(t > t0, dt, 0.0)
+        # the first step of the next segment: its delta links this segment's last adjoint to the carry
+        p1 = _positions(t1, grp, L, H, W, SS2D)
+        valid1 = (zero_d + t1) < L
+        x = tl.load(delta_ptr + d_row + p1 * sd_l, mask=valid1, other=0.0).to(tl.float32)
+        if HAS_BIAS:
+            x = x + bias
+        if SOFTPLUS:
+            dt1 = _softplus(x)
+        else:
+            dt1 = x
+        dsum += tl.where(valid1, dt1, 0.0)
+        tl.store(gstart_ptr + cs + tl.program_id(2) * BLOCK_N * DIM, g)
+        tl.store(dsum_ptr + cd + tl.program_id(2) * DIM, dsum)
+
+    @triton.jit
     def bwd_kernel(
         u_ptr,
         delta_ptr,
@@ -599,6 +686,8 @@ if triton is not None:
         SEG_CHUNKS,
         H,
         W,
+        CARRY_SEGS,
+        CARRY_PER_SEG,
         su_b,
         su_c,
         su_l,
@@ -642,10 +731,12 @@ if triton is not None:
         if HAS_D:
             Dv = tl.load(D_ptr + d).to(tl.float32)
         # the carry: the adjoint of the next segment's first step, from the segments after this one
+        # (the first pass may have cut the sequence finer: CARRY_PER_SEG of its CARRY_SEGS segments make one here)
         g_next = tl.zeros((BLOCK_D, BLOCK_N), dtype=tl.float32)
-        nseg = tl.num_programs(2)
-        for i in range(0, nseg - 1 - tl.program_id(2)):
-            s = nseg - 1 - i
+        cs = pid_b * (CARRY_SEGS * BLOCK_N * DIM) + n[None, :] * DIM + d[:, None]
+        cd = pid_b * (CARRY_SEGS * DIM) + d
+        for i in range(0, CARRY_SEGS - (tl.program_id(2) + 1) * CARRY_PER_SEG):
+            s = CARRY_SEGS - 1 - i
             dec = tl.exp2(A2 * tl.load(dsum_ptr + cd + s * DIM)[:, None])
             g_next = tl.load(gstart_ptr + cs + s * BLOCK_N * DIM) + dec * g_next
         dA_acc = tl.zeros((BLOCK_D, BLOCK_N), dtype=tl.float32)
@@ -861,7 +952,22 @@ class _Layout:
     segments), and the SS2D image size (height 0: the plain (batch, dim, L) route)."""
 
     def __init__(
-        self, device, batch, dim, groups, n, length, u_s, delta_s, bc_s, out_s, dbc_s, height=0, width=0, block_max=None
+        self,
+        device,
+        batch,
+        dim,
+        groups,
+        n,
+        length,
+        u_s,
+        delta_s,
+        bc_s,
+        out_s,
+        dbc_s,
+        height=0,
+        width=0,
+        block_max=None,
+        seg_chunks=None,
     ):
         self._args = (device, batch, dim, groups, n, length, u_s, delta_s, bc_s, out_s, dbc_s, height, width)
         dpg = dim // groups
@@ -871,7 +977,7 @@ class _Layout:
         self.block_n = triton.next_power_of_2(n)
         self.nchunk = triton.cdiv(length, CHUNK)
         programs = batch * (dim // self.block_d)
-        self.seg_chunks = segment_chunks(self.nchunk, programs, torch.device(device))
+        self.seg_chunks = seg_chunks or segment_chunks(self.nchunk, programs, torch.device(device))
         self.nseg = triton.cdiv(self.nchunk, self.seg_chunks)
         self.grid = (batch, dim // self.block_d, self.nseg)
         self.sizes = (length, n, dpg, self.nchunk, self.seg_chunks, height, width)
@@ -881,9 +987,14 @@ class _Layout:
         self.batch, self.dim = batch, dim
 
     def sequential(self) -> _Layout:
-        """The same call laid out for the sequential forward (``SEQ_BLOCK_D_MAX`` channels per program, and the
+        """The same call laid out for the sequential kernels (``SEQ_BLOCK_D_MAX`` channels per program, and the
         segments that this program count asks for)."""
         return _Layout(*self._args, block_max=SEQ_BLOCK_D_MAX)
+
+    def coarsened(self, fine: _Layout) -> _Layout:
+        """This layout with segments of a whole number of ``fine``'s (at least as long as its own)."""
+        per = -(-self.seg_chunks // fine.seg_chunks)
+        return _Layout(*self._args, seg_chunks=per * fine.seg_chunks)
 
     def constants(self, D, bias, softplus: bool) -> dict:
         return dict(
@@ -955,32 +1066,30 @@ def _scan_forward(layout: _Layout, u, delta, A, B, C, D, bias, softplus, y):
 
 
 def _scan_backward(layout: _Layout, saved, softplus, dy, dy_strides, du, dB, dC):
-    """Run the backward passes into du (SS2D: a zeroed float32 buffer) / dB / dC (zeroed float32, given) and new
-    ddelta, dA, dD, dbias; returns those four."""
+    """Run the backward passes (:data:`ADJOINT` chooses the first pass's kernel) into du (SS2D: a zeroed float32
+    buffer) / dB / dC (zeroed float32, given) and new ddelta, dA, dD, dbias; returns those four."""
     u, delta, A, B, C, D, bias, ckpt = saved
     ddelta = torch.empty_like(delta)
     dA = torch.zeros_like(A)
     dD = torch.zeros(layout.dim, device=u.device, dtype=torch.float32)
     dbias = torch.zeros(layout.dim, device=u.device, dtype=torch.float32)
     dummy = A
+    carry = layout
+    if ADJOINT == "sequential":
+        carry = layout.sequential()
+        layout = layout.coarsened(carry)
     consts = layout.constants(D, bias, softplus)
-    gstart, dsum = layout.carries(u.device) if layout.nseg > 1 else (dummy, dummy)
+    gstart, dsum = carry.carries(u.device) if layout.nseg > 1 else (dummy, dummy)
     if layout.nseg > 1:
         seg_consts = {k: v for k, v in consts.items() if k != "HAS_D"}
-        seg_bwd_kernel[layout.grid](
-            delta,
-            A,
-            C,
-            dummy if bias is None else bias,
-            dy,
-            gstart,
-            dsum,
-            *layout.sizes,
-            *layout.delta_strides,
-            *layout.bc_strides,
-            *dy_strides,
-            **seg_consts,
-        )
+        args = (C, dummy if bias is None else bias, dy, gstart, dsum, *carry.sizes)
+        strides = (*layout.delta_strides, *layout.bc_strides, *dy_strides)
+        if ADJOINT == "sequential":
+            seq = {**seg_consts, "BLOCK_D": carry.block_d, "num_warps": SEQ_NUM_WARPS}
+            seq_adjoint_kernel[carry.grid](delta, A, A.t().contiguous(), *args, *strides, **seq)
+        else:
+            seg_bwd_kernel[layout.grid](delta, A, *args, *strides, **seg_consts)
+    per_seg = layout.seg_chunks // carry.seg_chunks
     bwd_kernel[layout.grid](
         u,
         delta,
@@ -1001,6 +1110,8 @@ def _scan_backward(layout: _Layout, saved, softplus, dy, dy_strides, du, dB, dC)
         dD,
         dbias,
         *layout.sizes,
+        carry.nseg,
+        per_seg,
         *layout.u_strides,
         *layout.delta_strides,
         *layout.bc_strides,
