@@ -158,7 +158,8 @@ def test_sequential_adjoint_pass_on_a_finer_split_equals_the_reference(monkeypat
 def test_plain_route_split_into_segments_equals_the_chunked_scan(monkeypatch, segment_chunks, forward):
     """The plain route with 7 chunks (the last partial) in segments of 1 and 3 chunks, on either forward."""
     monkeypatch.setattr(st, "SEGMENT_CHUNKS", segment_chunks)
-    monkeypatch.setattr(st, "FORWARD", forward)
+    monkeypatch.setattr(st, "PLAIN_FORWARD", forward)
+    monkeypatch.setattr(st, "PLAIN_ADJOINT", forward)
     u, delta, A, B, C, D, bias = (t.detach() for t in _inputs(1, 4, 200, 2, 4))
     A = 0.01 * A  # slow decays: a state (and an adjoint) lives on across several segments
     weight = torch.linspace(-1.0, 1.0, u.numel()).view_as(u)

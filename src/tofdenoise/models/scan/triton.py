@@ -76,12 +76,16 @@ MIN_SEGMENT_CHUNKS = 4
 #: chunks per segment for every launch, or None: chosen per launch by :func:`segment_chunks` (the tests and
 #: ``benchmarks/tune_scan_triton.py`` set it)
 SEGMENT_CHUNKS: int | None = None
-#: the forward's kernels: "chunked" (``seg_fwd_kernel`` + ``fwd_kernel``: associative scans over (channels, states,
-#: chunk) tiles) or "sequential" (``seq_fwd_kernel``: each thread walks its channels' states one step at a time)
+#: the SS2D route's forward kernels: "chunked" (``seg_fwd_kernel`` + ``fwd_kernel``: associative scans over
+#: (channels, states, chunk) tiles) or "sequential" (``seq_fwd_kernel``: each thread walks its channels' states one
+#: step at a time; a step reads one position's adjacent channels)
 FORWARD = "chunked"
 #: the backward's first pass: "chunked" (``seg_bwd_kernel``) or "sequential" (``seq_adjoint_kernel``, one step at a
 #: time; it runs on the backward's own grid)
 ADJOINT = "chunked"
+#: the same two choices for the plain (batch, dim, L) route, where a position's channels are L apart in memory
+PLAIN_FORWARD = "chunked"
+PLAIN_ADJOINT = "chunked"
 #: channels per program and warps of the sequential forward
 SEQ_BLOCK_D_MAX = 64
 SEQ_NUM_WARPS = 2
@@ -1023,11 +1027,11 @@ def _channels_last_strides(t: torch.Tensor) -> tuple[int, ...]:
 
 
 def _scan_forward(layout: _Layout, u, delta, A, B, C, D, bias, softplus, y):
-    """Run the forward passes (:data:`FORWARD` chooses the kernels) into ``y`` (SS2D: a zeroed float32 buffer the
-    directions are added into); returns the state checkpoints."""
+    """Run the forward passes (:data:`FORWARD` / :data:`PLAIN_FORWARD` choose the kernels) into ``y`` (SS2D: a
+    zeroed float32 buffer the directions are added into); returns the state checkpoints."""
     ckpt = torch.empty(layout.batch, layout.nchunk, layout.block_n, layout.dim, device=u.device, dtype=torch.float32)
     dummy = A  # any float32 tensor: never read when HAS_D / HAS_BIAS is off, or with one segment
-    sequential = FORWARD == "sequential"
+    sequential = (FORWARD if layout.ss2d else PLAIN_FORWARD) == "sequential"
     if sequential:
         layout = layout.sequential()
     consts = layout.constants(D, bias, softplus)
@@ -1066,16 +1070,18 @@ def _scan_forward(layout: _Layout, u, delta, A, B, C, D, bias, softplus, y):
 
 
 def _scan_backward(layout: _Layout, saved, softplus, dy, dy_strides, du, dB, dC):
-    """Run the backward passes (:data:`ADJOINT` chooses the first pass's kernel) into du (SS2D: a zeroed float32
-    buffer) / dB / dC (zeroed float32, given) and new ddelta, dA, dD, dbias; returns those four."""
+    """Run the backward passes (:data:`ADJOINT` / :data:`PLAIN_ADJOINT` choose the first pass's kernel) into du
+    (SS2D: a zeroed float32 buffer) / dB / dC (zeroed float32, given) and new ddelta, dA, dD, dbias; returns those
+    four."""
     u, delta, A, B, C, D, bias, ckpt = saved
     ddelta = torch.empty_like(delta)
     dA = torch.zeros_like(A)
     dD = torch.zeros(layout.dim, device=u.device, dtype=torch.float32)
     dbias = torch.zeros(layout.dim, device=u.device, dtype=torch.float32)
     dummy = A
+    sequential = (ADJOINT if layout.ss2d else PLAIN_ADJOINT) == "sequential"
     carry = layout
-    if ADJOINT == "sequential":
+    if sequential:
         carry = layout.sequential()
         layout = layout.coarsened(carry)
     consts = layout.constants(D, bias, softplus)
@@ -1084,7 +1090,7 @@ def _scan_backward(layout: _Layout, saved, softplus, dy, dy_strides, du, dB, dC)
         seg_consts = {k: v for k, v in consts.items() if k != "HAS_D"}
         args = (C, dummy if bias is None else bias, dy, gstart, dsum, *carry.sizes)
         strides = (*layout.delta_strides, *layout.bc_strides, *dy_strides)
-        if ADJOINT == "sequential":
+        if sequential:
             seq = {**seg_consts, "BLOCK_D": carry.block_d, "num_warps": SEQ_NUM_WARPS}
             seq_adjoint_kernel[carry.grid](delta, A, A.t().contiguous(), *args, *strides, **seq)
         else:
