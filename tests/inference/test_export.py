@@ -8,7 +8,7 @@ import torch
 
 pytest.importorskip("onnxruntime")
 
-from tofdenoise.inference.export import ExportError, export_graph, restore_graph  # noqa: E402
+from tofdenoise.inference.export import ExportError, export_graph, export_onnx, restore_graph  # noqa: E402
 from tofdenoise.inference.onnx_runner import (  # noqa: E402
     OnnxModelError,
     OnnxRestorer,
@@ -251,23 +251,42 @@ def test_bad_files_and_settings_are_one_line_errors(tmp_path):
         OnnxRestorer(bad)
     with pytest.raises(OnnxModelError, match="does not exist"):
         OnnxRestorer(tmp_path / "none.onnx")
+    with pytest.raises(ExportError, match="scan form 'loop'; expected one of steps, chunked"):
+        export_onnx(bad, tmp_path / "y.onnx", scan_form="loop")
     with pytest.raises(ExportError, match="conditioning.centering 'image' cannot be exported"):
         restore_graph(DepthRestorer(backbone="unet", backbone_kwargs=TINY["unet"], conditioning={"centering": "image"}))
 
 
-def test_dvss_graph_scans_in_loops_with_scan_outputs_not_sequences(tmp_path):
+def _ops(graph) -> list[str]:
+    """Operator types of ``graph`` and of the graphs nested in its nodes, at any depth."""
+    ops = []
+    for node in graph.node:
+        ops.append(node.op_type)
+        ops += [op for attr in node.attribute if attr.type == attr.GRAPH for op in _ops(attr.g)]
+    return ops
+
+
+@pytest.mark.parametrize("scan_form", ["chunked", "steps"])
+def test_dvss_graph_scans_in_loops_with_scan_outputs_not_sequences(tmp_path, scan_form):
     import onnx
 
     model = _model("dvss")
     path = tmp_path / "dvss.onnx"
-    export_graph(restore_graph(model), path)
+    export_graph(restore_graph(model), path, scan_form=scan_form)
     graph = onnx.load(str(path)).graph
     layers = sum(type(m).__name__ == "SS2D" for m in model.backbone.modules())
-    nested = [n.op_type for node in graph.node for a in node.attribute if a.type == a.GRAPH for n in a.g.node]
-    ops = [node.op_type for node in graph.node] + nested
-    # per SS2D layer: two loops over the positions of a lane and one carry across lanes (models/scan/export.py)
-    assert layers == 3 and ops.count("Loop") == 3 * layers
-    assert not {"SequenceEmpty", "SequenceInsert", "ConcatFromSequence"} & set(ops)
+    ops = _ops(graph)
+    assert layers == 3 and not {"SequenceEmpty", "SequenceInsert", "ConcatFromSequence"} & set(ops)
+    if scan_form == "steps":  # per SS2D layer: two loops over the positions of a lane, one carry across lanes
+        assert ops.count("Loop") == 3 * layers and "If" not in ops
+    else:  # per layer: the exponent guard's If, the chunked form's three loops and the step loops' three
+        assert ops.count("Loop") == 6 * layers and ops.count("If") == 2 * layers
+        runner = OnnxRestorer.__new__(OnnxRestorer)
+        import onnxruntime as ort
+
+        runner.session, runner.path = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]), path
+        runner.inputs = ["depth_mm"]
+        assert _max_diff(model, runner, 45, 67) <= TOLERANCE_MM
 
 
 def test_the_dynamo_exporter_route_gives_a_dvss_graph_that_runs_at_any_size(tmp_path, capsys):
@@ -283,11 +302,12 @@ def test_the_dynamo_exporter_route_gives_a_dvss_graph_that_runs_at_any_size(tmp_
     assert export_main([str(ckpt), "--onnx", str(path), "--exporter", "dynamo"]) == 0
     assert "dynamo exporter" in capsys.readouterr().err
     graph = onnx.load(str(path)).graph
-    ops = [node.op_type for node in graph.node]
+    ops = _ops(graph)
     layers = sum(type(m).__name__ == "SS2D" for m in model.backbone.modules())
-    assert ops.count("Scan") == 2 * layers and "Loop" not in ops
+    assert ops.count("Scan") == 2 * layers and "Loop" not in ops  # the default (step) form: two loops per layer
     runner = OnnxRestorer(path)
     assert runner.metadata["tofdenoise_exporter"] == "dynamo"
+    assert runner.metadata["tofdenoise_export_scan"] == "steps"
     for h, w in [(37, 53), (64, 80)]:
         assert _max_diff(model, runner, h, w) <= TOLERANCE_MM, (h, w)
     assert export_main([str(ckpt), "--onnx", str(tmp_path / "x.onnx"), "--exporter", "jit"]) == 2

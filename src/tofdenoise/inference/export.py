@@ -24,7 +24,8 @@ DVSS's scans go through ``models/scan/export.py``. For the TorchScript exporter 
 loops that it keeps as ONNX ``Loop`` nodes (dynamic trip count, memory bounded in the sequence length); after
 export their per-step outputs are rewritten from ONNX sequences into the loops' scan outputs
 (:mod:`tofdenoise.inference.onnx_loops`). For the dynamo exporter, which would unroll scripted loops at the
-example's size, they are ``scan`` operators that become ONNX ``Scan`` nodes.
+example's size, they are ``scan`` operators that become ONNX ``Scan`` nodes. ``scan_form`` picks the scan's form:
+one loop step per chunk of positions behind a run-time exponent guard (an ONNX ``If``) or one per position.
 
 The graph's metadata (``metadata_props``) names the backbone, ``use_signal_channel``, ``depth_scale_mm``, the
 fill levels, the precision and the checkpoint's sha256; ``tofdenoise denoise --onnx`` reads them.
@@ -108,8 +109,14 @@ def _example(graph: RestoreGraph, height: int = 61, width: int = 83) -> tuple[Te
     return (depth,)
 
 
-def export_graph(graph: RestoreGraph, path: str | os.PathLike[str], dynamo: bool = False) -> None:
-    """Write ``graph`` as ONNX to ``path`` (not atomic: :func:`export_onnx` writes through a temporary file)."""
+def export_graph(
+    graph: RestoreGraph, path: str | os.PathLike[str], dynamo: bool = False, scan_form: str | None = None
+) -> None:
+    """Write ``graph`` as ONNX to ``path`` (not atomic: :func:`export_onnx` writes through a temporary file).
+    ``scan_form``: the form of DVSS's export scans (``models/scan/export.py``: ``"chunked"`` or ``"steps"``;
+    ``None``: its default, ``EXPORT_SCAN_FORM``)."""
+    from tofdenoise.models.scan.export import export_scan_form
+
     inputs = _example(graph)
     names = ["depth_mm"] + (["amplitude"] if graph.use_signal_channel else [])
     common = {"input_names": names, "output_names": ["restored_mm"], "opset_version": ONNX_OPSET, "dynamo": dynamo}
@@ -118,7 +125,7 @@ def export_graph(graph: RestoreGraph, path: str | os.PathLike[str], dynamo: bool
     else:  # the tracer: sizes recorded as graph operations, the axes named dynamic
         common["dynamic_axes"] = {n: {2: "height", 3: "width"} for n in [*names, "restored_mm"]}
 
-    with torch.no_grad(), warnings.catch_warnings():
+    with torch.no_grad(), warnings.catch_warnings(), export_scan_form(scan_form):
         # expected: the shape checks the tracer keeps as constants (the general branch, _example) and the
         # exporter's note that it does not fold strided slices
         warnings.filterwarnings("ignore", category=torch.jit.TracerWarning)
@@ -141,14 +148,22 @@ def _loops_with_scan_outputs(path: str | os.PathLike[str]) -> None:
 
 
 def export_onnx(
-    ckpt: str | os.PathLike[str], out: str | os.PathLike[str], fp16: bool = False, exporter: str = "torchscript"
+    ckpt: str | os.PathLike[str],
+    out: str | os.PathLike[str],
+    fp16: bool = False,
+    exporter: str = "torchscript",
+    scan_form: str | None = None,
 ) -> dict[str, str]:
     """Export checkpoint ``ckpt`` to ``out`` (atomically) with ``exporter`` (:data:`EXPORTERS`) and return the
-    metadata written into the graph."""
+    metadata written into the graph. ``scan_form``: as in :func:`export_graph`."""
     import onnx
+
+    from tofdenoise.models.scan.export import EXPORT_SCAN_FORM, EXPORT_SCAN_FORMS
 
     if exporter not in EXPORTERS:
         raise ExportError(f"exporter {exporter!r}; expected one of {', '.join(EXPORTERS)}")
+    if scan_form is not None and scan_form not in EXPORT_SCAN_FORMS:
+        raise ExportError(f"scan form {scan_form!r}; expected one of {', '.join(EXPORT_SCAN_FORMS)}")
 
     model = load_restorer(ckpt, torch.device("cpu"))
     if not getattr(model, "trainable", True):
@@ -163,6 +178,7 @@ def export_onnx(
         "tofdenoise_fill_levels": str(FILL_LEVELS),
         "tofdenoise_precision": "fp16" if fp16 else "fp32",
         "tofdenoise_exporter": exporter,
+        "tofdenoise_export_scan": scan_form or EXPORT_SCAN_FORM,
         "tofdenoise_checkpoint": str(Path(ckpt).resolve()),
         "tofdenoise_checkpoint_sha256": file_sha256(ckpt),
     }
@@ -170,7 +186,7 @@ def export_onnx(
     def write(tmp: Path) -> None:
         raw = tmp.with_name(tmp.name + ".export.onnx")
         try:
-            export_graph(graph, raw, dynamo=exporter == "dynamo")
+            export_graph(graph, raw, dynamo=exporter == "dynamo", scan_form=scan_form)
             proto = onnx.load(str(raw))  # external data (if any) folded back: one self-contained file
         finally:
             for leftover in raw.parent.glob(raw.name + "*"):
