@@ -14,6 +14,9 @@ the D skip term fused, forward and a recomputing backward (gradients for u, delt
 Inputs are channels-last, (batch, L, channels), so SS2D hands its activations over without the
 ``cross_scan`` copies: :func:`ss2d_scan_cpu` reads the four scan directions (row-major, column-major, both
 reversed) of an H x W image by index arithmetic and sums their outputs (``cross_merge``) inside the kernel.
+The entry points (:func:`selective_scan_cpu`, :func:`ss2d_scan_cpu`) call the ``tofdenoise::selective_scan`` /
+``tofdenoise::ss2d_scan`` custom operators of :mod:`.ops` (autograd, ``torch.compile``), whose CPU implementations
+are :func:`scan_forward` / :func:`scan_backward` / :func:`ss2d_forward` / :func:`ss2d_backward` here.
 
 Build: ``torch.utils.cpp_extension.load`` compiles the source once into torch's per-user extension cache
 (``TORCH_EXTENSIONS_DIR``, default ``~/.cache/torch_extensions``); the module name carries a hash of the
