@@ -169,7 +169,7 @@ def test_triton_plain_route_through_the_operator_equals_the_chunked_scan():
 
 # --------------------------------------------------------------------------------------------- torch.compile
 
-SMALL_DVSS = dict(in_channels=1, width=8, enc_blocks=[1, 1], bottleneck_blocks=1)
+SMALL_DVSS = dict(in_channels=1, width=8, enc_blocks=[1], bottleneck_blocks=1)
 
 
 def _forward_backward(net, x, call=None):
