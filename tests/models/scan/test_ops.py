@@ -167,6 +167,35 @@ def test_triton_plain_route_through_the_operator_equals_the_chunked_scan():
         assert _rel(got, want) < 1e-4
 
 
+def test_triton_entry_points_compile_in_one_graph():
+    """ss2d_scan_triton / selective_scan_triton under torch.compile (fullgraph; AOT autograd with the operators'
+    fake implementations): forward and every gradient equal the PyTorch scans."""
+    st = _triton()
+    dev = "cuda" if torch.cuda.is_available() else "cpu"
+    x, delta, A, B, C, D, _, h, w, _ = _ss2d_args(1, 3, 4, 2, 3, True, "triton")
+    x_dbl = torch.cat([B, C], dim=-1)
+    ss2d = [t.to(dev).requires_grad_() for t in (x, delta, A, x_dbl, D)]
+    plain = [t.detach().to(dev).requires_grad_() for t in _inputs(1, 4, 40, 2, 3)[:6]]
+
+    def ss2d_fn(scan):
+        return lambda x, delta, A, xd, D: scan(x, delta, A, xd[..., :3], xd[..., 3:], D, None, h, w)
+
+    def plain_fn(scan):
+        return lambda u, delta, A, B, C, D: scan(u, delta, A, B, C, D, None, True)
+
+    for tensors, fn, ref in (
+        (ss2d, ss2d_fn(st.ss2d_scan_triton), ss2d_fn(ss2d_scan_reference)),
+        (plain, plain_fn(st.selective_scan_triton), plain_fn(selective_scan_chunked)),
+    ):
+        torch._dynamo.reset()
+        results = []
+        for f in (torch.compile(fn, fullgraph=True, backend="aot_eager"), ref):
+            y = f(*tensors)
+            results.append([y, *torch.autograd.grad(y.square().sum(), tensors)])
+        for got, want in zip(*results):
+            assert _rel(got, want) < 1e-5
+
+
 # --------------------------------------------------------------------------------------------- torch.compile
 
 SMALL_DVSS = dict(in_channels=1, width=8, enc_blocks=[1], bottleneck_blocks=1)
