@@ -123,15 +123,16 @@ class SS2D(nn.Module):
         """Kernel route (``kernel``: "cpu" or "triton") on channels-last activations xs (b, h, w, d_inner),
         the same math as :meth:`_scan_cross`: x_proj and dt_proj are per-position linear maps, applied once in
         row-major order as matrix products (the 4 directions' x_proj weights stacked into one matrix, the dt
-        projections as one block-diagonal matrix); the kernel reads direction k's step l at position
+        projections as one product batched over the directions); the kernel reads direction k's step l at position
         pi_k(l) and sums the 4 directions' outputs in place of cross_merge."""
         b = xs.shape[0]
         k, n, r, di = self.directions, self.d_state, self.dt_rank, self.d_inner
         length = h * w
         xs = xs.view(b, length, di)
         x_dbl = (xs @ self.x_proj_weight.reshape(k * (r + 2 * n), di).t()).view(b, length, k, r + 2 * n)
-        dt_block = torch.block_diag(*self.dt_projs_weight.transpose(1, 2))  # (k r, k di)
-        dts = x_dbl[..., :r].reshape(b, length, k * r) @ dt_block  # (b, L, k di)
+        # per direction k: (b L, r) @ (r, di), one batched product over k (no (k r, k di) block-diagonal matrix)
+        dts = torch.bmm(x_dbl[..., :r].reshape(b * length, k, r).transpose(0, 1), self.dt_projs_weight.transpose(1, 2))
+        dts = dts.transpose(0, 1).reshape(b, length, k * di)  # (b, L, k di), direction-major channels
         A, D, bias = self._scan_params()
         if kernel == "triton":
             from .scan.triton import ss2d_scan_triton as scan

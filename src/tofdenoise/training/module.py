@@ -67,7 +67,10 @@ class DepthRestorer(pl.LightningModule):
         optim: AdamW and its schedule (:class:`~tofdenoise.training.optim.OptimSettings`).
         tiling: tile-by-tile inference (:class:`~tofdenoise.models.tiling.TilingSettings`).
         ema_decay: decay of the EMA of the weights (e.g. 0.999); ``None`` = no EMA.
-        compile: ``torch.compile`` the backbone for training.
+        compile: ``torch.compile`` the backbone for the training steps (``configs/model/default.yaml``:
+            ``model.compile``): set up in :meth:`configure_model`, compiled at the first training forward (forward and
+            backward graphs); kept out of the module tree, so the state dict keys are those of an eager run.
+            Validation, test and prediction run the eager network (:attr:`eval_net`).
         d_max_mm: fixed PSNR/SSIM peak (paper: 1000 mm).
         learned_margin: a run counts as learned only when its best validation MAE is at most
             ``(1 - learned_margin)`` x the raw validation MAE (``training/learned_guard.py``).

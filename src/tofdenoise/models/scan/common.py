@@ -17,10 +17,12 @@ import torch.nn.functional as F
 __all__ = [
     "Dims",
     "check_shapes",
+    "check_ss2d_shapes",
     "compute_inputs",
     "effective_delta",
     "add_skip",
     "no_autocast",
+    "compile_constant",
     "cross_scan",
     "cross_merge",
 ]
@@ -74,6 +76,24 @@ def check_shapes(u, delta, A, B, C, D, delta_bias) -> tuple[torch.Tensor, torch.
     return B, C, Dims(batch, dim, length, groups, n)
 
 
+def check_ss2d_shapes(name: str, x, delta, A, B, C, D, delta_bias, height: int, width: int) -> None:
+    """The SS2D kernels' contract: x (batch, H W, d), delta (batch, H W, 4 d), A (4 d, N), B / C (batch, H W, 4, N),
+    D / delta_bias (4 d,) or None; a ValueError naming the argument (``name`` is the caller) otherwise."""
+    if x.dim() != 3:
+        raise ValueError(f"{name}: x must be (batch, height x width, d), got shape {tuple(x.shape)}")
+    batch, length, di = x.shape
+    if length != height * width:
+        raise ValueError(f"{name}: x has {length} positions, expected height x width = {height * width}")
+    n = A.shape[-1]
+    want = {"delta": (batch, length, 4 * di), "A": (4 * di, n), "B": (batch, length, 4, n), "C": (batch, length, 4, n)}
+    for arg, t in (("delta", delta), ("A", A), ("B", B), ("C", C)):
+        if tuple(t.shape) != want[arg]:
+            raise ValueError(f"{name}: {arg} has shape {tuple(t.shape)}, expected {want[arg]}")
+    for arg, t in (("D", D), ("delta_bias", delta_bias)):
+        if t is not None and tuple(t.shape) != (4 * di,):
+            raise ValueError(f"{name}: {arg} has shape {tuple(t.shape)}, expected {(4 * di,)}")
+
+
 def compute_inputs(u, delta, A, B, C, delta_bias, delta_softplus) -> tuple[torch.Tensor, ...]:
     """``(u, delta, A, B, C)`` contiguous in the compute dtype (float64 for float64 input, else float32), with
     ``delta`` already through the bias and softplus (:func:`effective_delta`)."""
@@ -109,6 +129,16 @@ def no_autocast(fn):
             return fn(ctx, *args)
 
     return wrapper
+
+
+def compile_constant(fn):
+    """Mark ``fn`` as ``torch.compiler.assume_constant_result`` does: ``torch.compile`` calls it while tracing and
+    keeps its result (a route, a kernel's availability) as a constant instead of tracing its body (builds,
+    self-checks, caches). Set directly because ``torch.compiler.assume_constant_result`` imports ``torch._dynamo``
+    (and with it Triton, about 2 s) when a module using it is imported; ``tests/models/scan/test_ops.py`` checks
+    that it still sets this attribute."""
+    fn._dynamo_marked_constant = True
+    return fn
 
 
 def cross_scan(x: torch.Tensor) -> torch.Tensor:

@@ -14,6 +14,9 @@ the D skip term fused, forward and a recomputing backward (gradients for u, delt
 Inputs are channels-last, (batch, L, channels), so SS2D hands its activations over without the
 ``cross_scan`` copies: :func:`ss2d_scan_cpu` reads the four scan directions (row-major, column-major, both
 reversed) of an H x W image by index arithmetic and sums their outputs (``cross_merge``) inside the kernel.
+The entry points (:func:`selective_scan_cpu`, :func:`ss2d_scan_cpu`) call the ``tofdenoise::selective_scan`` /
+``tofdenoise::ss2d_scan`` custom operators of :mod:`.ops` (autograd, ``torch.compile``), whose CPU implementations
+are :func:`scan_forward` / :func:`scan_backward` / :func:`ss2d_forward` / :func:`ss2d_backward` here.
 
 Build: ``torch.utils.cpp_extension.load`` compiles the source once into torch's per-user extension cache
 (``TORCH_EXTENSIONS_DIR``, default ``~/.cache/torch_extensions``); the module name carries a hash of the
@@ -45,7 +48,7 @@ import torch
 
 from tofdenoise.atomic import atomic_write_bytes
 
-from .common import check_shapes
+from .common import check_shapes, check_ss2d_shapes, compile_constant
 from .reference import selective_scan_chunked
 
 __all__ = [
@@ -54,11 +57,19 @@ __all__ = [
     "load_extension",
     "selective_scan_cpu",
     "ss2d_scan_cpu",
+    "scan_forward",
+    "scan_backward",
+    "ss2d_forward",
+    "ss2d_backward",
+    "ckpt_shape",
     "CHUNK",
+    "LANES",
 ]
 
 #: positions per checkpoint chunk (the backward recomputes one chunk of states at a time)
 CHUNK = 64
+#: channels per task of the kernel (its vector lanes, ``W`` in the C++ source)
+LANES = 16
 SOURCE = Path(__file__).resolve().parent / "csrc" / "selective_scan_cpu.cpp"
 #: -fopenmp: at::parallel_for is a header template whose OpenMP backend is a ``#pragma omp parallel``; compiled
 #: without it, the pragma is ignored and every task runs on the calling thread (measured: 1 and 2 threads gave the
@@ -191,7 +202,7 @@ def cpu_kernel_available() -> bool:
     B, C = torch.randn(2, 2, 5, 37, generator=g), torch.randn(2, 2, 5, 37, generator=g)
     D, bias = torch.randn(20, generator=g), torch.randn(20, generator=g)
     try:
-        got = selective_scan_cpu(u, delta, A, B, C, D, bias, True, _ext=ext)
+        got = selective_scan_cpu(u, delta, A, B, C, D, bias, True)
     except Exception as exc:  # noqa: BLE001
         warnings.warn(
             f"tofdenoise: the native CPU selective scan failed its self-check ({exc}); using the PyTorch scan",
@@ -212,92 +223,147 @@ def cpu_kernel_available() -> bool:
     return True
 
 
-def _dense(t: torch.Tensor) -> torch.Tensor:
-    """t itself when it is (batch, L, C) contiguous or a transposed (batch, C, L) contiguous tensor (the
-    kernel reads strides), else a contiguous copy."""
-    return t if t.is_contiguous() or t.transpose(1, 2).is_contiguous() else t.contiguous()
+def ckpt_shape(batch: int, groups: int, dim_per_group: int, length: int, n: int) -> tuple[int, ...]:
+    """Shape of the float32 state checkpoints ``scan_fwd`` returns: the state entering every chunk of
+    :data:`CHUNK` positions, per (batch, block of :data:`LANES` channels, group, chunk, state, lane)."""
+    return (batch, -(-dim_per_group // LANES), groups, -(-length // CHUNK), n, LANES)
+
+
+@compile_constant
+def _kernel_loaded() -> bool:
+    """True when the extension is there (built once per process). A constant to ``torch.compile``, which would
+    otherwise trace into the build."""
+    return load_extension() is not None
+
+
+def _extension(name: str):
+    ext = load_extension()
+    if ext is None:
+        raise RuntimeError(f"{name}: the native CPU kernel is not available (see the build warning)")
+    return ext
 
 
 def _opt(t: torch.Tensor | None) -> torch.Tensor | None:
-    return None if t is None else t.detach().float().contiguous()
+    return None if t is None else t.contiguous()
 
 
-class _CpuScanFn(torch.autograd.Function):
-    """Autograd wrapper of the kernel on channels-last tensors: u (b, L, Du), delta (b, L, dim),
-    A (dim, N), B / C (b, L, G, N) (any strides), D / bias (dim,) or None."""
-
-    @staticmethod
-    def forward(ctx, u, delta, A, B, C, D, bias, softplus: bool, ss2d: bool, H: int, W: int, ext):
-        with torch.autocast("cpu", enabled=False):
-            args = (_dense(u), _dense(delta), A.contiguous(), B, C, _opt(D), _opt(bias))
-            y, ck = ext.scan_fwd(*args, softplus, ss2d, H, W, CHUNK)
-        ctx.save_for_backward(*args[:5], ck)
-        ctx.D, ctx.bias = args[5], args[6]
-        ctx.has_D, ctx.has_bias = D is not None, bias is not None
-        ctx.cfg = (softplus, ss2d, H, W, ext)
-        return y
-
-    @staticmethod
-    def backward(ctx, dy):
-        u, delta, A, B, C, ck = ctx.saved_tensors
-        softplus, ss2d, H, W, ext = ctx.cfg
-        du, ddelta, dA, dB, dC, dD, dbias = ext.scan_bwd(
-            u, delta, A, B, C, ctx.D, ctx.bias, softplus, ss2d, H, W, CHUNK, ck, dy.float()
-        )
-        return (
-            du,
-            ddelta,
-            dA,
-            dB,
-            dC,
-            dD if ctx.has_D else None,
-            dbias if ctx.has_bias else None,
-            None,
-            None,
-            None,
-            None,
-            None,
-        )
-
-
-def selective_scan_cpu(u, delta, A, B, C, D=None, delta_bias=None, delta_softplus=False, *, _ext=None) -> torch.Tensor:
-    """``selective_scan`` on the native kernel: mamba-ssm's shapes (u, delta (batch, dim, L); B, C
-    (batch, groups, N, L) or (batch, N, L)); float32 CPU tensors (other float dtypes are computed in float32
-    and returned in theirs; callers route float64 to the PyTorch scan to keep float64 precision).
-    u and delta are read in place through strides (no transposed copies; y and the gradients come back in
-    the same (batch, dim, L) layout); B and C are transposed once to (batch, L, groups, N)."""
-    ext = _ext if _ext is not None else load_extension()
-    if ext is None:
-        raise RuntimeError("selective_scan_cpu: the native CPU kernel is not available (see the build warning)")
-    B, C, _ = check_shapes(u, delta, A, B, C, D, delta_bias)
-    if u.is_cuda:
-        raise ValueError(f"selective_scan_cpu: CPU tensors expected, got device {u.device}")
-    dtype = u.dtype
-    f = torch.float32
-    y = _CpuScanFn.apply(
-        u.to(f).transpose(1, 2),  # views: the kernel reads the (batch, dim, L) memory with gathered lanes
-        delta.to(f).transpose(1, 2),
-        A.to(f),
-        B.to(f).permute(0, 3, 1, 2).contiguous(),  # (b, L, G, N): one cache line per step, not N
-        C.to(f).permute(0, 3, 1, 2).contiguous(),
-        None if D is None else D.to(f),
-        None if delta_bias is None else delta_bias.to(f),
-        bool(delta_softplus),
+def scan_forward(u, delta, A, B, C, D, bias, softplus: bool):
+    """The plain route's forward on prepared float32 tensors: u, delta (b, dim, L) contiguous, A (dim, N)
+    contiguous, B / C (b, G, N, L) with any strides (fastest: channels-last memory, a (b, L, G, N) tensor seen
+    through ``permute(0, 2, 3, 1)``), D / bias (dim,) or None. Returns ``(y, ckpt)``, y (b, dim, L) contiguous,
+    ckpt of :func:`ckpt_shape`. The kernel reads u and delta as (b, L, dim) views (gathered lanes)."""
+    ext = _extension("selective_scan_cpu")
+    y, ckpt = ext.scan_fwd(
+        u.transpose(1, 2),
+        delta.transpose(1, 2),
+        A,
+        B.permute(0, 3, 1, 2),
+        C.permute(0, 3, 1, 2),
+        _opt(D),
+        _opt(bias),
+        bool(softplus),
         False,
         0,
         0,
-        ext,
+        CHUNK,
     )
-    return y.transpose(1, 2).to(dtype)
+    return y.transpose(1, 2), ckpt
+
+
+def scan_backward(u, delta, A, B, C, D, bias, softplus: bool, ckpt, dy):
+    """The plain route's backward: ``(du, ddelta, dA, dB, dC, dD, dbias)``, float32; du / ddelta (b, dim, L)
+    contiguous, dB / dC (b, G, N, L) views of (b, L, G, N) memory; dD / dbias are computed with or without D / bias
+    (the callers drop them)."""
+    ext = _extension("selective_scan_cpu")
+    du, ddelta, dA, dB, dC, dD, dbias = ext.scan_bwd(
+        u.transpose(1, 2),
+        delta.transpose(1, 2),
+        A,
+        B.permute(0, 3, 1, 2),
+        C.permute(0, 3, 1, 2),
+        _opt(D),
+        _opt(bias),
+        bool(softplus),
+        False,
+        0,
+        0,
+        CHUNK,
+        ckpt,
+        dy.transpose(1, 2),
+    )
+    return du.transpose(1, 2), ddelta.transpose(1, 2), dA, dB.permute(0, 2, 3, 1), dC.permute(0, 2, 3, 1), dD, dbias
+
+
+def ss2d_forward(x, delta, A, B, C, D, bias, height: int, width: int):
+    """The SS2D route's forward on prepared float32 tensors (x (b, L, d), delta (b, L, 4 d), A (4 d, N)
+    contiguous; B / C (b, L, 4, N) with any strides; D / bias (4 d,) or None): ``(y, ckpt)``, y (b, L, d)
+    contiguous, ckpt of :func:`ckpt_shape`."""
+    ext = _extension("ss2d_scan_cpu")
+    return tuple(ext.scan_fwd(x, delta, A, B, C, _opt(D), _opt(bias), True, True, int(height), int(width), CHUNK))
+
+
+def ss2d_backward(x, delta, A, B, C, D, bias, ckpt, dy, height: int, width: int):
+    """The SS2D route's backward: ``(dx, ddelta, dA, dB, dC, dD, dbias)``, float32 and contiguous (dD / dbias
+    computed with or without D / bias)."""
+    ext = _extension("ss2d_scan_cpu")
+    return tuple(
+        ext.scan_bwd(x, delta, A, B, C, _opt(D), _opt(bias), True, True, int(height), int(width), CHUNK, ckpt, dy)
+    )
+
+
+def _channels_last_bc(t: torch.Tensor) -> torch.Tensor:
+    """(b, G, N, L) -> the same shape over (b, L, G, N) memory: one cache line per step for the kernel, not N."""
+    return t.permute(0, 3, 1, 2).contiguous().permute(0, 2, 3, 1)
+
+
+def selective_scan_cpu(u, delta, A, B, C, D=None, delta_bias=None, delta_softplus=False) -> torch.Tensor:
+    """``selective_scan`` on the native kernel (the ``tofdenoise::selective_scan`` operator): mamba-ssm's shapes
+    (u, delta (batch, dim, L); B, C (batch, groups, N, L) or (batch, N, L)); CPU tensors, computed in float32 and
+    returned in u's dtype (callers route float64 to the PyTorch scan to keep float64 precision). B and C are
+    copied once to channels-last memory."""
+    if not _kernel_loaded():
+        raise RuntimeError("selective_scan_cpu: the native CPU kernel is not available (see the build warning)")
+    B, C, _ = check_shapes(u, delta, A, B, C, D, delta_bias)
+    if u.device.type != "cpu":
+        raise ValueError(f"selective_scan_cpu: CPU tensors expected, got device {u.device}")
+    f = torch.float32
+    y, _ = torch.ops.tofdenoise.selective_scan(
+        u.to(f),
+        delta.to(f),
+        A.to(f),
+        _channels_last_bc(B.to(f)),
+        _channels_last_bc(C.to(f)),
+        None if D is None else D.to(f),
+        None if delta_bias is None else delta_bias.to(f),
+        bool(delta_softplus),
+        "cpu",
+    )
+    return y.to(u.dtype)
 
 
 def ss2d_scan_cpu(x, delta, A, B, C, D, delta_bias, height: int, width: int) -> torch.Tensor:
-    """The four-direction SS2D scan with softplus, read in spatial order: x (b, H W, d) channels-last
-    (row-major positions), delta (b, H W, 4 d) raw steps, A (4 d, N), B / C (b, H W, 4, N) (any strides),
-    D and delta_bias (4 d,). Direction k of channel c is channel k d + c; its step l reads position
-    pi_k(l) (row-major, column-major, both reversed). Returns sum_k y_k at each position, (b, H W, d) --
-    ``cross_merge(selective_scan(cross_scan(x), ...))`` without the layout copies. float32 CPU tensors."""
-    ext = load_extension()
-    if ext is None:
+    """The four-direction SS2D scan with softplus, read in spatial order (the ``tofdenoise::ss2d_scan``
+    operator): x (b, H W, d) channels-last (row-major positions), delta (b, H W, 4 d) raw steps, A (4 d, N),
+    B / C (b, H W, 4, N) (any strides), D and delta_bias (4 d,) or None. Direction k of channel c is channel
+    k d + c; its step l reads position pi_k(l) (row-major, column-major, both reversed). Returns sum_k y_k at
+    each position, (b, H W, d) -- ``cross_merge(selective_scan(cross_scan(x), ...))`` without the layout copies.
+    CPU tensors, computed in float32 and returned in x's dtype."""
+    if not _kernel_loaded():
         raise RuntimeError("ss2d_scan_cpu: the native CPU kernel is not available (see the build warning)")
-    return _CpuScanFn.apply(x, delta, A, B, C, D, delta_bias, True, True, int(height), int(width), ext)
+    check_ss2d_shapes("ss2d_scan_cpu", x, delta, A, B, C, D, delta_bias, height, width)
+    if x.device.type != "cpu":
+        raise ValueError(f"ss2d_scan_cpu: CPU tensors expected, got device {x.device}")
+    f = torch.float32
+    y, _ = torch.ops.tofdenoise.ss2d_scan(
+        x.to(f),
+        delta.to(f),
+        A.to(f),
+        B.to(f),
+        C.to(f),
+        None if D is None else D.to(f),
+        None if delta_bias is None else delta_bias.to(f),
+        int(height),
+        int(width),
+        "cpu",
+    )
+    return y.to(x.dtype)

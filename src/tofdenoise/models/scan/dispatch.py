@@ -13,6 +13,7 @@ import warnings
 
 import torch
 
+from .common import compile_constant
 from .reference import selective_scan_chunked, selective_scan_sequential
 
 __all__ = ["SCAN_BACKENDS", "available_scan_backends", "resolve_scan_backend", "selective_scan"]
@@ -25,7 +26,7 @@ _warned: set[str] = set()
 def _warn_once(key: str, message: str) -> None:
     if key not in _warned:
         _warned.add(key)
-        warnings.warn(message, RuntimeWarning, stacklevel=3)
+        warnings.warn(message, RuntimeWarning, stacklevel=4)  # past _resolve and resolve_scan_backend
 
 
 def _cuda_index(dev: torch.device) -> int:
@@ -74,21 +75,31 @@ def resolve_scan_backend(backend: str, u: torch.Tensor, ss2d: bool = False) -> s
     """
     if backend not in SCAN_BACKENDS:
         raise ValueError(f"selective_scan: unknown backend {backend!r}; valid: {', '.join(SCAN_BACKENDS)}")
+    if backend == "cpu" and u.is_cuda:
+        raise ValueError(f"selective_scan: backend 'cpu' needs CPU tensors, got device {u.device}")
+    if backend in ("triton", "mamba_ssm") and not u.is_cuda:
+        raise ValueError(f"selective_scan: backend {backend!r} needs CUDA tensors, got device {u.device}")
+    return _resolve(backend, u.device, u.dtype, ss2d)
+
+
+@compile_constant
+def _resolve(backend: str, device: torch.device, dtype: torch.dtype, ss2d: bool) -> str:
+    """:func:`resolve_scan_backend` past its argument checks. Its answer depends only on its arguments and on
+    per-process checks (a kernel's build and self-check), so ``torch.compile`` calls it once while tracing and
+    keeps the route as a constant instead of tracing the checks."""
     if backend == "auto":
-        if u.is_cuda:
-            choices = available_scan_backends(u.device, verify=True)
+        if device.type == "cuda":
+            choices = available_scan_backends(device, verify=True)
             if ss2d and "triton" in choices:
                 return "triton"
             return choices[0]
         from .cpu import cpu_kernel_available
 
-        return "cpu" if u.dtype != torch.float64 and cpu_kernel_available() else "torch"
+        return "cpu" if dtype != torch.float64 and cpu_kernel_available() else "torch"
     if backend == "cpu":
-        if u.is_cuda:
-            raise ValueError(f"selective_scan: backend 'cpu' needs CPU tensors, got device {u.device}")
         from .cpu import ENV_SWITCH, cpu_kernel_available, kernel_switched_off
 
-        if u.dtype == torch.float64:
+        if dtype == torch.float64:
             _warn_once(
                 "cpu-float64",
                 "selective_scan: backend 'cpu' has no float64 kernel; float64 input runs on 'torch' (the chunked "
@@ -105,8 +116,6 @@ def resolve_scan_backend(backend: str, u: torch.Tensor, ss2d: bool = False) -> s
             return "torch"  # a failed build or self-check has warned once, naming the PyTorch scan
         return "cpu"
     if backend in ("triton", "mamba_ssm"):
-        if not u.is_cuda:
-            raise ValueError(f"selective_scan: backend {backend!r} needs CUDA tensors, got device {u.device}")
         if backend == "triton":
             from .triton import triton_available as available
         else:

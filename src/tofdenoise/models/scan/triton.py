@@ -1170,24 +1170,6 @@ def scan_backward(u, delta, A, B, C, D, bias, softplus: bool, ckpt, dy):
     return du, ddelta, dA, dB.to(B.dtype), dC.to(C.dtype), _opt_grad(dD, D), _opt_grad(dbias, bias)
 
 
-class _TritonScanFn(torch.autograd.Function):
-    """u, delta, B, C in their own float dtype (bf16 under autocast: no conversion copies), A / D / delta_bias
-    float32; bias, softplus and the D skip term are applied inside the kernels. Computation in float32."""
-
-    @staticmethod
-    def forward(ctx, u, delta, A, B, C, D, delta_bias, delta_softplus):
-        y, ckpt = scan_forward(u, delta, A, B, C, D, delta_bias, bool(delta_softplus))
-        ctx.save_for_backward(u, delta, A, B, C, D, delta_bias, ckpt)
-        ctx.softplus = bool(delta_softplus)
-        return y
-
-    @staticmethod
-    def backward(ctx, dy):
-        u, delta, A, B, C, D, bias, ckpt = ctx.saved_tensors
-        grads = scan_backward(u, delta, A, B, C, D, bias, ctx.softplus, ckpt, dy)
-        return (*grads, None)
-
-
 def selective_scan_triton(u, delta, A, B, C, D=None, delta_bias=None, delta_softplus=False) -> torch.Tensor:
     """Triton selective scan (CUDA, float32 compute); same signature and result as ``selective_scan``. The
     result has u's dtype; bf16/fp16 u, delta, B, C are read as they are (no conversion copies)."""
@@ -1196,7 +1178,7 @@ def selective_scan_triton(u, delta, A, B, C, D=None, delta_bias=None, delta_soft
     _check_device(u, "selective_scan_triton")
     B, C, _ = check_shapes(u, delta, A, B, C, D, delta_bias)
     f32 = torch.float32
-    return _TritonScanFn.apply(
+    y, _ = torch.ops.tofdenoise.selective_scan(
         u.contiguous(),
         delta.contiguous(),
         A.to(f32).contiguous(),
@@ -1205,7 +1187,9 @@ def selective_scan_triton(u, delta, A, B, C, D=None, delta_bias=None, delta_soft
         None if D is None else D.to(f32).contiguous(),
         None if delta_bias is None else delta_bias.to(f32).contiguous(),
         bool(delta_softplus),
+        "triton",
     )
+    return y
 
 
 def _ss2d_layout(x, delta, A, B, out_strides, height, width):
@@ -1263,23 +1247,6 @@ def ss2d_backward(x, delta, A, B, C, D, bias, ckpt, dy, height: int, width: int)
     )
 
 
-class _TritonSS2DFn(torch.autograd.Function):
-    """The four-direction SS2D scan on channels-last tensors read in place (see :func:`ss2d_scan_triton`)."""
-
-    @staticmethod
-    def forward(ctx, x, delta, A, B, C, D, bias, height, width):
-        y, ckpt = ss2d_forward(x, delta, A, B, C, D, bias, height, width)
-        ctx.save_for_backward(x, delta, A, B, C, D, bias, ckpt)
-        ctx.hw = (height, width)
-        return y
-
-    @staticmethod
-    def backward(ctx, dy):
-        x, delta, A, B, C, D, bias, ckpt = ctx.saved_tensors
-        grads = ss2d_backward(x, delta, A, B, C, D, bias, ckpt, dy, *ctx.hw)
-        return (*grads, None, None)
-
-
 def ss2d_scan_triton(x, delta, A, B, C, D, delta_bias, height: int, width: int) -> torch.Tensor:
     """The four-direction SS2D scan with softplus on the Triton kernels, reading the directions in place:
     the same contract as :func:`tofdenoise.models.scan.cpu.ss2d_scan_cpu` -- x (b, H W, d) channels-last
@@ -1307,7 +1274,7 @@ def ss2d_scan_triton(x, delta, A, B, C, D, delta_bias, height: int, width: int) 
     if B.stride() != C.stride():
         B, C = B.contiguous(), C.contiguous()
     f32 = torch.float32
-    return _TritonSS2DFn.apply(
+    y, _ = torch.ops.tofdenoise.ss2d_scan(
         x.contiguous(),
         delta.contiguous(),
         A.to(f32).contiguous(),
@@ -1317,4 +1284,6 @@ def ss2d_scan_triton(x, delta, A, B, C, D, delta_bias, height: int, width: int) 
         None if delta_bias is None else delta_bias.to(f32).contiguous(),
         int(height),
         int(width),
+        "triton",
     )
+    return y

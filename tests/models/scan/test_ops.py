@@ -1,0 +1,258 @@
+"""The scan kernels as ``torch.library`` custom operators (tofdenoise.models.scan.ops): ``opcheck`` on the native CPU
+kernel and on the Triton kernels (in Triton's interpreter without a GPU), and ``torch.compile`` of a DVSS, forward
+and backward, equal to the eager model -- on the CPU after an eager DVSS has run a larger frame in the same process
+(the case that crashed when the scan was a ``torch.autograd.Function`` around the native kernel), and on CUDA."""
+
+from __future__ import annotations
+
+import os
+import shutil
+
+import pytest
+import torch
+
+from tofdenoise.models.registry import build_backbone
+from tofdenoise.models.scan import cpu as scan_cpu
+from tofdenoise.models.scan import ops
+from tofdenoise.models.scan.common import compile_constant
+from tofdenoise.models.scan.reference import selective_scan_chunked, ss2d_scan_reference
+
+from .test_scan import _inputs, _rel
+
+NO_BUILD = os.environ.get(scan_cpu.ENV_SWITCH, "1") in ("0", "false", "no", "off") or shutil.which("c++") is None
+needs_cpu_kernel = pytest.mark.skipif(NO_BUILD, reason="native CPU scan disabled or no C++ compiler")
+OPS = torch.ops.tofdenoise
+
+
+@pytest.fixture(scope="module")
+def cpu_kernel():
+    if not scan_cpu.cpu_kernel_available():
+        pytest.fail("the native CPU kernel did not build or failed its self-check")
+
+
+def _plain_args(batch, dim, length, groups, n, use_d, use_bias, kernel, seed=0):
+    u, delta, A, B, C, D, bias = (t.detach() for t in _inputs(batch, dim, length, groups, n, seed=seed))
+    return (u, delta, A, B, C, D if use_d else None, bias if use_bias else None, True, kernel)
+
+
+def _ss2d_args(batch, h, w, di, n, use_d_bias, kernel, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    x = torch.randn(batch, h * w, di, generator=g)
+    delta = 0.5 * torch.randn(batch, h * w, 4 * di, generator=g)
+    A = -torch.exp(0.5 * torch.randn(4 * di, n, generator=g))
+    x_dbl = torch.randn(batch, h * w, 4, 2 * n, generator=g)  # B and C: strided views, as SS2D passes them
+    D, bias = torch.randn(4 * di, generator=g), torch.randn(4 * di, generator=g)
+    opt = (D, bias) if use_d_bias else (None, None)
+    return (x, delta, A, x_dbl[..., :n], x_dbl[..., n:], *opt, h, w, kernel)
+
+
+def _requires_grad(args):
+    return tuple(
+        a.detach().requires_grad_() if isinstance(a, torch.Tensor) and a.is_floating_point() else a for a in args
+    )
+
+
+def _backward_args(op, args):
+    """Arguments of the backward operator: the forward's inputs, its checkpoints and an output gradient."""
+    y, ckpt = op(*args)
+    dy = torch.randn_like(y)
+    if op is OPS.selective_scan:
+        return (*args[:7], args[7], ckpt, dy, args[8])
+    return (*args[:7], ckpt, dy, *args[7:])
+
+
+def test_compile_constant_marks_what_torch_marks():
+    """compile_constant sets the attribute torch.compiler.assume_constant_result sets (without importing dynamo at
+    the package's import); a torch that changes it fails here instead of silently tracing the kernels' checks."""
+    marked = torch.compiler.assume_constant_result(lambda: 0)
+    assert compile_constant(lambda: 0)._dynamo_marked_constant is marked._dynamo_marked_constant is True
+
+
+def test_an_unknown_kernel_name_is_refused():
+    args = _plain_args(1, 4, 5, 1, 3, True, True, "cuda")
+    with pytest.raises(ValueError, match="kernel must be one of cpu, triton, got 'cuda'"):
+        OPS.selective_scan(*args)
+    with pytest.raises(ValueError, match="kernel must be one of"):
+        ops._ckpt_shape("numba", 1, 1, 4, 5, 3)
+
+
+@needs_cpu_kernel
+@pytest.mark.parametrize("use_d,use_bias", [(True, True), (False, False), (True, False)])
+def test_opcheck_cpu_plain_route(cpu_kernel, use_d, use_bias):
+    args = _plain_args(2, 20, 70, 2, 5, use_d, use_bias, "cpu")  # 10 channels per group, 2 chunks
+    cl = tuple(scan_cpu._channels_last_bc(t) for t in args[3:5])  # what selective_scan_cpu hands over
+    for a in (args, (*args[:3], *cl, *args[5:])):
+        torch.library.opcheck(OPS.selective_scan, _requires_grad(a))
+        torch.library.opcheck(OPS.selective_scan_backward, _backward_args(OPS.selective_scan, a))
+
+
+@needs_cpu_kernel
+@pytest.mark.parametrize("use_d_bias", [True, False])
+def test_opcheck_cpu_ss2d_route(cpu_kernel, use_d_bias):
+    args = _ss2d_args(2, 5, 7, 18, 4, use_d_bias, "cpu")  # 18 channels: a full and a partial block of lanes
+    torch.library.opcheck(OPS.ss2d_scan, _requires_grad(args))
+    torch.library.opcheck(OPS.ss2d_scan_backward, _backward_args(OPS.ss2d_scan, args))
+
+
+@needs_cpu_kernel
+def test_cpu_checkpoint_shape_is_the_kernels(cpu_kernel):
+    _, ckpt = OPS.selective_scan(*_plain_args(2, 40, 130, 2, 5, True, True, "cpu"))
+    assert tuple(ckpt.shape) == scan_cpu.ckpt_shape(2, 2, 20, 130, 5) == (2, 2, 2, 3, 5, scan_cpu.LANES)
+    _, ckpt = OPS.ss2d_scan(*_ss2d_args(1, 4, 5, 3, 16, True, "cpu"))
+    assert tuple(ckpt.shape) == scan_cpu.ckpt_shape(1, 4, 3, 20, 16)
+
+
+@needs_cpu_kernel
+@pytest.mark.parametrize("use_d_bias", [True, False])
+def test_ss2d_operator_gradients_equal_the_reference(cpu_kernel, use_d_bias):
+    """Through autograd: every input's gradient, with and without the optional D / delta_bias."""
+    args = _requires_grad(_ss2d_args(2, 5, 7, 6, 4, use_d_bias, "cpu"))
+    tensors = [a for a in args[:7] if isinstance(a, torch.Tensor)]
+    results = []
+    for fn in (scan_cpu.ss2d_scan_cpu, ss2d_scan_reference):
+        y = fn(*args[:9])
+        w = torch.linspace(-1.0, 1.0, y.numel()).view_as(y)
+        results.append([y, *torch.autograd.grad((y * w).sum(), tensors)])
+    for got, want in zip(*results):
+        assert _rel(got, want) < 1e-5
+
+
+# --------------------------------------------------------------------------------------- Triton (interpreter)
+
+
+def _triton():
+    pytest.importorskip("triton", reason="Triton is not installed")
+    from tofdenoise.models.scan import triton as st
+
+    if not (st.interpreting() or st.triton_available()):
+        pytest.skip("neither a CUDA device nor Triton's interpreter (TRITON_INTERPRET=1)")
+    return st
+
+
+def _to(args, device):
+    return tuple(a.to(device) if isinstance(a, torch.Tensor) else a for a in args)
+
+
+@pytest.mark.parametrize("use_d_bias", [True, False])
+def test_opcheck_triton_plain_route(use_d_bias):
+    st = _triton()
+    dev = "cuda" if torch.cuda.is_available() else "cpu"
+    args = _to(_plain_args(1, 4, 40, 2, 3, use_d_bias, use_d_bias, "triton"), dev)  # 2 chunks, 2 groups
+    torch.library.opcheck(OPS.selective_scan, _requires_grad(args))
+    torch.library.opcheck(OPS.selective_scan_backward, _backward_args(OPS.selective_scan, args))
+    _, ckpt = OPS.selective_scan(*args)
+    assert tuple(ckpt.shape) == st.ckpt_shape(1, 4, 40, 3)
+
+
+@pytest.mark.parametrize("use_d_bias", [True, False])
+def test_opcheck_triton_ss2d_route(use_d_bias):
+    st = _triton()
+    dev = "cuda" if torch.cuda.is_available() else "cpu"
+    args = _to(_ss2d_args(1, 3, 4, 2, 3, use_d_bias, "triton"), dev)
+    torch.library.opcheck(OPS.ss2d_scan, _requires_grad(args))
+    torch.library.opcheck(OPS.ss2d_scan_backward, _backward_args(OPS.ss2d_scan, args))
+    _, ckpt = OPS.ss2d_scan(*args)
+    assert tuple(ckpt.shape) == st.ckpt_shape(1, 8, 12, 3)
+
+
+def test_triton_plain_route_through_the_operator_equals_the_chunked_scan():
+    st = _triton()
+    dev = "cuda" if torch.cuda.is_available() else "cpu"
+    u, delta, A, B, C, D, bias = (t.detach().to(dev).requires_grad_() for t in _inputs(1, 4, 40, 2, 3))
+    results = []
+    for fn in (st.selective_scan_triton, selective_scan_chunked):
+        y = fn(u, delta, A, B, C, None, bias, True)
+        results.append([y, *torch.autograd.grad(y.square().sum(), (u, delta, A, B, C, bias))])
+    for got, want in zip(*results):
+        assert _rel(got, want) < 1e-4
+
+
+def test_triton_entry_points_compile_in_one_graph():
+    """ss2d_scan_triton / selective_scan_triton under torch.compile (fullgraph; AOT autograd with the operators'
+    fake implementations): forward and every gradient equal the PyTorch scans."""
+    st = _triton()
+    dev = "cuda" if torch.cuda.is_available() else "cpu"
+    x, delta, A, B, C, D, _, h, w, _ = _ss2d_args(1, 3, 4, 2, 3, True, "triton")
+    x_dbl = torch.cat([B, C], dim=-1)
+    ss2d = [t.to(dev).requires_grad_() for t in (x, delta, A, x_dbl, D)]
+    plain = [t.detach().to(dev).requires_grad_() for t in _inputs(1, 4, 40, 2, 3)[:6]]
+
+    def ss2d_fn(scan):
+        return lambda x, delta, A, xd, D: scan(x, delta, A, xd[..., :3], xd[..., 3:], D, None, h, w)
+
+    def plain_fn(scan):
+        return lambda u, delta, A, B, C, D: scan(u, delta, A, B, C, D, None, True)
+
+    for tensors, fn, ref in (
+        (ss2d, ss2d_fn(st.ss2d_scan_triton), ss2d_fn(ss2d_scan_reference)),
+        (plain, plain_fn(st.selective_scan_triton), plain_fn(selective_scan_chunked)),
+    ):
+        torch._dynamo.reset()
+        results = []
+        for f in (torch.compile(fn, fullgraph=True, backend="aot_eager"), ref):
+            y = f(*tensors)
+            results.append([y, *torch.autograd.grad(y.square().sum(), tensors)])
+        for got, want in zip(*results):
+            assert _rel(got, want) < 1e-5
+
+
+# --------------------------------------------------------------------------------------------- torch.compile
+
+SMALL_DVSS = dict(in_channels=1, width=8, enc_blocks=[1], bottleneck_blocks=1)
+
+
+def _forward_backward(net, x, call=None):
+    """(output, {parameter name: gradient}) of ``call`` (default: ``net``; a compiled ``net``) on x."""
+    net.zero_grad(set_to_none=True)
+    y = (net if call is None else call)(x)
+    w = torch.linspace(-1.0, 1.0, y.numel(), device=y.device).view_as(y)
+    (y.float() * w).sum().backward()
+    return y.detach().float(), {k: p.grad.detach().float().clone() for k, p in net.named_parameters()}
+
+
+def _assert_equal_runs(eager, compiled, rel):
+    (y0, g0), (y1, g1) = eager, compiled
+    assert _rel(y1, y0) < rel
+    assert g0.keys() == g1.keys() and len(g0) > 20
+    for name in g0:
+        assert _rel(g1[name], g0[name]) < rel, f"{name}: {_rel(g1[name], g0[name]):.1e}"
+
+
+@needs_cpu_kernel
+def test_compiled_dvss_equals_eager_after_an_eager_dvss_on_a_larger_frame(cpu_kernel):
+    """An eager DVSS first runs a 240 x 320 frame (the default network); then a small DVSS compiled with inductor
+    (one graph: ``fullgraph=True``) gives the eager output and every parameter gradient to 1e-4. With the scan as an
+    autograd Function around the native kernel the compiled forward failed here ("shape '[94705358677539, ...]' is
+    invalid")."""
+    big = build_backbone("dvss", in_channels=1)
+    with torch.no_grad():
+        assert torch.isfinite(big(torch.randn(1, 1, 240, 320))).all()
+    torch.manual_seed(0)
+    net = build_backbone("dvss", **SMALL_DVSS)
+    block = next(m for m in net.modules() if type(m).__name__ == "SS2D")
+    assert block._spatial_scan(torch.zeros(1, 4, 4, block.d_inner)) == "cpu"  # the native kernel's route
+    x = torch.randn(2, 1, 16, 24)
+    eager = _forward_backward(net, x)
+    torch._dynamo.reset()
+    compiled = _forward_backward(net, x, torch.compile(net, fullgraph=True))
+    _assert_equal_runs(eager, compiled, 1e-4)
+
+
+@pytest.mark.gpu
+@pytest.mark.parametrize("autocast", [False, True])
+def test_compiled_dvss_equals_eager_on_cuda(autocast):
+    """On CUDA the SS2D scan takes the Triton route (its operators); float32 to 1e-4, bf16 autocast to 2e-2 (the
+    compiled glue rounds in another order)."""
+    from tofdenoise.models.scan.triton import triton_verified
+
+    assert triton_verified(torch.cuda.current_device())
+    torch.manual_seed(0)
+    net = build_backbone("dvss", **SMALL_DVSS).cuda()
+    block = next(m for m in net.modules() if type(m).__name__ == "SS2D")
+    assert block._spatial_scan(torch.zeros(1, 4, 4, block.d_inner, device="cuda")) == "triton"
+    x = torch.randn(2, 1, 32, 48, device="cuda")
+    with torch.autocast("cuda", dtype=torch.bfloat16, enabled=autocast):
+        eager = _forward_backward(net, x)
+        torch._dynamo.reset()
+        compiled = _forward_backward(net, x, torch.compile(net, fullgraph=True))
+    _assert_equal_runs(eager, compiled, 2e-2 if autocast else 1e-4)
