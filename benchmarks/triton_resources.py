@@ -63,10 +63,30 @@ def _ptxas_report(ptx: str, arch: int) -> tuple[int, int, int]:
     return int(regs.group(1)), int(spills.group(1)), int(spills.group(2))
 
 
+def route_kernels(st, route: str) -> list[tuple]:
+    """(name, kernel, extra constants or None) of the kernels the route runs with the module's settings (FORWARD /
+    ADJOINT for SS2D, PLAIN_FORWARD / PLAIN_ADJOINT for the plain route); the sequential kernels take their own
+    channels per program and warps."""
+    forward, adjoint = (st.FORWARD, st.ADJOINT) if route == "SS2D" else (st.PLAIN_FORWARD, st.PLAIN_ADJOINT)
+    seq = dict(BLOCK_D=st.SEQ_BLOCK_D_MAX, STAGES=st.SEQ_STAGES)
+    if forward == "sequential":
+        out = [
+            ("seq_fwd_first", st.seq_fwd_kernel, dict(seq, FIRST_PASS=True)),
+            ("seq_fwd", st.seq_fwd_kernel, dict(seq, FIRST_PASS=False)),
+        ]
+    else:
+        out = [("seg_fwd", st.seg_fwd_kernel, None), ("fwd", st.fwd_kernel, None)]
+    out.append(
+        ("seq_adjoint", st.seq_adjoint_kernel, seq) if adjoint == "sequential" else ("seg_bwd", st.seg_bwd_kernel, None)
+    )
+    return out + [("bwd", st.bwd_kernel, None)]
+
+
 def resources(st, route: str, dtype: str, warps: int, block_d: int, arch: int = 90, d_state: int = 16) -> list[dict]:
-    """Compile the forward and backward kernels (each one's segment pass and main pass, and the sequential kernels at
-    their own channels per program and warps) of module ``st`` (``tofdenoise.models.scan.triton``, imported without
-    the interpreter) for one setting; one row per kernel with the ptxas figures."""
+    """Compile the kernels the route runs (:func:`route_kernels`: each pass of the forward and of the backward; the
+    sequential kernels at their own channels per program and warps) of module ``st``
+    (``tofdenoise.models.scan.triton``, imported without the interpreter) for one setting; one row per kernel with
+    the ptxas figures."""
     consts = dict(
         CHUNK_T=st.CHUNK,
         BLOCK_D=block_d,
@@ -77,16 +97,7 @@ def resources(st, route: str, dtype: str, warps: int, block_d: int, arch: int = 
         SS2D=route == "SS2D",
     )
     rows = []
-    seq = dict(BLOCK_D=st.SEQ_BLOCK_D_MAX, STAGES=st.SEQ_STAGES)
-    kernels = (
-        ("seg_fwd", st.seg_fwd_kernel, None),
-        ("fwd", st.fwd_kernel, None),
-        ("seg_bwd", st.seg_bwd_kernel, None),
-        ("bwd", st.bwd_kernel, None),
-        ("seq_fwd_first", st.seq_fwd_kernel, dict(seq, FIRST_PASS=True)),
-        ("seq_fwd", st.seq_fwd_kernel, dict(seq, FIRST_PASS=False)),
-        ("seq_adjoint", st.seq_adjoint_kernel, seq),
-    )
+    kernels = route_kernels(st, route)
     for name, kernel, extra in kernels:
         kconsts = {k: v for k, v in {**consts, **(extra or {})}.items() if k in kernel.arg_names}
         compiled = _compile(kernel, dtype, kconsts, arch, st.SEQ_NUM_WARPS if extra else warps)

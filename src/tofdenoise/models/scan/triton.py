@@ -62,15 +62,17 @@ CHUNK = 32
 #: channels per program: the fastest setting on an H100 at the DVSS training size, float32 and bf16 inputs
 #: (``benchmarks/tune_scan_triton.py``; the sweep is in docs/benchmarks.md, "GPU")
 BLOCK_D_MAX = 2
-#: channels per program on the SS2D route (channels-last: a block's channels are adjacent in memory). Not timed
-#: on a GPU yet (``benchmarks/tune_scan_triton.py --ss2d``); 4 is the largest whose backward compiles for sm_90
-#: without register spills at 4 warps, fp32 and bf16 (``benchmarks/triton_resources.py``; 8 spills)
+#: channels per program of the SS2D route's chunked kernels (channels-last: a block's channels are adjacent in
+#: memory). 4 is the largest whose backward compiles for sm_90 without register spills at 4 warps, fp32 and bf16
+#: (``benchmarks/triton_resources.py``; 8 spills); on an H200 2, 4 and 8 were within 15 % of each other
+#: (``benchmarks/tune_scan_triton.py --ss2d``, docs/benchmarks.md)
 SS2D_BLOCK_D_MAX = 4
 NUM_WARPS = 4
 #: the scan is split along the sequence into segments run side by side (a first pass gives each segment's end state
 #: and summed step, a short carry over the segments gives each one's true entry state, a second pass runs each
-#: segment from it): as many segments as give about this many programs per multiprocessor
-SEGMENT_PROGRAMS_PER_SM = 8
+#: segment from it): as many segments as give about this many programs per multiprocessor (16: the fastest of 8, 16
+#: and 32 for the SS2D route at DVSS's first level on an H200, docs/benchmarks.md)
+SEGMENT_PROGRAMS_PER_SM = 16
 #: no segment shorter than this many chunks (a shorter one costs more in its carry than it gives)
 MIN_SEGMENT_CHUNKS = 4
 #: chunks per segment for every launch, or None: chosen per launch by :func:`segment_chunks` (the tests and
@@ -78,17 +80,21 @@ MIN_SEGMENT_CHUNKS = 4
 SEGMENT_CHUNKS: int | None = None
 #: the SS2D route's forward kernels: "chunked" (``seg_fwd_kernel`` + ``fwd_kernel``: associative scans over
 #: (channels, states, chunk) tiles) or "sequential" (``seq_fwd_kernel``: each thread walks its channels' states one
-#: step at a time; a step reads one position's adjacent channels)
-FORWARD = "chunked"
+#: step at a time; a step reads one position's adjacent channels). Sequential: 3.0 against 13.6 ms for the forward
+#: of DVSS's first level on an H200 in bf16, 3.6 against 12.6 in float32 (docs/benchmarks.md)
+FORWARD = "sequential"
 #: the backward's first pass: "chunked" (``seg_bwd_kernel``) or "sequential" (``seq_adjoint_kernel``, one step at a
-#: time; it runs on the backward's own grid)
-ADJOINT = "chunked"
-#: the same two choices for the plain (batch, dim, L) route, where a position's channels are L apart in memory
+#: time, on its own finer split of the sequence). Sequential: the first level's forward + backward 28.2 against 37.4
+#: ms (bf16, H200)
+ADJOINT = "sequential"
+#: the same two choices for the plain (batch, dim, L) route, where a position's channels are L apart in memory (the
+#: sequential kernels' per-step reads would not coalesce; not timed there)
 PLAIN_FORWARD = "chunked"
 PLAIN_ADJOINT = "chunked"
-#: channels per program and warps of the sequential forward
+#: channels per program and warps of the sequential kernels (64 / 1: the fastest of 64/1, 64/2, 64/4 and 32/1 on an
+#: H200)
 SEQ_BLOCK_D_MAX = 64
-SEQ_NUM_WARPS = 2
+SEQ_NUM_WARPS = 1
 #: software-pipelining stages of the sequential forward's step loop
 SEQ_STAGES = 3
 
