@@ -179,6 +179,7 @@ MAKE_TRAIN = {
         # rcf's amplitude channel (configs/model/default.yaml reads backbone.use_signal_channel, false for unet)
         "conditioning": {"use_signal_channel": False},
         "optim": {"lr": 0.001, "warmup_steps": 100},
+        "compile": False,  # model.compile=true trains through torch.compile
     },
     "data": {
         "_target_": "tofdenoise.data_modules.ToFDataModule",
@@ -296,3 +297,16 @@ def test_a_run_recorded_before_the_settings_groups_is_another_config(tmp_path):
     )
     with pytest.raises(RunConfigMismatchError, match=r"data\.num_samples: 240 there, .* now"):
         check_same_run(cfg, tmp_path)
+
+
+def test_compiling_the_training_steps_is_the_same_run(tmp_path):
+    """model.compile (added after runs were recorded) decides how the steps execute, not what a run is: a recorded
+    config without the key, or with the other value, is the same run."""
+    from tofdenoise.experiments.train_job import check_same_run
+
+    cfg = compose_config([f"paths.run_dir={tmp_path}"])
+    recorded = OmegaConf.to_container(cfg, resolve=True)
+    del recorded["model"]["compile"]
+    (tmp_path / "config.yaml").write_text(OmegaConf.to_yaml(OmegaConf.create(recorded)))
+    check_same_run(cfg, tmp_path)
+    check_same_run(compose_config([f"paths.run_dir={tmp_path}", "model.compile=true"]), tmp_path)

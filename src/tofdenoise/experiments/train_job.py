@@ -70,8 +70,11 @@ log = logging.getLogger("tofdenoise.train")
 #: the saved config file of a run (written by RunOutputs next to run_info.json)
 CONFIG_NAME = "config.yaml"
 #: settings that may differ between two attempts of the same run: where files go, what is logged, which steps
-#: run (``train``/``test``/``ckpt_path``/``reuse_finished``), console output and the location of the data cache
+#: run (``train``/``test``/``ckpt_path``/``reuse_finished``), console output, the location of the data cache and
+#: whether the training steps run compiled (``model.compile``: the same network and optimisation, executed by
+#: torch.compile; runs recorded before the key existed stay the same run)
 SAME_RUN_IGNORES = (
+    "model.compile",
     "paths",
     "ckpt_path",
     "reuse_finished",
