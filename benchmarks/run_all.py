@@ -13,7 +13,19 @@ import sys
 import time
 from pathlib import Path
 
-ORDER = ["physics", "metrics", "models", "scan_cpu", "onnx", "export_scan", "data", "captures", "training", "gpu"]
+ORDER = [
+    "physics",
+    "metrics",
+    "models",
+    "scan_cpu",
+    "onnx",
+    "export_scan",
+    "data",
+    "captures",
+    "training",
+    "gpu",
+    "gpu_scan",
+]
 
 
 def main(argv: list[str]) -> int:

@@ -1,0 +1,322 @@
+"""DVSS's selective scan on the GPU, side by side in one process (CUDA only; prints a skip line without a GPU).
+
+Usage: python benchmarks/bench_gpu_scan.py [--baseline REV] [--json FILE] [--skip-tests] [--quick] [--dry]
+
+1. The SS2D scan's routes at DVSS's first level (batch 4, 320 x 320, d_inner 64, N 16): the chunked kernels and the
+   sequential forward / first backward pass (``FORWARD`` / ``ADJOINT`` of ``tofdenoise.models.scan.triton``) at
+   several launch settings, bf16 and float32 inputs, forward and forward + backward ms, and the largest relative
+   difference of the output and every gradient from the float32 PyTorch reference (``ss2d_scan_reference``).
+2. Training steps (batch 4, 320 x 320, AdamW; float32 and bf16 autocast) and 480 x 640 bf16 inference of DVSS on the
+   module's defaults and on the Triton scan of git revision ``--baseline`` (its ``triton.py`` loaded under another
+   module name), U-Net and the Restormer (``bench_gpu._bench_backbone``).
+3. ``torch.compile`` of DVSS: first-call seconds, the bf16 step eager against compiled, and how far the compiled
+   output and gradients are from eager.
+4. The device tests (``tests/models/scan/test_triton.py`` and ``test_ops.py``, ``-m 'not slow'``) in a subprocess,
+   with the time left (``--skip-tests`` leaves them out).
+5. ``torch.profiler``'s table of one bf16 DVSS step (CUDA time per kernel).
+
+``--dry`` rehearses the whole script on the CPU at toy sizes (Triton's interpreter, ``TRITON_INTERPRET=1`` set
+before the import): a GPU's minutes are not spent on a typo. Results are written as each section ends (``--json``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+import traceback
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+NAMES = ("FORWARD", "ADJOINT", "SEQ_BLOCK_D_MAX", "SEQ_NUM_WARPS", "SEGMENT_PROGRAMS_PER_SM")
+#: the route settings tried in section 1 (bf16); float32 takes the fastest of them and the chunked one
+SETTINGS = (
+    ("chunked", "chunked", 64, 2, 8),
+    ("sequential", "chunked", 64, 2, 8),
+    ("sequential", "sequential", 64, 2, 8),
+    ("sequential", "sequential", 64, 2, 32),
+    ("sequential", "sequential", 32, 1, 32),
+    ("sequential", "sequential", 64, 4, 16),
+    ("sequential", "sequential", 64, 1, 16),
+)
+DVSS = {"width": 32, "enc_blocks": [1, 1, 2], "bottleneck_blocks": 2}  # configs/backbone/dvss.yaml
+
+
+class Bench:
+    def __init__(self, args):
+        import torch
+
+        self.torch, self.args, self.t0 = torch, args, time.time()
+        self.dev = "cpu" if args.dry else "cuda"
+        self.res: dict = {"t": {}, "torch": torch.__version__, "device": "dry run" if args.dry else None}
+
+    def save(self, section: str | None = None) -> None:
+        if section:
+            self.res["t"][section] = round(time.time() - self.t0, 1)
+            print(f"--- {section} at {self.res['t'][section]} s", flush=True)
+        if self.args.json:
+            Path(self.args.json).write_text(json.dumps(self.res, indent=1))
+
+    def time_ms(self, fn, repeats=5) -> float:
+        if self.args.dry:
+            t = time.perf_counter()
+            fn()
+            return (time.perf_counter() - t) * 1e3
+        from bench_gpu import time_cuda  # benchmarks/ is on sys.path when run as a script
+
+        return time_cuda(fn, repeats)
+
+    # 1. routes
+    def routes(self) -> None:
+        torch = self.torch
+        from tofdenoise.models.scan import ss2d_scan_reference
+        from tofdenoise.models.scan import triton as st
+
+        b, side, di, n = (1, 9, 4, 4) if self.args.dry else (4, 320, 64, 16)
+        g = torch.Generator(device=self.dev).manual_seed(0)
+
+        def randn(*shape):
+            return torch.randn(*shape, device=self.dev, generator=g)
+
+        length = side * side
+        x, dts, x_dbl = randn(b, length, di), 0.5 * randn(b, length, 4 * di), randn(b, length, 4, 2 + 2 * n)
+        A, D, bias = -torch.exp(0.5 * randn(4 * di, n)), randn(4 * di), randn(4 * di)
+        dy = randn(b, length, di)
+
+        def call(fn, ins):
+            xd = ins[3]
+            return fn(ins[0], ins[1], ins[2], xd[..., 2 : 2 + n], xd[..., 2 + n :], D, bias, side, side)
+
+        ref_in = [t.clone().requires_grad_() for t in (x, dts, A, x_dbl)]
+        ref_y = call(ss2d_scan_reference, ref_in)
+        ref = [ref_y.detach(), *torch.autograd.grad(ref_y, ref_in, dy)]
+        del ref_y, ref_in
+        defaults = {k: getattr(st, k) for k in NAMES}
+        rows = self.res.setdefault("routes", [])
+
+        def run(dtype, settings):
+            ins = [(t.to(dtype) if i != 2 else t).clone().requires_grad_() for i, t in enumerate((x, dts, A, x_dbl))]
+            for setting in settings:
+                for k, v in zip(NAMES, setting):
+                    setattr(st, k, v)
+                row = dict(zip(NAMES, setting), dtype=str(dtype).replace("torch.", ""))
+                try:
+                    y = call(st.ss2d_scan_triton, ins)
+                    got = [y, *torch.autograd.grad(y, ins, dy.to(dtype))]
+                    row["max_rel_err"] = max(
+                        float(((a.float() - r).abs().max() / r.abs().max()).item()) for a, r in zip(got, ref)
+                    )
+                    row["fwd_ms"] = self.time_ms(lambda: call(st.ss2d_scan_triton, ins))
+                    row["fwd_bwd_ms"] = self.time_ms(
+                        lambda: torch.autograd.grad(call(st.ss2d_scan_triton, ins), ins, dy.to(dtype))
+                    )
+                except Exception:  # report and go on with the next setting
+                    row["error"] = traceback.format_exc()[-1500:]
+                rows.append(row)
+                print(json.dumps(row), flush=True)
+                self.save()
+
+        try:
+            run(torch.bfloat16, SETTINGS)
+            ok = [r for r in rows if "fwd_bwd_ms" in r and r["max_rel_err"] < 5e-2]
+            best = min(ok, key=lambda r: r["fwd_bwd_ms"]) if ok else None
+            fp32 = [SETTINGS[0]] + ([tuple(best[k] for k in NAMES)] if best else [])
+            run(torch.float32, fp32)
+        finally:
+            for k, v in defaults.items():
+                setattr(st, k, v)
+        self.res["fastest_bf16"] = best
+
+    # 2. backbones
+    def backbones(self) -> None:
+        import bench_gpu
+
+        from tofdenoise.models import ss2d as ss2d_module
+        from tofdenoise.models.scan import triton as st
+
+        previous = _load_baseline(self.args.baseline) if self.args.baseline else None
+        original = ss2d_module.SS2D._scan_spatial
+        current = st.ss2d_scan_triton
+
+        def with_kernel(fn):
+            def scan_spatial(self, xs, h, w, kernel="cpu"):
+                st.ss2d_scan_triton = fn
+                try:
+                    return original(self, xs, h, w, kernel)
+                finally:
+                    st.ss2d_scan_triton = current
+
+            return scan_spatial
+
+        cases = [("dvss", DVSS, "this tree", current)]
+        if previous is not None:
+            cases.append(("dvss", DVSS, f"Triton scan of {self.args.baseline}", previous.ss2d_scan_triton))
+        cases += [("unet", {}, None, None), ("restormer", {}, None, None)]
+        rows = self.res.setdefault("backbones", [])
+        for name, kwargs, label, fn in cases:
+            ss2d_module.SS2D._scan_spatial = with_kernel(fn) if fn is not None else original
+            try:
+                row = {**bench_gpu._bench_backbone(name, kwargs, 320, False), "scan": label}
+            except Exception:
+                row = {"backbone": name, "scan": label, "error": traceback.format_exc()[-1500:]}
+            finally:
+                ss2d_module.SS2D._scan_spatial = original
+            rows.append(row)
+            print(json.dumps(row), flush=True)
+            self.save()
+            self.torch.cuda.empty_cache()
+
+    # 3. torch.compile
+    def compile(self) -> None:
+        torch = self.torch
+        from tofdenoise.models.registry import build_backbone
+
+        out: dict = {}
+        self.res["compile"] = out
+        torch.manual_seed(0)
+        net = build_backbone("dvss", in_channels=1, **DVSS).to(self.dev)
+        compiled = torch.compile(net)
+        size = 32 if self.args.dry else 320
+        x = torch.randn(4, 1, size, size, device=self.dev)
+        runs = {}
+        for label, model in (("eager", net), ("compiled", compiled)):
+            net.zero_grad(set_to_none=True)
+            t = time.time()
+            with torch.autocast(self.dev, dtype=torch.bfloat16):
+                y = model(x)
+            y.float().square().mean().backward()
+            if not self.args.dry:
+                torch.cuda.synchronize()
+            out[f"{label}_first_call_s"] = round(time.time() - t, 1)
+            runs[label] = (y.detach().float(), [p.grad.detach().clone() for p in net.parameters()])
+        (y0, g0), (y1, g1) = runs["eager"], runs["compiled"]
+        out["max_rel_diff_output"] = float((y0 - y1).abs().max() / y0.abs().max())
+        out["max_rel_diff_grads"] = max(
+            float((a - c).abs().max() / a.abs().max().clamp_min(1e-12)) for a, c in zip(g0, g1)
+        )
+        opt = torch.optim.AdamW(net.parameters(), 2e-4)
+        for label, model in (("eager", net), ("compiled", compiled)):
+
+            def step(model=model):
+                opt.zero_grad(set_to_none=True)
+                with torch.autocast(self.dev, dtype=torch.bfloat16):
+                    y = model(x)
+                y.float().abs().mean().backward()
+                opt.step()
+
+            out[f"{label}_bf16_ms_step"] = self.time_ms(step, 10)
+        print(json.dumps(out), flush=True)
+
+    # 4. device tests
+    def tests(self, budget_s: float) -> None:
+        tests = ["tests/models/scan/test_triton.py", "tests/models/scan/test_ops.py"]
+        cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-m", "not slow", *tests]
+        env = {**os.environ, "PYTHONPATH": str(ROOT / "src")}
+        try:
+            done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=budget_s, env=env)
+            self.res["tests"] = done.stdout[-4000:] + done.stderr[-1000:]
+        except subprocess.TimeoutExpired as exc:
+            self.res["tests"] = f"stopped after {budget_s:.0f} s: " + (exc.stdout or b"")[-4000:].decode(
+                errors="replace"
+            )
+        print(self.res["tests"][-1500:], flush=True)
+
+    # 5. profile
+    def profile(self) -> None:
+        torch = self.torch
+        from tofdenoise.models.registry import build_backbone
+
+        net = build_backbone("dvss", in_channels=1, **DVSS).cuda()
+        opt = torch.optim.AdamW(net.parameters(), 2e-4)
+        x = torch.randn(4, 1, 320, 320, device="cuda")
+
+        def step():
+            opt.zero_grad(set_to_none=True)
+            with torch.autocast("cuda", dtype=torch.bfloat16):
+                y = net(x)
+            y.float().abs().mean().backward()
+            opt.step()
+
+        for _ in range(3):
+            step()
+        torch.cuda.synchronize()
+        with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CUDA]) as prof:
+            for _ in range(3):
+                step()
+            torch.cuda.synchronize()
+        self.res["profile_3_steps"] = prof.key_averages().table(sort_by="cuda_time_total", row_limit=15)
+        print(self.res["profile_3_steps"], flush=True)
+
+
+def _load_baseline(rev: str):
+    """The Triton scan module of git revision ``rev``, imported as ``tofdenoise.models.scan._baseline_triton`` (its
+    relative imports resolve in today's package)."""
+    source = subprocess.run(
+        ["git", "show", f"{rev}:src/tofdenoise/models/scan/triton.py"], cwd=ROOT, capture_output=True, text=True
+    )
+    if source.returncode != 0:
+        raise SystemExit(f"bench_gpu_scan: --baseline {rev}: {source.stderr.strip()}")
+    path = Path(tempfile.mkdtemp()) / "baseline_triton.py"
+    path.write_text(source.stdout)
+    spec = importlib.util.spec_from_file_location("tofdenoise.models.scan._baseline_triton", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--baseline", default=None, help="a git revision whose Triton scan DVSS also runs on")
+    p.add_argument("--json", default=None, help="write the results to this JSON file (after every section)")
+    p.add_argument("--skip-tests", action="store_true", help="leave the device tests out")
+    p.add_argument("--budget-s", type=float, default=440.0, help="seconds the whole run may take (tests get the rest)")
+    p.add_argument("--dry", action="store_true", help="rehearse on the CPU at toy sizes in Triton's interpreter")
+    p.add_argument("--quick", action="store_true", help="three route settings, no device tests (make bench --quick)")
+    args = p.parse_args(argv)
+    if args.dry:
+        os.environ["TRITON_INTERPRET"] = "1"
+    sys.path[:0] = [str(ROOT / "src"), str(ROOT / "benchmarks")]
+    import torch
+
+    if not args.dry and not torch.cuda.is_available():
+        print("bench_gpu_scan: skipped (no CUDA device)")
+        return 0
+    torch.backends.cuda.matmul.allow_tf32 = False
+    torch.backends.cudnn.allow_tf32 = False
+    if args.quick:
+        global SETTINGS
+        SETTINGS = SETTINGS[:1] + SETTINGS[-2:]
+        args.skip_tests = True
+    bench = Bench(args)
+    if not args.dry:
+        bench.res["device"] = torch.cuda.get_device_name()
+    sections = [("routes", bench.routes)]
+    if not args.dry:
+        sections.append(("backbones", bench.backbones))
+    sections.append(("compile", bench.compile))
+    for name, fn in sections:
+        try:
+            fn()
+        except Exception:
+            bench.res[f"{name}_error"] = traceback.format_exc()[-2500:]
+            print(bench.res[f"{name}_error"], flush=True)
+        bench.save(name)
+    if not args.skip_tests and not args.dry:
+        bench.tests(max(30.0, args.budget_s - (time.time() - bench.t0)))
+        bench.save("tests")
+    if not args.dry and time.time() - bench.t0 < args.budget_s:
+        try:
+            bench.profile()
+        except Exception:
+            bench.res["profile_error"] = traceback.format_exc()[-1500:]
+        bench.save("profile")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
