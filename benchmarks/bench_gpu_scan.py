@@ -33,16 +33,17 @@ import traceback
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-NAMES = ("FORWARD", "ADJOINT", "SEQ_BLOCK_D_MAX", "SEQ_NUM_WARPS", "SEGMENT_PROGRAMS_PER_SM")
-#: the route settings tried in section 1 (bf16); float32 takes the fastest of them and the chunked one
+NAMES = ("FORWARD", "ADJOINT", "BACKWARD", "SEQ_BLOCK_D_MAX", "SEQ_NUM_WARPS", "SEGMENT_PROGRAMS_PER_SM")
+#: the route settings tried in section 1 (bf16); float32 takes the fastest of them and the chunked one. BACKWARD
+#: "sequential" (the main backward pass one step at a time) applies with ADJOINT "sequential" only.
 SETTINGS = (
-    ("chunked", "chunked", 64, 2, 8),
-    ("sequential", "chunked", 64, 2, 8),
-    ("sequential", "sequential", 64, 2, 8),
-    ("sequential", "sequential", 64, 2, 32),
-    ("sequential", "sequential", 32, 1, 32),
-    ("sequential", "sequential", 64, 4, 16),
-    ("sequential", "sequential", 64, 1, 16),
+    ("chunked", "chunked", "chunked", 64, 2, 8),
+    ("sequential", "sequential", "chunked", 64, 2, 32),
+    ("sequential", "sequential", "chunked", 64, 1, 16),
+    ("sequential", "sequential", "sequential", 64, 1, 16),
+    ("sequential", "sequential", "sequential", 64, 1, 32),
+    ("sequential", "sequential", "sequential", 32, 1, 32),
+    ("sequential", "sequential", "sequential", 64, 1, 64),
 )
 DVSS = {"width": 32, "enc_blocks": [1, 1, 2], "bottleneck_blocks": 2}  # configs/backbone/dvss.yaml
 

@@ -79,6 +79,8 @@ def route_kernels(st, route: str) -> list[tuple]:
     out.append(
         ("seq_adjoint", st.seq_adjoint_kernel, seq) if adjoint == "sequential" else ("seg_bwd", st.seg_bwd_kernel, None)
     )
+    if route == "SS2D" and adjoint == "sequential" and st.BACKWARD == "sequential":
+        return out + [("seq_bwd", st.seq_bwd_kernel, dict(BLOCK_D=st.SEQ_BLOCK_D_MAX, WARPS=st.SEQ_BWD_NUM_WARPS))]
     return out + [("bwd", st.bwd_kernel, None)]
 
 
@@ -100,14 +102,15 @@ def resources(st, route: str, dtype: str, warps: int, block_d: int, arch: int = 
     kernels = route_kernels(st, route)
     for name, kernel, extra in kernels:
         kconsts = {k: v for k, v in {**consts, **(extra or {})}.items() if k in kernel.arg_names}
-        compiled = _compile(kernel, dtype, kconsts, arch, st.SEQ_NUM_WARPS if extra else warps)
+        kernel_warps = (extra or {}).get("WARPS", st.SEQ_NUM_WARPS) if extra else warps
+        compiled = _compile(kernel, dtype, kconsts, arch, kernel_warps)
         regs, spill_st, spill_ld = _ptxas_report(compiled.asm["ptx"], arch)
         rows.append(
             {
                 "route": route,
                 "kernel": name,
                 "dtype": dtype,
-                "warps": warps,
+                "warps": kernel_warps,
                 "block_d": kconsts["BLOCK_D"],
                 "registers": regs,
                 "spill_store_bytes": spill_st,

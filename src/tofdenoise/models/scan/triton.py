@@ -91,6 +91,12 @@ ADJOINT = "sequential"
 #: sequential kernels' per-step reads would not coalesce; not timed there)
 PLAIN_FORWARD = "chunked"
 PLAIN_ADJOINT = "chunked"
+#: the backward's main pass on the SS2D route: "chunked" (``bwd_kernel``) or "sequential" (``seq_bwd_kernel``: one
+#: step at a time, a chunk's states recomputed into scratch rows and read back in reverse; it needs ADJOINT
+#: "sequential", whose split it shares). Not timed on a GPU yet: "chunked" until it is
+BACKWARD = "chunked"
+#: warps of the sequential backward (64 channels: one channel per thread; with one warp it spills registers)
+SEQ_BWD_NUM_WARPS = 2
 #: channels per program and warps of the sequential kernels (64 / 1: the fastest of 64/1, 64/2, 64/4 and 32/1 on an
 #: H200)
 SEQ_BLOCK_D_MAX = 64
@@ -670,6 +676,169 @@ if triton is not None:
         tl.store(dsum_ptr + cd + tl.program_id(2) * DIM, dsum)
 
     @triton.jit
+    def _seq_step_delta(delta_ptr, d_off, valid, bias, HAS_BIAS: tl.constexpr, SOFTPLUS: tl.constexpr):
+        """(delta after bias and softplus, the pre-softplus value) of one position's channels; 0 where not valid."""
+        x = tl.load(delta_ptr + d_off, mask=valid, other=0.0).to(tl.float32)
+        if HAS_BIAS:
+            x = x + bias
+        if SOFTPLUS:
+            dt = _softplus(x)
+        else:
+            dt = x
+        return tl.where(valid, dt, 0.0), x
+
+    @triton.jit
+    def seq_bwd_kernel(
+        u_ptr,
+        delta_ptr,
+        A_ptr,
+        AT_ptr,
+        B_ptr,
+        C_ptr,
+        D_ptr,
+        bias_ptr,
+        dy_ptr,
+        ckpt_ptr,
+        gstart_ptr,
+        dsum_ptr,
+        scratch_ptr,
+        du_ptr,
+        ddelta_ptr,
+        dA_ptr,
+        dB_ptr,
+        dC_ptr,
+        dD_ptr,
+        dbias_ptr,
+        L,
+        N,
+        DIM_PER_GROUP,
+        NCHUNK,
+        SEG_CHUNKS,
+        H,
+        W,
+        su_b,
+        su_c,
+        su_l,
+        sd_b,
+        sd_c,
+        sd_l,
+        sB_b,
+        sB_g,
+        sB_n,
+        sB_l,
+        so_b,
+        so_g,
+        so_c,
+        so_l,
+        sdy_b,
+        sdy_c,
+        sdy_l,
+        sdB_b,
+        sdB_g,
+        sdB_n,
+        sdB_l,
+        CHUNK_T: tl.constexpr,
+        BLOCK_D: tl.constexpr,
+        BLOCK_N: tl.constexpr,
+        HAS_D: tl.constexpr,
+        HAS_BIAS: tl.constexpr,
+        SOFTPLUS: tl.constexpr,
+        SS2D: tl.constexpr,
+    ):
+        """The backward's main pass walked one step at a time (what ``bwd_kernel`` computes), a thread per channel
+        holding its N states and adjoints: for each chunk of its segment, in reverse, the chunk's states are
+        recomputed from its checkpoint into this program's own scratch rows (CHUNK_T x N x BLOCK_D float32), then
+        read back in reverse beside the adjoint g_t = dy_t C_t + a_{t+1} g_{t+1}. The sums over states stay in a
+        thread; dB and dC are summed over the program's channels at every step, then added with atomics."""
+        pid_b, d, uc, grp, n, tt, nmask, _, _, u_row, d_row, bc, ck, cs, cd, DIM = _program_tiles(
+            A_ptr, N, DIM_PER_GROUP, NCHUNK, su_b, su_c, sd_b, sd_c, sB_b, sB_g, sB_n, CHUNK_T, BLOCK_D, BLOCK_N, SS2D
+        )
+        A = tl.load(AT_ptr + n[:, None] * DIM + d[None, :], mask=nmask[:, None], other=0.0)  # (N, D)
+        A2 = A * 1.4426950408889634
+        ck = tl.trans(ck)
+        cs = tl.trans(cs)
+        c0, c1 = _segment_span(NCHUNK, SEG_CHUNKS)
+        o_row = pid_b * so_b + grp * so_g + uc * so_c
+        dy_row = pid_b * sdy_b + uc * sdy_c
+        dbc = pid_b * sdB_b + grp * sdB_g + n * sdB_n
+        pid = (tl.program_id(0) * tl.num_programs(1) + tl.program_id(1)) * tl.num_programs(2) + tl.program_id(2)
+        rows = pid.to(tl.int64) * (CHUNK_T * BLOCK_N * BLOCK_D) + n[:, None] * BLOCK_D + tl.arange(0, BLOCK_D)[None, :]
+        bias = tl.zeros((BLOCK_D,), dtype=tl.float32)
+        if HAS_BIAS:
+            bias = tl.load(bias_ptr + d).to(tl.float32)
+        if HAS_D:
+            Dv = tl.load(D_ptr + d).to(tl.float32)
+        zero_d = tl.zeros((BLOCK_D,), dtype=tl.int32)
+        # the carry: the adjoint of the next segment's first step
+        g = tl.zeros((BLOCK_N, BLOCK_D), dtype=tl.float32)
+        nseg = tl.num_programs(2)
+        for i in range(0, nseg - 1 - tl.program_id(2)):
+            s = nseg - 1 - i
+            dec = tl.exp2(A2 * tl.load(dsum_ptr + cd + s * DIM)[None, :])
+            g = tl.load(gstart_ptr + cs + s * BLOCK_N * DIM) + dec * g
+        # the decay of the next segment's first step
+        t1 = c1 * CHUNK_T
+        dt1, _ = _seq_step_delta(
+            delta_ptr, d_row + _positions(t1, grp, L, H, W, SS2D) * sd_l, (zero_d + t1) < L, bias, HAS_BIAS, SOFTPLUS
+        )
+        a_next = tl.exp2(dt1[None, :] * A2)
+        dA_acc = tl.zeros((BLOCK_N, BLOCK_D), dtype=tl.float32)
+        dD_acc = tl.zeros((BLOCK_D,), dtype=tl.float32)
+        dbias_acc = tl.zeros((BLOCK_D,), dtype=tl.float32)
+        for ci in range(0, c1 - c0):
+            c = c1 - 1 - ci
+            h = tl.load(ckpt_ptr + ck + c * BLOCK_N * DIM)
+            for i in range(0, CHUNK_T):  # the chunk's states, forward, into the scratch rows
+                t = c * CHUNK_T + i
+                valid = (zero_d + t) < L
+                p = _positions(t, grp, L, H, W, SS2D)
+                dt, _ = _seq_step_delta(delta_ptr, d_row + p * sd_l, valid, bias, HAS_BIAS, SOFTPLUS)
+                ut = tl.load(u_ptr + u_row + p * su_l, mask=valid, other=0.0).to(tl.float32)
+                Bt = tl.load(B_ptr + bc + p * sB_l, mask=nmask & (t < L), other=0.0).to(tl.float32)
+                h = tl.exp2(dt[None, :] * A2) * h + Bt[:, None] * (dt * ut)[None, :]
+                tl.store(scratch_ptr + rows + i * (BLOCK_N * BLOCK_D), h)
+            for j in range(0, CHUNK_T):  # and back, with the adjoints
+                i = CHUNK_T - 1 - j
+                t = c * CHUNK_T + i
+                valid = (zero_d + t) < L
+                nvalid = nmask & (t < L)
+                p = _positions(t, grp, L, H, W, SS2D)
+                dt, x = _seq_step_delta(delta_ptr, d_row + p * sd_l, valid, bias, HAS_BIAS, SOFTPLUS)
+                ut = tl.load(u_ptr + u_row + p * su_l, mask=valid, other=0.0).to(tl.float32)
+                Bt = tl.load(B_ptr + bc + p * sB_l, mask=nvalid, other=0.0).to(tl.float32)
+                Ct = tl.load(C_ptr + bc + p * sB_l, mask=nvalid, other=0.0).to(tl.float32)
+                dyt = tl.load(dy_ptr + dy_row + p * sdy_l, mask=valid, other=0.0).to(tl.float32)
+                h = tl.load(scratch_ptr + rows + i * (BLOCK_N * BLOCK_D))
+                g = a_next * g + Ct[:, None] * dyt[None, :]
+                dtu = dt * ut
+                q = g * (h - Bt[:, None] * dtu[None, :])  # g_t a_t h_{t-1}
+                sr = tl.sum(g * Bt[:, None], axis=0)  # (D,)
+                g_dt = tl.sum(q * A, axis=0) + ut * sr
+                if SOFTPLUS:
+                    g_dt = g_dt / (1.0 + tl.exp(-x))
+                g_dt = tl.where(valid, g_dt, 0.0)
+                tl.store(ddelta_ptr + d_row + p * sd_l, g_dt, mask=valid)
+                du = dt * sr
+                if HAS_D:
+                    du += Dv * dyt
+                    dD_acc += dyt * ut
+                if SS2D:
+                    tl.atomic_add(du_ptr + o_row + p * so_l, du, mask=valid, sem="relaxed")
+                else:
+                    tl.store(du_ptr + o_row + p * so_l, du, mask=valid)
+                dbias_acc += g_dt
+                dA_acc += q * dt[None, :]
+                dbc_off = dbc + p * sdB_l
+                tl.atomic_add(dC_ptr + dbc_off, tl.sum(h * dyt[None, :], axis=1), mask=nvalid, sem="relaxed")
+                tl.atomic_add(dB_ptr + dbc_off, tl.sum(g * dtu[None, :], axis=1), mask=nvalid, sem="relaxed")
+                a_next = tl.exp2(dt[None, :] * A2)
+        tl.atomic_add(dA_ptr + d[None, :] * N + n[:, None], dA_acc, mask=nmask[:, None], sem="relaxed")
+        if HAS_D:
+            tl.atomic_add(dD_ptr + d, dD_acc, sem="relaxed")
+        if HAS_BIAS:
+            tl.atomic_add(dbias_ptr + d, dbias_acc, sem="relaxed")
+
+    @triton.jit
     def bwd_kernel(
         u_ptr,
         delta_ptr,
@@ -1076,7 +1245,8 @@ def _scan_forward(layout: _Layout, u, delta, A, B, C, D, bias, softplus, y):
 
 
 def _scan_backward(layout: _Layout, saved, softplus, dy, dy_strides, du, dB, dC):
-    """Run the backward passes (:data:`ADJOINT` / :data:`PLAIN_ADJOINT` choose the first pass's kernel) into du
+    """Run the backward passes (:data:`ADJOINT` / :data:`PLAIN_ADJOINT` choose the first pass's kernel, :data:`BACKWARD`
+    the SS2D route's main pass) into du
     (SS2D: a zeroed float32 buffer) / dB / dC (zeroed float32, given) and new ddelta, dA, dD, dbias; returns those
     four."""
     u, delta, A, B, C, D, bias, ckpt = saved
@@ -1091,8 +1261,10 @@ def _scan_backward(layout: _Layout, saved, softplus, dy, dy_strides, du, dB, dC)
         carry = layout.sequential()
         layout = layout.coarsened(carry)
     consts = layout.constants(D, bias, softplus)
-    gstart, dsum = carry.carries(u.device) if layout.nseg > 1 else (dummy, dummy)
-    if layout.nseg > 1:
+    walk_back = sequential and layout.ss2d and BACKWARD == "sequential"  # the main pass on the first pass's split
+    needs_carry = (carry if walk_back else layout).nseg > 1
+    gstart, dsum = carry.carries(u.device) if needs_carry else (dummy, dummy)
+    if needs_carry:
         seg_consts = {k: v for k, v in consts.items() if k != "HAS_D"}
         args = (C, dummy if bias is None else bias, dy, gstart, dsum, *carry.sizes)
         strides = (*layout.delta_strides, *layout.bc_strides, *dy_strides)
@@ -1101,6 +1273,41 @@ def _scan_backward(layout: _Layout, saved, softplus, dy, dy_strides, du, dB, dC)
             seq_adjoint_kernel[carry.grid](delta, A, A.t().contiguous(), *args, *strides, **seq)
         else:
             seg_bwd_kernel[layout.grid](delta, A, *args, *strides, **seg_consts)
+    if walk_back:
+        seq = {**consts, "BLOCK_D": carry.block_d, "num_warps": SEQ_BWD_NUM_WARPS}
+        programs = carry.grid[0] * carry.grid[1] * carry.grid[2]
+        scratch = torch.empty(programs * CHUNK * carry.block_n * carry.block_d, device=u.device, dtype=torch.float32)
+        seq_bwd_kernel[carry.grid](
+            u,
+            delta,
+            A,
+            A.t().contiguous(),
+            B,
+            C,
+            dummy if D is None else D,
+            dummy if bias is None else bias,
+            dy,
+            ckpt,
+            gstart,
+            dsum,
+            scratch,
+            du,
+            ddelta,
+            dA,
+            dB,
+            dC,
+            dD,
+            dbias,
+            *carry.sizes,
+            *carry.u_strides,
+            *carry.delta_strides,
+            *carry.bc_strides,
+            *carry.out_strides,
+            *dy_strides,
+            *carry.dbc_strides,
+            **seq,
+        )
+        return ddelta, dA, dD, dbias
     per_seg = layout.seg_chunks // carry.seg_chunks
     bwd_kernel[layout.grid](
         u,
