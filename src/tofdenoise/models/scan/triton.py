@@ -21,16 +21,23 @@ are exp2(delta_t A log2 e)):
   reverse associative scan seeded with the next chunk's adjoint, and uses a_t h_{t-1} = h_t - b_t, so no shifted
   state is needed. dB and dC (shared by the channels of a group) are summed over the program's channels, then
   added with atomics; dA, dD and d(delta_bias) are summed over the program's steps, then added with atomics;
+- the *sequential* kernels do the same passes one position per step instead of one chunk per step: a thread holds
+  one channel's N states (an (N, BLOCK_D) tile, channels fastest, so the sums over states stay in a thread), and a
+  step reads one position's channels, adjacent in memory on the SS2D route. ``seq_fwd_kernel`` is the forward's two
+  passes, ``seq_adjoint_kernel`` the backward's first, ``seq_bwd_kernel`` its main pass (a chunk's states are
+  recomputed into the program's scratch rows and read back in reverse). :data:`FORWARD`, :data:`ADJOINT` and
+  :data:`BACKWARD` choose them on the SS2D route (measured: docs/benchmarks.md), :data:`PLAIN_FORWARD` and
+  :data:`PLAIN_ADJOINT` on the plain route;
 - SS2D's four directions add their outputs (and u-gradients) into one float32 buffer with atomics, so no
   (b, 4, L, d) buffer is written and summed afterwards. Float32 atomic adds make the last bits of y and of
   the gradients depend on the order in which programs finish.
 
 delta_bias, softplus and the D skip term are applied inside the kernels (their gradients too), and bf16/fp16
 u, delta, B, C are read as they are, so SS2D under autocast pays for no conversion copies; everything is
-computed in float32. Speed and agreement with the PyTorch scan on an H100: docs/benchmarks.md ("GPU",
-``benchmarks/bench_gpu.py``). The ``auto`` dispatch uses the Triton kernels only after :func:`triton_verified` has
-checked them against the PyTorch scan on the device (once per process), so
-a toolchain problem falls back to the PyTorch scan with a warning instead of wrong results.
+computed in float32. Speed and agreement with the PyTorch scan on an H100 and an H200: docs/benchmarks.md
+(``benchmarks/bench_gpu.py``, ``benchmarks/bench_gpu_scan.py``). The ``auto`` dispatch uses the Triton kernels only
+after :func:`triton_verified` has checked them against the PyTorch scan on the device (once per process), so a
+toolchain problem falls back to the PyTorch scan with a warning instead of wrong results.
 """
 
 from __future__ import annotations
