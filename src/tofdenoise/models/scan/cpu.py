@@ -230,7 +230,9 @@ class _CpuScanFn(torch.autograd.Function):
     def forward(ctx, u, delta, A, B, C, D, bias, softplus: bool, ss2d: bool, H: int, W: int, ext):
         with torch.autocast("cpu", enabled=False):
             args = (_dense(u), _dense(delta), A.contiguous(), B, C, _opt(D), _opt(bias))
-            y, ck = ext.scan_fwd(*args, softplus, ss2d, H, W, CHUNK)
+            # chunk 0: no backward can follow (no input needs a gradient): the kernel keeps no checkpoints
+            chunk = CHUNK if any(ctx.needs_input_grad[:7]) else 0
+            y, ck = ext.scan_fwd(*args, softplus, ss2d, H, W, chunk)
         ctx.save_for_backward(*args[:5], ck)
         ctx.D, ctx.bias = args[5], args[6]
         ctx.has_D, ctx.has_bias = D is not None, bias is not None

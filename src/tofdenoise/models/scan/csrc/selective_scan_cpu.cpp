@@ -35,6 +35,7 @@ namespace {
 
 constexpr int W = 16;     // lanes: channels per task
 constexpr int NMAX = 64;  // largest d_state
+constexpr int64_t INFERENCE_CHUNK = 64;  // positions per step pass when no checkpoints are kept
 
 // 16-float vectors (GCC / Clang vector extensions: one AVX-512 register, two AVX2 registers, ...). Values
 // that live across the state loop are vf locals, so that the compiler keeps them in registers.
@@ -327,13 +328,15 @@ void fwd_tasks(const FwdArgs& a, Next next) {
             const float* Bbase = a.B + b * sB.b + g * sB.g;
             const float* Cbase = a.C + b * sC.b + g * sC.g;
             const bool accumulate = ss2d && g > 0;  // SS2D: direction 0 writes y, directions 1-3 add to it
-            float* ckg = a.ck + (((b * nblk + blk) * G + g) * nck) * N * W;
+            float* ckg = a.ck != nullptr ? a.ck + (((b * nblk + blk) * G + g) * nck) * N * W : nullptr;
             PosIter it = geo.walk(g, 0);
             PosIter ahead = geo.walk(g, std::min(chunk, L - 1));  // the next chunk's positions, for prefetches
             for (int64_t k = 0; k < nck; ++k) {
                 const int64_t T = std::min(chunk, L - k * chunk);
                 const bool more = k + 1 < nck;
-                for (int64_t n = 0; n < N; ++n) storev(ckg + (k * N + n) * W, h[n]);  // state entering the chunk
+                if (ckg != nullptr) {  // the state entering the chunk
+                    for (int64_t n = 0; n < N; ++n) storev(ckg + (k * N + n) * W, h[n]);
+                }
                 for (int64_t s = 0; s < T; ++s, it.next()) {
                     const int64_t p = it.p;
                     Pbuf[s] = p;
@@ -465,20 +468,23 @@ void bwd_tasks(const BwdArgs& a, Next next) {
                     const float* Cl = Cbase + p * sC.l;
                     const vf dyv = load_lanes(dybase + p * sdy.l, sdy.c, nw);
                     const vf du = dl * uu;
-                    vf dsum = splat(0.0f);  // sum_n g_n A_n a_n h_{t-1,n}
-                    vf ssum = splat(0.0f);  // sum_n g_n B_n
+                    // sum_n g_n A_n a_n h_{t-1,n} and sum_n g_n B_n, each in 4 partial sums (one running sum would
+                    // chain N multiply-adds per step)
+                    vf dsums[4] = {}, ssums[4] = {};
 #pragma GCC unroll 16
                     for (int64_t n = 0; n < N; ++n) {
                         const float bn = Bl[n * sB.n];
                         const vf gt = dyv * Cl[n * sC.n] + gn[n];
                         const vf gah = gt * (Hs[n] - du * bn);  // a_t h_{t-1} = h_t - delta u B
-                        dsum += prm.A[n] * gah;
+                        dsums[n & 3] += prm.A[n] * gah;
                         dAacc[n] += dl * gah;
-                        ssum += gt * bn;
+                        ssums[n & 3] += gt * bn;
                         pB[n] = gt * du;
                         pC[n] = Hs[n] * dyv;
                         gn[n] = As[n] * gt;
                     }
+                    const vf dsum = (dsums[0] + dsums[1]) + (dsums[2] + dsums[3]);
+                    const vf ssum = (ssums[0] + ssums[1]) + (ssums[2] + ssums[3]);
                     float* dBrow = dBbase + p * G * N;
                     float* dCrow = dCbase + p * G * N;
                     if constexpr (NT == W) {
@@ -538,12 +544,16 @@ std::vector<at::Tensor> scan_fwd(const at::Tensor& u, const at::Tensor& delta, c
     const at::Tensor bias = bias_opt.has_value() ? *bias_opt : at::Tensor();
     const Geometry geo = make_geometry(u, A, B, ss2d, H, Wd);
     check_inputs(u, delta, A, B, C, D, bias, geo);
-    TORCH_CHECK(chunk >= 1, "selective_scan_cpu: chunk must be >= 1");
+    // chunk <= 0: no backward will follow (inference): no checkpoints are written and ck comes back empty (at
+    // 480 x 640 they are as large as y: 78 MB per call at DVSS level 0); the chunks are then only the unit of the
+    // step pass (INFERENCE_CHUNK positions)
+    const bool keep = chunk >= 1;
+    if (!keep) chunk = INFERENCE_CHUNK;
     const int64_t nblk = (geo.Dg + W - 1) / W;
     const int64_t nck = (geo.L + chunk - 1) / chunk;
     at::Tensor y = at::empty_like(u);  // SS2D: direction 0 writes every position, 1-3 add to it
     // state entering each chunk: (batch, nblk, G, nck, N, W)
-    at::Tensor ck = at::empty({geo.batch, nblk, geo.G, nck, geo.N, W}, u.options());
+    at::Tensor ck = keep ? at::empty({geo.batch, nblk, geo.G, nck, geo.N, W}, u.options()) : at::empty({0}, u.options());
     const float* up = u.data_ptr<float>();
     const float* dp = delta.data_ptr<float>();
     const float* Ap = A.data_ptr<float>();
@@ -552,9 +562,8 @@ std::vector<at::Tensor> scan_fwd(const at::Tensor& u, const at::Tensor& delta, c
     const float* Dp = D.defined() ? D.data_ptr<float>() : nullptr;
     const float* bp = bias.defined() ? bias.data_ptr<float>() : nullptr;
     float* yp = y.data_ptr<float>();
-    float* ckp = ck.data_ptr<float>();
+    float* ckp = keep ? ck.data_ptr<float>() : nullptr;
     const Strides4 sB = strides4(B), sC = strides4(C);
-    const int64_t N = geo.N, L = geo.L, G = geo.G, Dg = geo.Dg, Du = geo.Du, Dall = G * Dg;
 
     TORCH_CHECK(y.strides() == u.strides(), "selective_scan_cpu: output layout differs from u's");
     const FwdArgs args{geo, nblk, nck, chunk, softplus, up, dp, Ap, Bp, Cp, Dp, bp, yp, ckp, sB, sC, strides3(u), strides3(delta)};
@@ -578,6 +587,7 @@ std::vector<at::Tensor> scan_bwd(const at::Tensor& u, const at::Tensor& delta, c
     check_inputs(u, delta, A, B, C, D, bias, geo);
     const at::Tensor& dy = dy_in;  // any strides (autograd may hand over an expanded or transposed gradient)
     TORCH_CHECK(dy.sizes() == u.sizes() && dy.scalar_type() == at::kFloat, "selective_scan_cpu: dy must have y's shape");
+    TORCH_CHECK(chunk >= 1, "selective_scan_cpu: the backward needs the forward's checkpoints (chunk >= 1)");
     const int64_t nblk = (geo.Dg + W - 1) / W;
     const int64_t nck = (geo.L + chunk - 1) / chunk;
     TORCH_CHECK(ck.is_contiguous() && ck.numel() == geo.batch * nblk * geo.G * nck * geo.N * W, "selective_scan_cpu: bad checkpoints");
