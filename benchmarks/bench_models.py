@@ -54,10 +54,64 @@ def _timed(fn, reps: int) -> list[tuple[float, float]]:
     return times
 
 
+class _ChunkZeroAdapter:
+    """An extension built from an older kernel source: forwards every call, but turns ``scan_fwd``'s chunk 0 (today's
+    "no checkpoints" for inference) into ``CHUNK`` for sources that do not know it (they need chunk >= 1)."""
+
+    def __init__(self, ext, chunk: int) -> None:
+        self._ext, self._chunk = ext, chunk
+
+    def scan_fwd(self, *args):
+        args = list(args)
+        if args[-1] < 1:
+            args[-1] = self._chunk
+        return self._ext.scan_fwd(*args)
+
+    def __getattr__(self, name):
+        return getattr(self._ext, name)
+
+
+def build_scan_source(path: str):
+    """The native CPU scan compiled from the C++ source ``path`` (e.g. an older commit's, for a side-by-side
+    baseline) under an extension name of its own, with today's flags; None when it cannot be built."""
+    import hashlib
+    from pathlib import Path
+
+    from torch.utils import cpp_extension
+
+    from tofdenoise.models.scan import cpu as scan_cpu
+
+    data = Path(path).read_bytes()
+    digest = hashlib.sha256(data + " ".join(scan_cpu.CFLAGS + scan_cpu.LDFLAGS).encode()).hexdigest()[:12]
+    scan_cpu._ninja_on_path()
+    ext = cpp_extension.load(
+        name=f"tofdenoise_scan_cpu_src_{digest}",
+        sources=[str(path)],
+        extra_cflags=scan_cpu.CFLAGS,
+        extra_ldflags=scan_cpu.LDFLAGS,
+        verbose=False,
+    )
+    return _ChunkZeroAdapter(ext, scan_cpu.CHUNK)
+
+
+def use_scan_extension(ext) -> None:
+    """Route every later native CPU scan call of this process to ``ext`` (the scan calls ``load_extension()`` on
+    each use)."""
+    from tofdenoise.models.scan import cpu as scan_cpu
+
+    def load_extension():
+        return ext
+
+    scan_cpu.load_extension = load_extension
+    scan_cpu.cpu_kernel_available.cache_clear()
+
+
 def _run_case(case: dict) -> dict:
     import torch
 
     torch.manual_seed(0)
+    if case.get("scan_source"):  # a baseline kernel from another source (bench_scan_cpu.py --baseline)
+        use_scan_extension(build_scan_source(case["scan_source"]))
     kind = case["kind"]
     if kind == "scan":
         from tofdenoise.models.scan import selective_scan_chunked, selective_scan_sequential
