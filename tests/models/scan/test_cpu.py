@@ -56,6 +56,10 @@ CASES = [
     (2, 40, 151, 2, 16, True, True, True, False),  # 20 channels per group: a full and a partial lane block
     (1, 34, 130, 1, 16, True, True, True, True),  # 3-D B/C, N = 16 (the compiled-N path), 3 chunks
     (2, 64, 129, 4, 12, True, True, True, False),  # SS2D-like grouping, 16 channels per group
+    # the backward's tasks walk ranges of lane blocks and sum dB / dC in place: 5 blocks of 16 channels in
+    # parts of 2, 2, 1 (batch 1) and 3, 2 (batch 3)
+    (1, 80, 70, 1, 16, True, True, True, False),
+    (3, 160, 45, 2, 16, True, True, True, False),
 ]
 
 

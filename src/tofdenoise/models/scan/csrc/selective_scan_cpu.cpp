@@ -13,13 +13,16 @@
 // Position: the scan step l of group g reads spatial position p = pos(g, l). Plain scan: p = l. SS2D
 // (G = 4 directions over an H x W image, L = H W): row-major, column-major, and both reversed.
 //
-// Work split: one task per (batch, block of W = 16 channels-in-group); a task walks every group in turn, so
-// the SS2D sum over directions (y, du) needs no atomics. The 16 channels are the vector lanes; the N states
-// of the block (N x 16 floats) stay in L1. exp(delta A) is one vectorisable range reduction + polynomial.
-// The forward saves the state entering every chunk of T positions; the backward walks chunks in reverse,
-// recomputes the chunk's states and decays from that checkpoint into a small buffer, and runs the adjoint
-// recursion g_t = C_t dy_t + a_{t+1} g_{t+1}. dB, dC (shared by a group's channels) are reduced over the
-// lanes and written per channel block; dA, dD, dbias per batch element (summed by the caller).
+// Work split: forward, one task per (batch, block of W = 16 channels-in-group); backward, one task per (batch,
+// range of such blocks). A task walks every group in turn, so the SS2D sum over directions (y, du) needs no
+// atomics. The 16 channels are the vector lanes; the N states of the block (N x 16 floats) stay in registers and
+// L1. exp(delta A) is one vectorisable range reduction + polynomial. Positions are walked in chunks of T: a pass
+// over a chunk's steps (softplus, inputs, prefetches) precedes the recurrence over them.
+// The forward saves the state entering every chunk (unless chunk <= 0: inference); the backward walks chunks in
+// reverse, recomputes the chunk's states and decays from that checkpoint into a small buffer, and runs the adjoint
+// recursion g_t = C_t dy_t + a_{t+1} g_{t+1}. dB, dC (shared by a group's channels) are reduced over the lanes
+// and summed over a task's blocks in place (one partial per task of a batch element, summed by the caller);
+// dA, dD, dbias per batch element (summed by the caller).
 #include <torch/extension.h>
 #include <ATen/Parallel.h>
 #include <immintrin.h>
@@ -288,6 +291,7 @@ struct FwdArgs {
 struct BwdArgs {
     Geometry geo;
     int64_t nblk, nck, chunk;
+    int64_t parts, per_part;  // tasks per batch element, each walking per_part lane blocks (see scan_bwd)
     bool softplus;
     const float *u, *delta, *A, *B, *C, *D, *bias, *ck, *dy;
     float *du, *ddelta, *dA, *dB, *dC, *dD, *dbias;
@@ -397,124 +401,135 @@ void bwd_tasks(const BwdArgs& a, Next next) {
     constexpr int NA = NT > 0 ? NT : NMAX;
     vf h[NA], gn[NA], dAacc[NA], pB[NA], pC[NA];
     alignas(64) float sums[W];
+    const int64_t parts = a.parts, per_part = a.per_part;
     for (int64_t task = next(); task >= 0; task = next()) {
-        const int64_t b = task / nblk, blk = task % nblk;
-        const int64_t d0 = blk * W;
-        const int nw = static_cast<int>(std::min<int64_t>(W, Dg - d0));
-        for (int64_t g = 0; g < G; ++g) {
-            const int64_t c0 = g * Dg + d0;
-            const int64_t uc0 = ss2d ? d0 : c0;
-            load_params(prm, a.A, a.D, a.bias, c0, nw, N);
-            for (int64_t n = 0; n < N; ++n) {
-                gn[n] = splat(0.0f);  // a_{t+1} g_{t+1}, carried backwards
-                dAacc[n] = splat(0.0f);
-            }
-            vf dDacc = splat(0.0f), dbacc = splat(0.0f);
-            const float* dbase = a.delta + b * sd.b + c0 * sd.c;
-            float* ddbase = a.ddelta + b * sd.b + c0 * sd.c;
-            const float* ubase = a.u + b * su.b + uc0 * su.c;
-            float* dubase = a.du + b * su.b + uc0 * su.c;
-            const float* dybase = a.dy + b * sdy.b + uc0 * sdy.c;
-            const float* Bbase = a.B + b * sB.b + g * sB.g;
-            const float* Cbase = a.C + b * sC.b + g * sC.g;
-            float* dBbase = a.dB + ((blk * geo.batch + b) * L * G + g) * N;  // (nblk, batch, L, G, N)
-            float* dCbase = a.dC + ((blk * geo.batch + b) * L * G + g) * N;
-            const bool accumulate = ss2d && g > 0;  // SS2D: direction 0 writes du, directions 1-3 add to it
-            const float* ckg = a.ck + (((b * nblk + blk) * G + g) * nck) * N * W;
-            for (int64_t k = nck - 1; k >= 0; --k) {
-                const int64_t t0 = k * chunk, T = std::min(chunk, L - t0);
-                PosIter it = geo.walk(g, t0);
-                PosIter ahead = geo.walk(g, k > 0 ? t0 - chunk : 0);  // the chunk done next, for prefetches
-                for (int64_t s = 0; s < T; ++s, it.next()) {
-                    const int64_t p = it.p;
-                    Pbuf[s] = p;
-                    if (k > 0 && s < chunk) {  // delta and u of the previous chunk (each step reads a new line)
-                        __builtin_prefetch(dbase + ahead.p * sd.l);
-                        __builtin_prefetch(ubase + ahead.p * su.l);
-                        ahead.next();
-                    }
-                    __builtin_prefetch(Bbase + p * sB.l);
-                    __builtin_prefetch(Cbase + p * sC.l);
-                    __builtin_prefetch(dybase + p * sdy.l);
-                    if (accumulate) __builtin_prefetch(dubase + p * su.l, 1);
-                    vf dsig;
-                    DLbuf[s] = step_delta(load_lanes(dbase + p * sd.l, sd.c, nw), prm, a.softplus, &dsig);
-                    SGbuf[s] = dsig;
-                    Ubuf[s] = load_lanes(ubase + p * su.l, su.c, nw);
+        const int64_t b = task / parts, part = task % parts;
+        const int64_t blk0 = part * per_part, blk1 = std::min(nblk, blk0 + per_part);
+        for (int64_t blk = blk0; blk < blk1; ++blk) {
+            const int64_t d0 = blk * W;
+            const int nw = static_cast<int>(std::min<int64_t>(W, Dg - d0));
+            // dB_t, dC_t (shared by the group's channels): the part's first block writes them, its later blocks add
+            const bool add_dBC = blk > blk0;
+            for (int64_t g = 0; g < G; ++g) {
+                const int64_t c0 = g * Dg + d0;
+                const int64_t uc0 = ss2d ? d0 : c0;
+                load_params(prm, a.A, a.D, a.bias, c0, nw, N);
+                for (int64_t n = 0; n < N; ++n) {
+                    gn[n] = splat(0.0f);  // a_{t+1} g_{t+1}, carried backwards
+                    dAacc[n] = splat(0.0f);
                 }
-                // recompute the chunk's states and decays
-                for (int64_t n = 0; n < N; ++n) h[n] = loadv(ckg + (k * N + n) * W);
-                for (int64_t s = 0; s < T; ++s) {
-                    const vf dl = DLbuf[s];
-                    const vf du = dl * Ubuf[s];
-                    const float* Bl = Bbase + Pbuf[s] * sB.l;
-                    vf* Hs = &Hbuf[s * N];
-                    vf* As = &Abuf[s * N];
-#pragma GCC unroll 16
-                    for (int64_t n = 0; n < N; ++n) {
-                        const vf decay = exp_v(dl * prm.A[n]);
-                        h[n] = decay * h[n] + du * Bl[n * sB.n];
-                        As[n] = decay;
-                        Hs[n] = h[n];
+                vf dDacc = splat(0.0f), dbacc = splat(0.0f);
+                const float* dbase = a.delta + b * sd.b + c0 * sd.c;
+                float* ddbase = a.ddelta + b * sd.b + c0 * sd.c;
+                const float* ubase = a.u + b * su.b + uc0 * su.c;
+                float* dubase = a.du + b * su.b + uc0 * su.c;
+                const float* dybase = a.dy + b * sdy.b + uc0 * sdy.c;
+                const float* Bbase = a.B + b * sB.b + g * sB.g;
+                const float* Cbase = a.C + b * sC.b + g * sC.g;
+                float* dBbase = a.dB + ((part * geo.batch + b) * L * G + g) * N;  // (parts, batch, L, G, N)
+                float* dCbase = a.dC + ((part * geo.batch + b) * L * G + g) * N;
+                const bool accumulate = ss2d && g > 0;  // SS2D: direction 0 writes du, directions 1-3 add to it
+                const float* ckg = a.ck + (((b * nblk + blk) * G + g) * nck) * N * W;
+                for (int64_t k = nck - 1; k >= 0; --k) {
+                    const int64_t t0 = k * chunk, T = std::min(chunk, L - t0);
+                    PosIter it = geo.walk(g, t0);
+                    PosIter ahead = geo.walk(g, k > 0 ? t0 - chunk : 0);  // the chunk done next, for prefetches
+                    for (int64_t s = 0; s < T; ++s, it.next()) {
+                        const int64_t p = it.p;
+                        Pbuf[s] = p;
+                        if (k > 0 && s < chunk) {  // delta and u of the previous chunk (each step reads a new line)
+                            __builtin_prefetch(dbase + ahead.p * sd.l);
+                            __builtin_prefetch(ubase + ahead.p * su.l);
+                            ahead.next();
+                        }
+                        __builtin_prefetch(Bbase + p * sB.l);
+                        __builtin_prefetch(Cbase + p * sC.l);
+                        __builtin_prefetch(dybase + p * sdy.l);
+                        if (accumulate) __builtin_prefetch(dubase + p * su.l, 1);
+                        vf dsig;
+                        DLbuf[s] = step_delta(load_lanes(dbase + p * sd.l, sd.c, nw), prm, a.softplus, &dsig);
+                        SGbuf[s] = dsig;
+                        Ubuf[s] = load_lanes(ubase + p * su.l, su.c, nw);
                     }
-                }
-                // adjoint recursion g_t = C_t dy_t + a_{t+1} g_{t+1}, newest position first
-                for (int64_t s = T - 1; s >= 0; --s) {
-                    const int64_t p = Pbuf[s];
-                    const vf dl = DLbuf[s], uu = Ubuf[s];
-                    const vf* Hs = &Hbuf[s * N];
-                    const vf* As = &Abuf[s * N];
-                    const float* Bl = Bbase + p * sB.l;
-                    const float* Cl = Cbase + p * sC.l;
-                    const vf dyv = load_lanes(dybase + p * sdy.l, sdy.c, nw);
-                    const vf du = dl * uu;
-                    // sum_n g_n A_n a_n h_{t-1,n} and sum_n g_n B_n, each in 4 partial sums (one running sum would
-                    // chain N multiply-adds per step)
-                    vf dsums[4] = {}, ssums[4] = {};
+                    // recompute the chunk's states and decays
+                    for (int64_t n = 0; n < N; ++n) h[n] = loadv(ckg + (k * N + n) * W);
+                    for (int64_t s = 0; s < T; ++s) {
+                        const vf dl = DLbuf[s];
+                        const vf du = dl * Ubuf[s];
+                        const float* Bl = Bbase + Pbuf[s] * sB.l;
+                        vf* Hs = &Hbuf[s * N];
+                        vf* As = &Abuf[s * N];
 #pragma GCC unroll 16
-                    for (int64_t n = 0; n < N; ++n) {
-                        const float bn = Bl[n * sB.n];
-                        const vf gt = dyv * Cl[n * sC.n] + gn[n];
-                        const vf gah = gt * (Hs[n] - du * bn);  // a_t h_{t-1} = h_t - delta u B
-                        dsums[n & 3] += prm.A[n] * gah;
-                        dAacc[n] += dl * gah;
-                        ssums[n & 3] += gt * bn;
-                        pB[n] = gt * du;
-                        pC[n] = Hs[n] * dyv;
-                        gn[n] = As[n] * gt;
-                    }
-                    const vf dsum = (dsums[0] + dsums[1]) + (dsums[2] + dsums[3]);
-                    const vf ssum = (ssums[0] + ssums[1]) + (ssums[2] + ssums[3]);
-                    float* dBrow = dBbase + p * G * N;
-                    float* dCrow = dCbase + p * G * N;
-                    if constexpr (NT == W) {
-                        storev(dBrow, transpose_sum16(pB));  // dB_t[n], dC_t[n]: sums over the lanes
-                        storev(dCrow, transpose_sum16(pC));
-                    } else {
                         for (int64_t n = 0; n < N; ++n) {
-                            dBrow[n] = hsum(pB[n]);
-                            dCrow[n] = hsum(pC[n]);
+                            const vf decay = exp_v(dl * prm.A[n]);
+                            h[n] = decay * h[n] + du * Bl[n * sB.n];
+                            As[n] = decay;
+                            Hs[n] = h[n];
                         }
                     }
-                    // d delta_t = sum_n g_n (A_n a_n h_{t-1,n} + u B_n); through softplus: * sigmoid
-                    const vf ddl = (dsum + uu * ssum) * SGbuf[s];
-                    dbacc += ddl;
-                    dDacc += dyv * uu;
-                    store_lanes(ddbase + p * sd.l, sd.c, ddl, nw);
-                    vf dU = dl * ssum + prm.D * dyv;  // dL/du_t
-                    float* durow = dubase + p * su.l;
-                    if (accumulate) dU += load_lanes(durow, su.c, nw);
-                    store_lanes(durow, su.c, dU, nw);
+                    // adjoint recursion g_t = C_t dy_t + a_{t+1} g_{t+1}, newest position first
+                    for (int64_t s = T - 1; s >= 0; --s) {
+                        const int64_t p = Pbuf[s];
+                        const vf dl = DLbuf[s], uu = Ubuf[s];
+                        const vf* Hs = &Hbuf[s * N];
+                        const vf* As = &Abuf[s * N];
+                        const float* Bl = Bbase + p * sB.l;
+                        const float* Cl = Cbase + p * sC.l;
+                        const vf dyv = load_lanes(dybase + p * sdy.l, sdy.c, nw);
+                        const vf du = dl * uu;
+                        // sum_n g_n A_n a_n h_{t-1,n} and sum_n g_n B_n, each in 4 partial sums (one running sum would
+                        // chain N multiply-adds per step)
+                        vf dsums[4] = {}, ssums[4] = {};
+#pragma GCC unroll 16
+                        for (int64_t n = 0; n < N; ++n) {
+                            const float bn = Bl[n * sB.n];
+                            const vf gt = dyv * Cl[n * sC.n] + gn[n];
+                            const vf gah = gt * (Hs[n] - du * bn);  // a_t h_{t-1} = h_t - delta u B
+                            dsums[n & 3] += prm.A[n] * gah;
+                            dAacc[n] += dl * gah;
+                            ssums[n & 3] += gt * bn;
+                            pB[n] = gt * du;
+                            pC[n] = Hs[n] * dyv;
+                            gn[n] = As[n] * gt;
+                        }
+                        const vf dsum = (dsums[0] + dsums[1]) + (dsums[2] + dsums[3]);
+                        const vf ssum = (ssums[0] + ssums[1]) + (ssums[2] + ssums[3]);
+                        float* dBrow = dBbase + p * G * N;
+                        float* dCrow = dCbase + p * G * N;
+                        if constexpr (NT == W) {
+                            vf sB16 = transpose_sum16(pB), sC16 = transpose_sum16(pC);  // dB_t[n], dC_t[n]: lane sums
+                            if (add_dBC) {
+                                sB16 += loadv(dBrow);
+                                sC16 += loadv(dCrow);
+                            }
+                            storev(dBrow, sB16);
+                            storev(dCrow, sC16);
+                        } else {
+                            for (int64_t n = 0; n < N; ++n) {
+                                dBrow[n] = add_dBC ? dBrow[n] + hsum(pB[n]) : hsum(pB[n]);
+                                dCrow[n] = add_dBC ? dCrow[n] + hsum(pC[n]) : hsum(pC[n]);
+                            }
+                        }
+                        // d delta_t = sum_n g_n (A_n a_n h_{t-1,n} + u B_n); through softplus: * sigmoid
+                        const vf ddl = (dsum + uu * ssum) * SGbuf[s];
+                        dbacc += ddl;
+                        dDacc += dyv * uu;
+                        store_lanes(ddbase + p * sd.l, sd.c, ddl, nw);
+                        vf dU = dl * ssum + prm.D * dyv;  // dL/du_t
+                        float* durow = dubase + p * su.l;
+                        if (accumulate) dU += load_lanes(durow, su.c, nw);
+                        store_lanes(durow, su.c, dU, nw);
+                    }
                 }
+                for (int64_t n = 0; n < N; ++n) {
+                    storev(sums, dAacc[n]);
+                    for (int j = 0; j < nw; ++j) a.dA[(b * Dall + c0 + j) * N + n] = sums[j];
+                }
+                storev(sums, dDacc);
+                for (int j = 0; j < nw; ++j) a.dD[b * Dall + c0 + j] = sums[j];
+                storev(sums, dbacc);
+                for (int j = 0; j < nw; ++j) a.dbias[b * Dall + c0 + j] = sums[j];
             }
-            for (int64_t n = 0; n < N; ++n) {
-                storev(sums, dAacc[n]);
-                for (int j = 0; j < nw; ++j) a.dA[(b * Dall + c0 + j) * N + n] = sums[j];
-            }
-            storev(sums, dDacc);
-            for (int j = 0; j < nw; ++j) a.dD[b * Dall + c0 + j] = sums[j];
-            storev(sums, dbacc);
-            for (int j = 0; j < nw; ++j) a.dbias[b * Dall + c0 + j] = sums[j];
         }
     }
 }
@@ -597,8 +612,16 @@ std::vector<at::Tensor> scan_bwd(const at::Tensor& u, const at::Tensor& delta, c
     at::Tensor ddelta = at::empty_like(delta);
     TORCH_CHECK(du_out.strides() == u.strides() && ddelta.strides() == delta.strides(), "selective_scan_cpu: gradient layout differs");
     at::Tensor dA = at::empty({geo.batch, Dall, N}, u.options());
-    at::Tensor dBp = at::empty({nblk, geo.batch, L, G, N}, u.options());
-    at::Tensor dCp = at::empty({nblk, geo.batch, L, G, N}, u.options());
+    // Tasks: (batch element, part), a part being a range of lane blocks walked in turn (its dB / dC rows summed in
+    // place). One part per batch element from batch 4 on: no (lane blocks, batch, L, G, N) partial sums (at DVSS level
+    // 0 of a 64x64 batch-4 step, 2 x 17 MB of fresh memory, first-touch page faults and a reduction pass); smaller
+    // batches split the blocks into up to ceil(4 / batch) parts, so that 2+ threads have work. The split depends on
+    // the shapes only: the sums, and so the results, do not depend on the number of threads.
+    const int64_t wanted = std::min<int64_t>(nblk, (4 + geo.batch - 1) / geo.batch);
+    const int64_t per_part = (nblk + wanted - 1) / wanted;
+    const int64_t parts = (nblk + per_part - 1) / per_part;  // none empty
+    at::Tensor dBp = at::empty({parts, geo.batch, L, G, N}, u.options());
+    at::Tensor dCp = at::empty({parts, geo.batch, L, G, N}, u.options());
     at::Tensor dD = at::empty({geo.batch, Dall}, u.options());
     at::Tensor dbias = at::empty({geo.batch, Dall}, u.options());
 
@@ -620,16 +643,18 @@ std::vector<at::Tensor> scan_bwd(const at::Tensor& u, const at::Tensor& delta, c
     float* dbp = dbias.data_ptr<float>();
     const Strides4 sB = strides4(B), sC = strides4(C);
 
-    const BwdArgs args{geo, nblk, nck, chunk, softplus, up, dp, Ap, Bp, Cp, Dp, bp, ckp, dyp,
+    const BwdArgs args{geo, nblk, nck, chunk, parts, per_part, softplus, up, dp, Ap, Bp, Cp, Dp, bp, ckp, dyp,
                        dup, ddp, dAp, dBpp, dCpp, dDp, dbp, sB, sC, strides3(u), strides3(delta), strides3(dy)};
-    run_tasks(geo.batch * nblk, [&](auto next) {
+    run_tasks(geo.batch * parts, [&](auto next) {
         if (geo.N == 16) {
             bwd_tasks<16>(args, next);
         } else {
             bwd_tasks<0>(args, next);
         }
     });
-    return {du_out, ddelta, dA.sum(0), dBp.sum(0), dCp.sum(0), dD.sum(0), dbias.sum(0)};
+    at::Tensor dB = parts == 1 ? dBp.select(0, 0) : dBp.sum(0);
+    at::Tensor dC = parts == 1 ? dCp.select(0, 0) : dCp.sum(0);
+    return {du_out, ddelta, dA.sum(0), dB, dC, dD.sum(0), dbias.sum(0)};
 }
 
 // The roofline of the scan: a plain vectorised loop doing what one state update costs at least, one exp and
