@@ -38,6 +38,7 @@ namespace {
 
 constexpr int W = 16;     // lanes: channels per task
 constexpr int NMAX = 64;  // largest d_state
+constexpr int64_t ADJ_AHEAD = 4;  // steps ahead for the adjoint pass's prefetches
 constexpr int64_t INFERENCE_CHUNK = 64;  // positions per step pass when no checkpoints are kept
 
 // 16-float vectors (GCC / Clang vector extensions: one AVX-512 register, two AVX2 registers, ...). Values
@@ -470,6 +471,14 @@ void bwd_tasks(const BwdArgs& a, Next next) {
                     // adjoint recursion g_t = C_t dy_t + a_{t+1} g_{t+1}, newest position first
                     for (int64_t s = T - 1; s >= 0; --s) {
                         const int64_t p = Pbuf[s];
+                        if (s >= ADJ_AHEAD) {  // the recomputation's buffers have evicted these rows from L1
+                            const int64_t q = Pbuf[s - ADJ_AHEAD];
+                            __builtin_prefetch(Bbase + q * sB.l);
+                            __builtin_prefetch(Cbase + q * sC.l);
+                            __builtin_prefetch(dybase + q * sdy.l);
+                            __builtin_prefetch(ddbase + q * sd.l, 1);
+                            __builtin_prefetch(dubase + q * su.l, 1);
+                        }
                         const vf dl = DLbuf[s], uu = Ubuf[s];
                         const vf* Hs = &Hbuf[s * N];
                         const vf* As = &Abuf[s * N];
