@@ -295,23 +295,30 @@ def bench_step(args) -> None:
         label = name if not extra else f"{name} (PyTorch scan route)"
         if ext is not today:
             label = f"{name} (baseline kernel {args.baseline})"
-        runs.append((label, model, opt, [], ext))
+        runs.append((label, model, opt, [], ext, []))
     for _ in range(args.rounds):
-        for label, model, opt, times, ext in runs:
+        for label, model, opt, times, ext, cpu in runs:
             use_scan_extension(ext)
             steps = 1 if "PyTorch" in label else 2
+            c0 = time.process_time()
             times.append(min(time_steps(model, opt, lambda: fixed, steps)))
+            cpu.append((time.process_time() - c0) / steps)
     use_scan_extension(today)
     base = statistics.median(runs[0][3])
-    print("| backbone | step (s), median | / U-Net (per round) |")
-    print("|---|---:|---:|")
-    for label, _, _, times, _ in runs:
+    print("| backbone | step (s), median | / U-Net (per round) | process CPU per step (s) | CPU / U-Net (per round) |")
+    print("|---|---:|---:|---:|---:|")
+    for label, _, _, times, _, cpu in runs:
         per_round = [t / u for t, u in zip(times, runs[0][3])]
+        cpu_round = [c / u for c, u in zip(cpu, runs[0][5])]
         print(
             f"| {label} | {statistics.median(times):.3f} | {statistics.median(per_round):.2f} "
-            f"({', '.join(f'{v:.2f}' for v in per_round)}) |"
+            f"({', '.join(f'{v:.2f}' for v in per_round)}) | {statistics.median(cpu):.3f} | "
+            f"{statistics.median(cpu_round):.2f} ({', '.join(f'{v:.2f}' for v in cpu_round)}) |"
         )
-    print(f"DVSS / U-Net = {statistics.median(runs[1][3]) / base:.2f}; target <= 3")
+    print(
+        f"DVSS / U-Net = {statistics.median(runs[1][3]) / base:.2f} wall, "
+        f"{statistics.median(runs[1][5]) / statistics.median(runs[0][5]):.2f} process CPU; target <= 3"
+    )
 
 
 def bench_inference(args) -> None:
