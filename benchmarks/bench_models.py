@@ -1,6 +1,6 @@
 """Backbone and selective-scan benchmarks (CPU), side by side in one run.
 
-    python benchmarks/bench_models.py [--quick] [--threads N] [--only scan,block,backbones,bilateral]
+    python benchmarks/bench_models.py [--quick] [--threads N] [--only scan,block,backbones,bilateral,ss2d]
 
 1. Selective scan, forward+backward, batch 1, 4 directions x d_inner 96 (dim 384), d_state 16, L = 25600
    (160 x 160): the chunked scan with recomputing backward vs a sequential loop whose hand-written backward
@@ -11,6 +11,10 @@
    memory at 320 x 320, batch 4; forward time and peak memory at 480 x 640, batch 1.
 4. The classical row (``bilateral``, no parameters, not in the default ``--only``): one 480 x 640 frame
    (depth + amplitude channels) per window radius of the default tuning grid's sigma_spatial_px.
+5. ``--only ss2d`` (not in the default): where an SS2D block's inference time goes at each level of a 480 x 640 DVSS
+   frame (default widths): process CPU time of each stage of ``SS2D._scan_spatial``'s route (in_proj, depthwise conv
+   + SiLU with its layout copy, x_proj, the dt projection through the block-diagonal matrix, the native scan,
+   out_norm * SiLU(z), out_proj) and of the whole block, median of 3 after a warm-up, in this process.
 
 Peak memory: every case runs in a fresh subprocess; peak = ru_maxrss at the end (the process's resident-set
 high-water mark) minus the resident set just before the timed work (after imports, model and inputs are
@@ -54,10 +58,64 @@ def _timed(fn, reps: int) -> list[tuple[float, float]]:
     return times
 
 
+class _ChunkZeroAdapter:
+    """An extension built from an older kernel source: forwards every call, but turns ``scan_fwd``'s chunk 0 (today's
+    "no checkpoints" for inference) into ``CHUNK`` for sources that do not know it (they need chunk >= 1)."""
+
+    def __init__(self, ext, chunk: int) -> None:
+        self._ext, self._chunk = ext, chunk
+
+    def scan_fwd(self, *args):
+        args = list(args)
+        if args[-1] < 1:
+            args[-1] = self._chunk
+        return self._ext.scan_fwd(*args)
+
+    def __getattr__(self, name):
+        return getattr(self._ext, name)
+
+
+def build_scan_source(path: str):
+    """The native CPU scan compiled from the C++ source ``path`` (e.g. an older commit's, for a side-by-side
+    baseline) under an extension name of its own, with today's flags; None when it cannot be built."""
+    import hashlib
+    from pathlib import Path
+
+    from torch.utils import cpp_extension
+
+    from tofdenoise.models.scan import cpu as scan_cpu
+
+    data = Path(path).read_bytes()
+    digest = hashlib.sha256(data + " ".join(scan_cpu.CFLAGS + scan_cpu.LDFLAGS).encode()).hexdigest()[:12]
+    scan_cpu._ninja_on_path()
+    ext = cpp_extension.load(
+        name=f"tofdenoise_scan_cpu_src_{digest}",
+        sources=[str(path)],
+        extra_cflags=scan_cpu.CFLAGS,
+        extra_ldflags=scan_cpu.LDFLAGS,
+        verbose=False,
+    )
+    return _ChunkZeroAdapter(ext, scan_cpu.CHUNK)
+
+
+def use_scan_extension(ext) -> None:
+    """Route every later native CPU scan call of this process to ``ext`` (the scan calls ``load_extension()`` on
+    each use)."""
+    from tofdenoise.models.scan import cpu as scan_cpu
+
+    def load_extension():
+        return ext
+
+    scan_cpu.load_extension = load_extension
+    scan_cpu.cpu_kernel_available.cache_clear()
+
+
 def _run_case(case: dict) -> dict:
     import torch
 
     torch.manual_seed(0)
+    if case.get("scan_source"):  # a baseline kernel from another source (bench_scan_cpu.py --baseline)
+        use_scan_extension(build_scan_source(case["scan_source"]))
     kind = case["kind"]
     if kind == "scan":
         from tofdenoise.models.scan import selective_scan_chunked, selective_scan_sequential
@@ -265,6 +323,90 @@ def bench_backbones(args) -> None:
         print(f"# {e}")
 
 
+def bench_ss2d_stages(args) -> None:
+    import torch
+
+    from tofdenoise.models.scan.cpu import cpu_kernel_available
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    if not cpu_kernel_available():
+        print("\n### SS2D stages: the native CPU scan is not available; skipped")
+        return
+    h0, w0 = (120, 160) if args.quick else (480, 640)
+    print(
+        f"\n### SS2D stages at each level of a {h0}x{w0} DVSS frame (width 32), inference, batch 1: process CPU "
+        f"time (ms), median of 3; threads {torch.get_num_threads()}, load average {os.getloadavg()[0]:.1f}"
+    )
+    names = [
+        "in_proj",
+        "conv3x3+SiLU",
+        "x_proj",
+        "dt_proj (block_diag)",
+        "scan",
+        "out_norm*SiLU(z)",
+        "out_proj",
+        "whole SS2D",
+    ]
+    print("| level (dim, H x W, dt_rank) | " + " | ".join(names) + " |")
+    print("|---|" + "---:|" * len(names))
+    for level in range(4):
+        dim, h, w = 32 * 2**level, h0 // 2**level, w0 // 2**level
+        row, r = _ss2d_stage_times(dim, h, w)
+        print(f"| {level} ({dim}, {h}x{w}, {r}) | " + " | ".join(f"{v:.0f}" for v in row) + " |", flush=True)
+
+
+def _ss2d_stage_times(dim: int, h: int, w: int) -> tuple[list[float], int]:
+    """CPU ms of each stage of an SS2D block (default settings, width ``dim``) on a (1, h, w, dim) input; dt_rank."""
+    import torch
+    import torch.nn.functional as F
+
+    from tofdenoise.models.scan.cpu import ss2d_scan_cpu
+    from tofdenoise.models.ss2d import SS2D
+
+    def cpu_ms(fn) -> float:
+        fn()
+        times = []
+        for _ in range(3):
+            c0 = time.process_time()
+            fn()
+            times.append(time.process_time() - c0)
+        return statistics.median(times) * 1e3
+
+    torch.manual_seed(0)
+    m = SS2D(dim).eval()
+    x = torch.randn(1, h, w, dim)
+    k, n, r, di, length = m.directions, m.d_state, m.dt_rank, m.d_inner, h * w
+    w_x = m.x_proj_weight.reshape(k * (r + 2 * n), di).t()
+    with torch.no_grad():
+        xz = m.in_proj(x)
+        xi, z = xz.chunk(2, dim=-1)
+
+        def conv():
+            a = xi.permute(0, 3, 1, 2).contiguous(memory_format=torch.channels_last)
+            return F.silu(m.conv(a)).permute(0, 2, 3, 1).contiguous()
+
+        xs = conv().view(1, length, di)
+        x_dbl = (xs @ w_x).view(1, length, k, r + 2 * n)
+        dt_block = torch.block_diag(*m.dt_projs_weight.transpose(1, 2))
+        dts = x_dbl[..., :r].reshape(1, length, k * r) @ dt_block
+        A, D, bias = m._scan_params()
+        scan_args = (xs, dts, A, x_dbl[..., r : r + n], x_dbl[..., r + n :], D, bias, h, w)
+        y = ss2d_scan_cpu(*scan_args).view(1, h, w, di)
+        yz = m.out_norm(y) * F.silu(z)
+        stages = [
+            lambda: m.in_proj(x),
+            conv,
+            lambda: xs @ w_x,
+            lambda: x_dbl[..., :r].reshape(1, length, k * r) @ dt_block,
+            lambda: ss2d_scan_cpu(*scan_args),
+            lambda: m.out_norm(y) * F.silu(z),
+            lambda: m.out_proj(yz),
+            lambda: m(x),
+        ]
+        return [cpu_ms(fn) for fn in stages], r
+
+
 def bench_bilateral(args) -> None:
     sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "src"))
     from tofdenoise.models.bilateral import default_radius_px
@@ -291,7 +433,9 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true", help="small sizes: a fast smoke run")
     p.add_argument("--threads", type=int, default=None, help="torch intra-op threads per case (default: torch's)")
-    p.add_argument("--only", default="scan,block,backbones", help="comma list of: scan, block, backbones, bilateral")
+    p.add_argument(
+        "--only", default="scan,block,backbones", help="comma list of: scan, block, backbones, bilateral, ss2d"
+    )
     p.add_argument("--backbones", default="", help="comma list of backbone names (default: all registered)")
     p.add_argument("--timeout", type=float, default=1800.0, help="seconds allowed per case")
     p.add_argument(
@@ -317,7 +461,13 @@ def main(argv: list[str] | None = None) -> int:
         f"{'quick' if args.quick else 'full'} sizes; every case in its own subprocess",
         flush=True,
     )
-    parts = {"scan": bench_scan, "block": bench_block, "backbones": bench_backbones, "bilateral": bench_bilateral}
+    parts = {
+        "scan": bench_scan,
+        "block": bench_block,
+        "backbones": bench_backbones,
+        "bilateral": bench_bilateral,
+        "ss2d": bench_ss2d_stages,
+    }
     for part in args.only.split(","):
         if part not in parts:
             p.error(f"--only: unknown part {part!r}; valid: {', '.join(parts)}")

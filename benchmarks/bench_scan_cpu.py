@@ -15,8 +15,13 @@ the DVSS training step against the U-Net's, and full-resolution DVSS inference m
 3. Full-resolution DVSS inference, 480x640 batch 1 (``--quick``: 240x320), in a fresh subprocess: time and
    peak resident memory above the pre-run baseline (bench_models' method).
 
+``--baseline REV`` also builds the kernel source of git revision REV under an extension name of its own and puts it
+next to today's in every part: the SS2D route's forward at DVSS level 0 of a 480x640 frame (batch 1, 64 channels,
+L = 307200; ``--quick``: 240x320) and forward+backward at the training size, the training step, and the inference
+frame (the baseline in its own subprocess).
+
 Times are wall clock (medians over rounds); on a shared machine the ratios, measured side by side, are the
-figures to compare.
+figures to compare. The scan rows also give process CPU time, steadier when other jobs share the cores.
 """
 
 from __future__ import annotations
@@ -84,6 +89,83 @@ def scan_inputs(batch: int, groups: int, dg: int, length: int, n: int):
     D = torch.ones(dim)
     bias = 0.1 * torch.randn(dim, generator=g)
     return [t.requires_grad_() for t in (u, delta, A, B, C, D, bias)]
+
+
+BASELINE: dict = {}  # "source": path of the baseline kernel source, "ext": its extension (--baseline)
+
+
+def baseline_source(rev: str) -> str:
+    """The kernel source of git revision ``rev`` written to a temporary file (kept for the subprocesses)."""
+    import subprocess
+    import tempfile
+
+    rel = "src/tofdenoise/models/scan/csrc/selective_scan_cpu.cpp"
+    text = subprocess.run(
+        ["git", "show", f"{rev}:{rel}"], cwd=HERE.parent, capture_output=True, text=True, check=True
+    ).stdout
+    fd, path = tempfile.mkstemp(prefix="selective_scan_cpu_baseline_", suffix=".cpp")
+    with os.fdopen(fd, "w") as fh:
+        fh.write(text)
+    return path
+
+
+def ss2d_inputs(batch: int, side_h: int, side_w: int, dg: int, n: int = 16, r: int = 2):
+    """SS2D-route inputs as SS2D hands them over: x (b, L, dg), raw steps (b, L, 4 dg), B / C slices of an x_proj
+    output (b, L, 4, r + 2N), A = -(1..N), D = 1, a small bias."""
+    import torch
+
+    g = torch.Generator().manual_seed(0)
+    length = side_h * side_w
+    x = torch.randn(batch, length, dg, generator=g)
+    dts = 0.5 * torch.randn(batch, length, 4 * dg, generator=g) - 3.0
+    x_dbl = torch.randn(batch, length, 4, r + 2 * n, generator=g)
+    A = -torch.arange(1, n + 1.0).repeat(4 * dg, 1)
+    D, bias = torch.ones(4 * dg), 0.1 * torch.randn(4 * dg, generator=g)
+    return x, dts, A, x_dbl[..., r : r + n], x_dbl[..., r + n :], D, bias
+
+
+def bench_baseline_scan(args) -> None:
+    """Today's kernel vs the baseline's on the SS2D route, process CPU time and wall, interleaved."""
+    import torch
+
+    from tofdenoise.models.scan import cpu as scan_cpu
+
+    cur, base = scan_cpu.load_extension(), BASELINE["ext"]
+    fh, fw = (240, 320) if args.quick else (480, 640)
+    cases = [
+        (f"forward, inference: 1 x {fh}x{fw}, 64 channels (DVSS level 0 of a frame)", (1, fh, fw, 64), False),
+        ("forward+backward: 4 x 64x64, 64 channels (DVSS level 0 of a training step)", (4, 64, 64, 64), True),
+    ]
+    print(
+        f"\n### SS2D route, today's kernel vs baseline {args.baseline}; {args.rounds + 2} rounds, order alternating; "
+        f"threads {torch.get_num_threads()}"
+    )
+    print("| case | baseline CPU (ms) | today CPU (ms) | CPU ratio | baseline wall (ms) | today wall (ms) | ratio |")
+    print("|---|---:|---:|---:|---:|---:|---:|")
+    for label, (b, h, w, dg), backward in cases:
+        x, dts, A, B, C, D, bias = ss2d_inputs(b, h, w, dg)
+        dy = torch.randn(b, h * w, dg, generator=torch.Generator().manual_seed(1))
+        args_ = (x, dts, A, B, C, D, bias, True, True, h, w)
+
+        def run(ext, args_=args_, backward=backward, dy=dy):
+            y, ck = ext.scan_fwd(*args_, scan_cpu.CHUNK if backward else 0)
+            if backward:
+                ext.scan_bwd(*args_, scan_cpu.CHUNK, ck, dy)
+
+        cpu_t: dict[str, list[float]] = {"base": [], "cur": []}
+        wall_t: dict[str, list[float]] = {"base": [], "cur": []}
+        run(cur), run(base)
+        for r in range(args.rounds + 2):
+            for key, ext in (("base", base), ("cur", cur)) if r % 2 == 0 else (("cur", cur), ("base", base)):
+                t0, c0 = time.perf_counter(), time.process_time()
+                run(ext)
+                wall_t[key].append(time.perf_counter() - t0)
+                cpu_t[key].append(time.process_time() - c0)
+        med = {k: statistics.median(v) for k, v in (*cpu_t.items(), *(("w" + k, v) for k, v in wall_t.items()))}
+        print(
+            f"| {label} | {med['base'] * 1e3:.1f} | {med['cur'] * 1e3:.1f} | {med['base'] / med['cur']:.2f} | "
+            f"{med['wbase'] * 1e3:.1f} | {med['wcur'] * 1e3:.1f} | {med['wbase'] / med['wcur']:.2f} |"
+        )
 
 
 def bench_scan(args) -> None:
@@ -192,32 +274,51 @@ def bench_step(args) -> None:
     with tempfile.TemporaryDirectory() as cache:
         dm = make_data(crop, batch, 0, cache)
         fixed = next(iter(dm.train_dataloader()))
-    configs = [("unet", {}), ("dvss", {}), ("dvss", {"scan_backend": "torch"})]
+    from bench_models import use_scan_extension
+
+    from tofdenoise.models.scan import cpu as scan_cpu
+
+    today = scan_cpu.load_extension()
+    configs = [("unet", {}, today), ("dvss", {}, today), ("dvss", {"scan_backend": "torch"}, today)]
     if args.quick:
         configs = configs[:2]
+    if BASELINE:
+        configs.insert(2, ("dvss", {}, BASELINE["ext"]))
     runs = []
-    for name, extra in configs:
+    for name, extra, ext in configs:
         torch.manual_seed(0)
         model = DepthRestorer(backbone=name, backbone_kwargs={**backbone_kwargs(name), **extra}, loss="full")
         model.train()
         opt = torch.optim.AdamW(model.backbone.parameters(), lr=2e-4)
+        use_scan_extension(ext)
         time_steps(model, opt, lambda: fixed, 1)  # warm-up (and the kernel build)
         label = name if not extra else f"{name} (PyTorch scan route)"
-        runs.append((label, model, opt, []))
+        if ext is not today:
+            label = f"{name} (baseline kernel {args.baseline})"
+        runs.append((label, model, opt, [], ext, []))
     for _ in range(args.rounds):
-        for label, model, opt, times in runs:
+        for label, model, opt, times, ext, cpu in runs:
+            use_scan_extension(ext)
             steps = 1 if "PyTorch" in label else 2
+            c0 = time.process_time()
             times.append(min(time_steps(model, opt, lambda: fixed, steps)))
+            cpu.append((time.process_time() - c0) / steps)
+    use_scan_extension(today)
     base = statistics.median(runs[0][3])
-    print("| backbone | step (s), median | / U-Net (per round) |")
-    print("|---|---:|---:|")
-    for label, _, _, times in runs:
+    print("| backbone | step (s), median | / U-Net (per round) | process CPU per step (s) | CPU / U-Net (per round) |")
+    print("|---|---:|---:|---:|---:|")
+    for label, _, _, times, _, cpu in runs:
         per_round = [t / u for t, u in zip(times, runs[0][3])]
+        cpu_round = [c / u for c, u in zip(cpu, runs[0][5])]
         print(
             f"| {label} | {statistics.median(times):.3f} | {statistics.median(per_round):.2f} "
-            f"({', '.join(f'{v:.2f}' for v in per_round)}) |"
+            f"({', '.join(f'{v:.2f}' for v in per_round)}) | {statistics.median(cpu):.3f} | "
+            f"{statistics.median(cpu_round):.2f} ({', '.join(f'{v:.2f}' for v in cpu_round)}) |"
         )
-    print(f"DVSS / U-Net = {statistics.median(runs[1][3]) / base:.2f}; target <= 6")
+    print(
+        f"DVSS / U-Net = {statistics.median(runs[1][3]) / base:.2f} wall, "
+        f"{statistics.median(runs[1][5]) / statistics.median(runs[0][5]):.2f} process CPU; target <= 3"
+    )
 
 
 def bench_inference(args) -> None:
@@ -227,10 +328,12 @@ def bench_inference(args) -> None:
     print(f"\n### DVSS inference {h}x{w}, batch 1, fresh subprocess per route (peak RSS above baseline)")
     print("| scan route | time (s) | peak memory (MiB) |")
     print("|---|---:|---:|")
-    routes = [("native kernel (auto)", {})] + (
-        [] if args.quick else [("PyTorch (`scan_backend=torch`)", {"scan_backend": "torch"})]
-    )
-    for label, kwargs in routes:
+    routes = [("native kernel (auto)", {}, None)]
+    if BASELINE:
+        routes.append((f"native kernel, baseline {args.baseline}", {}, BASELINE["source"]))
+    if not args.quick and not args.no_torch_route:
+        routes.append(("PyTorch (`scan_backend=torch`)", {"scan_backend": "torch"}, None))
+    for label, kwargs, source in routes:
         case = {
             "kind": "backbone",
             "name": "dvss",
@@ -238,8 +341,10 @@ def bench_inference(args) -> None:
             "H": h,
             "W": w,
             "batch": 1,
-            "reps": 1,
+            "reps": args.frame_reps,
+            "single_run_above_s": 1e9,  # frame_reps > 1: the first frame is a warm-up
             "kwargs": kwargs,
+            "scan_source": source,
         }
         res = run_isolated(case, args.threads, timeout_s=1800, mem_cap_gib=12)
         if "error" in res:
@@ -255,6 +360,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--threads", type=int, default=2, help="torch threads (default 2, the issue's setting)")
     p.add_argument("--rounds", type=int, default=None, help="interleaved rounds (default 3, --quick 2)")
     p.add_argument("--only", default="scan,step,inference", help="comma list of: scan, step, inference")
+    p.add_argument("--baseline", default="", help="git revision whose kernel source runs next to today's")
+    p.add_argument("--frame-reps", type=int, default=1, help="inference frames per route (median; after a warm-up)")
+    p.add_argument("--no-torch-route", action="store_true", help="skip the (slow) PyTorch-route inference frame")
     args = p.parse_args(argv)
     args.rounds = args.rounds or (2 if args.quick else 3)
     import torch
@@ -269,7 +377,14 @@ def main(argv: list[str] | None = None) -> int:
     if not cpu_kernel_available():
         print("native CPU scan not available (build failed or disabled): nothing to compare")
         return 1
+    if args.baseline:
+        from bench_models import build_scan_source
+
+        BASELINE["source"] = baseline_source(args.baseline)
+        BASELINE["ext"] = build_scan_source(BASELINE["source"])
     parts = {"scan": bench_scan, "step": bench_step, "inference": bench_inference}
+    if args.baseline and "scan" in args.only.split(","):
+        bench_baseline_scan(args)
     for part in args.only.split(","):
         if part not in parts:
             p.error(f"--only: unknown part {part!r}; valid: {', '.join(parts)}")

@@ -56,6 +56,10 @@ CASES = [
     (2, 40, 151, 2, 16, True, True, True, False),  # 20 channels per group: a full and a partial lane block
     (1, 34, 130, 1, 16, True, True, True, True),  # 3-D B/C, N = 16 (the compiled-N path), 3 chunks
     (2, 64, 129, 4, 12, True, True, True, False),  # SS2D-like grouping, 16 channels per group
+    # the backward's tasks walk ranges of lane blocks and sum dB / dC in place: 5 blocks of 16 channels in
+    # parts of 2, 2, 1 (batch 1) and 3, 2 (batch 3)
+    (1, 80, 70, 1, 16, True, True, True, False),
+    (3, 160, 45, 2, 16, True, True, True, False),
 ]
 
 
@@ -208,14 +212,23 @@ def _ss2d_run(block, x, spatial: bool):
     return y.detach(), x.grad, {k: p.grad.clone() for k, p in block.named_parameters()}
 
 
-@pytest.mark.parametrize("dim,h,w", [(20, 7, 9), (16, 8, 8), (24, 1, 5)])
-def test_ss2d_direction_reading_equals_cross_scan_route(ext, dim, h, w):
+@pytest.mark.parametrize(
+    "batch,dim,h,w",
+    [
+        (2, 20, 7, 9),
+        (2, 16, 8, 8),
+        (2, 24, 1, 5),
+        (1, 20, 13, 11),  # batch 1, H != W, 143 positions (3 chunks, the last partial), 40 channels
+        (1, 8, 9, 16),  # batch 1, 144 positions, 16 channels: one full lane block
+    ],
+)
+def test_ss2d_direction_reading_equals_cross_scan_route(ext, batch, dim, h, w):
     torch.manual_seed(0)
     block = SS2D(dim, d_state=16 if dim != 24 else 6)
     with torch.no_grad():  # move the parameters off their symmetric initial values
         for p in block.parameters():
             p.add_(0.1 * torch.randn_like(p))
-    x = torch.randn(2, h, w, dim)
+    x = torch.randn(batch, h, w, dim)
     y0, gx0, g0 = _ss2d_run(block, x, spatial=False)
     y1, gx1, g1 = _ss2d_run(block, x, spatial=True)
     assert _rel(y1, y0) < 2e-6
@@ -309,3 +322,27 @@ def test_a_stale_build_lock_is_removed_and_a_fresh_one_is_waited_for(tmp_path):
     with pytest.warns(RuntimeWarning, match=f"removed a stale build lock .*{lock}.*killed"):
         assert scan_cpu.clear_stale_build_lock(tmp_path) is True
     assert not lock.exists()
+
+
+@pytest.mark.parametrize("b,h,w,dg,n", [(1, 7, 9, 20, 16), (2, 5, 13, 16, 16), (1, 1, 130, 24, 6), (3, 11, 6, 40, 16)])
+def test_inference_forward_keeps_no_checkpoints_and_gives_the_same_output(ext, b, h, w, dg, n):
+    """chunk 0 (no input needs a gradient): the kernel writes no checkpoints and returns an empty ck, with an output
+    bit-identical to the checkpointing forward's; SS2D's route passes 0 under no_grad. Odd, non-square sizes, batch 1
+    and L not a multiple of CHUNK."""
+    g = torch.Generator().manual_seed(11)
+    length = h * w
+    x = torch.randn(b, length, dg, generator=g)
+    dts = 0.5 * torch.randn(b, length, 4 * dg, generator=g) - 2.0
+    x_dbl = torch.randn(b, length, 4, 3 + 2 * n, generator=g)
+    A = -torch.exp(0.3 * torch.randn(4 * dg, n, generator=g))
+    D, bias = torch.randn(4 * dg, generator=g), 0.1 * torch.randn(4 * dg, generator=g)
+    args = (x, dts, A, x_dbl[..., 3 : 3 + n], x_dbl[..., 3 + n :], D, bias, True, True, h, w)
+    y_ck, ck = ext.scan_fwd(*args, scan_cpu.CHUNK)
+    y_inf, ck_inf = ext.scan_fwd(*args, 0)
+    assert ck.numel() > 0 and ck_inf.numel() == 0
+    assert torch.equal(y_inf, y_ck)
+    with torch.no_grad():
+        y_route = scan_cpu.ss2d_scan_cpu(x, dts, A, x_dbl[..., 3 : 3 + n], x_dbl[..., 3 + n :], D, bias, h, w)
+    assert torch.equal(y_route, y_ck)
+    with pytest.raises(RuntimeError, match="checkpoints"):
+        ext.scan_bwd(*args, 0, ck_inf, torch.ones_like(y_ck))

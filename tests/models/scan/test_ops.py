@@ -256,3 +256,24 @@ def test_compiled_dvss_equals_eager_on_cuda(autocast):
         torch._dynamo.reset()
         compiled = _forward_backward(net, x, torch.compile(net, fullgraph=True))
     _assert_equal_runs(eager, compiled, 2e-2 if autocast else 1e-4)
+
+
+@needs_cpu_kernel
+def test_cpu_inference_keeps_no_checkpoints_and_gives_the_same_output(cpu_kernel):
+    """Without a backward to follow (no_grad, or no input needing a gradient) the SS2D and plain entry points ask
+    the operator for no checkpoints: the kernel writes none (an empty tensor comes back) and y is bit-identical to
+    the recorded call's."""
+    from tofdenoise.models.scan.cpu import selective_scan_cpu, ss2d_scan_cpu
+
+    args = _ss2d_args(1, 5, 7, 3, 16, True, "cpu")
+    _, ckpt_none = OPS.ss2d_scan(*args, False)
+    y_keep, ckpt_keep = OPS.ss2d_scan(*args, True)
+    assert ckpt_none.numel() == 0 and ckpt_keep.numel() > 0
+    x, delta, A, B, C, D, bias, h, w = args[:9]
+    with torch.no_grad():
+        y_infer = ss2d_scan_cpu(x, delta, A, B, C, D, bias, h, w)
+    assert torch.equal(y_infer, y_keep)
+    plain = _plain_args(1, 16, 70, 2, 5, True, True, "cpu")
+    y_plain, _ = OPS.selective_scan(*plain, True)
+    with torch.no_grad():
+        assert torch.equal(selective_scan_cpu(*plain[:7], plain[7]), y_plain)

@@ -247,7 +247,7 @@ def _opt(t: torch.Tensor | None) -> torch.Tensor | None:
     return None if t is None else t.contiguous()
 
 
-def scan_forward(u, delta, A, B, C, D, bias, softplus: bool):
+def scan_forward(u, delta, A, B, C, D, bias, softplus: bool, checkpoints: bool = True):
     """The plain route's forward on prepared float32 tensors: u, delta (b, dim, L) contiguous, A (dim, N)
     contiguous, B / C (b, G, N, L) with any strides (fastest: channels-last memory, a (b, L, G, N) tensor seen
     through ``permute(0, 2, 3, 1)``), D / bias (dim,) or None. Returns ``(y, ckpt)``, y (b, dim, L) contiguous,
@@ -265,7 +265,7 @@ def scan_forward(u, delta, A, B, C, D, bias, softplus: bool):
         False,
         0,
         0,
-        CHUNK,
+        CHUNK if checkpoints else 0,  # 0: no backward follows, the kernel keeps no checkpoints
     )
     return y.transpose(1, 2), ckpt
 
@@ -294,12 +294,13 @@ def scan_backward(u, delta, A, B, C, D, bias, softplus: bool, ckpt, dy):
     return du.transpose(1, 2), ddelta.transpose(1, 2), dA, dB.permute(0, 2, 3, 1), dC.permute(0, 2, 3, 1), dD, dbias
 
 
-def ss2d_forward(x, delta, A, B, C, D, bias, height: int, width: int):
+def ss2d_forward(x, delta, A, B, C, D, bias, height: int, width: int, checkpoints: bool = True):
     """The SS2D route's forward on prepared float32 tensors (x (b, L, d), delta (b, L, 4 d), A (4 d, N)
     contiguous; B / C (b, L, 4, N) with any strides; D / bias (4 d,) or None): ``(y, ckpt)``, y (b, L, d)
     contiguous, ckpt of :func:`ckpt_shape`."""
     ext = _extension("ss2d_scan_cpu")
-    return tuple(ext.scan_fwd(x, delta, A, B, C, _opt(D), _opt(bias), True, True, int(height), int(width), CHUNK))
+    chunk = CHUNK if checkpoints else 0  # 0: no backward follows, the kernel keeps no checkpoints
+    return tuple(ext.scan_fwd(x, delta, A, B, C, _opt(D), _opt(bias), True, True, int(height), int(width), chunk))
 
 
 def ss2d_backward(x, delta, A, B, C, D, bias, ckpt, dy, height: int, width: int):
@@ -337,6 +338,7 @@ def selective_scan_cpu(u, delta, A, B, C, D=None, delta_bias=None, delta_softplu
         None if delta_bias is None else delta_bias.to(f),
         bool(delta_softplus),
         "cpu",
+        _needs_backward(u, delta, A, B, C, D, delta_bias),
     )
     return y.to(u.dtype)
 
@@ -365,5 +367,12 @@ def ss2d_scan_cpu(x, delta, A, B, C, D, delta_bias, height: int, width: int) -> 
         int(height),
         int(width),
         "cpu",
+        _needs_backward(x, delta, A, B, C, D, delta_bias),
     )
     return y.to(x.dtype)
+
+
+def _needs_backward(*tensors) -> bool:
+    """True when autograd records this call (grad mode on and an input that needs a gradient): only then does the
+    kernel keep its checkpoints."""
+    return torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in tensors)

@@ -92,19 +92,26 @@ def _selective_scan(
     delta_bias: Tensor | None,
     delta_softplus: bool,
     kernel: str,
+    checkpoints: bool = True,
 ) -> tuple[Tensor, Tensor]:
     module = _kernel_module(kernel)
     y, ckpt = module.scan_forward(
-        u.contiguous(), delta.contiguous(), A.contiguous(), B, C, D, delta_bias, delta_softplus
+        u.contiguous(), delta.contiguous(), A.contiguous(), B, C, D, delta_bias, delta_softplus, checkpoints
     )
-    return y.contiguous(), ckpt
+    return y.contiguous(), _kept(ckpt, checkpoints)
+
+
+def _kept(ckpt: Tensor, checkpoints: bool) -> Tensor:
+    """The checkpoints, or an empty float32 tensor when none were asked for (no backward can follow: the CPU
+    kernel then writes none; the Triton kernels write theirs regardless)."""
+    return ckpt if checkpoints else ckpt.new_empty((0,), dtype=torch.float32)
 
 
 @_selective_scan.register_fake
-def _selective_scan_fake(u, delta, A, B, C, D, delta_bias, delta_softplus, kernel):
+def _selective_scan_fake(u, delta, A, B, C, D, delta_bias, delta_softplus, kernel, checkpoints=True):
     batch, dim, length = u.shape
     groups, n = B.shape[1], A.shape[1]
-    shape = _ckpt_shape(kernel, batch, groups, dim // groups, length, n)
+    shape = _ckpt_shape(kernel, batch, groups, dim // groups, length, n) if checkpoints else (0,)
     return u.new_empty(u.shape), u.new_empty(shape, dtype=torch.float32)
 
 
@@ -159,7 +166,7 @@ def _selective_scan_backward_fake(u, delta, A, B, C, D, delta_bias, delta_softpl
 
 
 def _selective_scan_setup(ctx, inputs, output):
-    u, delta, A, B, C, D, delta_bias, delta_softplus, kernel = inputs
+    u, delta, A, B, C, D, delta_bias, delta_softplus, kernel, _ = inputs
     ckpt = output[1]
     ctx.save_for_backward(u, delta, A, B, C, D, delta_bias, ckpt)
     ctx.delta_softplus, ctx.kernel = delta_softplus, kernel
@@ -179,6 +186,7 @@ def _selective_scan_grad(ctx, dy, _dckpt):
         dC,
         None if D is None else dD,
         None if delta_bias is None else dbias,
+        None,
         None,
         None,
     )
@@ -202,11 +210,12 @@ def _ss2d_scan(
     height: int,
     width: int,
     kernel: str,
+    checkpoints: bool = True,
 ) -> tuple[Tensor, Tensor]:
     module = _kernel_module(kernel)
     x, delta, A, B, C = _ss2d_prepare(x, delta, A, B, C)
-    y, ckpt = module.ss2d_forward(x, delta, A, B, C, D, delta_bias, height, width)
-    return y.contiguous(), ckpt
+    y, ckpt = module.ss2d_forward(x, delta, A, B, C, D, delta_bias, height, width, checkpoints)
+    return y.contiguous(), _kept(ckpt, checkpoints)
 
 
 def _ss2d_prepare(x, delta, A, B, C):
@@ -217,9 +226,9 @@ def _ss2d_prepare(x, delta, A, B, C):
 
 
 @_ss2d_scan.register_fake
-def _ss2d_scan_fake(x, delta, A, B, C, D, delta_bias, height, width, kernel):
+def _ss2d_scan_fake(x, delta, A, B, C, D, delta_bias, height, width, kernel, checkpoints=True):
     batch, length, di = x.shape
-    shape = _ckpt_shape(kernel, batch, 4, di, length, A.shape[1])
+    shape = _ckpt_shape(kernel, batch, 4, di, length, A.shape[1]) if checkpoints else (0,)
     return x.new_empty(x.shape), x.new_empty(shape, dtype=torch.float32)
 
 
@@ -267,7 +276,7 @@ def _ss2d_scan_backward_fake(x, delta, A, B, C, D, delta_bias, ckpt, dy, height,
 
 
 def _ss2d_scan_setup(ctx, inputs, output):
-    x, delta, A, B, C, D, delta_bias, height, width, kernel = inputs
+    x, delta, A, B, C, D, delta_bias, height, width, kernel, _ = inputs
     ckpt = output[1]
     ctx.save_for_backward(x, delta, A, B, C, D, delta_bias, ckpt)
     ctx.size, ctx.kernel = (height, width), kernel
@@ -287,6 +296,7 @@ def _ss2d_scan_grad(ctx, dy, _dckpt):
         dC,
         None if D is None else dD,
         None if delta_bias is None else dbias,
+        None,
         None,
         None,
         None,

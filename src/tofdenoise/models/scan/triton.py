@@ -1368,10 +1368,11 @@ def _plain_layout(u, delta, A, B):
     )
 
 
-def scan_forward(u, delta, A, B, C, D, bias, softplus: bool):
+def scan_forward(u, delta, A, B, C, D, bias, softplus: bool, checkpoints: bool = True):
     """The plain route's forward on prepared tensors (u, delta (b, dim, L) contiguous in their float dtype; A
     float32 (dim, N); B / C (b, G, N, L) contiguous; D / bias float32 (dim,) or None): ``(y, ckpt)``, y in u's
-    dtype, ckpt float32 of :func:`ckpt_shape`."""
+    dtype, ckpt float32 of :func:`ckpt_shape`, written whatever ``checkpoints`` says (the operator drops it when no
+    backward follows)."""
     y = torch.empty(u.shape, device=u.device, dtype=u.dtype)
     ckpt = _scan_forward(_plain_layout(u, delta, A, B), u, delta, A, B, C, D, bias, softplus, y)
     return y, ckpt
@@ -1432,10 +1433,11 @@ def _ss2d_layout(x, delta, A, B, out_strides, height, width):
     )
 
 
-def ss2d_forward(x, delta, A, B, C, D, bias, height: int, width: int):
+def ss2d_forward(x, delta, A, B, C, D, bias, height: int, width: int, checkpoints: bool = True):
     """The SS2D route's forward on prepared tensors (see :func:`ss2d_scan_triton`: x (b, L, d) and delta
     (b, L, 4 d) contiguous in their float dtype, A float32 (4 d, N), B / C (b, L, 4, N) with equal strides, D / bias
-    float32 (4 d,) or None): ``(y, ckpt)``, y (b, L, d) in x's dtype, ckpt float32 of :func:`ckpt_shape`."""
+    float32 (4 d,) or None): ``(y, ckpt)``, y (b, L, d) in x's dtype, ckpt float32 of :func:`ckpt_shape`, written
+    whatever ``checkpoints`` says (the operator drops it when no backward follows)."""
     batch, length, di = x.shape
     y = torch.zeros(batch, length, di, device=x.device, dtype=torch.float32)  # the four directions add into it
     s = y.stride()

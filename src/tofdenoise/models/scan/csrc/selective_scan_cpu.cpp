@@ -13,15 +13,19 @@
 // Position: the scan step l of group g reads spatial position p = pos(g, l). Plain scan: p = l. SS2D
 // (G = 4 directions over an H x W image, L = H W): row-major, column-major, and both reversed.
 //
-// Work split: one task per (batch, block of W = 16 channels-in-group); a task walks every group in turn, so
-// the SS2D sum over directions (y, du) needs no atomics. The 16 channels are the vector lanes; the N states
-// of the block (N x 16 floats) stay in L1. exp(delta A) is one vectorisable range reduction + polynomial.
-// The forward saves the state entering every chunk of T positions; the backward walks chunks in reverse,
-// recomputes the chunk's states and decays from that checkpoint into a small buffer, and runs the adjoint
-// recursion g_t = C_t dy_t + a_{t+1} g_{t+1}. dB, dC (shared by a group's channels) are reduced over the
-// lanes and written per channel block; dA, dD, dbias per batch element (summed by the caller).
+// Work split: forward, one task per (batch, block of W = 16 channels-in-group); backward, one task per (batch,
+// range of such blocks). A task walks every group in turn, so the SS2D sum over directions (y, du) needs no
+// atomics. The 16 channels are the vector lanes; the N states of the block (N x 16 floats) stay in registers and
+// L1. exp(delta A) is one vectorisable range reduction + polynomial. Positions are walked in chunks of T: a pass
+// over a chunk's steps (softplus, inputs, prefetches) precedes the recurrence over them.
+// The forward saves the state entering every chunk (unless chunk <= 0: inference); the backward walks chunks in
+// reverse, recomputes the chunk's states and decays from that checkpoint into a small buffer, and runs the adjoint
+// recursion g_t = C_t dy_t + a_{t+1} g_{t+1}. dB, dC (shared by a group's channels) are reduced over the lanes
+// and summed over a task's blocks in place (one partial per task of a batch element, summed by the caller);
+// dA, dD, dbias per batch element (summed by the caller).
 #include <torch/extension.h>
 #include <ATen/Parallel.h>
+#include <immintrin.h>
 
 #include <algorithm>
 #include <atomic>
@@ -34,7 +38,8 @@ namespace {
 
 constexpr int W = 16;     // lanes: channels per task
 constexpr int NMAX = 64;  // largest d_state
-constexpr int PREFETCH = 8;  // steps ahead for software prefetches
+constexpr int64_t ADJ_AHEAD = 4;  // steps ahead for the adjoint pass's prefetches
+constexpr int64_t INFERENCE_CHUNK = 64;  // positions per step pass when no checkpoints are kept
 
 // 16-float vectors (GCC / Clang vector extensions: one AVX-512 register, two AVX2 registers, ...). Values
 // that live across the state loop are vf locals, so that the compiler keeps them in registers.
@@ -77,28 +82,44 @@ inline void store_lanes(float* p, int64_t stride, vf v, int nw) {
     storev(tmp, v);
     for (int j = 0; j < nw; ++j) p[j * stride] = tmp[j];
 }
-inline vf select(vi mask, vf a, vf b) { return (vf)((mask & (vi)a) | (~mask & (vi)b)); }
-inline vf vmax(vf a, vf b) { return select(a > b, a, b); }
-inline vf vmin(vf a, vf b) { return select(a < b, a, b); }
+// Element-wise choices as vector conditionals (one compare and one blend; spelled as and/andnot/or of a mask
+// they cost 3 instructions each). max / min: one instruction with AVX-512 (GCC does not always turn the
+// conditional into vmaxps / vminps inside the unrolled state loop; the exp's clamp takes two per state update).
+inline vf select(vi mask, vf a, vf b) { return mask ? a : b; }
+#if defined(__AVX512F__)
+inline vf vmax(vf a, vf b) { return (vf)_mm512_max_ps((__m512)a, (__m512)b); }
+inline vf vmin(vf a, vf b) { return (vf)_mm512_min_ps((__m512)a, (__m512)b); }
+#else
+inline vf vmax(vf a, vf b) { return a > b ? a : b; }
+inline vf vmin(vf a, vf b) { return a < b ? a : b; }
+#endif
 
-// exp(x): x = n ln2 + r, |r| <= ln2 / 2, exp(r) by its degree-6 Taylor polynomial (rel. error ~1.2e-7), 2^n
-// built in the exponent bits. n = round(x / ln2) by the 1.5 * 2^23 trick (needs no reassociation of float
-// sums: the build does not use -fassociative-math). Clamped to [-87, 88] (exp(-87) ~ 1.6e-38 stands for 0).
+// exp(x): x = n ln2 + r, |r| <= ln2 / 2; exp(r) = 1 + r + r^2 q(r) with q of degree 3 fitted for the least
+// largest relative error on that interval (a Lawson-weighted least-squares fit, coefficients rounded to float;
+// 1.6e-7 relative in float arithmetic, less than the degree-6 Taylor polynomial it replaces, with one multiply-add
+// fewer). n = round(x / ln2) by the 1.5 * 2^23 trick (needs no reassociation of float sums: the build does not
+// use -fassociative-math); t = x / ln2 + 1.5 * 2^23 then holds 0x4B400000 + n in its bits, so t's bits shifted
+// left by 23 are n in the exponent field, and adding them to exp(r)'s bits multiplies it by 2^n (one shift and
+// one integer add, no float conversion and no multiply). Clamped to [-87, 88] (exp(-87) ~ 1.6e-38 stands for 0),
+// where exp(r) 2^n stays a normal float.
 inline vf exp_v(vf x) {
     x = vmin(vmax(x, splat(-87.0f)), splat(88.0f));
     const vf magic = splat(12582912.0f);
-    const vf n = (x * 1.44269504088896341f + magic) - magic;
+    const vf t = x * 1.44269504088896341f + magic;
+    const vf n = t - magic;
     vf r = x - n * 0.693359375f;
     r = r + n * 2.12194440e-4f;
-    vf p = splat(1.0f / 720.0f);
-    p = p * r + 1.0f / 120.0f;
-    p = p * r + 1.0f / 24.0f;
-    p = p * r + 1.0f / 6.0f;
-    p = p * r + 0.5f;
+    vf p = splat(0.00831252709031105f);
+    p = p * r + 0.04189011827111244f;
+    p = p * r + 0.16667114198207855f;
+    p = p * r + 0.499992311000824f;
     p = p * r + 1.0f;
     p = p * r + 1.0f;
-    const vi e = (__builtin_convertvector(n, vi) + 127) << 23;
-    return p * (vf)e;
+#if defined(__AVX512F__)
+    return (vf)_mm512_scalef_ps((__m512)p, (__m512)n);  // p 2^n in one instruction
+#else
+    return (vf)((vi)p + ((vi)t << 23));
+#endif
 }
 
 // softplus(x) = max(x, 0) + log(1 + e), e = exp(-|x|) in (0, 1]; log(1 + e) = 2 atanh(s), s = e / (2 + e)
@@ -143,16 +164,35 @@ inline float hsum(vf v) {
     return s;
 }
 
+// Positions pi_g(l), pi_g(l + 1), ... of one scan direction, one step at a time without a division (the column-
+// major directions cost two 64-bit divisions per step, and as many for the prefetch address, when computed
+// from l): p moves by s_in within an image column (row), and by s_out more after n_in steps.
+struct PosIter {
+    int64_t p, cnt, n_in, s_in, s_out;
+    inline void next() {
+        p += s_in;
+        if (++cnt == n_in) {
+            cnt = 0;
+            p += s_out;
+        }
+    }
+};
+
 struct Geometry {
     int64_t batch, L, G, Dg, N, Du, H, Wd;
     bool ss2d;
-    // spatial position of scan step l in group (direction) g
-    inline int64_t pos(int64_t g, int64_t l) const {
-        if (!ss2d) return l;
-        if (g >= 2) l = L - 1 - l;
-        if (g == 0 || g == 2) return l;
-        const int64_t i = l % H, j = l / H;  // column-major step l = j H + i
-        return i * Wd + j;
+    // the positions of group (direction) g from scan step l0 on: row-major, column-major (step l = j H + i reads
+    // i Wd + j), and both reversed; the plain scan reads p = l
+    inline PosIter walk(int64_t g, int64_t l0) const {
+        constexpr int64_t never = INT64_MAX;
+        if (!ss2d || g == 0) return {l0, 0, never, 1, 0};
+        if (g == 2) return {L - 1 - l0, 0, never, -1, 0};
+        if (g == 1) {
+            const int64_t i = l0 % H, j = l0 / H;
+            return {i * Wd + j, i, H, Wd, 1 - H * Wd};
+        }
+        const int64_t l = L - 1 - l0, i = l % H, j = l / H;  // g == 3: column-major, reversed
+        return {i * Wd + j, H - 1 - i, H, -Wd, H * Wd - 1};
     }
 };
 
@@ -252,6 +292,7 @@ struct FwdArgs {
 struct BwdArgs {
     Geometry geo;
     int64_t nblk, nck, chunk;
+    int64_t parts, per_part;  // tasks per batch element, each walking per_part lane blocks (see scan_bwd)
     bool softplus;
     const float *u, *delta, *A, *B, *C, *D, *bias, *ck, *dy;
     float *du, *ddelta, *dA, *dB, *dC, *dD, *dbias;
@@ -259,17 +300,24 @@ struct BwdArgs {
     Strides3 su, sd, sdy;  // u / du, delta / ddelta, dy
 };
 
-// Forward tasks, taken from next() until it returns -1. NT = d_state known at compile time (the state loop unrolls and the 16 state
-// vectors stay in registers), or 0 = runtime d_state.
+// Forward tasks, taken from next() until it returns -1. NT = d_state known at compile time (the state loop unrolls
+// and the state vectors stay in registers), or 0 = runtime d_state.
+// Per chunk of positions, two passes: the first reads every step's delta and u, computes the step (softplus),
+// delta u and D u into small buffers and prefetches the rows of B, C and y; the second runs the recurrence from
+// the buffers. The steps' softplus (an exp, a division, a series: ~100 cycles of dependent latency) is then off
+// the recurrence's path, and the out-of-order core overlaps the state updates of consecutive steps.
 template <int NT, class Next>
 void fwd_tasks(const FwdArgs& a, Next next) {
     const Geometry& geo = a.geo;
-    const int64_t N = NT > 0 ? NT : geo.N, L = geo.L, G = geo.G, Dg = geo.Dg, Du = geo.Du, Dall = G * Dg;
+    const int64_t N = NT > 0 ? NT : geo.N, L = geo.L, G = geo.G, Dg = geo.Dg;
     const int64_t nblk = a.nblk, nck = a.nck, chunk = a.chunk;
     const bool ss2d = geo.ss2d;
     const Strides4 sB = a.sB, sC = a.sC;
+    const Strides3 su = a.su, sd = a.sd;
     BlockParams prm;
     vf h[NT > 0 ? NT : NMAX];
+    std::vector<vf> DLbuf(chunk), DUbuf(chunk), YDbuf(chunk);
+    std::vector<int64_t> Pbuf(chunk);
     for (int64_t task = next(); task >= 0; task = next()) {
         const int64_t b = task / nblk, blk = task % nblk;
         const int64_t d0 = blk * W;
@@ -279,159 +327,218 @@ void fwd_tasks(const FwdArgs& a, Next next) {
             const int64_t uc0 = ss2d ? d0 : c0;  // u / y column of lane 0
             load_params(prm, a.A, a.D, a.bias, c0, nw, N);
             for (int64_t n = 0; n < N; ++n) h[n] = splat(0.0f);
-            float* ckg = a.ck + (((b * nblk + blk) * G + g) * nck) * N * W;
-            int64_t in_chunk = 0;
-            for (int64_t l = 0; l < L; ++l, ++in_chunk) {
-                if (in_chunk == chunk) in_chunk = 0;
-                if (in_chunk == 0) {
-                    float* dst = ckg + (l / chunk) * N * W;
-                    for (int64_t n = 0; n < N; ++n) storev(dst + n * W, h[n]);
+            const float* dbase = a.delta + b * sd.b + c0 * sd.c;
+            const float* ubase = a.u + b * su.b + uc0 * su.c;
+            float* ybase = a.y + b * su.b + uc0 * su.c;
+            const float* Bbase = a.B + b * sB.b + g * sB.g;
+            const float* Cbase = a.C + b * sC.b + g * sC.g;
+            const bool accumulate = ss2d && g > 0;  // SS2D: direction 0 writes y, directions 1-3 add to it
+            float* ckg = a.ck != nullptr ? a.ck + (((b * nblk + blk) * G + g) * nck) * N * W : nullptr;
+            PosIter it = geo.walk(g, 0);
+            PosIter ahead = geo.walk(g, std::min(chunk, L - 1));  // the next chunk's positions, for prefetches
+            for (int64_t k = 0; k < nck; ++k) {
+                const int64_t T = std::min(chunk, L - k * chunk);
+                const bool more = k + 1 < nck;
+                if (ckg != nullptr) {  // the state entering the chunk
+                    for (int64_t n = 0; n < N; ++n) storev(ckg + (k * N + n) * W, h[n]);
                 }
-                const int64_t p = geo.pos(g, l);
-                if (l + PREFETCH < L) {  // column-major directions jump a whole image row per step
-                    const int64_t q = geo.pos(g, l + PREFETCH);
-                    __builtin_prefetch(a.delta + b * a.sd.b + q * a.sd.l + c0 * a.sd.c);
-                    __builtin_prefetch(a.u + b * a.su.b + q * a.su.l + uc0 * a.su.c);
-                    __builtin_prefetch(a.y + b * a.su.b + q * a.su.l + uc0 * a.su.c);
-                    __builtin_prefetch(a.B + b * sB.b + q * sB.l + g * sB.g);
-                    __builtin_prefetch(a.C + b * sC.b + q * sC.l + g * sC.g);
+                for (int64_t s = 0; s < T; ++s, it.next()) {
+                    const int64_t p = it.p;
+                    Pbuf[s] = p;
+                    if (more && (k + 1) * chunk + s < L) {  // delta and u a chunk ahead (each step reads a new line)
+                        __builtin_prefetch(dbase + ahead.p * sd.l);
+                        __builtin_prefetch(ubase + ahead.p * su.l);
+                        ahead.next();
+                    }
+                    __builtin_prefetch(Bbase + p * sB.l);
+                    __builtin_prefetch(Bbase + p * sB.l + (N - 1) * sB.n);
+                    __builtin_prefetch(Cbase + p * sC.l);
+                    __builtin_prefetch(Cbase + p * sC.l + (N - 1) * sC.n);
+                    __builtin_prefetch(ybase + p * su.l, 1);
+                    vf dsig;
+                    const vf dl = step_delta(load_lanes(dbase + p * sd.l, sd.c, nw), prm, a.softplus, &dsig);
+                    const vf uu = load_lanes(ubase + p * su.l, su.c, nw);
+                    DLbuf[s] = dl;
+                    DUbuf[s] = dl * uu;
+                    YDbuf[s] = prm.D * uu;
                 }
-                vf dsig;
-                const vf dl = step_delta(load_lanes(a.delta + b * a.sd.b + p * a.sd.l + c0 * a.sd.c, a.sd.c, nw), prm, a.softplus, &dsig);
-                const vf uu = load_lanes(a.u + b * a.su.b + p * a.su.l + uc0 * a.su.c, a.su.c, nw);
-                const float* Bl = a.B + b * sB.b + p * sB.l + g * sB.g;
-                const float* Cl = a.C + b * sC.b + p * sC.l + g * sC.g;
-                const vf du = dl * uu;
-                vf yy = prm.D * uu;
+                for (int64_t s = 0; s < T; ++s) {
+                    const int64_t p = Pbuf[s];
+                    const vf dl = DLbuf[s], du = DUbuf[s];
+                    const float* Bl = Bbase + p * sB.l;
+                    const float* Cl = Cbase + p * sC.l;
+                    // C_t . h_t in 4 partial sums: one running sum chains N multiply-adds (4 cycles each) per step
+                    vf ys[4] = {YDbuf[s], splat(0.0f), splat(0.0f), splat(0.0f)};
 #pragma GCC unroll 16
-                for (int64_t n = 0; n < N; ++n) {
-                    h[n] = exp_v(dl * prm.A[n]) * h[n] + du * Bl[n * sB.n];
-                    yy += h[n] * Cl[n * sC.n];
+                    for (int64_t n = 0; n < N; ++n) {
+                        h[n] = exp_v(dl * prm.A[n]) * h[n] + du * Bl[n * sB.n];
+                        ys[n & 3] += h[n] * Cl[n * sC.n];
+                    }
+                    vf yy = (ys[0] + ys[1]) + (ys[2] + ys[3]);
+                    float* yrow = ybase + p * su.l;
+                    if (accumulate) yy += load_lanes(yrow, su.c, nw);
+                    store_lanes(yrow, su.c, yy, nw);
                 }
-                float* yrow = a.y + b * a.su.b + p * a.su.l + uc0 * a.su.c;
-                if (ss2d) yy += load_lanes(yrow, a.su.c, nw);
-                store_lanes(yrow, a.su.c, yy, nw);
             }
         }
     }
 }
 
-// Backward tasks, taken from next() until it returns -1 (NT as in fwd_tasks).
+// Backward tasks, taken from next() until it returns -1 (NT as in fwd_tasks). Per chunk, newest first: a pass over
+// the chunk's steps (positions, steps and their softplus derivative, u; prefetches of the rows read later), the
+// recomputation of the chunk's states and decays from its checkpoint, and the adjoint recursion.
 template <int NT, class Next>
 void bwd_tasks(const BwdArgs& a, Next next) {
     const Geometry& geo = a.geo;
-    const int64_t N = NT > 0 ? NT : geo.N, L = geo.L, G = geo.G, Dg = geo.Dg, Du = geo.Du, Dall = G * Dg;
+    const int64_t N = NT > 0 ? NT : geo.N, L = geo.L, G = geo.G, Dg = geo.Dg, Dall = G * Dg;
     const int64_t nblk = a.nblk, nck = a.nck, chunk = a.chunk;
     const bool ss2d = geo.ss2d;
     const Strides4 sB = a.sB, sC = a.sC;
+    const Strides3 su = a.su, sd = a.sd, sdy = a.sdy;
     BlockParams prm;
-    // per chunk: states h_t and decays a_t (T x N vectors), steps, sigmoids, inputs (T vectors)
+    // per chunk: states h_t and decays a_t (T x N vectors), steps, sigmoids, inputs (T vectors), positions
     std::vector<vf> Hbuf(chunk * N), Abuf(chunk * N), DLbuf(chunk), SGbuf(chunk), Ubuf(chunk);
+    std::vector<int64_t> Pbuf(chunk);
     constexpr int NA = NT > 0 ? NT : NMAX;
     vf h[NA], gn[NA], dAacc[NA], pB[NA], pC[NA];
     alignas(64) float sums[W];
+    const int64_t parts = a.parts, per_part = a.per_part;
     for (int64_t task = next(); task >= 0; task = next()) {
-        const int64_t b = task / nblk, blk = task % nblk;
-        const int64_t d0 = blk * W;
-        const int nw = static_cast<int>(std::min<int64_t>(W, Dg - d0));
-        for (int64_t g = 0; g < G; ++g) {
-            const int64_t c0 = g * Dg + d0;
-            const int64_t uc0 = ss2d ? d0 : c0;
-            load_params(prm, a.A, a.D, a.bias, c0, nw, N);
-            for (int64_t n = 0; n < N; ++n) {
-                gn[n] = splat(0.0f);  // a_{t+1} g_{t+1}, carried backwards
-                dAacc[n] = splat(0.0f);
-            }
-            vf dDacc = splat(0.0f), dbacc = splat(0.0f);
-            const float* ckg = a.ck + (((b * nblk + blk) * G + g) * nck) * N * W;
-            for (int64_t k = nck - 1; k >= 0; --k) {
-                const int64_t t0 = k * chunk, t1 = std::min(L, t0 + chunk);
-                for (int64_t n = 0; n < N; ++n) h[n] = loadv(ckg + (k * N + n) * W);
-                // recompute the chunk's states and decays
-                for (int64_t t = t0; t < t1; ++t) {
-                    const int64_t p = geo.pos(g, t), s = t - t0;
-                    if (t + PREFETCH < t1) {
-                        const int64_t q = geo.pos(g, t + PREFETCH);
-                        __builtin_prefetch(a.delta + b * a.sd.b + q * a.sd.l + c0 * a.sd.c);
-                        __builtin_prefetch(a.u + b * a.su.b + q * a.su.l + uc0 * a.su.c);
-                        __builtin_prefetch(a.B + b * sB.b + q * sB.l + g * sB.g);
-                    }
-                    // rows the adjoint pass reads next (a chunk of them stays in L1)
-                    __builtin_prefetch(a.dy + b * a.sdy.b + p * a.sdy.l + uc0 * a.sdy.c);
-                    __builtin_prefetch(a.du + b * a.su.b + p * a.su.l + uc0 * a.su.c);
-                    __builtin_prefetch(a.C + b * sC.b + p * sC.l + g * sC.g);
-                    vf dsig;
-                    const vf dl = step_delta(load_lanes(a.delta + b * a.sd.b + p * a.sd.l + c0 * a.sd.c, a.sd.c, nw), prm, a.softplus, &dsig);
-                    const vf uu = load_lanes(a.u + b * a.su.b + p * a.su.l + uc0 * a.su.c, a.su.c, nw);
-                    DLbuf[s] = dl;
-                    SGbuf[s] = dsig;
-                    Ubuf[s] = uu;
-                    const float* Bl = a.B + b * sB.b + p * sB.l + g * sB.g;
-                    const vf du = dl * uu;
-                    vf* Hs = &Hbuf[s * N];
-                    vf* As = &Abuf[s * N];
-#pragma GCC unroll 16
-                    for (int64_t n = 0; n < N; ++n) {
-                        const vf decay = exp_v(dl * prm.A[n]);
-                        h[n] = decay * h[n] + du * Bl[n * sB.n];
-                        As[n] = decay;
-                        Hs[n] = h[n];
-                    }
+        const int64_t b = task / parts, part = task % parts;
+        const int64_t blk0 = part * per_part, blk1 = std::min(nblk, blk0 + per_part);
+        for (int64_t blk = blk0; blk < blk1; ++blk) {
+            const int64_t d0 = blk * W;
+            const int nw = static_cast<int>(std::min<int64_t>(W, Dg - d0));
+            // dB_t, dC_t (shared by the group's channels): the part's first block writes them, its later blocks add
+            const bool add_dBC = blk > blk0;
+            for (int64_t g = 0; g < G; ++g) {
+                const int64_t c0 = g * Dg + d0;
+                const int64_t uc0 = ss2d ? d0 : c0;
+                load_params(prm, a.A, a.D, a.bias, c0, nw, N);
+                for (int64_t n = 0; n < N; ++n) {
+                    gn[n] = splat(0.0f);  // a_{t+1} g_{t+1}, carried backwards
+                    dAacc[n] = splat(0.0f);
                 }
-                // adjoint recursion g_t = C_t dy_t + a_{t+1} g_{t+1}, newest position first
-                for (int64_t t = t1 - 1; t >= t0; --t) {
-                    const int64_t p = geo.pos(g, t), s = t - t0;
-                    const vf dl = DLbuf[s], uu = Ubuf[s];
-                    const vf* Hs = &Hbuf[s * N];
-                    const vf* As = &Abuf[s * N];
-                    const float* Bl = a.B + b * sB.b + p * sB.l + g * sB.g;
-                    const float* Cl = a.C + b * sC.b + p * sC.l + g * sC.g;
-                    const vf dyv = load_lanes(a.dy + b * a.sdy.b + p * a.sdy.l + uc0 * a.sdy.c, a.sdy.c, nw);
-                    const vf du = dl * uu;
-                    vf dsum = splat(0.0f);  // sum_n g_n A_n a_n h_{t-1,n}
-                    vf ssum = splat(0.0f);  // sum_n g_n B_n
-#pragma GCC unroll 16
-                    for (int64_t n = 0; n < N; ++n) {
-                        const float bn = Bl[n * sB.n];
-                        const vf gt = dyv * Cl[n * sC.n] + gn[n];
-                        const vf gah = gt * (Hs[n] - du * bn);  // a_t h_{t-1} = h_t - delta u B
-                        dsum += prm.A[n] * gah;
-                        dAacc[n] += dl * gah;
-                        ssum += gt * bn;
-                        pB[n] = gt * du;
-                        pC[n] = Hs[n] * dyv;
-                        gn[n] = As[n] * gt;
+                vf dDacc = splat(0.0f), dbacc = splat(0.0f);
+                const float* dbase = a.delta + b * sd.b + c0 * sd.c;
+                float* ddbase = a.ddelta + b * sd.b + c0 * sd.c;
+                const float* ubase = a.u + b * su.b + uc0 * su.c;
+                float* dubase = a.du + b * su.b + uc0 * su.c;
+                const float* dybase = a.dy + b * sdy.b + uc0 * sdy.c;
+                const float* Bbase = a.B + b * sB.b + g * sB.g;
+                const float* Cbase = a.C + b * sC.b + g * sC.g;
+                float* dBbase = a.dB + ((part * geo.batch + b) * L * G + g) * N;  // (parts, batch, L, G, N)
+                float* dCbase = a.dC + ((part * geo.batch + b) * L * G + g) * N;
+                const bool accumulate = ss2d && g > 0;  // SS2D: direction 0 writes du, directions 1-3 add to it
+                const float* ckg = a.ck + (((b * nblk + blk) * G + g) * nck) * N * W;
+                for (int64_t k = nck - 1; k >= 0; --k) {
+                    const int64_t t0 = k * chunk, T = std::min(chunk, L - t0);
+                    PosIter it = geo.walk(g, t0);
+                    PosIter ahead = geo.walk(g, k > 0 ? t0 - chunk : 0);  // the chunk done next, for prefetches
+                    for (int64_t s = 0; s < T; ++s, it.next()) {
+                        const int64_t p = it.p;
+                        Pbuf[s] = p;
+                        if (k > 0 && s < chunk) {  // delta and u of the previous chunk (each step reads a new line)
+                            __builtin_prefetch(dbase + ahead.p * sd.l);
+                            __builtin_prefetch(ubase + ahead.p * su.l);
+                            ahead.next();
+                        }
+                        __builtin_prefetch(Bbase + p * sB.l);
+                        __builtin_prefetch(Cbase + p * sC.l);
+                        __builtin_prefetch(dybase + p * sdy.l);
+                        if (accumulate) __builtin_prefetch(dubase + p * su.l, 1);
+                        vf dsig;
+                        DLbuf[s] = step_delta(load_lanes(dbase + p * sd.l, sd.c, nw), prm, a.softplus, &dsig);
+                        SGbuf[s] = dsig;
+                        Ubuf[s] = load_lanes(ubase + p * su.l, su.c, nw);
                     }
-                    float* dBrow = a.dB + (((blk * geo.batch + b) * L + p) * G + g) * N;
-                    float* dCrow = a.dC + (((blk * geo.batch + b) * L + p) * G + g) * N;
-                    if constexpr (NT == W) {
-                        storev(dBrow, transpose_sum16(pB));  // dB_t[n], dC_t[n]: sums over the lanes
-                        storev(dCrow, transpose_sum16(pC));
-                    } else {
+                    // recompute the chunk's states and decays
+                    for (int64_t n = 0; n < N; ++n) h[n] = loadv(ckg + (k * N + n) * W);
+                    for (int64_t s = 0; s < T; ++s) {
+                        const vf dl = DLbuf[s];
+                        const vf du = dl * Ubuf[s];
+                        const float* Bl = Bbase + Pbuf[s] * sB.l;
+                        vf* Hs = &Hbuf[s * N];
+                        vf* As = &Abuf[s * N];
+#pragma GCC unroll 16
                         for (int64_t n = 0; n < N; ++n) {
-                            dBrow[n] = hsum(pB[n]);
-                            dCrow[n] = hsum(pC[n]);
+                            const vf decay = exp_v(dl * prm.A[n]);
+                            h[n] = decay * h[n] + du * Bl[n * sB.n];
+                            As[n] = decay;
+                            Hs[n] = h[n];
                         }
                     }
-                    // d delta_t = sum_n g_n (A_n a_n h_{t-1,n} + u B_n); through softplus: * sigmoid
-                    const vf ddl = (dsum + uu * ssum) * SGbuf[s];
-                    dbacc += ddl;
-                    dDacc += dyv * uu;
-                    store_lanes(a.ddelta + b * a.sd.b + p * a.sd.l + c0 * a.sd.c, a.sd.c, ddl, nw);
-                    vf dU = dl * ssum + prm.D * dyv;  // dL/du_t
-                    float* durow = a.du + b * a.su.b + p * a.su.l + uc0 * a.su.c;
-                    if (ss2d) dU += load_lanes(durow, a.su.c, nw);
-                    store_lanes(durow, a.su.c, dU, nw);
+                    // adjoint recursion g_t = C_t dy_t + a_{t+1} g_{t+1}, newest position first
+                    for (int64_t s = T - 1; s >= 0; --s) {
+                        const int64_t p = Pbuf[s];
+                        if (s >= ADJ_AHEAD) {  // the recomputation's buffers have evicted these rows from L1
+                            const int64_t q = Pbuf[s - ADJ_AHEAD];
+                            __builtin_prefetch(Bbase + q * sB.l);
+                            __builtin_prefetch(Cbase + q * sC.l);
+                            __builtin_prefetch(dybase + q * sdy.l);
+                            __builtin_prefetch(ddbase + q * sd.l, 1);
+                            __builtin_prefetch(dubase + q * su.l, 1);
+                        }
+                        const vf dl = DLbuf[s], uu = Ubuf[s];
+                        const vf* Hs = &Hbuf[s * N];
+                        const vf* As = &Abuf[s * N];
+                        const float* Bl = Bbase + p * sB.l;
+                        const float* Cl = Cbase + p * sC.l;
+                        const vf dyv = load_lanes(dybase + p * sdy.l, sdy.c, nw);
+                        const vf du = dl * uu;
+                        // sum_n g_n A_n a_n h_{t-1,n} and sum_n g_n B_n, each in 4 partial sums (one running sum would
+                        // chain N multiply-adds per step)
+                        vf dsums[4] = {}, ssums[4] = {};
+#pragma GCC unroll 16
+                        for (int64_t n = 0; n < N; ++n) {
+                            const float bn = Bl[n * sB.n];
+                            const vf gt = dyv * Cl[n * sC.n] + gn[n];
+                            const vf gah = gt * (Hs[n] - du * bn);  // a_t h_{t-1} = h_t - delta u B
+                            dsums[n & 3] += prm.A[n] * gah;
+                            dAacc[n] += dl * gah;
+                            ssums[n & 3] += gt * bn;
+                            pB[n] = gt * du;
+                            pC[n] = Hs[n] * dyv;
+                            gn[n] = As[n] * gt;
+                        }
+                        const vf dsum = (dsums[0] + dsums[1]) + (dsums[2] + dsums[3]);
+                        const vf ssum = (ssums[0] + ssums[1]) + (ssums[2] + ssums[3]);
+                        float* dBrow = dBbase + p * G * N;
+                        float* dCrow = dCbase + p * G * N;
+                        if constexpr (NT == W) {
+                            vf sB16 = transpose_sum16(pB), sC16 = transpose_sum16(pC);  // dB_t[n], dC_t[n]: lane sums
+                            if (add_dBC) {
+                                sB16 += loadv(dBrow);
+                                sC16 += loadv(dCrow);
+                            }
+                            storev(dBrow, sB16);
+                            storev(dCrow, sC16);
+                        } else {
+                            for (int64_t n = 0; n < N; ++n) {
+                                dBrow[n] = add_dBC ? dBrow[n] + hsum(pB[n]) : hsum(pB[n]);
+                                dCrow[n] = add_dBC ? dCrow[n] + hsum(pC[n]) : hsum(pC[n]);
+                            }
+                        }
+                        // d delta_t = sum_n g_n (A_n a_n h_{t-1,n} + u B_n); through softplus: * sigmoid
+                        const vf ddl = (dsum + uu * ssum) * SGbuf[s];
+                        dbacc += ddl;
+                        dDacc += dyv * uu;
+                        store_lanes(ddbase + p * sd.l, sd.c, ddl, nw);
+                        vf dU = dl * ssum + prm.D * dyv;  // dL/du_t
+                        float* durow = dubase + p * su.l;
+                        if (accumulate) dU += load_lanes(durow, su.c, nw);
+                        store_lanes(durow, su.c, dU, nw);
+                    }
                 }
+                for (int64_t n = 0; n < N; ++n) {
+                    storev(sums, dAacc[n]);
+                    for (int j = 0; j < nw; ++j) a.dA[(b * Dall + c0 + j) * N + n] = sums[j];
+                }
+                storev(sums, dDacc);
+                for (int j = 0; j < nw; ++j) a.dD[b * Dall + c0 + j] = sums[j];
+                storev(sums, dbacc);
+                for (int j = 0; j < nw; ++j) a.dbias[b * Dall + c0 + j] = sums[j];
             }
-            for (int64_t n = 0; n < N; ++n) {
-                storev(sums, dAacc[n]);
-                for (int j = 0; j < nw; ++j) a.dA[(b * Dall + c0 + j) * N + n] = sums[j];
-            }
-            storev(sums, dDacc);
-            for (int j = 0; j < nw; ++j) a.dD[b * Dall + c0 + j] = sums[j];
-            storev(sums, dbacc);
-            for (int j = 0; j < nw; ++j) a.dbias[b * Dall + c0 + j] = sums[j];
         }
     }
 }
@@ -461,12 +568,16 @@ std::vector<at::Tensor> scan_fwd(const at::Tensor& u, const at::Tensor& delta, c
     const at::Tensor bias = bias_opt.has_value() ? *bias_opt : at::Tensor();
     const Geometry geo = make_geometry(u, A, B, ss2d, H, Wd);
     check_inputs(u, delta, A, B, C, D, bias, geo);
-    TORCH_CHECK(chunk >= 1, "selective_scan_cpu: chunk must be >= 1");
+    // chunk <= 0: no backward will follow (inference): no checkpoints are written and ck comes back empty (at
+    // 480 x 640 they are as large as y: 78 MB per call at DVSS level 0); the chunks are then only the unit of the
+    // step pass (INFERENCE_CHUNK positions)
+    const bool keep = chunk >= 1;
+    if (!keep) chunk = INFERENCE_CHUNK;
     const int64_t nblk = (geo.Dg + W - 1) / W;
     const int64_t nck = (geo.L + chunk - 1) / chunk;
-    at::Tensor y = ss2d ? at::zeros_like(u) : at::empty_like(u);
+    at::Tensor y = at::empty_like(u);  // SS2D: direction 0 writes every position, 1-3 add to it
     // state entering each chunk: (batch, nblk, G, nck, N, W)
-    at::Tensor ck = at::empty({geo.batch, nblk, geo.G, nck, geo.N, W}, u.options());
+    at::Tensor ck = keep ? at::empty({geo.batch, nblk, geo.G, nck, geo.N, W}, u.options()) : at::empty({0}, u.options());
     const float* up = u.data_ptr<float>();
     const float* dp = delta.data_ptr<float>();
     const float* Ap = A.data_ptr<float>();
@@ -475,9 +586,8 @@ std::vector<at::Tensor> scan_fwd(const at::Tensor& u, const at::Tensor& delta, c
     const float* Dp = D.defined() ? D.data_ptr<float>() : nullptr;
     const float* bp = bias.defined() ? bias.data_ptr<float>() : nullptr;
     float* yp = y.data_ptr<float>();
-    float* ckp = ck.data_ptr<float>();
+    float* ckp = keep ? ck.data_ptr<float>() : nullptr;
     const Strides4 sB = strides4(B), sC = strides4(C);
-    const int64_t N = geo.N, L = geo.L, G = geo.G, Dg = geo.Dg, Du = geo.Du, Dall = G * Dg;
 
     TORCH_CHECK(y.strides() == u.strides(), "selective_scan_cpu: output layout differs from u's");
     const FwdArgs args{geo, nblk, nck, chunk, softplus, up, dp, Ap, Bp, Cp, Dp, bp, yp, ckp, sB, sC, strides3(u), strides3(delta)};
@@ -501,17 +611,26 @@ std::vector<at::Tensor> scan_bwd(const at::Tensor& u, const at::Tensor& delta, c
     check_inputs(u, delta, A, B, C, D, bias, geo);
     const at::Tensor& dy = dy_in;  // any strides (autograd may hand over an expanded or transposed gradient)
     TORCH_CHECK(dy.sizes() == u.sizes() && dy.scalar_type() == at::kFloat, "selective_scan_cpu: dy must have y's shape");
+    TORCH_CHECK(chunk >= 1, "selective_scan_cpu: the backward needs the forward's checkpoints (chunk >= 1)");
     const int64_t nblk = (geo.Dg + W - 1) / W;
     const int64_t nck = (geo.L + chunk - 1) / chunk;
     TORCH_CHECK(ck.is_contiguous() && ck.numel() == geo.batch * nblk * geo.G * nck * geo.N * W, "selective_scan_cpu: bad checkpoints");
     const int64_t N = geo.N, L = geo.L, G = geo.G, Dg = geo.Dg, Du = geo.Du, Dall = G * Dg;
 
-    at::Tensor du_out = ss2d ? at::zeros_like(u) : at::empty_like(u);
+    at::Tensor du_out = at::empty_like(u);
     at::Tensor ddelta = at::empty_like(delta);
     TORCH_CHECK(du_out.strides() == u.strides() && ddelta.strides() == delta.strides(), "selective_scan_cpu: gradient layout differs");
     at::Tensor dA = at::empty({geo.batch, Dall, N}, u.options());
-    at::Tensor dBp = at::empty({nblk, geo.batch, L, G, N}, u.options());
-    at::Tensor dCp = at::empty({nblk, geo.batch, L, G, N}, u.options());
+    // Tasks: (batch element, part), a part being a range of lane blocks walked in turn (its dB / dC rows summed in
+    // place). One part per batch element from batch 4 on: no (lane blocks, batch, L, G, N) partial sums (at DVSS level
+    // 0 of a 64x64 batch-4 step, 2 x 17 MB of fresh memory, first-touch page faults and a reduction pass); smaller
+    // batches split the blocks into up to ceil(4 / batch) parts, so that 2+ threads have work. The split depends on
+    // the shapes only: the sums, and so the results, do not depend on the number of threads.
+    const int64_t wanted = std::min<int64_t>(nblk, (4 + geo.batch - 1) / geo.batch);
+    const int64_t per_part = (nblk + wanted - 1) / wanted;
+    const int64_t parts = (nblk + per_part - 1) / per_part;  // none empty
+    at::Tensor dBp = at::empty({parts, geo.batch, L, G, N}, u.options());
+    at::Tensor dCp = at::empty({parts, geo.batch, L, G, N}, u.options());
     at::Tensor dD = at::empty({geo.batch, Dall}, u.options());
     at::Tensor dbias = at::empty({geo.batch, Dall}, u.options());
 
@@ -533,16 +652,18 @@ std::vector<at::Tensor> scan_bwd(const at::Tensor& u, const at::Tensor& delta, c
     float* dbp = dbias.data_ptr<float>();
     const Strides4 sB = strides4(B), sC = strides4(C);
 
-    const BwdArgs args{geo, nblk, nck, chunk, softplus, up, dp, Ap, Bp, Cp, Dp, bp, ckp, dyp,
+    const BwdArgs args{geo, nblk, nck, chunk, parts, per_part, softplus, up, dp, Ap, Bp, Cp, Dp, bp, ckp, dyp,
                        dup, ddp, dAp, dBpp, dCpp, dDp, dbp, sB, sC, strides3(u), strides3(delta), strides3(dy)};
-    run_tasks(geo.batch * nblk, [&](auto next) {
+    run_tasks(geo.batch * parts, [&](auto next) {
         if (geo.N == 16) {
             bwd_tasks<16>(args, next);
         } else {
             bwd_tasks<0>(args, next);
         }
     });
-    return {du_out, ddelta, dA.sum(0), dBp.sum(0), dCp.sum(0), dD.sum(0), dbias.sum(0)};
+    at::Tensor dB = parts == 1 ? dBp.select(0, 0) : dBp.sum(0);
+    at::Tensor dC = parts == 1 ? dCp.select(0, 0) : dCp.sum(0);
+    return {du_out, ddelta, dA.sum(0), dB, dC, dD.sum(0), dbias.sum(0)};
 }
 
 // The roofline of the scan: a plain vectorised loop doing what one state update costs at least, one exp and
