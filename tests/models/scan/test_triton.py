@@ -108,25 +108,33 @@ def test_ss2d_route_reads_the_four_directions_in_place(h, w, di, n, use_d_bias):
         assert _rel(a, b) < 1e-4, name
 
 
-@needs_kernels
-@pytest.mark.parametrize("forward", ["chunked", "sequential"])
-@pytest.mark.parametrize("segment_chunks", [1, 2, 3, 100])
-def test_ss2d_route_split_into_segments_equals_the_reference(monkeypatch, segment_chunks, forward):
-    """The sequence split into segments of 1, 2 or 3 chunks run side by side (a first pass for each segment's end
-    state and adjoint, the carry over the segments, a second pass from the true entry values), and unsplit: every
-    split gives the reference's output and gradients (slow decays, so that what crosses a segment boundary
-    counts). 9 x 13 = 117 positions: 4 chunks, the last one partial; the column-major directions cross the rows
-    inside a chunk."""
-    monkeypatch.setattr(st, "SEGMENT_CHUNKS", segment_chunks)
-    monkeypatch.setattr(st, "FORWARD", forward)
+def _assert_split_ss2d_equals_reference(batch, seed):
+    """The SS2D route on a 9 x 13 image (117 positions: 4 chunks, the last one partial; the column-major directions
+    cross the rows inside a chunk), 4 channels, N = 5, with slow decays (A / 100: a state and an adjoint live on
+    across several segments, so what crosses a segment boundary counts): output and every gradient equal the
+    reference's."""
     h, w, di, n = 9, 13, 4, 5
-    x, delta, A, x_dbl, D, bias = _ss2d_inputs(1, h, w, di, n, seed=2)
-    A = 0.01 * A  # slow decays: a state (and an adjoint) lives on across several segments
+    x, delta, A, x_dbl, D, bias = _ss2d_inputs(batch, h, w, di, n, seed=seed)
+    A = 0.01 * A
     y, grads = _ss2d_grads(st.ss2d_scan_triton, x, delta, A, x_dbl, D, bias, h, w, n)
     y_ref, grads_ref = _ss2d_grads(ss2d_scan_reference, x, delta, A, x_dbl, D, bias, h, w, n)
     assert _rel(y.detach(), y_ref.detach()) < 1e-5
     for name, a, b in zip(["x", "delta", "A", "x_dbl", "D", "delta_bias"], grads, grads_ref):
         assert _rel(a, b) < 1e-4, name
+
+
+@needs_kernels
+@pytest.mark.parametrize("forward", ["chunked", "sequential"])
+@pytest.mark.parametrize("segment_chunks", [1, 2, 3, 100])
+def test_ss2d_route_split_into_segments_equals_the_reference(monkeypatch, segment_chunks, forward):
+    """The sequence split into segments of 1, 2 or 3 chunks run side by side (a first pass for each segment's end
+    state and adjoint, the carry over the segments, a second pass from the true entry values), and unsplit, on the
+    chunked and on the sequential forward and first backward pass: every split gives the reference's output and
+    gradients."""
+    monkeypatch.setattr(st, "SEGMENT_CHUNKS", segment_chunks)
+    monkeypatch.setattr(st, "FORWARD", forward)
+    monkeypatch.setattr(st, "ADJOINT", forward)
+    _assert_split_ss2d_equals_reference(batch=1, seed=2)
 
 
 @needs_kernels
@@ -142,14 +150,7 @@ def test_sequential_adjoint_pass_on_a_finer_split_equals_the_reference(monkeypat
     monkeypatch.setattr(
         st, "segment_chunks", lambda nchunk, programs, device: fine if programs == programs_fine else coarse
     )
-    h, w, di, n = 9, 13, 4, 5
-    x, delta, A, x_dbl, D, bias = _ss2d_inputs(1, h, w, di, n, seed=3)
-    A = 0.01 * A
-    y, grads = _ss2d_grads(st.ss2d_scan_triton, x, delta, A, x_dbl, D, bias, h, w, n)
-    y_ref, grads_ref = _ss2d_grads(ss2d_scan_reference, x, delta, A, x_dbl, D, bias, h, w, n)
-    assert _rel(y.detach(), y_ref.detach()) < 1e-5
-    for name, a, b in zip(["x", "delta", "A", "x_dbl", "D", "delta_bias"], grads, grads_ref):
-        assert _rel(a, b) < 1e-4, name
+    _assert_split_ss2d_equals_reference(batch=1, seed=3)
 
 
 @needs_kernels
@@ -163,14 +164,7 @@ def test_sequential_backward_equals_the_reference(monkeypatch, segment_chunks):
     monkeypatch.setattr(st, "BACKWARD", "sequential")
     monkeypatch.setattr(st, "SEGMENT_CHUNKS", segment_chunks)
     monkeypatch.setattr(st, "bwd_kernel", None)  # the chunked main pass must not run
-    h, w, di, n = 9, 13, 4, 5
-    x, delta, A, x_dbl, D, bias = _ss2d_inputs(2, h, w, di, n, seed=4)
-    A = 0.01 * A
-    y, grads = _ss2d_grads(st.ss2d_scan_triton, x, delta, A, x_dbl, D, bias, h, w, n)
-    y_ref, grads_ref = _ss2d_grads(ss2d_scan_reference, x, delta, A, x_dbl, D, bias, h, w, n)
-    assert _rel(y.detach(), y_ref.detach()) < 1e-5
-    for name, a, b in zip(["x", "delta", "A", "x_dbl", "D", "delta_bias"], grads, grads_ref):
-        assert _rel(a, b) < 1e-4, name
+    _assert_split_ss2d_equals_reference(batch=2, seed=4)
 
 
 @needs_kernels

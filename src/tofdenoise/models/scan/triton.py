@@ -421,6 +421,18 @@ if triton is not None:
             h = tl.sum(tl.where((tt == CHUNK_T - 1)[None, None, :], hs, 0.0), axis=2)  # state after the chunk
 
     @triton.jit
+    def _seq_step_delta(delta_ptr, d_off, valid, bias, HAS_BIAS: tl.constexpr, SOFTPLUS: tl.constexpr):
+        """(delta after bias and softplus, the pre-softplus value) of one position's channels; 0 where not valid."""
+        x = tl.load(delta_ptr + d_off, mask=valid, other=0.0).to(tl.float32)
+        if HAS_BIAS:
+            x = x + bias
+        if SOFTPLUS:
+            dt = _softplus(x)
+        else:
+            dt = x
+        return tl.where(valid, dt, 0.0), x
+
+    @triton.jit
     def seq_fwd_kernel(
         u_ptr,
         delta_ptr,
@@ -481,6 +493,7 @@ if triton is not None:
         cs = tl.trans(cs)
         c0, c1 = _segment_span(NCHUNK, SEG_CHUNKS)
         o_row = pid_b * so_b + grp * so_g + uc * so_c
+        bias = tl.zeros((BLOCK_D,), dtype=tl.float32)
         if HAS_BIAS:
             bias = tl.load(bias_ptr + d).to(tl.float32)
         if HAS_D:
@@ -499,14 +512,7 @@ if triton is not None:
                 t = c * CHUNK_T + i
                 valid = (zero_d + t) < L
                 p = _positions(t, grp, L, H, W, SS2D)
-                x = tl.load(delta_ptr + d_row + p * sd_l, mask=valid, other=0.0).to(tl.float32)
-                if HAS_BIAS:
-                    x = x + bias
-                if SOFTPLUS:
-                    dt = _softplus(x)
-                else:
-                    dt = x
-                dt = tl.where(valid, dt, 0.0)
+                dt, _pre = _seq_step_delta(delta_ptr, d_row + p * sd_l, valid, bias, HAS_BIAS, SOFTPLUS)
                 ut = tl.load(u_ptr + u_row + p * su_l, mask=valid, other=0.0).to(tl.float32)
                 nvalid = nmask & (t < L)
                 Bt = tl.load(B_ptr + bc + p * sB_l, mask=nvalid, other=0.0).to(tl.float32)
@@ -644,6 +650,7 @@ if triton is not None:
         t0 = c0 * CHUNK_T
         t1 = c1 * CHUNK_T
         dy_row = pid_b * sdy_b + uc * sdy_c
+        bias = tl.zeros((BLOCK_D,), dtype=tl.float32)
         if HAS_BIAS:
             bias = tl.load(bias_ptr + d).to(tl.float32)
         zero_d = tl.zeros((BLOCK_D,), dtype=tl.int32)
@@ -658,41 +665,16 @@ if triton is not None:
             Ct = tl.load(C_ptr + bc + p * sB_l, mask=nvalid, other=0.0).to(tl.float32)
             dyt = tl.load(dy_ptr + dy_row + p * sdy_l, mask=valid, other=0.0).to(tl.float32)
             g = a1 * g + Ct[:, None] * dyt[None, :]
-            x = tl.load(delta_ptr + d_row + p * sd_l, mask=valid, other=0.0).to(tl.float32)
-            if HAS_BIAS:
-                x = x + bias
-            if SOFTPLUS:
-                dt = _softplus(x)
-            else:
-                dt = x
-            dt = tl.where(valid, dt, 0.0)
+            dt, _pre = _seq_step_delta(delta_ptr, d_row + p * sd_l, valid, bias, HAS_BIAS, SOFTPLUS)
             a1 = tl.exp2(dt[None, :] * A2)
             dsum += tl.where(t > t0, dt, 0.0)
         # the first step of the next segment: its delta links this segment's last adjoint to the carry
         p1 = _positions(t1, grp, L, H, W, SS2D)
         valid1 = (zero_d + t1) < L
-        x = tl.load(delta_ptr + d_row + p1 * sd_l, mask=valid1, other=0.0).to(tl.float32)
-        if HAS_BIAS:
-            x = x + bias
-        if SOFTPLUS:
-            dt1 = _softplus(x)
-        else:
-            dt1 = x
-        dsum += tl.where(valid1, dt1, 0.0)
+        dt1, _pre1 = _seq_step_delta(delta_ptr, d_row + p1 * sd_l, valid1, bias, HAS_BIAS, SOFTPLUS)
+        dsum += dt1
         tl.store(gstart_ptr + cs + tl.program_id(2) * BLOCK_N * DIM, g)
         tl.store(dsum_ptr + cd + tl.program_id(2) * DIM, dsum)
-
-    @triton.jit
-    def _seq_step_delta(delta_ptr, d_off, valid, bias, HAS_BIAS: tl.constexpr, SOFTPLUS: tl.constexpr):
-        """(delta after bias and softplus, the pre-softplus value) of one position's channels; 0 where not valid."""
-        x = tl.load(delta_ptr + d_off, mask=valid, other=0.0).to(tl.float32)
-        if HAS_BIAS:
-            x = x + bias
-        if SOFTPLUS:
-            dt = _softplus(x)
-        else:
-            dt = x
-        return tl.where(valid, dt, 0.0), x
 
     @triton.jit
     def seq_bwd_kernel(
@@ -785,7 +767,7 @@ if triton is not None:
             g = tl.load(gstart_ptr + cs + s * BLOCK_N * DIM) + dec * g
         # the decay of the next segment's first step
         t1 = c1 * CHUNK_T
-        dt1, _ = _seq_step_delta(
+        dt1, _pre1 = _seq_step_delta(
             delta_ptr, d_row + _positions(t1, grp, L, H, W, SS2D) * sd_l, (zero_d + t1) < L, bias, HAS_BIAS, SOFTPLUS
         )
         a_next = tl.exp2(dt1[None, :] * A2)
@@ -799,7 +781,7 @@ if triton is not None:
                 t = c * CHUNK_T + i
                 valid = (zero_d + t) < L
                 p = _positions(t, grp, L, H, W, SS2D)
-                dt, _ = _seq_step_delta(delta_ptr, d_row + p * sd_l, valid, bias, HAS_BIAS, SOFTPLUS)
+                dt, _pre = _seq_step_delta(delta_ptr, d_row + p * sd_l, valid, bias, HAS_BIAS, SOFTPLUS)
                 ut = tl.load(u_ptr + u_row + p * su_l, mask=valid, other=0.0).to(tl.float32)
                 Bt = tl.load(B_ptr + bc + p * sB_l, mask=nmask & (t < L), other=0.0).to(tl.float32)
                 h = tl.exp2(dt[None, :] * A2) * h + Bt[:, None] * (dt * ut)[None, :]
