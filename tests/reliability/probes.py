@@ -373,6 +373,25 @@ for _case, (_text, _names) in LIGHTNING_CONFIG_DAMAGE.items():
           _lightning_config(_text), 2, (lambda n: lambda w: ["error", *n])(_names))
     )  # fmt: skip
 
+
+def _last_ckpt(w: W) -> None:
+    """A run's resume point, ``out/run/checkpoints/last.ckpt`` (a copy of the world's checkpoint)."""
+    (w / "out/run/checkpoints").mkdir(parents=True)
+    (w / "out/run/checkpoints/last.ckpt").write_bytes((w / "model.ckpt").read_bytes())
+
+
+def _foreign_onnx(w: W) -> None:
+    """``out/detector.onnx``: a valid ONNX graph of another tool (no tofdenoise_* metadata)."""
+    import onnx
+    from onnx import TensorProto, helper
+
+    x, y = (helper.make_tensor_value_info(n, TensorProto.FLOAT, [1]) for n in ("x", "y"))
+    onnx.save(
+        helper.make_model(helper.make_graph([helper.make_node("Identity", ["x"], ["y"])], "detector", [x], [y])),
+        str(w / "out/detector.onnx"),
+    )
+
+
 # misuse of outputs: an output that is an input, or that lies where it would replace one
 PROBES += [
     P("tofdenoise denoise", "misuse_outputs", "out-is-the-input-folder", lambda w: denoise_args(w, out="frames"),
@@ -405,6 +424,15 @@ PROBES += [
     P("tofdenoise export", "misuse_outputs", "onnx-is-the-checkpoint",
       lambda w: [w / "model.ckpt", "--onnx", w / "model.ckpt", "--no-check"], None, 2,
       lambda w: ["error", "model.ckpt"]),
+    P("tofdenoise export", "misuse_outputs", "onnx-replaces-a-runs-last-checkpoint",
+      lambda w: [w / "model.ckpt", "--onnx", w / "out/run/checkpoints/last.ckpt", "--no-check"], _last_ckpt, 2,
+      lambda w: ["error", str(w / "out/run/checkpoints/last.ckpt"), "expected a .onnx file"]),
+    P("tofdenoise export", "misuse_outputs", "onnx-replaces-an-image",
+      lambda w: [w / "model.ckpt", "--onnx", w / "frames/a.png", "--no-check"], None, 2,
+      lambda w: ["error", str(w / "frames/a.png"), "expected a .onnx file"]),
+    P("tofdenoise export", "misuse_outputs", "onnx-replaces-a-graph-of-another-tool",
+      lambda w: [w / "model.ckpt", "--onnx", w / "out/detector.onnx", "--no-check"], _foreign_onnx, 2,
+      lambda w: ["error", str(w / "out/detector.onnx"), "not an ONNX export of tofdenoise"]),
     P("tofdenoise train", "misuse_outputs", "init-weights-inside-the-run",
       lambda w: train_args(w, f"++model.init_weights={w / 'out/run/checkpoints/best.ckpt'}"),
       lambda w: ((w / "out/run/checkpoints").mkdir(parents=True),
