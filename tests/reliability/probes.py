@@ -82,7 +82,9 @@ class Probe:
     #: world paths (relative, prefixes) that may be written or changed; nothing else may
     may_change: tuple[str, ...] = ()
     #: how the row runs: "call" (the entry point in this process), "locked" (another process holds the run lock of
-    #: ``lock_dir``), "signal" (a separate process, see test_signals.py)
+    #: ``lock_dir``), "race" (another run of the command, ``extra["other"](world)``, starts and finishes while this
+    #: one works: when it first calls ``extra["during"]``, a function it calls after its checks and before it
+    #: publishes), "signal" (a separate process, see test_signals.py)
     runner: str = "call"
     lock_dir: Callable[[W], Path] | None = None
     slow: bool = False
@@ -451,8 +453,42 @@ for _cmd, _opt in SENSOR_OPTION.items():
           lambda w: ["error", "calib.yaml"])
     )  # fmt: skip
 
-# concurrent writers: another process holds the run folder's lock
+
+def _two_recordings(w: W) -> None:
+    """``rec/desk1.bag`` and ``rec/desk2.bag``: two static recordings of one scene (ROS 1 bags, 6 frames of 10 x 14)."""
+    import importlib.util
+    import sys
+
+    name = "_recording_files_for_probes"
+    if name not in sys.modules:
+        spec = importlib.util.spec_from_file_location(name, Path(__file__).parents[1] / "inference/recording_files.py")
+        sys.modules[name] = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(sys.modules[name])
+    (w / "rec").mkdir()
+    rng = np.random.default_rng(0)
+    y, x = np.mgrid[0:10, 0:14]
+    for k in (1, 2):
+        depth = np.rint(1200 + 40 * k + 6 * x + 4 * y + rng.normal(0, 3, (6, 10, 14))).astype(np.uint16)
+        amplitude = rng.integers(100, 3000, (6, 10, 14)).astype(np.uint16)
+        sys.modules[name].write_bag(w / f"rec/desk{k}.bag", 1, depth, amplitude=amplitude)
+
+
+def _realset_scene(k: int) -> Callable[[W], list[Any]]:
+    return lambda w: ["--from-recording", w / f"rec/desk{k}.bag", "--out", w / "out/rs7", "--scene", "desk"]
+
+
+def _scene_is_the_other_runs(w: W, outcome: Any) -> None:
+    meta = json.loads((w / "out/rs7/desk/recording.json").read_text())
+    assert meta["recording"] == str(w / "rec/desk2.bag"), meta
+    assert sorted(p.name for p in (w / "out/rs7").iterdir()) == ["desk"], "a partial scene was left"
+
+
+# concurrent writers: another process holds the run folder's lock; two runs onto one output
 PROBES += [
+    P("tofdenoise sensor realset", "concurrent", "two-recordings-one-scene", _realset_scene(1), _two_recordings, 2,
+      lambda w: ["error", str(w / "out/rs7/desk"), "exists", "another run wrote it"], ("out/rs7/desk",),
+      runner="race", check=_scene_is_the_other_runs,
+      extra={"other": _realset_scene(2), "during": "tofdenoise.inference.recording_realset.build_reference"}),
     P("tofdenoise train", "concurrent", "run-folder-locked", train_args, None, 2,
       lambda w: ["error", str(w / "out/run/run.lock")], runner="locked", lock_dir=lambda w: w / "out/run"),
     P("tofdenoise classic", "concurrent", "run-folder-locked", train_args, None, 2,
@@ -701,3 +737,4 @@ for _cmd in SENSOR_OPTION:
     )
     if _cmd != "tofdenoise sensor realset":
         EXEMPT[_cmd]["bad_captures"] = "reads no captures: it writes them"
+del EXEMPT["tofdenoise sensor realset"]["concurrent"]  # --from-recording: its two-recordings-one-scene row
