@@ -394,6 +394,38 @@ def _foreign_onnx(w: W) -> None:
     )
 
 
+def _finished_unet_run(w: W) -> None:
+    """``out/run``: the folder of a finished tiny U-Net run: its records (``config.yaml`` as the run saved it,
+    ``run_info.json`` finished, ``metrics.json``), Hydra's record (``.hydra/``) and log, and its checkpoints."""
+    from omegaconf import OmegaConf
+
+    from tofdenoise.config import compose_config
+    from tofdenoise.data_modules.datamodule import data_calibration
+    from tofdenoise.experiments.train_job import record_calibration
+    from tofdenoise.records import learned_verdict, set_entry, write_metrics_json
+
+    overrides = train_args(w)
+    cfg = compose_config(overrides)
+    record_calibration(cfg, data_calibration(OmegaConf.to_container(cfg.data.sensor, resolve=True)))
+    run = w / "out/run"
+    (run / ".hydra").mkdir(parents=True)
+    (run / "checkpoints").mkdir()
+    (run / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
+    (run / ".hydra/config.yaml").write_text(OmegaConf.to_yaml(cfg))
+    (run / ".hydra/hydra.yaml").write_text("hydra:\n  run:\n    dir: out/run\n  mode: RUN\n")
+    (run / ".hydra/overrides.yaml").write_text(yaml.safe_dump([str(o) for o in overrides]))
+    (run / "train.log").write_text("[2026-11-20 10:00:00,000][lightning][INFO] - Seed set to 0\n")
+    for name in ("best.ckpt", "last.ckpt"):
+        (run / "checkpoints" / name).write_bytes((w / "model.ckpt").read_bytes())
+    raw = {"psnr_db": 31.0, "ssim": 0.95, "mse_mm2": 680.0, "mae_mm": 7.2}
+    write_metrics_json(
+        run / "metrics.json",
+        {"synthetic": set_entry({"psnr_db": 40.0, "ssim": 0.99, "mse_mm2": 80.0, "mae_mm": 2.5}, raw)},
+        run=learned_verdict(1000, 2.6, 7.2),
+    )
+    (run / "run_info.json").write_text(json.dumps({"backbone": "unet", "finished": "2026-11-20T10:05:00+0000"}))
+
+
 # misuse of outputs: an output that is an input, or that lies where it would replace one
 PROBES += [
     P("tofdenoise denoise", "misuse_outputs", "out-is-the-input-folder", lambda w: denoise_args(w, out="frames"),
@@ -440,6 +472,9 @@ PROBES += [
       lambda w: ((w / "out/run/checkpoints").mkdir(parents=True),
                  (w / "out/run/checkpoints/best.ckpt").write_bytes((w / "model.ckpt").read_bytes())),
       2, lambda w: ["error", "holds the input", "best.ckpt"], _HYDRA_RUN),
+    P("tofdenoise train", "misuse_outputs", "another-config-in-a-finished-run",
+      lambda w: [*_tiny_overrides()(w / "out/run", w / "cache", backbone="deeptof"), "logger=csv"], _finished_unet_run,
+      2, lambda w: ["error", str(w / "out/run"), "backbone.name: 'unet' there, 'deeptof' now"]),
     P("tofdenoise fit", "misuse_outputs", "init-weights-inside-the-run",
       lambda w: lightning_args(w, "--model.init_args.init_weights", w / "out/cli/checkpoints/best.ckpt"),
       lambda w: ((w / "out/cli/checkpoints").mkdir(parents=True),
