@@ -233,10 +233,16 @@ def release_all() -> None:
 class HydraRunLock:
     """Hydra callback (``hydra.callbacks.run_lock`` in ``configs/train.yaml``): takes the lock of ``hydra.run.dir``
     before Hydra writes ``.hydra/`` and its log there, releases it at the end of the run. A refusal is one line on
-    stderr and exit status 2."""
+    stderr and exit status 2.
 
-    def __init__(self, prog: str = "tofdenoise train"):
+    ``before_job``: the dotted name of a function ``f(config, run_dir)`` called with the lock held, still before
+    Hydra writes anything (``config``: the composed config without its ``hydra`` node). A ``ValueError`` it raises
+    (a run folder that holds another run: ``tofdenoise.experiments.train_job.check_finished_run``) is a refusal
+    too, the lock released: a refused run leaves the folder as it was."""
+
+    def __init__(self, prog: str = "tofdenoise train", before_job: str | None = None):
         self.prog = prog  # the command named in a refusal
+        self.before_job = before_job
 
     def on_run_start(self, config: Any, **kwargs: Any) -> None:
         from omegaconf import OmegaConf
@@ -245,10 +251,31 @@ class HydraRunLock:
             return
         run_dir = OmegaConf.select(config, "hydra.run.dir")
         try:
-            RunLock(str(run_dir)).acquire()
+            lock = RunLock(str(run_dir)).acquire()
         except RunLockedError as exc:
             print(f"{self.prog}: error: {exc}", file=sys.stderr)
             raise SystemExit(2) from None
+        if self.before_job:
+            try:
+                self._before_job(config, str(run_dir))
+            except ValueError as exc:
+                lock.release()
+                print(f"{self.prog}: error: {exc}", file=sys.stderr)
+                raise SystemExit(2) from None
+            except BaseException:
+                lock.release()
+                raise
+
+    def _before_job(self, config: Any, run_dir: str) -> None:
+        import importlib
+
+        from omegaconf import open_dict
+
+        module, _, name = self.before_job.rpartition(".")
+        task = config.copy()
+        with open_dict(task):
+            del task["hydra"]
+        getattr(importlib.import_module(module), name)(task, run_dir)
 
     def on_run_end(self, config: Any, **kwargs: Any) -> None:
         release_all()

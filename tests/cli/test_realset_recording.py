@@ -123,3 +123,66 @@ def test_bad_recordings_are_errors_that_write_nothing(tmp_path, recording_files,
     assert run("--from-recording", str(full), "--out", str(out), "--input-frame", "8") == 2
     assert "--input-frame 8 is not a frame (0 .. 7)" in capsys.readouterr().err
     assert sorted(p.name for p in out.iterdir()) == ["nodepth"]
+
+
+def test_two_runs_onto_one_scene_one_publishes_and_the_other_is_refused(tmp_path, recording_files, capsys, monkeypatch):
+    """Two runs started together onto one scene name, no --force (issue 41): both passed the "exists" check, both
+    exited 0 and the folder held one of them. Here the second run starts and finishes while the first works (after
+    its check, before its publish): the first is refused, exit 2, its partial work removed, the other's scene kept."""
+    import tofdenoise.inference.recording_realset as rr
+
+    d, ir = static_frames()
+    first = recording_files.write_bag(tmp_path / "first.bag", 1, d, amplitude=ir)
+    second = recording_files.write_bag(tmp_path / "second.bag", 1, d + 5, amplitude=ir)
+    out = tmp_path / "rs7"
+    build, started, statuses = rr.build_reference, [], []
+
+    def the_other_run_finishes_meanwhile(*args, **kwargs):
+        if not started:  # once: the other run's own work passes straight through
+            started.append(True)
+            statuses.append(run("--from-recording", str(second), "--out", str(out), "--scene", "desk"))
+        return build(*args, **kwargs)
+
+    monkeypatch.setattr(rr, "build_reference", the_other_run_finishes_meanwhile)
+    assert run("--from-recording", str(first), "--out", str(out), "--scene", "desk") == 2
+    assert statuses == [0]
+    err = capsys.readouterr().err
+    (line,) = [x for x in err.splitlines() if "error" in x]
+    assert f"scene folder {out / 'desk'} exists" in line and "another run wrote it" in line and "--force" in line
+    assert json.loads((out / "desk" / "recording.json").read_text())["recording"] == str(second)
+    assert np.array_equal(read_png_uint16(out / "desk" / "input_depth_mm.png"), d[0] + 5)
+    assert sorted(p.name for p in out.iterdir()) == ["desk"]  # no partial folder left
+
+    # with --force replacing stays allowed, also when another run published meanwhile
+    started.clear(), statuses.clear()
+    assert run("--from-recording", str(first), "--out", str(out), "--scene", "desk", "--force") == 0
+    assert statuses == [2]  # the other run (no --force) found the scene and was refused before its work
+    assert json.loads((out / "desk" / "recording.json").read_text())["recording"] == str(first)
+    assert sorted(p.name for p in out.iterdir()) == ["desk"]
+
+
+def test_publish_scene_is_exclusive_without_force(tmp_path):
+    """The publish step itself, twice onto one target: the first wins, the second is refused and left to its caller
+    (nothing of the winner touched); with force the second replaces the first and no folder is left aside."""
+    from tofdenoise.inference.recording_realset import SceneExistsError, publish_scene
+
+    def scene(name: str, text: str):
+        folder = tmp_path / name
+        folder.mkdir()
+        (folder / "recording.json").write_text(text)
+        return folder
+
+    target = tmp_path / "desk"
+    publish_scene(scene(".a.partial", "a"), target)
+    b = scene(".b.partial", "b")
+    with pytest.raises(SceneExistsError, match=f"scene folder {target} exists .*another run wrote it.*--force"):
+        publish_scene(b, target)
+    assert (target / "recording.json").read_text() == "a" and (b / "recording.json").read_text() == "b"
+    publish_scene(b, target, force=True)
+    assert (target / "recording.json").read_text() == "b"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["desk"]
+    # a file where the scene goes is never replaced either
+    (tmp_path / "notes").write_text("mine")
+    with pytest.raises(SceneExistsError):
+        publish_scene(scene(".c.partial", "c"), tmp_path / "notes")
+    assert (tmp_path / "notes").read_text() == "mine"

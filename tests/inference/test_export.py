@@ -114,6 +114,59 @@ def test_export_command_and_denoise_onnx_match_the_checkpoint(tmp_path):
     assert export_main([str(ckpt), "--onnx", str(ckpt)]) == 2
 
 
+def _foreign_onnx(path):
+    """A valid ONNX graph written by another tool (no tofdenoise_* metadata)."""
+    import onnx
+    from onnx import TensorProto, helper
+
+    x, y = (helper.make_tensor_value_info(n, TensorProto.FLOAT, [1]) for n in ("x", "y"))
+    graph = helper.make_graph([helper.make_node("Identity", ["x"], ["y"])], "other", [x], [y])
+    onnx.save(helper.make_model(graph), str(path))
+    return path
+
+
+def test_export_replaces_only_an_earlier_export_never_a_checkpoint_an_image_or_a_foreign_graph(tmp_path, capsys):
+    """``--onnx checkpoints/last.ckpt`` replaced a run's resume point with a graph, exit 0 (issue 41): an --onnx
+    without the .onnx suffix, and an existing file that is not an export of ours, are refused (exit 2, one line
+    naming the path and what was expected) and left byte for byte; an earlier export is replaced."""
+    from tofdenoise.cli.export import main as export_main
+    from tofdenoise.inference.export import check_onnx_output, is_onnx_export
+    from tofdenoise.output_guard import OutputPathError
+
+    ckpt = _save_checkpoint(_model("unet"), tmp_path / "m.ckpt")
+    run = tmp_path / "run" / "checkpoints"
+    run.mkdir(parents=True)
+    last = run / "last.ckpt"
+    last.write_bytes(ckpt.read_bytes())
+    image = tmp_path / "view.png"
+    image.write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(200))
+    foreign = _foreign_onnx(tmp_path / "detector.onnx")
+    kept = {p: p.read_bytes() for p in (ckpt, last, image, foreign)}
+    for target, names in (
+        (last, [str(last), "expected a .onnx file", ".ckpt"]),
+        (image, [str(image), "expected a .onnx file", ".png"]),
+        (tmp_path / "model", ["model", "expected a .onnx file", "no extension"]),
+        (foreign, [str(foreign), "not an ONNX export of tofdenoise"]),
+    ):
+        capsys.readouterr()
+        assert export_main([str(ckpt), "--onnx", str(target), "--no-check"]) == 2
+        err = capsys.readouterr().err
+        assert len(err.strip().splitlines()) == 1 and all(n in err for n in names), err
+    assert {p: p.read_bytes() for p in kept} == kept
+    assert not (tmp_path / "model").exists()
+    assert not [p for p in tmp_path.rglob(".*") if ".tmp" in p.name]
+    with pytest.raises(OutputPathError, match="not an ONNX export"):
+        check_onnx_output(foreign)
+    assert not is_onnx_export(last) and not is_onnx_export(image) and not is_onnx_export(foreign)
+
+    # an earlier export of ours is replaced (the export run again, another precision)
+    out = tmp_path / "m.onnx"
+    assert export_main([str(ckpt), "--onnx", str(out), "--no-check"]) == 0
+    assert is_onnx_export(out)
+    assert export_main([str(ckpt), "--onnx", str(out), "--no-check", "--fp16"]) == 0
+    assert OnnxRestorer(out).metadata["tofdenoise_precision"] == "fp16"
+
+
 def test_execution_providers_follow_the_device_and_what_onnxruntime_has():
     cpu_only = ["AzureExecutionProvider", "CPUExecutionProvider"]
     gpu = ["TensorrtExecutionProvider", "CUDAExecutionProvider", "CPUExecutionProvider"]

@@ -82,7 +82,9 @@ class Probe:
     #: world paths (relative, prefixes) that may be written or changed; nothing else may
     may_change: tuple[str, ...] = ()
     #: how the row runs: "call" (the entry point in this process), "locked" (another process holds the run lock of
-    #: ``lock_dir``), "signal" (a separate process, see test_signals.py)
+    #: ``lock_dir``), "race" (another run of the command, ``extra["other"](world)``, starts and finishes while this
+    #: one works: when it first calls ``extra["during"]``, a function it calls after its checks and before it
+    #: publishes), "signal" (a separate process, see test_signals.py)
     runner: str = "call"
     lock_dir: Callable[[W], Path] | None = None
     slow: bool = False
@@ -373,6 +375,57 @@ for _case, (_text, _names) in LIGHTNING_CONFIG_DAMAGE.items():
           _lightning_config(_text), 2, (lambda n: lambda w: ["error", *n])(_names))
     )  # fmt: skip
 
+
+def _last_ckpt(w: W) -> None:
+    """A run's resume point, ``out/run/checkpoints/last.ckpt`` (a copy of the world's checkpoint)."""
+    (w / "out/run/checkpoints").mkdir(parents=True)
+    (w / "out/run/checkpoints/last.ckpt").write_bytes((w / "model.ckpt").read_bytes())
+
+
+def _foreign_onnx(w: W) -> None:
+    """``out/detector.onnx``: a valid ONNX graph of another tool (no tofdenoise_* metadata)."""
+    import onnx
+    from onnx import TensorProto, helper
+
+    x, y = (helper.make_tensor_value_info(n, TensorProto.FLOAT, [1]) for n in ("x", "y"))
+    onnx.save(
+        helper.make_model(helper.make_graph([helper.make_node("Identity", ["x"], ["y"])], "detector", [x], [y])),
+        str(w / "out/detector.onnx"),
+    )
+
+
+def _finished_unet_run(w: W) -> None:
+    """``out/run``: the folder of a finished tiny U-Net run: its records (``config.yaml`` as the run saved it,
+    ``run_info.json`` finished, ``metrics.json``), Hydra's record (``.hydra/``) and log, and its checkpoints."""
+    from omegaconf import OmegaConf
+
+    from tofdenoise.config import compose_config
+    from tofdenoise.data_modules.datamodule import data_calibration
+    from tofdenoise.experiments.train_job import record_calibration
+    from tofdenoise.records import learned_verdict, set_entry, write_metrics_json
+
+    overrides = train_args(w)
+    cfg = compose_config(overrides)
+    record_calibration(cfg, data_calibration(OmegaConf.to_container(cfg.data.sensor, resolve=True)))
+    run = w / "out/run"
+    (run / ".hydra").mkdir(parents=True)
+    (run / "checkpoints").mkdir()
+    (run / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
+    (run / ".hydra/config.yaml").write_text(OmegaConf.to_yaml(cfg))
+    (run / ".hydra/hydra.yaml").write_text("hydra:\n  run:\n    dir: out/run\n  mode: RUN\n")
+    (run / ".hydra/overrides.yaml").write_text(yaml.safe_dump([str(o) for o in overrides]))
+    (run / "train.log").write_text("[2026-11-20 10:00:00,000][lightning][INFO] - Seed set to 0\n")
+    for name in ("best.ckpt", "last.ckpt"):
+        (run / "checkpoints" / name).write_bytes((w / "model.ckpt").read_bytes())
+    raw = {"psnr_db": 31.0, "ssim": 0.95, "mse_mm2": 680.0, "mae_mm": 7.2}
+    write_metrics_json(
+        run / "metrics.json",
+        {"synthetic": set_entry({"psnr_db": 40.0, "ssim": 0.99, "mse_mm2": 80.0, "mae_mm": 2.5}, raw)},
+        run=learned_verdict(1000, 2.6, 7.2),
+    )
+    (run / "run_info.json").write_text(json.dumps({"backbone": "unet", "finished": "2026-11-20T10:05:00+0000"}))
+
+
 # misuse of outputs: an output that is an input, or that lies where it would replace one
 PROBES += [
     P("tofdenoise denoise", "misuse_outputs", "out-is-the-input-folder", lambda w: denoise_args(w, out="frames"),
@@ -405,11 +458,23 @@ PROBES += [
     P("tofdenoise export", "misuse_outputs", "onnx-is-the-checkpoint",
       lambda w: [w / "model.ckpt", "--onnx", w / "model.ckpt", "--no-check"], None, 2,
       lambda w: ["error", "model.ckpt"]),
+    P("tofdenoise export", "misuse_outputs", "onnx-replaces-a-runs-last-checkpoint",
+      lambda w: [w / "model.ckpt", "--onnx", w / "out/run/checkpoints/last.ckpt", "--no-check"], _last_ckpt, 2,
+      lambda w: ["error", str(w / "out/run/checkpoints/last.ckpt"), "expected a .onnx file"]),
+    P("tofdenoise export", "misuse_outputs", "onnx-replaces-an-image",
+      lambda w: [w / "model.ckpt", "--onnx", w / "frames/a.png", "--no-check"], None, 2,
+      lambda w: ["error", str(w / "frames/a.png"), "expected a .onnx file"]),
+    P("tofdenoise export", "misuse_outputs", "onnx-replaces-a-graph-of-another-tool",
+      lambda w: [w / "model.ckpt", "--onnx", w / "out/detector.onnx", "--no-check"], _foreign_onnx, 2,
+      lambda w: ["error", str(w / "out/detector.onnx"), "not an ONNX export of tofdenoise"]),
     P("tofdenoise train", "misuse_outputs", "init-weights-inside-the-run",
       lambda w: train_args(w, f"++model.init_weights={w / 'out/run/checkpoints/best.ckpt'}"),
       lambda w: ((w / "out/run/checkpoints").mkdir(parents=True),
                  (w / "out/run/checkpoints/best.ckpt").write_bytes((w / "model.ckpt").read_bytes())),
       2, lambda w: ["error", "holds the input", "best.ckpt"], _HYDRA_RUN),
+    P("tofdenoise train", "misuse_outputs", "another-config-in-a-finished-run",
+      lambda w: [*_tiny_overrides()(w / "out/run", w / "cache", backbone="deeptof"), "logger=csv"], _finished_unet_run,
+      2, lambda w: ["error", str(w / "out/run"), "backbone.name: 'unet' there, 'deeptof' now"]),
     P("tofdenoise fit", "misuse_outputs", "init-weights-inside-the-run",
       lambda w: lightning_args(w, "--model.init_args.init_weights", w / "out/cli/checkpoints/best.ckpt"),
       lambda w: ((w / "out/cli/checkpoints").mkdir(parents=True),
@@ -423,8 +488,42 @@ for _cmd, _opt in SENSOR_OPTION.items():
           lambda w: ["error", "calib.yaml"])
     )  # fmt: skip
 
-# concurrent writers: another process holds the run folder's lock
+
+def _two_recordings(w: W) -> None:
+    """``rec/desk1.bag`` and ``rec/desk2.bag``: two static recordings of one scene (ROS 1 bags, 6 frames of 10 x 14)."""
+    import importlib.util
+    import sys
+
+    name = "_recording_files_for_probes"
+    if name not in sys.modules:
+        spec = importlib.util.spec_from_file_location(name, Path(__file__).parents[1] / "inference/recording_files.py")
+        sys.modules[name] = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(sys.modules[name])
+    (w / "rec").mkdir()
+    rng = np.random.default_rng(0)
+    y, x = np.mgrid[0:10, 0:14]
+    for k in (1, 2):
+        depth = np.rint(1200 + 40 * k + 6 * x + 4 * y + rng.normal(0, 3, (6, 10, 14))).astype(np.uint16)
+        amplitude = rng.integers(100, 3000, (6, 10, 14)).astype(np.uint16)
+        sys.modules[name].write_bag(w / f"rec/desk{k}.bag", 1, depth, amplitude=amplitude)
+
+
+def _realset_scene(k: int) -> Callable[[W], list[Any]]:
+    return lambda w: ["--from-recording", w / f"rec/desk{k}.bag", "--out", w / "out/rs7", "--scene", "desk"]
+
+
+def _scene_is_the_other_runs(w: W, outcome: Any) -> None:
+    meta = json.loads((w / "out/rs7/desk/recording.json").read_text())
+    assert meta["recording"] == str(w / "rec/desk2.bag"), meta
+    assert sorted(p.name for p in (w / "out/rs7").iterdir()) == ["desk"], "a partial scene was left"
+
+
+# concurrent writers: another process holds the run folder's lock; two runs onto one output
 PROBES += [
+    P("tofdenoise sensor realset", "concurrent", "two-recordings-one-scene", _realset_scene(1), _two_recordings, 2,
+      lambda w: ["error", str(w / "out/rs7/desk"), "exists", "another run wrote it"], ("out/rs7/desk",),
+      runner="race", check=_scene_is_the_other_runs,
+      extra={"other": _realset_scene(2), "during": "tofdenoise.inference.recording_realset.build_reference"}),
     P("tofdenoise train", "concurrent", "run-folder-locked", train_args, None, 2,
       lambda w: ["error", str(w / "out/run/run.lock")], runner="locked", lock_dir=lambda w: w / "out/run"),
     P("tofdenoise classic", "concurrent", "run-folder-locked", train_args, None, 2,
@@ -673,3 +772,4 @@ for _cmd in SENSOR_OPTION:
     )
     if _cmd != "tofdenoise sensor realset":
         EXEMPT[_cmd]["bad_captures"] = "reads no captures: it writes them"
+del EXEMPT["tofdenoise sensor realset"]["concurrent"]  # --from-recording: its two-recordings-one-scene row

@@ -84,6 +84,34 @@ def test_probe_with_the_run_folder_locked_by_another_process(probe, world, call,
         assert f"pid {pid}" in outcome.err
 
 
+@pytest.mark.parametrize("probe", _params("race"))
+def test_probe_with_another_run_finishing_meanwhile(probe, world, call, monkeypatch):
+    """Two runs started together onto one output, in a fixed order: the other run (``extra["other"]``) starts and
+    finishes while this one works (at its first call of ``extra["during"]``, after its checks, before it publishes).
+    The other run succeeds; this one gets what the row says (the generic checks allow the other run's output)."""
+    import importlib
+
+    if probe.damage is not None:
+        probe.damage(world)
+    before = world.snapshot()
+    script, prefix = probes.COMMANDS[probe.command]
+    module_name, attr = probe.extra["during"].rsplit(".", 1)
+    module = importlib.import_module(module_name)
+    original, others = getattr(module, attr), []
+
+    def during(*args, **kwargs):
+        if not others:  # once: the other run's own call passes straight through
+            others.append(None)
+            others[0] = call(script, [*prefix, *probe.extra["other"](world)])
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(module, attr, during)
+    outcome = call(script, [*prefix, *probe.argv(world)])
+    assert others and others[0] is not None, f"{probe.extra['during']} was not called"
+    assert others[0].status == 0 and others[0].escaped is None, f"the other run failed:\n{others[0].err}"
+    assert_outcome(probe, world, before, outcome)
+
+
 # ----------------------------------------------------------------------------------- the table covers every command
 
 

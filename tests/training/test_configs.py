@@ -310,3 +310,70 @@ def test_compiling_the_training_steps_is_the_same_run(tmp_path):
     (tmp_path / "config.yaml").write_text(OmegaConf.to_yaml(OmegaConf.create(recorded)))
     check_same_run(cfg, tmp_path)
     check_same_run(compose_config([f"paths.run_dir={tmp_path}", "model.compile=true"]), tmp_path)
+
+
+def _finished_run(run_dir, overrides: list[str]) -> None:
+    """A finished run's records in ``run_dir`` (config.yaml as the run saves it, run_info.json, metrics.json)."""
+    import json
+
+    from tofdenoise.data_modules.datamodule import data_calibration
+    from tofdenoise.experiments.train_job import record_calibration
+    from tofdenoise.records import learned_verdict, set_entry, write_metrics_json
+
+    cfg = compose_config([f"paths.run_dir={run_dir}", *overrides])
+    record_calibration(cfg, data_calibration(OmegaConf.to_container(cfg.data.sensor, resolve=True)))
+    (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
+    entry = {"psnr_db": 40.0, "ssim": 0.99, "mse_mm2": 80.0, "mae_mm": 2.5}
+    write_metrics_json(run_dir / "metrics.json", {"synthetic": set_entry(entry, entry)}, run=learned_verdict(9, 2, 3))
+    (run_dir / "run_info.json").write_text(json.dumps({"finished": "2026-11-20T10:05:00+0000"}))
+
+
+def test_another_config_in_a_finished_run_is_refused_before_hydra_writes(tmp_path, capsys):
+    """``train backbone=deeptof paths.run_dir=<a finished U-Net run>`` was refused only after Hydra had rewritten the
+    run's .hydra/ record with backbone=deeptof (issue 41). The check runs in the Hydra callback that holds the lock,
+    before Hydra writes: the same config passes, another one is one line, exit 2, the lock released, nothing
+    written (``sensor`` is compared as the run records it: the calibration the data module resolves)."""
+    import hashlib
+
+    from tofdenoise.experiments.train_job import RunConfigMismatchError, check_finished_run
+    from tofdenoise.run_lock import LOCK_NAME, HydraRunLock
+
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    _finished_run(run_dir, ["backbone=unet"])
+    same = compose_config(
+        [f"paths.run_dir={run_dir}", "backbone=unet", "logger=csv", "trainer.enable_progress_bar=false"]
+    )
+    check_finished_run(same, run_dir)  # where files go and what is logged are not the run's identity
+    other = compose_config([f"paths.run_dir={run_dir}", "backbone=deeptof"])
+    with pytest.raises(RunConfigMismatchError, match=r"backbone\.name: 'unet' there, 'deeptof' now"):
+        check_finished_run(other, run_dir)
+    # a folder without a finished run, or reuse_finished=false: nothing to check here
+    check_finished_run(other, tmp_path / "fresh")
+    check_finished_run(
+        compose_config([f"paths.run_dir={run_dir}", "backbone=deeptof", "reuse_finished=false"]), run_dir
+    )
+
+    def stamps() -> dict[str, str]:
+        return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in run_dir.rglob("*") if p.is_file()}
+
+    before = stamps()
+
+    def with_hydra(cfg: DictConfig) -> DictConfig:  # the config a Hydra callback gets: the task and its hydra node
+        full = OmegaConf.create({"hydra": {"run": {"dir": str(run_dir)}}})
+        full.merge_with(OmegaConf.create(OmegaConf.to_container(cfg)))
+        return full
+
+    callback = HydraRunLock(before_job="tofdenoise.experiments.train_job.check_finished_run")
+    config = with_hydra(other)
+    with pytest.raises(SystemExit) as exited:
+        callback.on_run_start(config)
+    assert exited.value.code == 2
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert line.startswith("tofdenoise train: error: run folder") and "'deeptof' now" in line
+    assert stamps() == before and not (run_dir / LOCK_NAME).exists()
+    # the same config takes the lock and goes on
+    callback.on_run_start(with_hydra(same))
+    assert (run_dir / LOCK_NAME).exists()
+    callback.on_run_end(config)
+    assert not (run_dir / LOCK_NAME).exists()

@@ -5,7 +5,9 @@
 The graph takes ``depth_mm`` (1, 1, H, W) float32 (0/NaN = invalid; any H, W) and, for a checkpoint with the
 signal channel, ``amplitude``; it returns ``restored_mm``. After writing, the graph is run with onnxruntime on a
 small frame with holes and compared with the checkpoint in PyTorch (``--no-check`` skips it). Exit status 2 for
-a bad checkpoint, an output that would replace the checkpoint, or a backbone that cannot be exported.
+a bad checkpoint, a backbone that cannot be exported, or an ``--onnx`` that is not safe to write: a name without the
+``.onnx`` suffix, the checkpoint itself, or an existing file that is not an earlier export of ours (a run's
+``checkpoints/last.ckpt`` or an image is never replaced; an earlier export is).
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tofdenoise.output_guard import OutputPathError, refuse_overwrite
+from tofdenoise.output_guard import OutputPathError
 
 __all__ = ["build_parser", "main", "parity_check"]
 
@@ -29,7 +31,12 @@ def build_parser() -> argparse.ArgumentParser:
         "to ONNX with dynamic height and width.",
     )
     p.add_argument("ckpt", type=Path, metavar="CKPT", help="checkpoint of tofdenoise train / tofdenoise fit")
-    p.add_argument("--onnx", required=True, type=Path, help="output .onnx file (written atomically)")
+    p.add_argument(
+        "--onnx",
+        required=True,
+        type=Path,
+        help="output .onnx file (written atomically; an existing file is replaced only when it is an earlier export)",
+    )
     p.add_argument("--fp16", action="store_true", help="the network in float16 (conditioning and offset stay fp32)")
     p.add_argument(
         "--exporter",
@@ -63,11 +70,11 @@ def parity_check(ckpt: Path, onnx_path: Path, height: int = 45, width: int = 67)
 def main(argv: Sequence[str] | None = None) -> int:
     """Console script ``tofdenoise export``."""
     from tofdenoise.inference.denoise import CheckpointError
-    from tofdenoise.inference.export import ExportError, export_onnx
+    from tofdenoise.inference.export import ExportError, check_onnx_output, export_onnx
 
     args = build_parser().parse_args(argv)
     try:
-        refuse_overwrite([args.onnx], [args.ckpt], "--onnx")
+        check_onnx_output(args.onnx, [args.ckpt])
         meta = export_onnx(args.ckpt, args.onnx, fp16=args.fp16, exporter=args.exporter)
     except (CheckpointError, ExportError, OutputPathError, OSError) as exc:
         print(f"tofdenoise export: error: {exc}", file=sys.stderr)

@@ -61,6 +61,22 @@ class PreparedData:
     real_scenes: list[Path]
 
 
+def data_calibration(
+    sensor: dict[str, Any] | str | None, signal_route: str = "linear", signal_dynamic_range: float | None = None
+):
+    """The calibration a :class:`ToFDataModule` of these settings uses (and a run records as its ``sensor``):
+    ``sensor`` resolved (a preset, a file or a mapping), with ``signal_min_e`` from ``signal_dynamic_range``."""
+    calib = resolve_calibration(sensor)
+    if signal_dynamic_range is not None:
+        if str(signal_route).lower() != "linear" or not float(signal_dynamic_range) > 1:
+            raise ValueError(
+                f"data.signal_dynamic_range={signal_dynamic_range!r}: a ratio a_max / a_min > 1 of the linear "
+                f"signal route (data.signal_route={signal_route!r})"
+            )
+        calib = calib.replace(signal_min_e=calib.signal_max_e / float(signal_dynamic_range))
+    return calib
+
+
 class ToFDataModule(L.LightningDataModule):
     """Clean depth + signal + sigma_D maps from a source, noisy depth synthesised by a physics noise model.
 
@@ -138,14 +154,7 @@ class ToFDataModule(L.LightningDataModule):
         split_ratios = [float(r) for r in split_ratios]
         self.save_hyperparameters()
         self.source_name = source
-        self.calib = resolve_calibration(sensor)
-        if signal_dynamic_range is not None:
-            if str(signal_route).lower() != "linear" or not float(signal_dynamic_range) > 1:
-                raise ValueError(
-                    f"data.signal_dynamic_range={signal_dynamic_range!r}: a ratio a_max / a_min > 1 of the linear "
-                    f"signal route (data.signal_route={signal_route!r})"
-                )
-            self.calib = self.calib.replace(signal_min_e=self.calib.signal_max_e / float(signal_dynamic_range))
+        self.calib = data_calibration(sensor, signal_route, signal_dynamic_range)
         self.noise_name = str(noise).lower()
         self.noise_kwargs = noise_kwargs
 

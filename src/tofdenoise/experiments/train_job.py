@@ -56,6 +56,7 @@ __all__ = [
     "RunConfigMismatchError",
     "check_ddp_in_sweep",
     "check_same_run",
+    "check_finished_run",
     "check_slurm_shape",
     "check_source_config",
     "SAME_RUN_IGNORES",
@@ -394,6 +395,36 @@ def check_same_run(cfg: DictConfig, run_dir: Path) -> None:
             "choose another folder (paths.run_dir, or in a sweep run_name=... / hydra.sweep.subdir=... so that "
             "each job gets its own), or set reuse_finished=false to train that run again with this config"
         )
+
+
+def check_finished_run(cfg: DictConfig, run_dir: str | Path) -> None:
+    """The same-run check of a finished run folder (:func:`check_same_run`), made before Hydra writes anything there.
+
+    Hydra writes ``.hydra/config.yaml``, ``hydra.yaml``, ``overrides.yaml`` and starts its log in the run folder
+    before the run code starts, so a run refused by the check in :func:`run` had already rewritten the finished
+    run's Hydra record with the refused settings (issue 41). The Hydra callback (``hydra.callbacks.run_lock.
+    before_job``, :class:`tofdenoise.run_lock.HydraRunLock`) calls this with the composed config (no ``hydra``
+    node) once it holds the folder's lock: a folder that :func:`run` would return as a finished run must hold a
+    run of this config (``RunConfigMismatchError``), else nothing is written. The ``sensor`` compared is the
+    calibration the data module resolves (:func:`record_calibration`), as in :func:`run`."""
+    from tofdenoise.data_modules.datamodule import data_calibration
+
+    run_dir = Path(str(run_dir)).expanduser().resolve()
+    if not (cfg.get("train", True) and cfg.get("reuse_finished", True) and run_finished(run_dir)):
+        return
+    data = cfg.get("data") or {}
+    sensor = data.get("sensor")
+    if isinstance(sensor, DictConfig):
+        sensor = OmegaConf.to_container(sensor, resolve=True)
+    try:
+        calib = data_calibration(sensor, data.get("signal_route", "linear"), data.get("signal_dynamic_range"))
+    except (ValueError, FileNotFoundError) as exc:
+        raise ConfigError(f"data: {exc}") from None
+    cfg = cfg.copy()
+    with open_dict(cfg):
+        cfg.paths.run_dir = str(run_dir)
+    record_calibration(cfg, calib)
+    check_same_run(cfg, run_dir)
 
 
 def _recorded_result(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:

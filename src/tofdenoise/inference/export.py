@@ -49,7 +49,16 @@ from tofdenoise.models.conditioning import InputConditioning
 from tofdenoise.training.init_weights import file_sha256
 from tofdenoise.training.module import final_prediction
 
-__all__ = ["RestoreGraph", "ExportError", "export_onnx", "EXPORTERS", "FILL_LEVELS", "ONNX_OPSET"]
+__all__ = [
+    "RestoreGraph",
+    "ExportError",
+    "check_onnx_output",
+    "export_onnx",
+    "is_onnx_export",
+    "EXPORTERS",
+    "FILL_LEVELS",
+    "ONNX_OPSET",
+]
 
 #: ``torch.onnx.export`` routes: the TorchScript-based tracer (default; deprecated in torch 2.13) and torch.export
 EXPORTERS = ("torchscript", "dynamo")
@@ -145,6 +154,34 @@ def _loops_with_scan_outputs(path: str | os.PathLike[str]) -> None:
     proto = onnx.load(str(path))
     if sequences_to_scan_outputs(proto.graph):
         onnx.save(proto, str(path))
+
+
+def is_onnx_export(path: str | os.PathLike[str]) -> bool:
+    """True when ``path`` is an ONNX graph written by :func:`export_onnx` (its metadata names a tofdenoise backbone).
+    Only the model's protobuf is parsed (no external data, no onnxruntime session); anything else, a PNG, a
+    checkpoint, a graph of another tool, is False."""
+    import onnx
+
+    try:
+        proto = onnx.load(str(path), load_external_data=False)
+    except Exception:  # noqa: BLE001 - protobuf raises its own errors for bytes that are no ONNX model
+        return False
+    return any(entry.key == "tofdenoise_backbone" for entry in proto.metadata_props)
+
+
+def check_onnx_output(out: str | os.PathLike[str], inputs: list[str | os.PathLike[str]] = ()) -> Path:
+    """``out`` as the ``--onnx`` output once it is safe to write: an ``.onnx`` file name that replaces none of
+    ``inputs`` (``tofdenoise.output_guard``) and, when it exists, an earlier export of ours (:func:`is_onnx_export`),
+    never another file (``OutputPathError``, naming the path and what was expected)."""
+    from tofdenoise.output_guard import OutputPathError, check_output_file
+
+    out = check_output_file(out, (".onnx",), inputs, "--onnx", shadow=False)
+    if out.exists() and not is_onnx_export(out):
+        raise OutputPathError(
+            f"--onnx {out} exists and is not an ONNX export of tofdenoise (no tofdenoise_* metadata); refusing to "
+            "replace it: choose another file name, or remove it first"
+        )
+    return out
 
 
 def export_onnx(

@@ -26,12 +26,18 @@ of the valid pixels disagree is a moving frame. Any moving frame stops the comma
 tolerance is an option: a camera noisier than 20 mm at its range needs a larger one).
 
 Nothing is half-written: the recording is read and checked whole first, and the scene is written into a hidden
-temporary folder next to its destination and renamed into place at the end.
+temporary folder next to its destination and renamed into place at the end (:func:`publish_scene`). Without
+``force`` that rename is the check that the scene is new: a folder renamed onto an existing, non-empty folder fails
+(POSIX ``rename``: ENOTEMPTY / EEXIST), so of two runs writing one scene at once exactly one publishes it and the
+other is refused (:class:`SceneExistsError`) with its own work removed; the "exists" check before the work only
+saves reading a recording for nothing.
 """
 
 from __future__ import annotations
 
+import errno
 import json
+import os
 import shutil
 import tempfile
 import warnings
@@ -52,13 +58,70 @@ from tofdenoise.data_modules.real_captures import (
 )
 from tofdenoise.inference.recordings import RecordingError, RecordingFrame, open_recording
 
-__all__ = ["SceneMotionError", "SceneSummary", "moving_frames", "scene_from_frames", "scene_from_recording"]
+__all__ = [
+    "SceneExistsError",
+    "SceneMotionError",
+    "SceneSummary",
+    "moving_frames",
+    "publish_scene",
+    "scene_from_frames",
+    "scene_from_recording",
+]
 
 RECORDING_META = "recording.json"
 
 
 class SceneMotionError(ValueError):
     """The frames of a recording disagree: the scene (or the camera) moved."""
+
+
+class SceneExistsError(ValueError):
+    """The scene folder exists (or another run published it meanwhile) and ``force`` is off."""
+
+
+def _exists_error(scene_dir: Path, meanwhile: bool) -> SceneExistsError:
+    when = " (another run wrote it while this one worked; this run's scene was discarded)" if meanwhile else ""
+    return SceneExistsError(f"scene folder {scene_dir} exists{when}; --force replaces it")
+
+
+#: errno of a rename onto a folder that is taken (exists and is not empty) or onto a file
+_TAKEN = (errno.ENOTEMPTY, errno.EEXIST, errno.ENOTDIR, errno.EISDIR)
+
+
+def publish_scene(tmp: Path, scene_dir: Path, force: bool = False) -> None:
+    """Rename the complete scene ``tmp`` to ``scene_dir`` (both in one folder).
+
+    Without ``force`` the rename is exclusive: it fails when ``scene_dir`` exists and is not an empty folder (a
+    scene another run published since this one checked), :class:`SceneExistsError`; ``tmp`` is left for the caller
+    to remove. With ``force`` an existing scene is moved aside, the new one renamed in, and the old one removed
+    (put back if the rename fails otherwise): the folder holds one complete scene (two forced runs: the last one's)."""
+    while True:
+        aside = None
+        if force and scene_dir.exists():
+            aside = Path(tempfile.mkdtemp(prefix=f".{scene_dir.name}.", suffix=".old", dir=scene_dir.parent))
+            try:
+                os.rename(scene_dir, aside / scene_dir.name)
+            except FileNotFoundError:  # another forced run moved it aside first
+                pass
+        try:
+            os.rename(tmp, scene_dir)  # onto a missing or an empty folder only (POSIX rename)
+        except OSError as exc:
+            taken = exc.errno in _TAKEN
+            if aside is not None and not taken:  # the new scene could not go in: the old one goes back
+                try:
+                    os.rename(aside / scene_dir.name, scene_dir)
+                except OSError:
+                    pass
+            if aside is not None and (taken or not (aside / scene_dir.name).exists()):
+                shutil.rmtree(aside, ignore_errors=True)  # taken: another forced run's complete scene is in place
+            if not taken:
+                raise
+            if not force:
+                raise _exists_error(scene_dir, meanwhile=True) from None
+            continue  # another forced run published in between: that scene is moved aside in turn
+        if aside is not None:
+            shutil.rmtree(aside, ignore_errors=True)
+        return
 
 
 @dataclass
@@ -144,8 +207,8 @@ def scene_from_frames(
             f"{' ...' if len(moving) > 8 else ''}; record a static scene (or raise --motion-tolerance-mm for a "
             "noisier camera)"
         )
-    if scene_dir.exists() and not force:
-        raise ValueError(f"scene folder {scene_dir} exists; --force replaces it")
+    if scene_dir.exists() and not force:  # early, to spare the work; publish_scene decides
+        raise _exists_error(scene_dir, meanwhile=False)
     amplitude = _amplitude_u16(chosen.amplitude, f"{where} frame {chosen.index}")
 
     scene_dir.parent.mkdir(parents=True, exist_ok=True)
@@ -174,13 +237,7 @@ def scene_from_frames(
             "depths where at least min_count are valid (same exposure as the input)",
         }
         atomic_write_text(tmp / RECORDING_META, json.dumps(meta, indent=1) + "\n")
-        if scene_dir.exists():  # --force: the old scene goes only once the new one is complete
-            old = Path(tempfile.mkdtemp(prefix=f".{scene_dir.name}.", suffix=".old", dir=scene_dir.parent))
-            scene_dir.rename(old / scene_dir.name)
-            tmp.rename(scene_dir)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            tmp.rename(scene_dir)
+        publish_scene(tmp, scene_dir, force=force)  # --force: the old scene goes once the new one is complete
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
