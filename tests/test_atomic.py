@@ -82,7 +82,18 @@ def _interrupt_self() -> None:
         time.sleep(0.001)
 
 
-def test_sigint_deferred_finishes_the_block_then_interrupts():
+@pytest.fixture
+def default_sigint():
+    """Python's own Ctrl-C handler for the test, whatever the suite was started with (``nohup make test &`` starts
+    it with SIGINT ignored, and Python then installs no handler), restored afterwards."""
+    import signal
+
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, previous)
+
+
+def test_sigint_deferred_finishes_the_block_then_interrupts(default_sigint):
     import signal
 
     from tofdenoise.atomic import sigint_deferred
@@ -106,7 +117,7 @@ def test_sigint_deferred_finishes_the_block_then_interrupts():
     assert steps[-1] == "quiet"
 
 
-def test_sigint_deferred_lets_the_blocks_own_error_through_and_runs_off_the_main_thread():
+def test_sigint_deferred_lets_the_blocks_own_error_through_and_runs_off_the_main_thread(default_sigint):
     import threading
 
     from tofdenoise.atomic import sigint_deferred

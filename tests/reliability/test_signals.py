@@ -41,12 +41,19 @@ def _many_frames(world) -> Path:
     return folder
 
 
+def _default_sigint() -> None:
+    """In the child, before it starts: SIGINT at its default disposition, so that Python installs its Ctrl-C handler
+    even when this suite runs where SIGINT is ignored (``nohup make test &``, a background job of a non-interactive
+    shell: children inherit the ignored disposition)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _start(world, frames: Path, out: Path) -> subprocess.Popen:
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     return subprocess.Popen(
         [*_command("denoise"), str(frames), "--ckpt", str(world / "model.ckpt"), "--out", str(out),
          "--device", "cpu", "--quiet"],
-        env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=_default_sigint,
     )  # fmt: skip
 
 
@@ -151,7 +158,7 @@ def test_ctrl_c_mid_training_is_one_line_and_leaves_a_resumable_unfinished_run(w
     env.pop("HYDRA_FULL_ERROR", None)
     proc = subprocess.Popen(
         [*_command("train"), *map(str, args)], env=env, cwd=tmp_path, stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE, text=True,
+        stderr=subprocess.PIPE, text=True, preexec_fn=_default_sigint,
     )  # fmt: skip
     last = run_dir / "checkpoints" / "last.ckpt"
     deadline = time.time() + 300
