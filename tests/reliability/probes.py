@@ -453,6 +453,28 @@ def _text_metric(rel: str) -> Callable[[W], None]:
     return damage
 
 
+def _no_synthetic(rel: str) -> Callable[[W], None]:
+    """The ``synthetic`` section removed (a record edited by hand, or merged from a run of the real set only)."""
+
+    def damage(w: W) -> None:
+        data = json.loads((w / rel).read_text())
+        data["real"] = data.pop("synthetic")
+        (w / rel).write_text(json.dumps(data))
+
+    return damage
+
+
+def _nan_metric(rel: str) -> Callable[[W], None]:
+    """A NaN metric: ``json.dumps`` writes the non-strict ``NaN`` token, which Python's ``json`` reads back."""
+
+    def damage(w: W) -> None:
+        data = json.loads((w / rel).read_text())
+        data["synthetic"]["mae_mm"] = float("nan")
+        (w / rel).write_text(json.dumps(data))
+
+    return damage
+
+
 def _write(rel: str, text: str) -> Callable[[W], None]:
     def damage(w: W) -> None:
         (w / rel).write_text(text)
@@ -470,6 +492,10 @@ PROBES += [
       lambda w: ["error", f"{_REC}/metrics.json", "mae_mm"]),
     P("tofdenoise reproduce", "corrupt_records", "text-metric", page_args, _text_metric(f"{_REC}/metrics.json"), 2,
       lambda w: ["error", f"{_REC}/metrics.json", "mae_mm"]),
+    P("tofdenoise reproduce", "corrupt_records", "no-synthetic-section", page_args,
+      _no_synthetic(f"{_REC}/metrics.json"), 2, lambda w: ["error", f"{_REC}/metrics.json", "'synthetic'"]),
+    P("tofdenoise reproduce", "corrupt_records", "nan-metric", page_args, _nan_metric(f"{_REC}/metrics.json"), 2,
+      lambda w: ["error", f"{_REC}/metrics.json", "synthetic.mae_mm", "NaN"]),
     P("tofdenoise reproduce", "corrupt_records", "run-info-not-json", page_args, _write(f"{_REC}/run_info.json", "{x"),
       2, lambda w: ["error", f"{_REC}/run_info.json"]),
     P("tofdenoise report", "corrupt_records", "truncated-metrics", lambda w: [w / "runs", "--out", w / "out/r.html"],
