@@ -135,6 +135,35 @@ def npy_dtype(rel: str, dtype: str) -> Callable[[W], None]:
     return damage
 
 
+#: the block of ``amp/sub/b.npy`` that ``nan_amplitude(..., block=True)`` makes NaN (depth is valid there)
+NAN_AMPLITUDE_BLOCK = (slice(20, 30), slice(20, 40))
+
+
+def nan_amplitude(rel: str, block: bool = False) -> Callable[[W], None]:
+    """An amplitude frame that is NaN everywhere (a dropped IR stream saved as float), or in one block."""
+
+    def damage(w: W) -> None:
+        amp = np.load(w / rel)
+        if block:
+            amp[NAN_AMPLITUDE_BLOCK] = np.nan
+        else:
+            amp[:] = np.nan
+        np.save(w / rel, amp)
+
+    return damage
+
+
+def sigma_nan_where_the_amplitude_is(w: W, outcome: Any) -> None:
+    """The sigma_D map of ``frames/sub/b.npy`` is NaN (invalid) in the NaN block of its amplitude, finite at the
+    other valid depths."""
+    sigma = np.load(w / "out/d/sub/b_sigma_mm.npy")
+    depth_valid = np.isfinite(np.load(w / "frames/sub/b.npy"))
+    assert np.isnan(sigma[NAN_AMPLITUDE_BLOCK]).all(), "sigma_D is not NaN where the amplitude is NaN"
+    elsewhere = depth_valid.copy()
+    elsewhere[NAN_AMPLITUDE_BLOCK] = False
+    assert np.isfinite(sigma[elsewhere]).all() and np.isnan(sigma[~depth_valid]).all()
+
+
 def remove(rel: str) -> Callable[[W], None]:
     def damage(w: W) -> None:
         p = w / rel
@@ -302,6 +331,15 @@ PROBES += [
       lambda w: ["FAILED", str(w / "frames/sub/b.npy")], _DENOISE_OTHER["b"]),
     P("tofdenoise denoise", "bad_frames", "metres", denoise_args, npy_in_metres("frames/sub/b.npy"), 1,
       lambda w: ["FAILED", str(w / "frames/sub/b.npy"), "--depth-scale-mm"], _DENOISE_OTHER["b"]),
+    P("tofdenoise denoise", "bad_frames", "amplitude-all-nan",
+      lambda w: denoise_args(w, "--amplitude", w / "amp", "--sensor", w / "calib.yaml"),
+      nan_amplitude("amp/sub/b.npy"), 1,
+      lambda w: ["FAILED", str(w / "frames/sub/b.npy"), str(w / "amp/sub/b.npy"), "no finite value"],
+      ("out/d/a.png", "out/d/a_sigma_mm.npy")),
+    P("tofdenoise denoise", "bad_frames", "amplitude-partly-nan",
+      lambda w: denoise_args(w, "--amplitude", w / "amp", "--sensor", w / "calib.yaml"),
+      nan_amplitude("amp/sub/b.npy", block=True), 0, may_change=("out/d",),
+      check=sigma_nan_where_the_amplitude_is),
     P("tofdenoise evaluate", "bad_frames", "truncated-png", eval_args, truncate("pred/s0.png", 100), 2,
       lambda w: ["error", "s0.png"]),
     P("tofdenoise evaluate", "bad_frames", "png-8bit", eval_args, write_png8("pred/s0.png"), 2,

@@ -7,6 +7,9 @@ millimetres (NaN, inf, 0 and negative values = invalid), ``.exr`` (the depth-lik
 ``check_depth_units_mm`` refuses a frame whose median valid depth is below ``MIN_MEDIAN_DEPTH_MM`` (20 mm): such a
 frame is almost surely in metres or centimetres (a Kinect frame / 1000), not a scene 2 cm from the camera.
 
+Amplitude values that are not finite (NaN, inf) are invalid: the sigma_D map is NaN there, and a frame whose
+amplitude is invalid at every pixel of valid depth is refused (``FrameError`` naming the amplitude file).
+
 Amplitude frames are paired by the depth frame's stem (``pair_amplitude``): from a folder (the depth frame's
 sub-folder mirrored, then the folder itself), from a template with ``{stem}`` (e.g. ``amp/{stem}_amp.png``), or
 from a glob pattern (``amp/*.png``) whose matches are keyed by stem.
@@ -66,12 +69,15 @@ class FrameInput:
 @dataclass
 class Frame:
     """A depth frame in memory: ``depth_mm`` float32 (H, W) with 0 at invalid pixels, ``valid`` bool (H, W),
-    ``amplitude`` float32 (H, W) in its own units (0 where not finite) or None."""
+    ``amplitude`` float32 (H, W) in its own units (0 where not finite, the network's input) or None, and
+    ``amplitude_valid`` bool (H, W): where the amplitude was finite (None: everywhere). The sigma_D map is NaN
+    (invalid) where the amplitude is not valid (``outputs.frame_sigma``)."""
 
     depth_mm: np.ndarray
     valid: np.ndarray
     amplitude: np.ndarray | None = None
     name: str = ""
+    amplitude_valid: np.ndarray | None = None
 
 
 def _is_candidate(path: Path) -> bool:
@@ -220,8 +226,21 @@ def load_frame(frame: FrameInput, depth_scale_mm: float = 1.0, amplitude: Amplit
                 f"amplitude file {amp_path} has shape {amp.shape}; expected {depth.shape} like its "
                 f"depth frame {frame.path}"
             )
-        amp = np.where(np.isfinite(amp), amp, 0.0).astype(np.float32)
-    return Frame(depth_mm=depth, valid=valid, amplitude=amp, name=frame.rel_stem.as_posix())
+        amp_valid = np.isfinite(amp)
+        if valid.any() and not (amp_valid & valid).any():
+            raise FrameError(
+                f"amplitude file {amp_path} (for depth frame {frame.path}) holds no finite value where the depth is "
+                f"valid ({int((~amp_valid).sum())} of {amp.size} values are NaN or inf); expected the frame's "
+                "amplitude: a sigma_D map or the network's signal channel cannot come from it"
+            )
+        amp = np.where(amp_valid, amp, 0.0).astype(np.float32)
+    return Frame(
+        depth_mm=depth,
+        valid=valid,
+        amplitude=amp,
+        name=frame.rel_stem.as_posix(),
+        amplitude_valid=None if amp is None else amp_valid,
+    )
 
 
 def check_depth_units_mm(frame: Frame, path: str | Path) -> None:
