@@ -128,6 +128,30 @@ def npy_in_metres(*rels: str) -> Callable[[W], None]:
     return damage
 
 
+def depth_times(rel: str, factor: float) -> Callable[[W], None]:
+    """A depth frame in other units: x10 (a camera counting 0.1 mm) or / 10 (centimetres), same file type."""
+
+    def damage(w: W) -> None:
+        p = w / rel
+        if p.suffix == ".npy":
+            np.save(p, (np.load(p) * factor).astype(np.float32))
+        else:
+            img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED).astype(np.float64) * factor
+            assert img.max() < 65536 and cv2.imwrite(str(p), np.rint(img).astype(np.uint16))
+
+    return damage
+
+
+def restored_in_mm(rel: str) -> Callable[[W, Any], None]:
+    """The restored frame's valid depths are millimetres of the world's scene (800-1100 mm)."""
+
+    def check(w: W, outcome: Any) -> None:
+        restored = cv2.imread(str(w / rel), cv2.IMREAD_UNCHANGED)
+        assert 700 < float(np.median(restored[restored > 0])) < 1200, outcome.err
+
+    return check
+
+
 def npy_dtype(rel: str, dtype: str) -> Callable[[W], None]:
     def damage(w: W) -> None:
         np.save(w / rel, np.load(w / rel).astype(dtype))
@@ -331,6 +355,15 @@ PROBES += [
       lambda w: ["FAILED", str(w / "frames/sub/b.npy")], _DENOISE_OTHER["b"]),
     P("tofdenoise denoise", "bad_frames", "metres", denoise_args, npy_in_metres("frames/sub/b.npy"), 1,
       lambda w: ["FAILED", str(w / "frames/sub/b.npy"), "--depth-scale-mm"], _DENOISE_OTHER["b"]),
+    P("tofdenoise denoise", "bad_frames", "depth-in-0.1mm-units", denoise_args, depth_times("frames/a.png", 10), 1,
+      lambda w: ["FAILED", str(w / "frames/a.png"), "median valid depth 9", "beyond 2998 mm",
+                 "looks like 0.1 mm units: pass --depth-scale-mm 0.1"], _DENOISE_OTHER["a"]),
+    P("tofdenoise denoise", "bad_frames", "depth-in-cm", denoise_args, depth_times("frames/sub/b.npy", 0.1), 1,
+      lambda w: ["FAILED", str(w / "frames/sub/b.npy"), "median valid depth 9", "nearer than 300 mm",
+                 "looks like centimetres: pass --depth-scale-mm 10"], _DENOISE_OTHER["b"]),
+    P("tofdenoise denoise", "bad_frames", "depth-in-0.1mm-units-scale-given",
+      lambda w: [w / "frames/a.png", *denoise_args(w, "--depth-scale-mm", "0.1", out="out/s")[1:]],
+      depth_times("frames/a.png", 10), 0, may_change=("out/s",), check=restored_in_mm("out/s/a.png")),
     P("tofdenoise denoise", "bad_frames", "amplitude-all-nan",
       lambda w: denoise_args(w, "--amplitude", w / "amp", "--sensor", w / "calib.yaml"),
       nan_amplitude("amp/sub/b.npy"), 1,

@@ -4,8 +4,12 @@ Depth formats (by suffix): 16-bit PNG/TIFF holding millimetres (0 = invalid), ``
 millimetres (NaN, inf, 0 and negative values = invalid), ``.exr`` (the depth-like channel, same validity). A
 ``depth_scale_mm`` other than 1 converts stored units to mm (e.g. 0.25 for a camera counting quarter millimetres,
 1000 for metres). An 8-bit or colour image is refused: it cannot hold depth in millimetres. Without a depth scale,
-``check_depth_units_mm`` refuses a frame whose median valid depth is below ``MIN_MEDIAN_DEPTH_MM`` (20 mm): such a
-frame is almost surely in metres or centimetres (a Kinect frame / 1000), not a scene 2 cm from the camera.
+``check_depth_units_mm`` refuses a frame whose valid depths lie mostly outside the depths the network and the
+sensor work in (``plausible_depth_range_mm``): its median valid depth below the training scenes' nearest depth
+(``DEFAULT_MIN_DEPTH_MM``, 300 mm) or beyond the calibration's unambiguous range (c / 2f, 2998 mm for the default
+camera), i.e. more than half of its valid depths out of that range on one side. Such a frame is almost surely in
+other units: metres (a Kinect frame / 1000), centimetres (/ 10) or 0.1 mm (x 10); the error names the median and
+the likely unit.
 
 Amplitude values that are not finite (NaN, inf) are invalid: the sigma_D map is NaN there, and a frame whose
 amplitude is invalid at every pixel of valid depth is refused (``FrameError`` naming the amplitude file).
@@ -21,6 +25,7 @@ import glob as _glob
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -36,7 +41,9 @@ __all__ = [
     "load_frame",
     "FrameError",
     "MIN_MEDIAN_DEPTH_MM",
+    "LIKELY_UNITS",
     "check_depth_units_mm",
+    "plausible_depth_range_mm",
 ]
 
 DEPTH_FRAME_SUFFIXES = (".png", ".tif", ".tiff", ".npy", ".exr")
@@ -45,8 +52,12 @@ RECORDING_SUFFIXES = (".mkv", ".bag")
 AMPLITUDE_SUFFIXES = (".png", ".tif", ".tiff", ".npy", ".exr")
 
 
-#: a frame whose median valid depth lies below this is refused as not in millimetres unless a depth scale is given
+#: a depth map whose median valid depth lies below this is refused as not in millimetres by ``tofdenoise evaluate``
+#: (``tofdenoise denoise`` checks the narrower ``plausible_depth_range_mm``)
 MIN_MEDIAN_DEPTH_MM = 20.0
+#: the units a frame refused by ``check_depth_units_mm`` is tried in, (mm per stored unit, name), in this order: the
+#: error names the first whose scaled median lies in the plausible range
+LIKELY_UNITS: tuple[tuple[float, str], ...] = ((1000.0, "metres"), (10.0, "centimetres"), (0.1, "0.1 mm units"))
 
 
 class FrameError(ValueError):
@@ -243,14 +254,38 @@ def load_frame(frame: FrameInput, depth_scale_mm: float = 1.0, amplitude: Amplit
     )
 
 
-def check_depth_units_mm(frame: Frame, path: str | Path) -> None:
-    """FrameError naming ``--depth-scale-mm`` when the median of the frame's valid depths is below
-    ``MIN_MEDIAN_DEPTH_MM``: implausible in millimetres (e.g. a depth map in metres written as float)."""
+def plausible_depth_range_mm(calib: Any = None) -> tuple[float, float]:
+    """(nearest, farthest) median valid depth [mm] that ``check_depth_units_mm`` takes as millimetres: the nearest
+    depth of the training scenes (``DEFAULT_MIN_DEPTH_MM``) and the unambiguous range of ``calib`` (a
+    ``SensorCalibration``; None: the default calibration), beyond which the sensor measures no depth."""
+    from tofdenoise.data_modules.sources.procedural import DEFAULT_MIN_DEPTH_MM
+    from tofdenoise.physics.calibration import default_calibration
+
+    calib = default_calibration() if calib is None else calib
+    return DEFAULT_MIN_DEPTH_MM, float(calib.unambiguous_range_mm)
+
+
+def check_depth_units_mm(frame: Frame, path: str | Path, depth_range_mm: tuple[float, float] | None = None) -> None:
+    """FrameError naming the median, the likely unit and ``--depth-scale-mm`` when the frame's valid depths lie
+    mostly outside ``depth_range_mm`` (``plausible_depth_range_mm()`` by default): their median below its nearest
+    or beyond its farthest depth, i.e. more than half of them out of the range on that side. Implausible in
+    millimetres: a depth map in metres or centimetres, or one counting 0.1 mm."""
     if not frame.valid.any():
         return
+    near, far = plausible_depth_range_mm() if depth_range_mm is None else depth_range_mm
     median_mm = float(np.median(frame.depth_mm[frame.valid]))
-    if median_mm < MIN_MEDIAN_DEPTH_MM:
-        raise FrameError(
-            f"depth file {path}: median valid depth {median_mm:.4g} is implausible in millimetres (below "
-            f"{MIN_MEDIAN_DEPTH_MM:g}); give the file's units with --depth-scale-mm (e.g. 1000 for metres, 10 for cm)"
-        )
+    if near <= median_mm <= far:
+        return
+    side = "nearer than" if median_mm < near else "beyond"
+    bound = near if median_mm < near else far
+    likely = [(scale, name) for scale, name in LIKELY_UNITS if near <= median_mm * scale <= far]
+    if likely:
+        scale, name = likely[0]
+        hint = f"looks like {name}: pass --depth-scale-mm {scale:g}"
+    else:
+        hint = "give the file's units with --depth-scale-mm (e.g. 1000 for metres, 10 for cm, 0.1 for 0.1 mm units)"
+    raise FrameError(
+        f"depth file {path}: median valid depth {median_mm:.4g} is implausible in millimetres (more than half of "
+        f"the valid depths lie {side} {bound:.0f} mm; taken as mm: {near:.0f} mm, the training scenes' nearest "
+        f"depth, to {far:.0f} mm, the sensor's unambiguous range); {hint} (--depth-scale-mm 1 if it is mm)"
+    )
