@@ -107,3 +107,48 @@ def test_amplitude_pairing_folder_template_glob_and_errors(tmp_path):
         load_frame(other, amplitude=AmplitudeSource(tmp_path / "amp"))
     with pytest.raises(FrameError, match="matches no amplitude"):
         AmplitudeSource(str(tmp_path / "nothing" / "*.png"))
+
+
+@pytest.mark.parametrize("sensor", ["default", "cam75"])
+def test_the_built_in_sensors_simulated_frames_pass_the_units_check(tmp_path, sensor):
+    """Genuine frames in mm: every simulated scene's input depth of both built-in cameras (their own unambiguous
+    range: 2998 mm for default, 1999 mm for cam75) lies in the plausible range, and so does a x10 / 10 copy not."""
+    from tofdenoise.data_modules.capture_simulation import simulate_capture_set
+    from tofdenoise.data_modules.real_captures import INPUT_DEPTH
+    from tofdenoise.inference.frames import check_depth_units_mm, plausible_depth_range_mm
+    from tofdenoise.physics.calibration import resolve_calibration
+
+    calib = resolve_calibration(sensor)
+    simulate_capture_set(tmp_path / "set", scenes=3, frames=1, height=24, width=32, seed=1, calib=calib)
+    scenes = sorted(p for p in (tmp_path / "set").iterdir() if p.is_dir())
+    assert len(scenes) == 3
+    near, far = plausible_depth_range_mm(calib)
+    assert (near, far) == (300.0, pytest.approx(calib.unambiguous_range_mm))
+    for scene in scenes:
+        frame = load_frame(FrameInput(scene / INPUT_DEPTH, Path(INPUT_DEPTH)))
+        check_depth_units_mm(frame, scene / INPUT_DEPTH, (near, far))
+        for factor, unit in ((10.0, "0.1 mm units: pass --depth-scale-mm 0.1"), (0.1, "centimetres")):
+            scaled = frame.__class__(depth_mm=frame.depth_mm * factor, valid=frame.valid)
+            with pytest.raises(FrameError, match=unit):
+                check_depth_units_mm(scaled, scene / INPUT_DEPTH, (near, far))
+
+
+def test_the_units_check_names_the_median_and_the_likely_unit(tmp_path):
+    from tofdenoise.inference.frames import Frame, check_depth_units_mm
+
+    valid = np.ones((4, 4), bool)
+    cases = {19580.0: ("beyond 2998 mm", "0.1 mm units: pass --depth-scale-mm 0.1"),
+             150.0: ("nearer than 300 mm", "centimetres: pass --depth-scale-mm 10"),
+             1.5: ("nearer than 300 mm", "metres: pass --depth-scale-mm 1000"),
+             90000.0: ("beyond 2998 mm", "give the file's units with --depth-scale-mm")}  # fmt: skip
+    for median, (side, hint) in cases.items():
+        frame = Frame(depth_mm=np.full((4, 4), median, np.float32), valid=valid)
+        with pytest.raises(FrameError) as err:
+            check_depth_units_mm(frame, tmp_path / "f.png")
+        text = str(err.value)
+        assert str(tmp_path / "f.png") in text and f"median valid depth {median:.4g}" in text
+        assert side in text and hint in text
+    # mostly: a frame with fewer than half of its valid depths beyond the range is taken as mm
+    d = np.full((4, 4), 1500.0, np.float32)
+    d.flat[:7] = 19580.0
+    check_depth_units_mm(Frame(depth_mm=d, valid=valid), tmp_path / "f.png")

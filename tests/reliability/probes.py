@@ -130,11 +130,64 @@ def npy_in_metres(*rels: str) -> Callable[[W], None]:
     return damage
 
 
+def depth_times(rel: str, factor: float) -> Callable[[W], None]:
+    """A depth frame in other units: x10 (a camera counting 0.1 mm) or / 10 (centimetres), same file type."""
+
+    def damage(w: W) -> None:
+        p = w / rel
+        if p.suffix == ".npy":
+            np.save(p, (np.load(p) * factor).astype(np.float32))
+        else:
+            img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED).astype(np.float64) * factor
+            assert img.max() < 65536 and cv2.imwrite(str(p), np.rint(img).astype(np.uint16))
+
+    return damage
+
+
+def restored_in_mm(rel: str) -> Callable[[W, Any], None]:
+    """The restored frame's valid depths are millimetres of the world's scene (800-1100 mm)."""
+
+    def check(w: W, outcome: Any) -> None:
+        restored = cv2.imread(str(w / rel), cv2.IMREAD_UNCHANGED)
+        assert 700 < float(np.median(restored[restored > 0])) < 1200, outcome.err
+
+    return check
+
+
 def npy_dtype(rel: str, dtype: str) -> Callable[[W], None]:
     def damage(w: W) -> None:
         np.save(w / rel, np.load(w / rel).astype(dtype))
 
     return damage
+
+
+#: the block of ``amp/sub/b.npy`` that ``nan_amplitude(..., block=True)`` makes NaN (depth is valid there)
+NAN_AMPLITUDE_BLOCK = (slice(20, 30), slice(20, 40))
+
+
+def nan_amplitude(rel: str, block: bool = False) -> Callable[[W], None]:
+    """An amplitude frame that is NaN everywhere (a dropped IR stream saved as float), or in one block."""
+
+    def damage(w: W) -> None:
+        amp = np.load(w / rel)
+        if block:
+            amp[NAN_AMPLITUDE_BLOCK] = np.nan
+        else:
+            amp[:] = np.nan
+        np.save(w / rel, amp)
+
+    return damage
+
+
+def sigma_nan_where_the_amplitude_is(w: W, outcome: Any) -> None:
+    """The sigma_D map of ``frames/sub/b.npy`` is NaN (invalid) in the NaN block of its amplitude, finite at the
+    other valid depths."""
+    sigma = np.load(w / "out/d/sub/b_sigma_mm.npy")
+    depth_valid = np.isfinite(np.load(w / "frames/sub/b.npy"))
+    assert np.isnan(sigma[NAN_AMPLITUDE_BLOCK]).all(), "sigma_D is not NaN where the amplitude is NaN"
+    elsewhere = depth_valid.copy()
+    elsewhere[NAN_AMPLITUDE_BLOCK] = False
+    assert np.isfinite(sigma[elsewhere]).all() and np.isnan(sigma[~depth_valid]).all()
 
 
 def remove(rel: str) -> Callable[[W], None]:
@@ -304,6 +357,24 @@ PROBES += [
       lambda w: ["FAILED", str(w / "frames/sub/b.npy")], _DENOISE_OTHER["b"]),
     P("tofdenoise denoise", "bad_frames", "metres", denoise_args, npy_in_metres("frames/sub/b.npy"), 1,
       lambda w: ["FAILED", str(w / "frames/sub/b.npy"), "--depth-scale-mm"], _DENOISE_OTHER["b"]),
+    P("tofdenoise denoise", "bad_frames", "depth-in-0.1mm-units", denoise_args, depth_times("frames/a.png", 10), 1,
+      lambda w: ["FAILED", str(w / "frames/a.png"), "median valid depth 9", "beyond 2998 mm",
+                 "looks like 0.1 mm units: pass --depth-scale-mm 0.1"], _DENOISE_OTHER["a"]),
+    P("tofdenoise denoise", "bad_frames", "depth-in-cm", denoise_args, depth_times("frames/sub/b.npy", 0.1), 1,
+      lambda w: ["FAILED", str(w / "frames/sub/b.npy"), "median valid depth 9", "nearer than 300 mm",
+                 "looks like centimetres: pass --depth-scale-mm 10"], _DENOISE_OTHER["b"]),
+    P("tofdenoise denoise", "bad_frames", "depth-in-0.1mm-units-scale-given",
+      lambda w: [w / "frames/a.png", *denoise_args(w, "--depth-scale-mm", "0.1", out="out/s")[1:]],
+      depth_times("frames/a.png", 10), 0, may_change=("out/s",), check=restored_in_mm("out/s/a.png")),
+    P("tofdenoise denoise", "bad_frames", "amplitude-all-nan",
+      lambda w: denoise_args(w, "--amplitude", w / "amp", "--sensor", w / "calib.yaml"),
+      nan_amplitude("amp/sub/b.npy"), 1,
+      lambda w: ["FAILED", str(w / "frames/sub/b.npy"), str(w / "amp/sub/b.npy"), "no finite value"],
+      ("out/d/a.png", "out/d/a_sigma_mm.npy")),
+    P("tofdenoise denoise", "bad_frames", "amplitude-partly-nan",
+      lambda w: denoise_args(w, "--amplitude", w / "amp", "--sensor", w / "calib.yaml"),
+      nan_amplitude("amp/sub/b.npy", block=True), 0, may_change=("out/d",),
+      check=sigma_nan_where_the_amplitude_is),
     P("tofdenoise evaluate", "bad_frames", "truncated-png", eval_args, truncate("pred/s0.png", 100), 2,
       lambda w: ["error", "s0.png"]),
     P("tofdenoise evaluate", "bad_frames", "png-8bit", eval_args, write_png8("pred/s0.png"), 2,
@@ -552,6 +623,28 @@ def _text_metric(rel: str) -> Callable[[W], None]:
     return damage
 
 
+def _no_synthetic(rel: str) -> Callable[[W], None]:
+    """The ``synthetic`` section removed (a record edited by hand, or merged from a run of the real set only)."""
+
+    def damage(w: W) -> None:
+        data = json.loads((w / rel).read_text())
+        data["real"] = data.pop("synthetic")
+        (w / rel).write_text(json.dumps(data))
+
+    return damage
+
+
+def _nan_metric(rel: str) -> Callable[[W], None]:
+    """A NaN metric: ``json.dumps`` writes the non-strict ``NaN`` token, which Python's ``json`` reads back."""
+
+    def damage(w: W) -> None:
+        data = json.loads((w / rel).read_text())
+        data["synthetic"]["mae_mm"] = float("nan")
+        (w / rel).write_text(json.dumps(data))
+
+    return damage
+
+
 def _write(rel: str, text: str) -> Callable[[W], None]:
     def damage(w: W) -> None:
         (w / rel).write_text(text)
@@ -569,6 +662,10 @@ PROBES += [
       lambda w: ["error", f"{_REC}/metrics.json", "mae_mm"]),
     P("tofdenoise reproduce", "corrupt_records", "text-metric", page_args, _text_metric(f"{_REC}/metrics.json"), 2,
       lambda w: ["error", f"{_REC}/metrics.json", "mae_mm"]),
+    P("tofdenoise reproduce", "corrupt_records", "no-synthetic-section", page_args,
+      _no_synthetic(f"{_REC}/metrics.json"), 2, lambda w: ["error", f"{_REC}/metrics.json", "'synthetic'"]),
+    P("tofdenoise reproduce", "corrupt_records", "nan-metric", page_args, _nan_metric(f"{_REC}/metrics.json"), 2,
+      lambda w: ["error", f"{_REC}/metrics.json", "synthetic.mae_mm", "NaN"]),
     P("tofdenoise reproduce", "corrupt_records", "run-info-not-json", page_args, _write(f"{_REC}/run_info.json", "{x"),
       2, lambda w: ["error", f"{_REC}/run_info.json"]),
     P("tofdenoise report", "corrupt_records", "truncated-metrics", lambda w: [w / "runs", "--out", w / "out/r.html"],

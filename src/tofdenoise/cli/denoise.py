@@ -78,8 +78,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--depth-scale-mm",
         type=float,
         default=None,
-        help="millimetres per stored depth unit (default 1, and then a frame whose median valid depth is below "
-        "20 is refused as not in mm; e.g. 0.25, or 1000 for metres)",
+        help="millimetres per stored depth unit (default 1, and then a frame whose median valid depth lies below "
+        "300 mm, the training scenes' nearest depth, or beyond the sensor's unambiguous range (--sensor, else the "
+        "default camera: 2998 mm) is refused as not in mm; e.g. 0.25, 0.1, 10 for cm, 1000 for metres)",
     )
     p.add_argument("--fill-holes", action="store_true", help="give invalid input pixels a restored depth too")
     p.add_argument("--npy", action="store_true", help="also write the restored depth as float32 .npy (mm)")
@@ -148,7 +149,7 @@ def _fail(message: str) -> int:
 def run(args: argparse.Namespace) -> int:
     """Run the command on parsed arguments; returns the exit status."""
     from tofdenoise.inference.denoise import CheckpointError, load_restorer, resolve_device
-    from tofdenoise.inference.frames import AmplitudeSource, FrameError, find_frames
+    from tofdenoise.inference.frames import AmplitudeSource, FrameError, find_frames, plausible_depth_range_mm
     from tofdenoise.inference.outputs import OutputOptions
     from tofdenoise.inference.recordings import find_recordings
 
@@ -214,6 +215,7 @@ def run(args: argparse.Namespace) -> int:
         precision="fp32" if args.fp32 else "bf16",
         intrinsics=intrinsics,
         signal=signal,
+        depth_range_mm=plausible_depth_range_mm(calib),
     )
     tally = _Tally()
     interrupted = False
@@ -255,6 +257,8 @@ class _Job:
     precision: str
     intrinsics: Any = None
     signal: bool = False
+    #: (nearest, farthest) median depth [mm] a frame without --depth-scale-mm may have (frames.check_depth_units_mm)
+    depth_range_mm: tuple[float, float] | None = None
 
 
 @dataclass
@@ -284,7 +288,7 @@ def _denoise_one(frame: Any, job: _Job, tally: _Tally) -> None:
     try:
         data = load_frame(frame, job.depth_scale_mm, job.amplitude)
         if data.valid.any() and job.args.depth_scale_mm is None:
-            check_depth_units_mm(data, frame.path)
+            check_depth_units_mm(data, frame.path, job.depth_range_mm)
     except (FrameError, ValueError, OSError) as exc:
         tally.failed.append((str(frame.path), str(exc)))
         return

@@ -46,7 +46,11 @@ from tofdenoise.data_modules.io import write_depth_png16, write_png_uint8, write
 from tofdenoise.data_modules.maps import scene_signal_e
 from tofdenoise.data_modules.real_captures import HIEXP_DIR, INPUT_AMPLITUDE, INPUT_DEPTH, build_reference
 from tofdenoise.data_modules.sources.base import SourceContext
-from tofdenoise.data_modules.sources.procedural import DEFAULT_MAX_DEPTH_FRACTION, ProceduralSource
+from tofdenoise.data_modules.sources.procedural import (
+    DEFAULT_MAX_DEPTH_FRACTION,
+    DEFAULT_MIN_DEPTH_MM,
+    ProceduralSource,
+)
 from tofdenoise.physics.calibration import resolve_calibration, save_calibration
 from tofdenoise.physics.mixed_pixels import footprint_tap_means_e, mixed_pixel_map
 from tofdenoise.physics.simulator import simulate_frames, simulate_tap_mean_frames
@@ -286,7 +290,7 @@ def simulate_capture_set(
     seed: int = 0,
     calib: Any = None,
     hi_exposure: float = 4.0,
-    min_depth_mm: float = 300.0,
+    min_depth_mm: float = DEFAULT_MIN_DEPTH_MM,
     max_depth_fraction: float = DEFAULT_MAX_DEPTH_FRACTION,
     write_taps: bool = False,
     force: bool = False,

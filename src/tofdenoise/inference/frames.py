@@ -4,8 +4,15 @@ Depth formats (by suffix): 16-bit PNG/TIFF holding millimetres (0 = invalid), ``
 millimetres (NaN, inf, 0 and negative values = invalid), ``.exr`` (the depth-like channel, same validity). A
 ``depth_scale_mm`` other than 1 converts stored units to mm (e.g. 0.25 for a camera counting quarter millimetres,
 1000 for metres). An 8-bit or colour image is refused: it cannot hold depth in millimetres. Without a depth scale,
-``check_depth_units_mm`` refuses a frame whose median valid depth is below ``MIN_MEDIAN_DEPTH_MM`` (20 mm): such a
-frame is almost surely in metres or centimetres (a Kinect frame / 1000), not a scene 2 cm from the camera.
+``check_depth_units_mm`` refuses a frame whose valid depths lie mostly outside the depths the network and the
+sensor work in (``plausible_depth_range_mm``): its median valid depth below the training scenes' nearest depth
+(``DEFAULT_MIN_DEPTH_MM``, 300 mm) or beyond the calibration's unambiguous range (c / 2f, 2998 mm for the default
+camera), i.e. more than half of its valid depths out of that range on one side. Such a frame is almost surely in
+other units: metres (a Kinect frame / 1000), centimetres (/ 10) or 0.1 mm (x 10); the error names the median and
+the likely unit.
+
+Amplitude values that are not finite (NaN, inf) are invalid: the sigma_D map is NaN there, and a frame whose
+amplitude is invalid at every pixel of valid depth is refused (``FrameError`` naming the amplitude file).
 
 Amplitude frames are paired by the depth frame's stem (``pair_amplitude``): from a folder (the depth frame's
 sub-folder mirrored, then the folder itself), from a template with ``{stem}`` (e.g. ``amp/{stem}_amp.png``), or
@@ -18,6 +25,7 @@ import glob as _glob
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -33,7 +41,9 @@ __all__ = [
     "load_frame",
     "FrameError",
     "MIN_MEDIAN_DEPTH_MM",
+    "LIKELY_UNITS",
     "check_depth_units_mm",
+    "plausible_depth_range_mm",
 ]
 
 DEPTH_FRAME_SUFFIXES = (".png", ".tif", ".tiff", ".npy", ".exr")
@@ -42,8 +52,12 @@ RECORDING_SUFFIXES = (".mkv", ".bag")
 AMPLITUDE_SUFFIXES = (".png", ".tif", ".tiff", ".npy", ".exr")
 
 
-#: a frame whose median valid depth lies below this is refused as not in millimetres unless a depth scale is given
+#: a depth map whose median valid depth lies below this is refused as not in millimetres by ``tofdenoise evaluate``
+#: (``tofdenoise denoise`` checks the narrower ``plausible_depth_range_mm``)
 MIN_MEDIAN_DEPTH_MM = 20.0
+#: the units a frame refused by ``check_depth_units_mm`` is tried in, (mm per stored unit, name), in this order: the
+#: error names the first whose scaled median lies in the plausible range
+LIKELY_UNITS: tuple[tuple[float, str], ...] = ((1000.0, "metres"), (10.0, "centimetres"), (0.1, "0.1 mm units"))
 
 
 class FrameError(ValueError):
@@ -66,12 +80,15 @@ class FrameInput:
 @dataclass
 class Frame:
     """A depth frame in memory: ``depth_mm`` float32 (H, W) with 0 at invalid pixels, ``valid`` bool (H, W),
-    ``amplitude`` float32 (H, W) in its own units (0 where not finite) or None."""
+    ``amplitude`` float32 (H, W) in its own units (0 where not finite, the network's input) or None, and
+    ``amplitude_valid`` bool (H, W): where the amplitude was finite (None: everywhere). The sigma_D map is NaN
+    (invalid) where the amplitude is not valid (``outputs.frame_sigma``)."""
 
     depth_mm: np.ndarray
     valid: np.ndarray
     amplitude: np.ndarray | None = None
     name: str = ""
+    amplitude_valid: np.ndarray | None = None
 
 
 def _is_candidate(path: Path) -> bool:
@@ -220,18 +237,55 @@ def load_frame(frame: FrameInput, depth_scale_mm: float = 1.0, amplitude: Amplit
                 f"amplitude file {amp_path} has shape {amp.shape}; expected {depth.shape} like its "
                 f"depth frame {frame.path}"
             )
-        amp = np.where(np.isfinite(amp), amp, 0.0).astype(np.float32)
-    return Frame(depth_mm=depth, valid=valid, amplitude=amp, name=frame.rel_stem.as_posix())
+        amp_valid = np.isfinite(amp)
+        if valid.any() and not (amp_valid & valid).any():
+            raise FrameError(
+                f"amplitude file {amp_path} (for depth frame {frame.path}) holds no finite value where the depth is "
+                f"valid ({int((~amp_valid).sum())} of {amp.size} values are NaN or inf); expected the frame's "
+                "amplitude: a sigma_D map or the network's signal channel cannot come from it"
+            )
+        amp = np.where(amp_valid, amp, 0.0).astype(np.float32)
+    return Frame(
+        depth_mm=depth,
+        valid=valid,
+        amplitude=amp,
+        name=frame.rel_stem.as_posix(),
+        amplitude_valid=None if amp is None else amp_valid,
+    )
 
 
-def check_depth_units_mm(frame: Frame, path: str | Path) -> None:
-    """FrameError naming ``--depth-scale-mm`` when the median of the frame's valid depths is below
-    ``MIN_MEDIAN_DEPTH_MM``: implausible in millimetres (e.g. a depth map in metres written as float)."""
+def plausible_depth_range_mm(calib: Any = None) -> tuple[float, float]:
+    """(nearest, farthest) median valid depth [mm] that ``check_depth_units_mm`` takes as millimetres: the nearest
+    depth of the training scenes (``DEFAULT_MIN_DEPTH_MM``) and the unambiguous range of ``calib`` (a
+    ``SensorCalibration``; None: the default calibration), beyond which the sensor measures no depth."""
+    from tofdenoise.data_modules.sources.procedural import DEFAULT_MIN_DEPTH_MM
+    from tofdenoise.physics.calibration import default_calibration
+
+    calib = default_calibration() if calib is None else calib
+    return DEFAULT_MIN_DEPTH_MM, float(calib.unambiguous_range_mm)
+
+
+def check_depth_units_mm(frame: Frame, path: str | Path, depth_range_mm: tuple[float, float] | None = None) -> None:
+    """FrameError naming the median, the likely unit and ``--depth-scale-mm`` when the frame's valid depths lie
+    mostly outside ``depth_range_mm`` (``plausible_depth_range_mm()`` by default): their median below its nearest
+    or beyond its farthest depth, i.e. more than half of them out of the range on that side. Implausible in
+    millimetres: a depth map in metres or centimetres, or one counting 0.1 mm."""
     if not frame.valid.any():
         return
+    near, far = plausible_depth_range_mm() if depth_range_mm is None else depth_range_mm
     median_mm = float(np.median(frame.depth_mm[frame.valid]))
-    if median_mm < MIN_MEDIAN_DEPTH_MM:
-        raise FrameError(
-            f"depth file {path}: median valid depth {median_mm:.4g} is implausible in millimetres (below "
-            f"{MIN_MEDIAN_DEPTH_MM:g}); give the file's units with --depth-scale-mm (e.g. 1000 for metres, 10 for cm)"
-        )
+    if near <= median_mm <= far:
+        return
+    side = "nearer than" if median_mm < near else "beyond"
+    bound = near if median_mm < near else far
+    likely = [(scale, name) for scale, name in LIKELY_UNITS if near <= median_mm * scale <= far]
+    if likely:
+        scale, name = likely[0]
+        hint = f"looks like {name}: pass --depth-scale-mm {scale:g}"
+    else:
+        hint = "give the file's units with --depth-scale-mm (e.g. 1000 for metres, 10 for cm, 0.1 for 0.1 mm units)"
+    raise FrameError(
+        f"depth file {path}: median valid depth {median_mm:.4g} is implausible in millimetres (more than half of "
+        f"the valid depths lie {side} {bound:.0f} mm; taken as mm: {near:.0f} mm, the training scenes' nearest "
+        f"depth, to {far:.0f} mm, the sensor's unambiguous range); {hint} (--depth-scale-mm 1 if it is mm)"
+    )

@@ -194,9 +194,14 @@ def write_frame_outputs(
 
 
 def frame_sigma(frame: Any, calib: Any) -> np.ndarray | None:
-    """sigma_D map of a frame's input when a calibration and the amplitude are there, else None."""
+    """sigma_D map of a frame's input when a calibration and the amplitude are there, else None; NaN (invalid)
+    where the depth or the amplitude is not valid (``Frame.amplitude_valid``, or a non-finite amplitude)."""
     if calib is None or frame.amplitude is None:
         return None
     from tofdenoise.inference.denoise import sigma_map_mm
 
-    return sigma_map_mm(frame.depth_mm, frame.valid, frame.amplitude, calib)
+    amplitude = np.asarray(frame.amplitude, dtype=np.float32)
+    amplitude_valid = getattr(frame, "amplitude_valid", None)
+    if amplitude_valid is not None:
+        amplitude = np.where(amplitude_valid, amplitude, np.nan).astype(np.float32)
+    return sigma_map_mm(frame.depth_mm, frame.valid, amplitude, calib)

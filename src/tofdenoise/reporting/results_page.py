@@ -11,8 +11,9 @@ orderings with the seeds in which each holds.
 
 A record that exists but cannot be used is a :class:`RecordError` naming the file, never a run that quietly
 leaves the page: a truncated or non-JSON ``metrics.json`` / ``run_info.json`` (or ``validation.json``,
-``figure.json``), one that breaks the ``metrics.json`` schema, or a ``null`` metric. ``page_inputs(results_dir)``
-names what the page is built from, so the page never replaces it (``tofdenoise.output_guard``).
+``figure.json``), one that breaks the ``metrics.json`` schema, one without its ``synthetic`` set, or a ``null`` or
+NaN metric. ``page_inputs(results_dir)`` names what the page is built from, so the page never replaces it
+(``tofdenoise.output_guard``).
 """
 
 from __future__ import annotations
@@ -94,14 +95,33 @@ def _truth_set(path: Path) -> dict[str, Any] | None:
         ) from None
 
 
+#: the test set every run of the tables is scored on (the synthetic test split: ``datamodule.test_set_names``
+#: always starts with it); ``real`` is there only for runs with a real set, ``real_truth`` only with its own file
+REQUIRED_SET = "synthetic"
+
+
 def _read_metrics(path: Path) -> dict[str, Any]:
-    """A run's ``metrics.json``, schema-checked, with no ``null`` metric (a value the tables cannot use)."""
+    """A run's ``metrics.json``, schema-checked, with its ``synthetic`` set and no ``null`` or NaN metric (values
+    the tables cannot use: the run would drop out of a row's mean and an ordering silently)."""
     data = load_metrics(path)
-    for set_name, entry in metric_sets(data).items():
+    sets = metric_sets(data)
+    if REQUIRED_SET not in sets:
+        raise RecordError(
+            f"{path}: no '{REQUIRED_SET}' section (it has {', '.join(repr(s) for s in sets) or 'none'}): every run "
+            f"of the tables is scored on the synthetic test split; expected '{REQUIRED_SET}' with "
+            f"{', '.join(METRIC_KEYS)}"
+        )
+    for set_name, entry in sets.items():
         for where, block in ((set_name, entry), (f"{set_name}.raw", entry.get("raw") or {})):
             for key in METRIC_KEYS:
-                if key in block and block[key] is None:
+                value = block.get(key)
+                if key in block and value is None:
                     raise RecordError(f"{path}: '{where}.{key}' is null: the run has no value for it")
+                if isinstance(value, float) and math.isnan(value):
+                    raise RecordError(
+                        f"{path}: '{where}.{key}' is NaN: expected a number (metrics.json writes a missing value "
+                        "as null, never NaN)"
+                    )
     return data
 
 

@@ -44,6 +44,8 @@ from tofdenoise.data_modules.sources.base import (
 DEFAULT_HFOV_DEG = 63.5
 #: the deepest scene depth as a fraction of the calibration's unambiguous range (``max_depth_fraction``)
 DEFAULT_MAX_DEPTH_FRACTION = 0.8
+#: the nearest scene depth [mm] (``min_depth_mm``): the training scenes and the simulated capture sets start here
+DEFAULT_MIN_DEPTH_MM = 300.0
 
 
 def focal_length_px(width: int, hfov_deg: float = DEFAULT_HFOV_DEG) -> float:
@@ -526,7 +528,7 @@ class ProceduralSource:
         height: int = 480,
         width: int = 640,
         seed: int = 0,
-        min_depth_mm: float = 300.0,
+        min_depth_mm: float = DEFAULT_MIN_DEPTH_MM,
         max_depth_mm: float = 2000.0,
         hfov_deg: float = DEFAULT_HFOV_DEG,
     ):
