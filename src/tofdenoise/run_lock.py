@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import atexit
 import fcntl
+import importlib
 import json
 import logging
 import os
@@ -267,8 +268,6 @@ class HydraRunLock:
                 raise
 
     def _before_job(self, config: Any, run_dir: str) -> None:
-        import importlib
-
         from omegaconf import open_dict
 
         module, _, name = self.before_job.rpartition(".")
