@@ -17,7 +17,9 @@ real set, the runs, their records, the page; the targets: ``tofdenoise.experimen
 every run of the target finished, 1 when one did not; 2 for a usage error, for ``--page`` that would replace what
 the page is built from (the discussion, a record: ``tofdenoise.output_guard``, checked before anything runs) and
 for a record that cannot be used (``records.RecordError``, naming the file; a run without a record
-is listed on the page as missing).
+is listed on the page as missing), and for ``--page-only`` with a ``--results`` folder that does not exist. A
+missing ``<results>/discussion.md`` is a warning naming it: the page is rebuilt without its discussion (a fresh
+results folder has none yet).
 """
 
 from __future__ import annotations
@@ -33,7 +35,7 @@ from tofdenoise.experiments.targets import KINDS, Target
 from tofdenoise.output_guard import OutputPathError, check_output_file
 from tofdenoise.paths import REPO_ROOT
 from tofdenoise.records import RecordError
-from tofdenoise.reporting.results_page import page_inputs
+from tofdenoise.reporting.results_page import DISCUSSION_NAME, page_inputs
 
 __all__ = ["build_parser", "main"]
 
@@ -119,6 +121,17 @@ def main(argv: list[str] | None = None) -> int:
         executor=executor,
         skip_recorded=args.skip_recorded,
     )
+    if job.target is None and not args.results.is_dir():  # else an empty page, exit 0
+        print(
+            f"{PROG}: error: --results {args.results}: no such folder (the run records the page is built from)",
+            file=sys.stderr,
+        )
+        return 2
+    discussion = args.results / DISCUSSION_NAME
+    if not args.dry_run and not discussion.is_file():  # the page is still rebuilt, but not silently without it
+        print(
+            f"{PROG}: warning: {discussion}: no such file; the page is rebuilt without its discussion", file=sys.stderr
+        )
     try:
         # the page is rebuilt from the discussion and the records: it may never replace one of them
         check_output_file(args.page, (".md",), page_inputs(args.results), what="--page", shadow=False)
