@@ -203,6 +203,12 @@ def remove(rel: str) -> Callable[[W], None]:
     return damage
 
 
+def _no_run_record(run_dir: Path) -> None:
+    """A refused run wrote nothing of a run into its folder: no ``.hydra/``, log, ``config.log`` or ``csv/``."""
+    left = sorted(p.name for p in run_dir.iterdir()) if run_dir.exists() else []
+    assert set(left) <= {"run.lock"}, f"{run_dir} holds {left}"
+
+
 def first_stack(w: W, folder: str) -> str:
     """The first stack file of a capture folder (from its index.json), relative to the world."""
     index = json.loads((w / folder / "index.json").read_text())
@@ -401,6 +407,10 @@ PROBES += [
       lambda w: ["error", "index.json"]),
     P("tofdenoise sensor build-reference", "bad_captures", "no-hiexp", lambda w: [w / "scenes/scene_0000", "--quiet"],
       remove("scenes/scene_0000/hiexp"), 2, lambda w: ["error", "scene_0000"]),
+    P("tofdenoise train", "bad_captures", "negative-fixed-noise-sigma",
+      lambda w: train_args(w, "noise=fixed", "++noise.kwargs.sigma_mm=-5"), None, 2,
+      lambda w: ["error", "noise.kwargs", "sigma_mm", "-5"],
+      check=lambda w, outcome: _no_run_record(w / "out/run")),
     P("tofdenoise train", "bad_captures", "empty-real-dir",
       lambda w: train_args(w, f"++data.real_dir={w / 'frames/sub'}"), None, 2, lambda w: ["error", "data"],
       _HYDRA_RUN),

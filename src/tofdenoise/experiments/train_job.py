@@ -397,6 +397,45 @@ def check_same_run(cfg: DictConfig, run_dir: Path) -> None:
         )
 
 
+def check_before_writing(cfg: DictConfig, run_dir: str | Path) -> None:
+    """What ``hydra.callbacks.run_lock.before_job`` (``configs/train.yaml``) checks with the run folder's lock held,
+    before Hydra writes ``.hydra/`` or its log there: the noise settings (:func:`check_noise`), then a finished run
+    in the folder (:func:`check_finished_run`). A ``ValueError`` is one line and exit status 2, the folder left as
+    it was (issue 41)."""
+    check_noise(cfg)
+    check_finished_run(cfg, run_dir)
+
+
+def check_noise(cfg: DictConfig) -> None:
+    """The training noise model (``data.noise`` / ``data.noise_kwargs``, from the ``noise`` group) is built once, as
+    the data module will build it: an unknown model, an unknown keyword or a value out of range
+    (``noise.kwargs.sigma_mm=-5``) is a ``ConfigError`` naming ``noise.kwargs`` and the setting, before anything is
+    written (it was a traceback after the trainer started). A ``range`` model without ``alpha_mm`` takes its
+    coefficients from the calibration, which is read only then."""
+    from tofdenoise.data_modules.datamodule import data_calibration
+
+    data = cfg.get("data") or {}
+    name = str(data.get("noise", "hetero")).lower()
+    kwargs = data.get("noise_kwargs") or {}
+    if isinstance(kwargs, DictConfig):
+        kwargs = OmegaConf.to_container(kwargs, resolve=True)
+    if not isinstance(kwargs, dict):
+        raise ConfigError(f"noise.kwargs: expected a mapping of keyword arguments, got {kwargs!r}")
+    calib = None
+    if name == "range" and kwargs.get("alpha_mm") is None:
+        sensor = data.get("sensor")
+        if isinstance(sensor, DictConfig):
+            sensor = OmegaConf.to_container(sensor, resolve=True)
+        try:
+            calib = data_calibration(sensor, data.get("signal_route", "linear"), data.get("signal_dynamic_range"))
+        except (ValueError, FileNotFoundError) as exc:
+            raise ConfigError(f"data: {exc}") from None
+    try:
+        NOISE_MODELS.build(name, calib=calib, **kwargs)
+    except (ValueError, TypeError) as exc:
+        raise ConfigError(f"noise.kwargs of noise={name}: {exc}") from None
+
+
 def check_finished_run(cfg: DictConfig, run_dir: str | Path) -> None:
     """The same-run check of a finished run folder (:func:`check_same_run`), made before Hydra writes anything there.
 
