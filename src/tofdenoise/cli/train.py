@@ -38,6 +38,7 @@ from tofdenoise.output_guard import OutputPathError
 from tofdenoise.run_lock import RunLockedError
 from tofdenoise.training.checkpoint_file import CheckpointFileError
 from tofdenoise.training.init_weights import InitWeightsError
+from tofdenoise.training.module import CheckpointMismatchError
 
 __all__ = ["main", "run", "validate_config", "record_calibration"]
 
@@ -45,6 +46,7 @@ PROG = "tofdenoise train"
 #: errors printed as one ``tofdenoise train: error: ...`` line with exit status 2
 ERRORS = (
     CheckpointFileError,
+    CheckpointMismatchError,
     CheckpointWriteError,
     ConfigError,
     InitWeightsError,

@@ -45,11 +45,20 @@ from tofdenoise.config import ConfigError, instantiate_node
 from tofdenoise.models.registry import BACKBONES, is_trainable
 from tofdenoise.output_guard import refuse_overwrite
 from tofdenoise.physics.noise_models import NOISE_MODELS
-from tofdenoise.records import BEST_CHECKPOINT, METRICS_NAME, RUN_INFO_NAME, read_metrics_json, read_run, run_finished
+from tofdenoise.records import (
+    BEST_CHECKPOINT,
+    LAST_CHECKPOINT,
+    METRICS_NAME,
+    RUN_INFO_NAME,
+    read_metrics_json,
+    read_run,
+    run_finished,
+)
 from tofdenoise.registry import Registry
 from tofdenoise.run_lock import RunLock
 from tofdenoise.training.checkpoint_file import check_checkpoint_file, resolve_ckpt_path
 from tofdenoise.training.losses import LOSSES
+from tofdenoise.training.module import CheckpointMismatchError, checkpoint_backbone
 from tofdenoise.wandb_env import finish_wandb, setup_wandb_env, wandb_run_id
 
 __all__ = [
@@ -276,6 +285,7 @@ def _run_locked(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         resume_ckpt = resolve_ckpt_path(cfg.get("ckpt_path"), run_dir)
         if resume_ckpt is not None:
             check_checkpoint_file(resume_ckpt)
+            check_resume_backbone(cfg, resume_ckpt)
     elif not cfg.get("train", True) and cfg.get("test", True):
         _test_checkpoint(cfg, None, run_dir)
 
@@ -403,7 +413,28 @@ def check_before_writing(cfg: DictConfig, run_dir: str | Path) -> None:
     in the folder (:func:`check_finished_run`). A ``ValueError`` is one line and exit status 2, the folder left as
     it was (issue 41)."""
     check_noise(cfg)
+    run_dir = Path(str(run_dir)).expanduser().resolve()
+    if cfg.get("train", True) and not run_finished(run_dir):
+        given = cfg.get("ckpt_path")
+        if given == "last":
+            check_resume_backbone(cfg, run_dir / LAST_CHECKPOINT)
+        elif given not in (None, "", "null"):
+            check_resume_backbone(cfg, Path(str(given)).expanduser())
     check_finished_run(cfg, run_dir)
+
+
+def check_resume_backbone(cfg: DictConfig, ckpt: str | Path) -> None:
+    """A checkpoint to resume from (``ckpt_path``) that was written for another backbone than ``model.backbone`` is
+    a ``CheckpointMismatchError`` naming the file and both backbones, before the data are prepared (it was a
+    traceback from Lightning's restore once they were). The full architecture (``backbone_kwargs``, conditioning)
+    is still compared when the checkpoint is restored. A file without hyper-parameters is left to that check."""
+    theirs = checkpoint_backbone(str(ckpt))
+    mine = (cfg.get("model") or {}).get("backbone")
+    if theirs is not None and mine is not None and str(mine) != theirs:
+        raise CheckpointMismatchError(
+            f"ckpt_path {ckpt}: the checkpoint was written for backbone {theirs!r}, this run builds {str(mine)!r}; "
+            f"select backbone={theirs} to resume it, or another checkpoint"
+        )
 
 
 def check_noise(cfg: DictConfig) -> None:

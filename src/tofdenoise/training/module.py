@@ -34,7 +34,14 @@ from tofdenoise.training.losses import DepthLoss, build_loss
 from tofdenoise.training.metrics import DepthMetrics, FixedBatchCache, depth_metrics_per_image
 from tofdenoise.training.optim import OptimSettings
 
-__all__ = ["DepthRestorer", "CheckpointMismatchError", "step_predictions", "final_prediction", "step_loss_weights"]
+__all__ = [
+    "DepthRestorer",
+    "CheckpointMismatchError",
+    "checkpoint_backbone",
+    "step_predictions",
+    "final_prediction",
+    "step_loss_weights",
+]
 
 log = logging.getLogger(__name__)
 
@@ -434,6 +441,14 @@ def _saved_hparams(checkpoint_path: Any) -> dict[str, Any] | None:
         return None
     saved = content.get("hyper_parameters") if isinstance(content, dict) else None
     return dict(saved) if isinstance(saved, dict) else None
+
+
+def checkpoint_backbone(checkpoint_path: Any) -> str | None:
+    """The backbone name a checkpoint file was written for (its hyper-parameters), or None when the file has none
+    (or cannot be read: the loader reports that)."""
+    saved = _saved_hparams(checkpoint_path)
+    backbone = upgrade_hparams(saved).get("backbone") if saved else None
+    return None if backbone is None else str(backbone)
 
 
 def step_predictions(out: Tensor | Sequence[Tensor]) -> list[Tensor]:
