@@ -43,7 +43,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-__all__ = ["LOCK_NAME", "HydraRunLock", "RunLock", "RunLockedError", "is_worker_rank", "release_all"]
+__all__ = ["LOCK_NAME", "HydraRunLock", "RunFolderError", "RunLock", "RunLockedError", "is_worker_rank", "release_all"]
 
 log = logging.getLogger("tofdenoise.run_lock")
 
@@ -56,6 +56,11 @@ _ATEXIT = False
 
 class RunLockedError(RuntimeError):
     """The run folder is being written by another process (the message names the lock file and its holder)."""
+
+
+class RunFolderError(RunLockedError):
+    """The run folder cannot be made: a file is in its place, or in the place of a folder above it (the message
+    names that file). A ``RunLockedError``, so every command that takes the lock prints it as one line, exit 2."""
 
 
 def is_worker_rank() -> bool:
@@ -124,7 +129,12 @@ class RunLock:
 
     def _open_locked(self) -> int:
         """An fd of the lock file with the flock held, the path still naming that file."""
-        self.run_dir.mkdir(parents=True, exist_ok=True)
+        try:
+            self.run_dir.mkdir(parents=True, exist_ok=True)
+        except (FileExistsError, NotADirectoryError):
+            blocker = next((p for p in (self.run_dir, *self.run_dir.parents) if p.exists() and not p.is_dir()), None)
+            what = "is a file" if blocker in (None, self.run_dir) else f"cannot be made: {blocker} is a file"
+            raise RunFolderError(f"run folder {self.run_dir} {what}, not a folder; choose another run folder") from None
         while True:
             fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
             try:
