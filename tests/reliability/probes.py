@@ -431,6 +431,11 @@ for _cmd, _argv in _CALIB_READERS.items():
             P(_cmd, "bad_yaml", _case, _argv, _damage, 2, (lambda n: lambda w: ["error", *n])(_names),
               _HYDRA_RUN if _cmd in ("tofdenoise train", "tofdenoise classic") else ())
         )  # fmt: skip
+PROBES.append(
+    P("tofdenoise denoise", "bad_yaml", "misspelt-preset",
+      lambda w: denoise_args(w, "--amplitude", w / "amp", "--sensor", "cam57"), None, 2,
+      lambda w: ["error", "cam57", "presets", "cam75", "default"])
+)  # fmt: skip
 
 
 def _lightning_config(text: bytes) -> Callable[[W], None]:
