@@ -502,8 +502,21 @@ def _finished_unet_run(w: W) -> None:
     (run / "run_info.json").write_text(json.dumps({"backbone": "unet", "finished": "2026-11-20T10:05:00+0000"}))
 
 
+def _checkpoint_in_its_folder(w: W) -> None:
+    """The checkpoint in a folder of its own (``ckpts/model.ckpt``), as in a run's ``checkpoints/``."""
+    (w / "ckpts").mkdir()
+    (w / "ckpts/model.ckpt").write_bytes((w / "model.ckpt").read_bytes())
+
+
 # misuse of outputs: an output that is an input, or that lies where it would replace one
 PROBES += [
+    P("tofdenoise denoise", "misuse_outputs", "out-is-an-input-frame", lambda w: denoise_args(w, out="frames/a.png"),
+      None, 2, lambda w: ["error", "--out", str(w / "frames/a.png"), "input"]),
+    P("tofdenoise denoise", "misuse_outputs", "out-is-the-checkpoint", lambda w: denoise_args(w, out="model.ckpt"),
+      None, 2, lambda w: ["error", "--out", "would replace the input", str(w / "model.ckpt")]),
+    P("tofdenoise denoise", "misuse_outputs", "out-holds-the-checkpoint",
+      lambda w: [w / "frames", "--ckpt", w / "ckpts/model.ckpt", "--out", w / "ckpts", "--device", "cpu", "--quiet"],
+      _checkpoint_in_its_folder, 2, lambda w: ["error", "--out", "holds the input", str(w / "ckpts/model.ckpt")]),
     P("tofdenoise denoise", "misuse_outputs", "out-is-the-input-folder", lambda w: denoise_args(w, out="frames"),
       None, 2, lambda w: ["error", "--out", "holds the input", str(w / "frames")]),
     P("tofdenoise denoise", "misuse_outputs", "npy-replaces-the-amplitude",
