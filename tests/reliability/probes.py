@@ -607,6 +607,13 @@ def _scene_is_the_other_runs(w: W, outcome: Any) -> None:
     assert sorted(p.name for p in (w / "out/rs7").iterdir()) == ["desk"], "a partial scene was left"
 
 
+PROBES.append(
+    P("tofdenoise sensor realset", "misuse_outputs", "out-is-the-recording",
+      lambda w: ["--from-recording", w / "rec/desk1.bag", "--out", w / "rec/desk1.bag"], _two_recordings, 2,
+      lambda w: ["error", "--out", "would replace the input", str(w / "rec/desk1.bag")])
+)  # fmt: skip
+
+
 # concurrent writers: another process holds the run folder's lock; two runs onto one output
 PROBES += [
     P("tofdenoise sensor realset", "concurrent", "two-recordings-one-scene", _realset_scene(1), _two_recordings, 2,
