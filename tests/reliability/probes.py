@@ -441,6 +441,11 @@ for _cmd, _argv in _CALIB_READERS.items():
             P(_cmd, "bad_yaml", _case, _argv, _damage, 2, (lambda n: lambda w: ["error", *n])(_names),
               _HYDRA_RUN if _cmd in ("tofdenoise train", "tofdenoise classic") else ())
         )  # fmt: skip
+PROBES.append(
+    P("tofdenoise denoise", "bad_yaml", "misspelt-preset",
+      lambda w: denoise_args(w, "--amplitude", w / "amp", "--sensor", "cam57"), None, 2,
+      lambda w: ["error", "cam57", "presets", "cam75", "default"])
+)  # fmt: skip
 
 
 def _lightning_config(text: bytes) -> Callable[[W], None]:
@@ -507,8 +512,21 @@ def _finished_unet_run(w: W) -> None:
     (run / "run_info.json").write_text(json.dumps({"backbone": "unet", "finished": "2026-11-20T10:05:00+0000"}))
 
 
+def _checkpoint_in_its_folder(w: W) -> None:
+    """The checkpoint in a folder of its own (``ckpts/model.ckpt``), as in a run's ``checkpoints/``."""
+    (w / "ckpts").mkdir()
+    (w / "ckpts/model.ckpt").write_bytes((w / "model.ckpt").read_bytes())
+
+
 # misuse of outputs: an output that is an input, or that lies where it would replace one
 PROBES += [
+    P("tofdenoise denoise", "misuse_outputs", "out-is-an-input-frame", lambda w: denoise_args(w, out="frames/a.png"),
+      None, 2, lambda w: ["error", "--out", str(w / "frames/a.png"), "input"]),
+    P("tofdenoise denoise", "misuse_outputs", "out-is-the-checkpoint", lambda w: denoise_args(w, out="model.ckpt"),
+      None, 2, lambda w: ["error", "--out", "would replace the input", str(w / "model.ckpt")]),
+    P("tofdenoise denoise", "misuse_outputs", "out-holds-the-checkpoint",
+      lambda w: [w / "frames", "--ckpt", w / "ckpts/model.ckpt", "--out", w / "ckpts", "--device", "cpu", "--quiet"],
+      _checkpoint_in_its_folder, 2, lambda w: ["error", "--out", "holds the input", str(w / "ckpts/model.ckpt")]),
     P("tofdenoise denoise", "misuse_outputs", "out-is-the-input-folder", lambda w: denoise_args(w, out="frames"),
       None, 2, lambda w: ["error", "--out", "holds the input", str(w / "frames")]),
     P("tofdenoise denoise", "misuse_outputs", "npy-replaces-the-amplitude",
@@ -601,6 +619,13 @@ def _scene_is_the_other_runs(w: W, outcome: Any) -> None:
     meta = json.loads((w / "out/rs7/desk/recording.json").read_text())
     assert meta["recording"] == str(w / "rec/desk2.bag"), meta
     assert sorted(p.name for p in (w / "out/rs7").iterdir()) == ["desk"], "a partial scene was left"
+
+
+PROBES.append(
+    P("tofdenoise sensor realset", "misuse_outputs", "out-is-the-recording",
+      lambda w: ["--from-recording", w / "rec/desk1.bag", "--out", w / "rec/desk1.bag"], _two_recordings, 2,
+      lambda w: ["error", "--out", "would replace the input", str(w / "rec/desk1.bag")])
+)  # fmt: skip
 
 
 # concurrent writers: another process holds the run folder's lock; two runs onto one output
@@ -698,6 +723,22 @@ PROBES += [
       2, lambda w: ["error", f"{_GRID_REC}/run_info.json"]),
     P("tofdenoise denoise", "corrupt_records", "truncated-checkpoint", denoise_args, truncate("model.ckpt", 4000), 2,
       lambda w: ["error", "model.ckpt"]),
+    P("tofdenoise denoise", "corrupt_records", "ckpt-is-an-onnx-graph",
+      lambda w: [w / "frames", "--ckpt", w / "out/detector.onnx", "--out", w / "out/d", "--device", "cpu"],
+      _foreign_onnx, 2,
+      lambda w: ["error", str(w / "out/detector.onnx"), "ONNX graph", "Lightning checkpoint (.ckpt)"]),
+    P("tofdenoise denoise", "corrupt_records", "ckpt-is-a-png",
+      lambda w: [w / "frames", "--ckpt", w / "frames/a.png", "--out", w / "out/d", "--device", "cpu"], None, 2,
+      lambda w: ["error", str(w / "frames/a.png"), "PNG image", "Lightning checkpoint (.ckpt)"]),
+    P("tofdenoise evaluate", "corrupt_records", "ckpt-is-an-onnx-graph",
+      lambda w: ["--ckpt", w / "out/detector.onnx", "--captures", w / "scenes", "--sensor", w / "calib.yaml",
+                 "--out", w / "out/m.json", "--device", "cpu"],
+      _foreign_onnx, 2,
+      lambda w: ["error", str(w / "out/detector.onnx"), "ONNX graph", "Lightning checkpoint (.ckpt)"]),
+    P("tofdenoise evaluate", "corrupt_records", "ckpt-is-a-png",
+      lambda w: ["--ckpt", w / "frames/a.png", "--captures", w / "scenes", "--sensor", w / "calib.yaml",
+                 "--out", w / "out/m.json", "--device", "cpu"], None, 2,
+      lambda w: ["error", str(w / "frames/a.png"), "PNG image", "Lightning checkpoint (.ckpt)"]),
     P("tofdenoise export", "corrupt_records", "truncated-checkpoint",
       lambda w: [w / "model.ckpt", "--onnx", w / "out/m.onnx"], truncate("model.ckpt", 4000), 2,
       lambda w: ["error", "model.ckpt"]),
@@ -846,7 +887,6 @@ EXEMPT: dict[str, dict[str, str]] = {
         "bad_captures": _NO_CAPTURES,
         "bad_yaml": _NO_YAML,
         "concurrent": _NO_RUN,
-        "corrupt_records": _NO_RECORDS,
         "signals": _SHORT,
     },
     "tofdenoise report": {

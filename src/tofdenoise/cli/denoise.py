@@ -433,7 +433,11 @@ def _refuse_replacing_inputs(
         for key, path in output_paths(args.out, frame.rel_stem.as_posix()).items()
         if key in wanted
     ]
-    folders = [Path(args.out) / r.rel_stem for r in recordings]
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():  # an input file, the checkpoint: "File exists" once a frame was computed
+        refuse_overwrite([out], [*inputs, *args.inputs], "--out")
+        raise OutputPathError(f"--out {out} is a file; give a folder for the outputs")
+    folders = [out] + [out / r.rel_stem for r in recordings]
     refuse_overwrite(outputs, inputs, "--out", output_folders=folders)
 
 

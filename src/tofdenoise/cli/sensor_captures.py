@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from tofdenoise.cli.sensor_physics import input_files
-from tofdenoise.output_guard import refuse_overwrite
+from tofdenoise.output_guard import OutputPathError, refuse_overwrite
 
 
 def _simulate(args: argparse.Namespace) -> int:
@@ -120,6 +120,9 @@ def _realset_from_recording(args: argparse.Namespace) -> int:
     rec = Path(args.from_recording).expanduser()
     out = Path(args.out).expanduser()
     name = args.scene or (rec.stem if rec.is_file() else rec.name)
+    if out.exists() and not out.is_dir():  # --out REC.mkv: a FileExistsError once the recording was read
+        refuse_overwrite([out], [rec])
+        raise OutputPathError(f"--out {out} is a file; give the folder of the capture set")
     refuse_overwrite([], [rec], output_folders=[out / name])
     summary = scene_from_recording(
         rec,

@@ -57,6 +57,34 @@ def load_failure_reason(exc: BaseException) -> str:
     return first.split("  (Could this error message be improved?")[0].strip()
 
 
+#: file signatures of what is given as a checkpoint by mistake: (leading bytes, what the file is)
+_NOT_A_CHECKPOINT = (
+    (b"\x89PNG\r\n\x1a\n", "a PNG image"),
+    (b"\xff\xd8\xff", "a JPEG image"),
+    (b"II*\x00", "a TIFF image"),
+    (b"MM\x00*", "a TIFF image"),
+    (b"\x93NUMPY", "a NumPy array (.npy)"),
+)
+
+
+def looks_like(path: Path) -> str:
+    """What a file that is no PyTorch checkpoint looks like ("" when it is none of the known kinds): an image, a
+    NumPy array or an ONNX graph (a protobuf ``ModelProto``: field 1 ``ir_version``, then ``producer_name``,
+    ``opset_import`` or ``graph``)."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(16)
+    except OSError:
+        return ""
+    for signature, what in _NOT_A_CHECKPOINT:
+        if head.startswith(signature):
+            return what
+    onnx_fields = len(head) > 2 and head[0] == 0x08 and head[1] < 0x80 and head[2] in (0x12, 0x1A, 0x3A, 0x42)
+    if path.suffix.lower() == ".onnx" or onnx_fields:
+        return "an ONNX graph (an exported model; `tofdenoise denoise --onnx` runs one)"
+    return ""
+
+
 def load_restorer(ckpt: str | Path, device: str | torch.device = "cpu"):
     """A ``DepthRestorer`` in eval mode from a checkpoint of ``tofdenoise train`` / ``tofdenoise fit``; anything
     else is a ``CheckpointError`` naming the file and what was expected."""
@@ -68,6 +96,12 @@ def load_restorer(ckpt: str | Path, device: str | torch.device = "cpu"):
     try:
         content = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # not a torch file, truncated, pickled objects ...
+        kind = looks_like(path)
+        if kind:
+            raise CheckpointError(
+                f"checkpoint {path} is {kind}, not a checkpoint; expected a Lightning checkpoint (.ckpt) of a "
+                "DepthRestorer, written by tofdenoise train or tofdenoise fit"
+            ) from exc
         raise CheckpointError(
             f"checkpoint {path} could not be read as a PyTorch checkpoint ({load_failure_reason(exc)}); {expected}"
         ) from exc

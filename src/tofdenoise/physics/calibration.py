@@ -597,6 +597,11 @@ def resolve_calibration(spec: Any = None) -> SensorCalibration:
             preset = CONFIG_DIR / "sensor" / f"{spec}.yaml"
             if preset.is_file():
                 return load_calibration(preset)
+            presets = sorted(f.stem for f in (CONFIG_DIR / "sensor").glob("*.yaml"))
+            raise CalibrationError(
+                f"{spec}: no such file and no sensor preset of that name; presets: {', '.join(presets)} "
+                f"(or a calibration file ending in .yaml, .yml or .json)"
+            )
         return load_calibration(p)
     spec = _plain_mapping(spec)
     if isinstance(spec, Mapping):
