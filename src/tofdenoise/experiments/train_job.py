@@ -437,13 +437,26 @@ def check_resume_backbone(cfg: DictConfig, ckpt: str | Path) -> None:
         )
 
 
+def _config_calibration(data):
+    """The calibration the data module resolves from the composed ``data`` node (``sensor``, ``signal_route``,
+    ``signal_dynamic_range``); a ``ConfigError`` naming ``data`` when it cannot be read."""
+    from tofdenoise.data_modules.datamodule import data_calibration
+
+    sensor = data.get("sensor")
+    if isinstance(sensor, DictConfig):
+        sensor = OmegaConf.to_container(sensor, resolve=True)
+    try:
+        return data_calibration(sensor, data.get("signal_route", "linear"), data.get("signal_dynamic_range"))
+    except (ValueError, FileNotFoundError) as exc:
+        raise ConfigError(f"data: {exc}") from None
+
+
 def check_noise(cfg: DictConfig) -> None:
     """The training noise model (``data.noise`` / ``data.noise_kwargs``, from the ``noise`` group) is built once, as
     the data module will build it: an unknown model, an unknown keyword or a value out of range
     (``noise.kwargs.sigma_mm=-5``) is a ``ConfigError`` naming ``noise.kwargs`` and the setting, before anything is
     written (it was a traceback after the trainer started). A ``range`` model without ``alpha_mm`` takes its
     coefficients from the calibration, which is read only then."""
-    from tofdenoise.data_modules.datamodule import data_calibration
 
     data = cfg.get("data") or {}
     name = str(data.get("noise", "hetero")).lower()
@@ -452,15 +465,7 @@ def check_noise(cfg: DictConfig) -> None:
         kwargs = OmegaConf.to_container(kwargs, resolve=True)
     if not isinstance(kwargs, dict):
         raise ConfigError(f"noise.kwargs: expected a mapping of keyword arguments, got {kwargs!r}")
-    calib = None
-    if name == "range" and kwargs.get("alpha_mm") is None:
-        sensor = data.get("sensor")
-        if isinstance(sensor, DictConfig):
-            sensor = OmegaConf.to_container(sensor, resolve=True)
-        try:
-            calib = data_calibration(sensor, data.get("signal_route", "linear"), data.get("signal_dynamic_range"))
-        except (ValueError, FileNotFoundError) as exc:
-            raise ConfigError(f"data: {exc}") from None
+    calib = _config_calibration(data) if name == "range" and kwargs.get("alpha_mm") is None else None
     try:
         NOISE_MODELS.build(name, calib=calib, **kwargs)
     except (ValueError, TypeError) as exc:
@@ -477,19 +482,11 @@ def check_finished_run(cfg: DictConfig, run_dir: str | Path) -> None:
     node) once it holds the folder's lock: a folder that :func:`run` would return as a finished run must hold a
     run of this config (``RunConfigMismatchError``), else nothing is written. The ``sensor`` compared is the
     calibration the data module resolves (:func:`record_calibration`), as in :func:`run`."""
-    from tofdenoise.data_modules.datamodule import data_calibration
 
     run_dir = Path(str(run_dir)).expanduser().resolve()
     if not (cfg.get("train", True) and cfg.get("reuse_finished", True) and run_finished(run_dir)):
         return
-    data = cfg.get("data") or {}
-    sensor = data.get("sensor")
-    if isinstance(sensor, DictConfig):
-        sensor = OmegaConf.to_container(sensor, resolve=True)
-    try:
-        calib = data_calibration(sensor, data.get("signal_route", "linear"), data.get("signal_dynamic_range"))
-    except (ValueError, FileNotFoundError) as exc:
-        raise ConfigError(f"data: {exc}") from None
+    calib = _config_calibration(cfg.get("data") or {})
     cfg = cfg.copy()
     with open_dict(cfg):
         cfg.paths.run_dir = str(run_dir)

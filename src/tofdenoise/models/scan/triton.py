@@ -1253,13 +1253,14 @@ def _scan_backward(layout: _Layout, saved, softplus, dy, dy_strides, du, dB, dC)
     walk_back = sequential and layout.ss2d and BACKWARD == "sequential"  # the main pass on the first pass's split
     needs_carry = (carry if walk_back else layout).nseg > 1
     gstart, dsum = carry.carries(u.device) if needs_carry else (dummy, dummy)
+    At = A.t().contiguous() if sequential else A  # the sequential kernels read A as (N, dim), channels fastest
     if needs_carry:
         seg_consts = {k: v for k, v in consts.items() if k != "HAS_D"}
         args = (C, dummy if bias is None else bias, dy, gstart, dsum, *carry.sizes)
         strides = (*layout.delta_strides, *layout.bc_strides, *dy_strides)
         if sequential:
             seq = {**seg_consts, "BLOCK_D": carry.block_d, "num_warps": SEQ_NUM_WARPS}
-            seq_adjoint_kernel[carry.grid](delta, A, A.t().contiguous(), *args, *strides, **seq)
+            seq_adjoint_kernel[carry.grid](delta, A, At, *args, *strides, **seq)
         else:
             seg_bwd_kernel[layout.grid](delta, A, *args, *strides, **seg_consts)
     if walk_back:
@@ -1270,7 +1271,7 @@ def _scan_backward(layout: _Layout, saved, softplus, dy, dy_strides, du, dB, dC)
             u,
             delta,
             A,
-            A.t().contiguous(),
+            At,
             B,
             C,
             dummy if D is None else D,
