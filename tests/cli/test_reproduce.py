@@ -84,7 +84,7 @@ def test_profiles_and_bad_arguments(tmp_path, capsys):
     ]
     # a usage error exits 2, as argparse's own do (it was 1)
     assert main(["--results", str(tmp_path), "--page", str(tmp_path / "p.md")]) == 2
-    assert "error: give --table 1|2|3, --figure 6|7|8 or --study dynrange" in capsys.readouterr().err
+    assert "error: give --table 1|2|3, --figure 6|7|8 or --study dynrange|schedule" in capsys.readouterr().err
     # one target at a time, each kind with its own names (a figure is no table)
     for argv in (["--table", "3", "--study", "dynrange"], ["--table", "fig6"], ["--figure", "3"]):
         with pytest.raises(SystemExit) as exc:

@@ -270,4 +270,4 @@ def test_a_training_that_ignores_sigterm_is_killed_after_the_grace_and_its_lock_
         proc.stdout.close()
     assert not (run_dir / "run.lock").exists()
     (run_dir / "run.lock").write_text(json.dumps({"pid": proc.pid + 1, "host": socket.gethostname()}))
-    assert not executors._clear_stale_lock(run_dir, proc.pid) and (run_dir / "run.lock").exists()
+    assert not executors.clear_stale_lock(run_dir, proc.pid) and (run_dir / "run.lock").exists()

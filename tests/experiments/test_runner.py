@@ -60,3 +60,71 @@ def test_dry_run_marks_resume(tmp_path, capsys):
     out = run_all([RunSpec("r", SMOKE)], tmp_path, dry_run=True)
     assert out[0].status == "planned"
     assert "(resume)" in capsys.readouterr().out and not (tmp_path / "r" / "train.log").exists()
+
+
+def _fake_python(tmp_path, ignore_sigterm: bool):
+    """A stand-in for ``python -m tofdenoise.cli.train ... paths.run_dir=D``: it takes the run folder's lock as a
+    training does, then trains forever (``ignore_sigterm``: it does not end on SIGTERM, like a step that hangs)."""
+    script = tmp_path / ("stubborn.py" if ignore_sigterm else "trainer.py")
+    script.write_text(
+        f"#!{sys.executable}\n"
+        "import json, os, signal, socket, sys, time\n"
+        "run_dir = [a.split('=', 1)[1] for a in sys.argv if a.startswith('paths.run_dir=')][0]\n"
+        "json.dump({'pid': os.getpid(), 'host': socket.gethostname()}, open(os.path.join(run_dir, 'run.lock'), 'w'))\n"
+        + ("signal.signal(signal.SIGTERM, signal.SIG_IGN)\n" if ignore_sigterm else "")
+        + "print('training', flush=True)\n"
+        "time.sleep(60)\n"
+    )
+    script.chmod(0o755)
+    return str(script)
+
+
+@pytest.mark.parametrize("ignore_sigterm", [False, True])
+def test_time_budget_stops_a_run_at_its_end_and_keeps_it_resumable(tmp_path, capsys, ignore_sigterm):
+    import time
+
+    from tofdenoise.experiments.runner import TimeBudget
+
+    budget = TimeBudget(time.monotonic() + 1.5, grace_s=1.0)
+    t0 = time.monotonic()
+    out = run_all([RunSpec("r", SMOKE)], tmp_path, python=_fake_python(tmp_path, ignore_sigterm), budget=budget)
+    took = time.monotonic() - t0
+    assert [o.status for o in out] == ["stopped"]
+    # SIGTERM ends it at once; one that ignores SIGTERM is killed after the grace period
+    assert 1.4 < took < (5.0 if ignore_sigterm else 4.0), took
+    assert out[0].returncode == (-9 if ignore_sigterm else -15)
+    assert not (tmp_path / "r" / "run.lock").exists()  # a killed run's lock is cleared: the folder can travel
+    assert not run_finished(tmp_path / "r")
+    log = (tmp_path / "r" / "train.log").read_text()
+    assert "the time budget ended: training stopped" in log
+    assert "stopped at the end of the time budget" in capsys.readouterr().out
+
+
+def test_time_budget_defers_runs_that_would_not_fit_but_resumes_started_ones(tmp_path, capsys):
+    import time
+
+    from tofdenoise.experiments.runner import TimeBudget
+
+    (tmp_path / "resumed" / "checkpoints").mkdir(parents=True)
+    (tmp_path / "resumed" / "checkpoints" / "last.ckpt").write_bytes(b"")
+    estimates = {"long": 3600.0, "resumed": 3600.0}
+    budget = TimeBudget(time.monotonic() + 1.0, estimate=lambda spec: estimates.get(spec.name), grace_s=1.0)
+    fake = _fake_python(tmp_path, ignore_sigterm=False)
+    out = run_all([RunSpec("long", SMOKE), RunSpec("resumed", SMOKE)], tmp_path, python=fake, budget=budget)
+    assert [o.status for o in out] == ["deferred", "stopped"]
+    assert not (tmp_path / "long").exists()  # a deferred run writes nothing
+    printed = capsys.readouterr().out
+    assert "[1/2] long: not started: needs about 60.0 min, 0.0 min left of the time budget" in printed
+    # the budget is spent: nothing starts, not even a run that would resume
+    out = run_all([RunSpec("resumed", SMOKE)], tmp_path, python=fake, budget=TimeBudget(time.monotonic() - 1))
+    assert [o.status for o in out] == ["deferred"]
+
+
+def test_time_budget_needs_the_sequential_runner(tmp_path):
+    from tofdenoise.experiments.executors import LocalExecutor
+    from tofdenoise.experiments.runner import TimeBudget
+
+    with pytest.raises(ValueError, match="time budget needs the sequential executor"):
+        run_all([RunSpec("r", SMOKE)], tmp_path, executor=LocalExecutor(2), budget=TimeBudget.minutes(1))
+    with pytest.raises(ValueError, match="positive number of minutes"):
+        TimeBudget.minutes(0)

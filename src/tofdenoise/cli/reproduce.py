@@ -9,6 +9,7 @@
     tofdenoise reproduce --table 3 --executor local --workers 2     # two runs at a time on this machine
     tofdenoise reproduce --table 3 --profile gpu-short --seeds 0  # the paper's recipe on the procedural world, one GPU
     tofdenoise reproduce --table 3 --profile gpu-short --seeds 0 --skip-recorded   # a fresh machine: the rest only
+    tofdenoise reproduce --table 3 --profile gpu-short --seeds 0 1 2 --time-budget 12   # what fits 12 minutes
     tofdenoise reproduce --table 3 --profile gpu --executor slurm --slurm-partition gpu \
         --extra data.source_kwargs.root=...                          # a SLURM job array (docs/cluster.md)
 
@@ -56,7 +57,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="one of the paper's figures: 6 (noise-model validation), 7 / 8 (qualitative, synthetic / real)",
     )
     what.add_argument(
-        "--study", choices=KINDS["study"], help="a study beyond the paper (dynrange: across the dynamic range)"
+        "--study",
+        choices=KINDS["study"],
+        help="a study beyond the paper (dynrange: across the dynamic range; schedule: DVSS's training "
+        "noises at 10x gpu-short's steps)",
     )
     p.add_argument("--profile", choices=sorted(PROFILES), default="cpu")
     p.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
@@ -77,6 +81,16 @@ def build_parser() -> argparse.ArgumentParser:
         help="do not run again a run whose records are committed in <results>/<profile>/ (for a machine without "
         "its run folder: a second sitting on a fresh GPU machine); tables and studies only",
     )
+    p.add_argument(
+        "--time-budget",
+        type=float,
+        default=None,
+        metavar="MINUTES",
+        help="train for at most MINUTES (a GPU allocation's limit; sequential executor): a run whose recorded "
+        "duration on this profile does not fit the time left is not started, a run still training at the end is "
+        "stopped and resumes from its last epoch's checkpoint in the same --out next time; never recorded "
+        "half-trained. Leave a margin for the real-set scoring after each run",
+    )
     p.add_argument("--dry-run", action="store_true", help="print what would run, run nothing")
     p.add_argument("--page-only", action="store_true", help="only rebuild the results page from the records")
     add_executor_arguments(p)
@@ -95,8 +109,9 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     target = _target(args)
     if target is None and not args.page_only:  # a usage error: exit 2, as argparse's own
+        studies = "|".join(KINDS["study"])
         print(
-            f"{PROG}: error: give --table 1|2|3, --figure 6|7|8 or --study dynrange (or --page-only)", file=sys.stderr
+            f"{PROG}: error: give --table 1|2|3, --figure 6|7|8 or --study {studies} (or --page-only)", file=sys.stderr
         )
         return 2
     if args.skip_recorded and (target is None or target.kind == "figure"):
@@ -105,10 +120,19 @@ def main(argv: list[str] | None = None) -> int:
             file=sys.stderr,
         )
         return 2
+    if args.time_budget is not None and (target is None or target.kind == "figure" or not args.time_budget > 0):
+        print(
+            f"{PROG}: error: --time-budget takes a positive number of minutes and applies to --table and --study",
+            file=sys.stderr,
+        )
+        return 2
     try:
         executor = executor_from_args(args)
     except (ValueError, RuntimeError) as exc:
         print(f"{PROG}: error: {exc}", file=sys.stderr)
+        return 2
+    if args.time_budget is not None and getattr(executor, "name", "sequential") != "sequential":
+        print(f"{PROG}: error: --time-budget needs the sequential executor (runs one after another)", file=sys.stderr)
         return 2
     job = Reproduction(
         target=None if args.page_only else target,
@@ -120,6 +144,7 @@ def main(argv: list[str] | None = None) -> int:
         dry_run=args.dry_run,
         executor=executor,
         skip_recorded=args.skip_recorded,
+        time_budget_min=args.time_budget,
     )
     if job.target is None and not args.results.is_dir():  # else an empty page, exit 0
         print(

@@ -28,11 +28,9 @@ is the library the launcher itself wraps; calling it directly keeps one runner f
 
 from __future__ import annotations
 
-import json
 import os
 import shutil
 import signal
-import socket
 import subprocess
 import threading
 import time
@@ -43,9 +41,8 @@ from pathlib import Path
 from typing import Any
 
 from tofdenoise.records import LAST_CHECKPOINT, run_finished
-from tofdenoise.run_lock import LOCK_NAME
 
-from .runner import LOG_NAME, PendingRun, RunOutcome, RunSpec, _tail, run_one
+from .runner import LOG_NAME, PendingRun, RunOutcome, RunSpec, _tail, clear_stale_lock, run_one
 
 __all__ = [
     "EXECUTORS",
@@ -224,20 +221,6 @@ def _ignore_preempt_signal() -> None:  # runs in the training process before exe
     signal.signal(_preempt_signal(), signal.SIG_IGN)
 
 
-def _clear_stale_lock(run_dir: Path, pid: int) -> bool:
-    """Remove ``run_dir/run.lock`` when it names ``pid`` on this host, a process that has ended (a requeued task
-    may start on another node, where a stale lock of this node could not be checked and would refuse the run)."""
-    path = run_dir / LOCK_NAME
-    try:
-        holder = json.loads(path.read_text())
-    except (OSError, ValueError):
-        return False
-    if isinstance(holder, dict) and holder.get("pid") == pid and holder.get("host") == socket.gethostname():
-        path.unlink(missing_ok=True)
-        return True
-    return False
-
-
 class RunTask:
     """One array task: train one run (``run_one``) unless it has finished. Submitit calls :meth:`checkpoint` on a
     timeout or preemption signal and requeues what it returns: this task, which resumes the run from
@@ -284,7 +267,7 @@ class RunTask:
                     proc.kill()
                     killed = True
                 time.sleep(0.1)
-        _clear_stale_lock(self.run_dir, proc.pid)
+        clear_stale_lock(self.run_dir, proc.pid)
         return proc.returncode
 
     def checkpoint(self, *args: Any, **kwargs: Any) -> Any:

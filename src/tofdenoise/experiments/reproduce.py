@@ -39,7 +39,7 @@ from tofdenoise.experiments.figures import (
     encode_png_palette,
     figure_specs,
 )
-from tofdenoise.experiments.runner import run_all
+from tofdenoise.experiments.runner import RunSpec, TimeBudget, run_all
 from tofdenoise.experiments.tables import table_specs
 from tofdenoise.experiments.targets import Target
 from tofdenoise.records import BEST_CHECKPOINT, METRICS_NAME, PER_IMAGE_DIR, RUN_INFO_NAME, TRUTH_NAME, run_finished
@@ -58,6 +58,7 @@ __all__ = [
     "write_truth_record",
     "profile_needs",
     "profile_overrides",
+    "recorded_seconds",
     "reproduce",
     "write_page",
 ]
@@ -193,6 +194,43 @@ def without_recorded(specs: list[Any], dest: Path, log: Log = _print) -> list[An
     return [s for s in specs if s.name not in recorded]
 
 
+#: an estimate from the records is scaled by this (a run on another machine of the same kind, a busier disk)
+ESTIMATE_MARGIN = 1.15
+
+
+def _wall_seconds(run_info: Path) -> float | None:
+    """``finished - started`` of a committed ``run_info.json`` (None when either is missing or unreadable)."""
+    from datetime import datetime
+
+    try:
+        info = json.loads(run_info.read_text())
+        return (datetime.fromisoformat(info["finished"]) - datetime.fromisoformat(info["started"])).total_seconds()
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def _family(name: str) -> tuple[str, ...]:
+    """What sets a run's cost, read from its folder name ``<backbone>-<noise>-<loss>[-<tag>]-s<seed>``: the name less
+    its noise and its seed (the training noise and the seed do not change a step's cost)."""
+    parts = name.split("-")
+    if len(parts) >= 4 and parts[-1][:1] == "s" and parts[-1][1:].isdigit():
+        return (parts[0], *parts[2:-1])
+    return (name,)
+
+
+def recorded_seconds(dest: Path, spec: RunSpec) -> float | None:
+    """How long ``spec`` is expected to take on this profile's machine: the longest wall time (start of training to
+    its records, tests included) among the runs committed in ``dest`` of the same backbone, loss and variant (any
+    noise, any seed), times ``ESTIMATE_MARGIN``; None when none is recorded."""
+    family = _family(spec.name)
+    walls = [
+        w
+        for info in dest.glob(f"*/{RUN_INFO_NAME}")
+        if _family(info.parent.name) == family and (w := _wall_seconds(info)) is not None
+    ]
+    return max(walls) * ESTIMATE_MARGIN if walls else None
+
+
 def write_report(dest: Path) -> None:
     """The offline HTML report of the recorded runs (``dest/report.html``), when there are any."""
     if not any(dest.glob(f"*/{METRICS_NAME}")):
@@ -236,6 +274,9 @@ class Reproduction:
     dry_run: bool = False
     executor: Any = None  # an executor of ``experiments.executors`` (None: sequential)
     skip_recorded: bool = False  # leave out the runs whose records are committed in ``dest`` (tables, studies)
+    #: minutes for the runs (a GPU allocation's limit): runs that would not fit are not started, a run still
+    #: training at the end is stopped and resumes next time (``runner.TimeBudget``; estimates: ``recorded_seconds``)
+    time_budget_min: float | None = None
 
     @property
     def realset_dir(self) -> Path:
@@ -305,6 +346,10 @@ def reproduce(job: Reproduction, log: Log = _print) -> int:
     ``WriteError``, ``OutputPathError``, and the real set's ``ValueError``."""
     status = 0
     target = job.target
+    budget = None  # counted from here: the stand-in set's build is part of the minutes
+    if job.time_budget_min is not None:
+        dest = job.dest
+        budget = TimeBudget.minutes(job.time_budget_min, estimate=lambda spec: recorded_seconds(dest, spec))
     if target is not None:
         ensure_realset(job.realset_dir, job.profile, dry_run=job.dry_run, log=log)
 
@@ -324,8 +369,16 @@ def reproduce(job: Reproduction, log: Log = _print) -> int:
             if job.skip_recorded:
                 specs = without_recorded(specs, job.dest, log)
             outcomes = run_all(
-                specs, job.out, dry_run=job.dry_run, after_each=None if job.dry_run else record, executor=job.executor
+                specs,
+                job.out,
+                dry_run=job.dry_run,
+                after_each=None if job.dry_run else record,
+                executor=job.executor,
+                budget=budget,
             )
+            left = [o.spec.name for o in outcomes if o.status in ("deferred", "stopped")]
+            if left:
+                log(f"[reproduce] the time budget left {len(left)} run(s) for another call: {', '.join(left)}")
             if not job.dry_run:
                 write_report(job.dest)
             status = 0 if all(o.status in ("done", "skipped", "planned") for o in outcomes) else 1

@@ -12,6 +12,13 @@ and goes on after a failing run. The result lists every spec with its status (``
 and the failed ones with the last lines of their log, so a grid of many runs can be completed over several
 sittings and a failure is never silent.
 
+A *time budget* (:class:`TimeBudget`: a GPU allocation of a fixed number of minutes, a SLURM job's time limit) bounds
+the sequential runner: a run is not started when its estimated duration (``TimeBudget.estimate``, e.g. from the
+committed records of the same row) exceeds the time left (status ``deferred``), and a run still training when the
+budget ends is stopped (SIGTERM, so Lightning ends its step; SIGKILL after a grace period) with status ``stopped``:
+its folder keeps ``checkpoints/last.ckpt`` (written every epoch), so the next call resumes it, and it is never
+recorded half-trained (only a finished run has records).
+
 By default the runs go one after another in the listed order. ``run_all(..., executor=...)`` hands the unfinished
 ones to an executor of :mod:`tofdenoise.experiments.executors` instead (N local workers, a SLURM job array); each run
 is still the same process writing the same folder, so its records do not depend on the executor.
@@ -19,7 +26,10 @@ is still the same process writing the same folder, so its records do not depend 
 
 from __future__ import annotations
 
+import json
 import os
+import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -31,10 +41,12 @@ from typing import Any
 
 # the one rule of a finished run, shared with the training job (tofdenoise.experiments.train_job)
 from tofdenoise.records import LAST_CHECKPOINT, run_finished
+from tofdenoise.run_lock import LOCK_NAME
 
 __all__ = [
     "RunSpec",
     "RunOutcome",
+    "TimeBudget",
     "PendingRun",
     "run_command",
     "run_one",
@@ -71,7 +83,9 @@ class RunSpec:
 class RunOutcome:
     spec: RunSpec
     run_dir: Path
-    status: str  # "done" (ran now), "skipped" (finished before), "failed", "planned" (dry run)
+    #: "done" (ran now), "skipped" (finished before), "failed", "planned" (dry run); with a time budget also
+    #: "deferred" (not started: too little time left) and "stopped" (stopped at the budget's end, resumable)
+    status: str
     seconds: float = 0.0
     returncode: int | None = None
     log_tail: str = ""
@@ -84,6 +98,57 @@ def _tail(path: Path, lines: int = 40) -> str:
         return "\n".join(path.read_text(errors="replace").splitlines()[-lines:])
     except OSError:
         return ""
+
+
+@dataclass(frozen=True)
+class TimeBudget:
+    """A wall-clock limit for a list of runs: ``deadline`` on ``time.monotonic()``'s clock.
+
+    ``estimate(spec)``: the seconds a run is expected to take (None: unknown, the run is started and stopped at the
+    deadline if it has not finished); ``grace_s``: how long a stopped run may take to end its step after SIGTERM
+    before it is killed."""
+
+    deadline: float
+    estimate: Callable[[RunSpec], float | None] = field(default=lambda spec: None)
+    grace_s: float = 60.0
+
+    @classmethod
+    def minutes(cls, minutes: float, **kwargs: Any) -> TimeBudget:
+        """A budget of ``minutes`` from now."""
+        if not minutes > 0:
+            raise ValueError(f"a time budget must be a positive number of minutes, got {minutes}")
+        return cls(time.monotonic() + 60.0 * minutes, **kwargs)
+
+    def left_s(self) -> float:
+        return self.deadline - time.monotonic()
+
+
+def clear_stale_lock(run_dir: Path, pid: int) -> bool:
+    """Remove ``run_dir/run.lock`` when it names ``pid`` on this host, a process that has ended (killed: it could not
+    release it). A folder carried to another machine, or a task requeued on another node, could not check a stale
+    lock of this host and would refuse the run."""
+    path = run_dir / LOCK_NAME
+    try:
+        holder = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return False
+    if isinstance(holder, dict) and holder.get("pid") == pid and holder.get("host") == socket.gethostname():
+        path.unlink(missing_ok=True)
+        return True
+    return False
+
+
+def stop_process(proc: subprocess.Popen, grace_s: float) -> int | None:
+    """Stop a training process: SIGTERM (Lightning ends the step it is in and exits), SIGKILL after ``grace_s``
+    seconds; its exit status."""
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(timeout=grace_s)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+    return proc.returncode
 
 
 @dataclass(frozen=True)
@@ -117,13 +182,17 @@ def run_one(
     env: dict[str, str] | None = None,
     on_start: Callable[[subprocess.Popen], None] | None = None,
     preexec_fn: Callable[[], None] | None = None,
+    deadline: float | None = None,
+    grace_s: float = 60.0,
 ) -> RunOutcome:
     """Train one run in a fresh process (output appended to ``<run_dir>/train.log``) and return its outcome:
     ``done`` when the process exits 0 and the folder holds a finished run, else ``failed`` with the log's tail.
 
     ``on_start(process)`` is called once the process has started (an executor that must stop it on a
     preemption keeps it); ``preexec_fn`` runs in the child before it starts (``subprocess.Popen``). An exception in
-    the caller (Ctrl-C, a preemption handler's exit) kills the process and propagates."""
+    the caller (Ctrl-C, a preemption handler's exit) kills the process and propagates. At ``deadline``
+    (``time.monotonic()``) a process still running is stopped (:func:`stop_process`) and the outcome is
+    ``stopped``: the folder keeps its last epoch's checkpoint and the next run of it resumes there."""
     cmd, _ = run_command(spec, run_dir, python)
     run_dir.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
@@ -139,18 +208,33 @@ def run_one(
                 # polled, not proc.wait(): a signal handler (a SLURM task's preemption) may then wait for the
                 # process itself without meeting the wait lock held by this frame
                 while (returncode := proc.poll()) is None:
+                    if deadline is not None and time.monotonic() >= deadline:
+                        returncode = stop_process(proc, grace_s)
+                        log.write(
+                            f"\n# {time.strftime('%Y-%m-%dT%H:%M:%S')} the time budget ended: training stopped "
+                            f"(exit {returncode}); the next run of this folder resumes from {LAST_CHECKPOINT}\n"
+                        )
+                        break
                     time.sleep(0.2)
             except BaseException:
                 proc.kill()
                 raise
     seconds = time.perf_counter() - t0
     ok = returncode == 0 and run_finished(run_dir)
+    if not ok and deadline is not None and time.monotonic() >= deadline:
+        clear_stale_lock(run_dir, proc.pid)
+        return RunOutcome(spec, run_dir, "stopped", seconds, returncode)
     return RunOutcome(
         spec, run_dir, "done" if ok else "failed", seconds, returncode, "" if ok else _tail(run_dir / LOG_NAME)
     )
 
 
 def _ended_line(head: str, outcome: RunOutcome) -> str:
+    if outcome.status == "stopped":
+        return (
+            f"{head}: stopped at the end of the time budget after {outcome.seconds / 60:.1f} min; not recorded, "
+            f"resumes from {outcome.run_dir / LAST_CHECKPOINT} next time"
+        )
     ok = outcome.status == "done"
     return f"{head}: {outcome.status} in {outcome.seconds / 60:.1f} min" + (
         "" if ok else f" (exit {outcome.returncode}; log: {outcome.run_dir / LOG_NAME})"
@@ -166,6 +250,7 @@ def run_all(
     echo: bool = True,
     after_each: Callable[[RunOutcome], None] | None = None,
     executor: Any = None,
+    budget: TimeBudget | None = None,
 ) -> list[RunOutcome]:
     """Run every spec not finished yet (see the module docstring); returns one outcome per spec, in order.
 
@@ -174,19 +259,25 @@ def run_all(
 
     ``executor``: where the runs go (``tofdenoise.experiments.executors``): None (or the sequential executor) runs
     them one after another, as listed; a parallel executor gets every unfinished run at once and
-    ``after_each`` is called as each ends (finished runs first, then in the order they end)."""
+    ``after_each`` is called as each ends (finished runs first, then in the order they end).
+
+    ``budget``: a :class:`TimeBudget` (sequential runs only, a ``ValueError`` otherwise): runs that would not fit are
+    ``deferred``, a run still training at its end is ``stopped`` (module docstring)."""
     out_dir = Path(out_dir).expanduser().resolve()
     names = [s.name for s in specs]
     dupes = sorted({n for n in names if names.count(n) > 1})
     if dupes:
         raise ValueError(f"run_all: run names must be unique, repeated: {', '.join(dupes)}")
     python = python or sys.executable
-    if executor is not None and getattr(executor, "name", "") != "sequential":
+    parallel = executor is not None and getattr(executor, "name", "") != "sequential"
+    if budget is not None and parallel:
+        raise ValueError(f"a time budget needs the sequential executor, not {executor.name}")
+    if parallel:
         outcomes = _run_parallel(specs, out_dir, dry_run, python, env, echo, after_each, executor)
     else:
         if echo and dry_run:
             print("executor: sequential (one run after another, each in its own process)", flush=True)
-        outcomes = _run_sequential(specs, out_dir, dry_run, python, env, echo, after_each)
+        outcomes = _run_sequential(specs, out_dir, dry_run, python, env, echo, after_each, budget)
     failed = [o for o in outcomes if o.status == "failed"]
     if echo and failed:
         print(f"{len(failed)} run(s) failed:", flush=True)
@@ -231,24 +322,43 @@ def _run_sequential(
     env: dict[str, str] | None,
     echo: bool,
     after_each: Callable[[RunOutcome], None] | None,
+    budget: TimeBudget | None = None,
 ) -> list[RunOutcome]:
     outcomes: list[RunOutcome] = []
     for i, spec in enumerate(specs):
         job = PendingRun(i, len(specs), spec, out_dir / spec.name)
         settled = _skipped_or_planned(job, python, dry_run, echo, after_each)
+        if settled is None and budget is not None:
+            settled = _deferred(job, budget, python, echo)
         if settled is not None:
             outcomes.append(settled)
             continue
         _, resume = run_command(spec, job.run_dir, python)
         if echo:
             print(f"{job.head}: {'resuming' if resume else 'running'} -> {job.run_dir}", flush=True)
-        outcome = run_one(spec, job.run_dir, python, env)
+        deadline = None if budget is None else budget.deadline
+        grace_s = 60.0 if budget is None else budget.grace_s
+        outcome = run_one(spec, job.run_dir, python, env, deadline=deadline, grace_s=grace_s)
         outcomes.append(outcome)
         if echo:
             print(_ended_line(job.head, outcome), flush=True)
         if after_each is not None:
             after_each(outcome)
     return outcomes
+
+
+def _deferred(job: PendingRun, budget: TimeBudget, python: str, echo: bool) -> RunOutcome | None:
+    """``deferred`` when ``budget`` has too little time left for ``job`` (none at all, or less than its estimate;
+    a run that resumes is started whenever time is left: what it trains is kept); None when it may start."""
+    left_s = budget.left_s()
+    _, resume = run_command(job.spec, job.run_dir, python)
+    needed_s = None if resume else budget.estimate(job.spec)
+    if left_s > 0 and (needed_s is None or needed_s <= left_s):
+        return None
+    if echo:
+        need = "" if needed_s is None else f"needs about {needed_s / 60:.1f} min, "
+        print(f"{job.head}: not started: {need}{max(left_s, 0.0) / 60:.1f} min left of the time budget", flush=True)
+    return RunOutcome(job.spec, job.run_dir, "deferred")
 
 
 def _run_parallel(

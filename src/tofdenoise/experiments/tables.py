@@ -23,6 +23,11 @@ Tables (``../shared/seeds`` paper, Sec. V):
   (``x4``) to separate the world from a short schedule. ``tofdenoise.experiments.dynrange`` computes the gains.
   A study, not a table, for the user: ``tofdenoise reproduce --study dynrange`` (``targets``); its runs are kept
   here because they are rows like the tables' rows (shared runs, records, claims).
+* ``schedule``: beyond the paper: does the gain last? DVSS trained with fixed / range / hetero noise (L1) for
+  ``SCHEDULE_EPOCHS`` epochs, 10x the ``gpu-short`` profile's 10 (about 4,500 optimiser steps there), with its
+  validation curve kept (``csv/metrics.csv``), so that the gap between the training noises can be followed along
+  training. Meant for ``--profile gpu-short`` (``SCHEDULE_PROFILES``: the page shows it there only);
+  ``tofdenoise reproduce --study schedule --profile gpu-short --seeds 0``.
 """
 
 from __future__ import annotations
@@ -48,6 +53,7 @@ __all__ = [
     "table_rows",
     "table_specs",
     "TABLE_COLUMNS",
+    "TABLE_PROFILES",
     "column_source",
     "column_metric",
     "metric_value",
@@ -345,12 +351,33 @@ TABLE_TITLES["dynrange"] = (
     "Beyond the paper: where the noise model pays (training noise across the signal dynamic range, L1)"
 )
 
+#: the long-schedule study: 10x gpu-short's 10 epochs
+SCHEDULE_EPOCHS = 100
+#: the profiles whose page shows the schedule study (its schedule is defined relative to gpu-short's)
+SCHEDULE_PROFILES = ("gpu-short",)
+TABLES["schedule"] = tuple(
+    Row(
+        f"dvss_{noise}_long",
+        f"DVSS, {noise}, {SCHEDULE_EPOCHS} epochs",
+        "dvss",
+        noise,
+        "l1",
+        tag=f"e{SCHEDULE_EPOCHS}",
+        overrides=(f"trainer.max_epochs={SCHEDULE_EPOCHS}",),
+    )
+    for noise in ("fixed", "range", "hetero")
+)
+TABLE_TITLES["schedule"] = f"Beyond the paper: does the gain last? DVSS, training noise, {SCHEDULE_EPOCHS} epochs (L1)"
+#: the tables each profile's page shows (every table where not listed)
+TABLE_PROFILES: dict[str, tuple[str, ...]] = {"schedule": SCHEDULE_PROFILES}
+
 #: which metric columns each table shows (the paper's)
 TABLE_COLUMNS: dict[str, tuple[str, ...]] = {
     "1": ("psnr_db", "ssim", "mse_mm2", "mae_mm", "real_psnr_db", "real_mae_mm", "truth_mae_mm"),
     "2": ("psnr_db", "ssim", "mse_mm2", "mae_mm"),
     "3": ("psnr_db", "mae_mm", "real_psnr_db", "real_mae_mm", "truth_mae_mm"),
     "dynrange": ("psnr_db", "mae_mm", "real_mae_mm"),
+    "schedule": ("psnr_db", "mae_mm", "real_mae_mm", "truth_mae_mm"),
 }
 
 CLAIMS: tuple[Claim, ...] = (
@@ -412,6 +439,18 @@ CLAIMS: tuple[Claim, ...] = (
         for backbone, b_label in DYNRANGE_BACKBONES.items()
         for tag, label in [(t, lab) for t, (lab, _) in DYNAMIC_RANGES.items()]
         + ([(LONG_SCHEDULE[0], LONG_SCHEDULE[1])] if backbone == "unet" else [])
+    ),
+    Claim(
+        "schedule",
+        f"DVSS, {SCHEDULE_EPOCHS} epochs: hetero < range < fixed (synthetic MAE)",
+        "mae_mm",
+        ("dvss_hetero_long", "dvss_range_long", "dvss_fixed_long"),
+    ),
+    Claim(
+        "schedule",
+        f"DVSS, {SCHEDULE_EPOCHS} epochs: hetero < range < fixed (real vs truth MAE)",
+        "truth_mae_mm",
+        ("dvss_hetero_long", "dvss_range_long", "dvss_fixed_long"),
     ),
 )
 

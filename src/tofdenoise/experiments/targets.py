@@ -5,7 +5,8 @@
   (``--figure 6``, ``make reproduce FIGURE=6``);
 - studies beyond the paper: ``dynrange``, where the noise model pays across the dynamic range
   (``--study dynrange``, ``make reproduce STUDY=dynrange``; its runs are rows of ``tables.TABLES["dynrange"]``,
-  its gains ``dynrange``).
+  its gains ``dynrange``), and ``schedule``, whether the gain lasts with 10x the ``gpu-short`` steps
+  (``--study schedule --profile gpu-short``; rows ``tables.TABLES["schedule"]``).
 
 A target's ``key`` names its records: the runs' table (``tables.TABLES`` key) and the folder of its files under
 ``docs/results/<profile>/`` (``fig6/``, ``fig7/``, ``dynrange/``). The results page, the command line and the Makefile
@@ -19,7 +20,11 @@ from dataclasses import dataclass
 __all__ = ["KINDS", "MAKE_VARIABLES", "Target", "target_of_key"]
 
 #: kind -> the names a user gives (``--<kind> NAME``)
-KINDS: dict[str, tuple[str, ...]] = {"table": ("1", "2", "3"), "figure": ("6", "7", "8"), "study": ("dynrange",)}
+KINDS: dict[str, tuple[str, ...]] = {
+    "table": ("1", "2", "3"),
+    "figure": ("6", "7", "8"),
+    "study": ("dynrange", "schedule"),
+}
 #: kind -> the Makefile variable of ``make reproduce``
 MAKE_VARIABLES: dict[str, str] = {"table": "TABLE", "figure": "FIGURE", "study": "STUDY"}
 

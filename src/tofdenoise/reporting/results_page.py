@@ -31,6 +31,7 @@ from tofdenoise.experiments.tables import (
     CLAIMS,
     DYNRANGE_BACKBONES,
     TABLE_COLUMNS,
+    TABLE_PROFILES,
     TABLE_TITLES,
     TABLES,
     TRUTH_SET,
@@ -312,7 +313,25 @@ def gains_markdown(items: list[Gain]) -> list[str]:
     return [*lines, ""]
 
 
-def _runs_section(records: dict[str, dict[str, Any]]) -> list[str]:
+#: the paper's recipe in optimiser steps: 300 epochs of its 3,750 training crops (6,250 ToF-FlyingThings3D samples split
+#: 6:2:2) in batches of 4
+PAPER_RECIPE_STEPS = 300 * 3750 // 4
+#: the profiles that train the paper's recipe per step (320 crops, batch 4, one GPU): their runs' rate prices it
+RECIPE_PROFILES = ("gpu", "gpu-short")
+
+
+def recipe_hours(train_seconds: Any, trained_steps: Any) -> float | None:
+    """Hours of training for ``PAPER_RECIPE_STEPS`` at a run's measured rate (its training seconds per optimiser
+    step; validation not included); None when either is unknown."""
+    try:
+        rate = float(train_seconds) / float(trained_steps)
+    except (TypeError, ValueError, ZeroDivisionError):
+        return None
+    return rate * PAPER_RECIPE_STEPS / 3600.0 if math.isfinite(rate) and rate > 0 else None
+
+
+def _runs_section(records: dict[str, dict[str, Any]], profile: str = "cpu") -> list[str]:
+    recipe = profile in RECIPE_PROFILES
     lines = [
         "## Runs",
         "",
@@ -320,11 +339,17 @@ def _runs_section(records: dict[str, dict[str, Any]]) -> list[str]:
         "includes the stop, and its data order differs from an uninterrupted run after the stop (docs/training.md, "
         "resuming), so a fresh run of it is not bit-identical. Training minutes, images/s and peak memory (GPU / "
         "process, GiB) come from the `TrainingCost` callback: the training epochs only, summed over resumes "
-        "(records written before it existed show -).",
+        "(records written before it existed show -)."
+        + (
+            f" Paper's recipe: hours of training for its 300 epochs ({PAPER_RECIPE_STEPS:,} optimiser steps of 4 "
+            "crops of 320 x 320) at the run's measured rate (training seconds per step), validation not included."
+            if recipe
+            else ""
+        ),
         "",
         "| run | learned | trained steps | best val MAE (mm) | raw val MAE (mm) | wall minutes | training minutes "
-        "| images/s | peak memory GiB (GPU / process) |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| images/s | peak memory GiB (GPU / process) |" + (" paper's recipe (h) |" if recipe else ""),
+        "|---|---|---|---|---|---|---|---|---|" + ("---|" if recipe else ""),
     ]
     for name, rec in records.items():
         m, info = rec["metrics"], rec["run_info"]
@@ -343,6 +368,7 @@ def _runs_section(records: dict[str, dict[str, Any]]) -> list[str]:
             f"{format_number(m.get('raw_val_mae_mm') or math.nan, 2)} | {format_number(run_minutes(info), 1)} | "
             f"{format_number(None if train_s is None else float(train_s) / 60.0, 1)} | "
             f"{format_number(info.get('train_images_per_second'), 1)} | {memory} |"
+            + (f" {format_number(recipe_hours(train_s, m.get('trained_steps')), 1)} |" if recipe else "")
         )
     lines.append("")
     return lines
@@ -421,13 +447,15 @@ def _profile_sections(profile_dir: Path, records: dict[str, dict[str, Any]]) -> 
         "",
     ]
     for table in TABLES:
+        if profile not in TABLE_PROFILES.get(table, (profile,)):
+            continue
         lines += _table_section(table, profile, records, seeds)
         if table == "dynrange":
             lines += _dynrange_section(profile_dir, records, seeds)
     lines += _fig6_section(profile_dir)
     for key in FIGURES:
         lines += _qualitative_section(profile_dir, key)
-    return lines + _runs_section(records)
+    return lines + _runs_section(records, profile)
 
 
 def results_markdown(results_dir: Path | str) -> str:
