@@ -10,6 +10,7 @@ because the check is switched off.
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import subprocess
 import sys
@@ -108,10 +109,11 @@ def _drift_project(tmp_path: Path, docstring: str) -> Path:
     handler = plugin["mkdocstrings"]["handlers"]["python"]
     handler["paths"] = [str(tmp_path / "src")]
     handler["options"]["extensions"] = [str(ROOT / ext) for ext in handler["options"]["extensions"]]
+    config["hooks"] = [str(ROOT / hook) for hook in config.get("hooks", [])]
     config.update(docs_dir=str(tmp_path / "docs"), nav=["index.md"])
     config.pop("exclude_docs", None)
     (tmp_path / "docs").mkdir()
-    (tmp_path / "docs" / "index.md").write_text("# API\n\n::: driftmod.scale_depth\n", encoding="utf-8")
+    (tmp_path / "docs" / "index.md").write_text(f"# API\n\n{GITHUB_LIST}\n::: driftmod.scale_depth\n", encoding="utf-8")
     (tmp_path / "src").mkdir()
     body = textwrap.indent(textwrap.dedent(docstring).strip("\n"), "    ")
     (tmp_path / "src" / "driftmod.py").write_text(
@@ -123,6 +125,14 @@ def _drift_project(tmp_path: Path, docstring: str) -> Path:
     path.write_text(yaml.safe_dump(config, sort_keys=False), encoding="utf-8")
     return path
 
+
+#: a list as GitHub renders it: straight after a paragraph line, nested by 2 spaces (docs/_ext/gfm_lists.py)
+GITHUB_LIST = """Two kinds:
+- **first**, with a nested list:
+  - nested one
+  - nested two
+- **second**
+"""
 
 GOOD = """
     Scale a depth.
@@ -170,4 +180,31 @@ def test_the_same_module_with_a_matching_docstring_builds(tmp_path):
     """The control of the drift tests: their failure comes from the docstring, not from the set-up."""
     result = _mkdocs_build(_drift_project(tmp_path, GOOD), tmp_path / "site")
     assert result.returncode == 0, result.stdout + result.stderr
-    assert "the scale." in (tmp_path / "site" / "index.html").read_text(encoding="utf-8")
+    page = (tmp_path / "site" / "index.html").read_text(encoding="utf-8")
+    assert "the scale." in page
+    # the page's GitHub-style list renders as a list with a nested one, not as text run into the paragraph
+    assert "<p>Two kinds:</p>" in page
+    assert page.count("<li>") == 4 and page.count("<ul>") == 2, page
+
+
+def _gfm_lists():
+    spec = importlib.util.spec_from_file_location("gfm_lists", ROOT / "docs" / "_ext" / "gfm_lists.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module.gfm_lists
+
+
+@pytest.mark.parametrize(
+    ("github", "python_markdown"),
+    [
+        ("Text:\n- a\n  more a\n  - a.1\n- b", "Text:\n\n- a\n    more a\n    - a.1\n- b"),
+        ("Text:\n1. one\n2. two", "Text:\n\n1. one\n2. two"),
+        # CommonMark: an ordered item interrupts a paragraph only when it starts at 1
+        ("In\n2026. a year", "In\n2026. a year"),
+        # fenced code is left alone, and an unindented fence ends the list
+        ("- a\n```\n- b\n  c\n```\n\n  after", "- a\n```\n- b\n  c\n```\n\n  after"),
+        ("# Title\n- a\n\nParagraph\n  indented", "# Title\n- a\n\nParagraph\n  indented"),
+    ],
+)
+def test_github_style_lists_are_rewritten_for_python_markdown(github, python_markdown):
+    assert _gfm_lists()(github) == python_markdown
