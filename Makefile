@@ -104,12 +104,12 @@ probe: $(STAMP)
 	$(PY) -m pytest tests/reliability tests/training/test_mid_epoch_resume.py -m "not gpu" $(PYTEST_ARGS)
 
 lint: $(STAMP)
-	$(VENV)/bin/ruff check src tests benchmarks
-	$(VENV)/bin/ruff format --check src tests benchmarks
+	$(VENV)/bin/ruff check src tests benchmarks docs/_ext
+	$(VENV)/bin/ruff format --check src tests benchmarks docs/_ext
 
 format: $(STAMP)
-	$(VENV)/bin/ruff check --fix src tests benchmarks
-	$(VENV)/bin/ruff format src tests benchmarks
+	$(VENV)/bin/ruff check --fix src tests benchmarks docs/_ext
+	$(VENV)/bin/ruff format src tests benchmarks docs/_ext
 
 # The documentation site (mkdocs.yml): docs/*.md and the API reference generated from the docstrings, into site/.
 # Strict: a broken link or a docstring that drifts from its signature fails (tests/test_docs.py runs the same build)
