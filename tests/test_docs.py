@@ -5,7 +5,8 @@ mkdocstrings renders from the docstrings (griffe, Google style). A broken link, 
 signature lacks, or an Args section leaving one out (``docs/_ext/params_complete.py``) is a warning, and strict
 mode turns it into a failed build. The second group of tests gives the same configuration a tiny module whose
 docstring drifts from its signature and checks that the build fails and says why, so the first test cannot pass
-because the check is switched off.
+because the check is switched off. The last ones check the hook that renders the pages' GitHub-style lists as lists
+(``docs/_ext/gfm_lists.py``).
 """
 
 from __future__ import annotations
