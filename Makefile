@@ -32,7 +32,7 @@ BENCH_ARGS ?=
 
 export PYTHONUNBUFFERED := 1
 
-.PHONY: help venv lock train test test-slow probe lint format bench robustness realset reproduce cli-configs clean
+.PHONY: help venv lock train test test-slow probe lint format docs bench robustness realset reproduce cli-configs clean
 
 help:
 	@echo "make train   - small default training on built-in procedural scenes (CPU)"
@@ -42,6 +42,7 @@ help:
 	@echo "make probe   - the reliability probes: every family of fault against every command, slow cases included"
 	@echo "               (signals, a real full tmpfs where root allows it; docs/reliability.md)"
 	@echo "make lint    - ruff lint + format check (CI runs it before the tests); make format applies both"
+	@echo "make docs    - the documentation site with the API reference, built strict into site/ (open site/index.html)"
 	@echo "make bench   - side-by-side performance measurements (see docs/benchmarks.md); BENCH_ARGS=--quick"
 	@echo "make robustness - the robustness grid (108 small runs, resumable; GRID_DIR=runs/robustness GRID_ARGS=...)"
 	@echo "make realset - the stand-in real set: a second simulated camera, calibrated from its own captures"
@@ -62,7 +63,7 @@ $(STAMP): pyproject.toml $(CONSTRAINTS)
 	@if [ -n "$(CONSTRAINTS)" ]; then grep -v -E '^(torch|triton)==' "$(CONSTRAINTS)"; fi > $(VENV)/constraints.txt
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet "$(TORCH)"
-	$(PY) -m pip install --quiet -e ".[dev,onnx,recordings,cluster]"
+	$(PY) -m pip install --quiet -e ".[dev,onnx,recordings,cluster,docs]"
 	$(PY) -m pip install --quiet -e ".[sweep]"
 	@if $(PY) -c "import platform, sys, torch; sys.exit(not (torch.version.cuda is None and sys.platform == 'linux' and platform.machine() == 'x86_64'))"; then \
 		$(PY) -m pip install --quiet "$(TRITON)"; fi
@@ -103,12 +104,17 @@ probe: $(STAMP)
 	$(PY) -m pytest tests/reliability tests/training/test_mid_epoch_resume.py -m "not gpu" $(PYTEST_ARGS)
 
 lint: $(STAMP)
-	$(VENV)/bin/ruff check src tests benchmarks
-	$(VENV)/bin/ruff format --check src tests benchmarks
+	$(VENV)/bin/ruff check src tests benchmarks docs/_ext
+	$(VENV)/bin/ruff format --check src tests benchmarks docs/_ext
 
 format: $(STAMP)
-	$(VENV)/bin/ruff check --fix src tests benchmarks
-	$(VENV)/bin/ruff format src tests benchmarks
+	$(VENV)/bin/ruff check --fix src tests benchmarks docs/_ext
+	$(VENV)/bin/ruff format src tests benchmarks docs/_ext
+
+# The documentation site (mkdocs.yml): docs/*.md and the API reference generated from the docstrings, into site/.
+# Strict: a broken link or a docstring that drifts from its signature fails (tests/test_docs.py runs the same build)
+docs: $(STAMP)
+	$(VENV)/bin/mkdocs build --strict --site-dir site
 
 bench: $(STAMP)
 	$(PY) benchmarks/run_all.py $(BENCH_ARGS)
@@ -147,4 +153,4 @@ cli-configs: $(STAMP)
 	$(PY) -m tofdenoise.cli.export_cli_config
 
 clean:
-	rm -rf $(VENV) $(LOCK_VENV) .pytest_cache build *.egg-info src/*.egg-info
+	rm -rf $(VENV) $(LOCK_VENV) .pytest_cache build site *.egg-info src/*.egg-info

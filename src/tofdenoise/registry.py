@@ -24,14 +24,31 @@ T = TypeVar("T")
 
 
 class Registry(Generic[T]):
-    """Named factories of one kind (``kind`` is what error messages call them: "backbone", "loss", ...)."""
+    """Named factories of one kind.
+
+    ```python
+    LOSSES: Registry[DepthLoss] = Registry("loss")
+    LOSSES.register("l1")(L1DepthLoss)
+    LOSSES.build("L1")  # an L1DepthLoss; names are matched without regard to case
+    ```
+
+    Args:
+        kind: what error messages call the things registered: "backbone", "loss", ...
+    """
 
     def __init__(self, kind: str) -> None:
         self.kind = kind
         self._factories: dict[str, Callable[..., T]] = {}
 
     def register(self, name: str) -> Callable[[Callable[..., T]], Callable[..., T]]:
-        """Decorator registering a class or factory function under ``name`` (returned unchanged)."""
+        """Decorator registering a class or factory function under ``name`` (returned unchanged).
+
+        Args:
+            name: a non-empty name, stored in lower case.
+
+        Raises:
+            ValueError: the name is empty, or already registered for another factory.
+        """
         key = self._key(name)
 
         def deco(factory: Callable[..., T]) -> Callable[..., T]:
@@ -50,20 +67,43 @@ class Registry(Generic[T]):
         return isinstance(name, str) and self._key(name) in self._factories
 
     def get(self, name: str) -> Callable[..., T]:
-        """The factory registered as ``name``; ValueError listing the valid names when there is none."""
+        """The factory registered as ``name``.
+
+        Args:
+            name: the registered name (any case).
+
+        Raises:
+            ValueError: no factory has that name; the message lists the valid names.
+        """
         key = self._key(name)
         if key not in self._factories:
             raise ValueError(f"unknown {self.kind} {name!r}; valid names: {', '.join(sorted(self._factories))}")
         return self._factories[key]
 
     def accepted_kwargs(self, name: str) -> tuple[list[str], bool]:
-        """(keyword names the factory of ``name`` accepts, whether it also takes ``**kwargs``)."""
+        """The keyword arguments the factory of ``name`` accepts, read from its signature.
+
+        Args:
+            name: the registered name (any case).
+
+        Returns:
+            The keyword names, and whether the factory also takes ``**kwargs``.
+        """
         params = inspect.signature(self.get(name)).parameters.values()
         accepted = [p.name for p in params if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)]
         return accepted, any(p.kind == p.VAR_KEYWORD for p in params)
 
     def build(self, name: str, /, **kwargs: Any) -> T:
-        """Call the factory of ``name`` with ``kwargs`` after checking the name and every keyword."""
+        """Call the factory of ``name`` with ``kwargs`` after checking the name and every keyword.
+
+        Args:
+            name: the registered name (any case).
+            **kwargs: the factory's keyword arguments.
+
+        Raises:
+            ValueError: an unknown name (the valid ones are listed) or a keyword the factory does not accept (the
+                accepted ones are listed; a factory with ``**kwargs`` accepts any).
+        """
         factory = self.get(name)
         accepted, var_keyword = self.accepted_kwargs(name)
         unknown = sorted(k for k in kwargs if k not in accepted)

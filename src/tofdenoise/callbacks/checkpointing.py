@@ -53,6 +53,7 @@ class BestAndLastCheckpoint(ModelCheckpoint):
             at most N steps; ``None``/0 = only at validation/epoch end. ``best.ckpt`` is not touched there.
         train_time_interval: the same by wall-clock time.
         every_n_epochs: check ``best`` at every N-th validation's end (default 1).
+        verbose: log each save (Lightning's ``ModelCheckpoint`` option).
     """
 
     def __init__(

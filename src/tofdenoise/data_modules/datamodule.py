@@ -80,26 +80,42 @@ def data_calibration(
 class ToFDataModule(L.LightningDataModule):
     """Clean depth + signal + sigma_D maps from a source, noisy depth synthesised by a physics noise model.
 
-    Args (all plain values; the Hydra configs in ``configs/data`` and ``configs/noise`` set them):
+    Every argument is a plain value; the Hydra configs in ``configs/data`` and ``configs/noise`` set them
+    (``data.<name>``). Call ``prepare_data()`` then ``setup(stage)``, or hand it to a Lightning ``Trainer``.
+
+    Args:
         source: the data source by name (``DATA_SOURCES``): "procedural" (built-in scenes, default),
-            "flyingthings3d" or "folder". source_kwargs: that source's own settings (its ``config_keys()``: e.g.
-            procedural num_samples, height, width, min_depth_mm, max_depth_mm, max_depth_fraction, hfov_deg; folder
-            root, list_file, depth_unit_mm; flyingthings3d root, list_files), passed to its ``from_config`` with
-            what this datamodule supplies (``SourceContext``: ``seed`` and the calibration). An unknown key is an
-            error naming ``data.source_kwargs.<key>`` and the valid ones.
-        noise: training noise model ("hetero", "range", "fixed", "none"); noise_kwargs its kwargs.
+            "flyingthings3d" or "folder".
+        source_kwargs: that source's own settings (its ``config_keys()``: e.g. procedural num_samples, height,
+            width, min_depth_mm, max_depth_mm, max_depth_fraction, hfov_deg; folder root, list_file,
+            depth_unit_mm; flyingthings3d root, list_files), passed to its ``from_config`` with what this
+            datamodule supplies (``SourceContext``: ``seed`` and the calibration). An unknown key is an error
+            naming ``data.source_kwargs.<key>`` and the valid ones.
+        noise: the training noise model ("hetero", "range", "fixed", "none").
+        noise_kwargs: its settings (``build_noise_model``).
         eval_noise: the noise model that synthesises the validation, test and predict inputs (default "hetero",
             the physics-faithful synthesis; its default kwargs, a Gaussian baseline variance-matched like the
             training noise), whatever ``noise`` is: runs trained with different noise models are validated and
             tested on identical inputs (the same fixed per-sample seed).
-        sensor: calibration (None = default, a path, a preset name, or a mapping in ``to_dict()`` layout).
+        sensor: the calibration: None (the default), a path, a preset name, a mapping in the ``to_dict()``
+            layout or a ``SensorCalibration``.
         real_dir: a capture set (see ``real_captures``); adds the "real" test loader.
-        cache_dir: where splits, per-sample maps and records live. use_cache: store/read the maps there.
-        crop_size: training crop (int, [h, w] or None for full images). flips: random h/v flips in training.
-        seed: split permutation, evaluation noise, and the source's seed (``SourceContext``: procedural scenes).
+        cache_dir: where splits, per-sample maps and records live.
+        use_cache: store the per-sample maps there and read them back.
+        crop_size: the training crop: an int, [h, w], or None for full images.
+        flips: random horizontal/vertical flips in training.
+        batch_size: the training batch size.
+        eval_batch_size: the validation, test and predict batch size.
+        num_workers: DataLoader worker processes (also used to compute missing maps in ``prepare_data``).
+        pin_memory: the DataLoader's ``pin_memory``.
+        persistent_workers: keep the workers between epochs (only with ``num_workers`` > 0).
+        seed: the split permutation, the evaluation noise, and the source's seed (``SourceContext``:
+            procedural scenes).
         split_ratios: train:val:test.
         match_variance: rescale the Gaussian baselines (range/fixed) to the hetero mean variance over the
             training split (paper Sec. V-A), computed once and stored next to the cache.
+        signal_lower_percentile: the amplitude normalisation's lower percentile (None: the physics default).
+        signal_upper_percentile: its upper percentile (None: the physics default).
         signal_route: how the source's amplitude becomes the returned signal a(p) [e-]: "linear" (the paper's
             mapping into the calibration's [a_min, a_max], per-image percentiles) or "physical" (a = K t A V from
             a radiometric amplitude, ``tofdenoise.physics.photometry``; the procedural scenes' default, needs the
@@ -108,11 +124,12 @@ class ToFDataModule(L.LightningDataModule):
         signal_dynamic_range: with the linear route, map into [a_max / r, a_max] instead of the calibration's
             interval (a_max = its ``signal_max_e``): the dynamic-range study (``make reproduce STUDY=dynrange``).
             None: the calibration's own interval.
-        signal_lower_percentile / signal_upper_percentile: amplitude normalisation (None: physics defaults).
-        real_min_count: valid high-exposure frames a reference pixel needs (None: half of the frames).
+        real_min_count: valid high-exposure frames a reference pixel of the capture set needs (None: half of
+            the frames).
         holes: give synthetic inputs realistic invalid regions (low signal, depth edges, dropout blobs;
             ``tofdenoise.data_modules.holes``), zero there and out of ``mask``: random in training, fixed per
-            sample (seeded) in validation/test/predict. holes_kwargs: ``HoleModel`` settings.
+            sample (seeded) in validation/test/predict.
+        holes_kwargs: ``HoleModel`` settings.
     """
 
     def __init__(
@@ -407,7 +424,12 @@ class ToFDataModule(L.LightningDataModule):
 
     # ------------------------------------------------------------------ datasets
     def setup(self, stage: str | None = None) -> None:
-        """Load what ``prepare_data`` wrote (in this process or another) and build the datasets."""
+        """Load what ``prepare_data`` wrote (in this process or another) and build the datasets.
+
+        Args:
+            stage: Lightning's stage (``"fit"``, ``"validate"``, ``"test"``, ``"predict"``) or None; every split's
+                dataset is built whatever the stage.
+        """
         state = self.prepared
         hp = self.hparams
         provider, splits, model, eval_model = state.provider, state.splits, state.noise_model, state.eval_noise_model

@@ -85,9 +85,22 @@ def looks_like(path: Path) -> str:
     return ""
 
 
-def load_restorer(ckpt: str | Path, device: str | torch.device = "cpu"):
-    """A ``DepthRestorer`` in eval mode from a checkpoint of ``tofdenoise train`` / ``tofdenoise fit``; anything
-    else is a ``CheckpointError`` naming the file and what was expected."""
+def load_restorer(ckpt: str | Path, device: str | torch.device = "cpu") -> DepthRestorer:
+    """Load a trained restorer once, for many frames.
+
+    Args:
+        ckpt: a checkpoint of ``tofdenoise train`` / ``tofdenoise fit`` (``runs/NAME/checkpoints/best.ckpt``),
+            read with ``weights_only=True``.
+        device: where the model goes: ``"cpu"``, ``"cuda"``, ``"auto"`` (CUDA when available) or a
+            ``torch.device``.
+
+    Returns:
+        The ``DepthRestorer`` in eval mode on ``device``.
+
+    Raises:
+        CheckpointError: the file is missing or is not a DepthRestorer checkpoint (an image, an ONNX model, a
+            truncated file ...); the message names the file and what was expected.
+    """
 
     path = Path(ckpt).expanduser()
     expected = "expected a DepthRestorer checkpoint (.ckpt written by tofdenoise train or tofdenoise fit)"
@@ -186,13 +199,31 @@ def denoise(
     tile: int | None = None,
     precision: str = "bf16",
 ) -> np.ndarray:
-    """Denoise one depth frame: ``tofdenoise.denoise(depth_mm, "best.ckpt") -> np.ndarray``.
+    """Denoise one depth frame: ``tofdenoise.denoise(depth_mm, "best.ckpt")``.
 
-    ``depth_mm``: (H, W) numpy array or tensor in millimetres; NaN, inf, 0 and negative values mark invalid
-    pixels. ``model_or_ckpt``: a ``DepthRestorer`` (used on its device) or a checkpoint path (loaded on
-    ``device``; load once with ``load_restorer`` for many frames). ``amplitude``: (H, W), required by models
-    that use the signal channel. Returns float32 (H, W) restored depth [mm], 0 at invalid input pixels unless
-    ``fill_holes`` (then every pixel gets a depth). Same result as ``tofdenoise denoise`` on the same frame.
+    The same result as ``tofdenoise denoise`` on the same frame (a test checks it), for arrays in memory.
+
+    Args:
+        depth_mm: the frame [mm], (H, W) or (1, H, W), a numpy array or a tensor; NaN, inf, 0 and negative
+            values mark invalid pixels.
+        model_or_ckpt: a ``DepthRestorer`` (used on its own device) or the path of a checkpoint (loaded on
+            ``device`` at every call; load it once with ``load_restorer`` for many frames).
+        amplitude: the frame's amplitude, same shape as ``depth_mm``; required by models that use the signal
+            channel.
+        fill_holes: give every pixel a depth, the invalid ones included; by default they stay 0.
+        device: where a checkpoint path is loaded: ``"auto"`` (CUDA when available), ``"cpu"`` or ``"cuda"``.
+        tile: frames with a side larger than this run tile by tile (default: the model's
+            ``tiling.predict_tile_px``).
+        precision: ``"bf16"`` (bf16 autocast on CUDA; the CPU computes in float32) or ``"fp32"``.
+
+    Returns:
+        The restored depth [mm], float32 (H, W); 0 at invalid input pixels unless ``fill_holes``.
+
+    Raises:
+        ValueError: ``depth_mm`` is not a numeric (H, W) map, ``amplitude`` has another shape or is missing for
+            a model that needs it, or ``precision`` is neither ``"bf16"`` nor ``"fp32"``.
+        TypeError: ``model_or_ckpt`` is neither a ``DepthRestorer`` nor a path.
+        CheckpointError: ``model_or_ckpt`` is a path to a file that is not a DepthRestorer checkpoint.
     """
     model = _as_model(model_or_ckpt, device)
     depth = depth_mm.detach().cpu().numpy() if isinstance(depth_mm, torch.Tensor) else np.asarray(depth_mm)
@@ -213,11 +244,20 @@ def denoise(
 
 
 def sigma_map_mm(depth_mm: np.ndarray, valid: np.ndarray, amplitude: np.ndarray, calib: Any) -> np.ndarray:
-    """Per-pixel sigma_D [mm] of the input frame (paper Eqs. 1-15), NaN where invalid.
+    """Per-pixel sigma_D [mm] of a camera frame (paper Eqs. 1-17), the map ``tofdenoise denoise`` writes.
 
     The returned signal a(p) comes from the amplitude as in training (``amplitude_to_signal_e``: per-image
     percentiles of the valid amplitudes mapped to the calibration's signal interval, paper Sec. III-A);
     sigma_D from ``sigma_depth_mm`` at the measured depth.
+
+    Args:
+        depth_mm: measured depth [mm], (H, W).
+        valid: bool (H, W), the pixels to compute.
+        amplitude: the frame's amplitude, (H, W), any positive scale.
+        calib: the camera's ``SensorCalibration``.
+
+    Returns:
+        sigma_D [mm], float32 (H, W); NaN at invalid pixels and where the amplitude is not finite or negative.
     """
 
     amp = np.asarray(amplitude, dtype=np.float32)

@@ -83,8 +83,10 @@ def joint_bilateral_filter(
             normalises it.
         valid: input pixels that may contribute (bool, same shape); default: depth finite and > 0 and amplitude
             finite and > 0.
-        sigma_spatial_px, sigma_depth_mm, amplitude_power, radius_px: sigma_s, sigma_d (``inf``: no range term),
-            gamma and r of the formula (r default: ``default_radius_px(sigma_s)``).
+        sigma_spatial_px: sigma_s of the formula, the spatial Gaussian's std in pixels.
+        sigma_depth_mm: sigma_d of the formula, the range Gaussian's std in mm (``inf``: no range term).
+        amplitude_power: gamma of the formula, the exponent of the normalised amplitude weight.
+        radius_px: r of the formula, the window's half-size in pixels (default: ``default_radius_px(sigma_s)``).
 
     Computed in float32 (float64 inputs stay float64); the result has the dtype of that computation.
     """

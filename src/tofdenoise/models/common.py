@@ -36,7 +36,12 @@ def normalize_fp32(x: torch.Tensor, dim: int = -1) -> torch.Tensor:
 
 
 def count_parameters(module: nn.Module, trainable_only: bool = True) -> int:
-    """Number of (trainable) scalar parameters of ``module``."""
+    """Number of scalar parameters of ``module``.
+
+    Args:
+        module: any ``nn.Module``.
+        trainable_only: count only the parameters with ``requires_grad``.
+    """
     return sum(p.numel() for p in module.parameters() if p.requires_grad or not trainable_only)
 
 

@@ -31,8 +31,23 @@ _NOT_TRAINABLE: set[str] = set()
 def register_backbone(
     name: str, trainable: bool = True
 ) -> Callable[[Callable[..., nn.Module]], Callable[..., nn.Module]]:
-    """Decorator registering a backbone class or factory under ``name``; ``trainable=False`` for a method
-    without trainable parameters (a classical filter)."""
+    """Decorator registering a backbone class or factory under ``name`` (returned unchanged).
+
+    ```python
+    @register_backbone("mynet")
+    class MyNet(nn.Module):
+        def __init__(self, in_channels: int = 1, width: int = 32) -> None: ...
+    ```
+
+    Args:
+        name: the name ``build_backbone``, ``backbone=`` of the configs and ``tofdenoise train`` use (matched
+            without regard to case).
+        trainable: False for a method without trainable parameters (a classical filter, evaluated by
+            ``tofdenoise classic`` and never trained).
+
+    Raises:
+        ValueError: the name is already registered for another factory.
+    """
     register = BACKBONES.register(name)
 
     def deco(factory: Callable[..., nn.Module]) -> Callable[..., nn.Module]:
@@ -73,9 +88,14 @@ def accepts_kwarg(name: str, key: str) -> bool:
 def build_backbone(name: str, **kwargs: Any) -> nn.Module:
     """Build the backbone registered as ``name`` with plain keyword arguments.
 
-    Raises ValueError for an unknown name (listing the valid ones), for keyword arguments the backbone does not
-    accept (listing the accepted ones) or for a keyword given an ``nn.Module`` (hyper-parameters stay plain
-    values so checkpoints load with ``weights_only=True``).
+    Args:
+        name: a registered name (``available_backbones()``), e.g. ``"dvss"`` or ``"unet"``.
+        **kwargs: the backbone's constructor arguments (``in_channels``, ``width`` ...), plain values only, so
+            that checkpoints load with ``weights_only=True``.
+
+    Raises:
+        ValueError: an unknown name (the valid ones are listed), a keyword argument the backbone does not accept
+            (the accepted ones are listed) or a keyword given an ``nn.Module``.
     """
     for key, value in kwargs.items():
         if isinstance(value, nn.Module):

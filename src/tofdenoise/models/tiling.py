@@ -96,11 +96,26 @@ def tiled_forward(
     margin: int | None = None,
     tile_batch: int = 1,
 ) -> torch.Tensor:
-    """Run ``model`` on overlapping tiles of ``x`` (B, C, H, W) and blend them into (B, C_out, H, W).
+    """Run ``model`` on overlapping tiles of ``x`` and blend them, for frames too large for memory.
 
-    ``tile``: tile side (pixels); ``overlap``: overlap between neighbouring tiles; ``margin``: pixels at a
-    shared tile edge given weight 0 (default ``overlap // 4``); ``tile_batch``: tiles per model call.
-    Images no larger than one tile are processed whole. Runs under ``torch.no_grad()``.
+    Neighbouring tiles are blended with smooth weights that fall to 0 towards a shared edge and sum to one (the
+    module's docstring says when the blend equals whole-image inference). Images no larger than one tile are
+    processed whole. Runs under ``torch.no_grad()``.
+
+    Args:
+        model: any callable (B, C, h, w) -> (B, C_out, h, w), e.g. a backbone.
+        x: the input, (B, C, H, W).
+        tile: tile side [pixels].
+        overlap: overlap between neighbouring tiles [pixels], less than ``tile``.
+        margin: pixels at a shared tile edge given weight 0 (default ``overlap // 4``; less than half the
+            overlap).
+        tile_batch: tiles per model call.
+
+    Returns:
+        The blended output, (B, C_out, H, W).
+
+    Raises:
+        ValueError: ``x`` is not 4-D, or the tile, overlap, margin or tile_batch do not fit together.
     """
     if x.dim() != 4:
         raise ValueError(f"tiled_forward: expected x of shape (B, C, H, W), got {tuple(x.shape)}")

@@ -288,24 +288,30 @@ class FixedPatternNoise:
 class SensorCalibration:
     """All sensor constants the depth-uncertainty model and the capture simulator need.
 
-    num_taps                  N >= 3 phase-shifted taps per modulation cycle (theta_n = 2 pi n / N)
-    modulation_frequency_hz   f; unambiguous range c / (2 f)
-    tap_response              calibrated c(x) (Fourier series)
-    dark_mean_e               mu_dark: mean dark/ambient offset per tap [e-]
-    dark_std_e                sigma_dark: residual dark/read(+ambient shot, + ADC) noise std per tap [e-]
-    signal_min_e/max_e        [a_min, a_max]: empirical returned-signal interval [e-]
-    full_well_e               tap full-well capacity [e-]; taps clip there (saturation)
-    adc_gain_e_per_dn         ADC conversion gain [e-/DN] or None (no quantisation)
-    range_sigma_mm            (alpha0 [mm], alpha1 [mm/mm], alpha2 [mm/mm^2]) of the range-aware
-                              baseline sigma(D) = alpha0 + alpha1 D + alpha2 D^2 (D in mm), or None
-    signal_at_1m_e            photometric gain K: returned signal per tap [e-] of a white (reflectance 1)
-                              Lambertian target, frontal, at 1 m, exposure 1 (emitter power, optics and
-                              quantum efficiency folded in); the physical signal route
-                              (``tofdenoise.physics.photometry``). None: the camera has no photometric model
-    vignetting_cos_power      lens fall-off V = cos^k(field angle) of the physical signal route (None: 0, none)
-    fixed_pattern             the camera's fixed-pattern noise (``FixedPatternNoise``: per-pixel tap offsets,
-                              column phase offsets, PRNU) applied by the capture simulator only; the WLS
-                              model does not contain it (paper Sec. III-A assumes it calibrated away). None: none
+    Frozen; every field is checked when the calibration is made, and a bad one raises ``CalibrationError``
+    naming it. Stored as YAML or JSON in the ``to_dict()`` layout (``load_calibration``, ``save_calibration``);
+    ``replace`` gives a changed copy.
+
+    Args:
+        num_taps: N >= 3 phase-shifted taps per modulation cycle (theta_n = 2 pi n / N).
+        modulation_frequency_hz: f; the unambiguous range is c / (2 f).
+        tap_response: the calibrated tap response c(x), a Fourier series (a ``TapResponse`` or its mapping).
+        dark_mean_e: mu_dark, the mean dark/ambient offset per tap [e-].
+        dark_std_e: sigma_dark, the residual dark/read (+ ambient shot, + ADC) noise std per tap [e-].
+        signal_min_e: a_min, the low end of the empirical returned-signal interval [e-].
+        signal_max_e: a_max, its high end [e-].
+        full_well_e: the tap full-well capacity [e-]; taps clip there (saturation).
+        adc_gain_e_per_dn: the ADC conversion gain [e-/DN], or None (no quantisation).
+        range_sigma_mm: (alpha0 [mm], alpha1 [mm/mm], alpha2 [mm/mm^2]) of the range-aware baseline
+            sigma(D) = alpha0 + alpha1 D + alpha2 D^2 (D in mm), or None.
+        signal_at_1m_e: the photometric gain K: returned signal per tap [e-] of a white (reflectance 1)
+            Lambertian target, frontal, at 1 m, exposure 1 (emitter power, optics and quantum efficiency folded
+            in), for the physical signal route (``tofdenoise.physics.photometry``). None: the camera has no
+            photometric model.
+        vignetting_cos_power: the lens fall-off V = cos^k(field angle) of the physical signal route (None: none).
+        fixed_pattern: the camera's fixed-pattern noise (``FixedPatternNoise``: per-pixel tap offsets, column
+            phase offsets, PRNU), applied by the capture simulator only; the WLS model does not contain it
+            (paper Sec. III-A assumes it calibrated away). None: none.
     """
 
     num_taps: int
@@ -348,6 +354,14 @@ class SensorCalibration:
         return 2.0 * np.pi * np.arange(self.num_taps) / self.num_taps
 
     def replace(self, **changes: Any) -> SensorCalibration:
+        """A copy with some fields changed, checked like a new calibration.
+
+        Args:
+            **changes: field names and their new values (``calib.replace(dark_std_e=8.0)``).
+
+        Raises:
+            CalibrationError: a name is not a field, or a new value is out of range.
+        """
         d = self.to_dict()
         for key, value in changes.items():
             if key not in FIELDS:
@@ -357,6 +371,8 @@ class SensorCalibration:
 
     # -- serialisation ------------------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
+        """Plain values (numbers, lists, mappings), the layout of the YAML and JSON files; optional fields that
+        are None are left out."""
         d: dict[str, Any] = {
             "num_taps": int(self.num_taps),
             "modulation_frequency_hz": float(self.modulation_frequency_hz),
@@ -379,7 +395,15 @@ class SensorCalibration:
 
     @classmethod
     def from_dict(cls, d: Any, source: str | None = None) -> SensorCalibration:
-        """Build from a mapping in the `to_dict()` layout; keys starting with '_' are ignored."""
+        """Build from a mapping in the ``to_dict()`` layout; keys starting with '_' are ignored.
+
+        Args:
+            d: the mapping (a plain dict or a Hydra/OmegaConf node).
+            source: what the mapping came from (a file name), put in front of error messages.
+
+        Raises:
+            CalibrationError: a field is missing, unknown, malformed or out of range; the message names it.
+        """
         d = _plain_mapping(d)
         if not isinstance(d, Mapping):
             raise CalibrationError(f"{_where(source)}a calibration must be a mapping, got {type(d).__name__}")
@@ -427,6 +451,7 @@ class SensorCalibration:
             raise CalibrationError(msg) from None
 
     def to_json(self) -> str:
+        """``to_dict()`` as indented JSON."""
         return json.dumps(self.to_dict(), indent=2)
 
     def fingerprint(self) -> str:
@@ -533,7 +558,16 @@ def _suffix_kind(path: Path) -> str:
 
 
 def load_calibration(path: str | os.PathLike[str]) -> SensorCalibration:
-    """Read a calibration from YAML or JSON (chosen by the file suffix)."""
+    """Read a calibration from YAML or JSON (chosen by the file suffix).
+
+    Args:
+        path: a ``.yaml``, ``.yml`` or ``.json`` file in the ``SensorCalibration.to_dict()`` layout.
+
+    Raises:
+        FileNotFoundError: there is no such file.
+        CalibrationError: another suffix, not UTF-8, not parseable, or a field missing or out of range; the
+            message names the file and the field.
+    """
     path = Path(path)
     kind = _suffix_kind(path)
     if not path.is_file():
@@ -563,7 +597,19 @@ def check_calibration_out(path: str | os.PathLike[str]) -> Path:
 
 
 def save_calibration(calib: SensorCalibration, path: str | os.PathLike[str], header: str | None = None) -> Path:
-    """Write a calibration as YAML or JSON (by suffix), atomically. Returns the path."""
+    """Write a calibration as YAML or JSON (by the suffix), atomically: a reader never sees half a file.
+
+    Args:
+        calib: the calibration.
+        path: a ``.yaml``, ``.yml`` or ``.json`` file name (not an existing folder).
+        header: comment lines written above the YAML fields (JSON has no comments and leaves it out).
+
+    Returns:
+        The path written.
+
+    Raises:
+        CalibrationError: the path is a folder or has another suffix.
+    """
     path = check_calibration_out(path)
     kind = _suffix_kind(path)
     d = calib.to_dict()
@@ -578,14 +624,20 @@ def save_calibration(calib: SensorCalibration, path: str | os.PathLike[str], hea
 
 
 def default_calibration() -> SensorCalibration:
-    """The shipped default calibration, `configs/sensor/default.yaml` (via tofdenoise.paths.CONFIG_DIR)."""
+    """The shipped default calibration, ``configs/sensor/default.yaml``."""
     return load_calibration(CONFIG_DIR / "sensor" / "default.yaml")
 
 
 def resolve_calibration(spec: Any = None) -> SensorCalibration:
-    """None -> default; str/PathLike -> file; mapping (incl. a Hydra DictConfig) -> fields; calib -> itself.
+    """A calibration from any of the forms the configs and commands accept.
 
-    A string naming a shipped preset without suffix (e.g. "default") is looked up in configs/sensor/.
+    Args:
+        spec: None (the default calibration), a file path, the name of a shipped preset without suffix
+            (``"default"``, ``"cam75"``: ``configs/sensor/<name>.yaml``), a mapping in the ``to_dict()`` layout
+            (a Hydra DictConfig too) or a ``SensorCalibration`` (returned as it is).
+
+    Raises:
+        CalibrationError: no such file and no preset of that name (the presets are listed), or a bad field.
     """
     if spec is None:
         return default_calibration()

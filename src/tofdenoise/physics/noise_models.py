@@ -203,9 +203,16 @@ def available_noise_models() -> list[str]:
 def build_noise_model(name: str, calib: SensorCalibration | None = None, **kwargs: Any) -> NoiseModel:
     """Build a noise model by name.
 
-    kwargs: all models take `scale` (std multiplier, default 1). `range` takes `alpha_mm`
-    ([alpha0, alpha1, alpha2]; default: calib.range_sigma_mm). `fixed` takes `sigma_mm` (default 5.0).
-    Unknown names or keyword arguments raise ValueError listing what is accepted.
+    Args:
+        name: one of ``available_noise_models()``: ``hetero`` (the paper's sensor-intrinsic sigma_D),
+            ``range``, ``fixed`` or ``none``.
+        calib: the sensor calibration (None: the default one).
+        **kwargs: the model's settings. All models take ``scale`` (std multiplier, default 1); ``range`` takes
+            ``alpha_mm`` ([alpha0, alpha1, alpha2]; default: ``calib.range_sigma_mm``); ``fixed`` takes
+            ``sigma_mm`` (default 5.0).
+
+    Raises:
+        ValueError: an unknown name or keyword argument; the message lists what is accepted.
     """
     return NOISE_MODELS.build(name, calib=calib, **kwargs)
 

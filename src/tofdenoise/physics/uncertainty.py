@@ -118,11 +118,19 @@ def information_matrix(depth_mm: Any, signal_e: Any, calib: SensorCalibration) -
 def depth_variance_mm2(depth_mm: Any, signal_e: Any, calib: SensorCalibration) -> Any:
     """sigma_D^2 [mm^2] = e_D^T (J^T Sigma^-1 J)^-1 e_D (paper Eq. 16), closed form, NaN where invalid.
 
-    depth_mm and signal_e broadcast together (numpy arrays, torch tensors or scalars; any shape).
-    Invalid pixels (depth <= 0, signal <= 0, NaN or inf in either) give NaN and never raise. The result
-    has the floating dtype of the inputs (float64 if either is float64) and lives on their device.
-    On the CPU the map is evaluated in blocks of BLOCK_PIXELS pixels (cache-sized temporaries, through
-    numpy, zero-copy for torch tensors); on other devices in one pass with torch.
+    On the CPU the map is evaluated in blocks of BLOCK_PIXELS pixels (cache-sized temporaries, through numpy,
+    zero-copy for torch tensors); on other devices in one pass with torch.
+
+    Args:
+        depth_mm: depth [mm]; a numpy array, a torch tensor or a scalar, of any shape that broadcasts with
+            ``signal_e``.
+        signal_e: the returned signal a(p) per tap [e-] (``amplitude_to_signal_e`` makes it from an amplitude).
+        calib: the sensor calibration.
+
+    Returns:
+        The variance [mm^2] in the broadcast shape, numpy or torch like the inputs, with their floating dtype
+        (float64 if either is float64) and on their device. Invalid pixels (depth <= 0, signal <= 0, NaN or inf
+        in either) give NaN and never raise.
     """
     is_t = isinstance(depth_mm, torch.Tensor) or isinstance(signal_e, torch.Tensor)
     device = None
@@ -150,7 +158,20 @@ def depth_variance_mm2(depth_mm: Any, signal_e: Any, calib: SensorCalibration) -
 
 
 def sigma_depth_mm(depth_mm: Any, signal_e: Any, calib: SensorCalibration) -> Any:
-    """sigma_D(p) = sqrt(sigma_D^2(p)) [mm] (paper Eq. 17); NaN where invalid. See depth_variance_mm2."""
+    """sigma_D(p) = sqrt(sigma_D^2(p)) [mm], the per-pixel depth uncertainty (paper Eq. 17).
+
+    ``tofdenoise sensor sigma`` prints it for a few depths and signals.
+
+    Args:
+        depth_mm: depth [mm]; a numpy array, a torch tensor or a scalar, of any shape that broadcasts with
+            ``signal_e``.
+        signal_e: the returned signal a(p) per tap [e-] (``amplitude_to_signal_e`` makes it from an amplitude).
+        calib: the sensor calibration.
+
+    Returns:
+        sigma_D [mm] as ``depth_variance_mm2`` returns the variance: the broadcast shape, numpy or torch like
+        the inputs, their dtype and device; NaN at invalid pixels (depth <= 0, signal <= 0, NaN or inf).
+    """
     var = depth_variance_mm2(depth_mm, signal_e, calib)
     return var.sqrt() if isinstance(var, torch.Tensor) else np.sqrt(var)
 
@@ -166,11 +187,24 @@ def amplitude_to_signal_e(
     """Map a ToF amplitude image to the returned-signal level a(p) = a_min + (a_max - a_min) A~(p).
 
     Paper Sec. III-A: the valid amplitude is normalised robustly, A~ = clip((A - P_lo) / (P_hi - P_lo),
-    0, 1) with P_lo / P_hi the `lower_percentile` / `upper_percentile` of the valid amplitudes (so a few
+    0, 1) with P_lo / P_hi the ``lower_percentile`` / ``upper_percentile`` of the valid amplitudes (so a few
     outliers cannot stretch the scale), then mapped to [signal_min_e, signal_max_e] of the calibration.
-    `valid` defaults to finite amplitudes > 0. Percentiles are taken over ALL valid pixels of the array
-    (pass one image at a time for per-image normalisation). If P_hi == P_lo the valid pixels map to the
-    middle of the interval. Invalid pixels get `fill_value` (NaN by default).
+    Percentiles are taken over ALL valid pixels of the array (pass one image at a time for per-image
+    normalisation). If P_hi == P_lo the valid pixels map to the middle of the interval.
+
+    Args:
+        amplitude: the amplitude image (numpy or torch, any shape, any positive scale).
+        calib: the sensor calibration, whose [signal_min_e, signal_max_e] is the target interval.
+        valid: bool mask of the pixels to use, same shape; always combined with finite amplitudes > 0.
+        lower_percentile: P_lo's percentile, in [0, 100).
+        upper_percentile: P_hi's percentile, above ``lower_percentile`` and at most 100.
+        fill_value: what invalid pixels get.
+
+    Returns:
+        a(p) [e-], numpy or torch like ``amplitude``, same shape.
+
+    Raises:
+        ValueError: the percentiles are not 0 <= lower < upper <= 100.
     """
     if not (0.0 <= lower_percentile < upper_percentile <= 100.0):
         raise ValueError(

@@ -217,5 +217,14 @@ def available_losses() -> list[str]:
 
 
 def build_loss(name: str, **kwargs: Any) -> DepthLoss:
-    """Instantiate a loss by name with plain keyword values (e.g. from ``configs/loss/<name>.yaml``)."""
+    """Instantiate a loss by name with plain keyword values (e.g. from ``configs/loss/<name>.yaml``).
+
+    Args:
+        name: ``l1``, ``nar`` (uncertainty-weighted Charbonnier) or ``full`` (``nar`` plus gradient consistency);
+            ``available_losses()`` lists them. Matched without regard to case.
+        **kwargs: the loss's settings: ``beta``, ``eps``, ``eta`` of ``nar`` and ``full``, ``lambda_g`` of ``full``.
+
+    Raises:
+        ValueError: an unknown name or keyword argument; the message lists what is accepted.
+    """
     return LOSSES.build(name, **kwargs)

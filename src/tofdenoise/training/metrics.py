@@ -177,8 +177,20 @@ def depth_metrics_per_image(
 ) -> dict[str, Tensor]:
     """Per-image ``psnr_db``, ``mae_mm``, ``mse_mm2``, ``ssim`` (float64, shape (B,)) plus ``valid_px``.
 
-    ``pred_mm``/``ref_mm``/``mask``: (B, 1, H, W), (B, H, W) or (H, W), depth in millimetres; ``mask`` may be
-    None (then only the reference/prediction validity rules apply). Images without a valid pixel get NaN.
+    A pixel counts where the mask is nonzero, the reference finite and > 0 and the prediction finite.
+
+    Args:
+        pred_mm: the restored depth [mm], (B, 1, H, W), (B, H, W) or (H, W).
+        ref_mm: the reference depth [mm], same shape.
+        mask: the pixels to score, same shape, or None (then only the validity rules above apply).
+        d_max_mm: the fixed PSNR/SSIM peak (paper: 1000 mm).
+
+    Returns:
+        ``{"psnr_db", "mae_mm", "mse_mm2", "ssim", "valid_px"}``, float64 (B,) each; images without a valid
+        pixel get NaN.
+
+    Raises:
+        ValueError: the prediction, the reference and the mask differ in shape.
     """
     pred = _as_b1hw(pred_mm, "pred_mm")
     ref = _as_b1hw(ref_mm, "ref_mm")
@@ -229,6 +241,10 @@ class DepthMetrics(Metric):
     process but cannot be made exact under DDP (a padded repeat is indistinguishable from a new image), so an
     update without ``index`` while ``torch.distributed`` runs more than one process (and this metric syncs on
     compute) raises ``ValueError``. Rows with the same index are kept once (the first one seen).
+
+    Args:
+        d_max_mm: the fixed PSNR/SSIM peak (paper: 1000 mm).
+        **kwargs: torchmetrics' ``Metric`` options (``sync_on_compute``, ``process_group`` ...).
     """
 
     is_differentiable = False
@@ -259,10 +275,21 @@ class DepthMetrics(Metric):
         index: Tensor | None = None,
         per_image: dict[str, Tensor] | None = None,
     ) -> None:
-        """Accumulate one batch. ``index``: each image's position in its dataset (``batch["index"]``), required
-        under DDP. ``per_image``: the batch's values already computed by ``depth_metrics_per_image`` with this
-        metric's ``d_max_mm`` (e.g. cached ones that do not change between epochs); the maps are then not
-        measured again."""
+        """Accumulate one batch.
+
+        Args:
+            pred_mm: the restored depth [mm], shapes as ``depth_metrics_per_image`` takes them.
+            ref_mm: the reference depth [mm].
+            mask: the pixels to score, or None.
+            index: each image's position in its dataset (``batch["index"]``); required under DDP.
+            per_image: the batch's values already computed by ``depth_metrics_per_image`` with this metric's
+                ``d_max_mm`` (e.g. cached ones that do not change between epochs); the maps are then not
+                measured again.
+
+        Raises:
+            ValueError: no ``index`` while more than one process runs, or an index that is not a whole number
+                >= 0 per image.
+        """
         per = per_image if per_image is not None else depth_metrics_per_image(pred_mm, ref_mm, mask, self.d_max_mm)
         n_px = per["valid_px"].to(torch.float64)
         b = n_px.shape[0]
@@ -302,6 +329,8 @@ class DepthMetrics(Metric):
         return table[torch.tensor(order, dtype=torch.long, device=table.device)]
 
     def compute(self) -> dict[str, Tensor]:
+        """Per-image means of ``psnr_db``, ``mae_mm``, ``mse_mm2``, ``ssim`` over the unique images with a valid
+        pixel, and ``mae_mm_pooled`` (all valid pixels pooled); float64 scalars, NaN when no image counts."""
         table = self._unique_table()
         n_px = table[:, 1]
         ok = n_px > 0
@@ -328,8 +357,15 @@ class DepthMetrics(Metric):
         return fn()
 
     def counts(self, sync: bool = True) -> dict[str, int]:
-        """Number of (unique) images averaged, images skipped (no valid pixel) and valid pixels; gathered from
-        every process like ``compute()`` (with ``sync`` and torch.distributed initialised: call it on every rank)."""
+        """Number of (unique) images averaged, images skipped (no valid pixel) and valid pixels.
+
+        Args:
+            sync: gather from every process like ``compute()`` (with torch.distributed initialised: call it on
+                every rank).
+
+        Returns:
+            ``{"images", "skipped_images", "valid_px"}``.
+        """
 
         def local() -> dict[str, int]:
             table = self._unique_table()
@@ -344,8 +380,14 @@ class DepthMetrics(Metric):
 
     def per_image_rows(self, sync: bool = True) -> list[dict[str, float | int | None]]:
         """One dict per image (``index`` None where no index was given), sorted by index; rows with equal index
-        (DistributedSampler padding) are kept once. With ``sync`` (default) and torch.distributed initialised,
-        the rows of every process are gathered (call it on every rank)."""
+        (DistributedSampler padding) are kept once.
+
+        Args:
+            sync: gather the rows of every process (with torch.distributed initialised: call it on every rank).
+
+        Returns:
+            ``[{"index", "valid_px", "psnr_db", "mae_mm", "mse_mm2", "ssim"}, ...]``, the per-image CSV's rows.
+        """
 
         def local() -> list[dict[str, float | int | None]]:
             out: list[dict[str, float | int | None]] = []

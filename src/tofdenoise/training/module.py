@@ -64,20 +64,26 @@ def _architecture(hparams: dict[str, Any]) -> dict[str, Any]:
 
 
 class DepthRestorer(pl.LightningModule):
-    """Depth restoration with any backbone of :func:`tofdenoise.models.build_backbone`.
+    """Depth restoration with any backbone of ``tofdenoise.models.build_backbone``: the one LightningModule.
 
-    Args (plain values, so a checkpoint loads with ``weights_only=True``):
-        backbone, backbone_kwargs: registered backbone name (``tofdenoise.models.available_backbones()``) and its
-            constructor arguments (``in_channels`` comes from ``conditioning``).
-        loss, loss_kwargs: registered loss name (``l1``, ``nar``, ``full``) and its arguments.
-        conditioning: what the network sees (:class:`~tofdenoise.models.conditioning.InputConditioning`).
-        optim: AdamW and its schedule (:class:`~tofdenoise.training.optim.OptimSettings`).
-        tiling: tile-by-tile inference (:class:`~tofdenoise.models.tiling.TilingSettings`).
+    It conditions the input (hole fill, centring, optional signal channel), computes the loss in millimetres,
+    and scores validation and test with the project's metrics. Every argument is a plain value, so a checkpoint
+    loads with ``weights_only=True``; ``configs/model/`` and ``configs/backbone/`` set them.
+
+    Args:
+        backbone: a registered backbone name (``tofdenoise.models.available_backbones()``).
+        backbone_kwargs: its constructor arguments (``in_channels`` comes from ``conditioning``).
+        loss: a registered loss name (``l1``, ``nar``, ``full``).
+        loss_kwargs: its arguments.
+        conditioning: what the network sees, the ``model.conditioning`` group (``InputConditioning``:
+            ``depth_scale_mm``, ``centering``, ``block_px``, ``use_signal_channel``); None: the defaults.
+        optim: AdamW and its schedule, the ``model.optim`` group (``OptimSettings``); None: the defaults.
+        tiling: tile-by-tile inference, the ``model.tiling`` group (``TilingSettings``); None: the defaults.
         ema_decay: decay of the EMA of the weights (e.g. 0.999); ``None`` = no EMA.
         compile: ``torch.compile`` the backbone for the training steps (``configs/model/default.yaml``:
-            ``model.compile``): set up in :meth:`configure_model`, compiled at the first training forward (forward and
-            backward graphs); kept out of the module tree, so the state dict keys are those of an eager run.
-            Validation, test and prediction run the eager network (:attr:`eval_net`).
+            ``model.compile``): set up in ``configure_model``, compiled at the first training forward (forward
+            and backward graphs); kept out of the module tree, so the state dict keys are those of an eager run.
+            Validation, test and prediction run the eager network (``eval_net``).
         d_max_mm: fixed PSNR/SSIM peak (paper: 1000 mm).
         learned_margin: a run counts as learned only when its best validation MAE is at most
             ``(1 - learned_margin)`` x the raw validation MAE (``training/learned_guard.py``).
@@ -174,8 +180,20 @@ class DepthRestorer(pl.LightningModule):
         return final_prediction(self.backbone(x))
 
     def condition(self, batch: dict[str, Any]) -> tuple[Tensor, Tensor]:
-        """Network input (B, C, H, W) and the offset (mm) to add back to ``depth_scale_mm`` x its output
-        (:class:`~tofdenoise.models.conditioning.InputConditioning`, in float32 whatever the autocast setting)."""
+        """The network input and the offset the output is measured from (``InputConditioning``).
+
+        Computed in float32 whatever the autocast setting.
+
+        Args:
+            batch: ``"noisy"`` depth [mm] (B, 1, H, W) with 0 at invalid pixels, and ``"amplitude"`` (B, 1, H, W)
+                when the model uses the signal channel.
+
+        Returns:
+            The network input (B, C, H, W), and the offset [mm] to add back to ``depth_scale_mm`` x its output.
+
+        Raises:
+            KeyError: the model uses the signal channel and the batch has no ``"amplitude"``.
+        """
         noisy = batch["noisy"]
         if self.conditioning.use_signal_channel and "amplitude" not in batch:
             raise KeyError("DepthRestorer(conditioning.use_signal_channel=True) needs batch['amplitude']")
@@ -183,12 +201,23 @@ class DepthRestorer(pl.LightningModule):
             return self.conditioning(noisy, batch.get("amplitude"))
 
     def network_input(self, batch: dict[str, Any]) -> Tensor:
-        """The conditioned network input of :meth:`condition` (without the offset)."""
+        """The conditioned network input of ``condition`` (without the offset)."""
         return self.condition(batch)[0]
 
     def restore_mm(self, batch: dict[str, Any], tile: int | None = None, net: nn.Module | None = None) -> Tensor:
-        """Restored depth in millimetres (B, 1, H, W) at every pixel (input holes get the network's estimate;
-        callers mask them), tiled when a side exceeds ``tile``."""
+        """Restored depth [mm] at every pixel: the restore path of ``predict``, ``tofdenoise denoise`` and
+        ``tofdenoise.denoise``.
+
+        Args:
+            batch: as ``condition`` takes it (``"noisy"`` [mm] with 0 at invalid pixels, ``"amplitude"`` when
+                the model uses the signal channel).
+            tile: run tile by tile (``tiled_forward``, overlap ``tiling.overlap_px``) when a side exceeds this;
+                None: the whole frame.
+            net: the network to run (default: ``eval_net``).
+
+        Returns:
+            Depth [mm], (B, 1, H, W); input holes get the network's estimate too (callers mask them).
+        """
         net = self.eval_net if net is None else net
         x, offset = self.condition(batch)
         if tile is not None and max(x.shape[-2:]) > tile:
@@ -211,9 +240,15 @@ class DepthRestorer(pl.LightningModule):
         """The loss of one training batch through ``net`` (default: the training network) with its parts:
         ``DepthLoss.terms`` (``"loss"``: the total, with gradient; the parts, e.g. ``"nar"``, ``"grad"``, detached).
 
-        Deep supervision: when the network returns a list of step predictions (:func:`step_predictions`), every
+        Deep supervision: when the network returns a list of step predictions (``step_predictions``), every
         term is ``sum_k w_k term(pred_k)`` with the backbone's ``step_loss_weights`` (normalised to sum 1;
-        uniform when it has none)."""
+        uniform when it has none).
+
+        Args:
+            batch: a training batch: ``"noisy"``, ``"clean"`` and ``"sigma"`` [mm] and ``"mask"``, (B, 1, H, W)
+                each, and ``"amplitude"`` when the model uses the signal channel.
+            net: the network (default: the compiled training network when ``compile``, else the backbone).
+        """
         if net is None:
             net = self._compiled if self._compiled is not None else self.backbone
         x, offset = self.condition(batch)
@@ -230,7 +265,12 @@ class DepthRestorer(pl.LightningModule):
         return {key: sum(w * t[key] for w, t in zip(weights, terms)) for key in terms[0]}
 
     def training_loss(self, batch: dict[str, Any], net: nn.Module | None = None) -> Tensor:
-        """The loss of one training batch through ``net`` (default: the training network)."""
+        """The loss of one training batch (``training_terms``' total, with gradient).
+
+        Args:
+            batch: a training batch, as ``training_terms`` takes it.
+            net: the network (default: the training network).
+        """
         return self.training_terms(batch, net)["loss"]
 
     def training_step(self, batch: dict[str, Any], batch_idx: int) -> Tensor:
@@ -393,7 +433,16 @@ class DepthRestorer(pl.LightningModule):
     @classmethod
     def load_from_checkpoint(cls, checkpoint_path: Any, *args: Any, **kwargs: Any) -> DepthRestorer:  # type: ignore[override]
         """Lightning's ``load_from_checkpoint``; a checkpoint of the old flat layout is rebuilt with its own
-        settings, moved into today's groups (``training/legacy_hparams.py``). ``kwargs`` still override."""
+        settings, moved into today's groups (``training/legacy_hparams.py``).
+
+        ``tofdenoise.inference.load_restorer`` adds checks and clear errors for files that are no checkpoint.
+
+        Args:
+            checkpoint_path: the ``.ckpt`` file.
+            *args: passed to Lightning's ``load_from_checkpoint``.
+            **kwargs: passed to it too (``map_location``, ``strict`` ...); hyper-parameters given here override
+                the saved ones.
+        """
         saved = _saved_hparams(checkpoint_path)
         if saved is not None and is_legacy(saved):
             upgraded = upgrade_hparams(saved)

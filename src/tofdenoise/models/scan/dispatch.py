@@ -126,22 +126,42 @@ def _resolve(backend: str, device: torch.device, dtype: torch.dtype, ss2d: bool)
 
 
 def selective_scan(
-    u,
-    delta,
-    A,
-    B,
-    C,
-    D=None,
-    delta_bias=None,
-    delta_softplus=False,
+    u: torch.Tensor,
+    delta: torch.Tensor,
+    A: torch.Tensor,
+    B: torch.Tensor,
+    C: torch.Tensor,
+    D: torch.Tensor | None = None,
+    delta_bias: torch.Tensor | None = None,
+    delta_softplus: bool = False,
     backend: str = "auto",
 ) -> torch.Tensor:
-    """Selective scan with mamba-ssm's ``selective_scan_fn`` signature and shapes; returns (batch, dim, L).
+    """Selective scan (Mamba's S6 recurrence), a drop-in for mamba-ssm's ``selective_scan_fn``.
 
-    ``backend``: ``"auto"`` (CUDA: mamba-ssm, else the self-checked Triton kernels, else PyTorch; CPU: the
-    native kernel when it builds, else PyTorch), ``"cpu"`` (native CPU kernel; float64 inputs and a failed
-    build fall back to the chunked scan), ``"torch"`` (chunked), ``"sequential"`` (stores all states),
-    ``"triton"``, ``"mamba_ssm"``. :func:`resolve_scan_backend` names the route a call takes.
+    Per channel d and state n: h_l = exp(delta_l A[d, n]) h_(l-1) + delta_l B_l[n] u_l,
+    y_l = sum_n C_l[n] h_l + D[d] u_l, with delta passed through softplus (after adding ``delta_bias``) when
+    ``delta_softplus``. Differentiable on every route.
+
+    Args:
+        u: the input, (batch, dim, L).
+        delta: the step sizes, same shape as ``u``.
+        A: the state matrix, (dim, N), real.
+        B: the input projection, (batch, groups, N, L) or (batch, N, L); ``dim`` divisible by ``groups``.
+        C: the output projection, same shape as ``B``.
+        D: the skip term, (dim,), or None.
+        delta_bias: added to ``delta`` before the softplus, (dim,), or None.
+        delta_softplus: pass ``delta`` through softplus.
+        backend: ``"auto"`` (CUDA: mamba-ssm, else the self-checked Triton kernels, else PyTorch; CPU: the
+            native kernel when it builds, else PyTorch), ``"cpu"`` (the native CPU kernel; float64 inputs and a
+            failed build fall back to the chunked scan), ``"torch"`` (chunked), ``"sequential"`` (stores all
+            states), ``"triton"`` or ``"mamba_ssm"``. ``resolve_scan_backend`` names the route a call takes.
+
+    Returns:
+        y, (batch, dim, L), in the dtype of ``u``.
+
+    Raises:
+        ValueError: a shape does not fit the others (the message names the argument).
+        RuntimeError: ``backend`` names a kernel that is not available here.
     """
     route = resolve_scan_backend(backend, u)
     if route == "cpu":
