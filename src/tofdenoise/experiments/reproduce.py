@@ -40,6 +40,7 @@ from tofdenoise.experiments.figures import (
     figure_specs,
 )
 from tofdenoise.experiments.runner import RunSpec, TimeBudget, run_all
+from tofdenoise.experiments.schedule import CURVES_FIGURE, curves_figure_png, schedule_curves
 from tofdenoise.experiments.tables import table_specs
 from tofdenoise.experiments.targets import Target
 from tofdenoise.records import BEST_CHECKPOINT, METRICS_NAME, PER_IMAGE_DIR, RUN_INFO_NAME, TRUTH_NAME, run_finished
@@ -249,6 +250,14 @@ def write_dynrange_figure(dest: Path, seeds: list[int]) -> None:
         atomic_write_bytes(dest / DYNRANGE_FIGURE, gain_figure_png(items))
 
 
+def write_schedule_figure(dest: Path, seeds: list[int]) -> None:
+    """The long-schedule study's validation curves and gaps (``dest/schedule/curves.png``), from the committed
+    records."""
+    curves = schedule_curves(dest, seeds)
+    if curves:
+        atomic_write_bytes(dest / CURVES_FIGURE, curves_figure_png(curves))
+
+
 def write_page(results: Path, page: Path, before: Any = None) -> str:
     """Rebuild ``page`` from the records under ``results`` under the page's lock (``before()`` first, inside it):
     a rebuild reads every record, so two commands committing runs at once must not interleave."""
@@ -356,8 +365,11 @@ def reproduce(job: Reproduction, log: Log = _print) -> int:
         def record(outcome) -> None:  # commit each finished run at once: an interrupted target keeps it
             write_truth_record(outcome.run_dir, job.realset_dir, log=log)
             if copy_records([outcome.run_dir], job.dest):
-                study = target.kind == "study" and target.name == "dynrange"
-                figure = (lambda: write_dynrange_figure(job.dest, job.seeds)) if study else None
+                figure = None
+                if target.kind == "study" and target.name == "dynrange":
+                    figure = lambda: write_dynrange_figure(job.dest, job.seeds)  # noqa: E731
+                elif target.kind == "study" and target.name == "schedule":
+                    figure = lambda: write_schedule_figure(job.dest, job.seeds)  # noqa: E731
                 write_page(job.results, job.page, before=figure)
 
         if target.key == "fig6":

@@ -27,9 +27,11 @@ from typing import Any
 
 from tofdenoise.experiments.dynrange import Gain, gains
 from tofdenoise.experiments.figures import FIGURES
+from tofdenoise.experiments.schedule import CURVES_FIGURE, SHORT_EPOCHS, gap_table, schedule_curves
 from tofdenoise.experiments.tables import (
     CLAIMS,
     DYNRANGE_BACKBONES,
+    SCHEDULE_EPOCHS,
     TABLE_COLUMNS,
     TABLE_PROFILES,
     TABLE_TITLES,
@@ -289,6 +291,30 @@ def _dynrange_section(profile_dir: Path, records: dict[str, dict[str, Any]], see
     return lines
 
 
+def _schedule_section(profile_dir: Path, seeds: list[int]) -> list[str]:
+    """The long-schedule study's gaps along training (``tofdenoise.experiments.schedule``) and its figure."""
+    curves = schedule_curves(profile_dir, seeds)
+    lines = [
+        "### Does the gap between the training noises open, hold or close with training length?",
+        "",
+        "Paired by seed on identical validation inputs: MAE(fixed or range) - MAE(hetero) of the validation MAE "
+        f"(mm; > 0: hetero better) at the end of the short schedule ({SHORT_EPOCHS} epochs, the profile's own) and "
+        f"at the end of the long one ({SCHEDULE_EPOCHS} epochs), from each run's `csv/metrics.csv`.",
+        "",
+    ]
+    rows = gap_table(curves, SCHEDULE_EPOCHS)
+    if not rows:
+        return lines + ["No seed has all of its curves yet.", ""]
+    lines += ["| seed | baseline | gap at short end (step) | gap at long end (step) |", "|---|---|---|---|"]
+    for r in rows:
+        short = "-" if r["short_gap_mm"] is None else f"{r['short_gap_mm']:+.3f} ({r['short_step']})"
+        lines.append(f"| {r['seed']} | {r['baseline']} | {short} | {r['end_gap_mm']:+.3f} ({r['end_step']}) |")
+    lines.append("")
+    if (profile_dir / CURVES_FIGURE).is_file():
+        lines += [f"![validation curves of the long schedule](results/{profile_dir.name}/{CURVES_FIGURE})", ""]
+    return lines
+
+
 def _pm(ms: tuple[float, float]) -> str:
     mean, std = ms
     if not math.isfinite(mean):
@@ -452,6 +478,8 @@ def _profile_sections(profile_dir: Path, records: dict[str, dict[str, Any]]) -> 
         lines += _table_section(table, profile, records, seeds)
         if table == "dynrange":
             lines += _dynrange_section(profile_dir, records, seeds)
+        if table == "schedule":
+            lines += _schedule_section(profile_dir, seeds)
     lines += _fig6_section(profile_dir)
     for key in FIGURES:
         lines += _qualitative_section(profile_dir, key)
