@@ -75,7 +75,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--skip-recorded",
         action="store_true",
         help="do not run again a run whose records are committed in <results>/<profile>/ (for a machine without "
-        "its run folder: a second sitting on a fresh GPU machine); tables and studies only",
+        "its run folder, such as a fresh GPU machine); tables and studies only",
     )
     p.add_argument("--dry-run", action="store_true", help="print what would run, run nothing")
     p.add_argument("--page-only", action="store_true", help="only rebuild the results page from the records")

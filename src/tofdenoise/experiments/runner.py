@@ -10,7 +10,7 @@ folder ``<out>/<name>`` and
 
 and goes on after a failing run. The result lists every spec with its status (``done``, ``skipped``, ``failed``)
 and the failed ones with the last lines of their log, so a grid of many runs can be completed over several
-sittings and a failure is never silent.
+runs of the command and a failure is never silent.
 
 By default the runs go one after another in the listed order. ``run_all(..., executor=...)`` hands the unfinished
 ones to an executor of :mod:`tofdenoise.experiments.executors` instead (N local workers, a SLURM job array); each run
