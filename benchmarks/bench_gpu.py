@@ -14,8 +14,8 @@ Usage: python benchmarks/bench_gpu.py [--quick] [--json FILE]
    against the H100's 3.35 TB/s.
 4. Training steps (forward+backward+AdamW) of every paper backbone at batch 4, 320x320: float32 vs bf16 autocast,
    ms per step and peak memory; full-resolution 480x640 inference (batch 1, bf16 autocast) ms per frame. DVSS
-   twice: on its default SS2D route (the fused kernels) and on the cross_scan route, side by side (the H200 of
-   session 13 showed the fused block slower under bf16: docs/benchmarks.md).
+   twice: on its default SS2D route (the fused kernels) and on the cross_scan route, side by side (on an H200,
+   2026-11-25, the fused block was slower under bf16: docs/benchmarks.md).
 Timings: CUDA events around warm, synchronised repeats; medians.
 """
 

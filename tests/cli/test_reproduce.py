@@ -152,7 +152,7 @@ def test_each_finished_run_is_recorded_at_once(tmp_path, monkeypatch):
         after_each(RunOutcome(specs[0], first, "done"))
         assert (results / "cpu" / specs[0].name / "metrics.json").is_file()  # recorded before the next run
         assert "| DVSS, fixed Gaussian | 39.40 / 41.00 (n=1) | 3.42 / 2.00 (n=1) |" in page.read_text()
-        raise KeyboardInterrupt  # the sitting ends here
+        raise KeyboardInterrupt  # the run of the command ends here
 
     monkeypatch.setattr(workflow, "ensure_realset", lambda *a, **k: None)
     monkeypatch.setattr(workflow, "run_all", fake_run_all)
@@ -238,9 +238,9 @@ CPU_SCALE_DOWN = [
 
 
 def test_skip_recorded_runs_only_what_has_no_committed_record(tmp_path, monkeypatch, capsys):
-    """``--skip-recorded`` (a second sitting on a fresh machine) leaves out the runs whose metrics.json and
-    run_info.json are committed; a run with metrics.json only is run again; without the option every run of the
-    target runs. A figure needs its runs' checkpoints: the option is refused there (exit 2)."""
+    """``--skip-recorded`` (going on from committed records on a fresh machine) leaves out the runs whose
+    metrics.json and run_info.json are committed; a run with metrics.json only is run again; without the option
+    every run of the target runs. A figure needs its runs' checkpoints: the option is refused there (exit 2)."""
     import tofdenoise.experiments.reproduce as workflow
 
     out, results, page = tmp_path / "runs", tmp_path / "results", tmp_path / "results.md"
@@ -271,7 +271,7 @@ def test_skip_recorded_runs_only_what_has_no_committed_record(tmp_path, monkeypa
 def test_a_finished_runs_record_gains_its_score_against_the_stand_ins_truth(tmp_path, monkeypatch, data_cache, tiny):
     """``reproduce`` scores each finished learned run against the simulated capture set's truth as it commits it:
     the committed ``real_vs_truth.json`` gives the run's own real-set numbers against the references (to 1e-9) and
-    fills the page's "real vs truth" column; a repeated sitting does not score it again, and a capture set without
+    fills the page's "real vs truth" column; a repeated run does not score it again, and a capture set without
     truth (a real camera's) or a run without a checkpoint (the classical filter) gets no such file."""
     import tofdenoise.experiments.reproduce as workflow
     from tofdenoise.cli.sensor import main as sensor_main
@@ -311,7 +311,7 @@ def test_a_finished_runs_record_gains_its_score_against_the_stand_ins_truth(tmp_
     row = next(line for line in page.read_text().splitlines() if line.startswith("| DVSS, fixed Gaussian |"))
     assert f"{truth['truth']['mean']['mae_mm']:.2f} (n=1)" in row
 
-    # a second sitting: the record is newer than the checkpoint, so it is kept as it is
+    # a second run: the record is newer than the checkpoint, so it is kept as it is
     stamp = (run_dir / "real_vs_truth.json").stat().st_mtime_ns
     assert main(argv) == 0
     assert (run_dir / "real_vs_truth.json").stat().st_mtime_ns == stamp
@@ -370,7 +370,7 @@ def test_gpu_profile_run_scaled_down_trains_and_tests_on_cpu(tmp_path, data_cach
 
 
 def test_gpu_short_profile_run_scaled_down_trains_and_tests_on_cpu(tmp_path, data_cache, tiny):
-    """The ``gpu-short`` profile (the paper's recipe per step on the procedural world, for a lent GPU's minutes)
+    """The ``gpu-short`` profile (the paper's recipe per step on the procedural world, for a few GPU minutes)
     first runs here, not on the GPU machine: its overrides compose (experiment=paper's optimiser, crops and bf16
     trainer, the procedural source at 480 x 640, 10 epochs), and a Table III run with them, scaled down (CPU, one
     epoch, tiny scenes and DVSS), trains and tests end to end on both test sets."""
@@ -400,7 +400,7 @@ def test_gpu_short_profile_run_scaled_down_trains_and_tests_on_cpu(tmp_path, dat
     ]
     _, info = _train_table3_row(tmp_path, "gpu-short", realset, scaled_down, "dvss-hetero-l1-s0")
     assert info["data"] == "procedural" and info["noise"] == "hetero" and info["loss"] == "l1"
-    assert info["train_images_per_second"] > 0 and info["peak_rss_gib"] > 0  # what the GPU sitting records
+    assert info["train_images_per_second"] > 0 and info["peak_rss_gib"] > 0  # what a GPU run records
 
 
 def _results_with_three_seeds(root: Path) -> Path:

@@ -95,7 +95,7 @@ def test_two_local_workers_give_the_sequential_records_byte_for_byte(tmp_path, c
         assert _config(a, par) == _config(b, seq)
     seeds = {json.loads((par / s.name / "metrics.json").read_text())["synthetic"]["mae_mm"] for s in specs}
     assert len(seeds) == 4  # four different runs, not one run four times
-    # a second sitting skips every run, whichever executor
+    # a second run of the command skips every run, whichever executor
     again = run_all(specs, par, executor=LocalExecutor(2), echo=False)
     assert [o.status for o in again] == ["skipped"] * 4
 

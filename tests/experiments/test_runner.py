@@ -47,7 +47,7 @@ def test_run_skip_and_failure_listed(tmp_path, capsys):
     assert run_finished(tmp_path / "good")
     metrics = json.loads((tmp_path / "good" / "metrics.json").read_text())
     assert "synthetic" in metrics
-    # a second sitting: the finished run is skipped, the failed one is tried again (and fails again)
+    # a second run of the command: the finished run is skipped, the failed one is tried again (and fails again)
     seen = []
     again = run_all(specs, tmp_path, python=sys.executable, echo=False, after_each=lambda o: seen.append(o.status))
     assert [o.status for o in again] == ["failed", "skipped"]

@@ -268,7 +268,7 @@ _SUMMING = {"ReduceMean", "ReduceSum", "ReduceL1", "ReduceL2", "ReduceSumSquare"
 def _fp16_spatial_sums(path) -> list[str]:
     """Summing reductions of a float16 tensor over a spatial axis (2 or 3 of a rank-4 tensor) in the graph at
     ``path``: their sum over a frame's pixels overflows float16 (65504) on onnxruntime's CUDA provider at full size
-    (measured: DVSS's channel attention at 480 x 640 gave NaN, docs/benchmarks.md)."""
+    (measured: DVSS's channel attention at 480 x 640 gave NaN, CHANGELOG.md)."""
     import onnx
     from onnx import TensorProto, numpy_helper, shape_inference
 

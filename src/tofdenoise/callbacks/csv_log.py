@@ -101,7 +101,7 @@ class ResumableCSVLogger(CSVLogger):
 
     ``flush_logs_every_n_steps`` defaults to 1 (Lightning: 100): every row is on disk as soon as it is logged,
     so a killed run loses no row that its checkpoint covers (the cost of a flush per step: docs/benchmarks.md,
-    "Training")."""
+    "Training step on the CPU")."""
 
     def __init__(
         self,

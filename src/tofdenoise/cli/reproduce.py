@@ -79,7 +79,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--skip-recorded",
         action="store_true",
         help="do not run again a run whose records are committed in <results>/<profile>/ (for a machine without "
-        "its run folder: a second sitting on a fresh GPU machine); tables and studies only",
+        "its run folder, such as a fresh GPU machine); tables and studies only",
     )
     p.add_argument(
         "--time-budget",

@@ -71,8 +71,8 @@ PROFILES: dict[str, tuple[str, ...]] = {
     # epochs, one GPU
     "gpu": ("experiment=paper", "logger=csv"),
     # the paper's recipe per step on the procedural world at 480 x 640 with a short schedule: a table's rows as far
-    # as the minutes of a lent GPU allow (configs/experiment/paper_short.yaml); finished runs are skipped, so a
-    # second sitting goes on from the first
+    # as a few GPU minutes allow (configs/experiment/paper_short.yaml); finished runs are skipped, so a
+    # second run of the command goes on from the first
     "gpu-short": ("experiment=paper_short", "logger=csv"),
 }
 #: the profiles whose experiment trains on a CUDA GPU (``trainer=gpu``; a test checks it against the composed configs)

@@ -10,7 +10,7 @@ folder ``<out>/<name>`` and
 
 and goes on after a failing run. The result lists every spec with its status (``done``, ``skipped``, ``failed``)
 and the failed ones with the last lines of their log, so a grid of many runs can be completed over several
-sittings and a failure is never silent.
+runs of the command and a failure is never silent.
 
 A *time budget* (:class:`TimeBudget`: a GPU allocation of a fixed number of minutes, a SLURM job's time limit) bounds
 the sequential runner: a run is not started when its estimated duration (``TimeBudget.estimate``, e.g. from the

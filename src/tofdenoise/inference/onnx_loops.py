@@ -9,7 +9,7 @@ export scan's second loop, :mod:`tofdenoise.models.scan.export`) is exported by 
 which onnxruntime runs as one sequence insert per step. :func:`sequences_to_scan_outputs` rewrites each such
 pattern into the ``Loop``'s own scan output (ONNX stacks the per-step values of a body output that is not carried
 along axis 0, which is what ``ConcatFromSequence(axis=0, new_axis=1)`` computes), and leaves every other use of a
-sequence alone. Measured gain: docs/benchmarks.md, "ONNX export (issue 26)".
+sequence alone. Measured gain: docs/benchmarks.md, "ONNX export".
 """
 
 from __future__ import annotations

@@ -24,8 +24,8 @@ def mean_hw(x: torch.Tensor, keepdim: bool = True) -> torch.Tensor:
     """Mean of a (B, C, H, W) tensor over its pixels, summed in float32 and returned in ``x``'s dtype.
 
     A whole frame's sum leaves float16's range (65504) at 480 x 640 (307,200 pixels): onnxruntime's CUDA provider
-    sums a float16 ``ReduceMean`` in float16, and DVSS's channel attention gave NaN there (docs/benchmarks.md,
-    "ONNX on the GPU"). Exact for float32 inputs."""
+    sums a float16 ``ReduceMean`` in float16, and DVSS's channel attention gave NaN there (CHANGELOG.md,
+    2026-11-26). Exact for float32 inputs."""
     return x.float().mean(dim=(2, 3), keepdim=keepdim).to(x.dtype)
 
 

@@ -29,7 +29,7 @@ read from the tensors inside the scripted function (a Python ``int`` handed to i
 frozen to the example's value), so height and width stay dynamic. The per-step outputs leave the loop as an ONNX
 sequence; :func:`tofdenoise.inference.onnx_loops.sequences_to_scan_outputs` turns them into the ``Loop``'s scan
 outputs after export. ``state_elems`` (:data:`EXPORT_SCAN_STATE_ELEMS`) was chosen by measurement
-(docs/benchmarks.md, "ONNX export (issue 26)").
+(docs/benchmarks.md, "ONNX export").
 
 The dynamo exporter (``torch.onnx.export(..., dynamo=True)``, ``tofdenoise export --exporter dynamo``) does not
 keep scripted loops: ``torch.export`` runs them with the example's sizes and unrolls them, so the graph would only
