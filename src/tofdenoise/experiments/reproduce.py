@@ -25,6 +25,7 @@ import json
 import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from datetime import datetime
 from pathlib import Path
 from typing import Any
 
@@ -201,8 +202,6 @@ ESTIMATE_MARGIN = 1.15
 
 def _wall_seconds(run_info: Path) -> float | None:
     """``finished - started`` of a committed ``run_info.json`` (None when either is missing or unreadable)."""
-    from datetime import datetime
-
     try:
         info = json.loads(run_info.read_text())
         return (datetime.fromisoformat(info["finished"]) - datetime.fromisoformat(info["started"])).total_seconds()
