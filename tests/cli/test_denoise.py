@@ -288,3 +288,33 @@ def test_a_short_write_names_the_output_folder_and_the_likely_cause(
     assert main([str(src / "a.png"), "--ckpt", str(restorer_ckpt), "--out", str(out), "--quiet"]) == 1
     err = capsys.readouterr().err
     assert f"could not write its outputs under {out}: 368640 requested and 55264 written (disk full?)" in err
+
+
+def test_adi_depth_and_ab_files_in_one_folder_pair_by_a_stem_substitution(tmp_path, make_restorer_ckpt, capsys):
+    """The ADI ADTF3175D SDK's own names: frame_mode2_depth_NNNNNN.npy with frame_mode2_ab_NNNNNN.npy in one
+    folder; a depth frame without its ab file fails alone, with one line naming it and the file looked for."""
+    signal_ckpt = make_restorer_ckpt(tmp_path / "sig.ckpt", conditioning={"use_signal_channel": True})
+    adi = tmp_path / "adi"
+    adi.mkdir()
+    amps = {}
+    for i in (7, 8):
+        np.save(adi / f"frame_mode2_depth_{i:06d}.npy", frame(i))
+        amps[i] = np.random.default_rng(i).uniform(100, 3000, (36, 48)).astype(np.float32)
+        np.save(adi / f"frame_mode2_ab_{i:06d}.npy", amps[i])
+    np.save(adi / "frame_mode2_depth_000009.npy", frame(9))
+    out = tmp_path / "out"
+    code = main(
+        [str(adi), "--ckpt", str(signal_ckpt), "--out", str(out), "--npy", "--quiet"]
+        + ["--amplitude", str(adi / "{stem:depth=ab}.npy")]
+    )
+    err = capsys.readouterr().err
+    assert code == 1 and "2 frame(s) done, 0 skipped, 1 failed" in err, err
+    model = load_restorer(signal_ckpt)
+    for i in (7, 8):
+        expected = tofdenoise.denoise(frame(i), model, amplitude=amps[i])
+        np.testing.assert_array_equal(np.load(out / f"frame_mode2_depth_{i:06d}.npy"), expected)
+    assert not list(out.glob("frame_mode2_ab_*"))
+    failed = [line for line in err.splitlines() if "FAILED" in line]
+    assert len(failed) == 1
+    assert str(adi / "frame_mode2_depth_000009.npy") in failed[0]
+    assert str(adi / "frame_mode2_ab_000009.npy") in failed[0]

@@ -64,8 +64,10 @@ def build_parser() -> argparse.ArgumentParser:
         "--amplitude",
         default=None,
         metavar="DIR_OR_PATTERN",
-        help="amplitude frames paired by stem: a folder, a template with {stem} (amp/{stem}_amp.png) or a "
-        "glob (amp/*.png); required by checkpoints that use the signal channel",
+        help="amplitude frames paired by stem: a folder, a template with {stem} (amp/{stem}_amp.png) or "
+        "{stem:OLD=NEW}, the stem with OLD replaced by NEW (ADI ADTF3175D: 'adi/{stem:depth=ab}.npy' pairs "
+        "frame_mode2_depth_000123.npy with frame_mode2_ab_000123.npy), or a glob (amp/*.png); required by "
+        "checkpoints that use the signal channel",
     )
     p.add_argument(
         "--sensor",
@@ -149,7 +151,13 @@ def _fail(message: str) -> int:
 def run(args: argparse.Namespace) -> int:
     """Run the command on parsed arguments; returns the exit status."""
     from tofdenoise.inference.denoise import CheckpointError, load_restorer, resolve_device
-    from tofdenoise.inference.frames import AmplitudeSource, FrameError, find_frames, plausible_depth_range_mm
+    from tofdenoise.inference.frames import (
+        AmplitudeSource,
+        FrameError,
+        drop_amplitude_files,
+        find_frames,
+        plausible_depth_range_mm,
+    )
     from tofdenoise.inference.outputs import OutputOptions
     from tofdenoise.inference.recordings import find_recordings
 
@@ -162,7 +170,7 @@ def run(args: argparse.Namespace) -> int:
         amplitude = AmplitudeSource(args.amplitude) if args.amplitude is not None else None
         # an amplitude folder inside an input folder holds no depth frames
         skip = [args.out] + ([amplitude.folder] if amplitude and amplitude.folder else [])
-        frames = find_frames(args.inputs, exclude=skip)
+        frames = drop_amplitude_files(find_frames(args.inputs, exclude=skip), amplitude)
         recordings = find_recordings(args.inputs, exclude=skip)
         intrinsics = load_intrinsics(args.intrinsics) if args.intrinsics is not None else None
         calib = None
