@@ -318,3 +318,34 @@ def test_adi_depth_and_ab_files_in_one_folder_pair_by_a_stem_substitution(tmp_pa
     assert len(failed) == 1
     assert str(adi / "frame_mode2_depth_000009.npy") in failed[0]
     assert str(adi / "frame_mode2_ab_000009.npy") in failed[0]
+
+
+def test_ply_from_the_kinects_own_calibration_json(tmp_path, restorer_ckpt, capsys):
+    """--intrinsics takes the Azure Kinect's calibration.json: a 320 x 288 frame (NFOV 2x2 binned) gets that depth
+    mode's intrinsics, computed here by hand from the unitised parameters."""
+    import json
+
+    params = [0.5, 0.51, 0.49, 0.492, 0.6, -2.9, 1.6, 0.5, -2.7, 1.5, 0.0, 0.0, -1e-4, 5e-5]
+    depth_camera = {
+        "Intrinsics": {"ModelParameterCount": 14, "ModelParameters": params, "ModelType": "BrownConrady"},
+        "Location": "CALIBRATION_CameraLocationD0",
+        "MetricRadius": 1.74,
+        "SensorHeight": 1024,
+        "SensorWidth": 1024,
+    }
+    calibration = tmp_path / "calibration.json"
+    calibration.write_text(json.dumps({"CalibrationInformation": {"Cameras": [depth_camera]}}))
+    d = frame(3, 288, 320)
+    cv2.imwrite(str(tmp_path / "k.png"), d.astype(np.uint16))
+    out = tmp_path / "out"
+    args = [str(tmp_path / "k.png"), "--ckpt", str(restorer_ckpt), "--out", str(out), "--npy", "--ply", "--quiet"]
+    assert main([*args, "--intrinsics", str(calibration)]) == 0, capsys.readouterr().err
+    data = (out / "k.ply").read_bytes()
+    end = data.index(b"end_header\n") + len(b"end_header\n")
+    points = np.frombuffer(data[end:], dtype="<f4").reshape(-1, 3)
+    restored_m = np.load(out / "k.npy").astype(np.float64) / 1000.0
+    v, u = np.nonzero(restored_m > 0)
+    z = restored_m[v, u]
+    fx, fy, cx, cy = 0.49 * 512, 0.492 * 512, 0.5 * 512 - 96 - 0.5, 0.51 * 512 - 90 - 0.5
+    expected = np.stack([(u - cx) * z / fx, (v - cy) * z / fy, z], axis=1)
+    np.testing.assert_allclose(points, expected, rtol=1e-6, atol=1e-7)

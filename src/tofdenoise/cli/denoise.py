@@ -31,7 +31,7 @@ from typing import Any
 from tqdm.auto import tqdm
 
 from tofdenoise.atomic import sigint_deferred
-from tofdenoise.inference.camera import IntrinsicsError, load_intrinsics
+from tofdenoise.inference.camera import IntrinsicsError, load_intrinsics, resolve_intrinsics
 from tofdenoise.output_guard import OutputPathError, refuse_overwrite
 
 __all__ = ["build_parser", "main", "run", "timing_text"]
@@ -107,8 +107,9 @@ def build_parser() -> argparse.ArgumentParser:
         type=Path,
         default=None,
         metavar="FILE",
-        help="camera intrinsics YAML/JSON (fx, fy, cx, cy, width, height, or a ROS camera_info YAML); overrides "
-        "those of a recording",
+        help="camera intrinsics: YAML/JSON with fx, fy, cx, cy, width, height; a ROS camera_info YAML; an OpenCV "
+        "FileStorage YAML/XML (camera_matrix, image_width, image_height); or an Azure Kinect calibration.json (the "
+        "depth mode of the frame's size); overrides those of a recording",
     )
     p.add_argument(
         "--depth-stream",
@@ -327,7 +328,7 @@ def _restore_and_write(data: Any, label: str, intrinsics: Any, job: _Job, tally:
         return
     try:
         if job.options.ply:
-            intrinsics.check_shape(data.depth_mm.shape, label)
+            intrinsics = resolve_intrinsics(intrinsics, data.depth_mm.shape, label)
         if args.onnx is not None:  # onnxruntime: whole frame, the graph's own precision
             restored = job.model.restore_frame(data.depth_mm, data.valid, data.amplitude, fill_holes=args.fill_holes)
         else:

@@ -29,7 +29,7 @@ import torch
 from lightning.pytorch.callbacks import BasePredictionWriter
 from torch.utils.data import DataLoader, Dataset, IterableDataset
 
-from tofdenoise.inference.camera import Intrinsics, load_intrinsics
+from tofdenoise.inference.camera import Intrinsics, load_intrinsics, resolve_intrinsics
 from tofdenoise.inference.frames import (
     AmplitudeSource,
     Frame,
@@ -206,6 +206,8 @@ class FramesPredictionWriter(BasePredictionWriter):
             if intrinsics is None and "intrinsics" in batch:
                 fx, fy, cx, cy, w, h = (float(v) for v in batch["intrinsics"][i])
                 intrinsics = Intrinsics(fx, fy, cx, cy, int(w), int(h), source="the recording")
+            if intrinsics is not None and self.options.ply:
+                intrinsics = resolve_intrinsics(intrinsics, tuple(pred.shape[-2:]), str(batch["name"][i]))
             self.written += write_frame_outputs(
                 self.out_dir,
                 str(batch["name"][i]),
