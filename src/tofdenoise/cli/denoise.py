@@ -137,6 +137,12 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+#: why a frame file fails under --ply without --intrinsics (a frame file carries no intrinsics of its own)
+NO_FRAME_INTRINSICS = (
+    "--ply needs the camera intrinsics and a frame file carries none: give --intrinsics FILE (the other inputs go on)"
+)
+
+
 def onnx_device(name: str):
     """The device the summary names for an onnxruntime run (that of its execution provider)."""
     import torch
@@ -179,6 +185,16 @@ def run(args: argparse.Namespace) -> int:
             from tofdenoise.physics.calibration import resolve_calibration
 
             calib = resolve_calibration(args.sensor)
+    except (FrameError, IntrinsicsError, ValueError, OSError) as exc:
+        return _fail(str(exc))
+    if args.sensor is not None and args.amplitude is None and frames:
+        return _fail("--sensor needs --amplitude: the sigma_D map is computed from the input's amplitude")
+    if args.ply and intrinsics is None and frames and not recordings:  # no input could give a point cloud
+        return _fail(
+            "--ply needs the camera intrinsics of the depth frames: give --intrinsics FILE (fx, fy, cx, cy, "
+            "width, height)"
+        )
+    try:
         if args.onnx is not None:
             from tofdenoise.inference.onnx_runner import OnnxRestorer
 
@@ -187,15 +203,8 @@ def run(args: argparse.Namespace) -> int:
         else:
             model = load_restorer(args.ckpt, device)
             signal = model.conditioning.use_signal_channel
-    except (FrameError, CheckpointError, IntrinsicsError, ValueError, OSError) as exc:
+    except (CheckpointError, ValueError, OSError) as exc:
         return _fail(str(exc))
-    if args.sensor is not None and args.amplitude is None and frames:
-        return _fail("--sensor needs --amplitude: the sigma_D map is computed from the input's amplitude")
-    if args.ply and intrinsics is None and frames:
-        return _fail(
-            "--ply needs the camera intrinsics of the depth frames: give --intrinsics FILE (fx, fy, cx, cy, "
-            "width, height)"
-        )
     if signal and amplitude is None and frames:
         return _fail(
             f"{'ONNX model' if args.onnx is not None else 'checkpoint'} {args.onnx or args.ckpt} uses the "
@@ -292,6 +301,9 @@ def _denoise_one(frame: Any, job: _Job, tally: _Tally) -> None:
     from tofdenoise.inference.frames import FrameError, check_depth_units_mm, load_frame
 
     if not _claim(frame.rel_stem.as_posix(), frame.path, job, tally):
+        return
+    if job.options.ply and job.intrinsics is None:  # a recording of the same command may carry its own
+        tally.failed.append((str(frame.path), NO_FRAME_INTRINSICS))
         return
     started = time.perf_counter()
     try:
