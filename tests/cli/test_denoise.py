@@ -349,3 +349,42 @@ def test_ply_from_the_kinects_own_calibration_json(tmp_path, restorer_ckpt, caps
     fx, fy, cx, cy = 0.49 * 512, 0.492 * 512, 0.5 * 512 - 96 - 0.5, 0.51 * 512 - 90 - 0.5
     expected = np.stack([(u - cx) * z / fx, (v - cy) * z / fy, z], axis=1)
     np.testing.assert_allclose(points, expected, rtol=1e-6, atol=1e-7)
+
+
+def test_frames_mostly_outside_the_training_depths_are_named_in_the_summary(tmp_path, restorer_ckpt, capsys):
+    """A checkpoint records the depths it was trained on; a frame whose valid depths lie mostly beyond them (an
+    ADI ADTF3175D frame reaching 7.5 m) is restored and named in the summary; one inside is not. A checkpoint
+    without the record says the range is unknown."""
+    import torch
+
+    from tofdenoise.training.depth_range import DEPTH_RANGE_KEY, TrainingDepthRange
+
+    trained = TrainingDepthRange()
+    depths = torch.from_numpy(np.random.default_rng(0).uniform(300, 2400, (4, 1, 64, 64)).astype(np.float32))
+    trained.update(depths, torch.ones_like(depths))
+    content = torch.load(restorer_ckpt, map_location="cpu", weights_only=True)
+    content[DEPTH_RANGE_KEY] = trained.record()
+    ckpt = tmp_path / "ranged.ckpt"
+    torch.save(content, ckpt)
+    src = tmp_path / "frames"
+    src.mkdir()
+    np.save(src / "near.npy", frame(0))
+    y, x = np.mgrid[0:36, 0:48]
+    far = (5000.0 + 50 * x + 10 * y).astype(np.float32)  # 5.0-7.7 m
+    far[:4, :4] = 1200.0
+    np.save(src / "far.npy", far)
+    args = [str(src), "--out", str(tmp_path / "out"), "--depth-scale-mm", "1", "--quiet"]
+    assert main([*args, "--ckpt", str(ckpt)]) == 0
+    err = capsys.readouterr().err
+    assert "2 frame(s) done" in err
+    lines = [line.strip() for line in err.splitlines()]
+    low, high = trained.range_mm
+    assert f"trained on depths {low:.0f}-{high:.0f} mm: 1 frame(s) lie mostly outside them" in lines
+    outside = [line for line in lines if line.startswith("outside the training depths")]
+    assert len(outside) == 1 and str(src / "far.npy") in outside[0]
+    assert "99 % of its valid depths" in outside[0] and "extrapolation" in outside[0]
+    assert (tmp_path / "out" / "far.png").is_file()
+    # a checkpoint without the record: the range is unknown, the frames are restored all the same
+    assert main([*args[:1], "--out", str(tmp_path / "out2"), *args[3:], "--ckpt", str(restorer_ckpt)]) == 0
+    err = capsys.readouterr().err
+    assert "does not record the depths it was trained on" in err and "outside the training depths" not in err

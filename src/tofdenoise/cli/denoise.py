@@ -234,6 +234,7 @@ def run(args: argparse.Namespace) -> int:
         intrinsics=intrinsics,
         signal=signal,
         depth_range_mm=plausible_depth_range_mm(calib),
+        training_range_mm=model.training_depth_range_mm,
     )
     tally = _Tally()
     interrupted = False
@@ -252,6 +253,8 @@ def run(args: argparse.Namespace) -> int:
         f"{len(tally.failed)} failed; {timing_text(tally.seconds)} on {device.type} -> {args.out}",
         file=sys.stderr,
     )
+    for line in training_depth_lines(job, tally):
+        print(f"  {line}", file=sys.stderr)
     for path, reason in tally.skipped:
         print(f"  skipped {path}: {reason}", file=sys.stderr)
     for path, reason in tally.failed:
@@ -277,6 +280,8 @@ class _Job:
     signal: bool = False
     #: (nearest, farthest) median depth [mm] a frame without --depth-scale-mm may have (frames.check_depth_units_mm)
     depth_range_mm: tuple[float, float] | None = None
+    #: (nearest, farthest) depth [mm] the network was trained on (training/depth_range.py); None: not recorded
+    training_range_mm: tuple[float, float] | None = None
 
 
 @dataclass
@@ -288,6 +293,8 @@ class _Tally:
     failed: list[tuple[str, str]] = field(default_factory=list)
     seconds: list[float] = field(default_factory=list)
     claimed: dict[Path, Path] = field(default_factory=dict)
+    #: frames done whose valid depths lie mostly outside the training depths: (frame, note)
+    outside: list[tuple[str, str]] = field(default_factory=list)
 
 
 def _write_failure(exc: OSError, out: Path) -> str:
@@ -331,7 +338,7 @@ def _claim(name: str, source: Any, job: _Job, tally: _Tally) -> bool:
 def _restore_and_write(data: Any, label: str, intrinsics: Any, job: _Job, tally: _Tally, started: float) -> None:
     """Restore a frame read into memory (``frames.Frame``) and write its outputs, or record why not."""
     from tofdenoise.inference.denoise import restore_frame
-    from tofdenoise.inference.frames import FrameError
+    from tofdenoise.inference.frames import FrameError, outside_training_depths
     from tofdenoise.inference.outputs import frame_sigma, write_frame_outputs
 
     args = job.args
@@ -375,6 +382,9 @@ def _restore_and_write(data: Any, label: str, intrinsics: Any, job: _Job, tally:
             return
         tally.seconds.append(time.perf_counter() - started)
         tally.done += 1
+    note = outside_training_depths(data, job.training_range_mm)
+    if note is not None:
+        tally.outside.append((label, note))
 
 
 def _denoise_recording(recording: Any, job: _Job, tally: _Tally) -> None:
@@ -460,6 +470,25 @@ def _refuse_replacing_inputs(
         raise OutputPathError(f"--out {out} is a file; give a folder for the outputs")
     folders = [out] + [out / r.rel_stem for r in recordings]
     refuse_overwrite(outputs, inputs, "--out", output_folders=folders)
+
+
+def training_depth_lines(job: _Job, tally: _Tally) -> list[str]:
+    """The summary's lines on the depths the network was trained on: the range and each frame done that lies
+    mostly outside it, or that the checkpoint does not record it (nothing for a classical filter, never trained)."""
+    if not tally.done or not getattr(job.model, "trainable", True):
+        return []
+    if job.training_range_mm is None:
+        return [
+            "the checkpoint does not record the depths it was trained on (written before they were kept): the frames "
+            "were not checked against them"
+        ]
+    low, high = job.training_range_mm
+    head = f"trained on depths {low:.0f}-{high:.0f} mm"
+    if not tally.outside:
+        return [f"{head}: no frame lies mostly outside them"]
+    return [f"{head}: {len(tally.outside)} frame(s) lie mostly outside them"] + [
+        f"outside the training depths {label}: {note}" for label, note in tally.outside
+    ]
 
 
 def timing_text(seconds: Sequence[float]) -> str:

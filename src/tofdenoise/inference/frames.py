@@ -11,6 +11,11 @@ camera), i.e. more than half of its valid depths out of that range on one side. 
 other units: metres (a Kinect frame / 1000), centimetres (/ 10) or 0.1 mm (x 10); the error names the median and
 the likely unit.
 
+``outside_training_depths`` is a warning, not a refusal: a frame in millimetres whose valid depths lie mostly (more
+than half of them) outside the depths the checkpoint was trained on (``training/depth_range.py``; e.g. an ADI
+ADTF3175D frame reaching 7.5 m against the built-in scenes' 0.3-2.4 m) is restored, and the summary says that its
+restoration there is an extrapolation.
+
 Amplitude values that are not finite (NaN, inf) are invalid: the sigma_D map is NaN there, and a frame whose
 amplitude is invalid at every pixel of valid depth is refused (``FrameError`` naming the amplitude file).
 
@@ -49,6 +54,7 @@ __all__ = [
     "MIN_MEDIAN_DEPTH_MM",
     "LIKELY_UNITS",
     "check_depth_units_mm",
+    "outside_training_depths",
     "plausible_depth_range_mm",
 ]
 
@@ -347,4 +353,23 @@ def check_depth_units_mm(frame: Frame, path: str | Path, depth_range_mm: tuple[f
         f"depth file {path}: median valid depth {median_mm:.4g} is implausible in millimetres (more than half of "
         f"the valid depths lie {side} {bound:.0f} mm; taken as mm: {near:.0f} mm, the training scenes' nearest "
         f"depth, to {far:.0f} mm, the sensor's unambiguous range); {hint} (--depth-scale-mm 1 if it is mm)"
+    )
+
+
+def outside_training_depths(frame: Frame, range_mm: tuple[float, float] | None) -> str | None:
+    """A one-line note when more than half of the frame's valid depths lie outside ``range_mm``, the (nearest,
+    farthest) depths the checkpoint was trained on; None otherwise (or when the range is unknown)."""
+    from tofdenoise.training.depth_range import outside_fraction
+
+    if range_mm is None or not frame.valid.any():
+        return None
+    share = outside_fraction(frame.depth_mm, frame.valid, range_mm)
+    if share <= 0.5:
+        return None
+    values = frame.depth_mm[frame.valid]
+    low, high = range_mm
+    return (
+        f"{100 * share:.0f} % of its valid depths ({float(values.min()):.0f}-{float(values.max()):.0f} mm, median "
+        f"{float(np.median(values)):.0f} mm) lie outside {low:.0f}-{high:.0f} mm, the depths the checkpoint was "
+        "trained on: its restoration there is an extrapolation"
     )

@@ -27,6 +27,7 @@ from tofdenoise.models.conditioning import CENTERING_MODES, InputConditioning
 from tofdenoise.models.registry import accepts_kwarg, backbone_factory, is_trainable
 from tofdenoise.models.tiling import TilingSettings
 from tofdenoise.records import set_entry
+from tofdenoise.training.depth_range import TrainingDepthRange
 from tofdenoise.training.init_weights import INIT_RECORD_KEY, load_init_weights
 from tofdenoise.training.learned_guard import LearnedGuard
 from tofdenoise.training.legacy_hparams import is_legacy, upgrade_hparams
@@ -156,6 +157,14 @@ class DepthRestorer(pl.LightningModule):
         self.guard = LearnedGuard()
         #: {"path", "sha256"} of the weights this run started from (``init_weights``), None for a fresh init
         self.init_record: dict[str, str] | None = None
+        #: the valid target depths of the training batches (``training/depth_range.py``), kept in the checkpoint
+        self.training_depths = TrainingDepthRange()
+
+    @property
+    def training_depth_range_mm(self) -> tuple[float, float] | None:
+        """(nearest, farthest) depth [mm] of the training targets this network saw (0.5 % and 99.5 % of them;
+        ``training/depth_range.py``); None for a checkpoint written before the record existed, or no training."""
+        return self.training_depths.range_mm
 
     # ------------------------------------------------------------------ networks
     @property
@@ -234,6 +243,7 @@ class DepthRestorer(pl.LightningModule):
         return self.training_terms(batch, net)["loss"]
 
     def training_step(self, batch: dict[str, Any], batch_idx: int) -> Tensor:
+        self.training_depths.update(batch["clean"], batch["mask"])
         terms = self.training_terms(batch)
         loss = terms["loss"]
         if not torch.isfinite(loss):
@@ -406,6 +416,7 @@ class DepthRestorer(pl.LightningModule):
             self.guard.save(checkpoint, self.trainer)
         if self.init_record is not None:
             checkpoint[INIT_RECORD_KEY] = dict(self.init_record)
+        self.training_depths.save(checkpoint)
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         """Refuse a checkpoint written for another backbone/architecture with a readable message; restore the
@@ -414,6 +425,7 @@ class DepthRestorer(pl.LightningModule):
         init = checkpoint.get(INIT_RECORD_KEY)
         self.init_record = dict(init) if isinstance(init, dict) else None
         self.guard.load(checkpoint)
+        self.training_depths.load(checkpoint)
 
     def _check_architecture(self, checkpoint: dict[str, Any]) -> None:
         saved = checkpoint.get("hyper_parameters")
