@@ -388,3 +388,22 @@ def test_frames_mostly_outside_the_training_depths_are_named_in_the_summary(tmp_
     assert main([*args[:1], "--out", str(tmp_path / "out2"), *args[3:], "--ckpt", str(restorer_ckpt)]) == 0
     err = capsys.readouterr().err
     assert "does not record the depths it was trained on" in err and "outside the training depths" not in err
+
+
+def test_the_summary_says_whether_the_frames_ran_whole_or_in_tiles(frames_dir, restorer_ckpt, tmp_path, capsys):
+    src, amp = frames_dir
+    args = [str(src), "--ckpt", str(restorer_ckpt), "--amplitude", str(amp), "--quiet"]
+    assert main([*args, "--out", str(tmp_path / "whole")]) == 0
+    lines = [line.strip() for line in capsys.readouterr().err.splitlines()]
+    tiling = [line for line in lines if line.startswith("tiling:")]
+    assert len(tiling) == 1 and tiling[0].startswith("tiling: 3 whole frame(s) (the largest, 48 x 36, needs about ")
+    assert " budget)" in tiling[0] or "memory budget unknown" in tiling[0]
+    assert main([*args, "--out", str(tmp_path / "tiles"), "--tile", "40"]) == 0
+    lines = [line.strip() for line in capsys.readouterr().err.splitlines()]
+    assert "tiling: 3 frame(s) in tiles of 40 px (--tile 40)" in lines
+    # a tile no larger than the checkpoint's overlap (32 px) is refused up front, not frame by frame
+    assert main([*args, "--out", str(tmp_path / "bad"), "--tile", "32"]) == 2
+    assert (
+        "--tile must exceed the checkpoint's tile overlap (tiling.overlap_px = 32), got 32" in capsys.readouterr().err
+    )
+    assert not (tmp_path / "bad").exists()

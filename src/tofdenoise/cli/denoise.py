@@ -9,8 +9,9 @@ INPUT: depth frames or folders of them (searched recursively): 16-bit PNG/TIFF i
 float mm (NaN/0/negative = invalid) or ``.exr``; or recordings (``tofdenoise.inference.recordings``): Azure Kinect
 ``.mkv``, ROS 1 ``.bag``, ROS 2 bag folders, whose frames go to ``OUT/<recording>/frame_NNNNNN.*`` (a recording is
 checked whole before its first frame is written). Outputs mirror the input sub-folders under ``--out``
-(``tofdenoise.inference.outputs``). Frames are processed one at a time (memory bounded by one frame; large frames
-run tile by tile). A frame that fails (unreadable, 8-bit/colour, amplitude missing or of another shape, depths
+(``tofdenoise.inference.outputs``). Frames are processed one at a time (memory bounded by one frame; a frame whose
+activations do not fit the memory budget runs tile by tile, ``tofdenoise.inference.memory``, and the summary says
+which frames did). A frame that fails (unreadable, 8-bit/colour, amplitude missing or of another shape, depths
 implausible in millimetres without ``--depth-scale-mm`` ...) is reported and the others go on; the exit status is
 1 when any frame failed, 2 for a bad command line, checkpoint or calibration, or an output that would replace an
 input (``tofdenoise.output_guard``: checked for every frame before anything is written), 0 otherwise. See
@@ -131,7 +132,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--tile",
         type=int,
         default=None,
-        help="tile side in pixels for large frames (default: the checkpoint's tiling.predict_tile_px)",
+        help="force tiles of this side in pixels (default: a frame runs whole when the network's activations fit "
+        "the memory budget of the device, else in tiles of the checkpoint's tiling.predict_tile_px; the summary "
+        "says which)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
@@ -205,6 +208,11 @@ def run(args: argparse.Namespace) -> int:
             signal = model.conditioning.use_signal_channel
     except (CheckpointError, ValueError, OSError) as exc:
         return _fail(str(exc))
+    overlap = getattr(getattr(model, "tiling", None), "overlap_px", None)
+    if args.tile is not None and overlap is not None and args.tile <= overlap:
+        return _fail(
+            f"--tile must exceed the checkpoint's tile overlap (tiling.overlap_px = {overlap}), got {args.tile}"
+        )
     if signal and amplitude is None and frames:
         return _fail(
             f"{'ONNX model' if args.onnx is not None else 'checkpoint'} {args.onnx or args.ckpt} uses the "
@@ -253,7 +261,7 @@ def run(args: argparse.Namespace) -> int:
         f"{len(tally.failed)} failed; {timing_text(tally.seconds)} on {device.type} -> {args.out}",
         file=sys.stderr,
     )
-    for line in training_depth_lines(job, tally):
+    for line in tiling_lines(args, tally) + training_depth_lines(job, tally):
         print(f"  {line}", file=sys.stderr)
     for path, reason in tally.skipped:
         print(f"  skipped {path}: {reason}", file=sys.stderr)
@@ -295,6 +303,8 @@ class _Tally:
     claimed: dict[Path, Path] = field(default_factory=dict)
     #: frames done whose valid depths lie mostly outside the training depths: (frame, note)
     outside: list[tuple[str, str]] = field(default_factory=list)
+    #: (shape, inference.memory.TilePlan) of every frame restored by a checkpoint
+    plans: list[tuple[tuple[int, ...], Any]] = field(default_factory=list)
 
 
 def _write_failure(exc: OSError, out: Path) -> str:
@@ -337,7 +347,7 @@ def _claim(name: str, source: Any, job: _Job, tally: _Tally) -> bool:
 
 def _restore_and_write(data: Any, label: str, intrinsics: Any, job: _Job, tally: _Tally, started: float) -> None:
     """Restore a frame read into memory (``frames.Frame``) and write its outputs, or record why not."""
-    from tofdenoise.inference.denoise import restore_frame
+    from tofdenoise.inference.denoise import frame_tile_plan, restore_frame
     from tofdenoise.inference.frames import FrameError, outside_training_depths
     from tofdenoise.inference.outputs import frame_sigma, write_frame_outputs
 
@@ -351,15 +361,17 @@ def _restore_and_write(data: Any, label: str, intrinsics: Any, job: _Job, tally:
         if args.onnx is not None:  # onnxruntime: whole frame, the graph's own precision
             restored = job.model.restore_frame(data.depth_mm, data.valid, data.amplitude, fill_holes=args.fill_holes)
         else:
+            plan = frame_tile_plan(job.model, data.depth_mm.shape, args.tile, job.precision)
             restored = restore_frame(
                 job.model,
                 data.depth_mm,
                 data.valid,
                 data.amplitude,
                 fill_holes=args.fill_holes,
-                tile=args.tile,
+                tile=plan,
                 precision=job.precision,
             )
+            tally.plans.append((tuple(data.depth_mm.shape), plan))
     except (FrameError, IntrinsicsError, ValueError, OSError, RuntimeError) as exc:
         tally.failed.append((label, str(exc)))
         return
@@ -470,6 +482,47 @@ def _refuse_replacing_inputs(
         raise OutputPathError(f"--out {out} is a file; give a folder for the outputs")
     folders = [out] + [out / r.rel_stem for r in recordings]
     refuse_overwrite(outputs, inputs, "--out", output_folders=folders)
+
+
+def tiling_lines(args: argparse.Namespace, tally: _Tally) -> list[str]:
+    """The summary's line on tiling: whole frames, or which frames ran in tiles of which side and why
+    (``inference.memory.tile_plan``)."""
+    from tofdenoise.inference.memory import gib
+
+    if args.onnx is not None:
+        return ["tiling: none, whole frames (an ONNX graph runs whole frames)"] if tally.done else []
+    if not tally.plans:
+        return []
+
+    def size(shape: tuple[int, ...]) -> str:
+        return f"{shape[-1]} x {shape[-2]}"
+
+    whole = [(shape, plan) for shape, plan in tally.plans if not plan.tiled]
+    tiled = [(shape, plan) for shape, plan in tally.plans if plan.tiled]
+    parts = []
+    if tiled:
+        sides = sorted({plan.tile for _, plan in tiled})
+        shape, plan = max(tiled, key=lambda item: item[0][-1] * item[0][-2])
+        if plan.forced:
+            why = f"--tile {args.tile}"
+        else:
+            why = f"the largest, {size(shape)}, needs about {gib(plan.need_bytes)}, over the memory budget of "
+            why += f"{gib(plan.budget_bytes)}"
+        parts.append(f"{len(tiled)} frame(s) in tiles of {'/'.join(map(str, sides))} px ({why})")
+    if whole:
+        shape, plan = max(whole, key=lambda item: item[0][-1] * item[0][-2])
+        if plan.forced:
+            why = f"no side beyond --tile {args.tile}"
+        elif plan.need_bytes is None:
+            why = "the checkpoint never tiles"
+        elif plan.budget_bytes is None:
+            why = f"the largest, {size(shape)}, needs about {gib(plan.need_bytes)}; memory budget unknown"
+        else:
+            why = (
+                f"the largest, {size(shape)}, needs about {gib(plan.need_bytes)} of the {gib(plan.budget_bytes)} budget"
+            )
+        parts.append(f"{len(whole)} whole frame(s) ({why})")
+    return [f"tiling: {'; '.join(parts)}"]
 
 
 def training_depth_lines(job: _Job, tally: _Tally) -> list[str]:
