@@ -10,7 +10,7 @@ float mm (NaN/0/negative = invalid) or ``.exr``; or recordings (``tofdenoise.inf
 ``.mkv``, ROS 1 ``.bag``, ROS 2 bag folders, whose frames go to ``OUT/<recording>/frame_NNNNNN.*`` (a recording is
 checked whole before its first frame is written). Outputs mirror the input sub-folders under ``--out``
 (``tofdenoise.inference.outputs``). Frames are processed one at a time (memory bounded by one frame; a frame whose
-activations do not fit the memory budget runs tile by tile, ``tofdenoise.inference.memory``, and the summary says
+activations do not fit the memory budget runs tile by tile, ``tofdenoise.training.tile_memory``, and the summary says
 which frames did). A frame that fails (unreadable, 8-bit/colour, amplitude missing or of another shape, depths
 implausible in millimetres without ``--depth-scale-mm`` ...) is reported and the others go on; the exit status is
 1 when any frame failed, 2 for a bad command line, checkpoint or calibration, or an output that would replace an
@@ -303,7 +303,7 @@ class _Tally:
     claimed: dict[Path, Path] = field(default_factory=dict)
     #: frames done whose valid depths lie mostly outside the training depths: (frame, note)
     outside: list[tuple[str, str]] = field(default_factory=list)
-    #: (shape, inference.memory.TilePlan) of every frame restored by a checkpoint
+    #: (shape, training.tile_memory.TilePlan) of every frame restored by a checkpoint
     plans: list[tuple[tuple[int, ...], Any]] = field(default_factory=list)
 
 
@@ -486,8 +486,8 @@ def _refuse_replacing_inputs(
 
 def tiling_lines(args: argparse.Namespace, tally: _Tally) -> list[str]:
     """The summary's line on tiling: whole frames, or which frames ran in tiles of which side and why
-    (``inference.memory.tile_plan``)."""
-    from tofdenoise.inference.memory import gib
+    (``training.tile_memory.tile_plan``)."""
+    from tofdenoise.training.tile_memory import gib
 
     if args.onnx is not None:
         return ["tiling: none, whole frames (an ONNX graph runs whole frames)"] if tally.done else []

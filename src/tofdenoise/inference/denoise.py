@@ -4,7 +4,7 @@ Python API ``tofdenoise.denoise`` and LightningCLI ``predict`` on a folder of fr
 A frame is restored as ``DepthRestorer.predict_step`` does: ``model.restore_mm({"noisy", "mask"[, "amplitude"]},
 tile=...)`` (the model fills invalid input pixels before the network and centres the input), then pixels invalid
 in the input are set back to 0 unless ``fill_holes``. A frame runs whole unless its activations do not fit the
-memory budget of the device, or a tile side is given (``frame_tile_plan``, ``inference/memory.py``).
+memory budget of the device, or a tile side is given (``frame_tile_plan``, ``training/tile_memory.py``).
 On CUDA the network runs under bf16 autocast (``precision="bf16"``; ``"fp32"`` to turn it off).
 """
 
@@ -18,9 +18,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from tofdenoise.inference.memory import TilePlan, activation_bytes_per_px, memory_budget_bytes, tile_plan
 from tofdenoise.physics.uncertainty import amplitude_to_signal_e, sigma_depth_mm
 from tofdenoise.training.module import DepthRestorer
+from tofdenoise.training.tile_memory import TilePlan
 
 __all__ = [
     "CheckpointError",
@@ -190,18 +190,13 @@ def restore_frame(
 
 
 def frame_tile_plan(model: Any, shape: tuple[int, ...], tile: int | None = None, precision: str = "bf16") -> TilePlan:
-    """Whole frame or tiles for a frame of ``shape`` on ``model`` (``inference.memory.tile_plan``): ``tile`` forces
-    tiles of that side; else the network's activations, measured once on a small probe, against the memory budget
-    of the model's device, and the checkpoint's ``tiling.predict_tile_px`` as the tile side when they do not fit."""
+    """Whole frame or tiles for a frame of ``shape`` on ``model`` (``DepthRestorer.predict_tile_plan``): ``tile``
+    forces tiles of that side; else the network's activations, measured once on a small probe under the autocast of
+    ``precision``, against the memory budget of the model's device, and the checkpoint's ``tiling.predict_tile_px``
+    as the tile side when they do not fit."""
     device = model.device
-
-    def per_px() -> float:
-        net = model.eval_net
-        return activation_bytes_per_px(
-            net, model.conditioning.in_channels, device, precision, _autocast(device, precision)
-        )
-
-    return tile_plan(tuple(shape[-2:]), tile, model.tiling.predict_tile_px, per_px, lambda: memory_budget_bytes(device))
+    tag = precision if device.type == "cuda" else "fp32"
+    return model.predict_tile_plan(tuple(shape), tile, tag, _autocast(device, precision))
 
 
 def denoise(

@@ -15,6 +15,7 @@ from __future__ import annotations
 import logging
 import os
 from collections.abc import Sequence
+from contextlib import nullcontext
 from typing import Any
 
 import lightning.pytorch as pl
@@ -34,6 +35,7 @@ from tofdenoise.training.legacy_hparams import is_legacy, upgrade_hparams
 from tofdenoise.training.losses import DepthLoss, build_loss
 from tofdenoise.training.metrics import DepthMetrics, FixedBatchCache, depth_metrics_per_image
 from tofdenoise.training.optim import OptimSettings
+from tofdenoise.training.tile_memory import TilePlan, activation_bytes_per_px, memory_budget_bytes, tile_plan
 
 __all__ = [
     "DepthRestorer",
@@ -363,9 +365,30 @@ class DepthRestorer(pl.LightningModule):
             raw_metric.reset()
 
     # ------------------------------------------------------------------ predict
+    def predict_tile_plan(
+        self, shape: Sequence[int], tile: int | None = None, precision: str | None = None, autocast: Any = None
+    ) -> TilePlan:
+        """Whole frames or tiles for a (B, C, H, W) or (H, W) input to predict (``training/tile_memory.py``): ``tile``
+        forces tiles of that side; else whole when the network's activations, measured once on a small probe under
+        ``autocast`` (default: the autocast state of the caller; ``precision`` names it, e.g. "bf16"), fit the memory
+        budget of this model's device, and tiles of ``tiling.predict_tile_px`` when they do not."""
+        device = self.device
+        if precision is None:
+            on = torch.is_autocast_enabled(device.type)
+            precision = str(torch.get_autocast_dtype(device.type)) if on else "fp32"
+
+        def per_px() -> float:
+            context = nullcontext() if autocast is None else autocast
+            return activation_bytes_per_px(self.eval_net, self.conditioning.in_channels, device, precision, context)
+
+        frames = int(shape[0]) if len(shape) == 4 else 1
+        budget = lambda: memory_budget_bytes(device)  # noqa: E731
+        return tile_plan(tuple(shape[-2:]), tile, self.tiling.predict_tile_px, per_px, budget, frames=frames)
+
     def predict_step(self, batch: dict[str, Any], batch_idx: int, dataloader_idx: int = 0) -> Tensor:
-        """Restored depth in mm (B, 1, H, W); pixels invalid in the input (``mask == 0``) are set to 0."""
-        pred_mm = self.restore_mm(batch, tile=self.tiling.predict_tile_px)
+        """Restored depth in mm (B, 1, H, W); pixels invalid in the input (``mask == 0``) are set to 0. The batch runs
+        whole unless it does not fit the memory budget (:meth:`predict_tile_plan`)."""
+        pred_mm = self.restore_mm(batch, tile=self.predict_tile_plan(tuple(batch["noisy"].shape)).tile)
         if "mask" in batch:
             pred_mm = torch.where(batch["mask"] > 0, pred_mm, torch.zeros_like(pred_mm))
         return pred_mm

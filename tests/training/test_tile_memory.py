@@ -1,5 +1,5 @@
 """Whole frame or tiles: the activation bytes counted on a probe, the memory budget, the plan, and restore_frame
-running a frame whole unless it does not fit (or --tile forces tiles)."""
+and predict_step running a frame whole unless it does not fit (or --tile forces tiles)."""
 
 from __future__ import annotations
 
@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-import tofdenoise.inference.denoise as denoise_module
+import tofdenoise.training.module as module_module
 from tofdenoise.inference.denoise import frame_tile_plan, load_restorer, restore_frame
-from tofdenoise.inference.memory import (
+from tofdenoise.training.tile_memory import (
     MIN_TILE_PX,
     PROBE_PX,
     SAFETY,
@@ -92,6 +92,30 @@ def test_restore_frame_runs_a_frame_whole_unless_it_does_not_fit(tmp_path, make_
     assert not plan.tiled and plan.need_bytes < plan.budget_bytes
     np.testing.assert_array_equal(restore_frame(model, depth, valid), whole)
     np.testing.assert_array_equal(restore_frame(model, depth, valid, tile=64), tiled)
-    monkeypatch.setattr(denoise_module, "memory_budget_bytes", lambda device: 1.0)
+    monkeypatch.setattr(module_module, "memory_budget_bytes", lambda device: 1.0)
     assert frame_tile_plan(model, depth.shape).tile == 64
     np.testing.assert_array_equal(restore_frame(model, depth, valid), tiled)
+
+
+def test_predict_step_runs_the_batch_whole_unless_it_does_not_fit(tmp_path, make_restorer_ckpt, monkeypatch):
+    """LightningCLI predict restores as tofdenoise denoise does: whole when the batch fits, else the checkpoint's
+    tiles (the batch's frames counted together)."""
+    model = load_restorer(make_restorer_ckpt(tmp_path / "t.ckpt", tiling={"predict_tile_px": 64, "overlap_px": 16}))
+    torch.manual_seed(1)
+    with torch.no_grad():
+        for param in model.parameters():
+            param.add_(0.2 * torch.randn_like(param))
+    noisy = 900 + 100 * torch.rand(2, 1, 72, 90)
+    batch = {"noisy": noisy, "mask": torch.ones_like(noisy)}
+    with torch.no_grad():
+        whole = model.restore_mm(batch, tile=None)
+        tiled = model.restore_mm(batch, tile=64)
+        assert not torch.equal(whole, tiled)
+        torch.testing.assert_close(model.predict_step(batch, 0), whole, rtol=0, atol=0)
+        per_px = activation_bytes_per_px(model.eval_net, 1, torch.device("cpu"), "fp32", torch.no_grad())
+        one_frame = per_px * 72 * 90 * SAFETY
+        # a budget that holds one frame but not the batch of two: tiles
+        monkeypatch.setattr(module_module, "memory_budget_bytes", lambda device: 1.5 * one_frame)
+        assert model.predict_tile_plan((1, 1, 72, 90)).tile is None
+        assert model.predict_tile_plan((2, 1, 72, 90)).tile == 64
+        torch.testing.assert_close(model.predict_step(batch, 0), tiled, rtol=0, atol=0)

@@ -1,18 +1,20 @@
 """Whether a frame is restored whole or tile by tile: the network's activation memory against a memory budget.
 
 A whole frame is faster than its tiles (tiles overlap and each one pays the network's borders: a 640 x 576 frame in
-512-pixel tiles runs four tiles, 2.8x the pixels), so ``tofdenoise denoise`` tiles only a frame whose activations do
-not fit the memory budget (``tile_plan``), or when ``--tile`` forces it.
+512-pixel tiles runs four tiles, 2.8x the pixels), so ``DepthRestorer.predict_tile_plan`` (LightningCLI
+``predict``, ``tofdenoise denoise``, ``tofdenoise.denoise``) tiles only a frame whose activations do not fit the
+memory budget (``tile_plan``), or when a tile side is forced (``--tile``).
 
 - **Activations** (``activation_bytes_per_px``): measured once per network, by running it on a ``PROBE_PX`` x
-  ``PROBE_PX`` input of zeros under a ``TorchDispatchMode`` that counts the bytes of every tensor the forward pass
-  creates while it is alive (a storage is counted once, whatever its views; freed when its last tensor goes) and
-  keeps the peak. Divided by the probe's pixels, it scales with the frame's pixels: the backbones here (U-Net,
-  DVSS's scans, Restormer's channel attention ...) hold memory linear in the pixel count, and a fixed part counted
-  per pixel of a small probe only overestimates a larger frame (U-Net and DVSS: the same bytes per pixel at 64,
-  128 and 576 x 640). ``SAFETY`` covers what the process holds beyond the tensors (the allocator, oneDNN's
-  workspaces): the peak resident memory of a 576 x 640 forward pass on the CPU grew by 1.34x (U-Net) and 1.16x
-  (DVSS) the counted peak.
+  ``PROBE_PX`` input of zeros: on the CPU under a ``TorchDispatchMode`` that counts the bytes of every tensor the
+  forward pass creates while it is alive (a storage is counted once, whatever its views; freed when its last tensor
+  goes) and keeps the peak; on CUDA by the caching allocator's own peak (``torch.cuda.max_memory_allocated``).
+  Divided by the probe's pixels, it scales with the frame's pixels: the backbones here (U-Net, DVSS's scans,
+  Restormer's channel attention ...) hold memory linear in the pixel count, and a fixed part counted per pixel of
+  a small probe only overestimates a larger frame (U-Net and DVSS: the same bytes per pixel at 64, 128 and
+  576 x 640). ``SAFETY`` covers what the process holds beyond the tensors (the allocator, oneDNN's workspaces):
+  the peak resident memory of a 576 x 640 forward pass on the CPU grew by 1.34x (U-Net) and 1.16x (DVSS) the
+  counted peak.
 - **Budget** (``memory_budget_bytes``): on CUDA, ``BUDGET_FRACTION_CUDA`` of the device's free memory; on the CPU,
   ``BUDGET_FRACTION_CPU`` of the memory available to the process (Linux ``MemAvailable``, bounded by the cgroup's
   limit in a container; unknown elsewhere, and then a frame is never tiled for memory).
@@ -111,9 +113,22 @@ def activation_bytes_per_px(net: Any, channels: int, device: torch.device, preci
     if key not in cache:
         probe = torch.zeros(1, channels, PROBE_PX, PROBE_PX, device=device)
         with autocast:
-            peak = peak_tensor_bytes(net, probe)
+            peak = _cuda_peak_bytes(net, probe) if device.type == "cuda" else peak_tensor_bytes(net, probe)
         cache[key] = peak / (PROBE_PX * PROBE_PX)
     return cache[key]
+
+
+@torch.no_grad()
+def _cuda_peak_bytes(net: Any, probe: torch.Tensor) -> int:
+    """On CUDA the caching allocator counts itself: its peak over the forward pass, above what was allocated."""
+    torch.cuda.synchronize(probe.device)
+    base = torch.cuda.memory_allocated(probe.device)
+    torch.cuda.reset_peak_memory_stats(probe.device)
+    result = net(probe)
+    torch.cuda.synchronize(probe.device)
+    peak = torch.cuda.max_memory_allocated(probe.device) - base
+    del result
+    return max(int(peak), 0)
 
 
 def _meminfo_available_bytes() -> int | None:
@@ -167,8 +182,9 @@ def tile_plan(
     default_tile: int | None,
     bytes_per_px: Any,
     budget_bytes: Any,
+    frames: int = 1,
 ) -> TilePlan:
-    """Whole frame or tiles for a frame of ``shape`` (H, W).
+    """Whole frame or tiles for ``frames`` frames of ``shape`` (H, W) run together (a batch).
 
     ``tile``: a side forced by the caller (``--tile``): tiles whenever a side of the frame exceeds it. Else the frame
     runs whole when its estimated activations (``bytes_per_px()`` x pixels x ``SAFETY``) fit ``budget_bytes()``
@@ -180,7 +196,7 @@ def tile_plan(
         return TilePlan(int(tile) if max(height, width) > int(tile) else None, forced=True)
     if default_tile is None:
         return TilePlan(None)
-    per_px = float(bytes_per_px())
+    per_px = float(bytes_per_px()) * max(int(frames), 1)
     need = per_px * height * width * SAFETY
     budget = budget_bytes()
     if budget is None or need <= budget:
