@@ -288,3 +288,122 @@ def test_a_short_write_names_the_output_folder_and_the_likely_cause(
     assert main([str(src / "a.png"), "--ckpt", str(restorer_ckpt), "--out", str(out), "--quiet"]) == 1
     err = capsys.readouterr().err
     assert f"could not write its outputs under {out}: 368640 requested and 55264 written (disk full?)" in err
+
+
+def test_adi_depth_and_ab_files_in_one_folder_pair_by_a_stem_substitution(tmp_path, make_restorer_ckpt, capsys):
+    """The ADI ADTF3175D SDK's own names: frame_mode2_depth_NNNNNN.npy with frame_mode2_ab_NNNNNN.npy in one
+    folder; a depth frame without its ab file fails alone, with one line naming it and the file looked for."""
+    signal_ckpt = make_restorer_ckpt(tmp_path / "sig.ckpt", conditioning={"use_signal_channel": True})
+    adi = tmp_path / "adi"
+    adi.mkdir()
+    amps = {}
+    for i in (7, 8):
+        np.save(adi / f"frame_mode2_depth_{i:06d}.npy", frame(i))
+        amps[i] = np.random.default_rng(i).uniform(100, 3000, (36, 48)).astype(np.float32)
+        np.save(adi / f"frame_mode2_ab_{i:06d}.npy", amps[i])
+    np.save(adi / "frame_mode2_depth_000009.npy", frame(9))
+    out = tmp_path / "out"
+    code = main(
+        [str(adi), "--ckpt", str(signal_ckpt), "--out", str(out), "--npy", "--quiet"]
+        + ["--amplitude", str(adi / "{stem:depth=ab}.npy")]
+    )
+    err = capsys.readouterr().err
+    assert code == 1 and "2 frame(s) done, 0 skipped, 1 failed" in err, err
+    model = load_restorer(signal_ckpt)
+    for i in (7, 8):
+        expected = tofdenoise.denoise(frame(i), model, amplitude=amps[i])
+        np.testing.assert_array_equal(np.load(out / f"frame_mode2_depth_{i:06d}.npy"), expected)
+    assert not list(out.glob("frame_mode2_ab_*"))
+    failed = [line for line in err.splitlines() if "FAILED" in line]
+    assert len(failed) == 1
+    assert str(adi / "frame_mode2_depth_000009.npy") in failed[0]
+    assert str(adi / "frame_mode2_ab_000009.npy") in failed[0]
+
+
+def test_ply_from_the_kinects_own_calibration_json(tmp_path, restorer_ckpt, capsys):
+    """--intrinsics takes the Azure Kinect's calibration.json: a 320 x 288 frame (NFOV 2x2 binned) gets that depth
+    mode's intrinsics, computed here by hand from the unitised parameters."""
+    import json
+
+    params = [0.5, 0.51, 0.49, 0.492, 0.6, -2.9, 1.6, 0.5, -2.7, 1.5, 0.0, 0.0, -1e-4, 5e-5]
+    depth_camera = {
+        "Intrinsics": {"ModelParameterCount": 14, "ModelParameters": params, "ModelType": "BrownConrady"},
+        "Location": "CALIBRATION_CameraLocationD0",
+        "MetricRadius": 1.74,
+        "SensorHeight": 1024,
+        "SensorWidth": 1024,
+    }
+    calibration = tmp_path / "calibration.json"
+    calibration.write_text(json.dumps({"CalibrationInformation": {"Cameras": [depth_camera]}}))
+    d = frame(3, 288, 320)
+    cv2.imwrite(str(tmp_path / "k.png"), d.astype(np.uint16))
+    out = tmp_path / "out"
+    args = [str(tmp_path / "k.png"), "--ckpt", str(restorer_ckpt), "--out", str(out), "--npy", "--ply", "--quiet"]
+    assert main([*args, "--intrinsics", str(calibration)]) == 0, capsys.readouterr().err
+    data = (out / "k.ply").read_bytes()
+    end = data.index(b"end_header\n") + len(b"end_header\n")
+    points = np.frombuffer(data[end:], dtype="<f4").reshape(-1, 3)
+    restored_m = np.load(out / "k.npy").astype(np.float64) / 1000.0
+    v, u = np.nonzero(restored_m > 0)
+    z = restored_m[v, u]
+    fx, fy, cx, cy = 0.49 * 512, 0.492 * 512, 0.5 * 512 - 96 - 0.5, 0.51 * 512 - 90 - 0.5
+    expected = np.stack([(u - cx) * z / fx, (v - cy) * z / fy, z], axis=1)
+    np.testing.assert_allclose(points, expected, rtol=1e-6, atol=1e-7)
+
+
+def test_frames_mostly_outside_the_training_depths_are_named_in_the_summary(tmp_path, restorer_ckpt, capsys):
+    """A checkpoint records the depths it was trained on; a frame whose valid depths lie mostly beyond them (an
+    ADI ADTF3175D frame reaching 7.5 m) is restored and named in the summary; one inside is not. A checkpoint
+    without the record says the range is unknown."""
+    import torch
+
+    from tofdenoise.training.depth_range import DEPTH_RANGE_KEY, TrainingDepthRange
+
+    trained = TrainingDepthRange()
+    depths = torch.from_numpy(np.random.default_rng(0).uniform(300, 2400, (4, 1, 64, 64)).astype(np.float32))
+    trained.update(depths, torch.ones_like(depths))
+    content = torch.load(restorer_ckpt, map_location="cpu", weights_only=True)
+    content[DEPTH_RANGE_KEY] = trained.record()
+    ckpt = tmp_path / "ranged.ckpt"
+    torch.save(content, ckpt)
+    src = tmp_path / "frames"
+    src.mkdir()
+    np.save(src / "near.npy", frame(0))
+    y, x = np.mgrid[0:36, 0:48]
+    far = (5000.0 + 50 * x + 10 * y).astype(np.float32)  # 5.0-7.7 m
+    far[:4, :4] = 1200.0
+    np.save(src / "far.npy", far)
+    args = [str(src), "--out", str(tmp_path / "out"), "--depth-scale-mm", "1", "--quiet"]
+    assert main([*args, "--ckpt", str(ckpt)]) == 0
+    err = capsys.readouterr().err
+    assert "2 frame(s) done" in err
+    lines = [line.strip() for line in err.splitlines()]
+    low, high = trained.range_mm
+    assert f"trained on depths {low:.0f}-{high:.0f} mm: 1 frame(s) lie mostly outside them" in lines
+    outside = [line for line in lines if line.startswith("outside the training depths")]
+    assert len(outside) == 1 and str(src / "far.npy") in outside[0]
+    assert "99 % of its valid depths" in outside[0] and "extrapolation" in outside[0]
+    assert (tmp_path / "out" / "far.png").is_file()
+    # a checkpoint without the record: the range is unknown, the frames are restored all the same
+    assert main([*args[:1], "--out", str(tmp_path / "out2"), *args[3:], "--ckpt", str(restorer_ckpt)]) == 0
+    err = capsys.readouterr().err
+    assert "does not record the depths it was trained on" in err and "outside the training depths" not in err
+
+
+def test_the_summary_says_whether_the_frames_ran_whole_or_in_tiles(frames_dir, restorer_ckpt, tmp_path, capsys):
+    src, amp = frames_dir
+    args = [str(src), "--ckpt", str(restorer_ckpt), "--amplitude", str(amp), "--quiet"]
+    assert main([*args, "--out", str(tmp_path / "whole")]) == 0
+    lines = [line.strip() for line in capsys.readouterr().err.splitlines()]
+    tiling = [line for line in lines if line.startswith("tiling:")]
+    assert len(tiling) == 1 and tiling[0].startswith("tiling: 3 whole frame(s) (the largest, 48 x 36, needs about ")
+    assert " budget)" in tiling[0] or "memory budget unknown" in tiling[0]
+    assert main([*args, "--out", str(tmp_path / "tiles"), "--tile", "40"]) == 0
+    lines = [line.strip() for line in capsys.readouterr().err.splitlines()]
+    assert "tiling: 3 frame(s) in tiles of 40 px (--tile 40)" in lines
+    # a tile no larger than the checkpoint's overlap (32 px) is refused up front, not frame by frame
+    assert main([*args, "--out", str(tmp_path / "bad"), "--tile", "32"]) == 2
+    assert (
+        "--tile must exceed the checkpoint's tile overlap (tiling.overlap_px = 32), got 32" in capsys.readouterr().err
+    )
+    assert not (tmp_path / "bad").exists()

@@ -9,7 +9,7 @@ import pytest
 
 import tofdenoise
 from tofdenoise.cli.denoise import main
-from tofdenoise.inference.camera import Intrinsics, points_m
+from tofdenoise.inference.camera import Intrinsics, kinect_depth_intrinsics, points_m
 from tofdenoise.inference.denoise import load_restorer
 from tofdenoise.inference.outputs import depth_mm_to_m
 from tofdenoise.inference.predict import main as predict_main
@@ -184,3 +184,31 @@ def test_frames_datamodule_refuses_a_damaged_recording_before_predicting(tmp_pat
     cut.write_bytes(full.read_bytes()[: int(full.stat().st_size * 0.6)])
     with pytest.raises(RecordingError, match="cut.mkv is truncated: its Matroska segment declares"):
         FramesDataModule(inputs=[str(cut)])
+
+
+def test_ply_with_a_kinect_mkv_and_frames_without_intrinsics_fails_only_those_frames(
+    tmp_path, recording_files, restorer_ckpt, capsys
+):
+    """--ply over an .mkv (its calibration.json gives the intrinsics) and frame files (none): each frame file fails
+    with one line, the recording's frames are written, the exit status is 1 (a frame failed)."""
+    y, x = np.mgrid[0:288, 0:320]
+    d = np.rint(900 + 2 * x + y + np.random.default_rng(1).normal(0, 4, (2, 288, 320))).astype(np.uint16)
+    src = tmp_path / "in"
+    src.mkdir()
+    recording_files.write_kinect_mkv(
+        src / "kin.mkv", d, depth_mode="NFOV_2X2BINNED", calibration=recording_files.kinect_calibration_json()
+    )
+    for name in ("a.png", "b.png"):
+        cv2.imwrite(str(src / name), depth_stack(1)[0])
+    out = tmp_path / "out"
+    code = main([str(src), "--ckpt", str(restorer_ckpt), "--out", str(out), "--ply", "--npy", "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 1 and "2 frame(s) done, 0 skipped, 2 failed" in err, err
+    failed = [line for line in err.splitlines() if "FAILED" in line]
+    assert len(failed) == 2
+    for name, line in zip(("a.png", "b.png"), failed):
+        assert str(src / name) in line and "--intrinsics" in line
+    assert files_under(out) == [f"kin/frame_{i:06d}.{ext}" for i in range(2) for ext in ("npy", "ply", "png")]
+    binned = kinect_depth_intrinsics(recording_files.kinect_calibration_json(), "NFOV_2X2BINNED", "x")
+    restored_m = depth_mm_to_m(np.load(out / "kin" / "frame_000001.npy"))
+    np.testing.assert_array_equal(read_ply_points(out / "kin" / "frame_000001.ply"), points_m(restored_m, binned))

@@ -3,11 +3,20 @@ points, the intrinsics files and their errors."""
 
 from __future__ import annotations
 
+import json
+
 import cv2
 import numpy as np
 import pytest
 
-from tofdenoise.inference.camera import Intrinsics, IntrinsicsError, load_intrinsics, points_m
+from tofdenoise.inference.camera import (
+    Intrinsics,
+    IntrinsicsError,
+    KinectCalibration,
+    load_intrinsics,
+    points_m,
+    resolve_intrinsics,
+)
 from tofdenoise.inference.outputs import (
     OutputOptions,
     depth_mm_to_m,
@@ -124,3 +133,137 @@ def test_bad_intrinsics_name_the_file_and_field(tmp_path, text, match):
     assert "bad.yaml" in str(err.value) or "fx must" in str(err.value)
     with pytest.raises(IntrinsicsError, match="not found"):
         load_intrinsics(tmp_path / "missing.yaml")
+
+
+def kinect_calibration_json() -> str:
+    """An Azure Kinect calibration.json as the Sensor SDK writes it (k4a_device_get_raw_calibration): the depth
+    camera D0 with unitised [cx, cy, fx, fy, k1..k6, codx, cody, p2, p1] and its metric radius, and the colour
+    camera PV0 (ignored)."""
+    depth = [0.5, 0.51, 0.49, 0.492, 0.61, -2.9, 1.6, 0.49, -2.7, 1.5, 0.0, 0.0, -1e-4, 5e-5]
+    colour = [0.4987, 0.5063, 0.4797, 0.6395, 0.53, -2.6, 1.5, 0.41, -2.4, 1.4, 0.0, 0.0, 7e-4, -2e-4]
+    cameras = [
+        {
+            "Intrinsics": {
+                "ModelParameterCount": 14,
+                "ModelParameters": depth,
+                "ModelType": "CALIBRATION_LensDistortionModelBrownConrady",
+            },
+            "Location": "CALIBRATION_CameraLocationD0",
+            "MetricRadius": 1.74,
+            "Purpose": "CALIBRATION_CameraPurposeDepth",
+            "Rt": {"Rotation": [1, 0, 0, 0, 1, 0, 0, 0, 1], "Translation": [0, 0, 0]},
+            "SensorHeight": 1024,
+            "SensorWidth": 1024,
+            "Shutter": "CALIBRATION_ShutterTypeUndefined",
+        },
+        {
+            "Intrinsics": {
+                "ModelParameterCount": 14,
+                "ModelParameters": colour,
+                "ModelType": "CALIBRATION_LensDistortionModelBrownConrady",
+            },
+            "Location": "CALIBRATION_CameraLocationPV0",
+            "MetricRadius": 0,
+            "Purpose": "CALIBRATION_CameraPurposePhotoVideo",
+            "SensorHeight": 3072,
+            "SensorWidth": 4096,
+        },
+    ]
+    return json.dumps({"CalibrationInformation": {"Cameras": cameras, "FactoryCalToolVersion": "x"}}, indent=2)
+
+
+def test_the_azure_kinects_own_calibration_json_gives_the_depth_modes_intrinsics(tmp_path):
+    path = tmp_path / "calibration.json"
+    path.write_text(kinect_calibration_json())
+    calibration = load_intrinsics(path)
+    assert isinstance(calibration, KinectCalibration)
+    # NFOV unbinned, 640 x 576: the 1024 x 1024 unitised parameters, less the crop (192, 180) and half a pixel
+    intr = resolve_intrinsics(calibration, (576, 640), "f")
+    assert (intr.width, intr.height) == (640, 576)
+    assert intr.fx == pytest.approx(0.49 * 1024) and intr.fx == pytest.approx(501.76)
+    assert intr.fy == pytest.approx(503.808)
+    assert intr.cx == pytest.approx(512 - 192 - 0.5) and intr.cx == pytest.approx(319.5)
+    assert intr.cy == pytest.approx(522.24 - 180 - 0.5) and intr.cy == pytest.approx(341.74)
+    # NFOV 2x2 binned, 320 x 288: 512 x 512 bins, crop (96, 90)
+    binned = resolve_intrinsics(calibration, (288, 320), "f")
+    assert (binned.fx, binned.fy) == pytest.approx((250.88, 251.904))
+    assert (binned.cx, binned.cy) == pytest.approx((159.5, 170.62))
+    # WFOV 2x2 binned, 512 x 512: no crop
+    wide = resolve_intrinsics(calibration, (512, 512), "f")
+    assert (wide.fx, wide.cx, wide.cy) == pytest.approx((250.88, 255.5, 260.62))
+    with pytest.raises(IntrinsicsError, match=r"640 x 576 \(NFOV_UNBINNED\).*frame g is 64 x 48") as err:
+        resolve_intrinsics(calibration, (48, 64), "g")
+    assert "calibration.json" in str(err.value) and "\n" not in str(err.value)
+    no_depth = tmp_path / "colour_only.json"
+    doc = json.loads(kinect_calibration_json())
+    del doc["CalibrationInformation"]["Cameras"][0]
+    no_depth.write_text(json.dumps(doc))
+    with pytest.raises(
+        IntrinsicsError, match=r"colour_only.json.*no depth camera \(Location CALIBRATION_CameraLocationD0"
+    ):
+        load_intrinsics(no_depth)
+
+
+OPENCV_YAML = """%YAML:1.0
+---
+calibration_time: "Thu 26 Nov 2026 10:00:00 UTC"
+nr_of_frames: 25
+image_width: 640
+image_height: 576
+board_width: 9
+board_height: 6
+square_size: 25.
+flags: 0
+camera_matrix: !!opencv-matrix
+   rows: 3
+   cols: 3
+   dt: d
+   data: [ 5.0421e+02, 0., 3.2163e+02, 0., 5.0433e+02,
+       3.2921e+02, 0., 0., 1. ]
+distortion_coefficients: !!opencv-matrix
+   rows: 5
+   cols: 1
+   dt: d
+   data: [ 1.2e-01, -2.5e-01, 0., 0., 1.1e-01 ]
+avg_reprojection_error: 2.1e-01
+"""
+
+
+def test_opencv_filestorage_yaml_and_xml(tmp_path):
+    """OpenCV's calibration sample's output (cv::FileStorage: %YAML:1.0 header, !!opencv-matrix), which PyYAML
+    cannot read, and the same file as OpenCV writes it today (XML, and YAML with a %YAML 1.2 header)."""
+    path = tmp_path / "out_camera_data.yml"
+    path.write_text(OPENCV_YAML)
+    intr = load_intrinsics(path)
+    assert intr == Intrinsics(504.21, 504.33, 321.63, 329.21, 640, 576, source=str(path))
+    k = np.array([[504.21, 0, 321.63], [0, 504.33, 329.21], [0, 0, 1]])
+    for name in ("written.yml", "written.xml"):
+        storage = cv2.FileStorage(str(tmp_path / name), cv2.FILE_STORAGE_WRITE)
+        storage.write("image_width", 640)
+        storage.write("image_height", 576)
+        storage.write("camera_matrix", k)
+        storage.write("distortion_coefficients", np.zeros((5, 1)))
+        storage.release()
+        written = load_intrinsics(tmp_path / name)
+        assert (written.fx, written.fy, written.cx, written.cy) == (504.21, 504.33, 321.63, 329.21)
+        assert (written.width, written.height) == (640, 576)
+    no_size = tmp_path / "no_size.yml"
+    no_size.write_text(OPENCV_YAML.replace("image_height: 576\n", ""))
+    with pytest.raises(IntrinsicsError, match=r"no_size.yml: field 'image_height' is missing"):
+        load_intrinsics(no_size)
+    broken = tmp_path / "broken.yml"
+    broken.write_text(OPENCV_YAML.replace("   cols: 3\n", "   cols: [\n", 1))
+    with pytest.raises(IntrinsicsError, match=r"broken.yml could not be read as an OpenCV FileStorage file") as err:
+        load_intrinsics(broken)
+    assert "\n" not in str(err.value)
+
+
+def test_a_file_of_no_known_form_names_the_file_and_the_forms(tmp_path):
+    path = tmp_path / "cam.yaml"
+    path.write_text("focal_length_mm: 2.8\nsensor: imx556\n")
+    with pytest.raises(IntrinsicsError) as err:
+        load_intrinsics(path)
+    message = str(err.value)
+    assert "cam.yaml" in message and "\n" not in message
+    for form in ("fx, fy, cx, cy, width, height", "ROS camera_info", "OpenCV FileStorage", "calibration.json"):
+        assert form in message

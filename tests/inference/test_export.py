@@ -365,3 +365,20 @@ def test_the_dynamo_exporter_route_gives_a_dvss_graph_that_runs_at_any_size(tmp_
         assert _max_diff(model, runner, h, w) <= TOLERANCE_MM, (h, w)
     assert export_main([str(ckpt), "--onnx", str(tmp_path / "x.onnx"), "--exporter", "jit"]) == 2
     assert "exporter 'jit'; expected one of torchscript, dynamo" in capsys.readouterr().err
+
+
+def test_the_export_carries_the_depths_the_checkpoint_was_trained_on(tmp_path, restorer_ckpt):
+    from tofdenoise.training.depth_range import DEPTH_RANGE_KEY, TrainingDepthRange
+
+    old = tmp_path / "old.onnx"
+    export_onnx(restorer_ckpt, old)
+    assert OnnxRestorer(old).training_depth_range_mm is None  # a checkpoint without the record
+    trained = TrainingDepthRange()
+    depths = torch.linspace(300, 2400, 4096).reshape(1, 1, 64, 64)
+    trained.update(depths, torch.ones_like(depths))
+    content = torch.load(restorer_ckpt, map_location="cpu", weights_only=True)
+    content[DEPTH_RANGE_KEY] = trained.record()
+    torch.save(content, tmp_path / "ranged.ckpt")
+    out = tmp_path / "ranged.onnx"
+    export_onnx(tmp_path / "ranged.ckpt", out)
+    assert OnnxRestorer(out).training_depth_range_mm == pytest.approx(trained.range_mm)

@@ -12,6 +12,7 @@ from tofdenoise.inference.frames import (
     AmplitudeSource,
     FrameError,
     FrameInput,
+    drop_amplitude_files,
     find_frames,
     load_frame,
     read_depth_frame,
@@ -152,3 +153,55 @@ def test_the_units_check_names_the_median_and_the_likely_unit(tmp_path):
     d = np.full((4, 4), 1500.0, np.float32)
     d.flat[:7] = 19580.0
     check_depth_units_mm(Frame(depth_mm=d, valid=valid), tmp_path / "f.png")
+
+
+def test_a_stem_substitution_pairs_the_adi_sdks_depth_and_ab_files(tmp_path):
+    """The ADI ADTF3175D SDK writes frame_mode2_depth_NNNNNN / frame_mode2_ab_NNNNNN into one folder:
+    ``{stem:depth=ab}`` pairs them, and the ab files are not taken as depth frames."""
+    d = depth_with_holes()
+    adi = tmp_path / "adi"
+    adi.mkdir()
+    amps = {}
+    for i in (123, 124):
+        np.save(adi / f"frame_mode2_depth_{i:06d}.npy", d)
+        amps[i] = np.full(d.shape, float(i), np.float32)
+        np.save(adi / f"frame_mode2_ab_{i:06d}.npy", amps[i])
+    np.save(adi / "frame_mode2_depth_000125.npy", d)  # no ab file
+    source = AmplitudeSource(str(adi / "{stem:depth=ab}.npy"))
+    frames = drop_amplitude_files(find_frames([adi]), source)
+    assert [f.path.name for f in frames] == [
+        "frame_mode2_depth_000123.npy",
+        "frame_mode2_depth_000124.npy",
+        "frame_mode2_depth_000125.npy",
+    ]
+    for frame, i in zip(frames[:2], (123, 124)):
+        np.testing.assert_array_equal(load_frame(frame, amplitude=source).amplitude, amps[i])
+    with pytest.raises(FrameError) as info:
+        load_frame(frames[2], amplitude=source)
+    message = str(info.value)
+    assert "frame_mode2_depth_000125.npy" in message and str(adi / "frame_mode2_ab_000125.npy") in message
+    assert "\n" not in message
+    # the plain {stem} template still works, and a substitution may remove text
+    np.save(adi / "frame_mode2_depth_000123_amp.npy", amps[123] * 2)
+    np.testing.assert_array_equal(
+        load_frame(frames[0], amplitude=AmplitudeSource(str(adi / "{stem}_amp.npy"))).amplitude, amps[123] * 2
+    )
+    np.save(adi / "frame_mode2_000123.npy", amps[123] * 3)
+    np.testing.assert_array_equal(
+        load_frame(frames[0], amplitude=AmplitudeSource(str(adi / "{stem:_depth=}.npy"))).amplitude, amps[123] * 3
+    )
+
+
+def test_a_stem_substitution_is_unambiguous_or_refused(tmp_path):
+    d = depth_with_holes()
+    np.save(tmp_path / "depth_depth_1.npy", d)
+    frame = find_frames([tmp_path / "depth_depth_1.npy"])[0]
+    with pytest.raises(FrameError, match=r"needs 'depth' once in the stem 'depth_depth_1', found 2"):
+        AmplitudeSource(str(tmp_path / "{stem:depth=ab}.npy")).find(frame)
+    with pytest.raises(FrameError, match=r"needs 'zz' once .* found 0"):
+        AmplitudeSource(str(tmp_path / "{stem:zz=ab}.npy")).find(frame)
+    for bad in ("{stem:depth}.npy", "{stem:=ab}.npy", "{stem:a=b=c}.npy", "{stems}.npy"):
+        with pytest.raises(FrameError, match=r"\{stem\} or \{stem:OLD=NEW\}"):
+            AmplitudeSource(str(tmp_path / bad))
+    with pytest.raises(FrameError, match="itself as its amplitude"):
+        AmplitudeSource(str(tmp_path / "{stem}.npy")).find(frame)

@@ -293,6 +293,9 @@ def test_predict_zeroes_invalid_and_tiles_large_frames(tmp_path, tiny_data, monk
 
     monkeypatch.setattr(module, "tiled_forward", spy)
     model = tiny_model(tiling={"predict_tile_px": 16, "overlap_px": 4})
+    trainer(tmp_path).predict(model, datamodule=tiny_data)
+    assert not calls  # 32 x 32 frames fit the memory budget: whole frames, whatever the tile size
+    monkeypatch.setattr(module, "memory_budget_bytes", lambda device: 1.0)  # nothing fits: the checkpoint's tiles
     preds = trainer(tmp_path).predict(model, datamodule=tiny_data)
     assert calls and calls[0][1:] == (16, 4)
     pred = preds[0]  # one loader: a list of batch outputs

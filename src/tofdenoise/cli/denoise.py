@@ -9,8 +9,9 @@ INPUT: depth frames or folders of them (searched recursively): 16-bit PNG/TIFF i
 float mm (NaN/0/negative = invalid) or ``.exr``; or recordings (``tofdenoise.inference.recordings``): Azure Kinect
 ``.mkv``, ROS 1 ``.bag``, ROS 2 bag folders, whose frames go to ``OUT/<recording>/frame_NNNNNN.*`` (a recording is
 checked whole before its first frame is written). Outputs mirror the input sub-folders under ``--out``
-(``tofdenoise.inference.outputs``). Frames are processed one at a time (memory bounded by one frame; large frames
-run tile by tile). A frame that fails (unreadable, 8-bit/colour, amplitude missing or of another shape, depths
+(``tofdenoise.inference.outputs``). Frames are processed one at a time (memory bounded by one frame; a frame whose
+activations do not fit the memory budget runs tile by tile, ``tofdenoise.training.tile_memory``, and the summary says
+which frames did). A frame that fails (unreadable, 8-bit/colour, amplitude missing or of another shape, depths
 implausible in millimetres without ``--depth-scale-mm`` ...) is reported and the others go on; the exit status is
 1 when any frame failed, 2 for a bad command line, checkpoint or calibration, or an output that would replace an
 input (``tofdenoise.output_guard``: checked for every frame before anything is written), 0 otherwise. See
@@ -31,7 +32,7 @@ from typing import Any
 from tqdm.auto import tqdm
 
 from tofdenoise.atomic import sigint_deferred
-from tofdenoise.inference.camera import IntrinsicsError, load_intrinsics
+from tofdenoise.inference.camera import IntrinsicsError, load_intrinsics, resolve_intrinsics
 from tofdenoise.output_guard import OutputPathError, refuse_overwrite
 
 __all__ = ["build_parser", "main", "run", "timing_text"]
@@ -64,8 +65,10 @@ def build_parser() -> argparse.ArgumentParser:
         "--amplitude",
         default=None,
         metavar="DIR_OR_PATTERN",
-        help="amplitude frames paired by stem: a folder, a template with {stem} (amp/{stem}_amp.png) or a "
-        "glob (amp/*.png); required by checkpoints that use the signal channel",
+        help="amplitude frames paired by stem: a folder, a template with {stem} (amp/{stem}_amp.png) or "
+        "{stem:OLD=NEW}, the stem with OLD replaced by NEW (ADI ADTF3175D: 'adi/{stem:depth=ab}.npy' pairs "
+        "frame_mode2_depth_000123.npy with frame_mode2_ab_000123.npy), or a glob (amp/*.png); required by "
+        "checkpoints that use the signal channel",
     )
     p.add_argument(
         "--sensor",
@@ -105,8 +108,9 @@ def build_parser() -> argparse.ArgumentParser:
         type=Path,
         default=None,
         metavar="FILE",
-        help="camera intrinsics YAML/JSON (fx, fy, cx, cy, width, height, or a ROS camera_info YAML); overrides "
-        "those of a recording",
+        help="camera intrinsics: YAML/JSON with fx, fy, cx, cy, width, height; a ROS camera_info YAML; an OpenCV "
+        "FileStorage YAML/XML (camera_matrix, image_width, image_height); or an Azure Kinect calibration.json (the "
+        "depth mode of the frame's size); overrides those of a recording",
     )
     p.add_argument(
         "--depth-stream",
@@ -128,10 +132,18 @@ def build_parser() -> argparse.ArgumentParser:
         "--tile",
         type=int,
         default=None,
-        help="tile side in pixels for large frames (default: the checkpoint's tiling.predict_tile_px)",
+        help="force tiles of this side in pixels (default: a frame runs whole when the network's activations fit "
+        "the memory budget of the device, else in tiles of the checkpoint's tiling.predict_tile_px; the summary "
+        "says which)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
+
+
+#: why a frame file fails under --ply without --intrinsics (a frame file carries no intrinsics of its own)
+NO_FRAME_INTRINSICS = (
+    "--ply needs the camera intrinsics and a frame file carries none: give --intrinsics FILE (the other inputs go on)"
+)
 
 
 def onnx_device(name: str):
@@ -149,7 +161,13 @@ def _fail(message: str) -> int:
 def run(args: argparse.Namespace) -> int:
     """Run the command on parsed arguments; returns the exit status."""
     from tofdenoise.inference.denoise import CheckpointError, load_restorer, resolve_device
-    from tofdenoise.inference.frames import AmplitudeSource, FrameError, find_frames, plausible_depth_range_mm
+    from tofdenoise.inference.frames import (
+        AmplitudeSource,
+        FrameError,
+        drop_amplitude_files,
+        find_frames,
+        plausible_depth_range_mm,
+    )
     from tofdenoise.inference.outputs import OutputOptions
     from tofdenoise.inference.recordings import find_recordings
 
@@ -162,7 +180,7 @@ def run(args: argparse.Namespace) -> int:
         amplitude = AmplitudeSource(args.amplitude) if args.amplitude is not None else None
         # an amplitude folder inside an input folder holds no depth frames
         skip = [args.out] + ([amplitude.folder] if amplitude and amplitude.folder else [])
-        frames = find_frames(args.inputs, exclude=skip)
+        frames = drop_amplitude_files(find_frames(args.inputs, exclude=skip), amplitude)
         recordings = find_recordings(args.inputs, exclude=skip)
         intrinsics = load_intrinsics(args.intrinsics) if args.intrinsics is not None else None
         calib = None
@@ -170,6 +188,16 @@ def run(args: argparse.Namespace) -> int:
             from tofdenoise.physics.calibration import resolve_calibration
 
             calib = resolve_calibration(args.sensor)
+    except (FrameError, IntrinsicsError, ValueError, OSError) as exc:
+        return _fail(str(exc))
+    if args.sensor is not None and args.amplitude is None and frames:
+        return _fail("--sensor needs --amplitude: the sigma_D map is computed from the input's amplitude")
+    if args.ply and intrinsics is None and frames and not recordings:  # no input could give a point cloud
+        return _fail(
+            "--ply needs the camera intrinsics of the depth frames: give --intrinsics FILE (fx, fy, cx, cy, "
+            "width, height)"
+        )
+    try:
         if args.onnx is not None:
             from tofdenoise.inference.onnx_runner import OnnxRestorer
 
@@ -178,14 +206,12 @@ def run(args: argparse.Namespace) -> int:
         else:
             model = load_restorer(args.ckpt, device)
             signal = model.conditioning.use_signal_channel
-    except (FrameError, CheckpointError, IntrinsicsError, ValueError, OSError) as exc:
+    except (CheckpointError, ValueError, OSError) as exc:
         return _fail(str(exc))
-    if args.sensor is not None and args.amplitude is None and frames:
-        return _fail("--sensor needs --amplitude: the sigma_D map is computed from the input's amplitude")
-    if args.ply and intrinsics is None and frames:
+    overlap = getattr(getattr(model, "tiling", None), "overlap_px", None)
+    if args.tile is not None and overlap is not None and args.tile <= overlap:
         return _fail(
-            "--ply needs the camera intrinsics of the depth frames: give --intrinsics FILE (fx, fy, cx, cy, "
-            "width, height)"
+            f"--tile must exceed the checkpoint's tile overlap (tiling.overlap_px = {overlap}), got {args.tile}"
         )
     if signal and amplitude is None and frames:
         return _fail(
@@ -216,6 +242,7 @@ def run(args: argparse.Namespace) -> int:
         intrinsics=intrinsics,
         signal=signal,
         depth_range_mm=plausible_depth_range_mm(calib),
+        training_range_mm=model.training_depth_range_mm,
     )
     tally = _Tally()
     interrupted = False
@@ -234,6 +261,8 @@ def run(args: argparse.Namespace) -> int:
         f"{len(tally.failed)} failed; {timing_text(tally.seconds)} on {device.type} -> {args.out}",
         file=sys.stderr,
     )
+    for line in tiling_lines(args, tally) + training_depth_lines(job, tally):
+        print(f"  {line}", file=sys.stderr)
     for path, reason in tally.skipped:
         print(f"  skipped {path}: {reason}", file=sys.stderr)
     for path, reason in tally.failed:
@@ -259,6 +288,8 @@ class _Job:
     signal: bool = False
     #: (nearest, farthest) median depth [mm] a frame without --depth-scale-mm may have (frames.check_depth_units_mm)
     depth_range_mm: tuple[float, float] | None = None
+    #: (nearest, farthest) depth [mm] the network was trained on (training/depth_range.py); None: not recorded
+    training_range_mm: tuple[float, float] | None = None
 
 
 @dataclass
@@ -270,6 +301,10 @@ class _Tally:
     failed: list[tuple[str, str]] = field(default_factory=list)
     seconds: list[float] = field(default_factory=list)
     claimed: dict[Path, Path] = field(default_factory=dict)
+    #: frames done whose valid depths lie mostly outside the training depths: (frame, note)
+    outside: list[tuple[str, str]] = field(default_factory=list)
+    #: (shape, training.tile_memory.TilePlan) of every frame restored by a checkpoint
+    plans: list[tuple[tuple[int, ...], Any]] = field(default_factory=list)
 
 
 def _write_failure(exc: OSError, out: Path) -> str:
@@ -283,6 +318,9 @@ def _denoise_one(frame: Any, job: _Job, tally: _Tally) -> None:
     from tofdenoise.inference.frames import FrameError, check_depth_units_mm, load_frame
 
     if not _claim(frame.rel_stem.as_posix(), frame.path, job, tally):
+        return
+    if job.options.ply and job.intrinsics is None:  # a recording of the same command may carry its own
+        tally.failed.append((str(frame.path), NO_FRAME_INTRINSICS))
         return
     started = time.perf_counter()
     try:
@@ -309,8 +347,8 @@ def _claim(name: str, source: Any, job: _Job, tally: _Tally) -> bool:
 
 def _restore_and_write(data: Any, label: str, intrinsics: Any, job: _Job, tally: _Tally, started: float) -> None:
     """Restore a frame read into memory (``frames.Frame``) and write its outputs, or record why not."""
-    from tofdenoise.inference.denoise import restore_frame
-    from tofdenoise.inference.frames import FrameError
+    from tofdenoise.inference.denoise import frame_tile_plan, restore_frame
+    from tofdenoise.inference.frames import FrameError, outside_training_depths
     from tofdenoise.inference.outputs import frame_sigma, write_frame_outputs
 
     args = job.args
@@ -319,19 +357,21 @@ def _restore_and_write(data: Any, label: str, intrinsics: Any, job: _Job, tally:
         return
     try:
         if job.options.ply:
-            intrinsics.check_shape(data.depth_mm.shape, label)
+            intrinsics = resolve_intrinsics(intrinsics, data.depth_mm.shape, label)
         if args.onnx is not None:  # onnxruntime: whole frame, the graph's own precision
             restored = job.model.restore_frame(data.depth_mm, data.valid, data.amplitude, fill_holes=args.fill_holes)
         else:
+            plan = frame_tile_plan(job.model, data.depth_mm.shape, args.tile, job.precision)
             restored = restore_frame(
                 job.model,
                 data.depth_mm,
                 data.valid,
                 data.amplitude,
                 fill_holes=args.fill_holes,
-                tile=args.tile,
+                tile=plan,
                 precision=job.precision,
             )
+            tally.plans.append((tuple(data.depth_mm.shape), plan))
     except (FrameError, IntrinsicsError, ValueError, OSError, RuntimeError) as exc:
         tally.failed.append((label, str(exc)))
         return
@@ -354,6 +394,9 @@ def _restore_and_write(data: Any, label: str, intrinsics: Any, job: _Job, tally:
             return
         tally.seconds.append(time.perf_counter() - started)
         tally.done += 1
+    note = outside_training_depths(data, job.training_range_mm)
+    if note is not None:
+        tally.outside.append((label, note))
 
 
 def _denoise_recording(recording: Any, job: _Job, tally: _Tally) -> None:
@@ -439,6 +482,66 @@ def _refuse_replacing_inputs(
         raise OutputPathError(f"--out {out} is a file; give a folder for the outputs")
     folders = [out] + [out / r.rel_stem for r in recordings]
     refuse_overwrite(outputs, inputs, "--out", output_folders=folders)
+
+
+def tiling_lines(args: argparse.Namespace, tally: _Tally) -> list[str]:
+    """The summary's line on tiling: whole frames, or which frames ran in tiles of which side and why
+    (``training.tile_memory.tile_plan``)."""
+    from tofdenoise.training.tile_memory import gib
+
+    if args.onnx is not None:
+        return ["tiling: none, whole frames (an ONNX graph runs whole frames)"] if tally.done else []
+    if not tally.plans:
+        return []
+
+    def size(shape: tuple[int, ...]) -> str:
+        return f"{shape[-1]} x {shape[-2]}"
+
+    whole = [(shape, plan) for shape, plan in tally.plans if not plan.tiled]
+    tiled = [(shape, plan) for shape, plan in tally.plans if plan.tiled]
+    parts = []
+    if tiled:
+        sides = sorted({plan.tile for _, plan in tiled})
+        shape, plan = max(tiled, key=lambda item: item[0][-1] * item[0][-2])
+        if plan.forced:
+            why = f"--tile {args.tile}"
+        else:
+            why = f"the largest, {size(shape)}, needs about {gib(plan.need_bytes)}, over the memory budget of "
+            why += f"{gib(plan.budget_bytes)}"
+        parts.append(f"{len(tiled)} frame(s) in tiles of {'/'.join(map(str, sides))} px ({why})")
+    if whole:
+        shape, plan = max(whole, key=lambda item: item[0][-1] * item[0][-2])
+        if plan.forced:
+            why = f"no side beyond --tile {args.tile}"
+        elif plan.need_bytes is None:
+            why = "the checkpoint never tiles"
+        elif plan.budget_bytes is None:
+            why = f"the largest, {size(shape)}, needs about {gib(plan.need_bytes)}; memory budget unknown"
+        else:
+            why = (
+                f"the largest, {size(shape)}, needs about {gib(plan.need_bytes)} of the {gib(plan.budget_bytes)} budget"
+            )
+        parts.append(f"{len(whole)} whole frame(s) ({why})")
+    return [f"tiling: {'; '.join(parts)}"]
+
+
+def training_depth_lines(job: _Job, tally: _Tally) -> list[str]:
+    """The summary's lines on the depths the network was trained on: the range and each frame done that lies
+    mostly outside it, or that the checkpoint does not record it (nothing for a classical filter, never trained)."""
+    if not tally.done or not getattr(job.model, "trainable", True):
+        return []
+    if job.training_range_mm is None:
+        return [
+            "the checkpoint does not record the depths it was trained on (written before they were kept): the frames "
+            "were not checked against them"
+        ]
+    low, high = job.training_range_mm
+    head = f"trained on depths {low:.0f}-{high:.0f} mm"
+    if not tally.outside:
+        return [f"{head}: no frame lies mostly outside them"]
+    return [f"{head}: {len(tally.outside)} frame(s) lie mostly outside them"] + [
+        f"outside the training depths {label}: {note}" for label, note in tally.outside
+    ]
 
 
 def timing_text(seconds: Sequence[float]) -> str:

@@ -13,11 +13,18 @@ of the top-left pixel) and the image size. They come from
       height: 576
 
   or a ROS ``camera_info`` YAML of ``camera_calibration_parsers`` (``camera_matrix: {data: [fx, 0, cx, 0, fy, cy,
-  0, 0, 1]}``, ``image_width``, ``image_height``);
-- the ``calibration.json`` attachment of an Azure Kinect recording (``kinect_depth_intrinsics``: the depth camera's
-  raw, unitised parameters scaled to the depth mode's binned resolution and shifted by its crop, as the Sensor SDK
-  does for its mode-specific calibration);
+  0, 0, 1]}``, ``image_width``, ``image_height``), or an OpenCV ``cv::FileStorage`` file (YAML with its
+  ``%YAML:1.0`` header and ``!!opencv-matrix`` tags, or XML) as OpenCV's calibration sample writes it
+  (``camera_matrix``, ``image_width``, ``image_height``, ``distortion_coefficients``; read with OpenCV itself);
+- the Azure Kinect's ``calibration.json`` (``kinect_depth_intrinsics``: the depth camera's raw, unitised parameters
+  scaled to the depth mode's binned resolution and shifted by its crop, as the Sensor SDK does for its
+  mode-specific calibration): attached to a recording, where the track names the depth mode, or as a file of its
+  own (``load_intrinsics`` -> ``KinectCalibration``), where the depth mode is the one whose image has the frame's
+  size (``kinect_mode_for_size``);
 - a ``sensor_msgs/CameraInfo`` message of a bag (its ``K`` matrix).
+
+``resolve_intrinsics(intrinsics, shape, frame)`` gives the ``Intrinsics`` of a frame of that shape from either
+kind, or an ``IntrinsicsError`` naming both sizes.
 
 ``points_m`` back-projects the valid pixels of a z-depth map (the distance along the optical axis: what the Kinect
 and ROS depth images hold) into the camera's optical frame (REP 103: x right, y down, z forward), in metres. Lens
@@ -35,13 +42,23 @@ import numpy as np
 import yaml
 
 __all__ = [
+    "INTRINSICS_FORMS",
     "Intrinsics",
     "IntrinsicsError",
     "KINECT_DEPTH_MODES",
+    "KinectCalibration",
     "kinect_depth_intrinsics",
+    "kinect_mode_for_size",
     "load_intrinsics",
     "points_m",
+    "resolve_intrinsics",
 ]
+
+#: the forms of an intrinsics file ``load_intrinsics`` reads, for the error that names them
+INTRINSICS_FORMS = (
+    "YAML/JSON with fx, fy, cx, cy, width, height; a ROS camera_info YAML; an OpenCV FileStorage YAML/XML "
+    "(camera_matrix, image_width, image_height); an Azure Kinect calibration.json (CalibrationInformation.Cameras)"
+)
 
 
 class IntrinsicsError(ValueError):
@@ -94,38 +111,120 @@ def _number(data: dict[str, Any], key: str, source: str) -> float:
         raise IntrinsicsError(f"intrinsics file {source}: field {key!r} must be a number, got {data[key]!r}") from None
 
 
-def load_intrinsics(path: str | Path) -> Intrinsics:
-    """Intrinsics from a YAML/JSON file with fx, fy, cx, cy, width, height (or a ROS camera_info YAML)."""
+def _opencv_storage(path: Path) -> dict[str, Any] | None:
+    """fx, fy, cx, cy, width, height of an OpenCV ``cv::FileStorage`` file (None: it has no ``camera_matrix``).
+    Keys are matched without case (OpenCV's calibration tutorial writes ``Camera_Matrix``, ``image_Width``)."""
+    import cv2
+
+    try:
+        storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    except (cv2.error, SystemError) as exc:  # OpenCV 5 raises SystemError with the parse error as its cause
+        cause = exc.__cause__ or exc
+        lines = [ln.strip() for ln in str(cause).strip().splitlines() if ln.strip()]
+        raise IntrinsicsError(
+            f"intrinsics file {path} could not be read as an OpenCV FileStorage file: {lines[-1] if lines else cause}"
+        ) from exc
+    try:
+        if not storage.isOpened():
+            raise IntrinsicsError(f"intrinsics file {path} could not be read as an OpenCV FileStorage file")
+        root = storage.root()
+        keys = {key.lower(): key for key in root.keys()}
+
+        def node(name: str) -> Any:
+            return storage.getNode(keys[name]) if name in keys else None
+
+        matrix_node = node("camera_matrix")
+        if matrix_node is None:
+            return None
+        matrix = matrix_node.mat()
+        if matrix is None or matrix.shape != (3, 3):
+            raise IntrinsicsError(
+                f"intrinsics file {path}: camera_matrix must be a 3 x 3 !!opencv-matrix, got "
+                f"{'no matrix' if matrix is None else ' x '.join(map(str, matrix.shape))}"
+            )
+        size = {}
+        for name in ("image_width", "image_height"):
+            value = node(name)
+            if value is None or not value.isInt():
+                raise IntrinsicsError(
+                    f"intrinsics file {path}: field {name!r} is {'missing' if value is None else 'not an integer'} "
+                    "(an OpenCV calibration file gives the image size as image_width and image_height)"
+                )
+            size[name] = int(value.real())
+    finally:
+        storage.release()
+    return {
+        "fx": matrix[0, 0],
+        "fy": matrix[1, 1],
+        "cx": matrix[0, 2],
+        "cy": matrix[1, 2],
+        "width": size["image_width"],
+        "height": size["image_height"],
+    }
+
+
+def _is_opencv_storage(path: Path, text: str) -> bool:
+    head = text.lstrip()[:200]
+    return (
+        head.startswith("%YAML:")
+        or "!!opencv-matrix" in text
+        or head.startswith("<?xml")
+        and "<opencv_storage>" in text
+    )
+
+
+def load_intrinsics(path: str | Path) -> Intrinsics | KinectCalibration:
+    """Intrinsics from a file of one of ``INTRINSICS_FORMS``: ``Intrinsics``, or a ``KinectCalibration`` for an
+    Azure Kinect ``calibration.json`` (whose depth intrinsics depend on the depth mode: ``resolve_intrinsics``)."""
 
     path = Path(path).expanduser()
     if not path.is_file():
         raise IntrinsicsError(f"intrinsics file not found: {path}")
     try:
         text = path.read_text(encoding="utf-8")
-        data = json.loads(text) if path.suffix.lower() == ".json" else yaml.safe_load(text)
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError, yaml.YAMLError) as exc:
-        raise IntrinsicsError(f"intrinsics file {path} could not be read as YAML/JSON: {exc}") from exc
-    if not isinstance(data, dict):
-        raise IntrinsicsError(f"intrinsics file {path}: expected a mapping with fx, fy, cx, cy, width, height")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise IntrinsicsError(
+            f"intrinsics file {path} could not be read as text: {exc}; expected {INTRINSICS_FORMS}"
+        ) from exc
     source = str(path)
-    if "camera_matrix" in data and "fx" not in data:  # ROS camera_info YAML
-        matrix = data["camera_matrix"]
-        values = matrix.get("data") if isinstance(matrix, dict) else None
-        if not isinstance(values, list) or len(values) != 9:
-            raise IntrinsicsError(f"intrinsics file {path}: camera_matrix.data must hold the 9 entries of K")
-        data = {
-            "fx": values[0],
-            "cx": values[2],
-            "fy": values[4],
-            "cy": values[5],
-            "width": data.get("image_width"),
-            "height": data.get("image_height"),
-        }
+    if _is_opencv_storage(path, text):
+        data = _opencv_storage(path)
+        if data is None:
+            raise IntrinsicsError(
+                f"intrinsics file {path}: an OpenCV FileStorage file without camera_matrix; expected {INTRINSICS_FORMS}"
+            )
+    else:
+        try:
+            data = json.loads(text) if path.suffix.lower() == ".json" else yaml.safe_load(text)
+        except (json.JSONDecodeError, yaml.YAMLError) as exc:
+            first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            raise IntrinsicsError(
+                f"intrinsics file {path} could not be read as YAML/JSON ({first}); expected {INTRINSICS_FORMS}"
+            ) from exc
+        if not isinstance(data, dict):
+            raise IntrinsicsError(f"intrinsics file {path}: expected a mapping, one of {INTRINSICS_FORMS}")
+        if "CalibrationInformation" in data:  # the Azure Kinect's own calibration.json
+            return KinectCalibration(text.encode("utf-8"), source)
+        if not any(key in data for key in ("fx", "fy", "cx", "cy", "camera_matrix")):
+            raise IntrinsicsError(f"intrinsics file {path} is none of the forms read: {INTRINSICS_FORMS}")
+        if "camera_matrix" in data and "fx" not in data:  # ROS camera_info YAML (or OpenCV's FileStorage JSON)
+            matrix = data["camera_matrix"]
+            values = matrix.get("data") if isinstance(matrix, dict) else None
+            if not isinstance(values, list) or len(values) != 9:
+                raise IntrinsicsError(f"intrinsics file {path}: camera_matrix.data must hold the 9 entries of K")
+            data = {
+                "fx": values[0],
+                "cx": values[2],
+                "fy": values[4],
+                "cy": values[5],
+                "width": data.get("image_width"),
+                "height": data.get("image_height"),
+            }
     fx, fy, cx, cy = (_number(data, k, source) for k in ("fx", "fy", "cx", "cy"))
     width, height = (_number(data, k, source) for k in ("width", "height"))
     if width != int(width) or height != int(height):
         raise IntrinsicsError(f"intrinsics file {path}: width and height must be whole pixels, got {width} x {height}")
-    return Intrinsics(fx, fy, cx, cy, int(width), int(height), source=source)
+    return Intrinsics(float(fx), float(fy), float(cx), float(cy), int(width), int(height), source=source)
 
 
 #: Azure Kinect depth modes: (binned resolution of the 1024 x 1024 calibration image, crop offset, output size),
@@ -175,6 +274,50 @@ def kinect_depth_intrinsics(calibration_json: bytes | str, depth_mode: str | Non
         height=h,
         source=f"{source} (calibration.json, {depth_mode})",
     )
+
+
+def kinect_mode_for_size(width: int, height: int) -> str | None:
+    """The Azure Kinect depth mode whose depth image is ``width`` x ``height`` (None: none is). PASSIVE_IR shares
+    WFOV_UNBINNED's size and its intrinsics; the depth mode is named."""
+    for mode, (_, _, size) in KINECT_DEPTH_MODES.items():
+        if size == (width, height) and mode != "PASSIVE_IR":
+            return mode
+    return None
+
+
+@dataclass(frozen=True)
+class KinectCalibration:
+    """An Azure Kinect ``calibration.json`` read as a file of its own: the depth intrinsics of a frame are those of
+    the depth mode of the frame's size (``for_shape``). ``calibration_json``: the file's bytes, checked on
+    construction (a depth camera with its model parameters)."""
+
+    calibration_json: bytes
+    source: str
+
+    def __post_init__(self) -> None:
+        kinect_depth_intrinsics(self.calibration_json, "NFOV_UNBINNED", self.source)
+
+    def for_shape(self, shape: tuple[int, ...], frame: str) -> Intrinsics:
+        height, width = (int(v) for v in tuple(shape)[-2:])
+        mode = kinect_mode_for_size(width, height)
+        if mode is None:
+            sizes = ", ".join(
+                f"{w} x {h} ({m})" for m, (_, _, (w, h)) in KINECT_DEPTH_MODES.items() if m != "PASSIVE_IR"
+            )
+            raise IntrinsicsError(
+                f"intrinsics of {self.source} (an Azure Kinect calibration.json) are those of a Kinect depth image: "
+                f"{sizes}; frame {frame} is {width} x {height} (width x height)"
+            )
+        return kinect_depth_intrinsics(self.calibration_json, mode, self.source)
+
+
+def resolve_intrinsics(intrinsics: Intrinsics | KinectCalibration, shape: tuple[int, ...], frame: str) -> Intrinsics:
+    """The ``Intrinsics`` of a frame of ``shape`` (H, W): ``intrinsics`` itself when it describes that image size
+    (else an ``IntrinsicsError`` naming both sizes), or the depth mode's of a Kinect calibration."""
+    if isinstance(intrinsics, KinectCalibration):
+        return intrinsics.for_shape(shape, frame)
+    intrinsics.check_shape(shape, frame)
+    return intrinsics
 
 
 def points_m(depth_m: np.ndarray, intrinsics: Intrinsics, frame: str = "(depth map)") -> np.ndarray:

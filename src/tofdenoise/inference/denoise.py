@@ -2,8 +2,9 @@
 Python API ``tofdenoise.denoise`` and LightningCLI ``predict`` on a folder of frames.
 
 A frame is restored as ``DepthRestorer.predict_step`` does: ``model.restore_mm({"noisy", "mask"[, "amplitude"]},
-tile=...)`` (the model fills invalid input pixels before the network and centres the input; frames larger than
-the tile size run tile by tile), then pixels invalid in the input are set back to 0 unless ``fill_holes``.
+tile=...)`` (the model fills invalid input pixels before the network and centres the input), then pixels invalid
+in the input are set back to 0 unless ``fill_holes``. A frame runs whole unless its activations do not fit the
+memory budget of the device, or a tile side is given (``frame_tile_plan``, ``training/tile_memory.py``).
 On CUDA the network runs under bf16 autocast (``precision="bf16"``; ``"fp32"`` to turn it off).
 """
 
@@ -19,8 +20,17 @@ import torch
 
 from tofdenoise.physics.uncertainty import amplitude_to_signal_e, sigma_depth_mm
 from tofdenoise.training.module import DepthRestorer
+from tofdenoise.training.tile_memory import TilePlan
 
-__all__ = ["CheckpointError", "denoise", "load_restorer", "resolve_device", "restore_frame", "sigma_map_mm"]
+__all__ = [
+    "CheckpointError",
+    "denoise",
+    "frame_tile_plan",
+    "load_restorer",
+    "resolve_device",
+    "restore_frame",
+    "sigma_map_mm",
+]
 
 
 class CheckpointError(ValueError):
@@ -161,14 +171,15 @@ def restore_frame(
     valid: np.ndarray,
     amplitude: np.ndarray | None = None,
     fill_holes: bool = False,
-    tile: int | None = None,
+    tile: int | TilePlan | None = None,
     precision: str = "bf16",
 ) -> np.ndarray:
     """Restored depth [mm] float32 (H, W) of one frame (0 at invalid input pixels unless ``fill_holes``).
 
     ``depth_mm``: float (H, W), any value at invalid pixels (set to 0 here); ``valid``: bool (H, W);
-    ``amplitude``: (H, W) or None (required when the model uses the signal channel); ``tile``: tile side
-    (default: the model's ``tiling.predict_tile_px``). The model's device is used.
+    ``amplitude``: (H, W) or None (required when the model uses the signal channel); ``tile``: None = the whole
+    frame when its activations fit the memory budget, else tiles of the model's ``tiling.predict_tile_px``
+    (``frame_tile_plan``); a side in pixels forces tiles of that side; or a ``TilePlan``. The model's device is used.
     """
     if model.conditioning.use_signal_channel and amplitude is None:
         raise ValueError(
@@ -181,13 +192,24 @@ def restore_frame(
     batch: dict[str, torch.Tensor] = {"noisy": torch.from_numpy(depth)[None, None].to(device), "mask": valid_t}
     if model.conditioning.use_signal_channel:
         batch["amplitude"] = torch.from_numpy(np.ascontiguousarray(amplitude, dtype=np.float32))[None, None].to(device)
-    tile = model.tiling.predict_tile_px if tile is None else int(tile)
+    if not isinstance(tile, TilePlan):
+        tile = frame_tile_plan(model, depth.shape, tile, precision)
     with _autocast(device, precision):
-        pred = model.restore_mm(batch, tile=tile)
+        pred = model.restore_mm(batch, tile=tile.tile)
     pred = pred.float()
     if not fill_holes:
         pred = torch.where(valid_t > 0, pred, torch.zeros_like(pred))
     return pred[0, 0].cpu().numpy().astype(np.float32)
+
+
+def frame_tile_plan(model: Any, shape: tuple[int, ...], tile: int | None = None, precision: str = "bf16") -> TilePlan:
+    """Whole frame or tiles for a frame of ``shape`` on ``model`` (``DepthRestorer.predict_tile_plan``): ``tile``
+    forces tiles of that side; else the network's activations, measured once on a small probe under the autocast of
+    ``precision``, against the memory budget of the model's device, and the checkpoint's ``tiling.predict_tile_px``
+    as the tile side when they do not fit."""
+    device = model.device
+    tag = precision if device.type == "cuda" else "fp32"
+    return model.predict_tile_plan(tuple(shape), tile, tag, _autocast(device, precision))
 
 
 def denoise(

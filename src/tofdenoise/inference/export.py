@@ -28,7 +28,8 @@ example's size, they are ``scan`` operators that become ONNX ``Scan`` nodes. ``s
 one loop step per chunk of positions behind a run-time exponent guard (an ONNX ``If``) or one per position.
 
 The graph's metadata (``metadata_props``) names the backbone, ``use_signal_channel``, ``depth_scale_mm``, the
-fill levels, the precision and the checkpoint's sha256; ``tofdenoise denoise --onnx`` reads them.
+fill levels, the precision, the checkpoint's sha256 and the depths it was trained on (``tofdenoise_training_depth_mm``,
+``nearest,farthest`` in mm, when the checkpoint records them); ``tofdenoise denoise --onnx`` reads them.
 """
 
 from __future__ import annotations
@@ -219,6 +220,9 @@ def export_onnx(
         "tofdenoise_checkpoint": str(Path(ckpt).resolve()),
         "tofdenoise_checkpoint_sha256": file_sha256(ckpt),
     }
+    trained = model.training_depth_range_mm
+    if trained is not None:  # the depths the network was trained on (training/depth_range.py), "nearest,farthest"
+        meta["tofdenoise_training_depth_mm"] = f"{trained[0]!r},{trained[1]!r}"
 
     def write(tmp: Path) -> None:
         raw = tmp.with_name(tmp.name + ".export.onnx")

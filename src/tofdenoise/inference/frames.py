@@ -11,17 +11,27 @@ camera), i.e. more than half of its valid depths out of that range on one side. 
 other units: metres (a Kinect frame / 1000), centimetres (/ 10) or 0.1 mm (x 10); the error names the median and
 the likely unit.
 
+``outside_training_depths`` is a warning, not a refusal: a frame in millimetres whose valid depths lie mostly (more
+than half of them) outside the depths the checkpoint was trained on (``training/depth_range.py``; e.g. an ADI
+ADTF3175D frame reaching 7.5 m against the built-in scenes' 0.3-2.4 m) is restored, and the summary says that its
+restoration there is an extrapolation.
+
 Amplitude values that are not finite (NaN, inf) are invalid: the sigma_D map is NaN there, and a frame whose
 amplitude is invalid at every pixel of valid depth is refused (``FrameError`` naming the amplitude file).
 
-Amplitude frames are paired by the depth frame's stem (``pair_amplitude``): from a folder (the depth frame's
+Amplitude frames are paired by the depth frame's stem (``AmplitudeSource``): from a folder (the depth frame's
 sub-folder mirrored, then the folder itself), from a template with ``{stem}`` (e.g. ``amp/{stem}_amp.png``), or
-from a glob pattern (``amp/*.png``) whose matches are keyed by stem.
+from a glob pattern (``amp/*.png``) whose matches are keyed by stem. A template's ``{stem:OLD=NEW}`` is the stem
+with its one occurrence of ``OLD`` replaced by ``NEW``: a camera that names both files of a frame, e.g. the ADI
+ADTF3175D SDK's ``frame_mode2_depth_000123.npy`` and ``frame_mode2_ab_000123.npy``, pairs with
+``adi/{stem:depth=ab}.npy``. A file that is the amplitude of a depth frame is not itself a depth frame
+(``drop_amplitude_files``: the SDK writes both into one folder).
 """
 
 from __future__ import annotations
 
 import glob as _glob
+import re
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -36,6 +46,7 @@ __all__ = [
     "Frame",
     "FrameInput",
     "AmplitudeSource",
+    "drop_amplitude_files",
     "find_frames",
     "read_depth_frame",
     "load_frame",
@@ -43,6 +54,7 @@ __all__ = [
     "MIN_MEDIAN_DEPTH_MM",
     "LIKELY_UNITS",
     "check_depth_units_mm",
+    "outside_training_depths",
     "plausible_depth_range_mm",
 ]
 
@@ -164,18 +176,33 @@ def read_depth_frame(path: str | Path, depth_scale_mm: float = 1.0) -> tuple[np.
     return np.where(valid, depth, 0.0).astype(np.float32), valid
 
 
+#: a template's stem field: ``{stem}`` or ``{stem:OLD=NEW}`` (OLD non-empty; neither holds ``{``, ``}``, ``=`` or ``/``)
+_STEM_FIELD = re.compile(r"\{stem(?::(?P<old>[^{}=/]+)=(?P<new>[^{}=/]*))?\}")
+
+
 class AmplitudeSource:
-    """Where amplitude frames are found: a folder, a ``{stem}`` template or a glob pattern (module docstring)."""
+    """Where amplitude frames are found: a folder, a ``{stem}`` / ``{stem:OLD=NEW}`` template or a glob pattern
+    (module docstring)."""
 
     def __init__(self, spec: str | Path):
         self.spec = str(spec)
         path = Path(self.spec).expanduser()
         self.folder: Path | None = path if path.is_dir() else None
-        self.template = self.spec if "{stem}" in self.spec else None
+        self.template = None
+        if self.folder is None and "{stem" in self.spec:
+            if "{stem" in _STEM_FIELD.sub("", self.spec):
+                raise FrameError(
+                    f"--amplitude {self.spec}: a stem field is {{stem}} or {{stem:OLD=NEW}} (the stem with OLD "
+                    "replaced by NEW, e.g. 'adi/{stem:depth=ab}.npy'; OLD and NEW without {, }, = or /)"
+                )
+            self.template = self.spec
         self.by_stem: dict[str, list[Path]] | None = None
         if self.folder is None and self.template is None:
             if not _glob.has_magic(self.spec):
-                raise FrameError(f"--amplitude {self.spec}: not a folder, a template with {{stem}} or a glob pattern")
+                raise FrameError(
+                    f"--amplitude {self.spec}: not a folder, a template with {{stem}} or {{stem:OLD=NEW}}, or a glob "
+                    "pattern"
+                )
             self.by_stem = {}
             for match in sorted(_glob.glob(str(path), recursive=True)):
                 p = Path(match)
@@ -184,11 +211,35 @@ class AmplitudeSource:
             if not self.by_stem:
                 raise FrameError(f"--amplitude {self.spec}: the pattern matches no amplitude file")
 
+    def _fill(self, frame: FrameInput) -> Path:
+        """The template with every stem field of it filled for ``frame``."""
+        assert self.template is not None
+        stem = frame.path.stem
+
+        def field(match: re.Match[str]) -> str:
+            old, new = match.group("old"), match.group("new")
+            if old is None:
+                return stem
+            count = stem.count(old)
+            if count != 1:
+                raise FrameError(
+                    f"no amplitude file for depth frame {frame.path}: {{stem:{old}={new}}} needs {old!r} once in "
+                    f"the stem {stem!r}, found {count} time(s) (write a longer OLD, e.g. {{stem:_{old}_=_{new}_}})"
+                )
+            return stem.replace(old, new)
+
+        return Path(_STEM_FIELD.sub(field, self.template)).expanduser()
+
     def find(self, frame: FrameInput) -> Path:
         """The amplitude file of ``frame``; FrameError when there is none or more than one."""
         stem = frame.path.stem
         if self.template is not None:
-            candidate = Path(self.template.replace("{stem}", stem)).expanduser()
+            candidate = self._fill(frame)
+            if candidate.is_file() and candidate.resolve() == frame.path.resolve():
+                raise FrameError(
+                    f"--amplitude {self.spec} gives depth frame {frame.path} itself as its amplitude; the "
+                    "template must name another file (e.g. {stem:depth=ab})"
+                )
             if candidate.is_file():
                 return candidate
             raise FrameError(f"no amplitude file for depth frame {frame.path}: {candidate} does not exist")
@@ -218,6 +269,20 @@ class AmplitudeSource:
                 f"{', '.join(str(p) for p in found)}; keep one"
             )
         return found[0]
+
+
+def drop_amplitude_files(frames: Sequence[FrameInput], amplitude: AmplitudeSource | None) -> list[FrameInput]:
+    """``frames`` without the files that are the amplitude of one of them: a camera that writes depth and amplitude
+    into one folder (``frame_mode2_depth_000123.npy``, ``frame_mode2_ab_000123.npy``) gives both as inputs."""
+    if amplitude is None:
+        return list(frames)
+    paired = set()
+    for frame in frames:
+        try:
+            paired.add(amplitude.find(frame).resolve())
+        except FrameError:  # reported for that frame when it is processed
+            pass
+    return [frame for frame in frames if frame.path.resolve() not in paired]
 
 
 def load_frame(frame: FrameInput, depth_scale_mm: float = 1.0, amplitude: AmplitudeSource | None = None) -> Frame:
@@ -288,4 +353,23 @@ def check_depth_units_mm(frame: Frame, path: str | Path, depth_range_mm: tuple[f
         f"depth file {path}: median valid depth {median_mm:.4g} is implausible in millimetres (more than half of "
         f"the valid depths lie {side} {bound:.0f} mm; taken as mm: {near:.0f} mm, the training scenes' nearest "
         f"depth, to {far:.0f} mm, the sensor's unambiguous range); {hint} (--depth-scale-mm 1 if it is mm)"
+    )
+
+
+def outside_training_depths(frame: Frame, range_mm: tuple[float, float] | None) -> str | None:
+    """A one-line note when more than half of the frame's valid depths lie outside ``range_mm``, the (nearest,
+    farthest) depths the checkpoint was trained on; None otherwise (or when the range is unknown)."""
+    from tofdenoise.training.depth_range import outside_fraction
+
+    if range_mm is None or not frame.valid.any():
+        return None
+    share = outside_fraction(frame.depth_mm, frame.valid, range_mm)
+    if share <= 0.5:
+        return None
+    values = frame.depth_mm[frame.valid]
+    low, high = range_mm
+    return (
+        f"{100 * share:.0f} % of its valid depths ({float(values.min()):.0f}-{float(values.max()):.0f} mm, median "
+        f"{float(np.median(values)):.0f} mm) lie outside {low:.0f}-{high:.0f} mm, the depths the checkpoint was "
+        "trained on: its restoration there is an extrapolation"
     )

@@ -80,6 +80,15 @@ def open_session(path: str | os.PathLike[str], options: Any, device: str) -> Any
     return session
 
 
+def _depth_range(text: str | None) -> tuple[float, float] | None:
+    """The ``tofdenoise_training_depth_mm`` metadata ("nearest,farthest" mm) as numbers; None when absent or bad."""
+    try:
+        low, high = (float(v) for v in str(text).split(","))
+    except ValueError:
+        return None
+    return (low, high) if 0 < low < high else None
+
+
 class OnnxRestorer:
     """An onnxruntime session over a restore graph; ``restore_frame(depth_mm, valid, amplitude, fill_holes)``.
     ``device``: see :func:`execution_providers`; ``self.device`` is the one the session runs on."""
@@ -113,6 +122,8 @@ class OnnxRestorer:
         self.inputs = [i.name for i in self.session.get_inputs()]
         self.use_signal_channel = self.metadata.get("tofdenoise_use_signal_channel") == "true"
         self.backbone = self.metadata["tofdenoise_backbone"]
+        #: (nearest, farthest) training depth [mm] of the exported checkpoint; None: not recorded (older export)
+        self.training_depth_range_mm = _depth_range(self.metadata.get("tofdenoise_training_depth_mm"))
 
     def restore_mm(self, depth_mm: np.ndarray, amplitude: np.ndarray | None = None) -> np.ndarray:
         """The graph's output (B, 1, H, W) float32 mm at every pixel for a (B, 1, H, W) float32 depth."""

@@ -29,8 +29,15 @@ import torch
 from lightning.pytorch.callbacks import BasePredictionWriter
 from torch.utils.data import DataLoader, Dataset, IterableDataset
 
-from tofdenoise.inference.camera import Intrinsics, load_intrinsics
-from tofdenoise.inference.frames import AmplitudeSource, Frame, FrameInput, find_frames, load_frame
+from tofdenoise.inference.camera import Intrinsics, load_intrinsics, resolve_intrinsics
+from tofdenoise.inference.frames import (
+    AmplitudeSource,
+    Frame,
+    FrameInput,
+    drop_amplitude_files,
+    find_frames,
+    load_frame,
+)
 from tofdenoise.inference.outputs import OutputOptions, frame_sigma, write_frame_outputs
 from tofdenoise.inference.recordings import Recording, find_recordings, open_recording
 
@@ -107,8 +114,8 @@ class FramesDataModule(L.LightningDataModule):
 
     Args:
         inputs: depth frames or folders of them (recursive), as ``tofdenoise denoise``.
-        amplitude: amplitude frames paired by stem (folder, ``{stem}`` template or glob); needed by checkpoints
-            that use the signal channel.
+        amplitude: amplitude frames paired by stem (folder, ``{stem}`` / ``{stem:OLD=NEW}`` template or glob);
+            needed by checkpoints that use the signal channel.
         depth_scale_mm: millimetres per stored depth unit.
         sensor: the camera's calibration (file or preset) for the sigma_D map of the input (needs ``amplitude``;
             ``--data.sensor``, as ``data.sensor`` of the training configs and ``--sensor`` of the other verbs).
@@ -141,7 +148,7 @@ class FramesDataModule(L.LightningDataModule):
             raise ValueError("FramesDataModule: sensor needs amplitude (the sigma_D map comes from the amplitude)")
         self.amplitude = AmplitudeSource(amplitude) if amplitude is not None else None
         skip = list(exclude or []) + ([self.amplitude.folder] if self.amplitude and self.amplitude.folder else [])
-        self.frames = find_frames(inputs, exclude=skip)
+        self.frames = drop_amplitude_files(find_frames(inputs, exclude=skip), self.amplitude)
         self.recordings = []
         for source in find_recordings(inputs, exclude=skip):
             recording = open_recording(source.path, depth_stream, amplitude_stream)
@@ -199,6 +206,8 @@ class FramesPredictionWriter(BasePredictionWriter):
             if intrinsics is None and "intrinsics" in batch:
                 fx, fy, cx, cy, w, h = (float(v) for v in batch["intrinsics"][i])
                 intrinsics = Intrinsics(fx, fy, cx, cy, int(w), int(h), source="the recording")
+            if intrinsics is not None and self.options.ply:
+                intrinsics = resolve_intrinsics(intrinsics, tuple(pred.shape[-2:]), str(batch["name"][i]))
             self.written += write_frame_outputs(
                 self.out_dir,
                 str(batch["name"][i]),

@@ -39,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from tofdenoise.inference.camera import KINECT_DEPTH_MODES, Intrinsics, IntrinsicsError, kinect_depth_intrinsics
+from tofdenoise.inference.camera import Intrinsics, IntrinsicsError, kinect_depth_intrinsics, kinect_mode_for_size
 from tofdenoise.inference.frames import RECORDING_SUFFIXES, FrameError
 from tofdenoise.inference.ros_codecs import CompressedImageError, decode_compressed_image, parse_compressed_format
 
@@ -259,7 +259,7 @@ class KinectRecording(Recording):
             calibration = [a for a in container.streams.attachments if a.name == "calibration.json"]
             self.intrinsics = None
             if calibration:
-                mode = self.depth_mode or self._mode_from_size(*self._layout[self.depth_name][1:])
+                mode = self.depth_mode or kinect_mode_for_size(*self._layout[self.depth_name][1:])
                 try:
                     self.intrinsics = kinect_depth_intrinsics(bytes(calibration[0].data), mode, str(path))
                 except IntrinsicsError as exc:
@@ -273,14 +273,6 @@ class KinectRecording(Recording):
             return self._av.open(str(self.path))
         except self._av.FFmpegError as exc:
             raise RecordingError(f"recording {self.path} could not be opened as Matroska: {exc}") from exc
-
-    @staticmethod
-    def _mode_from_size(width: int, height: int) -> str | None:
-
-        for mode, (_, _, size) in KINECT_DEPTH_MODES.items():
-            if size == (width, height) and mode != "PASSIVE_IR":
-                return mode
-        return None
 
     def _sample_layout(self, stream: Any) -> tuple[np.dtype, int, int]:
         ctx = stream.codec_context

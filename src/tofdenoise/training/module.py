@@ -15,6 +15,7 @@ from __future__ import annotations
 import logging
 import os
 from collections.abc import Sequence
+from contextlib import nullcontext
 from typing import Any
 
 import lightning.pytorch as pl
@@ -27,12 +28,14 @@ from tofdenoise.models.conditioning import CENTERING_MODES, InputConditioning
 from tofdenoise.models.registry import accepts_kwarg, backbone_factory, is_trainable
 from tofdenoise.models.tiling import TilingSettings
 from tofdenoise.records import set_entry
+from tofdenoise.training.depth_range import TrainingDepthRange
 from tofdenoise.training.init_weights import INIT_RECORD_KEY, load_init_weights
 from tofdenoise.training.learned_guard import LearnedGuard
 from tofdenoise.training.legacy_hparams import is_legacy, upgrade_hparams
 from tofdenoise.training.losses import DepthLoss, build_loss
 from tofdenoise.training.metrics import DepthMetrics, FixedBatchCache, depth_metrics_per_image
 from tofdenoise.training.optim import OptimSettings
+from tofdenoise.training.tile_memory import TilePlan, activation_bytes_per_px, memory_budget_bytes, tile_plan
 
 __all__ = [
     "DepthRestorer",
@@ -162,6 +165,14 @@ class DepthRestorer(pl.LightningModule):
         self.guard = LearnedGuard()
         #: {"path", "sha256"} of the weights this run started from (``init_weights``), None for a fresh init
         self.init_record: dict[str, str] | None = None
+        #: the valid target depths of the training batches (``training/depth_range.py``), kept in the checkpoint
+        self.training_depths = TrainingDepthRange()
+
+    @property
+    def training_depth_range_mm(self) -> tuple[float, float] | None:
+        """(nearest, farthest) depth [mm] of the training targets this network saw (0.5 % and 99.5 % of them;
+        ``training/depth_range.py``); None for a checkpoint written before the record existed, or no training."""
+        return self.training_depths.range_mm
 
     # ------------------------------------------------------------------ networks
     @property
@@ -274,6 +285,7 @@ class DepthRestorer(pl.LightningModule):
         return self.training_terms(batch, net)["loss"]
 
     def training_step(self, batch: dict[str, Any], batch_idx: int) -> Tensor:
+        self.training_depths.update(batch["clean"], batch["mask"])
         terms = self.training_terms(batch)
         loss = terms["loss"]
         if not torch.isfinite(loss):
@@ -393,9 +405,30 @@ class DepthRestorer(pl.LightningModule):
             raw_metric.reset()
 
     # ------------------------------------------------------------------ predict
+    def predict_tile_plan(
+        self, shape: Sequence[int], tile: int | None = None, precision: str | None = None, autocast: Any = None
+    ) -> TilePlan:
+        """Whole frames or tiles for a (B, C, H, W) or (H, W) input to predict (``training/tile_memory.py``): ``tile``
+        forces tiles of that side; else whole when the network's activations, measured once on a small probe under
+        ``autocast`` (default: the autocast state of the caller; ``precision`` names it, e.g. "bf16"), fit the memory
+        budget of this model's device, and tiles of ``tiling.predict_tile_px`` when they do not."""
+        device = self.device
+        if precision is None:
+            on = torch.is_autocast_enabled(device.type)
+            precision = str(torch.get_autocast_dtype(device.type)) if on else "fp32"
+
+        def per_px() -> float:
+            context = nullcontext() if autocast is None else autocast
+            return activation_bytes_per_px(self.eval_net, self.conditioning.in_channels, device, precision, context)
+
+        frames = int(shape[0]) if len(shape) == 4 else 1
+        budget = lambda: memory_budget_bytes(device)  # noqa: E731
+        return tile_plan(tuple(shape[-2:]), tile, self.tiling.predict_tile_px, per_px, budget, frames=frames)
+
     def predict_step(self, batch: dict[str, Any], batch_idx: int, dataloader_idx: int = 0) -> Tensor:
-        """Restored depth in mm (B, 1, H, W); pixels invalid in the input (``mask == 0``) are set to 0."""
-        pred_mm = self.restore_mm(batch, tile=self.tiling.predict_tile_px)
+        """Restored depth in mm (B, 1, H, W); pixels invalid in the input (``mask == 0``) are set to 0. The batch runs
+        whole unless it does not fit the memory budget (:meth:`predict_tile_plan`)."""
+        pred_mm = self.restore_mm(batch, tile=self.predict_tile_plan(tuple(batch["noisy"].shape)).tile)
         if "mask" in batch:
             pred_mm = torch.where(batch["mask"] > 0, pred_mm, torch.zeros_like(pred_mm))
         return pred_mm
@@ -455,6 +488,7 @@ class DepthRestorer(pl.LightningModule):
             self.guard.save(checkpoint, self.trainer)
         if self.init_record is not None:
             checkpoint[INIT_RECORD_KEY] = dict(self.init_record)
+        self.training_depths.save(checkpoint)
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         """Refuse a checkpoint written for another backbone/architecture with a readable message; restore the
@@ -463,6 +497,7 @@ class DepthRestorer(pl.LightningModule):
         init = checkpoint.get(INIT_RECORD_KEY)
         self.init_record = dict(init) if isinstance(init, dict) else None
         self.guard.load(checkpoint)
+        self.training_depths.load(checkpoint)
 
     def _check_architecture(self, checkpoint: dict[str, Any]) -> None:
         saved = checkpoint.get("hyper_parameters")
