@@ -234,8 +234,8 @@ def denoise(
             channel.
         fill_holes: give every pixel a depth, the invalid ones included; by default they stay 0.
         device: where a checkpoint path is loaded: ``"auto"`` (CUDA when available), ``"cpu"`` or ``"cuda"``.
-        tile: frames with a side larger than this run tile by tile (default: the model's
-            ``tiling.predict_tile_px``).
+        tile: force tiles of this side. Default None: the whole frame, unless the network's activations for it
+            exceed the memory budget; then tiles of the model's ``tiling.predict_tile_px`` (``frame_tile_plan``).
         precision: ``"bf16"`` (bf16 autocast on CUDA; the CPU computes in float32) or ``"fp32"``.
 
     Returns:

@@ -31,8 +31,8 @@ class TilingSettings:
     """When a restorer runs a frame tile by tile (``model.tiling`` in the configs).
 
     Args:
-        predict_tile_px: ``predict`` and ``tofdenoise denoise`` run frames larger than this (either side) tile by
-            tile; ``None`` = never tile.
+        predict_tile_px: the tile side of ``predict`` and ``tofdenoise denoise`` for a frame whose activations do
+            not fit the memory budget (halved down to 64 px while they do not); ``None`` = never tile.
         eval_tile_px: the same for validation and test (``None`` = whole frames, the paper's protocol).
         overlap_px: overlap of neighbouring tiles in pixels.
     """
