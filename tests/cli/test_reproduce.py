@@ -261,8 +261,8 @@ def test_skip_recorded_runs_only_what_has_no_committed_record(tmp_path, monkeypa
     argv = ["--table", "3", "--seeds", "0", "--out", str(out), "--results", str(results), "--page", str(page)]
     assert main([*argv, "--skip-recorded"]) == 0
     assert main(argv) == 0
-    assert "dvss-fixed-l1-s0" not in asked[0] and "dvss-range-l1-s0" in asked[0] and len(asked[0]) == 6
-    assert len(asked[1]) == 7 and "dvss-fixed-l1-s0" in asked[1]
+    assert "dvss-fixed-l1-s0" not in asked[0] and "dvss-range-l1-s0" in asked[0] and len(asked[0]) == 9
+    assert len(asked[1]) == 10 and "dvss-fixed-l1-s0" in asked[1]
     assert "--skip-recorded: 1 run(s) committed" in capsys.readouterr().out
     assert main(["--figure", "7", "--skip-recorded", "--out", str(out), "--results", str(results)]) == 2
     assert "--skip-recorded applies to --table and --study" in capsys.readouterr().err
@@ -558,7 +558,7 @@ def test_dry_run_names_the_executor_and_bad_executor_options_exit_2(tmp_path, ca
     assert main([*argv, "--dry-run", "--executor", "local", "--workers", "3"]) == 0
     printed = capsys.readouterr().out
     assert "executor: local (3 workers, each run in its own process)" in printed
-    assert len([line for line in printed.splitlines() if ": would run: " in line]) == 7
+    assert len([line for line in printed.splitlines() if ": would run: " in line]) == 10
     assert main([*argv, "--dry-run", "--executor", "local", "--workers", "0"]) == 2
     assert "tofdenoise reproduce: error: --workers must be a whole number >= 1, got 0" in capsys.readouterr().err
     assert main([*argv, "--dry-run", "--executor", "slurm", "--slurm-extra", "account"]) == 2
