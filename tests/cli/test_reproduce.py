@@ -315,6 +315,10 @@ def test_a_finished_runs_record_gains_its_score_against_the_stand_ins_truth(tmp_
     stamp = (run_dir / "real_vs_truth.json").stat().st_mtime_ns
     assert main(argv) == 0
     assert (run_dir / "real_vs_truth.json").stat().st_mtime_ns == stamp
+    # the set grew (24 -> 200 scenes in the CPU profile): the kept record scored fewer scenes, so it is scored again
+    assert sensor_main([*args[:4], "3", *args[5:]]) == 0
+    assert main(argv) == 0
+    assert json.loads(record.read_text())["scenes"] == 3 and json.loads(record.read_text())["truth"]["num_images"] == 3
     # a capture set without truth: no record for a run that has none yet
     (run_dir / "real_vs_truth.json").unlink()
     record.unlink()
