@@ -45,7 +45,7 @@ def test_dry_run_lists_the_realset_and_every_run(tmp_path, capsys):
         == 0
     )
     printed = capsys.readouterr().out
-    assert f"would build the stand-in real set (second camera): {out / 'realset'}, 24 scenes of 128 x 160" in printed
+    assert f"would build the stand-in real set (second camera): {out / 'realset'}, 200 scenes of 128 x 160" in printed
     planned = [line for line in printed.splitlines() if ": would run" in line]
     assert len(planned) == 2 * 6
     first = planned[0]
