@@ -155,8 +155,8 @@ def write_truth_record(run_dir: Path, realset_dir: Path, device: str = "auto", l
     Nothing is done for a run that has not finished or has no ``checkpoints/best.ckpt`` (the classical filter's job
     writes its own), for a capture set without truth (a real camera's), or when the record is newer than the
     checkpoint and scored as many scenes as the set holds (a repeated ``reproduce`` skips it; a set that grew, e.g.
-    from 24 to the paper's 200 scenes, is scored again). A checkpoint or capture set that cannot be scored is logged with its reason and
-    leaves no file: the run's other records are still committed, its truth columns stay empty."""
+    from 24 to the paper's 200 scenes, is scored again). A checkpoint or capture set that cannot be scored is logged
+    with its reason and leaves no file: the run's other records are still committed, its truth columns stay empty."""
     ckpt, captures = run_dir / BEST_CHECKPOINT, realset_dir / "captures"
     out = run_dir / TRUTH_NAME
     if not (run_finished(run_dir) and ckpt.is_file()):
