@@ -78,7 +78,7 @@ GPU_PROFILES = frozenset({"gpu", "gpu-short"})
 #: the stand-in real set of each profile: capture-set size (scenes, height, width). The CPU profile's is the paper's
 #: scene count (200) at its training scenes' resolution, and the default of ``tofdenoise sensor realset`` /
 #: ``make realset`` (``data_modules.realset.build_realset``'s defaults are the same; a test checks it); ``gpu-short``
-#: keeps 24 at 480 x 640, a set a lent GPU's minutes can score
+#: keeps 24 at 480 x 640, a set a short GPU run can score
 REALSET_SIZES: dict[str, tuple[int, int, int]] = {
     "cpu": (200, 128, 160),
     "gpu": (200, 480, 640),
