@@ -46,7 +46,7 @@ help:
 	@echo "make bench   - side-by-side performance measurements (see docs/benchmarks.md); BENCH_ARGS=--quick"
 	@echo "make robustness - the robustness grid (108 small runs, resumable; GRID_DIR=runs/robustness GRID_ARGS=...)"
 	@echo "make realset - the stand-in real set: a second simulated camera, calibrated from its own captures"
-	@echo "               (REALSET_DIR=runs/realset REALSET_ARGS='--scenes 40 ...'; docs/camera-tutorial.md)"
+	@echo "               (200 scenes, one per CPU core at a time; REALSET_DIR=runs/realset REALSET_ARGS='--workers 4 ...')"
 	@echo "make reproduce TABLE=1|2|3 | FIGURE=6|7|8 | STUDY=dynrange [PROFILE=cpu|gpu|gpu-short] [SEEDS=0,1,2] - a paper table,"
 	@echo "               figure or study (resumable; records in docs/results/, page docs/results.md;"
 	@echo "               REPRO_ARGS='--extra data.source_kwargs.root=...')"

@@ -151,10 +151,15 @@ def test_real_capture_set_is_tested_like_the_networks(tmp_path, data_cache, tiny
     saved = OmegaConf.load(run_dir / "config.yaml")
     assert SensorCalibration.from_dict(OmegaConf.to_container(saved.sensor)).fingerprint() == own.fingerprint()
     data = read_metrics_json(run_dir / "metrics.json")
-    assert sorted(metric_sets(data)) == ["real", "synthetic"] and data["real"]["images"] == 3
+    assert sorted(metric_sets(data)) == ["real", "simulated", "synthetic"] and data["real"]["images"] == 3
     assert data["real"]["mae_mm"] < data["real"]["raw"]["mae_mm"]
     rows = read_per_image_csv(run_dir / "per_image" / "real.csv")
     assert [r["name"] for r in rows] == ["scene_0000", "scene_0001", "scene_0002"]
+    # a simulated capture set has truth: the filter's predictions are scored against it, as a learned run's are
+    truth = json.loads((run_dir / "real_vs_truth.json").read_text())
+    assert truth["method"] == "classical" and truth["scenes"] == 3
+    assert truth["reference"]["mean"]["mae_mm"] == pytest.approx(data["real"]["mae_mm"], rel=1e-4)
+    assert truth["truth"]["mean"]["mae_mm"] < truth["input"]["truth"]["mean"]["mae_mm"]
 
 
 def test_a_run_folder_written_by_another_process_is_refused(tmp_path, lock_holder):

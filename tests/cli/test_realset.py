@@ -90,7 +90,7 @@ def test_realset_command_writes_calibration_and_captures(tmp_path, capsys, data_
     assert dm.make_source().max_depth_mm == 0.8 * calib.unambiguous_range_mm  # the second camera's range
     dm.prepare_data()
     dm.setup("test")
-    assert dm.test_set_names == ["synthetic", "real"] and len(dm.datasets["real"]) == 2
+    assert dm.test_set_names == ["synthetic", "simulated", "real"] and len(dm.datasets["real"]) == 2
 
 
 @pytest.mark.slow
@@ -107,3 +107,20 @@ def test_train_with_the_realset_calibration_and_test_on_its_captures(tmp_path, d
     assert metrics["real"]["images"] == 2 and metrics["real"]["valid_px"] > 0.5 * 2 * 32 * 48
     assert np.isfinite(metrics["real"]["mae_mm"]) and metrics["real"]["raw"]["mae_mm"] > 0
     assert str(out / "calibration.yaml") in (run_dir / "config.yaml").read_text()
+
+
+def test_the_default_set_is_the_papers_200_scenes_at_the_cpu_profiles_size():
+    """``tofdenoise sensor realset``, ``build_realset`` and the CPU profile of ``tofdenoise reproduce`` build one set:
+    200 scenes (the paper's count) of 128 x 160 (the CPU profile's training scenes), one scene per CPU core."""
+    import inspect
+    import os
+
+    from tofdenoise.experiments.reproduce import REALSET_SIZES
+
+    assert REALSET_SIZES["cpu"] == (200, 128, 160)
+    defaults = {k: p.default for k, p in inspect.signature(build_realset).parameters.items()}
+    assert (defaults["scenes"], defaults["height"], defaults["width"]) == REALSET_SIZES["cpu"]
+    args = build_parser().parse_args(["realset", "--out", "x"])
+    assert (args.scenes, args.height, args.width) == REALSET_SIZES["cpu"]
+    assert args.workers == (os.cpu_count() or 1)
+    assert build_parser().parse_args(["realset", "--out", "x", "--workers", "3"]).workers == 3

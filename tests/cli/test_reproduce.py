@@ -45,7 +45,7 @@ def test_dry_run_lists_the_realset_and_every_run(tmp_path, capsys):
         == 0
     )
     printed = capsys.readouterr().out
-    assert f"would build the stand-in real set (second camera): {out / 'realset'}, 24 scenes of 128 x 160" in printed
+    assert f"would build the stand-in real set (second camera): {out / 'realset'}, 200 scenes of 128 x 160" in printed
     planned = [line for line in printed.splitlines() if ": would run" in line]
     assert len(planned) == 2 * 6
     first = planned[0]
@@ -261,8 +261,8 @@ def test_skip_recorded_runs_only_what_has_no_committed_record(tmp_path, monkeypa
     argv = ["--table", "3", "--seeds", "0", "--out", str(out), "--results", str(results), "--page", str(page)]
     assert main([*argv, "--skip-recorded"]) == 0
     assert main(argv) == 0
-    assert "dvss-fixed-l1-s0" not in asked[0] and "dvss-range-l1-s0" in asked[0] and len(asked[0]) == 6
-    assert len(asked[1]) == 7 and "dvss-fixed-l1-s0" in asked[1]
+    assert "dvss-fixed-l1-s0" not in asked[0] and "dvss-range-l1-s0" in asked[0] and len(asked[0]) == 9
+    assert len(asked[1]) == 10 and "dvss-fixed-l1-s0" in asked[1]
     assert "--skip-recorded: 1 run(s) committed" in capsys.readouterr().out
     assert main(["--figure", "7", "--skip-recorded", "--out", str(out), "--results", str(results)]) == 2
     assert "--skip-recorded applies to --table and --study" in capsys.readouterr().err
@@ -315,6 +315,10 @@ def test_a_finished_runs_record_gains_its_score_against_the_stand_ins_truth(tmp_
     stamp = (run_dir / "real_vs_truth.json").stat().st_mtime_ns
     assert main(argv) == 0
     assert (run_dir / "real_vs_truth.json").stat().st_mtime_ns == stamp
+    # the set grew (24 -> 200 scenes in the CPU profile): the kept record scored fewer scenes, so it is scored again
+    assert sensor_main([*args[:4], "3", *args[5:]]) == 0
+    assert main(argv) == 0
+    assert json.loads(record.read_text())["scenes"] == 3 and json.loads(record.read_text())["truth"]["num_images"] == 3
     # a capture set without truth: no record for a run that has none yet
     (run_dir / "real_vs_truth.json").unlink()
     record.unlink()
@@ -558,7 +562,7 @@ def test_dry_run_names_the_executor_and_bad_executor_options_exit_2(tmp_path, ca
     assert main([*argv, "--dry-run", "--executor", "local", "--workers", "3"]) == 0
     printed = capsys.readouterr().out
     assert "executor: local (3 workers, each run in its own process)" in printed
-    assert len([line for line in printed.splitlines() if ": would run: " in line]) == 7
+    assert len([line for line in printed.splitlines() if ": would run: " in line]) == 10
     assert main([*argv, "--dry-run", "--executor", "local", "--workers", "0"]) == 2
     assert "tofdenoise reproduce: error: --workers must be a whole number >= 1, got 0" in capsys.readouterr().err
     assert main([*argv, "--dry-run", "--executor", "slurm", "--slurm-extra", "account"]) == 2

@@ -14,9 +14,12 @@ def run(argv):
 
 
 def simulate_args(out, scenes: int) -> list:
-    """`simulate-captures` at the tiny size of these tests (6 frames of 24 x 32, seed 3)."""
+    """`simulate-captures` at the tiny size of these tests (6 frames of 24 x 32, seed 3), one scene at a time (the
+    default is one per CPU core; the parallel run below is compared with this one)."""
     return [
         "simulate-captures",
+        "--workers",
+        1,
         "--out",
         out,
         "--scenes",

@@ -31,7 +31,7 @@ from tofdenoise.training.metrics import METRIC_KEYS
 REPO = Path(__file__).resolve().parents[2]
 
 
-def _check_metrics_json(path: Path, sets=("synthetic",)) -> dict:
+def _check_metrics_json(path: Path, sets=("synthetic", "simulated")) -> dict:
     data = read_metrics_json(path)  # validates the schema
     assert sorted(metric_sets(data)) == sorted(sets)
     assert set(data) - set(sets) == set(RUN_KEYS)  # the learned guard's run-level fields

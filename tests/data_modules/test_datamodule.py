@@ -35,7 +35,13 @@ def test_batch_contract(tmp_path):
     invalid = val["mask"] == 0
     assert torch.all(val["noisy"][invalid] == 0) and torch.all(val["clean"][invalid] == 0)
     assert set(torch.unique(val["mask"]).tolist()) <= {0.0, 1.0}
-    assert dm.test_set_names == ["synthetic"] and len(dm.test_dataloader()) == 1
+    # the paper's protocol (hetero-noised) first, then the simulator-noised split
+    assert dm.test_set_names == ["synthetic", "simulated"] and len(dm.test_dataloader()) == 2
+    test, sim = (next(iter(loader)) for loader in dm.test_dataloader())
+    assert set(sim) == set(test) and sim["noisy"].shape == test["noisy"].shape and sim["name"] == test["name"]
+    assert torch.all(sim["noisy"][sim["mask"] == 0] == 0) and torch.all(sim["clean"][sim["mask"] == 0] == 0)
+    off = make_dm(tmp_path, simulated_test=False)
+    assert off.test_set_names == ["synthetic"] and len(off.test_dataloader()) == 1
     assert len(dm.predict_dataloader().dataset) == len(dm.splits["test"])
     # split sizes 6:2:2 and the split file written next to the cache
     assert {k: len(v) for k, v in dm.splits.items()} == {"train": 6, "val": 2, "test": 2}
@@ -111,9 +117,11 @@ def test_hetero_noise_std_matches_sigma_map(tmp_path):
 
 
 def _train_sigma2(dm):
-    maps = [dm.cache.read(i) for i in dm.splits["train"]]
-    depth = np.concatenate([m.depth_mm[m.mask] for m in maps]).astype(np.float64)
-    sigma2 = np.concatenate([m.sigma_mm[m.mask] for m in maps]).astype(np.float64) ** 2
+    """Depth and sigma_D^2 over the training pixels: valid and not a hole (``TRAINING_PIXELS_RULE``)."""
+    maps = {i: dm.cache.read(i) for i in dm.splits["train"]}
+    keep = {i: dm.training_pixels(i, m) for i, m in maps.items()}
+    depth = np.concatenate([m.depth_mm[keep[i]] for i, m in maps.items()]).astype(np.float64)
+    sigma2 = np.concatenate([m.sigma_mm[keep[i]] for i, m in maps.items()]).astype(np.float64) ** 2
     return depth, sigma2
 
 
@@ -121,7 +129,13 @@ def test_variance_matching_equals_hetero_mean_variance(tmp_path, monkeypatch):
     dm = make_dm(tmp_path, noise="fixed", noise_kwargs={"sigma_mm": 2.0})
     depth, sigma2 = _train_sigma2(dm)
     k = dm.summary()["variance_scale"]
+    # matched on the pixels the network is trained on: after the holes, which remove the darkest, noisiest pixels
     assert k == pytest.approx(np.sqrt(sigma2.mean()) / 2.0, rel=1e-6)
+    record = dm.summary()["noise_record"]
+    assert record["pixels"] == "after_holes" and record["sigma_mm"] == pytest.approx(2.0 * k, rel=1e-9)
+    all_valid = np.concatenate([dm.cache.read(i).sigma_mm[dm.cache.read(i).mask] for i in dm.splits["train"]])
+    assert depth.size < 0.97 * all_valid.size  # the holes took a share of the valid pixels
+    assert abs(np.sqrt((all_valid.astype(np.float64) ** 2).mean()) / 2.0 / k - 1) > 1e-3  # the rule moved k
     assert dm.noise_model.scale == pytest.approx(k)
     alpha = [1.0, 0.002, 1e-6]
     rng = make_dm(tmp_path, noise="range", noise_kwargs={"alpha_mm": alpha})
@@ -219,3 +233,25 @@ def test_evaluation_inputs_do_not_depend_on_the_training_noise(tmp_path):
     assert not torch.equal(fv["noisy"], hv["noisy"])
     with pytest.raises(ValueError, match="unknown data.eval_noise 'pink'"):
         ToFDataModule(eval_noise="pink")
+
+
+def test_blind_range_is_the_training_pixels_sigma_percentiles(tmp_path):
+    dm = make_dm(tmp_path, noise="blind", noise_kwargs={"percentiles": [5, 95]})
+    _, sigma2 = _train_sigma2(dm)
+    lo, hi = np.percentile(np.sqrt(sigma2), [5, 95])
+    model = dm.noise_model
+    assert model.name == "blind"
+    assert model.sigma_lo_mm == pytest.approx(lo, rel=1e-5) and model.sigma_hi_mm == pytest.approx(hi, rel=1e-5)
+    assert dm.summary()["noise_record"]["pixels"] == "after_holes"
+    # a training item's noise: one sigma in [lo, hi], the same at every pixel (independent of sigma_D)
+    train = dm.datasets["train"]
+    for i in range(4):
+        item = train[i]
+        noise = (item["noisy"] - item["clean"])[item["mask"] > 0].double()
+        assert lo * 0.6 < float(noise.std()) < hi * 1.4
+    # evaluation stays the paper's hetero synthesis
+    assert dm.prepared.eval_noise_model.name == "hetero"
+    given = make_dm(tmp_path, noise="blind", noise_kwargs={"sigma_lo_mm": 2.0, "sigma_hi_mm": 9.0})
+    assert (given.noise_model.sigma_lo_mm, given.noise_model.sigma_hi_mm) == (2.0, 9.0)
+    with pytest.raises(ValueError, match="percentiles"):
+        make_dm(tmp_path, noise="blind", noise_kwargs={"percentiles": [95, 5]})

@@ -121,10 +121,10 @@ def test_real_test_dataloader_on_simulated_set(tmp_path):
     )
     dm.prepare_data()
     dm.setup("test")
-    assert dm.test_set_names == ["synthetic", "real"]
+    assert dm.test_set_names == ["synthetic", "simulated", "real"]
     loaders = dm.test_dataloader()
-    assert len(loaders) == 2
-    batches = list(loaders[1])
+    assert len(loaders) == 3
+    batches = list(loaders[2])
     assert [b["name"][0] for b in batches] == ["scene_0000", "scene_0001", "scene_0002"]
     b = batches[0]
     m = b["mask"] > 0

@@ -64,9 +64,8 @@ def test_the_figure_is_a_png_and_the_same_curves_give_the_same_bytes(tmp_path):
 
 def test_the_gpu_short_page_shows_the_gaps_and_the_figure(tmp_path):
     from tofdenoise.experiments.reproduce import write_schedule_figure
-    from tofdenoise.reporting.results_page import results_markdown
-
     from tofdenoise.paths import REPO_ROOT
+    from tofdenoise.reporting.results_page import results_markdown
 
     (tmp_path / "cpu").mkdir()
     _study(tmp_path / "gpu-short")

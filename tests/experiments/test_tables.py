@@ -26,7 +26,10 @@ def test_specs_are_one_per_distinct_run_and_shared_across_tables():
     # the DVSS + hetero + L1 run is a row of every table, under the same folder name
     for table in ("2", "3"):
         assert "dvss-hetero-l1-s0" in {s.name for s in table_specs(table, [0])}
-    assert len(table_specs("2", [0])) == 6 and len(table_specs("3", [0])) == 7
+    # Table 3: the paper's 7 runs and the blind Gaussian per backbone
+    assert len(table_specs("2", [0])) == 6 and len(table_specs("3", [0])) == 10
+    blind = [s for s in table_specs("3", [0]) if "noise=blind" in s.overrides]
+    assert sorted(s.name for s in blind) == ["dvss-blind-l1-s0", "restormer-blind-l1-s0", "unet-blind-l1-s0"]
 
 
 def test_spec_overrides_and_entries():

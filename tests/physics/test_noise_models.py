@@ -28,7 +28,7 @@ def _scene(seed: int = 0):
 
 
 def test_registry_and_errors():
-    assert available_noise_models() == ["hetero", "range", "fixed", "none"]
+    assert available_noise_models() == ["hetero", "range", "fixed", "blind", "none"]
     with pytest.raises(ValueError, match="hetero"):
         build_noise_model("gauss")
     with pytest.raises(ValueError, match="range_sigma_mm|alpha_mm"):
@@ -37,6 +37,12 @@ def test_registry_and_errors():
         build_noise_model("hetero", sigma_mm=3.0)
     with pytest.raises(ValueError, match="scale"):
         build_noise_model("fixed", scale=-1.0)
+    with pytest.raises(ValueError, match="sigma_lo_mm and sigma_hi_mm"):
+        build_noise_model("blind")
+    with pytest.raises(ValueError, match="must not exceed"):
+        build_noise_model("blind", sigma_lo_mm=5.0, sigma_hi_mm=2.0)
+    with pytest.raises(ValueError, match="sigma_lo_mm"):
+        build_noise_model("blind", sigma_lo_mm=0.0, sigma_hi_mm=2.0)
 
 
 def test_std_formulas():
@@ -54,10 +60,11 @@ def test_std_formulas():
     assert torch.all(build_noise_model("none").std_mm(depth) == 0)
 
 
-@pytest.mark.parametrize("name", ["hetero", "range", "fixed", "none"])
+@pytest.mark.parametrize("name", ["hetero", "range", "fixed", "blind", "none"])
 def test_sampling_reproducible_and_invalid_untouched(name):
     depth, sigma, valid = _scene()
-    model = build_noise_model(name, calib=default_calibration())
+    kwargs = {"sigma_lo_mm": 2.0, "sigma_hi_mm": 20.0} if name == "blind" else {}
+    model = build_noise_model(name, calib=default_calibration(), **kwargs)
     n1 = model.sample(depth, sigma, valid, generator=torch.Generator().manual_seed(5))
     n2 = model.sample(depth, sigma, valid, generator=torch.Generator().manual_seed(5))
     n3 = model.sample(depth, sigma, valid, generator=torch.Generator().manual_seed(6))
@@ -108,3 +115,39 @@ def test_with_scale_replaces():
     assert m.with_scale(0.5).scale == 0.5
     assert float(m.with_scale(0.5).std_mm(torch.tensor([1.0]))) == pytest.approx(1.0)
     assert math.isclose(m.scale, 3.0)
+
+
+def test_blind_noise_one_log_uniform_sigma_per_image_iid_gaussian():
+    lo, hi = 3.0, 48.0
+    model = build_noise_model("blind", sigma_lo_mm=lo, sigma_hi_mm=hi)
+    g = torch.Generator().manual_seed(7)
+    depth = torch.full((1, 96, 128), 1500.0, dtype=torch.float64)
+    sigmas, first_lags = [], []
+    for _ in range(400):
+        noise = (model.sample(depth, generator=g) - depth)[0]
+        s = float(noise.std())
+        sigmas.append(s)
+        # one sigma per image: the std of each quarter of the image agrees with the whole image's within sampling
+        quarters = [float(q.std()) for q in (noise[:48, :64], noise[:48, 64:], noise[48:, :64], noise[48:, 64:])]
+        assert max(abs(q / s - 1) for q in quarters) < 0.06  # 3072 px per quarter: sampling std 1.3 %
+        # i.i.d. over pixels: neighbours are uncorrelated; Gaussian: kurtosis 3
+        z = noise.flatten() / s
+        first_lags.append(float((noise[:, 1:] * noise[:, :-1]).mean()) / s**2)
+        assert float((z**4).mean()) == pytest.approx(3.0, abs=0.3)
+    sig = torch.tensor(sigmas)
+    # bounds: every per-image sigma lies in [lo, hi] (up to the 12288-px estimate's 0.7 % sampling error)
+    assert float(sig.min()) >= lo * 0.97 and float(sig.max()) <= hi * 1.03
+    # log-uniform: log sigma is uniform on [log lo, log hi]: mean at the middle, std (log hi - log lo) / sqrt(12)
+    logs = torch.log(sig)
+    span = math.log(hi) - math.log(lo)
+    assert float(logs.mean()) == pytest.approx((math.log(lo) + math.log(hi)) / 2, abs=0.06 * span)
+    assert float(logs.std()) == pytest.approx(span / math.sqrt(12), rel=0.1)
+    # a quarter of the images per quarter of the log range (uniform, not clustered at the top as a uniform draw
+    # in sigma would be: there the lowest quarter of the log range would get 4 % of the images)
+    bins = torch.histc((logs - math.log(lo)) / span, bins=4, min=0.0, max=1.0) / len(sigmas)
+    assert torch.all((bins - 0.25).abs() < 0.08), bins
+    assert abs(sum(first_lags) / len(first_lags)) < 0.01
+    # a (B, 1, H, W) batch draws one sigma per item
+    batch = model.sample(depth.expand(6, 1, 96, 128).clone(), generator=g) - 1500.0
+    per_item = batch.flatten(1).std(dim=1)
+    assert per_item.unique().numel() == 6 and float(per_item.max() / per_item.min()) > 1.05

@@ -36,8 +36,10 @@ def test_summary_lines():
         "real": {"mae_mm": None, "psnr_db": 30.0, "ssim": 0.9, "raw": {}},
     }
     line = format_test_summary("r", res, 3725.0)
-    assert line.startswith("[r] test in 1h02m05s | synthetic: MAE 3.10 mm (raw 6.00), PSNR 44.12 dB (raw 39.90)")
-    assert "| real: MAE n/a mm (raw n/a)" in line and "\n" not in line
+    assert line.startswith(
+        "[r] test in 1h02m05s | synthetic [paper protocol (hetero-noised)]: MAE 3.10 mm (raw 6.00), PSNR 44.12 dB"
+    )
+    assert "| real [capture set]: MAE n/a mm (raw n/a)" in line and "\n" not in line
 
 
 def test_prediction_writer_layout(tmp_path):

@@ -93,7 +93,7 @@ def test_datamodule_instantiates_for_every_noise(noise, tmp_path):
     cfg = compose_config([f"noise={noise}", f"paths.run_dir={tmp_path}", f"++data.cache_dir={tmp_path}/cache"])
     dm = instantiate(cfg.data, _convert_="all")
     assert dm.hparams.noise == noise
-    assert dm.test_set_names == ["synthetic"]
+    assert dm.test_set_names == ["synthetic", "simulated"]
     assert isinstance(dm.hparams.sensor, dict)
 
 

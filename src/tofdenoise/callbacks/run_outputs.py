@@ -48,7 +48,7 @@ from tofdenoise.records import (
 __all__ = ["RunOutputs", "write_test_outputs"]
 
 #: test set name -> the datamodule's ``skipped_samples`` key of the samples it left out before testing
-_SKIP_KEYS = {"synthetic": "test", "real": "real"}
+_SKIP_KEYS = {"synthetic": "test", "simulated": "test", "real": "real"}
 CONFIG_NAME = "config.yaml"
 
 

@@ -10,7 +10,7 @@ from typing import Any
 import lightning.pytorch as pl
 from lightning.pytorch.callbacks import Callback
 
-from tofdenoise.records import learned_status
+from tofdenoise.records import TEST_SET_LABELS, learned_status
 
 __all__ = ["RunSummary", "format_fit_summary", "format_test_summary", "format_learned_warning"]
 
@@ -52,12 +52,14 @@ def format_fit_summary(
 
 
 def format_test_summary(name: str, results: dict[str, dict[str, Any]], seconds: float) -> str:
-    """``[name] test synthetic: MAE 4.1 mm (raw 9.9), PSNR 45.2 dB (raw 38.1), SSIM 0.991 | real: ...``."""
+    """``[name] test synthetic [paper protocol (hetero-noised)]: MAE 4.1 mm (raw 9.9), PSNR 45.2 dB (raw 38.1),
+    SSIM 0.991 | simulated [simulator-noised]: ...`` (labels: ``records.TEST_SET_LABELS``)."""
     parts = []
     for set_name, res in results.items():
         raw = res.get("raw", {})
+        label = f" [{TEST_SET_LABELS[set_name]}]" if set_name in TEST_SET_LABELS else ""
         parts.append(
-            f"{set_name}: MAE {_fmt(res.get('mae_mm'), 2)} mm (raw {_fmt(raw.get('mae_mm'), 2)}), "
+            f"{set_name}{label}: MAE {_fmt(res.get('mae_mm'), 2)} mm (raw {_fmt(raw.get('mae_mm'), 2)}), "
             f"PSNR {_fmt(res.get('psnr_db'), 2)} dB (raw {_fmt(raw.get('psnr_db'), 2)}), "
             f"SSIM {_fmt(res.get('ssim'), 4)} (raw {_fmt(raw.get('ssim'), 4)})"
         )

@@ -9,12 +9,14 @@ Formats: calibration captures `tofdenoise.physics.capture_io` (docs/physics.md),
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
 import numpy as np
 
 from tofdenoise.cli.sensor_physics import input_files
+from tofdenoise.experiments.reproduce import REALSET_SIZES
 from tofdenoise.output_guard import OutputPathError, refuse_overwrite
 
 
@@ -195,9 +197,18 @@ def _build_reference(args: argparse.Namespace) -> int:
 
 
 WORKERS_HELP = (
-    "scenes simulated at a time, each in its own process (default 1; e.g. the number of CPU cores). The files are "
-    "the same whatever the number"
+    "scenes simulated at a time, each in its own process (default: the number of CPU cores, os.cpu_count()). The "
+    "files are the same whatever the number"
 )
+
+
+#: the stand-in real set ``tofdenoise sensor realset`` builds by default: the CPU profile's (scenes, height, width)
+REALSET_SCENES, *REALSET_SHAPE = REALSET_SIZES["cpu"]
+
+
+def default_workers() -> int:
+    """Scenes simulated at a time when ``--workers`` is not given: one per CPU core."""
+    return os.cpu_count() or 1
 
 
 def add_commands(subparsers) -> None:
@@ -232,7 +243,7 @@ def add_commands(subparsers) -> None:
         help="integrate S x S samples per pixel, so pixels at depth edges mix the returns of both "
         "surfaces (default 1: one surface per pixel)",
     )
-    sim.add_argument("--workers", type=int, default=1, help=WORKERS_HELP)
+    sim.add_argument("--workers", type=int, default=default_workers(), help=WORKERS_HELP)
     sim.add_argument("--taps", action="store_true", help="also write raw tap stacks (.npy)")
     sim.add_argument("--force", action="store_true", help="rewrite scenes that are already complete")
     sim.add_argument("--quiet", action="store_true")
@@ -286,10 +297,17 @@ def add_commands(subparsers) -> None:
         help="the simulated camera: preset or calibration file (default: the stand-in camera, preset cam75; "
         "tofdenoise.data_modules.realset.REALSET_CAMERA)",
     )
-    real.add_argument("--scenes", type=int, default=40, help="static scenes (default 40; the paper has 200)")
+    real.add_argument(
+        "--scenes",
+        type=int,
+        default=REALSET_SCENES,
+        help=f"static scenes (default {REALSET_SCENES}, the paper's count)",
+    )
     real.add_argument("--frames", type=int, default=100, help="high-exposure frames per scene (default 100)")
-    real.add_argument("--height", type=int, default=144)
-    real.add_argument("--width", type=int, default=192)
+    real.add_argument(
+        "--height", type=int, default=REALSET_SHAPE[0], help=f"default {REALSET_SHAPE[0]} (the CPU profile's scenes)"
+    )
+    real.add_argument("--width", type=int, default=REALSET_SHAPE[1], help=f"default {REALSET_SHAPE[1]}")
     real.add_argument(
         "--seed",
         type=int,
@@ -303,7 +321,7 @@ def add_commands(subparsers) -> None:
         metavar="S",
         help="samples per pixel side (default 3: mixed pixels at depth edges)",
     )
-    real.add_argument("--workers", type=int, default=1, help=WORKERS_HELP)
+    real.add_argument("--workers", type=int, default=default_workers(), help=WORKERS_HELP)
     real.add_argument(
         "--force",
         action="store_true",

@@ -12,14 +12,21 @@ from typing import Any
 
 import lightning as L
 import numpy as np
+import torch
 from torch.utils.data import DataLoader, Dataset
 
 from tofdenoise.atomic import atomic_write_text
 from tofdenoise.data_modules.cache import MapCache, canonical_digest
-from tofdenoise.data_modules.datasets import MapProvider, RealCaptures, SyntheticPairs
+from tofdenoise.data_modules.datasets import MapProvider, RealCaptures, SyntheticPairs, stable_seed
 from tofdenoise.data_modules.holes import HoleModel
 from tofdenoise.data_modules.maps import check_signal_route
 from tofdenoise.data_modules.real_captures import build_reference, list_scenes, load_real_scene
+from tofdenoise.data_modules.simulated_test import (
+    SIMULATED_SET,
+    SimulatedCaptures,
+    SimulatedTestSettings,
+    simulated_cache,
+)
 from tofdenoise.data_modules.sources import SourceContext, source_from_config
 from tofdenoise.data_modules.splits import SPLIT_NAMES, ids_digest, load_or_make_split
 from tofdenoise.physics.calibration import SensorCalibration, resolve_calibration
@@ -28,6 +35,18 @@ from tofdenoise.physics.noise_models import available_noise_models, build_noise_
 log = logging.getLogger(__name__)
 
 GAUSSIAN_BASELINES = ("range", "fixed")
+#: the noise model whose sigma range comes from the training split (``noise_kwargs.percentiles``)
+BLIND_NOISE = "blind"
+DEFAULT_BLIND_PERCENTILES = (5.0, 95.0)
+#: the pixels a Gaussian baseline's variance is matched on, and a blind model's sigma range is read from: the one
+#: rule (``training_pixels``), recorded with every variance scale and in ``summary()``
+TRAINING_PIXELS_RULE = "after_holes"
+TRAINING_PIXELS_RULE_TEXT = (
+    "the training pixels: valid in the maps and not a hole of the hole model (one seeded hole draw per training "
+    "sample; all valid pixels when holes are off)"
+)
+#: pixels per training sample that enter the blind model's percentiles at most (an even stride over the sample)
+BLIND_PIXELS_PER_SAMPLE = 50_000
 
 
 def _crop_pair(crop_size: int | Sequence[int] | None) -> tuple[int, int] | None:
@@ -59,6 +78,7 @@ class PreparedData:
     variance_scale: dict | None  # the stored variance-matching record of the training noise, if any
     eval_noise_model: Any  # synthesises the validation / test / predict inputs (``eval_noise``)
     real_scenes: list[Path]
+    simulated_cache: MapCache | None = None  # the simulator-noised test split's captures (``simulated_test``)
 
 
 def data_calibration(
@@ -100,6 +120,13 @@ class ToFDataModule(L.LightningDataModule):
         sensor: the calibration: None (the default), a path, a preset name, a mapping in the ``to_dict()``
             layout or a ``SensorCalibration``.
         real_dir: a capture set (see ``real_captures``); adds the "real" test loader.
+        simulated_test: add the simulator-noised test split (test set ``"simulated"``,
+            ``tofdenoise.data_modules.simulated_test``): the test samples captured by the tap-level simulator
+            (Poisson, dark and read noise, ADC, fixed-pattern noise, mixed pixels, atan2 demodulation, the camera's
+            own validity) instead of noised by ``eval_noise``; scored beside the paper-protocol split
+            (``"synthetic"``), cached next to the maps.
+        simulated_test_kwargs: ``mixed_pixels`` (default 3), ``fixed_pattern`` (used when the calibration has none;
+            default the stand-in camera's).
         cache_dir: where splits, per-sample maps and records live.
         use_cache: store the per-sample maps there and read them back.
         crop_size: the training crop: an int, [h, w], or None for full images.
@@ -113,7 +140,9 @@ class ToFDataModule(L.LightningDataModule):
             procedural scenes).
         split_ratios: train:val:test.
         match_variance: rescale the Gaussian baselines (range/fixed) to the hetero mean variance over the
-            training split (paper Sec. V-A), computed once and stored next to the cache.
+            training split's training pixels (paper Sec. V-A; ``TRAINING_PIXELS_RULE``: after the hole model's
+            holes), computed once and stored next to the cache. The ``blind`` model's sigma range is the
+            ``noise_kwargs.percentiles`` (default 5th, 95th) of sigma_D over the same pixels.
         signal_lower_percentile: the amplitude normalisation's lower percentile (None: the physics default).
         signal_upper_percentile: its upper percentile (None: the physics default).
         signal_route: how the source's amplitude becomes the returned signal a(p) [e-]: "linear" (the paper's
@@ -160,6 +189,8 @@ class ToFDataModule(L.LightningDataModule):
         real_min_count: int | None = None,
         holes: bool = True,
         holes_kwargs: dict[str, Any] | None = None,
+        simulated_test: bool = True,
+        simulated_test_kwargs: dict[str, Any] | None = None,
     ):
         super().__init__()
 
@@ -178,7 +209,10 @@ class ToFDataModule(L.LightningDataModule):
         self.eval_noise_name = str(eval_noise).lower()
         if self.eval_noise_name not in available_noise_models():
             raise ValueError(f"unknown data.eval_noise {eval_noise!r}; valid: {', '.join(available_noise_models())}")
+        if self.noise_name == BLIND_NOISE:
+            blind_percentiles(self.noise_kwargs)  # fail fast on a bad range
         self.crop = _crop_pair(crop_size)
+        self.simulated_settings = SimulatedTestSettings.from_kwargs(simulated_test_kwargs) if simulated_test else None
 
         try:
             self.hole_model = HoleModel(**dict(holes_kwargs or {})) if holes else None
@@ -193,7 +227,10 @@ class ToFDataModule(L.LightningDataModule):
         self.real_dir = real_dir
         if real_dir:  # fail before any training: a missing or empty capture set is a config error
             list_scenes(real_dir)
-        self.test_set_names: list[str] = ["synthetic", "real"] if real_dir else ["synthetic"]
+        # the paper's protocol (the hetero-noised split) first, then the simulator-noised split, then the capture set
+        self.test_set_names: list[str] = (
+            ["synthetic"] + ([SIMULATED_SET] if simulated_test else []) + (["real"] if real_dir else [])
+        )
         self._prepared: PreparedData | None = None
         self.datasets: dict[str, Any] = {}
 
@@ -262,6 +299,7 @@ class ToFDataModule(L.LightningDataModule):
         noise_model, scale_record = self._noise(self.noise_name, self.noise_kwargs, provider, cache, splits["train"])
         eval_model, _ = self._noise(self.eval_noise_name, {}, provider, cache, splits["train"])
         real_scenes = self._real_scenes(skipped) if self.real_dir else []
+        sim_cache = self._simulated_captures(base, provider, cache, splits["test"]) if self.simulated_settings else None
         return PreparedData(
             source=source,
             split_path=split_path,
@@ -273,6 +311,7 @@ class ToFDataModule(L.LightningDataModule):
             variance_scale=scale_record,
             eval_noise_model=eval_model,
             real_scenes=real_scenes,
+            simulated_cache=sim_cache,
         )
 
     def _open_source(self) -> tuple[Any, dict, Path]:
@@ -341,12 +380,77 @@ class ToFDataModule(L.LightningDataModule):
             )
 
     def _noise(self, name: str, kwargs: dict[str, Any], provider: MapProvider, cache: MapCache, train_ids: list[str]):
-        """A noise model and its variance-scale record: a Gaussian baseline is variance-matched over the
-        training split (``match_variance``; the record stored next to the maps), any other model has none."""
+        """A noise model and its record: a Gaussian baseline is variance-matched over the training pixels
+        (``match_variance``), the blind model gets its sigma range from them (both records stored next to the
+        maps); any other model has none."""
+        if name == BLIND_NOISE:
+            return self._blind_range(kwargs, provider, cache, train_ids)
         noise_model = build_noise_model(name, self.calib, **kwargs)
         if name in GAUSSIAN_BASELINES and self.hparams.match_variance:
             return self._match_variance(name, kwargs, noise_model, provider, cache, train_ids)
         return noise_model, None
+
+    def training_pixels(self, sample_id: str, maps: Any) -> np.ndarray:
+        """The pixels of training sample ``sample_id`` a network is trained on (``TRAINING_PIXELS_RULE``): valid in
+        its maps and not a hole of the hole model, drawn once from a generator seeded by (seed, id). Training draws
+        fresh holes on every read; one draw per sample is an unbiased sample of them."""
+        valid = np.asarray(maps.mask, dtype=bool)
+        if self.hole_model is None or not valid.any():
+            return valid
+        generator = torch.Generator().manual_seed(stable_seed(self.hparams.seed, "train_pixels", sample_id, "holes"))
+        holes = self.hole_model.sample(
+            torch.from_numpy(np.asarray(maps.depth_mm, dtype=np.float32)),
+            torch.from_numpy(np.asarray(maps.signal_e, dtype=np.float32)),
+            torch.from_numpy(valid),
+            self.calib,
+            generator,
+        )
+        return valid & ~holes.numpy()
+
+    def _pixels_key(self, cache: MapCache, train_ids: list[str]) -> dict[str, Any]:
+        """What the training pixels depend on: the maps, the training ids, the rule, the hole model and the seed."""
+        return {
+            "maps": cache.digest,
+            "train_ids": ids_digest(train_ids),
+            "pixels": TRAINING_PIXELS_RULE,
+            "holes": None if self.hole_model is None else self.hole_model.to_dict(),
+            "seed": int(self.hparams.seed),
+        }
+
+    def _blind_range(self, kwargs: dict[str, Any], provider: MapProvider, cache: MapCache, train_ids: list[str]):
+        """The blind model with its sigma range: given (``sigma_lo_mm`` / ``sigma_hi_mm``), or the percentiles of
+        sigma_D over the training pixels (computed once, stored next to the maps)."""
+        lo_p, hi_p = blind_percentiles(kwargs)
+        given = {k: kwargs[k] for k in ("sigma_lo_mm", "sigma_hi_mm") if k in kwargs}
+        rest = {k: v for k, v in kwargs.items() if k not in ("percentiles", "sigma_lo_mm", "sigma_hi_mm")}
+        if len(given) == 2:
+            return build_noise_model(BLIND_NOISE, self.calib, **given, **rest), None
+        key = {**self._pixels_key(cache, train_ids), "percentiles": [lo_p, hi_p]}
+        name = f"blind_range_{canonical_digest(key)[:12]}.json"
+        record = cache.load_record(name, expected_key=key)
+        if record is None:
+            values = []
+            for sample_id in train_ids:
+                maps = provider.maps(sample_id)
+                sigma = maps.sigma_mm[self.training_pixels(sample_id, maps)].astype(np.float64)
+                values.append(sigma[:: max(1, -(-sigma.size // BLIND_PIXELS_PER_SAMPLE))])
+            pooled = np.concatenate(values) if values else np.zeros(0)
+            if pooled.size == 0:
+                raise ValueError("noise=blind: no training pixel to read the sigma_D range from")
+            lo, hi = (float(v) for v in np.percentile(pooled, [lo_p, hi_p]))
+            record = {
+                "sigma_lo_mm": lo,
+                "sigma_hi_mm": hi,
+                "percentiles": [lo_p, hi_p],
+                "pixels": TRAINING_PIXELS_RULE,
+                "num_train_samples": len(train_ids),
+                "note": "per-image sigma of the blind model: log-uniform between these percentiles of sigma_D",
+            }
+            cache.save_record(name, record, key=key)
+        lo, hi = given.get("sigma_lo_mm", record["sigma_lo_mm"]), given.get("sigma_hi_mm", record["sigma_hi_mm"])
+        log.info("blind noise: sigma log-uniform in [%.4g, %.4g] mm", lo, hi)
+        model = build_noise_model(BLIND_NOISE, self.calib, sigma_lo_mm=lo, sigma_hi_mm=hi, **rest)
+        return model, record
 
     def _sample_index(self, provider: MapProvider, cache: MapCache, ids: list[str]) -> dict[str, dict]:
         """Valid-pixel count and shape per sample (computing, and caching, any maps not seen yet)."""
@@ -370,12 +474,7 @@ class ToFDataModule(L.LightningDataModule):
         cache: MapCache,
         train_ids: list[str],
     ):
-        key = {
-            "noise": noise_name,
-            "noise_kwargs": noise_kwargs,
-            "maps": cache.digest,
-            "train_ids": ids_digest(train_ids),
-        }
+        key = {"noise": noise_name, "noise_kwargs": noise_kwargs, **self._pixels_key(cache, train_ids)}
         name = f"variance_scale_{noise_name}_{canonical_digest(key)[:12]}.json"
         record = cache.load_record(name, expected_key=key)
         if record is None:
@@ -383,19 +482,40 @@ class ToFDataModule(L.LightningDataModule):
             def samples():
                 for sample_id in train_ids:
                     maps = provider.maps(sample_id)
-                    yield maps.depth_mm, maps.sigma_mm, maps.mask
+                    yield maps.depth_mm, maps.sigma_mm, self.training_pixels(sample_id, maps)
 
             scale = float(variance_matching_scale(noise_model, samples()))
             record = {
                 "scale": scale,
                 "noise": noise_name,
+                "pixels": TRAINING_PIXELS_RULE,
                 "num_train_samples": len(train_ids),
-                "note": "std multiplier giving the hetero mean perturbation variance over the training split",
+                "note": "std multiplier giving the hetero mean perturbation variance over the training pixels ("
+                + TRAINING_PIXELS_RULE_TEXT
+                + ")",
             }
+            if noise_name == "fixed":  # the matched sigma itself
+                record["sigma_mm"] = scale * float(noise_model.sigma_mm)
             cache.save_record(name, record, key=key)
             record = cache.load_record(name, expected_key=key) or record
         log.info("variance-matched %s noise: scale %.6g", noise_name, record["scale"])
         return noise_model.with_scale(float(record["scale"])), record
+
+    def _simulated_captures(self, base: Path, provider: MapProvider, cache: MapCache, test_ids: list[str]) -> MapCache:
+        """The simulator-noised test split's captures, computed for every test sample not stored yet."""
+        hp = self.hparams
+        sim = simulated_cache(base, self.simulated_settings, cache.digest, hp.seed, self.calib, hp.use_cache)
+        dataset = self._simulated_dataset(provider, sim, test_ids)
+        todo = [i for i in test_ids if not sim.path(i).is_file()] if hp.use_cache else []
+        workers = int(hp.num_workers) if len(todo) > 1 else 0
+        for _ in DataLoader(_Captures(dataset, todo), batch_size=None, num_workers=workers):
+            pass
+        return sim
+
+    def _simulated_dataset(self, provider: MapProvider, sim: MapCache, test_ids: list[str]) -> SimulatedCaptures:
+        hp = self.hparams
+        percentiles = (hp.signal_lower_percentile, hp.signal_upper_percentile)
+        return SimulatedCaptures(provider, test_ids, sim, self.simulated_settings, hp.seed, percentiles)
 
     def _real_scenes(self, skipped: dict[str, list[str]]) -> list[Path]:
         """Usable scenes of the capture set (references built or reused); scenes left out go to ``skipped``."""
@@ -449,6 +569,8 @@ class ToFDataModule(L.LightningDataModule):
             "val": SyntheticPairs(provider, splits["val"], "val", eval_model, hp.seed, train=False, holes=holes),
             "test": SyntheticPairs(provider, splits["test"], "test", eval_model, hp.seed, train=False, holes=holes),
         }
+        if state.simulated_cache is not None:
+            self.datasets[SIMULATED_SET] = self._simulated_dataset(provider, state.simulated_cache, splits["test"])
         if state.real_scenes:
             calib, min_count = self.calib, hp.real_min_count
             self.datasets["real"] = RealCaptures(state.real_scenes, _RealLoader(calib, min_count))
@@ -478,10 +600,9 @@ class ToFDataModule(L.LightningDataModule):
         return self._loader(self._dataset("val"), train=False)
 
     def test_dataloader(self) -> list[DataLoader]:
-        loaders = [self._loader(self._dataset("test"), train=False)]
-        if "real" in self.test_set_names:
-            loaders.append(self._loader(self._dataset("real"), train=False))
-        return loaders
+        """One loader per ``test_set_names`` entry, in that order."""
+        dataset_of = {"synthetic": "test", SIMULATED_SET: SIMULATED_SET, "real": "real"}
+        return [self._loader(self._dataset(dataset_of[name]), train=False) for name in self.test_set_names]
 
     def predict_dataloader(self) -> DataLoader:
         return self._loader(self._dataset("test"), train=False)
@@ -498,7 +619,18 @@ class ToFDataModule(L.LightningDataModule):
             "cache_enabled": state.cache.enabled,
             "sizes": {k: len(v) for k, v in state.splits.items()},
             "skipped": {k: len(v) for k, v in state.skipped.items()},
-            "variance_scale": None if state.variance_scale is None else state.variance_scale["scale"],
+            "variance_scale": None if state.variance_scale is None else state.variance_scale.get("scale"),
+            # which pixels the variance match (or the blind range) was read from: ``TRAINING_PIXELS_RULE``
+            "noise_record": state.variance_scale,
+            "test_sets": list(self.test_set_names),
+            "simulated_test": None
+            if self.simulated_settings is None
+            else {
+                "mixed_pixels": self.simulated_settings.mixed_pixels,
+                "fixed_pattern": self.simulated_settings.camera(self.calib).fixed_pattern.to_dict()
+                if self.simulated_settings.camera(self.calib).fixed_pattern is not None
+                else None,
+            },
             "real_scenes": len(state.real_scenes),
             # what the source is (its description, part of the cache key): e.g. the procedural max_depth_mm
             "source_settings": state.source.describe(),
@@ -519,6 +651,32 @@ class _IndexEntries(Dataset):
     def __getitem__(self, i: int) -> tuple[str, dict]:
         maps, _ = self.provider.get(self.sample_ids[i])
         return self.sample_ids[i], {"num_valid": maps.num_valid, "shape": list(maps.depth_mm.shape)}
+
+
+class _Captures(Dataset):
+    """Computes (and caches) the simulated captures of some test samples (DataLoader workers)."""
+
+    def __init__(self, dataset: SimulatedCaptures, sample_ids: list[str]):
+        self.dataset, self.sample_ids = dataset, sample_ids
+
+    def __len__(self) -> int:
+        return len(self.sample_ids)
+
+    def __getitem__(self, i: int) -> int:
+        self.dataset.capture(self.sample_ids[i])
+        return i
+
+
+def blind_percentiles(kwargs: Mapping[str, Any]) -> tuple[float, float]:
+    """``noise_kwargs.percentiles`` of the blind model (default ``DEFAULT_BLIND_PERCENTILES``), checked."""
+    value = kwargs.get("percentiles", DEFAULT_BLIND_PERCENTILES)
+    try:
+        lo, hi = (float(v) for v in value)
+    except (TypeError, ValueError):
+        raise ValueError(f"noise.kwargs.percentiles must be [low, high] percentiles, got {value!r}") from None
+    if not 0.0 <= lo < hi <= 100.0:
+        raise ValueError(f"noise.kwargs.percentiles must satisfy 0 <= low < high <= 100, got {[lo, hi]}")
+    return lo, hi
 
 
 class _RealLoader:

@@ -33,7 +33,7 @@ from tofdenoise.callbacks.run_outputs import write_test_outputs
 from tofdenoise.config import instantiate_node
 from tofdenoise.experiments.train_job import record_calibration, validate_config
 from tofdenoise.models import available_backbones, is_trainable
-from tofdenoise.records import json_number, write_run_info
+from tofdenoise.records import TRUTH_NAME, json_number, write_run_info
 from tofdenoise.run_lock import RunLock
 from tofdenoise.training.metrics import DepthMetrics
 from tofdenoise.training.module import DepthRestorer
@@ -253,5 +253,27 @@ def _tune_and_test(
         "tuning": TUNING_NAME,
     }
     if trainer.is_global_zero:
+        write_truth(model, datamodule, run_dir)
         write_run_info(run_dir, run_info)
     return {"run_dir": str(run_dir), "best": best_params, "metrics": metrics, "tuning": tuning}
+
+
+def write_truth(model: Any, datamodule: Any, run_dir: Path) -> bool:
+    """``<run_dir>/real_vs_truth.json``: the tuned filter's capture-set predictions against the rendered truth of a
+    simulated capture set (``inference.capture_eval.evaluate_on_captures``, what ``tofdenoise reproduce`` writes for
+    a learned run from its checkpoint; a filter has no checkpoint, so its job scores itself). Nothing without a
+    capture set or without truth (a real camera's); True when written."""
+    real_dir = getattr(datamodule, "real_dir", None)
+    if not real_dir:
+        return False
+    from tofdenoise.inference.capture_eval import evaluate_on_captures, has_truth  # heavy: only with a capture set
+
+    if not has_truth(real_dir):
+        return False
+    hp = datamodule.hparams
+    result = evaluate_on_captures(
+        model, real_dir, datamodule.calib, float(model.hparams.d_max_mm), hp.real_min_count, precision="fp32"
+    )
+    body = {"checkpoint": None, "method": "classical", "captures": str(real_dir), **result}
+    atomic_write_text(run_dir / TRUTH_NAME, json.dumps(body, indent=2, allow_nan=False) + "\n")
+    return True

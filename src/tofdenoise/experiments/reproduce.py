@@ -78,9 +78,12 @@ PROFILES: dict[str, tuple[str, ...]] = {
 }
 #: the profiles whose experiment trains on a CUDA GPU (``trainer=gpu``; a test checks it against the composed configs)
 GPU_PROFILES = frozenset({"gpu", "gpu-short"})
-#: the stand-in real set of each profile: capture-set size (scenes, height, width)
+#: the stand-in real set of each profile: capture-set size (scenes, height, width). The CPU profile's is the paper's
+#: scene count (200) at its training scenes' resolution, and the default of ``tofdenoise sensor realset`` /
+#: ``make realset`` (``data_modules.realset.build_realset``'s defaults are the same; a test checks it); ``gpu-short``
+#: keeps 24 at 480 x 640, a set a short GPU run can score
 REALSET_SIZES: dict[str, tuple[int, int, int]] = {
-    "cpu": (24, 128, 160),
+    "cpu": (200, 128, 160),
     "gpu": (200, 480, 640),
     "gpu-short": (24, 480, 640),
 }
@@ -91,6 +94,7 @@ RECORD_FILES = (
     "config.yaml",
     "csv/metrics.csv",
     f"{PER_IMAGE_DIR}/synthetic.csv",
+    f"{PER_IMAGE_DIR}/simulated.csv",
     f"{PER_IMAGE_DIR}/real.csv",
     TRUTH_NAME,
 )
@@ -151,18 +155,27 @@ def write_truth_record(run_dir: Path, realset_dir: Path, device: str = "auto", l
     """Score a finished run's best checkpoint on the stand-in capture set against its rendered truth and write
     ``<run_dir>/real_vs_truth.json`` atomically (``inference.capture_eval.evaluate_checkpoint``); True when written.
 
-    Nothing is done for a run that has not finished or has no ``checkpoints/best.ckpt`` (the classical filter), for
-    a capture set without truth (a real camera's), or when the record is newer than the checkpoint (a repeated
-    ``reproduce`` skips it). A checkpoint or capture set that cannot be scored is logged with its reason and
-    leaves no file: the run's other records are still committed, its truth columns stay empty."""
+    Nothing is done for a run that has not finished or has no ``checkpoints/best.ckpt`` (the classical filter's job
+    writes its own), for a capture set without truth (a real camera's), or when the record is newer than the
+    checkpoint and scored as many scenes as the set holds (a repeated ``reproduce`` skips it; a set that grew, e.g.
+    from 24 to the paper's 200 scenes, is scored again). A checkpoint or capture set that cannot be scored is logged
+    with its reason and leaves no file: the run's other records are still committed, its truth columns stay empty."""
     ckpt, captures = run_dir / BEST_CHECKPOINT, realset_dir / "captures"
     out = run_dir / TRUTH_NAME
     if not (run_finished(run_dir) and ckpt.is_file()):
         return False
-    from tofdenoise.inference.capture_eval import evaluate_checkpoint, has_truth  # heavy (torch): not for the page
+    from tofdenoise.data_modules.real_captures import list_scenes  # heavy (torch): not for the page
+    from tofdenoise.inference.capture_eval import evaluate_checkpoint, has_truth
 
-    if not has_truth(captures) or (out.is_file() and out.stat().st_mtime >= ckpt.stat().st_mtime):
+    if not has_truth(captures):
         return False
+    if out.is_file() and out.stat().st_mtime >= ckpt.stat().st_mtime:
+        try:
+            scored = json.loads(out.read_text(encoding="utf-8")).get("scenes")
+        except (OSError, json.JSONDecodeError, AttributeError):
+            scored = None
+        if scored == len(list_scenes(captures)):
+            return False
     try:
         result = evaluate_checkpoint(ckpt, captures, realset_dir / "calibration.yaml", device)
     except (FileNotFoundError, ValueError) as exc:

@@ -42,6 +42,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 
 from tofdenoise.callbacks.run_outputs import RunOutputs
 from tofdenoise.config import ConfigError, instantiate_node
+from tofdenoise.data_modules.datamodule import BLIND_NOISE, blind_percentiles
 from tofdenoise.models.registry import BACKBONES, is_trainable
 from tofdenoise.output_guard import refuse_overwrite
 from tofdenoise.physics.noise_models import NOISE_MODELS
@@ -466,6 +467,14 @@ def check_noise(cfg: DictConfig) -> None:
     if not isinstance(kwargs, dict):
         raise ConfigError(f"noise.kwargs: expected a mapping of keyword arguments, got {kwargs!r}")
     calib = _config_calibration(data) if name == "range" and kwargs.get("alpha_mm") is None else None
+    if name == BLIND_NOISE:  # its sigma range comes from the training split (the data module reads it)
+        try:
+            blind_percentiles(kwargs)
+        except ValueError as exc:
+            raise ConfigError(f"noise.kwargs of noise={name}: {exc}") from None
+        kwargs = {k: v for k, v in kwargs.items() if k != "percentiles"}
+        kwargs.setdefault("sigma_lo_mm", kwargs.get("sigma_hi_mm", 1.0))
+        kwargs.setdefault("sigma_hi_mm", kwargs["sigma_lo_mm"])
     try:
         NOISE_MODELS.build(name, calib=calib, **kwargs)
     except (ValueError, TypeError) as exc:

@@ -1,4 +1,4 @@
-"""Depth noise models for synthesis, chosen by name: `hetero`, `range`, `fixed`, `none`.
+"""Depth noise models for synthesis, chosen by name: `hetero`, `range`, `fixed`, `blind`, `none`.
 
 All models add zero-mean Gaussian depth noise D_noisy = D + s(p) eps(p), eps ~ N(0, 1), with a
 per-pixel standard deviation s(p) [mm]:
@@ -8,6 +8,12 @@ per-pixel standard deviation s(p) [mm]:
   clamped at 0; coefficients from `calib.range_sigma_mm` or the `alpha_mm` keyword.
 - `fixed` (scene-independent Gaussian): s = scale * sigma_mm everywhere (default sigma_mm = 5.0 mm, the
   default calibration's sigma_D at 1 m for a = 17.9 ke-, a mid-interval signal).
+- `blind` (noise-level-blind Gaussian, beyond the paper): one s per image, drawn log-uniformly from
+  [sigma_lo_mm, sigma_hi_mm] (the datamodule sets them to the 5th and 95th percentiles of the hetero sigma_D over
+  the training pixels), the same s at every pixel of that image: how blind denoisers are trained (a random
+  noise level per image, no noise map). Log-uniform, not uniform: sigma_D spans a ratio (p95/p5 of 5-18 on the
+  default worlds), and a uniform draw over such a range would give the quietest octave a few per cent of the
+  images although a quarter of the pixels live there; log-uniform gives every octave the same share.
 - `none`: s = 0 (clean input; useful for sanity checks).
 
 `scale` multiplies the STANDARD DEVIATION (the variance scales by scale^2). `variance_matching_scale`
@@ -138,6 +144,42 @@ class FixedNoise(NoiseModel):
 
 
 @dataclass(frozen=True)
+class BlindNoise(NoiseModel):
+    """Noise-level-blind Gaussian: per image one sigma ~ log-uniform [sigma_lo_mm, sigma_hi_mm], i.i.d. over its
+    pixels. An image is a (H, W) or (1, H, W) tensor; a 4-D (B, C, H, W) batch draws one sigma per batch item."""
+
+    name: str = "blind"
+    sigma_lo_mm: float = 1.0
+    sigma_hi_mm: float = 10.0
+
+    def draw_sigma_mm(self, count: int, generator: torch.Generator | None) -> torch.Tensor:
+        """``count`` per-image sigmas [mm] (scale included), log-uniform on [sigma_lo_mm, sigma_hi_mm]."""
+        u = torch.rand((count,), generator=generator, dtype=torch.float64)
+        lo, hi = math.log(self.sigma_lo_mm), math.log(self.sigma_hi_mm)
+        return self.scale * torch.exp(lo + (hi - lo) * u)
+
+    def base_std_mm(self, depth_mm: torch.Tensor, sigma_d_mm: torch.Tensor | None) -> torch.Tensor:
+        # the geometric mean of the range: what std_mm reports without a draw (sample() draws per image)
+        return torch.full_like(depth_mm, math.sqrt(self.sigma_lo_mm * self.sigma_hi_mm))
+
+    def sample(
+        self,
+        depth_mm: Any,
+        sigma_d_mm: Any = None,
+        valid: Any = None,
+        generator: torch.Generator | None = None,
+    ) -> torch.Tensor:
+        d = _tensor(depth_mm)
+        count = int(d.shape[0]) if d.dim() == 4 else 1
+        sigma = self.draw_sigma_mm(count, generator).to(device=d.device, dtype=d.dtype)
+        std = sigma.view(-1, *([1] * (d.dim() - 1))) if d.dim() == 4 else sigma.view(*([1] * d.dim()))
+        std = torch.broadcast_to(std, d.shape)
+        ok = self.valid_mask(d, std, valid)
+        eps = _randn_like(d, generator)
+        return torch.where(ok, d + std * eps, d)
+
+
+@dataclass(frozen=True)
 class NoNoise(NoiseModel):
     """No perturbation (std 0)."""
 
@@ -190,6 +232,34 @@ def _fixed(
     return FixedNoise(sigma_mm=sigma, scale=_check_scale(scale))
 
 
+def _positive_mm(value: Any, what: str) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"noise kwarg '{what}' must be a number of mm, got {value!r}") from None
+    if not math.isfinite(v) or v <= 0:
+        raise ValueError(f"noise kwarg '{what}' must be a finite number > 0 (mm), got {value!r}")
+    return v
+
+
+@NOISE_MODELS.register("blind")
+def _blind(
+    calib: SensorCalibration | None = None,
+    scale: float = 1.0,
+    sigma_lo_mm: float | None = None,
+    sigma_hi_mm: float | None = None,
+) -> NoiseModel:
+    if sigma_lo_mm is None or sigma_hi_mm is None:
+        raise ValueError(
+            "noise model 'blind' needs its sigma range: sigma_lo_mm and sigma_hi_mm (the datamodule sets them from "
+            "the training split's sigma_D percentiles, data.blind_percentiles)"
+        )
+    lo, hi = _positive_mm(sigma_lo_mm, "sigma_lo_mm"), _positive_mm(sigma_hi_mm, "sigma_hi_mm")
+    if lo > hi:
+        raise ValueError(f"noise kwargs: sigma_lo_mm ({lo}) must not exceed sigma_hi_mm ({hi})")
+    return BlindNoise(sigma_lo_mm=lo, sigma_hi_mm=hi, scale=_check_scale(scale))
+
+
 @NOISE_MODELS.register("none")
 def _none(calib: SensorCalibration | None = None, scale: float = 1.0) -> NoiseModel:
     return NoNoise(scale=_check_scale(scale))
@@ -205,11 +275,12 @@ def build_noise_model(name: str, calib: SensorCalibration | None = None, **kwarg
 
     Args:
         name: one of ``available_noise_models()``: ``hetero`` (the paper's sensor-intrinsic sigma_D),
-            ``range``, ``fixed`` or ``none``.
+            ``range``, ``fixed``, ``blind`` or ``none``.
         calib: the sensor calibration (None: the default one).
         **kwargs: the model's settings. All models take ``scale`` (std multiplier, default 1); ``range`` takes
             ``alpha_mm`` ([alpha0, alpha1, alpha2]; default: ``calib.range_sigma_mm``); ``fixed`` takes
-            ``sigma_mm`` (default 5.0).
+            ``sigma_mm`` (default 5.0); ``blind`` takes ``sigma_lo_mm`` and ``sigma_hi_mm`` (required; the
+            datamodule supplies them).
 
     Raises:
         ValueError: an unknown name or keyword argument; the message lists what is accepted.
@@ -249,6 +320,7 @@ def variance_matching_scale(model: NoiseModel, samples: Iterable[tuple[Any, Any,
 
 
 __all__ = [
+    "BlindNoise",
     "DEFAULT_FIXED_SIGMA_MM",
     "FixedNoise",
     "HeteroNoise",

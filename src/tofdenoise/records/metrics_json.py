@@ -20,6 +20,7 @@ __all__ = [
     "METHOD_KINDS",
     "METRIC_KEYS",
     "RUN_KEYS",
+    "TEST_SET_LABELS",
     "json_number",
     "metric_sets",
     "read_metrics_json",
@@ -45,6 +46,15 @@ RUN_KEYS = (
 )
 #: ``method_kind``: a trained network, or a classical filter whose few parameters were tuned on validation
 METHOD_KINDS = ("network", "classical")
+#: what each test set of ``metrics.json`` is, in words (``datamodule.test_set_names``): the paper's protocol
+#: synthesises the test inputs with the hetero model (the training generator of the proposed method); the
+#: simulated set captures the same test scenes with the tap-level simulator; ``real`` is the capture set. A
+#: ``metrics.json`` written before the simulated set existed has no ``simulated`` entry: readers treat it as absent
+TEST_SET_LABELS: dict[str, str] = {
+    "synthetic": "paper protocol (hetero-noised)",
+    "simulated": "simulator-noised",
+    "real": "capture set",
+}
 
 
 def metric_sets(data: Mapping[str, Any]) -> dict[str, Any]:

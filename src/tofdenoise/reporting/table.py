@@ -29,7 +29,8 @@ __all__ = [
     "best_value",
 ]
 
-SET_LABELS = {"synthetic": "Synthetic", "real": "Real"}
+#: column-group labels of the report (the words of each set: ``records.TEST_SET_LABELS``)
+SET_LABELS = {"synthetic": "Synthetic", "simulated": "Simulator-noised", "real": "Real"}
 #: a cell without a value
 MISSING = "–"
 #: the Learned column per ``tofdenoise.records.learned_status``
@@ -59,7 +60,7 @@ def _same(a: float | None, b: float | None) -> bool:
 def results_table(runs: Sequence[Run]) -> tuple[list[str], list[dict[str, Any]]]:
     """(set names shown, rows); a row: {"kind": "raw"|"run", "method", "noise", "loss", "learned" (the flag),
     (set, key) -> float}; run rows also carry "name", "flagged" (bool) and "learned_reason"."""
-    sets = [s for s in ("synthetic", "real") if any(s in r.metrics for r in runs)]
+    sets = [s for s in ("synthetic", "simulated", "real") if any(s in r.metrics for r in runs)]
     sets += sorted({s for r in runs for s in r.metrics} - set(sets))
     raw_rows: list[dict[str, Any]] = []
     for r in runs:
