@@ -144,7 +144,7 @@ def test_each_finished_run_is_recorded_at_once(tmp_path, monkeypatch):
         **learned_verdict(100, 2.5, 7.0),
     }
 
-    def fake_run_all(specs, out_dir, dry_run=False, after_each=None, executor=None):
+    def fake_run_all(specs, out_dir, dry_run=False, after_each=None, executor=None, budget=None):
         first = out_dir / specs[0].name
         first.mkdir(parents=True)
         _write_metrics(first / "metrics.json", metrics)
@@ -251,7 +251,7 @@ def test_skip_recorded_runs_only_what_has_no_committed_record(tmp_path, monkeypa
             (results / "cpu" / name / file).write_text("{}")
     asked = []
 
-    def fake_run_all(specs, out_dir, dry_run=False, after_each=None, executor=None):
+    def fake_run_all(specs, out_dir, dry_run=False, after_each=None, executor=None, budget=None):
         asked.append([s.name for s in specs])
         return []
 
@@ -291,7 +291,7 @@ def test_a_finished_runs_record_gains_its_score_against_the_stand_ins_truth(tmp_
     for name in ("metrics.json", "run_info.json"):
         shutil.copy(run_dir / name, bilateral / name)
 
-    def fake_run_all(specs, out_dir, dry_run=False, after_each=None, executor=None):
+    def fake_run_all(specs, out_dir, dry_run=False, after_each=None, executor=None, budget=None):
         for folder in (run_dir, bilateral):
             after_each(RunOutcome(specs[0], folder, "skipped"))
         return []
