@@ -592,8 +592,8 @@ for _cmd, _opt in SENSOR_OPTION.items():
     )  # fmt: skip
 
 
-def _two_recordings(w: W) -> None:
-    """``rec/desk1.bag`` and ``rec/desk2.bag``: two static recordings of one scene (ROS 1 bags, 6 frames of 10 x 14)."""
+def recording_files():
+    """The recording writers of tests/inference/recording_files.py (``write_bag``, ``write_kinect_mkv``)."""
     import importlib.util
     import sys
 
@@ -602,13 +602,23 @@ def _two_recordings(w: W) -> None:
         spec = importlib.util.spec_from_file_location(name, Path(__file__).parents[1] / "inference/recording_files.py")
         sys.modules[name] = importlib.util.module_from_spec(spec)
         spec.loader.exec_module(sys.modules[name])
-    (w / "rec").mkdir()
-    rng = np.random.default_rng(0)
-    y, x = np.mgrid[0:10, 0:14]
+    return sys.modules[name]
+
+
+def static_recording(w: W, rel: str, frames: int = 6, h: int = 10, w_px: int = 14, offset_mm: float = 0.0) -> Path:
+    """A static recording of one scene at ``w / rel`` (a ROS 1 bag of depth and amplitude)."""
+    rng = np.random.default_rng(int(offset_mm))
+    y, x = np.mgrid[0:h, 0:w_px]
+    depth = np.rint(1200 + offset_mm + 6 * x + 4 * y + rng.normal(0, 3, (frames, h, w_px))).astype(np.uint16)
+    amplitude = rng.integers(100, 3000, (frames, h, w_px)).astype(np.uint16)
+    (w / rel).parent.mkdir(parents=True, exist_ok=True)
+    return recording_files().write_bag(w / rel, 1, depth, amplitude=amplitude)
+
+
+def _two_recordings(w: W) -> None:
+    """``rec/desk1.bag`` and ``rec/desk2.bag``: two static recordings of one scene (ROS 1 bags, 6 frames of 10 x 14)."""
     for k in (1, 2):
-        depth = np.rint(1200 + 40 * k + 6 * x + 4 * y + rng.normal(0, 3, (6, 10, 14))).astype(np.uint16)
-        amplitude = rng.integers(100, 3000, (6, 10, 14)).astype(np.uint16)
-        sys.modules[name].write_bag(w / f"rec/desk{k}.bag", 1, depth, amplitude=amplitude)
+        static_recording(w, f"rec/desk{k}.bag", offset_mm=40 * k)
 
 
 def _realset_scene(k: int) -> Callable[[W], list[Any]]:
@@ -798,7 +808,11 @@ PROBES += [
     P("tofdenoise denoise", "signals", "sigkill-over-many-frames", lambda w: [], runner="signal", status=-9, slow=True),
     P("tofdenoise denoise", "concurrent", "two-writers-one-out", lambda w: [], runner="signal", status=0, slow=True),
     P("tofdenoise train", "signals", "sigint-mid-training", lambda w: [], runner="signal", status=130, slow=True),
-]
+    P("tofdenoise sensor realset", "signals", "sigint-while-writing-a-scene", lambda w: [], runner="signal",
+      status=130),
+    P("tofdenoise sensor realset", "signals", "sigkill-while-writing-a-scene-then-rerun", lambda w: [],
+      runner="signal", status=-9, slow=True),
+]  # fmt: skip
 
 # ------------------------------------------------------------------------------------------------ exemptions
 
@@ -934,3 +948,4 @@ for _cmd in SENSOR_OPTION:
     if _cmd != "tofdenoise sensor realset":
         EXEMPT[_cmd]["bad_captures"] = "reads no captures: it writes them"
 del EXEMPT["tofdenoise sensor realset"]["concurrent"]  # --from-recording: its two-recordings-one-scene row
+del EXEMPT["tofdenoise sensor realset"]["signals"]  # --from-recording: its sigint and sigkill rows
