@@ -774,11 +774,27 @@ PROBES += [
       lambda w: ["error", "model.ckpt"]),
 ]  # fmt: skip
 
+
+def _each_frame_whole_or_absent(w: W, outcome: Any) -> None:
+    """A frame whose outputs could not all be written has none of them (``f.png`` without ``f.npy`` was left), and
+    the cause is said once ("(disk full?) (disk full?)" was)."""
+    out = w / "out/d"
+    files = sorted(p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file()) if out.is_dir() else []
+    assert files == [], f"outputs of failed frames left: {files}"
+    assert "(disk full?) (disk full?)" not in outcome.err, outcome.err
+    failed = [line for line in outcome.err.splitlines() if "FAILED" in line]
+    assert len(failed) == 2 and all(line.count("disk full?") == 1 for line in failed), outcome.err
+
+
 # full disk: every write fails (ENOSPC on a real small file system, EFBIG under RLIMIT_FSIZE here); one line naming
 # the output, exit status 2 (1 for a frame of tofdenoise denoise, listed as FAILED), no partial file
 PROBES += [
     P("tofdenoise denoise", "full_disk", "every-frame", lambda w: denoise_args(w, "--npy"), None, 1,
-      lambda w: ["FAILED", str(w / "out/d"), "could not write"], ("out/d",)),
+      lambda w: ["FAILED", str(w / "out/d"), "could not write"], ("out/d",), check=_each_frame_whole_or_absent),
+    P("tofdenoise denoise", "full_disk", "the-png-fits-the-npy-does-not",
+      lambda w: denoise_args(w, "--npy", "--amplitude", w / "amp", "--sensor", w / "calib.yaml"), None, 1,
+      lambda w: ["FAILED", str(w / "out/d"), "could not write", ".npy", "none of the frame's outputs"], ("out/d",),
+      check=_each_frame_whole_or_absent, extra={"file_limit": 4096}),
     P("tofdenoise evaluate", "full_disk", "json", eval_args, None, 2, lambda w: ["error", "m.json"], ("out",)),
     P("tofdenoise report", "full_disk", "html", lambda w: [w / "runs", "--out", w / "out/r.html"], None, 2,
       lambda w: ["error", "r.html"], ("out",)),
