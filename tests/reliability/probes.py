@@ -641,6 +641,27 @@ def _scene_is_the_other_runs(w: W, outcome: Any) -> None:
     assert sorted(p.name for p in (w / "out/rs7").iterdir()) == ["desk"], "a partial scene was left"
 
 
+def _kinect_without_ir(w: W) -> None:
+    """``rec/depth-only.mkv``: an Azure Kinect recording of 4 frames with a DEPTH track and no IR track."""
+    y, x = np.mgrid[0:10, 0:14]
+    depth = np.repeat((1200 + 6 * x + 4 * y)[None], 4, axis=0).astype(np.uint16)
+    (w / "rec").mkdir(exist_ok=True)
+    recording_files().write_kinect_mkv(w / "rec/depth-only.mkv", depth)
+
+
+def _one_failed_line(w: W, outcome: Any) -> None:
+    """The recording is one FAILED line (it was one per frame, "... in None")."""
+    failed = [line for line in outcome.err.splitlines() if "FAILED" in line]
+    assert len(failed) == 1 and "in None" not in outcome.err, outcome.err
+
+
+PROBES.append(
+    P("tofdenoise denoise", "bad_frames", "kinect-recording-without-ir-with-sensor",
+      lambda w: [w / "rec/depth-only.mkv", "--ckpt", w / "model.ckpt", "--out", w / "out/d", "--sensor",
+                 w / "calib.yaml", "--device", "cpu", "--quiet"], _kinect_without_ir, 1,
+      lambda w: ["FAILED", str(w / "rec/depth-only.mkv"), "no amplitude / IR stream", "it has: DEPTH",
+                 "--amplitude-stream"], check=_one_failed_line)
+)  # fmt: skip
 PROBES.append(
     P("tofdenoise sensor realset", "misuse_outputs", "out-is-the-recording",
       lambda w: ["--from-recording", w / "rec/desk1.bag", "--out", w / "rec/desk1.bag"], _two_recordings, 2,

@@ -375,10 +375,11 @@ def _denoise_recording(recording: Any, job: _Job, tally: _Tally) -> None:
                 f"recording {recording.path} has no camera intrinsics (no Kinect calibration.json, no CameraInfo "
                 "topic): --ply needs --intrinsics FILE"
             )
-        if job.signal and rec.amplitude_name is None:
+        if (job.signal or job.calib is not None) and rec.amplitude_name is None:
+            needs = "the model uses the amplitude (signal) channel" if job.signal else "--sensor (sigma_D) needs it"
             raise RecordingError(
-                f"recording {recording.path}: the model uses the amplitude (signal) channel and the recording has no "
-                "amplitude / IR stream; name it with --amplitude-stream"
+                f"recording {recording.path} has no amplitude / IR stream ({needs}); it has: "
+                f"{', '.join(rec.stream_names) or 'none'}; name the amplitude stream with --amplitude-stream"
             )
     except RecordingError as exc:
         tally.failed.append((str(recording.path), str(exc)))
