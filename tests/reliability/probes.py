@@ -161,6 +161,25 @@ def npy_dtype(rel: str, dtype: str) -> Callable[[W], None]:
     return damage
 
 
+def absurd_depth(rel: str, block: bool = False) -> Callable[[W], None]:
+    """Depth values of 2^40 mm (1.1e12 mm): the whole frame, or a 10 x 20 block of valid pixels (median unchanged)."""
+
+    def damage(w: W) -> None:
+        depth = np.load(w / rel)
+        if block:
+            depth[20:30, 20:40] = 2.0**40
+        else:
+            depth[:] = 2.0**40
+        np.save(w / rel, depth)
+
+    return damage
+
+
+def _no_warning_line(outcome: Any) -> None:
+    """No Python warning (with its source line) reached the user."""
+    assert "Warning:" not in outcome.err, outcome.err
+
+
 #: the block of ``amp/sub/b.npy`` that ``nan_amplitude(..., block=True)`` makes NaN (depth is valid there)
 NAN_AMPLITUDE_BLOCK = (slice(20, 30), slice(20, 40))
 
@@ -376,6 +395,15 @@ PROBES += [
     P("tofdenoise denoise", "bad_frames", "depth-in-0.1mm-units-scale-given",
       lambda w: [w / "frames/a.png", *denoise_args(w, "--depth-scale-mm", "0.1", out="out/s")[1:]],
       depth_times("frames/a.png", 10), 0, may_change=("out/s",), check=restored_in_mm("out/s/a.png")),
+    P("tofdenoise denoise", "bad_frames", "absurd-depth-2e40-mm-scale-given",
+      lambda w: [w / "frames/sub/b.npy", *denoise_args(w, "--depth-scale-mm", "1")[1:]],
+      absurd_depth("frames/sub/b.npy"), 1,
+      lambda w: ["FAILED", str(w / "frames/sub/b.npy"), "deeper than 65535 mm", "1.1e+12 mm"],
+      check=lambda w, o: _no_warning_line(o)),
+    P("tofdenoise denoise", "bad_frames", "absurd-depth-2e40-mm-in-a-block", denoise_args,
+      absurd_depth("frames/sub/b.npy", block=True), 1,
+      lambda w: ["FAILED", str(w / "frames/sub/b.npy"), "200 valid pixel(s) deeper than 65535 mm"],
+      _DENOISE_OTHER["b"], check=lambda w, o: _no_warning_line(o)),
     P("tofdenoise denoise", "bad_frames", "amplitude-all-nan",
       lambda w: denoise_args(w, "--amplitude", w / "amp", "--sensor", w / "calib.yaml"),
       nan_amplitude("amp/sub/b.npy"), 1,
