@@ -268,10 +268,25 @@ def _yaml_field(key: str, value: Any) -> Callable[[W], None]:
     return damage
 
 
+def _yaml_renamed(key: str, typo: str) -> Callable[[W], None]:
+    """A field of the calibration file renamed (a typo): the field is missing and an unknown one is there."""
+
+    def damage(w: W) -> None:
+        data = yaml.safe_load((w / "calib.yaml").read_text())
+        data[typo] = data.pop(key)
+        (w / "calib.yaml").write_text(yaml.safe_dump(data))
+
+    return damage
+
+
 CALIB_DAMAGE: dict[str, tuple[Callable[[W], None], list[str]]] = {
     "syntax-error": (_yaml_syntax, ["calib.yaml"]),
     "latin1": (_yaml_latin1, ["calib.yaml", "UTF-8"]),
     "unknown-field": (_yaml_field("dark_stdev_e", 40.0), ["calib.yaml", "dark_stdev_e"]),
+    "misspelt-field": (
+        _yaml_renamed("dark_std_e", "dark_stdev_e"),
+        ["calib.yaml", "unknown field 'dark_stdev_e' (did you mean 'dark_std_e'?)", "missing"],
+    ),
     "out-of-range": (_yaml_field("range_sigma_mm", [-3.0, 0.0, 0.0]), ["calib.yaml", "range_sigma_mm"]),
 }
 
