@@ -353,6 +353,15 @@ def train_args(w: W, *extra: str, run: str = "out/run") -> list[str]:
     return [*_tiny_overrides()(w / run, w / "cache"), "logger=csv", *extra]
 
 
+def sweep_args(w: W, *extra: str) -> list[str]:
+    """``tofdenoise train -m``: the tiny run as a multirun of one job, ``out/sweep/job``."""
+    tiny = _tiny_overrides()(
+        w / "out/run", w / "cache", **({"backbone": "deeptof"} if "backbone=deeptof" in extra else {})
+    )
+    return ["-m", *[a for a in tiny if not a.startswith("paths.run_dir=")], f"hydra.sweep.dir={w / 'out/sweep'}",
+            "hydra.sweep.subdir=job", "logger=csv", *[e for e in extra if e != "backbone=deeptof"]]  # fmt: skip
+
+
 def _tiny_overrides():
     """``tiny_overrides`` of tests/conftest.py: the tiny Hydra run settings of the entry-point tests."""
     import importlib.util
@@ -458,6 +467,9 @@ PROBES += [
       lambda w: train_args(w, "noise=fixed", "++noise.kwargs.sigma_mm=-5"), None, 2,
       lambda w: ["error", "noise.kwargs", "sigma_mm", "-5"],
       check=lambda w, outcome: _no_run_record(w / "out/run")),
+    P("tofdenoise train", "bad_captures", "multirun-negative-fixed-noise-sigma",
+      lambda w: sweep_args(w, "noise=fixed", "++noise.kwargs.sigma_mm=-5,-6"), None, 2,
+      lambda w: ["error", "noise.kwargs", "sigma_mm", "-5"]),
     P("tofdenoise train", "bad_captures", "empty-real-dir",
       lambda w: train_args(w, f"++data.real_dir={w / 'frames/sub'}"), None, 2, lambda w: ["error", "data"],
       _HYDRA_RUN),
@@ -533,7 +545,7 @@ def _foreign_onnx(w: W) -> None:
     )
 
 
-def _finished_unet_run(w: W) -> None:
+def _finished_unet_run(w: W, folder: str = "out/run") -> None:
     """``out/run``: the folder of a finished tiny U-Net run: its records (``config.yaml`` as the run saved it,
     ``run_info.json`` finished, ``metrics.json``), Hydra's record (``.hydra/``) and log, and its checkpoints."""
     from omegaconf import OmegaConf
@@ -546,7 +558,7 @@ def _finished_unet_run(w: W) -> None:
     overrides = train_args(w)
     cfg = compose_config(overrides)
     record_calibration(cfg, data_calibration(OmegaConf.to_container(cfg.data.sensor, resolve=True)))
-    run = w / "out/run"
+    run = w / folder
     (run / ".hydra").mkdir(parents=True)
     (run / "checkpoints").mkdir()
     (run / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
@@ -631,6 +643,9 @@ PROBES += [
     P("tofdenoise train", "misuse_outputs", "another-config-in-a-finished-run",
       lambda w: [*_tiny_overrides()(w / "out/run", w / "cache", backbone="deeptof"), "logger=csv"], _finished_unet_run,
       2, lambda w: ["error", str(w / "out/run"), "backbone.name: 'unet' there, 'deeptof' now"]),
+    P("tofdenoise train", "misuse_outputs", "multirun-job-folder-holds-a-finished-run-of-another-config",
+      lambda w: sweep_args(w, "backbone=deeptof"), lambda w: _finished_unet_run(w, "out/sweep/job"), 2,
+      lambda w: ["error", str(w / "out/sweep/job"), "backbone.name: 'unet' there, 'deeptof' now"]),
     P("tofdenoise fit", "misuse_outputs", "init-weights-inside-the-run",
       lambda w: lightning_args(w, "--model.init_args.init_weights", w / "out/cli/checkpoints/best.ckpt"),
       lambda w: ((w / "out/cli/checkpoints").mkdir(parents=True),
