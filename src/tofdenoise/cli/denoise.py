@@ -30,7 +30,7 @@ from typing import Any
 
 from tqdm.auto import tqdm
 
-from tofdenoise.atomic import WriteError, sigint_deferred
+from tofdenoise.atomic import sigint_deferred
 from tofdenoise.inference.camera import IntrinsicsError, load_intrinsics
 from tofdenoise.output_guard import OutputPathError, refuse_overwrite
 
@@ -275,6 +275,8 @@ class _Tally:
 def _write_failure(exc: OSError, out: Path) -> str:
     """An output write that failed, with the file (or the folder) and the cause, said once; the frame's outputs are
     written all or nothing (``outputs.write_frame_outputs``), so none of them was kept."""
+    from tofdenoise.atomic import WriteError
+
     if isinstance(exc, WriteError):  # names the file and the cause, "(disk full?)" included
         return f"{exc}; none of the frame's outputs was written"
     full = exc.errno in (errno.ENOSPC, errno.EFBIG) or "requested and" in str(exc)
