@@ -136,3 +136,27 @@ def test_sigint_deferred_lets_the_blocks_own_error_through_and_runs_off_the_main
     t.start()
     t.join()
     assert ran == [True]
+
+
+def test_atomic_group_is_all_or_nothing(tmp_path):
+    """A group whose second write fails leaves neither file: the first keeps its old content (it was written into a
+    temporary file, never renamed) and no temporary file stays; a group that succeeds renames all of them."""
+    from tofdenoise.atomic import WriteError, atomic_group
+
+    (tmp_path / "f.png").write_text("old")
+
+    def fail(tmp):
+        raise OSError(28, "No space left on device")
+
+    with pytest.raises(WriteError, match="f.npy: No space left on device"):
+        with atomic_group():
+            atomic_write_text(tmp_path / "f.png", "new")
+            assert (tmp_path / "f.png").read_text() == "old"  # not renamed until the group ends
+            atomic_write(tmp_path / "f.npy", fail)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["f.png"]
+    assert (tmp_path / "f.png").read_text() == "old"
+    with atomic_group():
+        atomic_write_text(tmp_path / "f.png", "new")
+        atomic_write_text(tmp_path / "f.npy", "array")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["f.npy", "f.png"]
+    assert (tmp_path / "f.png").read_text() == "new"

@@ -12,6 +12,11 @@ update when two processes rebuild it at once: each reads, the slower one writes 
 input existed. :func:`exclusive_lock` makes such a read-then-write one at a time (an ``fcntl.flock`` on a lock file
 next to it; the kernel drops it when its holder ends in any way).
 
+Several files that belong together (a frame's restored depth, its ``.npy``, its sigma_D map and preview) are
+written all or nothing inside :func:`atomic_group`: every write of the block fills its temporary file, and only when
+the whole block succeeded are they renamed into place, one after the other; a write that fails (a full disk) leaves
+none of them, and the files they would have replaced stay as they were.
+
 A unit of several writes and its bookkeeping (a frame's outputs and the count of frames done) is whole with respect
 to Ctrl-C inside :func:`sigint_deferred`: a SIGINT that arrives there is raised as ``KeyboardInterrupt`` when the
 unit ends, so a summary never counts fewer frames than are on disk.
@@ -34,6 +39,7 @@ import numpy as np
 
 __all__ = [
     "WriteError",
+    "atomic_group",
     "atomic_write",
     "atomic_write_bytes",
     "atomic_write_text",
@@ -72,6 +78,35 @@ def current_umask() -> int:
     return mask
 
 
+#: the open :func:`atomic_group` of each thread: (temporary file, destination) pairs still to rename
+_group = threading.local()
+
+
+@contextlib.contextmanager
+def atomic_group() -> Iterator[None]:
+    """All or nothing (module docstring): the atomic writes inside the block are renamed into place when it ends
+    without an exception, and removed when it raises. Groups do not nest."""
+    if getattr(_group, "pending", None) is not None:
+        raise RuntimeError("atomic_group blocks do not nest")
+    pending: list[tuple[Path, Path]] = []
+    _group.pending = pending
+    try:
+        yield
+    except BaseException:
+        for tmp, _ in pending:
+            tmp.unlink(missing_ok=True)
+        raise
+    finally:
+        _group.pending = None
+    for k, (tmp, path) in enumerate(pending):
+        try:
+            os.replace(tmp, path)
+        except OSError as exc:
+            for rest, _ in pending[k:]:
+                rest.unlink(missing_ok=True)
+            raise _write_error(path, exc) from exc
+
+
 def atomic_write(path: str | os.PathLike[str], write: Callable[[Path], object], suffix: str | None = None) -> Path:
     """Call ``write(tmp_path)`` to fill a temporary file next to ``path``, then rename it into place.
 
@@ -92,7 +127,11 @@ def atomic_write(path: str | os.PathLike[str], write: Callable[[Path], object], 
         with open(tmp, "rb+") as fh:
             os.fsync(fh.fileno())
         os.chmod(tmp, 0o666 & ~current_umask())
-        os.replace(tmp, path)
+        pending = getattr(_group, "pending", None)
+        if pending is None:
+            os.replace(tmp, path)
+        else:  # renamed when the atomic_group ends
+            pending.append((tmp, path))
     except WriteError:
         tmp.unlink(missing_ok=True)
         raise

@@ -249,7 +249,14 @@ class HydraRunLock:
     ``before_job``: the dotted name of a function ``f(config, run_dir)`` called with the lock held, still before
     Hydra writes anything (``config``: the composed config without its ``hydra`` node). A ``ValueError`` it raises
     (a run folder that holds another run: ``tofdenoise.experiments.train_job.check_finished_run``) is a refusal
-    too, the lock released: a refused run leaves the folder as it was."""
+    too, the lock released: a refused run leaves the folder as it was.
+
+    In a multirun (``-m``) Hydra writes each job's ``.hydra/`` and log before any callback sees the job, so
+    ``before_job`` runs for every job of the sweep at its start (:meth:`on_multirun_start`, before Hydra writes the
+    sweep's ``multirun.yaml``): each job's config composed as Hydra's launcher composes it, with its folder
+    (``hydra.sweep.dir``/``hydra.sweep.subdir``). One refused job refuses the sweep, one line naming it, exit status
+    2, nothing written. A sweeper other than Hydra's basic one (Optuna) chooses its jobs as it goes: each of them is
+    checked by the run itself."""
 
     def __init__(self, prog: str = "tofdenoise train", before_job: str | None = None):
         self.prog = prog  # the command named in a refusal
@@ -286,13 +293,54 @@ class HydraRunLock:
             del task["hydra"]
         getattr(importlib.import_module(module), name)(task, run_dir)
 
+    def _sweep_jobs(self, config: Any) -> list[tuple[Any, str]]:
+        """(config, folder) of every job of a basic sweep, composed as Hydra's basic launcher composes them; [] for
+        another sweeper."""
+        from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+        from hydra.core.global_hydra import GlobalHydra
+        from hydra.core.override_parser.overrides_parser import OverridesParser
+        from omegaconf import OmegaConf, open_dict
+
+        if OmegaConf.select(config, "hydra.sweeper._target_") != f"{BasicSweeper.__module__}.BasicSweeper":
+            return []
+        loader = GlobalHydra.instance().config_loader()
+        params = OmegaConf.select(config, "hydra.sweeper.params") or {}
+        arguments = [f"{k}={v}" for k, v in params.items()]
+        arguments += list(OmegaConf.to_container(config.hydra.overrides.task, resolve=False))
+        overrides = OverridesParser.create(config_loader=loader).parse_overrides(arguments)
+        jobs = []
+        for num, job in enumerate(j for batch in BasicSweeper.split_arguments(overrides, None) for j in batch):
+            sweep_config = loader.load_sweep_config(config, list(job))
+            with open_dict(sweep_config):
+                sweep_config.hydra.job.id = num
+                sweep_config.hydra.job.num = num
+                run_dir = os.path.join(str(sweep_config.hydra.sweep.dir), str(sweep_config.hydra.sweep.subdir))
+                sweep_config.paths.run_dir = run_dir  # as the job's entry sets it (config.hydra_console_script)
+            jobs.append((sweep_config, run_dir))
+        return jobs
+
+    def on_multirun_start(self, config: Any, **kwargs: Any) -> None:
+        from hydra.core.hydra_config import HydraConfig
+
+        if not self.before_job or is_worker_rank():
+            return
+        hydra_config = HydraConfig.instance()
+        saved = hydra_config.cfg
+        try:
+            for sweep_config, run_dir in self._sweep_jobs(config):
+                hydra_config.set_config(sweep_config)  # what ${hydra:...} reads while the job runs
+                try:
+                    self._before_job(sweep_config, run_dir)
+                except ValueError as exc:
+                    print(f"{self.prog}: error: multirun job {run_dir}: {exc}", file=sys.stderr)
+                    raise SystemExit(2) from None
+        finally:
+            hydra_config.cfg = saved
+
     def on_run_end(self, config: Any, **kwargs: Any) -> None:
         release_all()
 
     # the remaining Hydra callback hooks (hydra.experimental.callback.Callback) do nothing
-    def on_multirun_start(self, config: Any, **kwargs: Any) -> None:
-        pass
-
     def on_multirun_end(self, config: Any, **kwargs: Any) -> None:
         pass
 

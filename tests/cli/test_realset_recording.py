@@ -186,3 +186,88 @@ def test_publish_scene_is_exclusive_without_force(tmp_path):
     with pytest.raises(SceneExistsError):
         publish_scene(scene(".c.partial", "c"), tmp_path / "notes")
     assert (tmp_path / "notes").read_text() == "mine"
+
+
+def test_ctrl_c_during_the_publish_lets_the_scene_stand(tmp_path, recording_files, capsys, monkeypatch):
+    """A Ctrl-C that arrives while the finished scene is renamed into place (issue 41: the success line and exit 130
+    together, and a traceback): the rename completes, the scene is whole, the command ends with its success line and
+    exit 0. Python's Ctrl-C handler is set here, so the test holds where SIGINT is ignored (``nohup``)."""
+    import os
+    import signal
+
+    import tofdenoise.inference.recording_realset as rr
+
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    d, ir = static_frames()
+    bag = recording_files.write_bag(tmp_path / "desk.bag", 1, d, amplitude=ir)
+    out = tmp_path / "set"
+    publish = rr.publish_scene
+
+    def ctrl_c_while_renaming(*args, **kwargs):
+        os.kill(os.getpid(), signal.SIGINT)
+        return publish(*args, **kwargs)
+
+    monkeypatch.setattr(rr, "publish_scene", ctrl_c_while_renaming)
+    try:
+        assert run("--from-recording", str(bag), "--out", str(out)) == 0
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    captured = capsys.readouterr()
+    assert f"scene {out / 'desk'}" in captured.out and "interrupted" not in captured.err
+    assert sorted(p.name for p in out.iterdir()) == ["desk"]
+    assert list_scenes(out) == [out / "desk"]
+
+
+def test_ctrl_c_before_the_publish_writes_nothing(tmp_path, recording_files, capsys, monkeypatch):
+    """A Ctrl-C while the scene is written: one line, exit 130, nothing published and no partial folder left."""
+    import tofdenoise.inference.recording_realset as rr
+
+    d, ir = static_frames()
+    bag = recording_files.write_bag(tmp_path / "desk.bag", 1, d, amplitude=ir)
+    out = tmp_path / "set"
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(rr, "build_reference", interrupted)
+    assert run("--from-recording", str(bag), "--out", str(out)) == 130
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"tofdenoise sensor realset: interrupted (Ctrl-C); scene {out / 'desk'} not written (nothing "
+                   "published)"]  # fmt: skip
+    assert list(out.iterdir()) == []
+
+
+def test_stale_partial_folders_are_removed_and_nothing_else(tmp_path, recording_files, capsys):
+    """A partial scene folder that a killed run left (its lock free, only a scene's files) is no scene to the
+    readers and is removed by the next run onto that scene, which says so; a partial folder whose lock is held (a
+    run still writing), one holding a file of the user's, and another scene's partial folder stay."""
+    import fcntl
+    import os
+
+    d, ir = static_frames()
+    bag = recording_files.write_bag(tmp_path / "desk.bag", 1, d, amplitude=ir)
+    out = tmp_path / "set"
+    assert run("--from-recording", str(bag), "--out", str(out), "--scene", "wall") == 0
+
+    def partial(name: str, *files: str):
+        folder = out / name
+        (folder / "hiexp").mkdir(parents=True)
+        for f in files:
+            (folder / f).write_bytes(b"x")
+        return folder
+
+    killed = partial(".desk.k1ll3d00.partial", "input_depth_mm.png", "hiexp/depth_mm_000.png", ".input.png.tmp.png")
+    running = partial(".desk.runn1ng0.partial", "input_depth_mm.png")
+    users = partial(".desk.n0tes123.partial", "input_depth_mm.png", "notes.txt")
+    other = partial(".lamp.k1ll3d00.partial", "input_depth_mm.png")
+    assert list_scenes(out) == [out / "wall"]  # hidden folders are no scenes
+    fd = os.open(running, os.O_RDONLY | os.O_DIRECTORY)
+    fcntl.flock(fd, fcntl.LOCK_EX)
+    try:
+        capsys.readouterr()
+        assert run("--from-recording", str(bag), "--out", str(out), "--scene", "desk") == 0
+    finally:
+        os.close(fd)
+    assert f"removed {killed}: the partial scene of an earlier run that was killed" in capsys.readouterr().err
+    assert not killed.exists() and running.is_dir() and users.is_dir() and other.is_dir()
+    assert list_scenes(out) == [out / "desk", out / "wall"]

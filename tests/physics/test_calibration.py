@@ -171,3 +171,29 @@ def test_a_calibration_file_that_is_not_utf8_is_named(tmp_path):
     path.write_bytes(("# caméra\n" + text).encode("latin-1", errors="replace"))
     with pytest.raises(CalibrationError, match=rf"{re.escape(str(path))}: not UTF-8 text \(byte 0xe9"):
         load_calibration(path)
+
+
+def test_a_misspelt_field_is_named_with_the_closest_valid_one():
+    """A typo is an unknown field and a missing one: both are named, the unknown one with the field it was meant
+    to be (issue 41: only the missing field was named), also inside tap_response and fixed_pattern."""
+    from tofdenoise.physics.calibration import CalibrationError, SensorCalibration, default_calibration
+
+    d = default_calibration().to_dict()
+    d["dark_stdev_e"] = d.pop("dark_std_e")
+    with pytest.raises(CalibrationError) as info:
+        SensorCalibration.from_dict(d, source="cam.yaml")
+    assert str(info.value).startswith(
+        "cam.yaml: unknown field 'dark_stdev_e' (did you mean 'dark_std_e'?); missing field(s) ['dark_std_e']"
+    )
+    d = default_calibration().to_dict()
+    d["tap_response"]["cosine"] = d["tap_response"].pop("cos")
+    with pytest.raises(
+        CalibrationError, match=r"unknown field 'tap_response.cosine' \(did you mean 'tap_response.cos'"
+    ):
+        SensorCalibration.from_dict(d, source="cam.yaml")
+    d = default_calibration().to_dict()
+    d["fixed_pattern"] = {"prnu_": 0.01}
+    with pytest.raises(
+        CalibrationError, match=r"unknown field 'fixed_pattern.prnu_' \(did you mean 'fixed_pattern.prnu'"
+    ):
+        SensorCalibration.from_dict(d, source="cam.yaml")

@@ -185,10 +185,11 @@ def file_size_limit(limit: int):
         signal.signal(signal.SIGXFSZ, old)
 
 
-def call_entry(script: str, argv: list[str], monkeypatch, full_disk: bool = False) -> Outcome:
+def call_entry(script: str, argv: list[str], monkeypatch, full_disk: bool | int = False) -> Outcome:
     """Run console script ``script`` (``tofdenoise``, the only one) in this process through its installed entry point
     with ``argv`` (``<verb> ...``; the dispatcher hands the Hydra and LightningCLI verbs their ``sys.argv``).
-    HYDRA_FULL_ERROR is unset, as for a user."""
+    HYDRA_FULL_ERROR is unset, as for a user. ``full_disk``: writes past FULL_DISK_FILE_LIMIT bytes of a file fail
+    (a number: past that many bytes)."""
     from importlib import import_module
     from importlib.metadata import entry_points
 
@@ -199,7 +200,8 @@ def call_entry(script: str, argv: list[str], monkeypatch, full_disk: bool = Fals
     monkeypatch.delenv("HYDRA_FULL_ERROR", raising=False)
     out, err = io.StringIO(), io.StringIO()
     status, escaped = None, None
-    limit = file_size_limit(FULL_DISK_FILE_LIMIT) if full_disk else _nothing()
+    size = FULL_DISK_FILE_LIMIT if full_disk is True else int(full_disk)
+    limit = file_size_limit(size) if full_disk else _nothing()
     with redirect_stdout(out), redirect_stderr(err):
         try:
             with limit:
@@ -230,7 +232,7 @@ def _release_locks() -> None:
 def call(monkeypatch):
     """``call(script, argv, full_disk=False) -> Outcome``: the real entry point, in this process."""
 
-    def run(script: str, argv: list[str], full_disk: bool = False) -> Outcome:
+    def run(script: str, argv: list[str], full_disk: bool | int = False) -> Outcome:
         return call_entry(script, [str(a) for a in argv], monkeypatch, full_disk)
 
     return run

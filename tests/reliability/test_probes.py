@@ -67,7 +67,8 @@ def test_probe(probe, world, call):
         probe.damage(world)
     before = world.snapshot()
     script, prefix = probes.COMMANDS[probe.command]
-    outcome = call(script, [*prefix, *probe.argv(world)], full_disk=probe.family == "full_disk")
+    full_disk = probe.extra.get("file_limit", True) if probe.family == "full_disk" else False
+    outcome = call(script, [*prefix, *probe.argv(world)], full_disk=full_disk)
     assert_outcome(probe, world, before, outcome)
 
 

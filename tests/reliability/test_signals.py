@@ -176,3 +176,101 @@ def test_ctrl_c_mid_training_is_one_line_and_leaves_a_resumable_unfinished_run(w
     assert not json.loads((run_dir / "run_info.json").read_text()).get("finished")
     assert torch.load(last, weights_only=True)["global_step"] > 0
     assert not (run_dir / "run.lock").exists()  # released on the way out
+
+
+# ------------------------------------------------------------------------- tofdenoise sensor realset --from-recording
+
+#: frames of the long recording (60 x 80): writing its scene takes a second or more
+REALSET_FRAMES = 120
+
+
+def _realset_row(case: str):
+    (row,) = [p for p in probes.PROBES if p.command == "tofdenoise sensor realset" and p.case == case]
+    return row
+
+
+def _start_realset(world, recording: Path, out: Path, scene: str = "desk") -> subprocess.Popen:
+    return subprocess.Popen(
+        [*_command("sensor"), "realset", "--from-recording", str(recording), "--out", str(out), "--scene", scene],
+        env={**os.environ, "PYTHONUNBUFFERED": "1"}, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        preexec_fn=_default_sigint,
+    )  # fmt: skip
+
+
+def _wait_for_partial(proc: subprocess.Popen, out: Path, scene: str = "desk", files: int = 6) -> Path:
+    """The run's partial scene folder once it holds ``files`` reference frames."""
+    deadline = time.time() + 120
+    while time.time() < deadline and proc.poll() is None:
+        for folder in out.glob(f".{scene}.*.partial") if out.is_dir() else ():
+            if len(list(folder.glob("hiexp/*.png"))) >= files:
+                return folder
+        time.sleep(0.005)
+    proc.kill()
+    raise AssertionError(f"no partial scene in {out} (exit {proc.poll()}): {proc.communicate()[1][-2000:]}")
+
+
+def test_ctrl_c_while_realset_writes_a_scene(world):
+    """SIGINT while the scene is being written: one line, exit 130, no traceback, nothing published, no partial
+    folder left, the recording unchanged."""
+    row = _realset_row("sigint-while-writing-a-scene")
+    rec = probes.static_recording(world, "rec/long.bag", frames=REALSET_FRAMES, h=60, w_px=80)
+    before = world.snapshot()
+    out = world / "out/rs"
+    proc = _start_realset(world, rec, out)
+    _wait_for_partial(proc, out)
+    proc.send_signal(signal.SIGINT)
+    stdout, err = proc.communicate(timeout=120)
+    assert proc.returncode == row.status, err[-3000:]
+    assert "Traceback" not in err and "KeyboardInterrupt" not in err, err[-3000:]
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1 and "interrupted (Ctrl-C)" in lines[0] and str(out / "desk") in lines[0], err
+    assert "nothing published" in lines[0]
+    assert not stdout.strip(), stdout  # no success line
+    assert sorted(p.name for p in out.iterdir()) == [], "a scene or a partial folder was left"
+    assert world.snapshot() == before
+
+
+@pytest.mark.slow
+def test_sigkill_while_realset_writes_a_scene_then_a_rerun_cleans_up(world):
+    """SIGKILL leaves the run's partial folder; capture-set readers skip it (hidden), and the next run onto the
+    scene removes it (its lock is free, it holds only a scene's files) and publishes. Another run's partial (its lock
+    held) and a hidden folder of the user's with a partial's name are left as they are."""
+    import fcntl
+    import warnings
+
+    from tofdenoise.data_modules.real_captures import list_scenes
+
+    rec = probes.static_recording(world, "rec/long.bag", frames=REALSET_FRAMES, h=60, w_px=80)
+    out = world / "out/rs"
+    short = probes.static_recording(world, "rec/wall.bag")
+    first = _start_realset(world, short, out, scene="wall")
+    assert first.wait(timeout=120) == 0, first.communicate()[1][-2000:]
+    proc = _start_realset(world, rec, out)
+    killed = _wait_for_partial(proc, out)
+    proc.kill()
+    proc.communicate(timeout=60)
+    assert proc.returncode == _realset_row("sigkill-while-writing-a-scene-then-rerun").status
+    assert killed.is_dir() and (killed / "input_depth_mm.png").is_file()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # not even "a scene folder without an input frame"
+        assert list_scenes(out) == [out / "wall"]  # the partial folder is no scene
+    # a partial of a run that is still writing (its lock held here) and a folder of the user's with such a name
+    running = out / ".desk.abcd1234.partial"
+    running.mkdir()
+    (running / "input_depth_mm.png").write_bytes(b"x")
+    users = out / ".desk.notes123.partial"
+    users.mkdir()
+    (users / "notes.txt").write_text("mine\n")
+    fd = os.open(running, os.O_RDONLY | os.O_DIRECTORY)
+    fcntl.flock(fd, fcntl.LOCK_EX)
+    try:
+        rerun = _start_realset(world, rec, out)
+        stdout, err = rerun.communicate(timeout=300)
+    finally:
+        os.close(fd)
+    assert rerun.returncode == 0, err[-3000:]
+    assert f"removed {killed}" in err and "Traceback" not in err
+    assert not killed.exists() and running.is_dir() and (users / "notes.txt").read_text() == "mine\n"
+    assert sorted(p.name for p in out.iterdir()) == sorted([".desk.abcd1234.partial", ".desk.notes123.partial",
+                                                             "desk", "wall"])  # fmt: skip
+    assert list_scenes(out) == [out / "desk", out / "wall"]

@@ -308,8 +308,13 @@ class _Tally:
 
 
 def _write_failure(exc: OSError, out: Path) -> str:
-    """An output write that failed, with the folder and the cause (numpy's short write names neither)."""
-    full = exc.errno == errno.ENOSPC or "requested and" in str(exc)
+    """An output write that failed, with the file (or the folder) and the cause, said once; the frame's outputs are
+    written all or nothing (``outputs.write_frame_outputs``), so none of them was kept."""
+    from tofdenoise.atomic import WriteError
+
+    if isinstance(exc, WriteError):  # names the file and the cause, "(disk full?)" included
+        return f"{exc}; none of the frame's outputs was written"
+    full = exc.errno in (errno.ENOSPC, errno.EFBIG) or "requested and" in str(exc)
     return f"could not write its outputs under {out}: {exc}" + (" (disk full?)" if full else "")
 
 
@@ -415,10 +420,11 @@ def _denoise_recording(recording: Any, job: _Job, tally: _Tally) -> None:
                 f"recording {recording.path} has no camera intrinsics (no Kinect calibration.json, no CameraInfo "
                 "topic): --ply needs --intrinsics FILE"
             )
-        if job.signal and rec.amplitude_name is None:
+        if (job.signal or job.calib is not None) and rec.amplitude_name is None:
+            needs = "the model uses the amplitude (signal) channel" if job.signal else "--sensor (sigma_D) needs it"
             raise RecordingError(
-                f"recording {recording.path}: the model uses the amplitude (signal) channel and the recording has no "
-                "amplitude / IR stream; name it with --amplitude-stream"
+                f"recording {recording.path} has no amplitude / IR stream ({needs}); it has: "
+                f"{', '.join(rec.stream_names) or 'none'}; name the amplitude stream with --amplitude-stream"
             )
     except RecordingError as exc:
         tally.failed.append((str(recording.path), str(exc)))

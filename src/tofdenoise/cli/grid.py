@@ -31,7 +31,7 @@ from tofdenoise.experiments.grids import (
 )
 from tofdenoise.experiments.runner import run_all
 from tofdenoise.output_guard import OutputPathError, check_output_file
-from tofdenoise.records import unreadable_records
+from tofdenoise.records import RecordError, unreadable_records
 from tofdenoise.reporting.robustness import robustness_table
 
 __all__ = ["main", "build_parser"]
@@ -85,7 +85,11 @@ def main(argv: list[str] | None = None) -> int:
             file=sys.stderr,
         )
         return 2
-    rows = robustness_rows(specs, args.out)
+    try:
+        rows = robustness_rows(specs, args.out)
+    except RecordError as exc:  # a record the table cannot use: never a row that quietly lacks it
+        print(f"tofdenoise grid: error: {exc}", file=sys.stderr)
+        return 2
     table = robustness_table(rows)
     print(table)
     if args.markdown is not None:

@@ -15,10 +15,17 @@ The run's records come from the ``RunOutputs`` callback of the configs (as in th
 wandb's environment (quiet, its files under ``trainer.default_root_dir``) and its ``wandb.finish()`` at the end
 come from ``tofdenoise.wandb_env``. ``trainer.default_root_dir`` has one writer at a time (``tofdenoise.run_lock``,
 taken before any class is instantiated): a second command on the same folder is refused, exit status 2.
+
+A key the command does not take (a typo in a ``--config`` file, ``trainer.max_epochz``) is one line naming the file
+and the key, with the closest key it does take, exit status 2 (jsonargparse's own report is its whole usage text).
 """
 
 from __future__ import annotations
 
+import argparse
+import difflib
+import inspect
+import re
 import sys
 from pathlib import Path
 from typing import Any
@@ -60,6 +67,21 @@ class ToFLightningCLI(LightningCLI):
                 )
             root_path.mkdir(parents=True, exist_ok=True)
             setup_wandb_env(root_path)
+
+    def parse_arguments(self, parser: Any, args: Any) -> None:
+        """An argument or ``--config`` key that the command does not take is a ``ConfigError`` line naming the file
+        and the key (``unknown_key_message``), not jsonargparse's usage text."""
+        parsers = [parser, *getattr(getattr(parser, "_subcommands_action", None), "_name_parser_map", {}).values()]
+        for each in parsers:
+            each.exit_on_error = False
+        try:
+            super().parse_arguments(parser, args)
+        except argparse.ArgumentError as exc:
+            argv = list(sys.argv[1:] if args is None else args)
+            sub = argv[0] if argv and argv[0] in self.subcommands() else None
+            target = parsers[0] if sub is None else parser._subcommands_action._name_parser_map[sub]
+            keys = [a.dest for a in target._actions if not a.dest.endswith(".help")]
+            raise ConfigError(unknown_key_message(str(exc), argv, keys)) from None
 
     def instantiate_classes(self) -> None:
         """A class that refuses its arguments (a bad data setting, a calibration file that cannot be read) is one
@@ -127,6 +149,63 @@ def build_cli(args: list[str] | None = None, run: bool = True) -> ToFLightningCL
         run=run,
         auto_configure_optimizers=False,
     )
+
+
+def _config_files(args: list[str]) -> list[str]:
+    """The ``--config FILE`` arguments, in order."""
+    files = [args[i + 1] for i, arg in enumerate(args) if arg in ("--config", "-c") and i + 1 < len(args)]
+    return files + [arg.split("=", 1)[1] for arg in args if arg.startswith("--config=")]
+
+
+def _dotted_keys(node: Any, prefix: str = "") -> list[str]:
+    if not isinstance(node, dict):
+        return []
+    keys = []
+    for key, value in node.items():
+        dotted = f"{prefix}{key}"
+        keys += [dotted, *_dotted_keys(value, dotted + ".")]
+    return keys
+
+
+def _init_parameters(class_path: str) -> list[str]:
+    """The keyword arguments of the class that ``class_path`` names ([] when it cannot be imported)."""
+    module, _, name = class_path.rpartition(".")
+    try:
+        cls = getattr(__import__(module, fromlist=[name]), name)
+        return [p for p in inspect.signature(cls.__init__).parameters if p not in ("self", "args", "kwargs")]
+    except Exception:  # noqa: BLE001 - only a suggestion
+        return []
+
+
+def unknown_key_message(message: str, args: list[str], valid_keys: list[str]) -> str:
+    """One line for jsonargparse's error ``message``: a key the command does not take, named with the ``--config``
+    file that holds it (or the option given) and the closest key it takes; any other error's first lines."""
+    key, candidates = None, valid_keys
+    top = re.search(r"does not accept option '([^']+)'", message)
+    nested = re.search(r'Parser key "([^"]+)".*?Option \'([^\']+)\' is not accepted', message, re.S)
+    if top:
+        key = top.group(1)
+    elif nested:
+        section, option = nested.groups()
+        key = f"{section}.init_args.{option}"
+        class_path = re.search(r"class_path '([^']+)'", message)
+        params = _init_parameters(class_path.group(1)) if class_path else []
+        candidates = [f"{section}.init_args.{p}" for p in params]
+    if key is None:
+        lines = [line.strip() for line in message.strip().splitlines() if line.strip()]
+        return "; ".join(lines[:2]) + (" ..." if len(lines) > 2 else "")
+    where = f"option --{key}"
+    for path in reversed(_config_files(args)):  # the last file that sets it (later files override earlier ones)
+        try:
+            keys = _dotted_keys(yaml.safe_load(Path(path).read_text(encoding="utf-8")))
+        except (OSError, UnicodeDecodeError, yaml.YAMLError):
+            continue
+        if key in keys or key.replace(".init_args.", ".") in keys:
+            where = f"--config {path}"
+            break
+    close = difflib.get_close_matches(key, candidates, n=1, cutoff=0.6)
+    hint = f"; did you mean '{close[0]}'?" if close else ""
+    return f"{where}: unknown key '{key}'{hint} ('tofdenoise {args[0] if args else 'fit'} --help' lists the keys)"
 
 
 def _check_config_files(args: list[str]) -> None:

@@ -19,6 +19,9 @@ from tofdenoise.cli.sensor_physics import input_files
 from tofdenoise.experiments.reproduce import REALSET_SIZES
 from tofdenoise.output_guard import OutputPathError, refuse_overwrite
 
+#: exit status after Ctrl-C (128 + SIGINT, what a shell reports)
+EXIT_INTERRUPTED = 130
+
 
 def _simulate(args: argparse.Namespace) -> int:
     from tofdenoise.data_modules.capture_simulation import simulate_capture_set
@@ -126,17 +129,27 @@ def _realset_from_recording(args: argparse.Namespace) -> int:
         refuse_overwrite([out], [rec])
         raise OutputPathError(f"--out {out} is a file; give the folder of the capture set")
     refuse_overwrite([], [rec], output_folders=[out / name])
-    summary = scene_from_recording(
-        rec,
-        out,
-        scene=name,
-        depth_stream=args.depth_stream,
-        amplitude_stream=args.amplitude_stream,
-        input_frame=args.input_frame,
-        min_count=args.min_count,
-        motion_tolerance_mm=args.motion_tolerance_mm,
-        force=args.force,
-    )
+    try:
+        summary = scene_from_recording(
+            rec,
+            out,
+            scene=name,
+            depth_stream=args.depth_stream,
+            amplitude_stream=args.amplitude_stream,
+            input_frame=args.input_frame,
+            min_count=args.min_count,
+            motion_tolerance_mm=args.motion_tolerance_mm,
+            force=args.force,
+        )
+    except KeyboardInterrupt:  # before the scene was published: its partial folder is removed, nothing else written
+        print(
+            f"tofdenoise sensor realset: interrupted (Ctrl-C); scene {out / name} not written "
+            f"({'the scene there is unchanged' if args.force and (out / name).exists() else 'nothing published'})",
+            file=sys.stderr,
+        )
+        return EXIT_INTERRUPTED
+    for folder in summary.stale_partials_removed:
+        print(f"removed {folder}: the partial scene of an earlier run that was killed", file=sys.stderr)
     print(
         f"scene {summary.scene_dir}: input frame {summary.input_frame}, reference = mean of "
         f"{summary.reference_frames} frames (a pixel needs {summary.min_count} valid), valid reference pixels "

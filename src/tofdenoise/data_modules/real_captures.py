@@ -49,7 +49,8 @@ def default_min_count(num_frames: int) -> int:
 def list_scenes(
     scenes_dir: str | Path, *, config_key: str = "data.real_dir", incomplete: list[str] | None = None
 ) -> list[Path]:
-    """Scene folders (those holding ``input_depth_mm.png``), sorted by name.
+    """Scene folders (those holding ``input_depth_mm.png``), sorted by name; hidden folders (a name starting with a
+    dot, such as the partial folder of a scene being written) are not scenes.
 
     A folder that looks like a scene (it has ``hiexp/``) but lacks ``input_depth_mm.png`` cannot be evaluated:
     it is left out with a warning naming it, and its name is appended to ``incomplete`` when given (the
@@ -60,6 +61,8 @@ def list_scenes(
         raise FileNotFoundError(f"capture set folder not found: {root} (check {config_key})")
     scenes, partial = [], []
     for p in sorted(root.iterdir()):
+        if p.name.startswith("."):  # hidden: a scene being written (``.<scene>.XXXXXXXX.partial``) or not a scene
+            continue
         if p.is_dir() and (p / INPUT_DEPTH).is_file():
             scenes.append(p)
         elif p.is_dir() and (p / HIEXP_DIR).is_dir():

@@ -14,7 +14,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from tofdenoise.records import read_run, run_finished
+from tofdenoise.records import METRICS_NAME, load_scored_metrics, read_run, run_finished
 
 from .runner import RunSpec
 
@@ -84,11 +84,15 @@ def _val_maes(metrics: dict[str, Any] | None) -> tuple[float, float]:
 
 
 def robustness_rows(specs: Sequence[RunSpec], out_dir: Path | str) -> list[dict[str, Any]]:
-    """One row per spec: its meta, best and raw validation MAE, reduction, test MAE, pass/fail/missing."""
+    """One row per spec: its meta, best and raw validation MAE, reduction, test MAE, pass/fail/missing. A run's
+    ``metrics.json`` that the table cannot use (no ``synthetic`` section, a ``null`` or NaN metric) is a
+    ``RecordError`` naming it (``records.load_scored_metrics``, as on the results page), not a row without it."""
     rows = []
     for spec in specs:
         run_dir = Path(out_dir) / spec.name
         _, metrics = read_run(run_dir)
+        if metrics is not None:
+            metrics = load_scored_metrics(run_dir / METRICS_NAME)
         best, raw = _val_maes(metrics)
         reduction = 1.0 - best / raw if raw and math.isfinite(best) and math.isfinite(raw) else math.nan
         synthetic = (metrics or {}).get("synthetic") or {}

@@ -9,7 +9,10 @@ sensor work in (``plausible_depth_range_mm``): its median valid depth below the 
 (``DEFAULT_MIN_DEPTH_MM``, 300 mm) or beyond the calibration's unambiguous range (c / 2f, 2998 mm for the default
 camera), i.e. more than half of its valid depths out of that range on one side. Such a frame is almost surely in
 other units: metres (a Kinect frame / 1000), centimetres (/ 10) or 0.1 mm (x 10); the error names the median and
-the likely unit.
+the likely unit. With or without a depth scale, a frame holding a valid depth beyond ``PNG16_MAX_MM`` (65535 mm) is
+refused (naming the count and the largest): no time-of-flight camera measures that far, the restored 16-bit
+millimetre PNG could not hold it, and the network would see an input far outside anything it was trained on (a
+2^40 mm map was restored to an all-zero PNG, with numpy's overflow warning).
 
 ``outside_training_depths`` is a warning, not a refusal: a frame in millimetres whose valid depths lie mostly (more
 than half of them) outside the depths the checkpoint was trained on (``training/depth_range.py``; e.g. an ADI
@@ -39,7 +42,7 @@ from typing import Any
 
 import numpy as np
 
-from tofdenoise.data_modules.io import DataFileError, read_amplitude, read_array, read_image
+from tofdenoise.data_modules.io import PNG16_MAX_MM, DataFileError, read_amplitude, read_array, read_image
 
 __all__ = [
     "DEPTH_FRAME_SUFFIXES",
@@ -173,6 +176,14 @@ def read_depth_frame(path: str | Path, depth_scale_mm: float = 1.0) -> tuple[np.
         valid = np.isfinite(depth) & (depth > 0)
     if valid.any() and float(depth[valid].max()) > np.finfo(np.float32).max:
         raise FrameError(f"depth file {path} holds values beyond float32 range; check --depth-scale-mm")
+    beyond = valid & (depth > PNG16_MAX_MM)
+    if beyond.any():
+        raise FrameError(
+            f"depth file {path}: {int(beyond.sum())} valid pixel(s) deeper than {PNG16_MAX_MM} mm (the largest "
+            f"{float(depth[beyond].max()):.4g} mm, taken with --depth-scale-mm {float(depth_scale_mm):g}); no "
+            "time-of-flight camera measures that far and a 16-bit millimetre PNG cannot hold it: check the file's "
+            "units (--depth-scale-mm) and mark invalid pixels 0 or NaN"
+        )
     return np.where(valid, depth, 0.0).astype(np.float32), valid
 
 

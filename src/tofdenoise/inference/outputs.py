@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 
 from tofdenoise import visualize as vis
-from tofdenoise.atomic import atomic_write, atomic_write_bytes, atomic_write_png, save_npy_atomic
+from tofdenoise.atomic import atomic_group, atomic_write, atomic_write_bytes, atomic_write_png, save_npy_atomic
 from tofdenoise.data_modules.io import write_depth_png16
 from tofdenoise.inference.camera import Intrinsics, points_m
 
@@ -164,8 +164,9 @@ def write_frame_outputs(
     sigma_mm: np.ndarray | None = None,
     intrinsics: Intrinsics | None = None,
 ) -> list[Path]:
-    """Write the outputs of one frame (module docstring); returns the written paths. ``options.ply`` needs the
-    ``intrinsics`` of the frame (checked before anything of the frame is written)."""
+    """Write the outputs of one frame (module docstring), all or nothing (``atomic.atomic_group``: a write that fails
+    leaves none of them and the files they would replace unchanged); returns the written paths. ``options.ply`` needs
+    the ``intrinsics`` of the frame (checked before anything of the frame is written)."""
 
     paths = output_paths(Path(out), name)
     points = None
@@ -173,6 +174,11 @@ def write_frame_outputs(
         if intrinsics is None:
             raise ValueError(f"frame {name}: a point cloud (PLY) needs the camera intrinsics (--intrinsics FILE)")
         points = points_m(depth_mm_to_m(restored_mm), intrinsics, name)
+    with atomic_group():
+        return _write_all(paths, name, input_mm, valid, restored_mm, options, sigma_mm, intrinsics, points)
+
+
+def _write_all(paths, name, input_mm, valid, restored_mm, options, sigma_mm, intrinsics, points) -> list[Path]:
     written = [write_depth_png16(paths["png"], restored_mm)]
     if options.npy:
         written.append(save_npy_atomic(paths["npy"], np.asarray(restored_mm, dtype=np.float32)))

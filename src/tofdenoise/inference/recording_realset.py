@@ -31,28 +31,40 @@ temporary folder next to its destination and renamed into place at the end (:fun
 (POSIX ``rename``: ENOTEMPTY / EEXIST), so of two runs writing one scene at once exactly one publishes it and the
 other is refused (:class:`SceneExistsError`) with its own work removed; the "exists" check before the work only
 saves reading a recording for nothing.
+
+The partial folder (``.<scene>.XXXXXXXX.partial``) is held with an ``flock`` for as long as its run writes it; the
+kernel drops the lock when the run ends in any way. A run killed hard (SIGKILL, a power cut) leaves its partial
+folder behind: the next run onto the same scene removes it (:func:`remove_stale_partials`) when nobody holds its
+lock and it holds nothing but what a scene being written holds. Readers of a capture set skip folders whose name
+starts with a dot. Ctrl-C before the scene is published removes the partial folder; once the rename has begun, the
+rename completes and the scene stands (a Ctrl-C then no longer undoes it).
 """
 
 from __future__ import annotations
 
 import errno
+import fcntl
 import json
 import os
+import re
 import shutil
 import tempfile
 import warnings
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from tofdenoise.atomic import atomic_write_text
+from tofdenoise.atomic import atomic_write_text, sigint_deferred
 from tofdenoise.data_modules.io import depth_mm_to_png16, write_png_uint8, write_png_uint16
 from tofdenoise.data_modules.real_captures import (
     HIEXP_DIR,
     INPUT_AMPLITUDE,
     INPUT_DEPTH,
+    REFERENCE_COUNT,
+    REFERENCE_DEPTH,
+    REFERENCE_META,
     build_reference,
     default_min_count,
 )
@@ -64,6 +76,7 @@ __all__ = [
     "SceneSummary",
     "moving_frames",
     "publish_scene",
+    "remove_stale_partials",
     "scene_from_frames",
     "scene_from_recording",
 ]
@@ -124,6 +137,75 @@ def publish_scene(tmp: Path, scene_dir: Path, force: bool = False) -> None:
         return
 
 
+#: what a partial scene folder may hold (besides the atomic writers' temporary files ``.<name>.*.tmp*``)
+_PARTIAL_ENTRIES = frozenset(
+    {INPUT_DEPTH, INPUT_AMPLITUDE, HIEXP_DIR, REFERENCE_DEPTH, REFERENCE_COUNT, REFERENCE_META, RECORDING_META}
+)
+_HIEXP_ENTRY = re.compile(r"^(depth_mm|saturated)_\d+\.png$")
+_TMP_ENTRY = re.compile(r"^\..+\.tmp[.\w]*$")
+
+
+def _partial_pattern(scene: str) -> re.Pattern[str]:
+    """Names of this scene's partial folders: ``tempfile.mkdtemp(prefix=".<scene>.", suffix=".partial")``."""
+    return re.compile(rf"^\.{re.escape(scene)}\.[A-Za-z0-9_]{{8}}\.partial$")
+
+
+def _looks_like_a_partial_scene(folder: Path) -> bool:
+    """Only the files a scene being written holds (and nothing that is not a plain file or ``hiexp/``)."""
+    for entry in folder.iterdir():
+        if entry.name == HIEXP_DIR and entry.is_dir() and not entry.is_symlink():
+            if not all(
+                (_HIEXP_ENTRY.match(e.name) or _TMP_ENTRY.match(e.name)) and e.is_file() and not e.is_symlink()
+                for e in entry.iterdir()
+            ):
+                return False
+        elif not ((entry.name in _PARTIAL_ENTRIES or _TMP_ENTRY.match(entry.name)) and entry.is_file()):
+            return False
+        elif entry.is_symlink():
+            return False
+    return True
+
+
+def remove_stale_partials(scene_dir: str | Path) -> list[Path]:
+    """Remove the partial folders of ``scene_dir`` that runs killed hard left behind (module docstring); returns
+    them. A partial folder is removed only when its name is one this module gives, nobody holds its lock (its run
+    has ended) and it holds nothing but a scene's files; anything else is left as it is."""
+    scene_dir = Path(scene_dir)
+    if not scene_dir.parent.is_dir():
+        return []
+    pattern, removed = _partial_pattern(scene_dir.name), []
+    for folder in sorted(scene_dir.parent.iterdir()):
+        if not pattern.match(folder.name) or folder.is_symlink() or not folder.is_dir():
+            continue
+        try:
+            fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
+        except OSError:
+            continue
+        try:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:  # a running run's partial
+                continue
+            if os.fstat(fd).st_nlink == 0 or not _looks_like_a_partial_scene(folder):
+                continue
+            shutil.rmtree(folder)
+            removed.append(folder)
+        finally:
+            os.close(fd)
+    return removed
+
+
+def _own_partial(scene_dir: Path) -> tuple[Path, int]:
+    """A new partial folder next to ``scene_dir`` and the descriptor that holds its lock until it is closed."""
+    while True:
+        tmp = Path(tempfile.mkdtemp(prefix=f".{scene_dir.name}.", suffix=".partial", dir=scene_dir.parent))
+        fd = os.open(tmp, os.O_RDONLY | os.O_DIRECTORY)
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        if os.fstat(fd).st_nlink > 0:  # not removed by another run's clean-up between mkdtemp and the lock
+            return tmp, fd
+        os.close(fd)
+
+
 @dataclass
 class SceneSummary:
     scene_dir: Path
@@ -132,6 +214,8 @@ class SceneSummary:
     min_count: int
     reference_valid_fraction: float
     disagreeing_fraction_max: float
+    #: partial folders of this scene that runs killed hard had left, removed before this run wrote its own
+    stale_partials_removed: list[Path] = field(default_factory=list)
 
 
 def moving_frames(
@@ -212,7 +296,9 @@ def scene_from_frames(
     amplitude = _amplitude_u16(chosen.amplitude, f"{where} frame {chosen.index}")
 
     scene_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{scene_dir.name}.", suffix=".partial", dir=scene_dir.parent))
+    stale = remove_stale_partials(scene_dir)
+    tmp, lock_fd = _own_partial(scene_dir)
+    published = False
     try:
         write_png_uint16(tmp / INPUT_DEPTH, depth_mm_to_png16(np.where(chosen.valid, chosen.depth_mm, 0.0)))
         write_png_uint16(tmp / INPUT_AMPLITUDE, amplitude)
@@ -237,10 +323,20 @@ def scene_from_frames(
             "depths where at least min_count are valid (same exposure as the input)",
         }
         atomic_write_text(tmp / RECORDING_META, json.dumps(meta, indent=1) + "\n")
-        publish_scene(tmp, scene_dir, force=force)  # --force: the old scene goes once the new one is complete
+        try:
+            with sigint_deferred():  # a Ctrl-C during the rename is raised after it
+                publish_scene(tmp, scene_dir, force=force)  # --force: the old scene goes once the new one is complete
+                published = True
+        except KeyboardInterrupt:
+            if not published:
+                raise
+            # the scene is complete and in place: the Ctrl-C came too late to undo it, the command finishes
     except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
+        if not published:
+            shutil.rmtree(tmp, ignore_errors=True)
         raise
+    finally:
+        os.close(lock_fd)
     return SceneSummary(
         scene_dir=scene_dir,
         input_frame=chosen.index,
@@ -248,6 +344,7 @@ def scene_from_frames(
         min_count=needed,
         reference_valid_fraction=float(np.isfinite(reference.depth_mm).mean()),
         disagreeing_fraction_max=float(fractions.max()),
+        stale_partials_removed=stale,
     )
 
 

@@ -155,6 +155,8 @@ class Recording(ABC):
     depth_name: str
     amplitude_name: str | None
     intrinsics: Intrinsics | None
+    #: every image stream of the recording (Kinect tracks, bag image topics), for messages that list them
+    stream_names: list[str]
 
     @abstractmethod
     def scan(self) -> int:
@@ -244,6 +246,7 @@ class KinectRecording(Recording):
         with self._open() as container:
             tracks = {_track_name(s): s for s in container.streams.video}
             names = list(tracks)
+            self.stream_names = names
             self.depth_name = _choose(
                 names, depth, "DEPTH" if "DEPTH" in tracks else None, "depth", "--depth-stream", path
             )
@@ -452,6 +455,7 @@ class BagRecording(Recording):
         self._highlevel = _import("rosbags.highlevel", path)
         with self._reader() as reader:
             images = sorted({c.topic for c in reader.connections if c.msgtype in (self.IMAGE, self.COMPRESSED)})
+            self.stream_names = images
             depth_like = [t for t in images if "depth" in t.lower()]
             default = depth_like[0] if depth_like else None
             if default is None and depth is None:

@@ -11,11 +11,12 @@ offset). Any c0 > 0 is accepted when loading.
 
 from __future__ import annotations
 
+import difflib
 import hashlib
 import json
 import math
 import os
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -58,6 +59,26 @@ class CalibrationError(ValueError):
 
 def _where(source: str | None) -> str:
     return f"{source}: " if source else ""
+
+
+def _field_error(
+    source: str | None, unknown: list[str], missing: list[str], valid: Sequence[str], prefix: str = ""
+) -> CalibrationError | None:
+    """One error for the unknown and the missing fields of one mapping (``prefix``: its dotted path): each unknown
+    field is named with the closest valid one (a missing one first: a typo), then the missing fields."""
+    if not unknown and not missing:
+        return None
+    parts = []
+    for key in unknown:
+        close = difflib.get_close_matches(key, missing, n=1, cutoff=0.6) or difflib.get_close_matches(
+            key, [v for v in valid if v not in missing], n=1, cutoff=0.6
+        )
+        hint = f" (did you mean '{prefix}{close[0]}'?)" if close else ""
+        parts.append(f"unknown field '{prefix}{key}'{hint}")
+    if missing:
+        parts.append(f"missing field(s) {[prefix + m for m in missing]}")
+    expected = f"; expected {[prefix + v for v in valid]}" if unknown else ""
+    return CalibrationError(f"{_where(source)}{'; '.join(parts)}{expected}")
 
 
 def _as_float(value: Any, name: str, source: str | None) -> float:
@@ -189,12 +210,11 @@ class TapResponse:
     def from_dict(cls, d: Any, source: str | None = None) -> TapResponse:
         if not isinstance(d, Mapping):
             raise CalibrationError(f"{_where(source)}field 'tap_response' must be a mapping with c0, cos, sin")
-        for name in TAP_FIELDS:
-            if name not in d:
-                raise CalibrationError(f"{_where(source)}missing field 'tap_response.{name}'")
+        missing = [name for name in TAP_FIELDS if name not in d]
         unknown = sorted(str(k) for k in d if k not in TAP_FIELDS)
-        if unknown:
-            raise CalibrationError(f"{_where(source)}unknown field(s) in 'tap_response': {unknown}")
+        error = _field_error(source, unknown, missing, TAP_FIELDS, "tap_response.")
+        if error is not None:
+            raise error
         c0 = _as_float(d["c0"], "tap_response.c0", source)
         cos = _as_float_tuple(d["cos"], "tap_response.cos", source)
         sin = _as_float_tuple(d["sin"], "tap_response.sin", source)
@@ -259,11 +279,9 @@ class FixedPatternNoise:
         if not isinstance(d, Mapping):
             raise CalibrationError(f"{_where(source)}field 'fixed_pattern' must be a mapping, got {type(d).__name__}")
         unknown = sorted(str(k) for k in d if k not in FIXED_PATTERN_FIELDS)
-        if unknown:
-            raise CalibrationError(
-                f"{_where(source)}unknown field(s) {['fixed_pattern.' + k for k in unknown]}; "
-                f"expected {list(FIXED_PATTERN_FIELDS)}"
-            )
+        error = _field_error(source, unknown, [], FIXED_PATTERN_FIELDS, "fixed_pattern.")
+        if error is not None:
+            raise error
         values: dict[str, Any] = {}
         for name in ("pixel_offset_e", "column_phase_rad", "prnu"):
             if name in d:
@@ -411,11 +429,10 @@ class SensorCalibration:
         missing = [name for name in FIELDS if name not in d]
         # adc_gain_e_per_dn and range_sigma_mm are optional (None when absent)
         missing = [m for m in missing if m not in ("adc_gain_e_per_dn", "range_sigma_mm", *OPTIONAL_FIELDS)]
-        if missing:
-            raise CalibrationError(f"{_where(source)}missing field(s) {missing}")
         unknown = sorted(str(k) for k in d if k not in FIELDS)
-        if unknown:
-            raise CalibrationError(f"{_where(source)}unknown field(s) {unknown}; expected {list(FIELDS)}")
+        error = _field_error(source, unknown, missing, FIELDS)
+        if error is not None:
+            raise error
         num_taps_raw = d["num_taps"]
         if (
             isinstance(num_taps_raw, bool)

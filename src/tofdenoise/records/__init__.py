@@ -6,9 +6,10 @@
 - :mod:`~tofdenoise.records.verdict`: the learned guard, ``learned_verdict`` / ``classical_verdict`` /
   ``learned_status`` (the one place its rule lives);
 - :mod:`~tofdenoise.records.per_image`: ``per_image/<set>.csv``;
-- :mod:`~tofdenoise.records.run_folder`: the file names of a run folder, ``read_record`` / ``load_metrics`` (strict:
-  a ``RecordError`` names the file), ``read_run`` (lenient), ``run_finished`` (the one rule of a finished run),
-  ``unreadable_records`` and ``write_run_info``.
+- :mod:`~tofdenoise.records.run_folder`: the file names of a run folder, ``read_record`` / ``load_metrics`` /
+  ``load_scored_metrics`` (strict: a ``RecordError`` names the file; the last one is what a table of runs can use),
+  ``read_run`` (lenient), ``run_finished`` (the one rule of a finished run), ``unreadable_records`` and
+  ``write_run_info``.
 
 Writers: ``tofdenoise.callbacks.run_outputs.RunOutputs`` (every trained run), the classical row; readers: the
 training job and the grids' runner (skip or return finished runs), ``tofdenoise.reporting`` (report, results page,
@@ -36,10 +37,12 @@ from tofdenoise.records.run_folder import (
     LAST_CHECKPOINT,
     METRICS_NAME,
     PER_IMAGE_DIR,
+    REQUIRED_SET,
     RUN_INFO_NAME,
     TRUTH_NAME,
     RecordError,
     load_metrics,
+    load_scored_metrics,
     read_record,
     read_run,
     run_finished,
@@ -59,6 +62,7 @@ __all__ = [
     "METRIC_KEYS",
     "PER_IMAGE_DIR",
     "RUN_INFO_NAME",
+    "REQUIRED_SET",
     "RUN_KEYS",
     "RecordError",
     "TEST_SET_LABELS",
@@ -68,6 +72,7 @@ __all__ = [
     "learned_status",
     "learned_verdict",
     "load_metrics",
+    "load_scored_metrics",
     "metric_sets",
     "read_metrics_json",
     "read_per_image_csv",

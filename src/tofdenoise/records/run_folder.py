@@ -8,12 +8,13 @@ page, the report); ``tofdenoise.callbacks.run_outputs.RunOutputs`` writes the re
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 from tofdenoise.atomic import atomic_write_text
-from tofdenoise.records.metrics_json import read_metrics_json
+from tofdenoise.records.metrics_json import METRIC_KEYS, metric_sets, read_metrics_json
 
 __all__ = [
     "BEST_CHECKPOINT",
@@ -73,6 +74,38 @@ def load_metrics(path: str | Path) -> dict[str, Any]:
         return read_metrics_json(path)
     except (OSError, ValueError) as exc:
         raise RecordError(f"{path}: the record cannot be read ({exc})") from None
+
+
+#: the test set every run of the tables is scored on (the synthetic test split: ``datamodule.test_set_names``
+#: always starts with it); ``real`` is there only for runs with a real set
+REQUIRED_SET = "synthetic"
+
+
+def load_scored_metrics(path: str | Path) -> dict[str, Any]:
+    """A finished run's ``metrics.json`` as a table of runs uses it (the results page, the grid table):
+    :func:`load_metrics`, with its ``synthetic`` set and no ``null`` or NaN metric (values a table cannot use: the
+    run would drop out of a row's mean and an ordering silently). :class:`RecordError` naming the file otherwise."""
+    path = Path(path)
+    data = load_metrics(path)
+    sets = metric_sets(data)
+    if REQUIRED_SET not in sets:
+        raise RecordError(
+            f"{path}: no '{REQUIRED_SET}' section (it has {', '.join(repr(s) for s in sets) or 'none'}): every run "
+            f"of the tables is scored on the synthetic test split; expected '{REQUIRED_SET}' with "
+            f"{', '.join(METRIC_KEYS)}"
+        )
+    for set_name, entry in sets.items():
+        for where, block in ((set_name, entry), (f"{set_name}.raw", entry.get("raw") or {})):
+            for key in METRIC_KEYS:
+                value = block.get(key)
+                if key in block and value is None:
+                    raise RecordError(f"{path}: '{where}.{key}' is null: the run has no value for it")
+                if isinstance(value, float) and math.isnan(value):
+                    raise RecordError(
+                        f"{path}: '{where}.{key}' is NaN: expected a number (metrics.json writes a missing value "
+                        "as null, never NaN)"
+                    )
+    return data
 
 
 def read_run(run_dir: str | Path) -> tuple[dict[str, Any] | None, dict[str, Any] | None]:

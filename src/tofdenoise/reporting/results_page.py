@@ -55,8 +55,7 @@ from tofdenoise.records import (
     TRUTH_NAME,
     RecordError,
     learned_status,
-    load_metrics,
-    metric_sets,
+    load_scored_metrics,
     read_record,
     run_fields,
 )
@@ -99,36 +98,6 @@ def _truth_set(path: Path) -> dict[str, Any] | None:
         ) from None
 
 
-#: the test set every run of the tables is scored on (the synthetic test split: ``datamodule.test_set_names``
-#: always starts with it); ``real`` is there only for runs with a real set, ``real_truth`` only with its own file
-REQUIRED_SET = "synthetic"
-
-
-def _read_metrics(path: Path) -> dict[str, Any]:
-    """A run's ``metrics.json``, schema-checked, with its ``synthetic`` set and no ``null`` or NaN metric (values
-    the tables cannot use: the run would drop out of a row's mean and an ordering silently)."""
-    data = load_metrics(path)
-    sets = metric_sets(data)
-    if REQUIRED_SET not in sets:
-        raise RecordError(
-            f"{path}: no '{REQUIRED_SET}' section (it has {', '.join(repr(s) for s in sets) or 'none'}): every run "
-            f"of the tables is scored on the synthetic test split; expected '{REQUIRED_SET}' with "
-            f"{', '.join(METRIC_KEYS)}"
-        )
-    for set_name, entry in sets.items():
-        for where, block in ((set_name, entry), (f"{set_name}.raw", entry.get("raw") or {})):
-            for key in METRIC_KEYS:
-                value = block.get(key)
-                if key in block and value is None:
-                    raise RecordError(f"{path}: '{where}.{key}' is null: the run has no value for it")
-                if isinstance(value, float) and math.isnan(value):
-                    raise RecordError(
-                        f"{path}: '{where}.{key}' is NaN: expected a number (metrics.json writes a missing value "
-                        "as null, never NaN)"
-                    )
-    return data
-
-
 def load_records(profile_dir: Path | str) -> dict[str, dict[str, Any]]:
     """``{run name: {"metrics": dict, "run_info": dict}}`` for every run folder holding both files. A folder
     without both (an interrupted copy: ``metrics.json`` is copied first) is no record: its run is listed as missing
@@ -142,7 +111,7 @@ def load_records(profile_dir: Path | str) -> dict[str, dict[str, Any]]:
         if not (metrics_path.exists() and info_path.exists()):
             continue  # not a run (fig6/, fig7/, ...) or an incomplete copy: missing
         info = read_record(info_path)
-        metrics = _read_metrics(metrics_path)
+        metrics = load_scored_metrics(metrics_path)
         truth = _truth_set(run_dir / TRUTH_NAME)
         if truth is not None:
             metrics[TRUTH_SET] = truth
