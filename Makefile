@@ -63,7 +63,7 @@ $(STAMP): pyproject.toml $(CONSTRAINTS)
 	@if [ -n "$(CONSTRAINTS)" ]; then grep -v -E '^(torch|triton)==' "$(CONSTRAINTS)"; fi > $(VENV)/constraints.txt
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet "$(TORCH)"
-	$(PY) -m pip install --quiet -e ".[dev,onnx,recordings,cluster,docs]"
+	$(PY) -m pip install --quiet -e ".[dev,onnx,recordings,cluster,docs,launchers]"
 	$(PY) -m pip install --quiet -e ".[sweep]"
 	@if $(PY) -c "import platform, sys, torch; sys.exit(not (torch.version.cuda is None and sys.platform == 'linux' and platform.machine() == 'x86_64'))"; then \
 		$(PY) -m pip install --quiet "$(TRITON)"; fi

@@ -14,6 +14,7 @@ import time
 from pathlib import Path
 
 ORDER = [
+    "startup",
     "physics",
     "metrics",
     "models",

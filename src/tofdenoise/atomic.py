@@ -34,8 +34,10 @@ import tempfile
 import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import numpy as np
+if TYPE_CHECKING:  # numpy and OpenCV are imported by the writers that need them: light users import neither
+    import numpy as np
 
 __all__ = [
     "WriteError",
@@ -158,6 +160,8 @@ def save_npy_atomic(path: str | os.PathLike[str], array: np.ndarray) -> Path:
     """Save ``array`` as a ``.npy`` file (no pickle) atomically. It is encoded in memory first: ``np.save`` to a
     file name writes through C stdio, which truncated the file without an error when the disk filled (a 256-byte
     ``.npy`` of a 1.6 kB array under a file-size limit, tests/reliability)."""
+    import numpy as np
+
     buf = io.BytesIO()
     np.save(buf, np.ascontiguousarray(array), allow_pickle=False)
     return atomic_write_bytes(path, buf.getvalue())
@@ -166,7 +170,8 @@ def save_npy_atomic(path: str | os.PathLike[str], array: np.ndarray) -> Path:
 def atomic_write_png(path: str | os.PathLike[str], image: np.ndarray) -> Path:
     """Encode ``image`` as PNG with OpenCV (uint8 or uint16; 2-D, or 3-D in OpenCV's BGR order) and write it
     atomically."""
-    import cv2  # imported here: light users of this module need no OpenCV
+    import cv2
+    import numpy as np
 
     ok, buf = cv2.imencode(".png", np.ascontiguousarray(image))
     if not ok:

@@ -6,19 +6,30 @@ notebooks); the folder is ``tofdenoise.paths.CONFIG_DIR``.
 
 from __future__ import annotations
 
+import importlib.util
 import sys
 from collections.abc import Callable, Mapping
 from dataclasses import fields
 from pathlib import Path
-from typing import Any, TypeVar
-
-from omegaconf import DictConfig
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from tofdenoise.paths import CONFIG_DIR
 
+if TYPE_CHECKING:  # omegaconf and Hydra are imported where they are used: `tofdenoise <verb> --help` stays light
+    from omegaconf import DictConfig
+
 T = TypeVar("T")
 
-__all__ = ["config_dir", "compose_config", "ConfigError", "instantiate_node", "settings_group"]
+__all__ = ["config_dir", "compose_config", "ConfigError", "instantiate_node", "settings_group", "usage_text"]
+
+#: Hydra's launcher plug-ins (the ``launchers`` extra): ``hydra/launcher=<name>`` -> the module that provides it
+LAUNCHER_PLUGINS = {
+    "joblib": "hydra_plugins.hydra_joblib_launcher",
+    "submitit_local": "hydra_plugins.hydra_submitit_launcher",
+    "submitit_slurm": "hydra_plugins.hydra_submitit_launcher",
+}
+#: folders of ``configs/`` that are not groups of the Hydra configs (configs/cli/: LightningCLI's YAMLs)
+NOT_GROUPS = ("cli",)
 
 
 def config_dir() -> Path:
@@ -73,15 +84,46 @@ def instantiate_node(node: Any, key: str, **kwargs: Any) -> Any:
         raise
 
 
+def usage_text(prog: str, config_name: str, doc: str) -> str:
+    """``<prog> --help``: the verb's own text (``doc``, its module docstring), then the choices of every config
+    group read from the ``configs/`` folder and the installed launchers. Made without Hydra: Hydra's own help
+    composes the config once per group option (seconds); ``--hydra-help`` still shows Hydra's."""
+    root = config_dir()
+    groups = {
+        d.name: sorted(p.stem for p in d.glob("*.yaml"))
+        for d in sorted(root.iterdir())
+        if d.is_dir() and d.name not in NOT_GROUPS
+    }
+    launchers = ["basic"] + [n for n, m in LAUNCHER_PLUGINS.items() if importlib.util.find_spec(m) is not None]
+    width = max(map(len, [*groups, "hydra/launcher"]))
+    lines = [
+        f"usage: {prog} [-m] [key=value ...] [group=option ...] [--cfg job] [--hydra-help]",
+        "",
+        doc.replace("``", "").replace("::\n", ":\n").strip(),
+        "",
+        f"config groups (configs/<group>/<option>.yaml; defaults: configs/{config_name}.yaml):",
+        *(f"  {name:<{width}}  {', '.join(options)}" for name, options in groups.items()),
+        f"  {'hydra/launcher':<{width}}  {', '.join(launchers)}   (-m: how a sweep's jobs run; docs/cluster.md)",
+        "",
+        f"{prog} [overrides] --cfg job   prints the composed config; --hydra-help: Hydra's own flags",
+    ]
+    return "\n".join(lines)
+
+
 def hydra_console_script(
-    config_name: str, run: Callable[[DictConfig], object], prog: str, errors: tuple[type[BaseException], ...]
+    config_name: str,
+    job: Callable[[], tuple[Callable[[DictConfig], object], tuple[type[BaseException], ...]]],
+    prog: str,
+    doc: str = "",
 ) -> Callable[[], None]:
     """The ``main()`` of a Hydra console script: compose ``configs/<config_name>.yaml`` with the command line, set
     ``paths.run_dir`` to the folder Hydra created (it may contain ``${now:...}``: resolved once; in a multirun the
-    job's folder), call ``run`` and turn the ``errors`` into one ``<prog>: error: ...`` line and exit status 2
-    instead of a traceback. The function Hydra calls (``main.entry``) returns what ``run`` returns: the value a
-    Hydra sweeper optimises (``tofdenoise train``: the run's lowest validation MAE)."""
-    import hydra
+    job's folder), call the job's ``run`` and turn its ``errors`` into one ``<prog>: error: ...`` line and exit
+    status 2 instead of a traceback. ``job()`` returns ``(run, errors)``; it is called only once Hydra has parsed the
+    command line and composed the config, so ``--help``, ``--cfg job`` and a bad override import no torch or
+    Lightning; ``-h`` / ``--help`` prints :func:`usage_text` (``doc``: the verb's own text) without Hydra. The
+    function Hydra calls (``main.entry``) returns what ``run`` returns: the value a Hydra sweeper
+    optimises (``tofdenoise train``: the run's lowest validation MAE)."""
 
     def entry(cfg: DictConfig) -> object:
         from hydra.core.hydra_config import HydraConfig
@@ -93,10 +135,12 @@ def hydra_console_script(
         from tofdenoise.run_lock import release_all
 
         try:
-            return run(cfg)
-        except errors as exc:
-            print(f"{prog}: error: {exc}", file=sys.stderr)
-            raise SystemExit(2) from None
+            run, errors = job()
+            try:
+                return run(cfg)
+            except errors as exc:
+                print(f"{prog}: error: {exc}", file=sys.stderr)
+                raise SystemExit(2) from None
         except KeyboardInterrupt:  # Ctrl-C before the trainer's own handler (Lightning's, during fit) is in place
             print(f"{prog}: interrupted (Ctrl-C) before training started", file=sys.stderr)
             raise SystemExit(130) from None
@@ -104,6 +148,11 @@ def hydra_console_script(
             release_all()  # the run folder's lock (taken by the Hydra callback): the run is over
 
     def main() -> None:
+        if any(arg in ("-h", "--help") for arg in sys.argv[1:]):
+            print(usage_text(prog, config_name, doc))
+            return
+        import hydra
+
         hydra.main(version_base="1.3", config_path=str(config_dir()), config_name=config_name)(entry)()
 
     main.entry = entry  # type: ignore[attr-defined]

@@ -18,6 +18,7 @@ from tofdenoise.config import ConfigError, compose_config
 from tofdenoise.experiments.runner import RunSpec, run_all
 from tofdenoise.experiments.train_job import RunConfigMismatchError, run, validate_config
 from tofdenoise.records import read_metrics_json
+from tofdenoise.run_lock import RunLock
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -97,6 +98,73 @@ def test_a_multirun_twice_trains_each_run_once_in_folders_the_runner_shares(tmp_
     specs = [RunSpec(n, ("backbone=unet", f"seed={n[-1]}")) for n in names]
     outcomes = run_all(specs, sweep, echo=False)
     assert [o.status for o in outcomes] == ["skipped", "skipped"]
+
+
+def test_a_joblib_multirun_trains_each_run_once_in_its_worker_and_keeps_the_run_locks(tmp_path, data_cache, tiny):
+    """Hydra's joblib launcher (the ``launchers`` extra) runs the jobs in loky worker processes: the same stable
+    folders as the basic launcher, a second identical sweep trains nothing, and a job whose folder another process
+    holds is refused in one line (the run lock is taken in the worker), exit status 2, nothing written there."""
+    sweep = tmp_path / "sweep"
+    launcher = ["hydra/launcher=joblib", "hydra.launcher.n_jobs=2"]
+    args = ["-m", *_sweep_args(tiny, sweep, data_cache), "seed=0,1", *launcher]
+    proc = _train_cli(args)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "Joblib.Parallel(n_jobs=2,backend=loky" in proc.stdout + proc.stderr  # the jobs ran in worker processes
+    names = ["unet-hetero-full-s0", "unet-hetero-full-s1"]
+    assert sorted(p.name for p in sweep.iterdir() if p.is_dir()) == names
+    assert (proc.stdout + proc.stderr).count("finished before") == 0
+    for name in names:
+        assert json.loads((sweep / name / "run_info.json").read_text())["seed"] == int(name[-1])
+        assert read_metrics_json(sweep / name / "metrics.json")["trained_steps"] == 6
+        assert not (sweep / name / "run.lock").exists()  # each worker released its folder
+    before = {n: _stamps(sweep / n) for n in names}
+
+    again = _train_cli(args)
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert (again.stdout + again.stderr).count("finished before") == 2
+    assert {n: _stamps(sweep / n) for n in names} == before  # nothing trained, tested or rewritten
+
+    # a folder another process writes (this one holds its lock): the worker's job is refused in one line
+    held = sweep / "unet-hetero-full-s2"
+    lock = RunLock(held).acquire()
+    try:
+        locked = _train_cli(["-m", *_sweep_args(tiny, sweep, data_cache), "seed=2", *launcher])
+    finally:
+        lock.release()
+    assert locked.returncode == 2, locked.stderr[-3000:]
+    line = locked.stderr.strip().splitlines()[-1]
+    assert line.startswith(f"tofdenoise train: error: run folder {held} is locked by pid {os.getpid()}")
+    assert "Traceback" not in locked.stderr
+    assert not (held / "checkpoints").exists() and not (held / "metrics.json").exists()
+
+
+def test_the_submitit_launchers_compose_with_the_train_config(tmp_path):
+    """hydra/launcher=submitit_local and submitit_slurm (the ``launchers`` extra) compose with configs/train.yaml,
+    also with the Optuna search, and their launcher is built with its logs under the sweep folder (no SLURM run)."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.utils import instantiate
+
+    from tofdenoise.config import config_dir
+
+    sweep = tmp_path / "sweep"
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
+        for name, cls in [("submitit_local", "LocalLauncher"), ("submitit_slurm", "SlurmLauncher")]:
+            cfg = compose(
+                "train",
+                [f"hydra/launcher={name}", f"paths.sweep_dir={sweep}", "hydra.launcher.timeout_min=30"],
+                return_hydra_config=True,
+            )
+            assert cfg.hydra.launcher._target_ == f"hydra_plugins.hydra_submitit_launcher.submitit_launcher.{cls}"
+            launcher = instantiate(cfg.hydra.launcher)
+            assert type(launcher).__name__ == cls
+            assert launcher.params["submitit_folder"] == f"{sweep}/.submitit/%j"
+            assert launcher.params["timeout_min"] == 30
+        cfg = compose("train", ["hydra/launcher=joblib", "hparams_search=recipe"], return_hydra_config=True)
+        assert cfg.hydra.sweeper._target_.endswith("OptunaSweeper")
+        assert cfg.hydra.launcher._target_.endswith("JoblibLauncher")
+    GlobalHydra.instance().clear()
 
 
 def test_an_optuna_search_of_the_recipe_returns_its_best_validation_mae(tmp_path, data_cache, tiny):

@@ -12,17 +12,28 @@ Examples::
 
 from __future__ import annotations
 
-from tofdenoise.atomic import WriteError
 from tofdenoise.config import hydra_console_script
-from tofdenoise.experiments.classical_job import grid_points, run, select_best, tune
-from tofdenoise.run_lock import RunLockedError
+from tofdenoise.lazy import lazy_getattr
 
-__all__ = ["main", "run", "grid_points", "tune", "select_best"]
+#: the job's functions, imported on first use (``tofdenoise classic --help`` imports no torch)
+_LAZY = dict.fromkeys(("run", "grid_points", "tune", "select_best"), "tofdenoise.experiments.classical_job")
+
+__all__ = ["main", *_LAZY]
+
+__getattr__ = lazy_getattr(__name__, _LAZY)
+
+
+def job():
+    """The job Hydra's entry calls once the command line is parsed, and the errors printed as one line, exit 2."""
+    from tofdenoise.atomic import WriteError
+    from tofdenoise.experiments.classical_job import run
+    from tofdenoise.run_lock import RunLockedError
+
+    return run, (ValueError, FileNotFoundError, RunLockedError, WriteError)
+
 
 #: console script ``tofdenoise classic`` (Hydra command line, like ``tofdenoise train``)
-main = hydra_console_script(
-    "classical", run, "tofdenoise classic", (ValueError, FileNotFoundError, RunLockedError, WriteError)
-)
+main = hydra_console_script("classical", job, "tofdenoise classic", __doc__)
 
 
 if __name__ == "__main__":

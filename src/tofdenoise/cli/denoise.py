@@ -29,13 +29,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from tqdm.auto import tqdm
-
-from tofdenoise.atomic import sigint_deferred
-from tofdenoise.inference.camera import IntrinsicsError, load_intrinsics, resolve_intrinsics
 from tofdenoise.output_guard import OutputPathError, refuse_overwrite
 
-__all__ = ["build_parser", "main", "run", "timing_text"]
+__all__ = ["build_parser", "main", "missing_file", "run", "timing_text"]
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -158,8 +154,35 @@ def _fail(message: str) -> int:
     return 2
 
 
+def missing_file(args: argparse.Namespace) -> str:
+    """The first input, intrinsics file, checkpoint or ONNX model named on the command line that does not exist, as
+    the error the loader would give ("" when all exist): checked before torch, the model or any frame reader is
+    imported, so a mistyped path is refused in a fraction of a second."""
+    for name in args.inputs:
+        if not Path(name).exists():
+            return f"input not found: {name} (expected a depth frame or a folder of them)"
+    if args.intrinsics is not None and not Path(args.intrinsics).expanduser().is_file():
+        return f"intrinsics file not found: {Path(args.intrinsics).expanduser()}"
+    if args.ckpt is not None and not Path(args.ckpt).expanduser().is_file():
+        return f"checkpoint file not found: {Path(args.ckpt).expanduser()}"
+    if args.onnx is not None and not Path(args.onnx).expanduser().is_file():
+        return f"ONNX model {Path(args.onnx).expanduser()} does not exist"
+    return ""
+
+
 def run(args: argparse.Namespace) -> int:
-    """Run the command on parsed arguments; returns the exit status."""
+    """Run the command on parsed arguments; returns the exit status. The arguments and the files they name are
+    checked before the model and the frame readers are imported (:func:`missing_file`)."""
+    if args.depth_scale_mm is not None and not args.depth_scale_mm > 0:
+        return _fail(f"--depth-scale-mm must be > 0, got {args.depth_scale_mm}")
+    if args.tile is not None and args.tile < 32:
+        return _fail(f"--tile must be >= 32 pixels, got {args.tile}")
+    missing = missing_file(args)
+    if missing:
+        return _fail(missing)
+    from tqdm.auto import tqdm
+
+    from tofdenoise.inference.camera import IntrinsicsError, load_intrinsics
     from tofdenoise.inference.denoise import CheckpointError, load_restorer, resolve_device
     from tofdenoise.inference.frames import (
         AmplitudeSource,
@@ -171,10 +194,6 @@ def run(args: argparse.Namespace) -> int:
     from tofdenoise.inference.outputs import OutputOptions
     from tofdenoise.inference.recordings import find_recordings
 
-    if args.depth_scale_mm is not None and not args.depth_scale_mm > 0:
-        return _fail(f"--depth-scale-mm must be > 0, got {args.depth_scale_mm}")
-    if args.tile is not None and args.tile < 32:
-        return _fail(f"--tile must be >= 32 pixels, got {args.tile}")
     try:
         device = resolve_device("cpu" if args.onnx is not None else args.device)
         amplitude = AmplitudeSource(args.amplitude) if args.amplitude is not None else None
@@ -352,6 +371,8 @@ def _claim(name: str, source: Any, job: _Job, tally: _Tally) -> bool:
 
 def _restore_and_write(data: Any, label: str, intrinsics: Any, job: _Job, tally: _Tally, started: float) -> None:
     """Restore a frame read into memory (``frames.Frame``) and write its outputs, or record why not."""
+    from tofdenoise.atomic import sigint_deferred
+    from tofdenoise.inference.camera import IntrinsicsError, resolve_intrinsics
     from tofdenoise.inference.denoise import frame_tile_plan, restore_frame
     from tofdenoise.inference.frames import FrameError, outside_training_depths
     from tofdenoise.inference.outputs import frame_sigma, write_frame_outputs
@@ -407,6 +428,8 @@ def _restore_and_write(data: Any, label: str, intrinsics: Any, job: _Job, tally:
 def _denoise_recording(recording: Any, job: _Job, tally: _Tally) -> None:
     """Check a whole recording (``Recording.scan``), then restore and write its frames one by one; a recording that
     cannot be read is one failure and writes nothing."""
+    from tqdm.auto import tqdm
+
     from tofdenoise.inference.frames import Frame
     from tofdenoise.inference.recordings import RecordingError, open_recording
 

@@ -27,9 +27,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from tofdenoise.atomic import WriteError, atomic_write_text
-from tofdenoise.evaluation import EvalInputError, evaluate_dirs
 from tofdenoise.output_guard import OutputPathError, check_output_file
-from tofdenoise.training.metrics import D_MAX_MM
 
 __all__ = ["build_parser", "main"]
 
@@ -57,7 +55,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sensor", default=None, help="the calibration of the camera that recorded --captures")
     p.add_argument("--device", default="auto", help="auto | cpu | cuda (with --ckpt)")
     p.add_argument("--out", required=True, type=Path, help="output JSON file")
-    p.add_argument("--d-max-mm", type=float, default=D_MAX_MM, help="PSNR peak depth in mm (default 1000)")
+    p.add_argument(
+        "--d-max-mm",
+        type=float,
+        default=None,
+        help="PSNR peak depth in mm (default: the paper's, tofdenoise.training.metrics.D_MAX_MM, 1000)",
+    )
     return p
 
 
@@ -78,6 +81,7 @@ def _usage_error(args: argparse.Namespace) -> str:
 
 def _evaluate_checkpoint(args: argparse.Namespace) -> dict:
     """The second form: a checkpoint restored on a capture set and scored (``inference.capture_eval``)."""
+    from tofdenoise.evaluation import EvalInputError
     from tofdenoise.inference.capture_eval import evaluate_checkpoint  # heavy (torch, the model)
 
     try:
@@ -88,10 +92,16 @@ def _evaluate_checkpoint(args: argparse.Namespace) -> dict:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    usage = _usage_error(args)
+    if usage:  # before the metrics (torch) are imported
+        print(f"tofdenoise evaluate: error: {usage}", file=sys.stderr)
+        return 2
+    from tofdenoise.evaluation import EvalInputError, evaluate_dirs
+    from tofdenoise.training.metrics import D_MAX_MM
+
+    if args.d_max_mm is None:
+        args.d_max_mm = D_MAX_MM
     try:
-        usage = _usage_error(args)
-        if usage:
-            raise EvalInputError(usage)
         if not args.d_max_mm > 0:
             raise EvalInputError(f"--d-max-mm must be > 0, got {args.d_max_mm}")
         if args.ckpt is not None:

@@ -17,8 +17,6 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-import numpy as np
-
 from tofdenoise.output_guard import OutputPathError
 
 __all__ = ["build_parser", "main", "parity_check"]
@@ -50,6 +48,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def parity_check(ckpt: Path, onnx_path: Path, height: int = 45, width: int = 67) -> float:
     """Max |onnxruntime - PyTorch| in mm over the valid pixels of a procedural frame with 10 % holes."""
+    import numpy as np
     import torch
 
     from tofdenoise.inference.denoise import load_restorer
@@ -68,11 +67,14 @@ def parity_check(ckpt: Path, onnx_path: Path, height: int = 45, width: int = 67)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Console script ``tofdenoise export``."""
+    """Console script ``tofdenoise export``. The arguments are checked before torch is imported."""
+    args = build_parser().parse_args(argv)
+    if not Path(args.ckpt).expanduser().is_file():
+        print(f"tofdenoise export: error: checkpoint file not found: {Path(args.ckpt).expanduser()}", file=sys.stderr)
+        return 2
     from tofdenoise.inference.denoise import CheckpointError
     from tofdenoise.inference.export import ExportError, check_onnx_output, export_onnx
 
-    args = build_parser().parse_args(argv)
     try:
         check_onnx_output(args.onnx, [args.ckpt])
         meta = export_onnx(args.ckpt, args.onnx, fp16=args.fp16, exporter=args.exporter)

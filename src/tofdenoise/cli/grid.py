@@ -32,7 +32,6 @@ from tofdenoise.experiments.grids import (
 from tofdenoise.experiments.runner import run_all
 from tofdenoise.output_guard import OutputPathError, check_output_file
 from tofdenoise.records import RecordError, unreadable_records
-from tofdenoise.reporting.robustness import robustness_table
 
 __all__ = ["main", "build_parser"]
 
@@ -85,6 +84,8 @@ def main(argv: list[str] | None = None) -> int:
             file=sys.stderr,
         )
         return 2
+    from tofdenoise.reporting.robustness import robustness_table  # omegaconf: only for the table
+
     try:
         rows = robustness_rows(specs, args.out)
     except RecordError as exc:  # a record the table cannot use: never a row that quietly lacks it

@@ -27,7 +27,6 @@ from pathlib import Path
 
 from tofdenoise.atomic import WriteError, atomic_write_text
 from tofdenoise.output_guard import OutputPathError, check_output_file
-from tofdenoise.reporting import find_runs, load_runs, render_html, results_table, table_markdown
 
 __all__ = ["main"]
 
@@ -50,6 +49,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--out", required=True, type=Path, help="output HTML file")
     p.add_argument("--title", default="tofdenoise runs", help="page title")
     args = p.parse_args(argv)
+    # the report's renderers (omegaconf, the plots): once the arguments are parsed
+    from tofdenoise.reporting import find_runs, load_runs, render_html, results_table, table_markdown
+
     try:
         dirs = find_runs(args.runs_dir)
         _check_out(args.out, dirs)

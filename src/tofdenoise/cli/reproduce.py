@@ -31,12 +31,10 @@ from pathlib import Path
 
 from tofdenoise.atomic import WriteError
 from tofdenoise.cli.executor_args import add_executor_arguments, executor_from_args
-from tofdenoise.experiments.reproduce import PROFILES, Reproduction, profile_needs, reproduce
-from tofdenoise.experiments.targets import KINDS, Target
+from tofdenoise.experiments.targets import KINDS, PROFILES, Target
 from tofdenoise.output_guard import OutputPathError, check_output_file
 from tofdenoise.paths import REPO_ROOT
 from tofdenoise.records import RecordError
-from tofdenoise.reporting.results_page import DISCUSSION_NAME, page_inputs
 
 __all__ = ["build_parser", "main"]
 
@@ -134,6 +132,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.time_budget is not None and getattr(executor, "name", "sequential") != "sequential":
         print(f"{PROG}: error: --time-budget needs the sequential executor (runs one after another)", file=sys.stderr)
         return 2
+    # the runner, the figures and the page renderer (numpy, Pillow, omegaconf): once the arguments are checked
+    from tofdenoise.experiments.reproduce import Reproduction, profile_needs, reproduce
+    from tofdenoise.reporting.results_page import DISCUSSION_NAME, page_inputs
+
     job = Reproduction(
         target=None if args.page_only else target,
         results=args.results,

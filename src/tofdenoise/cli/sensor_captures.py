@@ -13,8 +13,6 @@ import os
 import sys
 from pathlib import Path
 
-import numpy as np
-
 from tofdenoise.cli.sensor_physics import input_files
 from tofdenoise.experiments.reproduce import REALSET_SIZES
 from tofdenoise.output_guard import OutputPathError, refuse_overwrite
@@ -187,6 +185,8 @@ def _realset(args: argparse.Namespace) -> int:
 
 
 def _build_reference(args: argparse.Namespace) -> int:
+    import numpy as np
+
     from tofdenoise.data_modules.real_captures import HIEXP_DIR, build_reference, list_scenes
 
     root = Path(args.scenes_dir).expanduser()

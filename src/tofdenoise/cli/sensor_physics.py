@@ -9,8 +9,6 @@ import sys
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from tofdenoise.output_guard import refuse_overwrite
 from tofdenoise.paths import CONFIG_DIR
 
@@ -86,6 +84,8 @@ def pair_lists(depth_mm: list[float], signal_e: list[float]) -> list[tuple[float
 
 
 def cmd_sigma(args: argparse.Namespace) -> int:
+    import numpy as np
+
     from tofdenoise.physics.uncertainty import sigma_depth_mm
 
     calib = _calib(args)

@@ -24,41 +24,49 @@ from __future__ import annotations
 import importlib.util
 import sys
 
-from tofdenoise.atomic import WriteError
-from tofdenoise.callbacks.checkpointing import CheckpointWriteError
-from tofdenoise.config import ConfigError, hydra_console_script
-from tofdenoise.experiments.train_job import (
-    RunConfigMismatchError,
-    record_calibration,
-    run,
-    validate_config,
-    validation_objective,
-)
-from tofdenoise.output_guard import OutputPathError
-from tofdenoise.run_lock import RunLockedError
-from tofdenoise.training.checkpoint_file import CheckpointFileError
-from tofdenoise.training.init_weights import InitWeightsError
-from tofdenoise.training.module import CheckpointMismatchError
+from tofdenoise.config import hydra_console_script
+from tofdenoise.lazy import lazy_getattr
 
-__all__ = ["main", "run", "validate_config", "record_calibration"]
+#: the training job's functions, imported on first use (``tofdenoise train --help`` imports no torch)
+_LAZY = dict.fromkeys(("run", "validate_config", "record_calibration"), "tofdenoise.experiments.train_job")
+
+__all__ = ["main", *_LAZY]
 
 PROG = "tofdenoise train"
-#: errors printed as one ``tofdenoise train: error: ...`` line with exit status 2
-ERRORS = (
-    CheckpointFileError,
-    CheckpointMismatchError,
-    CheckpointWriteError,
-    ConfigError,
-    InitWeightsError,
-    OutputPathError,
-    RunConfigMismatchError,
-    RunLockedError,
-    WriteError,
-)
 #: the Hydra sweeper plug-in of ``hparams_search`` (the ``sweep`` extra)
 SWEEPER_MODULE = "hydra_plugins.hydra_optuna_sweeper"
 
-_hydra_main = hydra_console_script("train", validation_objective, PROG, ERRORS)
+__getattr__ = lazy_getattr(__name__, _LAZY)
+
+
+def job():
+    """What Hydra's entry calls, imported once the command line is parsed: the function that returns a run's lowest
+    validation MAE, and the errors printed as one ``tofdenoise train: error: ...`` line with exit status 2."""
+    from tofdenoise.atomic import WriteError
+    from tofdenoise.callbacks.checkpointing import CheckpointWriteError
+    from tofdenoise.config import ConfigError
+    from tofdenoise.experiments.train_job import RunConfigMismatchError, validation_objective
+    from tofdenoise.output_guard import OutputPathError
+    from tofdenoise.run_lock import RunLockedError
+    from tofdenoise.training.checkpoint_file import CheckpointFileError
+    from tofdenoise.training.init_weights import InitWeightsError
+    from tofdenoise.training.module import CheckpointMismatchError
+
+    errors = (
+        CheckpointFileError,
+        CheckpointMismatchError,
+        CheckpointWriteError,
+        ConfigError,
+        InitWeightsError,
+        OutputPathError,
+        RunConfigMismatchError,
+        RunLockedError,
+        WriteError,
+    )
+    return validation_objective, errors
+
+
+_hydra_main = hydra_console_script("train", job, PROG, __doc__)
 
 
 def _needs_sweeper(argv: list[str]) -> str | None:

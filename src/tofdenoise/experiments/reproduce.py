@@ -43,7 +43,7 @@ from tofdenoise.experiments.figures import (
 from tofdenoise.experiments.runner import RunSpec, TimeBudget, run_all
 from tofdenoise.experiments.schedule import CURVES_FIGURE, curves_figure_png, schedule_curves
 from tofdenoise.experiments.tables import table_specs
-from tofdenoise.experiments.targets import Target
+from tofdenoise.experiments.targets import GPU_PROFILES, PROFILES, Target
 from tofdenoise.records import BEST_CHECKPOINT, METRICS_NAME, PER_IMAGE_DIR, RUN_INFO_NAME, TRUTH_NAME, run_finished
 from tofdenoise.reporting import find_runs, load_runs, render_html
 from tofdenoise.reporting.results_page import DYNRANGE_FIGURE, RUN_FILES, load_records, results_markdown
@@ -65,19 +65,6 @@ __all__ = [
     "write_page",
 ]
 
-#: profile -> Hydra overrides shared by every training run of a target
-PROFILES: dict[str, tuple[str, ...]] = {
-    "cpu": ("experiment=reproduce_cpu",),
-    # the paper's settings (Sec. V-A): ToF-FlyingThings3D (data.source_kwargs.root=...), 320 crops, batch 4, 300
-    # epochs, one GPU
-    "gpu": ("experiment=paper", "logger=csv"),
-    # the paper's recipe per step on the procedural world at 480 x 640 with a short schedule: a table's rows as far
-    # as a few GPU minutes allow (configs/experiment/paper_short.yaml); finished runs are skipped, so a
-    # second run of the command goes on from the first
-    "gpu-short": ("experiment=paper_short", "logger=csv"),
-}
-#: the profiles whose experiment trains on a CUDA GPU (``trainer=gpu``; a test checks it against the composed configs)
-GPU_PROFILES = frozenset({"gpu", "gpu-short"})
 #: the stand-in real set of each profile: capture-set size (scenes, height, width). The CPU profile's is the paper's
 #: scene count (200) at its training scenes' resolution, and the default of ``tofdenoise sensor realset`` /
 #: ``make realset`` (``data_modules.realset.build_realset``'s defaults are the same; a test checks it); ``gpu-short``

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-__all__ = ["KINDS", "MAKE_VARIABLES", "Target", "target_of_key"]
+__all__ = ["GPU_PROFILES", "KINDS", "MAKE_VARIABLES", "PROFILES", "Target", "target_of_key"]
 
 #: kind -> the names a user gives (``--<kind> NAME``)
 KINDS: dict[str, tuple[str, ...]] = {
@@ -27,6 +27,19 @@ KINDS: dict[str, tuple[str, ...]] = {
 }
 #: kind -> the Makefile variable of ``make reproduce``
 MAKE_VARIABLES: dict[str, str] = {"table": "TABLE", "figure": "FIGURE", "study": "STUDY"}
+#: profile -> Hydra overrides shared by every training run of a target
+PROFILES: dict[str, tuple[str, ...]] = {
+    "cpu": ("experiment=reproduce_cpu",),
+    # the paper's settings (Sec. V-A): ToF-FlyingThings3D (data.source_kwargs.root=...), 320 crops, batch 4, 300
+    # epochs, one GPU
+    "gpu": ("experiment=paper", "logger=csv"),
+    # the paper's recipe per step on the procedural world at 480 x 640 with a short schedule: a table's rows as far
+    # as a short GPU allocation allows (configs/experiment/paper_short.yaml); finished runs are skipped, so the same
+    # command run again goes on from where the last one stopped
+    "gpu-short": ("experiment=paper_short", "logger=csv"),
+}
+#: the profiles whose experiment trains on a CUDA GPU (``trainer=gpu``; a test checks it against the composed configs)
+GPU_PROFILES = frozenset({"gpu", "gpu-short"})
 
 
 @dataclass(frozen=True)
