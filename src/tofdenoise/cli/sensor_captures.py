@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 
 from tofdenoise.cli.sensor_physics import input_files
-from tofdenoise.experiments.reproduce import REALSET_SIZES
+from tofdenoise.experiments.targets import REALSET_SIZES
 from tofdenoise.output_guard import OutputPathError, refuse_overwrite
 
 #: exit status after Ctrl-C (128 + SIGINT, what a shell reports)

@@ -43,7 +43,7 @@ from tofdenoise.experiments.figures import (
 from tofdenoise.experiments.runner import RunSpec, TimeBudget, run_all
 from tofdenoise.experiments.schedule import CURVES_FIGURE, curves_figure_png, schedule_curves
 from tofdenoise.experiments.tables import table_specs
-from tofdenoise.experiments.targets import GPU_PROFILES, PROFILES, Target
+from tofdenoise.experiments.targets import GPU_PROFILES, PROFILES, REALSET_SIZES, Target
 from tofdenoise.records import BEST_CHECKPOINT, METRICS_NAME, PER_IMAGE_DIR, RUN_INFO_NAME, TRUTH_NAME, run_finished
 from tofdenoise.reporting import find_runs, load_runs, render_html
 from tofdenoise.reporting.results_page import DYNRANGE_FIGURE, RUN_FILES, load_records, results_markdown
@@ -65,15 +65,6 @@ __all__ = [
     "write_page",
 ]
 
-#: the stand-in real set of each profile: capture-set size (scenes, height, width). The CPU profile's is the paper's
-#: scene count (200) at its training scenes' resolution, and the default of ``tofdenoise sensor realset`` /
-#: ``make realset`` (``data_modules.realset.build_realset``'s defaults are the same; a test checks it); ``gpu-short``
-#: keeps 24 at 480 x 640, a set a short GPU run can score
-REALSET_SIZES: dict[str, tuple[int, int, int]] = {
-    "cpu": (200, 128, 160),
-    "gpu": (200, 480, 640),
-    "gpu-short": (24, 480, 640),
-}
 #: what a finished run leaves in docs/results/<profile>/<run>/ (small files; checkpoints and panels stay in runs/)
 RECORD_FILES = (
     METRICS_NAME,

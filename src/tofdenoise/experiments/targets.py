@@ -17,7 +17,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-__all__ = ["GPU_PROFILES", "KINDS", "MAKE_VARIABLES", "PROFILES", "Target", "target_of_key"]
+__all__ = ["GPU_PROFILES", "KINDS", "MAKE_VARIABLES", "PROFILES", "REALSET_SIZES", "Target", "target_of_key"]
 
 #: kind -> the names a user gives (``--<kind> NAME``)
 KINDS: dict[str, tuple[str, ...]] = {
@@ -40,6 +40,15 @@ PROFILES: dict[str, tuple[str, ...]] = {
 }
 #: the profiles whose experiment trains on a CUDA GPU (``trainer=gpu``; a test checks it against the composed configs)
 GPU_PROFILES = frozenset({"gpu", "gpu-short"})
+#: the stand-in real set of each profile: capture-set size (scenes, height, width). The CPU profile's is the paper's
+#: scene count (200) at its training scenes' resolution, and the default of ``tofdenoise sensor realset`` /
+#: ``make realset`` (``data_modules.realset.build_realset``'s defaults are the same; a test checks it); ``gpu-short``
+#: keeps 24 at 480 x 640, a set a short GPU run can score
+REALSET_SIZES: dict[str, tuple[int, int, int]] = {
+    "cpu": (200, 128, 160),
+    "gpu": (200, 480, 640),
+    "gpu-short": (24, 480, 640),
+}
 
 
 @dataclass(frozen=True)
