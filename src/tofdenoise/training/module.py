@@ -392,8 +392,9 @@ class DepthRestorer(pl.LightningModule):
     # ------------------------------------------------------------------ checkpoints
     @classmethod
     def load_from_checkpoint(cls, checkpoint_path: Any, *args: Any, **kwargs: Any) -> DepthRestorer:  # type: ignore[override]
-        """Lightning's ``load_from_checkpoint``; a checkpoint of the old flat layout is rebuilt with its own
-        settings, moved into today's groups (``training/legacy_hparams.py``). ``kwargs`` still override."""
+        """Lightning's ``load_from_checkpoint``; a checkpoint of the old flat layout, or one written before a
+        setting's default changed, is rebuilt with its own settings, moved into today's groups
+        (``training/legacy_hparams.py``). ``kwargs`` still override."""
         saved = _saved_hparams(checkpoint_path)
         if saved is not None and is_legacy(saved):
             upgraded = upgrade_hparams(saved)
