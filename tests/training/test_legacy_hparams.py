@@ -148,6 +148,9 @@ def test_a_checkpoint_written_before_the_fill_setting_keeps_its_fill_and_block_o
     depth[..., 10:22, 12:30] = 0.0
     with torch.no_grad():
         assert torch.equal(old.restore_mm({"noisy": depth}), loaded.restore_mm({"noisy": depth}))
+    # one setting given at loading overrides that setting only: the harmonic fill with the checkpoint's offset
+    harmonic = DepthRestorer.load_from_checkpoint(ckpt, conditioning={"fill": "harmonic"})
+    assert harmonic.conditioning.to_dict() == {**loaded.conditioning.to_dict(), "fill": "harmonic"}
     # a new model's settings are today's defaults, and its own hyper-parameters need no upgrade
     new = DepthRestorer(backbone="unet", backbone_kwargs=TINY_UNET)
     assert (new.conditioning.centering, new.conditioning.fill) == ("gaussian", "harmonic")

@@ -394,11 +394,15 @@ class DepthRestorer(pl.LightningModule):
     def load_from_checkpoint(cls, checkpoint_path: Any, *args: Any, **kwargs: Any) -> DepthRestorer:  # type: ignore[override]
         """Lightning's ``load_from_checkpoint``; a checkpoint of the old flat layout, or one written before a
         setting's default changed, is rebuilt with its own settings, moved into today's groups
-        (``training/legacy_hparams.py``). ``kwargs`` still override."""
+        (``training/legacy_hparams.py``). ``kwargs`` still override; a settings group given in ``kwargs`` overrides
+        field by field (``conditioning={"fill": "harmonic"}`` keeps the checkpoint's other conditioning settings)."""
         saved = _saved_hparams(checkpoint_path)
-        if saved is not None and is_legacy(saved):
-            upgraded = upgrade_hparams(saved)
-            kwargs = {**{g: upgraded[g] for g in ("conditioning", "optim", "tiling") if g in upgraded}, **kwargs}
+        if saved is not None:
+            upgraded = upgrade_hparams(saved) if is_legacy(saved) else saved
+            for group in ("conditioning", "optim", "tiling"):
+                mine = kwargs.get(group)
+                if isinstance(upgraded.get(group), dict) and (is_legacy(saved) or isinstance(mine, dict)):
+                    kwargs[group] = {**upgraded[group], **dict(mine or {})}
         return super().load_from_checkpoint(checkpoint_path, *args, **kwargs)
 
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
