@@ -51,10 +51,9 @@ def is_legacy(hparams: Mapping[str, Any]) -> bool:
     """Does ``hparams`` hold a flat setting of the old layout, or lack a setting of :data:`FORMER_DEFAULTS`?"""
     if any(key in hparams for key in LEGACY_KEYS):
         return True
-    groups = {group for group, _ in FORMER_DEFAULTS}
-    if not any(group in hparams for group in groups) and "backbone" not in hparams:
-        return False  # not a DepthRestorer's hyper-parameters
-    return any(field not in dict(hparams.get(group) or {}) for group, field in FORMER_DEFAULTS)
+    return any(
+        isinstance(hparams.get(group), Mapping) and field not in hparams[group] for group, field in FORMER_DEFAULTS
+    )
 
 
 def upgrade_hparams(hparams: Mapping[str, Any]) -> dict[str, Any]:
@@ -67,9 +66,7 @@ def upgrade_hparams(hparams: Mapping[str, Any]) -> dict[str, Any]:
             merged = dict(out.get(group) or {})
             merged.setdefault(field, hparams[key])
             out[group] = merged
-    if "backbone" in out:
-        for (group, field), value in FORMER_DEFAULTS.items():
-            merged = dict(out.get(group) or {})
-            merged.setdefault(field, value)
-            out[group] = merged
+    for (group, field), value in FORMER_DEFAULTS.items():
+        if isinstance(out.get(group), Mapping):  # a file without the group is not guessed (init_weights refuses it)
+            out[group] = {**out[group], field: out[group].get(field, value)}
     return out
