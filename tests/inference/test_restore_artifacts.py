@@ -8,7 +8,7 @@ first order on a smooth surface): any structure tied to the pixel grid or to the
 
 - **Grid.** The block offset (``centering="local"``) is piecewise linear with kinks on its block centres
   (7.5 mod 16), so on a curved surface the network is given cusps on a 16-pixel grid and smooths them: the
-  change at rows and columns 7-8 mod 16 stands out. On the bowl below it did by 7.5-12 standard errors of a class
+  change at rows and columns 7-8 mod 16 stands out. On the bowl below it did by 10-12 standard errors of a class
   mean (3 seeds); the Gaussian offset (``centering="gaussian"``, the default) leaves 1.8-2.5, what 32 class means
   of a change without period-16 structure give (the largest of 32 normal deviations exceeds 3 in about 8 % of
   frames, 4 in 0.2 %): the test asks for less than 4.
@@ -16,7 +16,7 @@ first order on a smooth surface): any structure tied to the pixel grid or to the
   hole's border: on a floor seen at a grazing angle (5 mm/px) with the noise of a camera like the Kinect (the
   default calibration's sigma_D x 0.3: the change far from holes is 0.7 mm, as on the Kinect frame of issue 42),
   pixels next to holes changed 1.6-1.9x as much as pixels far from them (6 seeds). The harmonic fill (the
-  default) is continuous with the valid pixels: 0.8-1.2x. The test asks for at most 1.5x, the issue's bound.
+  default) is continuous with the valid pixels: 0.8-1.1x. The test asks for at most 1.5x, the issue's bound.
 """
 
 from __future__ import annotations
