@@ -392,11 +392,12 @@ class DepthRestorer(pl.LightningModule):
     # ------------------------------------------------------------------ checkpoints
     @classmethod
     def load_from_checkpoint(cls, checkpoint_path: Any, *args: Any, **kwargs: Any) -> DepthRestorer:  # type: ignore[override]
-        """Lightning's ``load_from_checkpoint``; a checkpoint of the old flat layout, or one written before a
-        setting's default changed, is rebuilt with its own settings, moved into today's groups
-        (``training/legacy_hparams.py``). ``kwargs`` still override; a settings group given in ``kwargs`` overrides
-        field by field (``conditioning={"fill": "harmonic"}`` keeps the checkpoint's other conditioning settings)."""
+        """Lightning's ``load_from_checkpoint``; a checkpoint of the old flat layout is rebuilt with its own
+        settings, moved into today's groups (``training/legacy_hparams.py``). ``kwargs`` still override."""
         saved = _saved_hparams(checkpoint_path)
+        # a checkpoint written before a setting's default changed keeps the value it was trained with
+        # (legacy_hparams.FORMER_DEFAULTS), and a settings group given in kwargs overrides field by field:
+        # conditioning={"fill": "harmonic"} keeps the checkpoint's other conditioning settings
         if saved is not None:
             upgraded = upgrade_hparams(saved) if is_legacy(saved) else saved
             for group in ("conditioning", "optim", "tiling"):
