@@ -8,8 +8,11 @@ import pytest
 import torch
 
 from tofdenoise.models.conditioning import (
+    RELAX_ITERS,
+    InputConditioning,
     bf16_step_mm,
     fill_invalid_mm,
+    gaussian_offset_mm,
     image_offset_mm,
     local_offset_mm,
     valid_input_mask,
@@ -126,3 +129,63 @@ def test_fixed_level_fill_of_the_export_equals_the_early_stopping_fill(size):
     depth[1, :, : size[0] // 2] = float("nan")  # a large hole: many levels needed
     assert torch.equal(fill_invalid_mm(depth), fill_invalid_mm(depth, levels=16))
     assert torch.equal(fill_invalid_mm(torch.zeros(1, 1, 5, 6), levels=4), torch.zeros(1, 1, 5, 6))
+
+
+def _sloped_plane_with_holes():
+    yy, xx = torch.meshgrid(torch.arange(96.0), torch.arange(128.0), indexing="ij")
+    plane = (800.0 + 5.0 * yy + 1.0 * xx)[None, None]  # a floor at a grazing angle: 5 mm/px
+    holes = torch.zeros_like(plane, dtype=torch.bool)
+    for cy, cx, r in ((30, 30, 5), (40, 90, 14), (70, 50, 20)):
+        holes |= ((yy - cy) ** 2 + (xx - cx) ** 2 < r * r)[None, None]
+    return plane, holes
+
+
+def test_harmonic_fill_continues_a_sloped_plane_where_pull_push_leaves_a_step():
+    """Issue 42: a partial block's mean sits at the centroid of its valid pixels, so pull-push is off by about one
+    pixel's worth of slope at a hole's border (a step the network reads as a depth edge); the harmonic fill meets
+    the valid pixels without a step and continues the plane."""
+    plane, holes = _sloped_plane_with_holes()
+    depth = torch.where(holes, 0.0, plane)
+    ring = holes & (torch.nn.functional.max_pool2d((~holes).float(), 3, 1, 1) > 0)  # holes next to a valid pixel
+    pull_push = fill_invalid_mm(depth)
+    harmonic = fill_invalid_mm(depth, relax_iters=RELAX_ITERS)
+    assert torch.equal(harmonic[~holes], plane[~holes])
+    assert (pull_push - plane)[ring].abs().mean() > 2.0
+    assert (harmonic - plane)[ring].abs().max() < 0.2
+    assert (harmonic - plane)[holes].abs().max() < 1.0  # 20 px inside the largest hole (pull-push: 20+ mm off)
+    assert (pull_push - plane)[holes].abs().max() > 10.0
+
+
+@pytest.mark.parametrize("size", [(37, 53), (64, 64), (1, 7), (96, 130)])
+def test_fixed_level_harmonic_fill_equals_the_early_stopping_fill(size):
+    """The harmonic fill with the export's fixed levels gives the same values as the early-stopping one."""
+    gen = torch.Generator().manual_seed(1)
+    depth = 300.0 + 1000.0 * torch.rand(2, 1, *size, generator=gen)
+    depth[torch.rand(depth.shape, generator=gen) < 0.3] = 0.0
+    depth[1, :, : size[0] // 2] = float("nan")
+    a = fill_invalid_mm(depth, relax_iters=RELAX_ITERS)
+    b = fill_invalid_mm(depth, levels=16, relax_iters=RELAX_ITERS)
+    torch.testing.assert_close(a, b, rtol=0, atol=1e-3)
+
+
+def test_gaussian_offset_reproduces_a_plane_and_leaves_no_grid_on_a_curved_surface():
+    yy, xx = torch.meshgrid(torch.arange(96.0), torch.arange(128.0), indexing="ij")
+    plane = (1500.0 + 3.0 * xx - 2.0 * yy)[None, None]
+    inner = (slice(None), slice(None), slice(24, 72), slice(24, 104))  # 3 sigma from the border
+    torch.testing.assert_close(gaussian_offset_mm(plane, 16)[inner], plane[inner], rtol=0, atol=1e-2)
+    const = torch.full((1, 1, 37, 41), 3210.0)
+    torch.testing.assert_close(gaussian_offset_mm(const, 16), const, rtol=0, atol=1e-2)
+    # a paraboloid: the centred depth is a constant (minus curvature x sigma^2) under the Gaussian offset, a
+    # 16-pixel pattern under the block offset (kinks on the block centres, 7.5 mod 16)
+    bowl = (1000.0 + 0.05 * ((xx - 64.0) ** 2 + (yy - 48.0) ** 2))[None, None]
+    smooth = (bowl - gaussian_offset_mm(bowl, 16))[inner]
+    blocks = (bowl - local_offset_mm(bowl, 16))[inner]
+    assert smooth.max() - smooth.min() < 0.05
+    assert blocks.max() - blocks.min() > 1.0
+
+
+def test_conditioning_defaults_and_refusals():
+    c = InputConditioning()
+    assert (c.centering, c.fill) == ("gaussian", "harmonic")
+    with pytest.raises(ValueError, match="conditioning.fill: unknown mode 'zero'"):
+        InputConditioning(fill="zero")

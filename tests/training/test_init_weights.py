@@ -84,7 +84,7 @@ def test_a_checkpoint_of_another_network_input_is_refused(tmp_path):
     src = _model(conditioning={"centering": "image"})
     path = tmp_path / "image.ckpt"
     torch.save({"state_dict": src.state_dict(), "hyper_parameters": dict(src.hparams)}, path)
-    with pytest.raises(InitWeightsError, match="conditioning.centering: file 'image' vs this model 'local'"):
+    with pytest.raises(InitWeightsError, match="conditioning.centering: file 'image' vs this model 'gaussian'"):
         load_init_weights(_model(), path)
 
 

@@ -43,7 +43,14 @@ def _settings_off_default() -> DepthRestorer:
         backbone="unet",
         backbone_kwargs=TINY_UNET,
         loss="l1",
-        conditioning={"use_signal_channel": True, "centering": "none", "depth_scale_mm": 250.0, "block_px": 8},
+        # the flat layout predates the fill setting: such files were trained with the pull-push fill
+        conditioning={
+            "use_signal_channel": True,
+            "centering": "none",
+            "depth_scale_mm": 250.0,
+            "block_px": 8,
+            "fill": "pullpush",
+        },
         optim={"lr": 1e-3, "warmup_steps": 7, "betas": (0.8, 0.99)},
         tiling={"predict_tile_px": 128, "eval_tile_px": 96, "overlap_px": 8},
     ).eval()
@@ -108,5 +115,43 @@ def test_a_legacy_checkpoint_is_accepted_as_init_weights(tmp_path):
     for (k, v), w in zip(model.backbone.state_dict().items(), fresh.backbone.state_dict().values()):
         assert torch.equal(v, w), k
     other = DepthRestorer(backbone="unet", backbone_kwargs=TINY_UNET, conditioning={"use_signal_channel": True})
-    with pytest.raises(ValueError, match=r"conditioning.centering: file 'none' vs this model 'local'"):
+    with pytest.raises(ValueError, match=r"conditioning.centering: file 'none' vs this model 'gaussian'"):
         load_init_weights(other, ckpt)
+
+
+def test_a_checkpoint_written_before_the_fill_setting_keeps_its_fill_and_block_offset(tmp_path):
+    """Issue 42: the defaults became centering 'gaussian' and fill 'harmonic'; a checkpoint of 2026-11-26 stores
+    centering 'local' and no fill: it loads with the pull-push fill and the block offset it was trained with."""
+    torch.manual_seed(0)
+    old = DepthRestorer(
+        backbone="unet", backbone_kwargs=TINY_UNET, conditioning={"centering": "local", "fill": "pullpush"}
+    ).eval()
+    with torch.no_grad():
+        for p in old.backbone.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    hparams = dict(old.hparams)
+    hparams["conditioning"] = {k: v for k, v in hparams["conditioning"].items() if k != "fill"}
+    ckpt = tmp_path / "before-fill.ckpt"
+    torch.save(
+        {
+            "state_dict": old.state_dict(),
+            "hyper_parameters": hparams,
+            LEARNED_RECORD_KEY: {"trained_steps": 0, "best_val_mae_mm": None, "raw_val_mae_mm": None},
+            "pytorch-lightning_version": lightning.__version__,
+        },
+        ckpt,
+    )
+    assert is_legacy(hparams) and upgrade_hparams(hparams)["conditioning"]["fill"] == "pullpush"
+    loaded = load_restorer(ckpt)
+    assert loaded.conditioning.fill == "pullpush" and loaded.conditioning.centering == "local"
+    depth = 900.0 + 50.0 * torch.rand(1, 1, 40, 48)
+    depth[..., 10:22, 12:30] = 0.0
+    with torch.no_grad():
+        assert torch.equal(old.restore_mm({"noisy": depth}), loaded.restore_mm({"noisy": depth}))
+    # one setting given at loading overrides that setting only: the harmonic fill with the checkpoint's offset
+    harmonic = DepthRestorer.load_from_checkpoint(ckpt, conditioning={"fill": "harmonic"})
+    assert harmonic.conditioning.to_dict() == {**loaded.conditioning.to_dict(), "fill": "harmonic"}
+    # a new model's settings are today's defaults, and its own hyper-parameters need no upgrade
+    new = DepthRestorer(backbone="unet", backbone_kwargs=TINY_UNET)
+    assert (new.conditioning.centering, new.conditioning.fill) == ("gaussian", "harmonic")
+    assert not is_legacy(dict(new.hparams))

@@ -76,9 +76,10 @@ def test_hparams_are_plain_values():
     }
     assert model.hparams.conditioning == {
         "depth_scale_mm": 100.0,
-        "centering": "local",
+        "centering": "gaussian",
         "block_px": 16,
         "use_signal_channel": False,
+        "fill": "harmonic",
     }
     assert model.hparams.tiling == {"predict_tile_px": 512, "eval_tile_px": None, "overlap_px": 32}
 
@@ -94,7 +95,9 @@ def test_settings_groups_name_a_bad_key_and_value():
         tiny_model(tiling=512)
     with pytest.raises(ValueError, match=r"optim: need lr > 0 and 0 <= lr_min <= lr, got lr=1e-05, lr_min=0.001"):
         tiny_model(optim={"lr": 1e-5, "lr_min": 1e-3})
-    with pytest.raises(ValueError, match=r"conditioning.centering: unknown mode 'median'; valid: local, image, none"):
+    with pytest.raises(
+        ValueError, match=r"conditioning.centering: unknown mode 'median'; valid: gaussian, local, image, none"
+    ):
         tiny_model(conditioning={"centering": "median"})
     with pytest.raises(ValueError, match=r"tiling.predict_tile_px must exceed tiling.overlap_px \(32\), got 16"):
         tiny_model(tiling={"predict_tile_px": 16})

@@ -1,7 +1,7 @@
 """The whole restore path of a checkpoint as one ONNX graph (``tofdenoise export CKPT --onnx model.onnx``).
 
-:class:`RestoreGraph` is ``DepthRestorer.restore_mm`` written for export: the hole fill (pull-push with a fixed
-number of levels, :func:`tofdenoise.models.conditioning.fill_invalid_mm`), the centring on the smooth local
+:class:`RestoreGraph` is ``DepthRestorer.restore_mm`` written for export: the hole fill (the checkpoint's fill with
+a fixed number of levels, :func:`tofdenoise.models.conditioning.fill_invalid_mm`), the centring on the smooth local
 offset, the network, and the offset added back in float32. Inputs ``depth_mm`` (B, 1, H, W) float32 (0, negative,
 NaN = invalid) and, for a checkpoint with the signal channel, ``amplitude`` (B, 1, H, W); output ``restored_mm``
 (B, 1, H, W) at every pixel (the caller masks input holes, as ``tofdenoise denoise`` does). Height and width are
@@ -80,10 +80,10 @@ class RestoreGraph(nn.Module):
         self, net: nn.Module, conditioning: InputConditioning, fp16: bool = False, levels: int = FILL_LEVELS
     ) -> None:
         super().__init__()
-        if conditioning.centering not in ("local", "none"):
+        if conditioning.centering not in ("gaussian", "local", "none"):
             raise ExportError(
                 f"conditioning.centering {conditioning.centering!r} cannot be exported (its per-image median has no "
-                "ONNX operator); export a checkpoint trained with centering 'local' or 'none'"
+                "ONNX operator); export a checkpoint trained with centering 'gaussian', 'local' or 'none'"
             )
         self.net = net.half() if fp16 else net
         self.conditioning, self.fp16, self.levels = conditioning, bool(fp16), int(levels)
@@ -213,6 +213,7 @@ def export_onnx(
         "tofdenoise_use_signal_channel": str(model.conditioning.use_signal_channel).lower(),
         "tofdenoise_depth_scale_mm": repr(model.conditioning.depth_scale_mm),
         "tofdenoise_input_centering": model.conditioning.centering,
+        "tofdenoise_input_fill": model.conditioning.fill,
         "tofdenoise_fill_levels": str(FILL_LEVELS),
         "tofdenoise_precision": "fp16" if fp16 else "fp32",
         "tofdenoise_exporter": exporter,

@@ -9,6 +9,11 @@ not take, so without this upgrade an older checkpoint would be rebuilt with toda
 settings (the architecture check then refuses it). :func:`upgrade_hparams` moves each flat value into its group;
 ``DepthRestorer.load_from_checkpoint``, its architecture check and ``model.init_weights`` read checkpoints
 through it, so every checkpoint of the project's history loads with the settings it was trained with.
+
+On 2026-11-27 (issue 42) two conditioning defaults changed: ``centering`` ``local`` -> ``gaussian`` and the new
+``fill`` setting (``pullpush`` before, ``harmonic`` now). A checkpoint stores its whole ``conditioning`` group, so
+its ``centering`` is always there; ``fill`` is not in the files written before: :data:`FORMER_DEFAULTS` gives a
+setting a checkpoint lacks the value it was trained with.
 """
 
 from __future__ import annotations
@@ -16,7 +21,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
-__all__ = ["LEGACY_KEYS", "is_legacy", "upgrade_hparams"]
+__all__ = ["FORMER_DEFAULTS", "LEGACY_KEYS", "is_legacy", "upgrade_hparams"]
 
 #: flat argument of the old layout -> (group, field) of today's
 LEGACY_KEYS: dict[str, tuple[str, str]] = {
@@ -35,18 +40,33 @@ LEGACY_KEYS: dict[str, tuple[str, str]] = {
 }
 
 
+#: settings whose default changed, with the value a checkpoint without them was trained with: (group, field) -> value
+FORMER_DEFAULTS: dict[tuple[str, str], Any] = {
+    ("conditioning", "centering"): "local",
+    ("conditioning", "fill"): "pullpush",
+}
+
+
 def is_legacy(hparams: Mapping[str, Any]) -> bool:
-    """Does ``hparams`` hold a flat setting of the old layout?"""
-    return any(key in hparams for key in LEGACY_KEYS)
+    """Does ``hparams`` hold a flat setting of the old layout, or lack a setting of :data:`FORMER_DEFAULTS`?"""
+    if any(key in hparams for key in LEGACY_KEYS):
+        return True
+    return any(
+        isinstance(hparams.get(group), Mapping) and field not in hparams[group] for group, field in FORMER_DEFAULTS
+    )
 
 
 def upgrade_hparams(hparams: Mapping[str, Any]) -> dict[str, Any]:
     """``hparams`` in today's layout: each flat setting of :data:`LEGACY_KEYS` moved into its group (a group's
-    own value, if a file somehow has both, wins). A dict already in today's layout comes back as a copy."""
+    own value, if a file somehow has both, wins), and each setting of :data:`FORMER_DEFAULTS` it lacks set to the
+    value it was trained with. A dict already in today's layout comes back as a copy."""
     out = {k: v for k, v in hparams.items() if k not in LEGACY_KEYS}
     for key, (group, field) in LEGACY_KEYS.items():
         if key in hparams:
             merged = dict(out.get(group) or {})
             merged.setdefault(field, hparams[key])
             out[group] = merged
+    for (group, field), value in FORMER_DEFAULTS.items():
+        if isinstance(out.get(group), Mapping):  # a file without the group is not guessed (init_weights refuses it)
+            out[group] = {**out[group], field: out[group].get(field, value)}
     return out

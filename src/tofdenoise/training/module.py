@@ -477,9 +477,15 @@ class DepthRestorer(pl.LightningModule):
                 the saved ones.
         """
         saved = _saved_hparams(checkpoint_path)
-        if saved is not None and is_legacy(saved):
-            upgraded = upgrade_hparams(saved)
-            kwargs = {**{g: upgraded[g] for g in ("conditioning", "optim", "tiling") if g in upgraded}, **kwargs}
+        # a checkpoint written before a setting's default changed keeps the value it was trained with
+        # (legacy_hparams.FORMER_DEFAULTS), and a settings group given in kwargs overrides field by field:
+        # conditioning={"fill": "harmonic"} keeps the checkpoint's other conditioning settings
+        if saved is not None:
+            upgraded = upgrade_hparams(saved) if is_legacy(saved) else saved
+            for group in ("conditioning", "optim", "tiling"):
+                mine = kwargs.get(group)
+                if isinstance(upgraded.get(group), dict) and (is_legacy(saved) or isinstance(mine, dict)):
+                    kwargs[group] = {**upgraded[group], **dict(mine or {})}
         return super().load_from_checkpoint(checkpoint_path, *args, **kwargs)
 
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
