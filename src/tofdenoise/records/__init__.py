@@ -8,11 +8,14 @@
 - :mod:`~tofdenoise.records.per_image`: ``per_image/<set>.csv``;
 - :mod:`~tofdenoise.records.run_folder`: the file names of a run folder, ``read_record`` / ``load_metrics`` (strict:
   a ``RecordError`` names the file), ``read_run`` (lenient), ``run_finished`` (the one rule of a finished run),
-  ``unreadable_records`` and ``write_run_info``.
+  ``unreadable_records`` and ``write_run_info``;
+- :mod:`~tofdenoise.records.provenance`: the git commit of the code that made a record (``code_commit``, written
+  into every ``run_info.json``; ``record_commit`` reads it back, ``None`` for older records).
 
 Writers: ``tofdenoise.callbacks.run_outputs.RunOutputs`` (every trained run), the classical row; readers: the
 training job and the grids' runner (skip or return finished runs), ``tofdenoise.reporting`` (report, results page,
-grid table). Every file is written through :mod:`tofdenoise.atomic`. This package imports only ``atomic``.
+grid table). Every file is written through :mod:`tofdenoise.atomic`. This package imports only ``atomic`` (and runs
+``git`` for the commit).
 """
 
 from tofdenoise.records.metrics_json import (
@@ -30,6 +33,7 @@ from tofdenoise.records.metrics_json import (
     write_metrics_json,
 )
 from tofdenoise.records.per_image import read_per_image_csv, write_per_image_csv
+from tofdenoise.records.provenance import code_commit, record_commit
 from tofdenoise.records.run_folder import (
     BEST_CHECKPOINT,
     LAST_CHECKPOINT,
@@ -62,6 +66,7 @@ __all__ = [
     "RecordError",
     "TRUTH_NAME",
     "classical_verdict",
+    "code_commit",
     "json_number",
     "learned_status",
     "learned_verdict",
@@ -71,6 +76,7 @@ __all__ = [
     "read_per_image_csv",
     "read_record",
     "read_run",
+    "record_commit",
     "run_fields",
     "run_finished",
     "set_entry",
