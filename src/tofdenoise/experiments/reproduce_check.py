@@ -35,12 +35,15 @@ from pathlib import Path
 from typing import Any
 
 import yaml
+from omegaconf import OmegaConf
 
 from tofdenoise.atomic import atomic_write_text
+from tofdenoise.config import compose_config
 from tofdenoise.experiments.reproduce import PROFILES
 from tofdenoise.experiments.runner import RunSpec, run_all
 from tofdenoise.experiments.tables import TABLES, Row, run_name, table_specs
 from tofdenoise.experiments.train_job import CONFIG_NAME, FORMER_SOURCE_KEYS, _comparable
+from tofdenoise.physics.calibration import SensorCalibration, save_calibration
 from tofdenoise.records import (
     METRICS_NAME,
     RUN_INFO_NAME,
@@ -66,7 +69,7 @@ __all__ = [
 ]
 
 #: the tables a check covers, one run each
-CHECK_TABLES = ("1", "2", "3", "dynrange")
+CHECK_TABLES = tuple(TABLES)
 #: the noisy input's test MAE must match to this (mm): the same test images, noise and holes
 INPUT_TOLERANCE_MM = 1e-6
 #: the least tolerance of a trained metric (its seed spread may be smaller than this by chance with three seeds)
@@ -137,7 +140,8 @@ def _train_seconds(record: Path) -> float:
 
 def pick_check_runs(profile_dir: Path, tables: Sequence[str] = CHECK_TABLES, seed: int = 0) -> list[CheckRun]:
     """Per table, the trained row whose recorded runs trained fastest (median ``train_seconds``), its ``seed`` run;
-    rows without a ``seed`` record holding ``config.yaml`` are passed over. A ``ValueError`` for a table with none."""
+    rows without a ``seed`` record holding ``config.yaml``, or whose record was resumed, are passed over. A
+    ``ValueError`` for a table with none."""
     picked = []
     for table in tables:
         best: tuple[float, str, CheckRun] | None = None
@@ -147,6 +151,8 @@ def pick_check_runs(profile_dir: Path, tables: Sequence[str] = CHECK_TABLES, see
             record = profile_dir / run_name(row, seed)
             if not (record / CONFIG_NAME).is_file() or not (record / METRICS_NAME).is_file():
                 continue
+            if (read_record(record / RUN_INFO_NAME) or {}).get("resumed"):
+                continue  # its data order after the stop differs from an uninterrupted run's: not rerun bit for bit
             seconds = [_train_seconds(profile_dir / run_name(row, s)) for s in (0, 1, 2)]
             finite = [s for s in seconds if math.isfinite(s)] or [math.inf]
             key = (statistics.median(finite), row.key)
@@ -258,12 +264,23 @@ def _check_spec(run: CheckRun, profile: str, calibration: Path, extra: Sequence[
 
 
 def _composed_yaml(spec: RunSpec, run_dir: Path) -> str:
-    from omegaconf import OmegaConf
-
-    from tofdenoise.config import compose_config
-
     cfg = compose_config([*spec.overrides, f"paths.run_dir={run_dir}"])
     return OmegaConf.to_yaml(cfg, resolve=True)
+
+
+#: what a run's ``prepared_data`` says about its inputs: the calibration, the noise models' matching, the split
+INPUT_FIELDS = ("calibration", "variance_scale", "sizes", "holes", "max_depth_mm")
+
+
+def _inputs_note(record: Path, rerun: Path) -> str:
+    """Whether the rerun prepared the record's inputs (``run_info.json``'s ``prepared_data``: calibration
+    fingerprint, variance scale, split sizes, hole settings, depth range)."""
+    mine = (read_record(rerun / RUN_INFO_NAME) or {}).get("prepared_data") or {}
+    theirs = (read_record(record / RUN_INFO_NAME) or {}).get("prepared_data") or {}
+    differ = [k for k in INPUT_FIELDS if k in theirs and theirs.get(k) != mine.get(k)]
+    if not differ:
+        return "inputs prepared as recorded (" + ", ".join(k for k in INPUT_FIELDS if k in theirs) + ")"
+    return "inputs differ from the record's: " + "; ".join(f"{k}: {theirs[k]!r} -> {mine.get(k)!r}" for k in differ)
 
 
 def _commit_note(info: Mapping[str, Any] | None) -> str:
@@ -299,8 +316,12 @@ def reproduce_check(
         if not isinstance(sensor, dict):
             raise RecordError(f"{run.record / CONFIG_NAME}: no 'sensor' mapping (the calibration the run used)")
         calibration = Path(out) / "calibrations" / f"{run.name}.yaml"
+        try:
+            calib = SensorCalibration.from_dict(sensor, source=str(run.record / CONFIG_NAME))
+        except (ValueError, TypeError) as exc:
+            raise RecordError(f"{run.record / CONFIG_NAME}: its 'sensor' is no calibration ({exc})") from None
         if not dry_run:
-            atomic_write_text(calibration, yaml.safe_dump(sensor, sort_keys=False))
+            save_calibration(calib, calibration)
         spec = _check_spec(run, profile, calibration, extra)
         changed, added = config_drift(recorded_yaml, _composed_yaml(spec, Path(out) / run.name))
         notes = [f"{TABLE_NAMES.get(run.table, run.table)}: {run.name}"]
@@ -323,6 +344,7 @@ def reproduce_check(
             continue
         recorded = load_metrics(run.record / METRICS_NAME)
         rerun = load_metrics(Path(out) / run.name / METRICS_NAME)
+        result.notes[run.name].append(_inputs_note(run.record, Path(out) / run.name))
         spreads = {m: _seed_spread(profile_dir, run.row, m) for m in MIN_TOLERANCE}
         result.rows += compare_metrics(run.name, recorded, rerun, spreads)
     lines = [

@@ -101,10 +101,11 @@ def _truth_set(path: Path) -> dict[str, Any] | None:
 
 def _truth_units(path: Path) -> dict[str, dict[str, float]] | None:
     """Per scene of a run's ``real_vs_truth.json``: ``{key: {scene: value}}`` for the restored maps against the
-    truth and ``raw_<key>`` for the input frames (None without the file or without per-scene scores)."""
+    truth and ``raw_<key>`` for the input frames (None without the file or without per-scene scores; scores that
+    are there but cannot be read are a RecordError naming the file)."""
     data = read_record(path)
-    if data is None:
-        return None
+    if data is None or "images" not in (data.get("truth") or {}):
+        return None  # no per-scene scores: the run's steps get no interval over scenes
     try:
         restored, raw = data["truth"]["images"], data["input"]["truth"]["images"]
         out = {k: {u: float(v[k]) for u, v in restored.items()} for k in METRIC_KEYS}
