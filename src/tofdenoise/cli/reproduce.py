@@ -35,7 +35,7 @@ from pathlib import Path
 from tofdenoise.atomic import WriteError
 from tofdenoise.cli.executor_args import add_executor_arguments, executor_from_args
 from tofdenoise.experiments.reproduce import PROFILES, Reproduction, profile_needs, reproduce
-from tofdenoise.experiments.tables import TABLES
+from tofdenoise.experiments.reproduce_check import CHECK_TABLES, reproduce_check
 from tofdenoise.experiments.targets import KINDS, Target
 from tofdenoise.output_guard import OutputPathError, check_output_file
 from tofdenoise.paths import REPO_ROOT
@@ -66,10 +66,10 @@ def build_parser() -> argparse.ArgumentParser:
     what.add_argument(
         "--check",
         nargs="*",
-        choices=list(TABLES),
+        choices=CHECK_TABLES,
         metavar="TABLE",
         help="rerun one small recorded run per table at this commit and compare it with its record within a stated "
-        f"tolerance (default: every table, {' '.join(TABLES)}); run folders under runs/reproduce-check/<profile>",
+        f"tolerance (default: every table, {' '.join(CHECK_TABLES)}); run folders under runs/reproduce-check/<profile>",
     )
     p.add_argument("--profile", choices=sorted(PROFILES), default="cpu")
     p.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
@@ -105,16 +105,13 @@ def _target(args: argparse.Namespace) -> Target | None:
 
 
 def _check(args: argparse.Namespace) -> int:
-    # heavy (lightning, through the training job's config comparison): not for the page or a table's dry run
-    from tofdenoise.experiments.reproduce_check import reproduce_check
-
     out = (args.out or REPO_ROOT / "runs" / "reproduce-check" / args.profile).expanduser().resolve()
     try:
         result = reproduce_check(
             args.results,
             out,
             profile=args.profile,
-            tables=args.check or list(TABLES),
+            tables=args.check or CHECK_TABLES,
             dry_run=args.dry_run,
             extra=args.extra,
         )

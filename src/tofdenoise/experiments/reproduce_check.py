@@ -39,11 +39,8 @@ from omegaconf import OmegaConf
 
 from tofdenoise.atomic import atomic_write_text
 from tofdenoise.config import compose_config
-from tofdenoise.experiments.reproduce import PROFILES
 from tofdenoise.experiments.runner import RunSpec, run_all
 from tofdenoise.experiments.tables import TABLES, Row, run_name, table_specs
-from tofdenoise.experiments.train_job import CONFIG_NAME, FORMER_SOURCE_KEYS, _comparable
-from tofdenoise.physics.calibration import SensorCalibration, save_calibration
 from tofdenoise.records import (
     METRICS_NAME,
     RUN_INFO_NAME,
@@ -53,7 +50,6 @@ from tofdenoise.records import (
     read_record,
     record_commit,
 )
-from tofdenoise.training.legacy_hparams import LEGACY_KEYS
 
 __all__ = [
     "CHECK_TABLES",
@@ -68,8 +64,10 @@ __all__ = [
     "reproduce_check",
 ]
 
-#: the tables a check covers, one run each
-CHECK_TABLES = tuple(TABLES)
+#: the tables a check covers, one run each (the CPU profile's; the GPU studies have no CPU records to rerun)
+CHECK_TABLES = ("1", "2", "3", "dynrange")
+#: a run's resolved config, as the training job saves it next to its records (``train_job.CONFIG_NAME``)
+CONFIG_NAME = "config.yaml"
 #: the noisy input's test MAE must match to this (mm): the same test images, noise and holes
 INPUT_TOLERANCE_MM = 1e-6
 #: the least tolerance of a trained metric (its seed spread may be smaller than this by chance with three seeds)
@@ -167,6 +165,10 @@ def pick_check_runs(profile_dir: Path, tables: Sequence[str] = CHECK_TABLES, see
 def _upgraded(flat: Mapping[str, Any]) -> dict[str, Any]:
     """A flattened config in today's settings layout: ``data.<source key>`` -> ``data.source_kwargs.<key>``,
     ``model.<flat setting>`` -> ``model.<group>.<field>`` (the layouts before issue 24)."""
+    # heavy (torch, lightning through the training packages): imported when a check runs, not with the CLI
+    from tofdenoise.experiments.train_job import FORMER_SOURCE_KEYS
+    from tofdenoise.training.legacy_hparams import LEGACY_KEYS
+
     out = {}
     for key, value in flat.items():
         head, _, tail = key.partition(".")
@@ -185,6 +187,8 @@ def config_drift(recorded_yaml: str, now_yaml: str) -> tuple[list[str], list[str
     (``key: recorded -> now``), ``added`` the settings only today's config has (``key = value``, new settings the
     record predates). Where the runs write, the sensor file and the real set are not compared (the check sets
     them), nor what ``tofdenoise train`` ignores when it compares two attempts of a run (``SAME_RUN_IGNORES``)."""
+
+    from tofdenoise.experiments.train_job import _comparable  # heavy (lightning): see _upgraded
 
     def comparable(text: str) -> dict[str, Any]:
         flat = _upgraded(_comparable(text))
@@ -259,6 +263,8 @@ def check_table_markdown(rows: Sequence[CheckRow]) -> list[str]:
 
 
 def _check_spec(run: CheckRun, profile: str, calibration: Path, extra: Sequence[str] = ()) -> RunSpec:
+    from tofdenoise.experiments.reproduce import PROFILES  # the workflow module: imported when a check runs
+
     common = [*PROFILES[profile], f"++data.sensor={calibration}", "++data.real_dir=null", *extra]
     return next(s for s in table_specs(run.table, [run.seed], common) if s.name == run.name)
 
@@ -304,6 +310,8 @@ def reproduce_check(
     table is logged and written to ``<out>/reproduce-check.md``. Finished reruns in ``out`` are reused. ``extra``:
     Hydra overrides for every rerun after the profile's (as ``tofdenoise reproduce --extra``: the records must
     have been made with them too, else the config comparison names them)."""
+    from tofdenoise.physics.calibration import SensorCalibration, save_calibration  # heavy (torch)
+
     profile_dir = Path(results) / profile
     runs = pick_check_runs(profile_dir, tables)
     head = code_commit()
