@@ -127,3 +127,20 @@ def test_the_committed_records_reproduce_at_this_commit(tmp_path):
     lines: list[str] = []
     result = reproduce_check(REPO_ROOT / "docs" / "results", tmp_path, log=lines.append)
     assert result.passed, "\n".join(lines)
+
+
+def test_the_inputs_note_reads_both_layouts_of_prepared_data(tmp_path):
+    from tofdenoise.experiments.reproduce_check import _inputs_note
+
+    old, new = tmp_path / "record", tmp_path / "rerun"
+    for folder, prepared in (
+        (old, {"calibration": "6ae1", "variance_scale": 4.98, "max_depth_mm": 1598.9}),
+        (new, {"calibration": "6ae1", "variance_scale": 4.98, "source_settings": {"max_depth_mm": 1598.9}}),
+    ):
+        folder.mkdir()
+        (folder / "run_info.json").write_text(json.dumps({"prepared_data": prepared}))
+    assert _inputs_note(old, new) == "inputs prepared as recorded (calibration, variance_scale, max_depth_mm)"
+    (new / "run_info.json").write_text(json.dumps({"prepared_data": {"calibration": "a62a", "variance_scale": 4.98}}))
+    assert _inputs_note(old, new) == (
+        "inputs differ from the record's: calibration: '6ae1' -> 'a62a'; max_depth_mm: 1598.9 -> None"
+    )

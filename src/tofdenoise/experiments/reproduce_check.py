@@ -278,15 +278,24 @@ def _composed_yaml(spec: RunSpec, run_dir: Path) -> str:
 INPUT_FIELDS = ("calibration", "variance_scale", "sizes", "holes", "max_depth_mm")
 
 
+def _prepared(info: Mapping[str, Any] | None, key: str) -> Any:
+    """A ``prepared_data`` field of a ``run_info.json``, at its top level or, in today's layout, under
+    ``source_settings`` (where the source's own settings such as ``max_depth_mm`` moved)."""
+    prepared = (info or {}).get("prepared_data") or {}
+    return prepared[key] if key in prepared else (prepared.get("source_settings") or {}).get(key)
+
+
 def _inputs_note(record: Path, rerun: Path) -> str:
     """Whether the rerun prepared the record's inputs (``run_info.json``'s ``prepared_data``: calibration
     fingerprint, variance scale, split sizes, hole settings, depth range)."""
-    mine = (read_record(rerun / RUN_INFO_NAME) or {}).get("prepared_data") or {}
-    theirs = (read_record(record / RUN_INFO_NAME) or {}).get("prepared_data") or {}
-    differ = [k for k in INPUT_FIELDS if k in theirs and theirs.get(k) != mine.get(k)]
+    mine, theirs = read_record(rerun / RUN_INFO_NAME), read_record(record / RUN_INFO_NAME)
+    present = [k for k in INPUT_FIELDS if _prepared(theirs, k) is not None]
+    differ = [k for k in present if _prepared(theirs, k) != _prepared(mine, k)]
     if not differ:
-        return "inputs prepared as recorded (" + ", ".join(k for k in INPUT_FIELDS if k in theirs) + ")"
-    return "inputs differ from the record's: " + "; ".join(f"{k}: {theirs[k]!r} -> {mine.get(k)!r}" for k in differ)
+        return "inputs prepared as recorded (" + ", ".join(present) + ")"
+    return "inputs differ from the record's: " + "; ".join(
+        f"{k}: {_prepared(theirs, k)!r} -> {_prepared(mine, k)!r}" for k in differ
+    )
 
 
 def _commit_note(info: Mapping[str, Any] | None) -> str:
