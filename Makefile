@@ -32,7 +32,7 @@ BENCH_ARGS ?=
 
 export PYTHONUNBUFFERED := 1
 
-.PHONY: help venv lock train test test-slow probe lint format docs bench robustness realset reproduce cli-configs clean
+.PHONY: help venv lock train test test-slow probe lint format docs bench robustness realset reproduce reproduce-check cli-configs clean
 
 help:
 	@echo "make train   - small default training on built-in procedural scenes (CPU)"
@@ -50,6 +50,8 @@ help:
 	@echo "make reproduce TABLE=1|2|3 | FIGURE=6|7|8 | STUDY=dynrange [PROFILE=cpu|gpu|gpu-short] [SEEDS=0,1,2] - a paper table,"
 	@echo "               figure or study (resumable; records in docs/results/, page docs/results.md;"
 	@echo "               REPRO_ARGS='--extra data.source_kwargs.root=...')"
+	@echo "make reproduce-check [PROFILE=cpu] [CHECK='3 dynrange'] - rerun one small recorded run per table at this"
+	@echo "               commit and compare it with its record within a stated tolerance (docs/results.md)"
 	@echo "make cli-configs - regenerate the LightningCLI YAMLs (configs/cli/) after editing configs/"
 	@echo "make venv    - only create/refresh .venv (TORCH='torch==X' to choose the torch build)"
 	@echo "make lock    - refresh $(LOCK) (exact versions make venv installs) from a fresh venv"
@@ -147,6 +149,12 @@ repro_target = $(if $(TABLE),--table $(TABLE)) $(if $(FIGURE),--figure $(FIGURE)
 reproduce: $(STAMP)
 	@test $(words $(repro_target)) -eq 2 || { echo "make reproduce: set one of TABLE=1|2|3, FIGURE=6|7|8 or STUDY=dynrange (e.g. make reproduce TABLE=3)"; exit 2; }
 	$(VENV)/bin/tofdenoise reproduce $(repro_target) --profile $(PROFILE) --seeds $(subst $(comma), ,$(SEEDS)) $(REPRO_ARGS)
+
+# Do the committed records reproduce at this commit? One small recorded run per table (CHECK= a subset: 1 2 3
+# dynrange), rerun under runs/reproduce-check/<profile> and compared with its record; exit 1 when one does not
+CHECK ?=
+reproduce-check: $(STAMP)
+	$(VENV)/bin/tofdenoise reproduce --check $(CHECK) --profile $(PROFILE) $(REPRO_ARGS)
 
 # configs/cli/*.yaml are generated from the Hydra configs (one source of truth); a test fails when they are stale
 cli-configs: $(STAMP)

@@ -21,6 +21,7 @@ from tofdenoise.models import trainable_backbones
 from tofdenoise.physics.calibration import SensorCalibration
 from tofdenoise.records import (
     RUN_KEYS,
+    code_commit,
     learned_status,
     metric_sets,
     read_metrics_json,
@@ -403,24 +404,69 @@ def test_signal_channel_from_the_config_alone(backbone, tmp_path, data_cache, ti
     assert first_conv.in_channels == 2
 
 
-def test_two_identical_runs_give_identical_metrics(tmp_path, tiny):
-    """Issue item 6: the CPU default is bit-reproducible for a given machine and thread count: the same config
-    twice gives byte-identical metrics and per-image values, also when the first run builds the data cache and
-    the second reads it (cache building must not move any random stream)."""
+#: intra-op threads of the reproducibility tests: a convolution's reductions are split by thread, so the count is
+#: part of what makes two runs identical (docs/training.md, "Determinism")
+DETERMINISM_THREADS = 2
+
+
+@pytest.fixture
+def fixed_threads():
+    before = torch.get_num_threads()
+    torch.set_num_threads(DETERMINISM_THREADS)
+    yield
+    torch.set_num_threads(before)
+
+
+def _tensors(state, prefix=""):
+    """Every tensor of a nested state (an optimiser's), keyed by its path."""
+    if isinstance(state, torch.Tensor):
+        yield prefix, state
+    elif isinstance(state, dict):
+        for k, v in state.items():
+            yield from _tensors(v, f"{prefix}/{k}")
+    elif isinstance(state, (list, tuple)):
+        for i, v in enumerate(state):
+            yield from _tensors(v, f"{prefix}/{i}")
+
+
+@pytest.mark.parametrize("backbone", ["unet", pytest.param("dvss", marks=pytest.mark.slow)])
+def test_two_identical_runs_give_identical_metrics(backbone, tmp_path, tiny, fixed_threads):
+    """Issue item 6 and issue 39: CPU training is bit-reproducible for a given machine and thread count: the same
+    config twice gives byte-identical metrics and per-image values, weights, optimiser state and logged losses,
+    also when the first run builds the data cache and the second reads it (cache building must not move any random
+    stream). DVSS (slow) runs its native CPU scan kernel, threaded over its own blocks."""
     cache = tmp_path / "cache"  # empty: the first run builds it
     outs = []
     for name in ("a", "b"):
-        cfg = compose_config(tiny(tmp_path / name, cache) + ["trainer.max_epochs=2", "logger=csv"])
+        cfg = compose_config(tiny(tmp_path / name, cache, backbone) + ["trainer.max_epochs=2", "logger=csv"])
         run(cfg)
         outs.append(tmp_path / name)
     a, b = (json.loads((d / "metrics.json").read_text()) for d in outs)
-    assert a == b
+    assert a == b and a["trained_steps"] > 0
     assert (outs[0] / "per_image" / "synthetic.csv").read_text() == (
         outs[1] / "per_image" / "synthetic.csv"
     ).read_text()
-    ta = torch.load(outs[0] / "checkpoints" / "last.ckpt", weights_only=True)["state_dict"]
-    tb = torch.load(outs[1] / "checkpoints" / "last.ckpt", weights_only=True)["state_dict"]
-    assert all(torch.equal(ta[k], tb[k]) for k in ta)
+    ca, cb = (torch.load(d / "checkpoints" / "last.ckpt", weights_only=True) for d in outs)
+    ta, tb = ca["state_dict"], cb["state_dict"]
+    assert ta.keys() == tb.keys() and all(torch.equal(ta[k], tb[k]) for k in ta)
+    oa, ob = dict(_tensors(ca["optimizer_states"])), dict(_tensors(cb["optimizer_states"]))
+    assert oa and oa.keys() == ob.keys() and all(torch.equal(oa[k], ob[k]) for k in oa)
+    losses = []
+    for d in outs:
+        with open(d / "csv" / "metrics.csv") as fh:
+            losses.append([{k: v for k, v in row.items() if k.startswith("train/")} for row in csv.DictReader(fh)])
+    assert losses[0] == losses[1] and losses[0]
+
+
+def test_run_info_names_the_commit_that_made_it(tmp_path, tiny):
+    """Issue 39: run_info.json carries the commit of the checkout the package runs from, with its dirty flag."""
+    cfg = compose_config(tiny(tmp_path, tmp_path / "cache") + ["+trainer.fast_dev_run=true", "logger=csv"])
+    run(cfg)
+    info = json.loads((tmp_path / "run_info.json").read_text())
+    expected = code_commit()
+    assert {k: info.get(k) for k in expected} == expected
+    if expected["commit"] is not None:  # the tests run from a git checkout
+        assert len(info["commit"]) == 40 and isinstance(info["commit_dirty"], bool)
 
 
 def test_a_bad_data_setting_is_one_line_naming_the_key_before_any_training(tmp_path):

@@ -13,7 +13,7 @@ import pytest
 from tofdenoise.experiments.runner import RunSpec
 from tofdenoise.experiments.tables import CLAIMS, TABLES, claim_holds, claim_steps, table_specs
 from tofdenoise.paths import REPO_ROOT
-from tofdenoise.records import learned_verdict
+from tofdenoise.records import RecordError, learned_verdict
 from tofdenoise.reporting.results_page import load_records, results_markdown, run_minutes, seeds_present
 
 
@@ -214,3 +214,65 @@ def test_committed_results_page_matches_the_records():
     assert page.read_text() == results_markdown(REPO_ROOT / "docs" / "results"), (
         "docs/results.md is stale: run `tofdenoise reproduce --page-only`"
     )
+
+
+def _write_per_image(run_dir: Path, set_name: str, maes: dict[str, float], raw: float = 7.0) -> None:
+    from tofdenoise.records import write_per_image_csv
+
+    rows = [
+        {"index": i, "name": n, "valid_px": 100, "psnr_db": 40.0, "mae_mm": m, "mse_mm2": 10 * m, "ssim": 0.99}
+        for i, (n, m) in enumerate(maes.items())
+    ]
+    raws = [{**r, "mae_mm": raw} for r in rows]
+    write_per_image_csv(run_dir / "per_image" / f"{set_name}.csv", rows, raws)
+
+
+def _truth_json(maes: dict[str, float], raw: float = 9.0) -> dict:
+    def entry(m):
+        return {"psnr_db": 40.0, "mae_mm": m, "mse_mm2": 10 * m, "ssim": 0.99}
+
+    mean = statistics.fmean(maes.values())
+    return {
+        "truth": {"mean": entry(mean), "images": {n: entry(m) for n, m in maes.items()}},
+        "input": {"truth": {"mean": entry(raw), "images": {n: entry(raw) for n in maes}}},
+    }
+
+
+def test_results_page_bootstraps_each_step_over_the_test_images_and_scenes(tmp_path):
+    """Hand-computed: hetero -> range is +0.5 mm on both images in both seeds (a zero-width interval, holds on
+    every image); range -> fixed is +1.0 mm on one image and -0.2 mm on the other in both seeds: resampling two
+    images, the interval runs from -0.2 to +1.0 and the step holds on half of them."""
+    cpu = tmp_path / "cpu"
+    for seed in (0, 1):
+        hetero = {"img_a": 2.0 + seed, "img_b": 3.0}
+        rng = {k: v + 0.5 for k, v in hetero.items()}
+        fixed = {"img_a": rng["img_a"] + 1.0, "img_b": rng["img_b"] - 0.2}
+        for noise, maes in (("hetero", hetero), ("range", rng), ("fixed", fixed)):
+            name = f"dvss-{noise}-l1-s{seed}"
+            _write_run(cpu, name, _metrics(statistics.fmean(maes.values())))
+            _write_per_image(cpu / name, "synthetic", maes)
+    page = results_markdown(tmp_path)
+    assert "95 % interval of each step over the test images / scenes" in page
+    assert (
+        "| +0.500 ± 0.000, +0.400 ± 0.000 mm (n=2) | [+0.500, +0.500], [-0.200, +1.000] mm | 100 %, 50 % of 2 images |"
+    ) in page
+    # a run without its per-image record: no interval (the seed-paired step stays)
+    (cpu / "dvss-fixed-l1-s1" / "per_image" / "synthetic.csv").unlink()
+    assert "| +0.500 ± 0.000, +0.400 ± 0.000 mm (n=2) | - | - |" in results_markdown(tmp_path)
+    # the real set against its truth: per scene, from real_vs_truth.json (U-Net hetero beats range on one of
+    # three scenes by 0.9 mm, loses the other two by 0.3 mm: mean +0.1 mm)
+    for seed in (0, 1):
+        for noise, maes in (
+            ("hetero", {"s0": 4.0, "s1": 5.3, "s2": 6.3}),
+            ("range", {"s0": 4.9, "s1": 5.0, "s2": 6.0}),
+        ):
+            name = f"unet-{noise}-l1-s{seed}"
+            _write_run(cpu, name, _metrics(3.0))
+            (cpu / name / "real_vs_truth.json").write_text(json.dumps(_truth_json(maes)))
+    page = results_markdown(tmp_path)
+    line = next(x for x in page.splitlines() if x.startswith("| hetero < range for U-Net (real vs truth MAE)"))
+    assert line.endswith("| +0.100 ± 0.000 mm (n=2) | [-0.300, +0.900] mm | 33 % of 3 scenes |"), line
+    # a per-image record that cannot be read is an error naming it, not a step without interval
+    (cpu / "dvss-hetero-l1-s0" / "per_image" / "synthetic.csv").write_text("index,name,mae_mm\n0,img_a,oops\n")
+    with pytest.raises(RecordError, match="dvss-hetero-l1-s0/per_image/synthetic.csv"):
+        results_markdown(tmp_path)

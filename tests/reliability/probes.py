@@ -790,6 +790,16 @@ def _write(rel: str, text: str) -> Callable[[W], None]:
     return damage
 
 
+def _bad_per_image(rel: str) -> Callable[[W], None]:
+    """A per-image CSV (read for the results page's bootstrap intervals) with a value that is no number."""
+
+    def damage(w: W) -> None:
+        (w / rel).parent.mkdir(parents=True, exist_ok=True)
+        (w / rel).write_text("index,name,mae_mm\n0,scene_000001,oops\n")
+
+    return damage
+
+
 _REC = "results/cpu/dvss-range-l1-s1"
 _GRID_REC = f"grid/{GRID_RUN}"
 PROBES += [
@@ -806,6 +816,9 @@ PROBES += [
       lambda w: ["error", f"{_REC}/metrics.json", "synthetic.mae_mm", "NaN"]),
     P("tofdenoise reproduce", "corrupt_records", "run-info-not-json", page_args, _write(f"{_REC}/run_info.json", "{x"),
       2, lambda w: ["error", f"{_REC}/run_info.json"]),
+    P("tofdenoise reproduce", "corrupt_records", "per-image-not-numbers", page_args,
+      _bad_per_image(f"{_REC}/per_image/synthetic.csv"), 2,
+      lambda w: ["error", f"{_REC}/per_image/synthetic.csv", "per-image record"]),
     P("tofdenoise reproduce", "corrupt_records", "results-folder-missing",
       lambda w: ["--page-only", "--results", w / "no-results", "--page", w / "out/results.md"], None, 2,
       lambda w: ["error", "--results", str(w / "no-results"), "no such folder"]),

@@ -20,7 +20,9 @@ the global-zero process only (file names in :mod:`tofdenoise.records`):
 
 The run-level fields come from the run itself: ``backbone`` / ``loss`` from the LightningModule's
 hyper-parameters, ``noise`` / ``data`` (the source) from the datamodule's, ``seed`` from Lightning's
-``seed_everything`` (``PL_GLOBAL_SEED``), ``run_name`` from ``name`` (default ``<backbone>-<noise>-<loss>``).
+``seed_everything`` (``PL_GLOBAL_SEED``), ``run_name`` from ``name`` (default ``<backbone>-<noise>-<loss>``),
+``commit`` / ``commit_dirty`` / ``commit_describe`` from the checkout the package runs from
+(:func:`tofdenoise.records.code_commit`).
 """
 
 from __future__ import annotations
@@ -40,6 +42,7 @@ from tofdenoise.records import (
     METRICS_NAME,
     PER_IMAGE_DIR,
     RUN_INFO_NAME,
+    code_commit,
     write_metrics_json,
     write_per_image_csv,
     write_run_info,
@@ -136,6 +139,8 @@ class RunOutputs(Callback):
             "prepared_data": summary() if callable(summary) else None,
             # fine-tuning: the weights this run started from (model.init_weights), path and sha256
             "init_weights": getattr(pl_module, "init_record", None),
+            # the code that trained it: commit, whether tracked files differed from it, git describe
+            **code_commit(),
         }
 
     def _write_records(self, trainer: pl.Trainer, pl_module: pl.LightningModule, resumed: bool) -> None:

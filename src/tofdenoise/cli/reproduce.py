@@ -6,6 +6,8 @@
     tofdenoise reproduce --study dynrange                           # beyond the paper: the dynamic-range study
     tofdenoise reproduce --table 1 --dry-run                        # list what would run
     tofdenoise reproduce --page-only                                # rebuild docs/results.md from docs/results/
+    tofdenoise reproduce --check                                    # rerun one record per table, compare (make
+                                                                    # reproduce-check); --check 3 dynrange: those
     tofdenoise reproduce --table 3 --executor local --workers 2     # two runs at a time on this machine
     tofdenoise reproduce --table 3 --profile gpu-short --seeds 0  # the paper's recipe on the procedural world, one GPU
     tofdenoise reproduce --table 3 --profile gpu-short --seeds 0 --skip-recorded   # a fresh machine: the rest only
@@ -18,7 +20,9 @@ real set, the runs, their records, the page; the targets: ``tofdenoise.experimen
 every run of the target finished, 1 when one did not; 2 for a usage error, for ``--page`` that would replace what
 the page is built from (the discussion, a record: ``tofdenoise.output_guard``, checked before anything runs) and
 for a record that cannot be used (``records.RecordError``, naming the file; a run without a record
-is listed on the page as missing), and for ``--page-only`` with a ``--results`` folder that does not exist. A
+is listed on the page as missing), and for ``--page-only`` with a ``--results`` folder that does not exist.
+``--check`` (``tofdenoise.experiments.reproduce_check``): exit status 0 when every rerun matches its record within
+the stated tolerance, 1 when one does not (the table says which), 2 when a table has no record to rerun. A
 missing ``<results>/discussion.md`` is a warning naming it: the page is rebuilt without its discussion (a fresh
 results folder has none yet).
 """
@@ -31,6 +35,7 @@ from pathlib import Path
 
 from tofdenoise.atomic import WriteError
 from tofdenoise.cli.executor_args import add_executor_arguments, executor_from_args
+from tofdenoise.experiments.reproduce_check import CHECK_TABLES, reproduce_check
 from tofdenoise.experiments.targets import KINDS, PROFILES, Target
 from tofdenoise.output_guard import OutputPathError, check_output_file
 from tofdenoise.paths import REPO_ROOT
@@ -59,6 +64,14 @@ def build_parser() -> argparse.ArgumentParser:
         choices=KINDS["study"],
         help="a study beyond the paper (dynrange: across the dynamic range; schedule: DVSS's training "
         "noises at 10x gpu-short's steps)",
+    )
+    what.add_argument(
+        "--check",
+        nargs="*",
+        choices=CHECK_TABLES,
+        metavar="TABLE",
+        help="rerun one small recorded run per table at this commit and compare it with its record within a stated "
+        f"tolerance (default: every table, {' '.join(CHECK_TABLES)}); run folders under runs/reproduce-check/<profile>",
     )
     p.add_argument("--profile", choices=sorted(PROFILES), default="cpu")
     p.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
@@ -103,8 +116,27 @@ def _target(args: argparse.Namespace) -> Target | None:
     return None
 
 
+def _check(args: argparse.Namespace) -> int:
+    out = (args.out or REPO_ROOT / "runs" / "reproduce-check" / args.profile).expanduser().resolve()
+    try:
+        result = reproduce_check(
+            args.results,
+            out,
+            profile=args.profile,
+            tables=args.check or CHECK_TABLES,
+            dry_run=args.dry_run,
+            extra=args.extra,
+        )
+    except (RecordError, WriteError, ValueError) as exc:
+        print(f"{PROG}: error: {exc}", file=sys.stderr)
+        return 2
+    return 0 if args.dry_run or result.passed else 1
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if args.check is not None:
+        return _check(args)
     target = _target(args)
     if target is None and not args.page_only:  # a usage error: exit 2, as argparse's own
         studies = "|".join(KINDS["study"])

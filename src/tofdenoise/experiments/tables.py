@@ -63,6 +63,7 @@ __all__ = [
     "column_source",
     "column_metric",
     "metric_value",
+    "chain_units",
 ]
 
 #: a table column is a metric of ``reporting.numbers.METRIC_COLUMNS`` on the synthetic test set (``mae_mm``),
@@ -570,6 +571,31 @@ def chain_values(claim: Claim, seeds: Sequence[int], metrics_of: Any) -> list[li
     """Per row of ``claim``'s chain (best first), its per-seed values of ``claim.metric`` (NaN where missing)."""
     rows = {r.key: r for r in TABLES[claim.table]}
     return [row_values(rows[k], seeds, metrics_of, claim.metric) for k in claim.chain]
+
+
+def chain_units(
+    claim: Claim, seeds: Sequence[int], metrics_of: Any, units_of: Any
+) -> list[list[Mapping[str, float]]] | None:
+    """Per row of ``claim``'s chain (best first), its per-unit values of ``claim.metric`` (test image or scene name
+    -> value) in each seed in which every row of the chain has a value (the seeds :func:`claim_steps` pairs);
+    ``units_of(run_name, set_name, key) -> {unit: value} or None`` reads a run's per-image record (the raw row:
+    key ``raw_<key>`` of the DVSS L1 run of the seed, as :func:`row_values`). None when no seed is complete or a
+    run of a complete seed has no per-image record."""
+    rows = {r.key: r for r in TABLES[claim.table]}
+    per_row = chain_values(claim, seeds, metrics_of)
+    complete = [seeds[i] for i in range(len(seeds)) if all(math.isfinite(v[i]) for v in per_row)]
+    if not complete:
+        return None
+    set_name, key = column_source(claim.metric)
+    out: list[list[Mapping[str, float]]] = []
+    for row_key in claim.chain:
+        row = rows[row_key]
+        wanted = f"raw_{key}" if row.key == "raw" else key
+        values = [units_of(run_name(row, s), set_name, wanted) for s in complete]
+        if any(not v for v in values):
+            return None
+        out.append(values)
+    return out
 
 
 def claim_holds(claim: Claim, seed: int, metrics_of: Any) -> bool | None:

@@ -9,11 +9,14 @@
 - :mod:`~tofdenoise.records.run_folder`: the file names of a run folder, ``read_record`` / ``load_metrics`` /
   ``load_scored_metrics`` (strict: a ``RecordError`` names the file; the last one is what a table of runs can use),
   ``read_run`` (lenient), ``run_finished`` (the one rule of a finished run), ``unreadable_records`` and
-  ``write_run_info``.
+  ``write_run_info``;
+- :mod:`~tofdenoise.records.provenance`: the git commit of the code that made a record (``code_commit``, written
+  into every ``run_info.json``; ``record_commit`` reads it back, ``None`` for older records).
 
 Writers: ``tofdenoise.callbacks.run_outputs.RunOutputs`` (every trained run), the classical row; readers: the
 training job and the grids' runner (skip or return finished runs), ``tofdenoise.reporting`` (report, results page,
-grid table). Every file is written through :mod:`tofdenoise.atomic`. This package imports only ``atomic``.
+grid table). Every file is written through :mod:`tofdenoise.atomic`. This package imports only ``atomic`` (and runs
+``git`` for the commit).
 """
 
 from tofdenoise.records.metrics_json import (
@@ -32,6 +35,7 @@ from tofdenoise.records.metrics_json import (
     write_metrics_json,
 )
 from tofdenoise.records.per_image import read_per_image_csv, write_per_image_csv
+from tofdenoise.records.provenance import code_commit, record_commit
 from tofdenoise.records.run_folder import (
     BEST_CHECKPOINT,
     LAST_CHECKPOINT,
@@ -68,6 +72,7 @@ __all__ = [
     "TEST_SET_LABELS",
     "TRUTH_NAME",
     "classical_verdict",
+    "code_commit",
     "json_number",
     "learned_status",
     "learned_verdict",
@@ -78,6 +83,7 @@ __all__ = [
     "read_per_image_csv",
     "read_record",
     "read_run",
+    "record_commit",
     "run_fields",
     "run_finished",
     "set_entry",

@@ -40,6 +40,7 @@ from tofdenoise.experiments.tables import (
     TRUTH_SET,
     Claim,
     Row,
+    chain_units,
     claim_holds,
     claim_steps,
     column_metric,
@@ -51,14 +52,17 @@ from tofdenoise.experiments.targets import target_of_key
 from tofdenoise.records import (
     METRIC_KEYS,
     METRICS_NAME,
+    PER_IMAGE_DIR,
     RUN_INFO_NAME,
     TRUTH_NAME,
     RecordError,
     learned_status,
     load_scored_metrics,
+    read_per_image_csv,
     read_record,
     run_fields,
 )
+from tofdenoise.reporting.intervals import BOOTSTRAP_SEED, LEVEL, RESAMPLES, StepInterval, step_interval
 from tofdenoise.reporting.numbers import format_number
 from tofdenoise.reporting.table import LEARNED_FLAGS
 
@@ -98,10 +102,56 @@ def _truth_set(path: Path) -> dict[str, Any] | None:
         ) from None
 
 
+def _truth_units(path: Path) -> dict[str, dict[str, float]] | None:
+    """Per scene of a run's ``real_vs_truth.json``: ``{key: {scene: value}}`` for the restored maps against the
+    truth and ``raw_<key>`` for the input frames (None without the file or without per-scene scores; scores that
+    are there but cannot be read are a RecordError naming the file)."""
+    data = read_record(path)
+    if data is None or "images" not in (data.get("truth") or {}):
+        return None  # no per-scene scores: the run's steps get no interval over scenes
+    try:
+        restored, raw = data["truth"]["images"], data["input"]["truth"]["images"]
+        out = {k: {u: float(v[k]) for u, v in restored.items()} for k in METRIC_KEYS}
+        out.update({f"raw_{k}": {u: float(v[k]) for u, v in raw.items()} for k in METRIC_KEYS})
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        raise RecordError(
+            f"{path}: expected per-scene truth scores ('truth.images' and 'input.truth.images', each scene with "
+            f"{', '.join(METRIC_KEYS)}); {type(exc).__name__}: {exc}"
+        ) from None
+    return out
+
+
+def _csv_units(path: Path) -> dict[str, dict[str, float]] | None:
+    """Per image of a run's ``per_image/<set>.csv``: ``{column: {image name: value}}`` for every metric column
+    (``raw_<key>`` too), None without the file; a file that cannot be read is a RecordError naming it."""
+    if not path.is_file():
+        return None
+    try:
+        rows = read_per_image_csv(path)
+    except (OSError, ValueError) as exc:
+        raise RecordError(f"{path}: the per-image record cannot be read ({exc})") from None
+    keys = [*METRIC_KEYS, *(f"raw_{k}" for k in METRIC_KEYS)]
+    out: dict[str, dict[str, float]] = {}
+    for key in keys:
+        values = {r["name"]: r.get(key) for r in rows if r.get("name")}
+        if values and all(isinstance(v, float) and math.isfinite(v) for v in values.values()):
+            out[key] = values
+    return out
+
+
+def _per_image_units(run_dir: Path) -> dict[str, dict[str, dict[str, float]]]:
+    """A run's per-unit records by set: ``{set: {key: {image or scene: value}}}`` (synthetic and real from
+    ``per_image/``, the real set against its truth from ``real_vs_truth.json``); sets without a record left out."""
+    found = {name: _csv_units(run_dir / PER_IMAGE_DIR / f"{name}.csv") for name in ("synthetic", "real")}
+    found[TRUTH_SET] = _truth_units(run_dir / TRUTH_NAME)
+    return {name: units for name, units in found.items() if units}
+
+
 def load_records(profile_dir: Path | str) -> dict[str, dict[str, Any]]:
-    """``{run name: {"metrics": dict, "run_info": dict}}`` for every run folder holding both files. A folder
-    without both (an interrupted copy: ``metrics.json`` is copied first) is no record: its run is listed as missing
-    on the page. A file that is there but cannot be used is a RecordError naming it (module docstring)."""
+    """``{run name: {"metrics": dict, "run_info": dict, "per_image": {set: {key: {unit: value}}}}}`` for every run
+    folder holding both files (``per_image``: :func:`_per_image_units`). A folder without both (an interrupted
+    copy: ``metrics.json`` is copied first) is no record: its run is listed as missing on the page. A file that is
+    there but cannot be used is a RecordError naming it (module docstring)."""
     profile_dir = Path(profile_dir)
     records: dict[str, dict[str, Any]] = {}
     if not profile_dir.is_dir():
@@ -115,7 +165,7 @@ def load_records(profile_dir: Path | str) -> dict[str, dict[str, Any]]:
         truth = _truth_set(run_dir / TRUTH_NAME)
         if truth is not None:
             metrics[TRUTH_SET] = truth
-        records[run_dir.name] = {"metrics": metrics, "run_info": info}
+        records[run_dir.name] = {"metrics": metrics, "run_info": info, "per_image": _per_image_units(run_dir)}
     return records
 
 
@@ -179,6 +229,33 @@ def _steps_text(claim: Claim, seeds: list[int], metrics_of: Any, complete: int) 
     return ", ".join(f"{d:+.3f} ± {sd:.3f}" for d, sd in steps) + unit + f" (n={complete})"
 
 
+#: what a set's test units are called on the page
+UNIT_WORDS = {"synthetic": "images", "real": "scenes", TRUTH_SET: "scenes"}
+
+
+def claim_intervals(claim: Claim, seeds: list[int], metrics_of: Any, units_of: Any) -> list[StepInterval | None]:
+    """Per step of ``claim``'s chain, the step over the test images or scenes (``reporting.intervals``: each unit's
+    step averaged over the seeds that :func:`claim_steps` pairs, its bootstrap interval and the share of units where
+    it holds); ``[]`` when a run of those seeds has no per-image record."""
+    chain = chain_units(claim, seeds, metrics_of, units_of)
+    if chain is None:
+        return []
+    return [step_interval(a, b) for a, b in zip(chain, chain[1:])]
+
+
+def _intervals_text(claim: Claim, intervals: list[StepInterval | None]) -> tuple[str, str]:
+    """The ordering's two test-set cells: each step's bootstrap interval (``[+0.21, +0.45] mm``) and the share of
+    units where it holds (``79 %, 60 % of 48 images``)."""
+    if not intervals or any(i is None for i in intervals):
+        return "-", "-"
+    unit = " mm" if claim.metric.endswith("_mm") else ""
+    spans = ", ".join(f"[{i.low:+.3f}, {i.high:+.3f}]" for i in intervals) + unit
+    counts = {i.units for i in intervals}
+    word = UNIT_WORDS[column_source(claim.metric)[0]]
+    shares = ", ".join(f"{100 * i.share:.0f} %" for i in intervals)
+    return spans, f"{shares} of {'/'.join(str(n) for n in sorted(counts))} {word}"
+
+
 def _column_header(column: str) -> str:
     """A table column's header: the metric's, prefixed ``real`` for the real set (``real MAE (mm)↓``), ``real
     vs truth`` for the real set scored against its rendered truth and ``simulator-noised`` for the synthetic test
@@ -193,6 +270,10 @@ def _table_section(table: str, profile: str, records: dict[str, dict[str, Any]],
     def metrics_of(name: str) -> dict[str, Any] | None:
         rec = records.get(name)
         return rec["metrics"] if rec else None
+
+    def units_of(name: str, set_name: str, key: str) -> dict[str, float] | None:
+        rec = records.get(name)
+        return ((rec.get("per_image") or {}).get(set_name) or {}).get(key) if rec else None
 
     cols = TABLE_COLUMNS[table]
     lines = [
@@ -217,8 +298,10 @@ def _table_section(table: str, profile: str, records: dict[str, dict[str, Any]],
     claims = [c for c in CLAIMS if c.table == table]
     lines += [
         "",
-        "| the paper's ordering | holds in seeds | verdict | steps along it: mean ± std of the per-seed difference |",
-        "|---|---|---|---|",
+        "| the paper's ordering | holds in seeds | verdict | steps along it: mean ± std of the per-seed difference "
+        f"| {100 * LEVEL:.0f} % interval of each step over the test images / scenes | share of images / scenes where "
+        "each step holds |",
+        "|---|---|---|---|---|---|",
     ]
     for claim in claims:
         verdicts = {s: claim_holds(claim, s, metrics_of) for s in seeds}
@@ -234,7 +317,8 @@ def _table_section(table: str, profile: str, records: dict[str, dict[str, Any]],
             verdict = "does not hold"
         seeds_text = ", ".join(f"{s}: {'yes' if v else 'no'}" for s, v in known.items()) or "-"
         steps_text = _steps_text(claim, seeds, metrics_of, len(known))
-        lines.append(f"| {claim.text} | {seeds_text} | {verdict} | {steps_text} |")
+        spans, shares = _intervals_text(claim, claim_intervals(claim, seeds, metrics_of, units_of))
+        lines.append(f"| {claim.text} | {seeds_text} | {verdict} | {steps_text} | {spans} | {shares} |")
     lines.append("")
     return lines
 
@@ -476,8 +560,17 @@ def results_markdown(results_dir: Path | str) -> str:
         "filter: one run) show one value, marked seed-independent. Below each table, every ordering the paper "
         "reports is checked per seed. Its steps are paired by seed: the mean over the seeds of the per-seed "
         "difference from one row of the ordering to the next (positive = that step holds), ± the standard "
-        'deviation of that difference. A step within that spread is seed noise, whatever its sign. "real vs '
-        "truth\": the same real-set predictions scored against the stand-in camera's rendered truth instead of "
+        "deviation of that difference. A step within that spread is seed noise, whatever its sign. That spread is "
+        "over training seeds only: every run shares one data seed, one split, one synthetic test split and one "
+        "capture set. The next two columns count the test set's side: per test image (synthetic) or scene (real "
+        "set, and real set against its truth), the step on that image within a seed (the same image in both runs "
+        "of the seed, from the runs' per-image records), averaged over the seeds; then the "
+        f"{100 * LEVEL:.0f} % percentile interval of the mean of those per-image steps when the images or scenes "
+        f"are resampled with replacement ({RESAMPLES:,} resamples, generator seed {BOOTSTRAP_SEED}: a paired "
+        "bootstrap of the step's mean above), and the share of images or scenes whose seed-averaged step is "
+        "positive. An interval that holds 0 is a step this test set cannot tell from none. "
+        '"real vs truth": the same real-set predictions scored against the stand-in camera\'s rendered truth '
+        "instead of "
         "its reference (the mean of its high-exposure frames, which keeps the camera's static errors), on the same "
         "pixels (each learned run's `real_vs_truth.json`, written by `tofdenoise reproduce` as it commits the run, "
         "the same as `tofdenoise evaluate --ckpt ... --captures ...`, or by the classical filter's own job; "

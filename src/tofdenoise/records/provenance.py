@@ -1,0 +1,74 @@
+"""Which code made a record: the git commit of the checkout the running ``tofdenoise`` package was imported from.
+
+Every ``run_info.json`` written at training time carries ``commit`` (:func:`code_commit`): the 40-hex commit of the
+checkout, ``commit_dirty`` (``true`` when tracked files differ from that commit, as ``git describe --dirty`` counts
+them: an uncommitted edit, a changed config) and ``commit_describe`` (``git describe --always --dirty``). An
+installed package outside a checkout (a wheel in site-packages) records ``commit: null`` and its ``version``
+instead. Records written before these fields existed read as before (:func:`record_commit` gives ``None``).
+"""
+
+from __future__ import annotations
+
+import subprocess
+from collections.abc import Mapping
+from functools import lru_cache
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+__all__ = ["code_commit", "record_commit"]
+
+#: the folder holding the ``tofdenoise`` package (``src/`` in a checkout)
+_PACKAGE_DIR = Path(__file__).resolve().parents[1]
+
+
+def _git(folder: Path, *args: str) -> str | None:
+    """``git -C folder args`` stripped, or None when git is missing, the folder is no checkout, or git fails."""
+    try:
+        done = subprocess.run(
+            ["git", "-C", str(folder), *args], capture_output=True, text=True, timeout=30, check=False
+        )
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return done.stdout.strip() if done.returncode == 0 else None
+
+
+def _version() -> str | None:
+    try:
+        return metadata.version("tofdenoise")
+    except metadata.PackageNotFoundError:
+        return None
+
+
+@lru_cache(maxsize=8)
+def _commit_of(folder: Path) -> tuple[tuple[str, Any], ...]:
+    commit = _git(folder, "rev-parse", "--verify", "HEAD")
+    if not commit:
+        return (("commit", None), ("commit_dirty", None), ("version", _version()))
+    # refresh the index's stat data first, so a file touched but not changed does not count as dirty
+    _git(folder, "update-index", "-q", "--refresh")
+    dirty = _git(folder, "diff-index", "--quiet", "HEAD", "--")
+    describe = _git(folder, "describe", "--always", "--dirty", "--abbrev=12")
+    return (
+        ("commit", commit),
+        # diff-index --quiet exits 1 (None here) when a tracked file differs from HEAD
+        ("commit_dirty", dirty is None),
+        ("commit_describe", describe),
+    )
+
+
+def code_commit(folder: str | Path | None = None) -> dict[str, Any]:
+    """The commit of the code that runs: ``{"commit", "commit_dirty", "commit_describe"}`` of the git checkout
+    holding ``folder`` (default: the imported ``tofdenoise`` package); outside a checkout ``{"commit": None,
+    "commit_dirty": None, "version": <installed version>}``. Read once per process and folder (a training run
+    records the code it started with)."""
+    return dict(_commit_of(Path(folder).resolve() if folder is not None else _PACKAGE_DIR))
+
+
+def record_commit(run_info: Mapping[str, Any] | None) -> str | None:
+    """The commit a ``run_info.json`` names, or None for a record written before commits were recorded (or made
+    outside a checkout)."""
+    if not run_info:
+        return None
+    commit = run_info.get("commit")
+    return str(commit) if commit else None

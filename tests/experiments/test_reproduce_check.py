@@ -1,0 +1,146 @@
+"""tofdenoise reproduce --check (tofdenoise.experiments.reproduce_check): which runs, the config comparison, the
+tolerances, and a recorded tiny run rerun at this commit (exactly equal; a changed record or config is reported)."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from pathlib import Path
+
+import pytest
+
+from tofdenoise.experiments.reproduce import PROFILES
+from tofdenoise.experiments.reproduce_check import (
+    INPUT_TOLERANCE_MM,
+    CheckRow,
+    check_table_markdown,
+    compare_metrics,
+    config_drift,
+    pick_check_runs,
+    reproduce_check,
+)
+from tofdenoise.experiments.runner import run_all
+from tofdenoise.experiments.tables import table_specs
+from tofdenoise.paths import REPO_ROOT
+from tofdenoise.physics.calibration import resolve_calibration, save_calibration
+
+
+def _metrics(mae: float, raw: float = 7.0, psnr: float = 40.0, val: float = 3.0) -> dict:
+    return {"synthetic": {"mae_mm": mae, "psnr_db": psnr, "raw": {"mae_mm": raw}}, "best_val_mae_mm": val}
+
+
+def test_the_cheapest_recorded_row_of_each_table_is_picked():
+    runs = {r.table: r.name for r in pick_check_runs(REPO_ROOT / "docs" / "results" / "cpu")}
+    assert set(runs) == {"1", "2", "3", "dynrange"}
+    assert all(name.endswith("-s0") for name in runs.values())
+    assert runs["3"].startswith("unet-") and runs["dynrange"].startswith("unet-") and runs["2"].startswith("dvss")
+
+
+def test_a_table_without_records_is_refused(tmp_path):
+    with pytest.raises(ValueError, match="no recorded seed-0 run of table 3"):
+        pick_check_runs(tmp_path, ["3"])
+
+
+def test_config_drift_reads_the_older_layout_and_names_what_changed():
+    old = "model:\n  lr: 0.001\n  warmup_steps: 100\ndata:\n  num_samples: 240\n  sensor: /a/calibration.yaml\n"
+    now = (
+        "model:\n  optim:\n    lr: 0.001\n    warmup_steps: 100\ndata:\n  source_kwargs:\n    num_samples: 240\n"
+        "  sensor: /b/calibration.yaml\n  real_dir: null\npaths:\n  run_dir: /x\n"
+    )
+    assert config_drift(old, now) == ([], [])  # a moved setting is the same setting; paths and sensor file differ
+    changed, added = config_drift(old, now.replace("lr: 0.001", "lr: 0.002") + "seed: 1\n")
+    assert changed == ["model.optim.lr: 0.001 -> 0.002"] and added == ["seed = 1"]
+    changed, _ = config_drift(old, now.replace("    warmup_steps: 100\n", ""))
+    assert changed == ["model.optim.warmup_steps: 100 -> '<unset>'"]
+
+
+def test_tolerances_input_exact_trained_metrics_within_the_seed_spread():
+    recorded = _metrics(4.14)
+    rows = {r.metric: r for r in compare_metrics("run", recorded, _metrics(4.155), {"mae_mm": 0.02})}
+    assert rows["raw_mae_mm"].tolerance == INPUT_TOLERANCE_MM and rows["raw_mae_mm"].passed
+    assert rows["mae_mm"].tolerance == 0.02 and rows["mae_mm"].passed  # 0.02 = the seed spread
+    assert rows["psnr_db"].tolerance == 0.05 and rows["best_val_mae_mm"].tolerance == 0.01  # the floors
+    rows = {r.metric: r for r in compare_metrics("run", recorded, _metrics(4.41, raw=7.0 + 1e-5), {"mae_mm": 0.02})}
+    assert not rows["mae_mm"].passed and rows["mae_mm"].diff == pytest.approx(0.27)
+    assert not rows["raw_mae_mm"].passed  # other test inputs
+    assert not CheckRow("run", "mae_mm", 4.0, math.nan, 1.0).passed
+    table = check_table_markdown([rows["mae_mm"]])
+    assert table[2] == "| run | test MAE (mm) | 4.1400 | 4.4100 | +0.2700 | 0.02 | FAIL |"
+
+
+#: a tiny version of the CPU profile's runs (what the records of the end-to-end test are made with)
+def _tiny(cache: Path) -> list[str]:
+    return [
+        f"++data.cache_dir={cache}",
+        "data.source_kwargs.num_samples=12",
+        "data.source_kwargs.height=32",
+        "data.source_kwargs.width=48",
+        "data.crop_size=32",
+        "data.batch_size=2",
+        "trainer.max_epochs=2",
+        "trainer.check_val_every_n_epoch=1",
+        "backbone.kwargs.width=8",
+        "backbone.kwargs.stages=2",
+    ]
+
+
+def test_a_recorded_run_reproduces_exactly_and_a_changed_record_does_not(tmp_path):
+    extra = _tiny(tmp_path / "cache")
+    calibration = save_calibration(resolve_calibration("cam75"), tmp_path / "camera" / "calibration.yaml")
+    common = [*PROFILES["cpu"], f"++data.sensor={calibration}", "++data.real_dir=null", *extra]
+    spec = next(s for s in table_specs("3", [0], common) if s.name == "unet-range-l1-s0")
+    (outcome,) = run_all([spec], tmp_path / "made")
+    assert outcome.status == "done"
+    record = tmp_path / "results" / "cpu" / spec.name
+    record.mkdir(parents=True)
+    for name in ("config.yaml", "metrics.json", "run_info.json"):
+        shutil.copy(tmp_path / "made" / spec.name / name, record / name)
+    assert json.loads((record / "run_info.json").read_text())["commit"] is not None  # made from this checkout
+    lines: list[str] = []
+    result = reproduce_check(tmp_path / "results", tmp_path / "check", tables=["3"], extra=extra, log=lines.append)
+    assert result.passed, "\n".join(lines)
+    assert [r.diff for r in result.rows] == [0.0] * 4  # bit-identical: the same commit, machine and threads
+    assert any("unet-range-l1-s0 reproduces at" in line for line in lines)
+    assert (tmp_path / "check" / "reproduce-check.md").read_text().count("| pass |") == 4
+    # a record whose number moved (or made by other code) does not reproduce, and the check says so plainly
+    metrics = json.loads((record / "metrics.json").read_text())
+    metrics["synthetic"]["mae_mm"] += 0.5
+    (record / "metrics.json").write_text(json.dumps(metrics))
+    lines.clear()
+    result = reproduce_check(tmp_path / "results", tmp_path / "check", tables=["3"], extra=extra, log=lines.append)
+    assert not result.passed
+    assert any("unet-range-l1-s0 does NOT reproduce" in line for line in lines)
+    assert any(line.startswith("| unet-range-l1-s0 | test MAE (mm) |") and line.endswith("| FAIL |") for line in lines)
+    # a setting of the record that today's config does not have is named before the run
+    config = (record / "config.yaml").read_text()
+    (record / "config.yaml").write_text(config.replace("max_epochs: 2", "max_epochs: 3"))
+    lines.clear()
+    reproduce_check(tmp_path / "results", tmp_path / "check", tables=["3"], extra=extra, dry_run=True, log=lines.append)
+    assert any("config changed since the record: trainer.max_epochs: 3 -> 2" in line for line in lines)
+
+
+@pytest.mark.slow
+def test_the_committed_records_reproduce_at_this_commit(tmp_path):
+    """make reproduce-check: one recorded run per table of docs/results/cpu, rerun here and compared (minutes per
+    run on a CPU; Table II's is a DVSS run)."""
+    lines: list[str] = []
+    result = reproduce_check(REPO_ROOT / "docs" / "results", tmp_path, log=lines.append)
+    assert result.passed, "\n".join(lines)
+
+
+def test_the_inputs_note_reads_both_layouts_of_prepared_data(tmp_path):
+    from tofdenoise.experiments.reproduce_check import _inputs_note
+
+    old, new = tmp_path / "record", tmp_path / "rerun"
+    for folder, prepared in (
+        (old, {"calibration": "6ae1", "variance_scale": 4.98, "max_depth_mm": 1598.9}),
+        (new, {"calibration": "6ae1", "variance_scale": 4.98, "source_settings": {"max_depth_mm": 1598.9}}),
+    ):
+        folder.mkdir()
+        (folder / "run_info.json").write_text(json.dumps({"prepared_data": prepared}))
+    assert _inputs_note(old, new) == "inputs prepared as recorded (calibration, variance_scale, max_depth_mm)"
+    (new / "run_info.json").write_text(json.dumps({"prepared_data": {"calibration": "a62a", "variance_scale": 4.98}}))
+    assert _inputs_note(old, new) == (
+        "inputs differ from the record's: calibration: '6ae1' -> 'a62a'; max_depth_mm: 1598.9 -> None"
+    )

@@ -1,0 +1,56 @@
+"""The commit a record names (tofdenoise.records.provenance): clean and dirty checkouts, no checkout, old records."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+
+import pytest
+
+from tofdenoise.records import code_commit, record_commit
+
+pytestmark = pytest.mark.skipif(shutil.which("git") is None, reason="needs git")
+
+
+def _git(folder, *args):
+    subprocess.run(["git", "-C", str(folder), *args], check=True, capture_output=True)
+
+
+@pytest.fixture
+def checkout(tmp_path):
+    repo = tmp_path / "repo"
+    (repo / "src").mkdir(parents=True)
+    (repo / "src" / "a.py").write_text("x = 1\n")
+    _git(repo, "init", "-q")
+    _git(repo, "add", ".")
+    _git(repo, "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-m", "first")
+    head = subprocess.run(["git", "-C", str(repo), "rev-parse", "HEAD"], capture_output=True, text=True).stdout
+    return repo, head.strip()
+
+
+def test_a_clean_checkout_is_its_commit_not_dirty(checkout):
+    repo, head = checkout
+    got = code_commit(repo / "src")
+    assert got["commit"] == head and got["commit_dirty"] is False
+    assert got["commit_describe"] == head[:12]
+
+
+def test_an_edited_tracked_file_is_dirty(checkout):
+    repo, head = checkout
+    (repo / "src" / "a.py").write_text("x = 2\n")
+    got = code_commit(repo / "src")
+    assert got["commit"] == head and got["commit_dirty"] is True
+    assert got["commit_describe"] == f"{head[:12]}-dirty"
+
+
+def test_outside_a_checkout_the_commit_is_none(tmp_path):
+    folder = tmp_path / "not-a-checkout"
+    folder.mkdir()
+    got = code_commit(folder)
+    assert got["commit"] is None and got["commit_dirty"] is None and "version" in got
+
+
+def test_records_without_a_commit_read_as_none():
+    assert record_commit({"backbone": "unet"}) is None
+    assert record_commit(None) is None
+    assert record_commit({"commit": "ab" * 20}) == "ab" * 20
