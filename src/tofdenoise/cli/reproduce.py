@@ -35,8 +35,7 @@ from pathlib import Path
 
 from tofdenoise.atomic import WriteError
 from tofdenoise.cli.executor_args import add_executor_arguments, executor_from_args
-from tofdenoise.experiments.reproduce_check import CHECK_TABLES, reproduce_check
-from tofdenoise.experiments.targets import KINDS, PROFILES, Target
+from tofdenoise.experiments.targets import CHECK_TABLES, KINDS, PROFILES, Target
 from tofdenoise.output_guard import OutputPathError, check_output_file
 from tofdenoise.paths import REPO_ROOT
 from tofdenoise.records import RecordError
@@ -117,6 +116,8 @@ def _target(args: argparse.Namespace) -> Target | None:
 
 
 def _check(args: argparse.Namespace) -> int:
+    from tofdenoise.experiments.reproduce_check import reproduce_check  # omegaconf, the configs: only for a check
+
     out = (args.out or REPO_ROOT / "runs" / "reproduce-check" / args.profile).expanduser().resolve()
     try:
         result = reproduce_check(

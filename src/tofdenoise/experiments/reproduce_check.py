@@ -41,6 +41,7 @@ from tofdenoise.atomic import atomic_write_text
 from tofdenoise.config import compose_config
 from tofdenoise.experiments.runner import RunSpec, run_all
 from tofdenoise.experiments.tables import TABLES, Row, run_name, table_specs
+from tofdenoise.experiments.targets import CHECK_TABLES
 from tofdenoise.records import (
     METRICS_NAME,
     RUN_INFO_NAME,
@@ -64,8 +65,6 @@ __all__ = [
     "reproduce_check",
 ]
 
-#: the tables a check covers, one run each (the CPU profile's; the GPU studies have no CPU records to rerun)
-CHECK_TABLES = ("1", "2", "3", "dynrange")
 #: a run's resolved config, as the training job saves it next to its records (``train_job.CONFIG_NAME``)
 CONFIG_NAME = "config.yaml"
 #: the noisy input's test MAE must match to this (mm): the same test images, noise and holes

@@ -17,7 +17,16 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-__all__ = ["GPU_PROFILES", "KINDS", "MAKE_VARIABLES", "PROFILES", "REALSET_SIZES", "Target", "target_of_key"]
+__all__ = [
+    "CHECK_TABLES",
+    "GPU_PROFILES",
+    "KINDS",
+    "MAKE_VARIABLES",
+    "PROFILES",
+    "REALSET_SIZES",
+    "Target",
+    "target_of_key",
+]
 
 #: kind -> the names a user gives (``--<kind> NAME``)
 KINDS: dict[str, tuple[str, ...]] = {
@@ -38,6 +47,9 @@ PROFILES: dict[str, tuple[str, ...]] = {
     # command run again goes on from where the last one stopped
     "gpu-short": ("experiment=paper_short", "logger=csv"),
 }
+#: the tables ``tofdenoise reproduce --check`` covers, one run each (the CPU profile's; the GPU studies have no CPU
+#: records to rerun)
+CHECK_TABLES = ("1", "2", "3", "dynrange")
 #: the profiles whose experiment trains on a CUDA GPU (``trainer=gpu``; a test checks it against the composed configs)
 GPU_PROFILES = frozenset({"gpu", "gpu-short"})
 #: the stand-in real set of each profile: capture-set size (scenes, height, width). The CPU profile's is the paper's
