@@ -188,7 +188,6 @@ def test_mixed_pixels_bias_the_captured_depth_at_edges(tmp_path):
     and in the reference (a mix of both surfaces); elsewhere, and without mixing, they follow the ground truth."""
     import json
 
-    from tofdenoise.data_modules.capture_simulation import _supersampled
     from tofdenoise.data_modules.sources.procedural import ProceduralSource
     from tofdenoise.physics.calibration import resolve_calibration
     from tofdenoise.physics.mixed_pixels import mixed_pixel_map
@@ -206,7 +205,7 @@ def test_mixed_pixels_bias_the_captured_depth_at_edges(tmp_path):
             assert info["mixed_pixels"] == factor
             gt = np.load(scene / "ground_truth_depth_mm.npy")
             ref = np.load(scene / "reference_depth_mm.npy")
-            fine = _supersampled(source, 3).load(f"scene_{info['scene_index']:06d}")
+            fine = source.supersampled(3).load(f"scene_{info['scene_index']:06d}")
             fine_depth = np.where(fine.valid, fine.depth_mm, 0)
             ok = np.isfinite(ref) & np.isfinite(gt)
             at_edges.append(np.abs(ref - gt)[ok & mixed_pixel_map(fine_depth, 3, rel_jump=0.2)])

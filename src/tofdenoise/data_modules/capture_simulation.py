@@ -126,20 +126,6 @@ truth, not a calibration to train with (calibrate the camera from its own captur
     atomic_write_text(out_dir / "README.md", text)
 
 
-def _supersampled(source: ProceduralSource, factor: int) -> ProceduralSource:
-    """The same scenes ray-cast at ``factor`` times the resolution (scene geometry depends on the field of view
-    and the aspect ratio only, so scene i is the same scene)."""
-    return ProceduralSource(
-        num_samples=source.num_samples,
-        height=source.height * factor,
-        width=source.width * factor,
-        seed=source.seed,
-        min_depth_mm=source.min_depth_mm,
-        max_depth_mm=source.max_depth_mm,
-        hfov_deg=source.hfov_deg,
-    )
-
-
 def simulate_scene(
     scene_dir: Path,
     source: ProceduralSource,
@@ -156,7 +142,7 @@ def simulate_scene(
 
     sample_id = f"scene_{index:06d}"
     raw = source.load(sample_id)
-    fine = raw if mixed_pixels == 1 else _supersampled(source, mixed_pixels).load(sample_id)
+    fine = raw if mixed_pixels == 1 else source.supersampled(mixed_pixels).load(sample_id)
     signal = scene_signal_e(fine, calib, source.hfov_deg)
     depth = np.where(fine.valid, fine.depth_mm, 0.0).astype(np.float32)
     generator = torch.Generator().manual_seed(stable_seed(seed, "captures", index))

@@ -131,16 +131,7 @@ def _fine_signal(source: Any, sample_id: str, factor: int, calib: Any, route: st
     """(depth, signal) of ``sample_id`` rendered ``factor`` times finer (procedural scenes), or None."""
     if factor == 1 or not isinstance(source, ProceduralSource):
         return None
-    fine_source = ProceduralSource(
-        num_samples=source.num_samples,
-        height=source.height * factor,
-        width=source.width * factor,
-        seed=source.seed,
-        min_depth_mm=source.min_depth_mm,
-        max_depth_mm=source.max_depth_mm,
-        hfov_deg=source.hfov_deg,
-    )
-    raw = fine_source.load(sample_id)
+    raw = source.supersampled(factor).load(sample_id)
     valid = raw.valid & np.isfinite(raw.depth_mm) & (raw.depth_mm > 0)
     cos_field = field_cosine(*raw.depth_mm.shape, source.hfov_deg) if route == "physical" else None
     signal = signal_from_amplitude_e(raw.amplitude, valid, calib, route, cos_field, *percentiles)

@@ -93,7 +93,12 @@ class NoiseModel:
     ) -> torch.Tensor:
         """Noisy depth D + s eps on valid pixels; invalid pixels are returned as they are."""
         d = _tensor(depth_mm)
-        std = self.std_mm(d, sigma_d_mm)
+        return self._add_noise(d, self.std_mm(d, sigma_d_mm), valid, generator)
+
+    def _add_noise(
+        self, d: torch.Tensor, std: torch.Tensor, valid: Any, generator: torch.Generator | None
+    ) -> torch.Tensor:
+        """``d + std eps`` on the valid pixels (``valid_mask``), ``d`` elsewhere; ``std`` broadcast to ``d``."""
         std = torch.broadcast_to(std, d.shape)
         ok = self.valid_mask(d, std, valid)
         eps = _randn_like(d, generator)
@@ -173,10 +178,7 @@ class BlindNoise(NoiseModel):
         count = int(d.shape[0]) if d.dim() == 4 else 1
         sigma = self.draw_sigma_mm(count, generator).to(device=d.device, dtype=d.dtype)
         std = sigma.view(-1, *([1] * (d.dim() - 1))) if d.dim() == 4 else sigma.view(*([1] * d.dim()))
-        std = torch.broadcast_to(std, d.shape)
-        ok = self.valid_mask(d, std, valid)
-        eps = _randn_like(d, generator)
-        return torch.where(ok, d + std * eps, d)
+        return self._add_noise(d, std, valid, generator)
 
 
 @dataclass(frozen=True)

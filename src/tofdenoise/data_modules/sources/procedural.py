@@ -545,6 +545,19 @@ class ProceduralSource:
         self.hfov_deg = float(hfov_deg)
         generate_scene(self.seed, 0, 8, 8, self.min_depth_mm, self.max_depth_mm)  # validates the depth range
 
+    def supersampled(self, factor: int) -> ProceduralSource:
+        """The same scenes ray-cast at ``factor`` times the resolution (scene geometry depends on the field of view
+        and the aspect ratio only, so scene i is the same scene): what mixed pixels are averaged from."""
+        return ProceduralSource(
+            num_samples=self.num_samples,
+            height=self.height * factor,
+            width=self.width * factor,
+            seed=self.seed,
+            min_depth_mm=self.min_depth_mm,
+            max_depth_mm=self.max_depth_mm,
+            hfov_deg=self.hfov_deg,
+        )
+
     @classmethod
     def config_keys(cls) -> list[str]:
         """``data.source_kwargs``: the ``__init__`` arguments but ``seed`` (``data.seed``), and
