@@ -22,10 +22,10 @@ the runs of their columns for the first seed when missing, then render the figur
 from __future__ import annotations
 
 import json
+import math
 import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from datetime import datetime
 from pathlib import Path
 from typing import Any
 
@@ -46,7 +46,7 @@ from tofdenoise.experiments.tables import table_specs
 from tofdenoise.experiments.targets import GPU_PROFILES, PROFILES, REALSET_SIZES, Target
 from tofdenoise.records import BEST_CHECKPOINT, METRICS_NAME, PER_IMAGE_DIR, RUN_INFO_NAME, TRUTH_NAME, run_finished
 from tofdenoise.reporting import find_runs, load_runs, render_html
-from tofdenoise.reporting.results_page import DYNRANGE_FIGURE, RUN_FILES, load_records, results_markdown
+from tofdenoise.reporting.results_page import DYNRANGE_FIGURE, RUN_FILES, load_records, results_markdown, run_minutes
 
 __all__ = [
     "GPU_PROFILES",
@@ -192,12 +192,15 @@ ESTIMATE_MARGIN = 1.15
 
 
 def _wall_seconds(run_info: Path) -> float | None:
-    """``finished - started`` of a committed ``run_info.json`` (None when either is missing or unreadable)."""
+    """A committed ``run_info.json``'s start-to-finish span (``results_page.run_minutes``: the page's wall minutes) in
+    seconds; None when the file cannot be read, either time is missing, or the run was resumed (its span includes
+    the stop)."""
     try:
         info = json.loads(run_info.read_text())
-        return (datetime.fromisoformat(info["finished"]) - datetime.fromisoformat(info["started"])).total_seconds()
-    except (OSError, ValueError, KeyError, TypeError):
+    except (OSError, ValueError):
         return None
+    minutes = run_minutes(info) if isinstance(info, dict) else math.nan
+    return minutes * 60.0 if math.isfinite(minutes) else None
 
 
 def _family(name: str) -> tuple[str, ...]:
