@@ -1,4 +1,5 @@
-"""Shared test set-up: offline wandb, deterministic seeds, GPU tests skipped without CUDA."""
+"""Shared test set-up: offline wandb, deterministic seeds, GPU tests skipped without CUDA, caches in the test's
+temporary folders."""
 
 from __future__ import annotations
 
@@ -49,6 +50,8 @@ def _wandb_dirs(tmp_path_factory, monkeypatch):
     base = tmp_path_factory.getbasetemp() / "wandb-home"
     for var in ("WANDB_DIR", "WANDB_CACHE_DIR", "WANDB_CONFIG_DIR", "WANDB_DATA_DIR"):
         monkeypatch.setenv(var, str(base))
+    # the help cache of Lightning's verbs (tofdenoise.cli.help_cache) stays out of the user's home
+    monkeypatch.setenv("TOFDENOISE_CACHE_DIR", str(tmp_path_factory.getbasetemp() / "tofdenoise-cache"))
     yield
 
 

@@ -132,3 +132,30 @@ def test_train_help_lists_the_config_groups_and_the_installed_launchers(capsys):
     groups = {line.split()[0]: line.split(None, 1)[1] for line in out.splitlines() if line.startswith("  ")}
     assert "unet" in groups["backbone"] and "recipe" in groups["hparams_search"] and "cli" not in groups
     assert groups["hydra/launcher"].startswith("basic, joblib, submitit_local, submitit_slurm")
+
+
+def test_lightning_help_is_built_once_then_read_without_torch(tmp_path):
+    """``tofdenoise fit --help`` builds LightningCLI's text (torch and Lightning imported) and stores it; the next call
+    prints the same text and imports nothing heavy; with the cache off every call builds it again."""
+    env = {"TOFDENOISE_CACHE_DIR": str(tmp_path / "cache")}
+    first = _run_with(["fit", "--help"], tmp_path, env)
+    second = _run_with(["fit", "--help"], tmp_path, env)
+    assert first["status"] == second["status"] == 0
+    assert "lightning" in first["heavy"] and second["heavy"] == []
+    assert second["stdout"] == first["stdout"]
+    assert first["stdout"].startswith("usage: tofdenoise [options] fit") and "--trainer.max_epochs" in first["stdout"]
+    assert len(list((tmp_path / "cache" / "cli-help").glob("fit-*.txt"))) == 1
+    # another argument besides --help is never answered from the cache
+    other = _run_with(["fit", "--print_config", "--help"], tmp_path, env)
+    assert "lightning" in other["heavy"]
+
+
+def _run_with(args: list[str], cwd: Path, extra_env: dict[str, str]) -> dict:
+    """``tofdenoise <args>`` in a fresh interpreter with ``extra_env``: its status, heavy imports and stdout."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO / "src"), os.environ.get("PYTHONPATH", "")])}
+    env.update(extra_env)
+    proc = subprocess.run(
+        [sys.executable, "-c", CHILD, *args], capture_output=True, text=True, cwd=cwd, env=env, timeout=300
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    return {**json.loads(proc.stderr.strip().splitlines()[-1]), "stdout": proc.stdout}

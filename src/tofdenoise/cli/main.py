@@ -13,10 +13,14 @@ takes follows what it does:
 
 from __future__ import annotations
 
+import contextlib
 import importlib
+import io
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
+
+from tofdenoise.cli import help_cache
 
 __all__ = ["VERBS", "main"]
 
@@ -52,6 +56,33 @@ def usage() -> str:
     return "\n".join(lines)
 
 
+def _lightning_help(name: str, rest: list[str]) -> int:
+    """``tofdenoise fit --help`` (or another Lightning verb's): the stored text when the code and the packages are
+    those it was built from (``tofdenoise.cli.help_cache``), else LightningCLI's own, which is then stored."""
+    text = help_cache.read_help(name, rest)
+    if text is None:
+        run = importlib.import_module(f"tofdenoise.cli.{VERBS[name].module}").main
+        buffer, saved = io.StringIO(), sys.argv
+        sys.argv = ["tofdenoise", name, *rest]
+        try:
+            with contextlib.redirect_stdout(buffer):
+                run()
+        except SystemExit as exc:  # argparse ends a help request with exit status 0
+            if exc.code not in (0, None):
+                sys.stdout.write(buffer.getvalue())
+                raise
+        finally:
+            sys.argv = saved
+        text = buffer.getvalue()
+        help_cache.store_help(name, rest, text)
+    try:
+        sys.stdout.write(text)
+        sys.stdout.flush()
+    except BrokenPipeError:  # `tofdenoise fit --help | head`
+        sys.stdout = None
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Console script ``tofdenoise``: ``tofdenoise <verb> ...`` runs that verb's ``main``."""
     args = list(sys.argv[1:] if argv is None else argv)
@@ -66,6 +97,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if verb is None:
         print(f"tofdenoise: error: unknown verb {name!r}; valid: {', '.join(VERBS)}", file=sys.stderr)
         return 2
+    if verb.grammar == "lightning" and help_cache.is_bare_help(rest):
+        return _lightning_help(name, rest)
     run = importlib.import_module(f"tofdenoise.cli.{verb.module}").main
     if verb.grammar == "options":
         status = run(rest)
