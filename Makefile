@@ -47,7 +47,7 @@ help:
 	@echo "make robustness - the robustness grid (108 small runs, resumable; GRID_DIR=runs/robustness GRID_ARGS=...)"
 	@echo "make realset - the stand-in real set: a second simulated camera, calibrated from its own captures"
 	@echo "               (200 scenes, one per CPU core at a time; REALSET_DIR=runs/realset REALSET_ARGS='--workers 4 ...')"
-	@echo "make reproduce TABLE=1|2|3 | FIGURE=6|7|8 | STUDY=dynrange [PROFILE=cpu|gpu|gpu-short] [SEEDS=0,1,2] - a paper table,"
+	@echo "make reproduce TABLE=1|2|3 | FIGURE=6|7|8 | STUDY=dynrange|schedule|dataseed [PROFILE=cpu|gpu|gpu-short] [SEEDS=0,1,2] - a paper table,"
 	@echo "               figure or study (resumable; records in docs/results/, page docs/results.md;"
 	@echo "               REPRO_ARGS='--extra data.source_kwargs.root=...')"
 	@echo "make reproduce-check [PROFILE=cpu] [CHECK='3 dynrange'] - rerun one small recorded run per table at this"
@@ -137,7 +137,7 @@ realset: $(STAMP)
 	$(VENV)/bin/tofdenoise sensor realset --out $(REALSET_DIR) $(REALSET_ARGS)
 
 # The paper's tables and figures and the studies beyond it (docs/results.md): one of TABLE=1|2|3, FIGURE=6|7|8 or
-# STUDY=dynrange. Finished runs are skipped, interrupted ones resume, failures are listed.
+# STUDY=dynrange|schedule|dataseed. Finished runs are skipped, interrupted ones resume, failures are listed.
 TABLE ?=
 FIGURE ?=
 STUDY ?=
@@ -147,7 +147,7 @@ REPRO_ARGS ?=
 comma := ,
 repro_target = $(if $(TABLE),--table $(TABLE)) $(if $(FIGURE),--figure $(FIGURE)) $(if $(STUDY),--study $(STUDY))
 reproduce: $(STAMP)
-	@test $(words $(repro_target)) -eq 2 || { echo "make reproduce: set one of TABLE=1|2|3, FIGURE=6|7|8 or STUDY=dynrange (e.g. make reproduce TABLE=3)"; exit 2; }
+	@test $(words $(repro_target)) -eq 2 || { echo "make reproduce: set one of TABLE=1|2|3, FIGURE=6|7|8 or STUDY=dynrange|schedule|dataseed (e.g. make reproduce TABLE=3)"; exit 2; }
 	$(VENV)/bin/tofdenoise reproduce $(repro_target) --profile $(PROFILE) --seeds $(subst $(comma), ,$(SEEDS)) $(REPRO_ARGS)
 
 # Do the committed records reproduce at this commit? One small recorded run per table (CHECK= a subset: 1 2 3

@@ -11,7 +11,15 @@ from pathlib import Path
 import pytest
 
 from tofdenoise.experiments.runner import RunSpec
-from tofdenoise.experiments.tables import CLAIMS, TABLES, claim_holds, claim_steps, table_specs
+from tofdenoise.experiments.tables import (
+    CLAIMS,
+    TABLE_PROFILES,
+    TABLES,
+    claim_holds,
+    claim_steps,
+    pooled_steps,
+    table_specs,
+)
 from tofdenoise.paths import REPO_ROOT
 from tofdenoise.records import RecordError, learned_verdict
 from tofdenoise.reporting.results_page import load_records, results_markdown, run_minutes, seeds_present
@@ -124,6 +132,36 @@ def test_claim_steps_are_paired_by_seed_over_complete_seeds():
     steps = claim_steps(claim, [0], table.get)
     assert steps == [(pytest.approx(0.1), None), (pytest.approx(0.1), None)]
     assert claim_steps(claim, [2], table.get) == []
+
+
+def test_the_data_seed_study_is_table_3_on_data_seed_1():
+    """``--study dataseed``: Table III's rows with ``++data.seed=1`` in their own folders (``-d1-``), the same
+    orderings on them, shown on the CPU profile's page only."""
+    specs = table_specs("dataseed", [0])
+    assert [s.name for s in specs] == [s.name.replace("-l1-", "-l1-d1-") for s in table_specs("3", [0])]
+    assert all("++data.seed=1" in s.overrides for s in specs)
+    assert all("++data.seed=1" not in s.overrides for s in table_specs("3", [0]))
+    assert [c.text for c in CLAIMS if c.table == "dataseed"] == [c.text for c in CLAIMS if c.table == "3"]
+    assert TABLE_PROFILES["dataseed"] == ("cpu",)
+
+
+def test_pooled_steps_pool_every_data_seed_and_training_seed_pair():
+    """Hand-computed: the step over (data seed, training seed) pairs is the mean and std of all six paired
+    differences; the ordering holds in a pair when every step is positive."""
+    first = DVSS_NOISE_CLAIM
+    second = next(c for c in CLAIMS if c.table == "dataseed" and c.text == first.text)
+    runs = _dvss_noise_runs({0: (2.0, 2.5, 3.0), 1: (2.6, 2.5, 2.4), 2: (2.0, 2.2, 2.3)})
+    d1 = _dvss_noise_runs({0: (3.0, 3.1, 3.5), 1: (3.0, 2.9, 3.1), 2: (3.0, 3.4)})  # seed 2: no fixed run
+    runs.update({name.replace("-l1-", "-l1-d1-"): m for name, m in d1.items()})
+    steps, pairs, holds = pooled_steps([first, second], [0, 1, 2], runs.get)
+    first_steps = [0.5, -0.1, 0.2, 0.1, -0.1]  # range - hetero: data seed 0 (3 seeds), then data seed 1 (2)
+    second_steps = [0.5, -0.1, 0.1, 0.4, 0.2]  # fixed - range
+    assert pairs == 5
+    assert [m for m, _ in steps] == pytest.approx([statistics.fmean(first_steps), statistics.fmean(second_steps)])
+    assert [sd for _, sd in steps] == pytest.approx([statistics.stdev(first_steps), statistics.stdev(second_steps)])
+    assert holds == 3  # (0, 0), (0, 2), (1, 0)
+    assert pooled_steps([first], [0, 1, 2], runs.get)[1:] == (3, 2)
+    assert pooled_steps([second], [5], runs.get) == ([], 0, 0)
 
 
 def _write_run(

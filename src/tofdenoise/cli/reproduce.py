@@ -62,7 +62,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--study",
         choices=KINDS["study"],
         help="a study beyond the paper (dynrange: across the dynamic range; schedule: DVSS's training "
-        "noises at 10x gpu-short's steps)",
+        "noises at 10x gpu-short's steps; dataseed: Table III on a second data seed)",
     )
     what.add_argument(
         "--check",

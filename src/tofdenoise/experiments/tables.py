@@ -34,6 +34,10 @@ no training model generated, ``data_modules.simulated_test``).
   validation curve kept (``csv/metrics.csv``), so that the gap between the training noises can be followed along
   training. Meant for ``--profile gpu-short`` (``SCHEDULE_PROFILES``: the page shows it there only);
   ``tofdenoise reproduce --study schedule --profile gpu-short --seeds 0``.
+* ``dataseed``: beyond the paper: Table III's rows again with ``data.seed=1`` (rows tagged ``d1``): another
+  procedural world, split, hole draw and set of test inputs, so that a step's spread covers the data as well as the
+  training seed. Its orderings are Table III's; the page pools both data seeds (``pooled_steps``). Meant for
+  ``--profile cpu`` (``DATA_SEED_PROFILES``); ``tofdenoise reproduce --study dataseed --profile cpu --seeds 0 1 2``.
 """
 
 from __future__ import annotations
@@ -41,7 +45,7 @@ from __future__ import annotations
 import math
 import statistics
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 from tofdenoise.reporting.numbers import METRICS_BY_KEY, MetricColumn, read_number
@@ -64,6 +68,8 @@ __all__ = [
     "column_metric",
     "metric_value",
     "chain_units",
+    "claim_diffs",
+    "pooled_steps",
 ]
 
 #: a table column is a metric of ``reporting.numbers.METRIC_COLUMNS`` on the synthetic test set (``mae_mm``),
@@ -385,8 +391,20 @@ TABLES["schedule"] = tuple(
     for noise in ("fixed", "range", "hetero")
 )
 TABLE_TITLES["schedule"] = f"Beyond the paper: does the gain last? DVSS, training noise, {SCHEDULE_EPOCHS} epochs (L1)"
+#: the second data seed: Table III's rows again on another draw of the world, its split and its test inputs
+DATA_SEED = 1
+DATA_SEED_TAG = f"d{DATA_SEED}"
+TABLES["dataseed"] = tuple(
+    replace(row, key=f"{row.key}_{DATA_SEED_TAG}", tag=DATA_SEED_TAG, overrides=(f"++data.seed={DATA_SEED}",))
+    for row in TABLES["3"]
+)
+TABLE_TITLES["dataseed"] = (
+    f"Beyond the paper: Table III on a second data seed (data.seed={DATA_SEED}: another world, split and test inputs)"
+)
+#: the profile whose page shows the data-seed study (the one it is meant for: a CPU profile's world is small)
+DATA_SEED_PROFILES = ("cpu",)
 #: the tables each profile's page shows (every table where not listed)
-TABLE_PROFILES: dict[str, tuple[str, ...]] = {"schedule": SCHEDULE_PROFILES}
+TABLE_PROFILES: dict[str, tuple[str, ...]] = {"schedule": SCHEDULE_PROFILES, "dataseed": DATA_SEED_PROFILES}
 
 #: which metric columns each table shows (the paper's)
 TABLE_COLUMNS: dict[str, tuple[str, ...]] = {
@@ -395,6 +413,7 @@ TABLE_COLUMNS: dict[str, tuple[str, ...]] = {
     "3": ("psnr_db", "mae_mm", "sim_mae_mm", "real_psnr_db", "real_mae_mm", "truth_mae_mm"),
     "dynrange": ("psnr_db", "mae_mm", "real_mae_mm"),
     "schedule": ("psnr_db", "mae_mm", "real_mae_mm", "truth_mae_mm"),
+    "dataseed": ("psnr_db", "mae_mm", "sim_mae_mm", "real_psnr_db", "real_mae_mm", "truth_mae_mm"),
 }
 
 CLAIMS: tuple[Claim, ...] = (
@@ -484,6 +503,13 @@ CLAIMS: tuple[Claim, ...] = (
         "truth_mae_mm",
         ("dvss_hetero_long", "dvss_range_long", "dvss_fixed_long"),
     ),
+)
+
+#: Table III's orderings on the second data seed (the same chains, rows tagged ``d1``)
+CLAIMS += tuple(
+    Claim("dataseed", claim.text, claim.metric, tuple(f"{key}_{DATA_SEED_TAG}" for key in claim.chain))
+    for claim in CLAIMS
+    if claim.table == "3"
 )
 
 
@@ -613,12 +639,37 @@ def claim_steps(claim: Claim, seeds: Sequence[int], metrics_of: Any) -> list[tup
     every row of the chain has a value. The rows of one seed share its data order and, within a backbone, its
     initial weights, so the spread of the per-seed difference is the noise a step must clear (it is not the larger
     spread of either row). ``[]`` when no seed is complete."""
+    return [_mean_sd(diffs) for diffs in claim_diffs(claim, seeds, metrics_of)]
+
+
+def _mean_sd(diffs: Sequence[float]) -> tuple[float, float | None]:
+    return statistics.fmean(diffs), statistics.stdev(diffs) if len(diffs) >= 2 else None
+
+
+def claim_diffs(claim: Claim, seeds: Sequence[int], metrics_of: Any) -> list[list[float]]:
+    """Per step of ``claim``'s chain (row k -> row k+1), the per-seed differences ``value(k+1) - value(k)`` over the
+    seeds in which every row of the chain has a value (what :func:`claim_steps` summarises); ``[]`` when no seed is
+    complete."""
     per_row = chain_values(claim, seeds, metrics_of)
     complete = [i for i in range(len(seeds)) if all(math.isfinite(v[i]) for v in per_row)]
     if not complete:
         return []
-    steps = []
-    for a, b in zip(per_row, per_row[1:]):
-        diffs = [b[i] - a[i] for i in complete]
-        steps.append((statistics.fmean(diffs), statistics.stdev(diffs) if len(complete) >= 2 else None))
-    return steps
+    return [[b[i] - a[i] for i in complete] for a, b in zip(per_row, per_row[1:])]
+
+
+def pooled_steps(
+    claims: Sequence[Claim], seeds: Sequence[int], metrics_of: Any
+) -> tuple[list[tuple[float, float | None]], int, int]:
+    """One ordering measured on several data seeds (``claims``: the same chain on each, e.g. Table III's and the
+    ``dataseed`` study's), pooled over every complete (data seed, training seed) pair: per step the mean and the
+    standard deviation of the paired difference over the pairs, the number of pairs, and in how many of them every
+    step holds (the ordering holds)."""
+    diffs_per_claim = [claim_diffs(claim, seeds, metrics_of) for claim in claims]
+    diffs_per_claim = [d for d in diffs_per_claim if d]
+    if not diffs_per_claim:
+        return [], 0, 0
+    steps = len(diffs_per_claim[0])
+    pooled = [[x for d in diffs_per_claim for x in d[k]] for k in range(steps)]
+    pairs = len(pooled[0])
+    holds = sum(all(pooled[k][i] > 0 for k in range(steps)) for i in range(pairs))
+    return [_mean_sd(p) for p in pooled], pairs, holds

@@ -6,7 +6,8 @@
 - studies beyond the paper: ``dynrange``, where the noise model pays across the dynamic range
   (``--study dynrange``, ``make reproduce STUDY=dynrange``; its runs are rows of ``tables.TABLES["dynrange"]``,
   its gains ``dynrange``), and ``schedule``, whether the gain lasts with 10x the ``gpu-short`` steps
-  (``--study schedule --profile gpu-short``; rows ``tables.TABLES["schedule"]``).
+  (``--study schedule --profile gpu-short``; rows ``tables.TABLES["schedule"]``), and ``dataseed``, Table III on a
+  second data seed (``--study dataseed --profile cpu``; rows ``tables.TABLES["dataseed"]``).
 
 A target's ``key`` names its records: the runs' table (``tables.TABLES`` key) and the folder of its files under
 ``docs/results/<profile>/`` (``fig6/``, ``fig7/``, ``dynrange/``). The results page, the command line and the Makefile
@@ -32,7 +33,7 @@ __all__ = [
 KINDS: dict[str, tuple[str, ...]] = {
     "table": ("1", "2", "3"),
     "figure": ("6", "7", "8"),
-    "study": ("dynrange", "schedule"),
+    "study": ("dynrange", "schedule", "dataseed"),
 }
 #: kind -> the Makefile variable of ``make reproduce``
 MAKE_VARIABLES: dict[str, str] = {"table": "TABLE", "figure": "FIGURE", "study": "STUDY"}

@@ -30,6 +30,7 @@ from tofdenoise.experiments.figures import FIGURES
 from tofdenoise.experiments.schedule import CURVES_FIGURE, SHORT_EPOCHS, gap_table, schedule_curves
 from tofdenoise.experiments.tables import (
     CLAIMS,
+    DATA_SEED,
     DYNRANGE_BACKBONES,
     SCHEDULE_EPOCHS,
     SIM_SET,
@@ -45,6 +46,7 @@ from tofdenoise.experiments.tables import (
     claim_steps,
     column_metric,
     column_source,
+    pooled_steps,
     row_values,
     run_name,
 )
@@ -372,6 +374,48 @@ def _schedule_section(profile_dir: Path, seeds: list[int]) -> list[str]:
     return lines
 
 
+def _dataseed_section(records: dict[str, dict[str, Any]], seeds: list[int]) -> list[str]:
+    """Table III's orderings on each data seed and pooled over both (``tables.pooled_steps``): the spread over every
+    (data seed, training seed) pair covers the world, the split and the test inputs as well as the training."""
+
+    def metrics_of(name: str) -> dict[str, Any] | None:
+        rec = records.get(name)
+        return rec["metrics"] if rec else None
+
+    def steps_text(steps: list[tuple[float, float | None]], n: int, unit: str) -> str:
+        if not steps:
+            return "-"
+        return ", ".join(f"{m:+.3f}" + ("" if sd is None else f" ± {sd:.3f}") for m, sd in steps) + f"{unit} (n={n})"
+
+    pairs = [
+        (first, second)
+        for first in CLAIMS
+        if first.table == "3"
+        for second in CLAIMS
+        if second.table == "dataseed" and second.text == first.text
+    ]
+    lines = [
+        f"### Table III's orderings over both data seeds (data.seed = 0 and {DATA_SEED})",
+        "",
+        "Each step: mean ± standard deviation of the paired difference (a step > 0 holds) over the training seeds of "
+        "one data seed, then over every (data seed, training seed) pair of both; the last column counts the pairs "
+        "in which the whole ordering holds.",
+        "",
+        f"| ordering | data seed 0 | data seed {DATA_SEED} | both data seeds | holds in pairs |",
+        "|---|---|---|---|---|",
+    ]
+    for first, second in pairs:
+        unit = " mm" if first.metric.endswith("_mm") else ""
+        cells = []
+        for claim in (first, second):
+            steps, n, _ = pooled_steps([claim], seeds, metrics_of)
+            cells.append(steps_text(steps, n, unit))
+        steps, n, holds = pooled_steps([first, second], seeds, metrics_of)
+        held = f"{holds} of {n}" if n else "-"
+        lines.append(f"| {first.text} | {cells[0]} | {cells[1]} | {steps_text(steps, n, unit)} | {held} |")
+    return lines + [""]
+
+
 def _pm(ms: tuple[float, float]) -> str:
     mean, std = ms
     if not math.isfinite(mean):
@@ -537,6 +581,8 @@ def _profile_sections(profile_dir: Path, records: dict[str, dict[str, Any]]) -> 
             lines += _dynrange_section(profile_dir, records, seeds)
         if table == "schedule":
             lines += _schedule_section(profile_dir, seeds)
+        if table == "dataseed":
+            lines += _dataseed_section(records, seeds)
     lines += _fig6_section(profile_dir)
     for key in FIGURES:
         lines += _qualitative_section(profile_dir, key)
@@ -561,8 +607,9 @@ def results_markdown(results_dir: Path | str) -> str:
         "reports is checked per seed. Its steps are paired by seed: the mean over the seeds of the per-seed "
         "difference from one row of the ordering to the next (positive = that step holds), ± the standard "
         "deviation of that difference. A step within that spread is seed noise, whatever its sign. That spread is "
-        "over training seeds only: every run shares one data seed, one split, one synthetic test split and one "
-        "capture set. The next two columns count the test set's side: per test image (synthetic) or scene (real "
+        "over training seeds only: every run of a table shares one data seed, one split, one synthetic test split "
+        "and one capture set; the data-seed study repeats Table III on a second data seed and pools both. The "
+        "next two columns count the test set's side: per test image (synthetic) or scene (real "
         "set, and real set against its truth), the step on that image within a seed (the same image in both runs "
         "of the seed, from the runs' per-image records), averaged over the seeds; then the "
         f"{100 * LEVEL:.0f} % percentile interval of the mean of those per-image steps when the images or scenes "
