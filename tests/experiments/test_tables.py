@@ -66,7 +66,9 @@ def test_claims_name_rows_of_their_table():
         assert len(claim.chain) >= 2
 
 
-def _metrics(mae: float, real_mae: float | None = None, raw_mae: float = 7.0) -> dict:
+def _metrics(mae: float, real_mae: float | None = None, raw_mae: float = 7.0, earlier: bool = False) -> dict:
+    """A run's ``metrics.json``: the current protocol (a simulator-noised split beside the synthetic one) unless
+    ``earlier``."""
     entry = {
         "psnr_db": 40.0,
         "mae_mm": mae,
@@ -75,6 +77,8 @@ def _metrics(mae: float, real_mae: float | None = None, raw_mae: float = 7.0) ->
         "raw": {"psnr_db": 35.0, "mae_mm": raw_mae, "mse_mm2": 70.0, "ssim": 0.9},
     }
     out = {"synthetic": entry, **learned_verdict(10, mae, raw_mae)}
+    if not earlier:
+        out["simulated"] = {**entry, "mae_mm": mae + 3.0}
     if real_mae is not None:
         out["real"] = {**entry, "mae_mm": real_mae, "raw": {**entry["raw"], "mae_mm": raw_mae + 1}}
     return out
@@ -192,16 +196,16 @@ def test_results_page_mean_std_over_seeds(tmp_path):
     # hetero < range holds in all three seeds; the fixed run is missing, so the 3-chain is "not run"
     assert "| hetero < range for U-Net (synthetic MAE) | - | not run | - |" in page
     assert "| DVSS: hetero < range < fixed (synthetic MAE) | - | not run | - |" in page
-    assert "| dvss-hetero-l1-s0 | yes | 10 | 2.00 | 7.00 | 12.5 | - | - | - |" in page
+    assert "| dvss-hetero-l1-s0 | current | yes | 10 | 2.00 | 7.00 | 12.5 | - | - | - |" in page
     # the runs table: a tuned classical filter is "classical", a run that stayed near the raw input is flagged
     _write_run(cpu, "bilateral", {**_metrics(2.5), "learned": False, "trained_steps": 0, "method_kind": "classical"})
     _write_run(cpu, "unet-range-l1-s0", {**_metrics(6.9), "learned": False})
     page = results_markdown(tmp_path)
-    assert "| bilateral | classical | 0 | 2.50 | 7.00 | 12.5 | - | - | - |" in page
+    assert "| bilateral | current | classical | 0 | 2.50 | 7.00 | 12.5 | - | - | - |" in page
     # one run for every seed, and the raw input is the same in every seed: one value each, not a mean over n
     assert "| Joint bilateral (classical, not in the paper) | - / 40.00 (seed-independent) |" in page
     assert "| Raw iToF (the noisy input) | - / 35.00 (seed-independent) |" in page
-    assert "| unet-range-l1-s0 | NOT LEARNED | 10 | 6.90 | 7.00 | 12.5 | - | - | - |" in page
+    assert "| unet-range-l1-s0 | current | NOT LEARNED | 10 | 6.90 | 7.00 | 12.5 | - | - | - |" in page
     # a resumed run's span includes the stop: marked, and no minutes claimed
     # (its training minutes, images/s and memory come from TrainingCost, summed over the attempts)
     info = json.loads((cpu / "unet-range-l1-s0" / "run_info.json").read_text())
@@ -209,7 +213,7 @@ def test_results_page_mean_std_over_seeds(tmp_path):
     info.update(peak_gpu_memory_gib=7.94, peak_rss_gib=1.62)
     (cpu / "unet-range-l1-s0" / "run_info.json").write_text(json.dumps(info))
     assert math.isnan(run_minutes(info))
-    row = "| unet-range-l1-s0 (resumed) | NOT LEARNED | 10 | 6.90 | 7.00 | - | 1.5 | 19.2 | 7.9 / 1.6 |"
+    row = "| unet-range-l1-s0 (resumed) | current | NOT LEARNED | 10 | 6.90 | 7.00 | - | 1.5 | 19.2 | 7.9 / 1.6 |"
     assert row in results_markdown(tmp_path)
     # one seed of both U-Net rows: the step has no spread yet
     _write_run(cpu, "unet-hetero-l1-s0", _metrics(3.0))
@@ -244,6 +248,51 @@ def test_a_seed_independent_row_shows_one_value_unless_its_seeds_disagree():
 def test_run_minutes():
     assert run_minutes({"started": "2026-11-22T10:00:00+0000", "finished": "2026-11-22T11:30:00+0000"}) == 90.0
     assert math.isnan(run_minutes({"started": "2026-11-22T10:00:00+0000"}))
+
+
+def test_records_of_two_protocols_are_never_compared(tmp_path):
+    """Records without a simulator-noised split are the earlier protocol: a row of only those is marked, a row with
+    current records shows only those (its earlier ones listed as not shown), and an ordering whose runs in a seed
+    are of two protocols is no evidence in that seed."""
+    cpu = tmp_path / "cpu"
+    # seed 0: hetero and range current, fixed earlier; seed 1: all current; seed 2: range earlier only
+    for name, metrics in {
+        "dvss-hetero-l1-s0": _metrics(2.0),
+        "dvss-range-l1-s0": _metrics(2.4),
+        "dvss-fixed-l1-s0": _metrics(2.9, earlier=True),
+        "dvss-hetero-l1-s1": _metrics(2.1),
+        "dvss-range-l1-s1": _metrics(2.3),
+        "dvss-fixed-l1-s1": _metrics(2.6),
+        "dvss-range-l1-s2": _metrics(9.0, earlier=True),
+        "unet-hetero-l1-s0": _metrics(3.0, earlier=True),
+        "unet-range-l1-s0": _metrics(3.5, earlier=True),
+    }.items():
+        _write_run(cpu, name, metrics)
+    page = results_markdown(tmp_path)
+    table3 = page.split("## Table III")[1].split("## Beyond the paper")[0]
+    # range: seeds 0 and 1 current; its earlier seed-2 record is not averaged in
+    assert "| DVSS, range-aware Gaussian | 39.89 / 40.00 ± 0.00 (n=2) | 3.08 / 2.35 ± 0.07 (n=2) |" in table3
+    assert "Not shown: earlier-protocol records of rows that have current ones: dvss-fixed-l1-s0, " in table3
+    assert "dvss-range-l1-s2." in table3
+    # the U-Net rows have earlier records only: marked, and compared with each other
+    assert "| U-Net, range-aware Gaussian † |" in table3 and "| U-Net, hetero (proposed) † |" in table3
+    assert "| hetero < range for U-Net (synthetic MAE) | 0: yes | holds in every seed run so far | +0.500 mm" in table3
+    # DVSS's chain: seed 0's fixed record is earlier (not shown), so only seed 1 is evidence
+    assert "| DVSS: hetero < range < fixed (synthetic MAE) | 1: yes | holds in every seed run so far |" in table3
+    runs = page.split("## Runs")[1]
+    assert "| dvss-fixed-l1-s0 | earlier |" in runs and "| dvss-fixed-l1-s1 | current |" in runs
+
+
+def test_a_chain_of_two_protocols_in_a_seed_gives_no_verdict(tmp_path):
+    cpu = tmp_path / "cpu"
+    _write_run(cpu, "unet-hetero-l1-s0", _metrics(3.0))
+    _write_run(cpu, "unet-range-l1-s0", _metrics(3.5, earlier=True))
+    table3 = results_markdown(tmp_path).split("## Table III")[1].split("## Beyond the paper")[0]
+    line = next(x for x in table3.splitlines() if x.startswith("| hetero < range for U-Net (synthetic MAE)"))
+    assert line.startswith(
+        "| hetero < range for U-Net (synthetic MAE) | 0: two protocols | not compared (two protocols)"
+    )
+    assert "| U-Net, range-aware Gaussian † |" in table3 and "| U-Net, hetero (proposed) |" in table3
 
 
 def test_committed_results_page_matches_the_records():

@@ -142,9 +142,10 @@ def _csv_units(path: Path) -> dict[str, dict[str, float]] | None:
 
 
 def _per_image_units(run_dir: Path) -> dict[str, dict[str, dict[str, float]]]:
-    """A run's per-unit records by set: ``{set: {key: {image or scene: value}}}`` (synthetic and real from
+    """A run's per-unit records by set: ``{set: {key: {image or scene: value}}}`` (synthetic, simulator-noised and
+    real from
     ``per_image/``, the real set against its truth from ``real_vs_truth.json``); sets without a record left out."""
-    found = {name: _csv_units(run_dir / PER_IMAGE_DIR / f"{name}.csv") for name in ("synthetic", "real")}
+    found = {name: _csv_units(run_dir / PER_IMAGE_DIR / f"{name}.csv") for name in ("synthetic", SIM_SET, "real")}
     found[TRUTH_SET] = _truth_units(run_dir / TRUTH_NAME)
     return {name: units for name, units in found.items() if units}
 
@@ -232,7 +233,72 @@ def _steps_text(claim: Claim, seeds: list[int], metrics_of: Any, complete: int) 
 
 
 #: what a set's test units are called on the page
-UNIT_WORDS = {"synthetic": "images", "real": "scenes", TRUTH_SET: "scenes"}
+UNIT_WORDS = {"synthetic": "images", SIM_SET: "images", "real": "scenes", TRUTH_SET: "scenes"}
+
+#: the test protocol of a record: ``CURRENT`` (the simulator-noised test split scored beside the paper's hetero-
+#: noised one, the 200-scene stand-in set, the Gaussians' variance matched on the training pixels, Gaussian centring
+#: and harmonic hole fill; records from commit 84d82cd on) or ``EARLIER`` (every record without a simulator-noised
+#: split: commits 10fd18c and a9fec53, 24 stand-in scenes). Records of two protocols are never compared.
+CURRENT, EARLIER = "current", "earlier"
+#: how the page marks a row whose records are of the earlier protocol
+EARLIER_MARK = "†"
+
+
+def record_protocol(record: dict[str, Any]) -> str:
+    """:data:`CURRENT` when the record scored the simulator-noised split, else :data:`EARLIER`."""
+    return CURRENT if SIM_SET in record["metrics"] else EARLIER
+
+
+def _protocol_filter(
+    table: str, seeds: list[int], records: dict[str, dict[str, Any]]
+) -> tuple[dict[str, dict[str, Any]], set[str]]:
+    """The records a table shows: per row, only its current-protocol runs when it has any (a row never averages
+    two protocols over its seeds), and the names of the runs left out."""
+    shown = dict(records)
+    left_out: set[str] = set()
+    for row in TABLES[table]:
+        names = [run_name(row, s) for s in seeds]
+        present = [n for n in names if n in records]
+        if any(record_protocol(records[n]) == CURRENT for n in present):
+            for n in present:
+                if record_protocol(records[n]) == EARLIER:
+                    shown.pop(n, None)
+                    left_out.add(n)
+    return shown, left_out
+
+
+def _comparable_metrics(tables: Sequence[str], seeds: list[int], records: dict[str, dict[str, Any]]) -> Any:
+    """``metrics_of(run name)`` over the records that ``tables``' rows show (:func:`_protocol_filter`), less the
+    runs of any of their orderings whose seed mixes two protocols (:func:`_chain_comparable`)."""
+    shown = dict(records)
+    for table in tables:
+        kept, _ = _protocol_filter(table, seeds, records)
+        shown = {name: rec for name, rec in shown.items() if name in kept}
+    excluded: set[str] = set()
+    for claim in CLAIMS:
+        if claim.table in tables:
+            excluded |= _chain_comparable(claim, seeds, shown)[0]
+
+    def metrics_of(name: str) -> dict[str, Any] | None:
+        rec = shown.get(name)
+        return rec["metrics"] if rec and name not in excluded else None
+
+    return metrics_of
+
+
+def _chain_comparable(claim: Claim, seeds: list[int], records: dict[str, dict[str, Any]]) -> tuple[set[str], list]:
+    """The runs of ``claim``'s chain to leave out because, within their seed, the chain's records are of two
+    protocols (that seed is then no evidence either way), and those seeds."""
+    rows = {r.key: r for r in TABLES[claim.table]}
+    excluded: set[str] = set()
+    mixed = []
+    for s in seeds:
+        names = {run_name(rows[k], s) for k in claim.chain}
+        names = {n for n in names if n in records}
+        if len({record_protocol(records[n]) for n in names}) > 1:
+            excluded |= names
+            mixed.append(s)
+    return excluded, mixed
 
 
 def claim_intervals(claim: Claim, seeds: list[int], metrics_of: Any, units_of: Any) -> list[StepInterval | None]:
@@ -268,14 +334,19 @@ def _column_header(column: str) -> str:
     return prefix + column_metric(column).text
 
 
-def _table_section(table: str, profile: str, records: dict[str, dict[str, Any]], seeds: list[int]) -> list[str]:
+def _table_section(table: str, profile: str, all_records: dict[str, dict[str, Any]], seeds: list[int]) -> list[str]:
+    records, left_out = _protocol_filter(table, seeds, all_records)
+    excluded: set[str] = set()  # runs of a chain whose seed mixes protocols (set per claim below)
+
     def metrics_of(name: str) -> dict[str, Any] | None:
         rec = records.get(name)
-        return rec["metrics"] if rec else None
+        return rec["metrics"] if rec and name not in excluded else None
 
     def units_of(name: str, set_name: str, key: str) -> dict[str, float] | None:
         rec = records.get(name)
-        return ((rec.get("per_image") or {}).get(set_name) or {}).get(key) if rec else None
+        if not rec or name in excluded:
+            return None
+        return ((rec.get("per_image") or {}).get(set_name) or {}).get(key)
 
     cols = TABLE_COLUMNS[table]
     lines = [
@@ -286,17 +357,33 @@ def _table_section(table: str, profile: str, records: dict[str, dict[str, Any]],
     ]
     head = ["method"] + [f"{_column_header(c)} paper / ours" for c in cols]
     lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    earlier_rows = 0
     for row in TABLES[table]:
-        cells = [row.label]
+        present = [records[n] for n in (run_name(row, s) for s in seeds) if n in records]
+        earlier = bool(present) and all(record_protocol(r) == EARLIER for r in present)
+        earlier_rows += earlier
+        cells = [f"{row.label} {EARLIER_MARK}" if earlier else row.label]
         for c in cols:
             decimals = column_metric(c).decimals
             paper = row.paper.get(c)
             ours = _row_cell(row, row_values(row, seeds, metrics_of, c), decimals)
             cells.append(f"{'-' if paper is None else format(paper, f'.{decimals}f')} / {ours}")
         lines.append("| " + " | ".join(cells) + " |")
-    missing = sorted({run_name(row, s) for row in TABLES[table] for s in seeds} - set(records))
+    missing = sorted({run_name(row, s) for row in TABLES[table] for s in seeds} - set(all_records))
     if missing:
         lines += ["", f"Missing runs (no record in `results/{profile}/`): {', '.join(missing)}."]
+    if earlier_rows:
+        lines += [
+            "",
+            f"{EARLIER_MARK} Records of the earlier protocol (no simulator-noised split, 24 stand-in scenes, the "
+            "Gaussians matched on all valid pixels, local centring and pull-push fill): not comparable with the "
+            "unmarked rows, and no ordering below compares the two.",
+        ]
+    if left_out:
+        lines += [
+            "",
+            f"Not shown: earlier-protocol records of rows that have current ones: {', '.join(sorted(left_out))}.",
+        ]
     claims = [c for c in CLAIMS if c.table == table]
     lines += [
         "",
@@ -306,10 +393,13 @@ def _table_section(table: str, profile: str, records: dict[str, dict[str, Any]],
         "|---|---|---|---|---|---|",
     ]
     for claim in claims:
+        excluded, mixed = _chain_comparable(claim, seeds, records)
         verdicts = {s: claim_holds(claim, s, metrics_of) for s in seeds}
         known = {s: v for s, v in verdicts.items() if v is not None}
         held = [s for s, v in known.items() if v]
-        if not known:
+        if not known and mixed:
+            verdict = "not compared (two protocols)"
+        elif not known:
             verdict = "not run"
         elif len(held) == len(known):
             verdict = "holds in every seed" + ("" if len(known) == len(seeds) and len(known) >= 3 else " run so far")
@@ -317,7 +407,10 @@ def _table_section(table: str, profile: str, records: dict[str, dict[str, Any]],
             verdict = "mixed"
         else:
             verdict = "does not hold"
-        seeds_text = ", ".join(f"{s}: {'yes' if v else 'no'}" for s, v in known.items()) or "-"
+        seeds_text = ", ".join(
+            [f"{s}: {'yes' if v else 'no'}" for s, v in known.items()] + [f"{s}: two protocols" for s in mixed]
+        )
+        seeds_text = seeds_text or "-"
         steps_text = _steps_text(claim, seeds, metrics_of, len(known))
         spans, shares = _intervals_text(claim, claim_intervals(claim, seeds, metrics_of, units_of))
         lines.append(f"| {claim.text} | {seeds_text} | {verdict} | {steps_text} | {spans} | {shares} |")
@@ -329,11 +422,9 @@ DYNRANGE_FIGURE = "dynrange/gains.png"
 
 
 def _dynrange_section(profile_dir: Path, records: dict[str, dict[str, Any]], seeds: list[int]) -> list[str]:
-    """The dynamic-range study's paired gains (``tofdenoise.experiments.dynrange``) and its figure."""
-
-    def metrics_of(name: str) -> dict[str, Any] | None:
-        rec = records.get(name)
-        return rec["metrics"] if rec else None
+    """The dynamic-range study's paired gains (``tofdenoise.experiments.dynrange``) and its figure; a seed whose
+    runs of one world are of two protocols is left out of that world's gains."""
+    metrics_of = _comparable_metrics(["dynrange"], seeds, records)
 
     lines = [
         "### Hetero's gain over the Gaussian baselines across the dynamic range",
@@ -376,11 +467,17 @@ def _schedule_section(profile_dir: Path, seeds: list[int]) -> list[str]:
 
 def _dataseed_section(records: dict[str, dict[str, Any]], seeds: list[int]) -> list[str]:
     """Table III's orderings on each data seed and pooled over both (``tables.pooled_steps``): the spread over every
-    (data seed, training seed) pair covers the world, the split and the test inputs as well as the training."""
+    (data seed, training seed) pair covers the world, the split and the test inputs as well as the training. A
+    seed whose runs of an ordering are of two protocols is left out of it, and the two data seeds pool the records
+    of one protocol (the current one once any record has it)."""
+    metrics_of = _comparable_metrics(["3", "dataseed"], seeds, records)
+    names = {run_name(row, s) for table in ("3", "dataseed") for row in TABLES[table] for s in seeds}
+    present = [records[n] for n in names if n in records and metrics_of(n) is not None]
+    use = CURRENT if any(record_protocol(r) == CURRENT for r in present) else EARLIER
 
-    def metrics_of(name: str) -> dict[str, Any] | None:
+    def pooled_metrics_of(name: str) -> dict[str, Any] | None:  # the two data seeds pool one protocol
         rec = records.get(name)
-        return rec["metrics"] if rec else None
+        return metrics_of(name) if rec and record_protocol(rec) == use else None
 
     def steps_text(steps: list[tuple[float, float | None]], n: int, unit: str) -> str:
         if not steps:
@@ -410,7 +507,7 @@ def _dataseed_section(records: dict[str, dict[str, Any]], seeds: list[int]) -> l
         for claim in (first, second):
             steps, n, _ = pooled_steps([claim], seeds, metrics_of)
             cells.append(steps_text(steps, n, unit))
-        steps, n, holds = pooled_steps([first, second], seeds, metrics_of)
+        steps, n, holds = pooled_steps([first, second], seeds, pooled_metrics_of)
         held = f"{holds} of {n}" if n else "-"
         lines.append(f"| {first.text} | {cells[0]} | {cells[1]} | {steps_text(steps, n, unit)} | {held} |")
     return lines + [""]
@@ -466,7 +563,8 @@ def _runs_section(records: dict[str, dict[str, Any]], profile: str = "cpu") -> l
         "includes the stop, and its data order differs from an uninterrupted run after the stop (docs/training.md, "
         "resuming), so a fresh run of it is not bit-identical. Training minutes, images/s and peak memory (GPU / "
         "process, GiB) come from the `TrainingCost` callback: the training epochs only, summed over resumes "
-        "(records written before it existed show -)."
+        "(records written before it existed show -). Protocol: the test protocol the run was scored under "
+        "(current: with the simulator-noised split; earlier: before it, see the tables' † notes)."
         + (
             f" Paper's recipe: hours of training for its 300 epochs ({PAPER_RECIPE_STEPS:,} optimiser steps of 4 "
             "crops of 320 x 320) at the run's measured rate (training seconds per step), validation not included."
@@ -474,9 +572,9 @@ def _runs_section(records: dict[str, dict[str, Any]], profile: str = "cpu") -> l
             else ""
         ),
         "",
-        "| run | learned | trained steps | best val MAE (mm) | raw val MAE (mm) | wall minutes | training minutes "
-        "| images/s | peak memory GiB (GPU / process) |" + (" paper's recipe (h) |" if recipe else ""),
-        "|---|---|---|---|---|---|---|---|---|" + ("---|" if recipe else ""),
+        "| run | protocol | learned | trained steps | best val MAE (mm) | raw val MAE (mm) | wall minutes | training "
+        "minutes | images/s | peak memory GiB (GPU / process) |" + (" paper's recipe (h) |" if recipe else ""),
+        "|---|---|---|---|---|---|---|---|---|---|" + ("---|" if recipe else ""),
     ]
     for name, rec in records.items():
         m, info = rec["metrics"], rec["run_info"]
@@ -490,7 +588,7 @@ def _runs_section(records: dict[str, dict[str, Any]], profile: str = "cpu") -> l
             else "-"
         )
         lines.append(
-            f"| {shown} | {LEARNED_FLAGS[status]} | "
+            f"| {shown} | {record_protocol(rec)} | {LEARNED_FLAGS[status]} | "
             f"{m.get('trained_steps', '-')} | {format_number(m.get('best_val_mae_mm') or math.nan, 2)} | "
             f"{format_number(m.get('raw_val_mae_mm') or math.nan, 2)} | {format_number(run_minutes(info), 1)} | "
             f"{format_number(None if train_s is None else float(train_s) / 60.0, 1)} | "
@@ -608,7 +706,10 @@ def results_markdown(results_dir: Path | str) -> str:
         "difference from one row of the ordering to the next (positive = that step holds), ± the standard "
         "deviation of that difference. A step within that spread is seed noise, whatever its sign. That spread is "
         "over training seeds only: every run of a table shares one data seed, one split, one synthetic test split "
-        "and one capture set; the data-seed study repeats Table III on a second data seed and pools both. The "
+        "and one capture set; the data-seed study repeats Table III on a second data seed and pools both. Every "
+        "record is of one test protocol (the runs table's protocol column): current (scored on the "
+        "simulator-noised split too, with the 200-scene stand-in set) or earlier; a row whose records are all "
+        f"earlier is marked {EARLIER_MARK}, and records of two protocols are never averaged or compared. The "
         "next two columns count the test set's side: per test image (synthetic) or scene (real "
         "set, and real set against its truth), the step on that image within a seed (the same image in both runs "
         "of the seed, from the runs' per-image records), averaged over the seeds; then the "
