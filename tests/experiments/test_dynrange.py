@@ -73,3 +73,25 @@ def test_every_study_row_is_one_of_its_worlds():
     assert len(keys) == len(set(keys)) == 27
     assert {r.noise for r in TABLES["dynrange"]} == {"fixed", "range", "hetero"}
     assert {r.loss for r in TABLES["dynrange"]} == {"l1"}
+
+
+def test_the_gain_figure_leaves_out_a_seed_of_two_protocols(tmp_path):
+    """``write_dynrange_figure`` reads the records as the page's gain table does: a seed whose three runs of one
+    world are of two protocols (one of them without the simulator-noised split) is no gain."""
+    import json
+
+    from tofdenoise.experiments.reproduce import write_dynrange_figure
+    from tofdenoise.reporting.results_page import DYNRANGE_FIGURE
+
+    for name, syn in [("unet-fixed-l1-s0", 5.0), ("unet-range-l1-s0", 4.5), ("unet-hetero-l1-s0", 4.0)]:
+        _write_record(tmp_path, name, syn)
+        (tmp_path / name / "run_info.json").write_text(json.dumps({"started": "x", "finished": "y"}))
+    write_dynrange_figure(tmp_path)  # all three of the earlier protocol: one seed, one gain
+    assert (tmp_path / DYNRANGE_FIGURE).is_file()
+    (tmp_path / DYNRANGE_FIGURE).unlink()
+    path = tmp_path / "unet-hetero-l1-s0" / "metrics.json"
+    data = json.loads(path.read_text())
+    data["simulated"] = data["synthetic"]  # hetero rerun under the current protocol, the Gaussians not
+    path.write_text(json.dumps(data))
+    write_dynrange_figure(tmp_path)
+    assert not (tmp_path / DYNRANGE_FIGURE).exists()

@@ -117,7 +117,9 @@ def _commit(results: str, page: str, seed: int, start: float) -> None:
     entry = {**RECORD, "mae_mm": 2.0 + 0.1 * seed, "raw": {**RECORD["raw"], "ssim": 0.9}}
     # atomically, as copy_records writes them: another process's rebuild must never read a half-written record
     # (a plain write_text here made this test fail now and then on a busy machine: run_info.json read empty)
-    atomic_write_text(run / "metrics.json", json.dumps({"synthetic": entry, **learned_verdict(100, 2.0, 7.0)}))
+    atomic_write_text(
+        run / "metrics.json", json.dumps({"synthetic": entry, "simulated": entry, **learned_verdict(100, 2.0, 7.0)})
+    )
     atomic_write_text(run / "run_info.json", json.dumps({"finished": "2026-11-25T10:00:00+0000"}))
     write_page(Path(results), Path(page))
 

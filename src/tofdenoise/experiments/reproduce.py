@@ -42,11 +42,19 @@ from tofdenoise.experiments.figures import (
 )
 from tofdenoise.experiments.runner import RunSpec, TimeBudget, run_all
 from tofdenoise.experiments.schedule import CURVES_FIGURE, curves_figure_png, schedule_curves
-from tofdenoise.experiments.tables import table_specs
+from tofdenoise.experiments.tables import TABLES, run_name, table_specs
 from tofdenoise.experiments.targets import GPU_PROFILES, PROFILES, REALSET_SIZES, Target
 from tofdenoise.records import BEST_CHECKPOINT, METRICS_NAME, PER_IMAGE_DIR, RUN_INFO_NAME, TRUTH_NAME, run_finished
 from tofdenoise.reporting import find_runs, load_runs, render_html
-from tofdenoise.reporting.results_page import DYNRANGE_FIGURE, RUN_FILES, load_records, results_markdown, run_minutes
+from tofdenoise.reporting.results_page import (
+    DYNRANGE_FIGURE,
+    RUN_FILES,
+    comparable_metrics,
+    load_records,
+    results_markdown,
+    run_minutes,
+    seeds_present,
+)
 
 __all__ = [
     "GPU_PROFILES",
@@ -235,10 +243,13 @@ def write_report(dest: Path) -> None:
         atomic_write_text(dest / "report.html", render_html(runs, title, skipped))
 
 
-def write_dynrange_figure(dest: Path, seeds: list[int]) -> None:
-    """The dynamic-range study's gain figure from the committed records (``dest/dynrange/gains.png``)."""
+def write_dynrange_figure(dest: Path, seeds: list[int] | None = None) -> None:
+    """The dynamic-range study's gain figure from the committed records (``dest/dynrange/gains.png``), over
+    ``seeds`` (default: every seed with records), from the records the page's gain table reads (no seed whose runs
+    of one world are of two protocols)."""
     records = load_records(dest)
-    items = gains(lambda name: (records.get(name) or {}).get("metrics"), seeds)
+    seeds = seeds_present(records) if seeds is None else seeds
+    items = gains(comparable_metrics(["dynrange"], seeds, records), seeds)
     if items:
         atomic_write_bytes(dest / DYNRANGE_FIGURE, gain_figure_png(items))
 
@@ -355,12 +366,14 @@ def reproduce(job: Reproduction, log: Log = _print) -> int:
     if target is not None:
         ensure_realset(job.realset_dir, job.profile, dry_run=job.dry_run, log=log)
 
+        dynrange_runs = {run_name(row, seed) for row in TABLES["dynrange"] for seed in job.seeds}
+
         def record(outcome) -> None:  # commit each finished run at once: an interrupted target keeps it
             write_truth_record(outcome.run_dir, job.realset_dir, log=log)
             if copy_records([outcome.run_dir], job.dest):
                 figure = None
-                if target.kind == "study" and target.name == "dynrange":
-                    figure = lambda: write_dynrange_figure(job.dest, job.seeds)  # noqa: E731
+                if outcome.run_dir.name in dynrange_runs:  # a study run, or a Table 3 run the study shares
+                    figure = lambda: write_dynrange_figure(job.dest)  # noqa: E731
                 elif target.kind == "study" and target.name == "schedule":
                     figure = lambda: write_schedule_figure(job.dest, job.seeds)  # noqa: E731
                 write_page(job.results, job.page, before=figure)

@@ -70,7 +70,9 @@ from tofdenoise.reporting.table import LEARNED_FLAGS
 
 __all__ = [
     "DISCUSSION_NAME",
+    "comparable_metrics",
     "gains_markdown",
+    "record_protocol",
     "PROFILE_SEEDS",
     "load_records",
     "page_inputs",
@@ -267,7 +269,7 @@ def _protocol_filter(
     return shown, left_out
 
 
-def _comparable_metrics(tables: Sequence[str], seeds: list[int], records: dict[str, dict[str, Any]]) -> Any:
+def comparable_metrics(tables: Sequence[str], seeds: list[int], records: dict[str, dict[str, Any]]) -> Any:
     """``metrics_of(run name)`` over the records that ``tables``' rows show (:func:`_protocol_filter`), less the
     runs of any of their orderings whose seed mixes two protocols (:func:`_chain_comparable`)."""
     shown = dict(records)
@@ -424,7 +426,7 @@ DYNRANGE_FIGURE = "dynrange/gains.png"
 def _dynrange_section(profile_dir: Path, records: dict[str, dict[str, Any]], seeds: list[int]) -> list[str]:
     """The dynamic-range study's paired gains (``tofdenoise.experiments.dynrange``) and its figure; a seed whose
     runs of one world are of two protocols is left out of that world's gains."""
-    metrics_of = _comparable_metrics(["dynrange"], seeds, records)
+    metrics_of = comparable_metrics(["dynrange"], seeds, records)
 
     lines = [
         "### Hetero's gain over the Gaussian baselines across the dynamic range",
@@ -470,7 +472,7 @@ def _dataseed_section(records: dict[str, dict[str, Any]], seeds: list[int]) -> l
     (data seed, training seed) pair covers the world, the split and the test inputs as well as the training. A
     seed whose runs of an ordering are of two protocols is left out of it, and the two data seeds pool the records
     of one protocol (the current one once any record has it)."""
-    metrics_of = _comparable_metrics(["3", "dataseed"], seeds, records)
+    metrics_of = comparable_metrics(["3", "dataseed"], seeds, records)
     names = {run_name(row, s) for table in ("3", "dataseed") for row in TABLES[table] for s in seeds}
     present = [records[n] for n in names if n in records and metrics_of(n) is not None]
     use = CURRENT if any(record_protocol(r) == CURRENT for r in present) else EARLIER
