@@ -474,6 +474,13 @@ CLAIMS: tuple[Claim, ...] = (
         "sim_mae_mm",
         ("dvss_hetero", "dvss_range", "dvss_fixed"),
     ),
+    Claim("3", "hetero < range for U-Net (simulator-noised MAE)", "sim_mae_mm", ("unet_hetero", "unet_range")),
+    Claim(
+        "3",
+        "hetero < range for Restormer (simulator-noised MAE)",
+        "sim_mae_mm",
+        ("restormer_hetero", "restormer_range"),
+    ),
     Claim(
         "3",
         "hetero training: DVSS < Restormer < U-Net (synthetic MAE)",
