@@ -24,6 +24,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import statistics
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -47,10 +48,13 @@ from tofdenoise.experiments.targets import GPU_PROFILES, PROFILES, REALSET_SIZES
 from tofdenoise.records import BEST_CHECKPOINT, METRICS_NAME, PER_IMAGE_DIR, RUN_INFO_NAME, TRUTH_NAME, run_finished
 from tofdenoise.reporting import find_runs, load_runs, render_html
 from tofdenoise.reporting.results_page import (
+    CURRENT,
     DYNRANGE_FIGURE,
+    EARLIER,
     RUN_FILES,
     comparable_metrics,
     load_records,
+    record_protocol,
     results_markdown,
     run_minutes,
     seeds_present,
@@ -220,17 +224,29 @@ def _family(name: str) -> tuple[str, ...]:
     return (name,)
 
 
+def _protocol(run_dir: Path) -> str:
+    """The test protocol of a committed run (``results_page.record_protocol``; an unreadable metrics.json: earlier)."""
+    try:
+        metrics = json.loads((run_dir / METRICS_NAME).read_text())
+    except (OSError, ValueError):
+        metrics = None
+    return record_protocol({"metrics": metrics}) if isinstance(metrics, dict) else EARLIER
+
+
 def recorded_seconds(dest: Path, spec: RunSpec) -> float | None:
-    """How long ``spec`` is expected to take on this profile's machine: the longest wall time (start of training to
-    its records, tests included) among the runs committed in ``dest`` of the same backbone, loss and variant (any
-    noise, any seed), times ``ESTIMATE_MARGIN``; None when none is recorded."""
+    """How long ``spec`` is expected to take on this profile's machine: the median wall time (start of training to
+    its records, tests included) of the runs committed in ``dest`` of the same backbone, loss and variant (any
+    noise, any seed) and of the current test protocol where any is (its tests cost what this code's do), times
+    ``ESTIMATE_MARGIN``; None when none is recorded. The median, not the longest: a run timed while the machine was
+    shared would otherwise keep every later run of its family from starting, and a run that overruns the budget is
+    stopped and resumes from its last epoch, so little is lost."""
     family = _family(spec.name)
-    walls = [
-        w
-        for info in dest.glob(f"*/{RUN_INFO_NAME}")
-        if _family(info.parent.name) == family and (w := _wall_seconds(info)) is not None
-    ]
-    return max(walls) * ESTIMATE_MARGIN if walls else None
+    walls: dict[str, list[float]] = {CURRENT: [], EARLIER: []}
+    for info in dest.glob(f"*/{RUN_INFO_NAME}"):
+        if _family(info.parent.name) == family and (w := _wall_seconds(info)) is not None:
+            walls[_protocol(info.parent)].append(w)
+    chosen = walls[CURRENT] or walls[EARLIER]
+    return statistics.median(chosen) * ESTIMATE_MARGIN if chosen else None
 
 
 def write_report(dest: Path) -> None:
