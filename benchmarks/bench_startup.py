@@ -29,6 +29,9 @@ from pathlib import Path
 
 CLI = [sys.executable, "-m", "tofdenoise.cli.main"]
 
+#: the row of ``fit --help`` built by LightningCLI (the help cache off, as on a first call)
+FIT_HELP_BUILT = "tofdenoise fit --help (LightningCLI, built)"
+
 #: (label, arguments): the help texts and refusals; paths are relative to a scratch folder holding frames/ and a.ckpt
 COMMANDS: list[tuple[str, list[str]]] = [
     ("tofdenoise --help", ["--help"]),
@@ -48,12 +51,12 @@ COMMANDS: list[tuple[str, list[str]]] = [
     ),
     ("export nope.ckpt --onnx m.onnx (refused)", ["export", "nope.ckpt", "--onnx", "m.onnx"]),
     ("train backbone=nope (refused by Hydra)", ["train", "backbone=nope"]),
-    ("tofdenoise fit --help (LightningCLI, built)", ["fit", "--help"]),
+    (FIT_HELP_BUILT, ["fit", "--help"]),
     ("tofdenoise fit --help (LightningCLI, stored)", ["fit", "--help"]),
 ]
 
 #: the environment of a row beyond the bench's own (help cache in the scratch folder): the built row turns it off
-ROW_ENV: dict[str, dict[str, str]] = {"tofdenoise fit --help (LightningCLI, built)": {"TOFDENOISE_CACHE_DIR": ""}}
+ROW_ENV: dict[str, dict[str, str]] = {FIT_HELP_BUILT: {"TOFDENOISE_CACHE_DIR": ""}}
 
 
 def _wall_s(cmd: list[str], cwd: Path, env: dict[str, str] | None = None) -> float:

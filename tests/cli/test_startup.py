@@ -49,16 +49,24 @@ print("\\n" + json.dumps({{"status": status, "heavy": heavy}}), file=sys.stderr)
 """
 
 
-def _imported(args: list[str], cwd: Path) -> tuple[int, list[str], str]:
-    """(exit status, heavy packages imported, stderr) of ``tofdenoise <args>`` in a fresh interpreter."""
+def _run(args: list[str], cwd: Path, extra_env: dict[str, str] | None = None, timeout: float = 120) -> dict:
+    """``tofdenoise <args>`` in a fresh interpreter (the environment plus ``extra_env``): its exit status, the heavy
+    packages it imported, its stdout and its stderr."""
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO / "src"), os.environ.get("PYTHONPATH", "")])}
     env.pop("HYDRA_FULL_ERROR", None)  # Hydra's one-paragraph error, as a user sees it
+    env.update(extra_env or {})
     proc = subprocess.run(
-        [sys.executable, "-c", CHILD, *args], capture_output=True, text=True, cwd=cwd, env=env, timeout=120
+        [sys.executable, "-c", CHILD, *args], capture_output=True, text=True, cwd=cwd, env=env, timeout=timeout
     )
     assert proc.returncode == 0, proc.stderr[-2000:]
     result = json.loads(proc.stderr.strip().splitlines()[-1])
-    return result["status"], result["heavy"], proc.stderr
+    return {**result, "stdout": proc.stdout, "stderr": proc.stderr}
+
+
+def _imported(args: list[str], cwd: Path) -> tuple[int, list[str], str]:
+    """(exit status, heavy packages imported, stderr) of ``tofdenoise <args>`` in a fresh interpreter."""
+    result = _run(args, cwd)
+    return result["status"], result["heavy"], result["stderr"]
 
 
 HELP = [
@@ -138,24 +146,13 @@ def test_lightning_help_is_built_once_then_read_without_torch(tmp_path):
     """``tofdenoise fit --help`` builds LightningCLI's text (torch and Lightning imported) and stores it; the next call
     prints the same text and imports nothing heavy; with the cache off every call builds it again."""
     env = {"TOFDENOISE_CACHE_DIR": str(tmp_path / "cache")}
-    first = _run_with(["fit", "--help"], tmp_path, env)
-    second = _run_with(["fit", "--help"], tmp_path, env)
+    first = _run(["fit", "--help"], tmp_path, env, timeout=300)
+    second = _run(["fit", "--help"], tmp_path, env, timeout=300)
     assert first["status"] == second["status"] == 0
     assert "lightning" in first["heavy"] and second["heavy"] == []
     assert second["stdout"] == first["stdout"]
     assert first["stdout"].startswith("usage: tofdenoise [options] fit") and "--trainer.max_epochs" in first["stdout"]
     assert len(list((tmp_path / "cache" / "cli-help").glob("fit-*.txt"))) == 1
     # another argument besides --help is never answered from the cache
-    other = _run_with(["fit", "--print_config", "--help"], tmp_path, env)
+    other = _run(["fit", "--print_config", "--help"], tmp_path, env, timeout=300)
     assert "lightning" in other["heavy"]
-
-
-def _run_with(args: list[str], cwd: Path, extra_env: dict[str, str]) -> dict:
-    """``tofdenoise <args>`` in a fresh interpreter with ``extra_env``: its status, heavy imports and stdout."""
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO / "src"), os.environ.get("PYTHONPATH", "")])}
-    env.update(extra_env)
-    proc = subprocess.run(
-        [sys.executable, "-c", CHILD, *args], capture_output=True, text=True, cwd=cwd, env=env, timeout=300
-    )
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    return {**json.loads(proc.stderr.strip().splitlines()[-1]), "stdout": proc.stdout}
