@@ -43,6 +43,30 @@ def test_an_edited_tracked_file_is_dirty(checkout):
     assert got["commit_describe"] == f"{head[:12]}-dirty"
 
 
+def test_records_and_the_page_written_into_the_checkout_are_not_dirty(checkout):
+    """tofdenoise reproduce commits each finished run into docs/results/ and rebuilds docs/results.md: the next
+    run's record must not read as made by uncommitted code; a config edited beside them still does."""
+    repo, head = checkout
+    record = repo / "docs" / "results" / "cpu" / "unet-hetero-l1-s0"
+    record.mkdir(parents=True)
+    (record / "metrics.json").write_text("{}\n")
+    (repo / "docs" / "results.md").write_text("# page\n")
+    _git(repo, "add", "docs")
+    _git(repo, "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-m", "records")
+    head = subprocess.run(["git", "-C", str(repo), "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
+    (record / "metrics.json").write_text('{"mae_mm": 1}\n')
+    (record.parent / "unet-hetero-l1-s1").mkdir()
+    (repo / "docs" / "results.md").write_text("# page, rebuilt\n")
+    got = code_commit(repo / "src")
+    assert got["commit"] == head and got["commit_dirty"] is False and got["commit_describe"] == head[:12]
+    (repo / "src" / "a.py").write_text("x = 3\n")
+    from tofdenoise.records import provenance
+
+    provenance._commit_of.cache_clear()  # read once per process and folder
+    got = code_commit(repo / "src")
+    assert got["commit_dirty"] is True and got["commit_describe"] == f"{head[:12]}-dirty"
+
+
 def test_outside_a_checkout_the_commit_is_none(tmp_path):
     folder = tmp_path / "not-a-checkout"
     folder.mkdir()

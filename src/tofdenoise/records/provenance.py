@@ -1,8 +1,10 @@
 """Which code made a record: the git commit of the checkout the running ``tofdenoise`` package was imported from.
 
 Every ``run_info.json`` written at training time carries ``commit`` (:func:`code_commit`): the 40-hex commit of the
-checkout, ``commit_dirty`` (``true`` when tracked files differ from that commit, as ``git describe --dirty`` counts
-them: an uncommitted edit, a changed config) and ``commit_describe`` (``git describe --always --dirty``). An
+checkout, ``commit_dirty`` (``true`` when tracked files differ from that commit: an uncommitted edit, a changed
+config; the records and the results page that ``tofdenoise reproduce`` itself writes into the checkout,
+``OUTPUT_PATHS``, do not count, so the runs after a table's first recorded one are not marked dirty by it) and
+``commit_describe`` (``git describe --always``, with ``-dirty`` appended when ``commit_dirty``). An
 installed package outside a checkout (a wheel in site-packages) records ``commit: null`` and its ``version``
 instead. Records written before these fields existed read as before (:func:`record_commit` gives ``None``).
 """
@@ -20,6 +22,8 @@ __all__ = ["code_commit", "record_commit"]
 
 #: the folder holding the ``tofdenoise`` package (``src/`` in a checkout)
 _PACKAGE_DIR = Path(__file__).resolve().parents[1]
+#: paths of a checkout (from its top) that hold outputs, not code: the committed records and the page built from them
+OUTPUT_PATHS = ("docs/results", "docs/results.md")
 
 
 def _git(folder: Path, *args: str) -> str | None:
@@ -47,13 +51,14 @@ def _commit_of(folder: Path) -> tuple[tuple[str, Any], ...]:
         return (("commit", None), ("commit_dirty", None), ("version", _version()))
     # refresh the index's stat data first, so a file touched but not changed does not count as dirty
     _git(folder, "update-index", "-q", "--refresh")
-    dirty = _git(folder, "diff-index", "--quiet", "HEAD", "--")
-    describe = _git(folder, "describe", "--always", "--dirty", "--abbrev=12")
+    outputs = [f":(top,exclude){path}" for path in OUTPUT_PATHS]
+    # diff-index --quiet exits 1 (None here) when a tracked file outside the outputs differs from HEAD
+    dirty = _git(folder, "diff-index", "--quiet", "HEAD", "--", ":(top)", *outputs) is None
+    describe = _git(folder, "describe", "--always", "--abbrev=12")
     return (
         ("commit", commit),
-        # diff-index --quiet exits 1 (None here) when a tracked file differs from HEAD
-        ("commit_dirty", dirty is None),
-        ("commit_describe", describe),
+        ("commit_dirty", dirty),
+        ("commit_describe", f"{describe}-dirty" if describe and dirty else describe),
     )
 
 
