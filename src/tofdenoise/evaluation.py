@@ -22,6 +22,12 @@ with one without: its mean covers fewer pixels.
      "nan_px": int, "failed": [stems whose prediction is non-finite wherever it is evaluated],
      "d_max_mm": float}
 
+With ``edge_jump_mm`` (``tofdenoise evaluate --edge-jump-mm``) the result also holds ``"regions": {"edge_jump_mm",
+"edge": R, "off_edge": R, "edge_px_share"}``: the same metrics over the pixels at a depth step of the reference
+(``training.metrics.depth_edge_mask``: flying pixels, where a camera mixes two surfaces) and over the rest, each
+``R`` a result of the layout above (an image without a pixel of that region is listed in its ``skipped``), and
+the share of the scored pixels that are edge pixels.
+
 Bad input raises :class:`EvalInputError` naming the file: missing counterpart, shape mismatch, wrong dtype,
 unreadable file, empty or missing folder, two files with the same stem.
 """
@@ -34,7 +40,7 @@ import numpy as np
 import torch
 
 from tofdenoise.records import json_number
-from tofdenoise.training.metrics import D_MAX_MM, METRIC_KEYS, DepthMetrics
+from tofdenoise.training.metrics import D_MAX_MM, METRIC_KEYS, DepthMetrics, depth_edge_mask
 
 __all__ = ["DEPTH_SUFFIXES", "EvalInputError", "MapScorer", "list_maps", "evaluate_dirs"]
 
@@ -109,13 +115,20 @@ def _match(ref: dict[str, Path], other: dict[str, Path], what: str, folder: Path
 
 class MapScorer:
     """Per-image metrics of (prediction, reference, mask) maps, one image at a time, and the result object of the
-    module docstring (``evaluate_dirs`` and ``inference.capture_eval`` both build it this way)."""
+    module docstring (``evaluate_dirs``, ``inference.capture_eval`` and ``inference.run_eval`` build it this way);
+    ``edge_jump_mm``: also score the edge and off-edge pixels apart (the module docstring's ``regions``)."""
 
-    def __init__(self, d_max_mm: float = D_MAX_MM) -> None:
+    def __init__(self, d_max_mm: float = D_MAX_MM, edge_jump_mm: float | None = None) -> None:
+        if edge_jump_mm is not None and not edge_jump_mm > 0:
+            raise EvalInputError(f"--edge-jump-mm must be > 0, got {edge_jump_mm}")
         self.d_max_mm = float(d_max_mm)
+        self.edge_jump_mm = None if edge_jump_mm is None else float(edge_jump_mm)
         self._metric = DepthMetrics(d_max_mm=d_max_mm)
         self._stems: list[str] = []
         self._nan_px: dict[str, int] = {}
+        self._regions = (
+            {"edge": MapScorer(d_max_mm), "off_edge": MapScorer(d_max_mm)} if edge_jump_mm is not None else {}
+        )
 
     def add(self, stem: str, pred: np.ndarray, ref: np.ndarray, mask: np.ndarray | None = None) -> None:
         """Score one image: pixels where ``ref`` is finite and > 0, ``mask`` (bool) is true and ``pred`` finite."""
@@ -125,6 +138,11 @@ class MapScorer:
         self._metric.update(
             torch.from_numpy(pred), torch.from_numpy(ref), None if mask is None else torch.from_numpy(mask), index=index
         )
+        if self._regions:
+            edge = depth_edge_mask(torch.from_numpy(ref), self.edge_jump_mm).numpy().reshape(ref.shape)
+            scored = np.ones(ref.shape, bool) if mask is None else mask.astype(bool)
+            self._regions["edge"].add(stem, pred, ref, scored & edge)
+            self._regions["off_edge"].add(stem, pred, ref, scored & ~edge)
 
     def result(self) -> dict:
         mean = self._metric.compute()
@@ -138,7 +156,7 @@ class MapScorer:
             images[stem]["nan_px"] = self._nan_px[stem]
             if row["valid_px"] == 0:
                 (failed if self._nan_px[stem] > 0 else skipped).append(stem)
-        return {
+        out = {
             "mean": {k: json_number(mean[k]) for k in METRIC_KEYS},
             "images": images,
             "mae_mm_pooled": json_number(mean["mae_mm_pooled"]),
@@ -148,10 +166,25 @@ class MapScorer:
             "failed": failed,
             "d_max_mm": self.d_max_mm,
         }
+        if self._regions:
+            edge, off_edge = self._regions["edge"].result(), self._regions["off_edge"].result()
+            edge_px = sum(row["valid_px"] for row in edge["images"].values())
+            all_px = edge_px + sum(row["valid_px"] for row in off_edge["images"].values())
+            out["regions"] = {
+                "edge_jump_mm": self.edge_jump_mm,
+                "edge": edge,
+                "off_edge": off_edge,
+                "edge_px_share": json_number(edge_px / all_px if all_px else float("nan")),
+            }
+        return out
 
 
 def evaluate_dirs(
-    pred_dir: str | Path, ref_dir: str | Path, mask_dir: str | Path | None = None, d_max_mm: float = D_MAX_MM
+    pred_dir: str | Path,
+    ref_dir: str | Path,
+    mask_dir: str | Path | None = None,
+    d_max_mm: float = D_MAX_MM,
+    edge_jump_mm: float | None = None,
 ) -> dict:
     """Compute the result object written by ``tofdenoise evaluate`` (see the module docstring)."""
     pred_dir, ref_dir = Path(pred_dir), Path(ref_dir)
@@ -162,7 +195,7 @@ def evaluate_dirs(
     if mask_dir is not None:
         masks = list_maps(mask_dir, "mask")
         _match(refs, masks, "mask", Path(mask_dir))
-    scorer = MapScorer(d_max_mm)
+    scorer = MapScorer(d_max_mm, edge_jump_mm)
     for stem in sorted(refs):
         ref = _read_depth(refs[stem], "reference depth")
         pred = _read_depth(preds[stem], "predicted depth")

@@ -245,3 +245,84 @@ def test_a_checkpoint_on_a_capture_set_scores_the_reference_as_its_run_did_and_t
     ):
         assert main([*argv, "--out", str(tmp_path / "x.json")]) == 2
         assert message in capsys.readouterr().err
+
+
+def test_edge_jump_scores_the_pixels_at_a_depth_step_apart(tmp_path, capsys):
+    """``--edge-jump-mm``: the pixels next to a reference depth step (2 columns of 20 at a 300 mm step) are scored
+    apart from the rest: a prediction 20 mm off there and 2 mm off elsewhere gives edge MAE 20, off-edge MAE 2,
+    the whole image (2 x 20 + 18 x 2) / 20 = 3.8 mm, and an edge share of 10 %."""
+    ref = np.full((10, 20), 1000.0)
+    ref[:, 10:] = 1300.0
+    pred = ref + 2.0
+    pred[:, 9:11] = ref[:, 9:11] + 20.0
+    _npy(tmp_path / "ref" / "s.npy", ref)
+    _npy(tmp_path / "pred" / "s.npy", pred)
+    out = tmp_path / "e.json"
+    argv = ["--pred", str(tmp_path / "pred"), "--ref", str(tmp_path / "ref"), "--out", str(out)]
+    assert main([*argv, "--edge-jump-mm", "50"]) == 0
+    assert "edge px 10.0 %: MAE 20.000 mm; off-edge MAE 2.000 mm" in capsys.readouterr().out
+    result = json.loads(out.read_text())
+    regions = result["regions"]
+    assert result["mean"]["mae_mm"] == pytest.approx(3.8)
+    assert regions["edge_jump_mm"] == 50.0 and regions["edge_px_share"] == pytest.approx(0.1)
+    assert regions["edge"]["mean"]["mae_mm"] == pytest.approx(20.0)
+    assert regions["off_edge"]["mean"]["mae_mm"] == pytest.approx(2.0)
+    assert regions["edge"]["images"]["s"]["valid_px"] == 20 and regions["off_edge"]["images"]["s"]["valid_px"] == 180
+    # a step below the jump: no edge pixel, the edge region is empty (its image skipped), off-edge is the image
+    assert main([*argv, "--edge-jump-mm", "400"]) == 0
+    regions = json.loads(out.read_text())["regions"]
+    assert regions["edge_px_share"] == 0.0 and regions["edge"]["skipped"] == ["s"]
+    assert regions["off_edge"]["mean"]["mae_mm"] == pytest.approx(3.8)
+    # without the option, no regions
+    assert main(argv) == 0 and "regions" not in json.loads(out.read_text())
+    assert main([*argv, "--edge-jump-mm", "0"]) == 2
+    assert "--edge-jump-mm must be > 0, got 0.0" in capsys.readouterr().err
+
+
+def test_a_run_scored_again_gives_its_recorded_test_numbers_and_where_the_error_sits(
+    tmp_path, capsys, data_cache, tiny
+):
+    """``--run``: the run's synthetic and simulator-noised sets rebuilt from its config.yaml and restored with its
+    best checkpoint give the run's recorded test numbers (restored and raw); the edge and off-edge regions split
+    every image's pixels; a set the run did not have, a missing run, or --sets without --run exit 2 naming it."""
+    from tofdenoise.cli.train import run
+    from tofdenoise.config import compose_config
+
+    run_dir = tmp_path / "run"
+    run(compose_config(tiny(run_dir, data_cache) + ["trainer.max_epochs=1", "logger=csv"]))
+    recorded = json.loads((run_dir / "metrics.json").read_text())
+    out = tmp_path / "again.json"
+    capsys.readouterr()
+    assert main(["--run", str(run_dir), "--device", "cpu", "--edge-jump-mm", "50", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert printed.startswith("synthetic: ") and "\nsimulated: " in printed and "off-edge MAE" in printed
+    result = json.loads(out.read_text())
+    assert result["checkpoint"] == str(run_dir / "checkpoints" / "best.ckpt")
+    assert sorted(result["sets"]) == ["simulated", "synthetic"]
+    for name, scored in result["sets"].items():
+        for key in ("psnr_db", "mae_mm", "mse_mm2", "ssim"):
+            assert scored["restored"]["mean"][key] == pytest.approx(recorded[name][key], rel=1e-9, abs=1e-9)
+            assert scored["input"]["mean"][key] == pytest.approx(recorded[name]["raw"][key], rel=1e-9, abs=1e-9)
+        regions = scored["restored"]["regions"]
+        for stem, row in scored["restored"]["images"].items():
+            edge_px = regions["edge"]["images"][stem]["valid_px"]
+            assert edge_px + regions["off_edge"]["images"][stem]["valid_px"] == row["valid_px"]
+            # the whole image's MAE is the pixel-weighted mean of its two regions'
+            parts = [
+                (regions[r]["images"][stem]["mae_mm"] or 0.0) * regions[r]["images"][stem]["valid_px"]
+                for r in ("edge", "off_edge")
+            ]
+            assert sum(parts) / row["valid_px"] == pytest.approx(row["mae_mm"], rel=1e-9)
+    # the errors, each naming what is wrong, nothing written
+    bad = tmp_path / "bad.json"
+    assert main(["--run", str(run_dir), "--sets", "real", "--out", str(bad)]) == 2
+    assert f"run {run_dir}: its config has no data.real_dir: it had no real set" in capsys.readouterr().err
+    assert main(["--run", str(tmp_path / "nope"), "--out", str(bad)]) == 2
+    assert "no config.yaml (the run's resolved config); expected a finished run" in capsys.readouterr().err
+    assert main(["--run", str(run_dir), "--sets", "train", "--out", str(bad)]) == 2
+    assert "unknown test set(s) train" in capsys.readouterr().err
+    assert main(["--pred", str(tmp_path), "--ref", str(tmp_path), "--sets", "synthetic", "--out", str(bad)]) == 2
+    assert "--sets goes with --run" in capsys.readouterr().err
+    assert main(["--run", str(run_dir), "--ckpt", str(result["checkpoint"]), "--out", str(bad)]) == 2
+    assert "give --run alone, without --ckpt" in capsys.readouterr().err
+    assert not bad.exists()

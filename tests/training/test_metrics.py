@@ -447,3 +447,30 @@ def test_metrics_on_cuda_match_cpu():
     for rg, rc in zip(rows_gpu, rows_cpu):
         assert rg.keys() == rc.keys() and rg["index"] == rc["index"] and rg["valid_px"] == rc["valid_px"]
         assert all(rg[k] == pytest.approx(rc[k], rel=1e-12) for k in rg)
+
+
+def test_depth_edge_mask_marks_both_sides_of_a_step_not_holes_or_the_border():
+    """A 100 mm step between columns 2 and 3 marks columns 2 and 3 (8-neighbourhood); a 40 mm step does not at
+    the default 50 mm; a hole (reference 0) next to a surface makes no edge, nor does the image border; a NaN
+    reference is never an edge pixel."""
+    from tofdenoise.training.metrics import EDGE_JUMP_MM, depth_edge_mask
+
+    assert EDGE_JUMP_MM == 50.0
+    ref = torch.full((6, 8), 1000.0)
+    ref[:, 3:] = 1100.0
+    ref[:, 6:] = 1140.0  # a 40 mm step: below the default jump
+    ref[0, 0] = 0.0  # a hole
+    ref[5, 7] = float("nan")
+    edge = depth_edge_mask(ref)
+    assert edge.shape == (1, 1, 6, 8) and edge.dtype == torch.bool
+    expected = torch.zeros(6, 8, dtype=torch.bool)
+    expected[:, 2:4] = True
+    assert torch.equal(edge[0, 0], expected)
+    # the 40 mm step counts at a 30 mm jump; a diagonal neighbour counts as much as a side one
+    assert torch.equal(depth_edge_mask(ref, 30.0)[0, 0, :5, 5:7], torch.ones(5, 2, dtype=torch.bool))
+    diagonal = torch.full((3, 3), 500.0)
+    diagonal[0, 0] = 900.0
+    marked = depth_edge_mask(diagonal)[0, 0]
+    assert marked[0, 0] and marked[1, 1] and marked.sum() == 4  # (0,0) and its three neighbours
+    with pytest.raises(ValueError, match="jump_mm must be > 0"):
+        depth_edge_mask(ref, 0.0)

@@ -2,12 +2,20 @@
 
     tofdenoise evaluate --pred DIR --ref DIR [--mask DIR] --out FILE.json [--d-max-mm 1000]
     tofdenoise evaluate --ckpt best.ckpt --captures SCENES_DIR --sensor CALIBRATION --out FILE.json
+    tofdenoise evaluate --run RUN_DIR [--sets synthetic simulated real] --out FILE.json
+    ... [--edge-jump-mm 50]   (any form: the edge and off-edge pixels scored apart too)
 
 The second form restores every scene of a capture set with a checkpoint and scores it against each scene's
 reference, as a run's ``real`` test set does, and, for a simulated set (``tofdenoise sensor realset``), against its
 rendered truth too (``tofdenoise.inference.capture_eval``). Its JSON: ``{"checkpoint", "captures", "sensor",
 "scenes", "reference": RESULT, "truth": RESULT or null, "input": {"reference", "truth"}, "reference_vs_truth"}``
 (the input frames scored the same way, and the references against the truth).
+
+The third form scores a finished run's own test sets again, rebuilt from its ``config.yaml`` and restored with
+its best checkpoint (``tofdenoise.inference.run_eval``): ``{"run", "checkpoint", "sets": {name: {"restored": R,
+"input": R}}}``; the whole-image means are the run's recorded test numbers. ``--edge-jump-mm T`` adds to every
+result ``regions``: the metrics over the pixels at a reference depth step > T mm (flying pixels, where the camera
+mixes two surfaces) and over the rest (``tofdenoise.evaluation``).
 
 Files are matched by stem; which files count, which pixels count, how non-finite predictions are counted and
 the result's layout: :mod:`tofdenoise.evaluation` (``evaluate_dirs``). The result is written atomically as
@@ -53,13 +61,34 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ckpt", type=Path, default=None, help="a checkpoint to restore a capture set with (--captures)")
     p.add_argument("--captures", type=Path, default=None, help="a capture set (scene folders, docs/camera-tutorial.md)")
     p.add_argument("--sensor", default=None, help="the calibration of the camera that recorded --captures")
-    p.add_argument("--device", default="auto", help="auto | cpu | cuda (with --ckpt)")
+    p.add_argument(
+        "--run",
+        type=Path,
+        default=None,
+        help="a finished run's folder: score its own test sets again (its config.yaml, checkpoints/best.ckpt)",
+    )
+    p.add_argument(
+        "--sets",
+        nargs="+",
+        default=None,
+        metavar="SET",
+        help="with --run: which test sets (synthetic, simulated, real; default: synthetic and simulated)",
+    )
+    p.add_argument("--device", default="auto", help="auto | cpu | cuda (with --ckpt or --run)")
     p.add_argument("--out", required=True, type=Path, help="output JSON file")
     p.add_argument(
         "--d-max-mm",
         type=float,
         default=None,
         help="PSNR peak depth in mm (default: the paper's, tofdenoise.training.metrics.D_MAX_MM, 1000)",
+    )
+    p.add_argument(
+        "--edge-jump-mm",
+        type=float,
+        default=None,
+        metavar="MM",
+        help="also score apart the pixels at a reference depth step above MM (flying pixels) and the rest "
+        "(tofdenoise.training.metrics.EDGE_JUMP_MM is 50)",
     )
     return p
 
@@ -68,14 +97,19 @@ def _usage_error(args: argparse.Namespace) -> str:
     """What is wrong with the combination of options ("" when nothing): --pred/--ref or --ckpt/--captures/--sensor."""
     folders = {"--pred": args.pred, "--ref": args.ref, "--mask": args.mask}
     restore = {"--ckpt": args.ckpt, "--captures": args.captures, "--sensor": args.sensor}
-    given = [k for k, v in {**folders, **restore}.items() if v is not None]
+    given = [k for k, v in {**folders, **restore, "--run": args.run}.items() if v is not None]
+    if args.sets is not None and args.run is None:
+        return "--sets goes with --run (a run's own test sets)"
+    if args.run is not None:
+        others = [k for k in given if k != "--run"]
+        return f"give --run alone, without {' '.join(others)}" if others else ""
     if any(restore.values()):
         if any(folders.values()):
             return f"give --pred/--ref or --ckpt/--captures/--sensor, not both (got {' '.join(given)})"
         missing = [k for k, v in restore.items() if v is None]
         return f"--ckpt, --captures and --sensor go together; missing {', '.join(missing)}" if missing else ""
     if args.pred is None or args.ref is None:
-        return "give --pred DIR --ref DIR (maps to score) or --ckpt FILE --captures DIR --sensor CALIBRATION"
+        return "give --pred DIR --ref DIR (maps to score), --ckpt FILE --captures DIR --sensor CALIBRATION or --run DIR"
     return ""
 
 
@@ -85,9 +119,50 @@ def _evaluate_checkpoint(args: argparse.Namespace) -> dict:
     from tofdenoise.inference.capture_eval import evaluate_checkpoint  # heavy (torch, the model)
 
     try:
-        return evaluate_checkpoint(args.ckpt, args.captures, args.sensor, args.device, args.d_max_mm)
+        return evaluate_checkpoint(
+            args.ckpt, args.captures, args.sensor, args.device, args.d_max_mm, edge_jump_mm=args.edge_jump_mm
+        )
     except (FileNotFoundError, ValueError) as exc:  # CheckpointError and EvalInputError are ValueErrors
         raise EvalInputError(str(exc)) from exc
+
+
+def _evaluate_run(args: argparse.Namespace) -> dict:
+    """The third form: a run's own test sets rebuilt and scored again (``inference.run_eval``)."""
+    from tofdenoise.evaluation import EvalInputError
+    from tofdenoise.inference.run_eval import evaluate_run  # heavy (torch, hydra, the data module)
+
+    try:
+        return evaluate_run(args.run, args.sets, args.device, args.d_max_mm, args.edge_jump_mm)
+    except (FileNotFoundError, ValueError) as exc:
+        raise EvalInputError(str(exc)) from exc
+
+
+def _fmt(v: float | str | None, digits: int) -> str:
+    return "n/a" if v is None else (v if isinstance(v, str) else f"{v:.{digits}f}")
+
+
+def _regions_line(result: dict) -> str:
+    """`` (edge px 9.1 %: MAE 38.470 mm; off-edge MAE 2.291 mm)`` for a result with regions, else ""."""
+    regions = result.get("regions")
+    if not regions:
+        return ""
+    share = regions["edge_px_share"]
+    edge, off_edge = regions["edge"]["mean"]["mae_mm"], regions["off_edge"]["mean"]["mae_mm"]
+    return (
+        f" (edge px {_fmt(None if share is None else 100 * share, 1)} %: MAE {_fmt(edge, 3)} mm; "
+        f"off-edge MAE {_fmt(off_edge, 3)} mm)"
+    )
+
+
+def _print_run(result: dict, out: Path) -> None:
+    for name, scored in result["sets"].items():
+        r, i = scored["restored"], scored["input"]
+        print(
+            f"{name}: {r['num_images']} images, MAE {_fmt(r['mean']['mae_mm'], 3)} mm, PSNR "
+            f"{_fmt(r['mean']['psnr_db'], 2)} dB{_regions_line(r)}; input MAE {_fmt(i['mean']['mae_mm'], 3)} mm"
+            f"{_regions_line(i)}"
+        )
+    print(f"-> {out}")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -104,7 +179,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         if not args.d_max_mm > 0:
             raise EvalInputError(f"--d-max-mm must be > 0, got {args.d_max_mm}")
-        if args.ckpt is not None:
+        if args.run is not None:
+            check_output_file(args.out, (".json",), [p for p in Path(args.run).rglob("*") if p.is_file()])
+            run_result = _evaluate_run(args)
+        elif args.ckpt is not None:
             scene_dirs = [p for p in Path(args.captures).glob("*") if p.is_dir()] if args.captures.is_dir() else []
             inputs = [args.ckpt, Path(args.sensor), *_input_files(args.captures, *scene_dirs)]
             check_output_file(args.out, (".json",), inputs)
@@ -112,10 +190,18 @@ def main(argv: Sequence[str] | None = None) -> int:
             result = captures["reference"]
         else:
             check_output_file(args.out, (".json",), _input_files(args.pred, args.ref, args.mask))
-            captures, result = None, evaluate_dirs(args.pred, args.ref, args.mask, args.d_max_mm)
+            captures, result = None, evaluate_dirs(args.pred, args.ref, args.mask, args.d_max_mm, args.edge_jump_mm)
     except (EvalInputError, OutputPathError) as exc:
         print(f"tofdenoise evaluate: error: {exc}", file=sys.stderr)
         return 2
+    if args.run is not None:
+        try:
+            atomic_write_text(args.out, json.dumps(run_result, indent=2, allow_nan=False) + "\n")
+        except WriteError as exc:
+            print(f"tofdenoise evaluate: error: {exc}", file=sys.stderr)
+            return 2
+        _print_run(run_result, args.out)
+        return 0
     if result["nan_px"]:
         bad = [stem for stem, row in result["images"].items() if row["nan_px"]]
         failed = (
@@ -133,16 +219,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"tofdenoise evaluate: error: {exc}", file=sys.stderr)
         return 2
     m = result["mean"]
-
-    def f(v, d):
-        return "n/a" if v is None else (v if isinstance(v, str) else f"{v:.{d}f}")
+    f = _fmt
 
     nan_note = f", {result['nan_px']} non-finite predicted px" if result["nan_px"] else ""
     against = " against the references" if captures else ""
     print(
         f"{result['num_images']} images ({len(result['skipped'])} without valid pixels{nan_note}){against}: "
         f"PSNR {f(m['psnr_db'], 2)} dB, SSIM {f(m['ssim'], 4)}, MSE {f(m['mse_mm2'], 2)} mm^2, "
-        f"MAE {f(m['mae_mm'], 3)} mm -> {args.out}"
+        f"MAE {f(m['mae_mm'], 3)} mm{_regions_line(result)} -> {args.out}"
     )
     if captures and captures["truth"] is not None:
         t = captures["truth"]["mean"]

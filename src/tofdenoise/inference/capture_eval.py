@@ -61,6 +61,7 @@ def evaluate_on_captures(
     min_count: int | None = None,
     precision: str = "bf16",
     log: Callable[[str], None] | None = None,
+    edge_jump_mm: float | None = None,
 ) -> dict[str, Any]:
     """Restore every scene of ``captures_dir`` with ``model`` (a ``DepthRestorer``; ``calib``: the calibration of
     the camera that recorded the set) and score it. Returns ``{"scenes", "reference": R, "truth": R or None,
@@ -80,11 +81,11 @@ def evaluate_on_captures(
             f"capture set {captures_dir}: {len(lacking)} of {len(scenes)} scene(s) have no {GROUND_TRUTH} "
             f"({', '.join(lacking[:5])}): a truth score needs it in every scene"
         )
-    to_reference, to_truth = MapScorer(d_max_mm), MapScorer(d_max_mm)
+    to_reference, to_truth = MapScorer(d_max_mm, edge_jump_mm), MapScorer(d_max_mm, edge_jump_mm)
     input_to_reference, input_to_truth, reference_to_truth = (
-        MapScorer(d_max_mm),
-        MapScorer(d_max_mm),
-        MapScorer(d_max_mm),
+        MapScorer(d_max_mm, edge_jump_mm),
+        MapScorer(d_max_mm, edge_jump_mm),
+        MapScorer(d_max_mm, edge_jump_mm),
     )
     signal = bool(model.conditioning.use_signal_channel)
     for i, scene in enumerate(scenes):
@@ -121,6 +122,7 @@ def evaluate_checkpoint(
     device: str = "auto",
     d_max_mm: float = D_MAX_MM,
     log: Callable[[str], None] | None = None,
+    edge_jump_mm: float | None = None,
 ) -> dict[str, Any]:
     """The checkpoint ``ckpt`` loaded on ``device`` (auto | cpu | cuda) and scored on the capture set
     ``captures_dir`` recorded by the camera calibrated in ``sensor`` (a preset name or a calibration file):
@@ -129,5 +131,5 @@ def evaluate_checkpoint(
     ``ValueError``s of the calibration and the capture set (``EvalInputError``), each naming the file."""
     calib = resolve_calibration(str(sensor))
     model = load_restorer(ckpt, device)
-    result = evaluate_on_captures(model, captures_dir, calib, d_max_mm, log=log)
+    result = evaluate_on_captures(model, captures_dir, calib, d_max_mm, log=log, edge_jump_mm=edge_jump_mm)
     return {"checkpoint": str(ckpt), "captures": str(captures_dir), "sensor": str(sensor), **result}

@@ -7,6 +7,8 @@ Public API (used by the LightningModule, the callbacks and ``tofdenoise evaluate
 - ``depth_metrics_per_image(pred_mm, ref_mm, mask, d_max_mm=1000.0) -> dict[str, Tensor(B,)]``
   (the four keys plus ``valid_px``; an image without a valid pixel gets NaN in the four keys)
 - ``masked_ssim_map(pred_mm, ref_mm, valid, data_range) -> Tensor(B,1,H,W)``
+- ``depth_edge_mask(ref_mm, jump_mm=EDGE_JUMP_MM) -> BoolTensor``: the pixels next to a depth step of the
+  reference (where an iToF pixel's footprint mixes two depths: flying pixels), for metrics split by region
 - ``DepthMetrics(d_max_mm=1000.0)``: a ``torchmetrics.Metric`` with
   ``update(pred_mm, ref_mm, mask, index=None)``, ``compute() -> {"psnr_db", "mae_mm", "mse_mm2", "ssim",
   "mae_mm_pooled"}`` (per-image means, plus the pixel-pooled MAE), ``counts() -> {"images",
@@ -56,6 +58,8 @@ __all__ = [
     "valid_pixel_mask",
     "gaussian_window_1d",
     "masked_ssim_map",
+    "EDGE_JUMP_MM",
+    "depth_edge_mask",
     "psnr_from_mse_db",
     "depth_metrics_per_image",
     "DepthMetrics",
@@ -163,6 +167,43 @@ def masked_ssim_map(
     c2 = (k2 * data_range) ** 2
     ssim = ((2 * mu_p * mu_r + c1) * (2 * cov + c2)) / ((mu_p**2 + mu_r**2 + c1) * (var_p + var_r + c2))
     return torch.where(valid, ssim, torch.nan)
+
+
+#: the depth step between neighbouring reference pixels that makes both edge pixels (``depth_edge_mask``)
+EDGE_JUMP_MM: float = 50.0
+
+
+@torch.no_grad()
+def depth_edge_mask(ref_mm: Tensor, jump_mm: float = EDGE_JUMP_MM) -> Tensor:
+    """The pixels at a depth step of the reference: a valid reference pixel (finite, > 0) one of whose 8
+    neighbours, also valid, differs from it by more than ``jump_mm``. These are the pixels whose footprint an
+    iToF camera mixes from two surfaces (flying pixels at occlusion edges, and grazing surfaces where neighbours
+    are that far apart); their error is of another kind than the noise on a surface, so ``tofdenoise evaluate
+    --edge-jump-mm`` scores them apart. Invalid neighbours (holes, the image border) make no step.
+
+    Args:
+        ref_mm: the reference depth [mm], (H, W), (B, H, W) or (B, 1, H, W).
+        jump_mm: the step [mm], > 0.
+
+    Returns:
+        Bool, (B, 1, H, W).
+    """
+    if not jump_mm > 0:
+        raise ValueError(f"jump_mm must be > 0, got {jump_mm}")
+    ref = _as_b1hw(ref_mm, "ref_mm").to(torch.float64)
+    valid = torch.isfinite(ref) & (ref > 0)
+    r = torch.where(valid, ref, 0.0)
+    padded, pad_valid = F.pad(r, (1, 1, 1, 1)), F.pad(valid.to(torch.float64), (1, 1, 1, 1)) > 0
+    height, width = ref.shape[-2:]
+    edge = torch.zeros_like(valid)
+    for dy in range(3):
+        for dx in range(3):
+            if dy == dx == 1:
+                continue
+            near = padded[..., dy : dy + height, dx : dx + width]
+            near_valid = pad_valid[..., dy : dy + height, dx : dx + width]
+            edge |= near_valid & ((near - r).abs() > jump_mm)
+    return edge & valid
 
 
 def psnr_from_mse_db(mse_mm2: Tensor, d_max_mm: float = D_MAX_MM) -> Tensor:

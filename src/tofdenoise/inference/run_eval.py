@@ -1,0 +1,105 @@
+"""A finished run's own test sets scored again: rebuilt from the run's ``config.yaml``, restored with its best
+checkpoint (``tofdenoise evaluate --run RUN_DIR``).
+
+A run's ``metrics.json`` holds one number per metric and set. To ask another question of the same test images (where
+the error sits: at depth edges or on surfaces, ``--edge-jump-mm``), the sets are rebuilt exactly as the run built
+them (its data settings, calibration and seeds: the same images, noise and holes; the data cache is reused) and
+scored with ``evaluation.MapScorer``, so the whole-image means equal the run's recorded test numbers. Sets:
+
+- ``synthetic``: the paper-protocol split (inputs noised as ``data.eval_noise`` says);
+- ``simulated``: the simulator-noised split, when the run has one (``data.simulated_test``);
+- ``real``: the run's capture set (``data.real_dir``) against its references, only when asked for (rebuilding 200
+  scenes' references takes minutes) and when the folder is still there.
+
+Returns ``{"run", "checkpoint", "sets": {name: {"restored": R, "input": R}}}`` with each ``R`` as
+``evaluation.MapScorer.result`` (``input``: the noisy input scored the same way, the run's ``raw`` numbers). The
+network runs in float32 on ``device``. Errors (``EvalInputError``) name the run folder and the missing file or
+the set that cannot be rebuilt.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+from hydra.utils import instantiate
+from omegaconf import OmegaConf
+
+from tofdenoise.evaluation import EvalInputError, MapScorer
+from tofdenoise.inference.denoise import load_restorer
+from tofdenoise.records import BEST_CHECKPOINT
+from tofdenoise.training.metrics import D_MAX_MM
+
+__all__ = ["RUN_SETS", "evaluate_run"]
+
+#: the test sets a run can be scored on again, in the order a run tests them
+RUN_SETS = ("synthetic", "simulated", "real")
+#: the resolved config a training run saves in its folder (``experiments.train_job.CONFIG_NAME``)
+CONFIG_NAME = "config.yaml"
+
+
+def _wanted_sets(run_dir: Path, data: Any, sets: Sequence[str] | None) -> list[str]:
+    """The sets to score: ``sets`` checked against what the run had, or (None) its synthetic and simulated ones."""
+    unknown = [s for s in sets or () if s not in RUN_SETS]
+    if unknown:
+        raise EvalInputError(f"unknown test set(s) {', '.join(unknown)}; expected some of {', '.join(RUN_SETS)}")
+    had_simulated = bool(data.get("simulated_test", True))
+    real_dir = data.get("real_dir")
+    wanted = list(sets) if sets else ["synthetic"] + (["simulated"] if had_simulated else [])
+    if "simulated" in wanted and not had_simulated:
+        raise EvalInputError(f"run {run_dir}: its config has data.simulated_test=false: it had no simulated set")
+    if "real" in wanted:
+        if not real_dir:
+            raise EvalInputError(f"run {run_dir}: its config has no data.real_dir: it had no real set")
+        if not Path(str(real_dir)).is_dir():
+            raise EvalInputError(f"run {run_dir}: its real set {real_dir} (data.real_dir) is not there any more")
+    return [s for s in RUN_SETS if s in wanted]
+
+
+def evaluate_run(
+    run_dir: str | Path,
+    sets: Sequence[str] | None = None,
+    device: str = "auto",
+    d_max_mm: float = D_MAX_MM,
+    edge_jump_mm: float | None = None,
+    log: Callable[[str], None] | None = None,
+) -> dict[str, Any]:
+    """Score the test sets ``sets`` (default: synthetic and, if the run had it, simulated) of the finished run in
+    ``run_dir`` again with its best checkpoint (module docstring)."""
+    run_dir = Path(run_dir)
+    config, ckpt = run_dir / CONFIG_NAME, run_dir / BEST_CHECKPOINT
+    for path, what in ((config, "the run's resolved config"), (ckpt, "its best checkpoint")):
+        if not path.is_file():
+            raise EvalInputError(f"run {run_dir}: no {path.relative_to(run_dir)} ({what}); expected a finished run")
+    cfg = OmegaConf.load(config)
+    data = cfg.get("data")
+    if data is None or "_target_" not in data:
+        raise EvalInputError(f"{config}: no 'data' node with a _target_ (the run's data module)")
+    wanted = _wanted_sets(run_dir, data, sets)
+    data.simulated_test = "simulated" in wanted
+    if "real" not in wanted:
+        data.real_dir = None
+    datamodule = instantiate(data)
+    datamodule.setup("test")
+    model = load_restorer(ckpt, device)
+    results: dict[str, Any] = {}
+    with torch.no_grad():
+        for name, loader in zip(datamodule.test_set_names, datamodule.test_dataloader()):
+            if name not in wanted:
+                continue
+            restored, noisy = MapScorer(d_max_mm, edge_jump_mm), MapScorer(d_max_mm, edge_jump_mm)
+            for b, batch in enumerate(loader):
+                batch = {k: v.to(model.device) if isinstance(v, torch.Tensor) else v for k, v in batch.items()}
+                pred = model.restore_mm(batch, tile=model.tiling.eval_tile_px).float().cpu()
+                clean, inputs, mask = batch["clean"].cpu(), batch["noisy"].cpu(), batch["mask"].cpu() != 0
+                index = batch.get("index")
+                for i in range(pred.shape[0]):
+                    stem = str(batch["name"][i]) if "name" in batch else str(int(index[i]) if index is not None else i)
+                    restored.add(stem, pred[i, 0].numpy(), clean[i, 0].numpy(), mask[i, 0].numpy())
+                    noisy.add(stem, inputs[i, 0].numpy(), clean[i, 0].numpy(), mask[i, 0].numpy())
+                if log is not None:
+                    log(f"[{name}] batch {b + 1}/{len(loader)}")
+            results[name] = {"restored": restored.result(), "input": noisy.result()}
+    return {"run": str(run_dir), "checkpoint": str(ckpt), "sets": results}
