@@ -300,6 +300,7 @@ def test_a_run_scored_again_gives_its_recorded_test_numbers_and_where_the_error_
     assert result["checkpoint"] == str(run_dir / "checkpoints" / "best.ckpt")
     assert sorted(result["sets"]) == ["simulated", "synthetic"]
     for name, scored in result["sets"].items():
+        assert scored["inputs_as_recorded"] is True
         for key in ("psnr_db", "mae_mm", "mse_mm2", "ssim"):
             assert scored["restored"]["mean"][key] == pytest.approx(recorded[name][key], rel=1e-9, abs=1e-9)
             assert scored["input"]["mean"][key] == pytest.approx(recorded[name]["raw"][key], rel=1e-9, abs=1e-9)
@@ -316,7 +317,9 @@ def test_a_run_scored_again_gives_its_recorded_test_numbers_and_where_the_error_
     # the errors, each naming what is wrong, nothing written
     bad = tmp_path / "bad.json"
     assert main(["--run", str(run_dir), "--sets", "real", "--out", str(bad)]) == 2
-    assert f"run {run_dir}: its config has no data.real_dir: it had no real set" in capsys.readouterr().err
+    assert f"run {run_dir}: its metrics.json has no real set: it was tested on synthetic, simulated" in (
+        capsys.readouterr().err
+    )
     assert main(["--run", str(tmp_path / "nope"), "--out", str(bad)]) == 2
     assert "no config.yaml (the run's resolved config); expected a finished run" in capsys.readouterr().err
     assert main(["--run", str(run_dir), "--sets", "train", "--out", str(bad)]) == 2
@@ -326,3 +329,9 @@ def test_a_run_scored_again_gives_its_recorded_test_numbers_and_where_the_error_
     assert main(["--run", str(run_dir), "--ckpt", str(result["checkpoint"]), "--out", str(bad)]) == 2
     assert "give --run alone, without --ckpt" in capsys.readouterr().err
     assert not bad.exists()
+    # a record whose test inputs this code does not rebuild (here: its raw number edited) is flagged, not passed off
+    recorded["synthetic"]["raw"]["mae_mm"] += 1.0
+    (run_dir / "metrics.json").write_text(json.dumps(recorded))
+    assert main(["--run", str(run_dir), "--sets", "synthetic", "--device", "cpu", "--out", str(out)]) == 0
+    assert "synthetic: the rebuilt inputs do not score as the run's recorded raw numbers" in capsys.readouterr().err
+    assert json.loads(out.read_text())["sets"]["synthetic"]["inputs_as_recorded"] is False

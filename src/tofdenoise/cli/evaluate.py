@@ -162,6 +162,13 @@ def _print_run(result: dict, out: Path) -> None:
             f"{_fmt(r['mean']['psnr_db'], 2)} dB{_regions_line(r)}; input MAE {_fmt(i['mean']['mae_mm'], 3)} mm"
             f"{_regions_line(i)}"
         )
+        if not scored["inputs_as_recorded"]:
+            print(
+                f"tofdenoise evaluate: warning: {name}: the rebuilt inputs do not score as the run's recorded raw "
+                "numbers: this code rebuilds other test images than the run had (a run made by older data code), "
+                "so these are not its record's numbers",
+                file=sys.stderr,
+            )
     print(f"-> {out}")
 
 

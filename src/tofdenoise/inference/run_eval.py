@@ -11,10 +11,12 @@ scored with ``evaluation.MapScorer``, so the whole-image means equal the run's r
 - ``real``: the run's capture set (``data.real_dir``) against its references, only when asked for (rebuilding 200
   scenes' references takes minutes) and when the folder is still there.
 
-Returns ``{"run", "checkpoint", "sets": {name: {"restored": R, "input": R}}}`` with each ``R`` as
-``evaluation.MapScorer.result`` (``input``: the noisy input scored the same way, the run's ``raw`` numbers). The
-network runs in float32 on ``device``. Errors (``EvalInputError``) name the run folder and the missing file or
-the set that cannot be rebuilt.
+Which sets the run had is read from its ``metrics.json``. Returns ``{"run", "checkpoint", "sets": {name:
+{"restored": R, "input": R, "inputs_as_recorded": bool}}}`` with each ``R`` as ``evaluation.MapScorer.result``
+(``input``: the noisy input scored the same way). ``inputs_as_recorded`` says whether the rebuilt inputs score as
+the run's recorded ``raw`` numbers (MAE to 1e-6 mm): a run made by older data code may be rebuilt into other test
+images, and then its numbers here are not its record's. The network runs in float32 on ``device``. Errors
+(``EvalInputError``) name the run folder and the missing file or the set that cannot be rebuilt.
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ from omegaconf import OmegaConf
 
 from tofdenoise.evaluation import EvalInputError, MapScorer
 from tofdenoise.inference.denoise import load_restorer
-from tofdenoise.records import BEST_CHECKPOINT
+from tofdenoise.records import BEST_CHECKPOINT, METRICS_NAME, metric_sets, read_metrics_json
 from tofdenoise.training.metrics import D_MAX_MM
 
 __all__ = ["RUN_SETS", "evaluate_run"]
@@ -38,18 +40,24 @@ __all__ = ["RUN_SETS", "evaluate_run"]
 RUN_SETS = ("synthetic", "simulated", "real")
 #: the resolved config a training run saves in its folder (``experiments.train_job.CONFIG_NAME``)
 CONFIG_NAME = "config.yaml"
+#: how far the rebuilt inputs' MAE may be from the record's raw MAE and still be the recorded test images (mm)
+INPUT_TOLERANCE_MM = 1e-6
 
 
-def _wanted_sets(run_dir: Path, data: Any, sets: Sequence[str] | None) -> list[str]:
-    """The sets to score: ``sets`` checked against what the run had, or (None) its synthetic and simulated ones."""
+def _wanted_sets(run_dir: Path, data: Any, recorded: Sequence[str], sets: Sequence[str] | None) -> list[str]:
+    """The sets to score: ``sets`` checked against those the run was tested on (``recorded``), or (None) its
+    synthetic and simulated ones."""
     unknown = [s for s in sets or () if s not in RUN_SETS]
     if unknown:
         raise EvalInputError(f"unknown test set(s) {', '.join(unknown)}; expected some of {', '.join(RUN_SETS)}")
-    had_simulated = bool(data.get("simulated_test", True))
     real_dir = data.get("real_dir")
-    wanted = list(sets) if sets else ["synthetic"] + (["simulated"] if had_simulated else [])
-    if "simulated" in wanted and not had_simulated:
-        raise EvalInputError(f"run {run_dir}: its config has data.simulated_test=false: it had no simulated set")
+    wanted = list(sets) if sets else [s for s in ("synthetic", "simulated") if s in recorded]
+    missing = [s for s in wanted if s not in recorded]
+    if missing:
+        raise EvalInputError(
+            f"run {run_dir}: its {METRICS_NAME} has no {', '.join(missing)} set: it was tested on "
+            f"{', '.join(recorded) or 'nothing'}"
+        )
     if "real" in wanted:
         if not real_dir:
             raise EvalInputError(f"run {run_dir}: its config has no data.real_dir: it had no real set")
@@ -70,14 +78,20 @@ def evaluate_run(
     ``run_dir`` again with its best checkpoint (module docstring)."""
     run_dir = Path(run_dir)
     config, ckpt = run_dir / CONFIG_NAME, run_dir / BEST_CHECKPOINT
-    for path, what in ((config, "the run's resolved config"), (ckpt, "its best checkpoint")):
+    metrics_path = run_dir / METRICS_NAME
+    for path, what in (
+        (config, "the run's resolved config"),
+        (ckpt, "its best checkpoint"),
+        (metrics_path, "its test metrics"),
+    ):
         if not path.is_file():
             raise EvalInputError(f"run {run_dir}: no {path.relative_to(run_dir)} ({what}); expected a finished run")
+    recorded = read_metrics_json(metrics_path)
     cfg = OmegaConf.load(config)
     data = cfg.get("data")
     if data is None or "_target_" not in data:
         raise EvalInputError(f"{config}: no 'data' node with a _target_ (the run's data module)")
-    wanted = _wanted_sets(run_dir, data, sets)
+    wanted = _wanted_sets(run_dir, data, metric_sets(recorded), sets)
     data.simulated_test = "simulated" in wanted
     if "real" not in wanted:
         data.real_dir = None
@@ -101,5 +115,11 @@ def evaluate_run(
                     noisy.add(stem, inputs[i, 0].numpy(), clean[i, 0].numpy(), mask[i, 0].numpy())
                 if log is not None:
                     log(f"[{name}] batch {b + 1}/{len(loader)}")
-            results[name] = {"restored": restored.result(), "input": noisy.result()}
+            scored = {"restored": restored.result(), "input": noisy.result()}
+            raw_mae = ((recorded.get(name) or {}).get("raw") or {}).get("mae_mm")
+            got = scored["input"]["mean"]["mae_mm"]
+            scored["inputs_as_recorded"] = bool(
+                isinstance(raw_mae, (int, float)) and got is not None and abs(got - raw_mae) <= INPUT_TOLERANCE_MM
+            )
+            results[name] = scored
     return {"run": str(run_dir), "checkpoint": str(ckpt), "sets": results}
