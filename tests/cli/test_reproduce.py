@@ -312,11 +312,22 @@ def test_a_finished_runs_record_gains_its_score_against_the_stand_ins_truth(tmp_
     assert not (results / "cpu" / bilateral.name / "real_vs_truth.json").exists()
     row = next(line for line in page.read_text().splitlines() if line.startswith("| DVSS, fixed Gaussian |"))
     assert f"{truth['truth']['mean']['mae_mm']:.2f} (n=1)" in row
+    # and its own test sets scored again by region (regions.json), whole images as its record
+    regions = json.loads((results / "cpu" / run_dir.name / "regions.json").read_text())
+    all_sets = json.loads((run_dir / "metrics.json").read_text())
+    assert sorted(regions["sets"]) == ["simulated", "synthetic"]
+    for name, scored in regions["sets"].items():
+        assert scored["inputs_as_recorded"] is True
+        assert scored["restored"]["mean"]["mae_mm"] == pytest.approx(all_sets[name]["mae_mm"], rel=1e-9)
+        assert scored["restored"]["regions"]["edge_jump_mm"] == 50.0
+    assert not (results / "cpu" / bilateral.name / "regions.json").exists()
 
-    # a second run: the record is newer than the checkpoint, so it is kept as it is
+    # a second run: the records are newer than the checkpoint, so they are kept as they are
     stamp = (run_dir / "real_vs_truth.json").stat().st_mtime_ns
+    regions_stamp = (run_dir / "regions.json").stat().st_mtime_ns
     assert main(argv) == 0
     assert (run_dir / "real_vs_truth.json").stat().st_mtime_ns == stamp
+    assert (run_dir / "regions.json").stat().st_mtime_ns == regions_stamp
     # the set grew (24 -> 200 scenes in the CPU profile): the kept record scored fewer scenes, so it is scored again
     assert sensor_main([*args[:4], "3", *args[5:]]) == 0
     assert main(argv) == 0
@@ -612,3 +623,68 @@ def test_figure_6_validates_the_noise_model_on_the_second_camera_in_this_process
     assert committed.read_bytes() == made.read_bytes()
     assert any("proposed pooled MAPE" in line for line in logged)
     assert "| pooled | proposed |" in results_markdown(results)
+
+
+def _region_result(mae_by_image: dict[str, float]) -> dict:
+    images = {u: {"psnr_db": 40.0, "mae_mm": v, "mse_mm2": 9.0, "ssim": 0.99} for u, v in mae_by_image.items()}
+    mean = {"psnr_db": 40.0, "mae_mm": sum(mae_by_image.values()) / len(mae_by_image), "mse_mm2": 9.0, "ssim": 0.99}
+    return {"mean": mean, "images": images}
+
+
+def _regions_record(path: Path, set_name: str, off_edge: dict[str, float], edge: dict[str, float], **extra) -> None:
+    """A run's regions.json as tofdenoise evaluate --run --edge-jump-mm writes it (only what the page reads)."""
+    raw = {u: 10.0 for u in off_edge}
+    scored = {
+        "inputs_as_recorded": True,
+        "restored": {"regions": {"off_edge": _region_result(off_edge), "edge": _region_result(edge)}},
+        "input": {"regions": {"off_edge": _region_result(raw), "edge": _region_result(raw)}},
+        **extra,
+    }
+    path.write_text(json.dumps({"sets": {set_name: scored}}))
+
+
+def test_off_edge_columns_and_orderings_read_each_runs_regions_record(tmp_path, capsys):
+    """Table III's off-edge columns and orderings come from each run's regions.json: the column is the mean of the
+    off-edge MAE over the seeds; the ordering's steps pair the runs by seed and its interval pairs them by image;
+    a set whose rebuilt inputs were not the record's (inputs_as_recorded false) counts as no record, and a record
+    without the regions is an error naming it."""
+    results = _results_with_three_seeds(tmp_path)
+    for seed in range(3):
+        for noise, off in (("hetero", 2.0), ("range", 2.1)):
+            d = results / "cpu" / f"unet-{noise}-l1-s{seed}"
+            d.mkdir(parents=True)
+            entry = {"psnr_db": 40.0, "mae_mm": 3.0, "mse_mm2": 9.0, "ssim": 0.99}
+            entry["raw"] = {"psnr_db": 30.0, "mae_mm": 7.0, "mse_mm2": 90.0, "ssim": 0.9}
+            _write_metrics(d / "metrics.json", {"synthetic": entry, "simulated": entry})
+            (d / "run_info.json").write_text(json.dumps({"started": "2026-11-22T10:00:00+0000"}))
+            per_image = {"a": off + 0.1 * seed, "b": off + 0.1 * seed + 0.2}
+            _regions_record(d / "regions.json", "simulated", per_image, {"a": 40.0, "b": 41.0})
+    page = tmp_path / "results.md"
+    assert main(["--page-only", "--results", str(results), "--page", str(page)]) == 0
+    lines = page.read_text().splitlines()
+    header = next(line for line in lines if line.startswith("| method | PSNR (dB)↑ paper / ours | MAE"))
+    cells = [c.strip() for c in header.split("|")]
+    column = cells.index("simulator-noised off-edge MAE (mm)↓ paper / ours")
+    hetero_line = next(line for line in lines if line.startswith("| U-Net, hetero (proposed) |"))
+    hetero = [c.strip() for c in hetero_line.split("|")]
+    assert hetero[column] == "- / 2.20 ± 0.10 (n=3)"  # images a, b: 2.1 + 0.1 s mean over s = 0, 1, 2
+    assert hetero[cells.index("off-edge MAE (mm)↓ paper / ours")] == "- / -"  # no synthetic regions recorded
+    claim = next(line for line in lines if "U-Net: hetero < range (simulator-noised MAE off depth edges)" in line)
+    assert "0: yes, 1: yes, 2: yes" in claim and "+0.100 ± 0.000 mm (n=3)" in claim
+    assert "[+0.100, +0.100] mm" in claim and "100 % of 2 images" in claim
+    # a set rebuilt into other images than its record's is no record
+    d = results / "cpu" / "unet-range-l1-s2"
+    _regions_record(
+        d / "regions.json", "simulated", {"a": 9.0, "b": 9.0}, {"a": 40.0, "b": 41.0}, inputs_as_recorded=False
+    )
+    assert main(["--page-only", "--results", str(results), "--page", str(page)]) == 0
+    claim = next(
+        line for line in page.read_text().splitlines() if "U-Net: hetero < range (simulator-noised MAE off" in line
+    )
+    assert "0: yes, 1: yes |" in claim and "(n=2)" in claim
+    (d / "regions.json").write_text(json.dumps({"sets": {"simulated": {"inputs_as_recorded": True, "restored": {}}}}))
+    assert main(["--page-only", "--results", str(results), "--page", str(page)]) == 2
+    assert (
+        f"tofdenoise reproduce: error: {d / 'regions.json'}: expected tofdenoise evaluate --run"
+        in capsys.readouterr().err
+    )

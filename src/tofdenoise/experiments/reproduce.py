@@ -9,7 +9,8 @@ split and on that capture set, each run a process of its own (``runner.run_all``
 local workers, a SLURM array); finished runs are skipped, interrupted ones resume, a failing run does not stop the
 others and is listed; (3) each finished run's records copied to ``<results>/<profile>/<run>/`` as it ends, with,
 for a learned run, its real-set predictions scored against the stand-in's rendered truth (``write_truth_record``:
-``real_vs_truth.json``, the page's "real vs truth" columns); (4) the
+``real_vs_truth.json``, the page's "real vs truth" columns) and its own test sets scored again with the depth-edge
+pixels apart (``write_regions_record``: ``regions.json``, the page's "where the error sits"); (4) the
 page rebuilt from those records under its lock (``atomic.exclusive_lock``), so two commands committing runs at once
 cannot drop one's run from it.
 
@@ -45,7 +46,15 @@ from tofdenoise.experiments.runner import RunSpec, TimeBudget, run_all
 from tofdenoise.experiments.schedule import CURVES_FIGURE, curves_figure_png, schedule_curves
 from tofdenoise.experiments.tables import TABLES, run_name, table_specs
 from tofdenoise.experiments.targets import GPU_PROFILES, PROFILES, REALSET_SIZES, Target
-from tofdenoise.records import BEST_CHECKPOINT, METRICS_NAME, PER_IMAGE_DIR, RUN_INFO_NAME, TRUTH_NAME, run_finished
+from tofdenoise.records import (
+    BEST_CHECKPOINT,
+    METRICS_NAME,
+    PER_IMAGE_DIR,
+    REGIONS_NAME,
+    RUN_INFO_NAME,
+    TRUTH_NAME,
+    run_finished,
+)
 from tofdenoise.reporting import find_runs, load_runs, render_html
 from tofdenoise.reporting.results_page import (
     CURRENT,
@@ -70,6 +79,7 @@ __all__ = [
     "ensure_realset",
     "without_recorded",
     "write_truth_record",
+    "write_regions_record",
     "profile_needs",
     "profile_overrides",
     "recorded_seconds",
@@ -87,6 +97,7 @@ RECORD_FILES = (
     f"{PER_IMAGE_DIR}/simulated.csv",
     f"{PER_IMAGE_DIR}/real.csv",
     TRUTH_NAME,
+    REGIONS_NAME,
 )
 
 Log = Callable[[str], None]
@@ -174,6 +185,35 @@ def write_truth_record(run_dir: Path, realset_dir: Path, device: str = "auto", l
     atomic_write_text(out, json.dumps(result, indent=2, allow_nan=False) + "\n")
     mae = result["truth"]["mean"]["mae_mm"]
     log(f"[reproduce] {run_dir.name}: real set against the truth, MAE {mae:.3f} mm -> {out}")
+    return True
+
+
+def write_regions_record(run_dir: Path, device: str = "auto", log: Log = _print) -> bool:
+    """Score a finished run's own test sets again with the depth-edge pixels apart from the rest and write
+    ``<run_dir>/regions.json`` atomically (``inference.run_eval.evaluate_run`` with ``training.metrics.EDGE_JUMP_MM``,
+    the sets its ``metrics.json`` has of synthetic and simulated); True when written. Nothing is done for a run
+    that has not finished or has no ``checkpoints/best.ckpt``, or whose record is newer than the checkpoint; a run
+    that cannot be scored again is logged with its reason and leaves no file."""
+    ckpt, out = run_dir / BEST_CHECKPOINT, run_dir / REGIONS_NAME
+    if not (run_finished(run_dir) and ckpt.is_file()):
+        return False
+    if out.is_file() and out.stat().st_mtime >= ckpt.stat().st_mtime:
+        return False
+    from tofdenoise.inference.run_eval import evaluate_run  # heavy (torch, hydra): not for the page
+    from tofdenoise.training.metrics import EDGE_JUMP_MM
+
+    try:
+        result = evaluate_run(run_dir, device=device, edge_jump_mm=EDGE_JUMP_MM)
+    except (FileNotFoundError, ValueError) as exc:
+        log(f"[reproduce] {run_dir.name}: its test sets not scored by region: {exc}")
+        return False
+    atomic_write_text(out, json.dumps(result, indent=2, allow_nan=False) + "\n")
+    parts = []
+    for name, scored in result["sets"].items():
+        regions = scored["restored"]["regions"]
+        edge, off_edge = regions["edge"]["mean"]["mae_mm"], regions["off_edge"]["mean"]["mae_mm"]
+        parts.append(f"{name} edge {edge:.3f} / off-edge {off_edge:.3f} mm")
+    log(f"[reproduce] {run_dir.name}: MAE by region: {'; '.join(parts)} -> {out}")
     return True
 
 
@@ -386,6 +426,7 @@ def reproduce(job: Reproduction, log: Log = _print) -> int:
 
         def record(outcome) -> None:  # commit each finished run at once: an interrupted target keeps it
             write_truth_record(outcome.run_dir, job.realset_dir, log=log)
+            write_regions_record(outcome.run_dir, log=log)
             if copy_records([outcome.run_dir], job.dest):
                 figure = None
                 if outcome.run_dir.name in dynrange_runs:  # a study run, or a Table 3 run the study shares

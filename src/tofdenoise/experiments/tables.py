@@ -65,6 +65,9 @@ __all__ = [
     "TABLE_COLUMNS",
     "TABLE_PROFILES",
     "column_source",
+    "region_set",
+    "REGION_PREFIXES",
+    "REGION_SETS",
     "column_metric",
     "metric_value",
     "chain_units",
@@ -78,11 +81,24 @@ __all__ = [
 #: finished learned run, or by ``tofdenoise evaluate --ckpt``;
 #: the records' set ``TRUTH_SET``); prefixed ``sim_``, on the simulator-noised test split (``SIM_SET``; a record
 #: written before that split existed has none: its cells show as not run)
+#: A synthetic or simulator-noised column may name a region of the image after its set's prefix: ``offedge_``
+#: (``offedge_mae_mm``, ``sim_offedge_mae_mm``), the pixels away from the target's depth steps, or ``edge_``, the
+#: pixels at them (flying pixels; ``regions.json``, written by ``tofdenoise reproduce`` for each finished learned
+#: run or by ``tofdenoise evaluate --run --edge-jump-mm``; the records' set ``<set>/<region>``, see
+#: :func:`region_set`)
 REAL_PREFIX = "real_"
 TRUTH_PREFIX = "truth_"
 SIM_PREFIX = "sim_"
 TRUTH_SET = "real_truth"
 SIM_SET = "simulated"
+REGION_PREFIXES = {"offedge_": "off_edge", "edge_": "edge"}
+#: the sets whose images are scored by region
+REGION_SETS = ("synthetic", SIM_SET)
+
+
+def region_set(set_name: str, region: str) -> str:
+    """The records' name of a region of a test set: ``simulated/off_edge``."""
+    return f"{set_name}/{region}"
 
 
 def column_source(column: str) -> tuple[str, str]:
@@ -95,6 +111,10 @@ def column_source(column: str) -> tuple[str, str]:
         set_name, key = SIM_SET, column[len(SIM_PREFIX) :]
     else:
         set_name, key = "synthetic", column
+    for prefix, region in REGION_PREFIXES.items():
+        if set_name in REGION_SETS and key.startswith(prefix):
+            set_name, key = region_set(set_name, region), key[len(prefix) :]
+            break
     if key not in METRICS_BY_KEY:
         raise KeyError(column)
     return set_name, key
@@ -410,10 +430,28 @@ TABLE_PROFILES: dict[str, tuple[str, ...]] = {"schedule": SCHEDULE_PROFILES, "da
 TABLE_COLUMNS: dict[str, tuple[str, ...]] = {
     "1": ("psnr_db", "ssim", "mse_mm2", "mae_mm", "sim_mae_mm", "real_psnr_db", "real_mae_mm", "truth_mae_mm"),
     "2": ("psnr_db", "ssim", "mse_mm2", "mae_mm", "sim_mae_mm"),
-    "3": ("psnr_db", "mae_mm", "sim_mae_mm", "real_psnr_db", "real_mae_mm", "truth_mae_mm"),
+    "3": (
+        "psnr_db",
+        "mae_mm",
+        "offedge_mae_mm",
+        "sim_mae_mm",
+        "sim_offedge_mae_mm",
+        "real_psnr_db",
+        "real_mae_mm",
+        "truth_mae_mm",
+    ),
     "dynrange": ("psnr_db", "mae_mm", "real_mae_mm"),
     "schedule": ("psnr_db", "mae_mm", "real_mae_mm", "truth_mae_mm"),
-    "dataseed": ("psnr_db", "mae_mm", "sim_mae_mm", "real_psnr_db", "real_mae_mm", "truth_mae_mm"),
+    "dataseed": (
+        "psnr_db",
+        "mae_mm",
+        "offedge_mae_mm",
+        "sim_mae_mm",
+        "sim_offedge_mae_mm",
+        "real_psnr_db",
+        "real_mae_mm",
+        "truth_mae_mm",
+    ),
 }
 
 CLAIMS: tuple[Claim, ...] = (
@@ -480,6 +518,20 @@ CLAIMS: tuple[Claim, ...] = (
         "hetero < range for Restormer (simulator-noised MAE)",
         "sim_mae_mm",
         ("restormer_hetero", "restormer_range"),
+    ),
+    # the same steps off the depth edges, where a pixel sees one surface: is the lead the noise model's, or the
+    # flying pixels' at the edges (regions.json)?
+    *(
+        Claim("3", f"{label}: {chain_text} ({what} off depth edges)", metric, chain)
+        for metric, what in (("offedge_mae_mm", "synthetic MAE"), ("sim_offedge_mae_mm", "simulator-noised MAE"))
+        for label, chain_text, chain in (
+            ("DVSS", "hetero < range < fixed", ("dvss_hetero", "dvss_range", "dvss_fixed")),
+            ("U-Net", "hetero < range", ("unet_hetero", "unet_range")),
+            ("Restormer", "hetero < range", ("restormer_hetero", "restormer_range")),
+            ("DVSS", "hetero < blind", ("dvss_hetero", "dvss_blind")),
+            ("U-Net", "hetero < blind", ("unet_hetero", "unet_blind")),
+            ("Restormer", "hetero < blind", ("restormer_hetero", "restormer_blind")),
+        )
     ),
     Claim(
         "3",

@@ -21,6 +21,7 @@ grid table). Every file is written through :mod:`tofdenoise.atomic`. This packag
 
 from tofdenoise.records.metrics_json import (
     CSV_COLUMNS,
+    EDGE_JUMP_MM,
     EXTRA_KEYS,
     METHOD_KINDS,
     METRIC_KEYS,
@@ -41,6 +42,7 @@ from tofdenoise.records.run_folder import (
     LAST_CHECKPOINT,
     METRICS_NAME,
     PER_IMAGE_DIR,
+    REGIONS_NAME,
     REQUIRED_SET,
     RUN_INFO_NAME,
     TRUTH_NAME,
@@ -58,6 +60,7 @@ from tofdenoise.records.verdict import DEFAULT_LEARNED_MARGIN, classical_verdict
 __all__ = [
     "BEST_CHECKPOINT",
     "CSV_COLUMNS",
+    "EDGE_JUMP_MM",
     "DEFAULT_LEARNED_MARGIN",
     "EXTRA_KEYS",
     "LAST_CHECKPOINT",
@@ -71,6 +74,7 @@ __all__ = [
     "RecordError",
     "TEST_SET_LABELS",
     "TRUTH_NAME",
+    "REGIONS_NAME",
     "classical_verdict",
     "code_commit",
     "json_number",

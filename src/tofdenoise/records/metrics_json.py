@@ -16,6 +16,7 @@ from tofdenoise.atomic import atomic_write_text
 
 __all__ = [
     "CSV_COLUMNS",
+    "EDGE_JUMP_MM",
     "EXTRA_KEYS",
     "METHOD_KINDS",
     "METRIC_KEYS",
@@ -32,6 +33,10 @@ __all__ = [
 
 #: the four metrics of the paper, per image over its valid pixels (``tofdenoise.training.metrics``)
 METRIC_KEYS: tuple[str, str, str, str] = ("psnr_db", "mae_mm", "mse_mm2", "ssim")
+#: the depth step (mm) between neighbouring target pixels that makes both edge pixels
+#: (``training.metrics.depth_edge_mask``): what a run's ``regions.json`` record and the results page's off-edge
+#: columns use
+EDGE_JUMP_MM: float = 50.0
 EXTRA_KEYS = ("mae_mm_pooled", "images", "skipped_images", "valid_px")
 CSV_COLUMNS = ("index", "name", "valid_px") + METRIC_KEYS
 #: run-level (top-level, not per-set) fields of ``metrics.json``: the learned guard and the kind of method

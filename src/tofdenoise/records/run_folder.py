@@ -23,6 +23,7 @@ __all__ = [
     "PER_IMAGE_DIR",
     "RUN_INFO_NAME",
     "TRUTH_NAME",
+    "REGIONS_NAME",
     "RecordError",
     "read_record",
     "load_metrics",
@@ -46,6 +47,11 @@ LAST_CHECKPOINT = "checkpoints/last.ckpt"
 #: (``tofdenoise.inference.capture_eval.evaluate_checkpoint``'s JSON; written by ``tofdenoise reproduce`` for each
 #: finished run, or by hand with ``tofdenoise evaluate --ckpt``): the results page's ``truth_`` columns
 TRUTH_NAME = "real_vs_truth.json"
+#: a run's own test sets (synthetic, simulator-noised) scored again with the depth-edge pixels apart from the rest
+#: (``tofdenoise.inference.run_eval.evaluate_run`` with ``edge_jump_mm``; written by ``tofdenoise reproduce`` for each
+#: finished run, or by hand with ``tofdenoise evaluate --run RUN --edge-jump-mm 50``): the results page's "where the
+#: error sits" section
+REGIONS_NAME = "regions.json"
 
 
 class RecordError(ValueError):

@@ -32,6 +32,7 @@ from tofdenoise.experiments.tables import (
     CLAIMS,
     DATA_SEED,
     DYNRANGE_BACKBONES,
+    REGION_PREFIXES,
     SCHEDULE_EPOCHS,
     SIM_SET,
     TABLE_COLUMNS,
@@ -47,14 +48,17 @@ from tofdenoise.experiments.tables import (
     column_metric,
     column_source,
     pooled_steps,
+    region_set,
     row_values,
     run_name,
 )
 from tofdenoise.experiments.targets import target_of_key
 from tofdenoise.records import (
+    EDGE_JUMP_MM,
     METRIC_KEYS,
     METRICS_NAME,
     PER_IMAGE_DIR,
+    REGIONS_NAME,
     RUN_INFO_NAME,
     TRUTH_NAME,
     RecordError,
@@ -125,6 +129,43 @@ def _truth_units(path: Path) -> dict[str, dict[str, float]] | None:
     return out
 
 
+def _region_records(path: Path) -> tuple[dict[str, Any], dict[str, dict[str, dict[str, float]]]]:
+    """A run's ``regions.json`` as metric sets and per-image units (both empty without the file): for each scored
+    set and region, ``{"<set>/<region>": {key..., "raw": {key...}}}`` (the restored maps' means and the input's) and
+    ``{"<set>/<region>": {key or raw_<key>: {image: value}}}``. A set whose rebuilt inputs did not score as the
+    run's record (``inputs_as_recorded`` false: other test images) is left out. A file without the expected layout
+    is a RecordError naming it."""
+    data = read_record(path)
+    sets: dict[str, Any] = {}
+    units: dict[str, dict[str, dict[str, float]]] = {}
+    if data is None:
+        return sets, units
+    try:
+        for set_name, scored in data["sets"].items():
+            if not scored.get("inputs_as_recorded"):
+                continue
+            for region in REGION_PREFIXES.values():
+                restored, raw = scored["restored"]["regions"][region], scored["input"]["regions"][region]
+                name = region_set(set_name, region)
+                sets[name] = {
+                    **{k: restored["mean"][k] for k in METRIC_KEYS},
+                    "raw": {k: raw["mean"][k] for k in METRIC_KEYS},
+                }
+                per: dict[str, dict[str, float]] = {}
+                for prefix, result in (("", restored), ("raw_", raw)):
+                    for k in METRIC_KEYS:
+                        values = {u: v[k] for u, v in result["images"].items()}
+                        if values and all(isinstance(v, float) and math.isfinite(v) for v in values.values()):
+                            per[prefix + k] = values
+                units[name] = per
+    except (KeyError, TypeError, AttributeError) as exc:
+        raise RecordError(
+            f"{path}: expected tofdenoise evaluate --run --edge-jump-mm's result ('sets' -> set -> 'restored' and "
+            f"'input' with 'regions' {', '.join(REGION_PREFIXES.values())}); {type(exc).__name__}: {exc}"
+        ) from None
+    return sets, units
+
+
 def _csv_units(path: Path) -> dict[str, dict[str, float]] | None:
     """Per image of a run's ``per_image/<set>.csv``: ``{column: {image name: value}}`` for every metric column
     (``raw_<key>`` too), None without the file; a file that cannot be read is a RecordError naming it."""
@@ -149,6 +190,7 @@ def _per_image_units(run_dir: Path) -> dict[str, dict[str, dict[str, float]]]:
     ``per_image/``, the real set against its truth from ``real_vs_truth.json``); sets without a record left out."""
     found = {name: _csv_units(run_dir / PER_IMAGE_DIR / f"{name}.csv") for name in ("synthetic", SIM_SET, "real")}
     found[TRUTH_SET] = _truth_units(run_dir / TRUTH_NAME)
+    found.update(_region_records(run_dir / REGIONS_NAME)[1])
     return {name: units for name, units in found.items() if units}
 
 
@@ -170,6 +212,7 @@ def load_records(profile_dir: Path | str) -> dict[str, dict[str, Any]]:
         truth = _truth_set(run_dir / TRUTH_NAME)
         if truth is not None:
             metrics[TRUTH_SET] = truth
+        metrics.update(_region_records(run_dir / REGIONS_NAME)[0])
         records[run_dir.name] = {"metrics": metrics, "run_info": info, "per_image": _per_image_units(run_dir)}
     return records
 
@@ -321,7 +364,7 @@ def _intervals_text(claim: Claim, intervals: list[StepInterval | None]) -> tuple
     unit = " mm" if claim.metric.endswith("_mm") else ""
     spans = ", ".join(f"[{i.low:+.3f}, {i.high:+.3f}]" for i in intervals) + unit
     counts = {i.units for i in intervals}
-    word = UNIT_WORDS[column_source(claim.metric)[0]]
+    word = UNIT_WORDS[column_source(claim.metric)[0].partition("/")[0]]
     shares = ", ".join(f"{100 * i.share:.0f} %" for i in intervals)
     return spans, f"{shares} of {'/'.join(str(n) for n in sorted(counts))} {word}"
 
@@ -330,10 +373,11 @@ def _column_header(column: str) -> str:
     """A table column's header: the metric's, prefixed ``real`` for the real set (``real MAE (mm)↓``), ``real
     vs truth`` for the real set scored against its rendered truth and ``simulator-noised`` for the synthetic test
     split captured by the tap-level simulator (the unprefixed synthetic columns are the paper's protocol)."""
-    prefix = {"real": "real ", TRUTH_SET: "real vs truth ", SIM_SET: "simulator-noised "}.get(
-        column_source(column)[0], ""
-    )
-    return prefix + column_metric(column).text
+    set_name, _ = column_source(column)
+    base, _, region = set_name.partition("/")
+    prefix = {"real": "real ", TRUTH_SET: "real vs truth ", SIM_SET: "simulator-noised "}.get(base, "")
+    where = {"off_edge": "off-edge ", "edge": "edge "}.get(region, "")
+    return prefix + where + column_metric(column).text
 
 
 def _table_section(table: str, profile: str, all_records: dict[str, dict[str, Any]], seeds: list[int]) -> list[str]:
@@ -729,7 +773,12 @@ def results_markdown(results_dir: Path | str) -> str:
         '"simulator-noised": the same test scenes and targets, each captured once by the tap-level simulator '
         "(Poisson, dark and read noise, ADC, fixed-pattern noise, mixed pixels, atan2 demodulation; "
         "docs/data.md), a noise no training model generated; a run recorded before that split existed shows no "
-        "value there.",
+        'value there. "off-edge": the same test images scored only on the pixels away from the target\'s depth '
+        f"steps (no valid 8-neighbour more than {EDGE_JUMP_MM:.0f} mm away; each learned run's `regions.json`, "
+        f"written by `tofdenoise reproduce` as it commits the run, the same as `tofdenoise evaluate --run RUN "
+        f"--edge-jump-mm {EDGE_JUMP_MM:.0f}`; docs/evaluation.md): at a step the simulator's pixel mixes two "
+        "surfaces (a flying pixel), an error no training noise model here describes, and a few such pixels carry "
+        "most of an image's squared error.",
         "",
     ]
     discussion = results_dir / DISCUSSION_NAME

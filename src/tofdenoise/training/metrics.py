@@ -46,7 +46,7 @@ from torch import Tensor
 from torchmetrics import Metric
 from torchmetrics.utilities.data import dim_zero_cat
 
-from tofdenoise.records.metrics_json import METRIC_KEYS
+from tofdenoise.records.metrics_json import EDGE_JUMP_MM, METRIC_KEYS
 
 __all__ = [
     "FixedBatchCache",
@@ -167,10 +167,6 @@ def masked_ssim_map(
     c2 = (k2 * data_range) ** 2
     ssim = ((2 * mu_p * mu_r + c1) * (2 * cov + c2)) / ((mu_p**2 + mu_r**2 + c1) * (var_p + var_r + c2))
     return torch.where(valid, ssim, torch.nan)
-
-
-#: the depth step between neighbouring reference pixels that makes both edge pixels (``depth_edge_mask``)
-EDGE_JUMP_MM: float = 50.0
 
 
 @torch.no_grad()
