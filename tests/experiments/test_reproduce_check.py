@@ -144,3 +144,39 @@ def test_the_inputs_note_reads_both_layouts_of_prepared_data(tmp_path):
     assert _inputs_note(old, new) == (
         "inputs differ from the record's: calibration: '6ae1' -> 'a62a'; max_depth_mm: 1598.9 -> None"
     )
+
+
+def test_a_record_from_before_the_restore_path_defaults_is_rerun_with_its_own():
+    """A record without a commit, or made at a commit before legacy_hparams.FORMER_DEFAULTS_UNTIL, is rerun with
+    centering=local and fill=pullpush (what it was trained with; its config.yaml does not name them); a record of
+    this checkout's HEAD (after the change) with today's; a commit git does not know gets no overrides and a note."""
+    import subprocess
+
+    from tofdenoise.experiments.reproduce_check import former_defaults
+    from tofdenoise.training.legacy_hparams import FORMER_DEFAULTS_UNTIL
+
+    expected = ["++model.conditioning.centering=local", "++model.conditioning.fill=pullpush"]
+    overrides, note = former_defaults({"backbone": "unet"})
+    assert overrides == expected and "made before the restore-path defaults changed (427bded8e258)" in note
+    if shutil.which("git") is None or not (REPO_ROOT / ".git").exists():
+        pytest.skip("needs this project's git history")
+    parent = subprocess.run(
+        ["git", "-C", str(REPO_ROOT), "rev-parse", f"{FORMER_DEFAULTS_UNTIL}^"], capture_output=True, text=True
+    )
+    if parent.returncode != 0:
+        pytest.skip("a shallow clone without the commit that changed the defaults")
+    assert former_defaults({"commit": parent.stdout.strip()})[0] == expected
+    head = subprocess.run(["git", "-C", str(REPO_ROOT), "rev-parse", "HEAD"], capture_output=True, text=True)
+    assert former_defaults({"commit": head.stdout.strip()}) == ([], "")
+    overrides, note = former_defaults({"commit": "ab" * 20})
+    assert overrides == [] and note.startswith("cannot tell whether abababababab predates")
+
+
+def test_a_record_without_the_simulator_noised_split_is_rerun_without_it():
+    """Building the simulator-noised split shifts the training stream (its DataLoader draws from torch's global
+    generator), so a record tested without it is rerun without it; a record with it keeps today's default."""
+    from tofdenoise.experiments.reproduce_check import record_test_sets
+
+    overrides, note = record_test_sets({"synthetic": {"mae_mm": 2.0}})
+    assert overrides == ["++data.simulated_test=false"] and "as the record was" in note
+    assert record_test_sets({"synthetic": {"mae_mm": 2.0}, "simulated": {"mae_mm": 5.0}}) == ([], "")

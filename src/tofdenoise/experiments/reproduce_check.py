@@ -10,9 +10,15 @@ test_reproduce_check.py`` calls :func:`reproduce_check` too):
    table's overrides with the profile's experiment), trained on the calibration the record names (the ``sensor``
    node of its ``config.yaml``, which is the calibration its data were made with, written to a file) and without
    the stand-in real set (its captures were not committed with the records: only the synthetic test split, which
-   the config and calibration fix, is compared). Before it trains, the composed config is compared with the
-   recorded ``config.yaml`` (:func:`config_drift`, the settings layout of older records translated): a setting
-   that changed is printed, and the run is not a rerun of the record.
+   the config and calibration fix, is compared). A record made before the restore path's defaults changed
+   (``legacy_hparams.FORMER_DEFAULTS_UNTIL``; every record without a commit) is rerun with the values it was
+   trained with (:func:`former_defaults`: ``model.conditioning.centering=local``, ``fill=pullpush``), which its
+   ``config.yaml`` does not name, and the check says so. A record tested without the simulator-noised split (every
+   earlier-protocol record) is rerun without it too (``data.simulated_test=false``, :func:`record_test_sets`):
+   building that split iterates a DataLoader, whose iterator draws its base seed from torch's global generator
+   before training starts, so the split's presence shifts the training stream. Before it trains, the composed
+   config is compared with the recorded ``config.yaml`` (:func:`config_drift`, the settings layout of older records
+   translated): a setting that changed is printed, and the run is not a rerun of the record.
 3. **Compared within a stated tolerance** (:func:`compare_metrics`): the noisy input's test MAE must be the
    record's to 1e-6 mm (the same test images: data, noise and holes); the test MAE, PSNR and the best validation
    MAE within the spread of the row over its recorded seeds (standard deviation, at least :data:`MIN_TOLERANCE`):
@@ -40,7 +46,7 @@ from omegaconf import OmegaConf
 from tofdenoise.atomic import atomic_write_text
 from tofdenoise.config import compose_config
 from tofdenoise.experiments.runner import RunSpec, run_all
-from tofdenoise.experiments.tables import TABLES, Row, run_name, table_specs
+from tofdenoise.experiments.tables import SIM_SET, TABLES, Row, run_name, table_specs
 from tofdenoise.experiments.targets import CHECK_TABLES
 from tofdenoise.records import (
     METRICS_NAME,
@@ -48,6 +54,7 @@ from tofdenoise.records import (
     RecordError,
     code_commit,
     load_metrics,
+    metric_sets,
     read_record,
     record_commit,
 )
@@ -61,6 +68,8 @@ __all__ = [
     "check_table_markdown",
     "compare_metrics",
     "config_drift",
+    "former_defaults",
+    "record_test_sets",
     "pick_check_runs",
     "reproduce_check",
 ]
@@ -261,6 +270,54 @@ def check_table_markdown(rows: Sequence[CheckRow]) -> list[str]:
     return lines
 
 
+def _is_ancestor(older: str, commit: str) -> bool | None:
+    """Is ``older`` an ancestor of (or equal to) ``commit`` in this checkout? None when git cannot tell (no git, no
+    checkout, a commit it does not have)."""
+    import subprocess
+
+    try:
+        done = subprocess.run(
+            ["git", "-C", str(Path(__file__).resolve().parent), "merge-base", "--is-ancestor", older, commit],
+            capture_output=True,
+            timeout=30,
+            check=False,
+        )
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return {0: True, 1: False}.get(done.returncode)
+
+
+def former_defaults(info: Mapping[str, Any] | None) -> tuple[list[str], str]:
+    """The overrides that rerun a record with the restore-path defaults it was trained with, and a note: the former
+    values (``legacy_hparams.FORMER_DEFAULTS``) for a record without a commit or made at a commit before
+    ``FORMER_DEFAULTS_UNTIL``; none for a later one; none, with a note saying so, when git cannot tell."""
+    from tofdenoise.training.legacy_hparams import FORMER_DEFAULTS, FORMER_DEFAULTS_UNTIL  # heavy package (torch)
+
+    commit = record_commit(info)
+    after = None if commit is None else _is_ancestor(FORMER_DEFAULTS_UNTIL, commit)
+    if after is None and commit is not None:
+        since = FORMER_DEFAULTS_UNTIL[:12]
+        return [], f"cannot tell whether {commit[:12]} predates the restore-path defaults of {since}"
+    if after:
+        return [], ""
+    overrides = [f"++model.{group}.{name}={value}" for (group, name), value in FORMER_DEFAULTS.items()]
+    return overrides, (
+        f"made before the restore-path defaults changed ({FORMER_DEFAULTS_UNTIL[:12]}): rerun with the values it was "
+        "trained with, " + ", ".join(o[2:] for o in overrides)
+    )
+
+
+def record_test_sets(metrics: Mapping[str, Any]) -> tuple[list[str], str]:
+    """The overrides that rerun a record with the test sets it had, and a note: ``data.simulated_test=false`` for a
+    record without a simulator-noised set (module docstring, step 2); none for one with it."""
+    if SIM_SET in metric_sets(metrics):
+        return [], ""
+    return ["++data.simulated_test=false"], (
+        "tested without the simulator-noised split, as the record was (building the split draws from torch's global "
+        "generator before training: its presence shifts the training stream)"
+    )
+
+
 def _check_spec(run: CheckRun, profile: str, calibration: Path, extra: Sequence[str] = ()) -> RunSpec:
     from tofdenoise.experiments.reproduce import PROFILES  # the workflow module: imported when a check runs
 
@@ -338,10 +395,14 @@ def reproduce_check(
             raise RecordError(f"{run.record / CONFIG_NAME}: its 'sensor' is no calibration ({exc})") from None
         if not dry_run:
             save_calibration(calib, calibration)
-        spec = _check_spec(run, profile, calibration, extra)
+        info = read_record(run.record / RUN_INFO_NAME)
+        former, former_note = former_defaults(info)
+        test_sets, test_sets_note = record_test_sets(load_metrics(run.record / METRICS_NAME))
+        spec = _check_spec(run, profile, calibration, [*extra, *former, *test_sets])
         changed, added = config_drift(recorded_yaml, _composed_yaml(spec, Path(out) / run.name))
         notes = [f"{TABLE_NAMES.get(run.table, run.table)}: {run.name}"]
-        notes.append(_commit_note(read_record(run.record / RUN_INFO_NAME)))
+        notes.append(_commit_note(info))
+        notes += [note for note in (former_note, test_sets_note) if note]
         if changed:
             notes.append("config changed since the record: " + "; ".join(changed))
         if added:

@@ -21,7 +21,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
-__all__ = ["FORMER_DEFAULTS", "LEGACY_KEYS", "is_legacy", "upgrade_hparams"]
+__all__ = ["FORMER_DEFAULTS", "FORMER_DEFAULTS_UNTIL", "LEGACY_KEYS", "is_legacy", "upgrade_hparams"]
 
 #: flat argument of the old layout -> (group, field) of today's
 LEGACY_KEYS: dict[str, tuple[str, str]] = {
@@ -45,6 +45,10 @@ FORMER_DEFAULTS: dict[tuple[str, str], Any] = {
     ("conditioning", "centering"): "local",
     ("conditioning", "fill"): "pullpush",
 }
+#: the commit that changed them (2026-11-27): code before it trained with :data:`FORMER_DEFAULTS` (a run's
+#: ``config.yaml`` does not name these settings when it keeps the defaults, so a record made before says so only
+#: through its commit: ``experiments.reproduce_check`` reruns such a record with them)
+FORMER_DEFAULTS_UNTIL = "427bded8e258a9c9b07ff208c24be520285459e9"
 
 
 def is_legacy(hparams: Mapping[str, Any]) -> bool:
