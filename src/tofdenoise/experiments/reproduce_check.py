@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import math
 import statistics
+import subprocess
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -273,8 +274,6 @@ def check_table_markdown(rows: Sequence[CheckRow]) -> list[str]:
 def _is_ancestor(older: str, commit: str) -> bool | None:
     """Is ``older`` an ancestor of (or equal to) ``commit`` in this checkout? None when git cannot tell (no git, no
     checkout, a commit it does not have)."""
-    import subprocess
-
     try:
         done = subprocess.run(
             ["git", "-C", str(Path(__file__).resolve().parent), "merge-base", "--is-ancestor", older, commit],
