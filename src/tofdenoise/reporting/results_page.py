@@ -184,13 +184,15 @@ def _csv_units(path: Path) -> dict[str, dict[str, float]] | None:
     return out
 
 
-def _per_image_units(run_dir: Path) -> dict[str, dict[str, dict[str, float]]]:
+def _per_image_units(
+    run_dir: Path, region_units: dict[str, dict[str, dict[str, float]]] | None = None
+) -> dict[str, dict[str, dict[str, float]]]:
     """A run's per-unit records by set: ``{set: {key: {image or scene: value}}}`` (synthetic, simulator-noised and
-    real from
-    ``per_image/``, the real set against its truth from ``real_vs_truth.json``); sets without a record left out."""
+    real from ``per_image/``, the real set against its truth from ``real_vs_truth.json``, the regions from
+    ``region_units``, :func:`_region_records`'s); sets without a record left out."""
     found = {name: _csv_units(run_dir / PER_IMAGE_DIR / f"{name}.csv") for name in ("synthetic", SIM_SET, "real")}
     found[TRUTH_SET] = _truth_units(run_dir / TRUTH_NAME)
-    found.update(_region_records(run_dir / REGIONS_NAME)[1])
+    found.update(region_units or {})  # read with the region metric sets (load_records): the file is read once
     return {name: units for name, units in found.items() if units}
 
 
@@ -212,8 +214,10 @@ def load_records(profile_dir: Path | str) -> dict[str, dict[str, Any]]:
         truth = _truth_set(run_dir / TRUTH_NAME)
         if truth is not None:
             metrics[TRUTH_SET] = truth
-        metrics.update(_region_records(run_dir / REGIONS_NAME)[0])
-        records[run_dir.name] = {"metrics": metrics, "run_info": info, "per_image": _per_image_units(run_dir)}
+        region_sets, region_units = _region_records(run_dir / REGIONS_NAME)
+        metrics.update(region_sets)
+        per_image = _per_image_units(run_dir, region_units)
+        records[run_dir.name] = {"metrics": metrics, "run_info": info, "per_image": per_image}
     return records
 
 
