@@ -114,6 +114,10 @@ def _run_case(case: dict) -> dict:
     import torch
 
     torch.manual_seed(0)
+    if case.get("allocator") == "keep":  # what the tofdenoise command runs with (tofdenoise.allocator)
+        from tofdenoise.allocator import keep_freed_memory
+
+        keep_freed_memory()
     if case.get("scan_source"):  # a baseline kernel from another source (bench_scan_cpu.py --baseline)
         use_scan_extension(build_scan_source(case["scan_source"]))
     kind = case["kind"]

@@ -12,8 +12,9 @@ the DVSS training step against the U-Net's, and full-resolution DVSS inference m
 2. Training step (DepthRestorer input normalisation + backbone + L_full + backward + AdamW), 64x64 crops,
    batch 4, one pre-loaded batch: U-Net vs DVSS (native scan) vs DVSS on the pure-PyTorch route, steps
    interleaved round by round so that load from other processes hits all alike; ratio DVSS / U-Net.
-3. Full-resolution DVSS inference, 480x640 batch 1 (``--quick``: 240x320), in a fresh subprocess: time and
-   peak resident memory above the pre-run baseline (bench_models' method).
+3. Full-resolution inference, 480x640 batch 1 (``--quick``: 240x320), U-Net and DVSS, each in a fresh subprocess
+   with glibc's allocator as it starts and with freed memory kept (``tofdenoise.allocator``, what the ``tofdenoise``
+   command runs with): time and peak resident memory above the pre-run baseline (bench_models' method).
 
 ``--baseline REV`` also builds the kernel source of git revision REV under an extension name of its own and puts it
 next to today's in every part: the SS2D route's forward at DVSS level 0 of a 480x640 frame (batch 1, 64 channels,
@@ -325,18 +326,27 @@ def bench_inference(args) -> None:
     from bench_models import run_isolated
 
     h, w = (240, 320) if args.quick else (480, 640)
-    print(f"\n### DVSS inference {h}x{w}, batch 1, fresh subprocess per route (peak RSS above baseline)")
-    print("| scan route | time (s) | peak memory (MiB) |")
-    print("|---|---:|---:|")
-    routes = [("native kernel (auto)", {}, None)]
+    print(
+        f"\n### Inference {h}x{w}, batch 1, fresh subprocess per row (peak RSS above baseline): glibc's allocator "
+        "as it starts, and with freed memory kept (tofdenoise.allocator, what the tofdenoise command runs with)"
+    )
+    print("| backbone, scan route | allocator | time (s) | peak memory (MiB) |")
+    print("|---|---|---:|---:|")
+    rows = [
+        ("U-Net", "unet", {}, None, "default"),
+        ("U-Net", "unet", {}, None, "keep"),
+        ("DVSS, native kernel (auto)", "dvss", {}, None, "default"),
+        ("DVSS, native kernel (auto)", "dvss", {}, None, "keep"),
+    ]
     if BASELINE:
-        routes.append((f"native kernel, baseline {args.baseline}", {}, BASELINE["source"]))
+        rows.append((f"DVSS, native kernel, baseline {args.baseline}", "dvss", {}, BASELINE["source"], "default"))
     if not args.quick and not args.no_torch_route:
-        routes.append(("PyTorch (`scan_backend=torch`)", {"scan_backend": "torch"}, None))
-    for label, kwargs, source in routes:
+        rows.append(("DVSS, PyTorch (`scan_backend=torch`)", "dvss", {"scan_backend": "torch"}, None, "default"))
+    times: dict[tuple[str, str], float] = {}
+    for label, name, kwargs, source, allocator in rows:
         case = {
             "kind": "backbone",
-            "name": "dvss",
+            "name": name,
             "mode": "fwd",
             "H": h,
             "W": w,
@@ -345,13 +355,23 @@ def bench_inference(args) -> None:
             "single_run_above_s": 1e9,  # frame_reps > 1: the first frame is a warm-up
             "kwargs": kwargs,
             "scan_source": source,
+            "allocator": allocator,
         }
         res = run_isolated(case, args.threads, timeout_s=1800, mem_cap_gib=12)
+        kept = "freed memory kept" if allocator == "keep" else "glibc default"
         if "error" in res:
-            print(f"| {label} | {res['error']} | - |")
+            print(f"| {label} | {kept} | {res['error']} | - |")
         else:
-            print(f"| {label} | {res['time_s']:.2f} | {res['peak_mib']:.0f} |")
-    print("target: peak under 4096 MiB")
+            print(f"| {label} | {kept} | {res['time_s']:.2f} | {res['peak_mib']:.0f} |")
+            if source is None and not kwargs:
+                times[(name, allocator)] = res["time_s"]
+    for allocator in ("default", "keep"):
+        if ("dvss", allocator) in times and ("unet", allocator) in times:
+            print(f"DVSS / U-Net ({allocator}) = {times[('dvss', allocator)] / times[('unet', allocator)]:.2f}")
+    for name in ("unet", "dvss"):
+        if (name, "default") in times and (name, "keep") in times:
+            print(f"{name}: kept / default = {times[(name, 'keep')] / times[(name, 'default')]:.2f}")
+    print("targets: DVSS frame <= 1.5 s (480x640); peak under 4096 MiB")
 
 
 def main(argv: list[str] | None = None) -> int:

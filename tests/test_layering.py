@@ -2,8 +2,8 @@
 
 - floors: physics -> data_modules -> models -> training -> callbacks -> front ends (cli, inference, experiments,
   reporting, evaluation). A module imports its own floor, lower floors and the shared root helpers, never a higher
-  floor; the shared helpers (registry, config, atomic, paths, output_guard, run_lock, wandb_env, lazy, visualize)
-  import only each other.
+  floor; the shared helpers (registry, config, atomic, paths, output_guard, run_lock, wandb_env, lazy, visualize,
+  allocator) import only each other.
 - the scan package (``models/scan/``): one dispatcher (``dispatch.py``). The kernel modules (common, reference,
   cpu, triton, mamba) never import it, nor the package's ``__init__`` that re-exports it, nor anything of
   ``models`` outside the scan package; ``common`` imports nothing of the package.
@@ -43,6 +43,7 @@ SHARED = {
     "wandb_env",
     "lazy",
     "visualize",
+    "allocator",
 }
 SCAN = f"{PACKAGE}.models.scan"
 SCAN_DISPATCHER = {SCAN, f"{SCAN}.dispatch"}

@@ -73,3 +73,18 @@ def test_a_hydra_verb_reads_its_overrides_from_argv(monkeypatch):
     assert main(["train", "experiment=smoke", "seed=3"]) == 0
     assert seen["argv"] == ["tofdenoise train", "experiment=smoke", "seed=3"]
     assert sys.argv == before
+
+
+def test_every_verb_runs_with_the_allocator_keeping_freed_memory(monkeypatch, capsys):
+    from tofdenoise import allocator
+
+    calls = []
+    monkeypatch.setattr(allocator, "keep_freed_memory", lambda: calls.append(1) or True)
+    assert main(["sensor", "show-calib"]) == 0
+    assert calls == [1]
+
+
+def test_a_bad_allocator_setting_is_a_usage_error(monkeypatch, capsys):
+    monkeypatch.setenv("TOFDENOISE_MALLOC", "fast")
+    assert main(["sensor", "show-calib"]) == 2
+    assert "TOFDENOISE_MALLOC='fast': expected 'keep' (the default) or 'default'" in capsys.readouterr().err

@@ -20,6 +20,7 @@ import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+from tofdenoise import allocator
 from tofdenoise.cli import help_cache
 
 __all__ = ["VERBS", "main"]
@@ -99,6 +100,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     if verb.grammar == "lightning" and help_cache.is_bare_help(rest):
         return _lightning_help(name, rest)
+    # freed tensors' pages kept for the next frame or step (and in the processes the verb starts);
+    # TOFDENOISE_MALLOC=default turns it off
+    try:
+        allocator.keep_freed_memory()
+    except ValueError as err:
+        print(f"tofdenoise: error: {err}", file=sys.stderr)
+        return 2
     run = importlib.import_module(f"tofdenoise.cli.{verb.module}").main
     if verb.grammar == "options":
         status = run(rest)

@@ -10,7 +10,27 @@ from torch import nn
 
 from .scan import cross_merge, cross_scan, resolve_scan_backend, selective_scan
 
-__all__ = ["SS2D", "cross_scan", "cross_merge"]
+__all__ = ["SS2D", "cross_scan", "cross_merge", "dt_projection"]
+
+
+def dt_projection(dt_low: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    """The per-direction dt projection of SS2D: dt_low (M, k, r) (any strides) and weight (k, d, r) give
+    (M, k, d) contiguous, ``out[m, j] = weight[j] @ dt_low[m, j]`` -- one matrix product batched over the k
+    directions (no (k r, k d) block-diagonal matrix).
+
+    Where no gradient is recorded the product is written straight into the (M, k, d) layout the scan reads (a
+    batched product with a strided output); with autograd it is computed direction-major and copied, since an
+    ``out=`` product records no gradient. The two give the same numbers (tests/models/test_ss2d.py); the copy is
+    the largest one of a DVSS frame (docs/benchmarks.md, "Where a DVSS frame's time goes").
+    """
+    lhs = dt_low.transpose(0, 1)  # (k, M, r)
+    rhs = weight.transpose(1, 2)  # (k, r, d)
+    records_grad = torch.is_grad_enabled() and (dt_low.requires_grad or weight.requires_grad)
+    if records_grad or torch.compiler.is_compiling():
+        return torch.bmm(lhs, rhs).transpose(0, 1).contiguous()
+    out = dt_low.new_empty(dt_low.size(0), weight.size(0), weight.size(1))
+    torch.bmm(lhs, rhs, out=out.transpose(0, 1))
+    return out
 
 
 class SS2D(nn.Module):
@@ -130,9 +150,7 @@ class SS2D(nn.Module):
         length = h * w
         xs = xs.view(b, length, di)
         x_dbl = (xs @ self.x_proj_weight.reshape(k * (r + 2 * n), di).t()).view(b, length, k, r + 2 * n)
-        # per direction k: (b L, r) @ (r, di), one batched product over k (no (k r, k di) block-diagonal matrix)
-        dts = torch.bmm(x_dbl[..., :r].reshape(b * length, k, r).transpose(0, 1), self.dt_projs_weight.transpose(1, 2))
-        dts = dts.transpose(0, 1).reshape(b, length, k * di)  # (b, L, k di), direction-major channels
+        dts = dt_projection(x_dbl[..., :r].reshape(b * length, k, r), self.dt_projs_weight).view(b, length, k * di)
         A, D, bias = self._scan_params()
         if kernel == "triton":
             from .scan.triton import ss2d_scan_triton as scan
