@@ -7,7 +7,7 @@ import subprocess
 
 import pytest
 
-from tofdenoise.records import code_commit, record_commit
+from tofdenoise.records import code_commit, is_ancestor, record_commit
 
 pytestmark = pytest.mark.skipif(shutil.which("git") is None, reason="needs git")
 
@@ -78,3 +78,16 @@ def test_records_without_a_commit_read_as_none():
     assert record_commit({"backbone": "unet"}) is None
     assert record_commit(None) is None
     assert record_commit({"commit": "ab" * 20}) == "ab" * 20
+
+
+def test_is_ancestor_orders_two_commits_and_says_when_git_cannot_tell(checkout, tmp_path):
+    repo, first = checkout
+    (repo / "src" / "a.py").write_text("x = 3\n")
+    _git(repo, "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-am", "second")
+    second = subprocess.run(["git", "-C", str(repo), "rev-parse", "HEAD"], capture_output=True, text=True).stdout
+    second = second.strip()
+    assert is_ancestor(first, second, repo) is True
+    assert is_ancestor(first, first, repo) is True
+    assert is_ancestor(second, first, repo) is False
+    assert is_ancestor("ab" * 20, second, repo) is None  # a commit the checkout does not have
+    assert is_ancestor(first, second, tmp_path / "nowhere") is None  # no checkout

@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import math
 import statistics
-import subprocess
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -54,6 +53,7 @@ from tofdenoise.records import (
     RUN_INFO_NAME,
     RecordError,
     code_commit,
+    is_ancestor,
     load_metrics,
     metric_sets,
     read_record,
@@ -271,21 +271,6 @@ def check_table_markdown(rows: Sequence[CheckRow]) -> list[str]:
     return lines
 
 
-def _is_ancestor(older: str, commit: str) -> bool | None:
-    """Is ``older`` an ancestor of (or equal to) ``commit`` in this checkout? None when git cannot tell (no git, no
-    checkout, a commit it does not have)."""
-    try:
-        done = subprocess.run(
-            ["git", "-C", str(Path(__file__).resolve().parent), "merge-base", "--is-ancestor", older, commit],
-            capture_output=True,
-            timeout=30,
-            check=False,
-        )
-    except (OSError, subprocess.SubprocessError):
-        return None
-    return {0: True, 1: False}.get(done.returncode)
-
-
 def former_defaults(info: Mapping[str, Any] | None) -> tuple[list[str], str]:
     """The overrides that rerun a record with the restore-path defaults it was trained with, and a note: the former
     values (``legacy_hparams.FORMER_DEFAULTS``) for a record without a commit or made at a commit before
@@ -293,7 +278,7 @@ def former_defaults(info: Mapping[str, Any] | None) -> tuple[list[str], str]:
     from tofdenoise.training.legacy_hparams import FORMER_DEFAULTS, FORMER_DEFAULTS_UNTIL  # heavy package (torch)
 
     commit = record_commit(info)
-    after = None if commit is None else _is_ancestor(FORMER_DEFAULTS_UNTIL, commit)
+    after = None if commit is None else is_ancestor(FORMER_DEFAULTS_UNTIL, commit)
     if after is None and commit is not None:
         since = FORMER_DEFAULTS_UNTIL[:12]
         return [], f"cannot tell whether {commit[:12]} predates the restore-path defaults of {since}"

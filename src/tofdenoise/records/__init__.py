@@ -11,7 +11,8 @@
   ``read_run`` (lenient), ``run_finished`` (the one rule of a finished run), ``unreadable_records`` and
   ``write_run_info``;
 - :mod:`~tofdenoise.records.provenance`: the git commit of the code that made a record (``code_commit``, written
-  into every ``run_info.json``; ``record_commit`` reads it back, ``None`` for older records).
+  into every ``run_info.json``; ``record_commit`` reads it back, ``None`` for older records; ``is_ancestor`` orders
+  two commits).
 
 Writers: ``tofdenoise.callbacks.run_outputs.RunOutputs`` (every trained run), the classical row; readers: the
 training job and the grids' runner (skip or return finished runs), ``tofdenoise.reporting`` (report, results page,
@@ -36,7 +37,7 @@ from tofdenoise.records.metrics_json import (
     write_metrics_json,
 )
 from tofdenoise.records.per_image import read_per_image_csv, write_per_image_csv
-from tofdenoise.records.provenance import code_commit, record_commit
+from tofdenoise.records.provenance import code_commit, is_ancestor, record_commit
 from tofdenoise.records.run_folder import (
     BEST_CHECKPOINT,
     LAST_CHECKPOINT,
@@ -87,6 +88,7 @@ __all__ = [
     "read_per_image_csv",
     "read_record",
     "read_run",
+    "is_ancestor",
     "record_commit",
     "run_fields",
     "run_finished",

@@ -18,7 +18,7 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
-__all__ = ["code_commit", "record_commit"]
+__all__ = ["code_commit", "is_ancestor", "record_commit"]
 
 #: the folder holding the ``tofdenoise`` package (``src/`` in a checkout)
 _PACKAGE_DIR = Path(__file__).resolve().parents[1]
@@ -26,15 +26,27 @@ _PACKAGE_DIR = Path(__file__).resolve().parents[1]
 OUTPUT_PATHS = ("docs/results", "docs/results.md")
 
 
-def _git(folder: Path, *args: str) -> str | None:
-    """``git -C folder args`` stripped, or None when git is missing, the folder is no checkout, or git fails."""
+def _run_git(folder: Path, *args: str) -> subprocess.CompletedProcess | None:
+    """``git -C folder args`` run to its end, or None when git is missing or does not answer."""
     try:
-        done = subprocess.run(
+        return subprocess.run(
             ["git", "-C", str(folder), *args], capture_output=True, text=True, timeout=30, check=False
         )
     except (OSError, subprocess.SubprocessError):
         return None
-    return done.stdout.strip() if done.returncode == 0 else None
+
+
+def _git(folder: Path, *args: str) -> str | None:
+    """``git -C folder args`` stripped, or None when git is missing, the folder is no checkout, or git fails."""
+    done = _run_git(folder, *args)
+    return done.stdout.strip() if done is not None and done.returncode == 0 else None
+
+
+def is_ancestor(older: str, commit: str, folder: Path = _PACKAGE_DIR) -> bool | None:
+    """Is ``older`` an ancestor of (or equal to) ``commit`` in the checkout holding ``folder`` (default: this
+    package's)? None when git cannot tell (no git, no checkout, a commit it does not have)."""
+    done = _run_git(folder, "merge-base", "--is-ancestor", older, commit)
+    return None if done is None else {0: True, 1: False}.get(done.returncode)
 
 
 def _version() -> str | None:
