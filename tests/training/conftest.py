@@ -9,6 +9,23 @@ import torch
 from torch.utils.data import DataLoader, Dataset
 
 
+def quiet_trainer(tmp_path, **kw) -> pl.Trainer:
+    """A CPU ``pl.Trainer`` for the tests: one device, no logger, progress bar, model summary, checkpointing or sanity
+    validation; ``kw`` overrides or adds any argument."""
+    args = dict(
+        default_root_dir=tmp_path,
+        accelerator="cpu",
+        devices=1,
+        logger=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        enable_checkpointing=False,
+        num_sanity_val_steps=0,
+    )
+    args.update(kw)
+    return pl.Trainer(**args)
+
+
 def make_sample(index: int, size: int = 32, noise_seed: int = 0) -> dict:
     g = torch.Generator().manual_seed(1000 + index)
     yy, xx = torch.meshgrid(

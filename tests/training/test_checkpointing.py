@@ -4,12 +4,13 @@ from __future__ import annotations
 
 from datetime import timedelta
 
-import lightning.pytorch as pl
 import pytest
 import torch
 
 from tofdenoise.callbacks.checkpointing import BestAndLastCheckpoint
 from tofdenoise.training.module import DepthRestorer
+
+from .conftest import quiet_trainer
 
 SCORES = [5.0, 3.0, 4.0, 2.0, 6.0, 2.0, 2.5]  # best at epoch 3 (the tie at epoch 5 does not replace it)
 
@@ -46,17 +47,13 @@ def test_best_is_lowest_val_mae_and_last_is_last(tmp_path, tiny_data, refresh):
     from choosing best.ckpt."""
     model = ScriptedRestorer(backbone="unet", backbone_kwargs={"width": 4, "stages": 2}, loss="l1")
     ckpt = BestAndLastCheckpoint(dirpath=tmp_path / "checkpoints", **refresh)
-    trainer = pl.Trainer(
-        default_root_dir=tmp_path,
+    trainer = quiet_trainer(
+        tmp_path,
         max_epochs=len(SCORES),
-        accelerator="cpu",
-        logger=False,
-        enable_progress_bar=False,
-        enable_model_summary=False,
+        enable_checkpointing=True,
         callbacks=[ckpt],
         limit_train_batches=1,
         limit_val_batches=1,
-        num_sanity_val_steps=0,
     )
     trainer.fit(model, datamodule=tiny_data)
     files = sorted(p.name for p in (tmp_path / "checkpoints").iterdir())

@@ -3,13 +3,14 @@ unknown for a checkpoint written before the record existed."""
 
 from __future__ import annotations
 
-import lightning.pytorch as pl
 import numpy as np
 import pytest
 import torch
 
 from tofdenoise.training.depth_range import DEPTH_RANGE_KEY, TrainingDepthRange, outside_fraction
 from tofdenoise.training.module import DepthRestorer
+
+from .conftest import quiet_trainer
 
 
 def test_the_histogram_quantiles_and_extremes_match_numpy_on_the_valid_depths():
@@ -54,18 +55,7 @@ def test_outside_fraction_counts_only_valid_pixels():
 def test_a_fit_keeps_the_training_depths_in_its_checkpoint(tmp_path, tiny_data):
     model = DepthRestorer(backbone="unet", backbone_kwargs={"width": 4, "stages": 2}, loss="l1")
     assert model.training_depth_range_mm is None
-    trainer = pl.Trainer(
-        default_root_dir=tmp_path,
-        accelerator="cpu",
-        devices=1,
-        logger=False,
-        enable_progress_bar=False,
-        enable_model_summary=False,
-        enable_checkpointing=False,
-        num_sanity_val_steps=0,
-        max_epochs=1,
-        limit_val_batches=0,
-    )
+    trainer = quiet_trainer(tmp_path, max_epochs=1, limit_val_batches=0)
     trainer.fit(model, datamodule=tiny_data)
     tiny_data.setup("fit")
     values = np.concatenate(

@@ -6,7 +6,6 @@ from __future__ import annotations
 import dataclasses
 import math
 
-import lightning.pytorch as pl
 import pytest
 import torch
 from lightning.pytorch.callbacks import Callback
@@ -14,6 +13,8 @@ from lightning.pytorch.callbacks import Callback
 from tofdenoise.training.metrics import depth_metrics_per_image
 from tofdenoise.training.module import CheckpointMismatchError, DepthRestorer
 from tofdenoise.training.optim import parameter_groups
+
+from .conftest import quiet_trainer as trainer
 
 TINY = {"width": 4, "stages": 2}
 
@@ -27,21 +28,6 @@ def tiny_model(**kw) -> DepthRestorer:
     }
     args.update(kw)
     return DepthRestorer(**args)
-
-
-def trainer(tmp_path, **kw) -> pl.Trainer:
-    args = dict(
-        default_root_dir=tmp_path,
-        accelerator="cpu",
-        devices=1,
-        logger=False,
-        enable_progress_bar=False,
-        enable_model_summary=False,
-        enable_checkpointing=False,
-        num_sanity_val_steps=0,
-    )
-    args.update(kw)
-    return pl.Trainer(**args)
 
 
 def test_bad_names_list_valid_ones():
