@@ -17,6 +17,7 @@ from tofdenoise.models.scan import (
     selective_scan_chunked,
     selective_scan_ref,
     selective_scan_sequential,
+    ss2d_scan_reference,
 )
 from tofdenoise.models.ss2d import SS2D
 
@@ -346,3 +347,30 @@ def test_inference_forward_keeps_no_checkpoints_and_gives_the_same_output(ext, b
     assert torch.equal(y_route, y_ck)
     with pytest.raises(RuntimeError, match="checkpoints"):
         ext.scan_bwd(*args, 0, ck_inf, torch.ones_like(y_ck))
+
+
+@pytest.mark.parametrize("b,dg", [(1, 40), (1, 80), (2, 80)])
+def test_forward_split_into_parts_by_thread_count_is_bitwise_the_same(ext, b, dg):
+    """The forward walks a range of lane blocks together chunk by chunk, as many ranges as keep the threads busy
+    (ceil(threads / batch)): 1-4 threads split 3 or 5 blocks (the last partial at 40 channels) into 1, 2 or 3
+    ranges. Output and checkpoints are the same bit for bit, and equal the reference scan's output."""
+    g = torch.Generator().manual_seed(12)
+    h, w, n = 9, 23, 16  # L = 207: 4 chunks, the last partial
+    x = torch.randn(b, h * w, dg, generator=g)
+    dts = 0.5 * torch.randn(b, h * w, 4 * dg, generator=g) - 2.0
+    x_dbl = torch.randn(b, h * w, 4, 3 + 2 * n, generator=g)
+    A = -torch.exp(0.3 * torch.randn(4 * dg, n, generator=g))
+    D, bias = torch.randn(4 * dg, generator=g), 0.1 * torch.randn(4 * dg, generator=g)
+    args = (x, dts, A, x_dbl[..., 3 : 3 + n], x_dbl[..., 3 + n :], D, bias, True, True, h, w, scan_cpu.CHUNK)
+    threads = torch.get_num_threads()
+    runs = []
+    try:
+        for t in (1, 2, 3, 4):
+            torch.set_num_threads(t)
+            runs.append(ext.scan_fwd(*args))
+    finally:
+        torch.set_num_threads(threads)
+    for y, ck in runs[1:]:
+        assert torch.equal(y, runs[0][0]) and torch.equal(ck, runs[0][1])
+    ref = ss2d_scan_reference(x, dts, A, x_dbl[..., 3 : 3 + n], x_dbl[..., 3 + n :], D, bias, h, w)
+    assert _rel(runs[0][0], ref) < 2e-6
