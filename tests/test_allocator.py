@@ -54,16 +54,18 @@ def test_freed_pages_are_reused_after_keep_freed_memory():
     kept = _probe("keep")
     assert plain["applied"] is False and kept["applied"] is True
     # glibc's default maps every frame's tensors afresh and unmaps them when freed: their pages fault in every frame
-    assert plain["faults"] >= 4 * TENSOR_PAGES
-    # kept: the frames after the first two reuse the heap's pages
-    assert kept["faults"] < TENSOR_PAGES // 8
+    # (measured: 24 tensors' worth in the four frames)
+    assert plain["faults"] >= 16 * TENSOR_PAGES
+    # kept: the frames after the first two reuse the heap's pages (measured: none, or now and then one tensor's
+    # worth where the heap grows once more)
+    assert kept["faults"] <= 2 * TENSOR_PAGES
     assert kept["env"] == allocator.malloc_environment()
 
 
 def test_default_leaves_the_allocator_and_the_environment_alone():
     probe = _probe("keep", {allocator.ENV: "default"})
     assert probe["applied"] is False
-    assert probe["faults"] >= 4 * TENSOR_PAGES
+    assert probe["faults"] >= 16 * TENSOR_PAGES
     assert probe["env"] == {}
 
 
