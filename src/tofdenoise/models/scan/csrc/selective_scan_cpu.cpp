@@ -16,8 +16,8 @@
 // Work split: one task per (batch, range of blocks of W = 16 channels-in-group). A task walks every group in turn,
 // so the SS2D sum over directions (y, du) needs no atomics. The forward walks its blocks together chunk by chunk,
 // so that a chunk's B and C rows (shared by the group's channels) come from memory once for all of them (a frame's
-// first DVSS level: 1.2x at 2 threads, 1.4x at 1); its ranges are as few as keep every thread busy. The 16 channels are the vector lanes; the N states of the block (N x 16 floats) stay in registers and
-// L1. exp(delta A) is one vectorisable range reduction + polynomial. Positions are walked in chunks of T: a pass
+// first DVSS level: 1.2x at 2 threads, 1.4x at 1); its ranges are as few as keep every thread busy. The 16
+// channels are the vector lanes; the N states of the block (N x 16 floats) stay in registers and L1. exp(delta A) is one vectorisable range reduction + polynomial. Positions are walked in chunks of T: a pass
 // over a chunk's steps (softplus, inputs, prefetches) precedes the recurrence over them.
 // The forward saves the state entering every chunk (unless chunk <= 0: inference); the backward walks chunks in
 // reverse, recomputes the chunk's states and decays from that checkpoint into a small buffer, and runs the adjoint
@@ -308,7 +308,7 @@ struct BwdArgs {
 // chunk by chunk, so that a chunk's rows of B and C (shared by a group's channels) are read from memory by the
 // part's first block and from cache by the others. Per chunk and block, two passes: the first reads every step's
 // delta and u, computes the step (softplus), delta u and D u into small buffers and prefetches rows read later;
-// the second runs the recurrence from the buffers (its N states in registers; a block's states are kept in Hbuf
+// the second runs the recurrence from the buffers (its N states in registers; a block's states are kept in Hsave
 // between chunks). The steps' softplus (an exp, a division, a series: ~100 cycles of dependent latency) is then
 // off the recurrence's path, and the out-of-order core overlaps the state updates of consecutive steps. How the
 // blocks are split into parts does not change any lane's arithmetic: the results do not depend on it.
@@ -561,6 +561,18 @@ void bwd_tasks(const BwdArgs& a, Next next) {
     }
 }
 
+// The lane blocks cut into ranges, one task per (batch element, range): as few ranges as give each batch element
+// ceil(tasks / batch) tasks (at most nblk), none empty.
+struct BlockSplit {
+    int64_t parts, per_part;
+};
+
+inline BlockSplit split_blocks(int64_t nblk, int64_t batch, int64_t tasks) {
+    const int64_t wanted = std::min<int64_t>(nblk, (tasks + batch - 1) / batch);
+    const int64_t per_part = (nblk + wanted - 1) / wanted;
+    return {(nblk + per_part - 1) / per_part, per_part};
+}
+
 // Runs body(next) on torch's intra-op threads; next() hands out task indices 0..ntasks-1 one at a time
 // (dynamic scheduling: on a shared machine a descheduled thread holds up one task, not half of them).
 template <class Body>
@@ -610,10 +622,8 @@ std::vector<at::Tensor> scan_fwd(const at::Tensor& u, const at::Tensor& delta, c
     TORCH_CHECK(y.strides() == u.strides(), "selective_scan_cpu: output layout differs from u's");
     // Tasks: (batch element, part), a part being a range of lane blocks walked together chunk by chunk (their B and C
     // rows read once from memory). As few parts as keep every thread busy: ceil(threads / batch), at most nblk.
-    const int64_t threads = std::max<int64_t>(1, at::get_num_threads());
-    const int64_t wanted = std::min<int64_t>(nblk, (threads + geo.batch - 1) / geo.batch);
-    const int64_t per_part = (nblk + wanted - 1) / wanted;
-    const int64_t parts = (nblk + per_part - 1) / per_part;  // none empty
+    const BlockSplit split = split_blocks(nblk, geo.batch, std::max<int64_t>(1, at::get_num_threads()));
+    const int64_t parts = split.parts, per_part = split.per_part;
     const FwdArgs args{geo, nblk, nck, chunk, parts, per_part, softplus, up, dp, Ap, Bp, Cp, Dp, bp, yp, ckp, sB, sC, strides3(u), strides3(delta)};
     run_tasks(geo.batch * parts, [&](auto next) {
         if (geo.N == 16) {
@@ -650,9 +660,8 @@ std::vector<at::Tensor> scan_bwd(const at::Tensor& u, const at::Tensor& delta, c
     // 0 of a 64x64 batch-4 step, 2 x 17 MB of fresh memory, first-touch page faults and a reduction pass); smaller
     // batches split the blocks into up to ceil(4 / batch) parts, so that 2+ threads have work. The split depends on
     // the shapes only: the sums, and so the results, do not depend on the number of threads.
-    const int64_t wanted = std::min<int64_t>(nblk, (4 + geo.batch - 1) / geo.batch);
-    const int64_t per_part = (nblk + wanted - 1) / wanted;
-    const int64_t parts = (nblk + per_part - 1) / per_part;  // none empty
+    const BlockSplit split = split_blocks(nblk, geo.batch, 4);
+    const int64_t parts = split.parts, per_part = split.per_part;
     at::Tensor dBp = at::empty({parts, geo.batch, L, G, N}, u.options());
     at::Tensor dCp = at::empty({parts, geo.batch, L, G, N}, u.options());
     at::Tensor dD = at::empty({geo.batch, Dall}, u.options());
