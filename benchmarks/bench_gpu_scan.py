@@ -33,17 +33,26 @@ import traceback
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-NAMES = ("FORWARD", "ADJOINT", "BACKWARD", "SEQ_BLOCK_D_MAX", "SEQ_NUM_WARPS", "SEGMENT_PROGRAMS_PER_SM")
+NAMES = (
+    "FORWARD",
+    "ADJOINT",
+    "BACKWARD",
+    "SEQ_BLOCK_D_MAX",
+    "SEQ_NUM_WARPS",
+    "SEGMENT_PROGRAMS_PER_SM",
+    "SEQ_BWD_NUM_WARPS",
+)
 #: the route settings tried in section 1 (bf16); float32 takes the fastest of them and the chunked one. BACKWARD
 #: "sequential" (the main backward pass one step at a time) applies with ADJOINT "sequential" only.
 SETTINGS = (
-    ("chunked", "chunked", "chunked", 64, 2, 8),
-    ("sequential", "sequential", "chunked", 64, 2, 32),
-    ("sequential", "sequential", "chunked", 64, 1, 16),
-    ("sequential", "sequential", "sequential", 64, 1, 16),
-    ("sequential", "sequential", "sequential", 64, 1, 32),
-    ("sequential", "sequential", "sequential", 32, 1, 32),
-    ("sequential", "sequential", "sequential", 64, 1, 64),
+    ("chunked", "chunked", "chunked", 64, 2, 8, 2),
+    ("sequential", "sequential", "chunked", 64, 1, 16, 2),
+    ("sequential", "sequential", "sequential", 64, 1, 16, 2),
+    ("sequential", "sequential", "sequential", 64, 1, 16, 4),
+    ("sequential", "sequential", "sequential", 64, 1, 32, 2),
+    ("sequential", "sequential", "sequential", 64, 1, 32, 4),
+    ("sequential", "sequential", "sequential", 32, 1, 32, 1),
+    ("sequential", "sequential", "sequential", 64, 1, 64, 2),
 )
 DVSS = {"width": 32, "enc_blocks": [1, 1, 2], "bottleneck_blocks": 2}  # configs/backbone/dvss.yaml
 
@@ -132,6 +141,11 @@ class Bench:
             for k, v in defaults.items():
                 setattr(st, k, v)
         self.res["fastest_bf16"] = best
+        if best and not self.args.keep_defaults:  # the later sections run on the fastest setting
+            for k in NAMES:
+                setattr(st, k, best[k])
+            self.res["later_sections_route"] = {k: best[k] for k in NAMES}
+            print(f"later sections run on {self.res['later_sections_route']}", flush=True)
 
     # 2. backbones
     def backbones(self) -> None:
@@ -276,6 +290,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", default=None, help="write the results to this JSON file (after every section)")
     p.add_argument("--skip-tests", action="store_true", help="leave the device tests out")
     p.add_argument("--budget-s", type=float, default=440.0, help="seconds the whole run may take (tests get the rest)")
+    p.add_argument(
+        "--keep-defaults", action="store_true", help="run sections 2-5 on the module's defaults, not the fastest route"
+    )
+    p.add_argument("--skip-compile", action="store_true", help="leave section 3 (torch.compile) out")
     p.add_argument("--dry", action="store_true", help="rehearse on the CPU at toy sizes in Triton's interpreter")
     p.add_argument("--quick", action="store_true", help="three route settings, no device tests (make bench --quick)")
     args = p.parse_args(argv)
@@ -299,7 +317,8 @@ def main(argv: list[str] | None = None) -> int:
     sections = [("routes", bench.routes)]
     if not args.dry:
         sections.append(("backbones", bench.backbones))
-    sections.append(("compile", bench.compile))
+    if not args.skip_compile:
+        sections.append(("compile", bench.compile))
     for name, fn in sections:
         try:
             fn()

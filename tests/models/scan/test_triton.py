@@ -155,10 +155,13 @@ def test_sequential_adjoint_pass_on_a_finer_split_equals_the_reference(monkeypat
 
 @needs_kernels
 @pytest.mark.parametrize("segment_chunks", [1, 3, 100])
-def test_sequential_backward_equals_the_reference(monkeypatch, segment_chunks):
+@pytest.mark.parametrize("block_d", [64, 2])
+def test_sequential_backward_equals_the_reference(monkeypatch, segment_chunks, block_d):
     """The SS2D backward walked one step at a time (BACKWARD "sequential": each chunk's states recomputed into
     scratch rows and read back in reverse beside the adjoints) gives the reference's gradients, with and without
-    segments; 9 x 13 positions, the last chunk partial, slow decays."""
+    segments; 9 x 13 positions, the last chunk partial, slow decays. With all 4 channels of a direction in one
+    program dB and dC are stored; with 2 channels a program, two programs add into them."""
+    monkeypatch.setattr(st, "SEQ_BLOCK_D_MAX", block_d)
     monkeypatch.setattr(st, "FORWARD", "sequential")
     monkeypatch.setattr(st, "ADJOINT", "sequential")
     monkeypatch.setattr(st, "BACKWARD", "sequential")

@@ -733,12 +733,14 @@ if triton is not None:
         HAS_BIAS: tl.constexpr,
         SOFTPLUS: tl.constexpr,
         SS2D: tl.constexpr,
+        OWN_BC: tl.constexpr,
     ):
         """The backward's main pass walked one step at a time (what ``bwd_kernel`` computes), a thread per channel
         holding its N states and adjoints: for each chunk of its segment, in reverse, the chunk's states are
         recomputed from its checkpoint into this program's own scratch rows (CHUNK_T x N x BLOCK_D float32), then
         read back in reverse beside the adjoint g_t = dy_t C_t + a_{t+1} g_{t+1}. The sums over states stay in a
-        thread; dB and dC are summed over the program's channels at every step, then added with atomics."""
+        thread; dB and dC are summed over the program's channels at every step, then stored (``OWN_BC``: the program
+        holds all of its group's channels, so no other program writes those positions) or added with atomics."""
         pid_b, d, uc, grp, n, tt, nmask, _, _, u_row, d_row, bc, ck, cs, cd, DIM = _program_tiles(
             A_ptr, N, DIM_PER_GROUP, NCHUNK, su_b, su_c, sd_b, sd_c, sB_b, sB_g, sB_n, CHUNK_T, BLOCK_D, BLOCK_N, SS2D
         )
@@ -818,8 +820,12 @@ if triton is not None:
                 dbias_acc += g_dt
                 dA_acc += q * dt[None, :]
                 dbc_off = dbc + p * sdB_l
-                tl.atomic_add(dC_ptr + dbc_off, tl.sum(h * dyt[None, :], axis=1), mask=nvalid, sem="relaxed")
-                tl.atomic_add(dB_ptr + dbc_off, tl.sum(g * dtu[None, :], axis=1), mask=nvalid, sem="relaxed")
+                if OWN_BC:
+                    tl.store(dC_ptr + dbc_off, tl.sum(h * dyt[None, :], axis=1), mask=nvalid)
+                    tl.store(dB_ptr + dbc_off, tl.sum(g * dtu[None, :], axis=1), mask=nvalid)
+                else:
+                    tl.atomic_add(dC_ptr + dbc_off, tl.sum(h * dyt[None, :], axis=1), mask=nvalid, sem="relaxed")
+                    tl.atomic_add(dB_ptr + dbc_off, tl.sum(g * dtu[None, :], axis=1), mask=nvalid, sem="relaxed")
                 a_next = tl.exp2(dt[None, :] * A2)
         tl.atomic_add(dA_ptr + d[None, :] * N + n[:, None], dA_acc, mask=nmask[:, None], sem="relaxed")
         if HAS_D:
@@ -1264,7 +1270,8 @@ def _scan_backward(layout: _Layout, saved, softplus, dy, dy_strides, du, dB, dC)
         else:
             seg_bwd_kernel[layout.grid](delta, A, *args, *strides, **seg_consts)
     if walk_back:
-        seq = {**consts, "BLOCK_D": carry.block_d, "num_warps": SEQ_BWD_NUM_WARPS}
+        own_bc = carry.block_d == carry.sizes[2]  # one program per (batch, group, segment)
+        seq = {**consts, "BLOCK_D": carry.block_d, "num_warps": SEQ_BWD_NUM_WARPS, "OWN_BC": own_bc}
         programs = carry.grid[0] * carry.grid[1] * carry.grid[2]
         scratch = torch.empty(programs * CHUNK * carry.block_n * carry.block_d, device=u.device, dtype=torch.float32)
         seq_bwd_kernel[carry.grid](
