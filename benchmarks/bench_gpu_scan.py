@@ -151,36 +151,34 @@ class Bench:
     def backbones(self) -> None:
         import bench_gpu
 
-        from tofdenoise.models import ss2d as ss2d_module
         from tofdenoise.models.scan import triton as st
 
         previous = _load_baseline(self.args.baseline) if self.args.baseline else None
-        original = ss2d_module.SS2D._scan_spatial
-        current = st.ss2d_scan_triton
 
-        def with_kernel(fn):
-            def scan_spatial(self, xs, h, w, kernel="cpu"):
-                st.ss2d_scan_triton = fn
-                try:
-                    return original(self, xs, h, w, kernel)
-                finally:
-                    st.ss2d_scan_triton = current
+        def kernel_names(module) -> tuple[str, ...]:
+            """What to swap for SS2D to run on ``module``'s kernels for a whole case (forward and backward). Since
+            the scan became a custom operator, ``ss2d_scan_triton`` calls ``torch.ops.tofdenoise.ss2d_scan``, whose
+            implementation calls this tree's ``ss2d_forward`` / ``ss2d_backward``: those are swapped (swapping
+            ``ss2d_scan_triton`` alone would run this tree's kernels under the baseline's name); a revision from
+            before the operator brings its own ``ss2d_scan_triton``."""
+            return ("ss2d_forward", "ss2d_backward") if hasattr(module, "ss2d_forward") else ("ss2d_scan_triton",)
 
-            return scan_spatial
-
-        cases = [("dvss", DVSS, "this tree", current)]
+        cases = [("dvss", DVSS, "this tree", None)]
         if previous is not None:
-            cases.append(("dvss", DVSS, f"Triton scan of {self.args.baseline}", previous.ss2d_scan_triton))
+            cases.append(("dvss", DVSS, f"Triton scan of {self.args.baseline}", previous))
         cases += [("unet", {}, None, None), ("restormer", {}, None, None)]
         rows = self.res.setdefault("backbones", [])
-        for name, kwargs, label, fn in cases:
-            ss2d_module.SS2D._scan_spatial = with_kernel(fn) if fn is not None else original
+        for name, kwargs, label, module in cases:
+            ours = {k: getattr(st, k) for k in kernel_names(module)} if module is not None else {}
+            for k in ours:
+                setattr(st, k, getattr(module, k))
             try:
                 row = {**bench_gpu._bench_backbone(name, kwargs, 320, False), "scan": label}
             except Exception:
                 row = {"backbone": name, "scan": label, "error": traceback.format_exc()[-1500:]}
             finally:
-                ss2d_module.SS2D._scan_spatial = original
+                for k, v in ours.items():
+                    setattr(st, k, v)
             rows.append(row)
             print(json.dumps(row), flush=True)
             self.save()

@@ -52,3 +52,19 @@ def test_ss2d_block_gives_the_same_output_with_and_without_autograd():
         y_inference = block(x)
     y_training = block(x.clone().requires_grad_())
     assert torch.equal(y_inference, y_training.detach())
+
+
+def test_dt_projection_under_bf16_autocast_without_gradient():
+    """Inference under autocast (as ``denoise`` and the GPU profiles run DVSS): x_proj's output is bf16 and the
+    weight float32; autocast does not cast ``out=`` products, so the projection takes autocast's product and gives
+    what the autograd form gives under the same autocast."""
+    torch.manual_seed(3)
+    weight = torch.randn(4, 11, 3)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        x_dbl = torch.randn(23, 4, 3 + 8) @ torch.eye(11)  # bf16 under autocast, as SS2D's x_proj output
+        assert x_dbl.dtype == torch.bfloat16
+        with torch.no_grad():
+            fast = dt_projection(x_dbl[..., :3], weight)
+        slow = dt_projection(x_dbl[..., :3], weight.clone().requires_grad_())
+    assert fast.shape == (23, 4, 11) and fast.is_contiguous()
+    assert torch.equal(fast, slow.detach())

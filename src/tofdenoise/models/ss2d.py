@@ -20,13 +20,14 @@ def dt_projection(dt_low: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
 
     Where no gradient is recorded the product is written straight into the (M, k, d) layout the scan reads (a
     batched product with a strided output); with autograd it is computed direction-major and copied, since an
-    ``out=`` product records no gradient. The two give the same numbers (tests/models/test_ss2d.py); the copy is
-    the largest one of a DVSS frame (docs/benchmarks.md, "Where a DVSS frame's time goes").
+    ``out=`` product records no gradient, and so it is under autocast, which does not cast ``out=`` products.
+    The two give the same numbers (tests/models/test_ss2d.py); the copy is the largest one of a DVSS frame
+    (docs/benchmarks.md, "Where a DVSS frame's time goes").
     """
     lhs = dt_low.transpose(0, 1)  # (k, M, r)
     rhs = weight.transpose(1, 2)  # (k, r, d)
     records_grad = torch.is_grad_enabled() and (dt_low.requires_grad or weight.requires_grad)
-    if records_grad or torch.compiler.is_compiling():
+    if records_grad or torch.compiler.is_compiling() or torch.is_autocast_enabled(dt_low.device.type):
         return torch.bmm(lhs, rhs).transpose(0, 1).contiguous()
     out = dt_low.new_empty(dt_low.size(0), weight.size(0), weight.size(1))
     torch.bmm(lhs, rhs, out=out.transpose(0, 1))

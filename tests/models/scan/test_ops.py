@@ -211,11 +211,17 @@ def _forward_backward(net, x, call=None):
 
 
 def _assert_equal_runs(eager, compiled, rel):
+    """Output and every parameter gradient within ``rel`` of eager's, relative to the larger of the tensor's own
+    largest magnitude and 1e-3 of the largest gradient of the network: a gradient that cancels to about 0 by
+    construction (the head's bias, under a weight that sums to 0) is compared at the network's scale, not at its
+    rounding noise (on CUDA it came out 1.4e-6 eager and 0 compiled)."""
     (y0, g0), (y1, g1) = eager, compiled
     assert _rel(y1, y0) < rel
     assert g0.keys() == g1.keys() and len(g0) > 20
+    floor = 1e-3 * max(float(g.abs().max()) for g in g0.values())
     for name in g0:
-        assert _rel(g1[name], g0[name]) < rel, f"{name}: {_rel(g1[name], g0[name]):.1e}"
+        err = float((g1[name] - g0[name]).abs().max()) / max(float(g0[name].abs().max()), floor)
+        assert err < rel, f"{name}: {err:.1e}"
 
 
 @needs_cpu_kernel

@@ -100,9 +100,11 @@ PLAIN_FORWARD = "chunked"
 PLAIN_ADJOINT = "chunked"
 #: the backward's main pass on the SS2D route: "chunked" (``bwd_kernel``) or "sequential" (``seq_bwd_kernel``: one
 #: step at a time, a chunk's states recomputed into scratch rows and read back in reverse; it needs ADJOINT
-#: "sequential", whose split it shares). Not timed on a GPU yet: "chunked" until it is
-BACKWARD = "chunked"
-#: warps of the sequential backward (64 channels: one channel per thread; with one warp it spills registers)
+#: "sequential", whose split it shares). Sequential: the first level's forward + backward 14.6 against 28.0 ms in
+#: bf16, 14.2 against 26.9 in float32 (H200, docs/benchmarks.md)
+BACKWARD = "sequential"
+#: warps of the sequential backward (64 channels: one channel per thread; with one warp it spills registers; 2
+#: against 4 warps on an H200: 14.6 against 21.4 ms for the first level's forward + backward in bf16)
 SEQ_BWD_NUM_WARPS = 2
 #: channels per program and warps of the sequential kernels (64 / 1: the fastest of 64/1, 64/2, 64/4 and 32/1 on an
 #: H200)
