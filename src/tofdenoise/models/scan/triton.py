@@ -101,7 +101,7 @@ PLAIN_ADJOINT = "chunked"
 #: the backward's main pass on the SS2D route: "chunked" (``bwd_kernel``) or "sequential" (``seq_bwd_kernel``: one
 #: step at a time, a chunk's states recomputed into scratch rows and read back in reverse; it needs ADJOINT
 #: "sequential", whose split it shares). Sequential: the first level's forward + backward 14.6 against 28.0 ms in
-#: bf16, 14.2 against 26.9 in float32 (H200, docs/benchmarks.md)
+#: bf16 (H200, same run; docs/benchmarks.md); 14.2 ms in float32
 BACKWARD = "sequential"
 #: warps of the sequential backward (64 channels: one channel per thread; with one warp it spills registers; 2
 #: against 4 warps on an H200: 14.6 against 21.4 ms for the first level's forward + backward in bf16)
