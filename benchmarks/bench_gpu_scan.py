@@ -1,6 +1,7 @@
 """DVSS's selective scan on the GPU, side by side in one process (CUDA only; prints a skip line without a GPU).
 
-Usage: python benchmarks/bench_gpu_scan.py [--baseline REV] [--json FILE] [--skip-tests] [--quick] [--dry]
+Usage: python benchmarks/bench_gpu_scan.py [--baseline REV] [--json FILE] [--skip-tests] [--skip-compile]
+       [--keep-defaults] [--quick] [--dry]
 
 1. The SS2D scan's routes at DVSS's first level (batch 4, 320 x 320, d_inner 64, N 16): the chunked kernels and the
    sequential forward / first backward pass (``FORWARD`` / ``ADJOINT`` of ``tofdenoise.models.scan.triton``) at
@@ -11,9 +12,11 @@ Usage: python benchmarks/bench_gpu_scan.py [--baseline REV] [--json FILE] [--ski
    module name), U-Net and the Restormer (``bench_gpu._bench_backbone``).
 3. ``torch.compile`` of DVSS: first-call seconds, the bf16 step eager against compiled, and how far the compiled
    output and gradients are from eager.
-4. The device tests (``tests/models/scan/test_triton.py`` and ``test_ops.py``, ``-m 'not slow'``) in a subprocess,
+4. The dt projection's forms (``tofdenoise.models.ss2d.DT_PROJECTION_FORMS``) at the first level, and a profile of
+   one bf16 DVSS step by operator and input shape.
+5. The device tests (``tests/models/scan/test_triton.py`` and ``test_ops.py``, ``-m 'not slow'``) in a subprocess,
    with the time left (``--skip-tests`` leaves them out).
-5. ``torch.profiler``'s table of one bf16 DVSS step (CUDA time per kernel).
+6. ``torch.profiler``'s table of one bf16 DVSS step (CUDA time per kernel).
 
 ``--dry`` rehearses the whole script on the CPU at toy sizes (Triton's interpreter, ``TRITON_INTERPRET=1`` set
 before the import): a GPU's minutes are not spent on a typo. Results are written as each section ends (``--json``).
@@ -225,6 +228,65 @@ class Bench:
             out[f"{label}_bf16_ms_step"] = self.time_ms(step, 10)
         print(json.dumps(out), flush=True)
 
+    # 3b. the dt projection's forms
+    def dt_forms(self) -> None:
+        """SS2D's dt projection at DVSS's first level (batch 4, 320 x 320: 409,600 positions, 4 directions,
+        dt_rank 2, 64 channels) under bf16 autocast, forward + backward, in each form of
+        ``tofdenoise.models.ss2d.DT_PROJECTION_FORMS``; and ``torch.profiler``'s CUDA time per operator and input
+        shape for one DVSS bf16 step (which products the 3.4 ms CUTLASS kernel of 2026-11-27 belongs to)."""
+        torch = self.torch
+        from tofdenoise.models.ss2d import DT_PROJECTION_FORMS, dt_projection
+
+        m, k, r, d = (36, 4, 2, 8) if self.args.dry else (4 * 320 * 320, 4, 2, 64)
+        g = torch.Generator(device=self.dev).manual_seed(0)
+        # bf16, as SS2D's x_proj output under autocast
+        x_dbl = torch.randn(m, k, r + 32, device=self.dev, generator=g).bfloat16().requires_grad_()
+        weight = (0.5 * torch.randn(k, d, r, device=self.dev, generator=g)).requires_grad_()
+        dout = torch.randn(m, k, d, device=self.dev, generator=g)
+        out: dict = {}
+        self.res["dt_forms"] = out
+        ref = None
+        for form in DT_PROJECTION_FORMS:
+
+            def fwd_bwd(form=form):
+                with torch.autocast(self.dev, dtype=torch.bfloat16):
+                    y = dt_projection(x_dbl[..., :r], weight, form=form)
+                return y, torch.autograd.grad(y, [x_dbl, weight], dout.to(y.dtype))
+
+            y, grads = fwd_bwd()
+            got = [y.detach().float(), *(t.float() for t in grads)]
+            ref = ref or got
+            out[form] = {
+                "out_dtype": str(y.dtype).replace("torch.", ""),
+                "fwd_bwd_ms": self.time_ms(lambda: fwd_bwd()),
+                "max_rel_diff_from_bmm": max(
+                    float((a - b).abs().max() / b.abs().max().clamp_min(1e-12)) for a, b in zip(got, ref)
+                ),
+            }
+            print(form, json.dumps(out[form]), flush=True)
+        if self.args.dry:
+            return
+        from tofdenoise.models.registry import build_backbone
+
+        net = build_backbone("dvss", in_channels=1, **DVSS).cuda()
+        x = torch.randn(4, 1, 320, 320, device="cuda")
+
+        def step():
+            net.zero_grad(set_to_none=True)
+            with torch.autocast("cuda", dtype=torch.bfloat16):
+                y = net(x)
+            y.float().abs().mean().backward()
+
+        step()
+        torch.cuda.synchronize()
+        activities = [torch.profiler.ProfilerActivity.CPU, torch.profiler.ProfilerActivity.CUDA]
+        with torch.profiler.profile(activities=activities, record_shapes=True) as prof:
+            step()
+            torch.cuda.synchronize()
+        table = prof.key_averages(group_by_input_shape=True).table(sort_by="cuda_time_total", row_limit=25)
+        self.res["profile_by_shape"] = table
+        print(table, flush=True)
+
     # 4. device tests
     def tests(self, budget_s: float) -> None:
         tests = ["tests/models/scan/test_triton.py", "tests/models/scan/test_ops.py"]
@@ -317,6 +379,7 @@ def main(argv: list[str] | None = None) -> int:
         sections.append(("backbones", bench.backbones))
     if not args.skip_compile:
         sections.append(("compile", bench.compile))
+    sections.append(("dt_forms", bench.dt_forms))
     for name, fn in sections:
         try:
             fn()

@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from tofdenoise.models.ss2d import SS2D, dt_projection
+from tofdenoise.models.ss2d import DT_PROJECTION_FORMS, SS2D, dt_projection
 
 
 def _per_direction(dt_low: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
@@ -68,3 +68,23 @@ def test_dt_projection_under_bf16_autocast_without_gradient():
         slow = dt_projection(x_dbl[..., :3], weight.clone().requires_grad_())
     assert fast.shape == (23, 4, 11) and fast.is_contiguous()
     assert torch.equal(fast, slow.detach())
+
+
+@pytest.mark.parametrize("form", DT_PROJECTION_FORMS)
+@pytest.mark.parametrize("m", [128, 23])  # 23: no split (gcd 1)
+def test_dt_projection_forms_give_the_products_and_their_gradients(form, m):
+    """Every form of the projection gives the per-direction products and the same gradients (the split form's
+    weight gradient is a sum over batches of positions: equal to rounding)."""
+    torch.manual_seed(4)
+    x_dbl = torch.randn(m, 4, 3 + 6, dtype=torch.float64, requires_grad=True)
+    weight = torch.randn(4, 11, 3, dtype=torch.float64, requires_grad=True)
+    g = torch.randn(m, 4, 11, dtype=torch.float64)
+    out = dt_projection(x_dbl[..., :3], weight, form=form)
+    assert out.shape == (m, 4, 11) and out.is_contiguous()
+    torch.testing.assert_close(out, _per_direction(x_dbl[..., :3], weight), rtol=1e-12, atol=1e-12)
+    got = torch.autograd.grad((out * g).sum(), [x_dbl, weight])
+    ref = torch.autograd.grad((dt_projection(x_dbl[..., :3], weight, form="bmm") * g).sum(), [x_dbl, weight])
+    for a, b in zip(got, ref):
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
+    with pytest.raises(ValueError, match="form must be one of"):
+        dt_projection(x_dbl[..., :3], weight, form="nope")

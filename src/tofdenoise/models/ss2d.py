@@ -10,10 +10,36 @@ from torch import nn
 
 from .scan import cross_merge, cross_scan, resolve_scan_backend, selective_scan
 
-__all__ = ["SS2D", "cross_scan", "cross_merge", "dt_projection"]
+__all__ = ["SS2D", "cross_scan", "cross_merge", "dt_projection", "DT_PROJECTION_FORMS"]
+
+#: the forms of the dt projection: "bmm" (one product batched over the directions), "split" (the same product with
+#: the positions cut into up to 64 batches, so that the weight gradient's reduction over all positions is spread
+#: over many products and summed after), "sum" (dt_rank broadcast multiply-adds, no matrix product)
+DT_PROJECTION_FORMS = ("bmm", "split", "sum")
+#: the form used on CUDA tensors (the CPU always takes "bmm": its training numbers stay bit for bit those of the
+#: records). On an H200 a bf16 GEMM kernel of 3.4 ms, 4 calls a DVSS step, is the suspect (docs/benchmarks.md);
+#: ``benchmarks/bench_gpu_scan.py`` times the three forms side by side
+DT_PROJECTION_CUDA = "bmm"
 
 
-def dt_projection(dt_low: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+def _dt_projection_split(lhs: torch.Tensor, rhs: torch.Tensor) -> torch.Tensor:
+    """lhs (k, M, r) @ rhs (k, r, d) as (k, s, M / s, r) @ (k, 1, r, d) (s = gcd(M, 64)): the forward is the same
+    row by row; autograd's gradient of the broadcast weight is s products over M / s positions each, then a sum."""
+    k, m, r = lhs.shape
+    s = math.gcd(m, 64)
+    out = torch.matmul(lhs.reshape(k, s, m // s, r), rhs.unsqueeze(1))
+    return out.reshape(k, m, rhs.size(-1))
+
+
+def _dt_projection_sum(dt_low: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    """sum_i dt_low[m, j, i] * weight[j, :, i] as dt_rank broadcast multiply-adds, (M, k, d)."""
+    out = dt_low[..., 0:1] * weight[:, :, 0]
+    for i in range(1, weight.size(-1)):
+        out = out + dt_low[..., i : i + 1] * weight[:, :, i]
+    return out
+
+
+def dt_projection(dt_low: torch.Tensor, weight: torch.Tensor, form: str | None = None) -> torch.Tensor:
     """The per-direction dt projection of SS2D: dt_low (M, k, r) (any strides) and weight (k, d, r) give
     (M, k, d) contiguous, ``out[m, j] = weight[j] @ dt_low[m, j]`` -- one matrix product batched over the k
     directions (no (k r, k d) block-diagonal matrix).
@@ -22,10 +48,18 @@ def dt_projection(dt_low: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
     batched product with a strided output); with autograd it is computed direction-major and copied, since an
     ``out=`` product records no gradient, and so it is under autocast, which does not cast ``out=`` products.
     The two give the same numbers (tests/models/test_ss2d.py); the copy is the largest one of a DVSS frame
-    (docs/benchmarks.md, "Where a DVSS frame's time goes").
+    (docs/benchmarks.md, "Where a DVSS frame's time goes"). ``form`` (default: :data:`DT_PROJECTION_CUDA` on
+    CUDA, "bmm" elsewhere) picks one of :data:`DT_PROJECTION_FORMS`; they agree to rounding.
     """
+    form = form or (DT_PROJECTION_CUDA if dt_low.is_cuda else "bmm")
+    if form not in DT_PROJECTION_FORMS:
+        raise ValueError(f"dt_projection: form must be one of {', '.join(DT_PROJECTION_FORMS)}, got {form!r}")
     lhs = dt_low.transpose(0, 1)  # (k, M, r)
     rhs = weight.transpose(1, 2)  # (k, r, d)
+    if form == "sum":
+        return _dt_projection_sum(dt_low, weight).contiguous()
+    if form == "split":
+        return _dt_projection_split(lhs, rhs).transpose(0, 1).contiguous()
     records_grad = torch.is_grad_enabled() and (dt_low.requires_grad or weight.requires_grad)
     if records_grad or torch.compiler.is_compiling() or torch.is_autocast_enabled(dt_low.device.type):
         return torch.bmm(lhs, rhs).transpose(0, 1).contiguous()
