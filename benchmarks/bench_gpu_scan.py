@@ -12,11 +12,10 @@ Usage: python benchmarks/bench_gpu_scan.py [--baseline REV] [--json FILE] [--ski
    module name), U-Net and the Restormer (``bench_gpu._bench_backbone``).
 3. ``torch.compile`` of DVSS: first-call seconds, the bf16 step eager against compiled, and how far the compiled
    output and gradients are from eager.
-4. The dt projection's forms (``tofdenoise.models.ss2d.DT_PROJECTION_FORMS``) at the first level, and a profile of
-   one bf16 DVSS step by operator and input shape.
+4. The dt projection's forms (``tofdenoise.models.ss2d.DT_PROJECTION_FORMS``) at the first level.
 5. The device tests (``tests/models/scan/test_triton.py`` and ``test_ops.py``, ``-m 'not slow'``) in a subprocess,
    with the time left (``--skip-tests`` leaves them out).
-6. ``torch.profiler``'s table of one bf16 DVSS step (CUDA time per kernel).
+6. ``torch.profiler``'s tables of three bf16 DVSS steps: CUDA time per kernel, and per operator and input shape.
 
 ``--dry`` rehearses the whole script on the CPU at toy sizes (Triton's interpreter, ``TRITON_INTERPRET=1`` set
 before the import): a GPU's minutes are not spent on a typo. Results are written as each section ends (``--json``).
@@ -228,12 +227,12 @@ class Bench:
             out[f"{label}_bf16_ms_step"] = self.time_ms(step, 10)
         print(json.dumps(out), flush=True)
 
-    # 3b. the dt projection's forms
+    # 4. the dt projection's forms
     def dt_forms(self) -> None:
         """SS2D's dt projection at DVSS's first level (batch 4, 320 x 320: 409,600 positions, 4 directions,
         dt_rank 2, 64 channels) under bf16 autocast, forward + backward, in each form of
-        ``tofdenoise.models.ss2d.DT_PROJECTION_FORMS``; and ``torch.profiler``'s CUDA time per operator and input
-        shape for one DVSS bf16 step (which products the 3.4 ms CUTLASS kernel of 2026-11-27 belongs to)."""
+        ``tofdenoise.models.ss2d.DT_PROJECTION_FORMS`` (the profile's table by operator and input shape tells
+        which products the 3.4 ms CUTLASS kernel of 2026-11-27 belongs to)."""
         torch = self.torch
         from tofdenoise.models.ss2d import DT_PROJECTION_FORMS, dt_projection
 
@@ -264,30 +263,8 @@ class Bench:
                 ),
             }
             print(form, json.dumps(out[form]), flush=True)
-        if self.args.dry:
-            return
-        from tofdenoise.models.registry import build_backbone
 
-        net = build_backbone("dvss", in_channels=1, **DVSS).cuda()
-        x = torch.randn(4, 1, 320, 320, device="cuda")
-
-        def step():
-            net.zero_grad(set_to_none=True)
-            with torch.autocast("cuda", dtype=torch.bfloat16):
-                y = net(x)
-            y.float().abs().mean().backward()
-
-        step()
-        torch.cuda.synchronize()
-        activities = [torch.profiler.ProfilerActivity.CPU, torch.profiler.ProfilerActivity.CUDA]
-        with torch.profiler.profile(activities=activities, record_shapes=True) as prof:
-            step()
-            torch.cuda.synchronize()
-        table = prof.key_averages(group_by_input_shape=True).table(sort_by="cuda_time_total", row_limit=25)
-        self.res["profile_by_shape"] = table
-        print(table, flush=True)
-
-    # 4. device tests
+    # 5. device tests
     def tests(self, budget_s: float) -> None:
         tests = ["tests/models/scan/test_triton.py", "tests/models/scan/test_ops.py"]
         cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-m", "not slow", *tests]
@@ -301,7 +278,7 @@ class Bench:
             )
         print(self.res["tests"][-1500:], flush=True)
 
-    # 5. profile
+    # 6. profile
     def profile(self) -> None:
         torch = self.torch
         from tofdenoise.models.registry import build_backbone
@@ -320,12 +297,16 @@ class Bench:
         for _ in range(3):
             step()
         torch.cuda.synchronize()
-        with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CUDA]) as prof:
+        activities = [torch.profiler.ProfilerActivity.CPU, torch.profiler.ProfilerActivity.CUDA]
+        with torch.profiler.profile(activities=activities, record_shapes=True) as prof:
             for _ in range(3):
                 step()
             torch.cuda.synchronize()
-        self.res["profile_3_steps"] = prof.key_averages().table(sort_by="cuda_time_total", row_limit=15)
-        print(self.res["profile_3_steps"], flush=True)
+        self.res["profile_3_steps"] = prof.key_averages().table(sort_by="self_cuda_time_total", row_limit=15)
+        self.res["profile_by_shape"] = prof.key_averages(group_by_input_shape=True).table(
+            sort_by="cuda_time_total", row_limit=25
+        )
+        print(self.res["profile_3_steps"], self.res["profile_by_shape"], sep="\n", flush=True)
 
 
 def _load_baseline(rev: str):
