@@ -43,18 +43,20 @@ NAMES = (
     "SEQ_NUM_WARPS",
     "SEGMENT_PROGRAMS_PER_SM",
     "SEQ_BWD_NUM_WARPS",
+    "SEQ_BWD_SUB",
 )
 #: the route settings tried in section 1 (bf16); float32 takes the fastest of them and the chunked one. BACKWARD
 #: "sequential" (the main backward pass one step at a time) applies with ADJOINT "sequential" only.
 SETTINGS = (
-    ("chunked", "chunked", "chunked", 64, 2, 8, 2),
-    ("sequential", "sequential", "chunked", 64, 1, 16, 2),
-    ("sequential", "sequential", "sequential", 64, 1, 16, 2),
-    ("sequential", "sequential", "sequential", 64, 1, 16, 4),
-    ("sequential", "sequential", "sequential", 64, 1, 32, 2),
-    ("sequential", "sequential", "sequential", 64, 1, 32, 4),
-    ("sequential", "sequential", "sequential", 32, 1, 32, 1),
-    ("sequential", "sequential", "sequential", 64, 1, 64, 2),
+    ("chunked", "chunked", "chunked", 64, 2, 8, 2, None),
+    ("sequential", "sequential", "chunked", 64, 1, 16, 2, None),
+    ("sequential", "sequential", "sequential", 64, 1, 16, 2, None),
+    ("sequential", "sequential", "sequential", 64, 1, 16, 2, 8),
+    ("sequential", "sequential", "sequential", 64, 1, 16, 2, 4),
+    ("sequential", "sequential", "sequential", 64, 1, 8, 2, None),
+    ("sequential", "sequential", "sequential", 64, 1, 8, 2, 8),
+    ("sequential", "sequential", "sequential", 64, 1, 4, 2, None),
+    ("sequential", "sequential", "sequential", 64, 1, 32, 2, 8),
 )
 DVSS = {"width": 32, "enc_blocks": [1, 1, 2], "bottleneck_blocks": 2}  # configs/backbone/dvss.yaml
 

@@ -80,7 +80,9 @@ def route_kernels(st, route: str) -> list[tuple]:
         ("seq_adjoint", st.seq_adjoint_kernel, seq) if adjoint == "sequential" else ("seg_bwd", st.seg_bwd_kernel, None)
     )
     if route == "SS2D" and adjoint == "sequential" and st.BACKWARD == "sequential":
-        bwd = dict(BLOCK_D=st.SEQ_BLOCK_D_MAX, WARPS=st.SEQ_BWD_NUM_WARPS, OWN_BC=True)
+        bwd = dict(
+            BLOCK_D=st.SEQ_BLOCK_D_MAX, WARPS=st.SEQ_BWD_NUM_WARPS, OWN_BC=True, SUB_T=st.SEQ_BWD_SUB or st.CHUNK
+        )
         return out + [("seq_bwd", st.seq_bwd_kernel, bwd)]
     return out + [("bwd", st.bwd_kernel, None)]
 

@@ -154,19 +154,32 @@ def test_sequential_adjoint_pass_on_a_finer_split_equals_the_reference(monkeypat
 
 
 @needs_kernels
-@pytest.mark.parametrize("block_d,segment_chunks", [(64, 1), (64, 3), (64, 100), (2, 3)])
-def test_sequential_backward_equals_the_reference(monkeypatch, segment_chunks, block_d):
+@pytest.mark.parametrize("block_d,segment_chunks,sub", [(64, 1, 4), (64, 3, None), (64, 100, None), (2, 3, 8)])
+def test_sequential_backward_equals_the_reference(monkeypatch, segment_chunks, block_d, sub):
     """The SS2D backward walked one step at a time (BACKWARD "sequential": each chunk's states recomputed into
     scratch rows and read back in reverse beside the adjoints) gives the reference's gradients, with and without
     segments; 9 x 13 positions, the last chunk partial, slow decays. With all 4 channels of a direction in one
-    program dB and dC are stored; with 2 channels a program, two programs add into them."""
+    program dB and dC are stored; with 2 channels a program, two programs add into them. ``sub``: the chunk
+    recomputed 4 or 8 positions at a time (SEQ_BWD_SUB), the last sub-chunks of the partial chunk empty."""
     monkeypatch.setattr(st, "SEQ_BLOCK_D_MAX", block_d)
+    monkeypatch.setattr(st, "SEQ_BWD_SUB", sub)
     monkeypatch.setattr(st, "FORWARD", "sequential")
     monkeypatch.setattr(st, "ADJOINT", "sequential")
     monkeypatch.setattr(st, "BACKWARD", "sequential")
     monkeypatch.setattr(st, "SEGMENT_CHUNKS", segment_chunks)
     monkeypatch.setattr(st, "bwd_kernel", None)  # the chunked main pass must not run
     _assert_split_ss2d_equals_reference(batch=2, seed=4)
+
+
+@needs_kernels
+def test_a_sub_chunk_that_does_not_divide_the_chunk_is_refused(monkeypatch):
+    monkeypatch.setattr(st, "FORWARD", "sequential")
+    monkeypatch.setattr(st, "ADJOINT", "sequential")
+    monkeypatch.setattr(st, "BACKWARD", "sequential")
+    monkeypatch.setattr(st, "SEQ_BWD_SUB", 5)
+    x, delta, A, x_dbl, D, bias = _ss2d_inputs(1, 3, 4, 4, 2)
+    with pytest.raises(ValueError, match="SEQ_BWD_SUB must divide CHUNK"):
+        _ss2d_grads(st.ss2d_scan_triton, x, delta, A, x_dbl, D, bias, 3, 4, 2)
 
 
 @needs_kernels

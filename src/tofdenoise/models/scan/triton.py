@@ -110,6 +110,10 @@ SEQ_BWD_NUM_WARPS = 2
 #: H200)
 SEQ_BLOCK_D_MAX = 64
 SEQ_NUM_WARPS = 1
+#: positions whose states the sequential backward recomputes into its scratch rows at a time (divides CHUNK; None:
+#: the whole chunk). A smaller one keeps less scratch per program (SUB + CHUNK / SUB rows of N x channels float32:
+#: 12 instead of 33 at 8), so that all programs' scratch can stay in L2, for one more forward walk per chunk
+SEQ_BWD_SUB: int | None = None
 #: software-pipelining stages of the sequential forward's step loop
 SEQ_STAGES = 3
 
@@ -435,6 +439,39 @@ if triton is not None:
         return tl.where(valid, dt, 0.0), x
 
     @triton.jit
+    def _seq_advance(
+        h,
+        t,
+        grp,
+        L,
+        H,
+        W,
+        SS2D: tl.constexpr,
+        zero_d,
+        nmask,
+        A2,
+        bias,
+        delta_ptr,
+        d_row,
+        sd_l,
+        u_ptr,
+        u_row,
+        su_l,
+        B_ptr,
+        bc,
+        sB_l,
+        HAS_BIAS: tl.constexpr,
+        SOFTPLUS: tl.constexpr,
+    ):
+        """The (N, channels) state h one step on, to position step t of the group's walk."""
+        valid = (zero_d + t) < L
+        p = _positions(t, grp, L, H, W, SS2D)
+        dt, _pre = _seq_step_delta(delta_ptr, d_row + p * sd_l, valid, bias, HAS_BIAS, SOFTPLUS)
+        ut = tl.load(u_ptr + u_row + p * su_l, mask=valid, other=0.0).to(tl.float32)
+        Bt = tl.load(B_ptr + bc + p * sB_l, mask=nmask & (t < L), other=0.0).to(tl.float32)
+        return tl.exp2(dt[None, :] * A2) * h + Bt[:, None] * (dt * ut)[None, :]
+
+    @triton.jit
     def seq_fwd_kernel(
         u_ptr,
         delta_ptr,
@@ -736,6 +773,7 @@ if triton is not None:
         SOFTPLUS: tl.constexpr,
         SS2D: tl.constexpr,
         OWN_BC: tl.constexpr,
+        SUB_T: tl.constexpr,
     ):
         """The backward's main pass walked one step at a time (what ``bwd_kernel`` computes), a thread per channel
         holding its N states and adjoints: for each chunk of its segment, in reverse, the chunk's states are
@@ -755,7 +793,12 @@ if triton is not None:
         dy_row = pid_b * sdy_b + uc * sdy_c
         dbc = pid_b * sdB_b + grp * sdB_g + n * sdB_n
         pid = (tl.program_id(0) * tl.num_programs(1) + tl.program_id(1)) * tl.num_programs(2) + tl.program_id(2)
-        rows = pid.to(tl.int64) * (CHUNK_T * BLOCK_N * BLOCK_D) + n[:, None] * BLOCK_D + tl.arange(0, BLOCK_D)[None, :]
+        NSUB: tl.constexpr = CHUNK_T // SUB_T
+        rows = (
+            pid.to(tl.int64) * ((SUB_T + NSUB) * BLOCK_N * BLOCK_D)
+            + n[:, None] * BLOCK_D
+            + tl.arange(0, BLOCK_D)[None, :]
+        )
         bias = tl.zeros((BLOCK_D,), dtype=tl.float32)
         if HAS_BIAS:
             bias = tl.load(bias_ptr + d).to(tl.float32)
@@ -778,57 +821,107 @@ if triton is not None:
         dA_acc = tl.zeros((BLOCK_N, BLOCK_D), dtype=tl.float32)
         dD_acc = tl.zeros((BLOCK_D,), dtype=tl.float32)
         dbias_acc = tl.zeros((BLOCK_D,), dtype=tl.float32)
+        row = BLOCK_N * BLOCK_D
         for ci in range(0, c1 - c0):
             c = c1 - 1 - ci
             h = tl.load(ckpt_ptr + ck + c * BLOCK_N * DIM)
-            for i in range(0, CHUNK_T):  # the chunk's states, forward, into the scratch rows
-                t = c * CHUNK_T + i
-                valid = (zero_d + t) < L
-                p = _positions(t, grp, L, H, W, SS2D)
-                dt, _pre = _seq_step_delta(delta_ptr, d_row + p * sd_l, valid, bias, HAS_BIAS, SOFTPLUS)
-                ut = tl.load(u_ptr + u_row + p * su_l, mask=valid, other=0.0).to(tl.float32)
-                Bt = tl.load(B_ptr + bc + p * sB_l, mask=nmask & (t < L), other=0.0).to(tl.float32)
-                h = tl.exp2(dt[None, :] * A2) * h + Bt[:, None] * (dt * ut)[None, :]
-                tl.store(scratch_ptr + rows + i * (BLOCK_N * BLOCK_D), h)
-            for j in range(0, CHUNK_T):  # and back, with the adjoints
-                i = CHUNK_T - 1 - j
-                t = c * CHUNK_T + i
-                valid = (zero_d + t) < L
-                nvalid = nmask & (t < L)
-                p = _positions(t, grp, L, H, W, SS2D)
-                dt, x = _seq_step_delta(delta_ptr, d_row + p * sd_l, valid, bias, HAS_BIAS, SOFTPLUS)
-                ut = tl.load(u_ptr + u_row + p * su_l, mask=valid, other=0.0).to(tl.float32)
-                Bt = tl.load(B_ptr + bc + p * sB_l, mask=nvalid, other=0.0).to(tl.float32)
-                Ct = tl.load(C_ptr + bc + p * sB_l, mask=nvalid, other=0.0).to(tl.float32)
-                dyt = tl.load(dy_ptr + dy_row + p * sdy_l, mask=valid, other=0.0).to(tl.float32)
-                h = tl.load(scratch_ptr + rows + i * (BLOCK_N * BLOCK_D))
-                g = a_next * g + Ct[:, None] * dyt[None, :]
-                dtu = dt * ut
-                q = g * (h - Bt[:, None] * dtu[None, :])  # g_t a_t h_{t-1}
-                sr = tl.sum(g * Bt[:, None], axis=0)  # (D,)
-                g_dt = tl.sum(q * A, axis=0) + ut * sr
-                if SOFTPLUS:
-                    g_dt = g_dt / (1.0 + tl.exp(-x))
-                g_dt = tl.where(valid, g_dt, 0.0)
-                tl.store(ddelta_ptr + d_row + p * sd_l, g_dt, mask=valid)
-                du = dt * sr
-                if HAS_D:
-                    du += Dv * dyt
-                    dD_acc += dyt * ut
-                if SS2D:
-                    tl.atomic_add(du_ptr + o_row + p * so_l, du, mask=valid, sem="relaxed")
-                else:
-                    tl.store(du_ptr + o_row + p * so_l, du, mask=valid)
-                dbias_acc += g_dt
-                dA_acc += q * dt[None, :]
-                dbc_off = dbc + p * sdB_l
-                if OWN_BC:
-                    tl.store(dC_ptr + dbc_off, tl.sum(h * dyt[None, :], axis=1), mask=nvalid)
-                    tl.store(dB_ptr + dbc_off, tl.sum(g * dtu[None, :], axis=1), mask=nvalid)
-                else:
-                    tl.atomic_add(dC_ptr + dbc_off, tl.sum(h * dyt[None, :], axis=1), mask=nvalid, sem="relaxed")
-                    tl.atomic_add(dB_ptr + dbc_off, tl.sum(g * dtu[None, :], axis=1), mask=nvalid, sem="relaxed")
-                a_next = tl.exp2(dt[None, :] * A2)
+            # the state entering each sub-chunk of SUB_T positions, into scratch rows SUB_T + k
+            for k in range(0, NSUB - 1):
+                tl.store(scratch_ptr + rows + (SUB_T + k) * row, h)
+                for i in range(0, SUB_T):
+                    h = _seq_advance(
+                        h,
+                        c * CHUNK_T + k * SUB_T + i,
+                        grp,
+                        L,
+                        H,
+                        W,
+                        SS2D,
+                        zero_d,
+                        nmask,
+                        A2,
+                        bias,
+                        delta_ptr,
+                        d_row,
+                        sd_l,
+                        u_ptr,
+                        u_row,
+                        su_l,
+                        B_ptr,
+                        bc,
+                        sB_l,
+                        HAS_BIAS,
+                        SOFTPLUS,
+                    )
+            tl.store(scratch_ptr + rows + (SUB_T + NSUB - 1) * row, h)
+            for kj in range(0, NSUB):
+                k = NSUB - 1 - kj
+                h = tl.load(scratch_ptr + rows + (SUB_T + k) * row)
+                for i in range(0, SUB_T):  # the sub-chunk's states, forward, into scratch rows 0 .. SUB_T - 1
+                    h = _seq_advance(
+                        h,
+                        c * CHUNK_T + k * SUB_T + i,
+                        grp,
+                        L,
+                        H,
+                        W,
+                        SS2D,
+                        zero_d,
+                        nmask,
+                        A2,
+                        bias,
+                        delta_ptr,
+                        d_row,
+                        sd_l,
+                        u_ptr,
+                        u_row,
+                        su_l,
+                        B_ptr,
+                        bc,
+                        sB_l,
+                        HAS_BIAS,
+                        SOFTPLUS,
+                    )
+                    tl.store(scratch_ptr + rows + i * row, h)
+                for j in range(0, SUB_T):  # and back, with the adjoints
+                    i = SUB_T - 1 - j
+                    t = c * CHUNK_T + k * SUB_T + i
+                    valid = (zero_d + t) < L
+                    nvalid = nmask & (t < L)
+                    p = _positions(t, grp, L, H, W, SS2D)
+                    dt, x = _seq_step_delta(delta_ptr, d_row + p * sd_l, valid, bias, HAS_BIAS, SOFTPLUS)
+                    ut = tl.load(u_ptr + u_row + p * su_l, mask=valid, other=0.0).to(tl.float32)
+                    Bt = tl.load(B_ptr + bc + p * sB_l, mask=nvalid, other=0.0).to(tl.float32)
+                    Ct = tl.load(C_ptr + bc + p * sB_l, mask=nvalid, other=0.0).to(tl.float32)
+                    dyt = tl.load(dy_ptr + dy_row + p * sdy_l, mask=valid, other=0.0).to(tl.float32)
+                    h = tl.load(scratch_ptr + rows + i * row)
+                    g = a_next * g + Ct[:, None] * dyt[None, :]
+                    dtu = dt * ut
+                    q = g * (h - Bt[:, None] * dtu[None, :])  # g_t a_t h_{t-1}
+                    sr = tl.sum(g * Bt[:, None], axis=0)  # (D,)
+                    g_dt = tl.sum(q * A, axis=0) + ut * sr
+                    if SOFTPLUS:
+                        g_dt = g_dt / (1.0 + tl.exp(-x))
+                    g_dt = tl.where(valid, g_dt, 0.0)
+                    tl.store(ddelta_ptr + d_row + p * sd_l, g_dt, mask=valid)
+                    du = dt * sr
+                    if HAS_D:
+                        du += Dv * dyt
+                        dD_acc += dyt * ut
+                    if SS2D:
+                        tl.atomic_add(du_ptr + o_row + p * so_l, du, mask=valid, sem="relaxed")
+                    else:
+                        tl.store(du_ptr + o_row + p * so_l, du, mask=valid)
+                    dbias_acc += g_dt
+                    dA_acc += q * dt[None, :]
+                    dbc_off = dbc + p * sdB_l
+                    if OWN_BC:
+                        tl.store(dC_ptr + dbc_off, tl.sum(h * dyt[None, :], axis=1), mask=nvalid)
+                        tl.store(dB_ptr + dbc_off, tl.sum(g * dtu[None, :], axis=1), mask=nvalid)
+                    else:
+                        tl.atomic_add(dC_ptr + dbc_off, tl.sum(h * dyt[None, :], axis=1), mask=nvalid, sem="relaxed")
+                        tl.atomic_add(dB_ptr + dbc_off, tl.sum(g * dtu[None, :], axis=1), mask=nvalid, sem="relaxed")
+                    a_next = tl.exp2(dt[None, :] * A2)
         tl.atomic_add(dA_ptr + d[None, :] * N + n[:, None], dA_acc, mask=nmask[:, None], sem="relaxed")
         if HAS_D:
             tl.atomic_add(dD_ptr + d, dD_acc, sem="relaxed")
@@ -1273,9 +1366,13 @@ def _scan_backward(layout: _Layout, saved, softplus, dy, dy_strides, du, dB, dC)
             seg_bwd_kernel[layout.grid](delta, A, *args, *strides, **seg_consts)
     if walk_back:
         own_bc = carry.block_d == carry.sizes[2]  # one program per (batch, group, segment)
-        seq = {**consts, "BLOCK_D": carry.block_d, "num_warps": SEQ_BWD_NUM_WARPS, "OWN_BC": own_bc}
+        sub = SEQ_BWD_SUB or CHUNK
+        if CHUNK % sub:
+            raise ValueError(f"SEQ_BWD_SUB must divide CHUNK ({CHUNK}), got {sub}")
+        seq = {**consts, "BLOCK_D": carry.block_d, "num_warps": SEQ_BWD_NUM_WARPS, "OWN_BC": own_bc, "SUB_T": sub}
         programs = carry.grid[0] * carry.grid[1] * carry.grid[2]
-        scratch = torch.empty(programs * CHUNK * carry.block_n * carry.block_d, device=u.device, dtype=torch.float32)
+        rows = sub + CHUNK // sub  # a sub-chunk's states, and the state entering each sub-chunk
+        scratch = torch.empty(programs * rows * carry.block_n * carry.block_d, device=u.device, dtype=torch.float32)
         seq_bwd_kernel[carry.grid](
             u,
             delta,
