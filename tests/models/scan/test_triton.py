@@ -154,7 +154,10 @@ def test_sequential_adjoint_pass_on_a_finer_split_equals_the_reference(monkeypat
 
 
 @needs_kernels
-@pytest.mark.parametrize("block_d,segment_chunks,sub", [(64, 1, 4), (64, 3, None), (64, 100, None), (2, 3, 8)])
+@pytest.mark.parametrize(
+    "block_d,segment_chunks,sub",
+    [(64, 1, 4), (64, 3, None), pytest.param(64, 100, None, marks=pytest.mark.slow), (2, 3, 8)],
+)
 def test_sequential_backward_equals_the_reference(monkeypatch, segment_chunks, block_d, sub):
     """The SS2D backward walked one step at a time (BACKWARD "sequential": each chunk's states recomputed into
     scratch rows and read back in reverse beside the adjoints) gives the reference's gradients, with and without
