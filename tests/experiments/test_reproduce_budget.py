@@ -50,7 +50,7 @@ def test_a_run_is_estimated_from_the_median_recorded_run_of_its_backbone_loss_an
     [
         ["--figure", "7", "--time-budget", "5"],  # a figure needs its runs' checkpoints
         ["--table", "3", "--time-budget", "0"],
-        ["--table", "3", "--time-budget", "5", "--executor", "local", "--workers", "2"],
+        ["--table", "3", "--time-budget", "5", "--executor", "slurm", "--slurm-partition", "gpu"],
     ],
 )
 def test_time_budget_usage_errors(tmp_path, capsys, argv):

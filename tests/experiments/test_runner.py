@@ -120,11 +120,39 @@ def test_time_budget_defers_runs_that_would_not_fit_but_resumes_started_ones(tmp
     assert [o.status for o in out] == ["deferred"]
 
 
-def test_time_budget_needs_the_sequential_runner(tmp_path):
+def test_time_budget_with_local_workers_defers_and_stops_as_the_sequential_runner(tmp_path, capsys):
+    """Two local workers share one budget: a run that would not fit is deferred as a worker takes it up, the two
+    that start are stopped at the budget's end (resumable, not recorded), and the outcomes come back in order."""
+    import time
+
     from tofdenoise.experiments.executors import LocalExecutor
     from tofdenoise.experiments.runner import TimeBudget
 
-    with pytest.raises(ValueError, match="time budget needs the sequential executor"):
-        run_all([RunSpec("r", SMOKE)], tmp_path, executor=LocalExecutor(2), budget=TimeBudget.minutes(1))
+    estimates = {"long": 3600.0}
+    budget = TimeBudget(time.monotonic() + 1.5, estimate=lambda spec: estimates.get(spec.name), grace_s=1.0)
+    fake = _fake_python(tmp_path, ignore_sigterm=False)
+    specs = [RunSpec("a", SMOKE), RunSpec("long", SMOKE), RunSpec("b", SMOKE)]
+    t0 = time.monotonic()
+    out = run_all(specs, tmp_path, python=fake, executor=LocalExecutor(2), budget=budget)
+    took = time.monotonic() - t0
+    assert [o.status for o in out] == ["stopped", "deferred", "stopped"]
+    assert 1.4 < took < 4.0, took  # a and b side by side, each stopped at the deadline
+    assert not (tmp_path / "long").exists()
+    for name in ("a", "b"):
+        assert "the time budget ended: training stopped" in (tmp_path / name / "train.log").read_text()
+        assert not run_finished(tmp_path / name)
+    printed = capsys.readouterr().out
+    assert "[2/3] long: not started: needs about 60.0 min" in printed
+    assert printed.count("stopped at the end of the time budget") == 2
+
+
+def test_time_budget_needs_an_executor_that_takes_one(tmp_path):
+    from tofdenoise.experiments.runner import TimeBudget
+
+    class Elsewhere:  # an executor without budgets (a SLURM array has its own time limit)
+        name = "slurm"
+
+    with pytest.raises(ValueError, match="time budget needs the sequential or the local executor, not slurm"):
+        run_all([RunSpec("r", SMOKE)], tmp_path, executor=Elsewhere(), budget=TimeBudget.minutes(1))
     with pytest.raises(ValueError, match="positive number of minutes"):
         TimeBudget.minutes(0)

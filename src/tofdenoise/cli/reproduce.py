@@ -96,7 +96,8 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         default=None,
         metavar="MINUTES",
-        help="train for at most MINUTES (a GPU allocation's limit; sequential executor): a run whose recorded "
+        help="train for at most MINUTES (a GPU allocation's limit; the sequential or the local executor): a run "
+        "whose recorded "
         "duration on this profile does not fit the time left is not started, a run still training at the end is "
         "stopped and resumes from its last epoch's checkpoint in the same --out next time; never recorded "
         "half-trained. Leave a margin for the real-set scoring after each run",
@@ -162,8 +163,12 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, RuntimeError) as exc:
         print(f"{PROG}: error: {exc}", file=sys.stderr)
         return 2
-    if args.time_budget is not None and getattr(executor, "name", "sequential") != "sequential":
-        print(f"{PROG}: error: --time-budget needs the sequential executor (runs one after another)", file=sys.stderr)
+    if args.time_budget is not None and getattr(executor, "name", "sequential") not in ("sequential", "local"):
+        print(
+            f"{PROG}: error: --time-budget needs the sequential or the local executor (a SLURM job has its own "
+            "time limit)",
+            file=sys.stderr,
+        )
         return 2
     # the runner, the figures and the page renderer (numpy, Pillow, omegaconf): once the arguments are checked
     from tofdenoise.experiments.reproduce import Reproduction, profile_needs, reproduce

@@ -42,7 +42,7 @@ from typing import Any
 
 from tofdenoise.records import LAST_CHECKPOINT, run_finished
 
-from .runner import LOG_NAME, PendingRun, RunOutcome, RunSpec, _tail, clear_stale_lock, run_one
+from .runner import LOG_NAME, PendingRun, RunOutcome, RunSpec, TimeBudget, _tail, clear_stale_lock, deferred, run_one
 
 __all__ = [
     "EXECUTORS",
@@ -72,10 +72,13 @@ class SequentialExecutor:
 
 @dataclass
 class LocalExecutor:
-    """``workers`` runs at a time on this machine, each in its own process."""
+    """``workers`` runs at a time on this machine, each in its own process; with a time budget (``run``'s
+    ``budget``) each run is checked as a worker takes it up (``deferred`` when it would not fit) and stopped at the
+    budget's end, as on the sequential runner: several runs share one GPU allocation."""
 
     workers: int
     name: str = field(default="local", init=False)
+    takes_budget: bool = field(default=True, init=False)
 
     def __post_init__(self) -> None:
         if not isinstance(self.workers, int) or self.workers < 1:
@@ -91,9 +94,10 @@ class LocalExecutor:
         env: dict[str, str] | None,
         started: Started,
         finished: Finished,
+        budget: TimeBudget | None = None,
     ) -> None:
         """Run ``jobs`` ``workers`` at a time; ``finished`` is called in this thread as each ends. On an exception
-        here (Ctrl-C) the running processes are killed and no new one starts."""
+        here (Ctrl-C) the running processes are killed and no new one starts. ``budget``: see the class."""
         processes: set[subprocess.Popen] = set()
         guard = threading.Lock()
         stop = threading.Event()
@@ -105,8 +109,14 @@ class LocalExecutor:
         def work(job: PendingRun) -> RunOutcome | None:
             if stop.is_set():
                 return None
+            if budget is not None and (late := deferred(job, budget, python)) is not None:
+                return late
             started(job, "resuming" if (job.run_dir / LAST_CHECKPOINT).is_file() else "running")
-            return run_one(job.spec, job.run_dir, python, env, on_start=keep)
+            if budget is None:
+                return run_one(job.spec, job.run_dir, python, env, on_start=keep)
+            return run_one(
+                job.spec, job.run_dir, python, env, on_start=keep, deadline=budget.deadline, grace_s=budget.grace_s
+            )
 
         pool = ThreadPoolExecutor(max_workers=self.workers, thread_name_prefix="tofdenoise-run")
         futures: dict[Future, PendingRun] = {}

@@ -230,6 +230,8 @@ def run_one(
 
 
 def _ended_line(head: str, outcome: RunOutcome) -> str:
+    if outcome.status == "deferred":
+        return f"{head}: {outcome.log_tail}"
     if outcome.status == "stopped":
         return (
             f"{head}: stopped at the end of the time budget after {outcome.seconds / 60:.1f} min; not recorded, "
@@ -261,8 +263,9 @@ def run_all(
     them one after another, as listed; a parallel executor gets every unfinished run at once and
     ``after_each`` is called as each ends (finished runs first, then in the order they end).
 
-    ``budget``: a :class:`TimeBudget` (sequential runs only, a ``ValueError`` otherwise): runs that would not fit are
-    ``deferred``, a run still training at its end is ``stopped`` (module docstring)."""
+    ``budget``: a :class:`TimeBudget` (the sequential runner, or an executor that takes one: the local one; a
+    ``ValueError`` otherwise): runs that would not fit are ``deferred``, a run still training at its end is
+    ``stopped`` (module docstring). With local workers each run is checked as a worker takes it up."""
     out_dir = Path(out_dir).expanduser().resolve()
     names = [s.name for s in specs]
     dupes = sorted({n for n in names if names.count(n) > 1})
@@ -270,10 +273,10 @@ def run_all(
         raise ValueError(f"run_all: run names must be unique, repeated: {', '.join(dupes)}")
     python = python or sys.executable
     parallel = executor is not None and getattr(executor, "name", "") != "sequential"
-    if budget is not None and parallel:
-        raise ValueError(f"a time budget needs the sequential executor, not {executor.name}")
+    if budget is not None and parallel and not getattr(executor, "takes_budget", False):
+        raise ValueError(f"a time budget needs the sequential or the local executor, not {executor.name}")
     if parallel:
-        outcomes = _run_parallel(specs, out_dir, dry_run, python, env, echo, after_each, executor)
+        outcomes = _run_parallel(specs, out_dir, dry_run, python, env, echo, after_each, executor, budget)
     else:
         if echo and dry_run:
             print("executor: sequential (one run after another, each in its own process)", flush=True)
@@ -329,7 +332,9 @@ def _run_sequential(
         job = PendingRun(i, len(specs), spec, out_dir / spec.name)
         settled = _skipped_or_planned(job, python, dry_run, echo, after_each)
         if settled is None and budget is not None:
-            settled = _deferred(job, budget, python, echo)
+            settled = deferred(job, budget, python)
+            if settled is not None and echo:
+                print(_ended_line(job.head, settled), flush=True)
         if settled is not None:
             outcomes.append(settled)
             continue
@@ -347,18 +352,18 @@ def _run_sequential(
     return outcomes
 
 
-def _deferred(job: PendingRun, budget: TimeBudget, python: str, echo: bool) -> RunOutcome | None:
-    """``deferred`` when ``budget`` has too little time left for ``job`` (none at all, or less than its estimate;
-    a run that resumes is started whenever time is left: what it trains is kept); None when it may start."""
+def deferred(job: PendingRun, budget: TimeBudget, python: str) -> RunOutcome | None:
+    """``deferred`` (the reason in ``log_tail``) when ``budget`` has too little time left for ``job`` (none at all,
+    or less than its estimate; a run that resumes is started whenever time is left: what it trains is kept); None
+    when it may start. The sequential runner and the local executor ask it before each run."""
     left_s = budget.left_s()
     _, resume = run_command(job.spec, job.run_dir, python)
     needed_s = None if resume else budget.estimate(job.spec)
     if left_s > 0 and (needed_s is None or needed_s <= left_s):
         return None
-    if echo:
-        need = "" if needed_s is None else f"needs about {needed_s / 60:.1f} min, "
-        print(f"{job.head}: not started: {need}{max(left_s, 0.0) / 60:.1f} min left of the time budget", flush=True)
-    return RunOutcome(job.spec, job.run_dir, "deferred")
+    need = "" if needed_s is None else f"needs about {needed_s / 60:.1f} min, "
+    reason = f"not started: {need}{max(left_s, 0.0) / 60:.1f} min left of the time budget"
+    return RunOutcome(job.spec, job.run_dir, "deferred", log_tail=reason)
 
 
 def _run_parallel(
@@ -370,6 +375,7 @@ def _run_parallel(
     echo: bool,
     after_each: Callable[[RunOutcome], None] | None,
     executor: Any,
+    budget: TimeBudget | None = None,
 ) -> list[RunOutcome]:
     """Finished runs are skipped here; every other run goes to ``executor.run`` at once. ``after_each`` and the
     printing happen in this thread only (the executor calls back from the thread that called it)."""
@@ -399,7 +405,8 @@ def _run_parallel(
             after_each(outcome)
 
     if pending:
-        executor.run(pending, python=python, env=env, started=started, finished=finished)
+        extra = {} if budget is None else {"budget": budget}
+        executor.run(pending, python=python, env=env, started=started, finished=finished, **extra)
     missing = [specs[i].name for i, o in enumerate(outcomes) if o is None]
     if missing:  # an executor that lost a run: never silent
         raise RuntimeError(f"executor {executor.name} returned no outcome for: {', '.join(missing)}")
