@@ -1,4 +1,5 @@
-"""Run every benchmark script (benchmarks/bench_*.py) in one process each, in a fixed order.
+"""Run the benchmark scripts of ORDER (benchmarks/bench_<name>.py) in one process each, in that order.
+(bench_mamba_scan.py is not among them: it needs a checkout of mamba-ssm, ``--src``, and a CUDA machine.)
 
 Each script prints its own side-by-side table with ratios measured in the same run.
 Usage: python benchmarks/run_all.py [--quick] [name ...]   (e.g. `--quick physics models`);
