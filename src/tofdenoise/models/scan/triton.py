@@ -794,11 +794,9 @@ if triton is not None:
         dbc = pid_b * sdB_b + grp * sdB_g + n * sdB_n
         pid = (tl.program_id(0) * tl.num_programs(1) + tl.program_id(1)) * tl.num_programs(2) + tl.program_id(2)
         NSUB: tl.constexpr = CHUNK_T // SUB_T
-        rows = (
-            pid.to(tl.int64) * ((SUB_T + NSUB) * BLOCK_N * BLOCK_D)
-            + n[:, None] * BLOCK_D
-            + tl.arange(0, BLOCK_D)[None, :]
-        )
+        # scratch rows: a sub-chunk's states, then (with sub-chunks) the state entering each sub-chunk
+        ROWS: tl.constexpr = SUB_T + NSUB if NSUB > 1 else SUB_T
+        rows = pid.to(tl.int64) * (ROWS * BLOCK_N * BLOCK_D) + n[:, None] * BLOCK_D + tl.arange(0, BLOCK_D)[None, :]
         bias = tl.zeros((BLOCK_D,), dtype=tl.float32)
         if HAS_BIAS:
             bias = tl.load(bias_ptr + d).to(tl.float32)
@@ -825,7 +823,8 @@ if triton is not None:
         for ci in range(0, c1 - c0):
             c = c1 - 1 - ci
             h = tl.load(ckpt_ptr + ck + c * BLOCK_N * DIM)
-            # the state entering each sub-chunk of SUB_T positions, into scratch rows SUB_T + k
+            # the state entering each sub-chunk of SUB_T positions, into scratch rows SUB_T + k (one sub-chunk: the
+            # checkpoint is that state, and it stays in registers)
             for k in range(0, NSUB - 1):
                 tl.store(scratch_ptr + rows + (SUB_T + k) * row, h)
                 for i in range(0, SUB_T):
@@ -853,10 +852,12 @@ if triton is not None:
                         HAS_BIAS,
                         SOFTPLUS,
                     )
-            tl.store(scratch_ptr + rows + (SUB_T + NSUB - 1) * row, h)
+            if NSUB > 1:
+                tl.store(scratch_ptr + rows + (SUB_T + NSUB - 1) * row, h)
             for kj in range(0, NSUB):
                 k = NSUB - 1 - kj
-                h = tl.load(scratch_ptr + rows + (SUB_T + k) * row)
+                if NSUB > 1:
+                    h = tl.load(scratch_ptr + rows + (SUB_T + k) * row)
                 for i in range(0, SUB_T):  # the sub-chunk's states, forward, into scratch rows 0 .. SUB_T - 1
                     h = _seq_advance(
                         h,
@@ -1371,7 +1372,7 @@ def _scan_backward(layout: _Layout, saved, softplus, dy, dy_strides, du, dB, dC)
             raise ValueError(f"SEQ_BWD_SUB must divide CHUNK ({CHUNK}), got {sub}")
         seq = {**consts, "BLOCK_D": carry.block_d, "num_warps": SEQ_BWD_NUM_WARPS, "OWN_BC": own_bc, "SUB_T": sub}
         programs = carry.grid[0] * carry.grid[1] * carry.grid[2]
-        rows = sub + CHUNK // sub  # a sub-chunk's states, and the state entering each sub-chunk
+        rows = sub + (CHUNK // sub if sub < CHUNK else 0)  # a sub-chunk's states, and the state entering each
         scratch = torch.empty(programs * rows * carry.block_n * carry.block_d, device=u.device, dtype=torch.float32)
         seq_bwd_kernel[carry.grid](
             u,
