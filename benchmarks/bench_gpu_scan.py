@@ -13,7 +13,8 @@ Usage: python benchmarks/bench_gpu_scan.py [--baseline REV] [--json FILE] [--ski
 3. ``torch.compile`` of DVSS: first-call seconds, the bf16 step eager against compiled, and how far the compiled
    output and gradients are from eager.
 4. The dt projection's forms (``tofdenoise.models.ss2d.DT_PROJECTION_FORMS``) at the first level.
-5. The device tests (``tests/models/scan/test_triton.py`` and ``test_ops.py``, ``-m 'not slow'``) in a subprocess,
+5. The device tests (``tests/models/scan/test_triton.py``, ``test_ops.py`` and ``tests/models/test_compile_cuda.py``,
+   ``-m 'not slow'``) in a subprocess,
    with the time left (``--skip-tests`` leaves them out).
 6. ``torch.profiler``'s tables of three bf16 DVSS steps: CUDA time per kernel, and per operator and input shape.
 
@@ -268,7 +269,8 @@ class Bench:
 
     # 5. device tests
     def tests(self, budget_s: float) -> None:
-        tests = ["tests/models/scan/test_triton.py", "tests/models/scan/test_ops.py"]
+        scan = ["tests/models/scan/test_triton.py", "tests/models/scan/test_ops.py"]
+        tests = [*scan, "tests/models/test_compile_cuda.py"]
         cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-m", "not slow", *tests]
         env = {**os.environ, "PYTHONPATH": str(ROOT / "src")}
         try:
