@@ -163,7 +163,7 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, RuntimeError) as exc:
         print(f"{PROG}: error: {exc}", file=sys.stderr)
         return 2
-    if args.time_budget is not None and getattr(executor, "name", "sequential") not in ("sequential", "local"):
+    if args.time_budget is not None and not getattr(executor, "takes_budget", False):
         print(
             f"{PROG}: error: --time-budget needs the sequential or the local executor (a SLURM job has its own "
             "time limit)",

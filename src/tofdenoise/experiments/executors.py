@@ -65,6 +65,8 @@ class SequentialExecutor:
     """One run after another, in the listed order: ``run_all``'s own loop (nothing is handed over)."""
 
     name = "sequential"
+    #: a ``--time-budget`` applies (run_all's own loop checks it): executors say whether they take one
+    takes_budget = True
 
     def describe(self) -> str:
         return "sequential (one run after another, each in its own process)"
@@ -112,11 +114,7 @@ class LocalExecutor:
             if budget is not None and (late := deferred(job, budget, python)) is not None:
                 return late
             started(job, "resuming" if (job.run_dir / LAST_CHECKPOINT).is_file() else "running")
-            if budget is None:
-                return run_one(job.spec, job.run_dir, python, env, on_start=keep)
-            return run_one(
-                job.spec, job.run_dir, python, env, on_start=keep, deadline=budget.deadline, grace_s=budget.grace_s
-            )
+            return run_one(job.spec, job.run_dir, python, env, on_start=keep, budget=budget)
 
         pool = ThreadPoolExecutor(max_workers=self.workers, thread_name_prefix="tofdenoise-run")
         futures: dict[Future, PendingRun] = {}

@@ -182,17 +182,17 @@ def run_one(
     env: dict[str, str] | None = None,
     on_start: Callable[[subprocess.Popen], None] | None = None,
     preexec_fn: Callable[[], None] | None = None,
-    deadline: float | None = None,
-    grace_s: float = 60.0,
+    budget: TimeBudget | None = None,
 ) -> RunOutcome:
     """Train one run in a fresh process (output appended to ``<run_dir>/train.log``) and return its outcome:
     ``done`` when the process exits 0 and the folder holds a finished run, else ``failed`` with the log's tail.
 
     ``on_start(process)`` is called once the process has started (an executor that must stop it on a
     preemption keeps it); ``preexec_fn`` runs in the child before it starts (``subprocess.Popen``). An exception in
-    the caller (Ctrl-C, a preemption handler's exit) kills the process and propagates. At ``deadline``
-    (``time.monotonic()``) a process still running is stopped (:func:`stop_process`) and the outcome is
+    the caller (Ctrl-C, a preemption handler's exit) kills the process and propagates. At ``budget``'s deadline a
+    process still running is stopped (:func:`stop_process`, with the budget's grace period) and the outcome is
     ``stopped``: the folder keeps its last epoch's checkpoint and the next run of it resumes there."""
+    deadline = None if budget is None else budget.deadline
     cmd, _ = run_command(spec, run_dir, python)
     run_dir.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
@@ -209,7 +209,7 @@ def run_one(
                 # process itself without meeting the wait lock held by this frame
                 while (returncode := proc.poll()) is None:
                     if deadline is not None and time.monotonic() >= deadline:
-                        returncode = stop_process(proc, grace_s)
+                        returncode = stop_process(proc, budget.grace_s)
                         log.write(
                             f"\n# {time.strftime('%Y-%m-%dT%H:%M:%S')} the time budget ended: training stopped "
                             f"(exit {returncode}); the next run of this folder resumes from {LAST_CHECKPOINT}\n"
@@ -341,9 +341,7 @@ def _run_sequential(
         _, resume = run_command(spec, job.run_dir, python)
         if echo:
             print(f"{job.head}: {'resuming' if resume else 'running'} -> {job.run_dir}", flush=True)
-        deadline = None if budget is None else budget.deadline
-        grace_s = 60.0 if budget is None else budget.grace_s
-        outcome = run_one(spec, job.run_dir, python, env, deadline=deadline, grace_s=grace_s)
+        outcome = run_one(spec, job.run_dir, python, env, budget=budget)
         outcomes.append(outcome)
         if echo:
             print(_ended_line(job.head, outcome), flush=True)
