@@ -50,6 +50,15 @@ def time_cuda(fn: Callable[[], Any], repeats: int, warmup: int = 2) -> float:
     return statistics.median(times)
 
 
+def time_ms(fn: Callable[[], Any], repeats: int, dry: bool = False) -> float:
+    """:func:`time_cuda`'s median; ``dry`` (a rehearsal on the CPU): the wall milliseconds of one call."""
+    if dry:
+        t = time.perf_counter()
+        fn()
+        return (time.perf_counter() - t) * 1e3
+    return time_cuda(fn, repeats)
+
+
 def _peak_mib(fn: Callable[[], Any]) -> float:
     torch.cuda.synchronize()
     torch.cuda.reset_peak_memory_stats()

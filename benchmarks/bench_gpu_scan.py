@@ -78,13 +78,9 @@ class Bench:
             Path(self.args.json).write_text(json.dumps(self.res, indent=1))
 
     def time_ms(self, fn, repeats=5) -> float:
-        if self.args.dry:
-            t = time.perf_counter()
-            fn()
-            return (time.perf_counter() - t) * 1e3
-        from bench_gpu import time_cuda  # benchmarks/ is on sys.path when run as a script
+        from bench_gpu import time_ms  # benchmarks/ is on sys.path when run as a script
 
-        return time_cuda(fn, repeats)
+        return time_ms(fn, repeats, self.args.dry)
 
     # 1. routes
     def routes(self) -> None:

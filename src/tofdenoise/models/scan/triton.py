@@ -777,10 +777,12 @@ if triton is not None:
     ):
         """The backward's main pass walked one step at a time (what ``bwd_kernel`` computes), a thread per channel
         holding its N states and adjoints: for each chunk of its segment, in reverse, the chunk's states are
-        recomputed from its checkpoint into this program's own scratch rows (CHUNK_T x N x BLOCK_D float32), then
-        read back in reverse beside the adjoint g_t = dy_t C_t + a_{t+1} g_{t+1}. The sums over states stay in a
-        thread; dB and dC are summed over the program's channels at every step, then stored (``OWN_BC``: the program
-        holds all of its group's channels, so no other program writes those positions) or added with atomics."""
+        recomputed from its checkpoint into this program's own scratch rows (N x BLOCK_D float32 each; SUB_T
+        positions at a time, the sub-chunks in reverse from their entry states, kept in NSUB more rows when
+        SUB_T < CHUNK_T), then read back in reverse beside the adjoint g_t = dy_t C_t + a_{t+1} g_{t+1}. The sums
+        over states stay in a thread; dB and dC are summed over the program's channels at every step, then stored
+        (``OWN_BC``: the program holds all of its group's channels, so no other program writes those positions) or
+        added with atomics."""
         pid_b, d, uc, grp, n, tt, nmask, _, _, u_row, d_row, bc, ck, cs, cd, DIM = _program_tiles(
             A_ptr, N, DIM_PER_GROUP, NCHUNK, su_b, su_c, sd_b, sd_c, sB_b, sB_g, sB_n, CHUNK_T, BLOCK_D, BLOCK_N, SS2D
         )
