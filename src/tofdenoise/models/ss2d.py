@@ -9,6 +9,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .scan import cross_merge, cross_scan, resolve_scan_backend, selective_scan
+from .scan.cpu import LOWRANK_MAX_RANK, ss2d_forward_lowrank
 
 __all__ = ["SS2D", "cross_scan", "cross_merge", "dt_projection", "DT_PROJECTION_FORMS"]
 
@@ -185,12 +186,31 @@ class SS2D(nn.Module):
         length = h * w
         xs = xs.view(b, length, di)
         x_dbl = (xs @ self.x_proj_weight.reshape(k * (r + 2 * n), di).t()).view(b, length, k, r + 2 * n)
-        dts = dt_projection(x_dbl[..., :r].reshape(b * length, k, r), self.dt_projs_weight).view(b, length, k * di)
         A, D, bias = self._scan_params()
+        B, C = x_dbl[..., r : r + n], x_dbl[..., r + n :]
+        if kernel == "cpu" and self._fuse_dt_projection(xs):
+            # inference: the kernel projects the low-rank steps itself (no (b, L, 4 d) steps tensor)
+            y = ss2d_forward_lowrank(xs, x_dbl[..., :r], self.dt_projs_weight.float(), A, B, C, D, bias, h, w)
+            return y.view(b, h, w, di)
+        dts = dt_projection(x_dbl[..., :r].reshape(b * length, k, r), self.dt_projs_weight).view(b, length, k * di)
         if kernel == "triton":
             from .scan.triton import ss2d_scan_triton as scan
         else:
             from .scan.cpu import ss2d_scan_cpu as scan
 
-        y = scan(xs, dts, A, x_dbl[..., r : r + n], x_dbl[..., r + n :], D, bias, h, w)
+        y = scan(xs, dts, A, B, C, D, bias, h, w)
         return y.view(b, h, w, di)
+
+    def _fuse_dt_projection(self, xs: torch.Tensor) -> bool:
+        """True where the native kernel computes the dt projection itself: no gradient recorded (inference, or
+        validation under ``no_grad``), not traced by torch.compile (which sees the ``tofdenoise::ss2d_scan``
+        operator), float32, dt_rank within the kernel's bound."""
+        records_grad = torch.is_grad_enabled() and (
+            xs.requires_grad or any(p.requires_grad for p in (self.x_proj_weight, self.dt_projs_weight))
+        )
+        return (
+            not records_grad
+            and not torch.compiler.is_compiling()
+            and xs.dtype == torch.float32
+            and self.dt_rank <= LOWRANK_MAX_RANK
+        )

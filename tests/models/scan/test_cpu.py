@@ -374,3 +374,68 @@ def test_forward_split_into_parts_by_thread_count_is_bitwise_the_same(ext, b, dg
         assert torch.equal(y, runs[0][0]) and torch.equal(ck, runs[0][1])
     ref = ss2d_scan_reference(x, dts, A, x_dbl[..., 3 : 3 + n], x_dbl[..., 3 + n :], D, bias, h, w)
     assert _rel(runs[0][0], ref) < 2e-6
+
+
+@pytest.mark.parametrize(
+    "b,h,w,dg,n,r",
+    [(1, 7, 9, 20, 16, 2), (2, 5, 13, 16, 16, 1), (1, 1, 130, 24, 6, 3), (3, 11, 6, 40, 16, 16), (1, 4, 5, 8, 4, 64)],
+)
+def test_fused_dt_projection_equals_the_projected_steps(ext, b, h, w, dg, n, r):
+    """ss2d_forward_lowrank projects the low-rank steps inside the kernel: its output equals the forward on the
+    steps projected beforehand (float64 products, then rounded), at odd sizes, a partial lane block (20, 40
+    channels), a runtime d_state (6, 4), ranks 1 to the kernel's bound, and dt_low as the strided slice of x_proj's
+    output that SS2D hands over."""
+    g = torch.Generator().manual_seed(13)
+    length = h * w
+    x = torch.randn(b, length, dg, generator=g)
+    x_dbl = torch.randn(b, length, 4, r + 2 * n, generator=g)
+    dt_low, B, C = x_dbl[..., :r], x_dbl[..., r : r + n], x_dbl[..., r + n :]
+    weight = torch.randn(4, dg, r, generator=g) / r**0.5
+    A = -torch.exp(0.3 * torch.randn(4 * dg, n, generator=g))
+    D, bias = torch.randn(4 * dg, generator=g), 0.1 * torch.randn(4 * dg, generator=g) - 1.0
+    dts = torch.einsum("blkr,kdr->blkd", dt_low.double(), weight.double()).float().reshape(b, length, 4 * dg)
+    want, _ = scan_cpu.ss2d_forward(x, dts, A, B, C, D, bias, h, w, checkpoints=False)
+    got = scan_cpu.ss2d_forward_lowrank(x, dt_low, weight, A, B, C, D, bias, h, w)
+    assert got.shape == (b, length, dg)
+    torch.testing.assert_close(got, want, rtol=2e-5, atol=2e-5)
+    # a wrong weight shows: the projection is really computed from dt_low and the weight
+    off = scan_cpu.ss2d_forward_lowrank(x, dt_low, weight.flip(1), A, B, C, D, bias, h, w)
+    assert (off - want).abs().max() > 1e-2
+
+
+def test_fused_dt_projection_refuses_bad_shapes(ext):
+    b, h, w, dg, n, r = 1, 3, 4, 8, 4, 2
+    x = torch.randn(b, h * w, dg)
+    x_dbl = torch.randn(b, h * w, 4, r + 2 * n)
+    A, D, bias = -torch.ones(4 * dg, n), torch.ones(4 * dg), torch.zeros(4 * dg)
+    B, C = x_dbl[..., r : r + n], x_dbl[..., r + n :]
+    with pytest.raises(RuntimeError, match="dt_weight"):
+        scan_cpu.ss2d_forward_lowrank(x, x_dbl[..., :r], torch.randn(4, dg, r + 1), A, B, C, D, bias, h, w)
+    with pytest.raises(RuntimeError, match="dt_rank"):
+        big = torch.randn(b, h * w, 4, scan_cpu.LOWRANK_MAX_RANK + 1)
+        scan_cpu.ss2d_forward_lowrank(x, big, torch.randn(4, dg, big.size(-1)), A, B, C, D, bias, h, w)
+    with pytest.raises(RuntimeError, match="dt_low"):
+        scan_cpu.ss2d_forward_lowrank(x, x_dbl[:, 1:, :, :r], torch.randn(4, dg, r), A, B, C, D, bias, h, w)
+
+
+@pytest.mark.parametrize("dim", [12, 32, 256])
+def test_ss2d_inference_fuses_the_dt_projection_and_training_does_not(ext, dim, monkeypatch):
+    """SS2D on the native kernel: under no_grad the kernel projects the steps itself (one call of the fused
+    forward per block), with a gradient recorded the projected steps go through the operator (no fused call);
+    the two outputs agree to rounding (bit for bit on the machines measured: the products are the same)."""
+    import tofdenoise.models.ss2d as ss2d_mod
+
+    calls = []
+    real = ss2d_mod.ss2d_forward_lowrank
+    monkeypatch.setattr(ss2d_mod, "ss2d_forward_lowrank", lambda *a: calls.append(1) or real(*a))
+    torch.manual_seed(dim)
+    block = SS2D(dim, scan_backend="cpu")
+    with torch.no_grad():
+        block.dt_projs_weight.normal_()  # steps far from the bias alone
+    x = torch.randn(2, 5, 7, dim)
+    with torch.no_grad():
+        y_inference = block(x)
+    assert len(calls) == 1
+    y_training = block(x.clone().requires_grad_())
+    assert len(calls) == 1
+    torch.testing.assert_close(y_inference, y_training.detach(), rtol=2e-6, atol=2e-6)

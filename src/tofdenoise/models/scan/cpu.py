@@ -312,6 +312,25 @@ def ss2d_backward(x, delta, A, B, C, D, bias, ckpt, dy, height: int, width: int)
     )
 
 
+#: the largest dt_rank :func:`ss2d_forward_lowrank` takes (the kernel's RMAX)
+LOWRANK_MAX_RANK = 64
+
+
+def ss2d_forward_lowrank(x, dt_low, dt_weight, A, B, C, D, bias, height: int, width: int) -> torch.Tensor:
+    """The SS2D route's forward with SS2D's dt projection fused into the kernel, for inference (no checkpoints,
+    no backward): the raw steps ``delta[b, p, k d + c] = sum_j dt_low[b, p, k, j] dt_weight[k, c, j]`` are computed
+    per position as the kernel reads them, instead of being written to and read back from a (b, L, 4 d) tensor
+    (315 MB per block at DVSS's first level of a 480 x 640 frame). x (b, L, d) and dt_low / B / C (b, L, 4, .)
+    float32 with any strides (dt_low, B and C: slices of x_proj's output), dt_weight (4, d, R), A (4 d, N),
+    D / bias (4 d,) or None. Returns y (b, L, d), equal to :func:`ss2d_forward` on the projected steps to
+    rounding (the products are summed in another order)."""
+    ext = _extension("ss2d_scan_cpu")
+    k, d, r = dt_weight.shape
+    return ext.ss2d_fwd_lowrank(
+        x, dt_low, dt_weight.reshape(k * d, r).contiguous(), A, B, C, _opt(D), _opt(bias), int(height), int(width)
+    )
+
+
 def _channels_last_bc(t: torch.Tensor) -> torch.Tensor:
     """(b, G, N, L) -> the same shape over (b, L, G, N) memory: one cache line per step for the kernel, not N."""
     return t.permute(0, 3, 1, 2).contiguous().permute(0, 2, 3, 1)

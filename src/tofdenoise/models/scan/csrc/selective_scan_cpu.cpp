@@ -39,6 +39,7 @@ namespace {
 
 constexpr int W = 16;     // lanes: channels per task
 constexpr int NMAX = 64;  // largest d_state
+constexpr int RMAX = 64;  // largest dt_rank of the fused dt projection (ss2d_fwd_lowrank)
 constexpr int64_t ADJ_AHEAD = 4;  // steps ahead for the adjoint pass's prefetches
 constexpr int64_t INFERENCE_CHUNK = 64;  // positions per step pass when no checkpoints are kept
 
@@ -211,17 +212,19 @@ inline Strides3 strides3(const at::Tensor& t) { return {t.stride(0), t.stride(1)
 
 void check_inputs(const at::Tensor& u, const at::Tensor& delta, const at::Tensor& A, const at::Tensor& B,
                   const at::Tensor& C, const at::Tensor& D, const at::Tensor& bias, const Geometry& geo) {
+    // delta undefined: the fused dt projection (ss2d_fwd_lowrank), which checks its own inputs
     for (const at::Tensor* t : {&u, &delta, &A, &B, &C}) {
+        if (t == &delta && !delta.defined()) continue;
         TORCH_CHECK(t->device().is_cpu() && t->scalar_type() == at::kFloat, "selective_scan_cpu: float32 CPU tensors expected");
     }
     // u and delta: any strides (channels-last is fastest; a (batch, dim, L) tensor viewed as (batch, L, dim) is
     // read with gathered lanes); outputs are allocated with the same strides
     TORCH_CHECK(u.dim() == 3 && u.is_non_overlapping_and_dense(), "selective_scan_cpu: u must be a dense (batch, L, Du) tensor");
-    TORCH_CHECK(delta.dim() == 3 && delta.is_non_overlapping_and_dense(), "selective_scan_cpu: delta must be a dense (batch, L, dim) tensor");
+    TORCH_CHECK(!delta.defined() || (delta.dim() == 3 && delta.is_non_overlapping_and_dense()), "selective_scan_cpu: delta must be a dense (batch, L, dim) tensor");
     TORCH_CHECK(A.dim() == 2 && A.is_contiguous(), "selective_scan_cpu: A must be a contiguous (dim, N) tensor");
     TORCH_CHECK(B.dim() == 4 && C.dim() == 4, "selective_scan_cpu: B and C must be (batch, L, G, N)");
     TORCH_CHECK(geo.N <= NMAX, "selective_scan_cpu: d_state must be <= ", NMAX);
-    TORCH_CHECK(u.size(0) == geo.batch && u.size(1) == geo.L && delta.size(2) == geo.G * geo.Dg, "selective_scan_cpu: shape mismatch");
+    TORCH_CHECK(u.size(0) == geo.batch && u.size(1) == geo.L && (!delta.defined() || (delta.size(0) == geo.batch && delta.size(1) == geo.L && delta.size(2) == geo.G * geo.Dg)), "selective_scan_cpu: shape mismatch");
     TORCH_CHECK(B.size(1) == geo.L && B.size(2) == geo.G && B.size(3) == geo.N && C.sizes() == B.sizes(), "selective_scan_cpu: B/C shape mismatch");
     for (const at::Tensor* t : {&D, &bias}) {
         if (t->defined()) {
@@ -255,7 +258,16 @@ Geometry make_geometry(const at::Tensor& u, const at::Tensor& A, const at::Tenso
 struct BlockParams {
     vf A[NMAX];
     vf D, bias, mask;
+    vf Wdt[RMAX];  // the dt projection's weights W[c, j] in lanes (ss2d_fwd_lowrank only)
 };
+
+inline void load_dt_weight(BlockParams& p, const float* Wdt, int64_t R, int64_t c0, int nw) {
+    alignas(64) float t[W];
+    for (int64_t j = 0; j < R; ++j) {
+        for (int i = 0; i < W; ++i) t[i] = i < nw ? Wdt[(c0 + i) * R + j] : 0.0f;
+        p.Wdt[j] = loadv(t);
+    }
+}
 
 inline void load_params(BlockParams& p, const float* A, const float* D, const float* bias, int64_t c0, int nw, int64_t N) {
     alignas(64) float t[W];
@@ -289,6 +301,11 @@ struct FwdArgs {
     float *y, *ck;
     Strides4 sB, sC;
     Strides3 su, sd;  // (batch, position, channel) strides of u / y and of delta
+    // the fused dt projection (ss2d_fwd_lowrank; delta is then unused): the raw step of channel c of group g at
+    // position p is sum_j dtl[b, p, g, j] Wdt[g Dg + c, j]; dtl (batch, L, G, R) any strides, Wdt (G Dg, R)
+    const float *dtl = nullptr, *Wdt = nullptr;
+    Strides4 sdt{};
+    int64_t R = 0;
 };
 
 struct BwdArgs {
@@ -318,8 +335,10 @@ void fwd_tasks(const FwdArgs& a, Next next) {
     const int64_t N = NT > 0 ? NT : geo.N, L = geo.L, G = geo.G, Dg = geo.Dg;
     const int64_t nblk = a.nblk, nck = a.nck, chunk = a.chunk, parts = a.parts, per_part = a.per_part;
     const bool ss2d = geo.ss2d;
-    const Strides4 sB = a.sB, sC = a.sC;
+    const Strides4 sB = a.sB, sC = a.sC, sdt = a.sdt;
     const Strides3 su = a.su, sd = a.sd;
+    const bool lowrank = a.dtl != nullptr;
+    const int64_t R = a.R;
     std::vector<BlockParams> prms(per_part);
     std::vector<vf> Hsave(per_part * N);
     vf h[NT > 0 ? NT : NMAX];
@@ -332,10 +351,12 @@ void fwd_tasks(const FwdArgs& a, Next next) {
             for (int64_t i = 0; i < nb; ++i) {
                 const int64_t d0 = (blk0 + i) * W;
                 load_params(prms[i], a.A, a.D, a.bias, g * Dg + d0, static_cast<int>(std::min<int64_t>(W, Dg - d0)), N);
+                if (lowrank) load_dt_weight(prms[i], a.Wdt, R, g * Dg + d0, static_cast<int>(std::min<int64_t>(W, Dg - d0)));
                 for (int64_t n = 0; n < N; ++n) Hsave[i * N + n] = splat(0.0f);
             }
             const float* Bbase = a.B + b * sB.b + g * sB.g;
             const float* Cbase = a.C + b * sC.b + g * sC.g;
+            const float* dtbase = lowrank ? a.dtl + b * sdt.b + g * sdt.g : nullptr;
             const bool accumulate = ss2d && g > 0;  // SS2D: direction 0 writes y, directions 1-3 add to it
             for (int64_t k = 0; k < nck; ++k) {
                 const int64_t T = std::min(chunk, L - k * chunk);
@@ -346,7 +367,7 @@ void fwd_tasks(const FwdArgs& a, Next next) {
                     const BlockParams& prm = prms[i];
                     const int64_t c0 = g * Dg + d0;      // channel of lane 0
                     const int64_t uc0 = ss2d ? d0 : c0;  // u / y column of lane 0
-                    const float* dbase = a.delta + b * sd.b + c0 * sd.c;
+                    const float* dbase = lowrank ? nullptr : a.delta + b * sd.b + c0 * sd.c;
                     const float* ubase = a.u + b * su.b + uc0 * su.c;
                     float* ybase = a.y + b * su.b + uc0 * su.c;
                     for (int64_t n = 0; n < N; ++n) h[n] = Hsave[i * N + n];
@@ -360,7 +381,11 @@ void fwd_tasks(const FwdArgs& a, Next next) {
                         const int64_t p = it.p;
                         Pbuf[s] = p;
                         if (more && (k + 1) * chunk + s < L) {  // delta and u a chunk ahead (each step reads a new line)
-                            __builtin_prefetch(dbase + ahead.p * sd.l);
+                            if (!lowrank) {
+                                __builtin_prefetch(dbase + ahead.p * sd.l);
+                            } else if (i == 0) {  // the low-rank steps' row, shared by the part's blocks
+                                __builtin_prefetch(dtbase + ahead.p * sdt.l);
+                            }
                             __builtin_prefetch(ubase + ahead.p * su.l);
                             ahead.next();
                         }
@@ -371,8 +396,16 @@ void fwd_tasks(const FwdArgs& a, Next next) {
                             __builtin_prefetch(Cbase + p * sC.l + (N - 1) * sC.n);
                         }
                         __builtin_prefetch(ybase + p * su.l, 1);
+                        vf raw;
+                        if (lowrank) {  // the dt projection: R multiply-adds of broadcast low-rank steps
+                            const float* row = dtbase + p * sdt.l;
+                            raw = prm.Wdt[0] * row[0];
+                            for (int64_t j = 1; j < R; ++j) raw += prm.Wdt[j] * row[j * sdt.n];
+                        } else {
+                            raw = load_lanes(dbase + p * sd.l, sd.c, nw);
+                        }
                         vf dsig;
-                        const vf dl = step_delta(load_lanes(dbase + p * sd.l, sd.c, nw), prm, a.softplus, &dsig);
+                        const vf dl = step_delta(raw, prm, a.softplus, &dsig);
                         const vf uu = load_lanes(ubase + p * su.l, su.c, nw);
                         DLbuf[s] = dl;
                         DUbuf[s] = dl * uu;
@@ -590,14 +623,13 @@ void run_tasks(int64_t ntasks, Body body) {
 
 }  // namespace
 
-std::vector<at::Tensor> scan_fwd(const at::Tensor& u, const at::Tensor& delta, const at::Tensor& A, const at::Tensor& B,
-                                 const at::Tensor& C, const c10::optional<at::Tensor>& D_opt,
-                                 const c10::optional<at::Tensor>& bias_opt, bool softplus, bool ss2d, int64_t H,
-                                 int64_t Wd, int64_t chunk) {
-    const at::Tensor D = D_opt.has_value() ? *D_opt : at::Tensor();
-    const at::Tensor bias = bias_opt.has_value() ? *bias_opt : at::Tensor();
-    const Geometry geo = make_geometry(u, A, B, ss2d, H, Wd);
-    check_inputs(u, delta, A, B, C, D, bias, geo);
+namespace {
+
+// The forward's body, shared by scan_fwd and ss2d_fwd_lowrank (the inputs checked by the caller; dtl / Wdt
+// undefined unless the dt projection is fused).
+std::vector<at::Tensor> fwd_impl(const at::Tensor& u, const at::Tensor& delta, const at::Tensor& A, const at::Tensor& B,
+                                 const at::Tensor& C, const at::Tensor& D, const at::Tensor& bias, bool softplus,
+                                 const Geometry& geo, int64_t chunk, const at::Tensor& dtl, const at::Tensor& Wdt) {
     // chunk <= 0: no backward will follow (inference): no checkpoints are written and ck comes back empty (at
     // 480 x 640 they are as large as y: 78 MB per call at DVSS level 0); the chunks are then only the unit of the
     // step pass (INFERENCE_CHUNK positions)
@@ -609,7 +641,7 @@ std::vector<at::Tensor> scan_fwd(const at::Tensor& u, const at::Tensor& delta, c
     // state entering each chunk: (batch, nblk, G, nck, N, W)
     at::Tensor ck = keep ? at::empty({geo.batch, nblk, geo.G, nck, geo.N, W}, u.options()) : at::empty({0}, u.options());
     const float* up = u.data_ptr<float>();
-    const float* dp = delta.data_ptr<float>();
+    const float* dp = delta.defined() ? delta.data_ptr<float>() : nullptr;
     const float* Ap = A.data_ptr<float>();
     const float* Bp = B.data_ptr<float>();
     const float* Cp = C.data_ptr<float>();
@@ -624,7 +656,14 @@ std::vector<at::Tensor> scan_fwd(const at::Tensor& u, const at::Tensor& delta, c
     // rows read once from memory). As few parts as keep every thread busy: ceil(threads / batch), at most nblk.
     const BlockSplit split = split_blocks(nblk, geo.batch, std::max<int64_t>(1, at::get_num_threads()));
     const int64_t parts = split.parts, per_part = split.per_part;
-    const FwdArgs args{geo, nblk, nck, chunk, parts, per_part, softplus, up, dp, Ap, Bp, Cp, Dp, bp, yp, ckp, sB, sC, strides3(u), strides3(delta)};
+    FwdArgs args{geo, nblk, nck, chunk, parts, per_part, softplus, up, dp, Ap, Bp, Cp, Dp, bp, yp, ckp, sB, sC,
+                 strides3(u), delta.defined() ? strides3(delta) : Strides3{}};
+    if (dtl.defined()) {
+        args.dtl = dtl.data_ptr<float>();
+        args.Wdt = Wdt.data_ptr<float>();
+        args.sdt = strides4(dtl);
+        args.R = dtl.size(3);
+    }
     run_tasks(geo.batch * parts, [&](auto next) {
         if (geo.N == 16) {
             fwd_tasks<16>(args, next);
@@ -633,6 +672,44 @@ std::vector<at::Tensor> scan_fwd(const at::Tensor& u, const at::Tensor& delta, c
         }
     });
     return {y, ck};
+}
+
+}  // namespace
+
+std::vector<at::Tensor> scan_fwd(const at::Tensor& u, const at::Tensor& delta, const at::Tensor& A, const at::Tensor& B,
+                                 const at::Tensor& C, const c10::optional<at::Tensor>& D_opt,
+                                 const c10::optional<at::Tensor>& bias_opt, bool softplus, bool ss2d, int64_t H,
+                                 int64_t Wd, int64_t chunk) {
+    const at::Tensor D = D_opt.has_value() ? *D_opt : at::Tensor();
+    const at::Tensor bias = bias_opt.has_value() ? *bias_opt : at::Tensor();
+    const Geometry geo = make_geometry(u, A, B, ss2d, H, Wd);
+    check_inputs(u, delta, A, B, C, D, bias, geo);
+    return fwd_impl(u, delta, A, B, C, D, bias, softplus, geo, chunk, at::Tensor(), at::Tensor());
+}
+
+// The SS2D forward with its dt projection fused, for inference (no checkpoints: no backward can follow): the raw
+// steps are not read from a (batch, L, 4 d) tensor but computed per position from the low-rank steps dt_low
+// (batch, L, 4, R) (any strides: a slice of x_proj's output) and the weights dt_weight (4 d, R), then biased and
+// passed through softplus as in scan_fwd. Returns y (batch, L, d).
+at::Tensor ss2d_fwd_lowrank(const at::Tensor& u, const at::Tensor& dt_low, const at::Tensor& dt_weight,
+                            const at::Tensor& A, const at::Tensor& B, const at::Tensor& C,
+                            const c10::optional<at::Tensor>& D_opt, const c10::optional<at::Tensor>& bias_opt,
+                            int64_t H, int64_t Wd) {
+    const at::Tensor D = D_opt.has_value() ? *D_opt : at::Tensor();
+    const at::Tensor bias = bias_opt.has_value() ? *bias_opt : at::Tensor();
+    const Geometry geo = make_geometry(u, A, B, true, H, Wd);
+    for (const at::Tensor* t : {&dt_low, &dt_weight}) {
+        TORCH_CHECK(t->device().is_cpu() && t->scalar_type() == at::kFloat, "ss2d_fwd_lowrank: float32 CPU tensors expected");
+    }
+    TORCH_CHECK(dt_low.dim() == 4 && dt_low.size(0) == geo.batch && dt_low.size(1) == geo.L && dt_low.size(2) == geo.G,
+                "ss2d_fwd_lowrank: dt_low must be (batch, L, 4, R)");
+    const int64_t R = dt_low.size(3);
+    TORCH_CHECK(R >= 1 && R <= RMAX, "ss2d_fwd_lowrank: dt_rank must be in 1..", RMAX, ", got ", R);
+    TORCH_CHECK(dt_weight.dim() == 2 && dt_weight.is_contiguous() && dt_weight.size(0) == geo.G * geo.Dg &&
+                    dt_weight.size(1) == R,
+                "ss2d_fwd_lowrank: dt_weight must be a contiguous (4 d, R) tensor");
+    check_inputs(u, at::Tensor(), A, B, C, D, bias, geo);
+    return fwd_impl(u, at::Tensor(), A, B, C, D, bias, true, geo, 0, dt_low, dt_weight)[0];
 }
 
 std::vector<at::Tensor> scan_bwd(const at::Tensor& u, const at::Tensor& delta, const at::Tensor& A, const at::Tensor& B,
@@ -752,6 +829,7 @@ int64_t threads_used(int64_t ntasks) {
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.def("scan_fwd", &scan_fwd, "selective scan forward (CPU, float32)");
+    m.def("ss2d_fwd_lowrank", &ss2d_fwd_lowrank, "SS2D forward with the dt projection fused (inference, float32)");
     m.def("threads_used", &threads_used, "distinct intra-op threads that ran tasks (the parallel build check)");
     m.def("scan_bwd", &scan_bwd, "selective scan backward (CPU, float32)");
     m.def("roofline_loop", &roofline_loop, "exp + 3 FMA per element, the scan's per-update floor");
