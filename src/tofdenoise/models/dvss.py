@@ -143,6 +143,12 @@ class DVSSNet(nn.Module):
         check_input(x, self.in_channels, type(self).__name__)
         xp, size = pad_to_multiple(x, self.multiple)
         h = self.patch_embed(xp)
+        if not torch.is_grad_enabled() and h.device.type == "cpu":
+            # CPU inference: channels-last memory from the stem on, so that LayerNorm2d's and SS2D's (B, H, W, C)
+            # views are free and the convolutions take oneDNN's NHWC kernels, with no layout copies between the
+            # blocks (a 480 x 640 frame 10 % faster; the same numbers to rounding). Training keeps the default
+            # layout: there it gains nothing, and its numbers stay those of the recorded runs. Not measured on GPUs
+            h = h.contiguous(memory_format=torch.channels_last)
         skips = []
         for blocks, down in zip(self.encoder, self.down):
             h = blocks(h)
