@@ -16,7 +16,7 @@
    + SiLU with its layout copy, x_proj, the dt projection through the block-diagonal matrix, the native scan,
    out_norm * SiLU(z), out_proj) and of the whole block, median of 3 after a warm-up, in this process.
 
-Peak memory: every case runs in a fresh subprocess; peak = ru_maxrss at the end (the process's resident-set
+Peak memory: every case runs in a fresh subprocess; peak = VmHWM at the end (the process's resident-set
 high-water mark) minus the resident set just before the timed work (after imports, model and inputs are
 built). This counts every CPU allocation (torch's allocator is invisible to tracemalloc), including the
 autograd graph; it is an upper bound when the allocator keeps freed pages.
@@ -45,7 +45,9 @@ def _rss_bytes() -> int:
 
 
 def _peak_bytes() -> int:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024  # Linux: KiB
+    from tofdenoise.allocator import peak_rss_bytes  # VmHWM: ru_maxrss would start at the parent's size
+
+    return peak_rss_bytes()
 
 
 def _timed(fn, reps: int) -> list[tuple[float, float]]:

@@ -81,3 +81,18 @@ def test_a_users_own_malloc_variable_wins(monkeypatch):
     assert allocator.keep_freed_memory(env) is True
     assert env["MALLOC_TOP_PAD_"] == "0"
     assert env["MALLOC_MMAP_THRESHOLD_"] == str(allocator.MMAP_THRESHOLD_BYTES)
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/status"), reason="Linux's /proc")
+def test_peak_rss_of_a_subprocess_is_its_own_not_its_parents():
+    """A parent holding 300 MiB starts a small interpreter: the child's peak is well under the parent's size
+    (``ru_maxrss`` would report at least the parent's resident set at the fork), and the parent's own peak
+    covers what it touched."""
+    ballast = bytearray(300 << 20)
+    ballast[:: 4096] = b"x" * len(ballast[:: 4096])  # touch every page
+    code = "from tofdenoise.allocator import peak_rss_bytes; print(peak_rss_bytes())"
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True)
+    child = int(done.stdout.strip().splitlines()[-1])
+    assert 1 << 20 < child < 200 << 20
+    assert allocator.peak_rss_bytes() > 300 << 20
+    del ballast

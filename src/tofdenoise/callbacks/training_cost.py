@@ -10,7 +10,7 @@
 - ``train_images``: training samples processed (every process's batches; with DDP, all processes together,
   assuming the ``DistributedSampler``'s equal share per process) and ``train_images_per_second``.
 - ``peak_gpu_memory_gib``: ``torch.cuda.max_memory_allocated`` of the process (the largest over attempts;
-  ``None`` without CUDA) and ``peak_rss_gib``: the peak resident memory of the process (``getrusage``; data
+  ``None`` without CUDA) and ``peak_rss_gib``: the peak resident memory of the process (``VmHWM``; data
   loader workers are separate processes and are not included).
 
 :class:`tofdenoise.callbacks.run_outputs.RunOutputs` writes :meth:`TrainingCost.summary` into ``run_info.json``
@@ -19,8 +19,6 @@ at fit end; the results page and ``tofdenoise report`` read it from there.
 
 from __future__ import annotations
 
-import resource
-import sys
 import time
 from typing import Any
 
@@ -28,15 +26,16 @@ import lightning.pytorch as pl
 import torch
 from lightning.pytorch.callbacks import Callback
 
+from ..allocator import peak_rss_bytes
+
 __all__ = ["TrainingCost", "peak_rss_gib"]
 
 _GIB = 1024.0**3
 
 
 def peak_rss_gib() -> float:
-    """Peak resident set size of this process in GiB (``ru_maxrss``: KiB on Linux, bytes on macOS)."""
-    peak = float(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
-    return peak / _GIB if sys.platform == "darwin" else peak * 1024.0 / _GIB
+    """Peak resident set size of this process in GiB (:func:`tofdenoise.allocator.peak_rss_bytes`)."""
+    return peak_rss_bytes() / _GIB
 
 
 class TrainingCost(Callback):
