@@ -256,6 +256,20 @@ def _bench_backbone(name: str, kwargs: dict[str, Any], size: int, quick: bool) -
     frame = torch.randn(1, 1, 480, 640, device="cuda")
     with torch.no_grad(), torch.autocast("cuda", dtype=torch.bfloat16):
         row["infer_480x640_bf16_ms"] = time_cuda(lambda: net(frame), repeats=3 if quick else 10)
+        if name.startswith("dvss"):  # the same frame with the blocks on channels-last memory (the CPU's default)
+            from tofdenoise.models import dvss as dvss_module
+
+            torch.nn.init.normal_(net.head.weight, std=0.1)  # the zero-initialised head would hide any difference
+            default_layout = net(frame).float()
+            devices = dvss_module.CHANNELS_LAST_INFERENCE_DEVICES
+            dvss_module.CHANNELS_LAST_INFERENCE_DEVICES = (*devices, "cuda")
+            try:
+                row["infer_480x640_bf16_channels_last_ms"] = time_cuda(lambda: net(frame), repeats=3 if quick else 10)
+                row["channels_last_max_diff"] = float((net(frame).float() - default_layout).abs().max())
+            except Exception as exc:  # the row's other figures stand
+                row["channels_last_error"] = f"{type(exc).__name__}: {exc}"
+            finally:
+                dvss_module.CHANNELS_LAST_INFERENCE_DEVICES = devices
     return row
 
 

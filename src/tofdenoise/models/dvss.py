@@ -26,6 +26,10 @@ from .ss2d import SS2D
 __all__ = ["DVSSBlock", "DVSSNet"]
 
 LOCAL_CHOICES = ("scr", "se", "none")
+#: the devices on which DVSS runs its blocks on channels-last memory when no gradient is recorded: the CPU (a
+#: 480 x 640 frame 1.11x faster, the same numbers to rounding; docs/benchmarks.md). ``benchmarks/bench_gpu.py`` times
+#: CUDA both ways; it is left out until measured
+CHANNELS_LAST_INFERENCE_DEVICES = ("cpu",)
 
 
 class DVSSBlock(nn.Module):
@@ -143,11 +147,11 @@ class DVSSNet(nn.Module):
         check_input(x, self.in_channels, type(self).__name__)
         xp, size = pad_to_multiple(x, self.multiple)
         h = self.patch_embed(xp)
-        if not torch.is_grad_enabled() and h.device.type == "cpu":
-            # CPU inference: channels-last memory from the stem on, so that LayerNorm2d's and SS2D's (B, H, W, C)
-            # views are free and the convolutions take oneDNN's NHWC kernels, with no layout copies between the
-            # blocks (a 480 x 640 frame 10 % faster; the same numbers to rounding). Training keeps the default
-            # layout: there it gains nothing, and its numbers stay those of the recorded runs. Not measured on GPUs
+        if not torch.is_grad_enabled() and h.device.type in CHANNELS_LAST_INFERENCE_DEVICES:
+            # inference: channels-last memory from the stem on, so that LayerNorm2d's and SS2D's (B, H, W, C) views
+            # are free and the convolutions take their NHWC kernels, with no layout copies between the blocks.
+            # Training keeps the default layout: there it gains nothing, and its numbers stay those of the recorded
+            # runs
             h = h.contiguous(memory_format=torch.channels_last)
         skips = []
         for blocks, down in zip(self.encoder, self.down):
