@@ -150,8 +150,8 @@ class DVSSNet(nn.Module):
         if not torch.is_grad_enabled() and h.device.type in CHANNELS_LAST_INFERENCE_DEVICES:
             # inference: channels-last memory from the stem on, so that LayerNorm2d's and SS2D's (B, H, W, C) views
             # are free and the convolutions take their NHWC kernels, with no layout copies between the blocks.
-            # Training keeps the default layout: there it gains nothing, and its numbers stay those of the recorded
-            # runs
+            # Training steps keep the default layout: there it gains nothing, and their numbers stay those of the
+            # recorded runs (validation, without a gradient, takes it and agrees with them to rounding)
             h = h.contiguous(memory_format=torch.channels_last)
         skips = []
         for blocks, down in zip(self.encoder, self.down):
