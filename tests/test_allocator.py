@@ -89,7 +89,7 @@ def test_peak_rss_of_a_subprocess_is_its_own_not_its_parents():
     (``ru_maxrss`` would report at least the parent's resident set at the fork), and the parent's own peak
     covers what it touched."""
     ballast = bytearray(300 << 20)
-    ballast[:: 4096] = b"x" * len(ballast[:: 4096])  # touch every page
+    ballast[::4096] = b"x" * len(ballast[::4096])  # touch every page
     code = "from tofdenoise.allocator import peak_rss_bytes; print(peak_rss_bytes())"
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True)
     child = int(done.stdout.strip().splitlines()[-1])
