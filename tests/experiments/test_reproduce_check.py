@@ -19,11 +19,13 @@ from tofdenoise.experiments.reproduce_check import (
     config_drift,
     pick_check_runs,
     reproduce_check,
+    set_aside_stale_rerun,
 )
 from tofdenoise.experiments.runner import run_all
 from tofdenoise.experiments.tables import table_specs
 from tofdenoise.paths import REPO_ROOT
 from tofdenoise.physics.calibration import resolve_calibration, save_calibration
+from tofdenoise.records import code_commit
 
 
 def _metrics(mae: float, raw: float = 7.0, psnr: float = 40.0, val: float = 3.0) -> dict:
@@ -103,6 +105,17 @@ def test_a_recorded_run_reproduces_exactly_and_a_changed_record_does_not(tmp_pat
     assert [r.diff for r in result.rows] == [0.0] * 4  # bit-identical: the same commit, machine and threads
     assert any("unet-range-l1-s0 reproduces at" in line for line in lines)
     assert (tmp_path / "check" / "reproduce-check.md").read_text().count("| pass |") == 4
+    # a rerun left by other code is not passed off as this commit's: it is set aside and made again
+    rerun_info = tmp_path / "check" / spec.name / "run_info.json"
+    info = json.loads(rerun_info.read_text())
+    info["commit"] = "f" * 40
+    rerun_info.write_text(json.dumps(info))
+    lines.clear()
+    result = reproduce_check(tmp_path / "results", tmp_path / "check", tables=["3"], extra=extra, log=lines.append)
+    assert result.passed, "\n".join(lines)
+    assert any("was made at ffffffffffff" in line and "moved to" in line for line in lines), "\n".join(lines)
+    assert (tmp_path / "check" / "superseded" / f"{spec.name}-ffffffffffff" / "metrics.json").is_file()
+    assert json.loads(rerun_info.read_text())["commit"] == code_commit()["commit"]
     # a record whose number moved (or made by other code) does not reproduce, and the check says so plainly
     metrics = json.loads((record / "metrics.json").read_text())
     metrics["synthetic"]["mae_mm"] += 0.5
@@ -197,3 +210,36 @@ def test_a_record_without_the_simulator_noised_split_is_rerun_without_it():
     overrides, note = record_test_sets({"synthetic": {"mae_mm": 2.0}})
     assert overrides == ["++data.simulated_test=false"] and "as the record was" in note
     assert record_test_sets({"synthetic": {"mae_mm": 2.0}, "simulated": {"mae_mm": 5.0}}) == ([], "")
+
+
+def _rerun_folder(path: Path, info: dict | None) -> Path:
+    path.mkdir(parents=True)
+    (path / "metrics.json").write_text("{}")
+    if info is not None:
+        (path / "run_info.json").write_text(json.dumps(info))
+    return path
+
+
+def test_a_rerun_is_reused_only_when_this_very_code_made_it(tmp_path):
+    """Kept: the same commit, clean then and now. Set aside (moved to superseded/, never deleted): another commit,
+    uncommitted changes then or now, no run_info.json; a second one of the same commit gets a new name; a dry run
+    only says what it would do."""
+    a, b = "a" * 40, "b" * 40
+    head = {"commit": a, "commit_dirty": False, "commit_describe": "v0-1-ga"}
+    out = tmp_path / "check"
+    same = _rerun_folder(out / "same", {"commit": a, "commit_dirty": False})
+    assert set_aside_stale_rerun(same, head) is None and same.is_dir()
+    assert set_aside_stale_rerun(out / "absent", head) is None
+    other = _rerun_folder(out / "run", {"commit": b, "commit_dirty": False})
+    said = set_aside_stale_rerun(other, head, dry_run=True)
+    assert "would be moved" in said and other.is_dir()
+    said = set_aside_stale_rerun(other, head)
+    assert "made at bbbbbbbbbbbb: moved to" in said and not other.exists()
+    assert (out / "superseded" / "run-bbbbbbbbbbbb" / "metrics.json").is_file()
+    again = _rerun_folder(out / "run", {"commit": b, "commit_dirty": True})
+    assert "with uncommitted changes" in set_aside_stale_rerun(again, head)
+    assert (out / "superseded" / "run-bbbbbbbbbbbb-2").is_dir()
+    unknown = _rerun_folder(out / "run", None)
+    assert "unknown code" in set_aside_stale_rerun(unknown, head)
+    dirty_now = _rerun_folder(out / "run", {"commit": a, "commit_dirty": False})
+    assert set_aside_stale_rerun(dirty_now, {**head, "commit_dirty": True}) is not None and not dirty_now.exists()

@@ -26,6 +26,10 @@ test_reproduce_check.py`` calls :func:`reproduce_check` too):
    and thread count is bit-identical run to run (``tests/training/test_determinism.py``), so on the machine and
    thread count of the record a rerun of unchanged code gives the record's numbers exactly.
 
+A rerun already in the output folder is reused only when it was made by this very code: the same commit, with no
+uncommitted changes then or now (:func:`set_aside_stale_rerun`); any other is moved to ``<out>/superseded/`` and
+the run is made again, so that "reproduces at <commit>" always speaks of a rerun made at that commit.
+
 A run that fails is reported plainly with the commit of its record (``run_info.json``'s ``commit``; records made
 before commits were recorded say so): the code changed since, on purpose or not. That is a finding, not a reason
 to widen the tolerance.
@@ -34,6 +38,7 @@ to widen the tolerance.
 from __future__ import annotations
 
 import math
+import os
 import statistics
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -346,6 +351,41 @@ def _commit_note(info: Mapping[str, Any] | None) -> str:
     return f"record made at {commit[:12]}{dirty}"
 
 
+def _provenance(info: Mapping[str, Any] | None) -> tuple[Any, Any, Any]:
+    """What identifies the code that made a run: (commit, commit_dirty, version)."""
+    info = info or {}
+    return info.get("commit"), info.get("commit_dirty"), info.get("version")
+
+
+def set_aside_stale_rerun(rerun: Path, head: Mapping[str, Any], dry_run: bool = False) -> str | None:
+    """Move a rerun folder that this code did not make to ``<its folder>/superseded/<name>-<commit>`` (``-2``,
+    ``-3``, ... when taken), so that the check trains it again; returns what was done, None for a rerun that is kept
+    (made at ``head``'s commit, with no uncommitted changes then or now) or no folder at all. A rerun without a
+    ``run_info.json`` (never started, or of unknown code) is set aside too. ``dry_run``: say what would be done."""
+    if not rerun.exists():
+        return None
+    info = read_record(rerun / RUN_INFO_NAME) if (rerun / RUN_INFO_NAME).is_file() else None
+    made, now = _provenance(info), _provenance(head)
+    if info is not None and made == now and now[0] is not None and not now[1]:
+        return None
+    if info is None:
+        origin = "of unknown code (no run_info.json)"
+    else:
+        commit = made[0][:12] if made[0] else f"version {made[2]}"
+        origin = f"made at {commit}{' with uncommitted changes' if made[1] else ''}"
+    label = (made[0] or "unknown")[:12]
+    dest = rerun.parent / "superseded" / f"{rerun.name}-{label}"
+    n = 2
+    while dest.exists():
+        dest = rerun.parent / "superseded" / f"{rerun.name}-{label}-{n}"
+        n += 1
+    if dry_run:
+        return f"{rerun.name}: the rerun in {rerun} was {origin}: it would be moved to {dest} and made again"
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    os.replace(rerun, dest)
+    return f"{rerun.name}: the rerun in {rerun} was {origin}: moved to {dest}, made again at this commit"
+
+
 def reproduce_check(
     results: Path,
     out: Path,
@@ -356,7 +396,8 @@ def reproduce_check(
     log: Log = _print,
 ) -> CheckResult:
     """Rerun one recorded run per table at this commit and compare it with its record (module docstring); the
-    table is logged and written to ``<out>/reproduce-check.md``. Finished reruns in ``out`` are reused. ``extra``:
+    table is logged and written to ``<out>/reproduce-check.md``. Reruns in ``out`` made by this code are reused
+    (finished) or resumed, any other is set aside (:func:`set_aside_stale_rerun`). ``extra``:
     Hydra overrides for every rerun after the profile's (as ``tofdenoise reproduce --extra``: the records must
     have been made with them too, else the config comparison names them)."""
     from tofdenoise.physics.calibration import SensorCalibration, save_calibration  # heavy (torch)
@@ -396,6 +437,9 @@ def reproduce_check(
     for run in runs:
         for note in result.notes[run.name]:
             log(f"[reproduce-check] {note}")
+        moved = set_aside_stale_rerun(Path(out) / run.name, head, dry_run=dry_run)
+        if moved:
+            log(f"[reproduce-check] {moved}")
     outcomes = run_all(specs, Path(out), dry_run=dry_run)
     if dry_run:
         return result
