@@ -62,7 +62,9 @@ def _timed(fn, reps: int) -> list[tuple[float, float]]:
 
 class _ChunkZeroAdapter:
     """An extension built from an older kernel source: forwards every call, but turns ``scan_fwd``'s chunk 0 (today's
-    "no checkpoints" for inference) into ``CHUNK`` for sources that do not know it (they need chunk >= 1)."""
+    "no checkpoints" for inference) into ``CHUNK`` for sources that do not know it (they need chunk >= 1), and gives
+    a source without the fused dt projection (``ss2d_fwd_lowrank``, f99439f) the projection it did before: a
+    batched product, then its SS2D forward."""
 
     def __init__(self, ext, chunk: int) -> None:
         self._ext, self._chunk = ext, chunk
@@ -72,6 +74,16 @@ class _ChunkZeroAdapter:
         if args[-1] < 1:
             args[-1] = self._chunk
         return self._ext.scan_fwd(*args)
+
+    def ss2d_fwd_lowrank(self, x, dt_low, dt_weight, A, B, C, D, bias, height, width):
+        if hasattr(self._ext, "ss2d_fwd_lowrank"):
+            return self._ext.ss2d_fwd_lowrank(x, dt_low, dt_weight, A, B, C, D, bias, height, width)
+        from tofdenoise.models.ss2d import dt_projection
+
+        b, length, k, r = dt_low.shape
+        weight = dt_weight.view(k, -1, r)
+        delta = dt_projection(dt_low.reshape(b * length, k, r), weight).view(b, length, -1)
+        return self.scan_fwd(x, delta, A, B, C, D, bias, True, True, height, width, 0)[0]
 
     def __getattr__(self, name):
         return getattr(self._ext, name)
