@@ -364,16 +364,16 @@ def set_aside_stale_rerun(rerun: Path, head: Mapping[str, Any], dry_run: bool = 
     ``run_info.json`` (never started, or of unknown code) is set aside too. ``dry_run``: say what would be done."""
     if not rerun.exists():
         return None
-    info = read_record(rerun / RUN_INFO_NAME) if (rerun / RUN_INFO_NAME).is_file() else None
+    info = read_record(rerun / RUN_INFO_NAME)
     made, now = _provenance(info), _provenance(head)
     if info is not None and made == now and now[0] is not None and not now[1]:
         return None
+    label = (made[0] or "unknown")[:12]
     if info is None:
         origin = "of unknown code (no run_info.json)"
     else:
-        commit = made[0][:12] if made[0] else f"version {made[2]}"
-        origin = f"made at {commit}{' with uncommitted changes' if made[1] else ''}"
-    label = (made[0] or "unknown")[:12]
+        origin = f"made at {label if made[0] else f'version {made[2]}'}"
+        origin += " with uncommitted changes" if made[1] else ""
     dest = rerun.parent / "superseded" / f"{rerun.name}-{label}"
     n = 2
     while dest.exists():

@@ -9,7 +9,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .scan import cross_merge, cross_scan, resolve_scan_backend, selective_scan
-from .scan.cpu import LOWRANK_MAX_RANK, ss2d_forward_lowrank
+from .scan.cpu import LOWRANK_MAX_RANK, ss2d_forward_lowrank, ss2d_scan_cpu
 
 __all__ = ["SS2D", "cross_scan", "cross_merge", "dt_projection", "DT_PROJECTION_FORMS"]
 
@@ -196,7 +196,7 @@ class SS2D(nn.Module):
         if kernel == "triton":
             from .scan.triton import ss2d_scan_triton as scan
         else:
-            from .scan.cpu import ss2d_scan_cpu as scan
+            scan = ss2d_scan_cpu
 
         y = scan(xs, dts, A, B, C, D, bias, h, w)
         return y.view(b, h, w, di)
