@@ -64,7 +64,8 @@ class _ChunkZeroAdapter:
     """An extension built from an older kernel source: forwards every call, but turns ``scan_fwd``'s chunk 0 (today's
     "no checkpoints" for inference) into ``CHUNK`` for sources that do not know it (they need chunk >= 1), and gives
     a source without the fused dt projection (``ss2d_fwd_lowrank``, f99439f) the projection it did before: a
-    batched product, then its SS2D forward."""
+    batched product, then its SS2D forward; and a source without the fused output stage (``ss2d_out_gate``) torch's
+    layer_norm and silu, as SS2D ran them before."""
 
     def __init__(self, ext, chunk: int) -> None:
         self._ext, self._chunk = ext, chunk
@@ -84,6 +85,13 @@ class _ChunkZeroAdapter:
         weight = dt_weight.view(k, -1, r)
         delta = dt_projection(dt_low.reshape(b * length, k, r), weight).view(b, length, -1)
         return self.scan_fwd(x, delta, A, B, C, D, bias, True, True, height, width, 0)[0]
+
+    def ss2d_out_gate(self, y, z, weight, bias, eps):
+        if hasattr(self._ext, "ss2d_out_gate"):
+            return self._ext.ss2d_out_gate(y, z, weight, bias, eps)
+        import torch.nn.functional as F
+
+        return y.copy_(F.layer_norm(y, weight.shape, weight, bias, eps) * F.silu(z))
 
     def __getattr__(self, name):
         return getattr(self._ext, name)

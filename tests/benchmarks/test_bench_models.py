@@ -45,3 +45,15 @@ def test_an_older_source_runs_the_fused_call_through_the_product():
     got = adapted.ss2d_fwd_lowrank(*args)
     assert older.calls == [scan_cpu.CHUNK]
     torch.testing.assert_close(got, ext.ss2d_fwd_lowrank(*args), rtol=1e-5, atol=1e-5)
+
+
+def test_an_older_source_runs_the_output_stage_through_torch():
+    ext = scan_cpu.load_extension()
+    if ext is None:
+        pytest.skip("native CPU scan not built on this machine")
+    g = torch.Generator().manual_seed(4)
+    y, z = torch.randn(30, 20, generator=g), torch.randn(30, 40, generator=g)[:, :20]
+    w, b = torch.randn(20, generator=g), torch.randn(20, generator=g)
+    adapted = bench_models._ChunkZeroAdapter(_OlderSource(ext), scan_cpu.CHUNK)
+    got = adapted.ss2d_out_gate(y.clone(), z, w, b, 1e-5)
+    torch.testing.assert_close(got, ext.ss2d_out_gate(y.clone(), z, w, b, 1e-5), rtol=1e-5, atol=1e-5)

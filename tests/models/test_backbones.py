@@ -6,6 +6,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from torch import nn
 
 from tofdenoise.models import available_backbones, build_backbone, count_parameters, trainable_backbones
 from tofdenoise.models.common import crop_to, pad_to_multiple
@@ -214,3 +215,59 @@ def test_dvss_inference_runs_channels_last_and_equals_the_training_layout(backen
     y_training = model(x)
     assert seen and not any(seen)
     torch.testing.assert_close(y_inference, y_training.detach(), rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("variant", ["dvss", "dvss_se", "dvss_no_local", "dvss_no_dwconv"])
+def test_dvss_block_folded_inference_equals_the_block(variant, monkeypatch):
+    """Inference on channels-last memory folds SS2D's out_proj into the 1x1 fusion and drops the concatenations
+    (block and skip fusions): the same numbers to rounding as the block with folding switched off, for every
+    ablation variant, and the folded path is really taken."""
+    from tofdenoise.models import dvss as dvss_module
+
+    torch.manual_seed(1)
+    model = tiny(variant).eval()
+    _randomise_heads(model)
+    for p in model.parameters():  # weights away from their initialisation (zero heads, unit norms)
+        p.data.add_(0.05 * torch.randn_like(p))
+    x = torch.randn(1, 1, 21, 26, generator=torch.Generator().manual_seed(3))
+    folded = []
+    real = dvss_module.DVSSBlock._forward_folded
+    monkeypatch.setattr(dvss_module.DVSSBlock, "_forward_folded", lambda *a: folded.append(1) or real(*a))
+    with torch.no_grad():
+        y_folded = model(x)
+        assert folded
+        monkeypatch.setattr(dvss_module, "folds_for_inference", lambda x: False)
+        folded.clear()
+        y_plain = model(x)
+        assert not folded
+    torch.testing.assert_close(y_folded, y_plain, rtol=1e-5, atol=1e-5)
+    assert (y_folded - x).abs().max() > 1e-3  # the blocks did something
+
+
+def test_conv1x1_of_cat_equals_the_convolution_of_the_concatenation():
+    from tofdenoise.models.dvss import conv1x1_of_cat
+
+    torch.manual_seed(0)
+    for bias in (True, False):
+        conv = nn.Conv2d(5 + 3, 4, 1, bias=bias)
+        a = torch.randn(2, 5, 6, 7).contiguous(memory_format=torch.channels_last)
+        b = torch.randn(2, 3, 6, 7)  # default layout: copied, still right
+        got = conv1x1_of_cat(conv, a, b)
+        torch.testing.assert_close(got, conv(torch.cat([a, b], dim=1)), rtol=1e-5, atol=1e-6)
+        assert got.is_contiguous(memory_format=torch.channels_last)
+
+
+def test_scr_one_image_without_gradient_equals_its_batch_path():
+    """SCR on one image under no_grad scales the depthwise kernels by the channel gate instead of forming X * g: the
+    same output to rounding as the path taken with a gradient or a batch."""
+    torch.manual_seed(0)
+    scr = SCR(8)
+    for p in scr.parameters():
+        p.data.normal_(0, 0.5)
+    x = torch.randn(1, 8, 9, 11)
+    with torch.no_grad():
+        fast = scr(x)
+        batch = scr(torch.cat([x, x]))[:1]
+    slow = scr(x.clone().requires_grad_())
+    torch.testing.assert_close(fast, slow.detach(), rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(fast, batch, rtol=1e-5, atol=1e-6)

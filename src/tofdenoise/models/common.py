@@ -29,6 +29,20 @@ def mean_hw(x: torch.Tensor, keepdim: bool = True) -> torch.Tensor:
     return x.float().mean(dim=(2, 3), keepdim=keepdim).to(x.dtype)
 
 
+def eager_inference() -> bool:
+    """True for a plain eager forward without a gradient: not traced (``torch.jit`` / ONNX export), not compiled,
+    not exported by ``torch.export`` -- where the inference-only shortcuts of a backbone (weights folded per call,
+    in-place activations, native fused kernels) may run. A traced or exported graph keeps the training forward's
+    operators."""
+    return not (
+        torch.is_grad_enabled()
+        or torch.jit.is_tracing()
+        or torch.compiler.is_compiling()
+        or torch.compiler.is_exporting()
+        or torch.onnx.is_in_onnx_export()
+    )
+
+
 def normalize_fp32(x: torch.Tensor, dim: int = -1) -> torch.Tensor:
     """``F.normalize(x, dim)`` with the sum of squares in float32 (see :func:`mean_hw`: a sum over a frame's
     pixels overflows float16); returned in ``x``'s dtype."""

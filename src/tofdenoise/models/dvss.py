@@ -18,7 +18,7 @@ import torch
 import torch.utils.checkpoint
 from torch import nn
 
-from .common import Downsample, LayerNorm2d, Upsample, check_input, crop_to, pad_to_multiple
+from .common import Downsample, LayerNorm2d, Upsample, check_input, crop_to, eager_inference, pad_to_multiple
 from .registry import register_backbone
 from .scr import SCR, SqueezeExcitation
 from .ss2d import SS2D
@@ -30,6 +30,32 @@ LOCAL_CHOICES = ("scr", "se", "none")
 #: 480 x 640 frame 1.11x faster, the same numbers to rounding; docs/benchmarks.md). ``benchmarks/bench_gpu.py`` times
 #: CUDA both ways; it is left out until measured
 CHANNELS_LAST_INFERENCE_DEVICES = ("cpu",)
+
+
+def folds_for_inference(x: torch.Tensor) -> bool:
+    """True where DVSS evaluates its 1x1 fusions of concatenations as products on channels-last memory (an eager
+    forward without a gradient (:func:`~tofdenoise.models.common.eager_inference`), no autocast, x (B, C, H, W) on
+    channels-last memory)."""
+    return eager_inference() and not torch.is_autocast_enabled(x.device.type) and x.permute(0, 2, 3, 1).is_contiguous()
+
+
+def _rows(x: torch.Tensor) -> torch.Tensor:
+    """(B, C, H, W) -> (B H W, C): a view on channels-last memory."""
+    return x.permute(0, 2, 3, 1).reshape(-1, x.shape[1])
+
+
+def conv1x1_of_cat(conv: nn.Conv2d, first: torch.Tensor, second: torch.Tensor) -> torch.Tensor:
+    """``conv(torch.cat([first, second], dim=1))`` for a 1x1 convolution, as two products on channels-last memory
+    (no concatenated copy); channels-last output, equal to rounding."""
+    b, c1, h, w = first.shape
+    weight = conv.weight.view(conv.out_channels, -1)
+    out = (
+        torch.addmm(conv.bias, _rows(first), weight[:, :c1].t())
+        if conv.bias is not None
+        else _rows(first) @ weight[:, :c1].t()
+    )
+    out.addmm_(_rows(second), weight[:, c1:].t())
+    return out.view(b, h, w, -1).permute(0, 3, 1, 2)
 
 
 class DVSSBlock(nn.Module):
@@ -59,11 +85,27 @@ class DVSSBlock(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         xn = self.norm(x)
+        if folds_for_inference(x):
+            return self._forward_folded(x, xn)
         xg = self.vssb(xn.permute(0, 2, 3, 1)).permute(0, 3, 1, 2)
         if self.local == "none":
             return x + self.fuse(xg)
         xl = self.refine(self.dwconv(xn))
         return x + self.fuse(torch.cat([xg, xl], dim=1))
+
+    def _forward_folded(self, x: torch.Tensor, xn: torch.Tensor) -> torch.Tensor:
+        """:meth:`forward` for inference on channels-last memory, equal to rounding: the SS2D's out_proj folded into
+        the fusion's weights (fuse_g @ out_proj, a (C, d_inner) matrix), the concatenation replaced by a second
+        product, the residual added in place."""
+        b, c, h, w = x.shape
+        y = self.vssb.gated(xn.permute(0, 2, 3, 1))
+        weight = self.fuse.weight.view(c, -1)
+        folded = weight[:, :c] @ self.vssb.out_proj.weight
+        out = torch.addmm(self.fuse.bias, y.reshape(b * h * w, -1), folded.t())
+        if self.local != "none":
+            out.addmm_(_rows(self.refine(self.dwconv(xn))), weight[:, c:].t())
+        out += _rows(x)
+        return out.view(b, h, w, c).permute(0, 3, 1, 2)
 
 
 class _Stage(nn.Sequential):
@@ -160,7 +202,10 @@ class DVSSNet(nn.Module):
             h = down(h)
         h = self.bottleneck(h)
         for up, fuse, blocks, skip in zip(self.up, self.skip_fuse, self.decoder, reversed(skips)):
-            h = blocks(fuse(torch.cat([up(h), skip], dim=1)))
+            if folds_for_inference(skip):
+                h = blocks(conv1x1_of_cat(fuse, up(h), skip))
+            else:
+                h = blocks(fuse(torch.cat([up(h), skip], dim=1)))
         out = self.head(h)
         if self.residual:
             out = out + xp[:, :1]

@@ -21,7 +21,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .common import mean_hw
+from .common import eager_inference, mean_hw
 
 __all__ = ["SCR", "SqueezeExcitation"]
 
@@ -54,6 +54,18 @@ class SCR(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         pooled = torch.cat([mean_hw(x), x.amax(dim=(2, 3), keepdim=True)], dim=1)
         g = torch.sigmoid(self.fc2(F.gelu(self.fc1(pooled))))
+        if x.shape[0] == 1 and eager_inference():
+            return self._refine_one_image(x, g)
         xc = x * g
         s = torch.sigmoid(self.local_pw(F.gelu(self.local_dw(xc))))
         return xc * s
+
+    def _refine_one_image(self, x: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+        """:meth:`forward`'s local branch for one image without a gradient, equal to rounding with two passes
+        fewer: the depthwise convolution of X * g is the convolution of X with each channel's kernel scaled by
+        g (no X * g tensor), and the gate is applied in place."""
+        dw = self.local_dw
+        kernel = dw.weight * g.view(-1, 1, 1, 1).to(dw.weight.dtype)
+        s = F.conv2d(x, kernel, dw.bias, dw.stride, dw.padding, dw.dilation, dw.groups)
+        s = torch.sigmoid_(self.local_pw(F.gelu(s)))
+        return s.mul_(g).mul_(x)

@@ -8,8 +8,9 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from .common import eager_inference
 from .scan import cross_merge, cross_scan, resolve_scan_backend, selective_scan
-from .scan.cpu import LOWRANK_MAX_RANK, ss2d_forward_lowrank, ss2d_scan_cpu
+from .scan.cpu import LOWRANK_MAX_RANK, ss2d_forward_lowrank, ss2d_out_gate, ss2d_scan_cpu
 
 __all__ = ["SS2D", "cross_scan", "cross_merge", "dt_projection", "DT_PROJECTION_FORMS"]
 
@@ -118,7 +119,13 @@ class SS2D(nn.Module):
         self.out_proj = nn.Linear(d_inner, dim, bias=False)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.out_proj(self.gated(x))
+
+    def gated(self, x: torch.Tensor) -> torch.Tensor:
+        """The block before out_proj: ``out_norm(scan) * SiLU(z)``, (B, H, W, C) -> (B, H, W, d_inner)."""
         b, h, w, _ = x.shape
+        if self._native_inference(x):
+            return self._gated_native_inference(x, h, w)
         xz = self.in_proj(x)
         xi, z = xz.chunk(2, dim=-1)
         kernel = self._spatial_scan(xz)
@@ -131,8 +138,34 @@ class SS2D(nn.Module):
         else:
             xi = F.silu(self.conv(xi.permute(0, 3, 1, 2).contiguous()))
             y = self._scan_cross(xi, h, w)
-        y = self.out_norm(y) * F.silu(z)
-        return self.out_proj(y)
+        return self.out_norm(y) * F.silu(z)
+
+    def _native_inference(self, x: torch.Tensor) -> bool:
+        """True where :meth:`gated` takes the native kernel's inference path: an eager forward without a gradient
+        (:func:`~tofdenoise.models.common.eager_inference`), the CPU kernel's route for float32 input, no autocast,
+        and the dt projection fusable (:meth:`_fuse_dt_projection`)."""
+        return (
+            x.dtype == torch.float32
+            and eager_inference()
+            and not torch.is_autocast_enabled(x.device.type)
+            and self._spatial_scan(x) == "cpu"
+            and self._fuse_dt_projection(x)
+        )
+
+    def _gated_native_inference(self, x: torch.Tensor, h: int, w: int) -> torch.Tensor:
+        """:meth:`gated` for inference on the native kernel, the same numbers to rounding with fewer passes over
+        memory: in_proj as two products (xi and z each contiguous: no copy of xi for the convolution), SiLU in
+        place, the dt projection in the scan (:func:`ss2d_forward_lowrank`) and LayerNorm * SiLU(z) in one pass
+        (:func:`ss2d_out_gate`)."""
+        b, di = x.shape[0], self.d_inner
+        x2 = x.reshape(b * h * w, x.shape[-1])
+        weight = self.in_proj.weight
+        xi = (x2 @ weight[:di].t()).view(b, h, w, di).permute(0, 3, 1, 2)  # NCHW view of channels-last memory
+        z = x2 @ weight[di:].t()
+        xi = F.silu(self.conv(xi), inplace=True).permute(0, 2, 3, 1).contiguous()
+        y = self._scan_spatial(xi, h, w, "cpu").view(b * h * w, di)
+        norm = self.out_norm
+        return ss2d_out_gate(y, z, norm.weight, norm.bias, norm.eps).view(b, h, w, di)
 
     def _spatial_scan(self, x: torch.Tensor) -> str | None:
         """The kernel that reads the four directions in place for this call, or None (the cross_scan route). The
@@ -187,12 +220,14 @@ class SS2D(nn.Module):
         xs = xs.view(b, length, di)
         x_dbl = (xs @ self.x_proj_weight.reshape(k * (r + 2 * n), di).t()).view(b, length, k, r + 2 * n)
         A, D, bias = self._scan_params()
-        B, C = x_dbl[..., r : r + n], x_dbl[..., r + n :]
+        # split, not three slices: its backward concatenates the three gradients into one tensor, where slicing's
+        # zero-fills a whole x_dbl per slice and adds them up (the same values)
+        dt_low, B, C = x_dbl.split((r, n, n), dim=-1)
         if kernel == "cpu" and self._fuse_dt_projection(xs):
             # inference: the kernel projects the low-rank steps itself (no (b, L, 4 d) steps tensor)
-            y = ss2d_forward_lowrank(xs, x_dbl[..., :r], self.dt_projs_weight.float(), A, B, C, D, bias, h, w)
+            y = ss2d_forward_lowrank(xs, dt_low, self.dt_projs_weight.float(), A, B, C, D, bias, h, w)
             return y.view(b, h, w, di)
-        dts = dt_projection(x_dbl[..., :r].reshape(b * length, k, r), self.dt_projs_weight).view(b, length, k * di)
+        dts = dt_projection(dt_low.reshape(b * length, k, r), self.dt_projs_weight).view(b, length, k * di)
         if kernel == "triton":
             from .scan.triton import ss2d_scan_triton as scan
         else:

@@ -9,6 +9,7 @@ import warnings
 
 import pytest
 import torch
+import torch.nn.functional as F
 
 from tofdenoise.models import available_scan_backends, selective_scan
 from tofdenoise.models.scan import cpu as scan_cpu
@@ -98,6 +99,12 @@ def test_exp_and_backward_save_no_per_position_states(ext):
     x = torch.linspace(-87.0, 88.0, 200001)
     e = ext.exp_fast(x).double()
     assert ((e - torch.exp(x.double())).abs() / torch.exp(x.double())).max() < 3e-7
+    # the inference forward's 2^x: as accurate on x <= 0 down to -125 (a normal float), 0-ish and no NaN beyond
+    x2 = torch.linspace(-125.0, 0.0, 200001)
+    e2 = ext.exp2_fast(x2).double()
+    assert ((e2 - torch.exp2(x2.double())).abs() / torch.exp2(x2.double())).max() < 3e-7
+    tail = ext.exp2_fast(torch.tensor([-126.0, -1e4, float("-inf")]))
+    assert torch.isfinite(tail).all() and (tail <= 2.0**-124).all()
     batch, dim, length, n = 2, 32, 640, 16
     u, delta, A, B, C, D, bias = _inputs(batch, dim, length, 2, n)
     y = scan_cpu.selective_scan_cpu(u, delta, A, B, C, D, bias, True)
@@ -328,8 +335,9 @@ def test_a_stale_build_lock_is_removed_and_a_fresh_one_is_waited_for(tmp_path):
 @pytest.mark.parametrize("b,h,w,dg,n", [(1, 7, 9, 20, 16), (2, 5, 13, 16, 16), (1, 1, 130, 24, 6), (3, 11, 6, 40, 16)])
 def test_inference_forward_keeps_no_checkpoints_and_gives_the_same_output(ext, b, h, w, dg, n):
     """chunk 0 (no input needs a gradient): the kernel writes no checkpoints and returns an empty ck, with an output
-    bit-identical to the checkpointing forward's; SS2D's route passes 0 under no_grad. Odd, non-square sizes, batch 1
-    and L not a multiple of CHUNK."""
+    equal to the checkpointing forward's -- bit for bit where the build has no AVX-512, to rounding where it has
+    (the inference forward's exp2 and softplus, equally close to the float64 reference); SS2D's route passes 0 under
+    no_grad. Odd, non-square sizes, batch 1 and L not a multiple of CHUNK."""
     g = torch.Generator().manual_seed(11)
     length = h * w
     x = torch.randn(b, length, dg, generator=g)
@@ -341,10 +349,17 @@ def test_inference_forward_keeps_no_checkpoints_and_gives_the_same_output(ext, b
     y_ck, ck = ext.scan_fwd(*args, scan_cpu.CHUNK)
     y_inf, ck_inf = ext.scan_fwd(*args, 0)
     assert ck.numel() > 0 and ck_inf.numel() == 0
-    assert torch.equal(y_inf, y_ck)
+    if ext.inference_exp2:
+        ref = ss2d_scan_reference(
+            *(t.double() for t in (x, dts, A, x_dbl[..., 3 : 3 + n], x_dbl[..., 3 + n :], D, bias)), h, w
+        )
+        assert _rel(y_inf.double(), ref) < 2e-6 and _rel(y_ck.double(), ref) < 2e-6
+        torch.testing.assert_close(y_inf, y_ck, rtol=1e-5, atol=1e-5)
+    else:
+        assert torch.equal(y_inf, y_ck)
     with torch.no_grad():
         y_route = scan_cpu.ss2d_scan_cpu(x, dts, A, x_dbl[..., 3 : 3 + n], x_dbl[..., 3 + n :], D, bias, h, w)
-    assert torch.equal(y_route, y_ck)
+    assert torch.equal(y_route, y_inf)
     with pytest.raises(RuntimeError, match="checkpoints"):
         ext.scan_bwd(*args, 0, ck_inf, torch.ones_like(y_ck))
 
@@ -425,9 +440,11 @@ def test_ss2d_inference_fuses_the_dt_projection_and_training_does_not(ext, dim, 
     the two outputs agree to rounding (bit for bit on the machines measured: the products are the same)."""
     import tofdenoise.models.ss2d as ss2d_mod
 
-    calls = []
+    calls, gates = [], []
     real = ss2d_mod.ss2d_forward_lowrank
     monkeypatch.setattr(ss2d_mod, "ss2d_forward_lowrank", lambda *a: calls.append(1) or real(*a))
+    real_gate = ss2d_mod.ss2d_out_gate
+    monkeypatch.setattr(ss2d_mod, "ss2d_out_gate", lambda *a: gates.append(1) or real_gate(*a))
     torch.manual_seed(dim)
     block = SS2D(dim, scan_backend="cpu")
     with torch.no_grad():
@@ -435,7 +452,30 @@ def test_ss2d_inference_fuses_the_dt_projection_and_training_does_not(ext, dim, 
     x = torch.randn(2, 5, 7, dim)
     with torch.no_grad():
         y_inference = block(x)
-    assert len(calls) == 1
+    assert len(calls) == len(gates) == 1
     y_training = block(x.clone().requires_grad_())
-    assert len(calls) == 1
+    assert len(calls) == len(gates) == 1
     torch.testing.assert_close(y_inference, y_training.detach(), rtol=2e-6, atol=2e-6)
+
+
+@pytest.mark.parametrize("rows,d,row_stride", [(1, 64, 128), (37, 20, 40), (300, 256, 256), (5, 3, 7)])
+def test_ss2d_out_gate_is_layer_norm_times_silu_in_place(ext, rows, d, row_stride):
+    """ss2d_out_gate(y, z, w, b, eps) = layer_norm(y) * silu(z) in y's memory, for partial lane blocks and z as the
+    strided half of in_proj's output; large |z| and a constant row (variance 0) stay finite."""
+    g = torch.Generator().manual_seed(rows)
+    y = 3.0 * torch.randn(rows, d, generator=g) + 1.0
+    y[0] = 2.5  # a row without variance
+    zz = 4.0 * torch.randn(rows, row_stride, generator=g)
+    zz[-1, :d] = torch.linspace(-120.0, 120.0, d)
+    z = zz[:, :d]
+    w, b = torch.randn(d, generator=g), torch.randn(d, generator=g)
+    want = F.layer_norm(y, (d,), w, b, 1e-5) * F.silu(z)
+    out = scan_cpu.ss2d_out_gate(y, z, w, b, 1e-5)
+    assert out.data_ptr() == y.data_ptr()
+    torch.testing.assert_close(out, want, rtol=2e-5, atol=2e-5)
+    with pytest.raises(RuntimeError, match="ss2d_out_gate: z"):
+        scan_cpu.ss2d_out_gate(
+            torch.randn(rows, d), z.t().contiguous().t() if d > 1 and rows > 1 else z[:, :0], w, b, 1e-5
+        )
+    with pytest.raises(RuntimeError, match="ss2d_out_gate: weight"):
+        scan_cpu.ss2d_out_gate(torch.randn(rows, d), z, w[:-1], b, 1e-5)

@@ -267,8 +267,8 @@ def test_compiled_dvss_equals_eager_on_cuda(autocast):
 @needs_cpu_kernel
 def test_cpu_inference_keeps_no_checkpoints_and_gives_the_same_output(cpu_kernel):
     """Without a backward to follow (no_grad, or no input needing a gradient) the SS2D and plain entry points ask
-    the operator for no checkpoints: the kernel writes none (an empty tensor comes back) and y is bit-identical to
-    the recorded call's."""
+    the operator for no checkpoints: the kernel writes none (an empty tensor comes back) and y is the recorded
+    call's (to rounding: without checkpoints the kernel takes its inference exp2 and softplus where it has them)."""
     from tofdenoise.models.scan.cpu import selective_scan_cpu, ss2d_scan_cpu
 
     args = _ss2d_args(1, 5, 7, 3, 16, True, "cpu")
@@ -278,8 +278,8 @@ def test_cpu_inference_keeps_no_checkpoints_and_gives_the_same_output(cpu_kernel
     x, delta, A, B, C, D, bias, h, w = args[:9]
     with torch.no_grad():
         y_infer = ss2d_scan_cpu(x, delta, A, B, C, D, bias, h, w)
-    assert torch.equal(y_infer, y_keep)
+    torch.testing.assert_close(y_infer, y_keep, rtol=1e-5, atol=1e-5)
     plain = _plain_args(1, 16, 70, 2, 5, True, True, "cpu")
     y_plain, _ = OPS.selective_scan(*plain, True)
     with torch.no_grad():
-        assert torch.equal(selective_scan_cpu(*plain[:7], plain[7]), y_plain)
+        torch.testing.assert_close(selective_scan_cpu(*plain[:7], plain[7]), y_plain, rtol=1e-5, atol=1e-5)

@@ -61,6 +61,8 @@ __all__ = [
     "scan_backward",
     "ss2d_forward",
     "ss2d_backward",
+    "ss2d_forward_lowrank",
+    "ss2d_out_gate",
     "ckpt_shape",
     "CHUNK",
     "LANES",
@@ -329,6 +331,16 @@ def ss2d_forward_lowrank(x, dt_low, dt_weight, A, B, C, D, bias, height: int, wi
     return ext.ss2d_fwd_lowrank(
         x, dt_low, dt_weight.reshape(k * d, r).contiguous(), A, B, C, _opt(D), _opt(bias), int(height), int(width)
     )
+
+
+def ss2d_out_gate(
+    y: torch.Tensor, z: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, eps: float
+) -> torch.Tensor:
+    """SS2D's output stage for inference, in place on y: ``layer_norm(y, (d,), weight, bias, eps) * silu(z)`` row by
+    row in one pass (torch runs three, each writing a (rows, d) tensor). y (rows, d) contiguous float32, z (rows, d)
+    float32 with unit channel stride (any row stride), weight / bias (d,). Returns y; equal to torch's to rounding."""
+    ext = _extension("ss2d_scan_cpu")
+    return ext.ss2d_out_gate(y, z, weight.contiguous(), bias.contiguous(), float(eps))
 
 
 def _channels_last_bc(t: torch.Tensor) -> torch.Tensor:

@@ -171,9 +171,12 @@ def _selective_scan_setup(ctx, inputs, output):
     ctx.save_for_backward(u, delta, A, B, C, D, delta_bias, ckpt)
     ctx.delta_softplus, ctx.kernel = delta_softplus, kernel
     ctx.mark_non_differentiable(ckpt)
+    ctx.set_materialize_grads(False)  # no zero-filled gradient for the checkpoints (as large as y)
 
 
 def _selective_scan_grad(ctx, dy, _dckpt):
+    if dy is None:  # y took no part in the loss (gradients are not materialised: see the setup)
+        return (None,) * 10
     u, delta, A, B, C, D, delta_bias, ckpt = ctx.saved_tensors
     du, ddelta, dA, dB, dC, dD, dbias = _selective_scan_backward(
         u, delta, A, B, C, D, delta_bias, ctx.delta_softplus, ckpt, dy, ctx.kernel
@@ -281,9 +284,12 @@ def _ss2d_scan_setup(ctx, inputs, output):
     ctx.save_for_backward(x, delta, A, B, C, D, delta_bias, ckpt)
     ctx.size, ctx.kernel = (height, width), kernel
     ctx.mark_non_differentiable(ckpt)
+    ctx.set_materialize_grads(False)  # no zero-filled gradient for the checkpoints (as large as y)
 
 
 def _ss2d_scan_grad(ctx, dy, _dckpt):
+    if dy is None:  # y took no part in the loss (gradients are not materialised: see the setup)
+        return (None,) * 11
     x, delta, A, B, C, D, delta_bias, ckpt = ctx.saved_tensors
     dx, ddelta, dA, dB, dC, dD, dbias = _ss2d_scan_backward(
         x, delta, A, B, C, D, delta_bias, ckpt, dy, *ctx.size, ctx.kernel

@@ -84,6 +84,11 @@ inline void store_lanes(float* p, int64_t stride, vf v, int nw) {
     storev(tmp, v);
     for (int j = 0; j < nw; ++j) p[j * stride] = tmp[j];
 }
+// W ones: load_lanes(zero_tail_mask(), nw) is 1 in lanes [0, nw) and 0 after
+inline const float* zero_tail_mask() {
+    alignas(64) static const float ones[W] = {1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1};
+    return ones;
+}
 // Element-wise choices as vector conditionals (one compare and one blend; spelled as and/andnot/or of a mask
 // they cost 3 instructions each). max / min: one instruction with AVX-512 (GCC does not always turn the
 // conditional into vmaxps / vminps inside the unrolled state loop; the exp's clamp takes two per state update).
@@ -124,6 +129,35 @@ inline vf exp_v(vf x) {
 #endif
 }
 
+// 2^x for the inference forward (x = delta * A log2(e) <= 0, A log2(e) folded into the block's constants): n =
+// round(x), f = x - n in [-1/2, 1/2] (exact), 2^f = exp(f ln 2) by exp_v's polynomial with its coefficients times
+// powers of ln 2, and 2^f 2^n by scalef. x is clamped below at -125 (as exp_v at -87: the result stays a normal
+// float, no denormal slow path; -inf gives no NaN). Three instructions fewer per state update than exp_v (its upper
+// clamp and its two-part range reduction); the same polynomial, so the same accuracy (tests compare it with exp).
+// AVX-512 only; elsewhere exp_v(x ln 2).
+constexpr bool HAVE_EXP2_FAST =
+#if defined(__AVX512F__)
+    true;
+#else
+    false;
+#endif
+inline vf exp2_v(vf x) {
+#if defined(__AVX512F__)
+    x = vmax(x, splat(-125.0f));  // 2^-125 p stays a normal float (p >= 1/sqrt 2)
+    const vf n = (vf)_mm512_roundscale_ps((__m512)x, _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
+    const vf f = x - n;
+    vf p = splat(0.0013300267746672034f);  // exp_v's coefficients c_k times ln(2)^k
+    p = p * f + 0.009669709950685501f;
+    p = p * f + 0.055505599826574326f;
+    p = p * f + 0.24022281169891357f;
+    p = p * f + 0.6931471824645996f;
+    p = p * f + 1.0f;
+    return (vf)_mm512_scalef_ps((__m512)p, (__m512)n);
+#else
+    return exp_v(x * 0.6931471805599453f);
+#endif
+}
+
 // softplus(x) = max(x, 0) + log(1 + e), e = exp(-|x|) in (0, 1]; log(1 + e) = 2 atanh(s), s = e / (2 + e)
 // in (0, 1/3], by its odd series to s^13 (truncation < 2e-8 relative). Also returns sigmoid(x).
 inline vf softplus_v(vf x, vf* sig) {
@@ -140,6 +174,31 @@ inline vf softplus_v(vf x, vf* sig) {
     const vf inv = 1.0f / (1.0f + e);
     *sig = select(x >= 0.0f, inv, e * inv);
     return vmax(x, splat(0.0f)) + 2.0f * s * p;
+}
+
+// softplus(x) for the inference forward: softplus_v's series without its sigmoid and with s = e / (2 + e) as e times
+// a reciprocal from vrcp14ps refined by one Newton step (relative error ~2^-28, under float rounding) instead of a
+// division (the step pass's costliest instruction). AVX-512 only; elsewhere softplus_v.
+inline vf softplus_fast_v(vf x) {
+#if defined(__AVX512F__)
+    const vf e = exp_v(select(x > 0.0f, -x, x));
+    const vf den = 2.0f + e;
+    vf r = (vf)_mm512_rcp14_ps((__m512)den);
+    r = r * (2.0f - den * r);
+    const vf s = e * r;
+    const vf s2 = s * s;
+    vf p = splat(1.0f / 13.0f);
+    p = p * s2 + 1.0f / 11.0f;
+    p = p * s2 + 1.0f / 9.0f;
+    p = p * s2 + 1.0f / 7.0f;
+    p = p * s2 + 1.0f / 5.0f;
+    p = p * s2 + 1.0f / 3.0f;
+    p = p * s2 + 1.0f;
+    return vmax(x, splat(0.0f)) + 2.0f * s * p;
+#else
+    vf sig;
+    return softplus_v(x, &sig);
+#endif
 }
 
 // out[n] = sum_j P[n][j] for 16 vectors P[0..15] (a transposing tree: 15 adds, 30 shuffles).
@@ -329,7 +388,7 @@ struct BwdArgs {
 // between chunks). The steps' softplus (an exp, a division, a series: ~100 cycles of dependent latency) is then
 // off the recurrence's path, and the out-of-order core overlaps the state updates of consecutive steps. How the
 // blocks are split into parts does not change any lane's arithmetic: the results do not depend on it.
-template <int NT, class Next>
+template <int NT, bool EXP2, class Next>
 void fwd_tasks(const FwdArgs& a, Next next) {
     const Geometry& geo = a.geo;
     const int64_t N = NT > 0 ? NT : geo.N, L = geo.L, G = geo.G, Dg = geo.Dg;
@@ -351,6 +410,9 @@ void fwd_tasks(const FwdArgs& a, Next next) {
             for (int64_t i = 0; i < nb; ++i) {
                 const int64_t d0 = (blk0 + i) * W;
                 load_params(prms[i], a.A, a.D, a.bias, g * Dg + d0, static_cast<int>(std::min<int64_t>(W, Dg - d0)), N);
+                if (EXP2) {  // exp(delta A) = 2^(delta A log2(e))
+                    for (int64_t n = 0; n < N; ++n) prms[i].A[n] = prms[i].A[n] * 1.4426950408889634f;
+                }
                 if (lowrank) load_dt_weight(prms[i], a.Wdt, R, g * Dg + d0, static_cast<int>(std::min<int64_t>(W, Dg - d0)));
                 for (int64_t n = 0; n < N; ++n) Hsave[i * N + n] = splat(0.0f);
             }
@@ -405,7 +467,8 @@ void fwd_tasks(const FwdArgs& a, Next next) {
                             raw = load_lanes(dbase + p * sd.l, sd.c, nw);
                         }
                         vf dsig;
-                        const vf dl = step_delta(raw, prm, a.softplus, &dsig);
+                        const vf dl = EXP2 && a.softplus ? softplus_fast_v(raw + prm.bias) * prm.mask
+                                                         : step_delta(raw, prm, a.softplus, &dsig);
                         const vf uu = load_lanes(ubase + p * su.l, su.c, nw);
                         DLbuf[s] = dl;
                         DUbuf[s] = dl * uu;
@@ -420,7 +483,8 @@ void fwd_tasks(const FwdArgs& a, Next next) {
                         vf ys[4] = {YDbuf[s], splat(0.0f), splat(0.0f), splat(0.0f)};
 #pragma GCC unroll 16
                         for (int64_t n = 0; n < N; ++n) {
-                            h[n] = exp_v(dl * prm.A[n]) * h[n] + du * Bl[n * sB.n];
+                            const vf decay = EXP2 ? exp2_v(dl * prm.A[n]) : exp_v(dl * prm.A[n]);
+                            h[n] = decay * h[n] + du * Bl[n * sB.n];
                             ys[n & 3] += h[n] * Cl[n * sC.n];
                         }
                         vf yy = (ys[0] + ys[1]) + (ys[2] + ys[3]);
@@ -664,11 +728,13 @@ std::vector<at::Tensor> fwd_impl(const at::Tensor& u, const at::Tensor& delta, c
         args.sdt = strides4(dtl);
         args.R = dtl.size(3);
     }
+    // inference (no checkpoints: no backward, so no training numbers, depend on it) takes exp2_v on AVX-512
+    const bool exp2 = !keep && HAVE_EXP2_FAST;
     run_tasks(geo.batch * parts, [&](auto next) {
         if (geo.N == 16) {
-            fwd_tasks<16>(args, next);
+            exp2 ? fwd_tasks<16, true>(args, next) : fwd_tasks<16, false>(args, next);
         } else {
-            fwd_tasks<0>(args, next);
+            exp2 ? fwd_tasks<0, true>(args, next) : fwd_tasks<0, false>(args, next);
         }
     });
     return {y, ck};
@@ -776,6 +842,53 @@ std::vector<at::Tensor> scan_bwd(const at::Tensor& u, const at::Tensor& delta, c
     return {du_out, ddelta, dA.sum(0), dB, dC, dD.sum(0), dbias.sum(0)};
 }
 
+// SS2D's output stage for inference, in place: y[r, :] <- LayerNorm(y[r, :]) * w + b, times SiLU(z[r, :]) = z / (1 +
+// exp(-z)), row by row (a row: one position's d channels; y (rows, d) contiguous, z (rows, d) with any row stride,
+// unit channel stride: a half of in_proj's output). One pass over y and z where LayerNorm, SiLU and the product
+// each read and write a (rows, d) tensor. Mean and variance as two passes over the row in lanes (the variance of
+// the centred values, as torch's LayerNorm, which it equals to rounding).
+at::Tensor ss2d_out_gate(at::Tensor y, const at::Tensor& z, const at::Tensor& weight, const at::Tensor& bias, double eps) {
+    TORCH_CHECK(y.device().is_cpu() && y.scalar_type() == at::kFloat && y.dim() == 2 && y.is_contiguous(),
+                "ss2d_out_gate: y must be a contiguous float32 CPU (rows, d) tensor");
+    const int64_t rows = y.size(0), d = y.size(1);
+    TORCH_CHECK(z.scalar_type() == at::kFloat && z.dim() == 2 && z.size(0) == rows && z.size(1) == d && z.stride(1) == 1,
+                "ss2d_out_gate: z must be a float32 (rows, d) tensor with unit channel stride");
+    TORCH_CHECK(weight.is_contiguous() && bias.is_contiguous() && weight.numel() == d && bias.numel() == d &&
+                    weight.scalar_type() == at::kFloat && bias.scalar_type() == at::kFloat,
+                "ss2d_out_gate: weight and bias must be contiguous float32 (d,) tensors");
+    float* yp = y.data_ptr<float>();
+    const float* zp = z.data_ptr<float>();
+    const float* wp = weight.data_ptr<float>();
+    const float* bp = bias.data_ptr<float>();
+    const int64_t sz = z.stride(0);
+    const float inv_d = 1.0f / static_cast<float>(d);
+    const float feps = static_cast<float>(eps);
+    at::parallel_for(0, rows, 256, [&](int64_t begin, int64_t end) {
+        for (int64_t r = begin; r < end; ++r) {
+            float* yr = yp + r * d;
+            const float* zr = zp + r * sz;
+            vf acc = splat(0.0f);
+            for (int64_t c = 0; c < d; c += W) acc += load_lanes(yr + c, static_cast<int>(std::min<int64_t>(W, d - c)));
+            const float mean = hsum(acc) * inv_d;
+            acc = splat(0.0f);
+            for (int64_t c = 0; c < d; c += W) {
+                const int nw = static_cast<int>(std::min<int64_t>(W, d - c));
+                const vf v = (load_lanes(yr + c, nw) - mean) * load_lanes(zero_tail_mask(), nw);
+                acc += v * v;
+            }
+            const float rstd = 1.0f / std::sqrt(hsum(acc) * inv_d + feps);
+            for (int64_t c = 0; c < d; c += W) {
+                const int nw = static_cast<int>(std::min<int64_t>(W, d - c));
+                const vf zz = load_lanes(zr + c, nw);
+                const vf gate = zz / (1.0f + exp_v(-zz));
+                const vf v = ((load_lanes(yr + c, nw) - mean) * rstd * load_lanes(wp + c, nw) + load_lanes(bp + c, nw)) * gate;
+                store_lanes(yr + c, v, nw);
+            }
+        }
+    });
+    return y;
+}
+
 // The roofline of the scan: a plain vectorised loop doing what one state update costs at least, one exp and
 // three multiply-adds per element (decay argument, state update, readout), on L1-resident lanes. ``tasks``
 // independent tasks of 256 elements x ``repeats`` sweeps (tasks x 256 x repeats updates in all); returns a
@@ -830,6 +943,7 @@ int64_t threads_used(int64_t ntasks) {
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.def("scan_fwd", &scan_fwd, "selective scan forward (CPU, float32)");
     m.def("ss2d_fwd_lowrank", &ss2d_fwd_lowrank, "SS2D forward with the dt projection fused (inference, float32)");
+    m.def("ss2d_out_gate", &ss2d_out_gate, "SS2D's LayerNorm(y) * SiLU(z), in place (inference, float32)");
     m.def("threads_used", &threads_used, "distinct intra-op threads that ran tasks (the parallel build check)");
     m.def("scan_bwd", &scan_bwd, "selective scan backward (CPU, float32)");
     m.def("roofline_loop", &roofline_loop, "exp + 3 FMA per element, the scan's per-update floor");
@@ -844,4 +958,16 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         for (int64_t i = 0; i < padded; i += W) storev(op + i, exp_v(loadv(xp + i)));
         return out.narrow(0, 0, n).view(x.sizes()).clone();
     }, "the kernel's exp (for tests)");
+    m.attr("inference_exp2") = HAVE_EXP2_FAST;  // whether the inference forward takes exp2_v / softplus_fast_v
+    m.def("exp2_fast", [](const at::Tensor& x) {
+        at::Tensor xc = x.contiguous().to(at::kFloat);
+        const int64_t n = xc.numel(), padded = (n + W - 1) / W * W;
+        at::Tensor in = at::zeros({padded}, xc.options());
+        in.narrow(0, 0, n).copy_(xc.view(-1));
+        at::Tensor out = at::empty_like(in);
+        const float* xp = in.data_ptr<float>();
+        float* op = out.data_ptr<float>();
+        for (int64_t i = 0; i < padded; i += W) storev(op + i, exp2_v(loadv(xp + i)));
+        return out.narrow(0, 0, n).view(x.sizes()).clone();
+    }, "the inference forward's 2^x (for tests)");
 }
