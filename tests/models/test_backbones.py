@@ -271,3 +271,9 @@ def test_scr_one_image_without_gradient_equals_its_batch_path():
     slow = scr(x.clone().requires_grad_())
     torch.testing.assert_close(fast, slow.detach(), rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(fast, batch, rtol=1e-5, atol=1e-6)
+    # under autocast (bf16 on a GPU) the shortcut is not taken: its in-place gates would mix dtypes
+    calls = []
+    scr._refine_one_image = lambda *a: calls.append(1)
+    with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16):
+        out = scr(x)
+    assert not calls and out.shape == x.shape

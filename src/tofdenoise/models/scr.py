@@ -54,16 +54,16 @@ class SCR(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         pooled = torch.cat([mean_hw(x), x.amax(dim=(2, 3), keepdim=True)], dim=1)
         g = torch.sigmoid(self.fc2(F.gelu(self.fc1(pooled))))
-        if x.shape[0] == 1 and eager_inference():
+        if x.shape[0] == 1 and eager_inference() and not torch.is_autocast_enabled(x.device.type):
             return self._refine_one_image(x, g)
         xc = x * g
         s = torch.sigmoid(self.local_pw(F.gelu(self.local_dw(xc))))
         return xc * s
 
     def _refine_one_image(self, x: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
-        """:meth:`forward`'s local branch for one image without a gradient, equal to rounding with two passes
-        fewer: the depthwise convolution of X * g is the convolution of X with each channel's kernel scaled by
-        g (no X * g tensor), and the gate is applied in place."""
+        """:meth:`forward`'s local branch for one image in an eager forward without a gradient or autocast, equal
+        to rounding with two passes fewer: the depthwise convolution of X * g is the convolution of X with each
+        channel's kernel scaled by g (no X * g tensor), and the gate is applied in place."""
         dw = self.local_dw
         kernel = dw.weight * g.view(-1, 1, 1, 1).to(dw.weight.dtype)
         s = F.conv2d(x, kernel, dw.bias, dw.stride, dw.padding, dw.dilation, dw.groups)
