@@ -158,11 +158,8 @@ inline vf exp2_v(vf x) {
 #endif
 }
 
-// softplus(x) = max(x, 0) + log(1 + e), e = exp(-|x|) in (0, 1]; log(1 + e) = 2 atanh(s), s = e / (2 + e)
-// in (0, 1/3], by its odd series to s^13 (truncation < 2e-8 relative). Also returns sigmoid(x).
-inline vf softplus_v(vf x, vf* sig) {
-    const vf e = exp_v(select(x > 0.0f, -x, x));
-    const vf s = e / (2.0f + e);
+// 2 atanh(s) = log((1 + s) / (1 - s)) for s in (0, 1/3], by its odd series to s^13 (truncation < 2e-8 relative).
+inline vf two_atanh_v(vf s) {
     const vf s2 = s * s;
     vf p = splat(1.0f / 13.0f);
     p = p * s2 + 1.0f / 11.0f;
@@ -171,9 +168,17 @@ inline vf softplus_v(vf x, vf* sig) {
     p = p * s2 + 1.0f / 5.0f;
     p = p * s2 + 1.0f / 3.0f;
     p = p * s2 + 1.0f;
+    return 2.0f * s * p;
+}
+
+// softplus(x) = max(x, 0) + log(1 + e), e = exp(-|x|) in (0, 1]; log(1 + e) = 2 atanh(s), s = e / (2 + e)
+// in (0, 1/3]. Also returns sigmoid(x).
+inline vf softplus_v(vf x, vf* sig) {
+    const vf e = exp_v(select(x > 0.0f, -x, x));
+    const vf s = e / (2.0f + e);
     const vf inv = 1.0f / (1.0f + e);
     *sig = select(x >= 0.0f, inv, e * inv);
-    return vmax(x, splat(0.0f)) + 2.0f * s * p;
+    return vmax(x, splat(0.0f)) + two_atanh_v(s);
 }
 
 // softplus(x) for the inference forward: softplus_v's series without its sigmoid and with s = e / (2 + e) as e times
@@ -185,16 +190,7 @@ inline vf softplus_fast_v(vf x) {
     const vf den = 2.0f + e;
     vf r = (vf)_mm512_rcp14_ps((__m512)den);
     r = r * (2.0f - den * r);
-    const vf s = e * r;
-    const vf s2 = s * s;
-    vf p = splat(1.0f / 13.0f);
-    p = p * s2 + 1.0f / 11.0f;
-    p = p * s2 + 1.0f / 9.0f;
-    p = p * s2 + 1.0f / 7.0f;
-    p = p * s2 + 1.0f / 5.0f;
-    p = p * s2 + 1.0f / 3.0f;
-    p = p * s2 + 1.0f;
-    return vmax(x, splat(0.0f)) + 2.0f * s * p;
+    return vmax(x, splat(0.0f)) + two_atanh_v(e * r);
 #else
     vf sig;
     return softplus_v(x, &sig);
@@ -940,6 +936,21 @@ int64_t threads_used(int64_t ntasks) {
     return used;
 }
 
+// f applied to x's elements W at a time (x as float32, padded with zeros to whole vectors): the tests' view of the
+// kernel's vector functions.
+template <class F>
+at::Tensor map_lanes(const at::Tensor& x, F f) {
+    at::Tensor xc = x.contiguous().to(at::kFloat);
+    const int64_t n = xc.numel(), padded = (n + W - 1) / W * W;
+    at::Tensor in = at::zeros({padded}, xc.options());
+    in.narrow(0, 0, n).copy_(xc.view(-1));
+    at::Tensor out = at::empty_like(in);
+    const float* xp = in.data_ptr<float>();
+    float* op = out.data_ptr<float>();
+    for (int64_t i = 0; i < padded; i += W) storev(op + i, f(loadv(xp + i)));
+    return out.narrow(0, 0, n).view(x.sizes()).clone();
+}
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.def("scan_fwd", &scan_fwd, "selective scan forward (CPU, float32)");
     m.def("ss2d_fwd_lowrank", &ss2d_fwd_lowrank, "SS2D forward with the dt projection fused (inference, float32)");
@@ -947,27 +958,9 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.def("threads_used", &threads_used, "distinct intra-op threads that ran tasks (the parallel build check)");
     m.def("scan_bwd", &scan_bwd, "selective scan backward (CPU, float32)");
     m.def("roofline_loop", &roofline_loop, "exp + 3 FMA per element, the scan's per-update floor");
-    m.def("exp_fast", [](const at::Tensor& x) {
-        at::Tensor xc = x.contiguous().to(at::kFloat);
-        const int64_t n = xc.numel(), padded = (n + W - 1) / W * W;
-        at::Tensor in = at::zeros({padded}, xc.options());
-        in.narrow(0, 0, n).copy_(xc.view(-1));
-        at::Tensor out = at::empty_like(in);
-        const float* xp = in.data_ptr<float>();
-        float* op = out.data_ptr<float>();
-        for (int64_t i = 0; i < padded; i += W) storev(op + i, exp_v(loadv(xp + i)));
-        return out.narrow(0, 0, n).view(x.sizes()).clone();
-    }, "the kernel's exp (for tests)");
+    m.def("exp_fast", [](const at::Tensor& x) { return map_lanes(x, [](vf v) { return exp_v(v); }); },
+          "the kernel's exp (for tests)");
     m.attr("inference_exp2") = HAVE_EXP2_FAST;  // whether the inference forward takes exp2_v / softplus_fast_v
-    m.def("exp2_fast", [](const at::Tensor& x) {
-        at::Tensor xc = x.contiguous().to(at::kFloat);
-        const int64_t n = xc.numel(), padded = (n + W - 1) / W * W;
-        at::Tensor in = at::zeros({padded}, xc.options());
-        in.narrow(0, 0, n).copy_(xc.view(-1));
-        at::Tensor out = at::empty_like(in);
-        const float* xp = in.data_ptr<float>();
-        float* op = out.data_ptr<float>();
-        for (int64_t i = 0; i < padded; i += W) storev(op + i, exp2_v(loadv(xp + i)));
-        return out.narrow(0, 0, n).view(x.sizes()).clone();
-    }, "the inference forward's 2^x (for tests)");
+    m.def("exp2_fast", [](const at::Tensor& x) { return map_lanes(x, [](vf v) { return exp2_v(v); }); },
+          "the inference forward's 2^x (for tests)");
 }
