@@ -85,6 +85,7 @@ inline void store_lanes(float* p, int64_t stride, vf v, int nw) {
     for (int j = 0; j < nw; ++j) p[j * stride] = tmp[j];
 }
 // W ones: load_lanes(zero_tail_mask(), nw) is 1 in lanes [0, nw) and 0 after
+static_assert(W == 16, "zero_tail_mask spells out W ones");
 inline const float* zero_tail_mask() {
     alignas(64) static const float ones[W] = {1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1};
     return ones;
@@ -338,13 +339,15 @@ inline void load_params(BlockParams& p, const float* A, const float* D, const fl
     p.mask = loadv(t);
 }
 
-// delta (after bias / softplus) and its derivative w.r.t. the raw delta, in lanes (inactive lanes: 0).
+// delta (after bias / softplus) and its derivative w.r.t. the raw delta, in lanes (inactive lanes: 0). FAST (the
+// inference forward, which needs no derivative): softplus_fast_v, and dsig is left unset.
+template <bool FAST = false>
 inline vf step_delta(vf raw, const BlockParams& p, bool softplus, vf* dsig) {
     if (!softplus) {
         *dsig = splat(1.0f);
         return raw + p.bias;
     }
-    return softplus_v(raw + p.bias, dsig) * p.mask;
+    return (FAST ? softplus_fast_v(raw + p.bias) : softplus_v(raw + p.bias, dsig)) * p.mask;
 }
 
 struct FwdArgs {
@@ -463,8 +466,7 @@ void fwd_tasks(const FwdArgs& a, Next next) {
                             raw = load_lanes(dbase + p * sd.l, sd.c, nw);
                         }
                         vf dsig;
-                        const vf dl = EXP2 && a.softplus ? softplus_fast_v(raw + prm.bias) * prm.mask
-                                                         : step_delta(raw, prm, a.softplus, &dsig);
+                        const vf dl = step_delta<EXP2>(raw, prm, a.softplus, &dsig);
                         const vf uu = load_lanes(ubase + p * su.l, su.c, nw);
                         DLbuf[s] = dl;
                         DUbuf[s] = dl * uu;
