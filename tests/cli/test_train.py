@@ -22,6 +22,7 @@ from tofdenoise.physics.calibration import SensorCalibration
 from tofdenoise.records import (
     RUN_KEYS,
     code_commit,
+    host_machine,
     learned_status,
     metric_sets,
     read_metrics_json,
@@ -458,8 +459,9 @@ def test_two_identical_runs_give_identical_metrics(backbone, tmp_path, tiny, fix
     assert losses[0] == losses[1] and losses[0]
 
 
-def test_run_info_names_the_commit_that_made_it(tmp_path, tiny):
-    """Issue 39: run_info.json carries the commit of the checkout the package runs from, with its dirty flag."""
+def test_run_info_names_the_commit_and_the_machine_that_made_it(tmp_path, tiny):
+    """Issue 39: run_info.json carries the commit of the checkout the package runs from, with its dirty flag, and
+    the machine it trained on (CPU, threads, torch, accelerator)."""
     cfg = compose_config(tiny(tmp_path, tmp_path / "cache") + ["+trainer.fast_dev_run=true", "logger=csv"])
     run(cfg)
     info = json.loads((tmp_path / "run_info.json").read_text())
@@ -467,6 +469,10 @@ def test_run_info_names_the_commit_that_made_it(tmp_path, tiny):
     assert {k: info.get(k) for k in expected} == expected
     if expected["commit"] is not None:  # the tests run from a git checkout
         assert len(info["commit"]) == 40 and isinstance(info["commit_dirty"], bool)
+    machine = info["machine"]
+    assert machine == {**host_machine(), **{k: machine[k] for k in ("torch", "torch_threads", "accelerator", "gpu")}}
+    assert machine["torch"] == torch.__version__ and machine["torch_threads"] == torch.get_num_threads()
+    assert machine["accelerator"] == "cpu" and machine["gpu"] is None
 
 
 def test_a_bad_data_setting_is_one_line_naming_the_key_before_any_training(tmp_path):

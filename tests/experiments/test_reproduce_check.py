@@ -17,6 +17,7 @@ from tofdenoise.experiments.reproduce_check import (
     check_table_markdown,
     compare_metrics,
     config_drift,
+    machine_note,
     pick_check_runs,
     reproduce_check,
     set_aside_stale_rerun,
@@ -243,3 +244,20 @@ def test_a_rerun_is_reused_only_when_this_very_code_made_it(tmp_path):
     assert "unknown code" in set_aside_stale_rerun(unknown, head)
     dirty_now = _rerun_folder(out / "run", {"commit": a, "commit_dirty": False})
     assert set_aside_stale_rerun(dirty_now, {**head, "commit_dirty": True}) is not None and not dirty_now.exists()
+
+
+def test_the_machine_note_says_when_a_bit_for_bit_rerun_is_not_expected():
+    """Issue 39: CPU training reruns bit for bit only on the same CPU kind and thread count; the check says where the
+    record trained and whether this machine is of its kind."""
+    amd = {"cpu": "AMD EPYC", "cpu_id": "AuthenticAMD 25/17", "cpu_count": 2, "torch_threads": 2, "accelerator": "cpu"}
+    intel = {"cpu": "Intel(R) Xeon(R) Platinum 8480+", "cpu_id": "GenuineIntel 6/143"}
+    assert (
+        machine_note({"machine": amd}, here=amd)
+        == "record trained on this CPU kind (AMD EPYC (AuthenticAMD 25/17), 2 threads)"
+    )
+    other = machine_note({"machine": amd}, here=intel)
+    assert other.startswith("record trained on AMD EPYC (AuthenticAMD 25/17), 2 threads; this machine is Intel(R) Xeon")
+    assert other.endswith("a bit-for-bit rerun is not expected")
+    assert "unrecorded machine" in machine_note({"commit": "a" * 40}, here=amd)
+    gpu = {**amd, "accelerator": "cuda", "gpu": "NVIDIA H200"}
+    assert machine_note({"machine": gpu}, here=amd).startswith("record trained on NVIDIA H200")

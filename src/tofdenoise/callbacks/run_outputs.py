@@ -22,7 +22,8 @@ The run-level fields come from the run itself: ``backbone`` / ``loss`` from the 
 hyper-parameters, ``noise`` / ``data`` (the source) from the datamodule's, ``seed`` from Lightning's
 ``seed_everything`` (``PL_GLOBAL_SEED``), ``run_name`` from ``name`` (default ``<backbone>-<noise>-<loss>``),
 ``commit`` / ``commit_dirty`` / ``commit_describe`` from the checkout the package runs from
-(:func:`tofdenoise.records.code_commit`).
+(:func:`tofdenoise.records.code_commit`), ``machine`` from the process (:func:`run_machine`: CPU model and count,
+torch's version and thread count, the accelerator and, on CUDA, the GPU's name).
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ from pathlib import Path
 from typing import Any
 
 import lightning.pytorch as pl
+import torch
 from lightning.pytorch.callbacks import Callback
 
 from tofdenoise.atomic import atomic_write_text
@@ -43,16 +45,34 @@ from tofdenoise.records import (
     PER_IMAGE_DIR,
     RUN_INFO_NAME,
     code_commit,
+    host_machine,
     write_metrics_json,
     write_per_image_csv,
     write_run_info,
 )
 
-__all__ = ["RunOutputs", "write_test_outputs"]
+__all__ = ["RunOutputs", "run_machine", "write_test_outputs"]
 
 #: test set name -> the datamodule's ``skipped_samples`` key of the samples it left out before testing
 _SKIP_KEYS = {"synthetic": "test", "simulated": "test", "real": "real"}
 CONFIG_NAME = "config.yaml"
+
+
+def run_machine(trainer: pl.Trainer | None = None) -> dict[str, Any]:
+    """What a run trains on: :func:`~tofdenoise.records.host_machine` (CPU model, logical CPUs, architecture, OS)
+    with ``torch`` (version), ``torch_threads`` (intra-op threads), ``accelerator`` (the trainer's: ``cpu``,
+    ``cuda``, ...; None without a trainer) and ``gpu`` (the CUDA device's name, None elsewhere)."""
+    accelerator = type(trainer.accelerator).__name__ if trainer is not None else None
+    device = trainer.strategy.root_device if trainer is not None else torch.device("cpu")
+    gpu = torch.cuda.get_device_name(device) if device.type == "cuda" else None
+    name = accelerator.removesuffix("Accelerator").lower() if accelerator else None
+    return {
+        **host_machine(),
+        "torch": torch.__version__,
+        "torch_threads": torch.get_num_threads(),
+        "accelerator": name,
+        "gpu": gpu,
+    }
 
 
 def _now() -> str:
@@ -141,6 +161,8 @@ class RunOutputs(Callback):
             "init_weights": getattr(pl_module, "init_record", None),
             # the code that trained it: commit, whether tracked files differed from it, git describe
             **code_commit(),
+            # what trained it: CPU training is bit-identical only on the same machine kind and thread count
+            "machine": run_machine(trainer),
         }
 
     def _write_records(self, trainer: pl.Trainer, pl_module: pl.LightningModule, resumed: bool) -> None:

@@ -58,11 +58,13 @@ from tofdenoise.records import (
     RUN_INFO_NAME,
     RecordError,
     code_commit,
+    host_machine,
     is_ancestor,
     load_metrics,
     metric_sets,
     read_record,
     record_commit,
+    record_machine,
 )
 
 __all__ = [
@@ -351,6 +353,34 @@ def _commit_note(info: Mapping[str, Any] | None) -> str:
     return f"record made at {commit[:12]}{dirty}"
 
 
+def _machine_label(machine: Mapping[str, Any]) -> str:
+    cpu = " ".join(
+        str(v) for v in (machine.get("cpu"), f"({machine['cpu_id']})" if machine.get("cpu_id") else None) if v
+    )
+    threads = machine.get("torch_threads")
+    return f"{cpu or 'an unnamed CPU'}" + (f", {threads} threads" if threads else "")
+
+
+def machine_note(info: Mapping[str, Any] | None, here: Mapping[str, Any] | None = None) -> str:
+    """Where the record trained, against this machine (``here``, default :func:`~tofdenoise.records.host_machine`):
+    CPU training reruns bit for bit only on the same CPU kind and thread count, so a rerun elsewhere is compared within
+    the tolerance alone."""
+    machine = record_machine(info)
+    here = dict(here) if here is not None else host_machine()
+    if machine is None:
+        return (
+            "record trained on an unrecorded machine (before run_info.json named it): a bit-for-bit rerun is not "
+            "expected"
+        )
+    label = _machine_label(machine)
+    if machine.get("accelerator") not in (None, "cpu"):
+        return f"record trained on {machine.get('gpu') or machine.get('accelerator')} ({label})"
+    same = all(machine.get(k) == here.get(k) for k in ("cpu", "cpu_id"))
+    if same:
+        return f"record trained on this CPU kind ({label})"
+    return f"record trained on {label}; this machine is {_machine_label(here)}: a bit-for-bit rerun is not expected"
+
+
 def _provenance(info: Mapping[str, Any] | None) -> tuple[Any, Any, Any]:
     """What identifies the code that made a run: (commit, commit_dirty, version)."""
     info = info or {}
@@ -427,6 +457,7 @@ def reproduce_check(
         changed, added = config_drift(recorded_yaml, _composed_yaml(spec, Path(out) / run.name))
         notes = [f"{TABLE_NAMES.get(run.table, run.table)}: {run.name}"]
         notes.append(_commit_note(info))
+        notes.append(machine_note(info))
         notes += [note for note in (former_note, test_sets_note) if note]
         if changed:
             notes.append("config changed since the record: " + "; ".join(changed))

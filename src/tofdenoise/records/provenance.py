@@ -7,10 +7,16 @@ config; the records and the results page that ``tofdenoise reproduce`` itself wr
 ``commit_describe`` (``git describe --always``, with ``-dirty`` appended when ``commit_dirty``). An
 installed package outside a checkout (a wheel in site-packages) records ``commit: null`` and its ``version``
 instead. Records written before these fields existed read as before (:func:`record_commit` gives ``None``).
+
+Beside the commit, ``machine`` names what it ran on (:func:`host_machine`, completed by the training callback with
+torch's version, thread count and accelerator): CPU training is bit-identical run to run only on the same machine
+kind and thread count (docs/training.md#determinism), so a record says which it was.
 """
 
 from __future__ import annotations
 
+import os
+import platform
 import subprocess
 from collections.abc import Mapping
 from functools import lru_cache
@@ -18,8 +24,10 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
-__all__ = ["code_commit", "is_ancestor", "record_commit"]
+__all__ = ["code_commit", "host_machine", "is_ancestor", "record_commit", "record_machine"]
 
+#: where Linux names the CPU model (``model name`` lines)
+CPUINFO = Path("/proc/cpuinfo")
 #: the folder holding the ``tofdenoise`` package (``src/`` in a checkout)
 _PACKAGE_DIR = Path(__file__).resolve().parents[1]
 #: paths of a checkout (from its top) that hold outputs, not code: the committed records and the page built from them
@@ -89,3 +97,48 @@ def record_commit(run_info: Mapping[str, Any] | None) -> str | None:
         return None
     commit = run_info.get("commit")
     return str(commit) if commit else None
+
+
+def _cpu_fields(cpuinfo: Path) -> dict[str, str]:
+    """The first processor's ``vendor_id``, ``cpu family``, ``model`` and ``model name`` lines of ``cpuinfo``
+    (Linux); {} where there is no such file."""
+    wanted = ("vendor_id", "cpu family", "model", "model name")
+    fields: dict[str, str] = {}
+    try:
+        lines = cpuinfo.read_text(errors="replace").splitlines()
+    except OSError:
+        return fields
+    for line in lines:
+        if not line.strip() and fields:  # the end of the first processor's block
+            break
+        key, _, value = line.partition(":")
+        if key.strip() in wanted and value.strip():
+            fields.setdefault(key.strip(), value.strip())
+    return fields
+
+
+def host_machine(cpuinfo: Path = CPUINFO) -> dict[str, Any]:
+    """The machine this process runs on, for a record: ``{"cpu": model name (``platform.processor()`` where Linux's
+    cpuinfo does not tell), "cpu_id": "vendor family/model" (e.g. ``AuthenticAMD 25/17``: a virtual machine's model
+    name often leaves the generation out), "cpu_count": logical CPUs this process may use, "arch": e.g. x86_64,
+    "system": e.g. Linux}`` (values None where the platform does not tell)."""
+    fields = _cpu_fields(cpuinfo)
+    try:
+        usable = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        usable = os.cpu_count()
+    family, model = fields.get("cpu family"), fields.get("model")
+    cpu_id = " ".join(v for v in (fields.get("vendor_id"), f"{family}/{model}" if family and model else None) if v)
+    return {
+        "cpu": fields.get("model name") or platform.processor() or None,
+        "cpu_id": cpu_id or None,
+        "cpu_count": usable,
+        "arch": platform.machine() or None,
+        "system": platform.system() or None,
+    }
+
+
+def record_machine(run_info: Mapping[str, Any] | None) -> dict[str, Any] | None:
+    """The ``machine`` a ``run_info.json`` names, or None for a record written before machines were recorded."""
+    machine = (run_info or {}).get("machine")
+    return dict(machine) if isinstance(machine, Mapping) else None
