@@ -18,7 +18,16 @@ import torch
 import torch.utils.checkpoint
 from torch import nn
 
-from .common import Downsample, LayerNorm2d, Upsample, check_input, crop_to, eager_inference, pad_to_multiple
+from .common import (
+    Downsample,
+    LayerNorm2d,
+    Upsample,
+    check_input,
+    crop_to,
+    eager_inference,
+    pad_to_multiple,
+    pointwise,
+)
 from .registry import register_backbone
 from .scr import SCR, SqueezeExcitation
 from .ss2d import SS2D
@@ -49,13 +58,10 @@ def conv1x1_of_cat(conv: nn.Conv2d, first: torch.Tensor, second: torch.Tensor) -
     (no concatenated copy); channels-last output, equal to rounding."""
     b, c1, h, w = first.shape
     weight = conv.weight.view(conv.out_channels, -1)
-    out = (
-        torch.addmm(conv.bias, _rows(first), weight[:, :c1].t())
-        if conv.bias is not None
-        else _rows(first) @ weight[:, :c1].t()
-    )
-    out.addmm_(_rows(second), weight[:, c1:].t())
-    return out.view(b, h, w, -1).permute(0, 3, 1, 2)
+    first = first.contiguous(memory_format=torch.channels_last)  # no copy where it is already
+    out = pointwise(first, weight[:, :c1], conv.bias)  # channels-last (models.common.pointwise)
+    out.permute(0, 2, 3, 1).view(-1, out.shape[1]).addmm_(_rows(second), weight[:, c1:].t())  # in place: a view
+    return out
 
 
 class DVSSBlock(nn.Module):
@@ -97,15 +103,16 @@ class DVSSBlock(nn.Module):
         """:meth:`forward` for inference on channels-last memory, equal to rounding: the SS2D's out_proj folded into
         the fusion's weights (fuse_g @ out_proj, a (C, d_inner) matrix), the concatenation replaced by a second
         product, the residual added in place."""
-        b, c, h, w = x.shape
+        c = x.shape[1]
         y = self.vssb.gated(xn.permute(0, 2, 3, 1))
         weight = self.fuse.weight.view(c, -1)
         folded = weight[:, :c] @ self.vssb.out_proj.weight
-        out = torch.addmm(self.fuse.bias, y.reshape(b * h * w, -1), folded.t())
+        out = pointwise(y.permute(0, 3, 1, 2), folded, self.fuse.bias)  # channels-last (models.common.pointwise)
+        rows = out.permute(0, 2, 3, 1).view(-1, c)  # a view (raises otherwise): the in-place sums write into out
         if self.local != "none":
-            out.addmm_(_rows(self.refine(self.dwconv(xn))), weight[:, c:].t())
-        out += _rows(x)
-        return out.view(b, h, w, c).permute(0, 3, 1, 2)
+            rows.addmm_(_rows(self.refine(self.dwconv(xn))), weight[:, c:].t())
+        rows += _rows(x)
+        return out
 
 
 class _Stage(nn.Sequential):

@@ -8,7 +8,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .common import eager_inference
+from .common import eager_inference, pointwise
 from .scan import cross_merge, cross_scan, resolve_scan_backend, selective_scan
 from .scan.cpu import LOWRANK_MAX_RANK, ss2d_forward_lowrank, ss2d_out_gate, ss2d_scan_cpu
 
@@ -158,10 +158,10 @@ class SS2D(nn.Module):
         place, the dt projection in the scan (:func:`ss2d_forward_lowrank`) and LayerNorm * SiLU(z) in one pass
         (:func:`ss2d_out_gate`)."""
         b, di = x.shape[0], self.d_inner
-        x2 = x.reshape(b * h * w, x.shape[-1])
+        xn = x.permute(0, 3, 1, 2)  # NCHW view of channels-last memory
         weight = self.in_proj.weight
-        xi = (x2 @ weight[:di].t()).view(b, h, w, di).permute(0, 3, 1, 2)  # NCHW view of channels-last memory
-        z = x2 @ weight[di:].t()
+        xi = pointwise(xn, weight[:di])  # channels-last
+        z = pointwise(xn, weight[di:]).permute(0, 2, 3, 1).reshape(b * h * w, di)
         xi = F.silu(self.conv(xi), inplace=True).permute(0, 2, 3, 1).contiguous()
         y = self._scan_spatial(xi, h, w, "cpu").view(b * h * w, di)
         norm = self.out_norm
@@ -217,13 +217,20 @@ class SS2D(nn.Module):
         b = xs.shape[0]
         k, n, r, di = self.directions, self.d_state, self.dt_rank, self.d_inner
         length = h * w
-        xs = xs.view(b, length, di)
-        x_dbl = (xs @ self.x_proj_weight.reshape(k * (r + 2 * n), di).t()).view(b, length, k, r + 2 * n)
+        fused = kernel == "cpu" and self._fuse_dt_projection(xs)
+        x_weight = self.x_proj_weight.reshape(k * (r + 2 * n), di)
+        if fused and eager_inference():  # the per-pixel product on oneDNN (see models.common.pointwise)
+            x_dbl = pointwise(xs.view(b, h, w, di).permute(0, 3, 1, 2), x_weight).permute(0, 2, 3, 1)
+            x_dbl = x_dbl.reshape(b, length, k, r + 2 * n)
+            xs = xs.view(b, length, di)
+        else:
+            xs = xs.view(b, length, di)
+            x_dbl = (xs @ x_weight.t()).view(b, length, k, r + 2 * n)
         A, D, bias = self._scan_params()
         # split, not three slices: its backward concatenates the three gradients into one tensor, where slicing's
         # zero-fills a whole x_dbl per slice and adds them up (the same values)
         dt_low, B, C = x_dbl.split((r, n, n), dim=-1)
-        if kernel == "cpu" and self._fuse_dt_projection(xs):
+        if fused:
             # inference: the kernel projects the low-rank steps itself (no (b, L, 4 d) steps tensor)
             y = ss2d_forward_lowrank(xs, dt_low, self.dt_projs_weight.float(), A, B, C, D, bias, h, w)
             return y.view(b, h, w, di)
