@@ -140,6 +140,10 @@ def _run_case(case: dict) -> dict:
         from tofdenoise.allocator import keep_freed_memory
 
         keep_freed_memory()
+    if case.get("pointwise") == "mm":  # DVSS's per-pixel products on MKL, not oneDNN (models.common.pointwise)
+        from tofdenoise.models import common
+
+        common.POINTWISE_ONEDNN = False
     if case.get("scan_source"):  # a baseline kernel from another source (bench_scan_cpu.py --baseline)
         use_scan_extension(build_scan_source(case["scan_source"]))
     kind = case["kind"]

@@ -337,6 +337,7 @@ def bench_inference(args) -> None:
         ("U-Net", "unet", {}, None, "keep"),
         ("DVSS, native kernel (auto)", "dvss", {}, None, "default"),
         ("DVSS, native kernel (auto)", "dvss", {}, None, "keep"),
+        ("DVSS, per-pixel products on MKL (`POINTWISE_ONEDNN=False`)", "dvss", {}, None, "keep-mm"),
     ]
     if BASELINE:
         rows.append((f"DVSS, native kernel, baseline {args.baseline}", "dvss", {}, BASELINE["source"], "default"))
@@ -355,10 +356,11 @@ def bench_inference(args) -> None:
             "single_run_above_s": 1e9,  # frame_reps > 1: the first frame is a warm-up
             "kwargs": kwargs,
             "scan_source": source,
-            "allocator": allocator,
+            "allocator": allocator.removesuffix("-mm"),
+            "pointwise": "mm" if allocator.endswith("-mm") else "onednn",
         }
         res = run_isolated(case, args.threads, timeout_s=1800, mem_cap_gib=12)
-        kept = "freed memory kept" if allocator == "keep" else "glibc default"
+        kept = "freed memory kept" if allocator.startswith("keep") else "glibc default"
         if "error" in res:
             print(f"| {label} | {kept} | {res['error']} | - |")
         else:
@@ -368,6 +370,9 @@ def bench_inference(args) -> None:
     for allocator in ("default", "keep"):
         if ("dvss", allocator) in times and ("unet", allocator) in times:
             print(f"DVSS / U-Net ({allocator}) = {times[('dvss', allocator)] / times[('unet', allocator)]:.2f}")
+    mm = times.get(("dvss", "keep-mm"))
+    if mm is not None and ("dvss", "keep") in times:
+        print(f"DVSS per-pixel products: oneDNN / MKL = {times[('dvss', 'keep')] / mm:.2f} (the default is oneDNN)")
     for name in ("unet", "dvss"):
         if (name, "default") in times and (name, "keep") in times:
             print(f"{name}: kept / default = {times[(name, 'keep')] / times[(name, 'default')]:.2f}")

@@ -44,13 +44,25 @@ def eager_inference() -> bool:
     )
 
 
+#: :func:`pointwise` on oneDNN's 1x1 convolution (True) or on MKL's matrix product (False; its output is
+#: channels-last whatever the input's layout). Measured on an AMD EPYC only (docs/benchmarks.md); the benchmark prints
+#: both on the machine it runs on
+POINTWISE_ONEDNN = True
+
+
 def pointwise(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None = None) -> torch.Tensor:
     """A per-pixel linear map, ``x`` (B, C, H, W) -> (B, out, H, W) with ``weight`` (out, C) and an optional bias
     (out,): ``x[b, :, i, j] @ weight.T + bias`` at every pixel, as a 1x1 convolution (oneDNN's kernels on the CPU).
     On channels-last memory it reads the (B H W, C) rows in place and writes channels-last output: the same product
     as ``rows @ weight.T``, which torch hands to MKL's sgemm. On an AMD EPYC (Zen 4) MKL's sgemm ran SS2D's
     per-pixel products 1.2-1.9x slower than oneDNN's 1x1 convolution, with equal results for up to 128 input
-    channels (docs/benchmarks.md, "MKL's products on an AMD CPU"); the inference paths of DVSS use this."""
+    channels (docs/benchmarks.md, "MKL's products on an AMD CPU"); the inference paths of DVSS use this.
+    :data:`POINTWISE_ONEDNN` False takes MKL's product instead (``benchmarks/bench_scan_cpu.py`` times both)."""
+    if not POINTWISE_ONEDNN:
+        b, c, h, w = x.shape
+        rows = x.permute(0, 2, 3, 1).reshape(-1, c)
+        out = torch.addmm(bias, rows, weight.t()) if bias is not None else rows @ weight.t()
+        return out.view(b, h, w, -1).permute(0, 3, 1, 2)  # channels-last
     return F.conv2d(x, weight.reshape(weight.shape[0], -1, 1, 1), bias)
 
 

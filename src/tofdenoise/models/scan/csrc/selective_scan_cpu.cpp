@@ -130,34 +130,45 @@ inline vf exp_v(vf x) {
 #endif
 }
 
-// 2^x for the inference forward (x = delta * A log2(e) <= 0, A log2(e) folded into the block's constants): n =
-// round(x), f = x - n in [-1/2, 1/2] (exact), 2^f = exp(f ln 2) by exp_v's polynomial with its coefficients times
-// powers of ln 2, and 2^f 2^n by scalef. x is clamped below at -125 (as exp_v at -87: the result stays a normal
-// float, no denormal slow path; -inf gives no NaN). Three instructions fewer per state update than exp_v (its upper
-// clamp and its two-part range reduction); the same polynomial, so the same accuracy (tests compare it with exp).
-// AVX-512 only; elsewhere exp_v(x ln 2).
+// 2^x for the inference forward (x = delta * A log2(e) <= 0, A log2(e) folded into the block's constants): f =
+// x - floor(x) in [0, 1) in one instruction (vreduceps, round down), 2^f by a degree-5 polynomial fitted on [0, 1]
+// with p(0) = 1 (so that 2^n is exact: x = -126 gives the smallest normal float) for the least largest relative error
+// (Lawson-weighted least squares, coefficients rounded to float: 8.2e-8 in exact arithmetic, 1.8e-7 in float, as
+// exp_v), and 2^f 2^floor(x) by scalef, which floors its exponent operand itself.
+// Seven instructions, where a clamp, a rounding and a subtraction before the same polynomial took nine. No clamp: x
+// below -150 gives 0 (scalef underflows; -inf gives 0, no NaN); the denormal results of x in (-150, -126] are
+// flushed to 0 by the caller (InferenceFlush: the recurrence then never meets a denormal operand). AVX-512 (DQ for
+// vreduceps) only; elsewhere exp_v(x ln 2).
 constexpr bool HAVE_EXP2_FAST =
-#if defined(__AVX512F__)
+#if defined(__AVX512F__) && defined(__AVX512DQ__)
     true;
 #else
     false;
 #endif
 inline vf exp2_v(vf x) {
-#if defined(__AVX512F__)
-    x = vmax(x, splat(-125.0f));  // 2^-125 p stays a normal float (p >= 1/sqrt 2)
-    const vf n = (vf)_mm512_roundscale_ps((__m512)x, _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
-    const vf f = x - n;
-    vf p = splat(0.0013300267746672034f);  // exp_v's coefficients c_k times ln(2)^k
-    p = p * f + 0.009669709950685501f;
-    p = p * f + 0.055505599826574326f;
-    p = p * f + 0.24022281169891357f;
-    p = p * f + 0.6931471824645996f;
+#if defined(__AVX512F__) && defined(__AVX512DQ__)
+    const vf f = (vf)_mm512_reduce_ps((__m512)x, _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC);  // x - floor(x)
+    vf p = splat(0.0018671308644115925f);
+    p = p * f + 0.009017028845846653f;
+    p = p * f + 0.05579991266131401f;
+    p = p * f + 0.24016444385051727f;
+    p = p * f + 0.6931512951850891f;
     p = p * f + 1.0f;
-    return (vf)_mm512_scalef_ps((__m512)p, (__m512)n);
+    return (vf)_mm512_scalef_ps((__m512)p, (__m512)x);  // p 2^floor(x)
 #else
     return exp_v(x * 0.6931471805599453f);
 #endif
 }
+
+// Flush-to-zero and denormals-are-zero (MXCSR) on this thread for a scope, restored after: the inference forward's
+// exp2_v leaves its denormal results to it. Training (exp_v, clamped) runs with the thread's own settings.
+struct InferenceFlush {
+    unsigned int saved;
+    InferenceFlush() : saved(_mm_getcsr()) { _mm_setcsr(saved | 0x8040u); }
+    ~InferenceFlush() { _mm_setcsr(saved); }
+    InferenceFlush(const InferenceFlush&) = delete;
+    InferenceFlush& operator=(const InferenceFlush&) = delete;
+};
 
 // 2 atanh(s) = log((1 + s) / (1 - s)) for s in (0, 1/3], by its odd series to s^13 (truncation < 2e-8 relative).
 inline vf two_atanh_v(vf s) {
@@ -388,7 +399,20 @@ struct BwdArgs {
 // off the recurrence's path, and the out-of-order core overlaps the state updates of consecutive steps. How the
 // blocks are split into parts does not change any lane's arithmetic: the results do not depend on it.
 template <int NT, bool EXP2, class Next>
+void fwd_tasks_body(const FwdArgs& a, Next next);
+
+template <int NT, bool EXP2, class Next>
 void fwd_tasks(const FwdArgs& a, Next next) {
+    if constexpr (EXP2) {
+        const InferenceFlush flush;  // exp2_v's denormals to 0 on this thread, for the tasks below
+        fwd_tasks_body<NT, EXP2>(a, next);
+    } else {
+        fwd_tasks_body<NT, EXP2>(a, next);
+    }
+}
+
+template <int NT, bool EXP2, class Next>
+void fwd_tasks_body(const FwdArgs& a, Next next) {
     const Geometry& geo = a.geo;
     const int64_t N = NT > 0 ? NT : geo.N, L = geo.L, G = geo.G, Dg = geo.Dg;
     const int64_t nblk = a.nblk, nck = a.nck, chunk = a.chunk, parts = a.parts, per_part = a.per_part;
@@ -963,6 +987,10 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.def("exp_fast", [](const at::Tensor& x) { return map_lanes(x, [](vf v) { return exp_v(v); }); },
           "the kernel's exp (for tests)");
     m.attr("inference_exp2") = HAVE_EXP2_FAST;  // whether the inference forward takes exp2_v / softplus_fast_v
-    m.def("exp2_fast", [](const at::Tensor& x) { return map_lanes(x, [](vf v) { return exp2_v(v); }); },
-          "the inference forward's 2^x (for tests)");
+    m.def("exp2_fast",
+          [](const at::Tensor& x) {
+              const InferenceFlush flush;  // as the inference forward runs it
+              return map_lanes(x, [](vf v) { return exp2_v(v); });
+          },
+          "the inference forward's 2^x, denormal results flushed to 0 (for tests)");
 }
