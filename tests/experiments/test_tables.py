@@ -363,3 +363,23 @@ def test_results_page_bootstraps_each_step_over_the_test_images_and_scenes(tmp_p
     (cpu / "dvss-hetero-l1-s0" / "per_image" / "synthetic.csv").write_text("index,name,mae_mm\n0,img_a,oops\n")
     with pytest.raises(RecordError, match="dvss-hetero-l1-s0/per_image/synthetic.csv"):
         results_markdown(tmp_path)
+
+
+def test_the_runs_table_names_each_records_machine(tmp_path):
+    """Issue 39: the page's Runs table says what each run trained on (minutes and bit-for-bit reruns depend on it);
+    a record made before machines were recorded shows -."""
+    from tofdenoise.reporting.results_page import machine_label
+
+    cpu = tmp_path / "cpu"
+    _write_run(cpu, "dvss-hetero-l1-s0", _metrics(2.0))
+    _write_run(cpu, "dvss-range-l1-s0", _metrics(2.4))
+    info_path = cpu / "dvss-hetero-l1-s0" / "run_info.json"
+    info = json.loads(info_path.read_text())
+    info["machine"] = {"cpu": "AMD EPYC", "cpu_id": "AuthenticAMD 25/17", "torch_threads": 2, "gpu": None}
+    info_path.write_text(json.dumps(info))
+    runs = results_markdown(tmp_path).split("## Runs")[1]
+    assert "| AMD EPYC (AuthenticAMD 25/17), 2 thr |" in next(x for x in runs.splitlines() if "dvss-hetero" in x)
+    assert next(x for x in runs.splitlines() if "dvss-range" in x).endswith("| - |")
+    assert machine_label({"machine": {"cpu": "AMD EPYC", "gpu": "NVIDIA H200", "torch_threads": 16}}) == (
+        "NVIDIA H200, 16 thr"
+    )

@@ -66,6 +66,7 @@ from tofdenoise.records import (
     load_scored_metrics,
     read_per_image_csv,
     read_record,
+    record_machine,
     run_fields,
 )
 from tofdenoise.reporting.intervals import BOOTSTRAP_SEED, LEVEL, RESAMPLES, StepInterval, step_interval
@@ -604,6 +605,20 @@ def recipe_hours(train_seconds: Any, trained_steps: Any) -> float | None:
     return rate * PAPER_RECIPE_STEPS / 3600.0 if math.isfinite(rate) and rate > 0 else None
 
 
+def machine_label(run_info: dict[str, Any]) -> str:
+    """A record's machine in a few words: the GPU's name, or the CPU's model with its vendor family/model, and the
+    intra-op threads (``2 thr``); "-" for a record without ``machine``."""
+    machine = record_machine(run_info)
+    if machine is None:
+        return "-"
+    if machine.get("gpu"):
+        head = str(machine["gpu"])
+    else:
+        head = " ".join(str(v) for v in (machine.get("cpu"), machine.get("cpu_id") and f"({machine['cpu_id']})") if v)
+    threads = machine.get("torch_threads")
+    return (head or "unnamed") + (f", {threads} thr" if threads else "")
+
+
 def _runs_section(records: dict[str, dict[str, Any]], profile: str = "cpu") -> list[str]:
     recipe = profile in RECIPE_PROFILES
     lines = [
@@ -614,7 +629,10 @@ def _runs_section(records: dict[str, dict[str, Any]], profile: str = "cpu") -> l
         "resuming), so a fresh run of it is not bit-identical. Training minutes, images/s and peak memory (GPU / "
         "process, GiB) come from the `TrainingCost` callback: the training epochs only, summed over resumes "
         "(records written before it existed show -). Protocol: the test protocol the run was scored under "
-        "(current: with the simulator-noised split; earlier: before it, see the tables' † notes)."
+        "(current: with the simulator-noised split; earlier: before it, see the tables' † notes). Machine: what the "
+        "run trained on (its `run_info.json`'s `machine`: CPU or GPU and intra-op threads; - for records made before "
+        "it was recorded): minutes and images/s compare only on one machine, and CPU training reruns bit for bit "
+        "only on the same CPU kind and thread count."
         + (
             f" Paper's recipe: hours of training for its 300 epochs ({PAPER_RECIPE_STEPS:,} optimiser steps of 4 "
             "crops of 320 x 320) at the run's measured rate (training seconds per step), validation not included."
@@ -623,8 +641,9 @@ def _runs_section(records: dict[str, dict[str, Any]], profile: str = "cpu") -> l
         ),
         "",
         "| run | protocol | learned | trained steps | best val MAE (mm) | raw val MAE (mm) | wall minutes | training "
-        "minutes | images/s | peak memory GiB (GPU / process) |" + (" paper's recipe (h) |" if recipe else ""),
-        "|---|---|---|---|---|---|---|---|---|---|" + ("---|" if recipe else ""),
+        "minutes | images/s | peak memory GiB (GPU / process) | machine |"
+        + (" paper's recipe (h) |" if recipe else ""),
+        "|---|---|---|---|---|---|---|---|---|---|---|" + ("---|" if recipe else ""),
     ]
     for name, rec in records.items():
         m, info = rec["metrics"], rec["run_info"]
@@ -642,7 +661,7 @@ def _runs_section(records: dict[str, dict[str, Any]], profile: str = "cpu") -> l
             f"{m.get('trained_steps', '-')} | {format_number(m.get('best_val_mae_mm') or math.nan, 2)} | "
             f"{format_number(m.get('raw_val_mae_mm') or math.nan, 2)} | {format_number(run_minutes(info), 1)} | "
             f"{format_number(None if train_s is None else float(train_s) / 60.0, 1)} | "
-            f"{format_number(info.get('train_images_per_second'), 1)} | {memory} |"
+            f"{format_number(info.get('train_images_per_second'), 1)} | {memory} | {machine_label(info)} |"
             + (f" {format_number(recipe_hours(train_s, m.get('trained_steps')), 1)} |" if recipe else "")
         )
     lines.append("")
