@@ -94,14 +94,20 @@ FAST = [("unet", 0), ("unet", 1), ("tofkpn", 0)]
 STEPS = {"deeptof": 600}
 
 
+#: the best validation MAE a recipe must reach, as a fraction of the raw input's (the identity is 1). After 150 steps
+#: the fraction is seed- and machine-dependent: TOF-KPN seeds 0-3 gave 0.70, 0.63, 0.46, 0.42 on a 2-core AMD EPYC
+#: (2026-11-27; seed 0 was under 0.7 on the Intel machine), so the bound sits clear of that spread and of the identity
+LEAVES_IDENTITY = 0.8
+
+
 @pytest.mark.parametrize("backbone,seed", FAST)
 def test_recipe_leaves_the_identity(backbone, seed):
     best, raw = train_tiny(backbone, seed, STEPS.get(backbone, 150))
-    assert best <= 0.7 * raw, f"{backbone} seed {seed}: best val MAE {best:.3f} mm vs raw {raw:.3f} mm"
+    assert best <= LEAVES_IDENTITY * raw, f"{backbone} seed {seed}: best val MAE {best:.3f} mm vs raw {raw:.3f} mm"
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("backbone", [b for b in trainable_backbones() if (b, 0) not in FAST])
 def test_recipe_leaves_the_identity_slow_backbones(backbone):
     best, raw = train_tiny(backbone, 0, STEPS.get(backbone, 150))
-    assert best <= 0.7 * raw, f"{backbone}: best val MAE {best:.3f} mm vs raw {raw:.3f} mm"
+    assert best <= LEAVES_IDENTITY * raw, f"{backbone}: best val MAE {best:.3f} mm vs raw {raw:.3f} mm"
