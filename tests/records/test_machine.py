@@ -44,3 +44,12 @@ def test_record_machine_reads_a_record_and_is_none_for_older_ones():
     assert record_machine({"commit": "a" * 40, "machine": machine}) == machine
     assert record_machine({"commit": "a" * 40}) is None
     assert record_machine(None) is None and record_machine({"machine": "AMD"}) is None
+
+
+def test_cpu_label_names_the_model_and_its_family():
+    from tofdenoise.records import cpu_label
+
+    assert cpu_label({"cpu": "AMD EPYC", "cpu_id": "AuthenticAMD 25/17"}) == "AMD EPYC (AuthenticAMD 25/17)"
+    assert cpu_label({"cpu": "AMD EPYC", "cpu_id": None}) == "AMD EPYC"
+    assert cpu_label({"cpu_id": "GenuineIntel 6/143"}) == "(GenuineIntel 6/143)"
+    assert cpu_label({}) == ""

@@ -58,6 +58,7 @@ from tofdenoise.records import (
     RUN_INFO_NAME,
     RecordError,
     code_commit,
+    cpu_label,
     host_machine,
     is_ancestor,
     load_metrics,
@@ -354,9 +355,7 @@ def _commit_note(info: Mapping[str, Any] | None) -> str:
 
 
 def _machine_label(machine: Mapping[str, Any]) -> str:
-    cpu = " ".join(
-        str(v) for v in (machine.get("cpu"), f"({machine['cpu_id']})" if machine.get("cpu_id") else None) if v
-    )
+    cpu = cpu_label(machine)
     threads = machine.get("torch_threads")
     return f"{cpu or 'an unnamed CPU'}" + (f", {threads} threads" if threads else "")
 

@@ -56,7 +56,7 @@ def _rows(x: torch.Tensor) -> torch.Tensor:
 def conv1x1_of_cat(conv: nn.Conv2d, first: torch.Tensor, second: torch.Tensor) -> torch.Tensor:
     """``conv(torch.cat([first, second], dim=1))`` for a 1x1 convolution, as two products on channels-last memory
     (no concatenated copy); channels-last output, equal to rounding."""
-    b, c1, h, w = first.shape
+    c1 = first.shape[1]
     weight = conv.weight.view(conv.out_channels, -1)
     first = first.contiguous(memory_format=torch.channels_last)  # no copy where it is already
     out = pointwise(first, weight[:, :c1], conv.bias)  # channels-last (models.common.pointwise)

@@ -221,11 +221,10 @@ class SS2D(nn.Module):
         x_weight = self.x_proj_weight.reshape(k * (r + 2 * n), di)
         if fused and eager_inference():  # the per-pixel product on oneDNN (see models.common.pointwise)
             x_dbl = pointwise(xs.view(b, h, w, di).permute(0, 3, 1, 2), x_weight).permute(0, 2, 3, 1)
-            x_dbl = x_dbl.reshape(b, length, k, r + 2 * n)
-            xs = xs.view(b, length, di)
         else:
-            xs = xs.view(b, length, di)
-            x_dbl = (xs @ x_weight.t()).view(b, length, k, r + 2 * n)
+            x_dbl = xs.view(b, length, di) @ x_weight.t()
+        x_dbl = x_dbl.reshape(b, length, k, r + 2 * n)
+        xs = xs.view(b, length, di)
         A, D, bias = self._scan_params()
         # split, not three slices: its backward concatenates the three gradients into one tensor, where slicing's
         # zero-fills a whole x_dbl per slice and adds them up (the same values)

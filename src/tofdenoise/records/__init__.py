@@ -12,7 +12,7 @@
   ``write_run_info``;
 - :mod:`~tofdenoise.records.provenance`: the git commit of the code that made a record (``code_commit``, written
   into every ``run_info.json``; ``record_commit`` reads it back, ``None`` for older records; ``is_ancestor`` orders
-  two commits; ``host_machine`` / ``record_machine``: the machine a run trained on).
+  two commits; ``host_machine`` / ``record_machine`` / ``cpu_label``: the machine a run trained on).
 
 Writers: ``tofdenoise.callbacks.run_outputs.RunOutputs`` (every trained run), the classical row; readers: the
 training job and the grids' runner (skip or return finished runs), ``tofdenoise.reporting`` (report, results page,
@@ -37,7 +37,14 @@ from tofdenoise.records.metrics_json import (
     write_metrics_json,
 )
 from tofdenoise.records.per_image import read_per_image_csv, write_per_image_csv
-from tofdenoise.records.provenance import code_commit, host_machine, is_ancestor, record_commit, record_machine
+from tofdenoise.records.provenance import (
+    code_commit,
+    cpu_label,
+    host_machine,
+    is_ancestor,
+    record_commit,
+    record_machine,
+)
 from tofdenoise.records.run_folder import (
     BEST_CHECKPOINT,
     LAST_CHECKPOINT,
@@ -78,6 +85,7 @@ __all__ = [
     "REGIONS_NAME",
     "classical_verdict",
     "code_commit",
+    "cpu_label",
     "host_machine",
     "is_ancestor",
     "json_number",

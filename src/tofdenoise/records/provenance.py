@@ -24,7 +24,7 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
-__all__ = ["code_commit", "host_machine", "is_ancestor", "record_commit", "record_machine"]
+__all__ = ["code_commit", "cpu_label", "host_machine", "is_ancestor", "record_commit", "record_machine"]
 
 #: where Linux names the CPU model (``model name`` lines)
 CPUINFO = Path("/proc/cpuinfo")
@@ -142,3 +142,10 @@ def record_machine(run_info: Mapping[str, Any] | None) -> dict[str, Any] | None:
     """The ``machine`` a ``run_info.json`` names, or None for a record written before machines were recorded."""
     machine = (run_info or {}).get("machine")
     return dict(machine) if isinstance(machine, Mapping) else None
+
+
+def cpu_label(machine: Mapping[str, Any]) -> str:
+    """A machine's CPU in a few words: its model name with its vendor family/model in brackets (``AMD EPYC
+    (AuthenticAMD 25/17)``), either alone where the other is missing, "" where neither is known."""
+    cpu_id = f"({machine['cpu_id']})" if machine.get("cpu_id") else None
+    return " ".join(str(v) for v in (machine.get("cpu"), cpu_id) if v)

@@ -62,6 +62,7 @@ from tofdenoise.records import (
     RUN_INFO_NAME,
     TRUTH_NAME,
     RecordError,
+    cpu_label,
     learned_status,
     load_scored_metrics,
     read_per_image_csv,
@@ -611,10 +612,7 @@ def machine_label(run_info: dict[str, Any]) -> str:
     machine = record_machine(run_info)
     if machine is None:
         return "-"
-    if machine.get("gpu"):
-        head = str(machine["gpu"])
-    else:
-        head = " ".join(str(v) for v in (machine.get("cpu"), machine.get("cpu_id") and f"({machine['cpu_id']})") if v)
+    head = str(machine["gpu"]) if machine.get("gpu") else cpu_label(machine)
     threads = machine.get("torch_threads")
     return (head or "unnamed") + (f", {threads} thr" if threads else "")
 
