@@ -1,7 +1,7 @@
 """DVSS's selective scan on the GPU, side by side in one process (CUDA only; prints a skip line without a GPU).
 
 Usage: python benchmarks/bench_gpu_scan.py [--baseline REV] [--json FILE] [--skip-tests] [--skip-compile]
-       [--keep-defaults] [--quick] [--dry]
+       [--keep-defaults] [--quick] [--only SECTIONS] [--dry]
 
 1. The SS2D scan's routes at DVSS's first level (batch 4, 320 x 320, d_inner 64, N 16): the chunked kernels and the
    sequential forward / first backward pass (``FORWARD`` / ``ADJOINT`` of ``tofdenoise.models.scan.triton``) at
@@ -337,6 +337,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--skip-compile", action="store_true", help="leave section 3 (torch.compile) out")
     p.add_argument("--dry", action="store_true", help="rehearse on the CPU at toy sizes in Triton's interpreter")
     p.add_argument("--quick", action="store_true", help="three route settings, no device tests (make bench --quick)")
+    p.add_argument(
+        "--only",
+        default=None,
+        help="comma-separated sections to run, of routes, backbones, compile, dt_forms, tests, profile (default all)",
+    )
     args = p.parse_args(argv)
     if args.dry:
         os.environ["TRITON_INTERPRET"] = "1"
@@ -361,6 +366,13 @@ def main(argv: list[str] | None = None) -> int:
     if not args.skip_compile:
         sections.append(("compile", bench.compile))
     sections.append(("dt_forms", bench.dt_forms))
+    only = None if args.only is None else set(args.only.split(","))
+    if only is not None:
+        unknown = only - {"routes", "backbones", "compile", "dt_forms", "tests", "profile"}
+        if unknown:
+            p.error(f"--only: unknown section(s) {sorted(unknown)}")
+        sections = [(name, fn) for name, fn in sections if name in only]
+        args.skip_tests = args.skip_tests or "tests" not in only
     for name, fn in sections:
         try:
             fn()
@@ -371,7 +383,7 @@ def main(argv: list[str] | None = None) -> int:
     if not args.skip_tests and not args.dry:
         bench.tests(max(30.0, args.budget_s - (time.time() - bench.t0)))
         bench.save("tests")
-    if not args.dry and time.time() - bench.t0 < args.budget_s:
+    if not args.dry and time.time() - bench.t0 < args.budget_s and (only is None or "profile" in only):
         try:
             bench.profile()
         except Exception:

@@ -156,6 +156,16 @@ def test_variance_matching_equals_hetero_mean_variance(tmp_path, monkeypatch):
     assert float((std.double() ** 2).mean()) == pytest.approx(sigma2.mean(), rel=1e-5)
 
 
+@pytest.mark.parametrize("noise", ["range", "blind"])
+def test_training_pixel_statistics_are_the_same_read_in_loader_workers(tmp_path, noise):
+    """The variance match and the blind range read the training samples in DataLoader workers (minutes in one
+    process for a 480 x 640 world): the stored numbers equal one process's to the last bit."""
+    one = make_dm(tmp_path / "one", noise=noise, num_workers=0).summary()["noise_record"]
+    two = make_dm(tmp_path / "two", noise=noise, num_workers=2).summary()["noise_record"]
+    keys = ("scale",) if noise == "range" else ("sigma_lo_mm", "sigma_hi_mm")
+    assert all(isinstance(one[k], float) for k in keys) and {k: one[k] for k in keys} == {k: two[k] for k in keys}
+
+
 def test_unmatched_baseline_and_none(tmp_path):
     dm = make_dm(tmp_path, noise="fixed", match_variance=False, noise_kwargs={"sigma_mm": 3.0})
     assert dm.summary()["variance_scale"] is None and dm.noise_model.scale == 1.0

@@ -62,15 +62,22 @@ def test_dry_run_marks_resume(tmp_path, capsys):
     assert "(resume)" in capsys.readouterr().out and not (tmp_path / "r" / "train.log").exists()
 
 
-def _fake_python(tmp_path, ignore_sigterm: bool):
+def _fake_python(tmp_path, ignore_sigterm: bool, records_first: bool = False):
     """A stand-in for ``python -m tofdenoise.cli.train ... paths.run_dir=D``: it takes the run folder's lock as a
-    training does, then trains forever (``ignore_sigterm``: it does not end on SIGTERM, like a step that hangs)."""
+    training does, then trains forever (``ignore_sigterm``: it does not end on SIGTERM, like a step that hangs;
+    ``records_first``: it first writes a finished run's records, like a process slow to exit after its test)."""
     script = tmp_path / ("stubborn.py" if ignore_sigterm else "trainer.py")
     script.write_text(
         f"#!{sys.executable}\n"
         "import json, os, signal, socket, sys, time\n"
         "run_dir = [a.split('=', 1)[1] for a in sys.argv if a.startswith('paths.run_dir=')][0]\n"
         "json.dump({'pid': os.getpid(), 'host': socket.gethostname()}, open(os.path.join(run_dir, 'run.lock'), 'w'))\n"
+        + (
+            "json.dump({'finished': 'now'}, open(os.path.join(run_dir, 'run_info.json'), 'w'))\n"
+            "json.dump({'results': {}}, open(os.path.join(run_dir, 'metrics.json'), 'w'))\n"
+            if records_first
+            else ""
+        )
         + ("signal.signal(signal.SIGTERM, signal.SIG_IGN)\n" if ignore_sigterm else "")
         + "print('training', flush=True)\n"
         "time.sleep(60)\n"
@@ -98,6 +105,21 @@ def test_time_budget_stops_a_run_at_its_end_and_keeps_it_resumable(tmp_path, cap
     log = (tmp_path / "r" / "train.log").read_text()
     assert "the time budget ended: training stopped" in log
     assert "stopped at the end of the time budget" in capsys.readouterr().out
+
+
+def test_time_budget_end_after_a_runs_records_keeps_it_as_finished(tmp_path, capsys):
+    """A run stopped by the budget after it wrote its finished records (on its way out) is done, not thrown away:
+    on a GPU machine a finished DVSS run was once stopped one second after its records."""
+    import time
+
+    from tofdenoise.experiments.runner import TimeBudget
+
+    fake = _fake_python(tmp_path, ignore_sigterm=False, records_first=True)
+    out = run_all([RunSpec("r", SMOKE)], tmp_path, python=fake, budget=TimeBudget(time.monotonic() + 1.5, grace_s=1.0))
+    assert [o.status for o in out] == ["done"] and out[0].returncode == -15
+    assert run_finished(tmp_path / "r") and not (tmp_path / "r" / "run.lock").exists()
+    assert "it had written its records" in (tmp_path / "r" / "train.log").read_text()
+    assert "stopped at the end of the time budget" not in capsys.readouterr().out
 
 
 def test_time_budget_defers_runs_that_would_not_fit_but_resumes_started_ones(tmp_path, capsys):

@@ -5,6 +5,8 @@ from __future__ import annotations
 import os
 import platform
 
+import pytest
+
 from tofdenoise.records import host_machine, record_machine
 
 # two processors of a Linux /proc/cpuinfo, cut to the lines that matter (a KVM guest: the model name without its
@@ -36,7 +38,20 @@ def test_host_machine_reads_the_first_processor_of_cpuinfo(tmp_path):
 def test_host_machine_without_cpuinfo_names_what_the_platform_tells(tmp_path):
     got = host_machine(tmp_path / "missing")
     assert got["cpu"] == (platform.processor() or None) and got["cpu_id"] is None
-    assert set(got) == {"cpu", "cpu_id", "cpu_count", "arch", "system"}
+    assert set(got) == {"cpu", "cpu_id", "cpu_count", "arch", "system", "runs_at_once"}
+
+
+def test_host_machine_says_how_many_runs_shared_it(tmp_path, monkeypatch):
+    from tofdenoise.records import RUNS_AT_ONCE_ENV
+
+    monkeypatch.delenv(RUNS_AT_ONCE_ENV, raising=False)
+    assert host_machine(tmp_path / "missing")["runs_at_once"] == 1
+    monkeypatch.setenv(RUNS_AT_ONCE_ENV, "3")
+    assert host_machine(tmp_path / "missing")["runs_at_once"] == 3
+    for bad in ("0", "two", "-1"):
+        monkeypatch.setenv(RUNS_AT_ONCE_ENV, bad)
+        with pytest.raises(ValueError, match=f"TOFDENOISE_RUNS_AT_ONCE={bad!r}: expected a whole number >= 1"):
+            host_machine(tmp_path / "missing")
 
 
 def test_record_machine_reads_a_record_and_is_none_for_older_ones():

@@ -40,7 +40,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from tofdenoise.records import LAST_CHECKPOINT, run_finished
+from tofdenoise.records import LAST_CHECKPOINT, RUNS_AT_ONCE_ENV, run_finished
 
 from .runner import LOG_NAME, PendingRun, RunOutcome, RunSpec, TimeBudget, _tail, clear_stale_lock, deferred, run_one
 
@@ -99,7 +99,9 @@ class LocalExecutor:
         budget: TimeBudget | None = None,
     ) -> None:
         """Run ``jobs`` ``workers`` at a time; ``finished`` is called in this thread as each ends. On an exception
-        here (Ctrl-C) the running processes are killed and no new one starts. ``budget``: see the class."""
+        here (Ctrl-C) the running processes are killed and no new one starts. ``budget``: see the class. Each run's
+        environment says how many train at a time (``RUNS_AT_ONCE_ENV``; its record's ``machine.runs_at_once``)."""
+        env = {**(env or {}), RUNS_AT_ONCE_ENV: str(self.workers)}
         processes: set[subprocess.Popen] = set()
         guard = threading.Lock()
         stop = threading.Event()

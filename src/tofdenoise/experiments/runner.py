@@ -191,7 +191,8 @@ def run_one(
     preemption keeps it); ``preexec_fn`` runs in the child before it starts (``subprocess.Popen``). An exception in
     the caller (Ctrl-C, a preemption handler's exit) kills the process and propagates. At ``budget``'s deadline a
     process still running is stopped (:func:`stop_process`, with the budget's grace period) and the outcome is
-    ``stopped``: the folder keeps its last epoch's checkpoint and the next run of it resumes there."""
+    ``stopped``: the folder keeps its last epoch's checkpoint and the next run of it resumes there. A process stopped
+    after its folder holds a finished run (between the test's records and its exit) is ``done``."""
     deadline = None if budget is None else budget.deadline
     cmd, _ = run_command(spec, run_dir, python)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -223,6 +224,10 @@ def run_one(
     ok = returncode == 0 and run_finished(run_dir)
     if not ok and deadline is not None and time.monotonic() >= deadline:
         clear_stale_lock(run_dir, proc.pid)
+        if run_finished(run_dir):  # stopped on its way out, its records complete: a finished run, not lost
+            with open(run_dir / LOG_NAME, "a") as log:
+                log.write("# it had written its records (run_info.json finished, metrics.json) before: recorded\n")
+            return RunOutcome(spec, run_dir, "done", seconds, returncode)
         return RunOutcome(spec, run_dir, "stopped", seconds, returncode)
     return RunOutcome(
         spec, run_dir, "done" if ok else "failed", seconds, returncode, "" if ok else _tail(run_dir / LOG_NAME)

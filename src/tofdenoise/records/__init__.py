@@ -12,7 +12,8 @@
   ``write_run_info``;
 - :mod:`~tofdenoise.records.provenance`: the git commit of the code that made a record (``code_commit``, written
   into every ``run_info.json``; ``record_commit`` reads it back, ``None`` for older records; ``is_ancestor`` orders
-  two commits; ``host_machine`` / ``record_machine`` / ``cpu_label``: the machine a run trained on).
+  two commits; ``host_machine`` / ``record_machine`` / ``cpu_label``: the machine a run trained on, and how many
+  runs shared it, ``RUNS_AT_ONCE_ENV``).
 
 Writers: ``tofdenoise.callbacks.run_outputs.RunOutputs`` (every trained run), the classical row; readers: the
 training job and the grids' runner (skip or return finished runs), ``tofdenoise.reporting`` (report, results page,
@@ -38,6 +39,7 @@ from tofdenoise.records.metrics_json import (
 )
 from tofdenoise.records.per_image import read_per_image_csv, write_per_image_csv
 from tofdenoise.records.provenance import (
+    RUNS_AT_ONCE_ENV,
     code_commit,
     cpu_label,
     host_machine,
@@ -67,6 +69,7 @@ from tofdenoise.records.verdict import DEFAULT_LEARNED_MARGIN, classical_verdict
 
 __all__ = [
     "BEST_CHECKPOINT",
+    "RUNS_AT_ONCE_ENV",
     "CSV_COLUMNS",
     "EDGE_JUMP_MM",
     "DEFAULT_LEARNED_MARGIN",

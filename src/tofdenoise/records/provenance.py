@@ -24,10 +24,21 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
-__all__ = ["code_commit", "cpu_label", "host_machine", "is_ancestor", "record_commit", "record_machine"]
+__all__ = [
+    "RUNS_AT_ONCE_ENV",
+    "code_commit",
+    "cpu_label",
+    "host_machine",
+    "is_ancestor",
+    "record_commit",
+    "record_machine",
+]
 
 #: where Linux names the CPU model (``model name`` lines)
 CPUINFO = Path("/proc/cpuinfo")
+#: set by an executor that trains several runs at a time on one machine (``tofdenoise reproduce --executor local
+#: --workers N``) to N: a run's rate is then one of N sharing its CPUs and GPU, and its record says so
+RUNS_AT_ONCE_ENV = "TOFDENOISE_RUNS_AT_ONCE"
 #: the folder holding the ``tofdenoise`` package (``src/`` in a checkout)
 _PACKAGE_DIR = Path(__file__).resolve().parents[1]
 #: paths of a checkout (from its top) that hold outputs, not code: the committed records and the page built from them
@@ -121,7 +132,8 @@ def host_machine(cpuinfo: Path = CPUINFO) -> dict[str, Any]:
     """The machine this process runs on, for a record: ``{"cpu": model name (``platform.processor()`` where Linux's
     cpuinfo does not tell), "cpu_id": "vendor family/model" (e.g. ``AuthenticAMD 25/17``: a virtual machine's model
     name often leaves the generation out), "cpu_count": logical CPUs this process may use, "arch": e.g. x86_64,
-    "system": e.g. Linux}`` (values None where the platform does not tell)."""
+    "system": e.g. Linux, "runs_at_once": how many runs the executor that started this one trained at a time on
+    this machine (``RUNS_AT_ONCE_ENV``; 1 where it did not say)}`` (values None where the platform does not tell)."""
     fields = _cpu_fields(cpuinfo)
     try:
         usable = len(os.sched_getaffinity(0))
@@ -135,7 +147,15 @@ def host_machine(cpuinfo: Path = CPUINFO) -> dict[str, Any]:
         "cpu_count": usable,
         "arch": platform.machine() or None,
         "system": platform.system() or None,
+        "runs_at_once": _runs_at_once(),
     }
+
+
+def _runs_at_once() -> int:
+    value = os.environ.get(RUNS_AT_ONCE_ENV, "1")
+    if not value.isdigit() or int(value) < 1:
+        raise ValueError(f"{RUNS_AT_ONCE_ENV}={value!r}: expected a whole number >= 1 (runs trained at a time)")
+    return int(value)
 
 
 def record_machine(run_info: Mapping[str, Any] | None) -> dict[str, Any] | None:

@@ -607,14 +607,16 @@ def recipe_hours(train_seconds: Any, trained_steps: Any) -> float | None:
 
 
 def machine_label(run_info: dict[str, Any]) -> str:
-    """A record's machine in a few words: the GPU's name, or the CPU's model with its vendor family/model, and the
-    intra-op threads (``2 thr``); "-" for a record without ``machine``."""
+    """A record's machine in a few words: the GPU's name, or the CPU's model with its vendor family/model, the
+    intra-op threads (``2 thr``) and, where the executor trained several runs at a time on it, how many (``3 runs
+    at once``: the run's rate is a shared machine's); "-" for a record without ``machine``."""
     machine = record_machine(run_info)
     if machine is None:
         return "-"
     head = str(machine["gpu"]) if machine.get("gpu") else cpu_label(machine)
-    threads = machine.get("torch_threads")
-    return (head or "unnamed") + (f", {threads} thr" if threads else "")
+    threads, at_once = machine.get("torch_threads"), machine.get("runs_at_once")
+    shared = f", {at_once} runs at once" if isinstance(at_once, int) and at_once > 1 else ""
+    return (head or "unnamed") + (f", {threads} thr" if threads else "") + shared
 
 
 def _runs_section(records: dict[str, dict[str, Any]], profile: str = "cpu") -> list[str]:
@@ -628,9 +630,10 @@ def _runs_section(records: dict[str, dict[str, Any]], profile: str = "cpu") -> l
         "process, GiB) come from the `TrainingCost` callback: the training epochs only, summed over resumes "
         "(records written before it existed show -). Protocol: the test protocol the run was scored under "
         "(current: with the simulator-noised split; earlier: before it, see the tables' † notes). Machine: what the "
-        "run trained on (its `run_info.json`'s `machine`: CPU or GPU and intra-op threads; - for records made before "
-        "it was recorded): minutes and images/s compare only on one machine, and CPU training reruns bit for bit "
-        "only on the same CPU kind and thread count."
+        "run trained on (its `run_info.json`'s `machine`: CPU or GPU, intra-op threads, and how many runs shared it "
+        "where an executor trained several at a time; - for records made before it was recorded): minutes and "
+        "images/s compare only on one machine not shared with other runs, and CPU training reruns bit for bit only "
+        "on the same CPU kind and thread count."
         + (
             f" Paper's recipe: hours of training for its 300 epochs ({PAPER_RECIPE_STEPS:,} optimiser steps of 4 "
             "crops of 320 x 320) at the run's measured rate (training seconds per step), validation not included."
