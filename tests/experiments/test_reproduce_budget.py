@@ -7,7 +7,7 @@ import json
 import pytest
 
 from tofdenoise.cli.reproduce import main
-from tofdenoise.experiments.reproduce import ESTIMATE_MARGIN, recorded_seconds
+from tofdenoise.experiments.reproduce import ESTIMATE_MARGIN, parse_run_minutes, recorded_seconds, run_estimate
 from tofdenoise.experiments.runner import RunSpec
 from tofdenoise.experiments.tables import SCHEDULE_EPOCHS, TABLE_PROFILES, table_specs
 from tofdenoise.paths import REPO_ROOT
@@ -43,6 +43,35 @@ def test_a_run_is_estimated_from_the_median_recorded_run_of_its_backbone_loss_an
     # once the family has a record of the current protocol (a simulator-noised split), only those count
     (tmp_path / "dvss-fixed-l1-s0" / "metrics.json").write_text(json.dumps({"synthetic": {}, "simulated": {}}))
     assert recorded_seconds(tmp_path, RunSpec("dvss-hetero-l1-s2", ())) == pytest.approx(100 * ESTIMATE_MARGIN)
+
+
+def test_given_run_minutes_replace_the_records_estimate(tmp_path):
+    """--run-minutes: a run name first, then its backbone, then the records (whose walls may come from a shared
+    machine or code since made faster)."""
+    _record(tmp_path, "dvss-fixed-l1-s0", 440)
+    given = parse_run_minutes(["dvss=5", "dvss-blind-l1-s0=2.5"])
+    assert given == {"dvss": 5.0, "dvss-blind-l1-s0": 2.5}
+    assert run_estimate(tmp_path, RunSpec("dvss-range-l1-s1", ()), given) == pytest.approx(300.0)
+    assert run_estimate(tmp_path, RunSpec("dvss-blind-l1-s0", ()), given) == pytest.approx(150.0)
+    assert run_estimate(tmp_path, RunSpec("dvss-range-l1-s1", ()), {}) == pytest.approx(440 * ESTIMATE_MARGIN)
+    assert run_estimate(tmp_path, RunSpec("unet-range-l1-s1", ()), given) is None
+    for bad in ("dvss", "dvss=", "=5", "dvss=0", "dvss=-1", "dvss=five", "dvss=inf", "dvss=nan"):
+        with pytest.raises(ValueError, match=f"--run-minutes expects NAME=MINUTES .*got {bad!r}"):
+            parse_run_minutes([bad])
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["--table", "3", "--run-minutes", "dvss=5"],  # without a time budget
+        ["--table", "3", "--time-budget", "5", "--run-minutes", "dvss=x"],
+    ],
+)
+def test_run_minutes_usage_errors(tmp_path, capsys, argv):
+    assert main([*argv, "--out", str(tmp_path / "runs"), "--dry-run"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--run-minutes" in err
+    assert not (tmp_path / "runs").exists()
 
 
 @pytest.mark.parametrize(

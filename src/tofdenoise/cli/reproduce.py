@@ -102,6 +102,14 @@ def build_parser() -> argparse.ArgumentParser:
         "stopped and resumes from its last epoch's checkpoint in the same --out next time; never recorded "
         "half-trained. Leave a margin for the real-set scoring after each run",
     )
+    p.add_argument(
+        "--run-minutes",
+        nargs="+",
+        default=[],
+        metavar="NAME=MIN",
+        help="with --time-budget: the minutes a run of this backbone (dvss=5) or this run name is expected to take, in "
+        "place of the committed records' median wall time (which may come from other code or a shared machine)",
+    )
     p.add_argument("--dry-run", action="store_true", help="print what would run, run nothing")
     p.add_argument("--page-only", action="store_true", help="only rebuild the results page from the records")
     add_executor_arguments(p)
@@ -171,7 +179,16 @@ def main(argv: list[str] | None = None) -> int:
         )
         return 2
     # the runner, the figures and the page renderer (numpy, Pillow, omegaconf): once the arguments are checked
-    from tofdenoise.experiments.reproduce import Reproduction, profile_needs, reproduce
+    from tofdenoise.experiments.reproduce import Reproduction, parse_run_minutes, profile_needs, reproduce
+
+    if args.run_minutes and args.time_budget is None:
+        print(f"{PROG}: error: --run-minutes applies with --time-budget", file=sys.stderr)
+        return 2
+    try:
+        run_minutes = parse_run_minutes(args.run_minutes)
+    except ValueError as exc:
+        print(f"{PROG}: error: {exc}", file=sys.stderr)
+        return 2
     from tofdenoise.reporting.results_page import DISCUSSION_NAME, page_inputs
 
     job = Reproduction(
@@ -185,6 +202,7 @@ def main(argv: list[str] | None = None) -> int:
         executor=executor,
         skip_recorded=args.skip_recorded,
         time_budget_min=args.time_budget,
+        run_minutes=run_minutes,
     )
     if job.target is None and not args.results.is_dir():  # else an empty page, exit 0
         print(

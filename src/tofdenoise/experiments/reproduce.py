@@ -289,6 +289,36 @@ def recorded_seconds(dest: Path, spec: RunSpec) -> float | None:
     return statistics.median(chosen) * ESTIMATE_MARGIN if chosen else None
 
 
+def run_estimate(dest: Path, spec: RunSpec, given: dict[str, float] | None = None) -> float | None:
+    """The seconds ``spec`` is expected to take under a time budget: ``given`` minutes for its run name or, failing
+    that, its backbone (``--run-minutes``: the records' walls may come from another code or another sharing of the
+    machine), else :func:`recorded_seconds`."""
+    given = given or {}
+    backbone = spec.name.split("-", 1)[0]
+    for key in (spec.name, backbone):
+        if key in given:
+            return 60.0 * given[key]
+    return recorded_seconds(dest, spec)
+
+
+def parse_run_minutes(items: list[str]) -> dict[str, float]:
+    """``["dvss=5", "restormer=4.5"]`` -> ``{"dvss": 5.0, "restormer": 4.5}`` (``--run-minutes``); a ValueError that
+    names the item for anything else."""
+    out: dict[str, float] = {}
+    for item in items:
+        name, sep, value = item.partition("=")
+        try:
+            minutes = float(value)
+        except ValueError:
+            minutes = float("nan")
+        if not sep or not name or not minutes > 0 or minutes == float("inf"):
+            raise ValueError(
+                f"--run-minutes expects NAME=MINUTES (a backbone or a run name, a positive number), got {item!r}"
+            )
+        out[name] = minutes
+    return out
+
+
 def write_report(dest: Path) -> None:
     """The offline HTML report of the recorded runs (``dest/report.html``), when there are any."""
     if not any(dest.glob(f"*/{METRICS_NAME}")):
@@ -346,6 +376,8 @@ class Reproduction:
     #: minutes for the runs (a GPU allocation's limit): runs that would not fit are not started, a run still
     #: training at the end is stopped and resumes next time (``runner.TimeBudget``; estimates: ``recorded_seconds``)
     time_budget_min: float | None = None
+    #: expected minutes of a run, by backbone or by run name, in place of ``recorded_seconds`` (``--run-minutes``)
+    run_minutes: dict[str, float] = field(default_factory=dict)
 
     @property
     def realset_dir(self) -> Path:
@@ -418,7 +450,9 @@ def reproduce(job: Reproduction, log: Log = _print) -> int:
     budget = None  # counted from here: the stand-in set's build is part of the minutes
     if job.time_budget_min is not None:
         dest = job.dest
-        budget = TimeBudget.minutes(job.time_budget_min, estimate=lambda spec: recorded_seconds(dest, spec))
+        budget = TimeBudget.minutes(
+            job.time_budget_min, estimate=lambda spec: run_estimate(dest, spec, job.run_minutes)
+        )
     if target is not None:
         ensure_realset(job.realset_dir, job.profile, dry_run=job.dry_run, log=log)
 
