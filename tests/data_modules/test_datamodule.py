@@ -166,6 +166,19 @@ def test_training_pixel_statistics_are_the_same_read_in_loader_workers(tmp_path,
     assert all(isinstance(one[k], float) for k in keys) and {k: one[k] for k in keys} == {k: two[k] for k in keys}
 
 
+@pytest.mark.parametrize("noise", ["range", "blind"])
+def test_preparing_draws_the_same_from_the_global_generator_with_a_cold_or_a_warm_cache(tmp_path, noise):
+    """The training stream starts from torch's global generator after the data are prepared: a run that computes
+    the variance match (a fresh cache) and one that reads it must leave that generator in the same state, or the
+    first run of a cache would not rerun bit for bit (a DataLoader's iterator draws its base seed from it)."""
+    states = []
+    for _ in range(2):  # the first computes the training-pixel statistics, the second reads them back
+        torch.manual_seed(0)
+        make_dm(tmp_path, noise=noise, num_workers=2)
+        states.append(torch.get_rng_state())
+    assert torch.equal(states[0], states[1])
+
+
 def test_unmatched_baseline_and_none(tmp_path):
     dm = make_dm(tmp_path, noise="fixed", match_variance=False, noise_kwargs={"sigma_mm": 3.0})
     assert dm.summary()["variance_scale"] is None and dm.noise_model.scale == 1.0

@@ -413,7 +413,11 @@ class ToFDataModule(L.LightningDataModule):
         core, minutes for a 180-scene world in one process. Each sample is computed as in this process."""
         workers = int(self.hparams.num_workers) if len(train_ids) > 1 else 0
         dataset = _TrainingPixels(provider, train_ids, self.training_pixels)
-        yield from DataLoader(dataset, batch_size=None, num_workers=workers, collate_fn=_unchanged)
+        # its own generator: an iterator draws its base seed from the loader's generator, and this loader runs only
+        # where the statistics are not stored yet, so drawing from torch's global one would start the first run of
+        # a cache from another training stream than the runs after it
+        private = torch.Generator().manual_seed(0)
+        yield from DataLoader(dataset, batch_size=None, num_workers=workers, collate_fn=_unchanged, generator=private)
 
     def _pixels_key(self, cache: MapCache, train_ids: list[str]) -> dict[str, Any]:
         """What the training pixels depend on: the maps, the training ids, the rule, the hole model and the seed."""
