@@ -42,6 +42,7 @@ from tofdenoise.experiments.figures import (
     encode_png_palette,
     figure_specs,
 )
+from tofdenoise.experiments.grid_data import prepare_grid_data
 from tofdenoise.experiments.runner import RunSpec, TimeBudget, run_all
 from tofdenoise.experiments.schedule import CURVES_FIGURE, curves_figure_png, schedule_curves
 from tofdenoise.experiments.tables import TABLES, run_name, table_specs
@@ -477,6 +478,8 @@ def reproduce(job: Reproduction, log: Log = _print) -> int:
             specs = table_specs(target.key, job.seeds, job.overrides())
             if job.skip_recorded:
                 specs = without_recorded(specs, job.dest, log)
+            if not job.dry_run and getattr(job.executor, "workers", 1) > 1:  # several runs would build it at once
+                prepare_grid_data([s for s in specs if not run_finished(Path(job.out) / s.name)], log=log)
             outcomes = run_all(
                 specs,
                 job.out,
