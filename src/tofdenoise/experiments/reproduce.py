@@ -295,8 +295,7 @@ def run_estimate(dest: Path, spec: RunSpec, given: dict[str, float] | None = Non
     that, its backbone (``--run-minutes``: the records' walls may come from another code or another sharing of the
     machine), else :func:`recorded_seconds`."""
     given = given or {}
-    backbone = spec.name.split("-", 1)[0]
-    for key in (spec.name, backbone):
+    for key in (spec.name, _family(spec.name)[0]):  # the run, then its backbone
         if key in given:
             return 60.0 * given[key]
     return recorded_seconds(dest, spec)
@@ -312,7 +311,7 @@ def parse_run_minutes(items: list[str]) -> dict[str, float]:
             minutes = float(value)
         except ValueError:
             minutes = float("nan")
-        if not sep or not name or not minutes > 0 or minutes == float("inf"):
+        if not sep or not name or not (math.isfinite(minutes) and minutes > 0):
             raise ValueError(
                 f"--run-minutes expects NAME=MINUTES (a backbone or a run name, a positive number), got {item!r}"
             )
