@@ -1,6 +1,7 @@
 """mamba-ssm's CUDA selective scan beside this project's Triton scan, in one process (CUDA only).
 
 Usage: python benchmarks/bench_mamba_scan.py --src MAMBA_REPO [--arch 90] [--build-dir DIR] [--json FILE] [--dry]
+                                             [--build-only]
 
 ``MAMBA_REPO`` is a checkout of https://github.com/state-spaces/mamba (its ``csrc/selective_scan``; nothing of it
 is part of this project). The GPU machine cannot download, so the checkout travels with the command.
@@ -8,6 +9,8 @@ is part of this project). The GPU machine cannot download, so the checkout trave
 1. Builds mamba-ssm's ``selective_scan_cuda`` extension from that source with ``torch.utils.cpp_extension.load``
    (ninja, as many jobs as CPU cores) for one architecture only (``--arch``; mamba-ssm's own build compiles about
    ten), with mamba-ssm's nvcc flags; the build's seconds and, when it fails, the tail of its log are recorded.
+   ``--build-only`` stops there, so that the build can run beside other work and the timings later on an idle GPU
+   (a second call with the same ``--build-dir`` finds the build up to date and only loads it).
 2. At DVSS's first level (batch 4, 4 directions x 64 channels = 256, L = 320 x 320, N 16, one B/C group per
    direction, delta_bias and softplus, D): forward and forward + backward ms with bf16 and float32 inputs of
    - mamba-ssm's kernels (called through its extension's ``fwd`` / ``bwd``, in an autograd Function of this file),
@@ -160,6 +163,7 @@ class Bench:
     def build(self):
         if self.args.dry:
             self.res["build"] = {"stand_in": True}
+            self.save()
             return StandInExtension()
         t = time.time()
         try:
@@ -251,6 +255,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--build-dir", default="/tmp/mamba_selective_scan_build")
     p.add_argument("--json", default=None, help="write the results to this JSON file (after every part)")
     p.add_argument("--dry", action="store_true", help="rehearse on the CPU at toy sizes (a stand-in extension)")
+    p.add_argument("--build-only", action="store_true", help="build the extension (and record its seconds), time nothing")
     args = p.parse_args(argv)
     if args.dry:
         os.environ["TRITON_INTERPRET"] = "1"
@@ -265,6 +270,9 @@ def main(argv: list[str] | None = None) -> int:
     torch.backends.cuda.matmul.allow_tf32 = False
     bench = Bench(args)
     ext = bench.build()
+    if args.build_only:
+        bench.log("built; nothing timed (--build-only)")
+        return 0
     bench.compare(ext)
     bench.log("done")
     return 0

@@ -45,3 +45,13 @@ def test_a_folder_without_mambas_kernels_is_refused_by_name(tmp_path):
     (tmp_path / "selective_scan.cpp").write_text("// not mamba")
     with pytest.raises(SystemExit, match="lacks selective_scan_fwd_fp32.cu"):
         bms.build_extension(tmp_path, 90, tmp_path / "build", print)
+
+
+def test_build_only_records_the_build_and_times_nothing(tmp_path):
+    out = tmp_path / "build.json"
+    assert bms.main(["--dry", "--build-only", "--json", str(out)]) == 0
+    import json
+
+    res = json.loads(out.read_text())
+    assert res["build"] == {"stand_in": True}
+    assert "scan" not in res
