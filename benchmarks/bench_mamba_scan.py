@@ -255,7 +255,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--build-dir", default="/tmp/mamba_selective_scan_build")
     p.add_argument("--json", default=None, help="write the results to this JSON file (after every part)")
     p.add_argument("--dry", action="store_true", help="rehearse on the CPU at toy sizes (a stand-in extension)")
-    p.add_argument("--build-only", action="store_true", help="build the extension (and record its seconds), time nothing")
+    p.add_argument(
+        "--build-only", action="store_true", help="build the extension (and record its seconds), time nothing"
+    )
     args = p.parse_args(argv)
     if args.dry:
         os.environ["TRITON_INTERPRET"] = "1"

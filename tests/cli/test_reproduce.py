@@ -270,6 +270,38 @@ def test_skip_recorded_runs_only_what_has_no_committed_record(tmp_path, monkeypa
     assert "--skip-recorded applies to --table and --study" in capsys.readouterr().err
 
 
+def test_prepare_only_prepares_the_runs_still_to_train_and_trains_nothing(tmp_path, monkeypatch, capsys):
+    """``--prepare-only`` (a GPU machine's CPUs, beside other work): the stand-in set is built, the data of every run
+    of the target that is neither committed nor finished in its folder is prepared, nothing trains and no page is
+    written; it applies to tables and studies only."""
+    import tofdenoise.experiments.reproduce as workflow
+
+    out, results, page = tmp_path / "runs", tmp_path / "results", tmp_path / "results.md"
+    for file in ("metrics.json", "run_info.json"):
+        (results / "cpu" / "dvss-fixed-l1-s0").mkdir(parents=True, exist_ok=True)
+        (results / "cpu" / "dvss-fixed-l1-s0" / file).write_text("{}")
+    calls = {"realset": 0, "prepared": [], "trained": 0, "page": 0}
+
+    def fake_prepare(specs, workers=None, log=print):
+        calls["prepared"].append([s.name for s in specs])
+        return [s.name for s in specs[:2]]
+
+    monkeypatch.setattr(workflow, "ensure_realset", lambda *a, **k: calls.__setitem__("realset", 1))
+    monkeypatch.setattr(workflow, "prepare_grid_data", fake_prepare)
+    monkeypatch.setattr(workflow, "run_all", lambda *a, **k: calls.__setitem__("trained", 1) or [])
+    monkeypatch.setattr(workflow, "write_page", lambda *a, **k: calls.__setitem__("page", 1) or "")
+    monkeypatch.setattr(workflow, "run_finished", lambda folder: folder.name == "unet-range-l1-s0")
+    argv = ["--table", "3", "--seeds", "0", "--out", str(out), "--results", str(results), "--page", str(page)]
+    assert main([*argv, "--skip-recorded", "--prepare-only"]) == 0
+    assert calls["realset"] == 1 and calls["trained"] == 0 and calls["page"] == 0
+    (prepared,) = calls["prepared"]
+    assert len(prepared) == 8 and "dvss-fixed-l1-s0" not in prepared and "unet-range-l1-s0" not in prepared
+    assert "--prepare-only: data of 2 distinct config(s) prepared; nothing trained" in capsys.readouterr().out
+    assert main(["--figure", "7", "--prepare-only", "--out", str(out), "--results", str(results)]) == 2
+    assert "--prepare-only applies to --table and --study" in capsys.readouterr().err
+    assert main(["--page-only", "--prepare-only", "--results", str(results), "--page", str(page)]) == 2
+
+
 def test_a_finished_runs_record_gains_its_score_against_the_stand_ins_truth(tmp_path, monkeypatch, data_cache, tiny):
     """``reproduce`` scores each finished learned run against the simulated capture set's truth as it commits it:
     the committed ``real_vs_truth.json`` gives the run's own real-set numbers against the references (to 1e-9) and

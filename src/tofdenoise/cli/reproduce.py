@@ -6,6 +6,7 @@
     tofdenoise reproduce --study dynrange                           # beyond the paper: the dynamic-range study
     tofdenoise reproduce --table 1 --dry-run                        # list what would run
     tofdenoise reproduce --page-only                                # rebuild docs/results.md from docs/results/
+    tofdenoise reproduce --table 3 --prepare-only --skip-recorded   # stand-in set and every run's data, no training
     tofdenoise reproduce --check                                    # rerun one record per table, compare (make
                                                                     # reproduce-check); --check 3 dynrange: those
     tofdenoise reproduce --table 3 --executor local --workers 2     # two runs at a time on this machine
@@ -112,6 +113,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--dry-run", action="store_true", help="print what would run, run nothing")
     p.add_argument("--page-only", action="store_true", help="only rebuild the results page from the records")
+    p.add_argument(
+        "--prepare-only",
+        action="store_true",
+        help="build the stand-in set and prepare the data of every run still to train (each distinct data config "
+        "once, every CPU core), then stop: no training, no page (tables and studies; e.g. on a GPU machine beside "
+        "other work, so that a later --time-budget call spends its minutes training)",
+    )
     add_executor_arguments(p)
     return p
 
@@ -160,6 +168,9 @@ def main(argv: list[str] | None = None) -> int:
             file=sys.stderr,
         )
         return 2
+    if args.prepare_only and (target is None or target.kind == "figure"):
+        print(f"{PROG}: error: --prepare-only applies to --table and --study", file=sys.stderr)
+        return 2
     if args.time_budget is not None and (target is None or target.kind == "figure" or not args.time_budget > 0):
         print(
             f"{PROG}: error: --time-budget takes a positive number of minutes and applies to --table and --study",
@@ -203,6 +214,7 @@ def main(argv: list[str] | None = None) -> int:
         skip_recorded=args.skip_recorded,
         time_budget_min=args.time_budget,
         run_minutes=run_minutes,
+        prepare_only=args.prepare_only,
     )
     if job.target is None and not args.results.is_dir():  # else an empty page, exit 0
         print(

@@ -378,6 +378,8 @@ class Reproduction:
     time_budget_min: float | None = None
     #: expected minutes of a run, by backbone or by run name, in place of ``recorded_seconds`` (``--run-minutes``)
     run_minutes: dict[str, float] = field(default_factory=dict)
+    #: only build the stand-in set and prepare the data of the runs still to train (``--prepare-only``)
+    prepare_only: bool = False
 
     @property
     def realset_dir(self) -> Path:
@@ -477,6 +479,10 @@ def reproduce(job: Reproduction, log: Log = _print) -> int:
             specs = table_specs(target.key, job.seeds, job.overrides())
             if job.skip_recorded:
                 specs = without_recorded(specs, job.dest, log)
+            if job.prepare_only and not job.dry_run:
+                prepared = prepare_grid_data([s for s in specs if not run_finished(Path(job.out) / s.name)], log=log)
+                log(f"[reproduce] --prepare-only: data of {len(prepared)} distinct config(s) prepared; nothing trained")
+                return 0
             if not job.dry_run and getattr(job.executor, "workers", 1) > 1:  # several runs would build it at once
                 prepare_grid_data([s for s in specs if not run_finished(Path(job.out) / s.name)], log=log)
             outcomes = run_all(
