@@ -188,12 +188,14 @@ class Bench:
     # 3. torch.compile
     def compile(self) -> None:
         torch = self.torch
+        from tofdenoise.models.common import draw_zero_parameters
         from tofdenoise.models.registry import build_backbone
 
         out: dict = {}
         self.res["compile"] = out
         torch.manual_seed(0)
-        net = build_backbone("dvss", in_channels=1, **DVSS).to(self.dev)
+        # the zero-initialised head drawn: else only the head's gradient is compared
+        net = draw_zero_parameters(build_backbone("dvss", in_channels=1, **DVSS)).to(self.dev)
         compiled = torch.compile(net)
         size = 32 if self.args.dry else 320
         x = torch.randn(4, 1, size, size, device=self.dev)

@@ -1,4 +1,5 @@
-"""models.common.eager_inference: where a backbone's inference-only shortcuts may run."""
+"""models.common: where a backbone's inference-only shortcuts may run (eager_inference), and the drawn zero parameters
+that let a comparison of two executions reach every layer (draw_zero_parameters)."""
 
 from __future__ import annotations
 
@@ -43,3 +44,36 @@ def test_pointwise_is_the_per_pixel_product_on_either_layout(onednn, monkeypatch
         torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-6)
         assert got.is_contiguous(memory_format=layout if onednn else torch.channels_last)
     torch.testing.assert_close(pointwise(x, weight), want - bias.view(1, 3, 1, 1), rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("backbone", ["unet", "dvss", "restormer"])
+def test_drawn_zero_parameters_give_every_layer_a_gradient(backbone):
+    """At initialisation every backbone's residual head is zero, so only the head gets a gradient; with the zero
+    parameters drawn (and nothing else changed) every parameter does, and the draw is the same for the same seed."""
+    from tofdenoise.models.common import draw_zero_parameters
+    from tofdenoise.models.registry import build_backbone
+
+    small = {
+        "unet": {"width": 4, "stages": 2},
+        "dvss": {"width": 8, "enc_blocks": [1], "bottleneck_blocks": 1},
+        "restormer": {"width": 8, "blocks": [1, 1, 1, 1], "heads": [1, 1, 2, 2], "refinement_blocks": 1},
+    }[backbone]
+
+    def grads(net):
+        net.zero_grad(set_to_none=True)
+        net(torch.randn(1, 1, 16, 16, generator=torch.Generator().manual_seed(1))).square().mean().backward()
+        return {n: p.grad for n, p in net.named_parameters()}
+
+    torch.manual_seed(0)
+    net = build_backbone(backbone, in_channels=1, **small)
+    before = {n: p.detach().clone() for n, p in net.named_parameters()}
+    assert sum(int(g is not None and bool(g.any())) for g in grads(net).values()) <= 2  # the head only
+    zero = [n for n, p in before.items() if not p.any()]
+    assert zero and draw_zero_parameters(net, seed=3) is net
+    after = dict(net.named_parameters())
+    for n, p in before.items():
+        assert torch.equal(after[n], p) == (n not in zero), n  # the zero ones drawn, the rest untouched
+    assert all(g is not None and g.any() for g in grads(net).values())
+    torch.manual_seed(0)
+    again = draw_zero_parameters(build_backbone(backbone, in_channels=1, **small), seed=3)
+    assert all(torch.equal(p, after[n]) for n, p in again.named_parameters())

@@ -12,6 +12,7 @@ __all__ = [
     "Upsample",
     "LayerNorm2d",
     "count_parameters",
+    "draw_zero_parameters",
     "pad_to_multiple",
     "crop_to",
     "check_input",
@@ -80,6 +81,21 @@ def count_parameters(module: nn.Module, trainable_only: bool = True) -> int:
         trainable_only: count only the parameters with ``requires_grad``.
     """
     return sum(p.numel() for p in module.parameters() if p.requires_grad or not trainable_only)
+
+
+def draw_zero_parameters(module: nn.Module, std: float = 0.05, seed: int = 0) -> nn.Module:
+    """``module`` with every all-zero parameter drawn from N(0, std²) (a fixed-seed generator), in place.
+
+    For comparing two executions of one network (compiled against eager, one device against another): every
+    backbone here starts from a zero-initialised residual head (the identity at initialisation), which passes no
+    gradient to the layers before it, so a comparison at initialisation would check the head alone.
+    """
+    g = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for p in module.parameters():
+            if not p.any():
+                p.copy_(std * torch.randn(p.shape, generator=g).to(p.dtype))
+    return module
 
 
 def pad_to_multiple(x: torch.Tensor, multiple: int, mode: str = "reflect") -> tuple[torch.Tensor, tuple[int, int]]:

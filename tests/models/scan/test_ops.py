@@ -11,6 +11,7 @@ import shutil
 import pytest
 import torch
 
+from tofdenoise.models.common import draw_zero_parameters
 from tofdenoise.models.registry import build_backbone
 from tofdenoise.models.scan import cpu as scan_cpu
 from tofdenoise.models.scan import ops
@@ -216,12 +217,16 @@ def _assert_equal_runs(eager, compiled, rel):
     construction (the head's bias, under a weight that sums to 0) is compared at the network's scale, not at its
     rounding noise (on CUDA it came out 1.4e-6 eager and 0 compiled)."""
     (y0, g0), (y1, g1) = eager, compiled
-    assert _rel(y1, y0) < rel
     assert g0.keys() == g1.keys() and len(g0) > 20
+    dead = [n for n, g in g0.items() if not g.any()]
+    assert len(dead) <= len(g0) // 10, f"{len(dead)} of {len(g0)} parameters get no gradient: {dead[:5]}"
     floor = 1e-3 * max(float(g.abs().max()) for g in g0.values())
+    errors = {"output": _rel(y1, y0)}
     for name in g0:
-        err = float((g1[name] - g0[name]).abs().max()) / max(float(g0[name].abs().max()), floor)
-        assert err < rel, f"{name}: {err:.1e}"
+        errors[name] = float((g1[name] - g0[name]).abs().max()) / max(float(g0[name].abs().max()), floor)
+    bad = sorted(((e, n) for n, e in errors.items() if not e < rel), reverse=True)
+    # every tensor over the tolerance in one message (a GPU run may not get a second try)
+    assert not bad, f"{len(bad)} of {len(errors)} over {rel:g}: " + ", ".join(f"{n} {e:.1e}" for e, n in bad[:8])
 
 
 @needs_cpu_kernel
@@ -234,7 +239,7 @@ def test_compiled_dvss_equals_eager_after_an_eager_dvss_on_a_larger_frame(cpu_ke
     with torch.no_grad():
         assert torch.isfinite(big(torch.randn(1, 1, 240, 320))).all()
     torch.manual_seed(0)
-    net = build_backbone("dvss", **SMALL_DVSS)
+    net = draw_zero_parameters(build_backbone("dvss", **SMALL_DVSS))
     block = next(m for m in net.modules() if type(m).__name__ == "SS2D")
     assert block._spatial_scan(torch.zeros(1, 4, 4, block.d_inner)) == "cpu"  # the native kernel's route
     x = torch.randn(2, 1, 16, 24)
@@ -253,7 +258,7 @@ def test_compiled_dvss_equals_eager_on_cuda(autocast):
 
     assert triton_verified(torch.cuda.current_device())
     torch.manual_seed(0)
-    net = build_backbone("dvss", **SMALL_DVSS).cuda()
+    net = draw_zero_parameters(build_backbone("dvss", **SMALL_DVSS)).cuda()
     block = next(m for m in net.modules() if type(m).__name__ == "SS2D")
     assert block._spatial_scan(torch.zeros(1, 4, 4, block.d_inner, device="cuda")) == "triton"
     x = torch.randn(2, 1, 32, 48, device="cuda")
