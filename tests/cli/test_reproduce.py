@@ -720,3 +720,34 @@ def test_off_edge_columns_and_orderings_read_each_runs_regions_record(tmp_path, 
         f"tofdenoise reproduce: error: {d / 'regions.json'}: expected tofdenoise evaluate --run"
         in capsys.readouterr().err
     )
+
+
+def test_table_3_at_both_profiles_sets_each_profiles_steps_side_by_side(tmp_path):
+    """The page's cross-profile table: per ordering of Table III the mean ± std over each profile's seeds of the
+    paired step and in how many seeds it holds, hand-computed; absent until the GPU profile has a Table III record."""
+    results = tmp_path / "results"
+
+    def run(profile: str, name: str, mae: float) -> None:
+        d = results / profile / name
+        d.mkdir(parents=True)
+        entry = {"psnr_db": 40.0, "mae_mm": mae, "mse_mm2": 9.0, "ssim": 0.99}
+        entry["raw"] = {"psnr_db": 30.0, "mae_mm": 7.0, "mse_mm2": 90.0, "ssim": 0.9}
+        _write_metrics(d / "metrics.json", {"synthetic": entry})
+        (d / "run_info.json").write_text(json.dumps({"started": "2026-11-22T10:00:00+0000"}))
+
+    for seed, (hetero, range_) in enumerate([(2.0, 2.3), (2.1, 2.3), (2.0, 2.4)]):  # steps +0.3, +0.2, +0.4
+        run("cpu", f"unet-hetero-l1-s{seed}", hetero)
+        run("cpu", f"unet-range-l1-s{seed}", range_)
+    (results / "discussion.md").write_text("## Discussion\n")
+    page = tmp_path / "results.md"
+    assert main(["--page-only", "--results", str(results), "--page", str(page)]) == 0
+    assert "# Table III at both profiles" not in page.read_text()
+    run("gpu-short", "unet-hetero-l1-s0", 1.75)
+    run("gpu-short", "unet-range-l1-s0", 1.67)  # reversed at the paper's crop size
+    run("gpu-short", "unet-range-l1-s1", 1.70)  # no hetero run of seed 1: not paired
+    assert main(["--page-only", "--results", str(results), "--page", str(page)]) == 0
+    text = page.read_text()
+    assert text.index("# Table III at both profiles") < text.index("# Profile `cpu`")
+    row = next(line for line in text.splitlines() if line.startswith("| hetero < range for U-Net (synthetic MAE) |"))
+    cells = "+0.300 ± 0.100 mm (n=3) | 3 of 3 | -0.080 mm (n=1) | 0 of 1"
+    assert row == f"| hetero < range for U-Net (synthetic MAE) | {cells} |"

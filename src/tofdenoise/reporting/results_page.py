@@ -565,6 +565,50 @@ def _dataseed_section(records: dict[str, dict[str, Any]], seeds: list[int]) -> l
     return lines + [""]
 
 
+#: the profiles whose Table III the page sets side by side: the CPU's small crops and the paper's crop size
+PROFILE_COMPARISON = ("cpu", "gpu-short")
+
+
+def _profiles_section(results_dir: Path) -> list[str]:
+    """Table III's orderings at the CPU profile and at the paper's crop size (``gpu-short``), side by side: per
+    profile the mean ± standard deviation over its training seeds of each step's paired difference, and in how many
+    seeds the whole ordering holds; nothing when the GPU profile has no Table III record. Each profile's cell is
+    what its own section's ordering table says; the two are never pooled (other crops, steps, precision and test
+    split)."""
+    columns = []
+    for profile in PROFILE_COMPARISON:
+        records = load_records(results_dir / profile)
+        seeds = seeds_present(records) or [0, 1, 2]
+        columns.append((profile, seeds, comparable_metrics(["3"], seeds, records)))
+    claims = [claim for claim in CLAIMS if claim.table == "3"]
+    if not any(pooled_steps([claim], columns[-1][1], columns[-1][2])[1] for claim in claims):
+        return []
+    lines = [
+        "# Table III at both profiles",
+        "",
+        "The paper's orderings of Table III at the `cpu` profile (64 x 64 crops, 432 steps, float32, data seed 0) and "
+        "at `gpu-short` (the paper's 320 x 320 crops, batch, optimiser and bf16, 450 steps): per step, the mean ± "
+        "standard deviation over the profile's training seeds of the paired difference (> 0: the step holds), and "
+        "in how many of those seeds the whole ordering holds. The per-image intervals are in each profile's own "
+        "section below.",
+        "",
+        f"| ordering | `{PROFILE_COMPARISON[0]}` | holds in seeds | `{PROFILE_COMPARISON[1]}` | holds in seeds |",
+        "|---|---|---|---|---|",
+    ]
+    for claim in claims:
+        unit = " mm" if claim.metric.endswith("_mm") else ""
+        cells = []
+        for _, seeds, metrics_of in columns:
+            steps, n, holds = pooled_steps([claim], seeds, metrics_of)
+            if not n:
+                cells += ["-", "-"]
+                continue
+            text = ", ".join(f"{m:+.3f}" + ("" if sd is None else f" ± {sd:.3f}") for m, sd in steps)
+            cells += [f"{text}{unit} (n={n})", f"{holds} of {n}"]
+        lines.append(f"| {claim.text} | {' | '.join(cells)} |")
+    return lines + [""]
+
+
 def _pm(ms: tuple[float, float]) -> str:
     mean, std = ms
     if not math.isfinite(mean):
@@ -808,6 +852,7 @@ def results_markdown(results_dir: Path | str) -> str:
     discussion = results_dir / DISCUSSION_NAME
     if discussion.is_file():
         lines += [discussion.read_text().rstrip(), ""]
+    lines += _profiles_section(results_dir)
     for profile in PROFILE_SEEDS:
         records = load_records(results_dir / profile)
         if profile == "cpu" or records:
