@@ -270,6 +270,39 @@ def test_skip_recorded_runs_only_what_has_no_committed_record(tmp_path, monkeypa
     assert "--skip-recorded applies to --table and --study" in capsys.readouterr().err
 
 
+def test_rerun_earlier_trains_again_the_runs_recorded_under_the_earlier_protocol(tmp_path, monkeypatch, capsys):
+    """``--skip-recorded --rerun-earlier``: a committed record without the simulator-noised split (the earlier test
+    protocol) or with an unreadable metrics.json runs again; a current-protocol record is still skipped; the option
+    alone is refused."""
+    import tofdenoise.experiments.reproduce as workflow
+
+    out, results, page = tmp_path / "runs", tmp_path / "results", tmp_path / "results.md"
+    committed = {
+        "dvss-fixed-l1-s0": {"synthetic": {}, "simulated": {}},  # current
+        "dvss-range-l1-s0": {"synthetic": {}},  # earlier
+        "dvss-hetero-l1-s0": None,  # unreadable
+    }
+    for name, metrics in committed.items():
+        (results / "cpu" / name).mkdir(parents=True)
+        (results / "cpu" / name / "metrics.json").write_text("{" if metrics is None else json.dumps(metrics))
+        (results / "cpu" / name / "run_info.json").write_text("{}")
+    asked = []
+    monkeypatch.setattr(workflow, "ensure_realset", lambda *a, **k: None)
+    monkeypatch.setattr(workflow, "run_all", lambda specs, *a, **k: asked.append([s.name for s in specs]) or [])
+    monkeypatch.setattr(workflow, "write_page", lambda *a, **k: "")
+    argv = ["--table", "3", "--seeds", "0", "--out", str(out), "--results", str(results), "--page", str(page)]
+    assert main([*argv, "--skip-recorded", "--rerun-earlier"]) == 0
+    (names,) = asked
+    assert len(names) == 9 and "dvss-fixed-l1-s0" not in names
+    assert "dvss-range-l1-s0" in names and "dvss-hetero-l1-s0" in names
+    out_text = capsys.readouterr().out
+    assert "--rerun-earlier: 2 record(s) of the earlier protocol run again: dvss-range-l1-s0, dvss-hetero-l1-s0" in (
+        out_text
+    )
+    assert main([*argv, "--rerun-earlier"]) == 2
+    assert "--rerun-earlier applies with --skip-recorded" in capsys.readouterr().err
+
+
 def test_prepare_only_prepares_the_runs_still_to_train_and_trains_nothing(tmp_path, monkeypatch, capsys):
     """``--prepare-only`` (a GPU machine's CPUs, beside other work): the stand-in set is built, the data of every run
     of the target that is neither committed nor finished in its folder is prepared, nothing trains and no page is

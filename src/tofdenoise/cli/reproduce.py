@@ -93,6 +93,12 @@ def build_parser() -> argparse.ArgumentParser:
         "its run folder, such as a fresh GPU machine); tables and studies only",
     )
     p.add_argument(
+        "--rerun-earlier",
+        action="store_true",
+        help="with --skip-recorded: a committed record of the earlier test protocol (no simulator-noised split) "
+        "does not count, so the run trains again and its record moves the table to the current protocol",
+    )
+    p.add_argument(
         "--time-budget",
         type=float,
         default=None,
@@ -171,6 +177,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.prepare_only and (target is None or target.kind == "figure"):
         print(f"{PROG}: error: --prepare-only applies to --table and --study", file=sys.stderr)
         return 2
+    if args.rerun_earlier and not args.skip_recorded:
+        print(f"{PROG}: error: --rerun-earlier applies with --skip-recorded", file=sys.stderr)
+        return 2
     if args.time_budget is not None and (target is None or target.kind == "figure" or not args.time_budget > 0):
         print(
             f"{PROG}: error: --time-budget takes a positive number of minutes and applies to --table and --study",
@@ -212,6 +221,7 @@ def main(argv: list[str] | None = None) -> int:
         dry_run=args.dry_run,
         executor=executor,
         skip_recorded=args.skip_recorded,
+        rerun_earlier=args.rerun_earlier,
         time_budget_min=args.time_budget,
         run_minutes=run_minutes,
         prepare_only=args.prepare_only,

@@ -45,7 +45,7 @@ from tofdenoise.experiments.figures import (
 from tofdenoise.experiments.grid_data import prepare_grid_data
 from tofdenoise.experiments.runner import RunSpec, TimeBudget, run_all
 from tofdenoise.experiments.schedule import CURVES_FIGURE, curves_figure_png, schedule_curves
-from tofdenoise.experiments.tables import TABLES, run_name, table_specs
+from tofdenoise.experiments.tables import SIM_SET, TABLES, run_name, table_specs
 from tofdenoise.experiments.targets import GPU_PROFILES, PROFILES, REALSET_SIZES, Target
 from tofdenoise.records import (
     BEST_CHECKPOINT,
@@ -231,10 +231,28 @@ def copy_records(run_dirs: list[Path], dest: Path) -> list[str]:
     return copied
 
 
-def without_recorded(specs: list[Any], dest: Path, log: Log = _print) -> list[Any]:
+def _of_current_protocol(folder: Path) -> bool:
+    """Whether the committed ``metrics.json`` in ``folder`` scored the simulator-noised split (the current test
+    protocol; ``results_page.record_protocol``); an unreadable one is not."""
+    try:
+        metrics = json.loads((folder / METRICS_NAME).read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(metrics, dict) and SIM_SET in metrics
+
+
+def without_recorded(specs: list[Any], dest: Path, log: Log = _print, rerun_earlier: bool = False) -> list[Any]:
     """``specs`` less the runs whose records (``metrics.json`` and ``run_info.json``) are committed in ``dest``: what
-    ``--skip-recorded`` runs on a machine that does not hold their run folders. The runs left out are logged."""
+    ``--skip-recorded`` runs on a machine that does not hold their run folders. With ``rerun_earlier`` a record of
+    the earlier test protocol does not count (``--rerun-earlier``: the run trains again under the current one). The
+    runs left out, and those run again for their protocol, are logged."""
     recorded = [s.name for s in specs if all((dest / s.name / name).is_file() for name in RUN_FILES)]
+    if rerun_earlier:
+        earlier = [name for name in recorded if not _of_current_protocol(dest / name)]
+        if earlier:
+            names = ", ".join(earlier)
+            log(f"[reproduce] --rerun-earlier: {len(earlier)} record(s) of the earlier protocol run again: {names}")
+        recorded = [name for name in recorded if name not in earlier]
     if recorded:
         log(f"[reproduce] --skip-recorded: {len(recorded)} run(s) committed in {dest}, not run: {', '.join(recorded)}")
     return [s for s in specs if s.name not in recorded]
@@ -373,6 +391,7 @@ class Reproduction:
     dry_run: bool = False
     executor: Any = None  # an executor of ``experiments.executors`` (None: sequential)
     skip_recorded: bool = False  # leave out the runs whose records are committed in ``dest`` (tables, studies)
+    rerun_earlier: bool = False  # with skip_recorded: a record of the earlier test protocol does not count
     #: minutes for the runs (a GPU allocation's limit): runs that would not fit are not started, a run still
     #: training at the end is stopped and resumes next time (``runner.TimeBudget``; estimates: ``recorded_seconds``)
     time_budget_min: float | None = None
@@ -478,7 +497,7 @@ def reproduce(job: Reproduction, log: Log = _print) -> int:
         else:
             specs = table_specs(target.key, job.seeds, job.overrides())
             if job.skip_recorded:
-                specs = without_recorded(specs, job.dest, log)
+                specs = without_recorded(specs, job.dest, log, rerun_earlier=job.rerun_earlier)
             if job.prepare_only and not job.dry_run:
                 prepared = prepare_grid_data([s for s in specs if not run_finished(Path(job.out) / s.name)], log=log)
                 log(f"[reproduce] --prepare-only: data of {len(prepared)} distinct config(s) prepared; nothing trained")
