@@ -12,7 +12,9 @@ Usage: python benchmarks/bench_gpu_scan.py [--baseline REV] [--json FILE] [--ski
    module name), U-Net and the Restormer (``bench_gpu._bench_backbone``).
 3. ``torch.compile`` of DVSS: first-call seconds, the bf16 step eager against compiled, and how far the compiled
    output and gradients are from eager.
-4. The dt projection's forms (``tofdenoise.models.ss2d.DT_PROJECTION_FORMS``) at the first level.
+4. The dt projection's forms (``tofdenoise.models.ss2d.DT_PROJECTION_FORMS``) at the first level, and the first
+   level's per-pixel products' weight gradients (a reduction over 409,600 positions) as one ``mm`` and split over
+   the positions (``products``).
 5. The device tests (``tests/models/scan/test_triton.py``, ``test_ops.py`` and ``tests/models/test_compile_cuda.py``,
    ``-m 'not slow'``) in a subprocess,
    with the time left (``--skip-tests`` leaves them out).
@@ -265,6 +267,45 @@ class Bench:
             }
             print(form, json.dumps(out[form]), flush=True)
 
+    # 4b. the per-pixel products' weight gradients
+    def products(self) -> None:
+        """The weight gradient of each per-pixel product at DVSS's first level (409,600 positions of batch 4 at 320 x
+        320; in -> out channels of in_proj, x_proj stacked over the 4 directions, out_proj and the block's fusion),
+        bf16 as under autocast: ``dW = dY^T X``, a reduction over all positions into a small matrix, as autograd
+        computes it (one ``mm``: the 3.4 ms CUTLASS kernel of 2026-11-27's profile is most likely one of these) and
+        split over the positions by hand (``bmm`` of ``chunks`` slices, then a float32 sum of the partial matrices).
+        Each row: ms of each form and the split form's largest relative difference from the ``mm``'s."""
+        torch = self.torch
+        m = 4 * 6 * 6 if self.args.dry else 4 * 320 * 320
+        shapes = {"in_proj": (32, 128), "x_proj": (64, 136), "out_proj": (64, 32), "fusion": (96, 32)}
+        g = torch.Generator(device=self.dev).manual_seed(0)
+        out: dict = {}
+        self.res["products"] = out
+        for name, (c_in, c_out) in shapes.items():
+            x = torch.randn(m, c_in, device=self.dev, generator=g).bfloat16()
+            dy = torch.randn(m, c_out, device=self.dev, generator=g).bfloat16()
+            row: dict = {"positions": m, "in": c_in, "out": c_out}
+
+            def mm(x=x, dy=dy):
+                return dy.t() @ x
+
+            row["mm_ms"] = self.time_ms(mm)
+            ref = mm().float()
+            for chunks in (16, 64, 256):
+                if m % chunks:
+                    continue
+
+                def split(x=x, dy=dy, chunks=chunks):
+                    xs, dys = x.view(chunks, m // chunks, c_in), dy.view(chunks, m // chunks, c_out)
+                    return torch.bmm(dys.transpose(1, 2), xs).float().sum(0)
+
+                row[f"split{chunks}_ms"] = self.time_ms(split)
+                row[f"split{chunks}_max_rel_diff"] = float(
+                    (split() - ref).abs().max() / ref.abs().max().clamp_min(1e-12)
+                )
+            out[name] = row
+            print(name, json.dumps(row), flush=True)
+
     # 5. device tests
     def tests(self, budget_s: float) -> None:
         scan = ["tests/models/scan/test_triton.py", "tests/models/scan/test_ops.py"]
@@ -342,7 +383,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--only",
         default=None,
-        help="comma-separated sections to run, of routes, backbones, compile, dt_forms, tests, profile (default all)",
+        help="comma-separated sections to run, of routes, backbones, compile, dt_forms, products, tests, profile "
+        "(default all)",
     )
     args = p.parse_args(argv)
     if args.dry:
@@ -368,9 +410,10 @@ def main(argv: list[str] | None = None) -> int:
     if not args.skip_compile:
         sections.append(("compile", bench.compile))
     sections.append(("dt_forms", bench.dt_forms))
+    sections.append(("products", bench.products))
     only = None if args.only is None else set(args.only.split(","))
     if only is not None:
-        unknown = only - {"routes", "backbones", "compile", "dt_forms", "tests", "profile"}
+        unknown = only - {"routes", "backbones", "compile", "dt_forms", "products", "tests", "profile"}
         if unknown:
             p.error(f"--only: unknown section(s) {sorted(unknown)}")
         sections = [(name, fn) for name, fn in sections if name in only]
