@@ -2,6 +2,7 @@
 
     python benchmarks/bench_export_scan.py [--quick] [--threads N] [--length L] [--repeats R]
         [--forms steps,chunked] [--state-elems 65536,262144,...] [--exporter torchscript|dynamo] [--delta-scale S]
+        [--provider cpu|cuda]
 
 One selective scan of the shape of the default DVSS's first level (batch 1, dim 4 x 64 = 256 channels of the four
 directions, N = 16, 4 groups of B/C, ``--length`` positions; 480 x 640 is L = 307200, the default 19200 is a
@@ -72,6 +73,13 @@ def main() -> None:
     p.add_argument("--exporter", choices=("torchscript", "dynamo"), default="torchscript")
     p.add_argument("--delta-scale", type=float, default=1.0)
     p.add_argument("--chunk", type=int, default=None, help="positions per chunk of the chunked form")
+    p.add_argument(
+        "--provider",
+        choices=("cpu", "cuda"),
+        default="cpu",
+        help="onnxruntime's execution provider for the export scan (cuda: its inputs are copied to the GPU in each "
+        "timed run; the PyTorch row stays the native CPU kernel, the reference of every max diff)",
+    )
     args = p.parse_args()
     warnings.filterwarnings("ignore")
     import numpy as np
@@ -105,7 +113,10 @@ def main() -> None:
     elems = DIM * N * length
     names = ["u", "delta", "B", "C"]
     feeds = dict(zip(names, (x.numpy() for x in (u, delta, B, C))))
-    print(f"scan dim {DIM}, N {N}, groups {GROUPS}, L {length}; torch/onnxruntime threads {threads}; {args.exporter}")
+    print(
+        f"scan dim {DIM}, N {N}, groups {GROUPS}, L {length}; torch/onnxruntime threads {threads}; {args.exporter}; "
+        f"onnxruntime provider {args.provider}"
+    )
 
     def export(form: str, budget: int):
         class Scan(torch.nn.Module):
@@ -142,8 +153,13 @@ def main() -> None:
             options = ort.SessionOptions()
             options.intra_op_num_threads = threads
             proto = export(form, budget)
-            sess = ort.InferenceSession(proto.SerializeToString(), options, providers=["CPUExecutionProvider"])
-            name = f"onnxruntime export scan, {form}"
+            providers = ["CUDAExecutionProvider"] if args.provider == "cuda" else ["CPUExecutionProvider"]
+            if args.provider == "cuda" and "CUDAExecutionProvider" not in ort.get_available_providers():
+                raise SystemExit("bench_export_scan: --provider cuda: this onnxruntime has no CUDAExecutionProvider")
+            sess = ort.InferenceSession(proto.SerializeToString(), options, providers=providers)
+            if sess.get_providers()[0] != providers[0]:
+                raise SystemExit(f"bench_export_scan: onnxruntime did not start {providers[0]}: {sess.get_providers()}")
+            name = f"onnxruntime ({args.provider}) export scan, {form}"
             key = f"{name} @ {budget}"
             routes[key] = (lambda sess=sess: sess.run(None, feeds), budget)
             out, rss = _peak_above_start(lambda sess=sess: sess.run(None, feeds)[0])
