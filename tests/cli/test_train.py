@@ -22,6 +22,7 @@ from tofdenoise.physics.calibration import SensorCalibration
 from tofdenoise.records import (
     RUN_KEYS,
     code_commit,
+    code_digest,
     host_machine,
     learned_status,
     metric_sets,
@@ -469,6 +470,7 @@ def test_run_info_names_the_commit_and_the_machine_that_made_it(tmp_path, tiny):
     assert {k: info.get(k) for k in expected} == expected
     if expected["commit"] is not None:  # the tests run from a git checkout
         assert len(info["commit"]) == 40 and isinstance(info["commit_dirty"], bool)
+    assert info["code_digest"] == code_digest()  # the code by its content, whatever git says
     machine = info["machine"]
     assert machine == {**host_machine(), **{k: machine[k] for k in ("torch", "torch_threads", "accelerator", "gpu")}}
     assert machine["torch"] == torch.__version__ and machine["torch_threads"] == torch.get_num_threads()

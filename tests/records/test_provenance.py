@@ -91,3 +91,36 @@ def test_is_ancestor_orders_two_commits_and_says_when_git_cannot_tell(checkout, 
     assert is_ancestor(second, first, repo) is False
     assert is_ancestor("ab" * 20, second, repo) is None  # a commit the checkout does not have
     assert is_ancestor(first, second, tmp_path / "nowhere") is None  # no checkout
+
+
+def test_the_code_digest_names_the_code_by_its_content(tmp_path):
+    """``code_digest``: the same files give the same digest wherever they lie; a changed byte, a renamed or an added
+    source file changes it; caches and files of other kinds do not; the default covers the package and configs."""
+    from tofdenoise.records import code_digest
+
+    def tree(root, text="x = 1\n"):
+        (root / "pkg" / "sub").mkdir(parents=True)
+        (root / "pkg" / "a.py").write_text(text)
+        (root / "pkg" / "sub" / "k.cpp").write_text("int f();\n")
+        (root / "conf").mkdir()
+        (root / "conf" / "c.yaml").write_text("lr: 2e-4\n")
+        return root / "pkg", root / "conf"
+
+    first, second = tree(tmp_path / "one"), tree(tmp_path / "two")
+    digest = code_digest(*first)
+    assert digest.startswith("sha256:") and len(digest) == 7 + 64
+    assert code_digest(*second) == digest  # another place, the same code
+    assert code_digest(*tree(tmp_path / "three", "x = 2\n")) != digest  # one byte
+    assert code_digest(second[1], second[0]) != digest  # the folders' roles swapped
+    (second[0] / "__pycache__").mkdir()
+    (second[0] / "__pycache__" / "a.cpython-311.pyc").write_bytes(b"\0")
+    (second[0] / "notes.txt").write_text("not code")
+    from tofdenoise.records.provenance import _digest
+
+    _digest.cache_clear()
+    assert code_digest(*second) == digest  # caches and other kinds left out
+    (second[0] / "sub" / "k.cpp").rename(second[0] / "sub" / "k2.cpp")
+    _digest.cache_clear()
+    assert code_digest(*second) != digest  # a renamed file
+    assert code_digest(tmp_path / "missing") == code_digest(tmp_path / "also-missing")
+    assert code_digest() == code_digest()  # the package and the checkout's configs

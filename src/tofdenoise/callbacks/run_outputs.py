@@ -45,6 +45,7 @@ from tofdenoise.records import (
     PER_IMAGE_DIR,
     RUN_INFO_NAME,
     code_commit,
+    code_digest,
     host_machine,
     write_metrics_json,
     write_per_image_csv,
@@ -159,8 +160,9 @@ class RunOutputs(Callback):
             "prepared_data": summary() if callable(summary) else None,
             # fine-tuning: the weights this run started from (model.init_weights), path and sha256
             "init_weights": getattr(pl_module, "init_record", None),
-            # the code that trained it: commit, whether tracked files differed from it, git describe
+            # the code that trained it: commit, whether tracked files differed from it, git describe; and its digest
             **code_commit(),
+            "code_digest": code_digest(),
             # what trained it: CPU training is bit-identical only on the same machine kind and thread count
             "machine": run_machine(trainer),
         }

@@ -33,7 +33,7 @@ from tofdenoise.callbacks.run_outputs import write_test_outputs
 from tofdenoise.config import instantiate_node
 from tofdenoise.experiments.train_job import record_calibration, validate_config
 from tofdenoise.models import available_backbones, is_trainable
-from tofdenoise.records import TRUTH_NAME, code_commit, json_number, write_run_info
+from tofdenoise.records import TRUTH_NAME, code_commit, code_digest, json_number, write_run_info
 from tofdenoise.run_lock import RunLock
 from tofdenoise.training.metrics import DepthMetrics
 from tofdenoise.training.module import DepthRestorer
@@ -252,6 +252,7 @@ def _tune_and_test(
         "params": rows[best_i],
         "tuning": TUNING_NAME,
         **code_commit(),
+        "code_digest": code_digest(),
     }
     if trainer.is_global_zero:
         write_truth(model, datamodule, run_dir)

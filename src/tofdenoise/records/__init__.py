@@ -41,6 +41,7 @@ from tofdenoise.records.per_image import read_per_image_csv, write_per_image_csv
 from tofdenoise.records.provenance import (
     RUNS_AT_ONCE_ENV,
     code_commit,
+    code_digest,
     cpu_label,
     host_machine,
     is_ancestor,
@@ -88,6 +89,7 @@ __all__ = [
     "REGIONS_NAME",
     "classical_verdict",
     "code_commit",
+    "code_digest",
     "cpu_label",
     "host_machine",
     "is_ancestor",

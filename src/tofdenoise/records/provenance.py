@@ -8,6 +8,10 @@ config; the records and the results page that ``tofdenoise reproduce`` itself wr
 installed package outside a checkout (a wheel in site-packages) records ``commit: null`` and its ``version``
 instead. Records written before these fields existed read as before (:func:`record_commit` gives ``None``).
 
+``code_digest`` (:func:`code_digest`) names the code by its content, whatever git says: the SHA-256 of the package's
+sources and the Hydra configs (each file's path and content). Two records with the same digest ran the same code,
+even where a copied checkout's git named a stale commit (``commit_dirty`` then says only that something differed).
+
 Beside the commit, ``machine`` names what it ran on (:func:`host_machine`, completed by the training callback with
 torch's version, thread count and accelerator): CPU training is bit-identical run to run only on the same machine
 kind and thread count (docs/training.md#determinism), so a record says which it was.
@@ -15,6 +19,7 @@ kind and thread count (docs/training.md#determinism), so a record says which it 
 
 from __future__ import annotations
 
+import hashlib
 import os
 import platform
 import subprocess
@@ -27,6 +32,7 @@ from typing import Any
 __all__ = [
     "RUNS_AT_ONCE_ENV",
     "code_commit",
+    "code_digest",
     "cpu_label",
     "host_machine",
     "is_ancestor",
@@ -91,6 +97,41 @@ def _commit_of(folder: Path) -> tuple[tuple[str, Any], ...]:
         ("commit_dirty", dirty),
         ("commit_describe", f"{describe}-dirty" if describe and dirty else describe),
     )
+
+
+#: the files whose content is a run's code: the package's sources (Python, the native kernel's C++) and configs
+CODE_SUFFIXES = (".py", ".cpp", ".h", ".yaml")
+
+
+def code_digest(*folders: str | Path) -> str:
+    """``sha256:<hex>`` of the code in ``folders`` (default: the imported ``tofdenoise`` package and the checkout's
+    ``configs/``, where there is one): every file ending in one of :data:`CODE_SUFFIXES` below them (caches left
+    out), in the order of its path relative to its folder, hashed as that path and its content's own SHA-256. A
+    missing folder counts as empty. Pure of git: equal digests are equal code, whichever commit a checkout names."""
+    if not folders:
+        from tofdenoise.paths import CONFIG_DIR, PACKAGE_DIR
+
+        folders = (PACKAGE_DIR, CONFIG_DIR)
+    return _digest(tuple(Path(f).resolve() for f in folders))
+
+
+@lru_cache(maxsize=8)
+def _digest(folders: tuple[Path, ...]) -> str:
+    total = hashlib.sha256()
+    for index, folder in enumerate(folders):
+        files = (
+            sorted(
+                p
+                for p in folder.rglob("*")
+                if p.suffix in CODE_SUFFIXES and p.is_file() and "__pycache__" not in p.parts
+            )
+            if folder.is_dir()
+            else []
+        )
+        for path in files:
+            rel = path.relative_to(folder).as_posix()
+            total.update(f"{index}:{rel}:{hashlib.sha256(path.read_bytes()).hexdigest()}\n".encode())
+    return "sha256:" + total.hexdigest()
 
 
 def code_commit(folder: str | Path | None = None) -> dict[str, Any]:
