@@ -211,12 +211,13 @@ def _forward_backward(net, x, call=None):
     return y.detach().float(), {k: p.grad.detach().float().clone() for k, p in net.named_parameters()}
 
 
-def _assert_equal_runs(eager, compiled, rel):
-    """Output and every parameter gradient within ``rel`` of eager's, relative to the larger of the tensor's own
-    largest magnitude and 1e-3 of the largest gradient of the network: a gradient that cancels to about 0 by
-    construction (the head's bias, under a weight that sums to 0) is compared at the network's scale, not at its
-    rounding noise (on CUDA it came out 1.4e-6 eager and 0 compiled)."""
-    (y0, g0), (y1, g1) = eager, compiled
+def _distances(reference, run) -> dict[str, float]:
+    """How far ``run``'s output and each parameter gradient are from ``reference``'s: the largest absolute
+    difference relative to the larger of the reference tensor's own largest magnitude and 1e-3 of the network's
+    largest gradient (a gradient that cancels to about 0, such as a bias under a weight that sums to 0, is compared
+    at the network's scale, not at its rounding noise: on CUDA one came out 1.4e-6 eager and 0 compiled). Checks that
+    every parameter but a tenth gets a gradient, so that the comparison reaches the network."""
+    (y0, g0), (y1, g1) = reference, run
     assert g0.keys() == g1.keys() and len(g0) > 20
     dead = [n for n, g in g0.items() if not g.any()]
     assert len(dead) <= len(g0) // 10, f"{len(dead)} of {len(g0)} parameters get no gradient: {dead[:5]}"
@@ -224,9 +225,37 @@ def _assert_equal_runs(eager, compiled, rel):
     errors = {"output": _rel(y1, y0)}
     for name in g0:
         errors[name] = float((g1[name] - g0[name]).abs().max()) / max(float(g0[name].abs().max()), floor)
-    bad = sorted(((e, n) for n, e in errors.items() if not e < rel), reverse=True)
-    # every tensor over the tolerance in one message (a GPU run may not get a second try)
-    assert not bad, f"{len(bad)} of {len(errors)} over {rel:g}: " + ", ".join(f"{n} {e:.1e}" for e, n in bad[:8])
+    return errors
+
+
+def _assert_none_over(errors: dict[str, float], limits: dict[str, float], what: str) -> None:
+    bad = sorted(((e / limits[n], n, e, limits[n]) for n, e in errors.items() if not e <= limits[n]), reverse=True)
+    # every tensor over its limit in one message (a GPU run may not get a second try)
+    assert not bad, f"{len(bad)} of {len(errors)} {what}: " + ", ".join(
+        f"{n} {e:.1e} > {lim:.1e}" for _, n, e, lim in bad[:8]
+    )
+
+
+def _assert_equal_runs(eager, compiled, rel):
+    """Float32: the compiled output and every parameter gradient within ``rel`` of eager's (:func:`_distances`)."""
+    errors = _distances(eager, compiled)
+    _assert_none_over(errors, dict.fromkeys(errors, rel), f"over {rel:g}")
+
+
+#: bf16 autocast: the compiled run may be this many times further from float32 than eager's own bf16 run ...
+BF16_FACTOR = 3.0
+#: ... or this far, where eager's own bf16 run is closer than that
+BF16_FLOOR = 2e-2
+
+
+def _assert_within_bf16_rounding(reference, eager, compiled):
+    """Under bf16 autocast compiled and eager round in other orders, and a gradient that sums many rounded terms
+    (a LayerNorm's bias) can be 100 % off float32 in eager alone (a small DVSS on the CPU, 2026-11-28): so the
+    compiled run is held to eager's own bf16 error, per tensor, against the float32 ``reference``: at most
+    :data:`BF16_FACTOR` times eager's distance, or :data:`BF16_FLOOR`."""
+    own, got = _distances(reference, eager), _distances(reference, compiled)
+    limits = {n: BF16_FACTOR * max(own[n], BF16_FLOOR) for n in own}
+    _assert_none_over(got, limits, "further from float32 than bf16 rounding allows")
 
 
 @needs_cpu_kernel
@@ -249,11 +278,27 @@ def test_compiled_dvss_equals_eager_after_an_eager_dvss_on_a_larger_frame(cpu_ke
     _assert_equal_runs(eager, compiled, 1e-4)
 
 
+@pytest.mark.slow
+@needs_cpu_kernel
+def test_compiled_dvss_under_bf16_autocast_stays_within_bf16_rounding_on_the_cpu(cpu_kernel):
+    """The bf16 criterion of the CUDA test, on the CPU (a compile of a few minutes on 2 cores): compiled DVSS under
+    bf16 autocast is no further from the float32 run than eager's own bf16 rounding allows."""
+    torch.manual_seed(0)
+    net = draw_zero_parameters(build_backbone("dvss", **SMALL_DVSS))
+    x = torch.randn(2, 1, 16, 24)
+    reference = _forward_backward(net, x)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        eager = _forward_backward(net, x)
+        torch._dynamo.reset()
+        compiled = _forward_backward(net, x, torch.compile(net, fullgraph=True))
+    _assert_within_bf16_rounding(reference, eager, compiled)
+
+
 @pytest.mark.gpu
 @pytest.mark.parametrize("autocast", [False, True])
 def test_compiled_dvss_equals_eager_on_cuda(autocast):
-    """On CUDA the SS2D scan takes the Triton route (its operators); float32 to 1e-4, bf16 autocast to 2e-2 (the
-    compiled glue rounds in another order)."""
+    """On CUDA the SS2D scan takes the Triton route (its operators); float32 to 1e-4, bf16 autocast within bf16's
+    own rounding of a float32 run (:func:`_assert_within_bf16_rounding`)."""
     from tofdenoise.models.scan.triton import triton_verified
 
     assert triton_verified(torch.cuda.current_device())
@@ -262,11 +307,15 @@ def test_compiled_dvss_equals_eager_on_cuda(autocast):
     block = next(m for m in net.modules() if type(m).__name__ == "SS2D")
     assert block._spatial_scan(torch.zeros(1, 4, 4, block.d_inner, device="cuda")) == "triton"
     x = torch.randn(2, 1, 32, 48, device="cuda")
+    reference = _forward_backward(net, x)
     with torch.autocast("cuda", dtype=torch.bfloat16, enabled=autocast):
         eager = _forward_backward(net, x)
         torch._dynamo.reset()
         compiled = _forward_backward(net, x, torch.compile(net, fullgraph=True))
-    _assert_equal_runs(eager, compiled, 2e-2 if autocast else 1e-4)
+    if autocast:
+        _assert_within_bf16_rounding(reference, eager, compiled)
+    else:
+        _assert_equal_runs(eager, compiled, 1e-4)
 
 
 @needs_cpu_kernel
