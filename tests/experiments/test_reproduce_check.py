@@ -72,6 +72,28 @@ def test_tolerances_input_exact_trained_metrics_within_the_seed_spread():
     assert table[2] == "| run | test MAE (mm) | 4.1400 | 4.4100 | +0.2700 | 0.02 | FAIL |"
 
 
+def test_the_seed_spread_counts_only_the_records_of_the_picked_runs_protocol(tmp_path):
+    """A row part re-run under the current protocol (``--rerun-earlier``): the tolerance is the spread over the seeds
+    of the picked record's protocol alone; hand-computed."""
+    from tofdenoise.experiments.reproduce_check import _seed_spread
+    from tofdenoise.experiments.tables import TABLES
+
+    row = next(r for r in TABLES["2"] if r.key == "dvss_nar")
+    current = {0: 2.00, 1: 2.04}  # scored the simulator-noised split
+    earlier = {2: 2.40}  # did not
+    from tofdenoise.records import learned_verdict, write_metrics_json
+
+    for seed, mae in {**current, **earlier}.items():
+        entry = {"psnr_db": 40.0, "mae_mm": mae, "mse_mm2": 9.0, "ssim": 0.99}
+        entry["raw"] = {"psnr_db": 30.0, "mae_mm": 7.0, "mse_mm2": 90.0, "ssim": 0.9}
+        results = {"synthetic": entry, **({"simulated": entry} if seed in current else {})}
+        folder = tmp_path / f"dvss-hetero-nar-s{seed}"
+        folder.mkdir()
+        write_metrics_json(folder / "metrics.json", results, run=learned_verdict(1000, mae, 7.0))
+    assert _seed_spread(tmp_path, row, "mae_mm", 0) == pytest.approx(0.04 / math.sqrt(2))  # seeds 0 and 1
+    assert math.isnan(_seed_spread(tmp_path, row, "mae_mm", 2))  # the earlier record alone
+
+
 #: a tiny version of the CPU profile's runs (what the records of the end-to-end test are made with)
 def _tiny(cache: Path) -> list[str]:
     return [

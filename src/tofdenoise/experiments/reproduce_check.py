@@ -220,13 +220,19 @@ def config_drift(recorded_yaml: str, now_yaml: str) -> tuple[list[str], list[str
     return changed, added
 
 
-def _seed_spread(profile_dir: Path, row: Row, metric: str) -> float:
-    """The standard deviation of ``metric`` over the recorded seeds of ``row`` (NaN with fewer than two)."""
+def _seed_spread(profile_dir: Path, row: Row, metric: str, seed: int = 0) -> float:
+    """The standard deviation of ``metric`` over the recorded seeds of ``row`` whose record is of the test protocol
+    of the ``seed`` run's (both scored the simulator-noised split or neither: a row part re-run under the current
+    protocol does not mix the two; NaN with fewer than two)."""
     values = []
-    for seed in (0, 1, 2):
-        path = profile_dir / run_name(row, seed) / METRICS_NAME
+    own = profile_dir / run_name(row, seed) / METRICS_NAME
+    protocol = SIM_SET in metric_sets(load_metrics(own)) if own.is_file() else None
+    for other in (0, 1, 2):
+        path = profile_dir / run_name(row, other) / METRICS_NAME
         if path.is_file():
-            values.append(_metric(load_metrics(path), metric))
+            metrics = load_metrics(path)
+            if protocol is None or (SIM_SET in metric_sets(metrics)) == protocol:
+                values.append(_metric(metrics, metric))
     finite = [v for v in values if math.isfinite(v)]
     return statistics.stdev(finite) if len(finite) >= 2 else math.nan
 
@@ -480,7 +486,7 @@ def reproduce_check(
         recorded = load_metrics(run.record / METRICS_NAME)
         rerun = load_metrics(Path(out) / run.name / METRICS_NAME)
         result.notes[run.name].append(_inputs_note(run.record, Path(out) / run.name))
-        spreads = {m: _seed_spread(profile_dir, run.row, m) for m in MIN_TOLERANCE}
+        spreads = {m: _seed_spread(profile_dir, run.row, m, run.seed) for m in MIN_TOLERANCE}
         result.rows += compare_metrics(run.name, recorded, rerun, spreads)
     lines = [
         f"Reproducibility check at {here} (profile {profile}): one recorded run per table, rerun and compared.",
