@@ -11,7 +11,7 @@ import torch
 from tofdenoise.models.common import draw_zero_parameters
 from tofdenoise.models.registry import build_backbone
 
-from .scan.test_ops import _assert_equal_runs, _assert_within_bf16_rounding, _forward_backward
+from .scan.test_ops import _compare_compiled
 
 SMALL = {
     "unet": {"width": 8, "stages": 3},
@@ -26,16 +26,7 @@ SMALL = {
 def test_compiled_backbone_equals_eager_on_cpu(backbone, autocast):
     torch.manual_seed(0)
     net = draw_zero_parameters(build_backbone(backbone, in_channels=1, **SMALL[backbone]))
-    x = torch.randn(2, 1, 32, 48)
-    reference = _forward_backward(net, x)
-    with torch.autocast("cpu", dtype=torch.bfloat16, enabled=autocast):
-        eager = _forward_backward(net, x)
-        torch._dynamo.reset()
-        compiled = _forward_backward(net, x, torch.compile(net, fullgraph=True))
-    if autocast:
-        _assert_within_bf16_rounding(reference, eager, compiled)
-    else:
-        _assert_equal_runs(eager, compiled, 1e-4)
+    _compare_compiled(net, torch.randn(2, 1, 32, 48), autocast)
 
 
 @pytest.mark.gpu
@@ -44,18 +35,9 @@ def test_compiled_backbone_equals_eager_on_cpu(backbone, autocast):
 def test_compiled_backbone_equals_eager_on_cuda(backbone, autocast):
     torch.manual_seed(0)
     net = draw_zero_parameters(build_backbone(backbone, in_channels=1, **SMALL[backbone])).cuda()
-    x = torch.randn(2, 1, 32, 48, device="cuda")
     tf32 = torch.backends.cudnn.allow_tf32
     torch.backends.cudnn.allow_tf32 = False  # eager and compiled may pick other TF32 convolutions
     try:
-        reference = _forward_backward(net, x)
-        with torch.autocast("cuda", dtype=torch.bfloat16, enabled=autocast):
-            eager = _forward_backward(net, x)
-            torch._dynamo.reset()
-            compiled = _forward_backward(net, x, torch.compile(net, fullgraph=True))
+        _compare_compiled(net, torch.randn(2, 1, 32, 48, device="cuda"), autocast)
     finally:
         torch.backends.cudnn.allow_tf32 = tf32
-    if autocast:
-        _assert_within_bf16_rounding(reference, eager, compiled)
-    else:
-        _assert_equal_runs(eager, compiled, 1e-4)

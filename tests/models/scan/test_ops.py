@@ -258,6 +258,21 @@ def _assert_within_bf16_rounding(reference, eager, compiled):
     _assert_none_over(got, limits, "further from float32 than bf16 rounding allows")
 
 
+def _compare_compiled(net, x, autocast: bool = False) -> None:
+    """Eager against compiled (inductor, one graph) forward + backward of ``net`` on ``x``, under bf16 autocast on
+    x's device when ``autocast``: float32 to 1e-4 (:func:`_assert_equal_runs`), bf16 within bf16's own rounding of
+    the float32 run (:func:`_assert_within_bf16_rounding`)."""
+    reference = _forward_backward(net, x)
+    with torch.autocast(x.device.type, dtype=torch.bfloat16, enabled=autocast):
+        eager = _forward_backward(net, x)
+        torch._dynamo.reset()
+        compiled = _forward_backward(net, x, torch.compile(net, fullgraph=True))
+    if autocast:
+        _assert_within_bf16_rounding(reference, eager, compiled)
+    else:
+        _assert_equal_runs(eager, compiled, 1e-4)
+
+
 @needs_cpu_kernel
 def test_compiled_dvss_equals_eager_after_an_eager_dvss_on_a_larger_frame(cpu_kernel):
     """An eager DVSS first runs a 240 x 320 frame (the default network); then a small DVSS compiled with inductor
@@ -271,11 +286,7 @@ def test_compiled_dvss_equals_eager_after_an_eager_dvss_on_a_larger_frame(cpu_ke
     net = draw_zero_parameters(build_backbone("dvss", **SMALL_DVSS))
     block = next(m for m in net.modules() if type(m).__name__ == "SS2D")
     assert block._spatial_scan(torch.zeros(1, 4, 4, block.d_inner)) == "cpu"  # the native kernel's route
-    x = torch.randn(2, 1, 16, 24)
-    eager = _forward_backward(net, x)
-    torch._dynamo.reset()
-    compiled = _forward_backward(net, x, torch.compile(net, fullgraph=True))
-    _assert_equal_runs(eager, compiled, 1e-4)
+    _compare_compiled(net, torch.randn(2, 1, 16, 24))
 
 
 @pytest.mark.slow
@@ -285,13 +296,7 @@ def test_compiled_dvss_under_bf16_autocast_stays_within_bf16_rounding_on_the_cpu
     bf16 autocast is no further from the float32 run than eager's own bf16 rounding allows."""
     torch.manual_seed(0)
     net = draw_zero_parameters(build_backbone("dvss", **SMALL_DVSS))
-    x = torch.randn(2, 1, 16, 24)
-    reference = _forward_backward(net, x)
-    with torch.autocast("cpu", dtype=torch.bfloat16):
-        eager = _forward_backward(net, x)
-        torch._dynamo.reset()
-        compiled = _forward_backward(net, x, torch.compile(net, fullgraph=True))
-    _assert_within_bf16_rounding(reference, eager, compiled)
+    _compare_compiled(net, torch.randn(2, 1, 16, 24), autocast=True)
 
 
 @pytest.mark.gpu
@@ -306,16 +311,7 @@ def test_compiled_dvss_equals_eager_on_cuda(autocast):
     net = draw_zero_parameters(build_backbone("dvss", **SMALL_DVSS)).cuda()
     block = next(m for m in net.modules() if type(m).__name__ == "SS2D")
     assert block._spatial_scan(torch.zeros(1, 4, 4, block.d_inner, device="cuda")) == "triton"
-    x = torch.randn(2, 1, 32, 48, device="cuda")
-    reference = _forward_backward(net, x)
-    with torch.autocast("cuda", dtype=torch.bfloat16, enabled=autocast):
-        eager = _forward_backward(net, x)
-        torch._dynamo.reset()
-        compiled = _forward_backward(net, x, torch.compile(net, fullgraph=True))
-    if autocast:
-        _assert_within_bf16_rounding(reference, eager, compiled)
-    else:
-        _assert_equal_runs(eager, compiled, 1e-4)
+    _compare_compiled(net, torch.randn(2, 1, 32, 48, device="cuda"), autocast)
 
 
 @needs_cpu_kernel
