@@ -45,7 +45,7 @@ from tofdenoise.experiments.figures import (
 from tofdenoise.experiments.grid_data import prepare_grid_data
 from tofdenoise.experiments.runner import RunSpec, TimeBudget, run_all
 from tofdenoise.experiments.schedule import CURVES_FIGURE, curves_figure_png, schedule_curves
-from tofdenoise.experiments.tables import SIM_SET, TABLES, run_name, table_specs
+from tofdenoise.experiments.tables import TABLES, run_name, table_specs
 from tofdenoise.experiments.targets import GPU_PROFILES, PROFILES, REALSET_SIZES, Target
 from tofdenoise.records import (
     BEST_CHECKPOINT,
@@ -231,16 +231,6 @@ def copy_records(run_dirs: list[Path], dest: Path) -> list[str]:
     return copied
 
 
-def _of_current_protocol(folder: Path) -> bool:
-    """Whether the committed ``metrics.json`` in ``folder`` scored the simulator-noised split (the current test
-    protocol; ``results_page.record_protocol``); an unreadable one is not."""
-    try:
-        metrics = json.loads((folder / METRICS_NAME).read_text())
-    except (OSError, ValueError):
-        return False
-    return isinstance(metrics, dict) and SIM_SET in metrics
-
-
 def without_recorded(specs: list[Any], dest: Path, log: Log = _print, rerun_earlier: bool = False) -> list[Any]:
     """``specs`` less the runs whose records (``metrics.json`` and ``run_info.json``) are committed in ``dest``: what
     ``--skip-recorded`` runs on a machine that does not hold their run folders. With ``rerun_earlier`` a record of
@@ -248,7 +238,7 @@ def without_recorded(specs: list[Any], dest: Path, log: Log = _print, rerun_earl
     runs left out, and those run again for their protocol, are logged."""
     recorded = [s.name for s in specs if all((dest / s.name / name).is_file() for name in RUN_FILES)]
     if rerun_earlier:
-        earlier = [name for name in recorded if not _of_current_protocol(dest / name)]
+        earlier = [name for name in recorded if _protocol(dest / name) == EARLIER]
         if earlier:
             names = ", ".join(earlier)
             log(f"[reproduce] --rerun-earlier: {len(earlier)} record(s) of the earlier protocol run again: {names}")
@@ -498,12 +488,15 @@ def reproduce(job: Reproduction, log: Log = _print) -> int:
             specs = table_specs(target.key, job.seeds, job.overrides())
             if job.skip_recorded:
                 specs = without_recorded(specs, job.dest, log, rerun_earlier=job.rerun_earlier)
-            if job.prepare_only and not job.dry_run:
+            # several runs at a time would each build the same data: it is prepared once first (or alone)
+            if not job.dry_run and (job.prepare_only or getattr(job.executor, "workers", 1) > 1):
                 prepared = prepare_grid_data([s for s in specs if not run_finished(Path(job.out) / s.name)], log=log)
-                log(f"[reproduce] --prepare-only: data of {len(prepared)} distinct config(s) prepared; nothing trained")
-                return 0
-            if not job.dry_run and getattr(job.executor, "workers", 1) > 1:  # several runs would build it at once
-                prepare_grid_data([s for s in specs if not run_finished(Path(job.out) / s.name)], log=log)
+                if job.prepare_only:
+                    log(
+                        f"[reproduce] --prepare-only: data of {len(prepared)} distinct config(s) prepared; nothing "
+                        "trained"
+                    )
+                    return 0
             outcomes = run_all(
                 specs,
                 job.out,

@@ -224,15 +224,14 @@ def _seed_spread(profile_dir: Path, row: Row, metric: str, seed: int = 0) -> flo
     """The standard deviation of ``metric`` over the recorded seeds of ``row`` whose record is of the test protocol
     of the ``seed`` run's (both scored the simulator-noised split or neither: a row part re-run under the current
     protocol does not mix the two; NaN with fewer than two)."""
-    values = []
-    own = profile_dir / run_name(row, seed) / METRICS_NAME
-    protocol = SIM_SET in metric_sets(load_metrics(own)) if own.is_file() else None
+    recorded = {}  # seed -> (scored the simulator-noised split, metrics)
     for other in (0, 1, 2):
         path = profile_dir / run_name(row, other) / METRICS_NAME
         if path.is_file():
             metrics = load_metrics(path)
-            if protocol is None or (SIM_SET in metric_sets(metrics)) == protocol:
-                values.append(_metric(metrics, metric))
+            recorded[other] = (SIM_SET in metric_sets(metrics), metrics)
+    own = recorded[seed][0] if seed in recorded else None
+    values = [_metric(metrics, metric) for current, metrics in recorded.values() if own is None or current == own]
     finite = [v for v in values if math.isfinite(v)]
     return statistics.stdev(finite) if len(finite) >= 2 else math.nan
 

@@ -517,6 +517,13 @@ def _schedule_section(profile_dir: Path, seeds: list[int]) -> list[str]:
     return lines
 
 
+def _pooled_text(steps: list[tuple[float, float | None]], n: int, unit: str) -> str:
+    """Pooled steps (``tables.pooled_steps``) as ``+m ± sd, ... unit (n=N)``; ``-`` when there are none."""
+    if not steps:
+        return "-"
+    return ", ".join(f"{m:+.3f}" + ("" if sd is None else f" ± {sd:.3f}") for m, sd in steps) + f"{unit} (n={n})"
+
+
 def _dataseed_section(records: dict[str, dict[str, Any]], seeds: list[int]) -> list[str]:
     """Table III's orderings on each data seed and pooled over both (``tables.pooled_steps``): the spread over every
     (data seed, training seed) pair covers the world, the split and the test inputs as well as the training. A
@@ -530,11 +537,6 @@ def _dataseed_section(records: dict[str, dict[str, Any]], seeds: list[int]) -> l
     def pooled_metrics_of(name: str) -> dict[str, Any] | None:  # the two data seeds pool one protocol
         rec = records.get(name)
         return metrics_of(name) if rec and record_protocol(rec) == use else None
-
-    def steps_text(steps: list[tuple[float, float | None]], n: int, unit: str) -> str:
-        if not steps:
-            return "-"
-        return ", ".join(f"{m:+.3f}" + ("" if sd is None else f" ± {sd:.3f}") for m, sd in steps) + f"{unit} (n={n})"
 
     pairs = [
         (first, second)
@@ -558,10 +560,10 @@ def _dataseed_section(records: dict[str, dict[str, Any]], seeds: list[int]) -> l
         cells = []
         for claim in (first, second):
             steps, n, _ = pooled_steps([claim], seeds, metrics_of)
-            cells.append(steps_text(steps, n, unit))
+            cells.append(_pooled_text(steps, n, unit))
         steps, n, holds = pooled_steps([first, second], seeds, pooled_metrics_of)
         held = f"{holds} of {n}" if n else "-"
-        lines.append(f"| {first.text} | {cells[0]} | {cells[1]} | {steps_text(steps, n, unit)} | {held} |")
+        lines.append(f"| {first.text} | {cells[0]} | {cells[1]} | {_pooled_text(steps, n, unit)} | {held} |")
     return lines + [""]
 
 
@@ -569,15 +571,15 @@ def _dataseed_section(records: dict[str, dict[str, Any]], seeds: list[int]) -> l
 PROFILE_COMPARISON = ("cpu", "gpu-short")
 
 
-def _profiles_section(results_dir: Path) -> list[str]:
+def _profiles_section(records_of: dict[str, dict[str, dict[str, Any]]]) -> list[str]:
     """Table III's orderings at the CPU profile and at the paper's crop size (``gpu-short``), side by side: per
     profile the mean ± standard deviation over its training seeds of each step's paired difference, and in how many
     seeds the whole ordering holds; nothing when the GPU profile has no Table III record. Each profile's cell is
     what its own section's ordering table says; the two are never pooled (other crops, steps, precision and test
-    split)."""
+    split). ``records_of``: each profile's records (``load_records``)."""
     columns = []
     for profile in PROFILE_COMPARISON:
-        records = load_records(results_dir / profile)
+        records = records_of.get(profile, {})
         seeds = seeds_present(records) or [0, 1, 2]
         columns.append((profile, seeds, comparable_metrics(["3"], seeds, records)))
     claims = [claim for claim in CLAIMS if claim.table == "3"]
@@ -600,11 +602,7 @@ def _profiles_section(results_dir: Path) -> list[str]:
         cells = []
         for _, seeds, metrics_of in columns:
             steps, n, holds = pooled_steps([claim], seeds, metrics_of)
-            if not n:
-                cells += ["-", "-"]
-                continue
-            text = ", ".join(f"{m:+.3f}" + ("" if sd is None else f" ± {sd:.3f}") for m, sd in steps)
-            cells += [f"{text}{unit} (n={n})", f"{holds} of {n}"]
+            cells += [_pooled_text(steps, n, unit), f"{holds} of {n}" if n else "-"]
         lines.append(f"| {claim.text} | {' | '.join(cells)} |")
     return lines + [""]
 
@@ -852,9 +850,9 @@ def results_markdown(results_dir: Path | str) -> str:
     discussion = results_dir / DISCUSSION_NAME
     if discussion.is_file():
         lines += [discussion.read_text().rstrip(), ""]
-    lines += _profiles_section(results_dir)
-    for profile in PROFILE_SEEDS:
-        records = load_records(results_dir / profile)
+    records_of = {profile: load_records(results_dir / profile) for profile in PROFILE_SEEDS}
+    lines += _profiles_section(records_of)
+    for profile, records in records_of.items():
         if profile == "cpu" or records:
             lines += _profile_sections(results_dir / profile, records)
     return "\n".join(lines).rstrip() + "\n"
