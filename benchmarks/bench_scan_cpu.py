@@ -11,7 +11,9 @@ the DVSS training step against the U-Net's, and full-resolution DVSS inference m
    measured peak of the kernel's own exp + 3 multiply-add loop (same compiler flags, same threads).
 2. Training step (DepthRestorer input normalisation + backbone + L_full + backward + AdamW), 64x64 crops,
    batch 4, one pre-loaded batch: U-Net vs DVSS (native scan) vs DVSS on the pure-PyTorch route, steps
-   interleaved round by round so that load from other processes hits all alike; ratio DVSS / U-Net.
+   interleaved round by round so that load from other processes hits all alike; ratio DVSS / U-Net. Once with
+   freed memory kept (what ``tofdenoise train`` runs with) and once with glibc's default allocator, each in a
+   fresh process (``--step-allocator``).
 3. Full-resolution inference, 480x640 batch 1 (``--quick``: 240x320), U-Net and DVSS, each in a fresh subprocess
    with glibc's allocator as it starts and with freed memory kept (``tofdenoise.allocator``, what the ``tofdenoise``
    command runs with): time and peak resident memory above the pre-run baseline (bench_models' method).
@@ -260,18 +262,42 @@ def bench_scan(args) -> None:
 
 
 def bench_step(args) -> None:
+    """The training step under each C allocator setting, each in a fresh process of this script (mallopt is
+    process-wide): freed memory kept, as ``tofdenoise train`` runs (tofdenoise.allocator), and glibc's default."""
+    import subprocess
+
+    if args.step_allocator != "both":
+        return bench_step_here(args)
+    for allocator in ("keep", "default"):
+        cmd = [sys.executable, str(Path(__file__).resolve()), "--only", "step", "--step-allocator", allocator]
+        cmd += ["--threads", str(args.threads), "--rounds", str(args.rounds)]
+        cmd += ["--quick"] if args.quick else []
+        cmd += ["--baseline", args.baseline] if args.baseline else []
+        out = subprocess.run(cmd, capture_output=True, text=True, check=False)
+        lines = [line for line in out.stdout.splitlines() if not line.startswith("# ")]
+        print("\n".join(lines))
+        if out.returncode != 0:
+            print(f"step part ({allocator}) failed: {out.stderr.strip().splitlines()[-1:]}")
+    return None
+
+
+def bench_step_here(args) -> None:
     import torch
     from bench_training import backbone_kwargs, make_data, time_steps
 
+    from tofdenoise.allocator import keep_freed_memory
     from tofdenoise.training.module import DepthRestorer
 
+    kept = args.step_allocator == "keep" and keep_freed_memory()
     crop, batch = 64, 4
     print(
         f"\n### Training step, {crop}x{crop} crops, batch {batch}, L_full + AdamW, pre-loaded batch; "
-        f"{args.rounds} rounds of interleaved steps; threads {torch.get_num_threads()}"
+        f"{args.rounds} rounds of interleaved steps; threads {torch.get_num_threads()}; "
+        + ("freed memory kept (as `tofdenoise train` runs)" if kept else "glibc's default allocator")
     )
     import tempfile
 
+    torch.manual_seed(0)  # the same batch in every run
     with tempfile.TemporaryDirectory() as cache:
         dm = make_data(crop, batch, 0, cache)
         fixed = next(iter(dm.train_dataloader()))
@@ -317,7 +343,8 @@ def bench_step(args) -> None:
             f"{statistics.median(cpu_round):.2f} ({', '.join(f'{v:.2f}' for v in cpu_round)}) |"
         )
     print(
-        f"DVSS / U-Net = {statistics.median(runs[1][3]) / base:.2f} wall, "
+        f"DVSS / U-Net ({'freed memory kept' if kept else 'glibc default'}) = "
+        f"{statistics.median(runs[1][3]) / base:.2f} wall, "
         f"{statistics.median(runs[1][5]) / statistics.median(runs[0][5]):.2f} process CPU; target <= 3"
     )
 
@@ -388,6 +415,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--baseline", default="", help="git revision whose kernel source runs next to today's")
     p.add_argument("--frame-reps", type=int, default=1, help="inference frames per route (median; after a warm-up)")
     p.add_argument("--no-torch-route", action="store_true", help="skip the (slow) PyTorch-route inference frame")
+    p.add_argument(
+        "--step-allocator",
+        choices=("both", "keep", "default"),
+        default="both",
+        help="the training step with freed memory kept (as `tofdenoise train` runs), glibc's default, or both "
+        "(default; each in a fresh process)",
+    )
     args = p.parse_args(argv)
     args.rounds = args.rounds or (2 if args.quick else 3)
     import torch

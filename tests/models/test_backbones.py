@@ -277,3 +277,20 @@ def test_scr_one_image_without_gradient_equals_its_batch_path():
     with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16):
         out = scr(x)
     assert not calls and out.shape == x.shape
+
+
+@pytest.mark.parametrize("module", ["scr", "se"])
+def test_channel_gate_factored_out_equals_the_module(module):
+    """SCR and SE hand over one image's output as (T, g) with T * g their output (DVSS folds g into its fusion's
+    weights); both are the module's own output to rounding."""
+    torch.manual_seed(5)
+    m = SCR(8) if module == "scr" else SqueezeExcitation(8)
+    for p in m.parameters():
+        p.data.normal_(0, 0.5)
+    x = torch.randn(1, 8, 9, 11)
+    with torch.no_grad():
+        t, g = m.factored(x)
+        assert g.shape == (1, 8, 1, 1)
+        want = m(x.clone().requires_grad_()).detach()  # the batch path, no shortcut
+        torch.testing.assert_close(t * g, want, rtol=1e-5, atol=1e-6)
+        torch.testing.assert_close(m(x), want, rtol=1e-5, atol=1e-6)

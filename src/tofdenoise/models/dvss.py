@@ -29,7 +29,7 @@ from .common import (
     pointwise,
 )
 from .registry import register_backbone
-from .scr import SCR, SqueezeExcitation
+from .scr import SCR, SqueezeExcitation, factorable
 from .ss2d import SS2D
 
 __all__ = ["DVSSBlock", "DVSSNet"]
@@ -102,7 +102,8 @@ class DVSSBlock(nn.Module):
     def _forward_folded(self, x: torch.Tensor, xn: torch.Tensor) -> torch.Tensor:
         """:meth:`forward` for inference on channels-last memory, equal to rounding: the SS2D's out_proj folded into
         the fusion's weights (fuse_g @ out_proj, a (C, d_inner) matrix), the concatenation replaced by a second
-        product, the residual added in place."""
+        product (for one image with SCR's or SE's channel gate folded into its weights), the residual added in
+        place."""
         c = x.shape[1]
         y = self.vssb.gated(xn.permute(0, 2, 3, 1))
         weight = self.fuse.weight.view(c, -1)
@@ -110,7 +111,12 @@ class DVSSBlock(nn.Module):
         out = pointwise(y.permute(0, 3, 1, 2), folded, self.fuse.bias)  # channels-last (models.common.pointwise)
         rows = out.permute(0, 2, 3, 1).view(-1, c)  # a view (raises otherwise): the in-place sums write into out
         if self.local != "none":
-            rows.addmm_(_rows(self.refine(self.dwconv(xn))), weight[:, c:].t())
+            local = self.dwconv(xn)
+            if factorable(local):  # SCR(.) = T * g: g folded into the fusion's columns (no T * g pass)
+                t, g = self.refine.factored(local)
+                rows.addmm_(_rows(t), (weight[:, c:] * g.view(1, -1)).t())
+            else:
+                rows.addmm_(_rows(self.refine(local)), weight[:, c:].t())
         rows += _rows(x)
         return out
 

@@ -23,7 +23,13 @@ from torch import nn
 
 from .common import eager_inference, mean_hw
 
-__all__ = ["SCR", "SqueezeExcitation"]
+__all__ = ["SCR", "SqueezeExcitation", "factorable"]
+
+
+def factorable(x: torch.Tensor) -> bool:
+    """True where SCR and SE can hand over their output as (T, g) (:meth:`SCR.factored`): one image in an eager
+    forward without a gradient or autocast."""
+    return x.shape[0] == 1 and eager_inference() and not torch.is_autocast_enabled(x.device.type)
 
 
 class SqueezeExcitation(nn.Module):
@@ -36,8 +42,14 @@ class SqueezeExcitation(nn.Module):
         self.fc2 = nn.Conv2d(hidden, channels, 1)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        g = torch.sigmoid(self.fc2(F.relu(self.fc1(mean_hw(x)))))
-        return x * g
+        return x * self._channel_gate(x)
+
+    def _channel_gate(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.sigmoid(self.fc2(F.relu(self.fc1(mean_hw(x)))))
+
+    def factored(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """SE(X) as (X, g), SE(X) = X * g (see :meth:`SCR.factored`): no X * g tensor."""
+        return x, self._channel_gate(x)
 
 
 class SCR(nn.Module):
@@ -51,21 +63,32 @@ class SCR(nn.Module):
         self.local_dw = nn.Conv2d(channels, channels, kernel_size, padding=kernel_size // 2, groups=channels)
         self.local_pw = nn.Conv2d(channels, channels, 1)
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
+    def _channel_gate(self, x: torch.Tensor) -> torch.Tensor:
+        """The global branch: g (B, C, 1, 1)."""
         pooled = torch.cat([mean_hw(x), x.amax(dim=(2, 3), keepdim=True)], dim=1)
-        g = torch.sigmoid(self.fc2(F.gelu(self.fc1(pooled))))
-        if x.shape[0] == 1 and eager_inference() and not torch.is_autocast_enabled(x.device.type):
-            return self._refine_one_image(x, g)
+        return torch.sigmoid(self.fc2(F.gelu(self.fc1(pooled))))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        g = self._channel_gate(x)
+        if factorable(x):
+            return self._refine_one_image(x, g).mul_(g)
         xc = x * g
         s = torch.sigmoid(self.local_pw(F.gelu(self.local_dw(xc))))
         return xc * s
 
+    def factored(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """SCR(X) as (T, g) with SCR(X) = T * g, g the channel gate (1, C, 1, 1), for one image where
+        :func:`factorable`: a caller that multiplies the result by a matrix folds g into it (one pass fewer)."""
+        g = self._channel_gate(x)
+        return self._refine_one_image(x, g), g
+
     def _refine_one_image(self, x: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
-        """:meth:`forward`'s local branch for one image in an eager forward without a gradient or autocast, equal
-        to rounding with two passes fewer: the depthwise convolution of X * g is the convolution of X with each
-        channel's kernel scaled by g (no X * g tensor), and the gate is applied in place."""
+        """:meth:`forward`'s local branch for one image in an eager forward without a gradient or autocast, before
+        its channel gate, equal to rounding with passes fewer: the depthwise convolution of X * g is the
+        convolution of X with each channel's kernel scaled by g (no X * g tensor), and the spatial gate is applied
+        in place; returns s * X (SCR(X) = s * X * g)."""
         dw = self.local_dw
         kernel = dw.weight * g.view(-1, 1, 1, 1).to(dw.weight.dtype)
         s = F.conv2d(x, kernel, dw.bias, dw.stride, dw.padding, dw.dilation, dw.groups)
         s = torch.sigmoid_(self.local_pw(F.gelu(s)))
-        return s.mul_(g).mul_(x)
+        return s.mul_(x)
