@@ -60,19 +60,30 @@ def _timed(fn, reps: int) -> list[tuple[float, float]]:
     return times
 
 
+#: a kernel source that knows chunk 0 ("no checkpoints": the inference forward, 9109c5f on) names this constant
+CHUNK_ZERO_MARKER = b"INFERENCE_CHUNK"
+
+
+def knows_chunk_zero(source: bytes) -> bool:
+    """Whether a kernel source runs ``scan_fwd`` with chunk 0 as its inference forward (no checkpoints); an older
+    one needs chunk >= 1."""
+    return CHUNK_ZERO_MARKER in source
+
+
 class _ChunkZeroAdapter:
     """An extension built from an older kernel source: forwards every call, but turns ``scan_fwd``'s chunk 0 (today's
-    "no checkpoints" for inference) into ``CHUNK`` for sources that do not know it (they need chunk >= 1), and gives
-    a source without the fused dt projection (``ss2d_fwd_lowrank``, f99439f) the projection it did before: a
+    "no checkpoints" for inference) into ``CHUNK`` for sources that do not know it (``chunk_zero`` False: they need
+    chunk >= 1, so their inference wrote checkpoints); a source that knows it runs its own inference forward. A
+    source without the fused dt projection (``ss2d_fwd_lowrank``, f99439f) gets the projection it did before: a
     batched product, then its SS2D forward; and a source without the fused output stage (``ss2d_out_gate``) torch's
     layer_norm and silu, as SS2D ran them before."""
 
-    def __init__(self, ext, chunk: int) -> None:
-        self._ext, self._chunk = ext, chunk
+    def __init__(self, ext, chunk: int, chunk_zero: bool = False) -> None:
+        self._ext, self._chunk, self._chunk_zero = ext, chunk, chunk_zero
 
     def scan_fwd(self, *args):
         args = list(args)
-        if args[-1] < 1:
+        if args[-1] < 1 and not self._chunk_zero:
             args[-1] = self._chunk
         return self._ext.scan_fwd(*args)
 
@@ -117,7 +128,7 @@ def build_scan_source(path: str):
         extra_ldflags=scan_cpu.LDFLAGS,
         verbose=False,
     )
-    return _ChunkZeroAdapter(ext, scan_cpu.CHUNK)
+    return _ChunkZeroAdapter(ext, scan_cpu.CHUNK, chunk_zero=knows_chunk_zero(data))
 
 
 def use_scan_extension(ext) -> None:

@@ -16,7 +16,7 @@
 // Work split: one task per (batch, range of blocks of W = 16 channels-in-group). A task walks every group in turn,
 // so the SS2D sum over directions (y, du) needs no atomics. The forward walks its blocks together chunk by chunk,
 // so that a chunk's B and C rows (shared by the group's channels) come from memory once for all of them (a frame's
-// first DVSS level: 1.2x at 2 threads, 1.4x at 1); its ranges are as few as keep every thread busy. The 16
+// first DVSS level: 1.09x at 2 threads, docs/benchmarks.md); its ranges are as few as keep every thread busy. The 16
 // channels are the vector lanes; the N states of the block (N x 16 floats) stay in registers and L1. exp(delta A) is one vectorisable range reduction + polynomial. Positions are walked in chunks of T: a pass
 // over a chunk's steps (softplus, inputs, prefetches) precedes the recurrence over them.
 // The forward saves the state entering every chunk (unless chunk <= 0: inference); the backward walks chunks in
