@@ -77,3 +77,22 @@ def test_drawn_zero_parameters_give_every_layer_a_gradient(backbone):
     torch.manual_seed(0)
     again = draw_zero_parameters(build_backbone(backbone, in_channels=1, **small), seed=3)
     assert all(torch.equal(p, after[n]) for n, p in again.named_parameters())
+
+
+def test_execution_distances_by_hand():
+    """Output: largest difference over the reference's largest magnitude; a gradient: over the larger of its own
+    largest magnitude and 1e-3 of the network's largest gradient (a near-zero gradient is judged at the network's
+    scale)."""
+    from tofdenoise.models.common import execution_distances
+
+    y0 = torch.tensor([2.0, -4.0])
+    g0 = {"w": torch.tensor([10.0, -20.0]), "b": torch.tensor([1e-6, 0.0])}
+    y1 = torch.tensor([2.0, -3.0])
+    g1 = {"w": torch.tensor([10.0, -19.0]), "b": torch.tensor([0.0, 0.0])}
+    d = execution_distances((y0, g0), (y1, g1))
+    assert d["output"] == pytest.approx(1.0 / 4.0)
+    assert d["w"] == pytest.approx(1.0 / 20.0)
+    assert d["b"] == pytest.approx(1e-6 / (1e-3 * 20.0))  # the floor, not b's own 1e-6
+    assert execution_distances((y0, g0), (y0, g0)) == {"output": 0.0, "w": 0.0, "b": 0.0}
+    with pytest.raises(ValueError, match="different parameters"):
+        execution_distances((y0, g0), (y1, {"w": g1["w"]}))

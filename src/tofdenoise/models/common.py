@@ -13,6 +13,7 @@ __all__ = [
     "LayerNorm2d",
     "count_parameters",
     "draw_zero_parameters",
+    "execution_distances",
     "pad_to_multiple",
     "crop_to",
     "check_input",
@@ -96,6 +97,26 @@ def draw_zero_parameters(module: nn.Module, std: float = 0.05, seed: int = 0) ->
             if not p.any():
                 p.copy_(std * torch.randn(p.shape, generator=g).to(p.dtype))
     return module
+
+
+def execution_distances(
+    reference: tuple[torch.Tensor, dict[str, torch.Tensor]], run: tuple[torch.Tensor, dict[str, torch.Tensor]]
+) -> dict[str, float]:
+    """How far one execution of a network is from another: ``reference`` and ``run`` are (output, {parameter name:
+    gradient}). ``"output"``: the largest absolute difference over the reference output's largest magnitude; each
+    parameter: the largest absolute difference of its gradient over the larger of the reference gradient's largest
+    magnitude and 1e-3 of the network's largest gradient (a gradient that cancels to about 0, such as a bias under a
+    weight that sums to 0, is compared at the network's scale, not at its rounding noise: on CUDA one came out
+    1.4e-6 eager and 0 compiled). For compiled against eager, one device against another (with
+    :func:`draw_zero_parameters`, so that the gradients reach the network)."""
+    (y0, g0), (y1, g1) = reference, run
+    if g0.keys() != g1.keys():
+        raise ValueError("execution_distances: the two runs have gradients of different parameters")
+    floor = 1e-3 * max((float(g.abs().max()) for g in g0.values()), default=0.0)
+    errors = {"output": float((y1 - y0).abs().max()) / max(float(y0.abs().max()), 1e-30)}
+    for name in g0:
+        errors[name] = float((g1[name] - g0[name]).abs().max()) / max(float(g0[name].abs().max()), floor, 1e-30)
+    return errors
 
 
 def pad_to_multiple(x: torch.Tensor, multiple: int, mode: str = "reflect") -> tuple[torch.Tensor, tuple[int, int]]:

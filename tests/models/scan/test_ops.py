@@ -11,7 +11,7 @@ import shutil
 import pytest
 import torch
 
-from tofdenoise.models.common import draw_zero_parameters
+from tofdenoise.models.common import draw_zero_parameters, execution_distances
 from tofdenoise.models.registry import build_backbone
 from tofdenoise.models.scan import cpu as scan_cpu
 from tofdenoise.models.scan import ops
@@ -212,20 +212,13 @@ def _forward_backward(net, x, call=None):
 
 
 def _distances(reference, run) -> dict[str, float]:
-    """How far ``run``'s output and each parameter gradient are from ``reference``'s: the largest absolute
-    difference relative to the larger of the reference tensor's own largest magnitude and 1e-3 of the network's
-    largest gradient (a gradient that cancels to about 0, such as a bias under a weight that sums to 0, is compared
-    at the network's scale, not at its rounding noise: on CUDA one came out 1.4e-6 eager and 0 compiled). Checks that
-    every parameter but a tenth gets a gradient, so that the comparison reaches the network."""
-    (y0, g0), (y1, g1) = reference, run
-    assert g0.keys() == g1.keys() and len(g0) > 20
+    """:func:`~tofdenoise.models.common.execution_distances` of ``run`` from ``reference``, after checking that every
+    parameter but a tenth gets a gradient, so that the comparison reaches the network."""
+    g0 = reference[1]
+    assert g0.keys() == run[1].keys() and len(g0) > 20
     dead = [n for n, g in g0.items() if not g.any()]
     assert len(dead) <= len(g0) // 10, f"{len(dead)} of {len(g0)} parameters get no gradient: {dead[:5]}"
-    floor = 1e-3 * max(float(g.abs().max()) for g in g0.values())
-    errors = {"output": _rel(y1, y0)}
-    for name in g0:
-        errors[name] = float((g1[name] - g0[name]).abs().max()) / max(float(g0[name].abs().max()), floor)
-    return errors
+    return execution_distances(reference, run)
 
 
 def _assert_none_over(errors: dict[str, float], limits: dict[str, float], what: str) -> None:
