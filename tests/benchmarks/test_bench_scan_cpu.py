@@ -8,6 +8,8 @@ import sys
 from pathlib import Path
 from types import SimpleNamespace
 
+import torch
+
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))  # benchmark code, not the package
 import bench_scan_cpu  # noqa: E402
 
@@ -38,5 +40,6 @@ def test_step_allocator_option_is_parsed(monkeypatch):
     seen = {}
     monkeypatch.setattr(bench_scan_cpu, "bench_step", lambda args: seen.setdefault("allocator", args.step_allocator))
     monkeypatch.setattr("tofdenoise.models.scan.cpu.cpu_kernel_available", lambda: True)
-    assert bench_scan_cpu.main(["--only", "step", "--step-allocator", "default"]) == 0
+    threads = str(torch.get_num_threads())  # main() sets torch's threads: leave the test process's as they are
+    assert bench_scan_cpu.main(["--only", "step", "--step-allocator", "default", "--threads", threads]) == 0
     assert seen == {"allocator": "default"}
