@@ -303,38 +303,50 @@ def bench_step_here(args) -> None:
         fixed = next(iter(dm.train_dataloader()))
     from bench_models import use_scan_extension
 
+    from tofdenoise.models import ss2d
     from tofdenoise.models.scan import cpu as scan_cpu
 
     today = scan_cpu.load_extension()
-    configs = [("unet", {}, today), ("dvss", {}, today), ("dvss", {"scan_backend": "torch"}, today)]
+    # (backbone, backbone kwargs, kernel, dt projection fused into the kernel in training: ss2d.FUSE_DT_TRAINING)
+    configs = [
+        ("unet", {}, today, True),
+        ("dvss", {}, today, True),
+        ("dvss", {}, today, False),
+        ("dvss", {"scan_backend": "torch"}, today, True),
+    ]
     if args.quick:
-        configs = configs[:2]
-    if BASELINE:
-        configs.insert(2, ("dvss", {}, BASELINE["ext"]))
+        configs = configs[:3]
+    if BASELINE:  # an older kernel source knows no fused training route
+        configs.insert(3, ("dvss", {}, BASELINE["ext"], False))
     runs = []
-    for name, extra, ext in configs:
+    for name, extra, ext, fuse in configs:
         torch.manual_seed(0)
         model = DepthRestorer(backbone=name, backbone_kwargs={**backbone_kwargs(name), **extra}, loss="full")
         model.train()
         opt = torch.optim.AdamW(model.backbone.parameters(), lr=2e-4)
         use_scan_extension(ext)
+        ss2d.FUSE_DT_TRAINING = fuse
         time_steps(model, opt, lambda: fixed, 1)  # warm-up (and the kernel build)
         label = name if not extra else f"{name} (PyTorch scan route)"
+        if name == "dvss" and not fuse:
+            label = f"{name} (dt projection as a batched product, FUSE_DT_TRAINING=False)"
         if ext is not today:
-            label = f"{name} (baseline kernel {args.baseline})"
-        runs.append((label, model, opt, [], ext, []))
+            label = f"{name} (baseline kernel {args.baseline}, dt projection as a product)"
+        runs.append((label, model, opt, [], ext, [], fuse))
     for _ in range(args.rounds):
-        for label, model, opt, times, ext, cpu in runs:
+        for label, model, opt, times, ext, cpu, fuse in runs:
             use_scan_extension(ext)
+            ss2d.FUSE_DT_TRAINING = fuse
             steps = 1 if "PyTorch" in label else 2
             c0 = time.process_time()
             times.append(min(time_steps(model, opt, lambda: fixed, steps)))
             cpu.append((time.process_time() - c0) / steps)
     use_scan_extension(today)
+    ss2d.FUSE_DT_TRAINING = True
     base = statistics.median(runs[0][3])
     print("| backbone | step (s), median | / U-Net (per round) | process CPU per step (s) | CPU / U-Net (per round) |")
     print("|---|---:|---:|---:|---:|")
-    for label, _, _, times, _, cpu in runs:
+    for label, _, _, times, _, cpu, _ in runs:
         per_round = [t / u for t, u in zip(times, runs[0][3])]
         cpu_round = [c / u for c, u in zip(cpu, runs[0][5])]
         print(
@@ -347,6 +359,8 @@ def bench_step_here(args) -> None:
         f"{statistics.median(runs[1][3]) / base:.2f} wall, "
         f"{statistics.median(runs[1][5]) / statistics.median(runs[0][5]):.2f} process CPU; target <= 3"
     )
+    fused_ratio = statistics.median([f / p for f, p in zip(runs[1][3], runs[2][3])])
+    print(f"DVSS step, dt projection fused into the kernel / as a batched product = {fused_ratio:.2f} (per round)")
 
 
 def bench_inference(args) -> None:

@@ -112,3 +112,33 @@ def test_ss2d_training_backward_zero_fills_no_whole_x_proj_output():
     ]
     assert list(shape) not in fills
     assert not [f for f in fills if len(f) == 6]  # (b, blocks, 4, chunks, N, lanes): the checkpoints
+
+
+def test_ss2d_training_takes_the_fused_dt_projection_and_matches_the_product_route(monkeypatch):
+    """Training on the native kernel takes ``tofdenoise::ss2d_scan_lowrank`` (the dt projection inside the scan's
+    forward and backward: no batched product); with ``FUSE_DT_TRAINING`` off it takes the product and
+    ``tofdenoise::ss2d_scan``. The two give the same output bit for bit and the same parameter gradients to
+    rounding."""
+    from tofdenoise.models import ss2d as ss2d_mod
+    from tofdenoise.models.scan.cpu import cpu_kernel_available
+
+    if not cpu_kernel_available():
+        pytest.skip("native CPU scan not available")
+    torch.manual_seed(3)
+    block = SS2D(20, d_state=16)  # d_inner 40: a full and a partial block of lanes; dt_rank 2
+    x = torch.randn(2, 7, 5, 20)
+    runs = {}
+    for fused in (True, False):
+        monkeypatch.setattr(ss2d_mod, "FUSE_DT_TRAINING", fused)
+        block.zero_grad()
+        with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as prof:
+            y = block(x)
+            (y * torch.linspace(-1, 1, y.numel()).view_as(y)).sum().backward()
+        names = {e.name for e in prof.events()}
+        assert ("tofdenoise::ss2d_scan_lowrank" in names) is fused
+        assert ("aten::bmm" in names) is not fused
+        runs[fused] = (y.detach(), {n: p.grad.clone() for n, p in block.named_parameters()})
+    assert torch.equal(runs[True][0], runs[False][0])
+    for name, grad in runs[False][1].items():
+        err = ((runs[True][1][name] - grad).abs().max() / grad.abs().max().clamp_min(1e-30)).item()
+        assert err < 1e-5, name

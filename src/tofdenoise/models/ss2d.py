@@ -22,6 +22,12 @@ DT_PROJECTION_FORMS = ("bmm", "split", "sum")
 #: records). On an H200 a bf16 GEMM kernel of 3.4 ms, 4 calls a DVSS step, is the suspect (docs/benchmarks.md);
 #: ``benchmarks/bench_gpu_scan.py`` times the three forms side by side
 DT_PROJECTION_CUDA = "bmm"
+#: training on the native CPU kernel: the dt projection fused into the scan's forward and backward
+#: (``tofdenoise::ss2d_scan_lowrank``) -- no (b, L, 4 d) tensor of steps, of their gradient, or the batched products
+#: and copy around them. False takes the batched product and ``tofdenoise::ss2d_scan`` (the route of the records up
+#: to 2026-11-28: the same forward bit for bit, gradients of dt_low and the dt weights equal to rounding);
+#: ``benchmarks/bench_scan_cpu.py`` times the two side by side
+FUSE_DT_TRAINING = True
 
 
 def _dt_projection_split(lhs: torch.Tensor, rhs: torch.Tensor) -> torch.Tensor:
@@ -233,6 +239,10 @@ class SS2D(nn.Module):
             # inference: the kernel projects the low-rank steps itself (no (b, L, 4 d) steps tensor)
             y = ss2d_forward_lowrank(xs, dt_low, self.dt_projs_weight.float(), A, B, C, D, bias, h, w)
             return y.view(b, h, w, di)
+        if kernel == "cpu" and self._fuse_dt_training(xs):
+            # training: the same in the kernel's forward and backward (the custom operator's autograd)
+            y, _ = torch.ops.tofdenoise.ss2d_scan_lowrank(xs, dt_low, self.dt_projs_weight, A, B, C, D, bias, h, w)
+            return y.view(b, h, w, di)
         dts = dt_projection(dt_low.reshape(b * length, k, r), self.dt_projs_weight).view(b, length, k * di)
         if kernel == "triton":
             from .scan.triton import ss2d_scan_triton as scan
@@ -242,15 +252,31 @@ class SS2D(nn.Module):
         y = scan(xs, dts, A, B, C, D, bias, h, w)
         return y.view(b, h, w, di)
 
+    def _records_grad(self, xs: torch.Tensor) -> bool:
+        """Whether autograd records this scan (a gradient for the activations or the projections' weights)."""
+        return torch.is_grad_enabled() and (
+            xs.requires_grad or any(p.requires_grad for p in (self.x_proj_weight, self.dt_projs_weight))
+        )
+
+    def _fuse_dt_training(self, xs: torch.Tensor) -> bool:
+        """True where the native kernel's training route takes the dt projection into its forward and backward
+        (:data:`FUSE_DT_TRAINING`): a gradient recorded (the operator keeps the backward's checkpoints), float32
+        activations and weights, dt_rank within the kernel's bound (traced by torch.compile too: the operator has a
+        fake implementation)."""
+        return (
+            FUSE_DT_TRAINING
+            and self._records_grad(xs)
+            and xs.dtype == torch.float32
+            and self.dt_projs_weight.dtype == torch.float32
+            and self.dt_rank <= LOWRANK_MAX_RANK
+        )
+
     def _fuse_dt_projection(self, xs: torch.Tensor) -> bool:
         """True where the native kernel computes the dt projection itself: no gradient recorded (inference, or
         validation under ``no_grad``), not traced by torch.compile (which sees the ``tofdenoise::ss2d_scan``
         operator), float32, dt_rank within the kernel's bound."""
-        records_grad = torch.is_grad_enabled() and (
-            xs.requires_grad or any(p.requires_grad for p in (self.x_proj_weight, self.dt_projs_weight))
-        )
         return (
-            not records_grad
+            not self._records_grad(xs)
             and not torch.compiler.is_compiling()
             and xs.dtype == torch.float32
             and self.dt_rank <= LOWRANK_MAX_RANK

@@ -118,6 +118,72 @@ def test_ss2d_operator_gradients_equal_the_reference(cpu_kernel, use_d_bias):
         assert _rel(got, want) < 1e-5
 
 
+def _lowrank_args(batch, h, w, di, n, r, use_d_bias, seed=0):
+    """The fused dt projection's operator: dt_low, B and C as strided slices of one x_proj output (as SS2D passes
+    them), the per-direction dt weights (4, d, r)."""
+    g = torch.Generator().manual_seed(seed)
+    x = torch.randn(batch, h * w, di, generator=g)
+    x_dbl = torch.randn(batch, h * w, 4, r + 2 * n, generator=g)
+    weight = torch.randn(4, di, r, generator=g) * r**-0.5
+    A = -torch.exp(0.5 * torch.randn(4 * di, n, generator=g))
+    D, bias = torch.randn(4 * di, generator=g), torch.randn(4 * di, generator=g) - 1.0
+    opt = (D, bias) if use_d_bias else (None, None)
+    return x, x_dbl, weight, A, opt, h, w
+
+
+@needs_cpu_kernel
+@pytest.mark.parametrize("r,use_d_bias", [(2, True), (5, False)])
+def test_opcheck_cpu_ss2d_lowrank_route(cpu_kernel, r, use_d_bias):
+    x, x_dbl, weight, A, opt, h, w = _lowrank_args(2, 5, 7, 18, 4, r, use_d_bias)
+    x_dbl = x_dbl.detach().requires_grad_()
+    dt_low, B, C = x_dbl.split((r, 4, 4), dim=-1)
+    args = (x.requires_grad_(), dt_low, weight.requires_grad_(), A.requires_grad_(), B, C, *opt, h, w)
+    torch.library.opcheck(OPS.ss2d_scan_lowrank, args)
+    y, ckpt = OPS.ss2d_scan_lowrank(*args)
+    bargs = (*(a.detach() if isinstance(a, torch.Tensor) else a for a in args[:8]), ckpt, torch.randn_like(y), h, w)
+    torch.library.opcheck(OPS.ss2d_scan_lowrank_backward, bargs)
+
+
+@needs_cpu_kernel
+@pytest.mark.parametrize(
+    "batch,h,w,di,r,use_d_bias",
+    [
+        (2, 7, 5, 20, 2, True),  # a full and a partial block of lanes, the rank of DVSS's first level
+        (1, 9, 13, 64, 3, False),  # 117 positions: two chunks, the second partial; no D / delta_bias
+        (3, 4, 6, 40, 5, True),  # rank 5: the lane sums by a transposing tree
+        (1, 3, 11, 33, 20, True),  # rank 20: a tree of 16 and one of 4
+    ],
+)
+def test_ss2d_lowrank_operator_gradients_equal_the_reference(cpu_kernel, batch, h, w, di, r, use_d_bias):
+    """The dt projection inside the kernel, forward and backward: y and every input's gradient (x, dt_low, the dt
+    weights, A, B, C, D, delta_bias) equal the reference scan on the projected steps, through autograd."""
+    from tofdenoise.models.ss2d import dt_projection
+
+    n = 16
+    x, x_dbl, weight, A, opt, h, w = _lowrank_args(batch, h, w, di, n, r, use_d_bias)
+    leaves = [t.requires_grad_() for t in (x, x_dbl, weight, A, *(o for o in opt if o is not None))]
+    results = []
+    for fused in (True, False):
+        dt_low, B, C = x_dbl.split((r, n, n), dim=-1)
+        if fused:
+            y, _ = OPS.ss2d_scan_lowrank(x, dt_low, weight, A, B, C, *opt, h, w)
+        else:
+            delta = dt_projection(dt_low.reshape(-1, 4, r), weight).view(batch, h * w, 4 * di)
+            y = ss2d_scan_reference(x, delta, A, B, C, *opt, h, w)
+        ramp = torch.linspace(-1.0, 1.0, y.numel()).view_as(y)
+        results.append([y, *torch.autograd.grad((y * ramp).sum(), leaves)])
+    for i, (got, want) in enumerate(zip(*results)):
+        assert _rel(got, want) < 1e-5, f"output {i}"
+
+
+@needs_cpu_kernel
+def test_ss2d_lowrank_operator_refuses_a_wrong_weight(cpu_kernel):
+    x, x_dbl, weight, A, opt, h, w = _lowrank_args(1, 4, 5, 8, 4, 2, True)
+    dt_low, B, C = x_dbl.split((2, 4, 4), dim=-1)
+    with pytest.raises(RuntimeError, match="dt_weight must be a contiguous"):
+        OPS.ss2d_scan_lowrank(x, dt_low, torch.randn(4, 8, 3), A, B, C, *opt, h, w)
+
+
 # --------------------------------------------------------------------------------------- Triton (interpreter)
 
 

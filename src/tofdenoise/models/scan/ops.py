@@ -2,7 +2,7 @@
 ``torch.compile`` traces a scan as one opaque node with a known output shape instead of calling a native kernel on
 its fake tensors.
 
-Four operators, each with a fake (meta) implementation; the two forward operators carry autograd
+Six operators, each with a fake (meta) implementation; the three forward operators carry autograd
 (``torch.library.register_autograd``): they return ``(y, ckpt)`` -- the output and the float32 state checkpoints
 the backward restarts from -- and save their inputs and ``ckpt``; their backward calls the matching ``*_backward``
 operator, itself a custom operator, so a compiled training step holds both kernels as graph nodes.
@@ -13,9 +13,15 @@ operator, itself a custom operator, so a compiled training step holds both kerne
 - ``tofdenoise::ss2d_scan(x, delta, A, B, C, D?, delta_bias?, height, width, kernel) -> (y, ckpt)``: SS2D's four
   directions read in place (softplus always on), x (batch, H W, d), delta (batch, H W, 4 d), A (4 d, N),
   B / C (batch, H W, 4, N) with any strides, D / delta_bias (4 d,) or None; y (batch, H W, d) contiguous.
+- ``tofdenoise::ss2d_scan_lowrank(x, dt_low, dt_weight, A, B, C, D?, delta_bias?, height, width) -> (y, ckpt)``:
+  the SS2D route with its dt projection inside the native CPU kernel (training; float32): dt_low (batch, H W, 4, R)
+  with any strides (a slice of x_proj's output), dt_weight (4, d, R); the steps ``dt_low @ dt_weight^T`` are
+  computed where the kernel reads them, in the forward and again in the backward, which hands their gradient
+  straight to d dt_low and d dt_weight. No (batch, H W, 4 d) tensor of steps or of their gradient exists.
 - ``tofdenoise::selective_scan_backward`` / ``tofdenoise::ss2d_scan_backward``: ``(du, ddelta, dA, dB, dC, dD,
   ddelta_bias)``; dD / ddelta_bias are empty (0,) tensors when D / delta_bias is None (an operator cannot return
-  None), and the autograd formula hands back None for them.
+  None), and the autograd formula hands back None for them. ``tofdenoise::ss2d_scan_lowrank_backward``: ``(dx,
+  d dt_low, d dt_weight, dA, dB, dC, dD, ddelta_bias)``.
 
 ``kernel`` names the implementation: ``"cpu"`` (the native C++ kernel of :mod:`.cpu`, float32 tensors) or
 ``"triton"`` (the Triton kernels of :mod:`.triton`: CUDA tensors, or CPU tensors in Triton's interpreter, which is
@@ -310,3 +316,118 @@ def _ss2d_scan_grad(ctx, dy, _dckpt):
 
 
 _ss2d_scan.register_autograd(_ss2d_scan_grad, setup_context=_ss2d_scan_setup)
+
+
+# ------------------------------------------------------------------------------- SS2D route, dt projection fused
+
+
+@torch.library.custom_op(f"{NAMESPACE}::ss2d_scan_lowrank", mutates_args=())
+def _ss2d_scan_lowrank(
+    x: Tensor,
+    dt_low: Tensor,
+    dt_weight: Tensor,
+    A: Tensor,
+    B: Tensor,
+    C: Tensor,
+    D: Tensor | None,
+    delta_bias: Tensor | None,
+    height: int,
+    width: int,
+) -> tuple[Tensor, Tensor]:
+    from .cpu import ss2d_forward_lowrank_train
+
+    y, ckpt = ss2d_forward_lowrank_train(
+        x.contiguous(), dt_low, _flat_weight(dt_weight), A.contiguous(), B, C, D, delta_bias, height, width
+    )
+    return y.contiguous(), ckpt
+
+
+def _flat_weight(dt_weight: Tensor) -> Tensor:
+    """(4, d, R) -> the (4 d, R) contiguous matrix the kernel reads."""
+    k, d, r = dt_weight.shape
+    return dt_weight.reshape(k * d, r).contiguous()
+
+
+@_ss2d_scan_lowrank.register_fake
+def _ss2d_scan_lowrank_fake(x, dt_low, dt_weight, A, B, C, D, delta_bias, height, width):
+    batch, length, di = x.shape
+    shape = _ckpt_shape("cpu", batch, 4, di, length, A.shape[1])
+    return x.new_empty(x.shape), x.new_empty(shape, dtype=torch.float32)
+
+
+@torch.library.custom_op(f"{NAMESPACE}::ss2d_scan_lowrank_backward", mutates_args=())
+def _ss2d_scan_lowrank_backward(
+    x: Tensor,
+    dt_low: Tensor,
+    dt_weight: Tensor,
+    A: Tensor,
+    B: Tensor,
+    C: Tensor,
+    D: Tensor | None,
+    delta_bias: Tensor | None,
+    ckpt: Tensor,
+    dy: Tensor,
+    height: int,
+    width: int,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    from .cpu import ss2d_backward_lowrank
+
+    dx, ddt, dA, dB, dC, dD, dbias, dw = ss2d_backward_lowrank(
+        x.contiguous(), dt_low, _flat_weight(dt_weight), A.contiguous(), B, C, D, delta_bias, ckpt, dy, height, width
+    )
+    return (
+        dx.contiguous(),
+        ddt.contiguous(),
+        dw.view(dt_weight.shape).contiguous(),
+        dA.contiguous(),
+        dB.contiguous(),
+        dC.contiguous(),
+        _grad_or_empty(dD, D, x),
+        _grad_or_empty(dbias, delta_bias, x),
+    )
+
+
+@_ss2d_scan_lowrank_backward.register_fake
+def _ss2d_scan_lowrank_backward_fake(x, dt_low, dt_weight, A, B, C, D, delta_bias, ckpt, dy, height, width):
+    return (
+        x.new_empty(x.shape),
+        dt_low.new_empty(dt_low.shape),
+        dt_weight.new_empty(dt_weight.shape),
+        A.new_empty(A.shape),
+        B.new_empty(B.shape),
+        C.new_empty(C.shape),
+        _empty_like_opt(D, x),
+        _empty_like_opt(delta_bias, x),
+    )
+
+
+def _ss2d_scan_lowrank_setup(ctx, inputs, output):
+    x, dt_low, dt_weight, A, B, C, D, delta_bias, height, width = inputs
+    ctx.save_for_backward(x, dt_low, dt_weight, A, B, C, D, delta_bias, output[1])
+    ctx.size = (height, width)
+    ctx.mark_non_differentiable(output[1])
+    ctx.set_materialize_grads(False)
+
+
+def _ss2d_scan_lowrank_grad(ctx, dy, _dckpt):
+    if dy is None:
+        return (None,) * 10
+    x, dt_low, dt_weight, A, B, C, D, delta_bias, ckpt = ctx.saved_tensors
+    dx, ddt, dw, dA, dB, dC, dD, dbias = _ss2d_scan_lowrank_backward(
+        x, dt_low, dt_weight, A, B, C, D, delta_bias, ckpt, dy, *ctx.size
+    )
+    return (
+        dx,
+        ddt,
+        dw,
+        dA,
+        dB,
+        dC,
+        None if D is None else dD,
+        None if delta_bias is None else dbias,
+        None,
+        None,
+    )
+
+
+_ss2d_scan_lowrank.register_autograd(_ss2d_scan_lowrank_grad, setup_context=_ss2d_scan_lowrank_setup)

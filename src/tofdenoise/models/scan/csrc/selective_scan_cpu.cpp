@@ -233,6 +233,25 @@ inline float hsum(vf v) {
     return s;
 }
 
+// out[j] = sum over the lanes of P[j], j < R: a reduction per vector for a few (one shuffle tree each), transposing
+// trees of 16 for more (R = 16: one tree of 45 operations where 16 reductions take about 130).
+inline void lane_sums(const vf* P, int64_t R, float* out) {
+#if defined(__AVX512F__)
+    if (R <= 3) {
+        for (int64_t j = 0; j < R; ++j) out[j] = _mm512_reduce_add_ps((__m512)P[j]);
+        return;
+    }
+#endif
+    for (int64_t j0 = 0; j0 < R; j0 += W) {
+        const int64_t m = std::min<int64_t>(W, R - j0);
+        vf t[W];
+        for (int64_t i = 0; i < W; ++i) t[i] = i < m ? P[j0 + i] : splat(0.0f);
+        alignas(64) float sums[W];
+        storev(sums, transpose_sum16(t));
+        for (int64_t i = 0; i < m; ++i) out[j0 + i] = sums[i];
+    }
+}
+
 // Positions pi_g(l), pi_g(l + 1), ... of one scan direction, one step at a time without a division (the column-
 // major directions cost two 64-bit divisions per step, and as many for the prefetch address, when computed
 // from l): p moves by s_in within an image column (row), and by s_out more after n_in steps.
@@ -386,6 +405,14 @@ struct BwdArgs {
     float *du, *ddelta, *dA, *dB, *dC, *dD, *dbias;
     Strides4 sB, sC;
     Strides3 su, sd, sdy;  // u / du, delta / ddelta, dy
+    // the fused dt projection (ss2d_bwd_lowrank; delta and ddelta are then unused): the raw steps recomputed from
+    // dtl (batch, L, G, R) any strides and Wdt (G Dg, R), as the forward computed them; instead of d(raw step) per
+    // channel, its two products: ddtl (parts, batch, L, G, R), d dt_low summed over a part's channels (the part's
+    // first block writes, its later blocks add; the caller sums the parts), and dWdt (batch, G Dg, R)
+    const float *dtl = nullptr, *Wdt = nullptr;
+    Strides4 sdt{};
+    int64_t R = 0;
+    float *ddtl = nullptr, *dWdt = nullptr;
 };
 
 // Forward tasks, taken from next() until it returns -1. NT = d_state known at compile time (the state loop unrolls
@@ -540,6 +567,11 @@ void bwd_tasks(const BwdArgs& a, Next next) {
     vf h[NA], gn[NA], dAacc[NA], pB[NA], pC[NA];
     alignas(64) float sums[W];
     const int64_t parts = a.parts, per_part = a.per_part;
+    const bool lowrank = a.dtl != nullptr;
+    const int64_t R = a.R;
+    const Strides4 sdt = a.sdt;
+    vf dWacc[RMAX], pW[RMAX];
+    float dts[RMAX];
     for (int64_t task = next(); task >= 0; task = next()) {
         const int64_t b = task / parts, part = task % parts;
         const int64_t blk0 = part * per_part, blk1 = std::min(nblk, blk0 + per_part);
@@ -556,9 +588,15 @@ void bwd_tasks(const BwdArgs& a, Next next) {
                     gn[n] = splat(0.0f);  // a_{t+1} g_{t+1}, carried backwards
                     dAacc[n] = splat(0.0f);
                 }
+                if (lowrank) {
+                    load_dt_weight(prm, a.Wdt, R, c0, nw);
+                    for (int64_t j = 0; j < R; ++j) dWacc[j] = splat(0.0f);
+                }
+                const float* dtbase = lowrank ? a.dtl + b * sdt.b + g * sdt.g : nullptr;
+                float* ddtbase = lowrank ? a.ddtl + ((part * geo.batch + b) * L * G + g) * R : nullptr;
                 vf dDacc = splat(0.0f), dbacc = splat(0.0f);
-                const float* dbase = a.delta + b * sd.b + c0 * sd.c;
-                float* ddbase = a.ddelta + b * sd.b + c0 * sd.c;
+                const float* dbase = lowrank ? nullptr : a.delta + b * sd.b + c0 * sd.c;
+                float* ddbase = lowrank ? nullptr : a.ddelta + b * sd.b + c0 * sd.c;
                 const float* ubase = a.u + b * su.b + uc0 * su.c;
                 float* dubase = a.du + b * su.b + uc0 * su.c;
                 const float* dybase = a.dy + b * sdy.b + uc0 * sdy.c;
@@ -576,7 +614,7 @@ void bwd_tasks(const BwdArgs& a, Next next) {
                         const int64_t p = it.p;
                         Pbuf[s] = p;
                         if (k > 0 && s < chunk) {  // delta and u of the previous chunk (each step reads a new line)
-                            __builtin_prefetch(dbase + ahead.p * sd.l);
+                            __builtin_prefetch(lowrank ? dtbase + ahead.p * sdt.l : dbase + ahead.p * sd.l);
                             __builtin_prefetch(ubase + ahead.p * su.l);
                             ahead.next();
                         }
@@ -584,8 +622,15 @@ void bwd_tasks(const BwdArgs& a, Next next) {
                         __builtin_prefetch(Cbase + p * sC.l);
                         __builtin_prefetch(dybase + p * sdy.l);
                         if (accumulate) __builtin_prefetch(dubase + p * su.l, 1);
-                        vf dsig;
-                        DLbuf[s] = step_delta(load_lanes(dbase + p * sd.l, sd.c, nw), prm, a.softplus, &dsig);
+                        vf dsig, raw;
+                        if (lowrank) {  // the forward's dt projection, in the forward's order
+                            const float* row = dtbase + p * sdt.l;
+                            raw = prm.Wdt[0] * row[0];
+                            for (int64_t j = 1; j < R; ++j) raw += prm.Wdt[j] * row[j * sdt.n];
+                        } else {
+                            raw = load_lanes(dbase + p * sd.l, sd.c, nw);
+                        }
+                        DLbuf[s] = step_delta(raw, prm, a.softplus, &dsig);
                         SGbuf[s] = dsig;
                         Ubuf[s] = load_lanes(ubase + p * su.l, su.c, nw);
                     }
@@ -613,7 +658,12 @@ void bwd_tasks(const BwdArgs& a, Next next) {
                             __builtin_prefetch(Bbase + q * sB.l);
                             __builtin_prefetch(Cbase + q * sC.l);
                             __builtin_prefetch(dybase + q * sdy.l);
-                            __builtin_prefetch(ddbase + q * sd.l, 1);
+                            if (lowrank) {
+                                __builtin_prefetch(dtbase + q * sdt.l);
+                                __builtin_prefetch(ddtbase + q * G * R, 1);
+                            } else {
+                                __builtin_prefetch(ddbase + q * sd.l, 1);
+                            }
                             __builtin_prefetch(dubase + q * su.l, 1);
                         }
                         const vf dl = DLbuf[s], uu = Ubuf[s];
@@ -660,7 +710,21 @@ void bwd_tasks(const BwdArgs& a, Next next) {
                         const vf ddl = (dsum + uu * ssum) * SGbuf[s];
                         dbacc += ddl;
                         dDacc += dyv * uu;
-                        store_lanes(ddbase + p * sd.l, sd.c, ddl, nw);
+                        if (lowrank) {
+                            // the dt projection's gradients: dW[c, j] += ddl[c] dt_low[p, g, j] (per lane), and
+                            // d dt_low[p, g, j] = sum over the channels of ddl[c] W[c, j] (lane sums, then the part's
+                            // blocks in turn)
+                            const float* row = dtbase + p * sdt.l;
+                            for (int64_t j = 0; j < R; ++j) {
+                                dWacc[j] += ddl * row[j * sdt.n];
+                                pW[j] = ddl * prm.Wdt[j];
+                            }
+                            lane_sums(pW, R, dts);
+                            float* drow = ddtbase + p * G * R;
+                            for (int64_t j = 0; j < R; ++j) drow[j] = add_dBC ? drow[j] + dts[j] : dts[j];
+                        } else {
+                            store_lanes(ddbase + p * sd.l, sd.c, ddl, nw);
+                        }
                         vf dU = dl * ssum + prm.D * dyv;  // dL/du_t
                         float* durow = dubase + p * su.l;
                         if (accumulate) dU += load_lanes(durow, su.c, nw);
@@ -675,6 +739,10 @@ void bwd_tasks(const BwdArgs& a, Next next) {
                 for (int j = 0; j < nw; ++j) a.dD[b * Dall + c0 + j] = sums[j];
                 storev(sums, dbacc);
                 for (int j = 0; j < nw; ++j) a.dbias[b * Dall + c0 + j] = sums[j];
+                for (int64_t j = 0; lowrank && j < R; ++j) {
+                    storev(sums, dWacc[j]);
+                    for (int i = 0; i < nw; ++i) a.dWdt[(b * Dall + c0 + i) * R + j] = sums[i];
+                }
             }
         }
     }
@@ -779,6 +847,21 @@ std::vector<at::Tensor> scan_fwd(const at::Tensor& u, const at::Tensor& delta, c
 // steps are not read from a (batch, L, 4 d) tensor but computed per position from the low-rank steps dt_low
 // (batch, L, 4, R) (any strides: a slice of x_proj's output) and the weights dt_weight (4 d, R), then biased and
 // passed through softplus as in scan_fwd. Returns y (batch, L, d).
+namespace {
+void check_lowrank(const char* fn, const at::Tensor& dt_low, const at::Tensor& dt_weight, const Geometry& geo) {
+    for (const at::Tensor* t : {&dt_low, &dt_weight}) {
+        TORCH_CHECK(t->device().is_cpu() && t->scalar_type() == at::kFloat, fn, ": float32 CPU tensors expected");
+    }
+    TORCH_CHECK(dt_low.dim() == 4 && dt_low.size(0) == geo.batch && dt_low.size(1) == geo.L && dt_low.size(2) == geo.G,
+                fn, ": dt_low must be (batch, L, 4, R)");
+    const int64_t R = dt_low.size(3);
+    TORCH_CHECK(R >= 1 && R <= RMAX, fn, ": dt_rank must be in 1..", RMAX, ", got ", R);
+    TORCH_CHECK(dt_weight.dim() == 2 && dt_weight.is_contiguous() && dt_weight.size(0) == geo.G * geo.Dg &&
+                    dt_weight.size(1) == R,
+                fn, ": dt_weight must be a contiguous (4 d, R) tensor");
+}
+}  // namespace
+
 at::Tensor ss2d_fwd_lowrank(const at::Tensor& u, const at::Tensor& dt_low, const at::Tensor& dt_weight,
                             const at::Tensor& A, const at::Tensor& B, const at::Tensor& C,
                             const c10::optional<at::Tensor>& D_opt, const c10::optional<at::Tensor>& bias_opt,
@@ -786,28 +869,36 @@ at::Tensor ss2d_fwd_lowrank(const at::Tensor& u, const at::Tensor& dt_low, const
     const at::Tensor D = D_opt.has_value() ? *D_opt : at::Tensor();
     const at::Tensor bias = bias_opt.has_value() ? *bias_opt : at::Tensor();
     const Geometry geo = make_geometry(u, A, B, true, H, Wd);
-    for (const at::Tensor* t : {&dt_low, &dt_weight}) {
-        TORCH_CHECK(t->device().is_cpu() && t->scalar_type() == at::kFloat, "ss2d_fwd_lowrank: float32 CPU tensors expected");
-    }
-    TORCH_CHECK(dt_low.dim() == 4 && dt_low.size(0) == geo.batch && dt_low.size(1) == geo.L && dt_low.size(2) == geo.G,
-                "ss2d_fwd_lowrank: dt_low must be (batch, L, 4, R)");
-    const int64_t R = dt_low.size(3);
-    TORCH_CHECK(R >= 1 && R <= RMAX, "ss2d_fwd_lowrank: dt_rank must be in 1..", RMAX, ", got ", R);
-    TORCH_CHECK(dt_weight.dim() == 2 && dt_weight.is_contiguous() && dt_weight.size(0) == geo.G * geo.Dg &&
-                    dt_weight.size(1) == R,
-                "ss2d_fwd_lowrank: dt_weight must be a contiguous (4 d, R) tensor");
+    check_lowrank("ss2d_fwd_lowrank", dt_low, dt_weight, geo);
     check_inputs(u, at::Tensor(), A, B, C, D, bias, geo);
     return fwd_impl(u, at::Tensor(), A, B, C, D, bias, true, geo, 0, dt_low, dt_weight)[0];
 }
 
-std::vector<at::Tensor> scan_bwd(const at::Tensor& u, const at::Tensor& delta, const at::Tensor& A, const at::Tensor& B,
-                                 const at::Tensor& C, const c10::optional<at::Tensor>& D_opt,
-                                 const c10::optional<at::Tensor>& bias_opt, bool softplus, bool ss2d, int64_t H,
-                                 int64_t Wd, int64_t chunk, const at::Tensor& ck, const at::Tensor& dy_in) {
+// The same forward for training: the checkpoints of every chunk of `chunk` positions kept for ss2d_bwd_lowrank, and
+// the training forward's arithmetic (exp_v, softplus_v), as scan_fwd. Returns {y, ck}.
+std::vector<at::Tensor> ss2d_fwd_lowrank_train(const at::Tensor& u, const at::Tensor& dt_low, const at::Tensor& dt_weight,
+                                               const at::Tensor& A, const at::Tensor& B, const at::Tensor& C,
+                                               const c10::optional<at::Tensor>& D_opt,
+                                               const c10::optional<at::Tensor>& bias_opt, int64_t H, int64_t Wd,
+                                               int64_t chunk) {
     const at::Tensor D = D_opt.has_value() ? *D_opt : at::Tensor();
     const at::Tensor bias = bias_opt.has_value() ? *bias_opt : at::Tensor();
-    const Geometry geo = make_geometry(u, A, B, ss2d, H, Wd);
-    check_inputs(u, delta, A, B, C, D, bias, geo);
+    const Geometry geo = make_geometry(u, A, B, true, H, Wd);
+    check_lowrank("ss2d_fwd_lowrank_train", dt_low, dt_weight, geo);
+    check_inputs(u, at::Tensor(), A, B, C, D, bias, geo);
+    TORCH_CHECK(chunk >= 1, "ss2d_fwd_lowrank_train: chunk must be >= 1 (the backward's checkpoints)");
+    return fwd_impl(u, at::Tensor(), A, B, C, D, bias, true, geo, chunk, dt_low, dt_weight);
+}
+
+namespace {
+// The backward's body, shared by scan_bwd and ss2d_bwd_lowrank (dtl / Wdt undefined unless the dt projection is
+// fused: then delta is undefined, and the last two outputs are d dt_low (batch, L, G, R) and d dt_weight (G Dg, R)
+// in place of d delta).
+std::vector<at::Tensor> bwd_impl(const at::Tensor& u, const at::Tensor& delta, const at::Tensor& A, const at::Tensor& B,
+                                 const at::Tensor& C, const at::Tensor& D, const at::Tensor& bias, bool softplus,
+                                 const Geometry& geo, int64_t chunk, const at::Tensor& ck, const at::Tensor& dy_in,
+                                 const at::Tensor& dtl, const at::Tensor& Wdt) {
+    const bool lowrank = dtl.defined();
     const at::Tensor& dy = dy_in;  // any strides (autograd may hand over an expanded or transposed gradient)
     TORCH_CHECK(dy.sizes() == u.sizes() && dy.scalar_type() == at::kFloat, "selective_scan_cpu: dy must have y's shape");
     TORCH_CHECK(chunk >= 1, "selective_scan_cpu: the backward needs the forward's checkpoints (chunk >= 1)");
@@ -817,8 +908,9 @@ std::vector<at::Tensor> scan_bwd(const at::Tensor& u, const at::Tensor& delta, c
     const int64_t N = geo.N, L = geo.L, G = geo.G, Dg = geo.Dg, Du = geo.Du, Dall = G * Dg;
 
     at::Tensor du_out = at::empty_like(u);
-    at::Tensor ddelta = at::empty_like(delta);
-    TORCH_CHECK(du_out.strides() == u.strides() && ddelta.strides() == delta.strides(), "selective_scan_cpu: gradient layout differs");
+    at::Tensor ddelta = lowrank ? at::Tensor() : at::empty_like(delta);
+    TORCH_CHECK(du_out.strides() == u.strides() && (lowrank || ddelta.strides() == delta.strides()),
+                "selective_scan_cpu: gradient layout differs");
     at::Tensor dA = at::empty({geo.batch, Dall, N}, u.options());
     // Tasks: (batch element, part), a part being a range of lane blocks walked in turn (its dB / dC rows summed in
     // place). One part per batch element from batch 4 on: no (lane blocks, batch, L, G, N) partial sums (at DVSS level
@@ -833,7 +925,7 @@ std::vector<at::Tensor> scan_bwd(const at::Tensor& u, const at::Tensor& delta, c
     at::Tensor dbias = at::empty({geo.batch, Dall}, u.options());
 
     const float* up = u.data_ptr<float>();
-    const float* dp = delta.data_ptr<float>();
+    const float* dp = lowrank ? nullptr : delta.data_ptr<float>();
     const float* Ap = A.data_ptr<float>();
     const float* Bp = B.data_ptr<float>();
     const float* Cp = C.data_ptr<float>();
@@ -842,7 +934,7 @@ std::vector<at::Tensor> scan_bwd(const at::Tensor& u, const at::Tensor& delta, c
     const float* ckp = ck.data_ptr<float>();
     const float* dyp = dy.data_ptr<float>();
     float* dup = du_out.data_ptr<float>();
-    float* ddp = ddelta.data_ptr<float>();
+    float* ddp = lowrank ? nullptr : ddelta.data_ptr<float>();
     float* dAp = dA.data_ptr<float>();
     float* dBpp = dBp.data_ptr<float>();
     float* dCpp = dCp.data_ptr<float>();
@@ -850,8 +942,21 @@ std::vector<at::Tensor> scan_bwd(const at::Tensor& u, const at::Tensor& delta, c
     float* dbp = dbias.data_ptr<float>();
     const Strides4 sB = strides4(B), sC = strides4(C);
 
-    const BwdArgs args{geo, nblk, nck, chunk, parts, per_part, softplus, up, dp, Ap, Bp, Cp, Dp, bp, ckp, dyp,
-                       dup, ddp, dAp, dBpp, dCpp, dDp, dbp, sB, sC, strides3(u), strides3(delta), strides3(dy)};
+    BwdArgs args{geo, nblk, nck, chunk, parts, per_part, softplus, up, dp, Ap, Bp, Cp, Dp, bp, ckp, dyp,
+                 dup, ddp, dAp, dBpp, dCpp, dDp, dbp, sB, sC, strides3(u), lowrank ? Strides3{} : strides3(delta),
+                 strides3(dy)};
+    at::Tensor ddtlp, dWdt;
+    if (lowrank) {
+        const int64_t R = dtl.size(3);
+        ddtlp = at::empty({parts, geo.batch, L, G, R}, u.options());
+        dWdt = at::empty({geo.batch, Dall, R}, u.options());
+        args.dtl = dtl.data_ptr<float>();
+        args.Wdt = Wdt.data_ptr<float>();
+        args.sdt = strides4(dtl);
+        args.R = R;
+        args.ddtl = ddtlp.data_ptr<float>();
+        args.dWdt = dWdt.data_ptr<float>();
+    }
     run_tasks(geo.batch * parts, [&](auto next) {
         if (geo.N == 16) {
             bwd_tasks<16>(args, next);
@@ -861,7 +966,39 @@ std::vector<at::Tensor> scan_bwd(const at::Tensor& u, const at::Tensor& delta, c
     });
     at::Tensor dB = parts == 1 ? dBp.select(0, 0) : dBp.sum(0);
     at::Tensor dC = parts == 1 ? dCp.select(0, 0) : dCp.sum(0);
+    if (lowrank) {
+        at::Tensor ddtl = parts == 1 ? ddtlp.select(0, 0) : ddtlp.sum(0);
+        return {du_out, ddtl, dA.sum(0), dB, dC, dD.sum(0), dbias.sum(0), dWdt.sum(0)};
+    }
     return {du_out, ddelta, dA.sum(0), dB, dC, dD.sum(0), dbias.sum(0)};
+}
+}  // namespace
+
+std::vector<at::Tensor> scan_bwd(const at::Tensor& u, const at::Tensor& delta, const at::Tensor& A, const at::Tensor& B,
+                                 const at::Tensor& C, const c10::optional<at::Tensor>& D_opt,
+                                 const c10::optional<at::Tensor>& bias_opt, bool softplus, bool ss2d, int64_t H,
+                                 int64_t Wd, int64_t chunk, const at::Tensor& ck, const at::Tensor& dy) {
+    const at::Tensor D = D_opt.has_value() ? *D_opt : at::Tensor();
+    const at::Tensor bias = bias_opt.has_value() ? *bias_opt : at::Tensor();
+    const Geometry geo = make_geometry(u, A, B, ss2d, H, Wd);
+    check_inputs(u, delta, A, B, C, D, bias, geo);
+    return bwd_impl(u, delta, A, B, C, D, bias, softplus, geo, chunk, ck, dy, at::Tensor(), at::Tensor());
+}
+
+// The backward of ss2d_fwd_lowrank_train: {du, d dt_low (batch, L, 4, R), dA, dB, dC, dD, dbias, d dt_weight (4 d,
+// R)}. No (batch, L, 4 d) tensor of steps or of their gradient is written: the steps are recomputed from dt_low as
+// the forward computed them, and their gradient goes straight into the dt projection's two products.
+std::vector<at::Tensor> ss2d_bwd_lowrank(const at::Tensor& u, const at::Tensor& dt_low, const at::Tensor& dt_weight,
+                                         const at::Tensor& A, const at::Tensor& B, const at::Tensor& C,
+                                         const c10::optional<at::Tensor>& D_opt,
+                                         const c10::optional<at::Tensor>& bias_opt, int64_t H, int64_t Wd,
+                                         int64_t chunk, const at::Tensor& ck, const at::Tensor& dy) {
+    const at::Tensor D = D_opt.has_value() ? *D_opt : at::Tensor();
+    const at::Tensor bias = bias_opt.has_value() ? *bias_opt : at::Tensor();
+    const Geometry geo = make_geometry(u, A, B, true, H, Wd);
+    check_lowrank("ss2d_bwd_lowrank", dt_low, dt_weight, geo);
+    check_inputs(u, at::Tensor(), A, B, C, D, bias, geo);
+    return bwd_impl(u, at::Tensor(), A, B, C, D, bias, true, geo, chunk, ck, dy, dt_low, dt_weight);
 }
 
 // SS2D's output stage for inference, in place: y[r, :] <- LayerNorm(y[r, :]) * w + b, times SiLU(z[r, :]) = z / (1 +
@@ -980,6 +1117,9 @@ at::Tensor map_lanes(const at::Tensor& x, F f) {
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.def("scan_fwd", &scan_fwd, "selective scan forward (CPU, float32)");
     m.def("ss2d_fwd_lowrank", &ss2d_fwd_lowrank, "SS2D forward with the dt projection fused (inference, float32)");
+    m.def("ss2d_fwd_lowrank_train", &ss2d_fwd_lowrank_train,
+          "SS2D forward with the dt projection fused, checkpoints kept (training, float32)");
+    m.def("ss2d_bwd_lowrank", &ss2d_bwd_lowrank, "backward of ss2d_fwd_lowrank_train (float32)");
     m.def("ss2d_out_gate", &ss2d_out_gate, "SS2D's LayerNorm(y) * SiLU(z), in place (inference, float32)");
     m.def("threads_used", &threads_used, "distinct intra-op threads that ran tasks (the parallel build check)");
     m.def("scan_bwd", &scan_bwd, "selective scan backward (CPU, float32)");
