@@ -78,7 +78,9 @@ def test_kernel_matches_reference_and_chunked(ext, case):
     )
     assert y.dtype == torch.float32 and y.shape == (batch, dim, length)
     assert _rel(y.double(), y_ref) < 2e-6
-    assert _rel(y, y_chk) < 2e-6
+    # two float32 computations, each within 2e-6 of the float64 reference (case 2's steps are negative: its states
+    # grow to 1e13 in 17 steps, where the two float32 roundings of exp part the most)
+    assert _rel(y, y_chk) < 4e-6
     names = ["u", "delta", "A", "B", "C"] + (["D"] if use_d else []) + (["bias"] if use_bias else [])
     for name, a, c, r in zip(names, g, g_chk, g_ref):
         assert a.shape == r.shape, name
@@ -337,8 +339,8 @@ def test_a_stale_build_lock_is_removed_and_a_fresh_one_is_waited_for(tmp_path):
 def test_inference_forward_keeps_no_checkpoints_and_gives_the_same_output(ext, b, h, w, dg, n):
     """chunk 0 (no input needs a gradient): the kernel writes no checkpoints and returns an empty ck, with an output
     equal to the checkpointing forward's -- bit for bit where the build has no AVX-512, to rounding where it has
-    (the inference forward's exp2 and softplus, equally close to the float64 reference); SS2D's route passes 0 under
-    no_grad. Odd, non-square sizes, batch 1 and L not a multiple of CHUNK."""
+    (the inference forward's softplus without a division, equally close to the float64 reference); SS2D's route
+    passes 0 under no_grad. Odd, non-square sizes, batch 1 and L not a multiple of CHUNK."""
     g = torch.Generator().manual_seed(11)
     length = h * w
     x = torch.randn(b, length, dg, generator=g)

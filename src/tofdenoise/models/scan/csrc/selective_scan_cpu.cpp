@@ -130,7 +130,8 @@ inline vf exp_v(vf x) {
 #endif
 }
 
-// 2^x for the inference forward (x = delta * A log2(e) <= 0, A log2(e) folded into the block's constants): f =
+// 2^x for the decays exp(delta A), forward and backward (x = delta * A log2(e) <= 0, A log2(e) folded into the
+// block's constants; on AVX-512 builds, the training route's too since 2026-11-28): f =
 // x - floor(x) in [0, 1) in one instruction (vreduceps, round down), 2^f by a degree-5 polynomial fitted on [0, 1]
 // with p(0) = 1 (so that 2^n is exact: x = -126 gives the smallest normal float) for the least largest relative error
 // (Lawson-weighted least squares, coefficients rounded to float: 8.2e-8 in exact arithmetic, 1.8e-7 in float, as
@@ -160,8 +161,8 @@ inline vf exp2_v(vf x) {
 #endif
 }
 
-// Flush-to-zero and denormals-are-zero (MXCSR) on this thread for a scope, restored after: the inference forward's
-// exp2_v leaves its denormal results to it. Training (exp_v, clamped) runs with the thread's own settings.
+// Flush-to-zero and denormals-are-zero (MXCSR) on this thread for a scope, restored after: exp2_v leaves its denormal
+// results to it (the forward's and the backward's tasks run under it where they take exp2_v).
 struct InferenceFlush {
     unsigned int saved;
     InferenceFlush() : saved(_mm_getcsr()) { _mm_setcsr(saved | 0x8040u); }
@@ -425,20 +426,20 @@ struct BwdArgs {
 // between chunks). The steps' softplus (an exp, a division, a series: ~100 cycles of dependent latency) is then
 // off the recurrence's path, and the out-of-order core overlaps the state updates of consecutive steps. How the
 // blocks are split into parts does not change any lane's arithmetic: the results do not depend on it.
-template <int NT, bool EXP2, class Next>
+template <int NT, bool EXP2, bool FAST, class Next>
 void fwd_tasks_body(const FwdArgs& a, Next next);
 
-template <int NT, bool EXP2, class Next>
+template <int NT, bool EXP2, bool FAST, class Next>
 void fwd_tasks(const FwdArgs& a, Next next) {
     if constexpr (EXP2) {
         const InferenceFlush flush;  // exp2_v's denormals to 0 on this thread, for the tasks below
-        fwd_tasks_body<NT, EXP2>(a, next);
+        fwd_tasks_body<NT, EXP2, FAST>(a, next);
     } else {
-        fwd_tasks_body<NT, EXP2>(a, next);
+        fwd_tasks_body<NT, EXP2, FAST>(a, next);
     }
 }
 
-template <int NT, bool EXP2, class Next>
+template <int NT, bool EXP2, bool FAST, class Next>
 void fwd_tasks_body(const FwdArgs& a, Next next) {
     const Geometry& geo = a.geo;
     const int64_t N = NT > 0 ? NT : geo.N, L = geo.L, G = geo.G, Dg = geo.Dg;
@@ -517,7 +518,7 @@ void fwd_tasks_body(const FwdArgs& a, Next next) {
                             raw = load_lanes(dbase + p * sd.l, sd.c, nw);
                         }
                         vf dsig;
-                        const vf dl = step_delta<EXP2>(raw, prm, a.softplus, &dsig);
+                        const vf dl = step_delta<FAST>(raw, prm, a.softplus, &dsig);
                         const vf uu = load_lanes(ubase + p * su.l, su.c, nw);
                         DLbuf[s] = dl;
                         DUbuf[s] = dl * uu;
@@ -551,8 +552,21 @@ void fwd_tasks_body(const FwdArgs& a, Next next) {
 // Backward tasks, taken from next() until it returns -1 (NT as in fwd_tasks). Per chunk, newest first: a pass over
 // the chunk's steps (positions, steps and their softplus derivative, u; prefetches of the rows read later), the
 // recomputation of the chunk's states and decays from its checkpoint, and the adjoint recursion.
+template <int NT, bool EXP2, class Next>
+void bwd_tasks_body(const BwdArgs& a, Next next);
+
 template <int NT, class Next>
 void bwd_tasks(const BwdArgs& a, Next next) {
+    if constexpr (HAVE_EXP2_FAST) {
+        const InferenceFlush flush;  // exp2_v's denormals to 0, as in the forward
+        bwd_tasks_body<NT, true>(a, next);
+    } else {
+        bwd_tasks_body<NT, false>(a, next);
+    }
+}
+
+template <int NT, bool EXP2, class Next>
+void bwd_tasks_body(const BwdArgs& a, Next next) {
     const Geometry& geo = a.geo;
     const int64_t N = NT > 0 ? NT : geo.N, L = geo.L, G = geo.G, Dg = geo.Dg, Dall = G * Dg;
     const int64_t nblk = a.nblk, nck = a.nck, chunk = a.chunk;
@@ -564,7 +578,7 @@ void bwd_tasks(const BwdArgs& a, Next next) {
     std::vector<vf> Hbuf(chunk * N), Abuf(chunk * N), DLbuf(chunk), SGbuf(chunk), Ubuf(chunk);
     std::vector<int64_t> Pbuf(chunk);
     constexpr int NA = NT > 0 ? NT : NMAX;
-    vf h[NA], gn[NA], dAacc[NA], pB[NA], pC[NA];
+    vf h[NA], gn[NA], dAacc[NA], pB[NA], pC[NA], A2[NA];
     alignas(64) float sums[W];
     const int64_t parts = a.parts, per_part = a.per_part;
     const bool lowrank = a.dtl != nullptr;
@@ -587,6 +601,7 @@ void bwd_tasks(const BwdArgs& a, Next next) {
                 for (int64_t n = 0; n < N; ++n) {
                     gn[n] = splat(0.0f);  // a_{t+1} g_{t+1}, carried backwards
                     dAacc[n] = splat(0.0f);
+                    A2[n] = prm.A[n] * 1.4426950408889634f;  // the forward's exp2 argument, A log2(e)
                 }
                 if (lowrank) {
                     load_dt_weight(prm, a.Wdt, R, c0, nw);
@@ -644,7 +659,7 @@ void bwd_tasks(const BwdArgs& a, Next next) {
                         vf* As = &Abuf[s * N];
 #pragma GCC unroll 16
                         for (int64_t n = 0; n < N; ++n) {
-                            const vf decay = exp_v(dl * prm.A[n]);
+                            const vf decay = EXP2 ? exp2_v(dl * A2[n]) : exp_v(dl * prm.A[n]);
                             h[n] = decay * h[n] + du * Bl[n * sB.n];
                             As[n] = decay;
                             Hs[n] = h[n];
@@ -818,13 +833,16 @@ std::vector<at::Tensor> fwd_impl(const at::Tensor& u, const at::Tensor& delta, c
         args.sdt = strides4(dtl);
         args.R = dtl.size(3);
     }
-    // inference (no checkpoints: no backward, so no training numbers, depend on it) takes exp2_v on AVX-512
-    const bool exp2 = !keep && HAVE_EXP2_FAST;
+    // exp2_v for the decays on AVX-512 (the backward recomputes them the same way); inference (no checkpoints: no
+    // backward, so no derivative) also takes softplus_fast_v
+    const bool exp2 = HAVE_EXP2_FAST, fast = !keep && HAVE_EXP2_FAST;
     run_tasks(geo.batch * parts, [&](auto next) {
         if (geo.N == 16) {
-            exp2 ? fwd_tasks<16, true>(args, next) : fwd_tasks<16, false>(args, next);
+            fast ? fwd_tasks<16, true, true>(args, next)
+                 : (exp2 ? fwd_tasks<16, true, false>(args, next) : fwd_tasks<16, false, false>(args, next));
         } else {
-            exp2 ? fwd_tasks<0, true>(args, next) : fwd_tasks<0, false>(args, next);
+            fast ? fwd_tasks<0, true, true>(args, next)
+                 : (exp2 ? fwd_tasks<0, true, false>(args, next) : fwd_tasks<0, false, false>(args, next));
         }
     });
     return {y, ck};
@@ -875,7 +893,7 @@ at::Tensor ss2d_fwd_lowrank(const at::Tensor& u, const at::Tensor& dt_low, const
 }
 
 // The same forward for training: the checkpoints of every chunk of `chunk` positions kept for ss2d_bwd_lowrank, and
-// the training forward's arithmetic (exp_v, softplus_v), as scan_fwd. Returns {y, ck}.
+// the training forward's arithmetic (softplus_v: the backward's steps), as scan_fwd. Returns {y, ck}.
 std::vector<at::Tensor> ss2d_fwd_lowrank_train(const at::Tensor& u, const at::Tensor& dt_low, const at::Tensor& dt_weight,
                                                const at::Tensor& A, const at::Tensor& B, const at::Tensor& C,
                                                const c10::optional<at::Tensor>& D_opt,
@@ -1126,7 +1144,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.def("roofline_loop", &roofline_loop, "exp + 3 FMA per element, the scan's per-update floor");
     m.def("exp_fast", [](const at::Tensor& x) { return map_lanes(x, [](vf v) { return exp_v(v); }); },
           "the kernel's exp (for tests)");
-    m.attr("inference_exp2") = HAVE_EXP2_FAST;  // whether the inference forward takes exp2_v / softplus_fast_v
+    // whether the decays take exp2_v (forward and backward) and the inference forward softplus_fast_v
+    m.attr("inference_exp2") = HAVE_EXP2_FAST;
     m.def("exp2_fast",
           [](const at::Tensor& x) {
               const InferenceFlush flush;  // as the inference forward runs it
