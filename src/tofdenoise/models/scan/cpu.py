@@ -6,8 +6,12 @@ the D skip term fused, forward and a recomputing backward (gradients for u, delt
 * one task per (batch, block of 16 channels), run in parallel by ``at::parallel_for`` (torch's threads); the
   16 channels are the vector lanes and the N states of a block (N x 16 floats) stay in L1, so no
   (batch, dim, N, L) tensor exists;
-* exp(delta A) -- one per state update, the cost of the scan -- is a range reduction by ln 2 and a degree-6
-  polynomial written branch-free, so that the loop over lanes vectorises (``-O3 -march=native``);
+* exp(delta A) -- one per state update, the cost of the scan -- is a range reduction by ln 2 and a polynomial
+  written branch-free, so that the loop over lanes vectorises (``-O3 -march=native``); AVX-512 builds take
+  ``2^(delta A log2 e)`` by ``vreduceps`` / ``vscalefps`` instead, forward and backward;
+* SS2D's dt projection can run inside the kernel (:func:`ss2d_forward_lowrank` for inference,
+  :func:`ss2d_forward_lowrank_train` / :func:`ss2d_backward_lowrank` for training), so that no (b, L, 4 d) tensor
+  of steps or of their gradient is written;
 * the forward saves the state entering every chunk of ``CHUNK`` positions; the backward walks the chunks in
   reverse, recomputes a chunk's states and decays from its checkpoint and runs the adjoint recursion.
 
