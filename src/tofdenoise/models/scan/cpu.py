@@ -333,32 +333,39 @@ def ss2d_forward_lowrank(x, dt_low, dt_weight, A, B, C, D, bias, height: int, wi
     D / bias (4 d,) or None. Returns y (b, L, d), equal to :func:`ss2d_forward` on the projected steps to
     rounding (bit for bit where the batched product sums in the kernel's order, as on the 2-core CPU measured)."""
     ext = _extension("ss2d_scan_cpu")
-    k, d, r = dt_weight.shape
     return ext.ss2d_fwd_lowrank(
-        x, dt_low, dt_weight.reshape(k * d, r).contiguous(), A, B, C, _opt(D), _opt(bias), int(height), int(width)
+        x, dt_low, _flat_dt_weight(dt_weight), A, B, C, _opt(D), _opt(bias), int(height), int(width)
     )
+
+
+def _flat_dt_weight(dt_weight: torch.Tensor) -> torch.Tensor:
+    """SS2D's dt weights (4, d, R) as the (4 d, R) contiguous matrix the kernel reads."""
+    k, d, r = dt_weight.shape
+    return dt_weight.reshape(k * d, r).contiguous()
 
 
 def ss2d_forward_lowrank_train(x, dt_low, dt_weight, A, B, C, D, bias, height: int, width: int):
     """:func:`ss2d_forward_lowrank` for training: ``(y, ckpt)`` with the checkpoints of :func:`ss2d_forward` and
-    the training forward's arithmetic. dt_weight (4 d, R) contiguous; the other inputs as there."""
+    the training forward's arithmetic; the inputs as there."""
     ext = _extension("ss2d_scan_cpu")
     return tuple(
-        ext.ss2d_fwd_lowrank_train(x, dt_low, dt_weight, A, B, C, _opt(D), _opt(bias), int(height), int(width), CHUNK)
+        ext.ss2d_fwd_lowrank_train(
+            x, dt_low, _flat_dt_weight(dt_weight), A, B, C, _opt(D), _opt(bias), int(height), int(width), CHUNK
+        )
     )
 
 
 def ss2d_backward_lowrank(x, dt_low, dt_weight, A, B, C, D, bias, ckpt, dy, height: int, width: int):
     """The backward of :func:`ss2d_forward_lowrank_train`: ``(dx, d dt_low, dA, dB, dC, dD, dbias, d dt_weight)``,
-    float32 and contiguous, d dt_low (b, L, 4, R) and d dt_weight (4 d, R). The steps are recomputed from dt_low and
-    their gradient goes straight into the projection's two products: no (b, L, 4 d) tensor of steps or of their
-    gradient exists (16.8 MB each per block at DVSS's first level of a 64 x 64 batch-4 training step)."""
+    float32 and contiguous, d dt_low (b, L, 4, R) and d dt_weight of dt_weight's shape (4, d, R). The steps are
+    recomputed from dt_low and their gradient goes straight into the projection's two products: no (b, L, 4 d)
+    tensor of steps or of their gradient exists (16.8 MB each per block at DVSS's first level of a 64 x 64 batch-4
+    training step)."""
     ext = _extension("ss2d_scan_cpu")
-    return tuple(
-        ext.ss2d_bwd_lowrank(
-            x, dt_low, dt_weight, A, B, C, _opt(D), _opt(bias), int(height), int(width), CHUNK, ckpt, dy
-        )
+    *grads, dw = ext.ss2d_bwd_lowrank(
+        x, dt_low, _flat_dt_weight(dt_weight), A, B, C, _opt(D), _opt(bias), int(height), int(width), CHUNK, ckpt, dy
     )
+    return (*grads, dw.view(dt_weight.shape))
 
 
 def ss2d_out_gate(

@@ -337,15 +337,9 @@ def _ss2d_scan_lowrank(
     from .cpu import ss2d_forward_lowrank_train
 
     y, ckpt = ss2d_forward_lowrank_train(
-        x.contiguous(), dt_low, _flat_weight(dt_weight), A.contiguous(), B, C, D, delta_bias, height, width
+        x.contiguous(), dt_low, dt_weight, A.contiguous(), B, C, D, delta_bias, height, width
     )
     return y.contiguous(), ckpt
-
-
-def _flat_weight(dt_weight: Tensor) -> Tensor:
-    """(4, d, R) -> the (4 d, R) contiguous matrix the kernel reads."""
-    k, d, r = dt_weight.shape
-    return dt_weight.reshape(k * d, r).contiguous()
 
 
 @_ss2d_scan_lowrank.register_fake
@@ -371,12 +365,12 @@ def _ss2d_scan_lowrank_backward(
     from .cpu import ss2d_backward_lowrank
 
     dx, ddt, dA, dB, dC, dD, dbias, dw = ss2d_backward_lowrank(
-        x.contiguous(), dt_low, _flat_weight(dt_weight), A.contiguous(), B, C, D, delta_bias, ckpt, dy, height, width
+        x.contiguous(), dt_low, dt_weight, A.contiguous(), B, C, D, delta_bias, ckpt, dy, height, width
     )
     return (
         dx.contiguous(),
         ddt.contiguous(),
-        dw.view(dt_weight.shape).contiguous(),
+        dw.contiguous(),
         dA.contiguous(),
         dB.contiguous(),
         dC.contiguous(),

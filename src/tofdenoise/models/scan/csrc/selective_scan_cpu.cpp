@@ -370,6 +370,14 @@ inline void load_params(BlockParams& p, const float* A, const float* D, const fl
     p.mask = loadv(t);
 }
 
+// The fused dt projection's raw step of a lane block at one position: sum_j W[c, j] dt_low[p, g, j] (row: dt_low at
+// (p, g), its R entries at stride sn), in one order for the forward and the backward's recomputation.
+inline vf lowrank_step(const BlockParams& p, const float* row, int64_t R, int64_t sn) {
+    vf raw = p.Wdt[0] * row[0];
+    for (int64_t j = 1; j < R; ++j) raw += p.Wdt[j] * row[j * sn];
+    return raw;
+}
+
 // delta (after bias / softplus) and its derivative w.r.t. the raw delta, in lanes (inactive lanes: 0). FAST (the
 // inference forward, which needs no derivative): softplus_fast_v, and dsig is left unset.
 template <bool FAST = false>
@@ -511,9 +519,7 @@ void fwd_tasks_body(const FwdArgs& a, Next next) {
                         __builtin_prefetch(ybase + p * su.l, 1);
                         vf raw;
                         if (lowrank) {  // the dt projection: R multiply-adds of broadcast low-rank steps
-                            const float* row = dtbase + p * sdt.l;
-                            raw = prm.Wdt[0] * row[0];
-                            for (int64_t j = 1; j < R; ++j) raw += prm.Wdt[j] * row[j * sdt.n];
+                            raw = lowrank_step(prm, dtbase + p * sdt.l, R, sdt.n);
                         } else {
                             raw = load_lanes(dbase + p * sd.l, sd.c, nw);
                         }
@@ -639,9 +645,7 @@ void bwd_tasks_body(const BwdArgs& a, Next next) {
                         if (accumulate) __builtin_prefetch(dubase + p * su.l, 1);
                         vf dsig, raw;
                         if (lowrank) {  // the forward's dt projection, in the forward's order
-                            const float* row = dtbase + p * sdt.l;
-                            raw = prm.Wdt[0] * row[0];
-                            for (int64_t j = 1; j < R; ++j) raw += prm.Wdt[j] * row[j * sdt.n];
+                            raw = lowrank_step(prm, dtbase + p * sdt.l, R, sdt.n);
                         } else {
                             raw = load_lanes(dbase + p * sd.l, sd.c, nw);
                         }
@@ -861,10 +865,6 @@ std::vector<at::Tensor> scan_fwd(const at::Tensor& u, const at::Tensor& delta, c
     return fwd_impl(u, delta, A, B, C, D, bias, softplus, geo, chunk, at::Tensor(), at::Tensor());
 }
 
-// The SS2D forward with its dt projection fused, for inference (no checkpoints: no backward can follow): the raw
-// steps are not read from a (batch, L, 4 d) tensor but computed per position from the low-rank steps dt_low
-// (batch, L, 4, R) (any strides: a slice of x_proj's output) and the weights dt_weight (4 d, R), then biased and
-// passed through softplus as in scan_fwd. Returns y (batch, L, d).
 namespace {
 void check_lowrank(const char* fn, const at::Tensor& dt_low, const at::Tensor& dt_weight, const Geometry& geo) {
     for (const at::Tensor* t : {&dt_low, &dt_weight}) {
@@ -878,18 +878,31 @@ void check_lowrank(const char* fn, const at::Tensor& dt_low, const at::Tensor& d
                     dt_weight.size(1) == R,
                 fn, ": dt_weight must be a contiguous (4 d, R) tensor");
 }
+
+// The SS2D forward with its dt projection fused (ss2d_fwd_lowrank, ss2d_fwd_lowrank_train): the inputs checked,
+// then fwd_impl with `chunk` (0: no checkpoints).
+std::vector<at::Tensor> lowrank_fwd(const char* fn, const at::Tensor& u, const at::Tensor& dt_low,
+                                    const at::Tensor& dt_weight, const at::Tensor& A, const at::Tensor& B,
+                                    const at::Tensor& C, const c10::optional<at::Tensor>& D_opt,
+                                    const c10::optional<at::Tensor>& bias_opt, int64_t H, int64_t Wd, int64_t chunk) {
+    const at::Tensor D = D_opt.has_value() ? *D_opt : at::Tensor();
+    const at::Tensor bias = bias_opt.has_value() ? *bias_opt : at::Tensor();
+    const Geometry geo = make_geometry(u, A, B, true, H, Wd);
+    check_lowrank(fn, dt_low, dt_weight, geo);
+    check_inputs(u, at::Tensor(), A, B, C, D, bias, geo);
+    return fwd_impl(u, at::Tensor(), A, B, C, D, bias, true, geo, chunk, dt_low, dt_weight);
+}
 }  // namespace
 
+// The SS2D forward with its dt projection fused, for inference (no checkpoints: no backward can follow): the raw
+// steps are not read from a (batch, L, 4 d) tensor but computed per position from the low-rank steps dt_low
+// (batch, L, 4, R) (any strides: a slice of x_proj's output) and the weights dt_weight (4 d, R), then biased and
+// passed through softplus as in scan_fwd. Returns y (batch, L, d).
 at::Tensor ss2d_fwd_lowrank(const at::Tensor& u, const at::Tensor& dt_low, const at::Tensor& dt_weight,
                             const at::Tensor& A, const at::Tensor& B, const at::Tensor& C,
                             const c10::optional<at::Tensor>& D_opt, const c10::optional<at::Tensor>& bias_opt,
                             int64_t H, int64_t Wd) {
-    const at::Tensor D = D_opt.has_value() ? *D_opt : at::Tensor();
-    const at::Tensor bias = bias_opt.has_value() ? *bias_opt : at::Tensor();
-    const Geometry geo = make_geometry(u, A, B, true, H, Wd);
-    check_lowrank("ss2d_fwd_lowrank", dt_low, dt_weight, geo);
-    check_inputs(u, at::Tensor(), A, B, C, D, bias, geo);
-    return fwd_impl(u, at::Tensor(), A, B, C, D, bias, true, geo, 0, dt_low, dt_weight)[0];
+    return lowrank_fwd("ss2d_fwd_lowrank", u, dt_low, dt_weight, A, B, C, D_opt, bias_opt, H, Wd, 0)[0];
 }
 
 // The same forward for training: the checkpoints of every chunk of `chunk` positions kept for ss2d_bwd_lowrank, and
@@ -899,13 +912,8 @@ std::vector<at::Tensor> ss2d_fwd_lowrank_train(const at::Tensor& u, const at::Te
                                                const c10::optional<at::Tensor>& D_opt,
                                                const c10::optional<at::Tensor>& bias_opt, int64_t H, int64_t Wd,
                                                int64_t chunk) {
-    const at::Tensor D = D_opt.has_value() ? *D_opt : at::Tensor();
-    const at::Tensor bias = bias_opt.has_value() ? *bias_opt : at::Tensor();
-    const Geometry geo = make_geometry(u, A, B, true, H, Wd);
-    check_lowrank("ss2d_fwd_lowrank_train", dt_low, dt_weight, geo);
-    check_inputs(u, at::Tensor(), A, B, C, D, bias, geo);
     TORCH_CHECK(chunk >= 1, "ss2d_fwd_lowrank_train: chunk must be >= 1 (the backward's checkpoints)");
-    return fwd_impl(u, at::Tensor(), A, B, C, D, bias, true, geo, chunk, dt_low, dt_weight);
+    return lowrank_fwd("ss2d_fwd_lowrank_train", u, dt_low, dt_weight, A, B, C, D_opt, bias_opt, H, Wd, chunk);
 }
 
 namespace {
