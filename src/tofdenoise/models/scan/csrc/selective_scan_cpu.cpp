@@ -138,7 +138,7 @@ inline vf exp_v(vf x) {
 // exp_v), and 2^f 2^floor(x) by scalef, which floors its exponent operand itself.
 // Seven instructions, where a clamp, a rounding and a subtraction before the same polynomial took nine. No clamp: x
 // below -150 gives 0 (scalef underflows; -inf gives 0, no NaN); the denormal results of x in (-150, -126] are
-// flushed to 0 by the caller (InferenceFlush: the recurrence then never meets a denormal operand). AVX-512 (DQ for
+// flushed to 0 by the caller (DenormalFlush: the recurrence then never meets a denormal operand). AVX-512 (DQ for
 // vreduceps) only; elsewhere exp_v(x ln 2).
 constexpr bool HAVE_EXP2_FAST =
 #if defined(__AVX512F__) && defined(__AVX512DQ__)
@@ -162,14 +162,29 @@ inline vf exp2_v(vf x) {
 }
 
 // Flush-to-zero and denormals-are-zero (MXCSR) on this thread for a scope, restored after: exp2_v leaves its denormal
-// results to it (the forward's and the backward's tasks run under it where they take exp2_v).
-struct InferenceFlush {
+// results to it.
+struct DenormalFlush {
     unsigned int saved;
-    InferenceFlush() : saved(_mm_getcsr()) { _mm_setcsr(saved | 0x8040u); }
-    ~InferenceFlush() { _mm_setcsr(saved); }
-    InferenceFlush(const InferenceFlush&) = delete;
-    InferenceFlush& operator=(const InferenceFlush&) = delete;
+    DenormalFlush() : saved(_mm_getcsr()) { _mm_setcsr(saved | 0x8040u); }
+    ~DenormalFlush() { _mm_setcsr(saved); }
+    DenormalFlush(const DenormalFlush&) = delete;
+    DenormalFlush& operator=(const DenormalFlush&) = delete;
 };
+
+// The decays exp(delta A) of the forward and the backward: exp2_v of delta A log2(e) where the build has it (denormal
+// results flushed: run the tasks through decay_scope), exp_v of delta A elsewhere. One setting for both directions,
+// so that the backward recomputes the forward's decays bit for bit.
+constexpr bool EXP2 = HAVE_EXP2_FAST;
+// f() under the denormal flush that exp2_v needs (nothing to set where the decays take exp_v)
+template <class F>
+void decay_scope(F&& f) {
+    if constexpr (EXP2) {
+        const DenormalFlush flush;
+        f();
+    } else {
+        f();
+    }
+}
 
 // 2 atanh(s) = log((1 + s) / (1 - s)) for s in (0, 1/3], by its odd series to s^13 (truncation < 2e-8 relative).
 inline vf two_atanh_v(vf s) {
@@ -434,20 +449,15 @@ struct BwdArgs {
 // between chunks). The steps' softplus (an exp, a division, a series: ~100 cycles of dependent latency) is then
 // off the recurrence's path, and the out-of-order core overlaps the state updates of consecutive steps. How the
 // blocks are split into parts does not change any lane's arithmetic: the results do not depend on it.
-template <int NT, bool EXP2, bool FAST, class Next>
+template <int NT, bool FAST, class Next>
 void fwd_tasks_body(const FwdArgs& a, Next next);
 
-template <int NT, bool EXP2, bool FAST, class Next>
+template <int NT, bool FAST, class Next>
 void fwd_tasks(const FwdArgs& a, Next next) {
-    if constexpr (EXP2) {
-        const InferenceFlush flush;  // exp2_v's denormals to 0 on this thread, for the tasks below
-        fwd_tasks_body<NT, EXP2, FAST>(a, next);
-    } else {
-        fwd_tasks_body<NT, EXP2, FAST>(a, next);
-    }
+    decay_scope([&] { fwd_tasks_body<NT, FAST>(a, next); });
 }
 
-template <int NT, bool EXP2, bool FAST, class Next>
+template <int NT, bool FAST, class Next>
 void fwd_tasks_body(const FwdArgs& a, Next next) {
     const Geometry& geo = a.geo;
     const int64_t N = NT > 0 ? NT : geo.N, L = geo.L, G = geo.G, Dg = geo.Dg;
@@ -558,20 +568,15 @@ void fwd_tasks_body(const FwdArgs& a, Next next) {
 // Backward tasks, taken from next() until it returns -1 (NT as in fwd_tasks). Per chunk, newest first: a pass over
 // the chunk's steps (positions, steps and their softplus derivative, u; prefetches of the rows read later), the
 // recomputation of the chunk's states and decays from its checkpoint, and the adjoint recursion.
-template <int NT, bool EXP2, class Next>
+template <int NT, class Next>
 void bwd_tasks_body(const BwdArgs& a, Next next);
 
 template <int NT, class Next>
 void bwd_tasks(const BwdArgs& a, Next next) {
-    if constexpr (HAVE_EXP2_FAST) {
-        const InferenceFlush flush;  // exp2_v's denormals to 0, as in the forward
-        bwd_tasks_body<NT, true>(a, next);
-    } else {
-        bwd_tasks_body<NT, false>(a, next);
-    }
+    decay_scope([&] { bwd_tasks_body<NT>(a, next); });
 }
 
-template <int NT, bool EXP2, class Next>
+template <int NT, class Next>
 void bwd_tasks_body(const BwdArgs& a, Next next) {
     const Geometry& geo = a.geo;
     const int64_t N = NT > 0 ? NT : geo.N, L = geo.L, G = geo.G, Dg = geo.Dg, Dall = G * Dg;
@@ -839,14 +844,12 @@ std::vector<at::Tensor> fwd_impl(const at::Tensor& u, const at::Tensor& delta, c
     }
     // exp2_v for the decays on AVX-512 (the backward recomputes them the same way); inference (no checkpoints: no
     // backward, so no derivative) also takes softplus_fast_v
-    const bool exp2 = HAVE_EXP2_FAST, fast = !keep && HAVE_EXP2_FAST;
+    const bool fast = !keep && HAVE_EXP2_FAST;
     run_tasks(geo.batch * parts, [&](auto next) {
         if (geo.N == 16) {
-            fast ? fwd_tasks<16, true, true>(args, next)
-                 : (exp2 ? fwd_tasks<16, true, false>(args, next) : fwd_tasks<16, false, false>(args, next));
+            fast ? fwd_tasks<16, true>(args, next) : fwd_tasks<16, false>(args, next);
         } else {
-            fast ? fwd_tasks<0, true, true>(args, next)
-                 : (exp2 ? fwd_tasks<0, true, false>(args, next) : fwd_tasks<0, false, false>(args, next));
+            fast ? fwd_tasks<0, true>(args, next) : fwd_tasks<0, false>(args, next);
         }
     });
     return {y, ck};
@@ -1156,7 +1159,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.attr("inference_exp2") = HAVE_EXP2_FAST;
     m.def("exp2_fast",
           [](const at::Tensor& x) {
-              const InferenceFlush flush;  // as the inference forward runs it
+              const DenormalFlush flush;  // as the scan's tasks run it
               return map_lanes(x, [](vf v) { return exp2_v(v); });
           },
           "the inference forward's 2^x, denormal results flushed to 0 (for tests)");
