@@ -270,6 +270,54 @@ def test_skip_recorded_runs_only_what_has_no_committed_record(tmp_path, monkeypa
     assert "--skip-recorded applies to --table and --study" in capsys.readouterr().err
 
 
+def test_a_figure_says_which_committed_records_its_training_replaces(tmp_path, capsys):
+    """A figure needs its runs' checkpoints, which records do not keep: a run with a committed record but no finished
+    run folder is trained again, and that replaces its record (and moves the tables that show it). The dry run and
+    the real one say so, naming where the record came from; a run whose folder is finished, or with no record, is
+    not named."""
+    out, results, page = tmp_path / "runs", tmp_path / "results", tmp_path / "results.md"
+    records = {
+        "dvss-range-l1-s0": {"commit": "84d82cdc29d5054bbd4593bfb650f4552b844b93"},
+        "rcf-hetero-l1-s0": {
+            "commit": "85660e173b9216db",
+            "machine": {"cpu": "AMD EPYC", "cpu_id": "AuthenticAMD 25/17"},
+        },
+        "deeptof-hetero-l1-s0": {"commit": "85660e173b9216db"},
+    }
+    for name, info in records.items():
+        (results / "cpu" / name).mkdir(parents=True)
+        (results / "cpu" / name / "run_info.json").write_text(json.dumps(info))
+    finished = out / "deeptof-hetero-l1-s0"  # its checkpoint is here: nothing is retrained, nothing replaced
+    finished.mkdir(parents=True)
+    (finished / "run_info.json").write_text(json.dumps({"finished": "2026-11-28T14:00:00+0000"}))
+    (finished / "metrics.json").write_text("{}")
+    argv = ["--figure", "7", "--out", str(out), "--results", str(results), "--page", str(page), "--dry-run"]
+    assert main(argv) == 0
+    lines = [line for line in capsys.readouterr().out.splitlines() if "replaces its committed record" in line]
+    assert len(lines) == 2
+    assert lines[0].startswith("[reproduce] dvss-range-l1-s0: no finished run folder")
+    assert "(made at 84d82cdc29d5 on an unrecorded machine)" in lines[0]
+    assert lines[1].startswith("[reproduce] rcf-hetero-l1-s0:")
+    assert "(made at 85660e173b92 on AMD EPYC (AuthenticAMD 25/17))" in lines[1]
+    assert not (results / "cpu" / "fig7").exists()  # a dry run writes nothing
+
+
+def test_record_provenance_reads_what_a_record_says(tmp_path):
+    """``record_provenance``: commit and CPU from run_info.json, "unrecorded" for a missing part, None without a
+    readable run_info.json (no record, a broken one, a JSON list)."""
+    from tofdenoise.experiments.reproduce import record_provenance
+
+    assert record_provenance(tmp_path / "none") is None
+    (tmp_path / "run_info.json").write_text("{")
+    assert record_provenance(tmp_path) is None
+    (tmp_path / "run_info.json").write_text("[]")
+    assert record_provenance(tmp_path) is None
+    (tmp_path / "run_info.json").write_text("{}")
+    assert record_provenance(tmp_path) == "made at an unrecorded commit on an unrecorded machine"
+    (tmp_path / "run_info.json").write_text(json.dumps({"commit": "abc", "machine": {"cpu": "AMD EPYC"}}))
+    assert record_provenance(tmp_path) == "made at abc on AMD EPYC"
+
+
 def test_rerun_earlier_trains_again_the_runs_recorded_under_the_earlier_protocol(tmp_path, monkeypatch, capsys):
     """``--skip-recorded --rerun-earlier``: a committed record without the simulator-noised split (the earlier test
     protocol) or with an unreadable metrics.json runs again; a current-protocol record is still skipped; the option

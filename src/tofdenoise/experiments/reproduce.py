@@ -54,6 +54,7 @@ from tofdenoise.records import (
     REGIONS_NAME,
     RUN_INFO_NAME,
     TRUTH_NAME,
+    cpu_label,
     run_finished,
 )
 from tofdenoise.reporting import find_runs, load_runs, render_html
@@ -81,6 +82,8 @@ __all__ = [
     "without_recorded",
     "write_truth_record",
     "write_regions_record",
+    "record_provenance",
+    "warn_replaced_records",
     "profile_needs",
     "profile_overrides",
     "recorded_seconds",
@@ -229,6 +232,39 @@ def copy_records(run_dirs: list[Path], dest: Path) -> list[str]:
                 atomic_write_bytes(dest / run_dir.name / name, (run_dir / name).read_bytes())
         copied.append(run_dir.name)
     return copied
+
+
+def record_provenance(record_dir: Path) -> str | None:
+    """Where a committed record came from, for a message: "made at <commit> on <CPU>" from its ``run_info.json``
+    (either part "unrecorded" when the record does not say); None when there is no readable ``run_info.json``."""
+    try:
+        info = json.loads((record_dir / RUN_INFO_NAME).read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(info, dict):
+        return None
+    commit = str(info.get("commit") or "")[:12] or "an unrecorded commit"
+    machine = info.get("machine")
+    cpu = cpu_label(machine) if isinstance(machine, dict) else ""
+    return f"made at {commit} on {cpu or 'an unrecorded machine'}"
+
+
+def warn_replaced_records(specs: list[Any], out: Path, dest: Path, log: Log = _print) -> list[str]:
+    """Log each run of ``specs`` that has no finished run folder in ``out`` but a committed record in ``dest``:
+    training it (a figure needs the checkpoint, which records do not keep) replaces that record, and the tables
+    that show it change with it. Returns those runs' names."""
+    replaced = []
+    for spec in specs:
+        if run_finished(Path(out) / spec.name):
+            continue
+        made = record_provenance(dest / spec.name)
+        if made is not None:
+            replaced.append(spec.name)
+            log(
+                f"[reproduce] {spec.name}: no finished run folder in {out}; training it replaces its committed record "
+                f"in {dest / spec.name} ({made}), and the tables that show it change with it"
+            )
+    return replaced
 
 
 def without_recorded(specs: list[Any], dest: Path, log: Log = _print, rerun_earlier: bool = False) -> list[Any]:
@@ -428,6 +464,7 @@ def qualitative_figure(job: Reproduction, record: Any, log: Log = _print) -> int
 
     spec, seed = FIGURES[job.target.key], job.seeds[0]
     specs = figure_specs(spec, seed, job.overrides())
+    warn_replaced_records(specs, job.out, job.dest, log)
     outcomes = run_all(
         specs, job.out, dry_run=job.dry_run, after_each=None if job.dry_run else record, executor=job.executor
     )
