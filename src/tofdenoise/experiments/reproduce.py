@@ -55,6 +55,9 @@ from tofdenoise.records import (
     RUN_INFO_NAME,
     TRUTH_NAME,
     cpu_label,
+    read_run,
+    record_commit,
+    record_machine,
     run_finished,
 )
 from tofdenoise.reporting import find_runs, load_runs, render_html
@@ -237,16 +240,12 @@ def copy_records(run_dirs: list[Path], dest: Path) -> list[str]:
 def record_provenance(record_dir: Path) -> str | None:
     """Where a committed record came from, for a message: "made at <commit> on <CPU>" from its ``run_info.json``
     (either part "unrecorded" when the record does not say); None when there is no readable ``run_info.json``."""
-    try:
-        info = json.loads((record_dir / RUN_INFO_NAME).read_text())
-    except (OSError, ValueError):
+    info, _ = read_run(record_dir)
+    if info is None:
         return None
-    if not isinstance(info, dict):
-        return None
-    commit = str(info.get("commit") or "")[:12] or "an unrecorded commit"
-    machine = info.get("machine")
-    cpu = cpu_label(machine) if isinstance(machine, dict) else ""
-    return f"made at {commit} on {cpu or 'an unrecorded machine'}"
+    commit = (record_commit(info) or "")[:12] or "an unrecorded commit"
+    machine = record_machine(info)
+    return f"made at {commit} on {(cpu_label(machine) if machine else '') or 'an unrecorded machine'}"
 
 
 def warn_replaced_records(specs: list[Any], out: Path, dest: Path, log: Log = _print) -> list[str]:
