@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import json
 import shutil
+from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
@@ -14,7 +15,7 @@ import pytest
 from tofdenoise.cli.reproduce import main
 from tofdenoise.experiments.reproduce import copy_records, profile_overrides
 from tofdenoise.experiments.targets import KINDS, Target, target_of_key
-from tofdenoise.records import learned_verdict, write_metrics_json
+from tofdenoise.records import code_commit, host_machine, learned_verdict, write_metrics_json
 
 
 def _write_metrics(path: Path, results: dict) -> None:
@@ -722,7 +723,7 @@ def test_figure_6_validates_the_noise_model_on_the_second_camera_in_this_process
     own calibration captures, committed and on the page; no sub-process (issue 24 point 3: it was one)."""
     from tofdenoise.data_modules.realset import build_realset
     from tofdenoise.experiments.reproduce import Reproduction, validation_figure
-    from tofdenoise.reporting.results_page import results_markdown
+    from tofdenoise.reporting.results_page import machine_label, results_markdown
 
     build_realset(tmp_path / "realset", scenes=1, frames=2, height=16, width=16, log=lambda line: None)
     results = tmp_path / "results"
@@ -735,7 +736,29 @@ def test_figure_6_validates_the_noise_model_on_the_second_camera_in_this_process
     committed, made = results / "cpu" / "fig6" / "validation.png", tmp_path / "fig6" / "validation.png"
     assert committed.read_bytes() == made.read_bytes()
     assert any("proposed pooled MAPE" in line for line in logged)
-    assert "| pooled | proposed |" in results_markdown(results)
+    page = results_markdown(results)
+    assert "| pooled | proposed |" in page
+    # the record says when, with which code and on which machine it was written, and the page repeats it
+    provenance = data["provenance"]
+    assert provenance["commit"] == code_commit()["commit"] and provenance["machine"] == host_machine()
+    written = datetime.strptime(provenance["written"], "%Y-%m-%dT%H:%M:%S%z")
+    assert abs((datetime.now(timezone.utc) - written).total_seconds()) < 600
+    assert f"Written {provenance['written'][:10]}, " in page and f"on {machine_label(provenance)}." in page
+
+
+def test_a_figure_record_names_its_provenance_or_says_it_is_older():
+    from tofdenoise.reporting.results_page import written_line
+
+    machine = {"cpu": "AMD EPYC", "cpu_id": "AuthenticAMD 25/17", "cpu_count": 2}
+    record = {"written": "2026-11-28T16:40:00+0000", "commit": "ab" * 20, "commit_dirty": False, "machine": machine}
+    assert written_line(record) == "Written 2026-11-28, commit abababa, on AMD EPYC (AuthenticAMD 25/17)."
+    assert written_line({**record, "commit_dirty": True}) == (
+        "Written 2026-11-28, commit abababa with uncommitted changes, on AMD EPYC (AuthenticAMD 25/17)."
+    )
+    assert written_line({**record, "commit": None, "version": "0.3.0"}) == (
+        "Written 2026-11-28, package version 0.3.0, on AMD EPYC (AuthenticAMD 25/17)."
+    )
+    assert written_line(None) == "Written before figure records named their commit and machine."
 
 
 def _region_result(mae_by_image: dict[str, float]) -> dict:

@@ -68,3 +68,17 @@ def test_cpu_label_names_the_model_and_its_family():
     assert cpu_label({"cpu": "AMD EPYC", "cpu_id": None}) == "AMD EPYC"
     assert cpu_label({"cpu_id": "GenuineIntel 6/143"}) == "(GenuineIntel 6/143)"
     assert cpu_label({}) == ""
+
+
+def test_written_provenance_names_the_time_the_commit_and_the_machine(tmp_path):
+    from datetime import datetime, timezone
+
+    from tofdenoise.records import code_commit, record_commit, written_provenance
+
+    path = tmp_path / "cpuinfo"
+    path.write_text(CPUINFO)
+    got = written_provenance(path)
+    written = datetime.strptime(got["written"], "%Y-%m-%dT%H:%M:%S%z")
+    assert abs((datetime.now(timezone.utc) - written).total_seconds()) < 60
+    assert record_commit(got) == code_commit()["commit"] and got["commit_dirty"] == code_commit()["commit_dirty"]
+    assert record_machine(got) == host_machine(path) and record_machine(got)["cpu_id"] == "AuthenticAMD 25/17"

@@ -38,6 +38,7 @@ from tofdenoise.physics.capture_io import load_stack, read_index, write_capture_
 from tofdenoise.physics.simulator import demodulate, signal_from_taps_e, simulate_frames
 from tofdenoise.physics.synthetic_captures import planar_signal_e, write_calibration_captures
 from tofdenoise.physics.uncertainty import sigma_depth_mm
+from tofdenoise.records.provenance import written_provenance
 
 RANGE_DISTANCES_MM: tuple[float, ...] = tuple(float(d) for d in range(500, 1501, 100))
 RANGE_FIT_DISTANCES_MM: tuple[float, ...] = tuple(float(d) for d in range(550, 1451, 100))
@@ -452,10 +453,13 @@ VALIDATION_FILES = ("validation.json", "validation.png")
 def write_validation(
     result: ValidationResult, calib: SensorCalibration, out_dir: str | os.PathLike[str]
 ) -> tuple[Path, Path]:
+    """``validation.json`` (the result, the calibration, and under ``provenance`` when, at which commit and on which
+    machine it was written: :func:`~tofdenoise.records.provenance.written_provenance`) and ``validation.png``."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     json_path = out / VALIDATION_FILES[0]
-    atomic_write_text(json_path, json.dumps(result.to_dict(calib), indent=2, allow_nan=True) + "\n")
+    record = {**result.to_dict(calib), "provenance": written_provenance()}
+    atomic_write_text(json_path, json.dumps(record, indent=2, allow_nan=True) + "\n")
     png = plot_validation(result, out / VALIDATION_FILES[1])
     return json_path, png
 

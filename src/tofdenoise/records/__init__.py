@@ -13,7 +13,8 @@
 - :mod:`~tofdenoise.records.provenance`: the git commit of the code that made a record (``code_commit``, written
   into every ``run_info.json``; ``record_commit`` reads it back, ``None`` for older records; ``is_ancestor`` orders
   two commits; ``host_machine`` / ``record_machine`` / ``cpu_label``: the machine a run trained on, and how many
-  runs shared it, ``RUNS_AT_ONCE_ENV``).
+  runs shared it, ``RUNS_AT_ONCE_ENV``; ``written_provenance``: the same for a record no training run writes, such
+  as Fig. 6's ``validation.json``).
 
 Writers: ``tofdenoise.callbacks.run_outputs.RunOutputs`` (every trained run), the classical row; readers: the
 training job and the grids' runner (skip or return finished runs), ``tofdenoise.reporting`` (report, results page,
@@ -47,6 +48,7 @@ from tofdenoise.records.provenance import (
     is_ancestor,
     record_commit,
     record_machine,
+    written_provenance,
 )
 from tofdenoise.records.run_folder import (
     BEST_CHECKPOINT,
@@ -113,4 +115,5 @@ __all__ = [
     "write_metrics_json",
     "write_per_image_csv",
     "write_run_info",
+    "written_provenance",
 ]

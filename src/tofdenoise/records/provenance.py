@@ -23,6 +23,7 @@ import hashlib
 import os
 import platform
 import subprocess
+import time
 from collections.abc import Mapping
 from functools import lru_cache
 from importlib import metadata
@@ -38,6 +39,7 @@ __all__ = [
     "is_ancestor",
     "record_commit",
     "record_machine",
+    "written_provenance",
 ]
 
 #: where Linux names the CPU model (``model name`` lines)
@@ -189,6 +191,18 @@ def host_machine(cpuinfo: Path = CPUINFO) -> dict[str, Any]:
         "arch": platform.machine() or None,
         "system": platform.system() or None,
         "runs_at_once": _runs_at_once(),
+    }
+
+
+def written_provenance(cpuinfo: Path = CPUINFO) -> dict[str, Any]:
+    """Who wrote a record that no training run writes (a figure's ``validation.json``): ``{"written": local time
+    with its UTC offset (``%Y-%m-%dT%H:%M:%S%z``, as ``run_info.json``'s ``started``), the commit fields of
+    :func:`code_commit`, "machine": :func:`host_machine`}``. :func:`record_commit` and :func:`record_machine` read it
+    as they read a ``run_info.json``."""
+    return {
+        "written": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        **code_commit(),
+        "machine": host_machine(cpuinfo),
     }
 
 
