@@ -208,6 +208,8 @@ def test_figure_of_a_trained_run_matches_its_test_and_a_changed_checkpoint_is_re
     image, record = build_figure(spec, 0, specs, out)
     assert record["runs"] == {"U-Net": "unet-hetero-l1-s0"} and len(record["scenes"]) == 2
     assert image.dtype == np.uint8
+    assert record["provenance"]["commit"] == code_commit()["commit"]
+    assert record["provenance"]["machine"] == host_machine()
     recorded = {}
     with (out / "unet-hetero-l1-s0" / "per_image" / "synthetic.csv").open() as f:
         for row in csv.DictReader(f):

@@ -173,6 +173,10 @@ def test_page_section_from_a_figure_record(tmp_path):
     assert "| scene (MAE, mm) | Raw | RCF | Ours |" in page
     assert "| scene_0003 (index 3) | 5.00 | 1.50 | 1.25 |" in page
     assert "RCF = `rcf-hetero-l1-s0`, Ours = `dvss-hetero-full-s0`" in page and "A note." in page
+    assert "A note. Written before figure records named their commit and machine." in page
+    record["provenance"] = {"written": "2026-11-28T17:00:00+0000", "commit": "cd" * 20, "machine": {"cpu": "AMD EPYC"}}
+    (fig / "figure.json").write_text(json.dumps(record))
+    assert "A note. Written 2026-11-28, commit cdcdcdc, on AMD EPYC." in results_markdown(results)
     assert "results/cpu/fig8/figure.png" not in page  # no image written
     assert "Not run yet (`make reproduce FIGURE=7`)" in page
 

@@ -32,7 +32,7 @@ import numpy as np
 from PIL import Image
 
 from tofdenoise.config import compose_config
-from tofdenoise.records import BEST_CHECKPOINT
+from tofdenoise.records import BEST_CHECKPOINT, written_provenance
 
 from .runner import RunSpec
 from .tables import Row, row_spec, table_rows
@@ -275,4 +275,5 @@ def build_figure(
     check_against_records(record, run_dirs, tol_mm=1e-3 if dev.type == "cpu" else 1e-2)
     record["seed"] = int(seed)
     record["runs"] = {label: s.name for label, s in zip(labels, specs)}
+    record["provenance"] = written_provenance()  # when, with which code and where it was rendered
     return image, record

@@ -776,7 +776,7 @@ def _qualitative_section(profile_dir: Path, key: str) -> list[str]:
         "prediction is the one the run's test scored: the figure is checked against every run's per-image "
         "record. Per scene, the top row is depth on one scale and the bottom row |map − "
         f"{data['reference']}| on one millimetre scale; grey pixels are invalid (holes, outside the scoring "
-        f"region). {data.get('note', '')}".rstrip(),
+        f"region). {data.get('note', '')} {written_line(data.get('provenance'))}",
         "",
         f"| scene (MAE, mm) | {' | '.join(columns)} |",
         "|---|" + "---|" * len(columns),
