@@ -95,3 +95,30 @@ def test_the_gain_figure_leaves_out_a_seed_of_two_protocols(tmp_path):
     path.write_text(json.dumps(data))
     write_dynrange_figure(tmp_path)
     assert not (tmp_path / DYNRANGE_FIGURE).exists()
+
+
+def test_the_page_alone_redraws_a_study_figure_from_the_records_as_they_are(tmp_path):
+    """``reproduce --page-only`` redraws the gain figure: a Table 3 record the study shares, replaced by hand after
+    the figure was drawn, moves the figure too; with no gain left the figure goes."""
+    import json
+    import shutil
+
+    from tofdenoise.cli.reproduce import main
+    from tofdenoise.experiments.reproduce import comparable_metrics, load_records
+    from tofdenoise.reporting.results_page import DYNRANGE_FIGURE
+
+    dest = tmp_path / "results" / "cpu"
+    for name, syn in [("unet-fixed-l1-s0", 5.0), ("unet-range-l1-s0", 4.5), ("unet-hetero-l1-s0", 4.0)]:
+        _write_record(dest, name, syn)
+        (dest / name / "run_info.json").write_text(json.dumps({"started": "x", "finished": "y"}))
+    figure, page = dest / DYNRANGE_FIGURE, tmp_path / "results.md"
+    figure.parent.mkdir(parents=True)
+    figure.write_bytes(b"a figure of the records before")
+    assert main(["--page-only", "--results", str(dest.parent), "--page", str(page)]) == 0
+    items = gains(comparable_metrics(["dynrange"], [0], load_records(dest)), [0])
+    assert [round(g.over_fixed[0], 6) for g in items] == [1.0]
+    assert figure.read_bytes() == gain_figure_png(items)
+    assert "](results/cpu/dynrange/gains.png)" in page.read_text()
+    shutil.rmtree(dest / "unet-range-l1-s0")
+    assert main(["--page-only", "--results", str(dest.parent), "--page", str(page)]) == 0
+    assert not figure.exists() and "results/cpu/dynrange/gains.png" not in page.read_text()

@@ -118,7 +118,12 @@ def build_parser() -> argparse.ArgumentParser:
         "place of the committed records' median wall time (which may come from other code or a shared machine)",
     )
     p.add_argument("--dry-run", action="store_true", help="print what would run, run nothing")
-    p.add_argument("--page-only", action="store_true", help="only rebuild the results page from the records")
+    p.add_argument(
+        "--page-only",
+        action="store_true",
+        help="only rebuild the results page and the study figures (dynamic-range gains, long-schedule curves) "
+        "from the records",
+    )
     p.add_argument(
         "--prepare-only",
         action="store_true",

@@ -120,8 +120,9 @@ def gain_figure_png(items: list[Gain]) -> bytes:
             x = [xs[g.tag] + (k - 0.5) * 0.12 for g in pts]
             y = [getattr(g, attr)[0] for g in pts]
             e = [0.0 if not math.isfinite(getattr(g, attr)[1]) else getattr(g, attr)[1] for g in pts]
-            ax.errorbar(x, y, yerr=e, marker="o", capsize=3, label=f"{DYNRANGE_BACKBONES[backbone]} (n per point: "
-                        f"{'/'.join(str(g.n) for g in pts)})")  # fmt: skip
+            # one colour per backbone whichever are drawn, so that two profiles' figures read alike
+            ax.errorbar(x, y, yerr=e, marker="o", capsize=3, color=f"C{k}", label=f"{DYNRANGE_BACKBONES[backbone]} "
+                        f"(n per point: {'/'.join(str(g.n) for g in pts)})")  # fmt: skip
         ax.axhline(0.0, color="grey", lw=0.8)
         ax.set_xticks(range(len(WORLDS)), [TICKS.get(tag, tag) for tag, _ in WORLDS], fontsize=8)
         ax.set_xlabel("world: a_max / a_min of the linear route, or the physical route", fontsize=8)

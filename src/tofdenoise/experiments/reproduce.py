@@ -381,6 +381,8 @@ def write_dynrange_figure(dest: Path, seeds: list[int] | None = None) -> None:
     items = gains(comparable_metrics(["dynrange"], seeds, records), seeds)
     if items:
         atomic_write_bytes(dest / DYNRANGE_FIGURE, gain_figure_png(items))
+    else:  # no gain left to draw: a figure of records since replaced or removed would show what none says
+        (dest / DYNRANGE_FIGURE).unlink(missing_ok=True)
 
 
 def write_schedule_figure(dest: Path, seeds: list[int]) -> None:
@@ -389,6 +391,17 @@ def write_schedule_figure(dest: Path, seeds: list[int]) -> None:
     curves = schedule_curves(dest, seeds)
     if curves:
         atomic_write_bytes(dest / CURVES_FIGURE, curves_figure_png(curves))
+    else:
+        (dest / CURVES_FIGURE).unlink(missing_ok=True)
+
+
+def write_study_figures(results: Path) -> None:
+    """Every study figure drawn from committed records (the dynamic-range gains, the long-schedule curves), for each
+    profile under ``results``, redrawn from the records as they are now: a record replaced or copied in by hand
+    (a retrained Table 3 run the study shares) never leaves a figure of the records before it."""
+    for dest in sorted(p for p in Path(results).iterdir() if p.is_dir()) if Path(results).is_dir() else []:
+        write_dynrange_figure(dest)
+        write_schedule_figure(dest, seeds_present(load_records(dest)))
 
 
 def write_page(results: Path, page: Path, before: Any = None) -> str:
@@ -549,6 +562,7 @@ def reproduce(job: Reproduction, log: Log = _print) -> int:
             status = 0 if all(o.status in ("done", "skipped", "planned") for o in outcomes) else 1
         if job.dry_run:  # a dry run writes nothing
             return status
-    write_page(job.results, job.page)
+    # the page alone (--page-only) redraws the study figures too: they are the records' as much as the page is
+    write_page(job.results, job.page, before=(lambda: write_study_figures(job.results)) if target is None else None)
     log(f"[reproduce] wrote {job.page}")
     return status
