@@ -303,6 +303,32 @@ def test_committed_results_page_matches_the_records():
     )
 
 
+def test_committed_study_figures_are_drawn_from_the_committed_records(tmp_path):
+    """Each committed study figure (docs/results/<profile>/dynrange/gains.png) is byte for byte what `tofdenoise
+    reproduce --page-only` draws from the committed records (the figure carries no timestamp, and the plotting
+    library's version is pinned), and none is missing: a record replaced by hand fails here until the figure is
+    redrawn."""
+    import shutil
+
+    from tofdenoise.experiments.reproduce import write_study_figures
+
+    committed = REPO_ROOT / "docs" / "results"
+    copy = tmp_path / "results"
+    shutil.copytree(committed, copy, ignore=shutil.ignore_patterns("*.png"))
+    write_study_figures(copy)
+    drawn = sorted(p.relative_to(copy).as_posix() for p in copy.rglob("*.png"))
+    kept = sorted(
+        p.relative_to(committed).as_posix()
+        for p in committed.rglob("*.png")
+        if p.parent.name in ("dynrange", "schedule")
+    )
+    assert drawn == kept, "docs/results: study figures missing or left over: run `tofdenoise reproduce --page-only`"
+    for name in drawn:
+        assert (copy / name).read_bytes() == (committed / name).read_bytes(), (
+            f"docs/results/{name} is not drawn from the committed records: run `tofdenoise reproduce --page-only`"
+        )
+
+
 def _write_per_image(run_dir: Path, set_name: str, maes: dict[str, float], raw: float = 7.0) -> None:
     from tofdenoise.records import write_per_image_csv
 
