@@ -56,9 +56,11 @@ def test_freed_pages_are_reused_after_keep_freed_memory():
     # glibc's default maps every frame's tensors afresh and unmaps them when freed: their pages fault in every frame
     # (measured: 24 tensors' worth in the four frames)
     assert plain["faults"] >= 16 * TENSOR_PAGES
-    # kept: the frames after the first two reuse the heap's pages (measured: none, or now and then one tensor's
-    # worth where the heap grows once more)
-    assert kept["faults"] <= 2 * TENSOR_PAGES
+    # kept: the frames after the first two reuse the heap's pages. Where a freed block is split by a later allocation
+    # the heap grows once more, by at most one frame's four fresh tensors in all (measured on the 2-core CI machine:
+    # none in most runs, one tensor's worth now and then, three once in a full test run), against the 24 tensors'
+    # worth (at least 16) of glibc's default
+    assert kept["faults"] <= 4 * TENSOR_PAGES
     assert kept["env"] == allocator.malloc_environment()
 
 
