@@ -12,7 +12,8 @@ Usage: python benchmarks/bench_gpu_scan.py [--baseline REV] [--json FILE] [--ski
    module name), U-Net and the Restormer (``bench_gpu._bench_backbone``).
 3. ``torch.compile`` of DVSS: first-call seconds, the bf16 step eager against compiled, and how far the compiled
    output and gradients are from eager.
-4. The dt projection's forms (``tofdenoise.models.ss2d.DT_PROJECTION_FORMS``) at the first level, and the first
+4. The dt projection's forms (``tofdenoise.models.ss2d.DT_PROJECTION_FORMS``) at the first level, and a DVSS bf16
+   training step with each of them as the CUDA default, and the first
    level's per-pixel products' weight gradients (a reduction over 409,600 positions) as one ``mm`` and split over
    the positions (``products``).
 5. The device tests (``tests/models/scan/test_triton.py``, ``test_ops.py`` and ``tests/models/test_compile_cuda.py``,
@@ -268,6 +269,36 @@ class Bench:
                 ),
             }
             print(form, json.dumps(out[form]), flush=True)
+        self._dvss_step_per_dt_form(out)
+
+    def _dvss_step_per_dt_form(self, out: dict) -> None:
+        """A DVSS bf16 training step (batch 4, 320 x 320, AdamW; toy sizes with ``--dry``) with each dt projection
+        form as the CUDA default (``ss2d.DT_PROJECTION_CUDA``, set for the step and restored), side by side."""
+        torch = self.torch
+        from tofdenoise.models import ss2d
+        from tofdenoise.models.registry import build_backbone
+
+        side, cfg = (16, {"width": 8, "enc_blocks": [1, 1], "bottleneck_blocks": 1}) if self.args.dry else (320, DVSS)
+        net = build_backbone("dvss", in_channels=1, **cfg).to(self.dev)
+        opt = torch.optim.AdamW(net.parameters(), 2e-4)
+        x = torch.randn(4, 1, side, side, device=self.dev)
+
+        def step():
+            opt.zero_grad(set_to_none=True)
+            with torch.autocast(self.dev, dtype=torch.bfloat16):
+                y = net(x)
+            y.float().abs().mean().backward()
+            opt.step()
+
+        default = ss2d.DT_PROJECTION_CUDA
+        try:
+            for form in ss2d.DT_PROJECTION_FORMS:
+                ss2d.DT_PROJECTION_CUDA = form
+                step()  # the first call of a form outside the timing
+                out[form]["dvss_bf16_ms_step"] = self.time_ms(step, 10)
+                print(form, "DVSS bf16 step ms", round(out[form]["dvss_bf16_ms_step"], 2), flush=True)
+        finally:
+            ss2d.DT_PROJECTION_CUDA = default
 
     # 4b. the per-pixel products' weight gradients
     def products(self) -> None:

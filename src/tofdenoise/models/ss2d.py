@@ -16,8 +16,11 @@ __all__ = ["SS2D", "cross_scan", "cross_merge", "dt_projection", "DT_PROJECTION_
 
 #: the forms of the dt projection: "bmm" (one product batched over the directions), "split" (the same product with
 #: the positions cut into up to 64 batches, so that the weight gradient's reduction over all positions is spread
-#: over many products and summed after), "sum" (dt_rank broadcast multiply-adds, no matrix product)
-DT_PROJECTION_FORMS = ("bmm", "split", "sum")
+#: over many products and summed after), "sum" (dt_rank broadcast multiply-adds, no matrix product), "blockdiag" (one
+#: plain product of the (M, k r) steps with the (k r, k d) block-diagonal weight: k times the arithmetic, but the
+#: weight gradient is one plain ``mm`` over all positions, the kind that took 0.06-0.08 ms on an H200 where the
+#: batched one took 5.2 ms)
+DT_PROJECTION_FORMS = ("bmm", "split", "sum", "blockdiag")
 #: the form used on CUDA tensors (the CPU always takes "bmm": its training numbers stay bit for bit those of the
 #: records). On an H200 the "bmm" form's weight gradient at the first level is a bf16 GEMM of 5.2 ms, twice a DVSS
 #: step (docs/benchmarks.md, 2026-11-28); ``benchmarks/bench_gpu_scan.py --only dt_forms`` times the three forms
@@ -47,6 +50,13 @@ def _dt_projection_sum(dt_low: torch.Tensor, weight: torch.Tensor) -> torch.Tens
     return out
 
 
+def _dt_projection_blockdiag(dt_low: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    """dt_low (M, k, r) @ the block-diagonal (k r, k d) matrix whose j-th block is weight[j]^T, as (M, k, d)."""
+    m, k, r = dt_low.shape
+    blocks = torch.block_diag(*weight.transpose(1, 2).unbind(0))  # (k r, k d)
+    return (dt_low.reshape(m, k * r) @ blocks).view(m, k, weight.size(1))
+
+
 def dt_projection(dt_low: torch.Tensor, weight: torch.Tensor, form: str | None = None) -> torch.Tensor:
     """The per-direction dt projection of SS2D: dt_low (M, k, r) (any strides) and weight (k, d, r) give
     (M, k, d) contiguous, ``out[m, j] = weight[j] @ dt_low[m, j]`` -- one matrix product batched over the k
@@ -66,6 +76,8 @@ def dt_projection(dt_low: torch.Tensor, weight: torch.Tensor, form: str | None =
     rhs = weight.transpose(1, 2)  # (k, r, d)
     if form == "sum":
         return _dt_projection_sum(dt_low, weight).contiguous()
+    if form == "blockdiag":
+        return _dt_projection_blockdiag(dt_low, weight)
     if form == "split":
         return _dt_projection_split(lhs, rhs).transpose(0, 1).contiguous()
     records_grad = torch.is_grad_enabled() and (dt_low.requires_grad or weight.requires_grad)
