@@ -410,5 +410,5 @@ def test_the_runs_table_names_each_records_machine(tmp_path):
         "NVIDIA H200, 16 thr"
     )
     shared = {"cpu": "AMD EPYC", "gpu": "NVIDIA H200", "torch_threads": 16, "runs_at_once": 3}
-    assert machine_label({"machine": shared}) == "NVIDIA H200, 16 thr, 3 runs at once"
+    assert machine_label({"machine": shared}) == "NVIDIA H200, 16 thr, up to 3 runs at once"
     assert machine_label({"machine": {**shared, "runs_at_once": 1}}) == "NVIDIA H200, 16 thr"

@@ -651,14 +651,15 @@ def recipe_hours(train_seconds: Any, trained_steps: Any) -> float | None:
 
 def machine_label(run_info: dict[str, Any]) -> str:
     """A record's machine in a few words: the GPU's name, or the CPU's model with its vendor family/model, the
-    intra-op threads (``2 thr``) and, where the executor trained several runs at a time on it, how many (``3 runs
-    at once``: the run's rate is a shared machine's); "-" for a record without ``machine``."""
+    intra-op threads (``2 thr``) and, where the executor trained several runs at a time on it, its worker count (``up
+    to 3 runs at once``: the run's rate is a shared machine's; fewer may have run beside it at the end of a time
+    budget); "-" for a record without ``machine``."""
     machine = record_machine(run_info)
     if machine is None:
         return "-"
     head = str(machine["gpu"]) if machine.get("gpu") else cpu_label(machine)
     threads, at_once = machine.get("torch_threads"), machine.get("runs_at_once")
-    shared = f", {at_once} runs at once" if isinstance(at_once, int) and at_once > 1 else ""
+    shared = f", up to {at_once} runs at once" if isinstance(at_once, int) and at_once > 1 else ""
     return (head or "unnamed") + (f", {threads} thr" if threads else "") + shared
 
 
