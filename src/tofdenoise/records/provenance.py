@@ -176,7 +176,8 @@ def host_machine(cpuinfo: Path = CPUINFO) -> dict[str, Any]:
     cpuinfo does not tell), "cpu_id": "vendor family/model" (e.g. ``AuthenticAMD 25/17``: a virtual machine's model
     name often leaves the generation out), "cpu_count": logical CPUs this process may use, "arch": e.g. x86_64,
     "system": e.g. Linux, "runs_at_once": how many runs the executor that started this one trained at a time on
-    this machine at most, its worker count (``RUNS_AT_ONCE_ENV``; 1 where it did not say)}`` (values None where the platform does not tell)."""
+    this machine at most, its worker count (``RUNS_AT_ONCE_ENV``; 1 where it did not say)}`` (values None where the
+    platform does not tell)."""
     fields = _cpu_fields(cpuinfo)
     try:
         usable = len(os.sched_getaffinity(0))
