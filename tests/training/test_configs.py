@@ -166,6 +166,15 @@ def test_paper_experiment_is_the_paper_configuration(tmp_path):
     assert model.optim.lr == 2e-4 and model.optim.lr_min == 1e-6 and model.hparams.d_max_mm == 1000.0
 
 
+def test_the_long_gpu_recipe_compiles_and_the_short_one_does_not(tmp_path):
+    """experiment=paper (300 epochs) trains through torch.compile, where its first compile is paid back;
+    experiment=paper_short (450 steps, the gpu-short profile) stays eager; model.compile=false turns it off."""
+    root = f"data.source_kwargs.root={tmp_path}"
+    assert _resolved(["experiment=paper", root], tmp_path)["model"]["compile"] is True
+    assert _resolved(["experiment=paper", root, "model.compile=false"], tmp_path)["model"]["compile"] is False
+    assert _resolved(["experiment=paper_short"], tmp_path)["model"]["compile"] is False
+
+
 # What `make train` ran before the CPU recipe moved from experiment/default.yaml into train.yaml (resolved
 # `tofdenoise train --cfg job`, data.sensor aside): the move must not change it. The scene sizes are the procedural
 # source's own settings, in configs/data/procedural.yaml.
