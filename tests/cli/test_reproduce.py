@@ -129,6 +129,30 @@ def test_records_of_finished_runs_only_and_the_page(tmp_path):
     assert "| DVSS, hetero (proposed) | 40.37 / 40.00 (n=1) | 2.78 / 2.50 (n=1) |" in page.read_text()
 
 
+def test_per_scene_records_are_committed_compact_with_the_same_numbers(tmp_path):
+    """real_vs_truth.json and regions.json (one value per scene and metric) go into the results in
+    write_scene_record's compact form, whichever form the run folder holds, with every number as it was; a per-scene
+    file that is not strict JSON is copied byte for byte."""
+    run, dest = tmp_path / "runs" / "unet-hetero-l1-s0", tmp_path / "results"
+    (run / "csv").mkdir(parents=True)
+    (run / "run_info.json").write_text(json.dumps({"finished": "2026-11-28T10:00:00+0000"}))
+    restored = {"psnr_db": 40.0, "mae_mm": 2.5, "mse_mm2": 9.0, "ssim": 0.99}
+    raw = {"psnr_db": 30.0, "mae_mm": 7.0, "mse_mm2": 90.0, "ssim": 0.9}
+    _write_metrics(run / "metrics.json", {"synthetic": {**restored, "raw": raw}, **learned_verdict(100, 2.5, 7.0)})
+    scenes = {
+        f"scene_{i:04d}": {"mae_mm": 1.0 / (i + 3), "psnr_db": 40.0 + i / 7, "valid_px": 300000 + i} for i in range(5)
+    }
+    truth = {"scenes": 5, "truth": {"mean": {"mae_mm": 0.123456789012345678}, "images": scenes}}
+    (run / "real_vs_truth.json").write_text(json.dumps(truth, indent=2) + "\n")
+    (run / "regions.json").write_text('{"sets": NaN}')
+    assert copy_records([run], dest) == [run.name]
+    written = (dest / run.name / "real_vs_truth.json").read_text()
+    assert json.loads(written) == truth and written.endswith("}\n")
+    assert "  " not in written and ": " not in written  # no indentation, no spaces
+    assert len(written) < 0.8 * len(json.dumps(truth, indent=2))
+    assert (dest / run.name / "regions.json").read_text() == '{"sets": NaN}'
+
+
 def test_each_finished_run_is_recorded_at_once(tmp_path, monkeypatch):
     """A table interrupted after its first run keeps that run's records and an updated page."""
     import tofdenoise.cli.reproduce as reproduce

@@ -33,7 +33,7 @@ from tofdenoise.callbacks.run_outputs import write_test_outputs
 from tofdenoise.config import instantiate_node
 from tofdenoise.experiments.train_job import record_calibration, validate_config
 from tofdenoise.models import available_backbones, is_trainable
-from tofdenoise.records import TRUTH_NAME, code_commit, code_digest, json_number, write_run_info
+from tofdenoise.records import TRUTH_NAME, code_commit, code_digest, json_number, write_run_info, write_scene_record
 from tofdenoise.run_lock import RunLock
 from tofdenoise.training.metrics import DepthMetrics
 from tofdenoise.training.module import DepthRestorer
@@ -277,5 +277,5 @@ def write_truth(model: Any, datamodule: Any, run_dir: Path) -> bool:
         model, real_dir, datamodule.calib, float(model.hparams.d_max_mm), hp.real_min_count, precision="fp32"
     )
     body = {"checkpoint": None, "method": "classical", "captures": str(real_dir), **result}
-    atomic_write_text(run_dir / TRUTH_NAME, json.dumps(body, indent=2, allow_nan=False) + "\n")
+    write_scene_record(run_dir / TRUTH_NAME, body)
     return True

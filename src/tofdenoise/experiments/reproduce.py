@@ -59,6 +59,7 @@ from tofdenoise.records import (
     record_commit,
     record_machine,
     run_finished,
+    write_scene_record,
 )
 from tofdenoise.reporting import find_runs, load_runs, render_html
 from tofdenoise.reporting.results_page import (
@@ -189,7 +190,7 @@ def write_truth_record(run_dir: Path, realset_dir: Path, device: str = "auto", l
     except (FileNotFoundError, ValueError) as exc:
         log(f"[reproduce] {run_dir.name}: not scored against the stand-in's truth: {exc}")
         return False
-    atomic_write_text(out, json.dumps(result, indent=2, allow_nan=False) + "\n")
+    write_scene_record(out, result)
     mae = result["truth"]["mean"]["mae_mm"]
     log(f"[reproduce] {run_dir.name}: real set against the truth, MAE {mae:.3f} mm -> {out}")
     return True
@@ -214,7 +215,7 @@ def write_regions_record(run_dir: Path, device: str = "auto", log: Log = _print)
     except (FileNotFoundError, ValueError) as exc:
         log(f"[reproduce] {run_dir.name}: its test sets not scored by region: {exc}")
         return False
-    atomic_write_text(out, json.dumps(result, indent=2, allow_nan=False) + "\n")
+    write_scene_record(out, result)
     parts = []
     for name, scored in result["sets"].items():
         regions = scored["restored"]["regions"]
@@ -225,14 +226,26 @@ def write_regions_record(run_dir: Path, device: str = "auto", log: Log = _print)
 
 
 def copy_records(run_dirs: list[Path], dest: Path) -> list[str]:
-    """Copy each finished run's records (``RECORD_FILES`` that exist) to ``dest/<run>/`` atomically; the names."""
+    """Copy each finished run's records (``RECORD_FILES`` that exist) to ``dest/<run>/`` atomically; the names. The
+    per-scene records (``TRUTH_NAME``, ``REGIONS_NAME``) are written in ``write_scene_record``'s compact form, the
+    same numbers, whichever form the run folder holds (one written by an older version is indented); a file that is
+    not JSON is copied as it is, for the page to report."""
     copied = []
     for run_dir in run_dirs:
         if not run_finished(run_dir):
             continue
         for name in RECORD_FILES:
-            if (run_dir / name).is_file():
-                atomic_write_bytes(dest / run_dir.name / name, (run_dir / name).read_bytes())
+            source, target = run_dir / name, dest / run_dir.name / name
+            if not source.is_file():
+                continue
+            data = source.read_bytes()
+            if name in (TRUTH_NAME, REGIONS_NAME):
+                try:
+                    write_scene_record(target, json.loads(data))
+                    continue
+                except (ValueError, TypeError):  # not a strict JSON object: as it is
+                    pass
+            atomic_write_bytes(target, data)
         copied.append(run_dir.name)
     return copied
 

@@ -8,8 +8,8 @@
 - :mod:`~tofdenoise.records.per_image`: ``per_image/<set>.csv``;
 - :mod:`~tofdenoise.records.run_folder`: the file names of a run folder, ``read_record`` / ``load_metrics`` /
   ``load_scored_metrics`` (strict: a ``RecordError`` names the file; the last one is what a table of runs can use),
-  ``read_run`` (lenient), ``run_finished`` (the one rule of a finished run), ``unreadable_records`` and
-  ``write_run_info``;
+  ``read_run`` (lenient), ``run_finished`` (the one rule of a finished run), ``unreadable_records``,
+  ``write_run_info`` and ``write_scene_record`` (the per-scene records, compact);
 - :mod:`~tofdenoise.records.provenance`: the git commit of the code that made a record (``code_commit``, written
   into every ``run_info.json``; ``record_commit`` reads it back, ``None`` for older records; ``is_ancestor`` orders
   two commits; ``host_machine`` / ``record_machine`` / ``cpu_label``: the machine a run trained on, and how many
@@ -67,6 +67,7 @@ from tofdenoise.records.run_folder import (
     run_finished,
     unreadable_records,
     write_run_info,
+    write_scene_record,
 )
 from tofdenoise.records.verdict import DEFAULT_LEARNED_MARGIN, classical_verdict, learned_status, learned_verdict
 
@@ -115,5 +116,6 @@ __all__ = [
     "write_metrics_json",
     "write_per_image_csv",
     "write_run_info",
+    "write_scene_record",
     "written_provenance",
 ]
