@@ -97,6 +97,10 @@ def test_schedule_study_trains_dvss_three_noises_ten_times_longer():
     for spec in specs:  # the study's epochs come after the profile's, so they win
         assert spec.overrides[-1] == f"trainer.max_epochs={SCHEDULE_EPOCHS}"
         assert spec.overrides.index("experiment=paper_short") < len(spec.overrides) - 1
+        # 20 validations, compiled steps: after the profile's eager setting and its validation every 2 epochs
+        first = spec.overrides.index("experiment=paper_short")
+        assert spec.overrides.index("trainer.check_val_every_n_epoch=5") > first
+        assert spec.overrides.index("model.compile=true") > first
     assert SCHEDULE_EPOCHS == 10 * 10  # gpu-short trains 10 epochs (configs/experiment/paper_short.yaml)
 
 
