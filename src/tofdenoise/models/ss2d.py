@@ -23,7 +23,7 @@ __all__ = ["SS2D", "cross_scan", "cross_merge", "dt_projection", "DT_PROJECTION_
 DT_PROJECTION_FORMS = ("bmm", "split", "sum", "blockdiag")
 #: the form used on CUDA tensors (the CPU always takes "bmm": its training numbers stay bit for bit those of the
 #: records). On an H200 the "bmm" form's weight gradient at the first level is a bf16 GEMM of 5.2 ms, twice a DVSS
-#: step (docs/benchmarks.md, 2026-11-28); ``benchmarks/bench_gpu_scan.py --only dt_forms`` times the three forms
+#: step (docs/benchmarks.md, 2026-11-28); ``benchmarks/bench_gpu_scan.py --only dt_forms`` times every form
 DT_PROJECTION_CUDA = "bmm"
 #: training on the native CPU kernel: the dt projection fused into the scan's forward and backward
 #: (``tofdenoise::ss2d_scan_lowrank``) -- no (b, L, 4 d) tensor of steps, of their gradient, or the batched products
