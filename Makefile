@@ -28,6 +28,9 @@ DATA ?=
 RUN_DIR ?=
 ARGS ?=
 PYTEST_ARGS ?=
+# pytest-xdist workers of make test and make test-slow (2: the CI machine's cores; 0: one process)
+PYTEST_WORKERS ?= 2
+PYTEST_XDIST = -n $(PYTEST_WORKERS) --dist worksteal
 BENCH_ARGS ?=
 
 export PYTHONUNBUFFERED := 1
@@ -95,10 +98,10 @@ train: $(STAMP)
 		$(ARGS)
 
 test: $(STAMP)
-	$(PY) -m pytest $(PYTEST_ARGS)
+	$(PY) -m pytest $(PYTEST_XDIST) $(PYTEST_ARGS)
 
 test-slow: $(STAMP)
-	$(PY) -m pytest -m "slow" $(PYTEST_ARGS)
+	$(PY) -m pytest -m "slow" $(PYTEST_XDIST) $(PYTEST_ARGS)
 
 # The reliability probes (tests/reliability, docs/reliability.md) with their slow cases, and the mid-epoch resume pin;
 # `make test` runs the fast ones

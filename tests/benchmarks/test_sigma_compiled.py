@@ -1,8 +1,8 @@
 """The fused (torch.compile) sigma_D kernel equals the reference closed form, invalid pixels included.
 
-Only the default calibration is compiled here (~20 s); the kernel's arithmetic for other calibrations is checked
-by running the same kernel function eagerly, and its pieces (tap expansion, float32 cos/sin) against closed
-forms."""
+Only the default calibration is compiled here (``slow``: about a minute with a cold compile cache); the kernel's
+arithmetic for other calibrations is checked by running the same kernel function eagerly, and its pieces (tap
+expansion, float32 cos/sin) against closed forms."""
 
 from __future__ import annotations
 
@@ -37,6 +37,7 @@ def _odd_calibration():
     return default_calibration().replace(num_taps=5, tap_response=tr)
 
 
+@pytest.mark.slow
 def test_fused_kernel_matches_reference(maps):
     depth, signal = maps
     calib = default_calibration()
@@ -57,6 +58,7 @@ def test_fused_kernel_matches_reference(maps):
     assert float(((row - ref64).abs() / ref64).max()) < 1e-12
 
 
+@pytest.mark.slow
 def test_ill_conditioned_pixels_take_the_reference_path(maps, monkeypatch):
     depth, signal = maps
     calib = default_calibration()

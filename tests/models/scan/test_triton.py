@@ -125,7 +125,10 @@ def _assert_split_ss2d_equals_reference(batch, seed):
 
 @needs_kernels
 @pytest.mark.parametrize("forward", ["chunked", "sequential"])
-@pytest.mark.parametrize("segment_chunks", [1, 2, 3, 100])
+# 2 and 100 (unsplit at this length) are slow: 1 and 3 cover the carry over one-chunk and several-chunk segments
+@pytest.mark.parametrize(
+    "segment_chunks", [1, pytest.param(2, marks=pytest.mark.slow), 3, pytest.param(100, marks=pytest.mark.slow)]
+)
 def test_ss2d_route_split_into_segments_equals_the_reference(monkeypatch, segment_chunks, forward):
     """The sequence split into segments of 1, 2 or 3 chunks run side by side (a first pass for each segment's end
     state and adjoint, the carry over the segments, a second pass from the true entry values), and unsplit, on the
@@ -138,7 +141,7 @@ def test_ss2d_route_split_into_segments_equals_the_reference(monkeypatch, segmen
 
 
 @needs_kernels
-@pytest.mark.parametrize("fine,coarse", [(1, 3), (2, 2), (1, 100)])
+@pytest.mark.parametrize("fine,coarse", [(1, 3), (2, 2), pytest.param(1, 100, marks=pytest.mark.slow)])
 def test_sequential_adjoint_pass_on_a_finer_split_equals_the_reference(monkeypatch, fine, coarse):
     """The backward's first pass walked one step at a time on its own, finer split of the sequence (segments of
     ``fine`` chunks, 4 channels a program) under a backward of ``coarse``-chunk segments (2 channels a program): the
@@ -156,7 +159,12 @@ def test_sequential_adjoint_pass_on_a_finer_split_equals_the_reference(monkeypat
 @needs_kernels
 @pytest.mark.parametrize(
     "block_d,segment_chunks,sub,batch",
-    [(64, 1, 4, 2), (64, 3, None, 2), pytest.param(64, 100, None, 2, marks=pytest.mark.slow), (2, 3, 8, 1)],
+    [
+        (64, 1, 4, 2),
+        pytest.param(64, 3, None, 2, marks=pytest.mark.slow),
+        pytest.param(64, 100, None, 2, marks=pytest.mark.slow),
+        (2, 3, 8, 1),
+    ],
 )
 def test_sequential_backward_equals_the_reference(monkeypatch, segment_chunks, block_d, sub, batch):
     """The SS2D backward walked one step at a time (BACKWARD "sequential": each chunk's states recomputed into
