@@ -378,6 +378,35 @@ def test_rerun_earlier_trains_again_the_runs_recorded_under_the_earlier_protocol
     assert "--rerun-earlier applies with --skip-recorded" in capsys.readouterr().err
 
 
+def test_rerun_without_truth_trains_again_the_runs_whose_record_lacks_its_truth_score(tmp_path, monkeypatch, capsys):
+    """``--skip-recorded --rerun-without-truth``: a committed record without real_vs_truth.json (its checkpoint stayed
+    on another machine) runs again, one with it is still skipped, and the option alone is refused; without the
+    option both are skipped."""
+    import tofdenoise.experiments.reproduce as workflow
+
+    out, results, page = tmp_path / "runs", tmp_path / "results", tmp_path / "results.md"
+    for name, truth in (("dvss-fixed-l1-s0", True), ("dvss-range-l1-s0", False)):
+        (results / "cpu" / name).mkdir(parents=True)
+        (results / "cpu" / name / "metrics.json").write_text(json.dumps({"synthetic": {}, "simulated": {}}))
+        (results / "cpu" / name / "run_info.json").write_text("{}")
+        if truth:
+            (results / "cpu" / name / "real_vs_truth.json").write_text("{}")
+    asked = []
+    monkeypatch.setattr(workflow, "ensure_realset", lambda *a, **k: None)
+    monkeypatch.setattr(workflow, "run_all", lambda specs, *a, **k: asked.append([s.name for s in specs]) or [])
+    monkeypatch.setattr(workflow, "write_page", lambda *a, **k: "")
+    argv = ["--table", "3", "--seeds", "0", "--out", str(out), "--results", str(results), "--page", str(page)]
+    assert main([*argv, "--skip-recorded", "--rerun-without-truth"]) == 0
+    assert main([*argv, "--skip-recorded"]) == 0
+    with_option, without = asked
+    assert len(with_option) == 9 and "dvss-range-l1-s0" in with_option and "dvss-fixed-l1-s0" not in with_option
+    assert len(without) == 8 and "dvss-range-l1-s0" not in without
+    out_text = capsys.readouterr().out
+    assert "--rerun-without-truth: 1 record(s) without real_vs_truth.json run again: dvss-range-l1-s0" in out_text
+    assert main([*argv, "--rerun-without-truth"]) == 2
+    assert "--rerun-without-truth applies with --skip-recorded" in capsys.readouterr().err
+
+
 def test_prepare_only_prepares_the_runs_still_to_train_and_trains_nothing(tmp_path, monkeypatch, capsys):
     """``--prepare-only`` (a GPU machine's CPUs, beside other work): the stand-in set is built, the data of every run
     of the target that is neither committed nor finished in its folder is prepared, nothing trains and no page is

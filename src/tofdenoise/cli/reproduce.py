@@ -99,6 +99,12 @@ def build_parser() -> argparse.ArgumentParser:
         "does not count, so the run trains again and its record moves the table to the current protocol",
     )
     p.add_argument(
+        "--rerun-without-truth",
+        action="store_true",
+        help="with --skip-recorded: a committed record without its score against the stand-in set's truth "
+        "(real_vs_truth.json, which needs the run's checkpoint) does not count, so the run trains again",
+    )
+    p.add_argument(
         "--time-budget",
         type=float,
         default=None,
@@ -182,9 +188,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.prepare_only and (target is None or target.kind == "figure"):
         print(f"{PROG}: error: --prepare-only applies to --table and --study", file=sys.stderr)
         return 2
-    if args.rerun_earlier and not args.skip_recorded:
-        print(f"{PROG}: error: --rerun-earlier applies with --skip-recorded", file=sys.stderr)
-        return 2
+    for flag, given in (("--rerun-earlier", args.rerun_earlier), ("--rerun-without-truth", args.rerun_without_truth)):
+        if given and not args.skip_recorded:
+            print(f"{PROG}: error: {flag} applies with --skip-recorded", file=sys.stderr)
+            return 2
     if args.time_budget is not None and (target is None or target.kind == "figure" or not args.time_budget > 0):
         print(
             f"{PROG}: error: --time-budget takes a positive number of minutes and applies to --table and --study",
@@ -227,6 +234,7 @@ def main(argv: list[str] | None = None) -> int:
         executor=executor,
         skip_recorded=args.skip_recorded,
         rerun_earlier=args.rerun_earlier,
+        rerun_without_truth=args.rerun_without_truth,
         time_budget_min=args.time_budget,
         run_minutes=run_minutes,
         prepare_only=args.prepare_only,

@@ -279,11 +279,19 @@ def warn_replaced_records(specs: list[Any], out: Path, dest: Path, log: Log = _p
     return replaced
 
 
-def without_recorded(specs: list[Any], dest: Path, log: Log = _print, rerun_earlier: bool = False) -> list[Any]:
+def without_recorded(
+    specs: list[Any],
+    dest: Path,
+    log: Log = _print,
+    rerun_earlier: bool = False,
+    rerun_without_truth: bool = False,
+) -> list[Any]:
     """``specs`` less the runs whose records (``metrics.json`` and ``run_info.json``) are committed in ``dest``: what
     ``--skip-recorded`` runs on a machine that does not hold their run folders. With ``rerun_earlier`` a record of
-    the earlier test protocol does not count (``--rerun-earlier``: the run trains again under the current one). The
-    runs left out, and those run again for their protocol, are logged."""
+    the earlier test protocol does not count (``--rerun-earlier``: the run trains again under the current one); with
+    ``rerun_without_truth`` a record without its score against the stand-in set's truth (``TRUTH_NAME``) does not
+    count (``--rerun-without-truth``: that score needs the run's checkpoint, which a record does not carry). The runs
+    left out, and those run again, are logged."""
     recorded = [s.name for s in specs if all((dest / s.name / name).is_file() for name in RUN_FILES)]
     if rerun_earlier:
         earlier = [name for name in recorded if _protocol(dest / name) == EARLIER]
@@ -291,6 +299,14 @@ def without_recorded(specs: list[Any], dest: Path, log: Log = _print, rerun_earl
             names = ", ".join(earlier)
             log(f"[reproduce] --rerun-earlier: {len(earlier)} record(s) of the earlier protocol run again: {names}")
         recorded = [name for name in recorded if name not in earlier]
+    if rerun_without_truth:
+        untruthed = [name for name in recorded if not (dest / name / TRUTH_NAME).is_file()]
+        if untruthed:
+            names = ", ".join(untruthed)
+            log(
+                f"[reproduce] --rerun-without-truth: {len(untruthed)} record(s) without {TRUTH_NAME} run again: {names}"
+            )
+        recorded = [name for name in recorded if name not in untruthed]
     if recorded:
         log(f"[reproduce] --skip-recorded: {len(recorded)} run(s) committed in {dest}, not run: {', '.join(recorded)}")
     return [s for s in specs if s.name not in recorded]
@@ -446,6 +462,7 @@ class Reproduction:
     executor: Any = None  # an executor of ``experiments.executors`` (None: sequential)
     skip_recorded: bool = False  # leave out the runs whose records are committed in ``dest`` (tables, studies)
     rerun_earlier: bool = False  # with skip_recorded: a record of the earlier test protocol does not count
+    rerun_without_truth: bool = False  # with skip_recorded: a record without its real_vs_truth.json does not count
     #: minutes for the runs (a GPU allocation's limit): runs that would not fit are not started, a run still
     #: training at the end is stopped and resumes next time (``runner.TimeBudget``; estimates: ``recorded_seconds``)
     time_budget_min: float | None = None
@@ -552,7 +569,13 @@ def reproduce(job: Reproduction, log: Log = _print) -> int:
         else:
             specs = table_specs(target.key, job.seeds, job.overrides())
             if job.skip_recorded:
-                specs = without_recorded(specs, job.dest, log, rerun_earlier=job.rerun_earlier)
+                specs = without_recorded(
+                    specs,
+                    job.dest,
+                    log,
+                    rerun_earlier=job.rerun_earlier,
+                    rerun_without_truth=job.rerun_without_truth,
+                )
             # several runs at a time would each build the same data: it is prepared once first (or alone)
             if not job.dry_run and (job.prepare_only or getattr(job.executor, "workers", 1) > 1):
                 prepared = prepare_grid_data([s for s in specs if not run_finished(Path(job.out) / s.name)], log=log)
