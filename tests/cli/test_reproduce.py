@@ -345,13 +345,24 @@ def test_record_provenance_reads_what_a_record_says(tmp_path):
     assert record_provenance(tmp_path) == "made at abc on AMD EPYC"
 
 
+def _table3_seed0_training_nothing(monkeypatch, tmp_path) -> tuple[list[list[str]], list[str]]:
+    """Table 3 seed 0's command line on ``tmp_path``'s runs / results / page, with no stand-in set, no training (the
+    names of the runs each call would train are appended to the list returned) and no page."""
+    import tofdenoise.experiments.reproduce as workflow
+
+    asked: list[list[str]] = []
+    monkeypatch.setattr(workflow, "ensure_realset", lambda *a, **k: None)
+    monkeypatch.setattr(workflow, "run_all", lambda specs, *a, **k: asked.append([s.name for s in specs]) or [])
+    monkeypatch.setattr(workflow, "write_page", lambda *a, **k: "")
+    paths = {"--out": "runs", "--results": "results", "--page": "results.md"}
+    return asked, ["--table", "3", "--seeds", "0", *[a for k, v in paths.items() for a in (k, str(tmp_path / v))]]
+
+
 def test_rerun_earlier_trains_again_the_runs_recorded_under_the_earlier_protocol(tmp_path, monkeypatch, capsys):
     """``--skip-recorded --rerun-earlier``: a committed record without the simulator-noised split (the earlier test
     protocol) or with an unreadable metrics.json runs again; a current-protocol record is still skipped; the option
     alone is refused."""
-    import tofdenoise.experiments.reproduce as workflow
-
-    out, results, page = tmp_path / "runs", tmp_path / "results", tmp_path / "results.md"
+    results = tmp_path / "results"
     committed = {
         "dvss-fixed-l1-s0": {"synthetic": {}, "simulated": {}},  # current
         "dvss-range-l1-s0": {"synthetic": {}},  # earlier
@@ -361,11 +372,7 @@ def test_rerun_earlier_trains_again_the_runs_recorded_under_the_earlier_protocol
         (results / "cpu" / name).mkdir(parents=True)
         (results / "cpu" / name / "metrics.json").write_text("{" if metrics is None else json.dumps(metrics))
         (results / "cpu" / name / "run_info.json").write_text("{}")
-    asked = []
-    monkeypatch.setattr(workflow, "ensure_realset", lambda *a, **k: None)
-    monkeypatch.setattr(workflow, "run_all", lambda specs, *a, **k: asked.append([s.name for s in specs]) or [])
-    monkeypatch.setattr(workflow, "write_page", lambda *a, **k: "")
-    argv = ["--table", "3", "--seeds", "0", "--out", str(out), "--results", str(results), "--page", str(page)]
+    asked, argv = _table3_seed0_training_nothing(monkeypatch, tmp_path)
     assert main([*argv, "--skip-recorded", "--rerun-earlier"]) == 0
     (names,) = asked
     assert len(names) == 9 and "dvss-fixed-l1-s0" not in names
@@ -382,20 +389,14 @@ def test_rerun_without_truth_trains_again_the_runs_whose_record_lacks_its_truth_
     """``--skip-recorded --rerun-without-truth``: a committed record without real_vs_truth.json (its checkpoint stayed
     on another machine) runs again, one with it is still skipped, and the option alone is refused; without the
     option both are skipped."""
-    import tofdenoise.experiments.reproduce as workflow
-
-    out, results, page = tmp_path / "runs", tmp_path / "results", tmp_path / "results.md"
+    results = tmp_path / "results"
     for name, truth in (("dvss-fixed-l1-s0", True), ("dvss-range-l1-s0", False)):
         (results / "cpu" / name).mkdir(parents=True)
         (results / "cpu" / name / "metrics.json").write_text(json.dumps({"synthetic": {}, "simulated": {}}))
         (results / "cpu" / name / "run_info.json").write_text("{}")
         if truth:
             (results / "cpu" / name / "real_vs_truth.json").write_text("{}")
-    asked = []
-    monkeypatch.setattr(workflow, "ensure_realset", lambda *a, **k: None)
-    monkeypatch.setattr(workflow, "run_all", lambda specs, *a, **k: asked.append([s.name for s in specs]) or [])
-    monkeypatch.setattr(workflow, "write_page", lambda *a, **k: "")
-    argv = ["--table", "3", "--seeds", "0", "--out", str(out), "--results", str(results), "--page", str(page)]
+    asked, argv = _table3_seed0_training_nothing(monkeypatch, tmp_path)
     assert main([*argv, "--skip-recorded", "--rerun-without-truth"]) == 0
     assert main([*argv, "--skip-recorded"]) == 0
     with_option, without = asked
