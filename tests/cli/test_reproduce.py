@@ -129,6 +129,34 @@ def test_records_of_finished_runs_only_and_the_page(tmp_path):
     assert "| DVSS, hetero (proposed) | 40.37 / 40.00 (n=1) | 2.78 / 2.50 (n=1) |" in page.read_text()
 
 
+@pytest.mark.parametrize("earlier_start", ["2026-11-25T08:00:00+0000", None])
+def test_a_run_copied_over_a_record_leaves_none_of_the_records_files_it_lacks(tmp_path, earlier_start):
+    """A run trained again replaces its committed record whole: where the record is of another start (or says none)
+    the record files the new run folder lacks (here the earlier run's score against the truth and its
+    simulator-noised per-image rows) are removed, the others are the new run's; files that are not record files stay.
+    The same run copied again keeps them."""
+    run, dest = tmp_path / "runs" / "unet-hetero-l1-s0", tmp_path / "results"
+    (run / "csv").mkdir(parents=True)
+    info = {"started": "2026-11-28T09:00:00+0000", "finished": "2026-11-28T10:00:00+0000"}
+    (run / "run_info.json").write_text(json.dumps(info))
+    (run / "metrics.json").write_text('{"new": 1}')
+    old = dest / run.name
+    (old / "per_image").mkdir(parents=True)
+    for name in ("real_vs_truth.json", "per_image/simulated.csv", "metrics.json", "notes.txt"):
+        (old / name).write_text("earlier run")
+    (old / "run_info.json").write_text(json.dumps({"started": earlier_start} if earlier_start else {}))
+    assert copy_records([run], dest) == [run.name]
+    assert sorted(p.relative_to(old).as_posix() for p in old.rglob("*") if p.is_file()) == [
+        "metrics.json",
+        "notes.txt",
+        "run_info.json",
+    ]
+    assert (old / "metrics.json").read_text() == '{"new": 1}'
+    (old / "real_vs_truth.json").write_text('{"scored": "later, into the record"}')
+    assert copy_records([run], dest) == [run.name]
+    assert (old / "real_vs_truth.json").is_file()
+
+
 def test_per_scene_records_are_committed_compact_with_the_same_numbers(tmp_path):
     """real_vs_truth.json and regions.json (one value per scene and metric) go into the results in
     write_scene_record's compact form, whichever form the run folder holds, with every number as it was; a per-scene

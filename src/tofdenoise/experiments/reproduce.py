@@ -225,18 +225,32 @@ def write_regions_record(run_dir: Path, device: str = "auto", log: Log = _print)
     return True
 
 
+def _same_run(run_dir: Path, record_dir: Path) -> bool:
+    """True when the committed record ``record_dir`` is of the run in ``run_dir``: both ``run_info.json`` readable,
+    with the same start time."""
+    info, _ = read_run(run_dir)
+    record, _ = read_run(record_dir)
+    return bool(info and record and info.get("started") and info.get("started") == record.get("started"))
+
+
 def copy_records(run_dirs: list[Path], dest: Path) -> list[str]:
     """Copy each finished run's records (``RECORD_FILES`` that exist) to ``dest/<run>/`` atomically; the names. The
     per-scene records (``TRUTH_NAME``, ``REGIONS_NAME``) are written in ``write_scene_record``'s compact form, the
     same numbers, whichever form the run folder holds (one written by an older version is indented); a file that is
-    not JSON is copied as it is, for the page to report."""
+    not JSON is copied as it is, for the page to report. Where ``dest/<run>/`` holds the record of another run of
+    that name (another start time: a run trained again, by ``--rerun-earlier`` or for a figure), a record file that
+    the run folder lacks is removed, so that no file of the replaced record (an earlier run's score against the
+    truth, say) stays beside the new run's metrics; a record of the same run keeps what its folder lacks."""
     copied = []
     for run_dir in run_dirs:
         if not run_finished(run_dir):
             continue
+        replaced = not _same_run(run_dir, dest / run_dir.name)
         for name in RECORD_FILES:
             source, target = run_dir / name, dest / run_dir.name / name
             if not source.is_file():
+                if replaced:
+                    target.unlink(missing_ok=True)
                 continue
             data = source.read_bytes()
             if name in (TRUTH_NAME, REGIONS_NAME):
