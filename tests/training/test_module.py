@@ -461,6 +461,9 @@ COMPILE_TINY = {
     "unet": {"width": 4, "stages": 2},
     "restormer": {"width": 8, "blocks": [1, 1, 1, 1], "heads": [1, 1, 2, 2], "refinement_blocks": 1},
     "dvss": {"width": 8, "enc_blocks": [1], "bottleneck_blocks": 1},
+    "rcf": {"width": 8, "hidden": 8, "steps": 2, "global_levels": 2},
+    "tofkpn": {},
+    "deeptof": {},
 }
 
 
@@ -479,7 +482,9 @@ def _autograd_node_names(t: torch.Tensor) -> set[str]:
 SLOW = pytest.mark.slow
 
 
-@pytest.mark.parametrize("backbone", ["unet", pytest.param("restormer", marks=SLOW), pytest.param("dvss", marks=SLOW)])
+@pytest.mark.parametrize(
+    "backbone", ["unet", *[pytest.param(b, marks=SLOW) for b in ("restormer", "dvss", "rcf", "tofkpn", "deeptof")]]
+)
 def test_model_compile_trains_the_compiled_forward_and_backward(tmp_path, tiny_data, backbone):
     """``model.compile=true`` (configs/model/default.yaml) on a paper backbone: a fast_dev_run step whose loss comes
     from the compiled network in one graph (no graph break; its backward is the compiled one: the loss's autograd
