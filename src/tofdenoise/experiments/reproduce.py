@@ -307,20 +307,21 @@ def without_recorded(
     count (``--rerun-without-truth``: that score needs the run's checkpoint, which a record does not carry). The runs
     left out, and those run again, are logged."""
     recorded = [s.name for s in specs if all((dest / s.name / name).is_file() for name in RUN_FILES)]
-    if rerun_earlier:
-        earlier = [name for name in recorded if _protocol(dest / name) == EARLIER]
-        if earlier:
-            names = ", ".join(earlier)
-            log(f"[reproduce] --rerun-earlier: {len(earlier)} record(s) of the earlier protocol run again: {names}")
-        recorded = [name for name in recorded if name not in earlier]
-    if rerun_without_truth:
-        untruthed = [name for name in recorded if not (dest / name / TRUTH_NAME).is_file()]
-        if untruthed:
-            names = ", ".join(untruthed)
-            log(
-                f"[reproduce] --rerun-without-truth: {len(untruthed)} record(s) without {TRUTH_NAME} run again: {names}"
-            )
-        recorded = [name for name in recorded if name not in untruthed]
+    # (asked for, option, which records, does a record of this run not count)
+    rules = (
+        (rerun_earlier, "--rerun-earlier", "of the earlier protocol", lambda run: _protocol(dest / run) == EARLIER),
+        (
+            rerun_without_truth,
+            "--rerun-without-truth",
+            f"without {TRUTH_NAME}",
+            lambda run: not (dest / run / TRUTH_NAME).is_file(),
+        ),
+    )
+    for asked, option, which, again in rules:
+        rerun = [name for name in recorded if asked and again(name)]
+        if rerun:
+            log(f"[reproduce] {option}: {len(rerun)} record(s) {which} run again: {', '.join(rerun)}")
+            recorded = [name for name in recorded if name not in rerun]
     if recorded:
         log(f"[reproduce] --skip-recorded: {len(recorded)} run(s) committed in {dest}, not run: {', '.join(recorded)}")
     return [s for s in specs if s.name not in recorded]
