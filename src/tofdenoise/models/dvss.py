@@ -201,13 +201,16 @@ class DVSSNet(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         check_input(x, self.in_channels, type(self).__name__)
         xp, size = pad_to_multiple(x, self.multiple)
-        h = self.patch_embed(xp)
-        if not torch.is_grad_enabled() and h.device.type in CHANNELS_LAST_INFERENCE_DEVICES:
+        if not torch.is_grad_enabled() and xp.device.type in CHANNELS_LAST_INFERENCE_DEVICES:
             # inference: channels-last memory from the stem on, so that LayerNorm2d's and SS2D's (B, H, W, C) views
             # are free and the convolutions take their NHWC kernels, with no layout copies between the blocks.
             # Training steps keep the default layout: there it gains nothing, and their numbers stay those of the
-            # recorded runs (validation, without a gradient, takes it and agrees with them to rounding)
-            h = h.contiguous(memory_format=torch.channels_last)
+            # recorded runs (validation, without a gradient, takes it and agrees with them to rounding). The stem
+            # reads a channels-last copy of its few input channels and so writes channels-last features itself: no
+            # copy of the (B, width, H, W) features (10 ms of a 480 x 640 frame)
+            h = self.patch_embed(torch.empty_like(xp, memory_format=torch.channels_last).copy_(xp))
+        else:
+            h = self.patch_embed(xp)
         skips = []
         for blocks, down in zip(self.encoder, self.down):
             h = blocks(h)
