@@ -1,25 +1,28 @@
 """The unified depth metrics of folders of depth maps produced by any method (what ``tofdenoise evaluate`` writes).
 
-Files are matched by stem (``scene_001.png`` <-> ``scene_001.npy`` is fine). Depth files: single-channel
-16-bit PNG/TIFF holding millimetres (0 = invalid), or ``.npy``/``.npz`` (single array)/``.exr`` float maps in
-millimetres. An 8-bit PNG cannot hold depth in mm and is an error. Mask files: any single-channel image or
+Files are matched by their path below the folder less the suffix (``scene_001.png`` <-> ``scene_001.npy`` is fine;
+sub-folders are searched, as ``tofdenoise denoise`` mirrors them: ``day1/scene_001`` pairs with ``day1/scene_001``).
+Depth files: single-channel 16-bit PNG/TIFF holding millimetres (0 = invalid), or ``.npy``/``.npz`` (single
+array)/``.exr`` float maps in millimetres. An 8-bit PNG cannot hold depth in mm and is an error. Mask files: any single-channel image or
 array, nonzero = evaluate. A pixel counts where the reference is valid (finite and > 0), the mask (if
 given) is nonzero and the prediction is finite; metrics are per image, then averaged over images
 (``tofdenoise.training.metrics``; PSNR with D_max = 1000 mm, no clamping). An image without a valid pixel is listed
 with null values and left out of the mean.
 
-Non-finite predictions (NaN or +-inf) are failures, never a reward: a pixel the method should have
-predicted (reference valid, mask nonzero) but left non-finite is left out of that image's metrics, *counted*
-as ``nan_px`` (per image and in total); an image whose every such pixel is non-finite is a failure row (null
-metrics, listed in ``failed``, left out of the mean). A result with ``nan_px > 0`` is therefore not comparable
-with one without: its mean covers fewer pixels.
+A prediction pixel without a depth is a failure, never a reward, and never a depth of 0 mm: NaN, +-inf, or 0 and
+below in a prediction file (0 is a depth file's invalid marker: a 16-bit PNG has no NaN, and ``tofdenoise
+denoise`` writes its holes as 0). A pixel the method should have predicted (reference valid, mask nonzero) but left
+without a depth is left out of that image's metrics and *counted* as ``nan_px`` (per image and in total); an image
+without a predicted depth at any such pixel is a failure row (null metrics, listed in ``failed``, left out of the
+mean). A result with ``nan_px > 0`` is therefore not comparable with one without: its mean covers fewer pixels.
+(:class:`MapScorer` takes in-memory predictions as they are: a network's output of 0 is a prediction, and scored.)
 
 :func:`evaluate_dirs` returns (``tofdenoise evaluate`` writes it as strict JSON)::
 
     {"mean": {"psnr_db", "mae_mm", "mse_mm2", "ssim"},
-     "images": {"<stem>": {"psnr_db", "mae_mm", "mse_mm2", "ssim", "valid_px", "nan_px"}},
-     "mae_mm_pooled": float, "num_images": int, "skipped": [stems without a valid reference pixel],
-     "nan_px": int, "failed": [stems whose prediction is non-finite wherever it is evaluated],
+     "images": {"<name>": {"psnr_db", "mae_mm", "mse_mm2", "ssim", "valid_px", "nan_px"}},
+     "mae_mm_pooled": float, "num_images": int, "skipped": [names without a valid reference pixel],
+     "nan_px": int, "failed": [names without a predicted depth wherever they are evaluated],
      "d_max_mm": float}
 
 With ``edge_jump_mm`` (``tofdenoise evaluate --edge-jump-mm``) the result also holds ``"regions": {"edge_jump_mm",
@@ -29,7 +32,7 @@ With ``edge_jump_mm`` (``tofdenoise evaluate --edge-jump-mm``) the result also h
 the share of the scored pixels that are edge pixels.
 
 Bad input raises :class:`EvalInputError` naming the file: missing counterpart, shape mismatch, wrong dtype,
-unreadable file, empty or missing folder, two files with the same stem.
+unreadable file, empty or missing folder, two files with the same name less the suffix.
 """
 
 from __future__ import annotations
@@ -52,19 +55,23 @@ class EvalInputError(ValueError):
 
 
 def list_maps(folder: str | Path, what: str) -> dict[str, Path]:
-    """stem -> file for the depth/mask files in ``folder`` (non-recursive); errors for empty or ambiguous."""
+    """name -> file for the depth/mask files in ``folder`` and its sub-folders, the name being the file's path below
+    ``folder`` less its suffix (``day1/scene_001``); hidden files and folders are left out. Errors for an empty
+    folder or two files of one name."""
     folder = Path(folder)
     if not folder.is_dir():
         raise EvalInputError(f"{what} folder not found: {folder}")
     found: dict[str, Path] = {}
-    for path in sorted(folder.iterdir()):
-        if not path.is_file() or path.name.startswith(".") or path.suffix.lower() not in DEPTH_SUFFIXES:
+    for path in sorted(folder.rglob("*")):
+        rel = path.relative_to(folder)
+        if any(part.startswith(".") for part in rel.parts) or path.suffix.lower() not in DEPTH_SUFFIXES:
             continue
-        if path.stem in found:
-            raise EvalInputError(
-                f"{what} folder {folder} has two files for '{path.stem}': {found[path.stem].name} and {path.name}"
-            )
-        found[path.stem] = path
+        if not path.is_file():
+            continue
+        name = rel.with_suffix("").as_posix()
+        if name in found:
+            raise EvalInputError(f"{what} folder {folder} has two files for '{name}': {found[name]} and {path}")
+        found[name] = path
     if not found:
         raise EvalInputError(f"{what} folder {folder} holds no depth file ({', '.join(DEPTH_SUFFIXES)})")
     return found
@@ -90,6 +97,15 @@ def _read_depth(path: Path, what: str) -> np.ndarray:
     return depth
 
 
+def _read_prediction(path: Path) -> np.ndarray:
+    """A prediction file's depth in mm with its pixels without a depth as NaN: 0 and below (a depth file's invalid
+    marker: ``tofdenoise denoise`` writes its holes as 0, and a 16-bit PNG has no NaN) and -inf; NaN and +inf stay.
+    Scored as they were, a method's holes counted as a depth of 0 mm (an MAE of the depth itself)."""
+    depth = _read_depth(path, "predicted depth")
+    with np.errstate(invalid="ignore"):
+        return np.where(depth > 0, depth, np.nan)
+
+
 def _read_mask(path: Path) -> np.ndarray:
     from tofdenoise.data_modules.io import read_array
 
@@ -103,7 +119,7 @@ def _match(ref: dict[str, Path], other: dict[str, Path], what: str, folder: Path
     for stem, path in ref.items():
         if stem not in other:
             raise EvalInputError(
-                f"no {what} for reference file {path.name}: expected {folder}/{stem}.<"
+                f"no {what} for reference file {path}: expected {folder}/{stem}.<"
                 f"{'|'.join(s.lstrip('.') for s in DEPTH_SUFFIXES)}>"
             )
     extra = sorted(set(other) - set(ref))
@@ -198,7 +214,7 @@ def evaluate_dirs(
     scorer = MapScorer(d_max_mm, edge_jump_mm)
     for stem in sorted(refs):
         ref = _read_depth(refs[stem], "reference depth")
-        pred = _read_depth(preds[stem], "predicted depth")
+        pred = _read_prediction(preds[stem])
         if pred.shape != ref.shape:
             raise EvalInputError(
                 f"predicted depth file {preds[stem]} has shape {pred.shape}; expected {ref.shape} like {refs[stem]}"
@@ -215,7 +231,8 @@ def evaluate_dirs(
 
 
 def _nonfinite_px(pred: np.ndarray, ref: np.ndarray, mask: np.ndarray | None) -> int:
-    """Pixels to be evaluated (reference finite and > 0, mask nonzero) where the prediction is NaN or inf."""
+    """Pixels to be evaluated (reference finite and > 0, mask nonzero) where the prediction is NaN or inf (a prediction
+    file's pixels without a depth are NaN by then: :func:`_read_prediction`)."""
     with np.errstate(invalid="ignore"):
         wanted = np.isfinite(ref) & (ref > 0)
     if mask is not None:

@@ -77,7 +77,8 @@ def _err(dirs, capsys, *extra) -> str:
 
 def test_missing_and_extra_counterparts_are_named(dirs, capsys):
     (dirs / "pred" / "b.png").unlink()
-    assert "no prediction for reference file b.png" in _err(dirs, capsys)
+    err = _err(dirs, capsys)
+    assert "no prediction for reference file" in err and str(dirs / "ref" / "b.png") in err
     _png16(dirs / "pred" / "b.png", np.full((20, 30), 1000.0))
     _png16(dirs / "pred" / "c.png", np.full((20, 30), 1000.0))
     assert "c.png has no reference counterpart" in _err(dirs, capsys)
@@ -163,6 +164,49 @@ def test_nan_predictions_are_counted_as_failures_not_rewards(tmp_path, capsys):
     assert res["failed"] == ["s1"] and res["skipped"] == []
     assert res["images"]["s1"]["nan_px"] == 100 and res["images"]["s1"]["mae_mm"] is None
     assert res["num_images"] == 1
+
+
+def test_holes_of_a_prediction_file_are_missing_depth_not_a_depth_of_zero(tmp_path, capsys):
+    """0 in a 16-bit PNG (what ``tofdenoise denoise`` writes at its holes) and 0 or below in a float map are pixels
+    without a prediction: the same result as NaN there (counted in nan_px, left out, warned), never |0 - ref|."""
+    ref = np.full((10, 10), 1000.0)
+    pred = ref + 4.0
+    pred[:3] = 0  # 30 holes where the reference is valid
+    _png16(tmp_path / "ref" / "s0.png", ref)
+    _png16(tmp_path / "png" / "s0.png", pred)
+    _npy(tmp_path / "npy" / "s0.npy", np.where(pred > 0, pred, -1.0))  # a float map marking holes below 0
+    _npy(tmp_path / "nan" / "s0.npy", np.where(pred > 0, pred, np.nan))
+    results = {name: evaluate_dirs(tmp_path / name, tmp_path / "ref") for name in ("png", "npy", "nan")}
+    for name, res in results.items():
+        row = res["images"]["s0"]
+        assert (row["valid_px"], row["nan_px"], res["nan_px"]) == (70, 30, 30), name
+        assert row["mae_mm"] == pytest.approx(4.0), name  # scored as 0 mm, the 30 holes gave (30 * 1000 + 280) / 100
+    out = tmp_path / "png.json"
+    assert main(["--pred", str(tmp_path / "png"), "--ref", str(tmp_path / "ref"), "--out", str(out)]) == 0
+    captured = capsys.readouterr()
+    assert "warning: 30 pixel(s) to evaluate hold no predicted depth" in captured.err and "s0" in captured.err
+    assert "30 px without a predicted depth" in captured.out
+    # a prediction without a depth anywhere it is scored is a failure row, not an image scored at 1000 mm
+    _png16(tmp_path / "empty" / "s0.png", np.zeros_like(ref))
+    empty = evaluate_dirs(tmp_path / "empty", tmp_path / "ref")
+    assert empty["failed"] == ["s0"] and empty["num_images"] == 0 and empty["images"]["s0"]["mae_mm"] is None
+
+
+def test_sub_folders_are_matched_by_their_path_as_denoise_mirrors_them(tmp_path, capsys):
+    """``tofdenoise denoise`` mirrors its inputs' sub-folders under --out; evaluate pairs every file by its path
+    below the folder (no file left out), and a missing counterpart in a sub-folder is an error naming it."""
+    ref = np.full((8, 8), 1000.0)
+    for name, off in (("s0", 1.0), ("day1/s0", 3.0), ("day1/s1", 5.0)):
+        _png16(tmp_path / "ref" / f"{name}.png", ref)
+        _npy(tmp_path / "pred" / f"{name}.npy", ref + off)
+    res = evaluate_dirs(tmp_path / "pred", tmp_path / "ref")
+    assert res["num_images"] == 3 and sorted(res["images"]) == ["day1/s0", "day1/s1", "s0"]
+    assert res["images"]["day1/s1"]["mae_mm"] == pytest.approx(5.0) and res["mean"]["mae_mm"] == pytest.approx(3.0)
+    (tmp_path / "pred" / "day1" / "s1.npy").unlink()
+    out = tmp_path / "eval.json"
+    assert main(["--pred", str(tmp_path / "pred"), "--ref", str(tmp_path / "ref"), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "no prediction for reference file" in err and "day1/s1" in err and not out.exists()
 
 
 def test_a_checkpoint_on_a_capture_set_scores_the_reference_as_its_run_did_and_the_truth(

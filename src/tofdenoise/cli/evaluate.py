@@ -41,11 +41,12 @@ __all__ = ["build_parser", "main"]
 
 
 def _input_files(*folders: Path | None) -> list[Path]:
-    """Every file directly in the given (existing) input folders: what ``--out`` must never replace."""
+    """Every file in the given (existing) input folders and their sub-folders (``evaluation.list_maps`` reads them
+    all): what ``--out`` must never replace."""
     files: list[Path] = []
     for folder in folders:
         if folder is not None and Path(folder).is_dir():
-            files += [p for p in Path(folder).iterdir() if p.is_file()]
+            files += [p for p in Path(folder).rglob("*") if p.is_file()]
     return files
 
 
@@ -212,12 +213,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     if result["nan_px"]:
         bad = [stem for stem, row in result["images"].items() if row["nan_px"]]
         failed = (
-            f"; {len(result['failed'])} image(s) with no finite prediction at all (failed)" if result["failed"] else ""
+            f"; {len(result['failed'])} image(s) with no predicted depth at all (failed)" if result["failed"] else ""
         )
         print(
-            f"tofdenoise evaluate: warning: {result['nan_px']} pixel(s) to evaluate hold a non-finite prediction "
-            f"(NaN/inf) in {len(bad)} image(s) ({', '.join(bad[:5])}{' ...' if len(bad) > 5 else ''}): "
-            f"failures, left out of the metrics and counted in nan_px{failed}",
+            f"tofdenoise evaluate: warning: {result['nan_px']} pixel(s) to evaluate hold no predicted depth "
+            f"(0 = invalid, negative, NaN or inf) in {len(bad)} image(s) ({', '.join(bad[:5])}"
+            f"{' ...' if len(bad) > 5 else ''}): failures, left out of the metrics and counted in nan_px{failed}",
             file=sys.stderr,
         )
     try:
@@ -228,7 +229,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     m = result["mean"]
     f = _fmt
 
-    nan_note = f", {result['nan_px']} non-finite predicted px" if result["nan_px"] else ""
+    nan_note = f", {result['nan_px']} px without a predicted depth" if result["nan_px"] else ""
     against = " against the references" if captures else ""
     print(
         f"{result['num_images']} images ({len(result['skipped'])} without valid pixels{nan_note}){against}: "

@@ -206,9 +206,13 @@ class DVSSNet(nn.Module):
             # are free and the convolutions take their NHWC kernels, with no layout copies between the blocks.
             # Training steps keep the default layout: there it gains nothing, and their numbers stay those of the
             # recorded runs (validation, without a gradient, takes it and agrees with them to rounding). The stem
-            # reads a channels-last copy of its few input channels and so writes channels-last features itself: no
-            # copy of the (B, width, H, W) features (10 ms of a 480 x 640 frame)
-            h = self.patch_embed(torch.empty_like(xp, memory_format=torch.channels_last).copy_(xp))
+            # reads a channels-last copy of its few input channels and so writes channels-last features itself, in
+            # an eager forward: no copy of the (B, width, H, W) features (13 ms of a 480 x 640 frame). A traced or
+            # exported graph copies the features after the stem (the copy above is not an ONNX operator)
+            if eager_inference():
+                h = self.patch_embed(torch.empty_like(xp, memory_format=torch.channels_last).copy_(xp))
+            else:
+                h = self.patch_embed(xp).contiguous(memory_format=torch.channels_last)
         else:
             h = self.patch_embed(xp)
         skips = []
