@@ -3,9 +3,9 @@
 Files are matched by their path below the folder less the suffix (``scene_001.png`` <-> ``scene_001.npy`` is fine;
 sub-folders are searched, as ``tofdenoise denoise`` mirrors them: ``day1/scene_001`` pairs with ``day1/scene_001``).
 Depth files: single-channel 16-bit PNG/TIFF holding millimetres (0 = invalid), or ``.npy``/``.npz`` (single
-array)/``.exr`` float maps in millimetres. An 8-bit PNG cannot hold depth in mm and is an error. Mask files: any single-channel image or
-array, nonzero = evaluate. A pixel counts where the reference is valid (finite and > 0), the mask (if
-given) is nonzero and the prediction is finite; metrics are per image, then averaged over images
+array)/``.exr`` float maps in millimetres. An 8-bit PNG cannot hold depth in mm and is an error. Mask files: any
+single-channel image or array, nonzero = evaluate. A pixel counts where the reference is valid (finite and > 0),
+the mask (if given) is nonzero and the prediction holds a depth; metrics are per image, then averaged over images
 (``tofdenoise.training.metrics``; PSNR with D_max = 1000 mm, no clamping). An image without a valid pixel is listed
 with null values and left out of the mean.
 
