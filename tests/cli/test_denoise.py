@@ -198,6 +198,28 @@ def test_an_output_that_would_replace_another_frames_amplitude_is_refused(frames
     assert not (amp / "a.png").exists()
 
 
+def test_two_inputs_of_one_output_name_are_refused_before_any_write(frames_dir, restorer_ckpt, tmp_path, capsys):
+    """Two cameras' folders numbering their frames alike, or a.png beside a.npy: restoring one and skipping the
+    other ended with exit status 0 and half the frames; now exit 2, both inputs named, nothing written."""
+    src, _ = frames_dir
+    cam_a, cam_b = tmp_path / "camA", tmp_path / "camB"
+    for cam in (cam_a, cam_b):
+        cam.mkdir()
+        (cam / "frame_000.png").write_bytes((src / "a.png").read_bytes())
+    out = tmp_path / "out"
+    assert main([str(cam_a), str(cam_b), "--ckpt", str(restorer_ckpt), "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "tofdenoise denoise: error:" in err
+    assert str(cam_a / "frame_000.png") in err and str(cam_b / "frame_000.png") in err and not out.exists()
+    np.save(cam_a / "frame_000.npy", np.load(src / "sub" / "b.npy"))  # one folder, one name, two formats
+    assert main([str(cam_a), "--ckpt", str(restorer_ckpt), "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert str(cam_a / "frame_000.png") in err and str(cam_a / "frame_000.npy") in err and not out.exists()
+    # separate --out folders, as the message says: both restored
+    assert main([str(cam_b), "--ckpt", str(restorer_ckpt), "--out", str(out / "b"), "--quiet"]) == 0
+    assert "1 frame(s) done, 0 skipped, 0 failed" in capsys.readouterr().err
+
+
 def test_a_float_frame_in_metres_is_refused_unless_the_scale_is_given(frames_dir, restorer_ckpt, tmp_path, capsys):
     """issue 23 case 4: a float .npy in metres (a Kinect frame / 1000) was written as 0-2 "mm", exit 0."""
     metres = tmp_path / "metres"

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import errno
+import os
 import sys
 import time
 from collections.abc import Sequence
@@ -498,6 +499,7 @@ def _refuse_replacing_inputs(
                 inputs.append(amplitude.find(frame))
             except FrameError:  # reported for that frame when it is processed
                 pass
+    _refuse_shared_outputs(args.out, frames, recordings)
     wanted = wanted_outputs(options, with_sigma)
     outputs = [
         path
@@ -511,6 +513,27 @@ def _refuse_replacing_inputs(
         raise OutputPathError(f"--out {out} is a file; give a folder for the outputs")
     folders = [out] + [out / r.rel_stem for r in recordings]
     refuse_overwrite(outputs, inputs, "--out", output_folders=folders)
+
+
+def _refuse_shared_outputs(out: Path, frames, recordings) -> None:
+    """``OutputPathError`` naming both inputs when two frames (or two recordings) would write to one output name:
+    frames of one name in two input folders (two cameras numbering their frames from 0), or ``a.png`` beside
+    ``a.npy``. Restoring one and skipping the other ended with exit status 0 and half the frames."""
+    from tofdenoise.inference.outputs import output_paths
+
+    for kind, items, target in (
+        ("frames", frames, lambda f: output_paths(out, f.rel_stem.as_posix())["png"]),
+        ("recordings", recordings, lambda r: Path(out) / r.rel_stem),
+    ):
+        taken: dict[Path, Path] = {}
+        for item in items:
+            path = Path(os.path.realpath(target(item)))
+            if path in taken:
+                raise OutputPathError(
+                    f"{item.path} and {taken[path]} would both be written to {path} (two {kind} of one name under "
+                    "--out): run them with separate --out folders, or rename one"
+                )
+            taken[path] = item.path
 
 
 def tiling_lines(args: argparse.Namespace, tally: _Tally) -> list[str]:
