@@ -78,8 +78,7 @@ def list_maps(folder: str | Path, what: str) -> dict[str, Path]:
 
 
 def _read_depth(path: Path, what: str) -> np.ndarray:
-    from tofdenoise.data_modules.io import read_depth_mm
-    from tofdenoise.inference.frames import MIN_MEDIAN_DEPTH_MM
+    from tofdenoise.data_modules.io import MIN_MEDIAN_DEPTH_MM, read_depth_mm
 
     try:
         depth = read_depth_mm(path, what=what).astype(np.float64)

@@ -91,3 +91,23 @@ def test_sample_without_valid_pixel_is_skipped_with_warning(tmp_path):
     assert all("depth/d4" not in ids for ids in dm.splits.values())
     assert sum(len(v) for v in dm.splits.values()) == 9
     assert dm.summary()["skipped"] == {skipped_split: 1}
+
+
+def test_depth_in_metres_is_refused_naming_the_file_and_the_setting(tmp_path):
+    """A map in metres read as millimetres (median about 1 mm) trained on sigma_D of a 1 mm scene and noise larger
+    than the depth, exit 0; now the first such file stops the data preparation, and depth_unit_mm=1000 reads it."""
+    from tofdenoise.data_modules import ToFDataModule
+
+    write_folder(tmp_path, n=4)
+    metres = np.random.default_rng(1).uniform(0.5, 2.0, size=(H, W)).astype(np.float32)
+    np.save(tmp_path / "depth" / "d2.npy", metres)
+    refused = r"d2.npy: median valid depth 1\.\d+ mm is implausible(.|\n)*depth_unit_mm=1000"
+    with pytest.raises(ValueError, match=refused):
+        FolderSource(tmp_path).load("depth/d2")
+    dm = ToFDataModule(
+        source="folder", source_kwargs={"root": str(tmp_path)}, cache_dir=str(tmp_path / "c"), crop_size=8, seed=0
+    )
+    with pytest.raises(ValueError, match="d2.npy"):
+        dm.prepare_data()
+    sample = FolderSource(tmp_path, depth_unit_mm=1000).load("depth/d2")
+    np.testing.assert_allclose(sample.depth_mm, metres * 1000, rtol=1e-6)

@@ -223,6 +223,10 @@ def write_png_uint16(path: str | Path, image: np.ndarray) -> Path:
 
 #: the largest depth a 16-bit millimetre PNG holds
 PNG16_MAX_MM = 65535
+#: a depth map whose median valid depth lies below this is not in millimetres (a map in metres, most likely): refused
+#: by ``tofdenoise evaluate`` and by the folder training source (``tofdenoise denoise`` checks the narrower
+#: ``inference.frames.plausible_depth_range_mm``)
+MIN_MEDIAN_DEPTH_MM = 20.0
 
 
 def depth_mm_to_png16(depth_mm: np.ndarray) -> np.ndarray:

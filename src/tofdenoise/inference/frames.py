@@ -42,7 +42,14 @@ from typing import Any
 
 import numpy as np
 
-from tofdenoise.data_modules.io import PNG16_MAX_MM, DataFileError, read_amplitude, read_array, read_image
+from tofdenoise.data_modules.io import (
+    MIN_MEDIAN_DEPTH_MM,
+    PNG16_MAX_MM,
+    DataFileError,
+    read_amplitude,
+    read_array,
+    read_image,
+)
 
 __all__ = [
     "DEPTH_FRAME_SUFFIXES",
@@ -67,9 +74,6 @@ RECORDING_SUFFIXES = (".mkv", ".bag")
 AMPLITUDE_SUFFIXES = (".png", ".tif", ".tiff", ".npy", ".exr")
 
 
-#: a depth map whose median valid depth lies below this is refused as not in millimetres by ``tofdenoise evaluate``
-#: (``tofdenoise denoise`` checks the narrower ``plausible_depth_range_mm``)
-MIN_MEDIAN_DEPTH_MM = 20.0
 #: the units a frame refused by ``check_depth_units_mm`` is tried in, (mm per stored unit, name), in this order: the
 #: error names the first whose scaled median lies in the plausible range
 LIKELY_UNITS: tuple[tuple[float, str], ...] = ((1000.0, "metres"), (10.0, "centimetres"), (0.1, "0.1 mm units"))

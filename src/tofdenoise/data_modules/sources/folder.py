@@ -8,7 +8,9 @@
 - amplitude: 8/16-bit PNG, ``.npy``/``.npz`` or ``.exr``, any units (normalised per image later);
 - optional mask: nonzero = valid.
 
-NaN, inf, zero and negative depths are invalid pixels. Depths beyond ``max_valid_mm`` are invalid too.
+NaN, inf, zero and negative depths are invalid pixels. Depths beyond ``max_valid_mm`` are invalid too. A file whose
+median valid depth (after ``depth_unit_mm``) lies below ``io.MIN_MEDIAN_DEPTH_MM`` (20 mm) is refused, naming it: a
+map in metres read as millimetres.
 
 Settings (``data.source_kwargs``): every ``__init__`` argument, e.g.
 ``data.source=folder data.source_kwargs.root=/data/mine ++data.source_kwargs.list_file=list.txt``.
@@ -21,7 +23,14 @@ from typing import Any
 
 import numpy as np
 
-from tofdenoise.data_modules.io import DataFileError, check_same_shape, read_amplitude, read_array, read_depth_mm
+from tofdenoise.data_modules.io import (
+    MIN_MEDIAN_DEPTH_MM,
+    DataFileError,
+    check_same_shape,
+    read_amplitude,
+    read_array,
+    read_depth_mm,
+)
 from tofdenoise.data_modules.sources.base import (
     RawSample,
     SourceContext,
@@ -105,6 +114,13 @@ class FolderSource:
             check_same_shape(depth, mask, reference_path=depth_path, other_path=mask_path, what="folder mask")
             valid &= mask != 0
         valid &= np.isfinite(amplitude)
+        if valid.any() and float(np.median(depth[valid])) < MIN_MEDIAN_DEPTH_MM:
+            # a map in metres read as millimetres trained on sigma_D of a 1 mm scene and noise larger than the depth
+            raise DataFileError(
+                f"folder depth file {depth_path}: median valid depth {float(np.median(depth[valid])):.4g} mm is "
+                f"implausible (below {MIN_MEDIAN_DEPTH_MM:g} mm) with data.source_kwargs.depth_unit_mm="
+                f"{self.depth_unit_mm:g}; files in metres need depth_unit_mm=1000"
+            )
         if np.any(amplitude[valid] < 0):
             raise DataFileError(f"folder amplitude file {amplitude_path} has negative values; expected amplitude >= 0")
         return RawSample(
