@@ -42,6 +42,18 @@ def test_denoise_matches_restore_mm_and_masks_holes(restorer_ckpt):
         tofdenoise.denoise(d, model, amplitude=np.ones((3, 3)))
 
 
+def test_a_frame_in_metres_is_refused_as_the_command_refuses_it_unless_its_scale_is_given(restorer_ckpt):
+    """The API returned a metres frame restored as a scene 1 mm away, without a word, where ``tofdenoise denoise``
+    refuses it; now the same check, naming depth_scale_mm, and depth_scale_mm=1000 gives the mm frame's result."""
+    model = load_restorer(restorer_ckpt)
+    d = frame()
+    with pytest.raises(ValueError, match=r"implausible in millimetres.*looks like metres: pass depth_scale_mm=1000"):
+        tofdenoise.denoise(d / 1000, model)
+    np.testing.assert_allclose(tofdenoise.denoise(d / 1000, model, depth_scale_mm=1000), tofdenoise.denoise(d, model))
+    with pytest.raises(ValueError, match="depth_scale_mm must be a positive number"):
+        tofdenoise.denoise(d, model, depth_scale_mm=0)
+
+
 def test_signal_channel_model_needs_amplitude(tmp_path, make_restorer_ckpt):
     ckpt = make_restorer_ckpt(tmp_path / "sig.ckpt", conditioning={"use_signal_channel": True})
     model = load_restorer(ckpt)

@@ -3,7 +3,7 @@
 Layout under ``output_dir`` (one folder per prediction set, named after ``datamodule.test_set_names``)::
 
     <set>/png/<name>.png            restored depth, uint16 millimetres (0 = invalid / out of range)
-    <set>/npy/<name>.npy            restored depth, float32 millimetres (NaN = invalid)
+    <set>/npy/<name>.npy            restored depth, float32 millimetres (0 = invalid, as in the PNG)
     <set>/sigma_npy/<name>.npy      sigma_D map in mm of the input (write_sigma)
     <set>/preview/<name>.png        colourised noisy | restored | sigma_D | |error| panel (write_previews)
     <set>/reference_png/<name>.png  clean reference, uint16 mm (write_reference; ready for tofdenoise evaluate)

@@ -10,6 +10,7 @@ On CUDA the network runs under bf16 autocast (``precision="bf16"``; ``"fp32"`` t
 
 from __future__ import annotations
 
+import math
 import pickle
 from contextlib import nullcontext
 from pathlib import Path
@@ -220,10 +221,14 @@ def denoise(
     device: str | torch.device = "auto",
     tile: int | None = None,
     precision: str = "bf16",
+    depth_scale_mm: float | None = None,
 ) -> np.ndarray:
     """Denoise one depth frame: ``tofdenoise.denoise(depth_mm, "best.ckpt")``.
 
-    The same result as ``tofdenoise denoise`` on the same frame (a test checks it), for arrays in memory.
+    The same result as ``tofdenoise denoise`` on the same frame (a test checks it), for arrays in memory, with the
+    same check of the frame's units: a frame whose valid depths lie mostly outside the depths a millimetre map can
+    hold here (``inference.frames.plausible_depth_range_mm``) is refused, as a map in metres read as millimetres
+    would be restored as a scene 1 mm away and returned without a word.
 
     Args:
         depth_mm: the frame [mm], (H, W) or (1, H, W), a numpy array or a tensor; NaN, inf, 0 and negative
@@ -237,13 +242,16 @@ def denoise(
         tile: force tiles of this side. Default None: the whole frame, unless the network's activations for it
             exceed the memory budget; then tiles of the model's ``tiling.predict_tile_px`` (``frame_tile_plan``).
         precision: ``"bf16"`` (bf16 autocast on CUDA; the CPU computes in float32) or ``"fp32"``.
+        depth_scale_mm: millimetres per unit of ``depth_mm`` (1000 for metres), as ``--depth-scale-mm``: the frame
+            is multiplied by it and its units are not checked. Default None: ``depth_mm`` is in millimetres, checked.
 
     Returns:
         The restored depth [mm], float32 (H, W); 0 at invalid input pixels unless ``fill_holes``.
 
     Raises:
-        ValueError: ``depth_mm`` is not a numeric (H, W) map, ``amplitude`` has another shape or is missing for
-            a model that needs it, or ``precision`` is neither ``"bf16"`` nor ``"fp32"``.
+        ValueError: ``depth_mm`` is not a numeric (H, W) map, its median valid depth is implausible in millimetres
+            (without ``depth_scale_mm``; the message names the likely unit), ``amplitude`` has another shape or is
+            missing for a model that needs it, or ``precision`` is neither ``"bf16"`` nor ``"fp32"``.
         TypeError: ``model_or_ckpt`` is neither a ``DepthRestorer`` nor a path.
         CheckpointError: ``model_or_ckpt`` is a path to a file that is not a DepthRestorer checkpoint.
     """
@@ -253,8 +261,14 @@ def denoise(
     if depth.ndim != 2 or not (np.issubdtype(depth.dtype, np.floating) or np.issubdtype(depth.dtype, np.integer)):
         raise ValueError(f"denoise: depth_mm must be a numeric (H, W) map, got {depth.dtype} {np.shape(depth_mm)}")
     depth = depth.astype(np.float64)
+    if depth_scale_mm is not None:
+        if not (math.isfinite(depth_scale_mm) and depth_scale_mm > 0):
+            raise ValueError(f"denoise: depth_scale_mm must be a positive number, got {depth_scale_mm}")
+        depth = depth * float(depth_scale_mm)
     with np.errstate(invalid="ignore"):
         valid = np.isfinite(depth) & (depth > 0)
+    if depth_scale_mm is None:
+        _check_units(depth, valid)
     amp = None
     if amplitude is not None:
         amp = amplitude.detach().cpu().numpy() if isinstance(amplitude, torch.Tensor) else np.asarray(amplitude)
@@ -263,6 +277,20 @@ def denoise(
             raise ValueError(f"denoise: amplitude has shape {amp.shape}; expected {depth.shape} like depth_mm")
         amp = np.where(np.isfinite(amp), amp, 0.0).astype(np.float32)
     return restore_frame(model, depth, valid, amp, fill_holes=fill_holes, tile=tile, precision=precision)
+
+
+def _check_units(depth_mm: np.ndarray, valid: np.ndarray) -> None:
+    """``inference.frames.check_depth_units_mm`` for an array given to :func:`denoise`: a ValueError that names the
+    argument to pass (``depth_scale_mm``) where the command line's names its option."""
+    from types import SimpleNamespace
+
+    from .frames import FrameError, check_depth_units_mm
+
+    try:
+        check_depth_units_mm(SimpleNamespace(depth_mm=depth_mm, valid=valid), "(the depth_mm array)")
+    except FrameError as exc:
+        text = str(exc).replace("--depth-scale-mm (", "depth_scale_mm (").replace("--depth-scale-mm ", "depth_scale_mm=")
+        raise ValueError(f"denoise: {text}") from None
 
 
 def sigma_map_mm(depth_mm: np.ndarray, valid: np.ndarray, amplitude: np.ndarray, calib: Any) -> np.ndarray:
