@@ -289,7 +289,8 @@ def _check_units(depth_mm: np.ndarray, valid: np.ndarray) -> None:
     try:
         check_depth_units_mm(SimpleNamespace(depth_mm=depth_mm, valid=valid), "(the depth_mm array)")
     except FrameError as exc:
-        text = str(exc).replace("--depth-scale-mm (", "depth_scale_mm (").replace("--depth-scale-mm ", "depth_scale_mm=")
+        text = str(exc).replace("--depth-scale-mm (", "depth_scale_mm (")
+        text = text.replace("--depth-scale-mm ", "depth_scale_mm=")
         raise ValueError(f"denoise: {text}") from None
 
 
