@@ -3,6 +3,8 @@ reject bad input early with the valid names / the key to set."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 from hydra.errors import ConfigCompositionException
 from hydra.utils import instantiate
@@ -294,11 +296,13 @@ def test_ckpt_path_resolution(tmp_path):
 
 
 def test_a_run_recorded_before_the_settings_groups_is_another_config(tmp_path):
-    """No reading of old layouts as new ones: a committed record (docs/results/, data.num_samples and model.lr at
-    the top of their groups) is not continued by this code, and the message names the moved settings."""
+    """No reading of old layouts as new ones: a record of that layout (data.num_samples and model.lr at the top of
+    their groups; a copy of the committed docs/results/cpu/unet-fixed-l1-s1/config.yaml of 2026-11-25, kept here as
+    the study's re-runs replace those records) is not continued by this code, and the message names the moved
+    settings."""
     from tofdenoise.experiments.train_job import RunConfigMismatchError, check_same_run
 
-    recorded = (CONFIGS.parent / "docs/results/cpu/unet-fixed-l1-s0/config.yaml").read_text()
+    recorded = (Path(__file__).parent / "data" / "config_before_settings_groups.yaml").read_text()
     assert "  num_samples: 240\n" in recorded and "  lr: 0.001\n" in recorded
     (tmp_path / "config.yaml").write_text(recorded)
     cfg = compose_config(
