@@ -104,9 +104,15 @@ def test_table_has_one_raw_row_per_distinct_raw_result_and_bold_best(runs):
     assert unet.rstrip(" |").endswith("–")  # no real set for this run
     assert "| Raw input | hetero, range | – | – | 31.68 | 0.9500 | 680.00 | 7.21 | 31.00 |" in "\n".join(md)
     assert "| dvss | hetero | full | yes | **40.85** |" in dvss
-    # a different raw result (other test data) gets its own raw row
+    # a different raw result (other test data) gets its own raw row, and runs on other test data are never compared:
+    # a bold value is the best of the runs scored on the same data (one network on an easier set won every column)
     loaded[1].metrics["synthetic"]["raw"]["mae_mm"] = 9.0
-    assert [r["kind"] for r in results_table(loaded)[1]] == ["raw", "raw", "run", "run"]
+    sets, rows = results_table(loaded)
+    assert [r["kind"] for r in rows] == ["raw", "raw", "run", "run"]
+    assert [r["data"] for r in rows if r["kind"] == "run"] == [0, 1]
+    assert "**" not in table_markdown(sets, rows)
+    loaded[1].metrics["synthetic"]["raw"]["mae_mm"] = loaded[0].metrics["synthetic"]["raw"]["mae_mm"]
+    assert "**40.85**" in table_markdown(*results_table(loaded))
 
 
 def test_report_html_is_self_contained(runs, tmp_path, capsys):

@@ -70,7 +70,7 @@ def _table_html(sets: Sequence[str], rows: list[dict[str, Any]]) -> str:
                     v is not None
                     and row["kind"] == "run"
                     and not row["flagged"]
-                    and v == best_value(rows, (s, key), higher)
+                    and v == best_value(rows, (s, key), higher, row.get("data"))
                 ):
                     text = f"<b>{text}</b>"
                 cells.append(f"<td>{text}</td>")

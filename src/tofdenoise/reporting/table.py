@@ -59,10 +59,12 @@ def _same(a: float | None, b: float | None) -> bool:
 
 def results_table(runs: Sequence[Run]) -> tuple[list[str], list[dict[str, Any]]]:
     """(set names shown, rows); a row: {"kind": "raw"|"run", "method", "noise", "loss", "learned" (the flag),
-    (set, key) -> float}; run rows also carry "name", "flagged" (bool) and "learned_reason"."""
+    (set, key) -> float}; run rows also carry "name", "flagged" (bool), "learned_reason" and "data" (the number of
+    the raw row of the test data the run was scored on; None without raw values)."""
     sets = [s for s in ("synthetic", "simulated", "real") if any(s in r.metrics for r in runs)]
     sets += sorted({s for r in runs for s in r.metrics} - set(sets))
     raw_rows: list[dict[str, Any]] = []
+    data_of: dict[str, int] = {}  # run name -> its raw row: the test data it was scored on
     for r in runs:
         values = {
             (s, k): read_number(r.metrics[s]["raw"][k])
@@ -73,14 +75,16 @@ def results_table(runs: Sequence[Run]) -> tuple[list[str], list[dict[str, Any]]]
         if not values:
             continue
         # runs evaluated on the same data share one raw row: merge when no common value differs
-        for row in raw_rows:
+        for number, row in enumerate(raw_rows):
             common = [c for c in values if c in row]
             if common and all(_same(row[c], values[c]) for c in common):
                 row.update(values)
                 if r.noise not in row["noises"]:
                     row["noises"].append(r.noise)
+                data_of[r.name] = number
                 break
         else:
+            data_of[r.name] = len(raw_rows)
             raw_rows.append(
                 {"kind": "raw", "method": "Raw input", "loss": "–", "learned": "–", "noises": [r.noise], **values}
             )
@@ -98,6 +102,7 @@ def results_table(runs: Sequence[Run]) -> tuple[list[str], list[dict[str, Any]]]
             "learned": LEARNED_FLAGS[status],
             "flagged": status in FLAGGED,
             "learned_reason": str(r.learned.get("learned_reason", "")),
+            "data": data_of.get(r.name),
         }
         for s in sets:
             for k, *_ in METRIC_COLUMNS:
@@ -106,9 +111,15 @@ def results_table(runs: Sequence[Run]) -> tuple[list[str], list[dict[str, Any]]]
     return sets, raw_rows + run_rows
 
 
-def best_value(rows: list[dict[str, Any]], col: tuple[str, str], higher: bool) -> float | None:
-    """Best value of a column among the runs not flagged by the learned guard (None with fewer than two)."""
-    vals = [row[col] for row in rows if row["kind"] == "run" and not row.get("flagged") and row.get(col) is not None]
+def best_value(rows: list[dict[str, Any]], col: tuple[str, str], higher: bool, data: Any = None) -> float | None:
+    """Best value of a column among the runs not flagged by the learned guard that were scored on the test data
+    ``data`` (a run row's ``"data"``: runs on other data, an easier test set, are never compared); None with fewer
+    than two."""
+    vals = [
+        row[col]
+        for row in rows
+        if row["kind"] == "run" and not row.get("flagged") and row.get(col) is not None and row.get("data") == data
+    ]
     if len(vals) < 2:
         return None
     return max(vals) if higher else min(vals)
@@ -130,7 +141,7 @@ def table_markdown(sets: Sequence[str], rows: list[dict[str, Any]]) -> str:
                     v is not None
                     and row["kind"] == "run"
                     and not row["flagged"]
-                    and v == best_value(rows, (s, key), higher)
+                    and v == best_value(rows, (s, key), higher, row.get("data"))
                 ):
                     text = f"**{text}**"
                 cells.append(text)
