@@ -204,6 +204,18 @@ def test_calibrate_refuses_an_out_that_would_replace_its_captures(tmp_path, caps
     assert _snapshot(tmp_path) == before  # nothing written
 
 
+def test_validate_with_captures_refuses_the_simulation_settings(tmp_path, capsys):
+    """--quick / --frames / --roi-px / --seed set the simulated stacks; with --captures they were accepted and
+    ignored (validation.json did not say what was measured)."""
+    from tofdenoise.cli.sensor import main
+
+    for extra in (["--quick"], ["--frames", "500"], ["--roi-px", "64"]):
+        code = main(["validate", "--captures", str(tmp_path / "val"), "--out", str(tmp_path / "out"), *extra])
+        err = capsys.readouterr().err
+        assert code == 2 and extra[0] in err and "--captures" in err, err
+        assert not (tmp_path / "out").exists()
+
+
 def test_validate_refuses_an_out_whose_files_would_replace_its_inputs(tmp_path, capsys):
     from tofdenoise.cli.sensor import main
 

@@ -147,6 +147,21 @@ def cmd_validate(args: argparse.Namespace) -> int:
         [*input_files(args.sensor), *([args.captures] if args.captures else [])],
     )
 
+    simulation = [
+        name
+        for name, given in (
+            ("--quick", args.quick),
+            ("--frames", args.frames is not None),
+            ("--roi-px", args.roi_px is not None),
+            ("--seed", args.seed is not None),
+        )
+        if given
+    ]
+    if args.captures and simulation:  # they set the simulated stacks; captured ones are measured as they are
+        raise ValueError(
+            f"{', '.join(simulation)}: settings of the simulated validation, which --captures replaces (the "
+            "captured stacks are measured as recorded, every frame and pixel of the index)"
+        )
     calib = _calib(args)
     settings = ValidationSettings.quick() if args.quick else ValidationSettings()
     if args.frames is not None:

@@ -247,6 +247,14 @@ def captured_conditions(
         raise ValueError(
             f"{idx.folder / 'index.json'}: num_taps={idx.num_taps} but the calibration has {calib.num_taps}"
         )
+    freq = idx.modulation_frequency_hz
+    if freq is not None and not math.isclose(freq, calib.modulation_frequency_hz, rel_tol=1e-6):
+        # decoded at another frequency, the taps give other depths and sigma_D: the model was reported as failing
+        raise ValueError(
+            f"{idx.folder / 'index.json'}: modulation_frequency_hz={freq:g} but the calibration has "
+            f"{calib.modulation_frequency_hz:g}: the captures are another camera's or another mode's; give their "
+            "calibration (--sensor)"
+        )
     out = []
     for e in idx.stacks:
         arr = load_stack(idx, e["file"], ndim=(3, 4))
@@ -362,7 +370,7 @@ def run_validation(
         pooled=_metrics(evaluated),
         panels=panels,
         source=source,
-        settings=asdict(settings) if captures_dir is None else {},
+        settings=asdict(settings) if captures_dir is None else {"captures": str(captures_dir)},
     )
 
 
