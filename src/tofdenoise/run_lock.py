@@ -326,8 +326,9 @@ class HydraRunLock:
             return
         hydra_config = HydraConfig.instance()
         saved = hydra_config.cfg
+        jobs = self._sweep_jobs(config)
         try:
-            for sweep_config, run_dir in self._sweep_jobs(config):
+            for sweep_config, run_dir in jobs:
                 hydra_config.set_config(sweep_config)  # what ${hydra:...} reads while the job runs
                 try:
                     self._before_job(sweep_config, run_dir)
@@ -336,6 +337,16 @@ class HydraRunLock:
                     raise SystemExit(2) from None
         finally:
             hydra_config.cfg = saved
+        folders: dict[str, int] = {}
+        for num, (_, run_dir) in enumerate(jobs):  # two jobs of one folder: the second was refused after the first ran
+            first = folders.setdefault(os.path.realpath(run_dir), num)
+            if first != num:
+                print(
+                    f"{self.prog}: error: multirun jobs #{first} and #{num} would both write {run_dir}: give each job "
+                    "its own folder (run_name=... naming what the sweep varies, or hydra.sweep.subdir=...)",
+                    file=sys.stderr,
+                )
+                raise SystemExit(2)
 
     def on_run_end(self, config: Any, **kwargs: Any) -> None:
         release_all()

@@ -100,6 +100,15 @@ def test_fit_test_predict_from_the_smoke_config(tmp_path, data_cache, monkeypatc
         "best_ckpt": str(best),
     }.items() <= info.items()
     assert "finished" in info and "started" in info
+    # the test of the fit's own best checkpoint kept the fit's record (its steps, its start) and added the test's time
+    assert info["global_step"] == 3 and "tested" in info
+    # another checkpoint tested there, or none, would be recorded as the fit's: refused, nothing rewritten
+    before = {name: (tmp_path / "run" / name).read_bytes() for name in ("run_info.json", "metrics.json")}
+    for other in ([f"--ckpt_path={best.parent / 'last.ckpt'}"], []):
+        with pytest.raises(SystemExit) as exit_info:
+            cli_main(["test", *common, *other])
+        assert exit_info.value.code == 2
+    assert {name: (tmp_path / "run" / name).read_bytes() for name in before} == before
     # the learned guard's fields come from the tested checkpoint (6 training scenes, batch 2: 3 steps)
     from tofdenoise.records import learned_status, learned_verdict
 

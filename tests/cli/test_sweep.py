@@ -100,6 +100,16 @@ def test_a_multirun_twice_trains_each_run_once_in_folders_the_runner_shares(tmp_
     assert [o.status for o in outcomes] == ["skipped", "skipped"]
 
 
+def test_two_jobs_of_one_folder_refuse_the_sweep_before_any_job_trains(tmp_path, data_cache, tiny):
+    """A sweep over a setting its folder names do not vary (the learning rate here): the first job trained, the
+    second was refused afterwards as another config in that folder. Now refused up front, both jobs named."""
+    sweep = tmp_path / "sweep"
+    proc = _train_cli(["-m", *_sweep_args(tiny, sweep, data_cache), "model.optim.lr=1e-3,2e-3"])
+    assert proc.returncode == 2, proc.stderr[-3000:]
+    assert "multirun jobs #0 and #1 would both write" in proc.stderr and "Traceback" not in proc.stderr
+    assert not sweep.exists() or not any(p.is_dir() for p in sweep.iterdir())
+
+
 def test_a_joblib_multirun_trains_each_run_once_in_its_worker_and_keeps_the_run_locks(tmp_path, data_cache, tiny):
     """Hydra's joblib launcher (the ``launchers`` extra) runs the jobs in loky worker processes: the same stable
     folders as the basic launcher, a second identical sweep trains nothing, and a job whose folder another process

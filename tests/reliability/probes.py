@@ -459,7 +459,7 @@ PROBES += [
       truncate_stack("captures/sweep"),
       2, lambda w: ["error", first_stack(w, "captures/sweep").split("/")[-1]]),
     P("tofdenoise sensor validate", "bad_captures", "missing-index",
-      lambda w: ["--out", w / "out/v", "--captures", w / "frames", "--quick"], None, 2,
+      lambda w: ["--out", w / "out/v", "--captures", w / "frames"], None, 2,
       lambda w: ["error", "index.json"]),
     P("tofdenoise sensor build-reference", "bad_captures", "no-hiexp", lambda w: [w / "scenes/scene_0000", "--quiet"],
       remove("scenes/scene_0000/hiexp"), 2, lambda w: ["error", "scene_0000"]),

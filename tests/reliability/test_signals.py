@@ -142,9 +142,14 @@ def test_two_writers_of_one_output_folder_leave_complete_identical_frames(world)
 
 
 @pytest.mark.slow
-def test_ctrl_c_mid_training_is_one_line_and_leaves_a_resumable_unfinished_run(world, tmp_path):
+@pytest.mark.parametrize(
+    ("sig", "status", "said"),
+    [(signal.SIGINT, None, "interrupted (Ctrl-C)"), (signal.SIGTERM, 143, "stopped by SIGTERM")],
+)
+def test_ctrl_c_mid_training_is_one_line_and_leaves_a_resumable_unfinished_run(world, tmp_path, sig, status, said):
     """SIGINT during tofdenoise train: Lightning shuts down; the run is not tested and writes no metrics.json (it
     never passes for a finished run), last.ckpt is whole, the lock is released, and one line says how to resume.
+    SIGTERM (a scheduler's preemption) the same, said as such, exit status 143 (it read "Ctrl-C", 130).
     SIGKILL and the resume: tests/cli/test_train.py::test_resume_after_sigkill_reaches_the_same_number_of_steps and
     tests/training/test_mid_epoch_resume.py."""
     import json
@@ -166,11 +171,11 @@ def test_ctrl_c_mid_training_is_one_line_and_leaves_a_resumable_unfinished_run(w
         time.sleep(0.1)
     assert proc.poll() is None, proc.communicate()[1][-3000:]
     time.sleep(1.0)
-    proc.send_signal(signal.SIGINT)
+    proc.send_signal(sig)
     _, err = proc.communicate(timeout=300)
-    assert proc.returncode == row.status, err[-3000:]
+    assert proc.returncode == (row.status if status is None else status), err[-3000:]
     assert "Traceback" not in err, err[-3000:]
-    (line,) = [x for x in err.splitlines() if x.startswith("tofdenoise train: interrupted (Ctrl-C) at step")]
+    (line,) = [x for x in err.splitlines() if x.startswith(f"tofdenoise train: {said} at step")]
     assert "ckpt_path=last" in line and str(last) in line
     assert not (run_dir / "metrics.json").exists()
     assert not json.loads((run_dir / "run_info.json").read_text()).get("finished")

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import sys
 import time
 from datetime import timedelta
 from pathlib import Path
@@ -87,6 +88,48 @@ class BestAndLastCheckpoint(ModelCheckpoint):
         self.last_every_n_train_steps = every_n_train_steps or 0
         self.last_train_time_interval = train_time_interval
         self._last_refresh_time = time.monotonic()
+
+    # ------------------------------------------------------------------ one run's files per folder
+    def _own_file(self, name: str) -> Path | None:
+        return Path(self.dirpath) / f"{name}{self.FILE_EXTENSION}" if self.dirpath else None
+
+    def on_train_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        """A fit that starts afresh (no checkpoint restored) removes ``best.ckpt`` and ``last.ckpt`` of an earlier
+        run from the folder: left there, an interrupted new run would resume the earlier one's ``last.ckpt``
+        (``ckpt_path=last``), and its records would name the earlier ``best.ckpt`` until its first validation."""
+        super().on_train_start(trainer, pl_module)
+        if trainer.ckpt_path is not None or not trainer.is_global_zero:
+            return
+        removed = []
+        for name in (BEST_NAME, self.CHECKPOINT_NAME_LAST):
+            path = self._own_file(name)
+            if path is not None and path.is_file():
+                path.unlink()
+                removed.append(path.name)
+        if removed:
+            print(
+                f"{self.dirpath}: a fresh start: removed the earlier run's {' and '.join(removed)}",
+                file=sys.stderr,
+                flush=True,
+            )
+
+    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        """Lightning's restore, with the best checkpoint re-based on this folder when the run folder was copied or
+        moved: Lightning keeps the other folder's ``best_model_path`` (and its score not), so a copied run tested,
+        and recorded, the original folder's ``best.ckpt``, and its first validation replaced the copy's best
+        whether or not it was better. Here a ``best.ckpt`` in this folder takes its recorded score; without one
+        no best is known yet."""
+        super().load_state_dict(state_dict)
+        theirs = state_dict.get("dirpath")
+        if theirs is None or self.dirpath is None or os.path.realpath(str(theirs)) == os.path.realpath(self.dirpath):
+            return
+        here, score = self._own_file(BEST_NAME), state_dict.get("best_model_score")
+        if here is not None and here.is_file() and score is not None and state_dict.get("best_model_path"):
+            self.best_model_path = self.kth_best_model_path = str(here)
+            self.best_model_score = self.kth_value = score
+            self.best_k_models = {str(here): score}
+        else:
+            self.best_model_path = ""
 
     # ------------------------------------------------------------------ atomic writes
     def _save_checkpoint(self, trainer: pl.Trainer, filepath: str) -> None:

@@ -12,6 +12,11 @@ the global-zero process only (file names in :mod:`tofdenoise.records`):
   ``train_images_per_second``, ``peak_gpu_memory_gib`` and ``peak_rss_gib``; after test
   ``finished``, ``global_step`` and ``best_ckpt`` (the checkpoint tested, ``null`` for the weights in memory).
   A fit with nothing left to train (resumed at its last epoch) writes the records at fit end.
+- a test of a fitted run's own best checkpoint in its folder (``records.training_state`` FITTED; the front ends refuse
+  any other test there) keeps the fit's ``run_info.json`` and ``config.yaml`` and adds ``tested`` and ``finished``.
+- an attempt that does not resume (a fresh fit, a test) first removes an earlier attempt's results from the folder
+  (``records.RESULT_RECORDS``: ``metrics.json``, ``per_image/`` and the per-scene records), so that no record of
+  another run stays beside its ``run_info.json`` (the checkpoint callback removes the earlier checkpoints).
 - ``config.yaml``: ``config_text`` when a front end sets it, with ``run_info.json`` (the Hydra entry point
   stores its resolved config; LightningCLI saves its own through ``SaveConfigCallback``).
 - at test end: ``metrics.json`` (``write_test_outputs``: the final test metrics per set, restored and raw, the
@@ -30,6 +35,7 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -37,16 +43,21 @@ from typing import Any
 import lightning.pytorch as pl
 import torch
 from lightning.pytorch.callbacks import Callback
+from lightning.pytorch.trainer.states import TrainerFn
 
 from tofdenoise.atomic import atomic_write_text
 from tofdenoise.callbacks.training_cost import TrainingCost
 from tofdenoise.records import (
+    FITTED,
     METRICS_NAME,
     PER_IMAGE_DIR,
     RUN_INFO_NAME,
     code_commit,
     code_digest,
     host_machine,
+    read_record,
+    remove_results,
+    training_state,
     write_metrics_json,
     write_per_image_csv,
     write_run_info,
@@ -138,6 +149,7 @@ class RunOutputs(Callback):
         self.metrics: dict[str, Any] | None = None
         self.run_info: dict[str, Any] = {}
         self.pending = True
+        self.kept_fit = False  # a test of a fitted run keeps the fit's record (_write_records)
         self.started = _now()  # the attempt starts when its callbacks are built
 
     def run_dir(self, trainer: pl.Trainer) -> Path:
@@ -172,8 +184,20 @@ class RunOutputs(Callback):
         if not self.pending or not trainer.is_global_zero:
             return
         run_dir = self.run_dir(trainer)
-        self.run_info = self._describe(trainer, pl_module)
         path = run_dir / RUN_INFO_NAME
+        if trainer.state.fn == TrainerFn.TESTING and training_state(run_dir) == FITTED:
+            # a test of the fitted run's own best checkpoint (both front ends refuse any other test there): the fit's
+            # record stays (steps, training cost, start, code, config), the test adds when it ran
+            self.run_info = {**(read_record(path) or {}), "tested": _now()}
+            self.kept_fit = True
+            write_run_info(run_dir, self.run_info)
+            self.pending = False
+            return
+        self.run_info = self._describe(trainer, pl_module)
+        if not resumed:  # a fresh start: no result of an earlier attempt stays beside this one's run_info.json
+            removed = remove_results(run_dir)
+            if removed:
+                print(f"{run_dir}: a fresh start: removed the earlier run's {', '.join(removed)}", file=sys.stderr)
         if resumed and path.is_file():
             try:
                 started = json.loads(path.read_text(encoding="utf-8")).get("started")
@@ -211,6 +235,9 @@ class RunOutputs(Callback):
             return
         self.metrics = write_test_outputs(pl_module, self.run_dir(trainer))
         ckpt = trainer.ckpt_path
+        if self.kept_fit:  # the fit's steps stay; its best checkpoint is the one tested, named where it lies now
+            self._update(trainer, finished=_now(), **({} if ckpt is None else {"best_ckpt": str(ckpt)}))
+            return
         self._update(
             trainer,
             finished=_now(),

@@ -36,6 +36,7 @@ from lightning.pytorch.cli import LightningCLI
 from tofdenoise.atomic import WriteError
 from tofdenoise.config import ConfigError
 from tofdenoise.output_guard import OutputPathError, refuse_overwrite
+from tofdenoise.records import FITTED, fit_best_checkpoints, training_state
 from tofdenoise.run_lock import RunLock, RunLockedError, is_worker_rank, release_all
 from tofdenoise.training.checkpoint_file import CheckpointFileError, check_checkpoint_file
 from tofdenoise.wandb_env import finish_wandb, quiet_wandb, setup_wandb_env
@@ -128,6 +129,29 @@ class ToFLightningCLI(LightningCLI):
 
     def before_test(self) -> None:
         self._check_ckpt_path()
+        root = Path(str(self.trainer.default_root_dir)).expanduser().resolve()
+        state = training_state(root)
+        if state is None:
+            return
+        if state != FITTED:
+            raise OutputPathError(
+                f"--trainer.default_root_dir {root} holds a training run whose fit has not ended (or whose "
+                "run_info.json cannot be read): resume the fit (--ckpt_path last) before testing it, or give the test "
+                "its own folder (--trainer.default_root_dir ...)"
+            )
+        # the fit's folder: its own best.ckpt is tested and recorded with the fit's record (RunOutputs keeps the fit's
+        # fields); another checkpoint's scores (or an untrained model's, without --ckpt_path) would be recorded as the
+        # fit's
+        sub = self.config.get("subcommand") if hasattr(self.config, "get") else None
+        cfg = self.config[sub] if sub else self.config
+        ckpt = cfg.get("ckpt_path") if hasattr(cfg, "get") else None
+        best = fit_best_checkpoints(root)
+        if ckpt != "best" and (ckpt in (None, "") or Path(str(ckpt)).expanduser().resolve() not in best):
+            raise OutputPathError(
+                f"--trainer.default_root_dir {root} holds a training run's records; a test there tests that run's "
+                f"best checkpoint (--ckpt_path {' or '.join(sorted(map(str, best)))}), whose scores it records as the "
+                f"run's. Give a test of {ckpt or 'the untrained model'} its own folder (--trainer.default_root_dir ...)"
+            )
 
     def before_predict(self) -> None:
         self._check_ckpt_path()

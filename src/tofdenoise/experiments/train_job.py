@@ -44,16 +44,20 @@ from tofdenoise.callbacks.run_outputs import RunOutputs
 from tofdenoise.config import ConfigError, instantiate_node
 from tofdenoise.data_modules.datamodule import BLIND_NOISE, blind_percentiles
 from tofdenoise.models.registry import BACKBONES, is_trainable
-from tofdenoise.output_guard import refuse_overwrite
+from tofdenoise.output_guard import OutputPathError, refuse_overwrite
 from tofdenoise.physics.noise_models import NOISE_MODELS
 from tofdenoise.records import (
     BEST_CHECKPOINT,
+    FITTED,
     LAST_CHECKPOINT,
     METRICS_NAME,
     RUN_INFO_NAME,
+    UNREADABLE,
+    fit_best_checkpoints,
     read_metrics_json,
     read_run,
     run_finished,
+    training_state,
 )
 from tofdenoise.registry import Registry
 from tofdenoise.run_lock import RunLock
@@ -67,10 +71,12 @@ __all__ = [
     "check_ddp_in_sweep",
     "check_same_run",
     "check_finished_run",
+    "check_resumed_run",
     "check_slurm_shape",
     "check_source_config",
     "SAME_RUN_IGNORES",
     "record_calibration",
+    "check_test_only",
     "run",
     "validate_config",
     "validation_objective",
@@ -287,7 +293,9 @@ def _run_locked(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         if resume_ckpt is not None:
             check_checkpoint_file(resume_ckpt)
             check_resume_backbone(cfg, resume_ckpt)
+            check_resumed_run(cfg, run_dir)
     elif not cfg.get("train", True) and cfg.get("test", True):
+        check_test_only(cfg, run_dir)
         _test_checkpoint(cfg, None, run_dir)
 
     seed_everything(int(cfg.seed), workers=True)
@@ -311,9 +319,9 @@ def _run_locked(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
             try:
                 trainer.fit(model, datamodule=datamodule, ckpt_path=resume_ckpt)
             except SystemExit:
-                if trainer.interrupted:  # Lightning's Ctrl-C: it shut down and called sys.exit(1) without a word
+                if trainer.interrupted:  # Lightning's Ctrl-C or SIGTERM: it shut down and exited without a word
                     _say_interrupted(trainer, run_dir)
-                    raise SystemExit(EXIT_INTERRUPTED) from None
+                    raise SystemExit(EXIT_SIGTERM if trainer.received_sigterm else EXIT_INTERRUPTED) from None
                 raise
         if cfg.get("test", True):
             ckpt = _test_checkpoint(cfg, trainer, run_dir)
@@ -328,11 +336,14 @@ def _run_locked(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
 
 #: exit status of a training stopped by Ctrl-C (128 + SIGINT, as a shell reports it; tofdenoise denoise's too)
 EXIT_INTERRUPTED = 130
+#: exit status of a training stopped by SIGTERM (128 + SIGTERM: a scheduler's preemption or time limit, which a
+#: requeue wrapper tells apart from a user's Ctrl-C)
+EXIT_SIGTERM = 143
 
 
 def _say_interrupted(trainer: Any, run_dir: Path) -> None:
-    """The one line after Ctrl-C: where the run stopped, and how to go on (Lightning says only that it shuts down;
-    the run is not tested and writes no metrics.json, so it never passes for a finished run)."""
+    """The one line after Ctrl-C or SIGTERM: where the run stopped, and how to go on (Lightning says only that it
+    shuts down; the run is not tested and writes no metrics.json, so it never passes for a finished run)."""
     cb = trainer.checkpoint_callback
     last = Path(str(cb.dirpath)) / "last.ckpt" if cb is not None and getattr(cb, "dirpath", None) else None
     resume = (
@@ -340,8 +351,9 @@ def _say_interrupted(trainer: Any, run_dir: Path) -> None:
         if last is not None and last.is_file()
         else "no checkpoint was written yet: start it again"
     )
+    how = "stopped by SIGTERM" if trainer.received_sigterm else "interrupted (Ctrl-C)"
     print(
-        f"tofdenoise train: interrupted (Ctrl-C) at step {trainer.global_step}, epoch {trainer.current_epoch}; "
+        f"tofdenoise train: {how} at step {trainer.global_step}, epoch {trainer.current_epoch}; "
         f"not tested, no metrics.json; {resume}",
         file=sys.stderr,
     )
@@ -388,9 +400,11 @@ def _comparable(cfg_yaml: str) -> dict[str, Any]:
     return flat
 
 
-def check_same_run(cfg: DictConfig, run_dir: Path) -> None:
+def check_same_run(cfg: DictConfig, run_dir: Path, resuming: bool = False, testing: bool = False) -> None:
     """Raise :class:`RunConfigMismatchError` when ``<run_dir>/config.yaml`` (the config of the run recorded there)
-    differs from ``cfg`` in a setting outside ``SAME_RUN_IGNORES``; a folder without ``config.yaml`` passes."""
+    differs from ``cfg`` in a setting outside ``SAME_RUN_IGNORES``; a folder without ``config.yaml`` passes.
+    ``resuming``: ``cfg`` would resume the folder's checkpoint (the message says how to start afresh instead);
+    ``testing``: ``cfg`` would test the folder's run (``train=false``)."""
     saved_path = run_dir / CONFIG_NAME
     try:
         saved_text = saved_path.read_text(encoding="utf-8")
@@ -401,26 +415,52 @@ def check_same_run(cfg: DictConfig, run_dir: Path) -> None:
     if differ:
         shown = "; ".join(f"{k}: {saved.get(k, '<unset>')!r} there, {now.get(k, '<unset>')!r} now" for k in differ[:6])
         more = f" (and {len(differ) - 6} more)" if len(differ) > 6 else ""
+        other = "another folder (paths.run_dir, or in a sweep run_name=... / hydra.sweep.subdir=... so that each job "
+        other += "gets its own)"
+        if testing:
+            raise RunConfigMismatchError(
+                f"run folder {run_dir} holds a training run of another config ({saved_path}), whose records a "
+                f"test with this config (train=false) would write as that run's: {shown}{more}; test it with its own "
+                f"config, or give this test {other}"
+            )
+        if resuming:
+            state = "a finished" if run_finished(run_dir) else "an interrupted"
+            raise RunConfigMismatchError(
+                f"run folder {run_dir} holds {state} run of another config ({saved_path}), which this command would "
+                f"resume from its checkpoint ({LAST_CHECKPOINT}) and record as this config's: {shown}{more}; resume "
+                f"it with its own config, choose {other}, or set ckpt_path=null (with reuse_finished=false for a "
+                "finished run) to train this folder again from the start with this config, its checkpoints and "
+                "records replaced"
+            )
         raise RunConfigMismatchError(
             f"run folder {run_dir} holds a finished run of another config ({saved_path}): {shown}{more}; "
-            "choose another folder (paths.run_dir, or in a sweep run_name=... / hydra.sweep.subdir=... so that "
-            "each job gets its own), or set reuse_finished=false to train that run again with this config"
+            f"choose {other}, or set reuse_finished=false ckpt_path=null to train that folder again from the start "
+            "with this config, its checkpoints and records replaced"
         )
 
 
 def check_before_writing(cfg: DictConfig, run_dir: str | Path) -> None:
     """What ``hydra.callbacks.run_lock.before_job`` (``configs/train.yaml``) checks with the run folder's lock held,
-    before Hydra writes ``.hydra/`` or its log there: the noise settings (:func:`check_noise`), then a finished run
-    in the folder (:func:`check_finished_run`). A ``ValueError`` is one line and exit status 2, the folder left as
-    it was (issue 41)."""
+    before Hydra writes ``.hydra/`` or its log there: the noise settings (:func:`check_noise`), a checkpoint to
+    resume (its backbone, and the folder's recorded config: :func:`check_resumed_run`), a test-only run in a folder
+    of a training run (:func:`check_test_only`), then a finished run in the folder
+    (:func:`check_finished_run`). A ``ValueError`` is one line and exit status 2, the folder left as it was."""
     check_noise(cfg)
     run_dir = Path(str(run_dir)).expanduser().resolve()
-    if cfg.get("train", True) and not run_finished(run_dir):
+    finished = cfg.get("train", True) and cfg.get("reuse_finished", True) and run_finished(run_dir)
+    if cfg.get("train", True) and not finished:
         given = cfg.get("ckpt_path")
+        resume = None
         if given == "last":
-            check_resume_backbone(cfg, run_dir / LAST_CHECKPOINT)
+            resume = run_dir / LAST_CHECKPOINT if (run_dir / LAST_CHECKPOINT).is_file() else None
         elif given not in (None, "", "null"):
-            check_resume_backbone(cfg, Path(str(given)).expanduser())
+            resume = Path(str(given)).expanduser()
+        if resume is not None:
+            check_checkpoint_file(resume)  # a broken file is named first: the way out differs
+            check_resume_backbone(cfg, resume)
+            check_resumed_run(cfg, run_dir)
+    elif not cfg.get("train", True) and cfg.get("test", True):
+        check_test_only(cfg, run_dir)
     check_finished_run(cfg, run_dir)
 
 
@@ -495,12 +535,59 @@ def check_finished_run(cfg: DictConfig, run_dir: str | Path) -> None:
     run_dir = Path(str(run_dir)).expanduser().resolve()
     if not (cfg.get("train", True) and cfg.get("reuse_finished", True) and run_finished(run_dir)):
         return
+    check_same_run(_with_calibration(cfg, run_dir), run_dir)
+
+
+def _with_calibration(cfg: DictConfig, run_dir: Path) -> DictConfig:
+    """``cfg`` as the run records it in ``config.yaml``: its folder, and the calibration the data module resolves
+    (:func:`record_calibration`), so that it compares with a recorded config."""
     calib = _config_calibration(cfg.get("data") or {})
     cfg = cfg.copy()
     with open_dict(cfg):
         cfg.paths.run_dir = str(run_dir)
     record_calibration(cfg, calib)
-    check_same_run(cfg, run_dir)
+    return cfg
+
+
+def check_resumed_run(cfg: DictConfig, run_dir: str | Path) -> None:
+    """The same-run check of a resume: a checkpoint resumed in a folder whose ``config.yaml`` records another config
+    is a :class:`RunConfigMismatchError` naming the settings. Resumed, the folder's optimiser and schedule came
+    back with the earlier settings, the new ones took effect part-way (another loss, noise or crop size for the
+    remaining steps; a learning rate never, the schedule being restored; ``model.init_weights`` not read) and the
+    records named the new config as the whole run's."""
+    run_dir = Path(str(run_dir)).expanduser().resolve()
+    check_same_run(_with_calibration(cfg, run_dir), run_dir, resuming=True)
+
+
+def check_test_only(cfg: DictConfig, run_dir: str | Path) -> None:
+    """A test-only run (``train=false``) in a folder that holds a training run tests that run: its own ``best.ckpt``
+    (``ckpt_path`` unset, ``last`` or that file) with the config it was trained with, once its fit has ended; its
+    records keep the fit's fields (``RunOutputs``). Another checkpoint, or a fit that has not ended (resume it
+    first), is an ``OutputPathError``; another config a :class:`RunConfigMismatchError`. Their scores were recorded
+    as the training run's (``run_info.json`` rewritten with 0 steps and no training cost, another test set's
+    ``metrics.json``; an interrupted fit marked finished), and a report listed one network as two runs. A folder
+    without a training run takes any test."""
+    run_dir = Path(str(run_dir)).expanduser().resolve()
+    state = training_state(run_dir)
+    if state is None:
+        return
+    own = "give the test its own folder (paths.run_dir=...), or score the run without writing there: tofdenoise "
+    own += f"evaluate --run {run_dir} --out scores.json"
+    if state != FITTED:
+        why = "whose run_info.json cannot be read" if state == UNREADABLE else "whose fit has not ended (resume it)"
+        raise OutputPathError(
+            f"run folder {run_dir} holds a training run {why}, which a test-only run would mark as "
+            f"tested and finished: {own}"
+        )
+    given = cfg.get("ckpt_path")
+    if given not in (None, "", "null", "last"):
+        tested = Path(str(given)).expanduser().resolve()
+        if tested not in fit_best_checkpoints(run_dir):
+            raise OutputPathError(
+                f"run folder {run_dir} holds a training run, whose records a test of another checkpoint ({tested}) "
+                f"would replace: {own}"
+            )
+    check_same_run(_with_calibration(cfg, run_dir), run_dir, testing=True)
 
 
 def _recorded_result(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:

@@ -14,6 +14,7 @@ import math
 import pickle
 from contextlib import nullcontext
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -282,8 +283,6 @@ def denoise(
 def _check_units(depth_mm: np.ndarray, valid: np.ndarray) -> None:
     """``inference.frames.check_depth_units_mm`` for an array given to :func:`denoise`: a ValueError that names the
     argument to pass (``depth_scale_mm``) where the command line's names its option."""
-    from types import SimpleNamespace
-
     from .frames import FrameError, check_depth_units_mm
 
     try:

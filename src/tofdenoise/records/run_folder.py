@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -24,8 +25,15 @@ __all__ = [
     "RUN_INFO_NAME",
     "TRUTH_NAME",
     "REGIONS_NAME",
+    "RESULT_RECORDS",
     "RecordError",
+    "FITTED",
+    "INTERRUPTED",
+    "UNREADABLE",
+    "training_state",
+    "fit_best_checkpoints",
     "read_record",
+    "remove_results",
     "load_metrics",
     "read_run",
     "run_finished",
@@ -112,6 +120,64 @@ def load_scored_metrics(path: str | Path) -> dict[str, Any]:
                         "as null, never NaN)"
                     )
     return data
+
+
+#: the results of a run folder, which a new attempt there (a fresh start, a test of another checkpoint) replaces:
+#: the test metrics, the per-image CSVs and the two per-scene records ``tofdenoise reproduce`` adds
+RESULT_RECORDS = (METRICS_NAME, PER_IMAGE_DIR, TRUTH_NAME, REGIONS_NAME)
+
+
+#: :func:`training_state` of a folder whose fit ended (its ``run_info.json`` records optimiser steps or a training
+#: time), of one whose fit stopped before its end (a ``last.ckpt`` without them), of one whose ``run_info.json``
+#: cannot be read
+FITTED, INTERRUPTED, UNREADABLE = "fitted", "interrupted", "unreadable"
+
+
+def training_state(run_dir: str | Path) -> str | None:
+    """What training the folder holds: :data:`FITTED` (``run_info.json`` records the fit's optimiser steps or
+    training time, written when the fit ended), :data:`INTERRUPTED` (a ``checkpoints/last.ckpt`` without them),
+    :data:`UNREADABLE` (a ``run_info.json`` that cannot be read), or None (no training: an empty or new folder, or
+    a test-only run's records). A test-only attempt there would write its records over the training run's."""
+    folder = Path(run_dir)
+    try:
+        info = read_record(folder / RUN_INFO_NAME)
+    except RecordError:
+        return UNREADABLE
+    steps = (info or {}).get("global_step")
+    if info and ((isinstance(steps, int | float) and steps > 0) or info.get("train_seconds") is not None):
+        return FITTED
+    return INTERRUPTED if (folder / LAST_CHECKPOINT).is_file() else None
+
+
+def fit_best_checkpoints(run_dir: str | Path) -> set[Path]:
+    """The best checkpoint of the fit recorded in ``run_dir``, resolved: ``<run_dir>/checkpoints/best.ckpt`` and the
+    ``best_ckpt`` its ``run_info.json`` names (the checkpoint callback's folder may lie elsewhere). A test of one of
+    them tests that run."""
+    folder = Path(run_dir)
+    found = {(folder / BEST_CHECKPOINT).resolve()}
+    try:
+        named = (read_record(folder / RUN_INFO_NAME) or {}).get("best_ckpt")
+    except RecordError:
+        named = None
+    if named:
+        found.add(Path(str(named)).expanduser().resolve())
+    return found
+
+
+def remove_results(run_dir: str | Path) -> list[str]:
+    """Remove the :data:`RESULT_RECORDS` of an earlier attempt from ``run_dir`` (``metrics.json`` first, so that the
+    folder never reads as a finished run with another attempt's files); the names removed."""
+    removed = []
+    for name in RESULT_RECORDS:
+        path = Path(run_dir) / name
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path)
+        elif path.exists() or path.is_symlink():
+            path.unlink()
+        else:
+            continue
+        removed.append(name)
+    return removed
 
 
 def read_run(run_dir: str | Path) -> tuple[dict[str, Any] | None, dict[str, Any] | None]:
