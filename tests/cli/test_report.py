@@ -111,6 +111,12 @@ def test_table_has_one_raw_row_per_distinct_raw_result_and_bold_best(runs):
     assert [r["kind"] for r in rows] == ["raw", "raw", "run", "run"]
     assert [r["data"] for r in rows if r["kind"] == "run"] == [0, 1]
     assert "**" not in table_markdown(sets, rows)
+    # two folders of one run name (one network tested twice, on two test sets) are told apart by their data
+    import dataclasses
+
+    twin = dataclasses.replace(loaded[1], name=loaded[0].name)
+    sets, rows = results_table([loaded[0], twin])
+    assert [r["data"] for r in rows if r["kind"] == "run"] == [0, 1] and "**" not in table_markdown(sets, rows)
     loaded[1].metrics["synthetic"]["raw"]["mae_mm"] = loaded[0].metrics["synthetic"]["raw"]["mae_mm"]
     assert "**40.85**" in table_markdown(*results_table(loaded))
 

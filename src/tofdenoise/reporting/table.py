@@ -64,8 +64,8 @@ def results_table(runs: Sequence[Run]) -> tuple[list[str], list[dict[str, Any]]]
     sets = [s for s in ("synthetic", "simulated", "real") if any(s in r.metrics for r in runs)]
     sets += sorted({s for r in runs for s in r.metrics} - set(sets))
     raw_rows: list[dict[str, Any]] = []
-    data_of: dict[str, int] = {}  # run name -> its raw row: the test data it was scored on
-    for r in runs:
+    data_of: dict[int, int] = {}  # run's place in ``runs`` -> its raw row: the test data it was scored on
+    for place, r in enumerate(runs):
         values = {
             (s, k): read_number(r.metrics[s]["raw"][k])
             for s in sets
@@ -81,17 +81,17 @@ def results_table(runs: Sequence[Run]) -> tuple[list[str], list[dict[str, Any]]]
                 row.update(values)
                 if r.noise not in row["noises"]:
                     row["noises"].append(r.noise)
-                data_of[r.name] = number
+                data_of[place] = number
                 break
         else:
-            data_of[r.name] = len(raw_rows)
+            data_of[place] = len(raw_rows)
             raw_rows.append(
                 {"kind": "raw", "method": "Raw input", "loss": "–", "learned": "–", "noises": [r.noise], **values}
             )
     for row in raw_rows:
         row["noise"] = ", ".join(row.pop("noises"))
     run_rows = []
-    for r in runs:
+    for place, r in enumerate(runs):
         status = learned_status(r.learned)
         row: dict[str, Any] = {
             "kind": "run",
@@ -102,7 +102,7 @@ def results_table(runs: Sequence[Run]) -> tuple[list[str], list[dict[str, Any]]]
             "learned": LEARNED_FLAGS[status],
             "flagged": status in FLAGGED,
             "learned_reason": str(r.learned.get("learned_reason", "")),
-            "data": data_of.get(r.name),
+            "data": data_of.get(place),
         }
         for s in sets:
             for k, *_ in METRIC_COLUMNS:
