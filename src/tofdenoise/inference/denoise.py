@@ -286,11 +286,10 @@ def _check_units(depth_mm: np.ndarray, valid: np.ndarray) -> None:
     from .frames import FrameError, check_depth_units_mm
 
     try:
-        check_depth_units_mm(SimpleNamespace(depth_mm=depth_mm, valid=valid), "(the depth_mm array)")
+        frame = SimpleNamespace(depth_mm=depth_mm, valid=valid)
+        check_depth_units_mm(frame, "(the depth_mm array)", option="depth_scale_mm=")
     except FrameError as exc:
-        text = str(exc).replace("--depth-scale-mm (", "depth_scale_mm (")
-        text = text.replace("--depth-scale-mm ", "depth_scale_mm=")
-        raise ValueError(f"denoise: {text}") from None
+        raise ValueError(f"denoise: {exc}") from None
 
 
 def sigma_map_mm(depth_mm: np.ndarray, valid: np.ndarray, amplitude: np.ndarray, calib: Any) -> np.ndarray:

@@ -345,11 +345,17 @@ def plausible_depth_range_mm(calib: Any = None) -> tuple[float, float]:
     return DEFAULT_MIN_DEPTH_MM, float(calib.unambiguous_range_mm)
 
 
-def check_depth_units_mm(frame: Frame, path: str | Path, depth_range_mm: tuple[float, float] | None = None) -> None:
+def check_depth_units_mm(
+    frame: Frame,
+    path: str | Path,
+    depth_range_mm: tuple[float, float] | None = None,
+    option: str = "--depth-scale-mm ",
+) -> None:
     """FrameError naming the median, the likely unit and ``--depth-scale-mm`` when the frame's valid depths lie
     mostly outside ``depth_range_mm`` (``plausible_depth_range_mm()`` by default): their median below its nearest
     or beyond its farthest depth, i.e. more than half of them out of the range on that side. Implausible in
-    millimetres: a depth map in metres or centimetres, or one counting 0.1 mm."""
+    millimetres: a depth map in metres or centimetres, or one counting 0.1 mm. ``option``: the setting that gives
+    the units, as written before its value (the command's ``--depth-scale-mm ``; the API's ``depth_scale_mm=``)."""
     if not frame.valid.any():
         return
     near, far = plausible_depth_range_mm() if depth_range_mm is None else depth_range_mm
@@ -359,15 +365,16 @@ def check_depth_units_mm(frame: Frame, path: str | Path, depth_range_mm: tuple[f
     side = "nearer than" if median_mm < near else "beyond"
     bound = near if median_mm < near else far
     likely = [(scale, name) for scale, name in LIKELY_UNITS if near <= median_mm * scale <= far]
+    given = option.rstrip(" =")  # the setting's name, without the separator before its value
     if likely:
         scale, name = likely[0]
-        hint = f"looks like {name}: pass --depth-scale-mm {scale:g}"
+        hint = f"looks like {name}: pass {option}{scale:g}"
     else:
-        hint = "give the file's units with --depth-scale-mm (e.g. 1000 for metres, 10 for cm, 0.1 for 0.1 mm units)"
+        hint = f"give the file's units with {given} (e.g. 1000 for metres, 10 for cm, 0.1 for 0.1 mm units)"
     raise FrameError(
         f"depth file {path}: median valid depth {median_mm:.4g} is implausible in millimetres (more than half of "
         f"the valid depths lie {side} {bound:.0f} mm; taken as mm: {near:.0f} mm, the training scenes' nearest "
-        f"depth, to {far:.0f} mm, the sensor's unambiguous range); {hint} (--depth-scale-mm 1 if it is mm)"
+        f"depth, to {far:.0f} mm, the sensor's unambiguous range); {hint} ({option}1 if it is mm)"
     )
 
 

@@ -18,6 +18,7 @@ Settings (``data.source_kwargs``): every ``__init__`` argument, e.g.
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any
 
@@ -114,10 +115,11 @@ class FolderSource:
             check_same_shape(depth, mask, reference_path=depth_path, other_path=mask_path, what="folder mask")
             valid &= mask != 0
         valid &= np.isfinite(amplitude)
-        if valid.any() and float(np.median(depth[valid])) < MIN_MEDIAN_DEPTH_MM:
+        median_mm = float(np.median(depth[valid])) if valid.any() else math.inf
+        if median_mm < MIN_MEDIAN_DEPTH_MM:
             # a map in metres read as millimetres trained on sigma_D of a 1 mm scene and noise larger than the depth
             raise DataFileError(
-                f"folder depth file {depth_path}: median valid depth {float(np.median(depth[valid])):.4g} mm is "
+                f"folder depth file {depth_path}: median valid depth {median_mm:.4g} mm is "
                 f"implausible (below {MIN_MEDIAN_DEPTH_MM:g} mm) with data.source_kwargs.depth_unit_mm="
                 f"{self.depth_unit_mm:g}; files in metres need depth_unit_mm=1000"
             )
