@@ -321,6 +321,11 @@ def test_skip_recorded_runs_only_what_has_no_committed_record(tmp_path, monkeypa
     assert "dvss-fixed-l1-s0" not in asked[0] and "dvss-range-l1-s0" in asked[0] and len(asked[0]) == 9
     assert len(asked[1]) == 10 and "dvss-fixed-l1-s0" in asked[1]
     assert "--skip-recorded: 1 run(s) committed" in capsys.readouterr().out
+    # a mistyped --results commits nothing: every run trains, and the log says why
+    typo = ["--results", str(tmp_path / "resluts"), "--page", str(page)]
+    assert main([*argv[:4], "--out", str(out), *typo, "--skip-recorded"]) == 0
+    assert len(asked[2]) == 10
+    assert f"{tmp_path / 'resluts' / 'cpu'}: no such folder, so no run is committed there" in capsys.readouterr().out
     assert main(["--figure", "7", "--skip-recorded", "--out", str(out), "--results", str(results)]) == 2
     assert "--skip-recorded applies to --table and --study" in capsys.readouterr().err
 

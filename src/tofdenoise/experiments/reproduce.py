@@ -306,6 +306,8 @@ def without_recorded(
     ``rerun_without_truth`` a record without its score against the stand-in set's truth (``TRUTH_NAME``) does not
     count (``--rerun-without-truth``: that score needs the run's checkpoint, which a record does not carry). The runs
     left out, and those run again, are logged."""
+    if not dest.is_dir():  # a mistyped --results or --profile would otherwise train everything without a word
+        log(f"[reproduce] --skip-recorded: {dest}: no such folder, so no run is committed there: all are run")
     recorded = [s.name for s in specs if all((dest / s.name / name).is_file() for name in RUN_FILES)]
     # (asked for, option, which records, does a record of this run not count)
     rules = (
