@@ -295,6 +295,36 @@ def test_a_chain_of_two_protocols_in_a_seed_gives_no_verdict(tmp_path):
     assert "| U-Net, range-aware Gaussian † |" in table3 and "| U-Net, hetero (proposed) |" in table3
 
 
+def test_a_baseline_matched_on_whole_maps_is_of_the_earlier_protocol(tmp_path):
+    """A Gaussian baseline whose variance was matched on whole maps (its noise_record without ``weights:
+    crop_coverage``) trained on more variance than hetero: the earlier protocol, never compared with a current
+    hetero record; matched as the crops cover the maps it is current. Hetero and blind records have no match."""
+    from tofdenoise.records import matched_on_whole_maps
+
+    def info(noise: str, weights: str | None) -> dict:
+        record = {"noise": noise, "scale": 1.8, "pixels": "after_holes"}
+        if weights:
+            record["weights"] = weights
+        return {"started": "2026-11-22T10:00:00+0000", "prepared_data": {"noise": noise, "noise_record": record}}
+
+    assert matched_on_whole_maps(info("range", None)) and matched_on_whole_maps(info("fixed", None))
+    assert not matched_on_whole_maps(info("range", "crop_coverage"))
+    assert not matched_on_whole_maps({"prepared_data": {"noise": "hetero", "noise_record": None}})
+    assert not matched_on_whole_maps(info("blind", None)) and not matched_on_whole_maps(None)
+    cpu = tmp_path / "cpu"
+    for seed, weights in ((0, None), (1, "crop_coverage")):
+        _write_run(cpu, f"unet-hetero-l1-s{seed}", _metrics(3.0))
+        _write_run(cpu, f"unet-range-l1-s{seed}", _metrics(3.5))
+        (cpu / f"unet-range-l1-s{seed}" / "run_info.json").write_text(json.dumps(info("range", weights)))
+    page = results_markdown(tmp_path)
+    table3 = page.split("## Table III")[1].split("## Beyond the paper")[0]
+    line = next(x for x in table3.splitlines() if x.startswith("| hetero < range for U-Net (synthetic MAE)"))
+    assert line.startswith("| hetero < range for U-Net (synthetic MAE) | 1: yes | holds in every seed run so far |")
+    assert "Not shown: earlier-protocol records of rows that have current ones: unet-range-l1-s0." in table3
+    runs = page.split("## Runs")[1]
+    assert "| unet-range-l1-s0 | earlier |" in runs and "| unet-range-l1-s1 | current |" in runs
+
+
 def test_committed_results_page_matches_the_records():
     """docs/results.md is exactly what `tofdenoise reproduce --page-only` prints from docs/results/."""
     page = REPO_ROOT / "docs" / "results.md"

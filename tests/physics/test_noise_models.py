@@ -110,6 +110,38 @@ def test_variance_matching_equalises_mean_variance():
         variance_matching_scale(build_noise_model("none"), samples)
 
 
+def test_variance_matching_weights_pixels_by_how_often_training_draws_them():
+    """With weights w (a crop's coverage), k^2 sum(w s^2) = sum(w sigma_D^2): a hand-computed two-pixel case, and
+    integer weights equal repeating each pixel that many times. Weight 0 leaves a pixel out; a negative or
+    non-finite weight is refused."""
+    depth = torch.tensor([[1000.0, 1000.0]], dtype=torch.float64)
+    sigma = torch.tensor([[2.0, 6.0]], dtype=torch.float64)
+    fixed = build_noise_model("fixed", sigma_mm=1.0)
+    # unweighted: k^2 = (4 + 36) / 2 = 20; weights (3, 1): k^2 = (3*4 + 36) / 4 = 12; (1, 0): k^2 = 4
+    assert variance_matching_scale(fixed, [(depth, sigma, None)]) == pytest.approx(math.sqrt(20.0))
+    w = torch.tensor([[3.0, 1.0]], dtype=torch.float64)
+    assert variance_matching_scale(fixed, [(depth, sigma, None, w)]) == pytest.approx(math.sqrt(12.0))
+    assert variance_matching_scale(fixed, [(depth, sigma, None, torch.tensor([[1.0, 0.0]]))]) == pytest.approx(2.0)
+    repeated = (depth[:, [0, 0, 0, 1]], sigma[:, [0, 0, 0, 1]], None)
+    assert variance_matching_scale(fixed, [repeated]) == pytest.approx(math.sqrt(12.0))
+    samples = [_scene(0), _scene(1)]
+    weights = [
+        torch.rand(d.shape, generator=torch.Generator().manual_seed(i), dtype=torch.float64)
+        for i, (d, _, _) in enumerate(samples)
+    ]
+    model = build_noise_model("range", calib=default_calibration())
+    k = variance_matching_scale(model, [(*s, w) for s, w in zip(samples, weights, strict=True)])
+    num = sum(float((w[v] * s[v] ** 2).sum()) for (d, s, v), w in zip(samples, weights, strict=True))
+    den = sum(float((w[v] * model.std_mm(d, s)[v] ** 2).sum()) for (d, s, v), w in zip(samples, weights, strict=True))
+    assert k == pytest.approx(math.sqrt(num / den), rel=1e-9)
+    assert k != pytest.approx(variance_matching_scale(model, samples), rel=1e-3)  # the weights do move it
+    for bad in (-1.0, float("nan")):
+        with pytest.raises(ValueError, match="weights must be finite and >= 0"):
+            variance_matching_scale(fixed, [(depth, sigma, None, torch.tensor([[1.0, bad]]))])
+    with pytest.raises(ValueError, match=r"samples\[0\] must be a \(depth_mm, sigma_d_mm, valid\[, weight\]\)"):
+        variance_matching_scale(fixed, [(depth, sigma)])
+
+
 def test_with_scale_replaces():
     m = build_noise_model("fixed", sigma_mm=2.0, scale=3.0)
     assert m.with_scale(0.5).scale == 0.5

@@ -29,8 +29,10 @@ from tofdenoise.data_modules.simulated_test import (
 )
 from tofdenoise.data_modules.sources import SourceContext, source_from_config
 from tofdenoise.data_modules.splits import SPLIT_NAMES, ids_digest, load_or_make_split
+from tofdenoise.data_modules.transforms import crop_coverage
 from tofdenoise.physics.calibration import SensorCalibration, resolve_calibration
 from tofdenoise.physics.noise_models import available_noise_models, build_noise_model, variance_matching_scale
+from tofdenoise.records import VARIANCE_MATCH_WEIGHTS
 
 log = logging.getLogger(__name__)
 
@@ -485,19 +487,32 @@ class ToFDataModule(L.LightningDataModule):
         cache: MapCache,
         train_ids: list[str],
     ):
-        key = {"noise": noise_name, "noise_kwargs": noise_kwargs, **self._pixels_key(cache, train_ids)}
+        crop = None if self.crop is None else list(self.crop)
+        key = {
+            "noise": noise_name,
+            "noise_kwargs": noise_kwargs,
+            **self._pixels_key(cache, train_ids),
+            "weights": VARIANCE_MATCH_WEIGHTS,
+            "crop": crop,
+        }
         name = f"variance_scale_{noise_name}_{canonical_digest(key)[:12]}.json"
         record = cache.load_record(name, expected_key=key)
         if record is None:
-            scale = float(variance_matching_scale(noise_model, self._training_samples(provider, train_ids)))
+            samples = (
+                (depth_mm, sigma_mm, pixels, crop_coverage(*np.shape(depth_mm), self.crop))
+                for depth_mm, sigma_mm, pixels in self._training_samples(provider, train_ids)
+            )
+            scale = float(variance_matching_scale(noise_model, samples))
             record = {
                 "scale": scale,
                 "noise": noise_name,
                 "pixels": TRAINING_PIXELS_RULE,
+                "weights": VARIANCE_MATCH_WEIGHTS,
+                "crop": crop,
                 "num_train_samples": len(train_ids),
                 "note": "std multiplier giving the hetero mean perturbation variance over the training pixels ("
                 + TRAINING_PIXELS_RULE_TEXT
-                + ")",
+                + "), each weighted by the share of random training crops that cover it",
             }
             if noise_name == "fixed":  # the matched sigma itself
                 record["sigma_mm"] = scale * float(noise_model.sigma_mm)

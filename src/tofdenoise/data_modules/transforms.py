@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 
@@ -12,6 +13,25 @@ def crop_window(height: int, width: int, crop_h: int, crop_w: int, generator: to
     top = int(torch.randint(0, height - crop_h + 1, (1,), generator=generator))
     left = int(torch.randint(0, width - crop_w + 1, (1,), generator=generator))
     return top, left
+
+
+def crop_coverage(height: int, width: int, crop: tuple[int, int] | None) -> np.ndarray:
+    """The probability that a uniformly random crop window (:func:`crop_window`) covers each pixel of a
+    height x width sample, as a (height, width) float64 array (all ones without a crop). Separable: a row i is
+    covered by the min(i, height - crop_h) - max(0, i - crop_h + 1) + 1 of the height - crop_h + 1 window tops that
+    reach it, a column likewise. A 64 x 64 crop of a 128 x 160 map covers a corner pixel once in 65 x 97 draws and the
+    centre in 64 x 64 of them."""
+    if crop is None:
+        return np.ones((height, width))
+    crop_h, crop_w = crop
+    if crop_h > height or crop_w > width:
+        raise ValueError(f"crop {crop_h}x{crop_w} does not fit a {height}x{width} sample (lower data.crop_size)")
+
+    def axis(n: int, c: int) -> np.ndarray:
+        i = np.arange(n)
+        return (np.minimum(i, n - c) - np.maximum(0, i - c + 1) + 1) / (n - c + 1)
+
+    return np.outer(axis(height, crop_h), axis(width, crop_w))
 
 
 def random_crop_flip(

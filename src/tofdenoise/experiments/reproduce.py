@@ -355,12 +355,16 @@ def _family(name: str) -> tuple[str, ...]:
 
 
 def _protocol(run_dir: Path) -> str:
-    """The test protocol of a committed run (``results_page.record_protocol``; an unreadable metrics.json: earlier)."""
+    """The test protocol of a committed run (``results_page.record_protocol``; an unreadable metrics.json or
+    run_info.json: earlier)."""
     try:
         metrics = json.loads((run_dir / METRICS_NAME).read_text())
+        info = json.loads((run_dir / RUN_INFO_NAME).read_text())
     except (OSError, ValueError):
-        metrics = None
-    return record_protocol({"metrics": metrics}) if isinstance(metrics, dict) else EARLIER
+        return EARLIER
+    if not isinstance(metrics, dict) or not isinstance(info, dict):
+        return EARLIER
+    return record_protocol({"metrics": metrics, "run_info": info})
 
 
 def recorded_seconds(dest: Path, spec: RunSpec) -> float | None:

@@ -18,7 +18,8 @@ per-pixel standard deviation s(p) [mm]:
 
 `scale` multiplies the STANDARD DEVIATION (the variance scales by scale^2). `variance_matching_scale`
 returns the scale that makes a model's mean perturbation variance equal to the hetero model's mean
-variance sigma_D^2 over the same valid pixels (the paper's controlled comparison).
+variance sigma_D^2 over the same valid pixels (the paper's controlled comparison), each pixel weighted by how often
+training draws it where weights are given (a random crop covers a map's border less often than its centre).
 
 Sampling takes an explicit `torch.Generator`, so validation/test noise is reproducible. Invalid pixels
 (mask False, non-finite depth or std, depth <= 0) are returned unchanged.
@@ -290,12 +291,16 @@ def build_noise_model(name: str, calib: SensorCalibration | None = None, **kwarg
     return NOISE_MODELS.build(name, calib=calib, **kwargs)
 
 
-def variance_matching_scale(model: NoiseModel, samples: Iterable[tuple[Any, Any, Any]]) -> float:
+def variance_matching_scale(model: NoiseModel, samples: Iterable[tuple[Any, ...]]) -> float:
     """Scale k such that model.with_scale(k) has the hetero model's mean perturbation variance.
 
-    samples: iterable of (depth_mm, sigma_d_mm, valid) (valid may be None). Over the pixels that are valid
-    for both models, k^2 mean(s_model^2) = mean(sigma_D^2), with s_model at scale 1 (the model's own
-    scale is ignored). Raises ValueError when the model's variance is zero (e.g. `none`) or no pixel is valid.
+    samples: iterable of (depth_mm, sigma_d_mm, valid) or (depth_mm, sigma_d_mm, valid, weight); valid and weight
+    may be None. Over the pixels that are valid for both models,
+    k^2 sum(w s_model^2) = sum(w sigma_D^2), with s_model at scale 1 (the model's own scale is ignored) and w the
+    per-pixel weight (1 without one): how often training draws the pixel, e.g. its crop coverage
+    (``transforms.crop_coverage``), so that the two models put the same expected variance into what a network is
+    trained on. Raises ValueError when the model's variance is zero (e.g. `none`), no pixel is valid, or a weight is
+    negative or not finite.
     """
     base = model.with_scale(1.0)
     hetero = HeteroNoise()
@@ -304,15 +309,23 @@ def variance_matching_scale(model: NoiseModel, samples: Iterable[tuple[Any, Any,
     count = 0
     for i, item in enumerate(samples):
         try:
-            depth_mm, sigma_d_mm, valid = item
+            depth_mm, sigma_d_mm, valid, *rest = item
+            if len(rest) > 1:
+                raise ValueError
         except (TypeError, ValueError):
-            raise ValueError(f"samples[{i}] must be a (depth_mm, sigma_d_mm, valid) tuple") from None
+            raise ValueError(f"samples[{i}] must be a (depth_mm, sigma_d_mm, valid[, weight]) tuple") from None
         d = _tensor(depth_mm)
         s_het = torch.broadcast_to(hetero.std_mm(d, sigma_d_mm), d.shape)
         s_mod = torch.broadcast_to(base.std_mm(d, sigma_d_mm), d.shape)
         ok = hetero.valid_mask(d, s_het, valid) & torch.isfinite(s_mod)
-        sum_model += float(s_mod[ok].double().pow(2).sum())
-        sum_hetero += float(s_het[ok].double().pow(2).sum())
+        w = None if not rest or rest[0] is None else torch.broadcast_to(_tensor(rest[0]).double(), d.shape)
+        if w is not None and not bool((torch.isfinite(w) & (w >= 0)).all()):
+            raise ValueError(f"samples[{i}]: weights must be finite and >= 0")
+        if w is not None:
+            ok = ok & (w > 0)
+        w_ok = 1.0 if w is None else w[ok]
+        sum_model += float((w_ok * s_mod[ok].double().pow(2)).sum())
+        sum_hetero += float((w_ok * s_het[ok].double().pow(2)).sum())
         count += int(ok.sum())
     if count == 0:
         raise ValueError("variance matching: no valid pixel in the samples")

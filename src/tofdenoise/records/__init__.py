@@ -63,10 +63,12 @@ from tofdenoise.records.run_folder import (
     RUN_INFO_NAME,
     TRUTH_NAME,
     UNREADABLE,
+    VARIANCE_MATCH_WEIGHTS,
     RecordError,
     fit_best_checkpoints,
     load_metrics,
     load_scored_metrics,
+    matched_on_whole_maps,
     read_record,
     read_run,
     remove_results,
@@ -79,6 +81,8 @@ from tofdenoise.records.run_folder import (
 from tofdenoise.records.verdict import DEFAULT_LEARNED_MARGIN, classical_verdict, learned_status, learned_verdict
 
 __all__ = [
+    "VARIANCE_MATCH_WEIGHTS",
+    "matched_on_whole_maps",
     "BEST_CHECKPOINT",
     "RUNS_AT_ONCE_ENV",
     "CSV_COLUMNS",

@@ -66,6 +66,23 @@ class RecordError(ValueError):
     """A record file exists but cannot be used; the message names the file."""
 
 
+#: how a Gaussian baseline's variance is matched to hetero's (``ToFDataModule``, in a run_info.json's
+#: ``prepared_data.noise_record.weights``): each training pixel weighted by the share of random training crops that
+#: cover it. A record of a matched baseline without it was matched on whole maps, where a map's border (darker and
+#: noisier under vignetting) counts as much as its centre although the crops cover it less often
+VARIANCE_MATCH_WEIGHTS = "crop_coverage"
+
+
+def matched_on_whole_maps(run_info: Mapping[str, Any] | None) -> bool:
+    """Whether a run's training noise is a Gaussian baseline (fixed, range) variance-matched without the training
+    crops' coverage: its ``noise_record`` has a scale but not ``weights`` = :data:`VARIANCE_MATCH_WEIGHTS`."""
+    data = (run_info or {}).get("prepared_data")
+    record = data.get("noise_record") if isinstance(data, Mapping) else None
+    if not isinstance(record, Mapping) or "scale" not in record or record.get("noise") not in ("fixed", "range"):
+        return False
+    return record.get("weights") != VARIANCE_MATCH_WEIGHTS
+
+
 def read_record(path: str | Path) -> dict[str, Any] | None:
     """The JSON object of a record file (``run_info.json``, ``metrics.json``, a figure's JSON); ``None`` when the file
     does not exist; :class:`RecordError` naming the file when it cannot be read or holds no JSON object."""
