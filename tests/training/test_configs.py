@@ -341,6 +341,35 @@ def _finished_run(run_dir, overrides: list[str]) -> None:
     (run_dir / "run_info.json").write_text(json.dumps({"finished": "2026-11-20T10:05:00+0000"}))
 
 
+def test_a_baseline_matched_on_whole_maps_is_neither_reused_nor_resumed(tmp_path):
+    """A finished (or interrupted) range run whose variance was matched on whole maps (noise_record without
+    ``weights: crop_coverage``) has this config but not this code's training noise: reusing its records, or
+    resuming its checkpoint under the new match, would pass it off as the new match's. Refused with the way out;
+    matched over the crops' coverage it is reused, and a test of it (train=false) is not refused."""
+    import json
+
+    from tofdenoise.experiments.train_job import RunConfigMismatchError, check_finished_run, check_same_run
+
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    overrides = ["backbone=unet", "noise=range"]
+    _finished_run(run_dir, overrides)
+    record = {"noise": "range", "scale": 1.81, "pixels": "after_holes"}
+    info = {"finished": "2026-11-20T10:05:00+0000", "prepared_data": {"noise": "range", "noise_record": record}}
+    (run_dir / "run_info.json").write_text(json.dumps(info))
+    cfg = compose_config([f"paths.run_dir={run_dir}", *overrides])
+    with pytest.raises(
+        RunConfigMismatchError, match=r"range noise was variance-matched on whole maps .*reuse_finished=false"
+    ):
+        check_finished_run(cfg, run_dir)
+    with pytest.raises(RunConfigMismatchError, match="variance-matched on whole maps"):
+        check_same_run(cfg, run_dir, resuming=True)
+    check_same_run(cfg, run_dir, testing=True)
+    record["weights"] = "crop_coverage"
+    (run_dir / "run_info.json").write_text(json.dumps(info))
+    check_finished_run(cfg, run_dir)
+
+
 def test_another_config_in_a_finished_run_is_refused_before_hydra_writes(tmp_path, capsys):
     """``train backbone=deeptof paths.run_dir=<a finished U-Net run>`` was refused only after Hydra had rewritten the
     run's .hydra/ record with backbone=deeptof (issue 41). The check runs in the Hydra callback that holds the lock,

@@ -53,7 +53,9 @@ from tofdenoise.records import (
     METRICS_NAME,
     RUN_INFO_NAME,
     UNREADABLE,
+    VARIANCE_MATCH_WEIGHTS,
     fit_best_checkpoints,
+    matched_on_whole_maps,
     read_metrics_json,
     read_run,
     run_finished,
@@ -411,6 +413,16 @@ def check_same_run(cfg: DictConfig, run_dir: Path, resuming: bool = False, testi
     except FileNotFoundError:
         return
     saved, now = _comparable(saved_text), _comparable(OmegaConf.to_yaml(cfg, resolve=True))
+    info, _ = read_run(run_dir)
+    if not testing and matched_on_whole_maps(info):
+        # same config, another training noise: the baseline's variance was matched on whole maps (1.2-1.3x hetero's
+        # in the training crops); reused or resumed, the folder's record would pass as this code's match
+        raise RunConfigMismatchError(
+            f"run folder {run_dir} holds a run whose {info['prepared_data']['noise']} noise was variance-matched on "
+            f"whole maps ({RUN_INFO_NAME}: noise_record without weights: {VARIANCE_MATCH_WEIGHTS}), an earlier "
+            "protocol than this code's match over the training crops' coverage; train it again from the start "
+            "(reuse_finished=false ckpt_path=null, its checkpoints and records replaced) or choose another folder"
+        )
     differ = sorted(k for k in saved.keys() | now.keys() if saved.get(k, "<unset>") != now.get(k, "<unset>"))
     if differ:
         shown = "; ".join(f"{k}: {saved.get(k, '<unset>')!r} there, {now.get(k, '<unset>')!r} now" for k in differ[:6])
