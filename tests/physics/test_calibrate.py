@@ -275,3 +275,75 @@ def test_few_dark_frames_are_used_with_a_warning_and_mixed_sweep_sizes_are_refus
     np.save(sweep / odd, np.load(sweep / odd)[:, :, :4, :])
     with pytest.raises(CaptureFormatError, match=re.escape(odd) + r".*frames of 4x8 px"):
         calibrate_from_folders(sweep, enough)
+
+
+def test_circular_depth_stats_hand_case():
+    """U = 1000 mm; a pixel at the wrap reports 990, 995, 5, 10 mm: unwrapped 990, 995, 1005, 1010 around the
+    circular mean, so mean 1000 mm = 0 (mod U) and std sqrt((100 + 25 + 25 + 100) / 3) = 9.129 mm. The linear std
+    of the wrapped values (the old measurement) is 567.6 mm."""
+    from tofdenoise.physics.calibrate import circular_depth_stats_mm
+
+    d = np.array([990.0, 995.0, 5.0, 10.0])[:, None]
+    mean, std = circular_depth_stats_mm(d, 1000.0)
+    assert std[0] == pytest.approx(np.sqrt(250.0 / 3.0), rel=1e-12)
+    assert min(mean[0], 1000.0 - mean[0]) == pytest.approx(0.0, abs=1e-9)
+    lin_mean, lin_std = circular_depth_stats_mm(d, None)
+    assert lin_std[0] == pytest.approx(np.std(d, ddof=1), rel=1e-12) and lin_std[0] > 500.0
+    # away from the wrap the circular statistics are the ordinary ones
+    far = np.array([[400.0, 410.0], [420.0, 390.0], [380.0, 400.0]])
+    m, s = circular_depth_stats_mm(far, 1000.0)
+    np.testing.assert_allclose(m, far.mean(axis=0), rtol=1e-12)
+    np.testing.assert_allclose(s, far.std(axis=0, ddof=1), rtol=1e-12)
+    with pytest.raises(ValueError, match="unambiguous_range_mm"):
+        circular_depth_stats_mm(d, 0.0)
+
+
+def test_temporal_std_is_the_unwrapped_std_near_the_unambiguous_range():
+    """Monte Carlo: Gaussian depth noise of 30 mm at 1900 mm and 16 mm at 1960 mm of a U = 1998.6 mm camera (cam75),
+    wrapped mod U as the camera reports it. The circular std equals the std of the unwrapped samples (to 1e-9); the
+    linear std of the wrapped samples is far too large."""
+    from tofdenoise.physics.calibrate import temporal_std_roi_mm
+
+    u = 1998.6163866666666
+    rng = np.random.default_rng(5)
+    for truth, noise, ratio in ((1900.0, 30.0, 1.3), (1960.0, 16.0, 5.0)):
+        unwrapped = truth + noise * rng.standard_normal((2000, 4, 4))
+        wrapped = np.mod(unwrapped, u)
+        assert (wrapped != unwrapped).any()
+        got, n = temporal_std_roi_mm(wrapped, unambiguous_range_mm=u)
+        want = float(unwrapped.std(axis=0, ddof=1).mean())
+        assert n == 16 and got == pytest.approx(want, rel=1e-9)
+        old, _ = temporal_std_roi_mm(wrapped, unambiguous_range_mm=None)
+        assert old > ratio * want
+
+
+def test_calibrate_measures_the_circular_std_of_a_distance_near_the_unambiguous_range(tmp_path):
+    """cam75 (U = 1998.6 mm), a 10 % target at 300, 600, 1000 and 1960 mm: at 1960 mm some frames wrap to a few mm.
+    The range point is the std of the demodulated frames unwrapped around the truth (17.4 mm); the linear std of
+    the wrapped frames (what calibrate used) is several times larger."""
+    import torch
+
+    from tofdenoise.physics.calibration import resolve_calibration
+    from tofdenoise.physics.simulator import default_min_amplitude_e, demodulate
+
+    cam = resolve_calibration("cam75")
+    u = cam.unambiguous_range_mm
+    sweep = write_sweep_folder(cam, tmp_path / "sweep", num_steps=12, num_frames=4)
+    dark = write_dark_folder(cam, tmp_path / "dark", num_frames=10)
+    dists = [300.0, 600.0, 1000.0, 1960.0]
+    folder = write_distances_folder(
+        cam, tmp_path / "dist", dists, num_frames=60, reflectance=0.1, signal_at_1m_e=cam.signal_at_1m_e
+    )
+    rep = calibrate_from_folders(sweep, dark, folder)
+    assert [d for d, _ in rep.range_points] == dists
+    taps = np.load(folder / "dist_003.npy")
+    depth, amp = demodulate(torch.from_numpy(taps), rep.calibration, tap_axis=1)
+    depth = depth.numpy().astype(np.float64)
+    ok = ((amp.numpy() >= default_min_amplitude_e(rep.calibration)) & (depth > 0)).all(axis=0)
+    assert ok.sum() > 32
+    assert (np.abs(depth[:, ok] - 1960.0) > u / 2).any()  # frames wrapped to near 0 mm
+    unwrapped = np.mod(depth[:, ok] - 1960.0 + u / 2, u) - u / 2 + 1960.0
+    want = float(unwrapped.std(axis=0, ddof=1).mean())
+    assert rep.range_points[-1][1] == pytest.approx(want, rel=1e-6)
+    assert 12.0 < want < 25.0
+    assert float(depth[:, ok].std(axis=0, ddof=1).mean()) > 3 * want

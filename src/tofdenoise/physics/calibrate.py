@@ -11,7 +11,8 @@
   clipped, and above the camera's amplitude threshold in the frame, as the camera itself decides)
   (temporal mean of the DC bin, (mean_n y_n - mu_dark) / c0) of the captured tap stacks.
 - Range-aware baseline: sigma(D) = alpha0 + alpha1 D + alpha2 D^2 fitted by least squares to the
-  ROI-averaged temporal depth std of an independent planar distance sequence.
+  ROI-averaged temporal depth std of an independent planar distance sequence (circular std modulo the
+  unambiguous range U: ``circular_depth_stats_mm``).
 - Photometric gain ``signal_at_1m_e`` (the physical signal route), when the distance stacks name their target's
   reflectance (``target_reflectance``): the median over valid pixels of a (D / 1 m)^2 / rho. Vignetting is not
   measured (a flat-field capture would be needed): the calibration has none unless it is added by hand.
@@ -160,15 +161,51 @@ def fit_range_sigma(distance_mm: Sequence[float], std_mm: Sequence[float]) -> tu
     return float(a0), float(a1), float(a2)
 
 
-def temporal_std_roi_mm(depth_frames_mm: np.ndarray, valid: np.ndarray | None = None) -> tuple[float, int]:
-    """ROI mean of the per-pixel temporal depth std (pixels valid in every frame) and the pixel count."""
+def circular_depth_stats_mm(
+    depth_frames_mm: np.ndarray, unambiguous_range_mm: float | None, ddof: int = 1
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per-pixel temporal mean and std of depths that a camera measures modulo its unambiguous range.
+
+    The camera measures the phase psi = 4 pi f D / c = 2 pi D / U (paper Eq. 2) only modulo 2 pi, so its depth is
+    D mod U with U = c / (2 f) (``SensorCalibration.unambiguous_range_mm``): a pixel at 1990 mm of a U = 1999 mm
+    camera reports some frames near 1990 mm and others near 0 mm. Circular statistics over the frames (axis 0):
+
+        m = U / (2 pi) arg( mean_t exp(i 2 pi D_t / U) )                (circular mean)
+        delta_t = ((D_t - m + U/2) mod U) - U/2  in [-U/2, U/2)          (deviation, wrapped)
+        mean = (m + mean_t delta_t) mod U,   std = sqrt( sum_t (delta_t - mean_t delta_t)^2 / (F - ddof) )
+
+    i.e. the samples unwrapped around the circular mean, m + delta_t, and their ordinary mean and std: exactly the
+    std of the unwrapped depths whenever every frame lies within U/2 of the circular mean (a temporal noise far
+    below U), and the ordinary mean and std when no frame wrapped. ``unambiguous_range_mm=None``: depths already
+    unwrapped (ordinary mean and std). Returns (mean, std), each of shape ``depth_frames_mm.shape[1:]``."""
+    d = np.asarray(depth_frames_mm, dtype=np.float64)
+    if unambiguous_range_mm is None:
+        return d.mean(axis=0), d.std(axis=0, ddof=ddof)
+    u = float(unambiguous_range_mm)
+    if not (math.isfinite(u) and u > 0):
+        raise ValueError(f"unambiguous_range_mm must be a finite number > 0, got {unambiguous_range_mm!r}")
+    turn = 2.0 * np.pi / u
+    centre = np.mod(np.angle(np.exp(1j * turn * d).mean(axis=0)) / turn, u)
+    delta = np.mod(d - centre + 0.5 * u, u) - 0.5 * u
+    return np.mod(centre + delta.mean(axis=0), u), delta.std(axis=0, ddof=ddof)
+
+
+def temporal_std_roi_mm(
+    depth_frames_mm: np.ndarray, valid: np.ndarray | None = None, *, unambiguous_range_mm: float | None
+) -> tuple[float, int]:
+    """ROI mean of the per-pixel temporal depth std (pixels valid in every frame) and the pixel count.
+
+    The std is circular modulo the unambiguous range (``circular_depth_stats_mm``): a depth near U wraps to
+    near 0 in some frames, and the linear std of those wrapped frames is not the camera's noise (cam75,
+    U = 1999 mm, at 1900 mm: 0.1 % wrapped pixel-frames gave 26.1 mm against 16.5 mm unwrapped).
+    ``unambiguous_range_mm=None`` only for depths already unwrapped."""
     d = np.asarray(depth_frames_mm, dtype=np.float64)
     ok = np.all(np.isfinite(d) & (d > 0), axis=0)
     if valid is not None:
         ok &= np.all(np.asarray(valid, dtype=bool), axis=0)
     if not ok.any():
         return math.nan, 0
-    std = d[:, ok].std(axis=0, ddof=1)
+    _, std = circular_depth_stats_mm(d[:, ok], unambiguous_range_mm)
     return float(std.mean()), int(ok.sum())
 
 
@@ -456,7 +493,7 @@ def calibrate_from_folders(
                     gain_samples.append((pixel_signal * (float(e["distance_mm"]) / 1000.0) ** 2 / reflectance).ravel())
             else:
                 depth_np = arr
-            std, _ = temporal_std_roi_mm(depth_np, valid)
+            std, _ = temporal_std_roi_mm(depth_np, valid, unambiguous_range_mm=partial.unambiguous_range_mm)
             if not math.isfinite(std):
                 raise CaptureFormatError(f"{path}: no pixel valid in every frame")
             range_points.append((float(e["distance_mm"]), std))
@@ -474,7 +511,16 @@ def calibrate_from_folders(
     gains = np.concatenate(gain_samples) if gain_samples else np.array([])
     gains = gains[np.isfinite(gains) & (gains > 0)]
     k_1m = float(np.median(gains)) if gains.size else None
-    calib = partial.replace(signal_min_e=a_min, signal_max_e=a_max, range_sigma_mm=alphas, signal_at_1m_e=k_1m)
+    try:
+        calib = partial.replace(signal_min_e=a_min, signal_max_e=a_max, range_sigma_mm=alphas, signal_at_1m_e=k_1m)
+    except ValueError as exc:
+        if alphas is None or "range_sigma_mm" not in str(exc):
+            raise
+        measured = ", ".join(f"{d:g} mm: {s:.3g} mm" for d, s in range_points)
+        raise CaptureFormatError(
+            f"{distances_dir}: the range-aware baseline fitted to the measured temporal std ({measured}) is not a "
+            f"usable noise model: {exc}"
+        ) from None
     return CalibrationReport(
         calibration=calib,
         sweep_points=len(phases),
@@ -515,6 +561,7 @@ __all__ = [
     "CalibrationReport",
     "calibrate_from_folders",
     "calibrate_to_file",
+    "circular_depth_stats_mm",
     "estimate_dark",
     "fit_range_sigma",
     "fit_tap_response",

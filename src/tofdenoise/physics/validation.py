@@ -8,7 +8,8 @@ Conditions
   stream) to which sigma(D) = alpha0 + alpha1 D + alpha2 D^2 is fitted by least squares.
 Returned signal: `synthetic_captures.planar_signal_e` (inverse-square law x reflectance x exposure).
 
-For each condition, `measured` = ROI mean of the per-pixel temporal depth std over the repeated frames;
+For each condition, `measured` = ROI mean of the per-pixel temporal depth std over the repeated frames (circular
+modulo the unambiguous range: ``calibrate.circular_depth_stats_mm``; pixels valid in every frame);
 `proposed` = ROI mean of sigma_D(mean depth, estimated signal) — the signal estimated from the captures
 (DC bin of the taps, or amplitude / |C1| for depth+amplitude stacks), not the simulator's input;
 `range_gaussian` = ROI mean of sigma_range(mean depth). Pooled MAPE [%] and R^2 over all conditions.
@@ -32,7 +33,12 @@ import numpy as np
 import torch
 
 from tofdenoise.atomic import atomic_write, atomic_write_text
-from tofdenoise.physics.calibrate import calibrate_from_folders, fit_range_sigma, temporal_std_roi_mm
+from tofdenoise.physics.calibrate import (
+    calibrate_from_folders,
+    circular_depth_stats_mm,
+    fit_range_sigma,
+    temporal_std_roi_mm,
+)
 from tofdenoise.physics.calibration import SensorCalibration
 from tofdenoise.physics.capture_io import load_stack, read_index, write_capture_folder
 from tofdenoise.physics.simulator import demodulate, signal_from_taps_e, simulate_frames
@@ -86,16 +92,23 @@ class StackStats:
     num_pixels: int
 
 
-def stack_stats(depth_frames_mm: np.ndarray, valid: np.ndarray | None, signal_frames_e: np.ndarray) -> StackStats:
-    """Temporal std (ROI mean) and per-pixel mean depth / signal over pixels valid in every frame."""
+def stack_stats(
+    depth_frames_mm: np.ndarray,
+    valid: np.ndarray | None,
+    signal_frames_e: np.ndarray,
+    unambiguous_range_mm: float | None,
+) -> StackStats:
+    """Temporal std (ROI mean) and per-pixel mean depth / signal over pixels valid in every frame; depth mean and
+    std circular modulo the unambiguous range (``calibrate.circular_depth_stats_mm``: a depth near U wraps)."""
     d = np.asarray(depth_frames_mm, dtype=np.float64)
     ok = np.all(np.isfinite(d) & (d > 0), axis=0)
     if valid is not None:
         ok &= np.all(valid, axis=0)
-    measured, count = temporal_std_roi_mm(d, valid)
+    measured, count = temporal_std_roi_mm(d, valid, unambiguous_range_mm=unambiguous_range_mm)
+    mean_depth, _ = circular_depth_stats_mm(d[:, ok], unambiguous_range_mm)
     return StackStats(
         measured_std_mm=measured,
-        mean_depth_mm=d[:, ok].mean(axis=0),
+        mean_depth_mm=mean_depth,
         signal_e=np.asarray(signal_frames_e, dtype=np.float64)[:, ok].mean(axis=0),
         num_frames=d.shape[0],
         num_pixels=count,
@@ -159,7 +172,7 @@ def _simulated_stats(
 ) -> StackStats:
     fr = _planar_frames(calib, distance_mm, signal_e, exposure, settings, generator)
     sig = signal_from_taps_e(fr.taps, calib, tap_axis=1)
-    return stack_stats(fr.depth_mm.numpy(), fr.valid.numpy(), sig.numpy())
+    return stack_stats(fr.depth_mm.numpy(), fr.valid.numpy(), sig.numpy(), calib.unambiguous_range_mm)
 
 
 def _streams(settings: ValidationSettings) -> dict[str, torch.Generator]:
@@ -283,7 +296,7 @@ def captured_conditions(
             reflectance=e.get("reflectance"),
             exposure=float(e.get("exposure", 1.0)),
         )
-        out.append((cond, stack_stats(depth_np, None, signal)))
+        out.append((cond, stack_stats(depth_np, None, signal, calib.unambiguous_range_mm)))
     return out
 
 
