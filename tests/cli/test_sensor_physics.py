@@ -123,6 +123,34 @@ def test_validate_command_writes_outputs(tmp_path, capsys):
     assert (tmp_path / "validation.png").stat().st_size > 10_000
 
 
+def test_validate_names_the_saturated_conditions_it_leaves_out(tmp_path, capsys):
+    """A 3-tap, 30 MHz camera with a 60 ke- full well (the audit's cam3_cal.yaml): its 500 mm range condition and
+    550 mm range-fit condition saturate in every frame. The command printed alpha = nan and wrote NaN into
+    validation.json; now the baseline is finite, the two conditions are named on stderr and in the record."""
+    from tofdenoise.physics.calibration import TapResponse
+
+    calib = default_calibration().replace(
+        num_taps=3,
+        modulation_frequency_hz=30e6,
+        tap_response=TapResponse(1.0, (0.6, 0.05, 0.0), (0.1, 0.0, 0.0)),
+        dark_mean_e=500.0,
+        dark_std_e=20.0,
+        full_well_e=60000.0,
+    )
+    sensor = save_calibration(calib, tmp_path / "cam3.yaml")
+    out = tmp_path / "v"
+    assert run(["validate", "--out", str(out), "--sensor", str(sensor), "--frames", "10", "--roi-px", "4"]) == 0
+    printed = capsys.readouterr()
+    assert "nan" not in printed.out
+    assert "2 condition(s) without a pixel valid in every frame" in printed.err
+    assert "range 500 mm" in printed.err and "range_fit 550 mm" in printed.err
+    text = (out / "validation.json").read_text()
+    assert "NaN" not in text and "Infinity" not in text
+    data = json.loads(text)
+    assert all(np.isfinite(data["range_sigma_mm"]))
+    assert [(c["group"], c["distance_mm"]) for c in data["left_out"]] == [("range", 500.0), ("range_fit", 550.0)]
+
+
 def test_sigma_prints_strict_json_and_refuses_meaningless_depths(capsys):
     from tofdenoise.cli.sensor import main
 

@@ -347,3 +347,12 @@ def test_calibrate_measures_the_circular_std_of_a_distance_near_the_unambiguous_
     assert rep.range_points[-1][1] == pytest.approx(want, rel=1e-6)
     assert 12.0 < want < 25.0
     assert float(depth[:, ok].std(axis=0, ddof=1).mean()) > 3 * want
+
+
+def test_fit_range_sigma_refuses_non_finite_points():
+    """A NaN std (a distance without valid pixels) made every coefficient NaN; now an error naming the point."""
+    d = [550.0, 650.0, 750.0, 850.0]
+    with pytest.raises(ValueError, match=r"point 0 is \(distance 550.0 mm, std nan mm\)"):
+        fit_range_sigma(d, [np.nan, 2.0, 2.5, 3.0])
+    with pytest.raises(ValueError, match="finite"):
+        fit_range_sigma([550.0, np.inf, 750.0], [1.0, 2.0, 3.0])

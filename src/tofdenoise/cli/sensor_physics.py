@@ -176,6 +176,13 @@ def cmd_validate(args: argparse.Namespace) -> int:
         f"range-aware baseline: sigma(D) = {result.range_sigma_mm[0]:.4g} + {result.range_sigma_mm[1]:.4g} D "
         f"+ {result.range_sigma_mm[2]:.4g} D^2 mm ({result.range_sigma_source})"
     )
+    if result.left_out:
+        names = [f"{c['group']} {c['distance_mm']:g} mm {c['surface']} x{c['exposure']:g}" for c in result.left_out]
+        print(
+            f"tofdenoise sensor validate: warning: {len(names)} condition(s) without a pixel valid in every frame "
+            f"left out of the metrics and the range-aware fit: {', '.join(names)}",
+            file=sys.stderr,
+        )
     print(f"{'panel':<10}{'model':<16}{'MAPE %':>9}{'R^2':>9}{'n':>5}")
     for panel, metrics in [("pooled", result.pooled), *result.panels.items()]:
         for model, m in metrics.items():

@@ -144,11 +144,21 @@ def signal_interval(
 
 
 def fit_range_sigma(distance_mm: Sequence[float], std_mm: Sequence[float]) -> tuple[float, float, float]:
-    """Least squares sigma(D) = alpha0 + alpha1 D + alpha2 D^2 (D in mm) -> (alpha0, alpha1, alpha2)."""
+    """Least squares sigma(D) = alpha0 + alpha1 D + alpha2 D^2 (D in mm) -> (alpha0, alpha1, alpha2): the paper's
+    range-aware Gaussian baseline. Every distance and std must be finite (a NaN std, e.g. of a distance with no
+    valid pixel, would make every coefficient NaN): a ValueError names the first bad point."""
     d = np.asarray(distance_mm, dtype=np.float64)
     s = np.asarray(std_mm, dtype=np.float64)
     if d.shape != s.shape or d.ndim != 1:
         raise ValueError("distance_mm and std_mm must be 1-D of the same length")
+    bad = ~(np.isfinite(d) & np.isfinite(s))
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise ValueError(
+            f"the range-aware fit needs finite distances and stds; point {i} is (distance {float(d[i])!r} mm, std "
+            f"{float(s[i])!r} mm) ({int(bad.sum())} of {d.size} points non-finite): leave out the distances without a "
+            "measured std"
+        )
     if np.unique(d).size < 3:
         raise ValueError(f"the range-aware fit needs at least 3 distinct distances, got {np.unique(d).size}")
     # centred/scaled for conditioning, then converted back to the plain polynomial
