@@ -113,6 +113,36 @@ def test_calibrate_command_round_trip(tmp_path, capsys):
     assert got.range_sigma_mm is not None
 
 
+def test_calibrate_sweep_amplitude_option_and_header(tmp_path, capsys):
+    """A 3-tap camera with c(x) = 1 + 0.5 cos x + 0.08 cos 3x: the default (auto: a phase_rad sweep, one common
+    amplitude) writes c3 = 0.08 and says so in the header; --sweep-amplitude per-step writes c3 = 0, warns on stderr
+    and in the header with the sigma_D error it may carry."""
+    from tofdenoise.physics.calibration import TapResponse
+    from tofdenoise.physics.synthetic_captures import write_dark_folder, write_sweep_folder
+
+    cam = default_calibration().replace(
+        num_taps=3,
+        modulation_frequency_hz=30e6,
+        tap_response=TapResponse(1.0, (0.5, 0.0, 0.08), (0.0, 0.0, 0.0)),
+        dark_mean_e=500.0,
+        dark_std_e=20.0,
+        full_well_e=200000.0,
+    )
+    write_sweep_folder(cam, tmp_path / "sweep", num_steps=24, num_frames=10)
+    write_dark_folder(cam, tmp_path / "dark", num_frames=20)
+    base = ["calibrate", "--sweep", str(tmp_path / "sweep"), "--dark", str(tmp_path / "dark")]
+    assert run([*base, "--out", str(tmp_path / "auto.yaml")]) == 0
+    capsys.readouterr()
+    assert load_calibration(tmp_path / "auto.yaml").tap_response.cos[2] == pytest.approx(0.08, abs=2e-3)
+    header = (tmp_path / "auto.yaml").read_text()
+    assert "# tap response: one common amplitude over the sweep" in header and "cos 3x +0.08" in header
+    assert run([*base, "--out", str(tmp_path / "step.yaml"), "--sweep-amplitude", "per-step"]) == 0
+    err = capsys.readouterr().err
+    assert "harmonic of c(x) at a multiple of N = 3" in err and "sigma_D is off by" in err
+    assert abs(load_calibration(tmp_path / "step.yaml").tap_response.cos[2]) < 1e-6
+    assert "# warning: " in (tmp_path / "step.yaml").read_text()
+
+
 def test_validate_command_writes_outputs(tmp_path, capsys):
     assert run(["validate", "--out", str(tmp_path), "--quick", "--frames", "20", "--roi-px", "8"]) == 0
     out = capsys.readouterr().out
@@ -121,6 +151,34 @@ def test_validate_command_writes_outputs(tmp_path, capsys):
     assert data["settings"]["num_frames"] == 20 and data["settings"]["roi_px"] == 8
     assert data["pooled"]["proposed"]["mape_percent"] < data["pooled"]["range_gaussian"]["mape_percent"]
     assert (tmp_path / "validation.png").stat().st_size > 10_000
+
+
+def test_validate_names_the_saturated_conditions_it_leaves_out(tmp_path, capsys):
+    """A 3-tap, 30 MHz camera with a 60 ke- full well (the audit's cam3_cal.yaml): its 500 mm range condition and
+    550 mm range-fit condition saturate in every frame. The command printed alpha = nan and wrote NaN into
+    validation.json; now the baseline is finite, the two conditions are named on stderr and in the record."""
+    from tofdenoise.physics.calibration import TapResponse
+
+    calib = default_calibration().replace(
+        num_taps=3,
+        modulation_frequency_hz=30e6,
+        tap_response=TapResponse(1.0, (0.6, 0.05, 0.0), (0.1, 0.0, 0.0)),
+        dark_mean_e=500.0,
+        dark_std_e=20.0,
+        full_well_e=60000.0,
+    )
+    sensor = save_calibration(calib, tmp_path / "cam3.yaml")
+    out = tmp_path / "v"
+    assert run(["validate", "--out", str(out), "--sensor", str(sensor), "--frames", "10", "--roi-px", "4"]) == 0
+    printed = capsys.readouterr()
+    assert "nan" not in printed.out
+    assert "2 condition(s) without a pixel valid in every frame" in printed.err
+    assert "range 500 mm" in printed.err and "range_fit 550 mm" in printed.err
+    text = (out / "validation.json").read_text()
+    assert "NaN" not in text and "Infinity" not in text
+    data = json.loads(text)
+    assert all(np.isfinite(data["range_sigma_mm"]))
+    assert [(c["group"], c["distance_mm"]) for c in data["left_out"]] == [("range", 500.0), ("range_fit", 550.0)]
 
 
 def test_sigma_prints_strict_json_and_refuses_meaningless_depths(capsys):

@@ -275,3 +275,195 @@ def test_few_dark_frames_are_used_with_a_warning_and_mixed_sweep_sizes_are_refus
     np.save(sweep / odd, np.load(sweep / odd)[:, :, :4, :])
     with pytest.raises(CaptureFormatError, match=re.escape(odd) + r".*frames of 4x8 px"):
         calibrate_from_folders(sweep, enough)
+
+
+def test_circular_depth_stats_hand_case():
+    """U = 1000 mm; a pixel at the wrap reports 990, 995, 5, 10 mm: unwrapped 990, 995, 1005, 1010 around the
+    circular mean, so mean 1000 mm = 0 (mod U) and std sqrt((100 + 25 + 25 + 100) / 3) = 9.129 mm. The linear std
+    of the wrapped values (the old measurement) is 567.6 mm."""
+    from tofdenoise.physics.calibrate import circular_depth_stats_mm
+
+    d = np.array([990.0, 995.0, 5.0, 10.0])[:, None]
+    mean, std = circular_depth_stats_mm(d, 1000.0)
+    assert std[0] == pytest.approx(np.sqrt(250.0 / 3.0), rel=1e-12)
+    assert min(mean[0], 1000.0 - mean[0]) == pytest.approx(0.0, abs=1e-9)
+    lin_mean, lin_std = circular_depth_stats_mm(d, None)
+    assert lin_std[0] == pytest.approx(np.std(d, ddof=1), rel=1e-12) and lin_std[0] > 500.0
+    # away from the wrap the circular statistics are the ordinary ones
+    far = np.array([[400.0, 410.0], [420.0, 390.0], [380.0, 400.0]])
+    m, s = circular_depth_stats_mm(far, 1000.0)
+    np.testing.assert_allclose(m, far.mean(axis=0), rtol=1e-12)
+    np.testing.assert_allclose(s, far.std(axis=0, ddof=1), rtol=1e-12)
+    with pytest.raises(ValueError, match="unambiguous_range_mm"):
+        circular_depth_stats_mm(d, 0.0)
+
+
+def test_temporal_std_is_the_unwrapped_std_near_the_unambiguous_range():
+    """Monte Carlo: Gaussian depth noise of 30 mm at 1900 mm and 16 mm at 1960 mm of a U = 1998.6 mm camera (cam75),
+    wrapped mod U as the camera reports it. The circular std equals the std of the unwrapped samples (to 1e-9); the
+    linear std of the wrapped samples is far too large."""
+    from tofdenoise.physics.calibrate import temporal_std_roi_mm
+
+    u = 1998.6163866666666
+    rng = np.random.default_rng(5)
+    for truth, noise, ratio in ((1900.0, 30.0, 1.3), (1960.0, 16.0, 5.0)):
+        unwrapped = truth + noise * rng.standard_normal((2000, 4, 4))
+        wrapped = np.mod(unwrapped, u)
+        assert (wrapped != unwrapped).any()
+        got, n = temporal_std_roi_mm(wrapped, unambiguous_range_mm=u)
+        want = float(unwrapped.std(axis=0, ddof=1).mean())
+        assert n == 16 and got == pytest.approx(want, rel=1e-9)
+        old, _ = temporal_std_roi_mm(wrapped, unambiguous_range_mm=None)
+        assert old > ratio * want
+
+
+def test_calibrate_measures_the_circular_std_of_a_distance_near_the_unambiguous_range(tmp_path):
+    """cam75 (U = 1998.6 mm), a 10 % target at 300, 600, 1000 and 1960 mm: at 1960 mm some frames wrap to a few mm.
+    The range point is the std of the demodulated frames unwrapped around the truth (17.4 mm); the linear std of
+    the wrapped frames (what calibrate used) is several times larger."""
+    import torch
+
+    from tofdenoise.physics.calibration import resolve_calibration
+    from tofdenoise.physics.simulator import default_min_amplitude_e, demodulate
+
+    cam = resolve_calibration("cam75")
+    u = cam.unambiguous_range_mm
+    sweep = write_sweep_folder(cam, tmp_path / "sweep", num_steps=12, num_frames=4)
+    dark = write_dark_folder(cam, tmp_path / "dark", num_frames=10)
+    dists = [300.0, 600.0, 1000.0, 1960.0]
+    folder = write_distances_folder(
+        cam, tmp_path / "dist", dists, num_frames=60, reflectance=0.1, signal_at_1m_e=cam.signal_at_1m_e
+    )
+    rep = calibrate_from_folders(sweep, dark, folder)
+    assert [d for d, _ in rep.range_points] == dists
+    taps = np.load(folder / "dist_003.npy")
+    depth, amp = demodulate(torch.from_numpy(taps), rep.calibration, tap_axis=1)
+    depth = depth.numpy().astype(np.float64)
+    ok = ((amp.numpy() >= default_min_amplitude_e(rep.calibration)) & (depth > 0)).all(axis=0)
+    assert ok.sum() > 32
+    assert (np.abs(depth[:, ok] - 1960.0) > u / 2).any()  # frames wrapped to near 0 mm
+    unwrapped = np.mod(depth[:, ok] - 1960.0 + u / 2, u) - u / 2 + 1960.0
+    want = float(unwrapped.std(axis=0, ddof=1).mean())
+    assert rep.range_points[-1][1] == pytest.approx(want, rel=1e-6)
+    assert 12.0 < want < 25.0
+    assert float(depth[:, ok].std(axis=0, ddof=1).mean()) > 3 * want
+
+
+def test_fit_range_sigma_refuses_non_finite_points():
+    """A NaN std (a distance without valid pixels) made every coefficient NaN; now an error naming the point."""
+    d = [550.0, 650.0, 750.0, 850.0]
+    with pytest.raises(ValueError, match=r"point 0 is \(distance 550.0 mm, std nan mm\)"):
+        fit_range_sigma(d, [np.nan, 2.0, 2.5, 3.0])
+    with pytest.raises(ValueError, match="finite"):
+        fit_range_sigma([550.0, np.inf, 750.0], [1.0, 2.0, 3.0])
+
+
+def _cam3h():
+    """The audit's 3-tap camera with a third harmonic: N = 3, 30 MHz, c(x) = 1 + 0.5 cos x + 0.08 cos 3x."""
+    return default_calibration().replace(
+        num_taps=3,
+        modulation_frequency_hz=30e6,
+        tap_response=TapResponse(1.0, (0.5, 0.0, 0.08), (0.0, 0.0, 0.0)),
+        dark_mean_e=500.0,
+        dark_std_e=20.0,
+        signal_min_e=300.0,
+        signal_max_e=30000.0,
+        full_well_e=200000.0,
+        adc_gain_e_per_dn=2.0,
+        range_sigma_mm=None,
+        signal_at_1m_e=None,
+        vignetting_cos_power=None,
+    )
+
+
+def test_common_amplitude_fit_recovers_the_harmonic_at_a_multiple_of_n():
+    """Noise-free taps a c(psi_s - theta_n), a = 20000 e- at every step, N = 3: with one common amplitude the fit is
+    exact (c3 = 0.08); normalising each step by its tap mean divides cos 3x out (mean_n cos 3(psi - theta_n) =
+    cos 3 psi) and leaves c3 = 0 and a spurious c2 = -0.08 x 0.5 / 2 = -0.020 (to first order), what calibrate gave."""
+    from tofdenoise.physics.calibrate import tap_sum_ripple
+
+    true = TapResponse(1.0, (0.5, 0.0, 0.08), (0.0, 0.0, 0.0))
+    psi = 2 * np.pi * (np.arange(24) + 0.5) / 24
+    theta = 2 * np.pi * np.arange(3) / 3
+    taps = 500.0 + 20000.0 * np.asarray(true.value(psi[:, None] - theta[None, :]))
+    got = fit_tap_response(psi, taps, 500.0, 3, common_amplitude=True)
+    assert got.c0 == pytest.approx(1.0, abs=1e-12)
+    np.testing.assert_allclose(got.cos, true.cos, atol=1e-12)
+    np.testing.assert_allclose(got.sin, true.sin, atol=1e-12)
+    per_step = fit_tap_response(psi, taps, 500.0, 3)
+    assert abs(per_step.cos[2]) < 1e-12
+    assert per_step.cos[1] == pytest.approx(-0.020, abs=5e-4)
+    # the per-step tap sums show the harmonic: sum_n c(psi - theta_n) = 3 (1 + 0.08 cos 3 psi)
+    ripple = tap_sum_ripple(psi, taps, 500.0, 3)
+    assert set(ripple.harmonics) == {3} and ripple.steps == 24
+    np.testing.assert_allclose(ripple.harmonics[3], (0.08, 0.0), atol=1e-12)
+    assert ripple.drift < 1e-12 and ripple.amplitude == pytest.approx(0.08)
+    # missing taps (clipped): left out of the one linear fit, which stays exact
+    taps[::3, 0] = np.nan
+    got = fit_tap_response(psi, taps, 500.0, 3, common_amplitude=True)
+    np.testing.assert_allclose(got.cos, true.cos, atol=1e-12)
+    # N = 4 with K = 3: no multiple of N among the fitted harmonics, nothing to tell apart
+    assert tap_sum_ripple(psi, np.ones((24, 4)) * 1000.0, 0.0, 3).harmonics == {}
+
+
+def test_ripple_sigma_error_is_the_sigma_error_of_the_per_step_fit():
+    """The sigma_D error that ``ripple_sigma_error`` names for a per-step fit of the N = 3 camera is the one the
+    per-step fit makes against the true c(x): over a period at 2000 e- the per-step fit is -10.9 % / +13.3 % off
+    (lowest / highest), the tap sums' estimate says -10.8 % / +13.5 %."""
+    from tofdenoise.physics.calibrate import ripple_sigma_error, tap_sum_ripple
+
+    cam = _cam3h()
+    psi = 2 * np.pi * (np.arange(24) + 0.5) / 24
+    theta = 2 * np.pi * np.arange(3) / 3
+    taps = 500.0 + 20000.0 * np.asarray(cam.tap_response.value(psi[:, None] - theta[None, :]))
+    fitted = cam.replace(tap_response=fit_tap_response(psi, taps, 500.0, 3))
+    lo, hi = ripple_sigma_error(fitted, tap_sum_ripple(psi, taps, 500.0, 3), 2000.0)
+    depth = np.linspace(0.0, cam.unambiguous_range_mm, 257)[1:]
+    ratio = sigma_depth_mm(depth, np.full_like(depth, 2000.0), fitted) / sigma_depth_mm(
+        depth, np.full_like(depth, 2000.0), cam
+    )
+    assert lo == pytest.approx(ratio.min() - 1, abs=0.005) and hi == pytest.approx(ratio.max() - 1, abs=0.005)
+    assert lo < -0.09 and hi > 0.11
+
+
+def test_calibrate_recovers_the_third_harmonic_of_a_3_tap_camera_against_monte_carlo(tmp_path):
+    """Simulated captures of the N = 3 camera (c3 = 0.08): the phase_rad sweep is fitted with one common amplitude,
+    c3 = 0.0800 (was 8e-17, with c2 = -0.020), and sigma_D at 800 / 1800 mm (a = 20000 e-) is -0.9 % / -2.2 % off
+    the Monte Carlo std of the simulated camera (as the true calibration is: the linearisation), where the per-step
+    fit is +11.6 % / -11.3 % off. Steps given by distance_mm (a moving target) are normalised per step, with a
+    warning naming the sigma_D error it may carry (-11.5 % to +15.1 % at 20 ke-)."""
+    import torch
+
+    from tofdenoise.physics.simulator import simulate_frames
+
+    cam = _cam3h()
+    sweep = write_sweep_folder(cam, tmp_path / "sweep", num_steps=24, num_frames=20)
+    dark = write_dark_folder(cam, tmp_path / "dark", num_frames=100)
+    rep = calibrate_from_folders(sweep, dark)
+    tr = rep.calibration.tap_response
+    assert rep.sweep_amplitude == "common" and not rep.warnings
+    np.testing.assert_allclose(tr.cos, (0.5, 0.0, 0.08), atol=2e-3)
+    assert "harmonics at multiples of N fitted" in rep.tap_response_summary()
+    assert "cos 3x +0.080" in rep.tap_response_summary()
+    per_step = calibrate_from_folders(sweep, dark, sweep_amplitude="per-step").calibration
+    assert abs(per_step.tap_response.cos[2]) < 1e-6 and per_step.tap_response.cos[1] == pytest.approx(-0.02, abs=2e-3)
+    for d in (800.0, 1800.0):
+        frames = simulate_frames(
+            torch.full((1, 1), d), torch.full((1, 1), 20000.0), cam, 20000, generator=torch.Generator().manual_seed(1)
+        )
+        mc = float(frames.depth_mm.double().std())
+        assert float(sigma_depth_mm(d, 20000.0, rep.calibration)) == pytest.approx(mc, rel=0.03)
+        assert abs(float(sigma_depth_mm(d, 20000.0, per_step)) / mc - 1) > 0.08
+    # a sweep that moves the target (distance_mm steps): per-step normalisation, and a warning with the sigma_D error
+    index = json.loads((sweep / "index.json").read_text())
+    for entry in index["stacks"]:
+        entry["distance_mm"] = entry.pop("phase_rad") / cam.phase_per_mm
+    (sweep / "index.json").write_text(json.dumps(index))
+    moved = calibrate_from_folders(sweep, dark)
+    assert moved.sweep_amplitude == "per-step" and abs(moved.calibration.tap_response.cos[2]) < 1e-6
+    (warning,) = moved.warnings
+    assert re.search(
+        r"sweep: per-step tap sums vary by 8\.0\d % .*sigma_D is off by -1\d\.\d % to \+1\d\.\d %", warning
+    )
+    with pytest.raises(ValueError, match="sweep_amplitude must be one of"):
+        calibrate_from_folders(sweep, dark, sweep_amplitude="fixed")

@@ -64,3 +64,23 @@ def test_saturation_is_the_brightest_expected_tap_at_the_full_well():
     np.testing.assert_allclose(peak_tap_e(depth, signal, CALIB), signal * r_max + CALIB.dark_mean_e)
     np.testing.assert_array_equal(saturated(depth, signal, CALIB), [False, False, True, True, True])
     assert not saturated(np.array([0.0]), np.array([1e9]), CALIB).any()  # invalid depth: no decision
+
+
+def test_the_default_calibrations_saturation_distances_stated_in_the_docs():
+    """docs/physics.md (``signal_at_1m_e`` row): K = 120 ke-, full well 100 ke-, dark 2 ke-. A white frontal target at
+    1 m returns a = 120 ke-; its brightest tap, hand-computed from c(x) = 1 + 0.5 cos x + 0.01 cos 3x at the four
+    taps, is 173.9 ke-, far above the full well. White (rho = 1) saturates at every distance from 0.3 m out to
+    1346 mm, rho = 0.9 out to 1259 mm (the docs said "white at 0.9 m and nearer"); a 5 % surface at 2.4 m returns
+    1042 e-."""
+    k = CALIB.signal_at_1m_e
+    assert (k, CALIB.full_well_e, CALIB.dark_mean_e) == (120000.0, 100000.0, 2000.0)
+    psi = 4 * math.pi * CALIB.modulation_frequency_hz * 1000.0 / 299792458e3
+    x = psi - 2 * math.pi * np.arange(4) / 4
+    peak = 120000.0 * float(np.max(1 + 0.5 * np.cos(x) + 0.01 * np.cos(3 * x))) + 2000.0
+    assert peak == pytest.approx(173.9e3, abs=50)
+    assert float(peak_tap_e(1000.0, inverse_square_signal_e(1.0, 1.0, 1000.0, k), CALIB)) == pytest.approx(peak)
+    d = np.arange(300.0, 2000.0, 1.0)
+    for rho, last in ((1.0, 1346.0), (0.9, 1259.0)):
+        sat = saturated(d, inverse_square_signal_e(rho, 1.0, d, k), CALIB)
+        np.testing.assert_array_equal(sat, d <= last)
+    assert float(inverse_square_signal_e(0.05, 1.0, 2400.0, k)) == pytest.approx(1042, abs=1)

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from tofdenoise.physics.calibrate import fit_range_sigma
 from tofdenoise.physics.calibration import default_calibration
 from tofdenoise.physics.capture_io import CaptureFormatError, write_capture_folder
 from tofdenoise.physics.simulator import simulate_frames
@@ -149,3 +150,68 @@ def test_captures_of_another_modulation_frequency_are_refused_not_reported_as_a_
     ):
         run_validation(other, captures_dir=folder)
     assert run_validation(camera, captures_dir=folder).settings == {"captures": str(folder)}
+
+
+def _three_tap_camera(full_well_e: float):
+    """The audit's 3-tap camera (cam3_cal.yaml): 30 MHz, c(x) = 1 + 0.6 cos x + 0.05 cos 2x + 0.1 sin x,
+    dark 500 e- / 20 e-. A 0.9 planar target returns a = 15000 x 0.9 (1000 / D)^2 e-; its brightest tap is
+    max_n a c(psi - theta_n) + 500 e- (hand-computed below from these numbers)."""
+    from tofdenoise.physics.calibration import TapResponse
+
+    return default_calibration().replace(
+        num_taps=3,
+        modulation_frequency_hz=30e6,
+        tap_response=TapResponse(1.0, (0.6, 0.05, 0.0), (0.1, 0.0, 0.0)),
+        dark_mean_e=500.0,
+        dark_std_e=20.0,
+        full_well_e=full_well_e,
+        adc_gain_e_per_dn=2.0,
+        range_sigma_mm=None,
+    )
+
+
+def test_saturated_conditions_are_left_out_of_the_range_fit_named_and_the_record_is_strict_json(tmp_path):
+    """Full well 60 ke-: the brightest tap at 500 mm (range panel, 84.7 ke-) and 550 mm (range-fit sequence,
+    69.0 ke-) is above it in every frame, at 600 mm (57.1 ke-) and 650 mm (47.8 ke-) below it. The fit was NaN
+    (alpha = [nan, nan, nan], range MAPE / R^2 nan, 48 NaN tokens in validation.json); now the 550 mm condition is
+    left out of the fit as the 500 mm one is of the metrics, both named, and the fit is the least squares of the
+    other nine distances."""
+    calib = _three_tap_camera(60000.0)
+    result = run_validation(calib, ValidationSettings(num_frames=20, roi_px=6))
+    empty = {(c.group, c.distance_mm) for c in result.conditions if c.num_pixels == 0}
+    assert empty == {("range", 500.0), ("range_fit", 550.0)}
+    assert [(c["group"], c["distance_mm"]) for c in result.left_out] == [("range", 500.0), ("range_fit", 550.0)]
+    fit = [c for c in result.conditions if c.group == "range_fit" and c.num_pixels > 0]
+    assert len(fit) == 9
+    want = fit_range_sigma([c.distance_mm for c in fit], [c.measured_std_mm for c in fit])
+    np.testing.assert_allclose(result.range_sigma_mm, want, rtol=1e-12)
+    assert "9 of 10 distances" in result.range_sigma_source and "550 mm" in result.range_sigma_source
+    assert result.pooled["proposed"]["n"] == result.pooled["range_gaussian"]["n"] == 22
+    for metrics in [result.pooled, *result.panels.values()]:
+        for m in metrics.values():
+            assert np.isfinite(m["mape_percent"]) and np.isfinite(m["r2"])
+    json_path, _ = write_validation(result, calib, tmp_path)
+
+    def refuse(token):
+        raise AssertionError(f"validation.json holds {token}: not strict JSON")
+
+    data = json.loads(json_path.read_text(), parse_constant=refuse)
+    assert [c["distance_mm"] for c in data["left_out"]] == [500.0, 550.0]
+    row = next(c for c in data["conditions"] if c["group"] == "range_fit" and c["distance_mm"] == 550.0)
+    assert row["num_pixels"] == 0 and row["measured_std_mm"] is None and row["proposed_std_mm"] is None
+
+
+def test_a_range_fit_sequence_left_with_too_few_distances_is_an_error_naming_them():
+    """Full well 12.5 ke-: only 1350 and 1450 mm of the range-fit sequence stay below it (brightest tap 12.0 / 10.7
+    ke-; 1250 mm: 13.4 ke-): two distances cannot fit three coefficients."""
+    calib = _three_tap_camera(12500.0)
+    with pytest.raises(ValueError, match=r"2 of the 10 'range_fit' conditions .* left out: 550 mm, 650 mm.*1250 mm\)"):
+        run_validation(calib, ValidationSettings(num_frames=10, roi_px=4))
+
+
+def test_strict_json_replaces_non_finite_numbers():
+    from tofdenoise.physics.validation import strict_json
+
+    got = strict_json({"a": [1.0, float("nan"), np.float32("inf")], "b": (np.int64(3), "x", None), "c": -np.inf})
+    assert got == {"a": [1.0, None, None], "b": [3, "x", None], "c": None}
+    assert json.dumps(got, allow_nan=False)

@@ -124,6 +124,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         full_well_e=args.full_well_e,
         lower_percentile=lo,
         upper_percentile=hi,
+        sweep_amplitude=args.sweep_amplitude,
     )
     if report.clipped_samples:
         worst = sorted(report.clipped_by_file.items(), key=lambda kv: -kv[1])[:3]
@@ -176,6 +177,13 @@ def cmd_validate(args: argparse.Namespace) -> int:
         f"range-aware baseline: sigma(D) = {result.range_sigma_mm[0]:.4g} + {result.range_sigma_mm[1]:.4g} D "
         f"+ {result.range_sigma_mm[2]:.4g} D^2 mm ({result.range_sigma_source})"
     )
+    if result.left_out:
+        names = [f"{c['group']} {c['distance_mm']:g} mm {c['surface']} x{c['exposure']:g}" for c in result.left_out]
+        print(
+            f"tofdenoise sensor validate: warning: {len(names)} condition(s) without a pixel valid in every frame "
+            f"left out of the metrics and the range-aware fit: {', '.join(names)}",
+            file=sys.stderr,
+        )
     print(f"{'panel':<10}{'model':<16}{'MAPE %':>9}{'R^2':>9}{'n':>5}")
     for panel, metrics in [("pooled", result.pooled), *result.panels.items()]:
         for model, m in metrics.items():
@@ -248,6 +256,15 @@ def add_commands(subparsers: Any) -> None:
         default=(1.0, 99.0),
         metavar=("LO", "HI"),
         help="percentiles of the returned signal giving [signal_min_e, signal_max_e] (default 1 99)",
+    )
+    p.add_argument(
+        "--sweep-amplitude",
+        choices=("auto", "common", "per-step"),
+        default="auto",
+        help="tap-response fit over the sweep: common (a target at a fixed distance, the same signal at every step: "
+        "every harmonic fitted), per-step (a moving target: each step normalised by its own level, harmonics at "
+        "multiples of the tap count not recoverable); auto (default): common when every sweep entry gives "
+        "phase_rad, per-step when an entry gives only distance_mm",
     )
     p.set_defaults(func=cmd_calibrate)
 

@@ -1,17 +1,21 @@
 """Sensor calibration from captures (paper Sec. III-A and IV).
 
 - Tap response c(x): phase sweep of a uniform planar target; at every phase step psi_s the repeated
-  frames are averaged (and over the ROI), the dark offset removed, each step normalised by its own
-  signal level a_s = mean_n(tap) (convention c0 = 1, which also cancels a signal that changes with the
-  target distance), and a Fourier series of K harmonics is fitted by least squares to the points
-  (x = psi_s - theta_n, y = tap_n / a_s).
+  frames are averaged (and over the ROI), the dark offset removed, and a Fourier series of K harmonics is fitted
+  by least squares to the points (x = psi_s - theta_n, y = tap_n), convention c0 = 1. A sweep of a target at a
+  fixed distance (steps given by ``phase_rad``, e.g. an emitter delay) returns the same signal a at every step:
+  one common amplitude, y = a c(x), which recovers every harmonic. A sweep that moves the target (steps given by
+  ``distance_mm``) changes the signal from step to step: each step is normalised by its own level
+  a_s = mean_n(tap) instead, y = tap_n / a_s, which divides out the harmonics of c at multiples of N
+  (``tap_sum_ripple`` measures what it cannot tell apart).
 - Dark offset mu_dark and residual noise sigma_dark from emitter-off frames (the paper uses 100):
   mu_dark = mean of all values; sigma_dark^2 = mean over pixels and taps of the temporal variance.
 - Signal interval [a_min, a_max]: lower/upper percentiles of the valid per-pixel returned signal (valid: not
   clipped, and above the camera's amplitude threshold in the frame, as the camera itself decides)
   (temporal mean of the DC bin, (mean_n y_n - mu_dark) / c0) of the captured tap stacks.
 - Range-aware baseline: sigma(D) = alpha0 + alpha1 D + alpha2 D^2 fitted by least squares to the
-  ROI-averaged temporal depth std of an independent planar distance sequence.
+  ROI-averaged temporal depth std of an independent planar distance sequence (circular std modulo the
+  unambiguous range U: ``circular_depth_stats_mm``).
 - Photometric gain ``signal_at_1m_e`` (the physical signal route), when the distance stacks name their target's
   reflectance (``target_reflectance``): the median over valid pixels of a (D / 1 m)^2 / rho. Vignetting is not
   measured (a flat-field capture would be needed): the calibration has none unless it is added by hand.
@@ -39,6 +43,7 @@ from tofdenoise.physics.calibration import (
 )
 from tofdenoise.physics.capture_io import INDEX_NAME, CaptureFormatError, clipped_samples, load_stack, read_index
 from tofdenoise.physics.simulator import default_min_amplitude_e, demodulate
+from tofdenoise.physics.uncertainty import sigma_depth_mm
 
 
 def _design(x: np.ndarray, num_harmonics: int) -> np.ndarray:
@@ -51,17 +56,26 @@ def fit_tap_response(
     mean_taps_e: np.ndarray,
     dark_mean_e: float,
     num_harmonics: int = 3,
+    common_amplitude: bool = False,
 ) -> TapResponse:
-    """Least-squares Fourier fit of c(x) from per-step mean taps (S, N) at target phases psi_s (S,).
-
-    Each step is normalised by its signal level a_s = mean_n(tap_n - mu_dark), so c0 ~ 1.
+    """Least-squares Fourier fit of c(x) from per-step mean taps (S, N) at target phases psi_s (S,), c0 = 1.
     Needs at least 2K+1 distinct sample phases psi_s - theta_n.
 
+    The model (paper Sec. III-A): tap_n - mu_dark = a_s c(psi_s - theta_n), theta_n = 2 pi n / N.
+
+    ``common_amplitude=True`` (a target at a fixed distance: the same returned signal a at every step): one
+    linear least-squares fit of a c(x) to every present tap, then divided by its constant term. Every harmonic
+    is recovered, those at multiples of N included.
+
+    ``common_amplitude=False`` (the signal changes from step to step, e.g. a moving target): each step is
+    normalised by its own level a_s = mean_n(tap_n - mu_dark). Since sum_n cos(k N (psi - theta_n)) =
+    N cos(k N psi), a_s = a (c0 + sum_k c_kN cos(k N psi_s) + s_kN sin(k N psi_s)): the harmonics of c at
+    multiples of N are divided out with the signal (fitted as ~0) and leak into the others (N = 3,
+    c = 1 + 0.5 cos x + 0.08 cos 3x: c3 = 0, c2 = -0.020). ``tap_sum_ripple`` measures them.
     A NaN entry is a missing tap (e.g. clipped at the full well at that step). A step with missing taps has
-    no tap mean to normalise by; its a_s is estimated with c(x) instead (the model tap_n - mu_dark =
-    a_s c(psi_s - theta_n), c0 = 1): a_s and c are refined alternately (a_s = sum y c / sum c^2 over the
-    step's present taps, then c from all points) until they settle. Without missing taps this is the
-    closed-form fit above.
+    no tap mean to normalise by; its a_s is estimated with c(x) instead: a_s and c are refined alternately
+    (a_s = sum y c / sum c^2 over the step's present taps, then c from all points) until they settle. Without
+    missing taps this is the closed-form fit above.
     """
     psi = np.asarray(phase_rad, dtype=np.float64).reshape(-1)
     taps = np.asarray(mean_taps_e, dtype=np.float64)
@@ -94,8 +108,14 @@ def fit_tap_response(
             f"phase sweep has {distinct} distinct sample phases; {design.shape[1]} are needed for "
             f"{num_harmonics} harmonics (add phase steps or lower num_harmonics)"
         )
-    coef = np.linalg.lstsq(design, (sig / a_s)[present], rcond=None)[0]
-    if not complete.all():
+    if common_amplitude:
+        coef = np.linalg.lstsq(design, sig[present], rcond=None)[0]
+        if not coef[0] > 0:
+            raise ValueError(f"the sweep has no returned signal above the dark offset (fitted level {coef[0]:g} e-)")
+        coef = coef / coef[0]
+    else:
+        coef = np.linalg.lstsq(design, (sig / a_s)[present], rcond=None)[0]
+    if not complete.all() and not common_amplitude:
         full_design = _design(x_all.reshape(-1), num_harmonics)
         for _ in range(500):
             coef = coef / coef[0]  # convention c0 = 1 (the scale lives in a_s)
@@ -112,6 +132,87 @@ def fit_tap_response(
     return TapResponse(
         c0=float(coef[0]), cos=tuple(float(v) for v in coef[1 : K + 1]), sin=tuple(float(v) for v in coef[K + 1 :])
     )
+
+
+@dataclass(frozen=True)
+class TapSumRipple:
+    """How the per-step tap sums of a phase sweep vary with the target phase (``tap_sum_ripple``)."""
+
+    #: harmonic order j = k N of c(x) (j <= K) -> (p, q): the tap sums' relative ripple p cos(j psi) + q sin(j psi)
+    harmonics: dict[int, tuple[float, float]]
+    #: rms of the relative tap sums about that periodic fit: a change of the signal that is no harmonic
+    drift: float
+    #: complete steps (every tap present) used
+    steps: int
+
+    @property
+    def amplitude(self) -> float:
+        """Largest relative ripple sqrt(p^2 + q^2) over the harmonics (0 without any)."""
+        return max((math.hypot(p, q) for p, q in self.harmonics.values()), default=0.0)
+
+    def describe(self) -> str:
+        if not self.harmonics:
+            return (
+                f"no multiple of N among the fitted harmonics of c(x); the signal drifts by {100 * self.drift:.2f} % "
+                f"rms over {self.steps} steps"
+            )
+        parts = ", ".join(f"cos {j}x {p:+.4f}, sin {j}x {q:+.4f}" for j, (p, q) in sorted(self.harmonics.items()))
+        return (
+            f"per-step tap sums vary by {100 * self.amplitude:.2f} % with period 2 pi / N in the target phase "
+            f"({parts}), and drifts by {100 * self.drift:.2f} % rms beyond it over {self.steps} steps"
+        )
+
+
+def tap_sum_ripple(
+    phase_rad: Sequence[float] | np.ndarray, mean_taps_e: np.ndarray, dark_mean_e: float, num_harmonics: int
+) -> TapSumRipple:
+    """The harmonics of c(x) at multiples of N as the per-step tap sums of a sweep show them.
+
+    Tap sums T_s = sum_n (tap_n - mu_dark) of the complete steps, fitted by least squares as
+    T_s = T (1 + sum_{j = kN <= K} p_j cos(j psi_s) + q_j sin(j psi_s)). With the model
+    tap_n - mu_dark = a c(psi_s - theta_n) and a constant signal a, sum_n c(psi - 2 pi n / N) =
+    N (c0 + sum_j c_j cos(j psi) + s_j sin(j psi)), so (p_j, q_j) = (c_j, s_j) / c0: the harmonics that a
+    per-step normalisation divides out. ``drift`` (the rms of T_s / T about the fit) is a change of the returned
+    signal from step to step that no harmonic explains. Steps with a missing (NaN) tap are left out."""
+    psi = np.asarray(phase_rad, dtype=np.float64).reshape(-1)
+    taps = np.asarray(mean_taps_e, dtype=np.float64)
+    n = taps.shape[1]
+    complete = np.isfinite(taps).all(axis=1)
+    total = (taps[complete] - dark_mean_e).sum(axis=1)
+    psi = psi[complete]
+    orders = [j for j in range(n, num_harmonics + 1, n)]
+    cols = [np.ones_like(psi)] + [f(j * psi) for j in orders for f in (np.cos, np.sin)]
+    if psi.size <= len(cols) or not np.all(total > 0):
+        return TapSumRipple({}, math.nan, int(psi.size))
+    design = np.stack(cols, axis=1)
+    coef, *_ = np.linalg.lstsq(design, total, rcond=None)
+    rel = coef[1:] / coef[0]
+    resid = total / coef[0] - design @ (coef / coef[0])
+    harmonics = {j: (float(rel[2 * i]), float(rel[2 * i + 1])) for i, j in enumerate(orders)}
+    return TapSumRipple(harmonics, float(np.sqrt(np.mean(resid**2))), int(psi.size))
+
+
+def ripple_sigma_error(calib: SensorCalibration, ripple: TapSumRipple, signal_e: float) -> tuple[float, float]:
+    """The sigma_D error of a tap response fitted with per-step normalisation, if the tap sums' ripple is a
+    harmonic of c(x) and not a change of the signal: (lowest, highest) of sigma_D(fitted c) / sigma_D(c') - 1
+    over one unambiguous range at ``signal_e``, where c'(x) = c(x) (1 + sum_j p_j cos(j x) + q_j sin(j x))
+    (per-step normalisation fits c'(x) / (1 + r(x)); j psi = j x mod 2 pi for j a multiple of N), refitted to the
+    same K harmonics. (0, 0) without a ripple."""
+    if not ripple.harmonics:
+        return 0.0, 0.0
+    tr = calib.tap_response
+    k = len(tr.cos)
+    x = np.linspace(0.0, 2.0 * np.pi, 4 * (k + max(ripple.harmonics)) + 16, endpoint=False)
+    r = sum(p * np.cos(j * x) + q * np.sin(j * x) for j, (p, q) in ripple.harmonics.items())
+    coef = np.linalg.lstsq(_design(x, k), np.asarray(tr.value(x), dtype=np.float64) * (1.0 + r), rcond=None)[0]
+    coef = coef / coef[0]
+    corrected = calib.replace(
+        tap_response=TapResponse(1.0, tuple(float(v) for v in coef[1 : k + 1]), tuple(float(v) for v in coef[k + 1 :]))
+    )
+    depth = np.linspace(0.0, calib.unambiguous_range_mm, 257)[1:]
+    signal = np.full_like(depth, float(signal_e))
+    ratio = sigma_depth_mm(depth, signal, calib) / sigma_depth_mm(depth, signal, corrected) - 1.0
+    return float(np.min(ratio)), float(np.max(ratio))
 
 
 def estimate_dark(stacks_e: Sequence[np.ndarray]) -> tuple[float, float]:
@@ -143,11 +244,21 @@ def signal_interval(
 
 
 def fit_range_sigma(distance_mm: Sequence[float], std_mm: Sequence[float]) -> tuple[float, float, float]:
-    """Least squares sigma(D) = alpha0 + alpha1 D + alpha2 D^2 (D in mm) -> (alpha0, alpha1, alpha2)."""
+    """Least squares sigma(D) = alpha0 + alpha1 D + alpha2 D^2 (D in mm) -> (alpha0, alpha1, alpha2): the paper's
+    range-aware Gaussian baseline. Every distance and std must be finite (a NaN std, e.g. of a distance with no
+    valid pixel, would make every coefficient NaN): a ValueError names the first bad point."""
     d = np.asarray(distance_mm, dtype=np.float64)
     s = np.asarray(std_mm, dtype=np.float64)
     if d.shape != s.shape or d.ndim != 1:
         raise ValueError("distance_mm and std_mm must be 1-D of the same length")
+    bad = ~(np.isfinite(d) & np.isfinite(s))
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise ValueError(
+            f"the range-aware fit needs finite distances and stds; point {i} is (distance {float(d[i])!r} mm, std "
+            f"{float(s[i])!r} mm) ({int(bad.sum())} of {d.size} points non-finite): leave out the distances without a "
+            "measured std"
+        )
     if np.unique(d).size < 3:
         raise ValueError(f"the range-aware fit needs at least 3 distinct distances, got {np.unique(d).size}")
     # centred/scaled for conditioning, then converted back to the plain polynomial
@@ -160,15 +271,51 @@ def fit_range_sigma(distance_mm: Sequence[float], std_mm: Sequence[float]) -> tu
     return float(a0), float(a1), float(a2)
 
 
-def temporal_std_roi_mm(depth_frames_mm: np.ndarray, valid: np.ndarray | None = None) -> tuple[float, int]:
-    """ROI mean of the per-pixel temporal depth std (pixels valid in every frame) and the pixel count."""
+def circular_depth_stats_mm(
+    depth_frames_mm: np.ndarray, unambiguous_range_mm: float | None, ddof: int = 1
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per-pixel temporal mean and std of depths that a camera measures modulo its unambiguous range.
+
+    The camera measures the phase psi = 4 pi f D / c = 2 pi D / U (paper Eq. 2) only modulo 2 pi, so its depth is
+    D mod U with U = c / (2 f) (``SensorCalibration.unambiguous_range_mm``): a pixel at 1990 mm of a U = 1999 mm
+    camera reports some frames near 1990 mm and others near 0 mm. Circular statistics over the frames (axis 0):
+
+        m = U / (2 pi) arg( mean_t exp(i 2 pi D_t / U) )                (circular mean)
+        delta_t = ((D_t - m + U/2) mod U) - U/2  in [-U/2, U/2)          (deviation, wrapped)
+        mean = (m + mean_t delta_t) mod U,   std = sqrt( sum_t (delta_t - mean_t delta_t)^2 / (F - ddof) )
+
+    i.e. the samples unwrapped around the circular mean, m + delta_t, and their ordinary mean and std: exactly the
+    std of the unwrapped depths whenever every frame lies within U/2 of the circular mean (a temporal noise far
+    below U), and the ordinary mean and std when no frame wrapped. ``unambiguous_range_mm=None``: depths already
+    unwrapped (ordinary mean and std). Returns (mean, std), each of shape ``depth_frames_mm.shape[1:]``."""
+    d = np.asarray(depth_frames_mm, dtype=np.float64)
+    if unambiguous_range_mm is None:
+        return d.mean(axis=0), d.std(axis=0, ddof=ddof)
+    u = float(unambiguous_range_mm)
+    if not (math.isfinite(u) and u > 0):
+        raise ValueError(f"unambiguous_range_mm must be a finite number > 0, got {unambiguous_range_mm!r}")
+    turn = 2.0 * np.pi / u
+    centre = np.mod(np.angle(np.exp(1j * turn * d).mean(axis=0)) / turn, u)
+    delta = np.mod(d - centre + 0.5 * u, u) - 0.5 * u
+    return np.mod(centre + delta.mean(axis=0), u), delta.std(axis=0, ddof=ddof)
+
+
+def temporal_std_roi_mm(
+    depth_frames_mm: np.ndarray, valid: np.ndarray | None = None, *, unambiguous_range_mm: float | None
+) -> tuple[float, int]:
+    """ROI mean of the per-pixel temporal depth std (pixels valid in every frame) and the pixel count.
+
+    The std is circular modulo the unambiguous range (``circular_depth_stats_mm``): a depth near U wraps to
+    near 0 in some frames, and the linear std of those wrapped frames is not the camera's noise (cam75,
+    U = 1999 mm, at 1900 mm: 0.1 % wrapped pixel-frames gave 26.1 mm against 16.5 mm unwrapped).
+    ``unambiguous_range_mm=None`` only for depths already unwrapped."""
     d = np.asarray(depth_frames_mm, dtype=np.float64)
     ok = np.all(np.isfinite(d) & (d > 0), axis=0)
     if valid is not None:
         ok &= np.all(np.asarray(valid, dtype=bool), axis=0)
     if not ok.any():
         return math.nan, 0
-    std = d[:, ok].std(axis=0, ddof=1)
+    _, std = circular_depth_stats_mm(d[:, ok], unambiguous_range_mm)
     return float(std.mean()), int(ok.sum())
 
 
@@ -178,6 +325,12 @@ MAX_CLIPPED_TAP_FRACTION: float = 0.5
 #: a sweep or distance step needs at least this fraction of unclipped samples (sweep: tap samples;
 #: distances: pixels unclipped in every frame), else it is an error naming the file
 MIN_UNCLIPPED_FRACTION: float = 0.1
+#: how ``calibrate_from_folders`` fits the tap response over the sweep's steps (``fit_tap_response``)
+SWEEP_AMPLITUDES: tuple[str, ...] = ("auto", "common", "per-step")
+#: a per-step fit whose tap sums' ripple would change sigma_D by this fraction (``ripple_sigma_error``) is a warning
+RIPPLE_SIGMA_WARNING: float = 0.01
+#: a common-amplitude fit whose tap sums drift by more than this (rms, relative) is a warning
+SWEEP_DRIFT_WARNING: float = 0.01
 #: the paper's number of emitter-off frames; fewer are used, with a warning (at least 2: a temporal variance)
 MIN_DARK_FRAMES: int = 100
 
@@ -205,6 +358,20 @@ class CalibrationReport:
     clipped_by_file: dict[str, int] = field(default_factory=dict)
     #: what the calibration was made from that falls short of the procedure (e.g. fewer dark frames than 100)
     warnings: list[str] = field(default_factory=list)
+    #: how the tap response was fitted: "common" (one amplitude over the sweep) or "per-step" (each step
+    #: normalised by its own level); see ``fit_tap_response``
+    sweep_amplitude: str = "common"
+    #: the per-step tap sums' variation with the target phase (``tap_sum_ripple``)
+    ripple: TapSumRipple | None = None
+
+    def tap_response_summary(self) -> str:
+        """How the tap response was fitted and what the sweep's tap sums show, in one line (the file header)."""
+        how = {
+            "common": "one common amplitude over the sweep (a fixed target), harmonics at multiples of N fitted",
+            "per-step": "each step normalised by its own level (a moving target), harmonics at multiples of N "
+            "not recoverable",
+        }[self.sweep_amplitude]
+        return how + ("" if self.ripple is None else f"; {self.ripple.describe()}")
 
     def clipping_summary(self) -> str:
         if not self.clipped_samples:
@@ -314,13 +481,23 @@ def calibrate_from_folders(
     lower_percentile: float = 1.0,
     upper_percentile: float = 99.0,
     min_unclipped_fraction: float = MIN_UNCLIPPED_FRACTION,
+    sweep_amplitude: str = "auto",
 ) -> CalibrationReport:
     """Run the whole calibration procedure on capture folders (format: tofdenoise.physics.capture_io).
 
     Tap samples at the full well (``full_well_e``, else the sweep index's) or at their dtype's maximum are
     clipped: they are left out of every estimate and counted in the report. Every error names the file or
     folder it comes from.
+
+    ``sweep_amplitude`` (``fit_tap_response``): "common" (a target at a fixed distance: the same returned signal
+    at every step; every harmonic of c(x) is fitted), "per-step" (the signal changes from step to step: each step
+    normalised by its own level; harmonics at multiples of N cannot be recovered), or "auto": "common" when every
+    sweep entry gives ``phase_rad`` (the phase set by an emitter delay), "per-step" when any gives only
+    ``distance_mm`` (the target moved). A "per-step" fit whose tap sums vary with period 2 pi / N enough to change
+    sigma_D by 1 % or more, or a "common" fit whose signal drifts by more than 1 % rms, is a warning.
     """
+    if sweep_amplitude not in SWEEP_AMPLITUDES:
+        raise ValueError(f"sweep_amplitude must be one of {', '.join(SWEEP_AMPLITUDES)}, got {sweep_amplitude!r}")
     dark_idx = read_index(dark_dir, "dark")
     dark_stacks = [load_stack(dark_idx, e["file"], ndim=(4,)) for e in dark_idx.stacks]
     try:
@@ -378,7 +555,11 @@ def calibrate_from_folders(
             f"capacity (--full-well-e)"
         )
     try:
-        tap_response = fit_tap_response(np.array(phases), np.stack(means), dark_mean, num_harmonics)
+        if sweep_amplitude == "auto":
+            sweep_amplitude = "common" if all("phase_rad" in e for e in sweep_idx.stacks) else "per-step"
+        tap_response = fit_tap_response(
+            np.array(phases), np.stack(means), dark_mean, num_harmonics, common_amplitude=sweep_amplitude == "common"
+        )
     except ValueError as exc:
         msg = str(exc)
         match = re.match(r"sweep step (\d+): (.*)", msg)
@@ -456,7 +637,7 @@ def calibrate_from_folders(
                     gain_samples.append((pixel_signal * (float(e["distance_mm"]) / 1000.0) ** 2 / reflectance).ravel())
             else:
                 depth_np = arr
-            std, _ = temporal_std_roi_mm(depth_np, valid)
+            std, _ = temporal_std_roi_mm(depth_np, valid, unambiguous_range_mm=partial.unambiguous_range_mm)
             if not math.isfinite(std):
                 raise CaptureFormatError(f"{path}: no pixel valid in every frame")
             range_points.append((float(e["distance_mm"]), std))
@@ -467,6 +648,26 @@ def calibrate_from_folders(
         raise CaptureFormatError(f"{where}: {exc}") from None
     if a_max <= a_min:
         a_max = a_min * (1.0 + 1e-6)
+    ripple = tap_sum_ripple(np.array(phases), np.stack(means), dark_mean, num_harmonics)
+    if sweep_amplitude == "per-step" and ripple.harmonics:
+        a_ref = math.sqrt(a_min * a_max)
+        lo, hi = ripple_sigma_error(partial.replace(signal_min_e=a_min, signal_max_e=a_max), ripple, a_ref)
+        if max(-lo, hi) >= RIPPLE_SIGMA_WARNING:
+            warnings.append(
+                f"{sweep_idx.folder}: {ripple.describe()}. Each step was normalised by its own level (per-step: a "
+                "signal that changes from step to step, e.g. a moving target), which cannot tell a harmonic of c(x) "
+                f"at a multiple of N = {partial.num_taps} from a change of the returned signal: such harmonics are "
+                "fitted as 0. If this variation is one, sigma_D is "
+                f"off by {100 * lo:+.1f} % to {100 * hi:+.1f} % over the unambiguous range at a = {a_ref:.0f} e-; "
+                "sweep a target at a fixed distance (phase_rad steps, an emitter delay) to fit it"
+            )
+    elif sweep_amplitude == "common" and math.isfinite(ripple.drift) and ripple.drift > SWEEP_DRIFT_WARNING:
+        warnings.append(
+            f"{sweep_idx.folder}: the returned signal changes from step to step by {100 * ripple.drift:.2f} % rms "
+            "beyond any harmonic of c(x); the tap response was fitted with one common amplitude (a target at a "
+            "fixed distance). If the target moved, give the steps' distance_mm instead of phase_rad (or "
+            "--sweep-amplitude per-step)"
+        )
     try:
         alphas = fit_range_sigma(*zip(*range_points)) if range_points else None
     except ValueError as exc:
@@ -474,7 +675,16 @@ def calibrate_from_folders(
     gains = np.concatenate(gain_samples) if gain_samples else np.array([])
     gains = gains[np.isfinite(gains) & (gains > 0)]
     k_1m = float(np.median(gains)) if gains.size else None
-    calib = partial.replace(signal_min_e=a_min, signal_max_e=a_max, range_sigma_mm=alphas, signal_at_1m_e=k_1m)
+    try:
+        calib = partial.replace(signal_min_e=a_min, signal_max_e=a_max, range_sigma_mm=alphas, signal_at_1m_e=k_1m)
+    except ValueError as exc:
+        if alphas is None or "range_sigma_mm" not in str(exc):
+            raise
+        measured = ", ".join(f"{d:g} mm: {s:.3g} mm" for d, s in range_points)
+        raise CaptureFormatError(
+            f"{distances_dir}: the range-aware baseline fitted to the measured temporal std ({measured}) is not a "
+            f"usable noise model: {exc}"
+        ) from None
     return CalibrationReport(
         calibration=calib,
         sweep_points=len(phases),
@@ -484,6 +694,8 @@ def calibrate_from_folders(
         tap_samples=tally.total,
         clipped_by_file=tally.by_file,
         warnings=warnings,
+        sweep_amplitude=sweep_amplitude,
+        ripple=ripple,
     )
 
 
@@ -502,7 +714,8 @@ def calibrate_to_file(
     header = (
         f"Calibrated by tofdenoise sensor calibrate\nsweep: {sweep_dir} ({report.sweep_points} steps)\n"
         f"dark: {dark_dir} ({report.dark_frames} frames)\ndistances: {distances_dir or '-'}\n"
-        f"clipping: {report.clipping_summary()}" + "".join(f"\nwarning: {w}" for w in report.warnings)
+        f"clipping: {report.clipping_summary()}\ntap response: {report.tap_response_summary()}"
+        + "".join(f"\nwarning: {w}" for w in report.warnings)
     )
     return report, save_calibration(report.calibration, out, header=header)
 
@@ -512,9 +725,16 @@ __all__ = [
     "MAX_CLIPPED_TAP_FRACTION",
     "target_reflectance",
     "MIN_UNCLIPPED_FRACTION",
+    "RIPPLE_SIGMA_WARNING",
+    "SWEEP_AMPLITUDES",
+    "SWEEP_DRIFT_WARNING",
+    "TapSumRipple",
+    "ripple_sigma_error",
+    "tap_sum_ripple",
     "CalibrationReport",
     "calibrate_from_folders",
     "calibrate_to_file",
+    "circular_depth_stats_mm",
     "estimate_dark",
     "fit_range_sigma",
     "fit_tap_response",

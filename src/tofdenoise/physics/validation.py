@@ -8,10 +8,14 @@ Conditions
   stream) to which sigma(D) = alpha0 + alpha1 D + alpha2 D^2 is fitted by least squares.
 Returned signal: `synthetic_captures.planar_signal_e` (inverse-square law x reflectance x exposure).
 
-For each condition, `measured` = ROI mean of the per-pixel temporal depth std over the repeated frames;
+For each condition, `measured` = ROI mean of the per-pixel temporal depth std over the repeated frames (circular
+modulo the unambiguous range: ``calibrate.circular_depth_stats_mm``; pixels valid in every frame);
 `proposed` = ROI mean of sigma_D(mean depth, estimated signal) — the signal estimated from the captures
 (DC bin of the taps, or amplitude / |C1| for depth+amplitude stacks), not the simulator's input;
 `range_gaussian` = ROI mean of sigma_range(mean depth). Pooled MAPE [%] and R^2 over all conditions.
+A condition without a pixel valid in every frame (e.g. saturated) has no measured std: it is left out of the
+metrics and of the range-aware fit alike and named in ``ValidationResult.left_out`` (``validation.json``'s
+``left_out``); a range-fit sequence left with fewer than 3 distinct distances is an error.
 
 By default the captures come from the tap-level simulator (Poisson shot noise, Gaussian dark/read noise,
 ADC quantisation, third harmonic, atan2 demodulation: effects the WLS model leaves out or linearises);
@@ -32,7 +36,12 @@ import numpy as np
 import torch
 
 from tofdenoise.atomic import atomic_write, atomic_write_text
-from tofdenoise.physics.calibrate import calibrate_from_folders, fit_range_sigma, temporal_std_roi_mm
+from tofdenoise.physics.calibrate import (
+    calibrate_from_folders,
+    circular_depth_stats_mm,
+    fit_range_sigma,
+    temporal_std_roi_mm,
+)
 from tofdenoise.physics.calibration import SensorCalibration
 from tofdenoise.physics.capture_io import load_stack, read_index, write_capture_folder
 from tofdenoise.physics.simulator import demodulate, signal_from_taps_e, simulate_frames
@@ -86,16 +95,23 @@ class StackStats:
     num_pixels: int
 
 
-def stack_stats(depth_frames_mm: np.ndarray, valid: np.ndarray | None, signal_frames_e: np.ndarray) -> StackStats:
-    """Temporal std (ROI mean) and per-pixel mean depth / signal over pixels valid in every frame."""
+def stack_stats(
+    depth_frames_mm: np.ndarray,
+    valid: np.ndarray | None,
+    signal_frames_e: np.ndarray,
+    unambiguous_range_mm: float | None,
+) -> StackStats:
+    """Temporal std (ROI mean) and per-pixel mean depth / signal over pixels valid in every frame; depth mean and
+    std circular modulo the unambiguous range (``calibrate.circular_depth_stats_mm``: a depth near U wraps)."""
     d = np.asarray(depth_frames_mm, dtype=np.float64)
     ok = np.all(np.isfinite(d) & (d > 0), axis=0)
     if valid is not None:
         ok &= np.all(valid, axis=0)
-    measured, count = temporal_std_roi_mm(d, valid)
+    measured, count = temporal_std_roi_mm(d, valid, unambiguous_range_mm=unambiguous_range_mm)
+    mean_depth, _ = circular_depth_stats_mm(d[:, ok], unambiguous_range_mm)
     return StackStats(
         measured_std_mm=measured,
-        mean_depth_mm=d[:, ok].mean(axis=0),
+        mean_depth_mm=mean_depth,
         signal_e=np.asarray(signal_frames_e, dtype=np.float64)[:, ok].mean(axis=0),
         num_frames=d.shape[0],
         num_pixels=count,
@@ -159,7 +175,7 @@ def _simulated_stats(
 ) -> StackStats:
     fr = _planar_frames(calib, distance_mm, signal_e, exposure, settings, generator)
     sig = signal_from_taps_e(fr.taps, calib, tap_axis=1)
-    return stack_stats(fr.depth_mm.numpy(), fr.valid.numpy(), sig.numpy())
+    return stack_stats(fr.depth_mm.numpy(), fr.valid.numpy(), sig.numpy(), calib.unambiguous_range_mm)
 
 
 def _streams(settings: ValidationSettings) -> dict[str, torch.Generator]:
@@ -283,13 +299,22 @@ def captured_conditions(
             reflectance=e.get("reflectance"),
             exposure=float(e.get("exposure", 1.0)),
         )
-        out.append((cond, stack_stats(depth_np, None, signal)))
+        out.append((cond, stack_stats(depth_np, None, signal, calib.unambiguous_range_mm)))
     return out
 
 
 # ----------------------------------------------------------------------------------------------------
 # the experiment
 # ----------------------------------------------------------------------------------------------------
+
+
+#: distinct distances the range-aware fit needs (three coefficients)
+RANGE_FIT_MIN_DISTANCES: int = 3
+
+
+def has_measured_std(item: StackStats | Condition) -> bool:
+    """A stack (or its condition) has a measured temporal std: a pixel valid in every frame, and a finite std."""
+    return item.num_pixels > 0 and math.isfinite(item.measured_std_mm)
 
 
 @dataclass
@@ -301,19 +326,41 @@ class ValidationResult:
     panels: dict[str, dict[str, dict[str, float]]]
     source: str
     settings: dict[str, Any] = field(default_factory=dict)
+    #: the conditions without a pixel valid in every frame (no measured std), left out of the metrics and of the
+    #: range-aware fit: {"group", "distance_mm", "surface", "exposure", "reason"}
+    left_out: list[dict[str, Any]] = field(default_factory=list)
 
     def to_dict(self, calib: SensorCalibration) -> dict[str, Any]:
-        return {
-            "source": self.source,
-            "settings": self.settings,
-            "calibration": calib.to_dict(),
-            "calibration_fingerprint": calib.fingerprint(),
-            "range_sigma_mm": list(self.range_sigma_mm),
-            "range_sigma_source": self.range_sigma_source,
-            "conditions": [asdict(c) for c in self.conditions],
-            "pooled": self.pooled,
-            "panels": self.panels,
-        }
+        """The result as a strict-JSON object: a value that is not a finite number (the std of a condition without
+        valid pixels, an R^2 of equal measurements) is ``None`` (``null``)."""
+        return strict_json(
+            {
+                "source": self.source,
+                "settings": self.settings,
+                "calibration": calib.to_dict(),
+                "calibration_fingerprint": calib.fingerprint(),
+                "range_sigma_mm": list(self.range_sigma_mm),
+                "range_sigma_source": self.range_sigma_source,
+                "left_out": self.left_out,
+                "conditions": [asdict(c) for c in self.conditions],
+                "pooled": self.pooled,
+                "panels": self.panels,
+            }
+        )
+
+
+def strict_json(value: Any) -> Any:
+    """``value`` with every float that is not finite (NaN, +-inf) replaced by ``None``, through dicts, lists and
+    tuples: what ``json.dumps(..., allow_nan=False)`` accepts."""
+    if isinstance(value, dict):
+        return {k: strict_json(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [strict_json(v) for v in value]
+    if isinstance(value, (float, np.floating)):
+        return float(value) if math.isfinite(value) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    return value
 
 
 def _metrics(conds: list[Condition]) -> dict[str, dict[str, float]]:
@@ -337,10 +384,39 @@ def run_validation(
     else:
         pairs = captured_conditions(calib, captures_dir)
         source = f"captures: {captures_dir}"
+    where = source if captures_dir is None else f"{Path(captures_dir) / 'index.json'}"
+    left_out = [
+        {
+            "group": c.group,
+            "distance_mm": c.distance_mm,
+            "surface": c.surface,
+            "exposure": c.exposure,
+            "reason": f"no pixel valid in every one of its {s.num_frames} frames (saturated, or too dark for a "
+            "depth, in some frame)",
+        }
+        for c, s in pairs
+        if not has_measured_std(s)
+    ]
     fit_pairs = [(c, s) for c, s in pairs if c.group == "range_fit"]
     if fit_pairs:
-        alpha = fit_range_sigma([c.distance_mm for c, _ in fit_pairs], [s.measured_std_mm for _, s in fit_pairs])
+        usable = [(c, s) for c, s in fit_pairs if has_measured_std(s)]
+        distinct = len({c.distance_mm for c, _ in usable})
+        if distinct < RANGE_FIT_MIN_DISTANCES:
+            dropped = [f"{c.distance_mm:g} mm" for c, s in fit_pairs if not has_measured_std(s)]
+            raise ValueError(
+                f"{where}: {len(usable)} of the {len(fit_pairs)} 'range_fit' conditions have a pixel valid in every "
+                f"frame ({distinct} distinct distances; left out: {', '.join(dropped) or 'none'}); the range-aware "
+                f"fit sigma(D) = alpha0 + alpha1 D + alpha2 D^2 needs at least {RANGE_FIT_MIN_DISTANCES} distinct "
+                "distances (saturated or too dark: lower the exposure or the reflectance, or use another sequence)"
+            )
+        alpha = fit_range_sigma([c.distance_mm for c, _ in usable], [s.measured_std_mm for _, s in usable])
         alpha_source = "least squares on the independent range_fit sequence"
+        if len(usable) < len(fit_pairs):
+            alpha_source += (
+                f" ({len(usable)} of {len(fit_pairs)} distances; left out without valid pixels: "
+                + ", ".join(f"{c.distance_mm:g} mm" for c, s in fit_pairs if not has_measured_std(s))
+                + ")"
+            )
     elif calib.range_sigma_mm is not None:
         alpha = calib.range_sigma_mm
         alpha_source = "calibration range_sigma_mm"
@@ -351,13 +427,13 @@ def run_validation(
         cond.signal_e = float(np.mean(st.signal_e)) if st.num_pixels else math.nan
         cond.measured_std_mm = st.measured_std_mm
         cond.num_frames, cond.num_pixels = st.num_frames, st.num_pixels
-        if st.num_pixels:
+        if has_measured_std(st):
             cond.proposed_std_mm = predict_proposed_mm(st, calib)
             cond.range_gaussian_std_mm = predict_range_mm(st.mean_depth_mm, alpha)
         conds.append(cond)
-    evaluated = [c for c in conds if c.group in ("range", "signal") and c.num_pixels > 0]
+    evaluated = [c for c in conds if c.group in ("range", "signal") and has_measured_std(c)]
     if not evaluated:
-        raise ValueError("no 'range' or 'signal' condition with valid pixels to evaluate")
+        raise ValueError(f"{where}: no 'range' or 'signal' condition with valid pixels to evaluate")
     panels = {
         g: _metrics([c for c in evaluated if c.group == g])
         for g in ("range", "signal")
@@ -371,6 +447,7 @@ def run_validation(
         panels=panels,
         source=source,
         settings=asdict(settings) if captures_dir is None else {"captures": str(captures_dir)},
+        left_out=left_out,
     )
 
 
@@ -462,12 +539,13 @@ def write_validation(
     result: ValidationResult, calib: SensorCalibration, out_dir: str | os.PathLike[str]
 ) -> tuple[Path, Path]:
     """``validation.json`` (the result, the calibration, and under ``provenance`` when, at which commit and on which
-    machine it was written: :func:`~tofdenoise.records.provenance.written_provenance`) and ``validation.png``."""
+    machine it was written: :func:`~tofdenoise.records.provenance.written_provenance`) and ``validation.png``.
+    ``validation.json`` is strict JSON: a value that is not a finite number is written as ``null``."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     json_path = out / VALIDATION_FILES[0]
     record = {**result.to_dict(calib), "provenance": written_provenance()}
-    atomic_write_text(json_path, json.dumps(record, indent=2, allow_nan=True) + "\n")
+    atomic_write_text(json_path, json.dumps(strict_json(record), indent=2, allow_nan=False) + "\n")
     png = plot_validation(result, out / VALIDATION_FILES[1])
     return json_path, png
 
@@ -513,6 +591,9 @@ __all__ = [
     "mape_percent",
     "plot_validation",
     "r2_score",
+    "RANGE_FIT_MIN_DISTANCES",
+    "has_measured_std",
+    "strict_json",
     "run_validation",
     "simulated_conditions",
     "validate_to_folder",
