@@ -197,6 +197,29 @@ def write_bag(
     return path
 
 
+def write_image_bag(path, version: int, images, camera_infos=()) -> Path:
+    """A bag of ``sensor_msgs/Image`` messages in the order given: ``images`` = (topic, header stamp ns, array,
+    encoding) each, logged 1 ms apart whatever their header stamps (a driver's stamps need not be unique or in
+    order); ``camera_infos`` = (topic, k 9 values, width, height), one message each, logged first."""
+    path = Path(path)
+    writer, typestore, serialize = _bag_writer(path, version)
+    image, info = "sensor_msgs/msg/Image", "sensor_msgs/msg/CameraInfo"
+    log_ns = 1_000_000_000
+    with writer:
+        connections = {}
+        for topic, k, width, height in camera_infos:
+            conn = writer.add_connection(topic, info, typestore=typestore)
+            writer.write(conn, log_ns, serialize(_camera_info(typestore, log_ns, k, width, height), info))
+            log_ns += 1_000_000
+        for topic, stamp, array, encoding in images:
+            if topic not in connections:
+                connections[topic] = writer.add_connection(topic, image, typestore=typestore)
+            msg = _image(typestore, stamp, np.asarray(array), encoding)
+            writer.write(connections[topic], log_ns, serialize(msg, image))
+            log_ns += 1_000_000
+    return path
+
+
 # ------------------------------------------------------------------------------ image_transport compressed forms
 def rvl_encode(pixels) -> bytes:
     """RVL (Wilson 2017), pixel by pixel: runs of zeros / non-zeros, zig-zag deltas, 3-bit VLE nibbles."""

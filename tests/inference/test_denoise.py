@@ -64,6 +64,22 @@ def test_signal_channel_model_needs_amplitude(tmp_path, make_restorer_ckpt):
     assert out.shape == d.shape and np.isfinite(out).all()
 
 
+def test_an_amplitude_without_a_finite_value_where_the_depth_is_valid_is_refused_as_in_the_command(
+    tmp_path, make_restorer_ckpt
+):
+    """The API restored a frame from an all-NaN amplitude (read as 0 everywhere: a signal channel of nothing) where
+    the command refuses that amplitude; now the same check (``frames.checked_amplitude``), and a NaN block is 0."""
+    model = load_restorer(make_restorer_ckpt(tmp_path / "sig.ckpt", conditioning={"use_signal_channel": True}))
+    d = frame()
+    with pytest.raises(ValueError, match=r"denoise: amplitude \(for depth_mm\) holds no finite value where the depth"):
+        tofdenoise.denoise(d, model, amplitude=np.full(d.shape, np.nan))
+    amp = np.full(d.shape, 100.0)
+    amp[:4] = np.nan
+    np.testing.assert_array_equal(
+        tofdenoise.denoise(d, model, amplitude=amp), tofdenoise.denoise(d, model, amplitude=np.nan_to_num(amp))
+    )
+
+
 def test_not_a_depthrestorer_checkpoint_is_named(tmp_path):
     junk = tmp_path / "junk.ckpt"
     junk.write_bytes(b"not a checkpoint")

@@ -312,3 +312,170 @@ def test_find_recordings_and_frames_split_the_inputs(tmp_path, recording_files):
     assert find_frames([root / "a.mkv"]) == []  # a recording given directly is not a frame file
     assert [r.rel.as_posix() for r in find_recordings([root / "sub" / "c", root / "a.mkv"])] == ["c", "a.mkv"]
     assert find_recordings([root], exclude=[root / "sub"]) == find_recordings([root / "a.mkv"])
+
+
+# ------------------------------------------------------------------ timestamps, pairing, ranges, intrinsics (audit)
+DEPTH, IR = "/c/depth/image_raw", "/c/ir/image_raw"
+
+
+def wall(value, h: int = H, w: int = W, dtype=np.uint16) -> np.ndarray:
+    return np.full((h, w), value, dtype)
+
+
+@pytest.mark.parametrize("version", [1, 2])
+def test_repeated_header_stamps_keep_every_depth_frame_and_pair_no_amplitude(tmp_path, recording_files, version):
+    """A driver stamping whole seconds: 5 depth frames all stamped 100 s, the IR one frame late (D0 D1 I0 D2 I1 ...).
+    The reader kept 2-3 frames (a dict keyed by stamp) and gave frames 1-4 the previous frame's IR; now 5 frames in
+    order, none with an amplitude (which is whose is ambiguous), and a note naming the shared stamp."""
+    stamp = 100 * 10**9
+    depth = [(DEPTH, stamp, wall(1000 + 100 * i), "16UC1") for i in range(5)]
+    ir = [(IR, stamp, wall(100 * (i + 1)), "mono16") for i in range(5)]
+    order = [depth[0], depth[1], ir[0], depth[2], ir[1], depth[3], ir[2], depth[4], ir[3], ir[4]]
+    path = recording_files.write_image_bag(tmp_path / ("c.bag" if version == 1 else "c"), version, order)
+    rec = open_recording(path)
+    assert rec.amplitude_name == IR and rec.scan() == 5
+    frames = list(rec.frames())
+    assert [f.index for f in frames] == [0, 1, 2, 3, 4]
+    assert [float(f.depth_mm[0, 0]) for f in frames] == [1000.0, 1100.0, 1200.0, 1300.0, 1400.0]
+    assert all(f.amplitude is None and f.stamp_ns == stamp for f in frames)
+    assert all("shared by 5 depth and 5 amplitude frame(s)" in f.no_amplitude for f in frames)
+    assert "ambiguous" in frames[0].no_amplitude and sorted(rec.no_amplitude) == [0, 1, 2, 3, 4]
+    assert len(rec.notes) == 1 and "5 of its 5 depth frames share a timestamp" in rec.notes[0]
+    assert "100000000000 ns" in rec.notes[0] and "every depth frame is kept" in rec.notes[0]
+    # the amplitude not used: not read at all, the same 5 depth frames
+    bare = open_recording(path, use_amplitude=False)
+    assert bare.amplitude_name is None and bare.scan() == 5 and bare.no_amplitude == {}
+    assert [float(f.depth_mm[0, 0]) for f in bare.frames()] == [1000.0, 1100.0, 1200.0, 1300.0, 1400.0]
+
+
+def test_a_shared_depth_stamp_leaves_the_other_frames_paired_and_all_frames_in_order(tmp_path, recording_files):
+    """Frames 0 and 1 share a stamp with one IR message (logged after both): both kept, neither paired; frame 2
+    paired. Then late, missing, early and stray IR messages: every frame comes out in index order with its own."""
+    s0, s2 = 1_700_000_000_000_000_000, 1_700_000_000_066_666_666
+    msgs = [(DEPTH, s0, wall(1000), "16UC1"), (DEPTH, s0, wall(1100), "16UC1"), (IR, s0, wall(500), "mono16")]
+    msgs += [(DEPTH, s2, wall(1200), "16UC1"), (IR, s2, wall(600), "mono16")]
+    rec = open_recording(recording_files.write_image_bag(tmp_path / "dup.bag", 1, msgs))
+    frames = list(rec.frames())
+    assert [(f.index, float(f.depth_mm[0, 0])) for f in frames] == [(0, 1000.0), (1, 1100.0), (2, 1200.0)]
+    assert frames[0].amplitude is None and frames[1].amplitude is None
+    assert "shared by 2 depth and 1 amplitude frame(s)" in frames[0].no_amplitude
+    assert np.array_equal(frames[2].amplitude, wall(600, dtype=np.float32)) and frames[2].no_amplitude == ""
+
+    s = [1_700_000_000_000_000_000 + i * 33_333_333 for i in range(5)]
+    d = [(DEPTH, s[i], wall(1000 + 100 * i), "16UC1") for i in range(5)]
+    ir = [(IR, s[i], wall(10 + i), "mono16") for i in range(5)]
+    # IR 1 missing, IR 3 two frames late, IR 4 before its depth, a stray IR of a stamp no depth has
+    order = [d[0], ir[0], d[1], d[2], ir[2], d[3], ir[4], d[4], ir[3], (IR, s[0] + 5, wall(99), "mono16")]
+    rec = open_recording(recording_files.write_image_bag(tmp_path / "late", 2, order))
+    frames = list(rec.frames())
+    assert [f.index for f in frames] == [0, 1, 2, 3, 4]  # the old reader gave 0, 1, 2, 4, 3
+    assert [None if f.amplitude is None else int(f.amplitude[0, 0]) for f in frames] == [10, None, 12, 13, 14]
+    assert rec.no_amplitude == {1: f"no amplitude frame of its timestamp ({s[1]} ns) in {IR}"} and rec.notes == []
+
+
+def test_32fc1_depths_beyond_65535_mm_fail_their_frame_as_in_a_frame_file(tmp_path, recording_files):
+    """A "no return" coded as FLT_MAX metres became an infinite valid depth, 1e6 m a valid 1e9 mm; now the frame is
+    refused by the frame files' rule, naming the count, the largest and the frame; NaN / 0 / -1 stay invalid."""
+    d = np.full((3, H, W), 1.25, np.float32)
+    d[0, 0, :4] = np.finfo(np.float32).max
+    d[1, 0, :3] = 1e6
+    d[2, 0, 0], d[2, 0, 1], d[2, 0, 2] = np.nan, 0.0, -1.0
+    rec = open_recording(recording_files.write_bag(tmp_path / "far.bag", 1, d, "32FC1"))
+    assert rec.scan() == 3  # decodable: the check of the whole recording passes, the frames fail alone
+    frames = list(rec.frames())
+    with pytest.raises(RecordingError, match=r"frame 0, topic /camera/depth/image_raw at \d+ ns: 4 valid pixel"):
+        _ = frames[0].depth_mm
+    with pytest.raises(RecordingError, match=r"3 valid pixel\(s\) deeper than 65535 mm \(the largest 1e\+09 mm"):
+        frames[1].frame("x")
+    assert frames[2].valid.sum() == H * W - 3 and frames[2].depth_mm[0, :3].tolist() == [0.0, 0.0, 0.0]
+    assert np.all(frames[2].depth_mm[1:] == np.float32(1250.0))
+
+
+def test_camera_info_comes_from_the_depth_topics_namespace_only(tmp_path, recording_files):
+    """The only CameraInfo being the colour camera's was used for the depth; with two depth topics the chosen one
+    got the other's. Now only <ns>/camera_info of the depth topic <ns>/image_raw, else none, saying what it has."""
+    s = 1_700_000_000_000_000_000
+    color = [("/cam/color/camera_info", [300.0, 0, 16, 0, 300.0, 12, 0, 0, 1], W, H)]
+    one = [("/cam/depth/image_raw", s, wall(1000), "16UC1")]
+    rec = open_recording(recording_files.write_image_bag(tmp_path / "color.bag", 1, one, color))
+    assert rec.intrinsics is None
+    assert rec.intrinsics_absent() == (
+        "no CameraInfo of its depth topic /cam/depth/image_raw: expected /cam/depth/camera_info; its CameraInfo "
+        "topics: /cam/color/camera_info (one of another namespace belongs to another camera or image)"
+    )
+    two = one + [("/cam/aligned_depth_to_color/image_raw", s, wall(2000), "16UC1")]
+    own = [("/cam/depth/camera_info", [20.0, 0, 7.5, 0, 21.0, 5.5, 0, 0, 1], W, H)]
+    path = recording_files.write_image_bag(tmp_path / "two.bag", 1, two, own)
+    aligned = open_recording(path)
+    assert aligned.depth_name == "/cam/aligned_depth_to_color/image_raw" and aligned.intrinsics is None
+    depth = open_recording(path, depth="/cam/depth/image_raw")
+    assert (depth.intrinsics.fx, depth.intrinsics.fy, depth.intrinsics.cx, depth.intrinsics.cy) == (20, 21, 7.5, 5.5)
+    assert "/cam/depth/camera_info" in depth.intrinsics.source
+    # image_transport's compressed topic of the depth belongs to the same namespace
+    from tofdenoise.inference.recordings import camera_info_topic
+
+    assert camera_info_topic("/cam/depth/image_rect_raw/compressedDepth") == "/cam/depth/camera_info"
+
+
+def test_an_uncalibrated_camera_info_is_an_error_only_when_the_intrinsics_are_read(tmp_path, recording_files):
+    """K all zero (a driver without a calibration file) failed opening the recording; now only reading the
+    intrinsics (a point cloud) fails, naming the topic and --intrinsics."""
+    path = recording_files.write_bag(tmp_path / "z.bag", 1, depth_stack_mm(2), camera_info=([0.0] * 9, W, H))
+    rec = open_recording(path)
+    assert rec.scan() == 2 and len(list(rec.frames())) == 2
+    with pytest.raises(RecordingError, match=r"CameraInfo /camera/depth/camera_info has K = .*all zero.*--intrinsics"):
+        _ = rec.intrinsics
+
+
+def test_an_amplitude_of_another_size_is_named_for_its_frame_and_not_read_when_unused(tmp_path, recording_files):
+    """One IR frame of another size aborted the recording in the middle (an error inside frames()); now scan()
+    names that frame's amplitude as unusable, the other frames keep theirs, and unused it is not read at all."""
+    s = [1_700_000_000_000_000_000 + i * 33_333_333 for i in range(4)]
+    msgs = []
+    for i in range(4):
+        msgs.append((DEPTH, s[i], wall(1000 + 10 * i), "16UC1"))
+        msgs.append((IR, s[i], wall(300, *((2 * H, 2 * W) if i == 2 else (H, W))), "mono16"))
+    path = recording_files.write_image_bag(tmp_path / "irsize.bag", 1, msgs)
+    rec = open_recording(path)
+    assert rec.scan() == 4
+    assert rec.no_amplitude == {
+        2: f"the amplitude frame of its timestamp ({s[2]} ns) in {IR} is {2 * W} x {2 * H} pixels; expected "
+        f"{W} x {H} like its depth"
+    }
+    frames = list(rec.frames())
+    assert [f.amplitude is None for f in frames] == [False, False, True, False]
+    assert [float(f.depth_mm[0, 0]) for f in frames] == [1000.0, 1010.0, 1020.0, 1030.0]
+    bare = open_recording(path, use_amplitude=False)
+    assert bare.scan() == 4 and all(f.amplitude is None and f.no_amplitude == "" for f in bare.frames())
+
+
+def test_a_recording_frame_goes_through_the_frame_files_amplitude_check(tmp_path, recording_files):
+    """A 32FC1 IR frame all NaN (a dropped stream) went to the network as NaN; now ``frame()`` refuses it as
+    ``load_frame`` refuses such an amplitude file, and a NaN block is invalid (0 for the network)."""
+    s = [1_700_000_000_000_000_000, 1_700_000_000_033_333_333]
+    ir1 = (np.arange(H * W).reshape(H, W) + 50).astype(np.float32)
+    ir1[:4] = np.nan
+    msgs = [(DEPTH, s[0], wall(1000), "16UC1"), (IR, s[0], np.full((H, W), np.nan, np.float32), "32FC1")]
+    msgs += [(DEPTH, s[1], wall(1000), "16UC1"), (IR, s[1], ir1, "32FC1")]
+    frames = list(open_recording(recording_files.write_image_bag(tmp_path / "nan.bag", 1, msgs)).frames())
+    with pytest.raises(ValueError, match=rf"amplitude message of {IR} at {s[0]} ns \(for recording .*nan\.bag frame 0"):
+        frames[0].frame("f0")
+    f1 = frames[1].frame("f1")
+    assert np.array_equal(f1.amplitude_valid, np.isfinite(ir1))
+    assert np.array_equal(f1.amplitude, np.where(np.isfinite(ir1), ir1, 0).astype(np.float32))
+    assert frames[1].frame("f1", amplitude=False).amplitude is None
+
+
+def test_kinect_ir_is_not_read_when_unused(tmp_path, recording_files):
+    d, ir = depth_stack_mm(3), ir_stack(3)
+    path = recording_files.write_kinect_mkv(tmp_path / "k.mkv", d, ir, calibration=b"not json")
+    rec = open_recording(path, use_amplitude=False)
+    assert rec.amplitude_name is None and rec.scan() == 3
+    frames = list(rec.frames())
+    assert all(f.amplitude is None for f in frames) and [f.index for f in frames] == [0, 1, 2]
+    assert np.array_equal(frames[1].depth_mm, d[1].astype(np.float32))
+    with pytest.raises(RecordingError, match="calibration.json"):  # a bad calibration: only when read
+        _ = rec.intrinsics
+    paired = open_recording(path)
+    assert paired.scan() == 3 and paired.no_amplitude == {}
+    assert all(np.array_equal(f.amplitude, ir[f.index].astype(np.float32)) for f in paired.frames())

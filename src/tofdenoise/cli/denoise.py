@@ -7,15 +7,17 @@
 
 INPUT: depth frames or folders of them (searched recursively): 16-bit PNG/TIFF in mm (0 = invalid), ``.npy``
 float mm (NaN/0/negative = invalid) or ``.exr``; or recordings (``tofdenoise.inference.recordings``): Azure Kinect
-``.mkv``, ROS 1 ``.bag``, ROS 2 bag folders, whose frames go to ``OUT/<recording>/frame_NNNNNN.*`` (a recording is
-checked whole before its first frame is written). Outputs mirror the input sub-folders under ``--out``
+``.mkv``, ROS 1 ``.bag``, ROS 2 bag folders, whose frames go to ``OUT/<recording>/frame_NNNNNN.*`` with
+``OUT/<recording>/frames.csv`` (each frame written and its timestamp; a recording is checked whole before its first
+frame is written, and every depth message is one frame). A recording's units are its encoding's: with a recording
+among the inputs ``--depth-scale-mm`` is refused. Outputs mirror the input sub-folders under ``--out``
 (``tofdenoise.inference.outputs``). Frames are processed one at a time (memory bounded by one frame; a frame whose
 activations do not fit the memory budget runs tile by tile, ``tofdenoise.training.tile_memory``, and the summary says
-which frames did). A frame that fails (unreadable, 8-bit/colour, amplitude missing or of another shape, depths
-implausible in millimetres without ``--depth-scale-mm`` ...) is reported and the others go on; the exit status is
-1 when any frame failed, 2 for a bad command line, checkpoint or calibration, or an output that would replace an
-input (``tofdenoise.output_guard``: checked for every frame before anything is written), 0 otherwise. See
-docs/denoise.md.
+which frames did). A frame that fails (unreadable, 8-bit/colour, amplitude missing, ambiguous or of another shape,
+depths implausible in millimetres without ``--depth-scale-mm`` ...) is reported and the others go on; the exit
+status is 1 when any frame failed, 2 for a bad command line, checkpoint or calibration, or an output that would
+replace an input or be written by two inputs (``tofdenoise.output_guard``: checked for every frame before anything
+is written), 0 otherwise. The summary names, per recording, the streams and intrinsics used. See docs/denoise.md.
 """
 
 from __future__ import annotations
@@ -78,9 +80,10 @@ def build_parser() -> argparse.ArgumentParser:
         "--depth-scale-mm",
         type=float,
         default=None,
-        help="millimetres per stored depth unit (default 1, and then a frame whose median valid depth lies below "
-        "300 mm, the training scenes' nearest depth, or beyond the sensor's unambiguous range (--sensor, else the "
-        "default camera: 2998 mm) is refused as not in mm; e.g. 0.25, 0.1, 10 for cm, 1000 for metres)",
+        help="millimetres per stored depth unit of frame files (default 1, and then a frame whose median valid depth "
+        "lies below 300 mm, the training scenes' nearest depth, or beyond the sensor's unambiguous range (--sensor, "
+        "else the default camera: 2998 mm) is refused as not in mm; e.g. 0.25, 0.1, 10 for cm, 1000 for metres); "
+        "refused with recordings, whose units are their encoding's",
     )
     p.add_argument("--fill-holes", action="store_true", help="give invalid input pixels a restored depth too")
     p.add_argument("--npy", action="store_true", help="also write the restored depth as float32 .npy (mm)")
@@ -98,7 +101,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--ply",
         action="store_true",
         help="also write <stem>.ply: the restored valid pixels as a point cloud [m] (needs the intrinsics: "
-        "--intrinsics, a Kinect recording's calibration or a bag's CameraInfo)",
+        "--intrinsics, a Kinect recording's calibration or the CameraInfo of a bag's depth topic, "
+        "<ns>/camera_info beside <ns>/image_raw)",
     )
     p.add_argument(
         "--intrinsics",
@@ -210,6 +214,14 @@ def run(args: argparse.Namespace) -> int:
             calib = resolve_calibration(args.sensor)
     except (FrameError, IntrinsicsError, ValueError, OSError) as exc:
         return _fail(str(exc))
+    if args.depth_scale_mm is not None and recordings:
+        more = f" and {len(recordings) - 1} more" if len(recordings) > 1 else ""
+        return _fail(
+            f"--depth-scale-mm {args.depth_scale_mm:g} does not apply to recordings ({recordings[0].path}{more}): a "
+            "recording's depth units are its encoding's (16UC1 / mono16 and the Kinect's DEPTH track: mm; 32FC1: "
+            "metres; ROS REP 118); run the recordings without --depth-scale-mm, apart from the frame files that "
+            "need it"
+        )
     if args.sensor is not None and args.amplitude is None and frames:
         return _fail("--sensor needs --amplitude: the sigma_D map is computed from the input's amplitude")
     if args.ply and intrinsics is None and frames and not recordings:  # no input could give a point cloud
@@ -281,7 +293,7 @@ def run(args: argparse.Namespace) -> int:
         f"{len(tally.failed)} failed; {timing_text(tally.seconds)} on {device.type} -> {args.out}",
         file=sys.stderr,
     )
-    for line in tiling_lines(args, tally) + training_depth_lines(job, tally):
+    for line in tiling_lines(args, tally) + training_depth_lines(job, tally) + tally.notes:
         print(f"  {line}", file=sys.stderr)
     for path, reason in tally.skipped:
         print(f"  skipped {path}: {reason}", file=sys.stderr)
@@ -325,6 +337,8 @@ class _Tally:
     outside: list[tuple[str, str]] = field(default_factory=list)
     #: (shape, training.tile_memory.TilePlan) of every frame restored by a checkpoint
     plans: list[tuple[tuple[int, ...], Any]] = field(default_factory=list)
+    #: summary lines of the recordings: the streams and intrinsics used, shared timestamps
+    notes: list[str] = field(default_factory=list)
 
 
 def _write_failure(exc: OSError, out: Path) -> str:
@@ -370,8 +384,11 @@ def _claim(name: str, source: Any, job: _Job, tally: _Tally) -> bool:
     return True
 
 
-def _restore_and_write(data: Any, label: str, intrinsics: Any, job: _Job, tally: _Tally, started: float) -> None:
-    """Restore a frame read into memory (``frames.Frame``) and write its outputs, or record why not."""
+def _restore_and_write(
+    data: Any, label: str, intrinsics: Any, job: _Job, tally: _Tally, started: float, on_written: Any = None
+) -> None:
+    """Restore a frame read into memory (``frames.Frame``) and write its outputs, or record why not;
+    ``on_written()`` is called once they are written, counted with them (a Ctrl-C comes after both)."""
     from tofdenoise.atomic import sigint_deferred
     from tofdenoise.inference.camera import IntrinsicsError, resolve_intrinsics
     from tofdenoise.inference.denoise import frame_tile_plan, restore_frame
@@ -421,60 +438,129 @@ def _restore_and_write(data: Any, label: str, intrinsics: Any, job: _Job, tally:
             return
         tally.seconds.append(time.perf_counter() - started)
         tally.done += 1
+        if on_written is not None:
+            on_written()
     note = outside_training_depths(data, job.training_range_mm)
     if note is not None:
         tally.outside.append((label, note))
 
 
 def _denoise_recording(recording: Any, job: _Job, tally: _Tally) -> None:
-    """Check a whole recording (``Recording.scan``), then restore and write its frames one by one; a recording that
-    cannot be read is one failure and writes nothing."""
+    """Check a whole recording (``Recording.scan``), then restore and write its frames one by one, every depth frame
+    one frame, and their table (``frames.csv``); a recording that cannot be read is one failure and writes nothing.
+    The amplitude stream is read only when the model or ``--sensor`` uses it, and the intrinsics only for ``--ply``
+    without ``--intrinsics``."""
     from tqdm.auto import tqdm
 
-    from tofdenoise.inference.frames import Frame
+    from tofdenoise.inference.frames import FrameError
+    from tofdenoise.inference.outputs import RECORDING_TABLE, write_recording_table
     from tofdenoise.inference.recordings import RecordingError, open_recording
 
     args = job.args
+    path = recording.path
+    needs_amplitude = job.signal or job.calib is not None
     try:
-        rec = open_recording(recording.path, args.depth_stream, args.amplitude_stream)
-        count = rec.scan()
-        intrinsics = job.intrinsics or rec.intrinsics
-        if job.options.ply and intrinsics is None:
+        rec = open_recording(path, args.depth_stream, args.amplitude_stream, use_amplitude=needs_amplitude)
+        if needs_amplitude and rec.amplitude_name is None:
             raise RecordingError(
-                f"recording {recording.path} has no camera intrinsics (no Kinect calibration.json, no CameraInfo "
-                "topic): --ply needs --intrinsics FILE"
-            )
-        if (job.signal or job.calib is not None) and rec.amplitude_name is None:
-            needs = "the model uses the amplitude (signal) channel" if job.signal else "--sensor (sigma_D) needs it"
-            raise RecordingError(
-                f"recording {recording.path} has no amplitude / IR stream ({needs}); it has: "
+                f"recording {path} has no amplitude / IR stream ({_amplitude_user(job)} needs it); it has: "
                 f"{', '.join(rec.stream_names) or 'none'}; name the amplitude stream with --amplitude-stream"
             )
+        count = rec.scan()
+        intrinsics = None
+        if job.options.ply:
+            intrinsics = job.intrinsics if job.intrinsics is not None else rec.intrinsics
+            if intrinsics is None:
+                raise RecordingError(
+                    f"recording {path} has no camera intrinsics: {rec.intrinsics_absent()}; --ply needs "
+                    "--intrinsics FILE"
+                )
+        if needs_amplitude and len(rec.no_amplitude) == count:
+            first = min(rec.no_amplitude)
+            raise RecordingError(
+                f"recording {path}: none of its {count} depth frame(s) has a usable amplitude in "
+                f"{rec.amplitude_name} ({_amplitude_user(job)} needs it): frame {first}: {rec.no_amplitude[first]}"
+            )
     except RecordingError as exc:
-        tally.failed.append((str(recording.path), str(exc)))
+        tally.failed.append((str(path), str(exc)))
         return
+    folder = recording.rel_stem.as_posix()
+    rows: list[tuple[str, int, str, str]] = []
+    seen: set[int] = set()
     frames = rec.frames()
     bar = tqdm(total=count, desc=recording.rel.as_posix(), unit="frame", disable=args.quiet or None, file=sys.stderr)
-    with bar:
-        while True:
-            started = time.perf_counter()
+    try:
+        with bar:
+            while True:
+                started = time.perf_counter()
+                try:
+                    item = next(frames, None)
+                except (ValueError, OSError) as exc:  # RecordingError, or a read error past the scan
+                    tally.failed.append((str(path), f"{exc} ({_unread(count, seen)})"))
+                    return
+                if item is None:
+                    break
+                bar.update(1)
+                seen.add(item.index)
+                name = f"{folder}/frame_{item.index:06d}"
+                label = f"{path} frame {item.index}"
+                if not _claim(name, label, job, tally):
+                    continue
+                if needs_amplitude and item.amplitude is None:
+                    why = item.no_amplitude or f"no amplitude frame of the same timestamp in {rec.amplitude_name}"
+                    tally.failed.append((label, f"{why} ({_amplitude_user(job)} needs it)"))
+                    continue
+                try:
+                    data = item.frame(name, amplitude=needs_amplitude)
+                except FrameError as exc:  # a depth beyond 65535 mm, an amplitude without a finite value ...
+                    tally.failed.append((label, str(exc)))
+                    continue
+                row = (f"frame_{item.index:06d}", item.stamp_ns, rec.depth_name, item.frame_id)
+                _restore_and_write(data, label, intrinsics, job, tally, started, lambda row=row: rows.append(row))
+        if len(seen) != count:
+            unread = f"; {_unread(count, seen)}" if len(seen) < count else ""
+            tally.failed.append((str(path), f"the check counted {count} frame(s), reading gave {len(seen)}{unread}"))
+    finally:  # also on Ctrl-C: the table lists the frames written so far
+        table = Path(args.out) / folder / RECORDING_TABLE
+        if rows:
             try:
-                item = next(frames, None)
-            except (ValueError, OSError) as exc:  # RecordingError, or a read error past the scan
-                tally.failed.append((str(recording.path), str(exc)))
-                return
-            if item is None:
-                return
-            bar.update(1)
-            name = f"{recording.rel_stem.as_posix()}/frame_{item.index:06d}"
-            label = f"{recording.path} frame {item.index}"
-            if not _claim(name, label, job, tally):
-                continue
-            if (job.signal or job.calib is not None) and item.amplitude is None:
-                tally.failed.append((label, f"no amplitude frame of the same timestamp in {rec.amplitude_name}"))
-                continue
-            data = Frame(depth_mm=item.depth_mm, valid=item.valid, amplitude=item.amplitude, name=name)
-            _restore_and_write(data, label, intrinsics, job, tally, started)
+                write_recording_table(table.parent, rows)
+            except OSError as exc:  # the frames are written; the table of their timestamps is not
+                tally.failed.append((str(path), f"its table of frames and timestamps was not written: {exc}"))
+        tally.notes.append(_recording_line(rec, job, count, rows, table, intrinsics, needs_amplitude))
+        tally.notes += [f"warning: {note}" for note in rec.notes]
+
+
+def _amplitude_user(job: _Job) -> str:
+    """What needs a recording's amplitude, for messages."""
+    return "the model's signal channel" if job.signal else "--sensor (sigma_D)"
+
+
+def _unread(count: int, seen: set[int]) -> str:
+    """Which of a recording's ``count`` frames were not read, for the line of a read that failed past the check."""
+    missing = [i for i in range(count) if i not in seen]
+    listed = ", ".join(map(str, missing[:5])) + (" ..." if len(missing) > 5 else "")
+    return f"{len(missing)} of its {count} frame(s) not read and not written: {listed}"
+
+
+def _recording_line(rec: Any, job: _Job, count: int, rows: list, table: Path, intrinsics: Any, amp: bool) -> str:
+    """The summary's line on a recording: the streams and intrinsics used, the frames written and their table."""
+    if amp:
+        missing = f", {len(rec.no_amplitude)} frame(s) without one" if rec.no_amplitude else ""
+        amplitude = f"amplitude {rec.amplitude_name}{missing}"
+    else:
+        amplitude = "amplitude not read (neither the model nor --sensor uses it)"
+    line = f"recording {rec.path}: depth {rec.depth_name}, {amplitude}"
+    if job.options.ply and intrinsics is not None:
+        if job.intrinsics is not None:
+            line += f", intrinsics from --intrinsics {job.args.intrinsics}"
+        else:
+            line += (
+                f", intrinsics from {intrinsics.source}: fx {intrinsics.fx:g}, fy {intrinsics.fy:g}, cx "
+                f"{intrinsics.cx:g}, cy {intrinsics.cy:g}, {intrinsics.width} x {intrinsics.height} px"
+            )
+    written = f"{len(rows)} of {count} frame(s) written"
+    return f"{line}; {written}" + (f", with their timestamps in {table}" if rows else "")
 
 
 def _refuse_replacing_inputs(
@@ -518,8 +604,28 @@ def _refuse_replacing_inputs(
 def _refuse_shared_outputs(out: Path, frames, recordings) -> None:
     """``OutputPathError`` naming both inputs when two frames (or two recordings) would write to one output name:
     frames of one name in two input folders (two cameras numbering their frames from 0), or ``a.png`` beside
-    ``a.npy``. Restoring one and skipping the other ended with exit status 0 and half the frames."""
+    ``a.npy``. Restoring one and skipping the other ended with exit status 0 and half the frames. So does a frame
+    file whose outputs lie in a recording's output folder (``take1/frame_000000.png`` beside ``take1.bag``),
+    or a recording's folder inside another's: their outputs would mix in one folder."""
     from tofdenoise.inference.outputs import output_paths
+
+    folders = [(Path(os.path.realpath(Path(out) / r.rel_stem)), r.path) for r in recordings]
+    for frame in frames:
+        target = Path(os.path.realpath(output_paths(out, frame.rel_stem.as_posix())["png"]))
+        for folder, source in folders:
+            if folder in target.parents:
+                raise OutputPathError(
+                    f"{frame.path} and the recording {source} would both write into {folder} (the frame file's "
+                    f"output {target.name} among the recording's frames): run them with separate --out folders, or "
+                    "rename one"
+                )
+    for folder, source in folders:
+        for other, other_source in folders:
+            if other in folder.parents:
+                raise OutputPathError(
+                    f"the recordings {source} and {other_source} would both write into {other} (the output folder "
+                    f"of one inside the other's): run them with separate --out folders, or rename one"
+                )
 
     for kind, items, target in (
         ("frames", frames, lambda f: output_paths(out, f.rel_stem.as_posix())["png"]),

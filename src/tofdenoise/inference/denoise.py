@@ -237,7 +237,8 @@ def denoise(
         model_or_ckpt: a ``DepthRestorer`` (used on its own device) or the path of a checkpoint (loaded on
             ``device`` at every call; load it once with ``load_restorer`` for many frames).
         amplitude: the frame's amplitude, same shape as ``depth_mm``; required by models that use the signal
-            channel.
+            channel. NaN / inf are invalid (the signal channel reads 0 there), as in the command's frames
+            (``inference.frames.checked_amplitude``).
         fill_holes: give every pixel a depth, the invalid ones included; by default they stay 0.
         device: where a checkpoint path is loaded: ``"auto"`` (CUDA when available), ``"cpu"`` or ``"cuda"``.
         tile: force tiles of this side. Default None: the whole frame, unless the network's activations for it
@@ -251,8 +252,9 @@ def denoise(
 
     Raises:
         ValueError: ``depth_mm`` is not a numeric (H, W) map, its median valid depth is implausible in millimetres
-            (without ``depth_scale_mm``; the message names the likely unit), ``amplitude`` has another shape or is
-            missing for a model that needs it, or ``precision`` is neither ``"bf16"`` nor ``"fp32"``.
+            (without ``depth_scale_mm``; the message names the likely unit), ``amplitude`` has another shape, holds
+            no finite value where the depth is valid or is missing for a model that needs it, or ``precision`` is
+            neither ``"bf16"`` nor ``"fp32"``.
         TypeError: ``model_or_ckpt`` is neither a ``DepthRestorer`` nor a path.
         CheckpointError: ``model_or_ckpt`` is a path to a file that is not a DepthRestorer checkpoint.
     """
@@ -274,9 +276,12 @@ def denoise(
     if amplitude is not None:
         amp = amplitude.detach().cpu().numpy() if isinstance(amplitude, torch.Tensor) else np.asarray(amplitude)
         amp = np.squeeze(amp) if amp.ndim > 2 else amp
-        if amp.shape != depth.shape:
-            raise ValueError(f"denoise: amplitude has shape {amp.shape}; expected {depth.shape} like depth_mm")
-        amp = np.where(np.isfinite(amp), amp, 0.0).astype(np.float32)
+        from .frames import FrameError, checked_amplitude
+
+        try:  # the checks of the command's frames: shape, and a finite value somewhere the depth is valid
+            amp = checked_amplitude(amp, depth, valid, "amplitude", "depth_mm")[0]
+        except FrameError as exc:
+            raise ValueError(f"denoise: {exc}") from None
     return restore_frame(model, depth, valid, amp, fill_holes=fill_holes, tile=tile, precision=precision)
 
 

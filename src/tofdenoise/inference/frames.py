@@ -60,6 +60,9 @@ __all__ = [
     "find_frames",
     "read_depth_frame",
     "load_frame",
+    "make_frame",
+    "checked_amplitude",
+    "depth_values_mm",
     "FrameError",
     "MIN_MEDIAN_DEPTH_MM",
     "LIKELY_UNITS",
@@ -175,20 +178,71 @@ def read_depth_frame(path: str | Path, depth_scale_mm: float = 1.0) -> tuple[np.
         raise FrameError(f"depth file {path} could not be read: {exc}") from exc
     if raw.dtype == np.bool_:
         raise FrameError(f"depth file {path} is boolean; expected depth values")
-    depth = raw.astype(np.float64) * float(depth_scale_mm)
+    return depth_values_mm(
+        raw,
+        depth_scale_mm,
+        f"depth file {path}",
+        f"taken with --depth-scale-mm {float(depth_scale_mm):g}",
+        "check the file's units (--depth-scale-mm) and mark invalid pixels 0 or NaN",
+    )
+
+
+def depth_values_mm(
+    values: np.ndarray, mm_per_unit: float, what: str, units: str, advice: str
+) -> tuple[np.ndarray, np.ndarray]:
+    """(depth_mm float32 with 0 at invalid pixels, valid bool) of stored depth ``values`` times ``mm_per_unit``
+    (computed in float64): NaN, inf, 0 and negative values are invalid, and a valid depth beyond ``PNG16_MAX_MM``
+    is a ``FrameError`` naming ``what`` (the file or the recording's frame), the count and the largest, the
+    ``units`` it was taken in and the ``advice``. The one rule of frame files and recordings (a 32FC1 "no return"
+    coded as FLT_MAX metres is refused here, not cast to an infinite valid depth)."""
+    depth = np.asarray(values).astype(np.float64) * float(mm_per_unit)
     with np.errstate(invalid="ignore"):
         valid = np.isfinite(depth) & (depth > 0)
-    if valid.any() and float(depth[valid].max()) > np.finfo(np.float32).max:
-        raise FrameError(f"depth file {path} holds values beyond float32 range; check --depth-scale-mm")
-    beyond = valid & (depth > PNG16_MAX_MM)
+        beyond = valid & (depth > PNG16_MAX_MM)
     if beyond.any():
         raise FrameError(
-            f"depth file {path}: {int(beyond.sum())} valid pixel(s) deeper than {PNG16_MAX_MM} mm (the largest "
-            f"{float(depth[beyond].max()):.4g} mm, taken with --depth-scale-mm {float(depth_scale_mm):g}); no "
-            "time-of-flight camera measures that far and a 16-bit millimetre PNG cannot hold it: check the file's "
-            "units (--depth-scale-mm) and mark invalid pixels 0 or NaN"
+            f"{what}: {int(beyond.sum())} valid pixel(s) deeper than {PNG16_MAX_MM} mm (the largest "
+            f"{float(depth[beyond].max()):.4g} mm, {units}); no time-of-flight camera measures that far and a "
+            f"16-bit millimetre PNG cannot hold it: {advice}"
         )
     return np.where(valid, depth, 0.0).astype(np.float32), valid
+
+
+def checked_amplitude(
+    amplitude: np.ndarray, depth_mm: np.ndarray, valid: np.ndarray, what: str, depth_what: str
+) -> tuple[np.ndarray, np.ndarray]:
+    """(amplitude float32 with 0 where it is not finite, amplitude_valid bool) of a depth frame's amplitude, or a
+    ``FrameError`` naming ``what`` (the amplitude file / message) and ``depth_what`` (its depth frame) when its
+    shape differs from the depth's or it holds no finite value at any pixel of valid depth (an IR stream dropped
+    and saved as float NaN: a sigma_D map from it would be plausible and wrong). The one check of frame files,
+    recordings and ``tofdenoise.denoise``."""
+    amp = np.asarray(amplitude)
+    if amp.shape != depth_mm.shape:
+        raise FrameError(f"{what} has shape {amp.shape}; expected {depth_mm.shape} like its {depth_what}")
+    amp_valid = np.isfinite(amp)
+    if valid.any() and not (amp_valid & valid).any():
+        raise FrameError(
+            f"{what} (for {depth_what}) holds no finite value where the depth is valid ({int((~amp_valid).sum())} "
+            f"of {amp.size} values are NaN or inf); expected the frame's amplitude: a sigma_D map or the network's "
+            "signal channel cannot come from it"
+        )
+    return np.where(amp_valid, amp, 0.0).astype(np.float32), amp_valid
+
+
+def make_frame(
+    depth_mm: np.ndarray,
+    valid: np.ndarray,
+    amplitude: np.ndarray | None,
+    name: str,
+    amplitude_what: str = "amplitude",
+    depth_what: str = "depth frame",
+) -> Frame:
+    """A ``Frame`` of a depth map (``depth_values_mm``) and its amplitude or None (``checked_amplitude``): how frame
+    files (``load_frame``) and recordings (``RecordingFrame.frame``) become the frames the command restores."""
+    amp_valid = None
+    if amplitude is not None:
+        amplitude, amp_valid = checked_amplitude(amplitude, depth_mm, valid, amplitude_what, depth_what)
+    return Frame(depth_mm=depth_mm, valid=valid, amplitude=amplitude, name=name, amplitude_valid=amp_valid)
 
 
 #: a template's stem field: ``{stem}`` or ``{stem:OLD=NEW}`` (OLD non-empty; neither holds ``{``, ``}``, ``=`` or ``/``)
@@ -303,7 +357,7 @@ def drop_amplitude_files(frames: Sequence[FrameInput], amplitude: AmplitudeSourc
 def load_frame(frame: FrameInput, depth_scale_mm: float = 1.0, amplitude: AmplitudeSource | None = None) -> Frame:
     """Read a depth frame and (when ``amplitude`` is given) its paired amplitude frame of the same shape."""
     depth, valid = read_depth_frame(frame.path, depth_scale_mm)
-    amp = None
+    amp, amp_path = None, None
     if amplitude is not None:
         amp_path = amplitude.find(frame)
         try:
@@ -312,25 +366,8 @@ def load_frame(frame: FrameInput, depth_scale_mm: float = 1.0, amplitude: Amplit
             raise FrameError(
                 f"amplitude file {amp_path} (for depth frame {frame.path}) could not be read: {exc}"
             ) from exc
-        if amp.shape != depth.shape:
-            raise FrameError(
-                f"amplitude file {amp_path} has shape {amp.shape}; expected {depth.shape} like its "
-                f"depth frame {frame.path}"
-            )
-        amp_valid = np.isfinite(amp)
-        if valid.any() and not (amp_valid & valid).any():
-            raise FrameError(
-                f"amplitude file {amp_path} (for depth frame {frame.path}) holds no finite value where the depth is "
-                f"valid ({int((~amp_valid).sum())} of {amp.size} values are NaN or inf); expected the frame's "
-                "amplitude: a sigma_D map or the network's signal channel cannot come from it"
-            )
-        amp = np.where(amp_valid, amp, 0.0).astype(np.float32)
-    return Frame(
-        depth_mm=depth,
-        valid=valid,
-        amplitude=amp,
-        name=frame.rel_stem.as_posix(),
-        amplitude_valid=None if amp is None else amp_valid,
+    return make_frame(
+        depth, valid, amp, frame.rel_stem.as_posix(), f"amplitude file {amp_path}", f"depth frame {frame.path}"
     )
 
 

@@ -14,10 +14,18 @@ single-channel float32 TIFF: OpenCV (``cv2.imread(path, cv2.IMREAD_UNCHANGED)``)
 read it back bit for bit, NaN included, without any tofdenoise code. The point cloud is a binary little-endian PLY
 (``float x, y, z`` per vertex, valid pixels only, row by row) from the camera intrinsics (``camera.points_m``),
 which Open3D, PCL, MeshLab and CloudCompare read.
+
+A recording's frames go to ``out/<recording>/frame_NNNNNN.*``, with ``out/<recording>/frames.csv``
+(``write_recording_table``): one row per frame written, ``frame,stamp_ns,stream,frame_id`` (the output name, the
+frame's timestamp in ns: a bag message's header stamp or the Kinect's device timestamp, the depth topic / track,
+a bag message's ``header.frame_id``).
 """
 
 from __future__ import annotations
 
+import csv
+import io
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -26,23 +34,36 @@ import cv2
 import numpy as np
 
 from tofdenoise import visualize as vis
-from tofdenoise.atomic import atomic_group, atomic_write, atomic_write_bytes, atomic_write_png, save_npy_atomic
+from tofdenoise.atomic import (
+    atomic_group,
+    atomic_write,
+    atomic_write_bytes,
+    atomic_write_png,
+    atomic_write_text,
+    save_npy_atomic,
+)
 from tofdenoise.data_modules.io import write_depth_png16
 from tofdenoise.inference.camera import Intrinsics, points_m
 
 __all__ = [
     "OutputOptions",
+    "RECORDING_TABLE",
+    "RECORDING_TABLE_COLUMNS",
     "depth_mm_to_m",
     "output_paths",
     "preview_panel",
     "write_depth_m_tiff",
     "write_frame_outputs",
     "write_ply_points",
+    "write_recording_table",
 ]
 
 SIGMA_SUFFIX = "_sigma_mm.npy"
 PREVIEW_SUFFIX = "_preview.png"
 DEPTH_M_SUFFIX = "_depth_m.tiff"
+#: the table of a recording's output folder: each frame written, with its timestamp
+RECORDING_TABLE = "frames.csv"
+RECORDING_TABLE_COLUMNS = ("frame", "stamp_ns", "stream", "frame_id")
 
 
 @dataclass(frozen=True)
@@ -211,3 +232,15 @@ def frame_sigma(frame: Any, calib: Any) -> np.ndarray | None:
     if amplitude_valid is not None:
         amplitude = np.where(amplitude_valid, amplitude, np.nan).astype(np.float32)
     return sigma_map_mm(frame.depth_mm, frame.valid, amplitude, calib)
+
+
+def write_recording_table(folder: str | Path, rows: Iterable[tuple[str, int, str, str]]) -> Path:
+    """Write ``folder/frames.csv`` atomically: a header ``frame,stamp_ns,stream,frame_id``, then one row per frame
+    written (its output name inside ``folder``, e.g. ``frame_000003``; its timestamp in ns; the depth topic or
+    track; a bag message's ``header.frame_id``, "" for a Kinect recording), in frame order."""
+    buf = io.StringIO()
+    table = csv.writer(buf, lineterminator="\n")
+    table.writerow(RECORDING_TABLE_COLUMNS)
+    for name, stamp_ns, stream, frame_id in rows:
+        table.writerow((name, int(stamp_ns), stream, frame_id))
+    return atomic_write_text(Path(folder) / RECORDING_TABLE, buf.getvalue())

@@ -13,8 +13,12 @@ batch.
 Recordings among ``--data.inputs`` (Azure Kinect ``.mkv``, ROS bags; ``inference.recordings``) are read whole once
 when the datamodule is built (a damaged one stops the run before any write) and their frames streamed after the
 frame files, named ``<recording>/frame_NNNNNN`` as ``tofdenoise denoise`` names them; ``--data.depth_stream`` /
-``--data.amplitude_stream`` choose their topics or tracks. The writer's ``depth_m`` and ``ply`` options add the
-metres map and the point cloud (``ply`` takes a recording's own intrinsics, or those of ``intrinsics``).
+``--data.amplitude_stream`` choose their topics or tracks; a recording frame becomes a frame as in the command
+(``RecordingFrame.frame``: the frame files' depth and amplitude checks), and the writer writes each recording's
+``frames.csv`` (its frames and their timestamps) when the run ends. ``depth_scale_mm`` applies to frame files only:
+other than 1 with a recording among the inputs it is refused (a recording's units are its encoding's). The writer's
+``depth_m`` and ``ply`` options add the metres map and the point cloud (``ply`` takes those of ``intrinsics``, else a
+recording's own, read only then).
 """
 
 from __future__ import annotations
@@ -38,8 +42,8 @@ from tofdenoise.inference.frames import (
     find_frames,
     load_frame,
 )
-from tofdenoise.inference.outputs import OutputOptions, frame_sigma, write_frame_outputs
-from tofdenoise.inference.recordings import Recording, find_recordings, open_recording
+from tofdenoise.inference.outputs import OutputOptions, frame_sigma, write_frame_outputs, write_recording_table
+from tofdenoise.inference.recordings import Recording, RecordingError, find_recordings, open_recording
 
 __all__ = ["FramesDataModule", "FramesDataset", "FramesPredictionWriter", "FramesStream", "main"]
 
@@ -102,10 +106,19 @@ class FramesStream(IterableDataset):
             yield self.files[index]
         index = len(self.files)
         for source, recording in self.recordings:
+            folder = source.rel_stem.as_posix()
+            intrinsics, why = None, ""
+            try:  # read here, used by the writer only for ply (an uncalibrated CameraInfo matters only then)
+                intrinsics = recording.intrinsics
+                why = "" if intrinsics is not None else f"recording {source.path}: {recording.intrinsics_absent()}"
+            except RecordingError as exc:
+                why = str(exc)
             for item in recording.frames():
-                name = f"{source.rel_stem.as_posix()}/frame_{item.index:06d}"
-                frame = Frame(depth_mm=item.depth_mm, valid=item.valid, amplitude=item.amplitude, name=name)
-                yield _item(frame, index, self.calib, recording.intrinsics)
+                frame = item.frame(f"{folder}/frame_{item.index:06d}")
+                out = _item(frame, index, self.calib, intrinsics)
+                out.update(recording=folder, stamp_ns=item.stamp_ns, stream=recording.depth_name)
+                out.update(frame_id=item.frame_id, intrinsics_absent=why)
+                yield out
                 index += 1
 
 
@@ -144,6 +157,11 @@ class FramesDataModule(L.LightningDataModule):
         self.save_hyperparameters()
         if not depth_scale_mm > 0:
             raise ValueError(f"FramesDataModule.depth_scale_mm must be > 0, got {depth_scale_mm}")
+        if depth_scale_mm != 1 and find_recordings(inputs, exclude=exclude or []):
+            raise ValueError(
+                f"FramesDataModule.depth_scale_mm {depth_scale_mm:g} does not apply to recordings: a recording's "
+                "depth units are its encoding's (16UC1 / mono16 and the Kinect's DEPTH track: mm; 32FC1: metres)"
+            )
         if sensor is not None and amplitude is None:
             raise ValueError("FramesDataModule: sensor needs amplitude (the sigma_D map comes from the amplitude)")
         self.amplitude = AmplitudeSource(amplitude) if amplitude is not None else None
@@ -188,6 +206,8 @@ class FramesPredictionWriter(BasePredictionWriter):
         self.options = OutputOptions(npy=npy, previews=previews, depth_m=depth_m, ply=ply)
         self.intrinsics = load_intrinsics(intrinsics) if intrinsics is not None else None
         self.written: list[Path] = []
+        #: recording output folder -> (frame name, stamp_ns, stream, frame_id) of each frame written
+        self.tables: dict[str, list[tuple[str, int, str, str]]] = {}
 
     def write_on_batch_end(
         self,
@@ -208,6 +228,8 @@ class FramesPredictionWriter(BasePredictionWriter):
                 intrinsics = Intrinsics(fx, fy, cx, cy, int(w), int(h), source="the recording")
             if intrinsics is not None and self.options.ply:
                 intrinsics = resolve_intrinsics(intrinsics, tuple(pred.shape[-2:]), str(batch["name"][i]))
+            elif self.options.ply and batch.get("intrinsics_absent", [""])[i]:
+                raise ValueError(f"{batch['name'][i]}: {batch['intrinsics_absent'][i]}; ply needs intrinsics")
             self.written += write_frame_outputs(
                 self.out_dir,
                 str(batch["name"][i]),
@@ -218,6 +240,14 @@ class FramesPredictionWriter(BasePredictionWriter):
                 sigma,
                 intrinsics,
             )
+            if "recording" in batch:
+                row = (str(batch["name"][i]).rsplit("/", 1)[-1], int(batch["stamp_ns"][i]), str(batch["stream"][i]))
+                self.tables.setdefault(str(batch["recording"][i]), []).append((*row, str(batch["frame_id"][i])))
+
+    def on_predict_end(self, trainer: Any, pl_module: Any) -> None:
+        """Each recording's ``frames.csv``: the frames written and their timestamps, as the command writes it."""
+        for folder, rows in self.tables.items():
+            self.written.append(write_recording_table(self.out_dir / folder, rows))
 
 
 def main(args: list[str] | None = None) -> int:

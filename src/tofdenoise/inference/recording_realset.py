@@ -271,8 +271,9 @@ def scene_from_frames(
             raise RecordingError(f"{where}: frame {f.index} is {f.depth_mm.shape}; expected {shape} like frame 0")
     chosen = frames[input_frame]
     if chosen.amplitude is None:
+        why = f" ({chosen.no_amplitude})" if chosen.no_amplitude else ""
         raise RecordingError(
-            f"{where}: frame {chosen.index} has no amplitude; a capture-set scene needs the input's amplitude "
+            f"{where}: frame {chosen.index} has no amplitude{why}; a capture-set scene needs the input's amplitude "
             "(name the IR / amplitude stream with --amplitude-stream)"
         )
     others = [f for i, f in enumerate(frames) if i != input_frame]

@@ -8,8 +8,23 @@
   must hold exactly width x height samples.
 - **ROS 1 ``.bag`` / ROS 2 bag folders** (``metadata.yaml`` + ``.db3`` / ``.mcap``, read with ``rosbags``):
   ``sensor_msgs/Image`` depth topics in ``16UC1`` / ``mono16`` (mm, 0 = invalid) or ``32FC1`` (metres, NaN /
-  0 = invalid: ROS REP 118), with an amplitude / IR image topic paired by ``header.stamp``; a
-  ``sensor_msgs/CameraInfo`` topic next to the depth topic gives the intrinsics (its ``K``).
+  0 = invalid: ROS REP 118), with an amplitude / IR image topic paired by ``header.stamp``; the
+  ``sensor_msgs/CameraInfo`` topic of the depth topic's namespace (ROS's ``<ns>/camera_info`` beside
+  ``<ns>/image_raw``) gives the intrinsics (its ``K``); a CameraInfo of another namespace (another camera) is never
+  used.
+
+Every depth message / packet is one frame (``index`` 0, 1, ... in recording order), whatever its timestamp. An
+amplitude frame is paired with a depth frame only where that is unambiguous: exactly one depth and one amplitude
+frame of the same timestamp, of the same size. A depth frame without one (none of its stamp, a stamp shared by
+several frames, another size) has ``amplitude`` None and ``no_amplitude`` saying why; ``notes`` names shared stamps.
+Opened with ``use_amplitude=False`` (a model and options that do not use it), the amplitude stream is not read at
+all. The intrinsics (``intrinsics``) are read when first asked for, so an uncalibrated CameraInfo (K all zero)
+matters only to a point cloud that needs it.
+
+A frame's depth is kept as recorded (``RecordingFrame.depth``: 16-bit mm or 32FC1 metres) and becomes millimetres
+by the rule of frame files (``frames.depth_values_mm``: NaN, inf, 0 and negative invalid; a valid depth beyond
+65535 mm fails that frame); ``RecordingFrame.frame`` checks its amplitude as a frame file's
+(``frames.checked_amplitude``).
 
 Streams are chosen by name (``depth`` / ``amplitude``: a bag topic or a Matroska track title); by default the
 depth stream is the Kinect's ``DEPTH`` track or the first image topic (sorted by name) with ``depth`` in its name,
@@ -19,7 +34,9 @@ A stream asked for (or expected) and absent is a ``RecordingError`` listing the 
 ``Recording.scan()`` reads the whole recording once without keeping frames and checks it (the Matroska segment
 as long as its declared size and the last frame at the recorded duration: FFmpeg reads a truncated ``.mkv`` to its
 end without an error; every packet complete; a damaged bag index or database; every message decodable):
-the commands call it before they write anything for a recording, so a bad recording writes nothing.
+the commands call it before they write anything for a recording, so a bad recording writes nothing. It also
+pairs the amplitude (every amplitude message read, its size checked against its depth frame's), so which frames
+have no usable amplitude is known before the first frame is written.
 
 PyAV and rosbags are the optional extra ``recordings`` (``pip install 'tofdenoise[recordings]'``); without them a
 recording is refused with an error naming the extra.
@@ -30,9 +47,10 @@ from __future__ import annotations
 import importlib
 import re
 from abc import ABC, abstractmethod
+from collections import Counter
 from collections.abc import Iterable, Iterator, Sequence
-from contextlib import contextmanager
-from dataclasses import dataclass
+from contextlib import contextmanager, nullcontext
+from dataclasses import dataclass, field
 from fractions import Fraction
 from pathlib import Path
 from typing import Any
@@ -40,7 +58,7 @@ from typing import Any
 import numpy as np
 
 from tofdenoise.inference.camera import Intrinsics, IntrinsicsError, kinect_depth_intrinsics, kinect_mode_for_size
-from tofdenoise.inference.frames import RECORDING_SUFFIXES, FrameError
+from tofdenoise.inference.frames import RECORDING_SUFFIXES, Frame, FrameError, depth_values_mm, make_frame
 from tofdenoise.inference.ros_codecs import CompressedImageError, decode_compressed_image, parse_compressed_format
 
 __all__ = [
@@ -49,6 +67,7 @@ __all__ = [
     "RecordingError",
     "RecordingFrame",
     "RecordingInput",
+    "camera_info_topic",
     "find_recordings",
     "image_message_to_array",
     "is_recording",
@@ -73,12 +92,6 @@ class RecordingError(FrameError):
     """A recording cannot be read as asked; the message names the file and what was expected."""
 
 
-def _paired(depth_mm: np.ndarray, amplitude: np.ndarray | None, where: str) -> np.ndarray | None:
-    if amplitude is not None and amplitude.shape != depth_mm.shape:
-        raise RecordingError(f"{where}: amplitude frame is {amplitude.shape}; expected {depth_mm.shape} like the depth")
-    return amplitude
-
-
 @dataclass(frozen=True)
 class RecordingInput:
     """A recording on disk and its output name (``rel``: relative to the input folder, or its own name)."""
@@ -91,16 +104,57 @@ class RecordingInput:
         return self.rel.with_suffix("") if self.path.is_file() else self.rel
 
 
+#: what a depth beyond 65535 mm in a recording is told to be (``frames.depth_values_mm``)
+_RANGE_ADVICE = "a ROS depth image marks no depth with NaN or 0 (REP 118), not with a far value"
+
+
 @dataclass
 class RecordingFrame:
-    """One frame of a recording: ``depth_mm`` float32 (H, W), 0 at invalid pixels, ``valid`` bool, ``amplitude``
-    float32 or None, ``index`` (0, 1, ... in recording order), ``stamp_ns`` (its timestamp)."""
+    """One frame of a recording: ``index`` (0, 1, ... in recording order), ``stamp_ns`` (its timestamp: the
+    header stamp of a bag message, the Kinect's device timestamp), ``depth`` as recorded (uint16 mm, or float32
+    metres with ``mm_per_unit`` 1000), ``where`` (names the frame in messages), ``amplitude`` float32 as recorded
+    (NaN kept) or None, ``no_amplitude`` (why there is none, when the amplitude stream was read), ``frame_id``
+    (a bag message's ``header.frame_id``; "" for a Kinect recording).
+
+    ``depth_mm`` (float32, 0 at invalid pixels) and ``valid`` follow the frame files' rule
+    (``frames.depth_values_mm``; a ``RecordingError`` for a depth beyond 65535 mm); ``frame(name)`` is the
+    ``frames.Frame`` the command restores, its amplitude checked as a frame file's."""
 
     index: int
     stamp_ns: int
-    depth_mm: np.ndarray
-    valid: np.ndarray
+    depth: np.ndarray
+    mm_per_unit: float = 1.0
+    where: str = ""
     amplitude: np.ndarray | None = None
+    amplitude_where: str = "amplitude"
+    no_amplitude: str = ""
+    frame_id: str = ""
+    _mm: tuple[np.ndarray, np.ndarray] | None = field(default=None, init=False, repr=False, compare=False)
+
+    def _depth_mm_valid(self) -> tuple[np.ndarray, np.ndarray]:
+        if self._mm is None:
+            units = "32FC1 metres x 1000" if self.mm_per_unit != 1 else "as millimetres"
+            try:
+                self._mm = depth_values_mm(self.depth, self.mm_per_unit, self.where, units, _RANGE_ADVICE)
+            except FrameError as exc:
+                raise RecordingError(str(exc)) from None
+        return self._mm
+
+    @property
+    def depth_mm(self) -> np.ndarray:
+        return self._depth_mm_valid()[0]
+
+    @property
+    def valid(self) -> np.ndarray:
+        return self._depth_mm_valid()[1]
+
+    def frame(self, name: str, amplitude: bool = True) -> Frame:
+        """The ``frames.Frame`` of this frame (``frames.make_frame``, as a frame file becomes one), with its
+        amplitude unless ``amplitude`` is False; ``FrameError`` for a depth beyond 65535 mm, or an amplitude of
+        another shape or without a finite value where the depth is valid."""
+        depth_mm, valid = self._depth_mm_valid()
+        amp = self.amplitude if amplitude else None
+        return make_frame(depth_mm, valid, amp, name, self.amplitude_where, self.where)
 
 
 def is_recording(path: str | Path) -> bool:
@@ -148,15 +202,31 @@ def _import(module: str, path: Path) -> Any:
 
 
 class Recording(ABC):
-    """A recording opened for reading (``open_recording``): ``depth_name``, ``amplitude_name`` (or None),
-    ``intrinsics`` (or None), ``scan()`` -> frame count, ``frames()`` -> ``RecordingFrame`` in order."""
+    """A recording opened for reading (``open_recording``): ``depth_name``, ``amplitude_name`` (or None: none, or
+    not read), ``intrinsics`` (or None; read when first asked for), ``scan()`` -> frame count, ``frames()`` ->
+    ``RecordingFrame`` in order. After ``scan()``: ``no_amplitude`` (frame index -> why it has no amplitude, when
+    the amplitude stream is read) and ``notes`` (warnings: stamps shared by several frames)."""
 
     path: Path
     depth_name: str
     amplitude_name: str | None
-    intrinsics: Intrinsics | None
     #: every image stream of the recording (Kinect tracks, bag image topics), for messages that list them
     stream_names: list[str]
+    #: after ``scan()``: depth frame index -> why it has no amplitude (only when the amplitude stream is read)
+    no_amplitude: dict[int, str]
+    #: after ``scan()``: warnings about the recording (stamps shared by several frames)
+    notes: list[str]
+    _link: dict[int, int] | None = None
+
+    @property
+    @abstractmethod
+    def intrinsics(self) -> Intrinsics | None:
+        """The depth camera's intrinsics the recording carries (None: none); read when first asked for, a
+        ``RecordingError`` when they are there but unusable (a CameraInfo with K all zero)."""
+
+    @abstractmethod
+    def intrinsics_absent(self) -> str:
+        """Why ``intrinsics`` is None, naming what was looked for and what the recording has."""
 
     @abstractmethod
     def scan(self) -> int:
@@ -164,22 +234,108 @@ class Recording(ABC):
 
     @abstractmethod
     def frames(self) -> Iterator[RecordingFrame]:
-        """The depth frames (with their amplitude when there is one of the same timestamp)."""
+        """Every depth frame, in recording order (with its amplitude where it is paired unambiguously)."""
 
     def describe(self) -> str:
         amp = self.amplitude_name or "none"
         return f"{self.path}: depth {self.depth_name}, amplitude {amp}"
 
+    def _paired(
+        self,
+        depth_stamps: Sequence[int],
+        depth_shapes: Sequence[tuple[int, ...]],
+        amp_stamps: Sequence[int],
+        amp_shapes: Sequence[tuple[int, ...]],
+    ) -> None:
+        """Pair the amplitude with the depth frames by timestamp where that is unambiguous (module docstring):
+        sets ``_link`` (depth index -> amplitude ordinal), ``no_amplitude`` and ``notes``."""
+        depth_count, amp_count = Counter(depth_stamps), Counter(amp_stamps)
+        self._link, self.no_amplitude, self.notes = {}, {}, []
+        amp = self.amplitude_name
+        if amp is not None:
+            only = {stamp: j for j, stamp in enumerate(amp_stamps) if amp_count[stamp] == 1}
+            for i, stamp in enumerate(depth_stamps):
+                nd, na = depth_count[stamp], amp_count[stamp]
+                if na == 0:
+                    self.no_amplitude[i] = f"no amplitude frame of its timestamp ({stamp} ns) in {amp}"
+                elif nd > 1 or na > 1:
+                    self.no_amplitude[i] = (
+                        f"its timestamp {stamp} ns is shared by {nd} depth and {na} amplitude frame(s) of {amp}: "
+                        "which amplitude is its own is ambiguous"
+                    )
+                elif tuple(amp_shapes[only[stamp]]) != tuple(depth_shapes[i]):
+                    (ah, aw), (dh, dw) = amp_shapes[only[stamp]][-2:], depth_shapes[i][-2:]
+                    self.no_amplitude[i] = (
+                        f"the amplitude frame of its timestamp ({stamp} ns) in {amp} is {aw} x {ah} pixels; expected "
+                        f"{dw} x {dh} like its depth"
+                    )
+                else:
+                    self._link[i] = only[stamp]
+        shared = sorted(stamp for stamp, n in depth_count.items() if n > 1)
+        amp_shared = sorted(stamp for stamp, n in amp_count.items() if n > 1) if amp is not None else []
+        if shared or amp_shared:
+            parts = []
+            if shared:
+                n = sum(depth_count[stamp] for stamp in shared)
+                parts.append(
+                    f"{n} of its {len(depth_stamps)} depth frames share a timestamp with another ({len(shared)} "
+                    f"timestamp(s), the first {shared[0]} ns on {depth_count[shared[0]]} frames)"
+                )
+            if amp_shared:
+                n = sum(amp_count[stamp] for stamp in amp_shared)
+                parts.append(f"{n} amplitude frames of {amp} share a timestamp with another")
+            ambiguous = sum(1 for why in self.no_amplitude.values() if "ambiguous" in why)
+            tail = "every depth frame is kept, in recording order"
+            if ambiguous:
+                tail += f"; {ambiguous} of them get no amplitude (which one is theirs is ambiguous)"
+            self.notes.append(f"recording {self.path}: {'; '.join(parts)}: {tail}")
 
-def open_recording(path: str | Path, depth: str | None = None, amplitude: str | None = None) -> Recording:
-    """The recording at ``path`` with its depth (and amplitude) stream chosen (module docstring)."""
+    def _amplitude_link(self) -> dict[int, int]:
+        """depth index -> amplitude ordinal (``scan()`` first when it has not run); {} without an amplitude."""
+        if self.amplitude_name is None:
+            return {}
+        if self._link is None:
+            self.scan()
+        assert self._link is not None
+        return self._link
+
+
+def _with_amplitude(
+    depth_items: Iterable[Any], amp_items: Iterable[Any], link: dict[int, int]
+) -> Iterator[tuple[int, Any, Any]]:
+    """(index, depth item, its amplitude item or None) in depth order, the amplitude items of ``link`` (depth index
+    -> amplitude ordinal) taken from their own stream: those read ahead of their depth wait in memory (as many as
+    the streams are out of step), the others are passed over."""
+    wanted = set(link.values())
+    waiting: dict[int, Any] = {}
+    amp_iter = enumerate(amp_items)
+    exhausted = not link
+    for index, item in enumerate(depth_items):
+        ordinal = link.get(index)
+        amp = None
+        if ordinal is not None:
+            while ordinal not in waiting and not exhausted:
+                nxt = next(amp_iter, None)
+                if nxt is None:
+                    exhausted = True
+                elif nxt[0] in wanted:
+                    waiting[nxt[0]] = nxt[1]
+            amp = waiting.pop(ordinal, None)
+        yield index, item, amp
+
+
+def open_recording(
+    path: str | Path, depth: str | None = None, amplitude: str | None = None, use_amplitude: bool = True
+) -> Recording:
+    """The recording at ``path`` with its depth (and amplitude) stream chosen (module docstring);
+    ``use_amplitude=False``: the amplitude stream is not read (an ``amplitude`` named must still exist)."""
     path = Path(path).expanduser()
     if not path.exists():
         raise RecordingError(f"recording not found: {path}")
     if path.is_file() and path.suffix.lower() == ".mkv":
-        return KinectRecording(path, depth, amplitude)
+        return KinectRecording(path, depth, amplitude, use_amplitude)
     if is_recording(path):
-        return BagRecording(path, depth, amplitude)
+        return BagRecording(path, depth, amplitude, use_amplitude)
     raise RecordingError(f"{path} is not a recording: expected a .mkv file, a ROS 1 .bag or a ROS 2 bag folder")
 
 
@@ -240,8 +396,9 @@ def _track_name(stream: Any) -> str:
 class KinectRecording(Recording):
     """An Azure Kinect recording (module docstring)."""
 
-    def __init__(self, path: Path, depth: str | None = None, amplitude: str | None = None):
+    def __init__(self, path: Path, depth: str | None = None, amplitude: str | None = None, use_amplitude: bool = True):
         self.path = path
+        self.no_amplitude, self.notes = {}, []
         self._av = _import("av", path)
         with self._open() as container:
             tracks = {_track_name(s): s for s in container.streams.video}
@@ -254,19 +411,31 @@ class KinectRecording(Recording):
                 self.amplitude_name = _choose(names, amplitude, None, "amplitude", "--amplitude-stream", path)
             else:
                 self.amplitude_name = "IR" if "IR" in tracks and self.depth_name != "IR" else None
+            if not use_amplitude:
+                self.amplitude_name = None
             self._layout = {name: self._sample_layout(tracks[name]) for name in self._names()}
             self._duration = container.duration
             stream = tracks[self.depth_name]
             meta = {k.upper(): v for k, v in dict(stream.metadata).items()}
             self.depth_mode = meta.get("K4A_DEPTH_MODE")
             calibration = [a for a in container.streams.attachments if a.name == "calibration.json"]
-            self.intrinsics = None
-            if calibration:
-                mode = self.depth_mode or kinect_mode_for_size(*self._layout[self.depth_name][1:])
-                try:
-                    self.intrinsics = kinect_depth_intrinsics(bytes(calibration[0].data), mode, str(path))
-                except IntrinsicsError as exc:
-                    raise RecordingError(str(exc)) from exc
+            self._calibration = bytes(calibration[0].data) if calibration else None
+        self._intrinsics: Intrinsics | None = None
+
+    @property
+    def intrinsics(self) -> Intrinsics | None:
+        if self._calibration is None:
+            return None
+        if self._intrinsics is None:
+            mode = self.depth_mode or kinect_mode_for_size(*self._layout[self.depth_name][1:])
+            try:
+                self._intrinsics = kinect_depth_intrinsics(self._calibration, mode, str(self.path))
+            except IntrinsicsError as exc:
+                raise RecordingError(str(exc)) from exc
+        return self._intrinsics
+
+    def intrinsics_absent(self) -> str:
+        return "no calibration.json attachment"
 
     def _names(self) -> list[str]:
         return [self.depth_name] + ([self.amplitude_name] if self.amplitude_name else [])
@@ -311,6 +480,10 @@ class KinectRecording(Recording):
             )
         return np.frombuffer(payload, dtype=dtype).reshape(height, width).astype(np.uint16)
 
+    def _shape(self, name: str) -> tuple[int, int]:
+        _, width, height = self._layout[name]
+        return height, width
+
     def scan(self) -> int:
         missing = matroska_missing_bytes(self.path)
         if missing:
@@ -319,9 +492,11 @@ class KinectRecording(Recording):
                 "file holds"
             )
         count, last_end, duration = 0, 0, 0
+        stamps: list[int] = []
         with self._open() as container:
             for stamp, payload, duration in self._packets(container, self.depth_name):
                 self._array(self.depth_name, payload, count)
+                stamps.append(stamp)
                 count += 1
                 last_end = stamp + duration
         if count == 0:
@@ -333,30 +508,43 @@ class KinectRecording(Recording):
                     f"recording {self.path} is truncated: track {self.depth_name} ends at {last_end / 1e9:.3f} s of "
                     f"its recorded {total_ns / 1e9:.3f} s ({count} complete frames)"
                 )
+        amp_stamps: list[int] = []
+        if self.amplitude_name is not None:
+            with self._open() as container:
+                for stamp, payload, _ in self._packets(container, self.amplitude_name):
+                    self._array(self.amplitude_name, payload, len(amp_stamps))
+                    amp_stamps.append(stamp)
+        depth_shape = self._shape(self.depth_name)
+        amp_shape = self._shape(self.amplitude_name) if self.amplitude_name else depth_shape
+        self._paired(stamps, [depth_shape] * count, amp_stamps, [amp_shape] * len(amp_stamps))
         return count
 
     def frames(self) -> Iterator[RecordingFrame]:
+        link = self._amplitude_link()
+        amp = self.amplitude_name
         with self._open() as depth_container:
-            amp_iter: Iterator[tuple[int, bytes | None, int]] | None = None
-            amp_container = self._open() if self.amplitude_name else None
+            amp_container = self._open() if link else None
             try:
-                if amp_container is not None:
-                    amp_iter = self._packets(amp_container, self.amplitude_name)
-                pending: tuple[int, bytes | None, int] | None = None
-                for index, (stamp, payload, _) in enumerate(self._packets(depth_container, self.depth_name)):
+                depth_packets = self._packets(depth_container, self.depth_name)
+                amp_packets = self._packets(amp_container, amp) if amp_container is not None and amp else iter(())
+                for index, (stamp, payload, _), amp_packet in _with_amplitude(depth_packets, amp_packets, link):
                     raw = self._array(self.depth_name, payload, index)
                     amplitude = None
-                    if amp_iter is not None:
-                        while pending is None or pending[0] < stamp:
-                            pending = next(amp_iter, None)
-                            if pending is None:
-                                amp_iter = None
-                                break
-                        if pending is not None and pending[0] == stamp:
-                            amplitude = self._array(self.amplitude_name, pending[1], index).astype(np.float32)
-                    depth_mm = raw.astype(np.float32)
-                    amplitude = _paired(depth_mm, amplitude, f"recording {self.path} frame {index}")
-                    yield RecordingFrame(index, stamp, depth_mm, raw > 0, amplitude)
+                    if amp_packet is not None and amp is not None:
+                        amplitude = self._array(amp, amp_packet[1], index).astype(np.float32)
+                    why = self.no_amplitude.get(index, "")
+                    if amp is not None and amplitude is None and not why:
+                        why = f"its amplitude frame in {amp} was not found on reading the recording again"
+                    yield RecordingFrame(
+                        index,
+                        stamp,
+                        raw,
+                        1.0,
+                        f"recording {self.path} frame {index}, track {self.depth_name} at {stamp} ns",
+                        amplitude,
+                        f"amplitude frame of track {amp} at {stamp} ns",
+                        why,
+                    )
             finally:
                 if amp_container is not None:
                     amp_container.close()
@@ -407,19 +595,21 @@ def image_message_to_array(msg: Any, where: str) -> np.ndarray:
     return np.ascontiguousarray(rows).view(dtype).reshape(height, width).astype(dtype.newbyteorder("="))
 
 
-def depth_message_to_mm(msg: Any, where: str) -> tuple[np.ndarray, np.ndarray]:
-    """(depth_mm float32, 0 at invalid pixels; valid) of a depth image: 16UC1/mono16 in mm, 32FC1 in metres; a
-    ``sensor_msgs/Image`` or a ``CompressedImage`` (compressedDepth PNG/RVL, or PNG of a 16-bit depth)."""
+def depth_message_pixels(msg: Any, where: str) -> tuple[np.ndarray, float]:
+    """(pixels as recorded, millimetres per unit) of a depth image: 16UC1/mono16 in mm (1), 32FC1 in metres (1000);
+    a ``sensor_msgs/Image`` or a ``CompressedImage`` (compressedDepth PNG/RVL, or PNG of a 16-bit depth).
+    ``RecordingFrame.depth_mm`` makes millimetres of them (``frames.depth_values_mm``)."""
     _check_depth_encoding(_source_encoding(msg), where)
     pixels, encoding = _message_pixels(msg, where)
     _check_depth_encoding(encoding, where)
-    if _DEPTH_ENCODINGS[encoding] == "mm":
-        valid = pixels > 0
-        return pixels.astype(np.float32), valid
-    depth_mm = pixels.astype(np.float64) * 1000.0
-    with np.errstate(invalid="ignore"):
-        valid = np.isfinite(depth_mm) & (depth_mm > 0)
-    return np.where(valid, depth_mm, 0.0).astype(np.float32), valid
+    return pixels, (1.0 if _DEPTH_ENCODINGS[encoding] == "mm" else 1000.0)
+
+
+def camera_info_topic(depth_topic: str) -> str:
+    """The ``sensor_msgs/CameraInfo`` topic of a depth image topic by ROS's convention: ``<ns>/camera_info`` beside
+    ``<ns>/image_raw`` (``/cam/depth/image_rect_raw`` and its ``/compressedDepth`` -> ``/cam/depth/camera_info``)."""
+    base = _TRANSPORT_SUFFIX.sub("", depth_topic)
+    return f"{base.rsplit('/', 1)[0]}/camera_info"
 
 
 def _check_depth_encoding(encoding: str, where: str) -> None:
@@ -450,8 +640,9 @@ class BagRecording(Recording):
     COMPRESSED = "sensor_msgs/msg/CompressedImage"
     CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 
-    def __init__(self, path: Path, depth: str | None = None, amplitude: str | None = None):
+    def __init__(self, path: Path, depth: str | None = None, amplitude: str | None = None, use_amplitude: bool = True):
         self.path = path
+        self.no_amplitude, self.notes = {}, []
         self._highlevel = _import("rosbags.highlevel", path)
         with self._reader() as reader:
             images = sorted({c.topic for c in reader.connections if c.msgtype in (self.IMAGE, self.COMPRESSED)})
@@ -480,7 +671,14 @@ class BagRecording(Recording):
             else:
                 named = [t for t in images if t != self.depth_name and _AMPLITUDE_NAME.search(t)]
                 self.amplitude_name = named[0] if named else None
-            self.intrinsics = self._camera_info(reader)
+            if not use_amplitude:
+                self.amplitude_name = None
+            #: every CameraInfo topic of the bag, and the one of the depth topic's namespace (or None)
+            self.camera_info_topics = sorted({c.topic for c in reader.connections if c.msgtype == self.CAMERA_INFO})
+            own = camera_info_topic(self.depth_name)
+            self.camera_info_topic = own if own in self.camera_info_topics else None
+        self._intrinsics: Intrinsics | None = None
+        self._intrinsics_read = False
 
     @contextmanager
     def _reader(self) -> Iterator[Any]:
@@ -494,20 +692,42 @@ class BagRecording(Recording):
         finally:
             reader.close()
 
-    def _camera_info(self, reader: Any) -> Intrinsics | None:
-        infos = [c for c in reader.connections if c.msgtype == self.CAMERA_INFO]
-        parent = _TRANSPORT_SUFFIX.sub("", self.depth_name).rsplit("/", 1)[0]
-        infos.sort(key=lambda c: (c.topic.rsplit("/", 1)[0] != parent, c.topic))
-        for conn in infos[:1]:
-            for _, _, raw in reader.messages(connections=[conn]):
-                msg = reader.deserialize(raw, conn.msgtype)
+    @property
+    def intrinsics(self) -> Intrinsics | None:
+        if not self._intrinsics_read:
+            self._intrinsics = self._camera_info()
+            self._intrinsics_read = True
+        return self._intrinsics
+
+    def intrinsics_absent(self) -> str:
+        listing = ", ".join(self.camera_info_topics) or "none"
+        own = camera_info_topic(self.depth_name)
+        if self.camera_info_topic is not None:
+            return f"its depth topic's CameraInfo {own} holds no message"
+        return (
+            f"no CameraInfo of its depth topic {self.depth_name}: expected {own}; its CameraInfo topics: {listing} "
+            "(one of another namespace belongs to another camera or image)"
+        )
+
+    def _camera_info(self) -> Intrinsics | None:
+        """The intrinsics of the first message of the depth topic's CameraInfo (``camera_info_topic``), or None."""
+        if self.camera_info_topic is None:
+            return None
+        topic = self.camera_info_topic
+        with self._reader() as reader:
+            for _, msg in self._messages(reader, [topic]):
                 k = [float(v) for v in np.asarray(msg.k if hasattr(msg, "k") else msg.K).ravel()]
+                if len(k) != 9 or not any(k):
+                    raise RecordingError(
+                        f"recording {self.path}: CameraInfo {topic} has K = {k or '[]'} (all zero: an uncalibrated "
+                        "camera); give the intrinsics with --intrinsics FILE"
+                    )
                 try:
                     return Intrinsics(
-                        k[0], k[4], k[2], k[5], int(msg.width), int(msg.height), source=f"{self.path} {conn.topic}"
+                        k[0], k[4], k[2], k[5], int(msg.width), int(msg.height), source=f"{self.path} {topic}"
                     )
                 except IntrinsicsError as exc:
-                    raise RecordingError(str(exc)) from exc
+                    raise RecordingError(f"{exc}; give the intrinsics with --intrinsics FILE") from exc
         return None
 
     def _messages(self, reader: Any, topics: Sequence[str]) -> Iterator[tuple[str, Any]]:
@@ -520,52 +740,55 @@ class BagRecording(Recording):
         except Exception as exc:  # a damaged chunk or database page, a message that does not deserialise
             raise RecordingError(f"recording {self.path}: topic {conns[0].topic} could not be read: {exc}") from exc
 
-    def _stamps(self) -> tuple[list[int], set[int]]:
-        depth, amp = [], set()
-        with self._reader() as reader:
-            for topic, msg in self._messages(reader, self._names()):
-                where = f"recording {self.path} topic {topic} message {len(depth)}"
-                if topic == self.depth_name:
-                    depth_message_to_mm(msg, where)
-                    depth.append(_stamp_ns(msg))
-                else:
-                    image_message_to_array(msg, where)
-                    amp.add(_stamp_ns(msg))
-        return depth, amp
-
     def _names(self) -> list[str]:
         return [self.depth_name] + ([self.amplitude_name] if self.amplitude_name else [])
 
     def scan(self) -> int:
-        depth, _ = self._stamps()
-        if not depth:
-            raise RecordingError(f"recording {self.path}: depth topic {self.depth_name} holds no message")
-        return len(depth)
-
-    def frames(self) -> Iterator[RecordingFrame]:
-        depth_stamps, amp_stamps = self._stamps() if self.amplitude_name else ([], set())
-        paired = set(depth_stamps) & amp_stamps
-        waiting_depth: dict[int, tuple[int, np.ndarray, np.ndarray]] = {}
-        waiting_amp: dict[int, np.ndarray] = {}
-        index = 0
+        depth_stamps: list[int] = []
+        depth_shapes: list[tuple[int, ...]] = []
+        amp_stamps: list[int] = []
+        amp_shapes: list[tuple[int, ...]] = []
         with self._reader() as reader:
             for topic, msg in self._messages(reader, self._names()):
                 stamp = _stamp_ns(msg)
-                where = f"recording {self.path} topic {topic} at {stamp} ns"
                 if topic == self.depth_name:
-                    depth_mm, valid = depth_message_to_mm(msg, where)
-                    if stamp in paired and stamp not in waiting_amp:
-                        waiting_depth[stamp] = (index, depth_mm, valid)
-                    else:
-                        amp = _paired(depth_mm, waiting_amp.pop(stamp, None), where)
-                        yield RecordingFrame(index, stamp, depth_mm, valid, amp)
-                    index += 1
-                elif stamp in paired:
-                    amp = image_message_to_array(msg, where).astype(np.float32)
-                    if stamp in waiting_depth:
-                        i, depth_mm, valid = waiting_depth.pop(stamp)
-                        yield RecordingFrame(i, stamp, depth_mm, valid, _paired(depth_mm, amp, where))
-                    else:
-                        waiting_amp[stamp] = amp
-        for stamp, (i, depth_mm, valid) in sorted(waiting_depth.items(), key=lambda kv: kv[1][0]):
-            yield RecordingFrame(i, stamp, depth_mm, valid, None)
+                    where = f"recording {self.path} topic {topic} message {len(depth_stamps)} (stamp {stamp} ns)"
+                    depth_shapes.append(depth_message_pixels(msg, where)[0].shape)
+                    depth_stamps.append(stamp)
+                else:
+                    where = f"recording {self.path} topic {topic} message {len(amp_stamps)} (stamp {stamp} ns)"
+                    amp_shapes.append(image_message_to_array(msg, where).shape)
+                    amp_stamps.append(stamp)
+        if not depth_stamps:
+            raise RecordingError(f"recording {self.path}: depth topic {self.depth_name} holds no message")
+        self._paired(depth_stamps, depth_shapes, amp_stamps, amp_shapes)
+        return len(depth_stamps)
+
+    def frames(self) -> Iterator[RecordingFrame]:
+        link = self._amplitude_link()
+        amp = self.amplitude_name
+        with self._reader() as depth_reader, self._reader() if link else nullcontext() as amp_reader:
+            depth_msgs = self._messages(depth_reader, [self.depth_name])
+            amp_msgs = self._messages(amp_reader, [amp]) if amp_reader is not None and amp else iter(())
+            for index, (_, msg), amp_msg in _with_amplitude(depth_msgs, amp_msgs, link):
+                stamp = _stamp_ns(msg)
+                where = f"recording {self.path} frame {index}, topic {self.depth_name} at {stamp} ns"
+                pixels, mm_per_unit = depth_message_pixels(msg, where)
+                amp_where = f"amplitude message of {amp} at {stamp} ns"
+                amplitude = None
+                if amp_msg is not None:
+                    amplitude = image_message_to_array(amp_msg[1], amp_where).astype(np.float32)
+                why = self.no_amplitude.get(index, "")
+                if amp is not None and amplitude is None and not why:
+                    why = f"its amplitude message in {amp} was not found on reading the recording again"
+                yield RecordingFrame(
+                    index,
+                    stamp,
+                    pixels,
+                    mm_per_unit,
+                    where,
+                    amplitude,
+                    amp_where,
+                    why,
+                    frame_id=str(getattr(msg.header, "frame_id", "")),
+                )
