@@ -415,7 +415,7 @@ def check_same_run(cfg: DictConfig, run_dir: Path, resuming: bool = False, testi
     saved, now = _comparable(saved_text), _comparable(OmegaConf.to_yaml(cfg, resolve=True))
     info, _ = read_run(run_dir)
     if not testing and matched_on_whole_maps(info):
-        # same config, another training noise: the baseline's variance was matched on whole maps (1.2-1.3x hetero's
+        # same config, another training noise: the baseline's variance was matched on whole maps (1.17-1.21x hetero's
         # in the training crops); reused or resumed, the folder's record would pass as this code's match
         raise RunConfigMismatchError(
             f"run folder {run_dir} holds a run whose {info['prepared_data']['noise']} noise was variance-matched on "
