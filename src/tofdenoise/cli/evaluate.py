@@ -1,15 +1,17 @@
 """``tofdenoise evaluate``: the unified depth metrics for depth maps produced by any method.
 
     tofdenoise evaluate --pred DIR --ref DIR [--mask DIR] --out FILE.json [--d-max-mm 1000]
-    tofdenoise evaluate --ckpt best.ckpt --captures SCENES_DIR --sensor CALIBRATION --out FILE.json
+    tofdenoise evaluate --ckpt best.ckpt --captures SCENES_DIR --sensor CALIBRATION [--min-count N] --out FILE.json
     tofdenoise evaluate --run RUN_DIR [--sets synthetic simulated real] --out FILE.json
     ... [--edge-jump-mm 50]   (any form: the edge and off-edge pixels scored apart too)
 
 The second form restores every scene of a capture set with a checkpoint and scores it against each scene's
 reference, as a run's ``real`` test set does, and, for a simulated set (``tofdenoise sensor realset``), against its
-rendered truth too (``tofdenoise.inference.capture_eval``). Its JSON: ``{"checkpoint", "captures", "sensor",
-"scenes", "reference": RESULT, "truth": RESULT or null, "input": {"reference", "truth"}, "reference_vs_truth"}``
-(the input frames scored the same way, and the references against the truth).
+rendered truth too (``tofdenoise.inference.capture_eval``). A reference pixel needs ``--min-count`` valid
+high-exposure frames (default: the checkpoint's run's ``data.real_min_count``, else half of each scene's frames).
+Its JSON: ``{"checkpoint", "captures", "sensor", "min_count": {"value", "from"}, "scenes", "reference": RESULT,
+"truth": RESULT or null, "input": {"reference", "truth"}, "reference_vs_truth"}`` (the input frames scored the same
+way, and the references against the truth).
 
 The third form scores a finished run's own test sets again, rebuilt from its ``config.yaml`` and restored with
 its best checkpoint (``tofdenoise.inference.run_eval``): ``{"run", "checkpoint", "sets": {name: {"restored": R,
@@ -63,6 +65,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--captures", type=Path, default=None, help="a capture set (scene folders, docs/camera-tutorial.md)")
     p.add_argument("--sensor", default=None, help="the calibration of the camera that recorded --captures")
     p.add_argument(
+        "--min-count",
+        type=int,
+        default=None,
+        metavar="N",
+        help="with --captures: valid high-exposure frames a reference pixel needs (default: the data.real_min_count "
+        "of the checkpoint's run, as its real test set used it; else half of each scene's frames)",
+    )
+    p.add_argument(
         "--run",
         type=Path,
         default=None,
@@ -101,6 +111,10 @@ def _usage_error(args: argparse.Namespace) -> str:
     given = [k for k, v in {**folders, **restore, "--run": args.run}.items() if v is not None]
     if args.sets is not None and args.run is None:
         return "--sets goes with --run (a run's own test sets)"
+    if args.min_count is not None and args.captures is None:
+        return "--min-count goes with --ckpt/--captures/--sensor (a capture set's references)"
+    if args.min_count is not None and args.min_count < 1:
+        return f"--min-count must be >= 1, got {args.min_count}"
     if args.run is not None:
         others = [k for k in given if k != "--run"]
         return f"give --run alone, without {' '.join(others)}" if others else ""
@@ -121,7 +135,13 @@ def _evaluate_checkpoint(args: argparse.Namespace) -> dict:
 
     try:
         return evaluate_checkpoint(
-            args.ckpt, args.captures, args.sensor, args.device, args.d_max_mm, edge_jump_mm=args.edge_jump_mm
+            args.ckpt,
+            args.captures,
+            args.sensor,
+            args.device,
+            args.d_max_mm,
+            edge_jump_mm=args.edge_jump_mm,
+            min_count=args.min_count,
         )
     except (FileNotFoundError, ValueError) as exc:  # CheckpointError and EvalInputError are ValueErrors
         raise EvalInputError(str(exc)) from exc
@@ -230,7 +250,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     f = _fmt
 
     nan_note = f", {result['nan_px']} px without a predicted depth" if result["nan_px"] else ""
-    against = " against the references" if captures else ""
+    against = ""
+    if captures:
+        used = captures["min_count"]
+        need = "half of its frames" if used["value"] is None else f"{used['value']} frames"
+        against = f" against the references (a reference pixel needs {need} valid; min_count from {used['from']})"
     print(
         f"{result['num_images']} images ({len(result['skipped'])} without valid pixels{nan_note}){against}: "
         f"PSNR {f(m['psnr_db'], 2)} dB, SSIM {f(m['ssim'], 4)}, MSE {f(m['mse_mm2'], 2)} mm^2, "
