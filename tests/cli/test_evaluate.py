@@ -370,7 +370,8 @@ def test_a_run_scored_again_gives_its_recorded_test_numbers_and_where_the_error_
     capsys.readouterr()
     assert main(["--run", str(run_dir), "--device", "cpu", "--edge-jump-mm", "50", "--out", str(out)]) == 0
     printed = capsys.readouterr().out
-    assert printed.startswith("synthetic: ") and "\nsimulated: " in printed and "off-edge MAE" in printed
+    assert printed.startswith("precision 32-true (from ") and "\nsynthetic: " in printed
+    assert "\nsimulated: " in printed and "off-edge MAE" in printed
     result = json.loads(out.read_text())
     assert result["checkpoint"] == str(run_dir / "checkpoints" / "best.ckpt")
     assert sorted(result["sets"]) == ["simulated", "synthetic"]
@@ -410,3 +411,36 @@ def test_a_run_scored_again_gives_its_recorded_test_numbers_and_where_the_error_
     assert main(["--run", str(run_dir), "--sets", "synthetic", "--device", "cpu", "--out", str(out)]) == 0
     assert "synthetic: the rebuilt inputs do not score as the run's recorded raw numbers" in capsys.readouterr().err
     assert json.loads(out.read_text())["sets"]["synthetic"]["inputs_as_recorded"] is False
+
+
+def test_a_bf16_run_scored_again_at_its_own_precision_gives_its_recorded_numbers(tmp_path, capsys, data_cache, tiny):
+    """A run tested at ``trainer.precision=bf16-mixed`` (bf16 autocast, here on the CPU) is restored again at that
+    precision, so ``--run`` gives its recorded numbers; ``--precision 32-true`` (what ``--run`` did whatever the run
+    had, before 2026-11-29) gives other numbers, and the JSON says which precision was used."""
+    from tofdenoise.cli.train import run
+    from tofdenoise.config import compose_config
+
+    run_dir = tmp_path / "run"
+    overrides = ["trainer.max_epochs=1", "logger=csv", "trainer.precision=bf16-mixed"]
+    run(compose_config(tiny(run_dir, data_cache) + overrides))
+    recorded = json.loads((run_dir / "metrics.json").read_text())
+    out, fp32 = tmp_path / "again.json", tmp_path / "fp32.json"
+    capsys.readouterr()
+    assert main(["--run", str(run_dir), "--device", "cpu", "--sets", "synthetic", "--out", str(out)]) == 0
+    assert f"precision bf16-mixed (from {run_dir / 'config.yaml'} (trainer.precision))" in capsys.readouterr().out
+    result = json.loads(out.read_text())
+    assert result["precision"] == {"value": "bf16-mixed", "from": f"{run_dir / 'config.yaml'} (trainer.precision)"}
+    scored = result["sets"]["synthetic"]
+    assert scored["inputs_as_recorded"] is True
+    for key in ("psnr_db", "mae_mm", "mse_mm2", "ssim"):
+        assert scored["restored"]["mean"][key] == pytest.approx(recorded["synthetic"][key], rel=1e-9, abs=1e-9)
+    argv = ["--run", str(run_dir), "--device", "cpu", "--sets", "synthetic", "--precision", "32-true"]
+    assert main([*argv, "--out", str(fp32)]) == 0
+    other = json.loads(fp32.read_text())
+    assert other["precision"] == {"value": "32-true", "from": "--precision"}
+    off = abs(other["sets"]["synthetic"]["restored"]["mean"]["mae_mm"] - recorded["synthetic"]["mae_mm"])
+    assert off > 1e-6  # float32 is not the run's precision: not its numbers
+    assert main([*argv[:-1], "fp8", "--out", str(fp32)]) == 2
+    assert "precision 'fp8' is not one of 32-true, bf16-mixed" in capsys.readouterr().err
+    assert main(["--pred", str(tmp_path), "--ref", str(tmp_path), "--precision", "32-true", "--out", str(fp32)]) == 2
+    assert "--precision goes with --run" in capsys.readouterr().err
