@@ -423,9 +423,10 @@ def test_the_summary_says_whether_the_frames_ran_whole_or_in_tiles(frames_dir, r
     assert main([*args, "--out", str(tmp_path / "tiles"), "--tile", "40"]) == 0
     lines = [line.strip() for line in capsys.readouterr().err.splitlines()]
     assert "tiling: 3 frame(s) in tiles of 40 px (--tile 40)" in lines
-    # a tile no larger than the checkpoint's overlap (32 px) is refused up front, not frame by frame
-    assert main([*args, "--out", str(tmp_path / "bad"), "--tile", "32"]) == 2
-    assert (
-        "--tile must exceed the checkpoint's tile overlap (tiling.overlap_px = 32), got 32" in capsys.readouterr().err
-    )
+    # a tile that leaves no stride on the backbone's multiple (4) after the overlap (32 px) is refused up front,
+    # not frame by frame
+    assert main([*args, "--out", str(tmp_path / "bad"), "--tile", "35"]) == 2
+    err = capsys.readouterr().err
+    assert "--tile must be at least 36 px for this checkpoint (its tile overlap tiling.overlap_px = 32" in err
+    assert "padding multiple of 4 px" in err and "got 35" in err
     assert not (tmp_path / "bad").exists()

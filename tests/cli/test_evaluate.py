@@ -212,10 +212,12 @@ def test_sub_folders_are_matched_by_their_path_as_denoise_mirrors_them(tmp_path,
 def test_a_checkpoint_on_a_capture_set_scores_the_reference_as_its_run_did_and_the_truth(
     tmp_path, capsys, data_cache, tiny
 ):
-    """``--ckpt --captures --sensor``: against the references it gives the run's own ``real`` test numbers exactly;
-    against the simulated set's rendered truth, the per-image MAE computed here by hand from the public
-    ``denoise`` API. A set whose scenes lack the truth gives ``truth: null``; a set with it in some scenes only, or
-    a wrong combination of options, exits 2 naming what is wrong."""
+    """``--ckpt --captures --sensor``: against the references it gives the run's own ``real`` test numbers exactly,
+    with the run's ``data.real_min_count`` (1 here, not the default 2 of 4 frames: 5 pixels of scene_0001 have one
+    valid frame); ``--min-count`` scores with another without rewriting the cached reference; against the simulated
+    set's rendered truth, the per-image MAE computed here by hand from the public ``denoise`` API. A set whose scenes
+    lack the truth gives ``truth: null``; a set with it in some scenes only, or a wrong combination of options,
+    exits 2 naming what is wrong."""
     from tofdenoise.cli.sensor import main as sensor_main
     from tofdenoise.cli.train import run
     from tofdenoise.config import compose_config
@@ -227,23 +229,52 @@ def test_a_checkpoint_on_a_capture_set_scores_the_reference_as_its_run_did_and_t
     args = ["realset", "--out", str(realset), "--scenes", "2", "--frames", "4", "--height", "32", "--width", "48"]
     assert sensor_main(args) == 0
     captures, sensor = realset / "captures", realset / "calibration.yaml"
+    for k in (1, 2, 3):  # a block of 32 pixels valid in the first of the 4 frames only, in both scenes
+        for scene in ("scene_0000", "scene_0001"):
+            path = captures / scene / "hiexp" / f"depth_mm_{k:03d}.png"
+            depth = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+            depth[10:14, 10:18] = 0
+            assert cv2.imwrite(str(path), depth)
     overrides = [f"++data.sensor={sensor}", f"++data.real_dir={captures}", "trainer.max_epochs=1", "logger=csv"]
-    run(compose_config(tiny(run_dir, data_cache) + overrides))
+    run(compose_config(tiny(run_dir, data_cache) + overrides + ["++data.real_min_count=1"]))
     recorded = json.loads((run_dir / "metrics.json").read_text())["real"]
     ckpt, out = run_dir / "checkpoints" / "best.ckpt", tmp_path / "eval.json"
     capsys.readouterr()
 
     assert main(["--ckpt", str(ckpt), "--captures", str(captures), "--sensor", str(sensor), "--out", str(out)]) == 0
     printed = capsys.readouterr().out
-    assert "2 images (0 without valid pixels) against the references" in printed
+    assert "2 images (0 without valid pixels) against the references (a reference pixel needs 1 frames valid; " in (
+        printed
+    )
     assert "2 images against the rendered truth (a simulated set)" in printed
     result = json.loads(out.read_text())
     assert result["scenes"] == 2 and result["checkpoint"] == str(ckpt)
+    assert result["min_count"] == {"value": 1, "from": f"{ckpt} (data.real_min_count of its run)"}
+    assert sum(row["valid_px"] for row in result["reference"]["images"].values()) == recorded["valid_px"]
     for key in ("psnr_db", "mae_mm", "mse_mm2", "ssim"):
         assert result["reference"]["mean"][key] == pytest.approx(recorded[key], rel=1e-9, abs=1e-9)
     model, calib = load_restorer(ckpt, "cpu"), load_calibration(sensor)
+    # --min-count 4: fewer reference pixels, from the same cache (derived, not rewritten)
+    caches = {p: p.read_bytes() for p in captures.glob("*/reference*")}
+    strict = tmp_path / "strict.json"
+    argv = ["--ckpt", str(ckpt), "--captures", str(captures), "--sensor", str(sensor), "--min-count", "4"]
+    assert main([*argv, "--out", str(strict)]) == 0
+    strict_result = json.loads(strict.read_text())
+    assert strict_result["min_count"] == {"value": 4, "from": "--min-count"}
+    assert {p: p.read_bytes() for p in caches} == caches
     for scene in sorted(p for p in captures.iterdir() if p.is_dir()):
-        sample = load_real_scene(scene, calib)
+        masks = [(load_real_scene(scene, calib, m)["mask"] > 0).sum() for m in (1, 2, 4)]
+        assert result["reference"]["images"][scene.name]["valid_px"] == masks[0]
+        assert strict_result["reference"]["images"][scene.name]["valid_px"] == masks[2]
+    fewer = [
+        result["reference"]["images"][n]["valid_px"] - r["valid_px"]
+        for n, r in strict_result["reference"]["images"].items()
+    ]
+    assert min(fewer) >= 30  # the block of one valid frame (less its invalid input pixels), and a few more
+    assert main([*argv[:-1], "0", "--out", str(strict)]) == 2
+    assert "--min-count must be >= 1, got 0" in capsys.readouterr().err
+    for scene in sorted(p for p in captures.iterdir() if p.is_dir()):
+        sample = load_real_scene(scene, calib, 1)
         pred = denoise(sample["noisy"], model, amplitude=sample["amplitude"], device="cpu")
         truth = np.load(scene / "ground_truth_depth_mm.npy")
         scored = (sample["mask"] > 0) & np.isfinite(truth) & (truth > 0)
@@ -339,7 +370,8 @@ def test_a_run_scored_again_gives_its_recorded_test_numbers_and_where_the_error_
     capsys.readouterr()
     assert main(["--run", str(run_dir), "--device", "cpu", "--edge-jump-mm", "50", "--out", str(out)]) == 0
     printed = capsys.readouterr().out
-    assert printed.startswith("synthetic: ") and "\nsimulated: " in printed and "off-edge MAE" in printed
+    assert printed.startswith("precision 32-true (from ") and "\nsynthetic: " in printed
+    assert "\nsimulated: " in printed and "off-edge MAE" in printed
     result = json.loads(out.read_text())
     assert result["checkpoint"] == str(run_dir / "checkpoints" / "best.ckpt")
     assert sorted(result["sets"]) == ["simulated", "synthetic"]
@@ -379,3 +411,36 @@ def test_a_run_scored_again_gives_its_recorded_test_numbers_and_where_the_error_
     assert main(["--run", str(run_dir), "--sets", "synthetic", "--device", "cpu", "--out", str(out)]) == 0
     assert "synthetic: the rebuilt inputs do not score as the run's recorded raw numbers" in capsys.readouterr().err
     assert json.loads(out.read_text())["sets"]["synthetic"]["inputs_as_recorded"] is False
+
+
+def test_a_bf16_run_scored_again_at_its_own_precision_gives_its_recorded_numbers(tmp_path, capsys, data_cache, tiny):
+    """A run tested at ``trainer.precision=bf16-mixed`` (bf16 autocast, here on the CPU) is restored again at that
+    precision, so ``--run`` gives its recorded numbers; ``--precision 32-true`` (what ``--run`` did whatever the run
+    had, before 2026-11-29) gives other numbers, and the JSON says which precision was used."""
+    from tofdenoise.cli.train import run
+    from tofdenoise.config import compose_config
+
+    run_dir = tmp_path / "run"
+    overrides = ["trainer.max_epochs=1", "logger=csv", "trainer.precision=bf16-mixed"]
+    run(compose_config(tiny(run_dir, data_cache) + overrides))
+    recorded = json.loads((run_dir / "metrics.json").read_text())
+    out, fp32 = tmp_path / "again.json", tmp_path / "fp32.json"
+    capsys.readouterr()
+    assert main(["--run", str(run_dir), "--device", "cpu", "--sets", "synthetic", "--out", str(out)]) == 0
+    assert f"precision bf16-mixed (from {run_dir / 'config.yaml'} (trainer.precision))" in capsys.readouterr().out
+    result = json.loads(out.read_text())
+    assert result["precision"] == {"value": "bf16-mixed", "from": f"{run_dir / 'config.yaml'} (trainer.precision)"}
+    scored = result["sets"]["synthetic"]
+    assert scored["inputs_as_recorded"] is True
+    for key in ("psnr_db", "mae_mm", "mse_mm2", "ssim"):
+        assert scored["restored"]["mean"][key] == pytest.approx(recorded["synthetic"][key], rel=1e-9, abs=1e-9)
+    argv = ["--run", str(run_dir), "--device", "cpu", "--sets", "synthetic", "--precision", "32-true"]
+    assert main([*argv, "--out", str(fp32)]) == 0
+    other = json.loads(fp32.read_text())
+    assert other["precision"] == {"value": "32-true", "from": "--precision"}
+    off = abs(other["sets"]["synthetic"]["restored"]["mean"]["mae_mm"] - recorded["synthetic"]["mae_mm"])
+    assert off > 1e-6  # float32 is not the run's precision: not its numbers
+    assert main([*argv[:-1], "fp8", "--out", str(fp32)]) == 2
+    assert "precision 'fp8' is not one of 32-true, bf16-mixed" in capsys.readouterr().err
+    assert main(["--pred", str(tmp_path), "--ref", str(tmp_path), "--precision", "32-true", "--out", str(fp32)]) == 2
+    assert "--precision goes with --run" in capsys.readouterr().err

@@ -80,7 +80,14 @@ def test_build_reference_command(tmp_path, capsys):
     assert run(["build-reference", out]) == 0
     text = capsys.readouterr().out
     assert "2 scene(s): 0 reference(s) rebuilt, 2 up to date" in text
-    assert run(["build-reference", out, "--min-count", 4, "--quiet"]) == 0
+    # a larger threshold than the cache's (2 of 4 frames) is derived from it exactly, nothing rebuilt or rewritten
+    cached = (out / "scene_0000" / "reference.json").read_bytes()
+    assert run(["build-reference", out, "--min-count", 4]) == 0
+    text = capsys.readouterr().out
+    assert "scene_0000: up to date (min_count 4 from the cached reference at min_count 2, exactly; --force" in text
+    assert "2 scene(s): 0 reference(s) rebuilt, 2 up to date" in text
+    assert (out / "scene_0000" / "reference.json").read_bytes() == cached
+    assert run(["build-reference", out, "--min-count", 4, "--force", "--quiet"]) == 0
     assert "2 reference(s) rebuilt" in capsys.readouterr().out
     assert run(["build-reference", out / "scene_0001", "--force", "--quiet"]) == 0  # one scene folder
     assert "1 scene(s): 1 reference(s) rebuilt" in capsys.readouterr().out

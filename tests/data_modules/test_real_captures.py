@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import json
 import os
 import time
+import warnings
 
 import cv2
 import numpy as np
@@ -13,6 +15,7 @@ import torch
 from tofdenoise.data_modules.real_captures import (
     REFERENCE_COUNT,
     REFERENCE_DEPTH,
+    REFERENCE_META,
     accumulate_reference,
     build_reference,
     load_real_scene,
@@ -68,7 +71,7 @@ def test_reference_cache_and_rebuild_when_inputs_newer(tmp_path):
     write_scene(tmp_path, frames, sat)
     build_reference(tmp_path)
     assert not build_reference(tmp_path).rebuilt  # up to date: reused
-    assert build_reference(tmp_path, min_count=3).rebuilt  # another threshold: rebuilt
+    assert not build_reference(tmp_path, min_count=3).rebuilt  # a larger threshold: derived from the cache
     frames[3][:] = 2000
     later = time.time() + 5
     cv2.imwrite(str(tmp_path / "hiexp" / "depth_mm_003.png"), frames[3].astype(np.uint16))
@@ -76,6 +79,89 @@ def test_reference_cache_and_rebuild_when_inputs_newer(tmp_path):
     rebuilt = build_reference(tmp_path, min_count=3)
     assert rebuilt.rebuilt and rebuilt.depth_mm[5, 7] == pytest.approx((1000 + 1002 + 1004 + 2000) / 4)
     assert not [p for p in tmp_path.iterdir() if ".tmp" in p.name]
+
+
+def test_one_cache_serves_every_min_count_exactly_and_is_never_replaced_without_a_warning(tmp_path):
+    """The cached reference at min_count c gives any m >= c bit for bit as a build at m does, without a rebuild or
+    a write; a smaller m is rebuilt, cached in its place with a warning naming both values, and c is then derived
+    from it (before: every other min_count rewrote the cache silently, e.g. 2 -> 5 by ``evaluate --ckpt``)."""
+    frames, sat = hand_frames()
+    for name in ("a", "b1", "b2", "b3", "b4"):
+        write_scene(tmp_path / name, frames, sat)
+    fresh = {m: build_reference(tmp_path / f"b{m}", min_count=m).depth_mm for m in (1, 2, 3, 4)}
+    assert [int(np.isfinite(fresh[m]).sum()) for m in (1, 2, 3, 4)] == [48, 47, 45, 45]
+    scene = tmp_path / "a"
+    build_reference(scene, min_count=2)
+    cached = {p: p.read_bytes() for p in (scene / REFERENCE_DEPTH, scene / REFERENCE_META)}
+    for m in (2, 3, 4):
+        ref = build_reference(scene, min_count=m)
+        assert not ref.rebuilt and ref.min_count == m and ref.cached_min_count == 2
+        np.testing.assert_array_equal(ref.depth_mm, fresh[m])  # NaN where the fresh build has NaN, equal elsewhere
+    assert {p: p.read_bytes() for p in cached} == cached  # nothing written
+    with pytest.warns(UserWarning, match=r"built with min_count 2 \(reference.json\); rebuilt with min_count 1"):
+        ref = build_reference(scene, min_count=1)
+    assert ref.rebuilt and json.loads((scene / REFERENCE_META).read_text())["min_count"] == 1
+    np.testing.assert_array_equal(ref.depth_mm, fresh[1])
+    again = build_reference(scene, min_count=2)
+    assert not again.rebuilt and again.cached_min_count == 1
+    np.testing.assert_array_equal(again.depth_mm, fresh[2])
+    # a forced build at a larger threshold says what it replaced
+    with pytest.warns(UserWarning, match=r"min_count 1 .*rebuilt with min_count 3 .*now needs a rebuild"):
+        build_reference(scene, min_count=3, force=True)
+    # a cache whose arrays are not those it recorded, or do not hold its recorded threshold (a pixel of enough
+    # frames without a depth; here the arrays of min_count 3 with a reference.json edited to say 1) is rebuilt
+    np.save(scene / REFERENCE_DEPTH, fresh[4])  # the same bytes as the forced build at 3 (45 valid pixels each)
+    meta = json.loads((scene / REFERENCE_META).read_text())
+    meta["min_count"] = 1
+    (scene / REFERENCE_META).write_text(json.dumps(meta))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # rebuilt at its recorded threshold: nothing of another setting replaced
+        ref = build_reference(scene, min_count=2)
+    assert ref.rebuilt and json.loads((scene / REFERENCE_META).read_text())["min_count"] == 1
+    np.testing.assert_array_equal(ref.depth_mm, fresh[2])
+    np.save(scene / REFERENCE_DEPTH, fresh[2])  # arrays other than the recorded ones
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ref = build_reference(scene, min_count=2)
+    assert ref.rebuilt
+    np.testing.assert_array_equal(np.load(scene / REFERENCE_DEPTH), fresh[1])
+
+
+def test_frames_rewritten_with_their_old_mtimes_make_the_reference_stale(tmp_path):
+    """Frames rewritten +100 mm but with their old mtimes (``cp -p``, ``rsync -a``) rebuild the reference: the
+    cache records each file's size and SHA-256 (before: mtime only, and the reference stayed 100 mm off). A set
+    whose files only got other times (a copy, a touch) is not rebuilt."""
+    frames, sat = hand_frames()
+    write_scene(tmp_path, frames, sat)
+    stored = [cv2.IMWRITE_PNG_COMPRESSION, 0]  # uncompressed: a rewritten frame keeps its size exactly
+    for k, depth in enumerate(frames):
+        cv2.imwrite(str(tmp_path / "hiexp" / f"depth_mm_{k:03d}.png"), depth.astype(np.uint16), stored)
+    before = build_reference(tmp_path, min_count=2).depth_mm
+    info = json.loads((tmp_path / REFERENCE_META).read_text())
+    assert len(info["files"]) == 8 and all(len(r["sha256"]) == 64 for r in info["files"].values())
+    for k, depth in enumerate(frames):
+        path = tmp_path / "hiexp" / f"depth_mm_{k:03d}.png"
+        st = os.stat(path)
+        cv2.imwrite(str(path), np.where(depth > 0, depth + 100, 0).astype(np.uint16), stored)
+        os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns))
+        # same mtime and, here, the same size: only the content tells
+        assert (os.stat(path).st_mtime_ns, os.stat(path).st_size) == (st.st_mtime_ns, st.st_size)
+    after = build_reference(tmp_path, min_count=2)
+    assert after.rebuilt
+    np.testing.assert_allclose(after.depth_mm, before + 100, equal_nan=True)
+    # same bytes, other times (a copy of the set, a touch): the digests match
+    for path in (tmp_path / "hiexp").iterdir():
+        os.utime(path, ns=(0, os.stat(path).st_mtime_ns + 10**9))
+    assert not build_reference(tmp_path, min_count=2).rebuilt
+    # one byte more in a saturation mask (a size change) is a change too
+    with open(tmp_path / "hiexp" / "saturated_001.png", "ab") as fh:
+        fh.write(b"\0")
+    assert build_reference(tmp_path, min_count=2).rebuilt
+    # a cache written before the file records (format 1, no "files") is rebuilt once
+    meta = json.loads((tmp_path / REFERENCE_META).read_text())
+    del meta["files"], meta["format"]
+    (tmp_path / REFERENCE_META).write_text(json.dumps(meta))
+    assert build_reference(tmp_path, min_count=2).rebuilt and not build_reference(tmp_path, min_count=2).rebuilt
 
 
 def test_missing_saturation_mask_and_shape_mismatch(tmp_path):

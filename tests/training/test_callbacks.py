@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+import pytest
 import torch
 
 from tofdenoise.callbacks.predict_writer import DepthPredictionWriter
@@ -66,6 +67,36 @@ def test_prediction_writer_layout(tmp_path):
     assert cv2.imread(str(root / "reference_png" / "a_1.png"), cv2.IMREAD_UNCHANGED)[0, 0] == 999
     assert cv2.imread(str(root / "noisy_png" / "b_2.png"), cv2.IMREAD_UNCHANGED)[0, 0] == 1003
     assert cv2.imread(str(root / "preview" / "a_1.png")).ndim == 3
+    assert np.load(root / "reference_npy" / "a_1.npy").dtype == np.float32
+    assert np.allclose(np.load(root / "reference_npy" / "a_1.npy"), 999.0)
+    assert np.allclose(np.load(root / "noisy_npy" / "b_2.npy"), 1003.0)
+    assert cv2.imread(str(root / "mask" / "a_1.png"), cv2.IMREAD_UNCHANGED).min() == 255
+
+
+def test_written_float_maps_score_as_the_test_step_and_pngs_do_not(tmp_path, tiny_data):
+    """``evaluate --pred <set>/npy --ref <set>/reference_npy --mask <set>/mask`` gives the test step's numbers (to
+    1e-9); the PNG maps, both rounded to whole millimetres, do not (here MSE +0.26 mm^2), which is why
+    docs/evaluation.md gives the PNG route's offsets."""
+    from tofdenoise.evaluation import evaluate_dirs
+    from tofdenoise.training.module import DepthRestorer
+
+    from .conftest import quiet_trainer
+
+    torch.manual_seed(0)
+    model = DepthRestorer(backbone="unet", backbone_kwargs={"width": 4, "stages": 2}, loss="l1")
+    quiet_trainer(tmp_path).test(model, datamodule=tiny_data)
+    recorded = model.test_results["synthetic"]
+    writer = DepthPredictionWriter(tmp_path / "pred", write_reference=True)
+    quiet_trainer(tmp_path, callbacks=[writer]).predict(model, datamodule=tiny_data, return_predictions=False)
+    root = tmp_path / "pred" / "synthetic"
+    floats = evaluate_dirs(root / "npy", root / "reference_npy", root / "mask")
+    raw = evaluate_dirs(root / "noisy_npy", root / "reference_npy", root / "mask")
+    pngs = evaluate_dirs(root / "png", root / "reference_png", root / "mask")
+    assert floats["num_images"] == 4 and floats["nan_px"] == 0
+    for key in ("psnr_db", "mae_mm", "mse_mm2", "ssim"):
+        assert floats["mean"][key] == pytest.approx(recorded[key], rel=1e-9, abs=1e-12)
+        assert raw["mean"][key] == pytest.approx(recorded["raw"][key], rel=1e-9, abs=1e-12)
+    assert 0.1 < pngs["mean"]["mse_mm2"] - recorded["mse_mm2"] < 0.4  # measured +0.26 mm^2
 
 
 def test_csv_log_survives_a_resume_without_duplicates(tmp_path, tiny_data):

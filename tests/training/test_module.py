@@ -276,9 +276,9 @@ def test_predict_zeroes_invalid_and_tiles_large_frames(tmp_path, tiny_data, monk
     calls = []
     real = module.tiled_forward
 
-    def spy(net, x, tile, overlap):
-        calls.append((tuple(x.shape), tile, overlap))
-        return real(net, x, tile=tile, overlap=overlap)
+    def spy(net, x, tile, overlap, multiple):
+        calls.append((tuple(x.shape), tile, overlap, multiple))
+        return real(net, x, tile=tile, overlap=overlap, multiple=multiple)
 
     monkeypatch.setattr(module, "tiled_forward", spy)
     model = tiny_model(tiling={"predict_tile_px": 16, "overlap_px": 4})
@@ -286,7 +286,7 @@ def test_predict_zeroes_invalid_and_tiles_large_frames(tmp_path, tiny_data, monk
     assert not calls  # 32 x 32 frames fit the memory budget: whole frames, whatever the tile size
     monkeypatch.setattr(module, "memory_budget_bytes", lambda device: 1.0)  # nothing fits: the checkpoint's tiles
     preds = trainer(tmp_path).predict(model, datamodule=tiny_data)
-    assert calls and calls[0][1:] == (16, 4)
+    assert calls and calls[0][1:] == (16, 4, model.backbone.multiple)  # tiles on the backbone's padding multiple
     pred = preds[0]  # one loader: a list of batch outputs
     batch = next(iter(tiny_data.test_dataloader()[0]))
     assert pred.shape == batch["noisy"].shape

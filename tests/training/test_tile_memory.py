@@ -62,6 +62,8 @@ def test_tile_plan_tiles_only_what_does_not_fit_or_what_is_forced():
     # a budget that not even the checkpoint's tile fits: halved until a tile fits, down to MIN_TILE_PX
     assert tile_plan((1200, 1600), None, 512, per_px, lambda: 100.0 * 200 * 200 * SAFETY).tile == 128
     assert tile_plan((1200, 1600), None, 512, per_px, lambda: 1.0).tile == MIN_TILE_PX
+    # ... and never below the smallest tile the network's overlap and padding multiple allow (models.tiling.min_tile_px)
+    assert tile_plan((1200, 1600), None, 512, per_px, lambda: 1.0, min_tile=96).tile == 96
     # forced: tiles whenever a side exceeds it, without measuring
     never = lambda: pytest.fail("not measured when --tile forces tiles")  # noqa: E731
     assert tile_plan((576, 640), 512, 512, never, never) == TilePlan(512, forced=True)

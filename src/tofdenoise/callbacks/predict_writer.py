@@ -8,9 +8,14 @@ Layout under ``output_dir`` (one folder per prediction set, named after ``datamo
     <set>/preview/<name>.png        colourised noisy | restored | sigma_D | |error| panel (write_previews)
     <set>/reference_png/<name>.png  clean reference, uint16 mm (write_reference; ready for tofdenoise evaluate)
     <set>/noisy_png/<name>.png      the network input, uint16 mm (write_reference)
+    <set>/reference_npy/<name>.npy  clean reference, float32 mm, as the test step scores it (write_reference)
+    <set>/noisy_npy/<name>.npy      the network input, float32 mm (write_reference)
+    <set>/mask/<name>.png           the scoring mask, uint8 (255 = scored; write_reference)
 
-All files are written atomically (``tofdenoise.atomic``). ``tofdenoise evaluate --pred <set>/png
---ref <set>/reference_png`` then computes the unified metrics of the written maps.
+All files are written atomically (``tofdenoise.atomic``). ``tofdenoise evaluate --pred <set>/npy
+--ref <set>/reference_npy --mask <set>/mask`` computes the metrics of the float maps: the test step's numbers
+(``metrics.json``) to float rounding. ``--pred <set>/png --ref <set>/reference_png`` scores both maps rounded to
+whole millimetres, which shifts the numbers (docs/evaluation.md gives the measured offsets).
 """
 
 from __future__ import annotations
@@ -39,7 +44,8 @@ class DepthPredictionWriter(BasePredictionWriter):
         write_sigma: also save the input's sigma_D map (``batch["sigma"]``) as ``.npy``.
         write_previews: also save a colourised panel PNG (noisy, restored, sigma_D, |error| when the batch has
             a reference) with a shared depth colour scale (``tofdenoise.visualize``).
-        write_reference: also save the clean reference and the noisy input as 16-bit PNG.
+        write_reference: also save the clean reference and the noisy input as 16-bit PNG and float32 ``.npy``, and
+            the scoring mask as an 8-bit PNG.
     """
 
     def __init__(
@@ -97,9 +103,16 @@ class DepthPredictionWriter(BasePredictionWriter):
                 save_npy_atomic(root / "sigma_npy" / f"{stem}.npy", batch_plane(batch["sigma"], i))
             if self.write_reference and isinstance(batch, dict):
                 if "clean" in batch:
-                    write_depth_png16(root / "reference_png" / f"{stem}.png", batch_plane(batch["clean"], i))
+                    clean = batch_plane(batch["clean"], i)
+                    write_depth_png16(root / "reference_png" / f"{stem}.png", clean)
+                    save_npy_atomic(root / "reference_npy" / f"{stem}.npy", clean.astype(np.float32))
                 if "noisy" in batch:
-                    write_depth_png16(root / "noisy_png" / f"{stem}.png", batch_plane(batch["noisy"], i))
+                    noisy = batch_plane(batch["noisy"], i)
+                    write_depth_png16(root / "noisy_png" / f"{stem}.png", noisy)
+                    save_npy_atomic(root / "noisy_npy" / f"{stem}.npy", noisy.astype(np.float32))
+                if "mask" in batch:
+                    scored = np.where(batch_plane(batch["mask"], i) > 0, 255, 0).astype(np.uint8)
+                    atomic_write_png(root / "mask" / f"{stem}.png", scored)
             if self.write_previews and isinstance(batch, dict):
                 atomic_write_png(root / "preview" / f"{stem}.png", self._preview(batch, depth, i))
 

@@ -241,10 +241,16 @@ def run(args: argparse.Namespace) -> int:
     except (CheckpointError, ValueError, OSError) as exc:
         return _fail(str(exc))
     overlap = getattr(getattr(model, "tiling", None), "overlap_px", None)
-    if args.tile is not None and overlap is not None and args.tile <= overlap:
-        return _fail(
-            f"--tile must exceed the checkpoint's tile overlap (tiling.overlap_px = {overlap}), got {args.tile}"
-        )
+    if args.tile is not None and overlap is not None:
+        from tofdenoise.models.tiling import min_tile_px, model_multiple
+
+        multiple = model_multiple(getattr(model, "eval_net", None))
+        if args.tile < min_tile_px(overlap, multiple):
+            return _fail(
+                f"--tile must be at least {min_tile_px(overlap, multiple)} px for this checkpoint (its tile overlap "
+                f"tiling.overlap_px = {overlap} plus the backbone's padding multiple of {multiple} px, tiles starting "
+                f"on that multiple), got {args.tile}"
+            )
     if signal and amplitude is None and frames:
         return _fail(
             f"{'ONNX model' if args.onnx is not None else 'checkpoint'} {args.onnx or args.ckpt} uses the "

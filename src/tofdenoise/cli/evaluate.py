@@ -1,21 +1,24 @@
 """``tofdenoise evaluate``: the unified depth metrics for depth maps produced by any method.
 
     tofdenoise evaluate --pred DIR --ref DIR [--mask DIR] --out FILE.json [--d-max-mm 1000]
-    tofdenoise evaluate --ckpt best.ckpt --captures SCENES_DIR --sensor CALIBRATION --out FILE.json
-    tofdenoise evaluate --run RUN_DIR [--sets synthetic simulated real] --out FILE.json
+    tofdenoise evaluate --ckpt best.ckpt --captures SCENES_DIR --sensor CALIBRATION [--min-count N] --out FILE.json
+    tofdenoise evaluate --run RUN_DIR [--sets synthetic simulated real] [--precision P] --out FILE.json
     ... [--edge-jump-mm 50]   (any form: the edge and off-edge pixels scored apart too)
 
 The second form restores every scene of a capture set with a checkpoint and scores it against each scene's
 reference, as a run's ``real`` test set does, and, for a simulated set (``tofdenoise sensor realset``), against its
-rendered truth too (``tofdenoise.inference.capture_eval``). Its JSON: ``{"checkpoint", "captures", "sensor",
-"scenes", "reference": RESULT, "truth": RESULT or null, "input": {"reference", "truth"}, "reference_vs_truth"}``
-(the input frames scored the same way, and the references against the truth).
+rendered truth too (``tofdenoise.inference.capture_eval``). A reference pixel needs ``--min-count`` valid
+high-exposure frames (default: the checkpoint's run's ``data.real_min_count``, else half of each scene's frames).
+Its JSON: ``{"checkpoint", "captures", "sensor", "min_count": {"value", "from"}, "scenes", "reference": RESULT,
+"truth": RESULT or null, "input": {"reference", "truth"}, "reference_vs_truth"}`` (the input frames scored the same
+way, and the references against the truth).
 
 The third form scores a finished run's own test sets again, rebuilt from its ``config.yaml`` and restored with
-its best checkpoint (``tofdenoise.inference.run_eval``): ``{"run", "checkpoint", "sets": {name: {"restored": R,
-"input": R}}}``; the whole-image means are the run's recorded test numbers. ``--edge-jump-mm T`` adds to every
-result ``regions``: the metrics over the pixels at a reference depth step > T mm (flying pixels, where the camera
-mixes two surfaces) and over the rest (``tofdenoise.evaluation``).
+its best checkpoint at the precision its test ran at (``trainer.precision``; ``--precision P`` for another;
+``tofdenoise.inference.run_eval``): ``{"run", "checkpoint", "precision": {"value", "from"}, "sets": {name:
+{"restored": R, "input": R}}}``; the whole-image means are the run's recorded test numbers. ``--edge-jump-mm T``
+adds to every result ``regions``: the metrics over the pixels at a reference depth step > T mm (flying pixels, where
+the camera mixes two surfaces) and over the rest (``tofdenoise.evaluation``).
 
 Files are matched by stem; which files count, which pixels count, how non-finite predictions are counted and
 the result's layout: :mod:`tofdenoise.evaluation` (``evaluate_dirs``). The result is written atomically as
@@ -63,6 +66,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--captures", type=Path, default=None, help="a capture set (scene folders, docs/camera-tutorial.md)")
     p.add_argument("--sensor", default=None, help="the calibration of the camera that recorded --captures")
     p.add_argument(
+        "--min-count",
+        type=int,
+        default=None,
+        metavar="N",
+        help="with --captures: valid high-exposure frames a reference pixel needs (default: the data.real_min_count "
+        "of the checkpoint's run, as its real test set used it; else half of each scene's frames)",
+    )
+    p.add_argument(
         "--run",
         type=Path,
         default=None,
@@ -76,6 +87,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="with --run: which test sets (synthetic, simulated, real; default: synthetic and simulated)",
     )
     p.add_argument("--device", default="auto", help="auto | cpu | cuda (with --ckpt or --run)")
+    p.add_argument(
+        "--precision",
+        default=None,
+        metavar="P",
+        help="with --run: the precision to restore at, a Lightning name (32-true, bf16-mixed, 16-mixed, bf16-true, "
+        "16-true, 64-true; default: the run's trainer.precision, as its test ran)",
+    )
     p.add_argument("--out", required=True, type=Path, help="output JSON file")
     p.add_argument(
         "--d-max-mm",
@@ -101,6 +119,12 @@ def _usage_error(args: argparse.Namespace) -> str:
     given = [k for k, v in {**folders, **restore, "--run": args.run}.items() if v is not None]
     if args.sets is not None and args.run is None:
         return "--sets goes with --run (a run's own test sets)"
+    if args.precision is not None and args.run is None:
+        return "--precision goes with --run (the precision a run's test sets are restored at)"
+    if args.min_count is not None and args.captures is None:
+        return "--min-count goes with --ckpt/--captures/--sensor (a capture set's references)"
+    if args.min_count is not None and args.min_count < 1:
+        return f"--min-count must be >= 1, got {args.min_count}"
     if args.run is not None:
         others = [k for k in given if k != "--run"]
         return f"give --run alone, without {' '.join(others)}" if others else ""
@@ -121,7 +145,13 @@ def _evaluate_checkpoint(args: argparse.Namespace) -> dict:
 
     try:
         return evaluate_checkpoint(
-            args.ckpt, args.captures, args.sensor, args.device, args.d_max_mm, edge_jump_mm=args.edge_jump_mm
+            args.ckpt,
+            args.captures,
+            args.sensor,
+            args.device,
+            args.d_max_mm,
+            edge_jump_mm=args.edge_jump_mm,
+            min_count=args.min_count,
         )
     except (FileNotFoundError, ValueError) as exc:  # CheckpointError and EvalInputError are ValueErrors
         raise EvalInputError(str(exc)) from exc
@@ -133,7 +163,9 @@ def _evaluate_run(args: argparse.Namespace) -> dict:
     from tofdenoise.inference.run_eval import evaluate_run  # heavy (torch, hydra, the data module)
 
     try:
-        return evaluate_run(args.run, args.sets, args.device, args.d_max_mm, args.edge_jump_mm)
+        return evaluate_run(
+            args.run, args.sets, args.device, args.d_max_mm, args.edge_jump_mm, precision=args.precision
+        )
     except (FileNotFoundError, ValueError) as exc:
         raise EvalInputError(str(exc)) from exc
 
@@ -156,6 +188,8 @@ def _regions_line(result: dict) -> str:
 
 
 def _print_run(result: dict, out: Path) -> None:
+    used = result["precision"]
+    print(f"precision {used['value']} (from {used['from']})")
     for name, scored in result["sets"].items():
         r, i = scored["restored"], scored["input"]
         print(
@@ -230,7 +264,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     f = _fmt
 
     nan_note = f", {result['nan_px']} px without a predicted depth" if result["nan_px"] else ""
-    against = " against the references" if captures else ""
+    against = ""
+    if captures:
+        used = captures["min_count"]
+        need = "half of its frames" if used["value"] is None else f"{used['value']} frames"
+        against = f" against the references (a reference pixel needs {need} valid; min_count from {used['from']})"
     print(
         f"{result['num_images']} images ({len(result['skipped'])} without valid pixels{nan_note}){against}: "
         f"PSNR {f(m['psnr_db'], 2)} dB, SSIM {f(m['ssim'], 4)}, MSE {f(m['mse_mm2'], 2)} mm^2, "

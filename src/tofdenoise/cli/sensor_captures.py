@@ -200,8 +200,14 @@ def _build_reference(args: argparse.Namespace) -> int:
         rebuilt += int(ref.rebuilt)
         if not args.quiet:
             valid = float((ref.count > 0).mean()) if ref.count.size else 0.0
+            derived = (
+                f" (min_count {ref.min_count} from the cached reference at min_count {ref.cached_min_count}, exactly; "
+                f"--force caches it at {ref.min_count})"
+                if ref.cached_min_count is not None and ref.cached_min_count != ref.min_count
+                else ""
+            )
             print(
-                f"{scene.name}: {'rebuilt' if ref.rebuilt else 'up to date'}; valid reference pixels "
+                f"{scene.name}: {'rebuilt' if ref.rebuilt else 'up to date'}{derived}; valid reference pixels "
                 f"{float(np.isfinite(ref.depth_mm).mean()):.3f} (any frame {valid:.3f}); frames per pixel "
                 f"max {int(ref.count.max())}"
             )

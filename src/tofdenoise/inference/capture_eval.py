@@ -10,13 +10,17 @@ against it, the same prediction says how close it came to the scene. Every scene
 score (a set with some scenes lacking it is an error, not a silently smaller mean).
 
 Pixels scored, per scene: the run's scoring region (``load_real_scene``'s ``mask``: input and reference valid,
-sigma_D finite), and for the truth score also where the truth is finite and > 0. Metrics per image, then averaged
-(``evaluation.MapScorer``: the same numbers and layout as ``tofdenoise evaluate --pred``).
+sigma_D finite), and for the truth score also where the truth is finite and > 0. Which reference pixels are valid
+depends on ``min_count`` (the valid high-exposure frames a reference pixel needs): ``evaluate_checkpoint`` uses the
+one the checkpoint's run recorded (``data.real_min_count``, ``recorded_min_count``) unless told another, so that
+the numbers are the run's (before 2026-11-29 it used half of each scene's frames whatever the run had, e.g. MAE
+7.0965 mm over 33,112 px for a run that recorded 7.0758 mm over 33,579 px with ``real_min_count=2``). Metrics per
+image, then averaged (``evaluation.MapScorer``: the same numbers and layout as ``tofdenoise evaluate --pred``).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -30,7 +34,10 @@ from tofdenoise.inference.denoise import load_restorer, restore_frame
 from tofdenoise.physics.calibration import resolve_calibration
 from tofdenoise.training.metrics import D_MAX_MM
 
-__all__ = ["evaluate_checkpoint", "evaluate_on_captures", "has_truth", "read_truth"]
+__all__ = ["evaluate_checkpoint", "evaluate_on_captures", "has_truth", "read_truth", "recorded_min_count"]
+
+#: the resolved config a training run saves in its folder, next to ``checkpoints/`` (``run_eval.CONFIG_NAME``)
+RUN_CONFIG = "config.yaml"
 
 
 def has_truth(captures_dir: str | Path) -> bool:
@@ -115,6 +122,36 @@ def evaluate_on_captures(
     }
 
 
+def recorded_min_count(ckpt: str | Path) -> tuple[int | None, str | None]:
+    """The ``data.real_min_count`` of the run that wrote ``ckpt``: (value, where it was read), the value None for
+    "half of each scene's frames" (the run's null). Read from the data module's hyper-parameters Lightning keeps in
+    the checkpoint, else from the run folder's ``config.yaml`` (``RUN/checkpoints/NAME.ckpt``); ``(None, None)``
+    when neither records it."""
+    import torch
+
+    path = Path(ckpt).expanduser()
+    try:
+        content = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception:  # load_restorer has read it already; an unreadable file is its error to report
+        content = None
+    hparams = content.get("datamodule_hyper_parameters") if isinstance(content, Mapping) else None
+    if isinstance(hparams, Mapping) and "real_min_count" in hparams:
+        value = hparams["real_min_count"]
+        return (None if value is None else int(value)), f"{path} (data.real_min_count of its run)"
+    config = path.parent.parent / RUN_CONFIG
+    if path.parent.name == "checkpoints" and config.is_file():
+        from omegaconf import OmegaConf
+
+        try:
+            data = OmegaConf.to_container(OmegaConf.load(config)).get("data") or {}
+        except Exception as exc:
+            raise EvalInputError(f"{config}: could not be read for data.real_min_count ({exc})") from exc
+        if isinstance(data, Mapping) and "real_min_count" in data:
+            value = data["real_min_count"]
+            return (None if value is None else int(value)), f"{config} (data.real_min_count)"
+    return None, None
+
+
 def evaluate_checkpoint(
     ckpt: str | Path,
     captures_dir: str | Path,
@@ -123,13 +160,27 @@ def evaluate_checkpoint(
     d_max_mm: float = D_MAX_MM,
     log: Callable[[str], None] | None = None,
     edge_jump_mm: float | None = None,
+    min_count: int | None = None,
 ) -> dict[str, Any]:
     """The checkpoint ``ckpt`` loaded on ``device`` (auto | cpu | cuda) and scored on the capture set
     ``captures_dir`` recorded by the camera calibrated in ``sensor`` (a preset name or a calibration file):
-    ``{"checkpoint", "captures", "sensor", **evaluate_on_captures(...)}``, the JSON of ``tofdenoise evaluate --ckpt``
-    and of a run's ``real_vs_truth.json``. Errors: ``CheckpointError``, ``FileNotFoundError`` and the other
-    ``ValueError``s of the calibration and the capture set (``EvalInputError``), each naming the file."""
+    ``{"checkpoint", "captures", "sensor", "min_count": {"value", "from"}, **evaluate_on_captures(...)}``, the JSON
+    of ``tofdenoise evaluate --ckpt`` and of a run's ``real_vs_truth.json``.
+
+    ``min_count``: the valid high-exposure frames a reference pixel needs; None: the one the checkpoint's run
+    recorded (``recorded_min_count``), else half of each scene's frames. ``value`` None in the result means that
+    half. Errors: ``CheckpointError``, ``FileNotFoundError`` and the other ``ValueError``s of the calibration and the
+    capture set (``EvalInputError``), each naming the file or the option."""
+    if min_count is not None and int(min_count) < 1:
+        raise EvalInputError(f"--min-count must be >= 1, got {min_count}")
     calib = resolve_calibration(str(sensor))
     model = load_restorer(ckpt, device)
-    result = evaluate_on_captures(model, captures_dir, calib, d_max_mm, log=log, edge_jump_mm=edge_jump_mm)
-    return {"checkpoint": str(ckpt), "captures": str(captures_dir), "sensor": str(sensor), **result}
+    if min_count is not None:
+        used: dict[str, Any] = {"value": int(min_count), "from": "--min-count"}
+    else:
+        value, source = recorded_min_count(ckpt)
+        used = {"value": value, "from": source or "default: half of each scene's frames (no run setting recorded)"}
+    result = evaluate_on_captures(
+        model, captures_dir, calib, d_max_mm, min_count=used["value"], log=log, edge_jump_mm=edge_jump_mm
+    )
+    return {"checkpoint": str(ckpt), "captures": str(captures_dir), "sensor": str(sensor), "min_count": used, **result}

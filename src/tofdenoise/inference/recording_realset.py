@@ -10,8 +10,8 @@ one scene of the capture-set format of ``data_modules.real_captures`` (docs/data
   saturated pixels invalid, 0, itself);
 - ``reference_depth_mm.npy`` / ``reference_count.npy`` / ``reference.json``: ``real_captures.build_reference``,
   the per-pixel mean over the frames where the pixel is valid; a pixel needs ``min_count`` valid frames (default:
-  half of them, the capture-set default, so that ``data.real_dir`` loads the reference as written; a stricter
-  ``min_count`` needs the same ``data.real_min_count``, or the datamodule rebuilds the reference with its own).
+  half of them, the capture-set default, so that ``data.real_dir`` loads the reference as written; a run with a
+  stricter ``data.real_min_count`` derives its reference from this one, a laxer one rebuilds it with a warning).
   The scores are computed over the common valid region of input and reference (``load_real_scene``'s mask);
 - ``recording.json``: where the scene came from (recording, streams, frames, the motion check).
 

@@ -26,7 +26,7 @@ from tofdenoise.config import settings_group
 from tofdenoise.models import build_backbone, tiled_forward
 from tofdenoise.models.conditioning import CENTERING_MODES, InputConditioning
 from tofdenoise.models.registry import accepts_kwarg, backbone_factory, is_trainable
-from tofdenoise.models.tiling import TilingSettings
+from tofdenoise.models.tiling import TilingSettings, min_tile_px, model_multiple
 from tofdenoise.records import set_entry
 from tofdenoise.training.depth_range import TrainingDepthRange
 from tofdenoise.training.init_weights import INIT_RECORD_KEY, load_init_weights
@@ -222,8 +222,8 @@ class DepthRestorer(pl.LightningModule):
         Args:
             batch: as ``condition`` takes it (``"noisy"`` [mm] with 0 at invalid pixels, ``"amplitude"`` when
                 the model uses the signal channel).
-            tile: run tile by tile (``tiled_forward``, overlap ``tiling.overlap_px``) when a side exceeds this;
-                None: the whole frame.
+            tile: run tile by tile (``tiled_forward``, overlap ``tiling.overlap_px``, tiles on the network's
+                padding multiple) when a side exceeds this; None: the whole frame.
             net: the network to run (default: ``eval_net``).
 
         Returns:
@@ -232,7 +232,13 @@ class DepthRestorer(pl.LightningModule):
         net = self.eval_net if net is None else net
         x, offset = self.condition(batch)
         if tile is not None and max(x.shape[-2:]) > tile:
-            y = tiled_forward(lambda t: final_prediction(net(t)), x, tile=tile, overlap=self.tiling.overlap_px)
+            y = tiled_forward(
+                lambda t: final_prediction(net(t)),
+                x,
+                tile=tile,
+                overlap=self.tiling.overlap_px,
+                multiple=model_multiple(net),
+            )
         else:
             y = final_prediction(net(x))
         return y.float() * self.conditioning.depth_scale_mm + offset
@@ -423,7 +429,10 @@ class DepthRestorer(pl.LightningModule):
 
         frames = int(shape[0]) if len(shape) == 4 else 1
         budget = lambda: memory_budget_bytes(device)  # noqa: E731
-        return tile_plan(tuple(shape[-2:]), tile, self.tiling.predict_tile_px, per_px, budget, frames=frames)
+        floor = min_tile_px(self.tiling.overlap_px, model_multiple(self.eval_net))
+        return tile_plan(
+            tuple(shape[-2:]), tile, self.tiling.predict_tile_px, per_px, budget, frames=frames, min_tile=floor
+        )
 
     def predict_step(self, batch: dict[str, Any], batch_idx: int, dataloader_idx: int = 0) -> Tensor:
         """Restored depth in mm (B, 1, H, W); pixels invalid in the input (``mask == 0``) are set to 0. The batch runs

@@ -183,6 +183,7 @@ def tile_plan(
     bytes_per_px: Any,
     budget_bytes: Any,
     frames: int = 1,
+    min_tile: int = MIN_TILE_PX,
 ) -> TilePlan:
     """Whole frame or tiles for ``frames`` frames of ``shape`` (H, W) run together (a batch).
 
@@ -190,7 +191,8 @@ def tile_plan(
     runs whole when its estimated activations (``bytes_per_px()`` x pixels x ``SAFETY``) fit ``budget_bytes()``
     (both callables, asked only when needed; an unknown budget counts as fitting), and otherwise in tiles of
     ``default_tile`` (the checkpoint's ``tiling.predict_tile_px``; None: never tiled), halved down to
-    ``MIN_TILE_PX`` while a tile does not fit either."""
+    ``MIN_TILE_PX`` while a tile does not fit either (never below ``min_tile``: the smallest tile the network's
+    overlap and padding multiple allow, ``models.tiling.min_tile_px``)."""
     height, width = (int(v) for v in shape[-2:])
     if tile is not None:
         return TilePlan(int(tile) if max(height, width) > int(tile) else None, forced=True)
@@ -201,9 +203,10 @@ def tile_plan(
     budget = budget_bytes()
     if budget is None or need <= budget:
         return TilePlan(None, need_bytes=need, budget_bytes=budget)
-    side = int(default_tile)
-    while side > MIN_TILE_PX and per_px * side * side * SAFETY > budget:
-        side = max(MIN_TILE_PX, side // 2)
+    floor = max(MIN_TILE_PX, int(min_tile))
+    side = max(int(default_tile), int(min_tile))
+    while side > floor and per_px * side * side * SAFETY > budget:
+        side = max(floor, side // 2)
     if max(height, width) <= side:  # a frame no larger than one tile runs whole anyway
         return TilePlan(None, need_bytes=need, budget_bytes=budget)
     return TilePlan(side, need_bytes=need, budget_bytes=budget)
