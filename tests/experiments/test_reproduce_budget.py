@@ -121,9 +121,9 @@ def test_schedule_study_is_on_the_gpu_short_page_only(tmp_path):
 def test_the_papers_recipe_is_priced_at_each_gpu_runs_measured_rate(tmp_path):
     from tofdenoise.reporting.results_page import PAPER_RECIPE_STEPS, recipe_hours
 
-    assert PAPER_RECIPE_STEPS == 281_250  # 300 epochs x 3,750 training crops / batch 4
-    # 450 steps in 81 s: 0.18 s per step -> 281,250 steps = 14.0625 h
-    assert recipe_hours(81.0, 450) == pytest.approx(0.18 * 281_250 / 3600)
+    assert PAPER_RECIPE_STEPS == 281_100  # 300 epochs x 937 full batches of 4 of 3,750 training crops (drop_last)
+    # 450 steps in 81 s: 0.18 s per step -> 281,100 steps = 14.055 h
+    assert recipe_hours(81.0, 450) == pytest.approx(0.18 * 281_100 / 3600)
     assert recipe_hours(None, 450) is None and recipe_hours(81.0, 0) is None and recipe_hours(81.0, None) is None
     results = tmp_path / "results"
     src = REPO_ROOT / "docs/results/gpu-short"
