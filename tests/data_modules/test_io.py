@@ -34,7 +34,8 @@ def test_unreadable_image_names_the_file(tmp_path):
 def test_wrong_dtype_is_rejected_with_expectation(tmp_path):
     path = tmp_path / "depth8.png"
     cv2.imwrite(str(path), np.full((4, 5), 7, np.uint8))
-    with pytest.raises(DataFileError, match=r"depth8.png has dtype uint8; expected one of: uint16"):
+    eight_bit = r"has dtype {}; 8-bit values cannot hold depth in millimetres: expected a 16-bit PNG/TIFF"
+    with pytest.raises(DataFileError, match=r"depth8.png " + eight_bit.format("uint8")):
         read_depth_mm(path)
     with pytest.raises(DataFileError, match="uint16"):
         read_png_uint16(path)
@@ -113,3 +114,29 @@ def test_write_depth_png16_is_atomic_and_warns_about_lost_pixels(tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         write_depth_png16(tmp_path / "b.png", np.full((2, 2), 500.0))  # nothing lost: no warning
+
+
+def test_8bit_depth_arrays_are_refused_like_an_8bit_png(tmp_path):
+    """A uint8 .npy of depth / 20 (true median 1774 mm) was read as millimetres (median 88 mm): every 8-bit integer
+    array is refused with the 8-bit PNG's message, naming the file and its dtype; 16-bit and wider arrays still read."""
+    import scipy.io
+
+    depth = np.random.default_rng(0).uniform(500, 3000, size=(6, 7))
+    eight = (depth / 20).astype(np.uint8)
+    np.save(tmp_path / "u8.npy", eight)
+    np.save(tmp_path / "i8.npy", eight.astype(np.int8) // 2)
+    np.savez(tmp_path / "u8.npz", depth=eight)
+    scipy.io.savemat(tmp_path / "u8.mat", {"depth": eight})
+    cv2.imwrite(str(tmp_path / "u8.png"), eight)
+    with pytest.raises(DataFileError) as png:
+        read_depth_mm(tmp_path / "u8.png")
+    for name, dtype, key in [("u8.npy", "uint8", None), ("i8.npy", "int8", None), ("u8.npz", "uint8", None)] + [
+        ("u8.mat", "uint8", "depth")
+    ]:
+        with pytest.raises(DataFileError) as info:
+            read_depth_mm(tmp_path / name, key=key, what="folder depth")
+        expected = str(png.value).replace("depth file", "folder depth file").replace("u8.png", name)
+        assert str(info.value) == expected.replace("dtype uint8", f"dtype {dtype}")
+    for dtype in (np.uint16, np.int16, np.int32, np.float16, np.float32):
+        np.save(tmp_path / "ok.npy", np.rint(depth).astype(dtype))
+        assert np.median(read_depth_mm(tmp_path / "ok.npy")) == pytest.approx(np.median(np.rint(depth)), rel=1e-3)

@@ -52,8 +52,12 @@ def test_bad_depth_files_are_named(tmp_path):
     (tmp_path / "broken.png").write_bytes(b"\x89PNG not really")
     np.save(tmp_path / "cube.npy", np.ones((2, 3, 4), np.float32))
     (tmp_path / "text.npy").write_text("hello")
+    np.save(tmp_path / "eight.npy", np.full((8, 8), 88, np.uint8))  # was read as 88 mm
+    np.save(tmp_path / "signed.npy", np.full((8, 8), 88, np.int8))
     cases = {
         "eight.png": "8-bit",
+        "eight.npy": "dtype uint8; 8-bit values cannot hold depth in millimetres",
+        "signed.npy": "dtype int8; 8-bit values cannot hold depth in millimetres",
         "colour.png": "3 channels",
         "broken.png": "could not be decoded",
         "cube.npy": "2-D",

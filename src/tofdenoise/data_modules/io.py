@@ -182,12 +182,31 @@ def read_depth_mm(
     """Read a depth map in millimetres as float32; NaN/inf/<=0 are left for the caller's validity mask.
 
     16-bit PNGs hold mm (0 = invalid); float arrays / EXR hold mm (multiplied by ``scale_mm``).
-    An 8-bit PNG is rejected: it cannot hold depth in mm.
+    8-bit data is rejected whatever the format (an 8-bit PNG, a uint8/int8 ``.npy``/``.npz``/``.mat``): 256 levels
+    cannot hold depth in mm (``refuse_8bit_depth``).
     """
-    array = read_array(path, what=what, key=key, image_dtypes=(np.uint16,))
+    array = read_array(path, what=what, key=key, image_dtypes=())  # an image's dtype is checked here
     if array.dtype == np.bool_:
         raise DataFileError(f"{what} file {path} is boolean; expected depth values in mm")
+    refuse_8bit_depth(array, path, what)
+    if Path(path).suffix.lower() in IMAGE_SUFFIXES and array.dtype != np.uint16:
+        raise DataFileError(f"{what} file {path} has dtype {array.dtype}; expected one of: uint16")
     return array.astype(np.float32) * np.float32(scale_mm)
+
+
+#: integer dtypes too narrow for depth in millimetres (at most 255 distinct steps)
+EIGHT_BIT_DTYPES = (np.dtype(np.uint8), np.dtype(np.int8))
+
+
+def refuse_8bit_depth(array: np.ndarray, path: str | Path, what: str = "depth") -> None:
+    """A ``DataFileError`` naming the file, its dtype and what is expected when ``array`` holds 8-bit integers: the
+    one message for an 8-bit PNG and an 8-bit array alike (a uint8 ``.npy`` of depth / 20 was read as 0-255 mm)."""
+    if np.asarray(array).dtype in EIGHT_BIT_DTYPES:
+        raise DataFileError(
+            f"{what} file {path} has dtype {array.dtype}; 8-bit values cannot hold depth in millimetres: expected a "
+            "16-bit PNG/TIFF (uint16 mm, 0 = invalid) or a float or 16/32-bit integer array in mm (.npy, .npz, "
+            ".mat, .exr)"
+        )
 
 
 def read_amplitude(path: str | Path, *, what: str = "amplitude", key: str | None = None) -> np.ndarray:

@@ -3,16 +3,16 @@
 Depth formats (by suffix): 16-bit PNG/TIFF holding millimetres (0 = invalid), ``.npy`` float or integer maps in
 millimetres (NaN, inf, 0 and negative values = invalid), ``.exr`` (the depth-like channel, same validity). A
 ``depth_scale_mm`` other than 1 converts stored units to mm (e.g. 0.25 for a camera counting quarter millimetres,
-1000 for metres). An 8-bit or colour image is refused: it cannot hold depth in millimetres. Without a depth scale,
-``check_depth_units_mm`` refuses a frame whose valid depths lie mostly outside the depths the network and the
-sensor work in (``plausible_depth_range_mm``): its median valid depth below the training scenes' nearest depth
-(``DEFAULT_MIN_DEPTH_MM``, 300 mm) or beyond the calibration's unambiguous range (c / 2f, 2998 mm for the default
-camera), i.e. more than half of its valid depths out of that range on one side. Such a frame is almost surely in
-other units: metres (a Kinect frame / 1000), centimetres (/ 10) or 0.1 mm (x 10); the error names the median and
-the likely unit. With or without a depth scale, a frame holding a valid depth beyond ``PNG16_MAX_MM`` (65535 mm) is
-refused (naming the count and the largest): no time-of-flight camera measures that far, the restored 16-bit
-millimetre PNG could not hold it, and the network would see an input far outside anything it was trained on (a
-2^40 mm map was restored to an all-zero PNG, with numpy's overflow warning).
+1000 for metres). An 8-bit or colour image, and an 8-bit integer ``.npy``, is refused: it cannot hold depth in
+millimetres. Without a depth scale, ``check_depth_units_mm`` refuses a frame whose valid depths lie mostly outside
+the depths the network and the sensor work in (``plausible_depth_range_mm``): its median valid depth below the
+training scenes' nearest depth (``DEFAULT_MIN_DEPTH_MM``, 300 mm) or beyond the calibration's unambiguous range
+(c / 2f, 2998 mm for the default camera), i.e. more than half of its valid depths out of that range on one side. Such a
+frame is almost surely in other units: metres (a Kinect frame / 1000), centimetres (/ 10) or 0.1 mm (x 10); the
+error names the median and the likely unit. With or without a depth scale, a frame holding a valid depth beyond
+``PNG16_MAX_MM`` (65535 mm) is refused (naming the count and the largest): no time-of-flight camera measures that
+far, the restored 16-bit millimetre PNG could not hold it, and the network would see an input far outside anything
+it was trained on (a 2^40 mm map was restored to an all-zero PNG, with numpy's overflow warning).
 
 ``outside_training_depths`` is a warning, not a refusal: a frame in millimetres whose valid depths lie mostly (more
 than half of them) outside the depths the checkpoint was trained on (``training/depth_range.py``; e.g. an ADI
@@ -49,6 +49,7 @@ from tofdenoise.data_modules.io import (
     read_amplitude,
     read_array,
     read_image,
+    refuse_8bit_depth,
 )
 
 __all__ = [
@@ -172,6 +173,7 @@ def read_depth_frame(path: str | Path, depth_scale_mm: float = 1.0) -> tuple[np.
             raw = image
         else:
             raw = read_array(path, what="depth")
+            refuse_8bit_depth(raw, path)  # a uint8/int8 .npy is no depth in mm either
     except DataFileError as exc:
         raise FrameError(str(exc)) from exc
     except OSError as exc:
