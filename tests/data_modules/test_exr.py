@@ -7,11 +7,12 @@ import struct
 import zlib
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
 from tofdenoise.data_modules.exr import read_exr_channels
-from tofdenoise.data_modules.io import DataFileError, read_depth_mm
+from tofdenoise.data_modules.io import DataFileError, read_amplitude, read_depth_mm
 
 
 def _attr(name: str, kind: str, value: bytes) -> bytes:
@@ -161,3 +162,128 @@ def test_unsupported_exr_variant_is_explained(tmp_path):
     path.write_bytes(bytes(data[:30]))
     with pytest.raises(DataFileError, match="piz.exr"):
         read_depth_mm(path)
+
+
+def _blender(h=24, w=32, seed=0):
+    """A Blender multilayer render: colour, alpha, normals and the depth pass (metres), as Blender names them."""
+    rng = np.random.default_rng(seed)
+    z = rng.uniform(0.5, 3.0, (h, w)).astype(np.float32)
+    colour = rng.uniform(0, 1, (h, w)).astype(np.float32)
+    channels = {f"ViewLayer.Combined.{c}": colour for c in "RGB"}
+    channels["ViewLayer.Combined.A"] = np.ones_like(colour)
+    channels.update({f"ViewLayer.Normal.{c}": rng.uniform(-1, 1, (h, w)).astype(np.float32) for c in "XYZ"})
+    channels["ViewLayer.Depth.Z"] = z
+    return channels, z, colour
+
+
+def test_layered_depth_pass_wins_over_colour(tmp_path):
+    """``ViewLayer.Combined.R`` sorts before ``ViewLayer.Depth.Z``; the reader took the colour as depth (median
+    503.9 mm for a true 1825.7). The depth channel is chosen by its suffix across all channels, Z first."""
+    from tofdenoise.data_modules.exr import depth_channel
+    from tofdenoise.data_modules.sources.folder import FolderSource
+
+    channels, z, _ = _blender()
+    write_exr(tmp_path / "r0.exr", channels, 3)
+    np.save(tmp_path / "a0.npy", np.random.default_rng(1).uniform(1, 100, z.shape).astype(np.float32))
+    (tmp_path / "list.txt").write_text("r0.exr a0.npy\n")
+    sample = FolderSource(tmp_path, depth_unit_mm=1000).load("r0")
+    np.testing.assert_allclose(sample.depth_mm, z * np.float32(1000), rtol=1e-6)
+    assert np.median(sample.depth_mm) == pytest.approx(1825.7, abs=0.1)
+    assert depth_channel(list(channels)) == "ViewLayer.Depth.Z"
+    # suffix order over every channel: Z, then a part "depth", then <layer>.Z, Y, R, V; vector passes never
+    assert depth_channel(["Z", "depth", "Y"]) == "Z"
+    assert depth_channel(["ViewLayer.Combined.R", "ViewLayer.depth"]) == "ViewLayer.depth"
+    assert depth_channel(["RenderLayer.Combined.R", "RenderLayer.Z"]) == "RenderLayer.Z"
+    assert depth_channel(["ViewLayer.Normal.Z", "ViewLayer.Combined.R"]) == "ViewLayer.Combined.R"
+    assert depth_channel(["B", "G", "R"]) == "R" and depth_channel(["Y"]) == "Y" and depth_channel(["L"]) == "L"
+
+
+def test_ambiguous_depth_layers_are_an_error_naming_the_channels_and_the_setting(tmp_path):
+    from tofdenoise.data_modules.sources.folder import FolderSource
+
+    near = np.full((8, 10), 1200.0, np.float32)
+    far = np.full((8, 10), 2500.0, np.float32)
+    write_exr(tmp_path / "two.exr", {"Left.Depth.Z": near, "Right.Depth.Z": far, "Left.Combined.R": near / 1e4}, 3)
+    write_exr(tmp_path / "none.exr", {"mask": near, "label": far}, 0)
+    np.save(tmp_path / "a.npy", np.ones((8, 10), np.float32))
+    (tmp_path / "list.txt").write_text("two.exr a.npy\nnone.exr a.npy\n")
+    with pytest.raises(DataFileError) as info:
+        FolderSource(tmp_path).load("two")
+    message = str(info.value)
+    assert "two.exr has 2 channels that could be the depth: Left.Depth.Z, Right.Depth.Z" in message
+    assert "data.source_kwargs.depth_channel" in message
+    with pytest.raises(DataFileError, match=r"none.exr has no depth channel .* among label, mask"):
+        FolderSource(tmp_path).load("none")
+    right = FolderSource(tmp_path, depth_channel="Right.Depth.Z").load("two")
+    assert np.all(right.depth_mm == 2500.0)
+    assert FolderSource(tmp_path, depth_channel="mask").load("none").depth_mm[0, 0] == 1200.0
+    with pytest.raises(DataFileError, match=r"two.exr has no channel 'Depth.Z' \(the depth channel asked for\)"):
+        FolderSource(tmp_path, depth_channel="Depth.Z").load("two")
+    described = FolderSource(tmp_path, depth_channel="Right.Depth.Z").describe()
+    assert described["depth_channel"] == "Right.Depth.Z" and described["amplitude_channel"] is None
+
+
+def test_exr_amplitude_is_never_the_depth_channel(tmp_path):
+    """An RGB (IR) + Z render listed as both depth and amplitude: the amplitude was Z, the depth itself (so sigma_D
+    came from the depth). The amplitude takes its own channels: here R, G, B, converted to grey as a colour PNG is."""
+    from tofdenoise.data_modules.exr import amplitude_channels
+    from tofdenoise.data_modules.sources.folder import FolderSource
+
+    rng = np.random.default_rng(0)
+    z = rng.uniform(500, 3000, (24, 32)).astype(np.float32)
+    ir = rng.uniform(0, 1, (24, 32)).astype(np.float32)
+    write_exr(tmp_path / "v0.exr", {"R": ir, "G": ir, "B": ir, "Z": z}, 3)
+    (tmp_path / "list.txt").write_text("v0.exr v0.exr\n")
+    sample = FolderSource(tmp_path).load("v0")
+    np.testing.assert_array_equal(sample.depth_mm, z)
+    np.testing.assert_allclose(sample.amplitude, ir, rtol=1e-6)
+    assert not np.allclose(sample.amplitude, z)
+    # a colour amplitude: the weights of OpenCV's COLOR_BGR2GRAY (what a colour amplitude PNG gets)
+    g = rng.uniform(0, 1, (24, 32)).astype(np.float32)
+    write_exr(tmp_path / "c.exr", {"R": ir, "G": g, "B": 1 - ir, "Z": z}, 0)
+    expected = cv2.cvtColor(np.dstack([1 - ir, g, ir]), cv2.COLOR_BGR2GRAY)
+    np.testing.assert_allclose(read_amplitude(tmp_path / "c.exr"), expected, rtol=1e-5, atol=1e-6)
+    # the preference: a part IR / amplitude / intensity, then Y, then one layer's R, G, B, then the only one left
+    assert amplitude_channels(["IR", "Y", "Z"]) == ["IR"]
+    assert amplitude_channels(["ViewLayer.Depth.Z", "ViewLayer.IR.Y", "ViewLayer.Combined.Y"]) == ["ViewLayer.IR.Y"]
+    assert amplitude_channels(["Y", "R", "G", "B", "Z"]) == ["Y"]
+    assert amplitude_channels(["A", "B", "G", "R", "depth"]) == ["R", "G", "B"]
+    assert amplitude_channels(["L", "Z"]) == ["L"]
+
+
+def test_exr_amplitude_without_one_clear_channel_is_an_error(tmp_path):
+    from tofdenoise.data_modules.sources.folder import FolderSource
+
+    z = np.full((6, 8), 1500.0, np.float32)
+    write_exr(tmp_path / "z.exr", {"Z": z}, 0)
+    write_exr(tmp_path / "two.exr", {**{f"a.{c}": z / 3 for c in "RGB"}, **{f"b.{c}": z / 5 for c in "RGB"}}, 0)
+    with pytest.raises(DataFileError, match=r"z.exr has no amplitude channel among Z \(Z: depth, never read as amp"):
+        read_amplitude(tmp_path / "z.exr", what="folder amplitude")
+    np.save(tmp_path / "d.npy", z)
+    (tmp_path / "list.txt").write_text("d.npy two.exr\n")
+    with pytest.raises(DataFileError) as info:
+        FolderSource(tmp_path).load("d")
+    assert "two.exr has 2 channels that could be the amplitude: a.R+a.G+a.B, b.R+b.G+b.B" in str(info.value)
+    assert "data.source_kwargs.amplitude_channel" in str(info.value)
+    assert np.all(FolderSource(tmp_path, amplitude_channel="b.G").load("d").amplitude == 300.0)
+
+
+def test_opencv_fallback_takes_a_colour_result_only_when_it_is_clear(tmp_path, monkeypatch):
+    """A variant the built-in reader refuses (PIZ) goes to OpenCV, which returns colour channels without names (its
+    channel 0 is B): taken when the channels are equal, converted to grey for an amplitude, refused for a depth."""
+    import tofdenoise.data_modules.io as io
+
+    path = tmp_path / "piz.exr"
+    write_exr(path, {"Z": np.ones((4, 4), np.float32)}, 0)
+    data = bytearray(path.read_bytes())
+    data[data.index(b"compression\0compression\0") + len(b"compression\0compression\0") + 4] = 4  # PIZ
+    path.write_bytes(bytes(data))
+    bgr = np.dstack([np.full((4, 4), v, np.float32) for v in (100.0, 2000.0, 3000.0)])
+    monkeypatch.setattr(io.cv2, "imread", lambda *args: bgr)
+    with pytest.raises(DataFileError, match="piz.exr.*colour channels only, which differ"):
+        read_depth_mm(path)
+    assert read_amplitude(path)[0, 0] == pytest.approx(0.114 * 100 + 0.587 * 2000 + 0.299 * 3000, rel=1e-6)
+    with pytest.raises(DataFileError, match="channel 'IR' cannot be chosen"):
+        read_amplitude(path, exr_channel="IR")
+    monkeypatch.setattr(io.cv2, "imread", lambda *args: np.dstack([bgr[:, :, 1]] * 3))
+    assert np.all(read_depth_mm(path) == 2000.0)

@@ -42,7 +42,15 @@ def test_every_source_declares_its_settings_and_none_is_a_datamodule_parameter()
             "hfov_deg",
             "max_depth_fraction",
         ],
-        "folder": ["root", "list_file", "depth_unit_mm", "min_valid_mm", "max_valid_mm"],
+        "folder": [
+            "root",
+            "list_file",
+            "depth_unit_mm",
+            "min_valid_mm",
+            "max_valid_mm",
+            "depth_channel",
+            "amplitude_channel",
+        ],
         "flyingthings3d": ["root", "list_files", "hfov_deg", "min_valid_mm", "max_valid_mm"],
     }
     assert sorted(available_sources()) == sorted(expected)

@@ -36,11 +36,24 @@ COMPRESSIONS = {
     9: "DWAB",
 }
 LINES_PER_CHUNK = {0: 1, 1: 1, 2: 1, 3: 16}
+#: the depth channel's names, best first, as the last part of a layered name (``ViewLayer.Depth.Z`` ends in ``Z``):
+#: ``Z`` (plain, or in a layer named depth), then any name with a part ``depth`` (``depth``, ``Depth.V``), then
+#: ``<layer>.Z``, then ``Y``, ``R``, ``V`` (a depth map saved as a grey or colour image). See ``depth_channel``.
 PREFERRED_CHANNELS = ("Z", "depth", "Depth", "Y", "R", "V")
+#: layers whose X/Y/Z (or R/G/B) are no depth and no amplitude: Blender's normal, vector, position and mist passes
+VECTOR_PASSES = ("normal", "vector", "position", "mist", "denoising normal", "denoising albedo", "uv")
+#: name parts that mark an amplitude (IR / active brightness) channel, matched case-insensitively
+AMPLITUDE_PARTS = ("amplitude", "amp", "intensity", "ir")
+#: ITU-R BT.601 luma weights of R, G, B: OpenCV's COLOR_BGR2GRAY, which converts a colour amplitude PNG
+GREY_WEIGHTS = (0.299, 0.587, 0.114)
 
 
 class ExrError(ValueError):
     pass
+
+
+class ExrChannelError(ExrError):
+    """The file was read, but which of its channels to take is not clear (or the named one is absent)."""
 
 
 def _cstring(data: bytes, pos: int) -> tuple[str, int]:
@@ -182,13 +195,130 @@ def read_exr_channels(path: str | Path) -> dict[str, np.ndarray]:
     return out
 
 
-def read_exr_depth(path: str | Path) -> np.ndarray:
-    """The depth-like channel of an EXR (Z, depth, Y, R, V, or the only/first channel) as float32 (H, W)."""
+def _parts(name: str) -> list[str]:
+    return name.split(".")
+
+
+def _layer(name: str) -> str:
+    """The layer part of a channel name (``ViewLayer.Depth.Z`` -> ``ViewLayer.Depth``; ``Z`` -> "")."""
+    return name.rpartition(".")[0]
+
+
+def _is_vector_pass(name: str) -> bool:
+    parts = _parts(name)
+    return len(parts) > 1 and parts[-2].lower() in VECTOR_PASSES
+
+
+def _has_depth_part(name: str) -> bool:
+    return any(part.lower() == "depth" for part in _parts(name))
+
+
+def _depth_rank(name: str) -> int | None:
+    """0 best; None: not a depth channel by its name."""
+    if _is_vector_pass(name):
+        return None
+    last = _parts(name)[-1]
+    if name == "Z" or (last == "Z" and _has_depth_part(name)):
+        return 0
+    if _has_depth_part(name):
+        return 1
+    return {"Z": 2, "Y": 3, "R": 4, "V": 5}.get(last)
+
+
+def _is_depth_like(name: str) -> bool:
+    """A channel that holds depth by its name (never an amplitude): ``Z``, ``*.Z``, any name with a part depth."""
+    return _depth_rank(name) in (0, 1, 2)
+
+
+def _how_to_choose(kind: str, setting: str | None) -> str:
+    where = setting or f"data.source_kwargs.{kind}_channel for the folder source"
+    return f"name the {kind} channel ({where}) or save the {kind} alone (.npy)"
+
+
+def _named(channels: dict[str, np.ndarray], channel: str, kind: str, path: Path) -> np.ndarray:
+    if channel not in channels:
+        raise ExrChannelError(
+            f"EXR file {path} has no channel {channel!r} (the {kind} channel asked for); its channels: "
+            f"{', '.join(sorted(channels))}"
+        )
+    return channels[channel]
+
+
+def depth_channel(names: list[str], path: str | Path = "EXR", setting: str | None = None) -> str:
+    """The depth channel among ``names``: the best rank of ``_depth_rank`` over all channels (``PREFERRED_CHANNELS``:
+    ``ViewLayer.Depth.Z`` before ``ViewLayer.Combined.R``), the only channel when none ranks. Two channels at the best
+    rank (two layers' ``Depth.Z``), or several channels none of which ranks, are an ``ExrChannelError`` naming them
+    and ``setting`` (the option that names the channel)."""
+    ranked: dict[int, list[str]] = {}
+    for name in sorted(names):
+        rank = _depth_rank(name)
+        if rank is not None:
+            ranked.setdefault(rank, []).append(name)
+    if ranked:
+        best = ranked[min(ranked)]
+        if len(best) == 1:
+            return best[0]
+        raise ExrChannelError(
+            f"EXR file {path} has {len(best)} channels that could be the depth: {', '.join(best)}; "
+            + _how_to_choose("depth", setting)
+        )
+    if len(names) == 1:
+        return names[0]
+    raise ExrChannelError(
+        f"EXR file {path} has no depth channel (Z, *.Depth.*, depth, Y, R or V) among {', '.join(sorted(names))}; "
+        + _how_to_choose("depth", setting)
+    )
+
+
+def amplitude_channels(names: list[str], path: str | Path = "EXR", setting: str | None = None) -> list[str]:
+    """The amplitude channel(s) among ``names``, never a depth channel (``Z``, ``*.Z``, a name with a part depth):
+    a name with a part in ``AMPLITUDE_PARTS`` (``IR``, ``amplitude``, ``intensity``, ``amp``), else ``Y`` (grey),
+    else the ``R``, ``G``, ``B`` of one layer (returned as three names: converted to grey with ``GREY_WEIGHTS``, as a
+    colour amplitude PNG is), else the only channel left (alpha ``A`` aside). Several candidates at the first rank
+    that has any, or none at all, are an ``ExrChannelError`` naming the channels and ``setting``."""
+    usable = [n for n in sorted(names) if not _is_depth_like(n) and not _is_vector_pass(n)]
+    tagged = [n for n in usable if any(part.lower() in AMPLITUDE_PARTS for part in _parts(n))]
+    grey = [n for n in usable if _parts(n)[-1] == "Y"]
+    layers = sorted(
+        {_layer(n) for n in usable if all(f"{_layer(n)}{'.' if _layer(n) else ''}{c}" in usable for c in "RGB")}
+    )
+    colour = [[f"{layer}{'.' if layer else ''}{c}" for c in "RGB"] for layer in layers]
+    rest = [n for n in usable if _parts(n)[-1] != "A"]
+    for candidates in ([[n] for n in tagged], [[n] for n in grey], colour, [[n] for n in rest]):
+        if len(candidates) == 1:
+            return candidates[0]
+        if candidates:
+            shown = ", ".join("+".join(c) for c in candidates)
+            raise ExrChannelError(
+                f"EXR file {path} has {len(candidates)} channels that could be the amplitude: {shown}; "
+                + _how_to_choose("amplitude", setting)
+            )
+    depth_like = [n for n in sorted(names) if _is_depth_like(n)]
+    raise ExrChannelError(
+        f"EXR file {path} has no amplitude channel among {', '.join(sorted(names))}"
+        + (f" ({', '.join(depth_like)}: depth, never read as amplitude)" if depth_like else "")
+        + "; "
+        + _how_to_choose("amplitude", setting)
+    )
+
+
+def read_exr_depth(path: str | Path, channel: str | None = None, setting: str | None = None) -> np.ndarray:
+    """The depth channel of an EXR as float32 (H, W): ``channel`` when given (its full name), else
+    ``depth_channel``'s choice (``ExrChannelError`` when it is ambiguous)."""
     channels = read_exr_channels(path)
-    for name in PREFERRED_CHANNELS:
-        if name in channels:
-            return channels[name]
-    for name in channels:
-        if name.split(".")[-1] in PREFERRED_CHANNELS:
-            return channels[name]
-    return channels[sorted(channels)[0]]
+    if channel is not None:
+        return _named(channels, channel, "depth", Path(path))
+    return channels[depth_channel(list(channels), path, setting)]
+
+
+def read_exr_amplitude(path: str | Path, channel: str | None = None, setting: str | None = None) -> np.ndarray:
+    """The amplitude of an EXR as float32 (H, W): ``channel`` when given, else ``amplitude_channels``' choice (one
+    channel, or one layer's R, G, B converted to grey); never a depth channel by its name."""
+    channels = read_exr_channels(path)
+    if channel is not None:
+        return _named(channels, channel, "amplitude", Path(path))
+    chosen = amplitude_channels(list(channels), path, setting)
+    if len(chosen) == 1:
+        return channels[chosen[0]]
+    r, g, b = (channels[name].astype(np.float64) for name in chosen)
+    return (GREY_WEIGHTS[0] * r + GREY_WEIGHTS[1] * g + GREY_WEIGHTS[2] * b).astype(np.float32)

@@ -6,7 +6,8 @@ Supported formats (chosen by suffix):
 - ``.npy``: a 2-D numeric array.
 - ``.npz``: the array named by ``key`` (or the only array).
 - ``.mat``: MATLAB v5 files through ``scipy.io.loadmat`` (``key`` required).
-- ``.exr``: scanline OpenEXR (NONE/RLE/ZIPS/ZIP) by the built-in reader (``exr.py``); other variants through
+- ``.exr``: scanline OpenEXR (NONE/RLE/ZIPS/ZIP) by the built-in reader (``exr.py``), which picks the depth or the
+  amplitude channel by its name (or takes the one named); other variants through
   OpenCV, which only reads EXR when ``OPENCV_IO_ENABLE_OPENEXR=1`` is set before ``cv2`` is imported *and* the
   build includes OpenEXR (this module sets the variable before it imports ``cv2``).
 
@@ -115,19 +116,35 @@ def read_mat(path: str | Path, key: str, *, what: str = "MATLAB") -> np.ndarray:
     return array
 
 
-def read_exr(path: str | Path, *, what: str = "EXR") -> np.ndarray:
-    """Read the depth-like channel of an OpenEXR image as float32 (H, W).
+def read_exr(
+    path: str | Path,
+    *,
+    what: str = "EXR",
+    kind: str = "depth",
+    channel: str | None = None,
+    channel_setting: str | None = None,
+) -> np.ndarray:
+    """Read the depth (``kind="depth"``) or the amplitude (``kind="amplitude"``) of an OpenEXR image as float32 (H, W).
 
     Single-part scanline files with NONE/RLE/ZIPS/ZIP compression are decoded by ``tofdenoise.data_modules.exr``
-    (numpy + zlib, no codec needed); other EXR variants (PIZ, tiled, ...) go to OpenCV, which needs
-    ``OPENCV_IO_ENABLE_OPENEXR=1`` before cv2 is imported and a build with OpenEXR.
+    (numpy + zlib, no codec needed), which picks the channel by its name (``exr.depth_channel``,
+    ``exr.amplitude_channels``) or takes ``channel`` (a full channel name); a choice that is not clear is a
+    ``DataFileError`` naming the channels and ``channel_setting`` (the option that names one). Other EXR variants
+    (PIZ, tiled, ...) go to OpenCV, which needs ``OPENCV_IO_ENABLE_OPENEXR=1`` before cv2 is imported and a build
+    with OpenEXR; it returns the colour channels only (no names, no ``Z``), so a colour result is taken only when
+    its channels are equal (an amplitude: converted to grey).
     """
-    from tofdenoise.data_modules.exr import ExrError, read_exr_depth
+    from tofdenoise.data_modules.exr import ExrChannelError, ExrError, read_exr_amplitude, read_exr_depth
 
+    if kind not in ("depth", "amplitude"):
+        raise ValueError(f"read_exr: kind must be 'depth' or 'amplitude', got {kind!r}")
     path = Path(path)
     _require_file(path, what)
+    reader = read_exr_depth if kind == "depth" else read_exr_amplitude
     try:
-        return read_exr_depth(path)
+        return reader(path, channel, channel_setting)
+    except ExrChannelError as exc:
+        raise DataFileError(f"{what}: {exc}") from None
     except ExrError as exc:
         own_error = exc
     try:
@@ -140,8 +157,22 @@ def read_exr(path: str | Path, *, what: str = "EXR") -> np.ndarray:
             "OPENCV_IO_ENABLE_OPENEXR=1 set before cv2 is imported and a build with OpenEXR). "
             "Convert the file to .npy (float, mm)."
         )
+    if channel is not None:
+        raise DataFileError(
+            f"{what} file {path}: {own_error}; OpenCV decodes it without channel names, so channel {channel!r} "
+            "cannot be chosen (re-save it as a ZIP-compressed scanline EXR, or convert it to .npy)"
+        )
     if image.ndim == 3:
-        image = image[:, :, 0]
+        colour = image[:, :, :3]
+        if np.all(colour == colour[:, :, :1]):
+            image = colour[:, :, 0]
+        elif kind == "amplitude":
+            image = cv2.cvtColor(colour.astype(np.float32), cv2.COLOR_BGR2GRAY)
+        else:
+            raise DataFileError(
+                f"{what} file {path}: {own_error}; OpenCV decodes its colour channels only, which differ, so none "
+                "of them is known to be the depth (re-save it as a ZIP-compressed scanline EXR, or convert it to .npy)"
+            )
     return image.astype(np.float32, copy=False)
 
 
@@ -152,8 +183,12 @@ def read_array(
     key: str | None = None,
     image_dtypes: tuple[type, ...] = (np.uint8, np.uint16),
     channels: str = "one",
+    exr_kind: str = "depth",
+    exr_channel: str | None = None,
+    channel_setting: str | None = None,
 ) -> np.ndarray:
-    """Read a 2-D map from any supported format (by suffix); returns the stored dtype."""
+    """Read a 2-D map from any supported format (by suffix); returns the stored dtype. An ``.exr`` gives its
+    ``exr_kind`` channel (``read_exr``: "depth" or "amplitude"), or ``exr_channel`` when named."""
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix in IMAGE_SUFFIXES:
@@ -165,7 +200,7 @@ def read_array(
             raise ValueError(f"reading {what} file {path}: a .mat file needs a variable name (key)")
         array = read_mat(path, key, what=what)
     elif suffix == ".exr":
-        array = read_exr(path, what=what)
+        array = read_exr(path, what=what, kind=exr_kind, channel=exr_channel, channel_setting=channel_setting)
     else:
         raise DataFileError(
             f"{what} file {path} has unsupported suffix {suffix!r}; expected one of {', '.join(SUPPORTED_SUFFIXES)}"
@@ -177,7 +212,13 @@ def read_array(
 
 
 def read_depth_mm(
-    path: str | Path, *, what: str = "depth", scale_mm: float = 1.0, key: str | None = None
+    path: str | Path,
+    *,
+    what: str = "depth",
+    scale_mm: float = 1.0,
+    key: str | None = None,
+    exr_channel: str | None = None,
+    channel_setting: str | None = None,
 ) -> np.ndarray:
     """Read a depth map in millimetres as float32; NaN/inf/<=0 are left for the caller's validity mask.
 
@@ -185,7 +226,9 @@ def read_depth_mm(
     8-bit data is rejected whatever the format (an 8-bit PNG, a uint8/int8 ``.npy``/``.npz``/``.mat``): 256 levels
     cannot hold depth in mm (``refuse_8bit_depth``).
     """
-    array = read_array(path, what=what, key=key, image_dtypes=())  # an image's dtype is checked here
+    array = read_array(
+        path, what=what, key=key, image_dtypes=(), exr_channel=exr_channel, channel_setting=channel_setting
+    )  # an image's dtype is checked here
     if array.dtype == np.bool_:
         raise DataFileError(f"{what} file {path} is boolean; expected depth values in mm")
     refuse_8bit_depth(array, path, what)
@@ -209,9 +252,26 @@ def refuse_8bit_depth(array: np.ndarray, path: str | Path, what: str = "depth") 
         )
 
 
-def read_amplitude(path: str | Path, *, what: str = "amplitude", key: str | None = None) -> np.ndarray:
-    """Read an amplitude map (8/16-bit image, float array or EXR) as float32 in its own units."""
-    array = read_array(path, what=what, key=key, image_dtypes=(np.uint8, np.uint16), channels="grey")
+def read_amplitude(
+    path: str | Path,
+    *,
+    what: str = "amplitude",
+    key: str | None = None,
+    exr_channel: str | None = None,
+    channel_setting: str | None = None,
+) -> np.ndarray:
+    """Read an amplitude map (8/16-bit image, float array or EXR) as float32 in its own units. A colour image is
+    converted to grey; an EXR gives its amplitude channel (``exr.amplitude_channels``: never its depth channel)."""
+    array = read_array(
+        path,
+        what=what,
+        key=key,
+        image_dtypes=(np.uint8, np.uint16),
+        channels="grey",
+        exr_kind="amplitude",
+        exr_channel=exr_channel,
+        channel_setting=channel_setting,
+    )
     if array.dtype == np.bool_:
         raise DataFileError(f"{what} file {path} is boolean; expected amplitude values")
     return array.astype(np.float32)

@@ -4,8 +4,11 @@
 [<mask path>]``, paths relative to ``root`` (blank lines and ``#`` comments are skipped).
 
 - depth: 16-bit PNG in mm (0 = invalid), ``.npy``/``.npz`` float in mm, or ``.exr`` float in mm
-  (times ``depth_unit_mm`` if the files use other units, e.g. 1000 for metres);
-- amplitude: 8/16-bit PNG, ``.npy``/``.npz`` or ``.exr``, any units (normalised per image later);
+  (times ``depth_unit_mm`` if the files use other units, e.g. 1000 for metres); an EXR's depth channel is chosen
+  by its name (``exr.depth_channel``: ``Z`` / ``*.Depth.Z`` first) or named by ``depth_channel``;
+- amplitude: 8/16-bit PNG, ``.npy``/``.npz`` or ``.exr``, any units (normalised per image later); an EXR's
+  amplitude channel is chosen by its name (``exr.amplitude_channels``, never a depth channel) or named by
+  ``amplitude_channel``;
 - optional mask: nonzero = valid.
 
 NaN, inf, zero and negative depths are invalid pixels. Depths beyond ``max_valid_mm`` are invalid too. A file whose
@@ -54,6 +57,8 @@ class FolderSource:
         depth_unit_mm: float = 1.0,
         min_valid_mm: float = 0.0,
         max_valid_mm: float = float("inf"),
+        depth_channel: str | None = None,
+        amplitude_channel: str | None = None,
     ):
         if root is None or str(root) == "":
             raise ValueError("the folder source needs its dataset folder: set data.source_kwargs.root=/path/to/folder")
@@ -64,6 +69,8 @@ class FolderSource:
         self.list_path = list_path if list_path.is_absolute() else self.root / list_path
         self.depth_unit_mm = float(depth_unit_mm)
         self.min_valid_mm, self.max_valid_mm = float(min_valid_mm), float(max_valid_mm)
+        self.depth_channel = str(depth_channel) if depth_channel else None
+        self.amplitude_channel = str(amplitude_channel) if amplitude_channel else None
         self._entries: dict[str, tuple[Path, Path, Path | None]] | None = None
 
     @classmethod
@@ -104,8 +111,19 @@ class FolderSource:
 
     def load(self, sample_id: str) -> RawSample:
         depth_path, amplitude_path, mask_path = self.entries()[sample_id]
-        depth = read_depth_mm(depth_path, what="folder depth", scale_mm=self.depth_unit_mm)
-        amplitude = read_amplitude(amplitude_path, what="folder amplitude")
+        depth = read_depth_mm(
+            depth_path,
+            what="folder depth",
+            scale_mm=self.depth_unit_mm,
+            exr_channel=self.depth_channel,
+            channel_setting="data.source_kwargs.depth_channel",
+        )
+        amplitude = read_amplitude(
+            amplitude_path,
+            what="folder amplitude",
+            exr_channel=self.amplitude_channel,
+            channel_setting="data.source_kwargs.amplitude_channel",
+        )
         check_same_shape(
             depth, amplitude, reference_path=depth_path, other_path=amplitude_path, what="folder amplitude"
         )
@@ -140,4 +158,7 @@ class FolderSource:
             "depth_unit_mm": self.depth_unit_mm,
             "min_valid_mm": self.min_valid_mm,
             "max_valid_mm": self.max_valid_mm,
+            # which EXR channels are read (None: chosen by name, exr.depth_channel / exr.amplitude_channels)
+            "depth_channel": self.depth_channel,
+            "amplitude_channel": self.amplitude_channel,
         }
