@@ -12,6 +12,14 @@ Layout (``cache_dir`` = ``data.cache_dir``)::
 The key digest covers the format version, the source description, the calibration fingerprint and the
 signal-mapping settings, so a changed calibration never reuses stale maps (it gets a new folder).
 
+A file-backed source (one with ``files(sample_id)``: folder, flyingthings3d) changes under the same key when a file
+is rewritten. Each of its entries therefore records the stamps of the files it was computed from
+(``file_stamps``: size, mtime, ctime, inode and SHA-256, taken before the files are read) and is used only while
+those files have that content: an entry whose files changed (another size or SHA-256, another set of files) is
+"stale", recomputed and rewritten; one whose files were only touched or copied (stat moved, same SHA-256) is
+rewritten with the new stamps. An entry of such a source without stamps is stale. Entries of a source without
+files (procedural) hold no stamps, as before.
+
 Entries are uncompressed ``.npz`` files written to a unique temporary name and renamed into place
 (``os.replace``), so concurrent DataLoader workers and processes never read a partial file; the last writer
 wins and every version is complete. Each entry also stores its own key digest and sample id. A truncated or
@@ -33,6 +41,7 @@ from typing import Any
 import numpy as np
 
 from tofdenoise.atomic import atomic_write, atomic_write_text
+from tofdenoise.data_modules.file_stamps import file_stamps, stamps_state
 
 FORMAT_VERSION = 1
 MAP_NAMES = ("depth_mm", "signal_e", "sigma_mm", "mask", "amplitude")
@@ -79,6 +88,9 @@ class CacheStats:
     misses: int = 0
     corrupt: int = 0
     corrupt_ids: list[str] = field(default_factory=list)
+    stale: int = 0  # entries recomputed because the files they were computed from changed
+    stale_ids: list[str] = field(default_factory=list)
+    restamped: int = 0  # entries whose files were touched or copied with the same content: stamps rewritten
 
 
 class MapCache:
@@ -101,6 +113,9 @@ class MapCache:
     # ------------------------------------------------------------------ entries
     def read(self, sample_id: str) -> SampleMaps:
         """Read and verify one entry; raises FileNotFoundError (absent) or CacheEntryError (corrupt)."""
+        return self._read(sample_id)[0]
+
+    def _read(self, sample_id: str) -> tuple[SampleMaps, dict[str, Any]]:
         path = self.path(sample_id)
         if not path.is_file():
             raise FileNotFoundError(path)
@@ -120,29 +135,33 @@ class MapCache:
             UnicodeDecodeError,
         ) as exc:
             raise CacheEntryError(f"cache entry {path} is unreadable: {exc}") from exc
-        if meta.get("key") != self.digest or meta.get("sample_id") != sample_id:
+        if not isinstance(meta, dict) or meta.get("key") != self.digest or meta.get("sample_id") != sample_id:
             raise CacheEntryError(f"cache entry {path} belongs to another key or sample")
         shape = tuple(meta.get("shape", ()))
         for name, array in arrays.items():
             if array.shape != shape:
                 raise CacheEntryError(f"cache entry {path}: {name} has shape {array.shape}, expected {shape}")
-        return SampleMaps(
+        maps = SampleMaps(
             depth_mm=arrays["depth_mm"],
             signal_e=arrays["signal_e"],
             sigma_mm=arrays["sigma_mm"],
             mask=arrays["mask"].astype(bool),
             amplitude=arrays["amplitude"],
         )
+        return maps, meta
 
-    def write(self, sample_id: str, maps: SampleMaps) -> Path:
-        meta = json.dumps(
-            {
-                "key": self.digest,
-                "sample_id": sample_id,
-                "shape": list(maps.depth_mm.shape),
-                "format_version": FORMAT_VERSION,
-            }
-        ).encode("utf-8")
+    def write(self, sample_id: str, maps: SampleMaps, stamps: dict[str, Any] | None = None) -> Path:
+        """Write one entry atomically; ``stamps`` (``file_stamps`` of the source files it was computed from) are
+        recorded in its meta (a source without files: None, and the meta is what it always was)."""
+        fields: dict[str, Any] = {
+            "key": self.digest,
+            "sample_id": sample_id,
+            "shape": list(maps.depth_mm.shape),
+            "format_version": FORMAT_VERSION,
+        }
+        if stamps is not None:
+            fields["files"] = stamps
+        meta = json.dumps(fields).encode("utf-8")
         arrays = maps.arrays()
         arrays["mask"] = arrays["mask"].astype(np.uint8)
 
@@ -152,12 +171,30 @@ class MapCache:
 
         return atomic_write(self.path(sample_id), _write, suffix=".npz")
 
-    def get_or_compute(self, sample_id: str, compute: Callable[[], SampleMaps]) -> tuple[SampleMaps, str]:
-        """Return (maps, status) with status "hit", "miss" (computed, written) or "corrupt" (recomputed)."""
+    def get_or_compute(
+        self, sample_id: str, compute: Callable[[], SampleMaps], files: list[Path] | None = None
+    ) -> tuple[SampleMaps, str]:
+        """Return (maps, status) with status "hit", "miss" (computed, written), "corrupt" (recomputed), "stale"
+        (``files`` changed since the entry was computed: recomputed) or "disabled" (computed, not stored).
+        ``files``: the source files the maps are computed from (None for a source without files)."""
+        maps, status, _ = self.get_or_compute_stamped(sample_id, compute, files, stamps_wanted=False)
+        return maps, status
+
+    def get_or_compute_stamped(
+        self,
+        sample_id: str,
+        compute: Callable[[], SampleMaps],
+        files: list[Path] | None = None,
+        *,
+        stamps_wanted: bool = True,
+    ) -> tuple[SampleMaps, str, dict[str, Any] | None]:
+        """``get_or_compute`` and the stamps of ``files`` the returned maps were computed from (None without
+        ``files``; with the cache disabled, taken only when ``stamps_wanted``)."""
         if not self.enabled:
-            return compute(), "disabled"
+            stamps = file_stamps(files) if files is not None and stamps_wanted else None
+            return compute(), "disabled", stamps
         try:
-            maps = self.read(sample_id)
+            maps, meta = self._read(sample_id)
         except FileNotFoundError:
             status = "miss"
             self.stats.misses += 1
@@ -166,11 +203,25 @@ class MapCache:
             self.stats.corrupt += 1
             self.stats.corrupt_ids.append(sample_id)
         else:
-            self.stats.hits += 1
-            return maps, "hit"
+            if files is None:
+                self.stats.hits += 1
+                return maps, "hit", None
+            state, new_stamps = stamps_state(meta.get("files"), files)
+            if state == "fresh":
+                self.stats.hits += 1
+                return maps, "hit", meta["files"]
+            if state == "restamped":
+                self.write(sample_id, maps, new_stamps)
+                self.stats.hits += 1
+                self.stats.restamped += 1
+                return maps, "hit", new_stamps
+            status = "stale"
+            self.stats.stale += 1
+            self.stats.stale_ids.append(sample_id)
+        stamps = file_stamps(files) if files is not None else None  # before the files are read
         maps = compute()
-        self.write(sample_id, maps)
-        return maps, status
+        self.write(sample_id, maps, stamps)
+        return maps, status, stamps
 
     # ------------------------------------------------------------------ small JSON records next to the maps
     def record_path(self, name: str) -> Path:

@@ -18,6 +18,7 @@ from torch.utils.data import DataLoader, Dataset
 from tofdenoise.atomic import atomic_write_text
 from tofdenoise.data_modules.cache import MapCache, canonical_digest
 from tofdenoise.data_modules.datasets import MapProvider, RealCaptures, SyntheticPairs, stable_seed
+from tofdenoise.data_modules.file_stamps import content_digest, stamps_state
 from tofdenoise.data_modules.holes import HoleModel
 from tofdenoise.data_modules.maps import check_signal_route
 from tofdenoise.data_modules.real_captures import build_reference, list_scenes, load_real_scene
@@ -293,15 +294,20 @@ class ToFDataModule(L.LightningDataModule):
         source, described, base = self._open_source()
         split_path, splits = self._load_split(base, source.sample_ids(), described)
         cache, provider = self._map_cache(base, described, source)
-        index = self._sample_index(provider, cache, [i for name in SPLIT_NAMES for i in splits[name]])
+        index, changed = self._sample_index(provider, cache, [i for name in SPLIT_NAMES for i in splits[name]])
         splits, skipped = self._drop_empty(splits, index)
         if not splits["train"]:
             raise ValueError(f"the {source.name} source has no usable training sample")
         self._check_crop(splits["train"], index)
-        noise_model, scale_record = self._noise(self.noise_name, self.noise_kwargs, provider, cache, splits["train"])
-        eval_model, _ = self._noise(self.eval_noise_name, {}, provider, cache, splits["train"])
+        train = _TrainingSet(splits["train"], _files_digest(index, splits["train"]))
+        noise_model, scale_record = self._noise(self.noise_name, self.noise_kwargs, provider, cache, train)
+        eval_model, _ = self._noise(self.eval_noise_name, {}, provider, cache, train)
         real_scenes = self._real_scenes(skipped) if self.real_dir else []
-        sim_cache = self._simulated_captures(base, provider, cache, splits["test"]) if self.simulated_settings else None
+        sim_cache = (
+            self._simulated_captures(base, provider, cache, splits["test"], changed)
+            if self.simulated_settings
+            else None
+        )
         return PreparedData(
             source=source,
             split_path=split_path,
@@ -381,15 +387,15 @@ class ToFDataModule(L.LightningDataModule):
                 f"{shape[0]}x{shape[1]}; lower data.crop_size (or set it to null)"
             )
 
-    def _noise(self, name: str, kwargs: dict[str, Any], provider: MapProvider, cache: MapCache, train_ids: list[str]):
+    def _noise(self, name: str, kwargs: dict[str, Any], provider: MapProvider, cache: MapCache, train: _TrainingSet):
         """A noise model and its record: a Gaussian baseline is variance-matched over the training pixels
         (``match_variance``), the blind model gets its sigma range from them (both records stored next to the
         maps); any other model has none."""
         if name == BLIND_NOISE:
-            return self._blind_range(kwargs, provider, cache, train_ids)
+            return self._blind_range(kwargs, provider, cache, train)
         noise_model = build_noise_model(name, self.calib, **kwargs)
         if name in GAUSSIAN_BASELINES and self.hparams.match_variance:
-            return self._match_variance(name, kwargs, noise_model, provider, cache, train_ids)
+            return self._match_variance(name, kwargs, noise_model, provider, cache, train)
         return noise_model, None
 
     def training_pixels(self, sample_id: str, maps: Any) -> np.ndarray:
@@ -421,17 +427,22 @@ class ToFDataModule(L.LightningDataModule):
         private = torch.Generator().manual_seed(0)
         yield from DataLoader(dataset, batch_size=None, num_workers=workers, collate_fn=_unchanged, generator=private)
 
-    def _pixels_key(self, cache: MapCache, train_ids: list[str]) -> dict[str, Any]:
-        """What the training pixels depend on: the maps, the training ids, the rule, the hole model and the seed."""
-        return {
+    def _pixels_key(self, cache: MapCache, train: _TrainingSet) -> dict[str, Any]:
+        """What the training pixels depend on: the maps, the training ids, the rule, the hole model and the seed;
+        for a file-backed source also the content of the training samples' files (``files``: a changed file gives
+        another key; a source without files keeps the key it always had)."""
+        key = {
             "maps": cache.digest,
-            "train_ids": ids_digest(train_ids),
+            "train_ids": ids_digest(train.ids),
             "pixels": TRAINING_PIXELS_RULE,
             "holes": None if self.hole_model is None else self.hole_model.to_dict(),
             "seed": int(self.hparams.seed),
         }
+        if train.files_digest is not None:
+            key["files"] = train.files_digest
+        return key
 
-    def _blind_range(self, kwargs: dict[str, Any], provider: MapProvider, cache: MapCache, train_ids: list[str]):
+    def _blind_range(self, kwargs: dict[str, Any], provider: MapProvider, cache: MapCache, train: _TrainingSet):
         """The blind model with its sigma range: given (``sigma_lo_mm`` / ``sigma_hi_mm``), or the percentiles of
         sigma_D over the training pixels (computed once, stored next to the maps)."""
         lo_p, hi_p = blind_percentiles(kwargs)
@@ -439,12 +450,12 @@ class ToFDataModule(L.LightningDataModule):
         rest = {k: v for k, v in kwargs.items() if k not in ("percentiles", "sigma_lo_mm", "sigma_hi_mm")}
         if len(given) == 2:
             return build_noise_model(BLIND_NOISE, self.calib, **given, **rest), None
-        key = {**self._pixels_key(cache, train_ids), "percentiles": [lo_p, hi_p]}
+        key = {**self._pixels_key(cache, train), "percentiles": [lo_p, hi_p]}
         name = f"blind_range_{canonical_digest(key)[:12]}.json"
         record = cache.load_record(name, expected_key=key)
         if record is None:
             values = []
-            for _, sigma_mm, pixels in self._training_samples(provider, train_ids):
+            for _, sigma_mm, pixels in self._training_samples(provider, train.ids):
                 sigma = sigma_mm[pixels].astype(np.float64)
                 values.append(sigma[:: max(1, -(-sigma.size // BLIND_PIXELS_PER_SAMPLE))])
             pooled = np.concatenate(values) if values else np.zeros(0)
@@ -456,7 +467,7 @@ class ToFDataModule(L.LightningDataModule):
                 "sigma_hi_mm": hi,
                 "percentiles": [lo_p, hi_p],
                 "pixels": TRAINING_PIXELS_RULE,
-                "num_train_samples": len(train_ids),
+                "num_train_samples": len(train.ids),
                 "note": "per-image sigma of the blind model: log-uniform between these percentiles of sigma_D",
             }
             cache.save_record(name, record, key=key)
@@ -465,18 +476,42 @@ class ToFDataModule(L.LightningDataModule):
         model = build_noise_model(BLIND_NOISE, self.calib, sigma_lo_mm=lo, sigma_hi_mm=hi, **rest)
         return model, record
 
-    def _sample_index(self, provider: MapProvider, cache: MapCache, ids: list[str]) -> dict[str, dict]:
-        """Valid-pixel count and shape per sample (computing, and caching, any maps not seen yet)."""
+    def _sample_index(
+        self, provider: MapProvider, cache: MapCache, ids: list[str]
+    ) -> tuple[dict[str, dict], list[str]]:
+        """Valid-pixel count and shape per sample (computing, and caching, any maps not seen yet), and the samples
+        computed again because their files changed. For a file-backed source each entry records the stamps of the
+        sample's files (``file_stamps``); an entry whose files changed, or that records none, is computed again
+        (with its cached maps), with one warning that names how many; with ``use_cache=False`` too."""
         record = cache.load_record("index.json") or {}
         index: dict[str, dict] = dict(record.get("samples", {}))
+        changed, restamped = [], False
+        for sample_id in ids:
+            files = provider.files(sample_id)
+            if files is None or sample_id not in index:
+                continue
+            state, stamps = stamps_state(index[sample_id].get("files"), files)
+            if state == "changed":
+                changed.append(sample_id)
+                del index[sample_id]
+            elif state == "restamped":
+                index[sample_id] = {**index[sample_id], "files": stamps}
+                restamped = True
         todo = [i for i in ids if i not in index]
         workers = int(self.hparams.num_workers) if len(todo) > 1 else 0
         # computed in DataLoader workers when data.num_workers > 0 (each writes its own cache entries atomically)
         for sample_id, entry in DataLoader(_IndexEntries(provider, todo), batch_size=None, num_workers=workers):
             index[sample_id] = entry
-        if todo:
+        if todo or restamped:
             cache.save_record("index.json", {"samples": index})
-        return index
+        if changed:
+            warnings.warn(
+                f"the {provider.source.name} source: {len(changed)} sample(s) computed again because their files "
+                f"changed since their maps were cached (or the cache recorded no file stamps): "
+                f"{', '.join(changed[:5])}{' ...' if len(changed) > 5 else ''}",
+                stacklevel=3,
+            )
+        return index, changed
 
     def _match_variance(
         self,
@@ -485,13 +520,13 @@ class ToFDataModule(L.LightningDataModule):
         noise_model,
         provider: MapProvider,
         cache: MapCache,
-        train_ids: list[str],
+        train: _TrainingSet,
     ):
         crop = None if self.crop is None else list(self.crop)
         key = {
             "noise": noise_name,
             "noise_kwargs": noise_kwargs,
-            **self._pixels_key(cache, train_ids),
+            **self._pixels_key(cache, train),
             "weights": VARIANCE_MATCH_WEIGHTS,
             "crop": crop,
         }
@@ -500,7 +535,7 @@ class ToFDataModule(L.LightningDataModule):
         if record is None:
             samples = (
                 (depth_mm, sigma_mm, pixels, crop_coverage(*np.shape(depth_mm), self.crop))
-                for depth_mm, sigma_mm, pixels in self._training_samples(provider, train_ids)
+                for depth_mm, sigma_mm, pixels in self._training_samples(provider, train.ids)
             )
             scale = float(variance_matching_scale(noise_model, samples))
             record = {
@@ -509,7 +544,7 @@ class ToFDataModule(L.LightningDataModule):
                 "pixels": TRAINING_PIXELS_RULE,
                 "weights": VARIANCE_MATCH_WEIGHTS,
                 "crop": crop,
-                "num_train_samples": len(train_ids),
+                "num_train_samples": len(train.ids),
                 "note": "std multiplier giving the hetero mean perturbation variance over the training pixels ("
                 + TRAINING_PIXELS_RULE_TEXT
                 + "), each weighted by the share of random training crops that cover it",
@@ -521,12 +556,16 @@ class ToFDataModule(L.LightningDataModule):
         log.info("variance-matched %s noise: scale %.6g", noise_name, record["scale"])
         return noise_model.with_scale(float(record["scale"])), record
 
-    def _simulated_captures(self, base: Path, provider: MapProvider, cache: MapCache, test_ids: list[str]) -> MapCache:
-        """The simulator-noised test split's captures, computed for every test sample not stored yet."""
+    def _simulated_captures(
+        self, base: Path, provider: MapProvider, cache: MapCache, test_ids: list[str], changed: list[str]
+    ) -> MapCache:
+        """The simulator-noised test split's captures, computed for every test sample not stored yet or whose files
+        changed (``changed``; a capture whose files changed later is recomputed when it is read: its stamps)."""
         hp = self.hparams
         sim = simulated_cache(base, self.simulated_settings, cache.digest, hp.seed, self.calib, hp.use_cache)
         dataset = self._simulated_dataset(provider, sim, test_ids)
-        todo = [i for i in test_ids if not sim.path(i).is_file()] if hp.use_cache else []
+        recompute = set(changed)
+        todo = [i for i in test_ids if i in recompute or not sim.path(i).is_file()] if hp.use_cache else []
         workers = int(hp.num_workers) if len(todo) > 1 else 0
         for _ in DataLoader(_Captures(dataset, todo), batch_size=None, num_workers=workers):
             pass
@@ -669,8 +708,28 @@ class _IndexEntries(Dataset):
         return len(self.sample_ids)
 
     def __getitem__(self, i: int) -> tuple[str, dict]:
-        maps, _ = self.provider.get(self.sample_ids[i])
-        return self.sample_ids[i], {"num_valid": maps.num_valid, "shape": list(maps.depth_mm.shape)}
+        maps, _, stamps = self.provider.get_stamped(self.sample_ids[i])
+        entry: dict[str, Any] = {"num_valid": maps.num_valid, "shape": list(maps.depth_mm.shape)}
+        if stamps is not None:  # a file-backed source: the files these counts were computed from
+            entry["files"] = stamps
+        return self.sample_ids[i], entry
+
+
+@dataclass(frozen=True)
+class _TrainingSet:
+    """The training split's ids and, for a file-backed source, a digest of their files' content (None without
+    files): what a variance scale or a blind range is keyed on beside the maps' key."""
+
+    ids: list[str]
+    files_digest: str | None
+
+
+def _files_digest(index: dict[str, dict], ids: list[str]) -> str | None:
+    """Digest of the size and SHA-256 of every file of ``ids`` as ``index`` records them (None when no entry records
+    files: a source without files keeps its keys)."""
+    if not any("files" in index[i] for i in ids):
+        return None
+    return canonical_digest([[i, content_digest(index[i].get("files", {}))] for i in ids])
 
 
 class _TrainingPixels(Dataset):

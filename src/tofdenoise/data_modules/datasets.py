@@ -54,8 +54,18 @@ class MapProvider:
             raw, self.calib, self.lower_percentile, self.upper_percentile, self.signal_route, cos_field
         )
 
+    def files(self, sample_id: str) -> list | None:
+        """The files the sample is read from (the source's ``files``; None for a source without files): their
+        stamps key its cache entry."""
+        files = getattr(self.source, "files", None)
+        return None if files is None else list(files(sample_id))
+
     def get(self, sample_id: str) -> tuple[SampleMaps, str]:
-        return self.cache.get_or_compute(sample_id, lambda: self.compute(sample_id))
+        return self.cache.get_or_compute(sample_id, lambda: self.compute(sample_id), self.files(sample_id))
+
+    def get_stamped(self, sample_id: str) -> tuple[SampleMaps, str, dict | None]:
+        """``get`` and the stamps of the files the maps were computed from (``MapCache.get_or_compute_stamped``)."""
+        return self.cache.get_or_compute_stamped(sample_id, lambda: self.compute(sample_id), self.files(sample_id))
 
     def maps(self, sample_id: str) -> SampleMaps:
         return self.get(sample_id)[0]

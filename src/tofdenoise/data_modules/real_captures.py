@@ -17,11 +17,11 @@ fewer than ``min_count`` such frames is invalid (NaN). It is cached next to the 
 
 The cache is used while every ``hiexp/`` file has the content it was built from: ``reference.json`` records each
 file's size and SHA-256 (nothing that depends on when or where the file was written, so that a set simulated twice
-is the same byte for byte), and a file is unchanged when its size and digest match. A process hashes a file once
-for as long as its size, mtime, ctime and inode stay the same (a write, a copy or a ``touch`` moves the ctime,
-which ``cp -p`` and ``rsync -a`` cannot set back): 0.04 s for a scene of 100 frames of 640 x 576 (31 MB of PNG) on
-one core, where building its reference takes 0.8 s. Frames rewritten with other depths but their old mtimes are
-thus seen, which the mtime test before 2026-11-29 missed.
+is the same byte for byte), and a file is unchanged when its size and digest match. A process hashes a file once for
+as long as its size, mtime, ctime and inode stay the same (``file_stamps``; a write, a copy or a ``touch`` moves the
+ctime, which ``cp -p`` and ``rsync -a`` cannot set back): 0.04 s for a scene of 100 frames of 640 x 576 (31 MB of
+PNG) on one core, where building its reference takes 0.8 s. Frames rewritten with other depths but their old mtimes
+are thus seen, which the mtime test before 2026-11-29 missed.
 
 One cache serves every ``min_count``: the mean at a pixel does not depend on it, so a reference at ``min_count``
 m is the cached one (built at c <= m) with the pixels of fewer than m frames set invalid, bit for bit what a build
@@ -44,6 +44,7 @@ from typing import Any
 import numpy as np
 
 from tofdenoise.atomic import atomic_group, atomic_write_bytes, atomic_write_text
+from tofdenoise.data_modules.file_stamps import size_and_digest
 from tofdenoise.data_modules.io import DataFileError, check_same_shape, read_image, read_png_uint16
 from tofdenoise.physics.uncertainty import amplitude_to_signal_e, sigma_depth_mm
 
@@ -147,35 +148,9 @@ def accumulate_reference(frames: list[tuple[np.ndarray, np.ndarray]], min_count:
     return mean.astype(np.float32), np.minimum(count, np.iinfo(np.uint16).max).astype(np.uint16)
 
 
-def file_sha256(path: Path) -> str:
-    """The SHA-256 of a file's bytes (hex)."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
-#: SHA-256 of the files this process has hashed, by path, while their (size, mtime, ctime, inode) stay the same
-_DIGESTS: dict[str, tuple[tuple[int, int, int, int], str]] = {}
-
-
-def _digest(path: Path) -> tuple[int, str]:
-    """(size, SHA-256) of a file, hashed again only when its size, mtime, ctime or inode moved."""
-    st = path.stat()
-    key = (st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino)
-    known = _DIGESTS.get(str(path))
-    if known is not None and known[0] == key:
-        return st.st_size, known[1]
-    digest = file_sha256(path)
-    if len(_DIGESTS) > 1_000_000:
-        _DIGESTS.clear()
-    _DIGESTS[str(path)] = (key, digest)
-    return st.st_size, digest
-
-
 def _file_record(path: Path) -> dict[str, Any]:
-    size, digest = _digest(path)
+    """A frame's size and SHA-256 (hashed again only when its size, mtime, ctime or inode moved: ``file_stamps``)."""
+    size, digest = size_and_digest(path)
     return {"size": size, "sha256": digest}
 
 

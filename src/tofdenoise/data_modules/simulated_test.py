@@ -214,7 +214,8 @@ class SimulatedCaptures(Dataset):
             fine = _fine_signal(self.provider.source, sample_id, factor, camera, route, self.percentiles)
             return simulate_test_capture(maps, camera, self.generator(sample_id), fine, factor if fine else 1)
 
-        return self.cache.get_or_compute(sample_id, compute)[0]
+        # stamped with the sample's files (a file-backed source): a changed file recomputes the capture too
+        return self.cache.get_or_compute(sample_id, compute, self.provider.files(sample_id))[0]
 
     def __getitem__(self, index: int) -> dict[str, Any]:
         sample_id = self.sample_ids[index]

@@ -77,6 +77,11 @@ class DataSource(Protocol):
     def describe(self) -> dict[str, Any]:
         """Plain values that determine the samples' content (part of the cache key)."""
 
+    # optional, for a source read from files (folder, flyingthings3d; the procedural source has none):
+    # def files(self, sample_id: str) -> list[Path]: the files ``load(sample_id)`` reads. Their stamps (size, mtime,
+    # ctime, inode, SHA-256: ``file_stamps``) are recorded with the sample's cached maps and index entry, and a
+    # changed file recomputes them (``cache.MapCache``).
+
 
 DATA_SOURCES: Registry[DataSource] = Registry("data source")
 

@@ -139,6 +139,10 @@ class FlyingThings3DSource:
             "amplitude": self.root / "nToF" / f"{token}_noisy_intensity.png",
         }
 
+    def files(self, sample_id: str) -> list[Path]:
+        """The depth, confidence and amplitude file of a sample: their stamps key its cached maps."""
+        return list(self.paths(sample_id).values())
+
     def check(self) -> None:
         """Every listed token must have its three files (reported before training, with the first misses)."""
         missing = [str(p) for token in self.sample_ids() for p in self.paths(token).values() if not p.is_file()]

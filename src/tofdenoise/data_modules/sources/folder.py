@@ -21,6 +21,8 @@ Settings (``data.source_kwargs``): every ``__init__`` argument, e.g.
 
 from __future__ import annotations
 
+import hashlib
+import json
 import math
 from pathlib import Path
 from typing import Any
@@ -72,6 +74,7 @@ class FolderSource:
         self.depth_channel = str(depth_channel) if depth_channel else None
         self.amplitude_channel = str(amplitude_channel) if amplitude_channel else None
         self._entries: dict[str, tuple[Path, Path, Path | None]] | None = None
+        self._rows: list[list[str]] = []  # the list's entries as written (list_digest)
 
     @classmethod
     def config_keys(cls) -> list[str]:
@@ -86,6 +89,7 @@ class FolderSource:
     def entries(self) -> dict[str, tuple[Path, Path, Path | None]]:
         if self._entries is None:
             entries: dict[str, tuple[Path, Path, Path | None]] = {}
+            rows: list[list[str]] = []
             for number, line in enumerate(read_list_file(self.list_path, what="folder list file"), start=1):
                 parts = line.split()
                 if len(parts) not in (2, 3):
@@ -99,11 +103,21 @@ class FolderSource:
                 if sample_id in entries:
                     raise ValueError(f"folder list file {self.list_path}: depth file {parts[0]} listed twice")
                 entries[sample_id] = (depth, amplitude, mask)
-            self._entries = entries
+                rows.append(parts)
+            self._entries, self._rows = entries, rows
         return self._entries
 
     def sample_ids(self) -> list[str]:
         return list(self.entries())
+
+    def files(self, sample_id: str) -> list[Path]:
+        """The depth, amplitude and (if listed) mask file of a sample: their stamps key its cached maps."""
+        return [p for p in self.entries()[sample_id] if p is not None]
+
+    def list_digest(self) -> str:
+        """SHA-256 of the list's entries as parsed (which files each sample pairs; comments and spacing aside)."""
+        self.entries()
+        return hashlib.sha256(json.dumps(self._rows).encode("utf-8")).hexdigest()
 
     def check(self) -> None:
         missing = [str(p) for trio in self.entries().values() for p in trio if p is not None and not p.is_file()]
@@ -155,6 +169,8 @@ class FolderSource:
             "source": self.name,
             "root": str(self.root.resolve()),
             "list_file": str(self.list_path.resolve()),
+            # the list's content: a re-paired amplitude or an added mask column is another description (and cache)
+            "list_entries_sha256": self.list_digest(),
             "depth_unit_mm": self.depth_unit_mm,
             "min_valid_mm": self.min_valid_mm,
             "max_valid_mm": self.max_valid_mm,
