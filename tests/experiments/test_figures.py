@@ -189,9 +189,34 @@ def test_committed_figures_show_the_committed_records():
     results = REPO_ROOT / "docs" / "results"
     # the new world's figures are committed once their runs exist (docs/results/discussion.md); every committed one
     # is checked (the end-to-end test above renders and checks one from a tiny run whatever is committed)
+    # a column whose run trained again after the figure was drawn is not compared, and the page says it is out of
+    # date (the figure needs every column's checkpoint to be drawn again)
+    from tofdenoise.experiments.figures import stale_columns
+
+    page = (REPO_ROOT / "docs" / "results.md").read_text()
     figures = sorted(results.glob("*/fig[78]/figure.json"))
     for path in figures:
         record = json.loads(path.read_text())
         profile_dir = path.parent.parent
         assert list(record["runs"]) == record["columns"] and len(record["scenes"]) == FIGURES[record["figure"]].scenes
-        check_against_records(record, {label: profile_dir / name for label, name in record["runs"].items()})
+        run_dirs = {label: profile_dir / name for label, name in record["runs"].items()}
+        stale = stale_columns(record, run_dirs)
+        for label in stale:
+            assert f"**Out of date:** {label} (`{record['runs'][label]}`)" in page
+        assert len(stale) < len(run_dirs)  # a figure all of whose runs trained again is drawn again
+        check_against_records(record, run_dirs, skip=stale)
+
+
+def test_a_column_whose_run_trained_again_after_the_figure_is_stale(tmp_path):
+    """A run trained again (its run_info ``started`` after the figure's ``provenance.written``) no longer holds the
+    predictions the figure shows: that column is stale; a run trained before the figure, or without a readable
+    run_info.json, is not."""
+    from tofdenoise.experiments.figures import stale_columns
+
+    runs = {"A": tmp_path / "a", "B": tmp_path / "b", "C": tmp_path / "c"}
+    for label, started in (("A", "2026-11-28T10:00:00+0000"), ("B", "2026-11-29T02:26:00+0000")):
+        runs[label].mkdir()
+        (runs[label] / "run_info.json").write_text(json.dumps({"started": started}))
+    record = {"provenance": {"written": "2026-11-28T16:31:17+0000"}}
+    assert stale_columns(record, runs) == ["B"]
+    assert stale_columns({"provenance": None}, runs) == []

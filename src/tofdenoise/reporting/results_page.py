@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from tofdenoise.experiments.dynrange import Gain, gains
-from tofdenoise.experiments.figures import FIGURES
+from tofdenoise.experiments.figures import FIGURES, stale_columns
 from tofdenoise.experiments.schedule import CURVES_FIGURE, SHORT_EPOCHS, gap_table, schedule_curves
 from tofdenoise.experiments.tables import (
     CLAIMS,
@@ -793,6 +793,15 @@ def _qualitative_section(profile_dir: Path, key: str) -> list[str]:
     for scene in data["scenes"]:
         values = " | ".join(format_number(scene["mae_mm"][c], 2) for c in columns)
         lines.append(f"| {scene['name']} (index {scene['index']}) | {values} |")
+    stale = stale_columns(data, {label: profile_dir / name for label, name in data["runs"].items()})
+    if stale:
+        named = ", ".join(f"{label} (`{data['runs'][label]}`)" for label in stale)
+        lines += [
+            "",
+            f"**Out of date:** {named} trained again after this figure was drawn; the figure shows the earlier "
+            "training's predictions, which that run's record no longer holds (the tables score the new training). "
+            f"Drawn again by `{target_of_key(key).make_command()}` once every column's checkpoint is at hand.",
+        ]
     if (profile_dir / key / "figure.png").is_file():
         lines += ["", f"![{data['title']}: {profile_dir.name} profile](results/{profile_dir.name}/{key}/figure.png)"]
     lines.append("")
