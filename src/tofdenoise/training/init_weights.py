@@ -20,7 +20,6 @@ is refused the same way: its weights expect another input.
 
 from __future__ import annotations
 
-import hashlib
 import os
 from collections.abc import Mapping
 from pathlib import Path
@@ -29,6 +28,7 @@ from typing import Any
 import torch
 from torch import nn
 
+from tofdenoise.data_modules.file_stamps import file_sha256
 from tofdenoise.training.legacy_hparams import upgrade_hparams
 
 __all__ = ["InitWeightsError", "load_init_weights", "read_init_state", "file_sha256", "INIT_RECORD_KEY"]
@@ -43,14 +43,6 @@ _SHOW = 3
 
 class InitWeightsError(ValueError):
     """``model.init_weights`` names a file that cannot initialise this model (message names the file)."""
-
-
-def file_sha256(path: str | os.PathLike[str]) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def _first_line(exc: BaseException) -> str:
